@@ -1,0 +1,31 @@
+# Everything a fresh machine needs is installed from here (Python 3.11 venv at .venv/).
+PYTHON ?= python3.11
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: setup test test-fast demo bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q -e '.[test]'
+	touch $(STAMP)
+
+# The README's test command; CI runs exactly this.
+test: setup
+	$(BIN)/python -m pytest -n 2 -q
+
+test-fast: setup
+	$(BIN)/python -m pytest -n 2 -q -m "not slow"
+
+demo: setup
+	$(BIN)/mscal demo
+
+bench: setup
+	$(BIN)/python bench/bench_calibrate.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -1,0 +1,1 @@
+"""Prefect flows: wiring only, each task one pipeline call (issue 4)."""

@@ -1,0 +1,49 @@
+"""The one exception hierarchy of mscal.
+
+Every message says what is wrong and how to fix it, and names the file when a file is at
+fault. The command line prints ``str(error)`` on one line and exits non-zero; it never shows
+a traceback for an :class:`MscalError`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class MscalError(Exception):
+    """Base class of every error mscal raises on purpose."""
+
+    exit_code = 2
+
+    def __init__(self, message: str, *, path: str | Path | None = None, hint: str | None = None):
+        self.path = None if path is None else str(path)
+        self.hint = hint
+        self.reason = message
+        text = message if self.path is None else f"{self.path}: {message}"
+        if hint:
+            text = f"{text} ({hint})"
+        super().__init__(text)
+
+
+class InputError(MscalError):
+    """Bad user input: a file, folder, option or value that cannot be used as given."""
+
+
+class CatalogError(InputError):
+    """A catalog entry (camera, target, index) is missing or invalid."""
+
+
+class SessionError(InputError):
+    """A session folder or its session.yaml is missing or invalid."""
+
+
+class FrameError(InputError):
+    """One frame cannot be used: missing, unreadable, truncated, no exposure time."""
+
+
+class FitError(MscalError):
+    """A calibration fit cannot proceed on the data given (e.g. too few exposures)."""
+
+
+class CalibrationStoreError(InputError):
+    """A calibration store is missing, incomplete or does not match the camera."""

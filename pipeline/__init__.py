@@ -1,0 +1,1 @@
+"""pipeline: catalogs, session folders, stores and the command line; I/O lives here."""
