@@ -1,0 +1,136 @@
+"""Every catalog file loads, validates, and says what it must; bad entries are rejected."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from mscal_core.errors import CatalogError
+from pipeline import catalog
+
+ROOT = catalog.CATALOG_ROOT
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "cameras").glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_camera_file_loads(path: Path) -> None:
+    cam = catalog.load_camera(path.stem)
+    assert cam.name == path.stem
+    assert cam.n_bands >= 1
+    for role, wl in cam.index_bands.items():
+        assert abs(cam.bands[cam.band_for_wavelength(wl)].wavelength_nm - wl) <= 10
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "targets").glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_target_file_loads(path: Path) -> None:
+    t = catalog.load_target(path.stem)
+    rho = t.reflectance.at(np.array([450.0, 650.0, 850.0]))
+    assert np.all((rho > 0) & (rho <= 1))
+
+
+@pytest.mark.parametrize("path", sorted((ROOT / "indices").glob("*.yaml")), ids=lambda p: p.stem)
+def test_every_index_file_loads_and_evaluates(path: Path) -> None:
+    idx = catalog.load_index(path.stem)
+    vals = {k: np.array([0.1, 0.5, 0.0]) for k in idx.inputs}
+    vals["nir"] = np.array([0.5, 0.5, 0.0])
+    out = idx.evaluate(vals)
+    assert out.dtype == np.float32
+    assert np.isnan(out[2])  # 0/0 is NaN, never inf
+
+
+def test_ximea_matches_spec() -> None:
+    cam = catalog.load_camera("ximea-mq022hg-sm5x5-nir")
+    assert cam.sensor == (1088, 2048)
+    assert cam.bit_depth == 10 and cam.dn_max == 1023
+    assert cam.layout.kind == "mosaic"
+    assert cam.layout.pattern == (5, 5) and cam.layout.origin == (0, 0) and cam.layout.grid == (217, 409)
+    spec = [
+        [615, 623, 608, 790, 686],
+        [816, 828, 803, 791, 700],
+        [765, 778, 752, 739, 714],
+        [653, 662, 645, 636, 678],
+        [867, 864, 857, 845, 670],
+    ]
+    wl = cam.wavelengths.reshape(5, 5)
+    np.testing.assert_array_equal(wl, np.array(spec, dtype=float))
+    assert cam.bands[cam.band_for_wavelength(670)].mosaic == (4, 4)
+    assert cam.bands[cam.band_for_wavelength(803)].mosaic == (1, 2)
+    assert cam.index_bands["red"] == 670 and cam.index_bands["nir"] == 803
+    assert len(cam.export_bands) <= 8
+
+
+def test_generic_rgb8() -> None:
+    cam = catalog.load_camera("generic-rgb8")
+    assert cam.bit_depth == 8 and cam.layout.kind == "multichannel" and cam.layout.channels == 3
+    assert [b.channel for b in cam.bands] == [0, 1, 2]
+    assert cam.wavelengths[0] > cam.wavelengths[1] > cam.wavelengths[2]  # R, G, B
+
+
+def test_ndvi_value() -> None:
+    ndvi = catalog.load_index("ndvi")
+    out = ndvi.evaluate({"red": np.array([0.05]), "nir": np.array([0.45])})
+    assert out[0] == pytest.approx(0.8, abs=1e-6)
+
+
+def test_target_table_interpolates() -> None:
+    t = catalog.load_target("micasense-rp02-1603036-sc")
+    assert t.reflectance.at(np.array([668.0]))[0] == pytest.approx(0.68)
+    assert t.reflectance.at(np.array([840.0]))[0] == pytest.approx(0.61)
+
+
+def _write_camera(tmp_path: Path, data: dict) -> Path:
+    d = tmp_path / "cameras"
+    d.mkdir(exist_ok=True)
+    p = d / f"{data['name']}.yaml"
+    p.write_text(yaml.safe_dump(data))
+    return p
+
+
+def _base_camera() -> dict:
+    return yaml.safe_load((ROOT / "cameras" / "generic-rgb8.yaml").read_text()) | {"name": "cam-x"}
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda d: d.update(colour="blue"), "unknown key(s) colour"),
+        (lambda d: d["bands"][0].update(wavelenght_nm=1), "unknown key(s) wavelenght_nm"),
+        (lambda d: d.update(bit_depth=33), "bit_depth"),
+        (lambda d: d["layout"].update(kind="hexagon"), "layout.kind"),
+        (lambda d: d.pop("bands"), "missing key(s) bands"),
+        (lambda d: d["bands"][1].update(channel=0), "one band per channel"),
+        (lambda d: d.update(export_bands=["uv"]), "unknown band(s) uv"),
+    ],
+)
+def test_bad_camera_rejected_naming_file(tmp_path, monkeypatch, mutate, message) -> None:
+    data = _base_camera()
+    mutate(data)
+    p = _write_camera(tmp_path, data)
+    monkeypatch.setenv("MSCAL_CATALOG_PATH", str(tmp_path))
+    catalog.load_camera.cache_clear()
+    try:
+        with pytest.raises(CatalogError) as err:
+            catalog.load_camera("cam-x")
+    finally:
+        catalog.load_camera.cache_clear()
+    assert message in str(err.value)
+    assert str(p) in str(err.value)
+
+
+def test_unknown_camera_lists_known() -> None:
+    with pytest.raises(CatalogError, match="unknown camera 'nope'.*ximea-mq022hg-sm5x5-nir"):
+        catalog.load_camera("nope")
+
+
+def test_index_expression_is_sandboxed(tmp_path, monkeypatch) -> None:
+    (tmp_path / "indices").mkdir()
+    (tmp_path / "indices" / "evil.yaml").write_text(
+        "name: evil\ndescription: x\nexpression: __import__('os').system('true')\n"
+    )
+    monkeypatch.setenv("MSCAL_CATALOG_PATH", str(tmp_path))
+    catalog.load_index.cache_clear()
+    try:
+        with pytest.raises(CatalogError, match="uses Attribute, Call"):
+            catalog.load_index("evil")
+    finally:
+        catalog.load_index.cache_clear()
