@@ -1,0 +1,444 @@
+"""Session folders (SPEC.md): session.yaml, frame tables and frame files.
+
+Reading is strict and names the file at fault: a session that cannot be trusted stops here
+with a one-line reason, before any fit runs.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+from dataclasses import dataclass, replace
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from mscal_core.errors import FrameError, InputError, MscalError, SessionError
+from mscal_core.geometry import Intrinsics
+from mscal_core.mosaic import demosaic
+
+from .catalog import Camera, ReflectanceSpec, check_keys, load_camera, parse_reflectance
+
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png")
+FRAMES_CSV = "frames.csv"
+
+
+# --------------------------------------------------------------------------- session.yaml
+
+
+@dataclass(frozen=True)
+class MarkerSpec:
+    dictionary: str
+    id: int
+    size_m: float
+    border_m: float  # white paper around the black square, excluded from reflector pixels
+
+
+@dataclass(frozen=True)
+class ReflectorSpec:
+    reflectance: ReflectanceSpec
+    size_m: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Session:
+    root: Path
+    camera: Camera
+    intrinsics: Intrinsics
+    reflector: ReflectorSpec
+    marker: MarkerSpec
+
+    @property
+    def response_dir(self) -> Path:
+        return self.root / "response"
+
+    @property
+    def vignetting_dir(self) -> Path:
+        return self.root / "vignetting"
+
+    @property
+    def reflector_dir(self) -> Path:
+        return self.root / "reflector"
+
+    def flight_dirs(self) -> list[Path]:
+        d = self.root / "flights"
+        return sorted(p for p in d.iterdir() if p.is_dir()) if d.is_dir() else []
+
+
+def _number(value: Any, path: Path, where: str, *, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise SessionError(f"{where} must be a number, got {value!r}", path=path)
+    if positive and value <= 0:
+        raise SessionError(f"{where} must be positive, got {value!r}", path=path)
+    return float(value)
+
+
+def parse_intrinsics(data: Any, path: Path) -> Intrinsics:
+    if not isinstance(data, dict):
+        raise SessionError("intrinsics must be a mapping {fx, fy, cx, cy, dist}", path=path)
+    check_keys(data, {"fx", "fy", "cx", "cy"}, {"dist"}, path, "intrinsics")
+    dist = data.get("dist", [0, 0, 0, 0, 0])
+    if not isinstance(dist, list) or len(dist) not in (4, 5, 8):
+        raise SessionError("intrinsics.dist must be [k1, k2, p1, p2, k3] (OpenCV order)", path=path)
+    d = [_number(v, path, "intrinsics.dist") for v in dist] + [0.0] * (5 - len(dist))
+    return Intrinsics(
+        fx=_number(data["fx"], path, "intrinsics.fx", positive=True),
+        fy=_number(data["fy"], path, "intrinsics.fy", positive=True),
+        cx=_number(data["cx"], path, "intrinsics.cx"),
+        cy=_number(data["cy"], path, "intrinsics.cy"),
+        dist=tuple(d[:5]) if len(d) <= 5 else tuple(d),
+    )
+
+
+def load_session(root: str | Path) -> Session:
+    """Read and validate ``SESSION/session.yaml``."""
+    root = Path(root)
+    if not root.is_dir():
+        raise SessionError("session folder not found", path=root, hint="pass the folder that holds session.yaml")
+    path = root / "session.yaml"
+    if not path.is_file():
+        raise SessionError("session.yaml is missing", path=path, hint="see SPEC.md for its keys")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise SessionError(f"not valid YAML{where}", path=path) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SessionError(f"cannot read: {exc}", path=path) from None
+    if not isinstance(data, dict):
+        raise SessionError("must be a YAML mapping (camera, intrinsics, reflector, marker)", path=path)
+    try:
+        check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes"}, path, "session.yaml")
+    except MscalError as exc:
+        raise SessionError(exc.reason, path=path, hint=exc.hint) from None
+    camera = load_camera(str(data["camera"]))
+    if "intrinsics" not in data:
+        raise SessionError(
+            "intrinsics are missing",
+            path=path,
+            hint="add intrinsics: {fx, fy, cx, cy, dist} for the band grid",
+        )
+    intr = parse_intrinsics(data["intrinsics"], path)
+
+    refl = data["reflector"]
+    if not isinstance(refl, dict):
+        raise SessionError("reflector must be a mapping {reflectance, size_m}", path=path)
+    check_keys(refl, {"reflectance", "size_m"}, set(), path, "reflector")
+    size = refl["size_m"]
+    if not isinstance(size, list) or len(size) != 2:
+        raise SessionError("reflector.size_m must be [width_m, height_m]", path=path)
+    reflector = ReflectorSpec(
+        reflectance=parse_reflectance(refl["reflectance"], path, "reflector.reflectance"),
+        size_m=(
+            _number(size[0], path, "reflector.size_m", positive=True),
+            _number(size[1], path, "reflector.size_m", positive=True),
+        ),
+    )
+
+    mk = data["marker"]
+    if not isinstance(mk, dict):
+        raise SessionError("marker must be a mapping {dictionary, id, size_m}", path=path)
+    check_keys(mk, {"dictionary", "id", "size_m"}, {"border_m"}, path, "marker")
+    if not isinstance(mk["id"], int) or isinstance(mk["id"], bool) or mk["id"] < 0:
+        raise SessionError(f"marker.id must be a non-negative integer, got {mk['id']!r}", path=path)
+    msize = _number(mk["size_m"], path, "marker.size_m", positive=True)
+    border = _number(mk.get("border_m", 0.25 * msize), path, "marker.border_m")
+    marker = MarkerSpec(dictionary=str(mk["dictionary"]), id=int(mk["id"]), size_m=msize, border_m=max(border, 0.0))
+    if max(msize / 2 + border, 0) >= min(reflector.size_m) / 2:
+        raise SessionError(
+            "the marker and its border cover the whole reflector",
+            path=path,
+            hint="check marker.size_m and reflector.size_m (both in metres)",
+        )
+    return Session(root=root, camera=camera, intrinsics=intr, reflector=reflector, marker=marker)
+
+
+# --------------------------------------------------------------------------- frame tables
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One frame and its metadata (from frames.csv, or the file's EXIF where no row exists)."""
+
+    path: Path
+    exposure_ms: float
+    gain: float = 1.0
+    time: str | None = None
+    lat: float | None = None
+    lon: float | None = None
+    alt_m: float | None = None
+
+    @property
+    def effective_exposure(self) -> float:
+        """Exposure time x linear gain (ms); the ``t`` of the paper's equations."""
+        return self.exposure_ms * self.gain
+
+    @property
+    def name(self) -> str:
+        return self.path.stem
+
+
+def _parse_float(text: str, csv_path: Path, line: int, column: str) -> float | None:
+    text = (text or "").strip()
+    if not text:
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise FrameError(f"line {line}: {column} {text!r} is not a number", path=csv_path) from None
+    if not math.isfinite(v):
+        raise FrameError(f"line {line}: {column} {text!r} is not finite", path=csv_path)
+    return v
+
+
+def _check_exposure(rec: FrameRecord, where: Path, line: int | None = None) -> None:
+    at = f"line {line}: " if line else ""
+    if not rec.exposure_ms > 0:
+        raise FrameError(
+            f"{at}frame {rec.path.name} has exposure_ms {rec.exposure_ms:g}; it must be positive",
+            path=where,
+            hint="fix the exposure in frames.csv or remove the frame",
+        )
+    if not rec.gain > 0:
+        raise FrameError(f"{at}frame {rec.path.name} has gain {rec.gain:g}; it must be positive", path=where)
+
+
+def read_frame_table(folder: str | Path, *, require_files: bool = True) -> list[FrameRecord]:
+    """Frames of a folder with their exposure and position (SPEC.md, Session folder).
+
+    ``frames.csv`` (columns ``file,exposure_ms`` required; ``gain,time,lat,lon,alt_m``
+    optional) is read first; image files without a row fall back to their EXIF tags. A frame
+    with no exposure anywhere, a zero or negative exposure, or a listed file that does not
+    exist raises :class:`FrameError` naming the file.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise SessionError("frame folder not found", path=folder)
+    csv_path = folder / FRAMES_CSV
+    records: dict[str, FrameRecord] = {}
+    if csv_path.is_file():
+        try:
+            with csv_path.open(newline="", encoding="utf-8-sig") as fh:
+                reader = csv.DictReader(fh)
+                cols = [c.strip() for c in (reader.fieldnames or [])]
+                for need in ("file", "exposure_ms"):
+                    if need not in cols:
+                        raise SessionError(
+                            f"column {need!r} is missing (columns: {', '.join(cols) or 'none'})",
+                            path=csv_path,
+                            hint="frames.csv needs at least file,exposure_ms",
+                        )
+                for line, row in enumerate(reader, start=2):
+                    row = {(k or "").strip(): (v or "") for k, v in row.items()}
+                    name = row["file"].strip()
+                    if not name:
+                        raise FrameError(f"line {line}: empty file name", path=csv_path)
+                    exp = _parse_float(row["exposure_ms"], csv_path, line, "exposure_ms")
+                    if exp is None:
+                        raise FrameError(
+                            f"line {line}: frame {name} has no exposure_ms",
+                            path=csv_path,
+                            hint="every frame needs its exposure time; mscal never guesses one",
+                        )
+                    gain = _parse_float(row.get("gain", ""), csv_path, line, "gain")
+                    rec = FrameRecord(
+                        path=folder / name,
+                        exposure_ms=exp,
+                        gain=1.0 if gain is None else gain,
+                        time=_parse_time(row.get("time", ""), csv_path, line),
+                        lat=_parse_float(row.get("lat", ""), csv_path, line, "lat"),
+                        lon=_parse_float(row.get("lon", ""), csv_path, line, "lon"),
+                        alt_m=_parse_float(row.get("alt_m", ""), csv_path, line, "alt_m"),
+                    )
+                    _check_exposure(rec, csv_path, line)
+                    if rec.lat is not None and not -90 <= rec.lat <= 90:
+                        raise FrameError(f"line {line}: lat {rec.lat} outside [-90, 90]", path=csv_path)
+                    if rec.lon is not None and not -180 <= rec.lon <= 180:
+                        raise FrameError(f"line {line}: lon {rec.lon} outside [-180, 180]", path=csv_path)
+                    if name in records:
+                        raise FrameError(f"line {line}: frame {name} is listed twice", path=csv_path)
+                    if require_files and not rec.path.is_file():
+                        raise FrameError(
+                            f"line {line}: frame {name} is listed but the file does not exist",
+                            path=csv_path,
+                            hint="restore the file or remove its row",
+                        )
+                    records[name] = rec
+        except UnicodeDecodeError:
+            raise SessionError("not a UTF-8 text file", path=csv_path) from None
+    for p in sorted(folder.iterdir()):
+        if p.suffix.lower() in IMAGE_SUFFIXES and p.name not in records:
+            records[p.name] = exif_record(p)
+    if not records:
+        raise SessionError(
+            "no frames found",
+            path=folder,
+            hint=f"put {', '.join(IMAGE_SUFFIXES)} frames and a frames.csv in the folder",
+        )
+    return sorted(records.values(), key=lambda r: r.path.name)
+
+
+def _parse_time(text: str, csv_path: Path, line: int) -> str | None:
+    text = (text or "").strip()
+    if not text:
+        return None
+    try:
+        datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise FrameError(f"line {line}: time {text!r} is not ISO 8601", path=csv_path) from None
+    return text
+
+
+def _ratio(tag: Any) -> float:
+    v = tag.values[0] if hasattr(tag, "values") else tag
+    return float(v.num) / float(v.den) if hasattr(v, "num") else float(v)
+
+
+def _dms(tag: Any) -> float:
+    vals = tag.values
+    return sum(float(v.num) / float(v.den) / 60**k for k, v in enumerate(vals))
+
+
+def exif_record(path: Path) -> FrameRecord:
+    """A :class:`FrameRecord` from a file's EXIF tags (ExposureTime, ISO, GPS, DateTimeOriginal)."""
+    import exifread
+
+    try:
+        with path.open("rb") as fh:
+            tags = exifread.process_file(fh, details=False)
+    except OSError as exc:
+        raise FrameError(f"cannot read: {exc.strerror}", path=path) from None
+    except Exception:  # exifread raises a zoo of errors on corrupt files
+        tags = {}
+    exp = tags.get("EXIF ExposureTime")
+    if exp is None:
+        raise FrameError(
+            "no exposure time: the frame has no row in frames.csv and no EXIF ExposureTime",
+            path=path,
+            hint="add a row 'file,exposure_ms' for it to frames.csv",
+        )
+    iso = tags.get("EXIF ISOSpeedRatings")
+    gain = float(iso.values[0]) / 100.0 if iso is not None and iso.values and iso.values[0] else 1.0
+    lat = lon = alt = None
+    if "GPS GPSLatitude" in tags and "GPS GPSLongitude" in tags:
+        lat = _dms(tags["GPS GPSLatitude"])
+        lon = _dms(tags["GPS GPSLongitude"])
+        if str(tags.get("GPS GPSLatitudeRef", "N")).strip().upper().startswith("S"):
+            lat = -lat
+        if str(tags.get("GPS GPSLongitudeRef", "E")).strip().upper().startswith("W"):
+            lon = -lon
+    if "GPS GPSAltitude" in tags:
+        alt = _ratio(tags["GPS GPSAltitude"])
+        ref = tags.get("GPS GPSAltitudeRef")
+        if ref is not None and ref.values and ref.values[0] == 1:
+            alt = -alt
+    time = None
+    dto = tags.get("EXIF DateTimeOriginal")
+    if dto is not None:
+        m = re.match(r"(\d{4}):(\d{2}):(\d{2}) (\d{2}:\d{2}:\d{2})", str(dto))
+        if m:
+            time = f"{m[1]}-{m[2]}-{m[3]}T{m[4]}"
+    rec = FrameRecord(path=path, exposure_ms=_ratio(exp) * 1000.0, gain=gain, time=time, lat=lat, lon=lon, alt_m=alt)
+    _check_exposure(rec, path)
+    return rec
+
+
+# --------------------------------------------------------------------------- frame files
+
+
+def read_raw(path: str | Path) -> np.ndarray:
+    """Pixels of one frame file as stored (TIFF via tifffile, PNG via OpenCV; RGB order)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FrameError("frame file does not exist", path=path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".tif", ".tiff"):
+            import tifffile
+
+            img = tifffile.imread(path)
+        else:
+            import cv2
+
+            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if img is None:
+                raise ValueError("OpenCV could not decode it")
+            if img.ndim == 3:
+                img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
+    except FrameError:
+        raise
+    except Exception as exc:  # decoders raise many types on truncated/corrupt data
+        raise FrameError(
+            f"unreadable or truncated image ({type(exc).__name__}: {str(exc)[:120]})",
+            path=path,
+            hint="re-copy the file from the camera or remove it from the folder",
+        ) from None
+    img = np.asarray(img)
+    if not np.issubdtype(img.dtype, np.integer):
+        raise FrameError(f"pixel type {img.dtype} is not integer DN", path=path)
+    return img
+
+
+def to_bands(img: np.ndarray, camera: Camera, path: Path | str = "") -> np.ndarray:
+    """Split a stored frame into the camera's band stack ``(band, H, W)`` (uint16 DN)."""
+    lay = camera.layout
+    if lay.kind == "mosaic":
+        if img.ndim != 2:
+            raise FrameError(f"expected a single-channel mosaic, got shape {img.shape}", path=path)
+        if camera.sensor is not None and img.shape != camera.sensor:
+            raise FrameError(
+                f"frame is {img.shape[1]}x{img.shape[0]} but camera {camera.name} has a "
+                f"{camera.sensor[1]}x{camera.sensor[0]} sensor",
+                path=path,
+                hint="is session.yaml naming the right camera?",
+            )
+        assert lay.pattern is not None
+        bands = demosaic(img, lay.pattern, lay.origin, lay.grid)
+    elif lay.kind == "multichannel":
+        if img.ndim != 3 or img.shape[2] < camera.n_bands:
+            raise FrameError(
+                f"expected {camera.n_bands} channels, got shape {img.shape}",
+                path=path,
+                hint=f"camera {camera.name} stores one band per channel",
+            )
+        order = [b.channel for b in camera.bands]
+        bands = np.moveaxis(img[:, :, order], 2, 0)
+    else:
+        if img.ndim != 2:
+            raise FrameError(f"expected a single-band image, got shape {img.shape}", path=path)
+        bands = img[None]
+    top = int(bands.max(initial=0))
+    if top > camera.dn_max:
+        raise FrameError(
+            f"DN {top} exceed the {camera.bit_depth}-bit range of camera {camera.name}",
+            path=path,
+            hint="DN must be in the low bits; check the camera's bit_depth",
+        )
+    return np.ascontiguousarray(bands, dtype=np.uint16)
+
+
+def read_bands(rec: FrameRecord | Path, camera: Camera) -> np.ndarray:
+    """Read one frame and split it into bands (:class:`FrameError` naming the file)."""
+    path = rec.path if isinstance(rec, FrameRecord) else Path(rec)
+    return to_bands(read_raw(path), camera, path)
+
+
+
+__all__ = [
+    "FrameRecord",
+    "InputError",
+    "MarkerSpec",
+    "ReflectorSpec",
+    "Session",
+    "exif_record",
+    "load_session",
+    "read_bands",
+    "read_frame_table",
+    "read_raw",
+    "to_bands",
+]

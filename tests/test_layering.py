@@ -1,0 +1,39 @@
+"""mscal_core is pure maths: importing it (all of it) loads no I/O or orchestration stack."""
+
+import subprocess
+import sys
+
+FORBIDDEN = ["dask", "xarray", "zarr", "rasterio", "prefect", "tifffile", "pandas", "yaml", "exifread", "click"]
+
+
+def test_core_imports_no_io_or_orchestration_packages() -> None:
+    code = (
+        "import importlib, pkgutil, sys, json\n"
+        "import mscal_core\n"
+        "for m in pkgutil.walk_packages(mscal_core.__path__, 'mscal_core.'):\n"
+        "    importlib.import_module(m.name)\n"
+        "print(json.dumps(sorted(sys.modules)))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    import json
+
+    loaded = set(json.loads(out.stdout.strip().splitlines()[-1]))
+    assert "mscal_core.mosaic" in loaded  # the walk really imported the modules
+    bad = sorted(m for m in loaded if m.split(".")[0] in FORBIDDEN)
+    assert bad == [], f"mscal_core pulled in {bad}"
+
+
+def test_core_does_no_file_io() -> None:
+    """No open()/Path reads or writes and no image decoding in mscal_core's source."""
+    import pathlib
+
+    import mscal_core
+
+    root = pathlib.Path(mscal_core.__file__).parent
+    offenders = []
+    for p in root.rglob("*.py"):
+        text = p.read_text()
+        for token in ("open(", "imread", "imwrite", "read_text", "write_text", "np.save", "np.load"):
+            if token in text:
+                offenders.append(f"{p.name}: {token}")
+    assert offenders == []
