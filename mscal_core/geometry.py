@@ -1,0 +1,398 @@
+"""Marker detection, marker pose and the pixel <-> reflector-plane mapping (no I/O).
+
+The vignetting fit (Eq. 8-10) needs, for every image i of the gray reflector, the map
+``pi_i: p -> x`` from a point ``p`` of the reflector plane to a pixel ``x``. The paper gets it
+from the pose of the ArUco marker printed at the centre of the reflector (OpenCV) and the
+camera intrinsics. Here the pose comes from :func:`estimate_pose` (``SOLVEPNP_IPPE_SQUARE``),
+:func:`project_to_pixels` is ``pi_i`` itself and :func:`pixels_to_plane` is its inverse on the
+pixel grid (ray / plane intersection), which is what the vignetting fit uses: every observed
+pixel is mapped once to the plane cell that contains its centre.
+
+Marker frame (see ``docs/architecture.md``): marker centre at the origin, plane ``z = 0``,
+``u`` to the right and ``v`` **up** as seen printed; corners in the order top-left
+``(-s/2, +s/2)``, top-right ``(+s/2, +s/2)``, bottom-right ``(+s/2, -s/2)``, bottom-left
+``(-s/2, -s/2)``. Pixel ``(i, j)`` of a band has its centre at image point
+``(x, y) = (j + dx, i + dy)`` (OpenCV convention: integer coordinates are pixel centres),
+``(dx, dy)`` being the band's offset on the band grid (:func:`mscal_core.mosaic.band_offsets`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from .errors import FitError, InputError
+
+__all__ = [
+    "Intrinsics",
+    "Pose",
+    "detect_marker",
+    "estimate_pose",
+    "image_points_to_plane",
+    "marker_object_points",
+    "pixels_to_plane",
+    "project_to_pixels",
+    "reflector_mask",
+]
+
+# Undistortion (cv2.undistortPoints) is iterative; the default 5 iterations leave errors of
+# 1e-3 px and more with strong distortion. These criteria make it exact to ~1e-10.
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+# |cos| of the angle between a ray and the plane below which the ray is called parallel.
+_PARALLEL_EPS = 1e-9
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole + OpenCV distortion intrinsics of the band grid.
+
+    ``fx, fy, cx, cy`` in band-grid pixels; ``dist = (k1, k2, p1, p2, k3)`` (OpenCV order).
+    A shorter ``dist`` is padded with zeros; anything but finite numbers raises InputError.
+    """
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    dist: tuple[float, float, float, float, float] = field(default=(0.0, 0.0, 0.0, 0.0, 0.0))
+
+    def __post_init__(self) -> None:
+        values = []
+        for name in ("fx", "fy", "cx", "cy"):
+            try:
+                value = float(getattr(self, name))
+            except (TypeError, ValueError):
+                raise InputError(
+                    f"camera intrinsics: {name} must be a number, got {getattr(self, name)!r}",
+                    hint="check the camera's intrinsics in its catalog entry",
+                ) from None
+            if not np.isfinite(value):
+                raise InputError(
+                    f"camera intrinsics: {name} must be finite, got {value}",
+                    hint="check the camera's intrinsics in its catalog entry",
+                )
+            values.append(value)
+            object.__setattr__(self, name, value)
+        if values[0] <= 0 or values[1] <= 0:
+            raise InputError(
+                f"camera intrinsics: focal lengths must be positive, got fx={values[0]}, "
+                f"fy={values[1]}",
+                hint="check the camera's intrinsics in its catalog entry (band-grid pixels)",
+            )
+        try:
+            dist = np.asarray(self.dist, dtype=np.float64).ravel()
+        except (TypeError, ValueError):
+            raise InputError(
+                f"camera intrinsics: dist must be 5 numbers [k1, k2, p1, p2, k3], "
+                f"got {self.dist!r}",
+                hint="check the camera's intrinsics in its catalog entry",
+            ) from None
+        if dist.size > 5 or not np.all(np.isfinite(dist)):
+            raise InputError(
+                f"camera intrinsics: dist must be at most 5 finite numbers [k1, k2, p1, p2, k3], "
+                f"got {self.dist!r}",
+                hint="check the camera's intrinsics in its catalog entry",
+            )
+        dist = np.concatenate([dist, np.zeros(5 - dist.size)])
+        object.__setattr__(self, "dist", tuple(float(d) for d in dist))
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The 3x3 camera matrix ``[[fx, 0, cx], [0, fy, cy], [0, 0, 1]]`` (float64)."""
+        return np.array(
+            [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]], dtype=np.float64
+        )
+
+    @property
+    def dist_coeffs(self) -> np.ndarray:
+        """OpenCV distortion vector ``(5,)`` float64: ``k1, k2, p1, p2, k3``."""
+        return np.asarray(self.dist, dtype=np.float64)
+
+
+@dataclass(frozen=True, eq=False)
+class Pose:
+    """Pose of the marker frame in the camera frame: ``X_cam = R(rvec) @ X_marker + tvec``.
+
+    ``rvec`` (3,) Rodrigues rotation vector, ``tvec`` (3,) metres (float64 copies).
+    """
+
+    rvec: np.ndarray
+    tvec: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name in ("rvec", "tvec"):
+            value = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1)
+            if value.shape != (3,) or not np.all(np.isfinite(value)):
+                raise InputError(f"pose: {name} must be 3 finite numbers, got {value!r}")
+            value = value.copy()
+            value.flags.writeable = False
+            object.__setattr__(self, name, value)
+
+    @property
+    def rotation(self) -> np.ndarray:
+        """Rotation matrix (3, 3) marker -> camera."""
+        return cv2.Rodrigues(self.rvec)[0]
+
+
+def marker_object_points(marker_size_m: float) -> np.ndarray:
+    """Marker corners in the marker frame, (4, 3) float64, order TL, TR, BR, BL.
+
+    ``(-s/2, +s/2, 0), (+s/2, +s/2, 0), (+s/2, -s/2, 0), (-s/2, -s/2, 0)``: the order
+    ``SOLVEPNP_IPPE_SQUARE`` requires and ArUco detection returns.
+    """
+    h = 0.5 * float(marker_size_m)
+    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]], dtype=np.float64)
+
+
+def _to_uint8(image: np.ndarray) -> np.ndarray:
+    """Robust 8-bit version of a single-band image for the marker detector.
+
+    Linear stretch of the 0.5th..99.5th percentiles of the finite values to 0..255, so a
+    10-bit (or any) DN range, a dark exposure or a few saturated pixels all give a usable
+    contrast. Non-finite pixels become 0.
+    """
+    img = np.asarray(image)
+    if img.ndim == 3 and img.shape[2] in (1, 3, 4):
+        img = img[..., :3].astype(np.float64).mean(axis=2)
+    if img.ndim != 2:
+        raise InputError(
+            f"marker detection needs a single-band image (H, W), got shape {img.shape}"
+        )
+    data = img.astype(np.float64, copy=False)
+    finite = np.isfinite(data)
+    if not finite.any():
+        return np.zeros(data.shape, dtype=np.uint8)
+    lo, hi = np.percentile(data[finite], [0.5, 99.5])
+    if hi <= lo:
+        lo, hi = float(data[finite].min()), float(data[finite].max())
+    if hi <= lo:
+        return np.zeros(data.shape, dtype=np.uint8)
+    scaled = (np.where(finite, data, lo) - lo) * (255.0 / (hi - lo))
+    return np.clip(np.rint(scaled), 0, 255).astype(np.uint8)
+
+
+def _aruco_dictionary(dictionary: str) -> cv2.aruco.Dictionary:
+    name = str(dictionary).strip()
+    value = getattr(cv2.aruco, name, None) if name.startswith("DICT_") else None
+    if not isinstance(value, int):
+        known = sorted(n for n in dir(cv2.aruco) if n.startswith("DICT_"))
+        raise InputError(
+            f"unknown ArUco dictionary {dictionary!r}",
+            hint=f"use one of OpenCV's names, e.g. {', '.join(known[:4])}, ...",
+        )
+    return cv2.aruco.getPredefinedDictionary(value)
+
+
+def detect_marker(image: np.ndarray, dictionary: str, marker_id: int) -> np.ndarray | None:
+    """Find ArUco marker ``marker_id`` of ``dictionary`` (e.g. ``"DICT_4X4_50"``) in an image.
+
+    The image (any dtype, e.g. 10-bit DN) is stretched to 8 bits (0.5-99.5 percentiles),
+    detected with ``cv2.aruco.ArucoDetector`` and the corners refined to sub-pixel accuracy
+    (``CORNER_REFINE_SUBPIX``). Returns the corners (4, 2) float64 ``(x, y)`` pixels in the
+    order top-left, top-right, bottom-right, bottom-left of the printed marker, or None if the
+    id is not found. If the id is found more than once the largest one wins.
+    Raises InputError for an unknown dictionary name or a non-2-D image.
+    """
+    detector_dict = _aruco_dictionary(dictionary)
+    gray = _to_uint8(image)
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    params.cornerRefinementWinSize = 3  # band-grid markers are small (tens of pixels)
+    params.cornerRefinementMaxIterations = 50
+    params.cornerRefinementMinAccuracy = 0.01
+    detector = cv2.aruco.ArucoDetector(detector_dict, params)
+    corners, ids, _ = detector.detectMarkers(gray)
+    if ids is None or len(ids) == 0:
+        return None
+    best: np.ndarray | None = None
+    best_perimeter = -1.0
+    for quad, found in zip(corners, np.asarray(ids).ravel()):
+        if int(found) != int(marker_id):
+            continue
+        quad = np.asarray(quad, dtype=np.float64).reshape(4, 2)
+        perimeter = float(np.sum(np.linalg.norm(quad - np.roll(quad, 1, axis=0), axis=1)))
+        if perimeter > best_perimeter:
+            best, best_perimeter = quad, perimeter
+    return best
+
+
+def estimate_pose(corners: np.ndarray, marker_size_m: float, intrinsics: Intrinsics) -> Pose:
+    """Marker pose from its 4 image corners (``cv2.solvePnP`` with ``SOLVEPNP_IPPE_SQUARE``).
+
+    ``corners`` (4, 2) pixels TL, TR, BR, BL (as :func:`detect_marker` returns), matched to
+    :func:`marker_object_points`. Raises InputError on bad arguments and FitError if no pose
+    is found or the marker plane would lie (partly) behind the camera.
+    """
+    pts = np.asarray(corners, dtype=np.float64)
+    if pts.shape != (4, 2) or not np.all(np.isfinite(pts)):
+        raise InputError(f"marker corners must be (4, 2) finite pixels, got shape {pts.shape}")
+    size = float(marker_size_m)
+    if not np.isfinite(size) or size <= 0:
+        raise InputError(
+            f"marker size must be a positive length in metres, got {marker_size_m!r}",
+            hint="check marker_size_m of the reflector target",
+        )
+    obj = marker_object_points(size)
+    ok, rvec, tvec = cv2.solvePnP(
+        obj, pts.reshape(4, 1, 2), intrinsics.matrix, intrinsics.dist_coeffs,
+        flags=cv2.SOLVEPNP_IPPE_SQUARE,
+    )
+    if not ok or rvec is None or not np.all(np.isfinite(rvec)) or not np.all(np.isfinite(tvec)):
+        raise FitError("no marker pose found from the detected corners")
+    pose = Pose(rvec.ravel(), tvec.ravel())
+    corners_cam = obj @ pose.rotation.T + pose.tvec
+    if np.any(corners_cam[:, 2] <= 0):
+        raise FitError(
+            "the estimated marker pose puts the marker behind the camera",
+            hint="check the intrinsics and the marker size",
+        )
+    return pose
+
+
+def undistorted_rays(points_xy: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
+    """Viewing rays ``d = (x', y', 1)`` of image points, as normalised coordinates (N, 2).
+
+    ``(x', y')`` inverts the pinhole + OpenCV distortion model (``cv2.undistortPoints``,
+    iterated to convergence; OpenCV's default 5 iterations are not exact). The rays depend only
+    on the intrinsics and the pixel positions, not on the pose: compute them once per band and
+    reuse them for every view (:func:`rays_to_plane`).
+    """
+    pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
+    if pts.shape[0] == 0:
+        return np.empty((0, 2))
+    return cv2.undistortPoints(
+        pts.reshape(-1, 1, 2), intrinsics.matrix, intrinsics.dist_coeffs,
+        criteria=_UNDISTORT_CRITERIA,
+    ).reshape(-1, 2)
+
+
+def rays_to_plane(rays: np.ndarray, pose: Pose) -> np.ndarray:
+    """Where rays ``d = (x', y', 1)`` (N, 2) meet the marker plane: plane points (N, 2) (u, v).
+
+    The plane is ``n . X = n . t`` (``n`` = third column of R); the ray meets it at
+    ``X = s d``, ``s = (n . t) / (n . d)``, and ``(u, v, 0) = R^T (X - t)``. NaN where the ray
+    is parallel to the plane or meets it behind the camera (``s <= 0``).
+    """
+    norm = np.asarray(rays, dtype=np.float64).reshape(-1, 2)
+    out = np.full(norm.shape, np.nan)
+    if norm.shape[0] == 0:
+        return out
+    rot = pose.rotation
+    normal = rot[:, 2]
+    t = pose.tvec
+    num = float(normal @ t)
+    den = norm[:, 0] * normal[0] + norm[:, 1] * normal[1] + normal[2]
+    ray_len = np.sqrt(norm[:, 0] ** 2 + norm[:, 1] ** 2 + 1.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = num / den
+    ok = np.isfinite(s) & (np.abs(den) > _PARALLEL_EPS * ray_len) & (s > 0)
+    ok &= np.all(np.isfinite(norm), axis=1)
+    sx, sy, sz = s[ok] * norm[ok, 0] - t[0], s[ok] * norm[ok, 1] - t[1], s[ok] - t[2]
+    out[ok, 0] = rot[0, 0] * sx + rot[1, 0] * sy + rot[2, 0] * sz
+    out[ok, 1] = rot[0, 1] * sx + rot[1, 1] * sy + rot[2, 1] * sz
+    return out
+
+
+def image_points_to_plane(points_xy: np.ndarray, pose: Pose, intrinsics: Intrinsics) -> np.ndarray:
+    """Inverse of :func:`project_to_pixels`: image points (N, 2) -> plane points (N, 2) (u, v).
+
+    :func:`undistorted_rays` then :func:`rays_to_plane`; NaN where the ray misses the plane.
+    """
+    return rays_to_plane(undistorted_rays(points_xy, intrinsics), pose)
+
+
+def pixel_rays(
+    intrinsics: Intrinsics, shape: tuple[int, int], offset: tuple[float, float] = (0.0, 0.0)
+) -> np.ndarray:
+    """Viewing rays of every pixel centre, (H, W, 2) normalised coordinates.
+
+    Pixel (i, j) looks through image point ``(x, y) = (j + dx, i + dy)`` with
+    ``offset = (dx, dy)`` the band's offset on the band grid.
+    """
+    h, w = (int(shape[0]), int(shape[1]))
+    if h <= 0 or w <= 0:
+        raise InputError(f"image shape must be positive, got {shape!r}")
+    dx, dy = float(offset[0]), float(offset[1])
+    jj, ii = np.meshgrid(np.arange(w, dtype=np.float64) + dx, np.arange(h, dtype=np.float64) + dy)
+    pts = np.stack([jj.ravel(), ii.ravel()], axis=1)
+    return undistorted_rays(pts, intrinsics).reshape(h, w, 2)
+
+
+def pixels_to_plane(
+    pose: Pose,
+    intrinsics: Intrinsics,
+    shape: tuple[int, int],
+    offset: tuple[float, float] = (0.0, 0.0),
+    rays: np.ndarray | None = None,
+) -> np.ndarray:
+    """Plane point (u, v) in metres seen by the centre of every pixel: (H, W, 2) float64.
+
+    This is the inverse of the paper's ``pi_i(p) = x`` on the pixel grid: :func:`pixel_rays`
+    (pass ``rays`` precomputed for the same intrinsics, shape and offset to skip it) then
+    :func:`rays_to_plane`; NaN where the ray misses the plane (parallel or behind the camera).
+    """
+    if rays is None:
+        rays = pixel_rays(intrinsics, shape, offset)
+    h, w = rays.shape[:2]
+    return rays_to_plane(rays.reshape(-1, 2), pose).reshape(h, w, 2)
+
+
+def project_to_pixels(points_uv: np.ndarray, pose: Pose, intrinsics: Intrinsics) -> np.ndarray:
+    """The paper's ``pi_i``: plane points (N, 2) (u, v) metres -> image points (N, 2) pixels.
+
+    ``cv2.projectPoints`` of ``(u, v, 0)`` with the pose and the intrinsics (distortion
+    included). Points behind the camera give meaningless pixels: check with the pose first.
+    """
+    uv = np.asarray(points_uv, dtype=np.float64).reshape(-1, 2)
+    if uv.shape[0] == 0:
+        return np.zeros((0, 2), dtype=np.float64)
+    obj = np.concatenate([uv, np.zeros((uv.shape[0], 1))], axis=1).reshape(-1, 1, 3)
+    img, _ = cv2.projectPoints(obj, pose.rvec, pose.tvec, intrinsics.matrix, intrinsics.dist_coeffs)
+    return img.reshape(-1, 2)
+
+
+def _size_wh(size_m: float | Sequence[float]) -> tuple[float, float]:
+    arr = np.asarray(size_m, dtype=np.float64).ravel()
+    if arr.size == 1:
+        arr = np.repeat(arr, 2)
+    if arr.size != 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise InputError(
+            f"reflector size must be [width, height] positive metres, got {size_m!r}",
+            hint="check size_m of the reflector target",
+        )
+    return float(arr[0]), float(arr[1])
+
+
+def reflector_mask(
+    uv: np.ndarray,
+    size_m: float | Sequence[float],
+    exclude_half_m: float,
+    edge_margin_m: float,
+) -> np.ndarray:
+    """Pixels that see usable gray reflector: bool array of ``uv.shape[:-1]``.
+
+    True where ``|u| <= w/2 - edge_margin_m`` and ``|v| <= h/2 - edge_margin_m`` (inside the
+    reflector ``size_m = [w, h]`` centred on the marker, away from its edge) and NOT
+    ``|u| <= exclude_half_m and |v| <= exclude_half_m`` (the marker, its white paper border
+    and a safety margin). NaN plane points are False.
+    """
+    w, h = _size_wh(size_m)
+    excl = float(exclude_half_m)
+    margin = float(edge_margin_m)
+    if not np.isfinite(excl) or excl < 0 or not np.isfinite(margin) or margin < 0:
+        raise InputError(
+            f"exclude_half_m and edge_margin_m must be non-negative metres, got {exclude_half_m!r},"
+            f" {edge_margin_m!r}"
+        )
+    arr = np.asarray(uv, dtype=np.float64)
+    if arr.shape[-1] != 2:
+        raise InputError(f"plane points must end in a (u, v) axis of 2, got shape {arr.shape}")
+    u, v = arr[..., 0], arr[..., 1]
+    with np.errstate(invalid="ignore"):
+        au, av = np.abs(u), np.abs(v)
+        inside = (au <= 0.5 * w - margin) & (av <= 0.5 * h - margin)
+        marker = (au <= excl) & (av <= excl)
+    return inside & ~marker

@@ -1,0 +1,208 @@
+"""Illumination on the gray reflector, split into colour and brightness: Eq. 11-14, 16.
+
+Model (Eq. 1, 11): on the reflector pixels ``x`` of known reflectance ``R_s(lambda)`` the
+radiance ``L_lambda(x) = U_lambda(I)/(t V_lambda(x))`` is
+
+- (11) ``J_lambda(x) = B(x) S(lambda)``, so ``L_lambda(x) = S(lambda) B(x) R_s(lambda)``:
+  the light's "colour" ``S`` (which also absorbs each band's filter sensitivity) is the same
+  over the reflector, only its brightness ``B`` varies from point to point.
+- (12) ``M(S, B) = sum_lambda sum_x (L_lambda(x) - S(lambda) B(x) R_s)^2``
+- (13) ``S(lambda) = sum_x L_lambda(x) B(x) R_s / sum_x (B(x) R_s)^2``
+- (14) ``B(x) = sum_lambda L_lambda(x) S(lambda) R_s / sum_lambda (S(lambda) R_s)^2``
+
+alternated from ``B(x) = mean over lambda of L_lambda(x)``: a rank-one fit of the
+(band x pixel) radiance matrix, with missing entries (e.g. saturated) left out of the sums.
+
+Baseline (Eq. 16): ``R = I_target / I_reflector * R_s`` per band, exact only if the
+reflector was uniformly lit (:func:`eq16_reflectance`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import FitError, InputError
+
+__all__ = ["IlluminationFit", "eq16_reflectance", "fit_illumination"]
+
+
+@dataclass(frozen=True, eq=False)
+class IlluminationFit:
+    """Result of :func:`fit_illumination`.
+
+    - ``spectral_factor`` (n_bands,) S(lambda).
+    - ``brightness`` (n_pix,) B(x) per reflector pixel (NaN where a pixel had no valid band).
+      Gauge (``S B`` is known up to a scale): ``median(B) = 1`` over all pixels given, so S
+      is the spectral factor of the median-lit reflector pixel.
+    - ``image_brightness`` (n_images,) median B of each image when ``image_index`` was given,
+      else None.
+    - ``residual_rms`` relative rms of ``L / (S B R_s) - 1`` over the valid entries.
+    - ``iterations``; ``converged`` whether ``tol`` was reached.
+    """
+
+    spectral_factor: np.ndarray
+    brightness: np.ndarray
+    image_brightness: np.ndarray | None
+    residual_rms: float
+    iterations: int
+    converged: bool
+
+
+def fit_illumination(
+    radiance: np.ndarray,
+    reflectance: np.ndarray | float,
+    *,
+    max_iter: int = 500,
+    tol: float = 1e-9,
+    image_index: np.ndarray | None = None,
+) -> IlluminationFit:
+    """Fit ``L_lambda(x) = S(lambda) B(x) R_s(lambda)`` on reflector pixels (Eq. 12-14).
+
+    ``radiance`` (n_bands, n_pix) = ``U(I)/(t V)`` at reflector pixels; NaN / inf entries
+    (saturated, masked) are left out of every sum. Several reflector images: concatenate
+    their pixels along the second axis (B is per pixel per image, S shared) and pass
+    ``image_index`` (n_pix,) int to get each image's median brightness.
+    ``reflectance`` R_s per band (n_bands,) or one scalar (a gray reflector).
+
+    Alternates Eq. 13 and Eq. 14 from ``B = mean over lambda of L`` (nanmean) until the
+    largest relative change of S is below ``tol`` (or ``max_iter``). Gauge: ``median(B) = 1``.
+    Raises InputError on bad shapes / reflectances and FitError when a band has no valid
+    reflector pixel (it cannot be calibrated from these images).
+    """
+    rad = np.asarray(radiance, dtype=np.float64)
+    if rad.ndim != 2 or rad.shape[0] < 1 or rad.shape[1] < 1:
+        raise InputError(f"radiance must be (n_bands, n_pix), got shape {rad.shape}")
+    n_bands, n_pix = rad.shape
+    refl = np.asarray(reflectance, dtype=np.float64).ravel()
+    if refl.size == 1:
+        refl = np.repeat(refl, n_bands)
+    if refl.size != n_bands or not np.all(np.isfinite(refl)) or np.any(refl <= 0):
+        raise InputError(
+            f"reflector reflectance must be {n_bands} positive values (one per band), got "
+            f"{np.asarray(reflectance)!r}",
+            hint="check the reflector's reflectance in the target catalog",
+        )
+    idx = None
+    if image_index is not None:
+        idx = np.asarray(image_index).ravel()
+        bad_index = not np.issubdtype(idx.dtype, np.integer) or (idx.size and idx.min() < 0)
+        if idx.size != n_pix or bad_index:
+            raise InputError(
+                f"image_index must be {n_pix} non-negative integers (one per pixel), got "
+                f"shape {idx.shape}, dtype {idx.dtype}"
+            )
+
+    valid = np.isfinite(rad)
+    bad_bands = np.flatnonzero(~valid.any(axis=1))
+    if bad_bands.size:
+        raise FitError(
+            f"band(s) {bad_bands.tolist()} have no valid reflector pixel (all saturated or masked)",
+            hint="use reflector images with a shorter exposure",
+        )
+    lv = np.where(valid, rad, 0.0)
+    m = valid.astype(np.float64)
+    r = refl[:, None]
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        b = np.sum(lv, axis=0) / np.sum(m, axis=0)  # paper: B = mean over lambda of L
+    pix_ok = np.isfinite(b)
+    b = np.where(pix_ok, b, 0.0)
+    s = np.ones(n_bands)
+    iterations = 0
+    converged = False
+    for iterations in range(1, int(max_iter) + 1):
+        # Eq. 13: S = sum_x L B R / sum_x (B R)^2  (valid entries only)
+        br = b[None, :] * r
+        with np.errstate(invalid="ignore", divide="ignore"):
+            s_new = np.sum(lv * br, axis=1) / np.sum(m * br * br, axis=1)
+        # Eq. 14: B = sum_l L S R / sum_l (S R)^2
+        sr = s_new[:, None] * r
+        with np.errstate(invalid="ignore", divide="ignore"):
+            b = np.sum(lv * sr, axis=0) / np.sum(m * sr * sr, axis=0)
+        b = np.where(pix_ok, b, 0.0)
+        change = float(np.max(np.abs(s_new - s) / np.abs(s_new)))
+        s = s_new
+        if change < tol:
+            converged = True
+            break
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise FitError(
+            "the spectral factors came out non-positive: the reflector radiance is inconsistent",
+            hint="check the reflector pixels (mask, saturation) and the vignetting",
+        )
+
+    # gauge: median brightness 1
+    brightness = np.where(pix_ok, b, np.nan)
+    med = float(np.nanmedian(brightness))
+    if not np.isfinite(med) or med <= 0:
+        raise FitError("the reflector brightness came out non-positive: the data are inconsistent")
+    brightness = brightness / med
+    s = s * med
+
+    pred = s[:, None] * brightness[None, :] * r
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = rad / pred - 1.0
+    rel = rel[valid & np.isfinite(rel)]
+    residual_rms = float(np.sqrt(np.mean(rel * rel))) if rel.size else float("nan")
+
+    image_brightness = None
+    if idx is not None:
+        n_img = int(idx.max()) + 1 if idx.size else 0
+        image_brightness = np.full(n_img, np.nan)
+        for k in range(n_img):
+            sel = brightness[idx == k]
+            if np.isfinite(sel).any():
+                image_brightness[k] = float(np.nanmedian(sel))
+    return IlluminationFit(
+        spectral_factor=s,
+        brightness=brightness,
+        image_brightness=image_brightness,
+        residual_rms=residual_rms,
+        iterations=iterations,
+        converged=converged,
+    )
+
+
+def eq16_reflectance(
+    target_dn: np.ndarray,
+    reflector_dn: np.ndarray | float,
+    reflector_reflectance: np.ndarray | float,
+) -> np.ndarray:
+    """Baseline Eq. 16: ``R = I_target / I_reflector * R_s`` per band (float64).
+
+    ``target_dn`` has the band axis first: (n_bands, ...) e.g. (n_bands, H, W).
+    ``reflector_dn`` is either one value per band (n_bands,) (e.g. the mean reflector DN) or
+    an array broadcastable to ``target_dn`` (e.g. a reflector image (n_bands, H, W): a
+    per-pixel ratio that also cancels vignetting). ``reflector_reflectance`` R_s is a scalar
+    or (n_bands,). Raw DN: the same exposure for target and reflector and a negligible black
+    level are assumed, as in the paper's baseline.
+
+    Exact only if the reflector image was uniformly lit: any brightness gradient or shadow
+    on the reflector is imprinted, inverted, on the target reflectance. Non-positive
+    reflector DN gives NaN.
+    """
+    tgt = np.asarray(target_dn, dtype=np.float64)
+    if tgt.ndim < 1:
+        raise InputError("target_dn must have a band axis first, got a scalar")
+    n_bands = tgt.shape[0]
+    extra = (1,) * (tgt.ndim - 1)
+
+    def per_band(value: np.ndarray | float, name: str) -> np.ndarray:
+        arr = np.asarray(value, dtype=np.float64)
+        if arr.ndim == 1 and arr.size == n_bands and tgt.ndim > 1:
+            return arr.reshape((n_bands,) + extra)
+        try:
+            np.broadcast_shapes(arr.shape, tgt.shape)
+        except ValueError:
+            raise InputError(
+                f"{name} of shape {arr.shape} does not fit target_dn of shape {tgt.shape}"
+            ) from None
+        return arr
+
+    ref = per_band(reflector_dn, "reflector_dn")
+    rs = per_band(reflector_reflectance, "reflector_reflectance")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = tgt / ref * rs
+    return np.where(np.isfinite(out) & (ref > 0), out, np.nan)

@@ -1,0 +1,192 @@
+"""Reflectance of the target scene: Eq. 15, panel normalisation and NDVI (no I/O).
+
+- (15) ``R_lambda(x) = U_lambda(I_lambda(x)) / (t V_lambda(x) S(lambda) B(x))``
+
+``B`` of the target scene is unknown (the light during the flight is not that of the
+reflector images), so R from Eq. 15 is relative: one unknown scalar per frame. Normalise it
+with a region of known reflectance (:func:`normalise_to_panel`) or use ratios / indices
+(:func:`ndvi`) that need no normalisation.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .errors import InputError
+
+__all__ = ["eq15", "ndvi", "normalise_to_panel"]
+
+
+def _per_frame(value: np.ndarray | float, dn_shape: tuple[int, ...], name: str) -> np.ndarray:
+    """Broadcastable form of an exposure / brightness: scalar, per frame, or an array."""
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.ndim == 1 and len(dn_shape) == 4 and arr.size == dn_shape[0] and arr.size > 1:
+        arr = arr.reshape(-1, 1, 1, 1)
+    try:
+        np.broadcast_shapes(arr.shape, dn_shape)
+    except ValueError:
+        raise InputError(
+            f"{name} of shape {arr.shape} does not fit DN of shape {dn_shape}: give a scalar, "
+            f"one value per frame, or an array that broadcasts to the DN"
+        ) from None
+    return arr
+
+
+def eq15(
+    dn: np.ndarray,
+    inverse_response: np.ndarray,
+    exposure: np.ndarray | float,
+    vignetting: np.ndarray,
+    spectral_factor: np.ndarray,
+    brightness: np.ndarray | float = 1.0,
+    *,
+    saturation_dn: int | None = None,
+) -> np.ndarray:
+    """Eq. 15: ``R = U(I) / (t V S B)``, float32, vectorised over bands and frames.
+
+    Shapes (band axis = the third from last):
+
+    - ``dn`` integer DN, (n_bands, H, W) or (n_frames, n_bands, H, W).
+    - ``inverse_response`` U: (2**bits,) shared by all bands or (n_bands, 2**bits), one per
+      band ("every band is its own camera"). Negative values are treated as 0.
+    - ``exposure`` t (> 0): scalar, (n_frames,) for a frame stack, or an array broadcasting
+      to ``dn`` (e.g. (n_bands, 1, 1) for per-band exposures).
+    - ``vignetting`` V: (n_bands, H, W) (or broadcastable, e.g. (H, W) for one band).
+    - ``spectral_factor`` S: (n_bands,).
+    - ``brightness`` B: scalar (default 1, i.e. relative reflectance), (n_frames,), or an
+      array broadcasting to ``dn`` (e.g. a brightness map (H, W)).
+
+    ``saturation_dn``: DN at or above it are saturated and give NaN; None means
+    ``len(U) - 1`` (``dn_max``, saturated by the project's convention); pass ``len(U)`` to
+    keep every DN. Never negative or inf: U = 0 gives 0; V, S or B that are not positive
+    and finite give NaN. Raises InputError for DN outside the response table, non-integer
+    DN, non-positive exposure or mismatched shapes.
+    """
+    d = np.asarray(dn)
+    if d.ndim not in (3, 4):
+        raise InputError(
+            f"DN must be (n_bands, H, W) or (n_frames, n_bands, H, W), got shape {d.shape}"
+        )
+    if not np.issubdtype(d.dtype, np.integer):
+        integral = np.issubdtype(d.dtype, np.floating) and bool(
+            np.all(np.isfinite(d)) and np.all(d == np.round(d))
+        )
+        if not integral:
+            raise InputError(f"DN must be integers, got dtype {d.dtype} with non-integer values")
+    d = d.astype(np.int64, copy=False)
+    n_bands = d.shape[-3]
+    u = np.asarray(inverse_response, dtype=np.float64)
+    if u.ndim == 1:
+        u = u[None, :]
+    if u.ndim != 2 or u.shape[0] not in (1, n_bands) or u.shape[1] < 2:
+        raise InputError(
+            f"inverse response must be (2**bits,) or ({n_bands}, 2**bits), got shape "
+            f"{np.asarray(inverse_response).shape}"
+        )
+    n_dn = u.shape[1]
+    if d.size and (d.min() < 0 or d.max() >= n_dn):
+        raise InputError(
+            f"DN {int(d.min())}..{int(d.max())} outside the response table 0..{n_dn - 1}",
+            hint="is the calibration for this camera's bit depth?",
+        )
+    u = np.where(np.isfinite(u), np.maximum(u, 0.0), np.nan)
+    sat = n_dn - 1 if saturation_dn is None else int(saturation_dn)
+
+    band = np.arange(n_bands).reshape(-1, 1, 1) if u.shape[0] > 1 else np.zeros((1, 1, 1), np.int64)
+    energy = u[band, d]  # U(I), broadcast over frames
+
+    t = _per_frame(exposure, d.shape, "exposure")
+    if not np.all(np.isfinite(t)) or np.any(t <= 0):
+        raise InputError("exposure times must be positive and finite")
+    v = np.asarray(vignetting, dtype=np.float64)
+    s = np.asarray(spectral_factor, dtype=np.float64).ravel()
+    if s.size not in (1, n_bands):
+        raise InputError(f"spectral_factor must have {n_bands} values, got {s.size}")
+    s = s.reshape(-1, 1, 1)
+    b = _per_frame(brightness, d.shape, "brightness")
+    try:
+        np.broadcast_shapes(v.shape, d.shape)
+    except ValueError:
+        raise InputError(
+            f"vignetting of shape {v.shape} does not fit DN of shape {d.shape}"
+        ) from None
+
+    denom = t * v * s * b
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        bad = (~(np.isfinite(v) & (v > 0)) | ~(np.isfinite(s) & (s > 0))
+               | ~(np.isfinite(b) & (b > 0)))
+        out = energy / denom
+    out = np.where(bad | (d >= sat) | ~np.isfinite(out), np.nan, out)
+    return out.astype(np.float32)
+
+
+def normalise_to_panel(
+    reflectance: np.ndarray,
+    panel_mask: np.ndarray,
+    panel_reflectance: np.ndarray | float,
+) -> np.ndarray:
+    """Scale relative reflectance so a panel of known reflectance reads its true value.
+
+    ``reflectance`` (n_bands, H, W) or (n_frames, n_bands, H, W); ``panel_mask`` (H, W) bool
+    or (n_frames, H, W) for a panel that moves; ``panel_reflectance`` scalar or (n_bands,).
+    For each frame and band the factor is ``panel_reflectance / median(R over the panel)``
+    (median: robust to a few bad pixels; NaN pixels ignored). This removes the unknown
+    per-frame brightness B of Eq. 15 (and, per band, any residual spectral error).
+    A band whose panel pixels are all NaN gives NaN for that band. Returns float32.
+    """
+    r = np.asarray(reflectance, dtype=np.float64)
+    if r.ndim not in (3, 4):
+        raise InputError(
+            f"reflectance must be (n_bands, H, W) or (n_frames, n_bands, H, W), got {r.shape}"
+        )
+    squeeze = r.ndim == 3
+    if squeeze:
+        r = r[None]
+    n_frames, n_bands, h, w = r.shape
+    mask = np.asarray(panel_mask, dtype=bool)
+    if mask.shape == (h, w):
+        mask = np.broadcast_to(mask, (n_frames, h, w))
+    if mask.shape != (n_frames, h, w):
+        raise InputError(f"panel mask of shape {mask.shape} does not fit images of {h}x{w}")
+    ref = np.asarray(panel_reflectance, dtype=np.float64).ravel()
+    if ref.size == 1:
+        ref = np.repeat(ref, n_bands)
+    if ref.size != n_bands or not np.all(np.isfinite(ref)) or np.any(ref <= 0):
+        raise InputError(
+            f"panel reflectance must be {n_bands} positive values, got {panel_reflectance!r}"
+        )
+    out = np.empty_like(r)
+    for f in range(n_frames):
+        if not mask[f].any():
+            raise InputError(f"the panel mask of frame {f} is empty", hint="check the panel region")
+        panel = r[f][:, mask[f]]  # (n_bands, n_panel)
+        finite = np.isfinite(panel)
+        med = np.full(n_bands, np.nan)
+        has = finite.any(axis=1)
+        if has.any():
+            med[has] = np.nanmedian(np.where(finite, panel, np.nan)[has], axis=1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            factor = np.where(med > 0, ref / med, np.nan)
+        out[f] = r[f] * factor[:, None, None]
+    if squeeze:
+        out = out[0]
+    return out.astype(np.float32)
+
+
+def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
+    """NDVI ``(nir - red) / (nir + red)``, NaN-safe, in [-1, 1].
+
+    NaN where either input is NaN / inf or ``nir + red <= 0``; values are clipped to
+    [-1, 1] (a slightly negative reflectance from noise could otherwise leave the range).
+    float32 if both inputs are float32, else float64.
+    """
+    a = np.asarray(red)
+    b = np.asarray(nir)
+    dtype = np.float32 if (a.dtype == np.float32 and b.dtype == np.float32) else np.float64
+    r = a.astype(np.float64)
+    n = b.astype(np.float64)
+    total = n + r
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = (n - r) / total
+        ok = np.isfinite(r) & np.isfinite(n) & (total > 0)
+    return np.where(ok, np.clip(out, -1.0, 1.0), np.nan).astype(dtype)

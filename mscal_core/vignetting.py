@@ -1,0 +1,539 @@
+"""Optical attenuation (vignetting) from many views of a gray reflector: Eq. 8-10 (no I/O).
+
+Model (Eq. 2, 4): a pixel ``x`` of view ``i`` that sees the reflector point ``p`` records
+``U(I_i(x)) = t_i V(x) L(p)``. ``L(p)``, the radiance leaving the reflector at ``p``, is the
+same in every view but free from point to point: the light on the reflector is NOT assumed
+uniform anywhere. The paper fits
+
+- (8)  ``M(L, V) = sum_{i,p} (t_i V(pi_i(p)) L(p) - U(I_i(pi_i(p))))^2``
+- (9)  ``V(x) = sum t_i L(p) U(I_i(x)) / sum (t_i L(p))^2`` over all (i, p) with pi_i(p) = x
+- (10) ``L(p) = sum_i t_i V(pi_i(p)) U(I_i(pi_i(p))) / sum_i (t_i V(pi_i(p)))^2``
+
+alternately, and normalises ``max V = 1`` per band.
+
+Discretisation. The paper discretises the reflector into points ``p`` (1000 x 1000 on
+full-resolution images) and projects each into the image (``pi_i(p) = x``). Here the plane
+is cut into ``nu x nv`` cells and every observed pixel is mapped once, through the inverse
+map (:func:`mscal_core.geometry.pixels_to_plane`), to the cell containing the plane point
+its centre sees (:func:`view_observations`). This is the same least-squares problem with the
+roles of "sample" and "bin" swapped: each pixel of each view is used exactly once, none is
+dropped or counted twice. Default cell size: see :data:`DEFAULT_CELLS_ALONG`.
+
+Exposure. The observations passed to :func:`fit_vignetting` are energies per unit time
+``y = U(I)/t`` (the t's are already divided in), so with ``y`` Eq. 9 and 10 read
+
+- (9')  ``V(x) = sum w L(p) y / sum w L(p)^2``
+- (10') ``L(p) = sum w V(x) y / sum w V(x)^2``
+
+with per-observation weights ``w``: ``w = 1`` (default) weights every observation alike,
+which is right for a relative (multiplicative) noise of the same size in every view;
+``w = t_i^2`` reproduces the paper's Eq. 9 / 10 literally (``t L U = t^2 L y``,
+``(t L)^2 = t^2 L^2``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import least_squares
+from scipy.sparse.csgraph import connected_components
+
+from .errors import FitError, InputError
+
+__all__ = [
+    "DEFAULT_CELLS_ALONG",
+    "VignettingFit",
+    "cell_centres",
+    "cell_grid",
+    "fit_vignetting",
+    "view_observations",
+]
+
+#: Default number of plane cells along the longer side of the reflector. On the 217 x 409
+#: band grid the reflector spans ~100-250 pixels per view, so 128 cells make a cell about
+#: one pixel footprint (between 0.5 and 1.3 footprints): fine enough that the light varies
+#: little inside a cell (a 2:1 gradient across the reflector changes by ~0.5 % per cell) and
+#: coarse enough that a cell is seen by several pixels of several views, which is what ties
+#: V(x) at different pixels together. The paper's 1000 x 1000 points suit full-resolution
+#: images (5x finer): on the band grid they would leave most cells with one observation
+#: per view and add unknowns without adding information.
+DEFAULT_CELLS_ALONG = 128
+
+#: Percentile of the well-observed V that is set to 1 (the robust "max V = 1" gauge).
+ROBUST_MAX_PERCENTILE = 99.9
+
+# Gaussian width (pixels) and certainty floor of the normalised convolution that carries the
+# local residual (V - radial model) of the observed pixels into the filled pixels.
+_FILL_SIGMA = 6.0
+_FILL_CERTAINTY = 0.25
+# At most this many observed pixels enter the radial model fit (random, seeded subsample).
+_MODEL_SAMPLES = 20000
+# Below this many observed pixels the "model" is a constant (weighted mean V).
+_MODEL_MIN_PIXELS = 50
+# Gaussian width (pixels) of the denoising used only to set the gauge.
+_GAUGE_SIGMA = 2.0
+
+
+@dataclass(frozen=True, eq=False)
+class VignettingFit:
+    """Result of :func:`fit_vignetting` for one band.
+
+    - ``vignetting`` (H, W) float64, V(x), ``max V = 1`` (gauge: the 99.9th percentile of the
+      denoised well-observed V is 1, the few values above are clipped to 1); filled where
+      not observed.
+    - ``count`` (H, W) int64: informative observations per pixel (in cells seen by at least
+      two different pixels, in the main connected part of the pixel/cell graph).
+    - ``observed`` (H, W) bool: ``count >= min_count``; False pixels are filled smoothly.
+    - ``radiance`` (n_cells,) float64: L(p) per plane cell in the same gauge (``V L = y``);
+      NaN for cells never observed.
+    - ``residual_rms`` relative rms of ``y / (V L) - 1`` over the informative observations.
+    - ``iterations`` Eq. 9/10 alternations done; ``converged`` whether ``tol`` was reached.
+    """
+
+    vignetting: np.ndarray
+    count: np.ndarray
+    observed: np.ndarray
+    radiance: np.ndarray
+    residual_rms: float
+    iterations: int
+    converged: bool
+
+
+# --------------------------------------------------------------------------- plane cells
+
+
+def _size_wh(size_m: float | Sequence[float]) -> tuple[float, float]:
+    arr = np.asarray(size_m, dtype=np.float64).ravel()
+    if arr.size == 1:
+        arr = np.repeat(arr, 2)
+    if arr.size != 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
+        raise InputError(
+            f"reflector size must be [width, height] positive metres, got {size_m!r}",
+            hint="check size_m of the reflector target",
+        )
+    return float(arr[0]), float(arr[1])
+
+
+def cell_grid(
+    size_m: float | Sequence[float],
+    *,
+    cells_per_m: float | None = None,
+    grid: tuple[int, int] | None = None,
+) -> tuple[int, int]:
+    """Number of plane cells ``(nu, nv)`` across the reflector ``size_m = [w, h]``.
+
+    ``grid`` wins if given; else ``cells_per_m`` (``nu = ceil(w * cells_per_m)``, same for
+    ``nv``); else square cells with :data:`DEFAULT_CELLS_ALONG` along the longer side.
+    ``n_cells = nu * nv``.
+    """
+    w, h = _size_wh(size_m)
+    if grid is not None:
+        try:
+            nu, nv = (int(grid[0]), int(grid[1]))
+        except (TypeError, ValueError, IndexError):
+            raise InputError(
+                f"cell grid must be two positive integers (nu, nv), got {grid!r}"
+            ) from None
+        if nu <= 0 or nv <= 0:
+            raise InputError(f"cell grid must be two positive integers (nu, nv), got {grid!r}")
+        return nu, nv
+    if cells_per_m is not None:
+        density = float(cells_per_m)
+        if not np.isfinite(density) or density <= 0:
+            raise InputError(f"cells_per_m must be a positive number, got {cells_per_m!r}")
+        return max(1, int(np.ceil(w * density - 1e-9))), max(1, int(np.ceil(h * density - 1e-9)))
+    cell = max(w, h) / DEFAULT_CELLS_ALONG
+    return max(1, int(round(w / cell))), max(1, int(round(h / cell)))
+
+
+def cell_centres(size_m: float | Sequence[float], grid: tuple[int, int]) -> np.ndarray:
+    """Plane points (u, v) of the cell centres, (nu * nv, 2), in cell-index order.
+
+    Cell ``iv * nu + iu`` spans ``u in [-w/2 + iu w/nu, -w/2 + (iu+1) w/nu)`` and likewise in
+    ``v`` (``v`` up, as in the marker frame).
+    """
+    w, h = _size_wh(size_m)
+    nu, nv = cell_grid(size_m, grid=grid)
+    uc = -0.5 * w + (np.arange(nu) + 0.5) * (w / nu)
+    vc = -0.5 * h + (np.arange(nv) + 0.5) * (h / nv)
+    uu, vv = np.meshgrid(uc, vc)
+    return np.stack([uu.ravel(), vv.ravel()], axis=1)
+
+
+def view_observations(
+    energy: np.ndarray,
+    uv: np.ndarray,
+    mask: np.ndarray,
+    size_m: float | Sequence[float],
+    *,
+    cells_per_m: float | None = None,
+    grid: tuple[int, int] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Observations of ONE band in ONE view of the reflector, for :func:`fit_vignetting`.
+
+    ``energy`` (H, W) = ``U(I)/t`` (saturated pixels passed as NaN), ``uv`` (H, W, 2) from
+    :func:`mscal_core.geometry.pixels_to_plane`, ``mask`` (H, W) from
+    :func:`mscal_core.geometry.reflector_mask`. Every pixel with ``mask`` True, finite
+    positive energy and its plane point inside the reflector gives one observation: its flat
+    pixel index ``i * W + j``, the flat index of the cell containing its plane point (see
+    :func:`cell_centres`; grid from :func:`cell_grid`) and its energy. This is the inverse of
+    the paper's ``pi_i(p) = x``. Returns ``(pixel_index int64, cell_index int64,
+    values float64)``, all of the same length.
+    """
+    e = np.asarray(energy, dtype=np.float64)
+    pts = np.asarray(uv, dtype=np.float64)
+    m = np.asarray(mask, dtype=bool)
+    if e.ndim != 2 or pts.shape != e.shape + (2,) or m.shape != e.shape:
+        raise InputError(
+            f"energy (H, W), uv (H, W, 2) and mask (H, W) must match, got {e.shape}, "
+            f"{pts.shape}, {m.shape}"
+        )
+    w, h = _size_wh(size_m)
+    nu, nv = cell_grid(size_m, cells_per_m=cells_per_m, grid=grid)
+    flat = np.flatnonzero(m.ravel())
+    vals = e.ravel()[flat]
+    u = pts[..., 0].ravel()[flat]
+    v = pts[..., 1].ravel()[flat]
+    with np.errstate(invalid="ignore"):
+        fu = (u + 0.5 * w) / w
+        fv = (v + 0.5 * h) / h
+        keep = (np.isfinite(vals) & (vals > 0) & (fu >= 0) & (fu <= 1) & (fv >= 0) & (fv <= 1))
+    iu = np.minimum((fu[keep] * nu).astype(np.int64), nu - 1)
+    iv = np.minimum((fv[keep] * nv).astype(np.int64), nv - 1)
+    return flat[keep].astype(np.int64), iv * nu + iu, vals[keep]
+
+
+# --------------------------------------------------------------------------- the fit
+
+
+def _log_init(
+    pix: np.ndarray, cell: np.ndarray, y: np.ndarray, n_pix: int, n_cell: int, max_iter: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Initial V, L from ``log y = log V(x) + log L(p)`` by sparse linear least squares.
+
+    Solved by Jacobi-preconditioned conjugate gradients on the normal equations (CGLS, the
+    method behind ``scipy.sparse.linalg.lsqr``), with the matrix never formed: a product is
+    two gathers and two ``np.bincount``. This avoids building a sparse matrix and lsqr's
+    threaded-BLAS dot products over all observations (slow on a busy 2-core machine). The
+    one-dimensional null space (log V + c, log L - c) does not disturb CG on this
+    consistent system; the scale is fixed later.
+    """
+    z = np.log(y)
+    z = z - float(np.median(z))
+    deg_p = np.bincount(pix, minlength=n_pix).astype(np.float64)
+    deg_c = np.bincount(cell, minlength=n_cell).astype(np.float64)
+
+    def normal(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        r = a[pix] + b[cell]
+        return (np.bincount(pix, weights=r, minlength=n_pix),
+                np.bincount(cell, weights=r, minlength=n_cell))
+
+    a = np.zeros(n_pix)
+    b = np.zeros(n_cell)
+    rp = np.bincount(pix, weights=z, minlength=n_pix)
+    rc = np.bincount(cell, weights=z, minlength=n_cell)
+    zp, zc = rp / deg_p, rc / deg_c
+    dp, dc = zp.copy(), zc.copy()
+    rho = float(np.sum(rp * zp) + np.sum(rc * zc))
+    rho0 = rho
+    for _ in range(max(0, int(max_iter))):
+        if rho <= 1e-14 * rho0 or rho <= 0:
+            break
+        qp, qc = normal(dp, dc)
+        alpha = rho / float(np.sum(dp * qp) + np.sum(dc * qc))
+        a += alpha * dp
+        b += alpha * dc
+        rp -= alpha * qp
+        rc -= alpha * qc
+        zp, zc = rp / deg_p, rc / deg_c
+        rho_new = float(np.sum(rp * zp) + np.sum(rc * zc))
+        beta = rho_new / rho
+        rho = rho_new
+        dp = zp + beta * dp
+        dc = zc + beta * dc
+    off = float(np.max(a))
+    return np.exp(a - off), np.exp(b + off + float(np.median(np.log(y))))
+
+
+def _radial_design(x: np.ndarray, y: np.ndarray, centre: np.ndarray, scale: float) -> np.ndarray:
+    r2 = ((x - centre[0]) ** 2 + (y - centre[1]) ** 2) / (scale * scale)
+    return np.stack([np.ones_like(r2), r2, r2 * r2, r2 * r2 * r2], axis=1)
+
+
+def _radial_model(v: np.ndarray, weight: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    """Smooth radial model ``V = a0 + a1 r^2 + a2 r^4 + a3 r^6`` with a free centre.
+
+    ``r`` is the distance to the centre (cx, cy) over the half diagonal; the centre is found
+    by nonlinear least squares (variable projection: the a's are solved linearly for each
+    centre), weighted by the observation count, on a seeded subsample of the observed pixels.
+    Returns the model evaluated on the whole (H, W) grid.
+    """
+    h, w = v.shape
+    ii, jj = np.nonzero(observed)
+    if ii.size < _MODEL_MIN_PIXELS:  # too few pixels for a radial fit: weighted mean
+        wsum = float(np.sum(weight[ii, jj]))
+        if wsum > 0:
+            mean = float(np.sum(v[ii, jj] * weight[ii, jj]) / wsum)
+        else:
+            mean = float(np.mean(v[ii, jj]))
+        return np.full((h, w), mean)
+    if ii.size > _MODEL_SAMPLES:
+        pick = np.random.default_rng(0).choice(ii.size, _MODEL_SAMPLES, replace=False)
+        ii, jj = ii[pick], jj[pick]
+    xs, ys = jj.astype(np.float64), ii.astype(np.float64)
+    target = v[ii, jj]
+    sw = np.sqrt(weight[ii, jj])
+    scale = 0.5 * float(np.hypot(h, w))
+
+    def solve(centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        design = _radial_design(xs, ys, centre, scale)
+        coef = np.linalg.lstsq(design * sw[:, None], target * sw, rcond=None)[0]
+        return coef, (design @ coef - target) * sw
+
+    start = np.array([0.5 * (w - 1), 0.5 * (h - 1)])
+    try:
+        res = least_squares(
+            lambda c: solve(c)[1], start, method="trf",
+            bounds=([-0.5 * w, -0.5 * h], [1.5 * w, 1.5 * h]), x_scale=scale, max_nfev=60,
+        )
+        centre = res.x
+    except (ValueError, np.linalg.LinAlgError):
+        centre = start
+    coef = solve(centre)[0]
+    gy, gx = np.mgrid[0:h, 0:w].astype(np.float64)
+    return (_radial_design(gx.ravel(), gy.ravel(), centre, scale) @ coef).reshape(h, w)
+
+
+def _normalised_blur(
+    values: np.ndarray, certainty: np.ndarray, sigma: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised convolution: Gaussian blur of ``certainty * values`` and of ``certainty``."""
+    num = cv2.GaussianBlur(values * certainty, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+    den = cv2.GaussianBlur(certainty, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+    return num, den
+
+
+def fit_vignetting(
+    pixel_index: np.ndarray,
+    cell_index: np.ndarray,
+    values: np.ndarray,
+    shape: tuple[int, int],
+    n_cells: int,
+    *,
+    weights: np.ndarray | None = None,
+    max_iter: int = 100,
+    tol: float = 1e-5,
+    min_count: int = 3,
+    smooth_sigma: float = 0.0,
+    init_iter: int = 200,
+) -> VignettingFit:
+    """Fit V(x) and L(p) of one band from all its reflector observations (Eq. 8-10).
+
+    Inputs are the concatenated outputs of :func:`view_observations` over all views:
+    ``pixel_index`` (flat index into ``shape = (H, W)``), ``cell_index`` (flat plane cell,
+    ``< n_cells``) and ``values`` ``y = U(I)/t``; non-finite or non-positive values are
+    ignored. ``weights`` (optional, per observation) enter Eq. 9'/10' (module docstring);
+    ``w = t^2`` is the paper's literal weighting.
+
+    Method:
+
+    1. Only informative observations are used: those in cells seen by at least two different
+       pixels (a cell seen by one pixel only fixes its own L and says nothing about V), in
+       the largest connected part of the pixel/cell graph (a separate part would have its
+       own unknown scale).
+    2. Initialisation: log-domain sparse least squares ``log y = log V(x) + log L(p)``
+       (preconditioned CGLS, the method of ``scipy.sparse.linalg.lsqr``, matrix-free; at
+       most ``init_iter`` iterations, 0 = start from V = 1). It solves the slow, smooth
+       modes that the plain alternation takes many sweeps to move.
+    3. Alternate Eq. 10' (L from V) and Eq. 9' (V from L), vectorised with ``np.bincount``,
+       until the largest relative change of V is below ``tol`` or ``max_iter`` sweeps.
+    4. Gauge (V is known up to scale, paper: max V = 1): the 99.9th percentile over the
+       well-observed pixels (``count >= min_count``) of a denoised V (the radial model of
+       step 5 plus the residual smoothed over 2 px) is set to 1 and L scaled inversely. A
+       single noisy pixel does not set the scale, and the per-pixel noise does not push the
+       percentile up (with 1 % noise a plain percentile puts the gauge ~0.5 % too high).
+       The few V above 1 are clipped to 1.
+    5. Pixels with ``count < min_count`` are filled with a smooth radial model
+       ``a0 + a1 r^2 + a2 r^4 + a3 r^6`` around a fitted centre (the paper finds radially
+       symmetric vignetting) plus the local residual of nearby observed pixels (normalised
+       convolution, sigma 6 px, fading to the pure model farther away); flagged
+       ``observed = False``.
+    6. ``smooth_sigma > 0`` (pixels, default 0 = off) smooths the well-observed V to beat
+       per-pixel noise: only the residual ``V - model`` is smoothed (normalised convolution
+       over the observed pixels) and added back to the model, so the falloff itself, which
+       the model carries, is not flattened. Off by default because per-pixel gain
+       differences (PRNU, dust) are real parts of V.
+
+    Raises InputError on inconsistent inputs and FitError when no informative observation
+    is left (e.g. every view saw the reflector at the same place).
+    """
+    h, w = int(shape[0]), int(shape[1])
+    n_pix = h * w
+    n_cells = int(n_cells)
+    pix = np.asarray(pixel_index).ravel()
+    cell = np.asarray(cell_index).ravel()
+    y = np.asarray(values, dtype=np.float64).ravel()
+    if h <= 0 or w <= 0 or n_cells <= 0:
+        raise InputError(f"shape and n_cells must be positive, got {shape!r}, {n_cells}")
+    if not (pix.size == cell.size == y.size):
+        raise InputError(
+            f"pixel_index, cell_index and values must have the same length, got {pix.size}, "
+            f"{cell.size}, {y.size}"
+        )
+    integral = np.issubdtype(pix.dtype, np.integer) and np.issubdtype(cell.dtype, np.integer)
+    if pix.size and not integral:
+        raise InputError("pixel_index and cell_index must be integer arrays")
+    pix = pix.astype(np.int64)
+    cell = cell.astype(np.int64)
+    out_of_range = pix.size and (
+        pix.min() < 0 or pix.max() >= n_pix or cell.min() < 0 or cell.max() >= n_cells
+    )
+    if out_of_range:
+        raise InputError(
+            f"pixel_index must be in [0, {n_pix}) and cell_index in [0, {n_cells}); got pixel "
+            f"{pix.min()}..{pix.max()}, cell {cell.min()}..{cell.max()}"
+        )
+    if weights is None:
+        wt = np.ones_like(y)
+    else:
+        wt = np.asarray(weights, dtype=np.float64).ravel()
+        if wt.size != y.size:
+            raise InputError(
+                f"weights must have one value per observation, got {wt.size} for {y.size}"
+            )
+    if int(min_count) < 1:
+        raise InputError(f"min_count must be at least 1, got {min_count}")
+
+    with np.errstate(invalid="ignore"):
+        good = np.isfinite(y) & (y > 0) & np.isfinite(wt) & (wt > 0)
+    pix, cell, y, wt = pix[good], cell[good], y[good], wt[good]
+
+    # 1. informative observations: cells seen by >= 2 different pixels (exact integer test
+    # n * sum(p^2) - (sum p)^2 > 0 in float64: all terms are integers below 2**53 here).
+    nc = np.bincount(cell, minlength=n_cells).astype(np.float64)
+    s1 = np.bincount(cell, weights=pix.astype(np.float64), minlength=n_cells)
+    s2 = np.bincount(cell, weights=pix.astype(np.float64) ** 2, minlength=n_cells)
+    multi = nc * s2 - s1 * s1 > 0.5
+    use = multi[cell]
+    if not use.any():
+        raise FitError(
+            "no reflector point was seen by two different pixels: the views do not constrain "
+            "the vignetting",
+            hint="take reflector images from many viewpoints, moving the reflector across the "
+            "image",
+        )
+    # largest connected part of the bipartite pixel/cell graph
+    up, uc = pix[use], cell[use]
+    graph = sp.coo_matrix(
+        (np.ones(up.size, dtype=np.int8), (up, n_pix + uc)), shape=(n_pix + n_cells,) * 2
+    ).tocsr()
+    n_comp, labels = connected_components(graph, directed=False)
+    if n_comp > 1:
+        sizes = np.bincount(labels[up], minlength=n_comp)
+        use[np.flatnonzero(use)[labels[up] != int(np.argmax(sizes))]] = False
+    fp, fc, fy, fw = pix[use], cell[use], y[use], wt[use]
+
+    # compact indices of the active unknowns
+    act_p = np.unique(fp)
+    act_c = np.unique(fc)
+    cp = np.searchsorted(act_p, fp)
+    cc = np.searchsorted(act_c, fc)
+    npa, nca = act_p.size, act_c.size
+
+    # 2. log-domain initialisation
+    v, lum = _log_init(cp, cc, fy, npa, nca, int(init_iter))
+
+    # 3. Eq. 10' / Eq. 9' alternation
+    wy = fw * fy
+    iterations = 0
+    converged = False
+    for iterations in range(1, int(max_iter) + 1):
+        vp = v[cp]
+        lum = np.bincount(cc, weights=wy * vp, minlength=nca) / np.bincount(
+            cc, weights=fw * vp * vp, minlength=nca
+        )
+        lp = lum[cc]
+        v_new = np.bincount(cp, weights=wy * lp, minlength=npa) / np.bincount(
+            cp, weights=fw * lp * lp, minlength=npa
+        )
+        change = float(np.max(np.abs(v_new - v) / v_new))
+        v = v_new
+        if change < tol:
+            converged = True
+            break
+    # final L consistent with the final V
+    vp = v[cp]
+    lum = np.bincount(cc, weights=wy * vp, minlength=nca) / np.bincount(
+        cc, weights=fw * vp * vp, minlength=nca
+    )
+    resid = fy / (v[cp] * lum[cc]) - 1.0
+    residual_rms = float(np.sqrt(np.mean(resid * resid)))
+
+    count_flat = np.bincount(fp, minlength=n_pix).astype(np.int64)
+    count = count_flat.reshape(h, w)
+    observed = count >= int(min_count)
+    if not observed.any():
+        raise FitError(
+            f"no pixel has {min_count} or more informative reflector observations",
+            hint="take more reflector images, or lower min_count",
+        )
+    v_full = np.full(n_pix, np.nan)
+    v_full[act_p] = v
+    v_img = v_full.reshape(h, w)
+
+    # 4. gauge, on a denoised V (radial model + residual smoothed over _GAUGE_SIGMA px) so
+    # per-pixel noise does not push the percentile up
+    cert = observed.astype(np.float64)
+    model = _radial_model(v_img, count.astype(np.float64), observed)
+    resid_img = np.where(observed, v_img - model, 0.0)
+    num, den = _normalised_blur(resid_img, cert * count, _GAUGE_SIGMA)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        denoised = model + num / den
+    scale = float(np.percentile(denoised[observed], ROBUST_MAX_PERCENTILE))
+    if not np.isfinite(scale) or scale <= 0:
+        raise FitError("the fitted vignetting is not positive: the reflector data are inconsistent")
+    v_img = v_img / scale
+    lum = lum * scale
+    model = model / scale
+    resid_img = resid_img / scale
+
+    # 5./6. optional smoothing of the residual, fill
+    out = v_img.copy()
+    if smooth_sigma and float(smooth_sigma) > 0:
+        num, den = _normalised_blur(resid_img, cert * count, float(smooth_sigma))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            smoothed = model + num / den
+        out = np.where(observed, smoothed, out)
+    num, den = _normalised_blur(resid_img, cert, _FILL_SIGMA)
+    fill = model + num / np.maximum(den, _FILL_CERTAINTY)
+    # filled values stay within (half the smallest observed V, 1]: a radial polynomial
+    # extrapolated far into a never-seen corner must not go to 0 or negative
+    low = 0.5 * float(np.min(out[observed]))
+    out = np.where(observed, np.minimum(out, 1.0), np.clip(fill, low, 1.0))
+
+    # radiance of every observed cell (also cells seen by one pixel only), same gauge
+    vv = out.ravel()[pix]
+    num_l = np.bincount(cell, weights=wt * y * vv, minlength=n_cells)
+    den_l = np.bincount(cell, weights=wt * vv * vv, minlength=n_cells)
+    radiance = np.full(n_cells, np.nan)
+    seen = den_l > 0
+    radiance[seen] = num_l[seen] / den_l[seen]
+    radiance[act_c] = lum
+
+    out.flags.writeable = False
+    count.flags.writeable = False
+    observed.flags.writeable = False
+    radiance.flags.writeable = False
+    return VignettingFit(
+        vignetting=out,
+        count=count,
+        observed=observed,
+        radiance=radiance,
+        residual_rms=residual_rms,
+        iterations=iterations,
+        converged=converged,
+    )

@@ -1,0 +1,138 @@
+"""Tests of mscal_core.illumination: Eq. 11-14 (S, B from reflector radiance) and Eq. 16."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mscal_core.errors import FitError, InputError
+from mscal_core.illumination import eq16_reflectance, fit_illumination
+
+N_BANDS = 25
+
+
+def field_light(shape=(120, 150)) -> np.ndarray:
+    """Brightness over the reflector: 2:1 gradient along u times a soft shadow (-40 %)."""
+    v, u = np.meshgrid(
+        np.linspace(0.2, -0.2, shape[0]), np.linspace(-0.25, 0.25, shape[1]), indexing="ij"
+    )
+    gradient = 1.0 + (u + 0.25) / 0.5
+    shadow = 1.0 - 0.4 / (1.0 + np.exp(-(v - 0.05 - 0.3 * u) / 0.02))
+    return gradient * shadow
+
+
+@pytest.fixture(scope="module")
+def scene():
+    rng = np.random.default_rng(0)
+    s = rng.uniform(1.5, 2.5, N_BANDS)
+    r_s = 0.18 * rng.uniform(0.95, 1.05, N_BANDS)  # a nearly flat gray reflector
+    b = field_light().ravel()
+    radiance = s[:, None] * b[None, :] * r_s[:, None]
+    radiance = radiance * (1.0 + 0.01 * rng.standard_normal(radiance.shape))
+    return s, r_s, b, radiance
+
+
+def test_fit_recovers_spectral_factor_and_brightness(scene):
+    s, r_s, b, radiance = scene
+    rad = radiance.copy()
+    rad[np.random.default_rng(1).random(rad.shape) < 0.05] = np.nan  # e.g. saturated
+    fit = fit_illumination(rad, r_s)
+    assert fit.spectral_factor.shape == (N_BANDS,) and fit.brightness.shape == (b.size,)
+    assert fit.converged and fit.iterations < 50
+    # gauge: median brightness 1; S then carries the scale
+    assert np.median(fit.brightness) == pytest.approx(1.0, abs=1e-12)
+    k = np.median(fit.spectral_factor / s)
+    assert k == pytest.approx(np.median(b), rel=0.005)
+    s_err = np.abs(fit.spectral_factor / (k * s) - 1.0)
+    assert s_err.max() <= 0.01  # measured ~1e-4
+    b_err = fit.brightness * k / b - 1.0
+    assert np.sqrt(np.mean(b_err**2)) < 0.004  # 1 % noise averaged over 25 bands: 0.2 %
+    assert np.abs(b_err).max() < 0.015
+    assert 0.009 < fit.residual_rms < 0.011
+    assert fit.image_brightness is None
+
+
+def test_scalar_reflectance_and_pixels_without_data(scene):
+    s, _, b, _ = scene
+    rad = s[:, None] * b[None, :] * 0.2
+    rad[:, 7] = np.nan  # a pixel saturated in every band
+    fit = fit_illumination(rad, 0.2)
+    assert np.isnan(fit.brightness[7]) and np.isfinite(np.delete(fit.brightness, 7)).all()
+    k = np.median(fit.spectral_factor / s)
+    np.testing.assert_allclose(fit.spectral_factor, k * s, rtol=1e-9)
+    assert fit.residual_rms < 1e-9
+
+
+def test_several_images_share_s(scene):
+    s, r_s, b, _ = scene
+    rng = np.random.default_rng(2)
+    # image 0 in sun (gradient + shadow), image 1 under cloud: 40 % as bright, uniform-ish
+    b1 = 0.4 * (1.0 + 0.1 * rng.standard_normal(3000)).clip(0.5)
+    both = np.concatenate([b, b1])
+    noise = 1 + 0.01 * rng.standard_normal((N_BANDS, both.size))
+    rad = s[:, None] * both[None, :] * r_s[:, None] * noise
+    index = np.concatenate([np.zeros(b.size, int), np.ones(b1.size, int)])
+    fit = fit_illumination(rad, r_s, image_index=index)
+    k = np.median(fit.spectral_factor / s)
+    assert np.abs(fit.spectral_factor / (k * s) - 1).max() < 0.01
+    ratio = fit.image_brightness[1] / fit.image_brightness[0]
+    assert ratio == pytest.approx(np.median(b1) / np.median(b), rel=0.01)
+
+
+def test_eq16_baseline_shows_gradient_artefact_ours_does_not(scene):
+    """A uniform target under uniform light, calibrated with a reflector under 2:1 light."""
+    s, r_s, b, _ = scene
+    rng = np.random.default_rng(3)
+    n = b.size
+    vig = np.linspace(1.0, 0.6, n)  # same pixels, some vignetting, linear response, same t
+    r_target = np.linspace(0.3, 0.5, N_BANDS)  # the target's true spectrum
+    reflector_dn = s[:, None] * b[None, :] * r_s[:, None] * vig[None, :] * 400
+    target_dn = s[:, None] * 1.3 * r_target[:, None] * vig[None, :] * 400
+    reflector_dn *= 1 + 0.01 * rng.standard_normal(reflector_dn.shape)
+    target_dn *= 1 + 0.01 * rng.standard_normal(target_dn.shape)
+
+    base = eq16_reflectance(target_dn, reflector_dn, r_s)  # per-pixel ratio
+    base_err = base / r_target[:, None] - 1.0
+    # the reflector's brightness pattern is imprinted on the target: 2:1 gradient and shadow
+    assert base_err.max() - base_err.min() > 0.8
+    spread = np.percentile(base, 95, axis=1) / np.percentile(base, 5, axis=1)
+    assert spread.min() > 1.8
+
+    # Eq. 11-14: S from the same reflector image, then R = L / S (relative, one scale)
+    fit = fit_illumination(reflector_dn / (400 * vig[None, :]), r_s)
+    ours = target_dn / (400 * vig[None, :]) / fit.spectral_factor[:, None]
+    ratio = ours / r_target[:, None]
+    scale = np.median(ratio)
+    assert np.abs(ratio / scale - 1).max() < 0.08  # noise only: 1.4 % rms, 450k samples
+    assert np.sqrt(np.mean((ratio / scale - 1) ** 2)) < 0.015
+    # the spectrum's shape (band to band) is right to 0.2 %
+    per_band = np.median(ratio, axis=1) / scale
+    assert np.abs(per_band - 1).max() < 0.002
+
+
+def test_eq16_per_band_reflector_and_bad_values():
+    target = np.full((3, 2, 2), 100.0)
+    out = eq16_reflectance(target, np.array([200.0, 100.0, 0.0]), 0.5)
+    np.testing.assert_allclose(out[0], 0.25)
+    np.testing.assert_allclose(out[1], 0.5)
+    assert np.isnan(out[2]).all()
+    out = eq16_reflectance(target, np.full((3, 2, 2), 50.0), np.array([0.1, 0.2, 0.3]))
+    np.testing.assert_allclose(out[:, 0, 0], [0.2, 0.4, 0.6])
+    with pytest.raises(InputError):
+        eq16_reflectance(target, np.ones(4), 0.5)
+
+
+def test_fit_errors(scene):
+    s, r_s, b, radiance = scene
+    rad = radiance.copy()
+    rad[3] = np.nan
+    with pytest.raises(FitError, match=r"\[3\]"):
+        fit_illumination(rad, r_s)
+    with pytest.raises(InputError):
+        fit_illumination(radiance, r_s[:-1])
+    with pytest.raises(InputError):
+        fit_illumination(radiance, -r_s)
+    with pytest.raises(InputError):
+        fit_illumination(radiance[0], r_s)
+    with pytest.raises(InputError):
+        fit_illumination(radiance, r_s, image_index=np.zeros(5, int))

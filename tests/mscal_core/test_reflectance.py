@@ -1,0 +1,168 @@
+"""Tests of mscal_core.reflectance: Eq. 15, panel normalisation, NDVI."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mscal_core.errors import InputError
+from mscal_core.reflectance import eq15, ndvi, normalise_to_panel
+
+BITS = 10
+N_DN = 2**BITS
+BLACK = 64
+
+
+def linear_u(n_bands: int | None = None) -> np.ndarray:
+    """U[k] = max(k - black, 0) (linear DN); per band a slightly different gain."""
+    base = np.maximum(np.arange(N_DN, dtype=np.float64) - BLACK, 0.0)
+    if n_bands is None:
+        return base
+    return base[None, :] * np.linspace(0.9, 1.1, n_bands)[:, None]
+
+
+def forward_dn(refl, t, vig, s, b, u_gain=None):
+    """DN for reflectance R: U(I) = t V S B R (integer, clipped to 10 bits)."""
+    energy = t * vig * s[:, None, None] * b * refl
+    if u_gain is not None:
+        energy = energy / u_gain[:, None, None]
+    return np.clip(np.rint(energy + BLACK), 0, N_DN - 1).astype(np.uint16)
+
+
+@pytest.fixture()
+def setup():
+    rng = np.random.default_rng(0)
+    n_bands, h, w = 4, 6, 8
+    gy, gx = np.mgrid[0:h, 0:w]
+    r2 = ((gx - 3.5) ** 2 + (gy - 2.5) ** 2) / 10
+    vig = np.stack([1.0 - 0.04 * r2 * (1 + 0.1 * k) for k in range(n_bands)])
+    s = np.array([1.5, 1.8, 2.2, 2.5])
+    refl = rng.uniform(0.1, 0.6, (n_bands, h, w))
+    return n_bands, h, w, vig, s, refl
+
+
+def test_eq15_inverts_the_forward_model(setup):
+    n_bands, h, w, vig, s, refl = setup
+    t, b = 2.0, 150.0
+    dn = forward_dn(refl, t, vig, s, b)
+    out = eq15(dn, linear_u(), t, vig, s, b)
+    assert out.dtype == np.float32 and out.shape == (n_bands, h, w)
+    # exact up to the DN rounding: +-0.5 DN / (t V S B)
+    bound = 0.5 / (t * vig * s[:, None, None] * b)
+    assert np.all(np.abs(out - refl) <= bound * 1.0001 + 1e-6)
+    # default B = 1: relative reflectance, one scale B
+    np.testing.assert_allclose(eq15(dn, linear_u(), t, vig, s), out * b, rtol=1e-6)
+
+
+def test_eq15_per_band_response_and_frame_stack(setup):
+    n_bands, h, w, vig, s, refl = setup
+    u = linear_u(n_bands)
+    gains = u[:, -1] / (N_DN - 1 - BLACK)
+    exposures = np.array([1.0, 2.0, 4.0])
+    brightness = np.array([200.0, 90.0, 50.0])
+    dn = np.stack([forward_dn(refl, t, vig, s, b, gains) for t, b in zip(exposures, brightness)])
+    out = eq15(dn, u, exposures, vig, s, brightness)
+    assert out.shape == (3, n_bands, h, w)
+    bound = 0.5 * gains[:, None, None] / (exposures[:, None, None, None] * vig * s[:, None, None]
+                                          * brightness[:, None, None, None])
+    assert np.all(np.abs(out - refl) <= bound * 1.0001 + 1e-6)
+    # a brightness map (H, W) and per-band exposures broadcast as well
+    bmap = np.full((h, w), 200.0)
+    one = eq15(dn[0], u, np.ones((n_bands, 1, 1)), vig, s, bmap)
+    np.testing.assert_allclose(one, out[0], rtol=1e-6)
+
+
+def test_eq15_saturation_zero_and_bad_values(setup):
+    n_bands, h, w, vig, s, refl = setup
+    dn = np.full((n_bands, h, w), 500, dtype=np.uint16)
+    dn[0, 0, 0] = N_DN - 1  # saturated by default (dn_max)
+    dn[0, 0, 1] = 900
+    dn[0, 0, 2] = 10  # below black: U = 0 -> R = 0
+    v = vig.copy()
+    v[1, 0, 0] = 0.0
+    v[1, 0, 1] = np.nan
+    v[1, 0, 2] = -0.5
+    out = eq15(dn, linear_u(), 1.0, v, s)
+    assert np.isnan(out[0, 0, 0]) and np.isfinite(out[0, 0, 1])
+    assert out[0, 0, 2] == 0.0
+    assert np.isnan(out[1, 0, :3]).all()
+    finite = out[np.isfinite(out)]
+    assert (finite >= 0).all() and not np.isinf(out).any()
+    assert np.isnan(out).sum() == 4
+    # explicit saturation threshold
+    out = eq15(dn, linear_u(), 1.0, vig, s, saturation_dn=900)
+    assert np.isnan(out[0, 0, 1])
+    out = eq15(dn, linear_u(), 1.0, vig, s, saturation_dn=N_DN)
+    assert np.isfinite(out).all()
+    # non-positive spectral factor or brightness -> NaN, not inf / negative
+    out = eq15(dn, linear_u(), 1.0, vig, np.array([0.0, 1.0, -1.0, 1.0]), 2.0)
+    assert np.isnan(out[[0, 2]]).all() and np.isfinite(out[[1, 3]]).all()
+    u = linear_u()
+    u[600] = -3.0  # a non-monotone glitch never gives a negative reflectance
+    dn[2, 1, 1] = 600
+    assert eq15(dn, u, 1.0, vig, s)[2, 1, 1] == 0.0
+
+
+def test_eq15_input_errors(setup):
+    n_bands, h, w, vig, s, refl = setup
+    dn = np.full((n_bands, h, w), 500, dtype=np.uint16)
+    u = linear_u()
+    with pytest.raises(InputError, match="outside the response table"):
+        eq15(dn + 1000, u, 1.0, vig, s)
+    with pytest.raises(InputError):
+        eq15(dn.astype(float) + 0.5, u, 1.0, vig, s)
+    eq15(dn.astype(float), u, 1.0, vig, s)  # integral floats are fine
+    with pytest.raises(InputError):
+        eq15(dn, u, 0.0, vig, s)
+    with pytest.raises(InputError):
+        eq15(dn, u, 1.0, vig[:, :3], s)
+    with pytest.raises(InputError):
+        eq15(dn, u, 1.0, vig, s[:3])
+    with pytest.raises(InputError):
+        eq15(dn, linear_u(3), 1.0, vig, s)
+    with pytest.raises(InputError):
+        eq15(dn[0], u, 1.0, vig, s)
+    with pytest.raises(InputError):
+        eq15(dn[None], u, np.ones(2), vig, s)
+
+
+def test_normalise_to_panel(setup):
+    n_bands, h, w, vig, s, refl = setup
+    panel = np.zeros((h, w), bool)
+    panel[1:3, 1:4] = True
+    truth = refl.copy()
+    truth[:, panel] = np.array([0.5, 0.55, 0.6, 0.65])[:, None]
+    relative = truth * np.array([3.0, 2.0, 5.0, 1.5])[:, None, None]  # unknown per-band scale
+    relative[0, 1, 1] = np.nan  # a bad panel pixel is ignored
+    out = normalise_to_panel(relative, panel, [0.5, 0.55, 0.6, 0.65])
+    assert out.dtype == np.float32
+    assert np.isnan(out[0, 1, 1])
+    ok = np.isfinite(relative)
+    np.testing.assert_allclose(out[ok], truth[ok], rtol=1e-6)
+    # a frame stack with a per-frame scale and a scalar panel reflectance
+    stack = np.stack([truth * 2.0, truth * 0.3])
+    stack[:, :, panel] = 0.3 * np.array([2.0, 0.3])[:, None, None]
+    out = normalise_to_panel(stack, panel, 0.5)
+    np.testing.assert_allclose(out[:, :, panel], 0.5, rtol=1e-6)
+    np.testing.assert_allclose(out[0], out[1], rtol=1e-6)
+    # a band whose panel is all NaN -> NaN band; an empty mask -> error
+    bad = relative.copy()
+    bad[2][panel] = np.nan
+    assert np.isnan(normalise_to_panel(bad, panel, 0.5)[2]).all()
+    with pytest.raises(InputError):
+        normalise_to_panel(relative, np.zeros((h, w), bool), 0.5)
+    with pytest.raises(InputError):
+        normalise_to_panel(relative, panel[:2], 0.5)
+
+
+def test_ndvi():
+    red = np.array([0.1, 0.5, 0.0, np.nan, 0.2, 0.0, -0.01, 0.3], dtype=np.float32)
+    nir = np.array([0.5, 0.1, 0.4, 0.3, np.inf, 0.0, 0.5, -0.01], dtype=np.float32)
+    out = ndvi(red, nir)
+    assert out.dtype == np.float32
+    np.testing.assert_allclose(out[:3], [0.4 / 0.6, -0.4 / 0.6, 1.0], rtol=1e-6)
+    assert np.isnan(out[3:6]).all()
+    assert out[6] == 1.0 and out[7] == -1.0  # noise below 0 stays inside [-1, 1]
+    finite = out[np.isfinite(out)]
+    assert (finite >= -1).all() and (finite <= 1).all()
+    assert ndvi(np.array([0.1]), np.array([0.3])).dtype == np.float64

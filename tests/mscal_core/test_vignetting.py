@@ -1,0 +1,338 @@
+"""Tests of mscal_core.vignetting (Eq. 8-10) on generated views of a non-uniformly lit reflector."""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from mscal_core.errors import FitError, InputError
+from mscal_core.geometry import Intrinsics, Pose, pixels_to_plane, reflector_mask
+from mscal_core.vignetting import (
+    DEFAULT_CELLS_ALONG,
+    cell_centres,
+    cell_grid,
+    fit_vignetting,
+    view_observations,
+)
+
+SHAPE = (217, 409)
+SIZE = (0.5, 0.4)  # reflector [w, h] metres
+EXCLUDE = 0.08  # marker + paper border + margin, half width
+MARGIN = 0.005
+
+
+def true_vignetting(shape=SHAPE, centre=(228.0, 96.0), k=0.32, aniso=1.1) -> np.ndarray:
+    """Off-centre, slightly elliptical falloff: 1 at the centre, 0.57-0.67 in the corners."""
+    h, w = shape
+    gy, gx = np.mgrid[0:h, 0:w].astype(np.float64)
+    r2 = ((gx - centre[0]) ** 2 + aniso * (gy - centre[1]) ** 2) / 249.0**2
+    return (1.0 + k * r2) ** -2
+
+
+def light(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Radiance on the reflector: 2:1 gradient along u times a soft diagonal shadow (-40 %)."""
+    w, _ = SIZE
+    gradient = 1.0 + (u + 0.5 * w) / w
+    shadow = 1.0 - 0.4 / (1.0 + np.exp(np.clip(-(v - 0.05 - 0.3 * u) / 0.02, -50, 50)))
+    return gradient * shadow
+
+
+def random_views(n, seed, shape=SHAPE, scale=(200.0, 500.0), rot=np.pi, proj=0.6, reach=20.0):
+    """``n`` random plane->image homographies: uv (H, W, 2) per view and its reflector mask.
+
+    Scale ``scale`` px/m (the 0.5 m reflector spans 100-250 px), rotation within +-rot,
+    mild perspective, reflector centre anywhere in the image (+- reach px).
+    """
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    gy, gx = np.mgrid[0:h, 0:w].astype(np.float64)
+    pts = np.stack([gx.ravel(), gy.ravel(), np.ones(h * w)])
+    out = []
+    for _ in range(n):
+        s = rng.uniform(*scale)
+        th = rng.uniform(-rot, rot)
+        c = np.array([rng.uniform(-reach, w + reach), rng.uniform(-reach, h + reach)])
+        hom = np.eye(3)
+        rot2 = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])
+        hom[:2, :2] = rot2 @ np.diag([s, -s])
+        hom[:2, 2] = c
+        persp = np.eye(3)
+        persp[2, :2] = rng.uniform(-proj, proj, 2)
+        q = np.linalg.solve(hom @ persp, pts)
+        uv = (q[:2] / q[2]).T.reshape(h, w, 2)
+        out.append((uv, reflector_mask(uv, SIZE, EXCLUDE, MARGIN)))
+    return out
+
+
+def observe(views, vig, noise=0.01, seed=5, scale=3.7, saturate_above=None, drop=None):
+    """Concatenated observations y = V L (1 + noise) of all views (one band)."""
+    rng = np.random.default_rng(seed)
+    parts = []
+    for uv, mask in views:
+        energy = scale * vig * light(uv[..., 0], uv[..., 1])
+        energy = energy * (1.0 + noise * rng.standard_normal(vig.shape))
+        if saturate_above is not None:
+            energy[energy > saturate_above] = np.nan
+        m = mask if drop is None else mask & ~drop
+        parts.append(view_observations(energy, uv, m, SIZE))
+    return tuple(np.concatenate(p) for p in zip(*parts))
+
+
+def v_errors(fit, vig):
+    rel = fit.vignetting / vig - 1.0
+    o = fit.observed
+    return (float(np.sqrt(np.mean(rel[o] ** 2))), float(np.max(np.abs(rel[o]))),
+            float(np.sqrt(np.mean(rel[~o] ** 2))) if (~o).any() else 0.0,
+            float(np.max(np.abs(rel[~o]))) if (~o).any() else 0.0)
+
+
+@pytest.fixture(scope="module")
+def truth():
+    return true_vignetting()
+
+
+@pytest.fixture(scope="module")
+def obs40(truth):
+    views = random_views(40, seed=1, scale=(300.0, 550.0))
+    return observe(views, truth)
+
+
+@pytest.fixture(scope="module")
+def fit40(obs40):
+    grid = cell_grid(SIZE)
+    t0 = time.perf_counter()
+    fit = fit_vignetting(*obs40, SHAPE, grid[0] * grid[1])
+    return fit, time.perf_counter() - t0
+
+
+# --------------------------------------------------------------------------- cells
+
+
+def test_cell_grid_defaults_and_options():
+    assert cell_grid(SIZE) == (DEFAULT_CELLS_ALONG, 102)
+    assert cell_grid([0.3, 0.6]) == (64, DEFAULT_CELLS_ALONG)
+    assert cell_grid(SIZE, cells_per_m=100) == (50, 40)
+    assert cell_grid(SIZE, cells_per_m=100, grid=(7, 5)) == (7, 5)
+    assert cell_grid(0.4) == (128, 128)
+    for bad in [dict(grid=(0, 3)), dict(cells_per_m=-1.0)]:
+        with pytest.raises(InputError):
+            cell_grid(SIZE, **bad)
+    with pytest.raises(InputError):
+        cell_grid([0.5, 0.0])
+
+
+def test_cell_centres_order():
+    c = cell_centres([0.4, 0.2], (4, 2))
+    assert c.shape == (8, 2)
+    np.testing.assert_allclose(c[0], [-0.15, -0.05])  # iu=0, iv=0: left, bottom
+    np.testing.assert_allclose(c[3], [0.15, -0.05])
+    np.testing.assert_allclose(c[4], [-0.15, 0.05])  # iv=1: top row (v up)
+
+
+def test_view_observations_maps_pixels_to_cells():
+    uv = np.zeros((2, 3, 2))
+    uv[0, 0] = [-0.19, -0.09]  # cell (0, 0) -> 0
+    uv[0, 1] = [0.19, 0.09]  # cell (3, 1) -> 7
+    uv[0, 2] = [0.2, 0.1]  # exactly on the far corner -> last cell
+    uv[1, 0] = [0.21, 0.0]  # outside the reflector
+    uv[1, 1] = [0.01, 0.01]  # fine but energy NaN (saturated)
+    uv[1, 2] = [np.nan, np.nan]
+    energy = np.array([[1.0, 2.0, 3.0], [4.0, np.nan, 6.0]])
+    mask = np.ones((2, 3), bool)
+    pix, cell, val = view_observations(energy, uv, mask, [0.4, 0.2], grid=(4, 2))
+    assert pix.dtype == np.int64 and cell.dtype == np.int64
+    np.testing.assert_array_equal(pix, [0, 1, 2])
+    np.testing.assert_array_equal(cell, [0, 7, 7])
+    np.testing.assert_array_equal(val, [1.0, 2.0, 3.0])
+    mask[0, 1] = False
+    pix, _, _ = view_observations(energy, uv, mask, [0.4, 0.2], grid=(4, 2))
+    np.testing.assert_array_equal(pix, [0, 2])
+    with pytest.raises(InputError):
+        view_observations(energy, uv[:, :2], mask, [0.4, 0.2])
+
+
+# --------------------------------------------------------------------------- the fit
+
+
+def test_fit_recovers_vignetting_under_nonuniform_light(truth, obs40, fit40):
+    fit, seconds = fit40
+    pix = obs40[0]
+    assert 25_000 * 40 > pix.size > 15_000 * 40
+    # the truth really has a 30-50 % corner falloff, the light a 2:1 gradient + shadow
+    assert 0.3 < 1 - truth.min() < 0.5
+    rms, worst, fill_rms, fill_worst = v_errors(fit, truth)
+    print(f"40 views, {pix.size} obs, {seconds:.2f} s, {fit.iterations} it: observed "
+          f"{fit.observed.mean():.3f}, rms {rms:.4f}, worst {worst:.4f}, fill rms {fill_rms:.4f}, "
+          f"fill worst {fill_worst:.4f}")
+    assert fit.vignetting.shape == SHAPE and fit.vignetting.dtype == np.float64
+    assert fit.vignetting.max() == pytest.approx(1.0)
+    assert fit.observed.mean() > 0.9
+    assert rms <= 0.008  # measured ~0.5 % (target 1.5 %), with no gauge alignment at all
+    assert worst < 0.04
+    assert fill_rms < 0.01 and fill_worst < 0.03
+    assert fit.converged and fit.iterations < 30
+    assert 0.009 < fit.residual_rms < 0.012  # the 1 % noise
+    assert np.array_equal(fit.observed, fit.count >= 3)
+    assert fit.count.dtype == np.int64 and fit.count.sum() <= pix.size
+
+
+def test_fit_recovers_radiance_in_the_same_gauge(fit40):
+    fit, _ = fit40
+    grid = cell_grid(SIZE)
+    centres = cell_centres(SIZE, grid)
+    truth = 3.7 * light(centres[:, 0], centres[:, 1])
+    seen = np.isfinite(fit.radiance)
+    au, av = np.abs(centres[:, 0]), np.abs(centres[:, 1])
+    # cells inside the usable reflector (away from the marker exclusion and the edges)
+    inner = (au < 0.24) & (av < 0.19) & ~((au < EXCLUDE + 0.005) & (av < EXCLUDE + 0.005))
+    assert seen[inner].mean() > 0.99
+    assert not seen[(au < EXCLUDE - 0.005) & (av < EXCLUDE - 0.005)].any()
+    ratio = fit.radiance[inner & seen] / truth[inner & seen]
+    # same gauge: V max 1 and V L = y, so L is the true radiance (to the cell averaging)
+    assert np.median(ratio) == pytest.approx(1.0, abs=0.005)
+    assert np.sqrt(np.mean((ratio - 1) ** 2)) < 0.02
+
+
+def test_fit_speed(obs40, fit40):
+    """One band, 40 views x ~30k observations (the 40 views + half of them again) < 2 s."""
+    fit, seconds = fit40
+    half = obs40[0].size // 2
+    big = tuple(np.concatenate([a, a[:half]]) for a in obs40)
+    assert big[0].size > 1_150_000
+    grid = cell_grid(SIZE)
+    best = np.inf
+    for _ in range(2):  # a busy shared machine: best of two
+        t0 = time.perf_counter()
+        fit_big = fit_vignetting(*big, SHAPE, grid[0] * grid[1])
+        best = min(best, time.perf_counter() - t0)
+        if best < 2.0:
+            break
+    print(f"{big[0].size} observations: {best:.2f} s")
+    assert best < 2.0
+    assert np.max(np.abs(fit_big.vignetting - fit.vignetting)[fit.observed]) < 0.02
+
+
+def test_fit_paper_weights_and_no_init_agree(obs40, fit40, truth):
+    fit, _ = fit40
+    grid = cell_grid(SIZE)
+    n_cells = grid[0] * grid[1]
+    # literal Eq. 9/10 weighting w = t^2 with one exposure per view: same solution
+    weights = np.full(obs40[2].size, 2.5**2)
+    alt = fit_vignetting(*obs40, SHAPE, n_cells, weights=weights)
+    assert np.max(np.abs(alt.vignetting - fit.vignetting)) < 1e-4
+    # the plain alternation from a flat start reaches the same fixed point, more slowly
+    plain = fit_vignetting(*obs40, SHAPE, n_cells, init_iter=0, max_iter=500)
+    assert plain.converged and plain.iterations >= fit.iterations
+    assert np.max(np.abs(plain.vignetting - fit.vignetting)[fit.observed]) < 2e-3
+
+
+def test_smoothing_reduces_noise_without_biasing_falloff(obs40, fit40, truth):
+    fit, _ = fit40
+    grid = cell_grid(SIZE)
+    smooth = fit_vignetting(*obs40, SHAPE, grid[0] * grid[1], smooth_sigma=2.0)
+    rms0, _, _, _ = v_errors(fit, truth)
+    rms1, worst1, _, _ = v_errors(smooth, truth)
+    print(f"smoothing sigma 2: rms {rms0:.4f} -> {rms1:.4f}, worst {worst1:.4f}")
+    assert rms1 < 0.5 * rms0 and rms1 < 0.002 and worst1 < 0.01
+    # falloff not flattened: in the dark (V < 0.75) part and the bright centre the mean
+    # error stays below 0.2 %
+    o = smooth.observed
+    for region in (truth < 0.75, truth > 0.97):
+        rel = smooth.vignetting[o & region] / truth[o & region] - 1
+        assert abs(float(np.mean(rel))) < 0.002
+
+
+def test_unobserved_corner_is_filled_smoothly(truth):
+    h, w = SHAPE
+    gy, gx = np.mgrid[0:h, 0:w]
+    hole = (gx > 330) & (gy < 70)  # the reflector never reaches the top-right corner
+    views = random_views(30, seed=7, scale=(300.0, 550.0))
+    obs = observe(views, truth, seed=8, drop=hole)
+    grid = cell_grid(SIZE)
+    fit = fit_vignetting(*obs, SHAPE, grid[0] * grid[1])
+    assert not fit.observed[hole].any() and (fit.count[hole] == 0).all()
+    rel = fit.vignetting / truth - 1
+    print(f"hole: rms {np.sqrt(np.mean(rel[hole] ** 2)):.4f} worst {np.max(np.abs(rel[hole])):.4f}")
+    assert np.sqrt(np.mean(rel[hole] ** 2)) < 0.02
+    assert np.max(np.abs(rel[hole])) < 0.05
+    assert np.sqrt(np.mean(rel[fit.observed] ** 2)) < 0.01
+    # the fill is smooth (pixel-to-pixel steps like the true falloff's, no noise) and meets
+    # the observed pixels without a seam: right at the border it is as good as inside
+    steps = np.abs(np.diff(fit.vignetting[:70, 331:], axis=1))
+    assert steps.max() < 0.004
+    border = hole & ~np.roll(hole, 3, axis=1)  # the first 3 filled columns
+    assert abs(float(np.mean(rel[border]))) < 0.005
+
+
+def test_saturated_pixels_are_ignored(truth):
+    views = random_views(25, seed=11, scale=(300.0, 550.0))
+    obs = observe(views, truth, seed=12, saturate_above=6.5)
+    grid = cell_grid(SIZE)
+    fit = fit_vignetting(*obs, SHAPE, grid[0] * grid[1])
+    rms, _, _, _ = v_errors(fit, truth)
+    assert rms < 0.01
+
+
+def test_fit_with_real_geometry(truth):
+    """Views from marker poses + distortion through pixels_to_plane, band offset included."""
+    k = Intrinsics(430.0, 430.0, 204.0, 108.0, (-0.2, 0.05, 0.0, 0.0, 0.0))
+    rng = np.random.default_rng(21)
+    views = []
+    for _ in range(30):
+        # facing the camera (180 deg about x), tilted up to 20 deg, any roll about the view axis
+        tilt = np.array([np.pi + rng.uniform(-0.35, 0.35), rng.uniform(-0.35, 0.35), 0.0])
+        roll = np.array([0.0, 0.0, rng.uniform(-np.pi, np.pi)])
+        rmat = cv2.Rodrigues(roll)[0] @ cv2.Rodrigues(tilt)[0]
+        rot = cv2.Rodrigues(rmat)[0].ravel()
+        z = rng.uniform(0.9, 1.6)
+        t = np.array([rng.uniform(-0.45, 0.45) * z, rng.uniform(-0.25, 0.25) * z, z])
+        uv = pixels_to_plane(Pose(rot, t), k, SHAPE, offset=(0.4, 0.6))
+        views.append((uv, reflector_mask(uv, SIZE, EXCLUDE, MARGIN)))
+    obs = observe(views, truth, seed=22)
+    grid = cell_grid(SIZE)
+    fit = fit_vignetting(*obs, SHAPE, grid[0] * grid[1])
+    rms, _, fill_rms, _ = v_errors(fit, truth)
+    print(f"real geometry: observed {fit.observed.mean():.3f} rms {rms:.4f} "
+          f"fill rms {fill_rms:.4f}")
+    assert fit.observed.mean() > 0.7
+    assert rms < 0.01 and fill_rms < 0.02
+
+
+def test_fit_rejects_degenerate_views(truth):
+    pix, cell, val = observe(random_views(3, seed=3), truth)
+    grid = cell_grid(SIZE)
+    # keep one pixel per cell: every cell then fixes its own L and nothing ties V together
+    first = np.unique(cell, return_index=True)[1]
+    with pytest.raises(FitError, match="two different pixels"):
+        fit_vignetting(pix[first], cell[first], val[first], SHAPE, grid[0] * grid[1])
+    with pytest.raises(FitError):
+        fit_vignetting(pix[:0], cell[:0], val[:0], SHAPE, grid[0] * grid[1])
+
+
+def test_fit_input_errors():
+    pix = np.array([0, 1])
+    cell = np.array([0, 0])
+    val = np.array([1.0, 1.0])
+    with pytest.raises(InputError):
+        fit_vignetting(pix, cell, val[:1], (2, 2), 4)
+    with pytest.raises(InputError):
+        fit_vignetting(pix, np.array([0, 9]), val, (2, 2), 4)
+    with pytest.raises(InputError):
+        fit_vignetting(pix.astype(float), cell, val, (2, 2), 4)
+    with pytest.raises(InputError):
+        fit_vignetting(pix, cell, val, (2, 2), 4, min_count=0)
+
+
+def test_count_excludes_uninformative_cells():
+    # pixels 0, 1 share cell 0 (informative); pixel 2 alone in cell 1 (not informative)
+    rng = np.random.default_rng(0)
+    pix = np.array([0, 1, 0, 1, 2, 2, 3, 3])
+    cell = np.array([0, 0, 2, 2, 1, 1, 2, 0])
+    val = 1.0 + 0.01 * rng.standard_normal(pix.size)
+    fit = fit_vignetting(pix, cell, val, (2, 2), 3, min_count=1)
+    np.testing.assert_array_equal(fit.count.ravel(), [2, 2, 0, 2])
+    assert not fit.observed.ravel()[2]
+    assert np.isfinite(fit.radiance).all()  # cell 1 gets L from the filled V
