@@ -1,0 +1,142 @@
+"""Write a complete synthetic session folder (SPEC.md layout) from the seeded forward model.
+
+``write_session(path)`` renders every dataset with :mod:`mscal_core.synth.scene` (camera,
+targets, light) and :mod:`mscal_core.synth.sensor` (response and noise), then writes::
+
+    path/
+      session.yaml            camera, intrinsics, reflector, marker (+ border_m), name, notes
+      response/    sweep_00.tif ...      + frames.csv   exposure sweep of a static scene
+      vignetting/  view_00.tif ...       + frames.csv   reflector + marker, many viewpoints
+      reflector/   reflector_0.tif ...   + frames.csv   reflector under the flight's light
+      flights/<name>/ IMG_0000.tif ...   + frames.csv   survey frames (with lat/lon/alt_m)
+      truth.npz               true U, V, S, B, poses, flight reflectance (see below)
+
+Frames are single-channel 16-bit TIFFs of the raw 2048 x 1088 mosaic, DN (10 bit) in the low
+bits. ``frames.csv`` columns: ``file,exposure_ms,gain,time,lat,lon,alt_m`` (gain 1, time ISO
+8601 UTC; lat/lon/alt_m only for flight frames, empty otherwise).
+
+``truth.npz`` holds :meth:`mscal_core.synth.scene.SyntheticSession.truth_arrays`: camera truth
+(``inverse_response`` (25, 1024), ``vignetting`` (25, 217, 409), ``spectral_factor`` (25,),
+``wavelength_nm``, ``reflector_reflectance``, ...) and per dataset its truth with the prefixes
+``response_``, ``vignetting_``, ``reflector_``, ``flight_<name>_``. Units: ``U_true(I) = t E``
+with ``E = V S B R`` (linear DN per ms), see the scene module.
+"""
+
+from __future__ import annotations
+
+import csv
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import tifffile
+import yaml
+
+from mscal_core.synth.scene import FrameSet, SyntheticSession, synthesize_session
+
+__all__ = ["write_session", "write_frameset", "session_yaml"]
+
+FRAMES_CSV_COLUMNS = ("file", "exposure_ms", "gain", "time", "lat", "lon", "alt_m")
+
+
+def session_yaml(session: SyntheticSession) -> dict:
+    """The ``session.yaml`` mapping of a synthetic session."""
+    t = session.truth
+    cam = t.camera
+    rho = np.asarray(t.reflector_reflectance, dtype=float)
+    if np.allclose(rho, rho[0]):
+        reflectance: float | list = float(rho[0])
+    else:
+        order = np.argsort(cam.wavelengths)
+        reflectance = [[float(cam.wavelengths[i]), float(rho[i])] for i in order]
+    return {
+        "camera": cam.name,
+        "name": f"synthetic-seed{t.seed}-{session.size}",
+        "notes": (
+            f"synthetic session (pipeline.synth, seed={t.seed}, size={session.size}); "
+            "ground truth in truth.npz"
+        ),
+        "intrinsics": cam.intrinsics_dict(),
+        "reflector": {
+            "reflectance": reflectance,
+            "size_m": [float(t.reflector_size_m[0]), float(t.reflector_size_m[1])],
+        },
+        "marker": {
+            "dictionary": t.marker.dictionary,
+            "id": int(t.marker.id),
+            "size_m": float(t.marker.size_m),
+            "border_m": float(t.marker.border_m),
+        },
+    }
+
+
+def _fmt(value, digits: int) -> str:
+    return "" if value is None else f"{float(value):.{digits}f}"
+
+
+def write_frameset(folder: Path, frames: FrameSet) -> list[Path]:
+    """Write the raw mosaics of ``frames`` as TIFFs plus ``frames.csv`` into ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    rows = []
+    for k, name in enumerate(frames.names):
+        fname = f"{name}.tif"
+        p = folder / fname
+        tifffile.imwrite(p, frames.raw(k), photometric="minisblack")
+        paths.append(p)
+        meta = frames.meta[k]
+        rows.append({
+            "file": fname,
+            "exposure_ms": repr(float(frames.exposure_ms[k])),
+            "gain": "1",
+            "time": meta.get("time", ""),
+            "lat": _fmt(meta.get("lat"), 8),
+            "lon": _fmt(meta.get("lon"), 8),
+            "alt_m": _fmt(meta.get("alt_m"), 3),
+        })
+    with open(folder / "frames.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=FRAMES_CSV_COLUMNS)
+        writer.writeheader()
+        writer.writerows(rows)
+    return paths
+
+
+def write_session(
+    path: str | Path,
+    *,
+    seed: int = 0,
+    size: str = "full",
+    n_flight_frames: int | None = None,
+    flights: Sequence[str] = ("field",),
+    reflector_reflectance: float | Sequence[float] = 0.5,
+    overwrite: bool = True,
+) -> Path:
+    """Render and write a synthetic session folder; returns its path.
+
+    ``size="full"``: 14-frame sweep (x1.66), 40 viewpoints (2 with the marker out of frame),
+    3 reflector images, 8 frames per flight. ``size="small"``: 7-frame sweep (x3), 8
+    viewpoints (1 without marker), 2 reflector images, 3 frames per flight.
+    ``n_flight_frames`` overrides the flight length. With ``overwrite`` (default) the dataset
+    folders of an existing session at ``path`` are replaced; otherwise an existing
+    ``session.yaml`` there is an error.
+    """
+    root = Path(path)
+    if (root / "session.yaml").exists() and not overwrite:
+        raise FileExistsError(f"{root}: a session is already there (pass overwrite=True)")
+    session = synthesize_session(seed, size=size, n_flight_frames=n_flight_frames,
+                                 flights=tuple(flights),
+                                 reflector_reflectance=reflector_reflectance)
+    root.mkdir(parents=True, exist_ok=True)
+    for sub in ("response", "vignetting", "reflector", "flights"):
+        if (root / sub).exists():
+            shutil.rmtree(root / sub)
+    with open(root / "session.yaml", "w") as fh:
+        yaml.safe_dump(session_yaml(session), fh, sort_keys=False)
+    write_frameset(root / "response", session.response)
+    write_frameset(root / "vignetting", session.vignetting)
+    write_frameset(root / "reflector", session.reflector)
+    for name, fs in session.flights.items():
+        write_frameset(root / "flights" / name, fs)
+    np.savez_compressed(root / "truth.npz", **session.truth_arrays())
+    return root
