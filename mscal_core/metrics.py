@@ -1,0 +1,43 @@
+"""Error measures of a calibration against a known truth (synthetic sessions, benchmarks).
+
+Pure functions; each states the gauge alignment it applies, because U, V and S are each only
+known up to a scale (Eq. 5, 8 and 12 are invariant to it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def response_error(u_est: np.ndarray, u_true: np.ndarray, lo_frac: float = 0.05, hi_frac: float = 0.95) -> float:
+    """Max ``|s U_est(k) - U_true(k)|`` over ``k`` in ``[lo, hi]`` of the DN range, divided by
+    ``U_true(hi)``; ``s`` is the least-squares scale aligning the two over that range."""
+    n = u_true.shape[-1]
+    dn_max = n - 1
+    k = np.arange(int(np.ceil(lo_frac * dn_max)), int(np.floor(hi_frac * dn_max)) + 1)
+    a, b = np.asarray(u_est, float)[k], np.asarray(u_true, float)[k]
+    s = float(a @ b / (a @ a)) if a @ a > 0 else 1.0
+    return float(np.max(np.abs(s * a - b)) / b[-1])
+
+
+def vignetting_rms(v_est: np.ndarray, v_true: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """RMS of ``V_est / V_true - 1`` over ``mask`` (both max-1 normalised, no extra alignment)."""
+    r = np.asarray(v_est, float) / np.asarray(v_true, float) - 1.0
+    if mask is not None:
+        r = r[mask]
+    r = r[np.isfinite(r)]
+    return float(np.sqrt(np.mean(r**2)))
+
+
+def spectral_factor_error(s_est: np.ndarray, s_true: np.ndarray) -> float:
+    """Max relative error of ``S`` after the least-squares scale alignment (S is relative)."""
+    a, b = np.asarray(s_est, float), np.asarray(s_true, float)
+    s = float(a @ b / (a @ a))
+    return float(np.max(np.abs(s * a / b - 1.0)))
+
+
+def coefficient_of_variation(values: np.ndarray) -> float:
+    """``std / mean`` of finite values (population std)."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    return float(np.std(v) / np.mean(v))

@@ -1,0 +1,444 @@
+"""The session calibration: read the three calibration folders and run the three fits.
+
+I/O and bookkeeping only; the maths is in ``mscal_core``. Each stage returns the fits and a
+report (inputs with content hashes, frames skipped and why, residuals, timings) that goes
+into the store's provenance.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import xarray as xr
+
+import mscal_core
+from mscal_core import geometry, illumination, response, vignetting
+from mscal_core.errors import FitError, SessionError
+from mscal_core.mosaic import band_offsets
+
+from .catalog import Camera, load_camera
+from .session import FrameRecord, Session, load_session, read_bands, read_frame_table
+from .store import content_hashes, new_dataset, open_calibration, write_store
+
+log = logging.getLogger("mscal.calibrate")
+
+#: Reflector pixels closer than this to the reflector edge are not used (metres, or 2 % of
+#: the reflector's smaller side if larger): they mix reflector and background.
+EDGE_MARGIN_M = 0.01
+#: Extra margin around the marker's white paper border (metres).
+MARKER_MARGIN_M = 0.005
+
+
+@dataclass
+class StageReport:
+    stage: str
+    inputs: dict[str, str] = field(default_factory=dict)
+    skipped: list[dict[str, str]] = field(default_factory=list)
+    residuals: dict[str, Any] = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def as_attrs(self) -> dict[str, Any]:
+        return {
+            "inputs": self.inputs,
+            "skipped": self.skipped,
+            "residuals": self.residuals,
+            "seconds": round(self.seconds, 3),
+        }
+
+
+def _workers() -> int:
+    import os
+
+    return max(1, min(4, os.cpu_count() or 1))
+
+
+def _map(fn: Callable[[int], Any], n: int) -> list[Any]:
+    """Run ``fn(0..n-1)`` on a small thread pool (numpy/OpenCV/scipy release the GIL)."""
+    with ThreadPoolExecutor(max_workers=_workers()) as ex:
+        return list(ex.map(fn, range(n)))
+
+
+def read_stack(records: Sequence[FrameRecord], camera: Camera) -> np.ndarray:
+    """All frames as ``(frame, band, H, W)`` uint16; frames of different shape are an error."""
+    first = read_bands(records[0], camera)
+    out = np.empty((len(records), *first.shape), dtype=np.uint16)
+    out[0] = first
+    for i, rec in enumerate(records[1:], start=1):
+        b = read_bands(rec, camera)
+        if b.shape != first.shape:
+            raise SessionError(
+                f"frame size {b.shape[1:]} differs from {records[0].path.name}'s {first.shape[1:]}",
+                path=rec.path,
+            )
+        out[i] = b
+    return out
+
+
+# --------------------------------------------------------------------------- response (Eq. 5-7)
+
+
+def fit_response_frames(
+    folder: Path, camera: Camera, method: str = "forward", root: Path | None = None
+) -> tuple[list[response.ResponseFit], StageReport]:
+    """Eq. 5-7 per band from an exposure sweep folder (frames.csv + frames)."""
+    t0 = time.perf_counter()
+    report = StageReport("response")
+    recs = read_frame_table(folder)
+    exposures = np.array([r.effective_exposure for r in recs])
+    if np.unique(exposures).size < 2:
+        raise FitError(
+            f"the sweep has {np.unique(exposures).size} distinct exposure(s); the response fit needs at least 2",
+            path=folder / "frames.csv",
+            hint="capture the static scene at several exposure times",
+        )
+    stack = read_stack(recs, camera)
+    report.inputs = content_hashes([r.path for r in recs], root or folder)
+    n, nb = stack.shape[:2]
+
+    def one(b: int) -> response.ResponseFit:
+        dn = stack[:, b].reshape(n, -1)
+        bad = response.check_exposure_consistency(dn, exposures, camera.bit_depth)
+        if bad:
+            names = ", ".join(f"{recs[i].path.name} ({exposures[i]:g} ms)" for i in bad[:3])
+            raise FitError(
+                f"band {camera.bands[b].name}: brightness contradicts exposure for {names}",
+                path=folder / "frames.csv",
+                hint="check exposure_ms of these frames, or remove frames taken while the scene or light changed",
+            )
+        return response.fit_response(dn, exposures, camera.bit_depth, method=method)
+
+    fits = _map(one, nb)
+    report.residuals = {
+        "method": method,
+        "residual_rms_dn": [round(f.residual_rms_dn, 4) for f in fits],
+        "black_level": [round(f.black_level, 3) for f in fits],
+        "observed_dn": [list(map(int, f.observed_dn)) for f in fits],
+    }
+    report.seconds = time.perf_counter() - t0
+    return fits, report
+
+
+def response_dataset(camera: Camera, fits: Sequence[response.ResponseFit], report: StageReport) -> xr.Dataset:
+    ds = new_dataset(camera)
+    ds["inverse_response"] = (
+        ("band", "dn"),
+        np.stack([f.inverse_response for f in fits]),
+        {"long_name": "inverse camera response U(k) (Eq. 5-7)", "units": "linear DN", "method": fits[0].method},
+    )
+    ds["black_level"] = ("band", np.array([f.black_level for f in fits]), {"units": "DN"})
+    ds["saturation_dn"] = ("band", np.array([f.saturation_dn for f in fits], dtype=np.int32))
+    ds.coords["dn"] = np.arange(2**camera.bit_depth, dtype=np.int32)
+    ds.attrs["response"] = report.as_attrs()
+    return ds
+
+
+# --------------------------------------------------------------------------- marker views
+
+
+@dataclass(frozen=True)
+class View:
+    record: FrameRecord
+    pose: geometry.Pose
+
+
+def _energy(dn: np.ndarray, inverse_response: np.ndarray, t: float, saturation_dn: int) -> np.ndarray:
+    """``U(I) / t`` for one band, NaN where saturated (Eq. 4)."""
+    e = (inverse_response[dn] / t).astype(np.float32)
+    e[dn >= saturation_dn] = np.nan
+    return e
+
+
+def detection_image(bands: np.ndarray, inverse_response: np.ndarray) -> np.ndarray:
+    """A single image for marker detection: the mean of the linearised bands, each scaled by
+    its median so that no band dominates."""
+    lin = np.take_along_axis(inverse_response, bands.reshape(bands.shape[0], -1).astype(np.intp), axis=1)
+    lin = lin.reshape(bands.shape)
+    med = np.median(lin.reshape(lin.shape[0], -1), axis=1)
+    med[med <= 0] = 1.0
+    return (lin / med[:, None, None]).mean(axis=0).astype(np.float32)
+
+
+def find_views(
+    records: Sequence[FrameRecord],
+    stack: np.ndarray,
+    session: Session,
+    inverse_response: np.ndarray,
+    report: StageReport,
+) -> list[tuple[int, View]]:
+    """Marker pose for each frame; frames where the marker is not found are skipped and reported."""
+    views: list[tuple[int, View]] = []
+    # The detection image averages all bands; its pixel (i, j) sits at the mean band offset.
+    centre = _offsets(session.camera).mean(axis=0)
+
+    def one(i: int) -> tuple[int, View] | None:
+        img = detection_image(stack[i], inverse_response)
+        corners = geometry.detect_marker(img, session.marker.dictionary, session.marker.id)
+        if corners is None:
+            return None
+        pose = geometry.estimate_pose(corners + centre, session.marker.size_m, session.intrinsics)
+        return i, View(records[i], pose)
+
+    for i, res in enumerate(_map(one, len(records))):
+        if res is None:
+            report.skipped.append(
+                {"file": records[i].path.name, "reason": f"marker {session.marker.dictionary} id {session.marker.id} not found"}
+            )
+        else:
+            views.append(res)
+    return views
+
+
+def _exclude_half(session: Session) -> float:
+    return session.marker.size_m / 2 + session.marker.border_m + MARKER_MARGIN_M
+
+
+def _edge_margin(session: Session) -> float:
+    return max(EDGE_MARGIN_M, 0.02 * min(session.reflector.size_m))
+
+
+def _offsets(camera: Camera) -> np.ndarray:
+    if camera.layout.kind == "mosaic" and camera.layout.pattern is not None:
+        return band_offsets(camera.layout.pattern)
+    return np.zeros((camera.n_bands, 2))
+
+
+# --------------------------------------------------------------------------- vignetting (Eq. 8-10)
+
+
+def fit_vignetting_frames(
+    session: Session, inverse_response: np.ndarray, saturation_dn: np.ndarray
+) -> tuple[list[vignetting.VignettingFit], StageReport]:
+    """Eq. 8-10 per band from the session's ``vignetting/`` views."""
+    t0 = time.perf_counter()
+    camera = session.camera
+    report = StageReport("vignetting")
+    folder = session.vignetting_dir
+    recs = read_frame_table(folder)
+    stack = read_stack(recs, camera)
+    report.inputs = content_hashes([r.path for r in recs], session.root)
+    views = find_views(recs, stack, session, inverse_response, report)
+    if not views:
+        raise FitError(
+            f"marker {session.marker.dictionary} id {session.marker.id} was not found in any of the "
+            f"{len(recs)} frames",
+            path=folder,
+            hint="check marker.dictionary and marker.id in session.yaml, and that the marker is in view and sharp",
+        )
+    shape = stack.shape[2:]
+    offsets = _offsets(camera)
+    grid = vignetting.cell_grid(session.reflector.size_m)
+    n_cells = grid[0] * grid[1]
+    exclude, edge = _exclude_half(session), _edge_margin(session)
+
+    def one(b: int) -> vignetting.VignettingFit:
+        rays = geometry.pixel_rays(session.intrinsics, shape, tuple(offsets[b]))
+        pix, cell, val = [], [], []
+        for i, view in views:
+            t = view.record.effective_exposure
+            energy = _energy(stack[i, b], inverse_response[b], t, int(saturation_dn[b]))
+            uv = geometry.pixels_to_plane(view.pose, session.intrinsics, shape, rays=rays)
+            mask = geometry.reflector_mask(uv, session.reflector.size_m, exclude, edge)
+            p, c, v = vignetting.view_observations(energy, uv, mask, session.reflector.size_m, grid=grid)
+            pix.append(p)
+            cell.append(c)
+            val.append(v)
+        return vignetting.fit_vignetting(
+            np.concatenate(pix), np.concatenate(cell), np.concatenate(val), shape, n_cells
+        )
+
+    fits = _map(one, camera.n_bands)
+    report.residuals = {
+        "views_used": len(views),
+        "views_total": len(recs),
+        "residual_rms": [round(float(f.residual_rms), 5) for f in fits],
+        "observed_fraction": [round(float(f.observed.mean()), 4) for f in fits],
+    }
+    report.seconds = time.perf_counter() - t0
+    return fits, report
+
+
+def add_vignetting(ds: xr.Dataset, fits: Sequence[vignetting.VignettingFit], report: StageReport) -> xr.Dataset:
+    ds = ds.copy()
+    ds["vignetting"] = (
+        ("band", "y", "x"),
+        np.stack([f.vignetting for f in fits]).astype(np.float32),
+        {"long_name": "optical attenuation V (Eq. 8-10), max 1 per band"},
+    )
+    ds["vignetting_count"] = (
+        ("band", "y", "x"),
+        np.stack([np.minimum(f.count, 65535) for f in fits]).astype(np.uint16),
+        {"long_name": "observations per pixel in the vignetting fit"},
+    )
+    ds["vignetting_observed"] = (
+        ("band", "y", "x"),
+        np.stack([f.observed for f in fits]).astype(bool),
+        {"long_name": "False where V was filled smoothly (too few observations)"},
+    )
+    ds.attrs["vignetting"] = report.as_attrs()
+    return ds
+
+
+# --------------------------------------------------------------------------- illumination (Eq. 11-14)
+
+
+@dataclass
+class IlluminationResult:
+    fit: illumination.IlluminationFit
+    report: StageReport
+    views: list[tuple[int, View]]
+
+
+def fit_illumination_frames(
+    session: Session, inverse_response: np.ndarray, saturation_dn: np.ndarray, vignetting_maps: np.ndarray
+) -> IlluminationResult:
+    """Eq. 11-14 from the session's ``reflector/`` image(s)."""
+    t0 = time.perf_counter()
+    camera = session.camera
+    report = StageReport("illumination")
+    folder = session.reflector_dir
+    recs = read_frame_table(folder)
+    stack = read_stack(recs, camera)
+    report.inputs = content_hashes([r.path for r in recs], session.root)
+    views = find_views(recs, stack, session, inverse_response, report)
+    if not views:
+        raise FitError(
+            f"marker {session.marker.dictionary} id {session.marker.id} was not found in any reflector image",
+            path=folder,
+            hint="the illumination fit locates the reflector through the marker; check session.yaml's marker",
+        )
+    rho = session.reflector.reflectance.at(camera.wavelengths)
+    shape = stack.shape[2:]
+    centre = tuple(_offsets(camera).mean(axis=0))
+    rays = geometry.pixel_rays(session.intrinsics, shape, centre)
+    columns, image_index = [], []
+    for k, (i, view) in enumerate(views):
+        uv = geometry.pixels_to_plane(view.pose, session.intrinsics, shape, rays=rays)
+        mask = geometry.reflector_mask(uv, session.reflector.size_m, _exclude_half(session), _edge_margin(session))
+        t = view.record.effective_exposure
+        rad = np.empty((camera.n_bands, int(mask.sum())), dtype=np.float64)
+        for b in range(camera.n_bands):
+            e = _energy(stack[i, b][mask], inverse_response[b], t, int(saturation_dn[b]))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rad[b] = e / vignetting_maps[b][mask]
+        columns.append(rad)
+        image_index.append(np.full(rad.shape[1], k))
+    radiance = np.concatenate(columns, axis=1)
+    if radiance.shape[1] < 100:
+        raise FitError(
+            f"only {radiance.shape[1]} reflector pixels found",
+            path=folder,
+            hint="take the reflector image closer, or check reflector.size_m in session.yaml",
+        )
+    fit = illumination.fit_illumination(radiance, rho, image_index=np.concatenate(image_index))
+    report.residuals = {
+        "images_used": len(views),
+        "reflector_pixels": int(radiance.shape[1]),
+        "residual_rms": round(float(fit.residual_rms), 5),
+    }
+    report.seconds = time.perf_counter() - t0
+    return IlluminationResult(fit, report, views)
+
+
+def add_illumination(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
+    ds = ds.copy()
+    ds["spectral_factor"] = (
+        "band",
+        np.asarray(result.fit.spectral_factor, dtype=np.float64),
+        {"long_name": "spectral factor S (Eq. 11-14); reflector brightness B has median 1"},
+    )
+    ds.attrs["illumination"] = result.report.as_attrs()
+    return ds
+
+
+# --------------------------------------------------------------------------- whole session
+
+
+def provenance(ds: xr.Dataset, session_root: Path | None) -> xr.Dataset:
+    ds.attrs.update(
+        {
+            "mscal_version": mscal_core.__version__,
+            "created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "session": str(session_root) if session_root else "",
+            "fits": [k for k in ("response", "vignetting", "illumination") if k in ds.attrs],
+        }
+    )
+    return ds
+
+
+def calibrate_session(session_dir: str | Path, out: str | Path, *, response_method: str = "forward") -> xr.Dataset:
+    """``mscal calibrate``: the three fits from a session folder, written to ``out``."""
+    session = load_session(session_dir)
+    camera = session.camera
+    log.info("response: fitting %d bands from %s", camera.n_bands, session.response_dir)
+    rfits, rrep = fit_response_frames(session.response_dir, camera, response_method, session.root)
+    ds = response_dataset(camera, rfits, rrep)
+    U = ds["inverse_response"].values
+    sat = ds["saturation_dn"].values
+    log.info("vignetting: fitting from %s", session.vignetting_dir)
+    vfits, vrep = fit_vignetting_frames(session, U, sat)
+    ds = add_vignetting(ds, vfits, vrep)
+    log.info("illumination: fitting from %s", session.reflector_dir)
+    ires = fit_illumination_frames(session, U, sat, ds["vignetting"].values)
+    ds = add_illumination(ds, ires)
+    ds = provenance(ds, session.root)
+    write_store(ds, out)
+    return ds
+
+
+def _session_or_folder(path: Path) -> tuple[Path, Session | None]:
+    if (path / "session.yaml").is_file():
+        session = load_session(path)
+        return session.response_dir, session
+    return path, None
+
+
+def fit_response_cli(path: str | Path, out: str | Path, camera_name: str | None, method: str) -> xr.Dataset:
+    """``mscal fit response DIR``: DIR is a frame folder with frames.csv, or a session."""
+    folder, session = _session_or_folder(Path(path))
+    if session is not None:
+        if camera_name and camera_name != session.camera.name:
+            raise SessionError(
+                f"--camera {camera_name} contradicts session.yaml's camera {session.camera.name}",
+                path=session.root / "session.yaml",
+            )
+        camera = session.camera
+    else:
+        if not camera_name:
+            raise SessionError("--camera NAME is required for a frame folder", path=folder)
+        camera = load_camera(camera_name)
+    fits, report = fit_response_frames(folder, camera, method, session.root if session else folder)
+    ds = provenance(response_dataset(camera, fits, report), session.root if session else None)
+    write_store(ds, out)
+    return ds
+
+
+def fit_stage_cli(stage: str, session_dir: str | Path, out: str | Path, partial: str | Path | None,
+                  response_method: str = "forward") -> xr.Dataset:
+    """``mscal fit vignetting|illumination SESSION``: fits that stage; earlier stages come from
+    ``--calibration PARTIAL.zarr`` when given, otherwise they are fitted too."""
+    session = load_session(session_dir)
+    camera = session.camera
+    if partial is not None:
+        ds = open_calibration(partial, camera, need=stage)
+        keep = ["inverse_response", "black_level", "saturation_dn"] + (["vignetting", "vignetting_count", "vignetting_observed"] if stage == "illumination" else [])
+        ds = ds[[v for v in keep if v in ds]]
+    else:
+        rfits, rrep = fit_response_frames(session.response_dir, camera, response_method, session.root)
+        ds = response_dataset(camera, rfits, rrep)
+    U = ds["inverse_response"].values
+    sat = ds["saturation_dn"].values if "saturation_dn" in ds else np.full(camera.n_bands, camera.dn_max)
+    if stage == "vignetting" or "vignetting" not in ds:
+        vfits, vrep = fit_vignetting_frames(session, U, sat)
+        ds = add_vignetting(ds, vfits, vrep)
+    if stage == "illumination":
+        ds = add_illumination(ds, fit_illumination_frames(session, U, sat, ds["vignetting"].values))
+    ds = provenance(ds, session.root)
+    write_store(ds, out)
+    return ds

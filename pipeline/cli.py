@@ -1,0 +1,132 @@
+"""The ``mscal`` command line (SPEC.md, Command line).
+
+Exit status 0 on success; on bad input a one-line reason on stderr and exit status 2, never a
+traceback (an :class:`~mscal_core.errors.MscalError` is always caught here).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import click
+
+from mscal_core.errors import MscalError
+
+RESPONSE_METHODS = click.Choice(["forward", "alternating"])
+
+
+def _summary(ds) -> str:  # noqa: ANN001 (xarray Dataset)
+    parts = [f"camera {ds.attrs.get('camera')}", f"{ds.sizes.get('band')} bands"]
+    for stage in ("response", "vignetting", "illumination"):
+        rep = ds.attrs.get(stage)
+        if rep:
+            skipped = len(rep.get("skipped", []))
+            parts.append(f"{stage} {rep.get('seconds', 0):.1f} s" + (f" ({skipped} frame(s) skipped)" if skipped else ""))
+    return ", ".join(parts)
+
+
+def _report_skips(ds) -> None:  # noqa: ANN001
+    for stage in ("response", "vignetting", "illumination"):
+        for s in (ds.attrs.get(stage) or {}).get("skipped", []):
+            click.echo(f"skipped {stage} frame {s['file']}: {s['reason']}", err=True)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("-v", "--verbose", is_flag=True, help="Log progress of each stage.")
+def cli(verbose: bool) -> None:
+    """mscal: field radiometric calibration of multispectral cameras (Khanna et al., ICRA 2017)."""
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(name)s: %(message)s")
+
+
+@cli.command()
+@click.argument("session", type=click.Path(path_type=Path))
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path), help="Calibration store (.zarr) to write.")
+@click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True,
+              help="'forward' fits the response with the noise on DN; 'alternating' is the paper's Eq. 6/7.")
+def calibrate(session: Path, out: Path, response_method: str) -> None:
+    """All three fits of a SESSION folder: response, vignetting, illumination."""
+    from .calibrate import calibrate_session
+
+    t0 = time.perf_counter()
+    ds = calibrate_session(session, out, response_method=response_method)
+    _report_skips(ds)
+    click.echo(f"wrote {out} ({_summary(ds)}; {time.perf_counter() - t0:.1f} s)")
+
+
+@cli.group()
+def fit() -> None:
+    """One fit at a time."""
+
+
+@fit.command("response")
+@click.argument("directory", type=click.Path(path_type=Path))
+@click.option("--camera", "camera", default=None, help="Camera catalog name (required for a plain frame folder).")
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
+@click.option("--method", type=RESPONSE_METHODS, default="forward", show_default=True)
+def fit_response(directory: Path, camera: str | None, out: Path, method: str) -> None:
+    """Inverse response U per band (Eq. 5-7) from DIRECTORY: a frame folder with frames.csv,
+    or a session (its response/ folder)."""
+    from .calibrate import fit_response_cli
+
+    ds = fit_response_cli(directory, out, camera, method)
+    click.echo(f"wrote {out} ({_summary(ds)})")
+
+
+def _stage_command(stage: str):  # noqa: ANN202
+    @click.argument("session", type=click.Path(path_type=Path))
+    @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
+    @click.option("--calibration", "partial", default=None, type=click.Path(path_type=Path),
+                  help="A store holding the earlier fits; without it they are fitted from SESSION.")
+    def command(session: Path, out: Path, partial: Path | None) -> None:
+        from .calibrate import fit_stage_cli
+
+        ds = fit_stage_cli(stage, session, out, partial)
+        _report_skips(ds)
+        click.echo(f"wrote {out} ({_summary(ds)})")
+
+    command.__doc__ = {
+        "vignetting": "Per-pixel, per-band vignetting V (Eq. 8-10) from SESSION/vignetting.",
+        "illumination": "Spectral factor S and reflector brightness B (Eq. 11-14) from SESSION/reflector.",
+    }[stage]
+    return fit.command(stage)(command)
+
+
+_stage_command("vignetting")
+_stage_command("illumination")
+
+
+@cli.command()
+@click.option("-o", "--output", "out", default=Path("demo-out"), show_default=True, type=click.Path(path_type=Path))
+@click.option("--size", type=click.Choice(["small", "full"]), default="small", show_default=True,
+              help="'full' is the paper-sized session (40 views, 14-frame sweep).")
+@click.option("--seed", default=0, show_default=True, type=int)
+def demo(out: Path, size: str, seed: int) -> None:
+    """Synthesize a session with known truth, calibrate it, and compare with the truth."""
+    from .demo import run_demo
+
+    summary = run_demo(out, size=size, seed=seed)
+    click.echo(json.dumps(summary, indent=2))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point: MscalError -> one line on stderr, exit 2."""
+    try:
+        cli.main(args=argv, prog_name="mscal", standalone_mode=False)
+    except MscalError as exc:
+        click.echo(f"mscal: error: {exc}", err=True)
+        return exc.exit_code
+    except click.exceptions.Abort:
+        click.echo("mscal: aborted", err=True)
+        return 130
+    except click.ClickException as exc:
+        exc.show()
+        return exc.exit_code
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
