@@ -23,7 +23,7 @@ from mscal_core.mosaic import demosaic
 
 from .catalog import Camera, ReflectanceSpec, check_keys, load_camera, parse_reflectance
 
-IMAGE_SUFFIXES = (".tif", ".tiff", ".png")
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
 FRAMES_CSV = "frames.csv"
 
 
@@ -352,7 +352,11 @@ def exif_record(path: Path) -> FrameRecord:
 
 
 def read_raw(path: str | Path) -> np.ndarray:
-    """Pixels of one frame file as stored (TIFF via tifffile, PNG via OpenCV; RGB order)."""
+    """Pixels of one frame file as stored (TIFF via tifffile; PNG and JPEG via OpenCV, RGB order).
+
+    A JPEG without its end-of-image marker is truncated: libjpeg would silently return the
+    decoded part padded with gray, so it is rejected here.
+    """
     path = Path(path)
     if not path.is_file():
         raise FrameError("frame file does not exist", path=path)
@@ -365,6 +369,11 @@ def read_raw(path: str | Path) -> np.ndarray:
         else:
             import cv2
 
+            if suffix in (".jpg", ".jpeg"):
+                with path.open("rb") as fh:
+                    fh.seek(max(0, path.stat().st_size - 2))
+                    if fh.read(2) != b"\xff\xd9":
+                        raise ValueError("JPEG end-of-image marker missing")
             img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if img is None:
                 raise ValueError("OpenCV could not decode it")

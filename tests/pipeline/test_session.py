@@ -143,3 +143,16 @@ def test_exif_fallback_on_real_micasense_file() -> None:
     assert rec.lon == pytest.approx(-119.4352689, abs=1e-6)
     assert rec.alt_m == pytest.approx(101.861, abs=1e-3)
     assert rec.time == "2017-10-19T20:40:39"
+
+
+def test_truncated_jpeg_is_rejected(tmp_path) -> None:
+    import cv2
+
+    cam = load_camera("generic-rgb8")
+    img = (np.arange(64 * 48 * 3) % 251).astype(np.uint8).reshape(48, 64, 3)
+    cv2.imwrite(str(tmp_path / "ok.jpg"), img)
+    assert read_bands(tmp_path / "ok.jpg", cam).shape == (3, 48, 64)
+    data = (tmp_path / "ok.jpg").read_bytes()
+    (tmp_path / "cut.jpg").write_bytes(data[: int(len(data) * 0.8)])
+    with pytest.raises(FrameError, match=r"cut\.jpg: unreadable or truncated image .*end-of-image"):
+        read_bands(tmp_path / "cut.jpg", cam)
