@@ -12,7 +12,7 @@ import re
 from dataclasses import dataclass, replace
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import yaml
@@ -208,14 +208,32 @@ def _check_exposure(rec: FrameRecord, where: Path, line: int | None = None) -> N
         raise FrameError(f"{at}frame {rec.path.name} has gain {rec.gain:g}; it must be positive", path=where)
 
 
-def read_frame_table(folder: str | Path, *, require_files: bool = True) -> list[FrameRecord]:
+def read_frame_table(
+    folder: str | Path,
+    *,
+    require_files: bool = True,
+    on_frame_error: Callable[[str, FrameError], None] | None = None,
+) -> list[FrameRecord]:
     """Frames of a folder with their exposure and position (SPEC.md, Session folder).
 
     ``frames.csv`` (columns ``file,exposure_ms`` required; ``gain,time,lat,lon,alt_m``
     optional) is read first; image files without a row fall back to their EXIF tags. A frame
     with no exposure anywhere, a zero or negative exposure, or a listed file that does not
     exist raises :class:`FrameError` naming the file.
+
+    With ``on_frame_error`` (flights: process as far as possible) such a frame is instead
+    reported as ``on_frame_error(file_name, error)`` and left out; a frame listed twice is
+    left out entirely (its metadata is ambiguous). A table that cannot be read as a whole
+    (missing column, not UTF-8) still raises :class:`SessionError`.
     """
+    dropped: set[str] = set()  # frames reported to on_frame_error: no EXIF fallback either
+
+    def frame_error(name: str, exc: FrameError) -> None:
+        if on_frame_error is None:
+            raise exc
+        dropped.add(name)
+        on_frame_error(name, exc)
+
     folder = Path(folder)
     if not folder.is_dir():
         raise SessionError("frame folder not found", path=folder)
@@ -236,45 +254,24 @@ def read_frame_table(folder: str | Path, *, require_files: bool = True) -> list[
                 for line, row in enumerate(reader, start=2):
                     row = {(k or "").strip(): (v or "") for k, v in row.items()}
                     name = row["file"].strip()
-                    if not name:
-                        raise FrameError(f"line {line}: empty file name", path=csv_path)
-                    exp = _parse_float(row["exposure_ms"], csv_path, line, "exposure_ms")
-                    if exp is None:
-                        raise FrameError(
-                            f"line {line}: frame {name} has no exposure_ms",
-                            path=csv_path,
-                            hint="every frame needs its exposure time; mscal never guesses one",
-                        )
-                    gain = _parse_float(row.get("gain", ""), csv_path, line, "gain")
-                    rec = FrameRecord(
-                        path=folder / name,
-                        exposure_ms=exp,
-                        gain=1.0 if gain is None else gain,
-                        time=_parse_time(row.get("time", ""), csv_path, line),
-                        lat=_parse_float(row.get("lat", ""), csv_path, line, "lat"),
-                        lon=_parse_float(row.get("lon", ""), csv_path, line, "lon"),
-                        alt_m=_parse_float(row.get("alt_m", ""), csv_path, line, "alt_m"),
-                    )
-                    _check_exposure(rec, csv_path, line)
-                    if rec.lat is not None and not -90 <= rec.lat <= 90:
-                        raise FrameError(f"line {line}: lat {rec.lat} outside [-90, 90]", path=csv_path)
-                    if rec.lon is not None and not -180 <= rec.lon <= 180:
-                        raise FrameError(f"line {line}: lon {rec.lon} outside [-180, 180]", path=csv_path)
-                    if name in records:
-                        raise FrameError(f"line {line}: frame {name} is listed twice", path=csv_path)
-                    if require_files and not rec.path.is_file():
-                        raise FrameError(
-                            f"line {line}: frame {name} is listed but the file does not exist",
-                            path=csv_path,
-                            hint="restore the file or remove its row",
-                        )
-                    records[name] = rec
+                    try:
+                        rec = _table_row(folder, csv_path, line, row, name, records, require_files)
+                    except FrameError as exc:
+                        if name in records:  # listed twice: neither row can be trusted
+                            del records[name]
+                        frame_error(name or f"{FRAMES_CSV} line {line}", exc)
+                        continue
+                    if name not in dropped:
+                        records[name] = rec
         except UnicodeDecodeError:
             raise SessionError("not a UTF-8 text file", path=csv_path) from None
     for p in sorted(folder.iterdir()):
-        if p.suffix.lower() in IMAGE_SUFFIXES and p.name not in records:
-            records[p.name] = exif_record(p)
-    if not records:
+        if p.suffix.lower() in IMAGE_SUFFIXES and p.name not in records and p.name not in dropped:
+            try:
+                records[p.name] = exif_record(p)
+            except FrameError as exc:
+                frame_error(p.name, exc)
+    if not records and not dropped:
         raise SessionError(
             "no frames found",
             path=folder,
@@ -282,6 +279,50 @@ def read_frame_table(folder: str | Path, *, require_files: bool = True) -> list[
         )
     return sorted(records.values(), key=lambda r: r.path.name)
 
+
+def _table_row(
+    folder: Path,
+    csv_path: Path,
+    line: int,
+    row: dict[str, str],
+    name: str,
+    records: dict[str, FrameRecord],
+    require_files: bool,
+) -> FrameRecord:
+    """One validated frames.csv row (:class:`FrameError` naming the line and the frame)."""
+    if not name:
+        raise FrameError(f"line {line}: empty file name", path=csv_path)
+    exp = _parse_float(row["exposure_ms"], csv_path, line, "exposure_ms")
+    if exp is None:
+        raise FrameError(
+            f"line {line}: frame {name} has no exposure_ms",
+            path=csv_path,
+            hint="every frame needs its exposure time; mscal never guesses one",
+        )
+    gain = _parse_float(row.get("gain", ""), csv_path, line, "gain")
+    rec = FrameRecord(
+        path=folder / name,
+        exposure_ms=exp,
+        gain=1.0 if gain is None else gain,
+        time=_parse_time(row.get("time", ""), csv_path, line),
+        lat=_parse_float(row.get("lat", ""), csv_path, line, "lat"),
+        lon=_parse_float(row.get("lon", ""), csv_path, line, "lon"),
+        alt_m=_parse_float(row.get("alt_m", ""), csv_path, line, "alt_m"),
+    )
+    _check_exposure(rec, csv_path, line)
+    if rec.lat is not None and not -90 <= rec.lat <= 90:
+        raise FrameError(f"line {line}: lat {rec.lat} outside [-90, 90]", path=csv_path)
+    if rec.lon is not None and not -180 <= rec.lon <= 180:
+        raise FrameError(f"line {line}: lon {rec.lon} outside [-180, 180]", path=csv_path)
+    if name in records:
+        raise FrameError(f"line {line}: frame {name} is listed twice", path=csv_path)
+    if require_files and not rec.path.is_file():
+        raise FrameError(
+            f"line {line}: frame {name} is listed but the file does not exist",
+            path=csv_path,
+            hint="restore the file or remove its row",
+        )
+    return rec
 
 def _parse_time(text: str, csv_path: Path, line: int) -> str | None:
     text = (text or "").strip()
