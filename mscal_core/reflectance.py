@@ -190,3 +190,57 @@ def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
         out = (n - r) / total
         ok = np.isfinite(r) & np.isfinite(n) & (total > 0)
     return np.where(ok, np.clip(out, -1.0, 1.0), np.nan).astype(dtype)
+
+
+def eq15_tables(
+    inverse_response: np.ndarray, vignetting: np.ndarray, spectral_factor: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Precomputed factors of Eq. 15 for :func:`eq15_fast`: ``R = (U(I) / S) * (1 / V) / t``.
+
+    Returns ``lut`` (n_bands, 2**bits) float32 = ``max(U, 0) / S`` (NaN where S is not
+    positive) and ``inv_v`` (n_bands, H, W) float32 = ``1 / V`` (NaN where V is not positive
+    and finite). Computed once per calibration, reused for every frame.
+    """
+    u = np.asarray(inverse_response, dtype=np.float64)
+    s = np.asarray(spectral_factor, dtype=np.float64).reshape(-1, 1)
+    v = np.asarray(vignetting, dtype=np.float64)
+    if u.ndim != 2 or v.ndim != 3 or not (u.shape[0] == v.shape[0] == s.shape[0]):
+        raise InputError(
+            f"inverse response {u.shape}, vignetting {v.shape} and spectral factor {s.shape[0]} do not fit"
+        )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lut = np.where(np.isfinite(u) & (s > 0) & np.isfinite(s), np.maximum(u, 0.0) / s, np.nan)
+        inv_v = np.where(np.isfinite(v) & (v > 0), 1.0 / v, np.nan)
+    return lut.astype(np.float32), inv_v.astype(np.float32)
+
+
+def eq15_fast(
+    dn: np.ndarray, lut: np.ndarray, inv_v: np.ndarray, exposure: np.ndarray | float, saturation_dn: int
+) -> np.ndarray:
+    """Eq. 15 for a stack of frames with the tables of :func:`eq15_tables` (float32 throughout).
+
+    ``dn`` (n_frames, n_bands, H, W) unsigned integers, ``exposure`` t (n_frames,) or scalar.
+    ``R = lut[b][I] * inv_v[b] / t``; NaN where ``I >= saturation_dn``. Agrees with
+    :func:`eq15` to float32 rounding; about 6x faster (a table lookup per band, no float64).
+    """
+    d = np.asarray(dn)
+    if d.ndim != 4 or not np.issubdtype(d.dtype, np.unsignedinteger):
+        raise InputError(f"DN must be unsigned integers (n_frames, n_bands, H, W), got {d.dtype} {d.shape}")
+    if d.size and int(d.max()) >= lut.shape[1]:
+        raise InputError(
+            f"DN {int(d.max())} outside the response table 0..{lut.shape[1] - 1}",
+            hint="is the calibration for this camera's bit depth?",
+        )
+    t = np.broadcast_to(np.asarray(exposure, dtype=np.float64).reshape(-1), (d.shape[0],))
+    if not np.all(np.isfinite(t) & (t > 0)):
+        raise InputError("exposure times must be positive and finite")
+    out = np.empty(d.shape, dtype=np.float32)
+    for f in range(d.shape[0]):
+        inv_t = np.float32(1.0 / t[f])
+        for b in range(d.shape[1]):
+            o = out[f, b]
+            np.take(lut[b], d[f, b], out=o)
+            o *= inv_v[b]
+            o *= inv_t
+        out[f][d[f] >= saturation_dn] = np.nan
+    return out

@@ -100,6 +100,65 @@ _stage_command("illumination")
 
 
 @cli.command()
+@click.argument("flight", type=click.Path(path_type=Path))
+@click.option("--calibration", "calibration", required=True,
+              help="Calibration store (.zarr) from 'mscal calibrate', or 'factory' for cameras with factory metadata.")
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path), help="Output folder.")
+@click.option("--normalise", default="relative", show_default=True,
+              help="relative (Eq. 15 as is), band:<name or nm> (that band's median is 1 in every frame), "
+                   "or panel (see --panel).")
+@click.option("--panel", default=None, help="FRAME:x0,y0,x1,y1 region of known reflectance (band-grid pixels).")
+@click.option("--panel-reflectance", default=None, help="Reflectance of the panel: a number or a target name.")
+@click.option("--float32", "float32", is_flag=True, help="Photogrammetry TIFFs as float32 instead of uint16 x 32768.")
+@click.option("--export-bands", default=None, help="Comma-separated band names for the per-frame TIFFs (default: the camera's).")
+@click.option("--strict", is_flag=True, help="Exit non-zero if any frame was quarantined.")
+def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str | None, panel_reflectance: str | None,
+          float32: bool, export_bands: str | None, strict: bool) -> None:
+    """Reflectance (Eq. 15), indices and photogrammetry TIFFs for a FLIGHT folder."""
+    from mscal_core.errors import InputError
+
+    from .apply import ApplyOptions, PanelSpec, apply_flight
+
+    if (panel is None) != (panel_reflectance is None):
+        raise InputError("--panel and --panel-reflectance go together")
+    spec = PanelSpec.parse(panel, panel_reflectance) if panel else None
+    if spec is not None and normalise == "relative":
+        normalise = "panel"
+    opts = ApplyOptions(
+        normalise=normalise, panel=spec, tiff_dtype="float32" if float32 else "uint16",
+        export_bands=tuple(b.strip() for b in export_bands.split(",")) if export_bands else None, strict=strict,
+    )
+    res = apply_flight(flight, calibration, out, opts)
+    for q in res.quarantined:
+        click.echo(f"quarantined {q['file']}: {q['reason']}", err=True)
+    state = "up to date" if res.up_to_date else f"{res.run['timings_s']['total']:.1f} s"
+    click.echo(f"wrote {out} ({res.run['frames_out']} frames, {len(res.quarantined)} quarantined; {state})")
+    if strict and res.quarantined:
+        raise SystemExit(3)
+
+
+@cli.command()
+@click.argument("ortho", type=click.Path(path_type=Path))
+@click.option("--index", "index_name", default="ndvi", show_default=True, help="Index name from catalogs/indices.")
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
+@click.option("--bands", default=None, help="Band numbers of the roles, e.g. red=3,nir=5 (default: from band descriptions).")
+def index(ortho: Path, index_name: str, out: Path, bands: str | None) -> None:
+    """Index map of a reflectance orthomosaic as a Cloud Optimized GeoTIFF."""
+    from mscal_core.errors import InputError
+
+    from .indexmap import index_map
+
+    mapping = None
+    if bands:
+        try:
+            mapping = {k.strip(): int(v) for k, v in (item.split("=") for item in bands.split(","))}
+        except ValueError:
+            raise InputError(f"--bands {bands!r} is not ROLE=NUMBER,...", hint="e.g. --bands red=3,nir=5") from None
+    index_map(ortho, index_name, out, bands=mapping)
+    click.echo(f"wrote {out}")
+
+
+@cli.command()
 @click.option("-o", "--output", "out", default=Path("demo-out"), show_default=True, type=click.Path(path_type=Path))
 @click.option("--size", type=click.Choice(["small", "full"]), default="small", show_default=True,
               help="'full' is the paper-sized session (40 views, 14-frame sweep).")
@@ -125,6 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     except click.ClickException as exc:
         exc.show()
         return exc.exit_code
+    except SystemExit as exc:
+        return int(exc.code or 0)
     return 0
 
 

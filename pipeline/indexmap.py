@@ -282,7 +282,7 @@ def index_map(
             "BANDS": ",".join(f"{r}={mapping[r]}" for r in roles),
             "SOURCE": ortho_path.name,
         }
-        with atomic_path(out_path) as tmp_cog:
+        with atomic_path(out_path, durable=True) as tmp_cog:
             stage = tmp_cog.with_name(tmp_cog.name + ".stage.tif")
             try:
                 with rasterio.open(stage, "w", **profile) as dst:

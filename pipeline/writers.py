@@ -105,11 +105,19 @@ class BandTags:
 # --------------------------------------------------------------------------- atomic files
 
 
-@contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary sibling of ``path``; on success fsync it and rename it onto ``path``.
+#: Marks temporary names; a restarted run removes whatever carries it (``apply``).
+TMP_MARK = ".tmp-"
 
-    The temporary name is hidden (``.<stem>.<random>.tmp<suffix>``) and does not exist when
+
+@contextmanager
+def atomic_path(path: str | Path, *, durable: bool = False) -> Iterator[Path]:
+    """Yield a temporary sibling of ``path``; on success rename it onto ``path``.
+
+    A killed process leaves either the old file or the complete new one, never a partial one.
+    ``durable`` also fsyncs the file and its folder (survives power loss); per-frame outputs
+    skip it because thousands of fsyncs cost more than the rest of the write, and a run cut
+    by power loss is redone anyway (run.json is written last).
+    The temporary name is hidden (``.<stem>.tmp-<random><suffix>``) and does not exist when
     yielded: the caller creates it (so the file gets the usual permissions). On any exception
     the temporary file and any sidecar GDAL left next to it (``<tmp>.aux.xml``, ``<tmp>.ovr``)
     are removed and the exception propagates; ``path`` is untouched. The parent folder is
@@ -117,18 +125,20 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.{uuid.uuid4().hex[:12]}.tmp{path.suffix}")
+    tmp = path.with_name(f".{path.stem}{TMP_MARK}{uuid.uuid4().hex[:12]}{path.suffix}")
     try:
         yield tmp
         if not tmp.is_file():
             raise FileNotFoundError(f"{tmp}: nothing was written to the temporary file for {path}")
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        if durable:
+            fd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
         os.replace(tmp, path)
-        _fsync_dir(path.parent)
+        if durable:
+            _fsync_dir(path.parent)
     except BaseException:
         _remove_tmp(tmp)
         raise

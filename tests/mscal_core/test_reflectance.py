@@ -166,3 +166,24 @@ def test_ndvi():
     finite = out[np.isfinite(out)]
     assert (finite >= -1).all() and (finite <= 1).all()
     assert ndvi(np.array([0.1]), np.array([0.3])).dtype == np.float64
+
+
+def test_eq15_fast_agrees_with_eq15() -> None:
+    from mscal_core.reflectance import eq15, eq15_fast, eq15_tables
+
+    rng = np.random.default_rng(4)
+    n_bands, h, w = 5, 30, 40
+    U = np.cumsum(rng.uniform(0, 2, size=(n_bands, 1024)), axis=1) - 20
+    V = rng.uniform(0.4, 1.0, size=(n_bands, h, w))
+    V[0, 0, 0] = 0.0
+    S = rng.uniform(1.5, 2.5, size=n_bands)
+    dn = rng.integers(0, 1024, size=(3, n_bands, h, w)).astype(np.uint16)
+    t = np.array([1.5, 2.0, 7.25])
+    ref = eq15(dn, U, t, V, S, saturation_dn=1000)
+    lut, inv_v = eq15_tables(U, V, S)
+    fast = eq15_fast(dn, lut, inv_v, t, 1000)
+    assert fast.dtype == np.float32
+    np.testing.assert_array_equal(np.isnan(fast), np.isnan(ref))
+    np.testing.assert_allclose(fast, ref, rtol=2e-6, equal_nan=True)
+    assert np.isnan(fast[:, 0, 0, 0]).all() and (dn[:, 1:] >= 1000).sum() == np.isnan(fast[:, 1:]).sum()
+    assert np.nanmin(fast) >= 0

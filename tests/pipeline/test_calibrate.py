@@ -16,16 +16,6 @@ from pipeline.evaluate import evaluate_calibration
 from pipeline.synth import write_session
 
 
-@pytest.fixture(scope="module")
-def small(tmp_path_factory) -> tuple[Path, Path]:
-    """A small synthetic session (7-frame sweep, 8 views, 2 reflector images) and its calibration."""
-    root = tmp_path_factory.mktemp("small")
-    session = write_session(root / "session", seed=3, size="small")
-    calib = root / "calib.zarr"
-    assert main(["calibrate", str(session), "-o", str(calib)]) == 0
-    return session, calib
-
-
 def _run(args: list[str], capsys) -> tuple[int, str, str]:
     code = main([str(a) for a in args])
     out = capsys.readouterr()

@@ -1,0 +1,227 @@
+"""Benchmark of ``mscal apply`` on a full-resolution flight, beside its baselines.
+
+    .venv/bin/python bench/bench_apply.py [--frames 600] [--large 2400] [--quick]
+
+Measured in the same run, each command in its own fresh process (wall, peak RSS of that
+process alone; see ``bench_calibrate.run_measured``):
+
+- the I/O floor: read + decode every raw frame and write a float32 reflectance-sized array
+  per frame, nothing else;
+- a hand-written per-frame numpy loop: read, demosaic, LUT (U), divide by t V S, save;
+- ``mscal apply FLIGHT --calibration CALIB -o OUT`` (ingest into raw.zarr, Eq. 15 lazily,
+  reflectance.zarr with indices, 8 photogrammetry TIFFs + 1 NDVI TIFF per frame, run.json);
+- ``mscal apply`` again on the finished OUT (nothing to do);
+- ``mscal apply`` on a flight ``--large / --frames`` times longer, for memory flatness.
+
+Targets (issue 3): apply wall <= 2.0 x the I/O floor and >= 1.2 x faster than the loop;
+peak RSS <= 2 GB and flat in the number of frames (within 15 %).
+The flight is built from the frames of a small synthetic session, each copy with its own
+random least-significant bits (so every file has its own content hash).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import shlex
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+import bench_calibrate as bc  # noqa: E402  (shared measurement and markdown helpers)
+
+SECTION_KEY = "bench_apply"
+ROOT = HERE.parent
+
+
+def make_flight(src: Path, dst: Path, n: int, seed: int = 0) -> Path:
+    """``n`` frames from the frames of ``src`` (cycled), each with fresh random LSBs."""
+    import tifffile
+
+    rows = list(csv.DictReader((src / "frames.csv").open()))
+    bases = [tifffile.imread(src / r["file"]) for r in rows]
+    rng = np.random.default_rng(seed)
+    dst.mkdir(parents=True, exist_ok=True)
+    with (dst / "frames.csv").open("w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(["file", "exposure_ms", "gain", "time", "lat", "lon", "alt_m"])
+        for i in range(n):
+            k = i % len(rows)
+            frame = bases[k] ^ rng.integers(0, 2, size=bases[k].shape, dtype=np.uint16)
+            name = f"IMG_{i:05d}.tif"
+            tifffile.imwrite(dst / name, frame)
+            r = rows[k]
+            lat = float(r["lat"]) + 1e-5 * i
+            w.writerow([name, r["exposure_ms"], 1, f"2017-06-14T10:{(i // 60) % 60:02d}:{i % 60:02d}Z",
+                        f"{lat:.8f}", r["lon"], r["alt_m"]])
+    return dst
+
+
+def child_floor(flight: str, out: str) -> None:
+    """I/O floor: read + decode each frame, write a float32 array of the reflectance's size."""
+    import tifffile
+
+    from pipeline.catalog import load_camera
+
+    cam = load_camera("ximea-mq022hg-sm5x5-nir")
+    shape = (cam.n_bands, *cam.layout.grid)
+    Path(out).mkdir(parents=True, exist_ok=True)
+    for r in csv.DictReader((Path(flight) / "frames.csv").open()):
+        raw = tifffile.imread(Path(flight) / r["file"])
+        arr = np.empty(shape, np.float32)
+        arr[0, 0, 0] = raw[0, 0]
+        arr.tofile(Path(out) / (Path(r["file"]).stem + ".f32"))
+
+
+def child_loop(flight: str, calib: str, out: str) -> None:
+    """The obvious per-frame numpy loop: read, demosaic, LUT, divide by t V S, save."""
+    import tifffile
+    import xarray as xr
+
+    from mscal_core.mosaic import demosaic
+
+    ds = xr.open_zarr(calib)
+    U = ds["inverse_response"].values
+    V = ds["vignetting"].values
+    S = ds["spectral_factor"].values
+    Path(out).mkdir(parents=True, exist_ok=True)
+    for r in csv.DictReader((Path(flight) / "frames.csv").open()):
+        dn = demosaic(tifffile.imread(Path(flight) / r["file"]), (5, 5), (0, 0), (217, 409))
+        t = float(r["exposure_ms"]) * float(r.get("gain") or 1)
+        refl = np.empty(dn.shape, np.float32)
+        for b in range(dn.shape[0]):
+            refl[b] = U[b][dn[b]] / (t * V[b] * S[b])
+        refl[dn >= 1023] = np.nan
+        np.save(Path(out) / (Path(r["file"]).stem + ".npy"), refl)
+
+
+def _py(*args: str) -> list[str]:
+    return [sys.executable, str(Path(__file__).resolve()), *args]
+
+
+def run(frames: int, large: int, workdir: Path, log=print) -> dict:
+    mscal = bc.mscal_command()
+    session = workdir / "session"
+    log(f"synthesizing a small session in {session}")
+    bc._check(bc.run_measured(_py("--child", "synth", str(session))), "synthesis")
+    calib = workdir / "calib.zarr"
+    bc._check(bc.run_measured([*mscal, "calibrate", str(session), "-o", str(calib)]), "calibrate")
+    res: dict = {"frames": frames, "large": large}
+    flight = make_flight(session / "flights" / "field", workdir / "flight", frames, seed=1)
+    log(f"flight of {frames} frames written")
+    res["floor"] = bc._check(bc.run_measured(_py("--child", "floor", str(flight), str(workdir / "floor"))), "floor")
+    shutil.rmtree(workdir / "floor")
+    res["loop"] = bc._check(bc.run_measured(_py("--child", "loop", str(flight), str(calib), str(workdir / "loop"))), "loop")
+    shutil.rmtree(workdir / "loop")
+    out = workdir / "out"
+    res["apply"] = bc._check(bc.run_measured([*mscal, "apply", str(flight), "--calibration", str(calib), "-o", str(out)]), "apply")
+    res["rerun"] = bc._check(bc.run_measured([*mscal, "apply", str(flight), "--calibration", str(calib), "-o", str(out)]), "re-run")
+    shutil.rmtree(out)
+    log(f"apply on {frames} frames: {res['apply'].wall_s:.1f} s, floor {res['floor'].wall_s:.1f} s, loop {res['loop'].wall_s:.1f} s")
+    if large:
+        shutil.rmtree(flight)
+        big = make_flight(session / "flights" / "field", workdir / "flight_large", large, seed=2)
+        res["apply_large"] = bc._check(
+            bc.run_measured([*mscal, "apply", str(big), "--calibration", str(calib), "-o", str(workdir / "out_large")],
+                            timeout=4 * 3600), "apply (large)")
+        res["floor_large"] = bc._check(bc.run_measured(_py("--child", "floor", str(big), str(workdir / "floor_large"))), "floor (large)")
+        shutil.rmtree(workdir / "out_large")
+        shutil.rmtree(workdir / "floor_large")
+        shutil.rmtree(big)
+    return res
+
+
+def render(res: dict, command: str) -> str:
+    info = bc.machine_info()
+    f, lp, ap, rr = res["floor"], res["loop"], res["apply"], res["rerun"]
+    n = res["frames"]
+    ratio_floor = ap.wall_s / f.wall_s
+    speedup = lp.wall_s / ap.wall_s
+    rows = [
+        ("I/O floor (read + decode, write float32)", f),
+        ("per-frame numpy loop (read, demosaic, LUT, divide, save)", lp),
+        ("`mscal apply`", ap),
+        ("`mscal apply` again on the finished OUT", rr),
+    ]
+    lines = [
+        "## Apply benchmark",
+        "",
+        f"Produced by `bench/bench_apply.py`; a later run replaces this section. Run {time.strftime('%Y-%m-%dT%H:%M:%S%z')}.",
+        "",
+        "```",
+        command,
+        "```",
+        "",
+        f"Machine: {info['nproc']} CPUs ({info['cpu']}); {info['memory']} RAM; {info['os']}; Python {info['python']}; "
+        f"numpy {info['numpy']}; OpenCV {info['opencv']}. Code: git {info['git']}.",
+        "",
+        f"Flight: {n} full-resolution frames (2048 x 1088 raw mosaic, 10-bit, 25 bands of 217 x 409), built from the "
+        "flight frames of a small synthetic session, each with its own random least-significant bits. Outputs of "
+        "`mscal apply`: raw.zarr, reflectance.zarr (reflectance, ndvi, ndre, vegetation_mask), 8 photogrammetry TIFFs "
+        "and 1 NDVI TIFF per frame, run.json. The frames are in the page cache for every command.",
+        "",
+        f"| command ({n} frames) | wall (s) | frames/s | CPU (s) | peak RSS (MiB) | 1-min load before |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for label, r in rows:
+        lines.append(f"| {label} | {r.wall_s:.1f} | {n / r.wall_s:.1f} | {r.cpu_s:.1f} | {r.maxrss_mib:.0f} | {r.load_before[0]:.2f} |")
+    lines += [
+        "",
+        "| figure | value | target | result |",
+        "|---|---:|---:|:---:|",
+        f"| apply wall / I/O floor wall | {ratio_floor:.2f}x | <= 2.0x | {'PASS' if ratio_floor <= 2.0 else 'FAIL'} |",
+        f"| loop wall / apply wall | {speedup:.2f}x | >= 1.2x | {'PASS' if speedup >= 1.2 else 'FAIL'} |",
+        f"| apply peak RSS | {ap.maxrss_mib:.0f} MiB | <= 2048 MiB | {'PASS' if ap.maxrss_mib <= 2048 else 'FAIL'} |",
+    ]
+    if "apply_large" in res:
+        al, fl = res["apply_large"], res["floor_large"]
+        growth = al.maxrss_mib / ap.maxrss_mib - 1
+        lines += [
+            f"| apply peak RSS, {res['large']} vs {n} frames | {al.maxrss_mib:.0f} vs {ap.maxrss_mib:.0f} MiB ({growth:+.1%}) "
+            f"| within 15 % | {'PASS' if abs(growth) <= 0.15 else 'FAIL'} |",
+            f"| apply wall / I/O floor wall, {res['large']} frames | {al.wall_s / fl.wall_s:.2f}x ({al.wall_s:.0f} s vs {fl.wall_s:.0f} s) | <= 2.0x | "
+            f"{'PASS' if al.wall_s / fl.wall_s <= 2.0 else 'FAIL'} |",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--frames", type=int, default=600)
+    p.add_argument("--large", type=int, default=2400, help="second, longer flight for memory flatness (0: skip)")
+    p.add_argument("--quick", action="store_true", help="60 and 240 frames")
+    p.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks.md")
+    p.add_argument("--workdir", type=Path, default=None)
+    p.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
+    a = p.parse_args(argv)
+    if a.child:
+        kind, *rest = a.child
+        if kind == "synth":
+            from pipeline.synth import write_session
+
+            write_session(rest[0], seed=5, size="small")
+        elif kind == "floor":
+            child_floor(*rest)
+        elif kind == "loop":
+            child_loop(*rest)
+        return 0
+    if a.quick:
+        a.frames, a.large = 60, 240
+    command = shlex.join([".venv/bin/python", "bench/bench_apply.py", *(argv if argv is not None else sys.argv[1:])])
+    with tempfile.TemporaryDirectory(prefix="mscal-bench-apply-", dir=a.workdir) as tmp:
+        res = run(a.frames, a.large, Path(tmp))
+    body = render(res, command)
+    print(body)
+    bc.write_section(a.out, body, SECTION_KEY)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,21 @@
+"""Shared synthetic sessions: written and calibrated once per test process."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from pipeline.cli import main
+from pipeline.synth import write_session
+
+
+@pytest.fixture(scope="session")
+def small(tmp_path_factory) -> tuple[Path, Path]:
+    """A small synthetic session (7-frame sweep, 8 views, 2 reflector images, a 3-frame
+    flight) and its calibration store."""
+    root = tmp_path_factory.mktemp("small")
+    session = write_session(root / "session", seed=3, size="small")
+    calib = root / "calib.zarr"
+    assert main(["calibrate", str(session), "-o", str(calib)]) == 0
+    return session, calib
