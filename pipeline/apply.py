@@ -21,6 +21,7 @@ import time
 import uuid
 import warnings
 from dataclasses import asdict, dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -250,9 +251,18 @@ def _frame_tags(raw: xr.Dataset, f: int, camera: Camera) -> FrameTags:
     )
 
 
-def _threads() -> int:
-    """Worker threads for the per-frame pass: the cores, plus one to overlap file I/O."""
-    return (os.cpu_count() or 1) + 1
+def scheduler_for(n_frames: int) -> tuple[str, int]:
+    """Dask scheduler of the per-frame pass.
+
+    The per-frame work holds the GIL most of the time (Zarr's I/O loop, TIFF encoding): more
+    threads do not go faster, processes do. Worker processes cost ~1.5 s to start, so short
+    flights stay in-process. ``MSCAL_APPLY_SCHEDULER`` (threads|processes) overrides.
+    """
+    cpus = os.cpu_count() or 1
+    choice = os.environ.get("MSCAL_APPLY_SCHEDULER", "")
+    if choice not in ("threads", "processes"):
+        choice = "processes" if cpus > 1 and n_frames >= 8 * cpus else "threads"
+    return choice, (cpus if choice == "processes" else 1)
 
 
 def _compressor():  # noqa: ANN202
@@ -266,10 +276,18 @@ def _compressor():  # noqa: ANN202
 _COMPRESSOR = _compressor()
 
 
-def zarr_array(store: Path, name: str):  # noqa: ANN201
+@lru_cache(maxsize=8)
+def _zarr_array(store: str, name: str, mode: str):  # noqa: ANN202
     import zarr
 
-    return zarr.open_array(store, path=name, mode="r+" if ".reflectance" in str(store) else "r")
+    return zarr.open_array(store, path=name, mode=mode)
+
+
+@lru_cache(maxsize=2)
+def _tables(calibration: str) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 15 tables of a calibration store, once per process."""
+    ds = xr.open_zarr(calibration)
+    return eq15_tables(ds["inverse_response"].values, ds["vignetting"].values, ds["spectral_factor"].values)
 
 
 def output_template(raw: xr.Dataset, calib: xr.Dataset, camera: Camera, indices: Sequence[Index],
@@ -301,12 +319,13 @@ def output_template(raw: xr.Dataset, calib: xr.Dataset, camera: Camera, indices:
 
 @dataclass(frozen=True)
 class FramePlan:
-    """Everything one frame's task needs (no arrays of other frames)."""
+    """Everything one frame's task needs: paths and small values, no arrays (it is sent to
+    worker processes once per task)."""
 
-    raw_dn: Any
-    outputs: dict[str, Any]
-    lut: np.ndarray
-    inv_v: np.ndarray
+    raw_store: Path
+    out_store: Path
+    calibration: Path
+    outputs: tuple[str, ...]
     sat: int
     norm: tuple[str, float | int | None]
     indices: tuple[tuple[Index, dict[str, int]], ...]
@@ -319,23 +338,25 @@ def process_frame(plan: FramePlan, f: int, name: str, t: float, tags: FrameTags)
     """One frame, every output: Eq. 15, normalisation, indices, Otsu mask, its chunk of each
     reflectance.zarr variable (one whole chunk per variable: no two tasks share a chunk), its
     photogrammetry and NDVI TIFFs. Returns its saturated pixel count."""
-    dn = np.asarray(plan.raw_dn[f])
-    refl = eq15_fast(dn[None], plan.lut, plan.inv_v, t, plan.sat)[0]
+    dn = np.asarray(_zarr_array(str(plan.raw_store), "dn", "r")[f])
+    lut, inv_v = _tables(str(plan.calibration))
+    refl = eq15_fast(dn[None], lut, inv_v, t, plan.sat)[0]
+    outputs = {v: _zarr_array(str(plan.out_store), v, "r+") for v in plan.outputs}
     kind, value = plan.norm
     if kind == "scalar":
         refl *= np.float32(value)
     elif kind == "band":
         med = np.nanmedian(refl[int(value)])
         refl *= np.float32(1.0 / med) if np.isfinite(med) and med > 0 else np.float32(np.nan)
-    plan.outputs["reflectance"][f] = refl
+    outputs["reflectance"][f] = refl
     ndvi = None
     for ix, roles in plan.indices:
         val = ix.evaluate({role: refl[b] for role, b in roles.items()})
-        plan.outputs[ix.name][f] = val
+        outputs[ix.name][f] = val
         if ix.name == "ndvi":
             ndvi = val
-    if ndvi is not None and "vegetation_mask" in plan.outputs:
-        plan.outputs["vegetation_mask"][f] = otsu_mask(ndvi)
+    if ndvi is not None and "vegetation_mask" in outputs:
+        outputs["vegetation_mask"][f] = otsu_mask(ndvi)
     for b, btags in plan.bands:
         write_band_tiff(plan.out / "photogrammetry" / f"{name}_{btags.name}.tif", refl[b], tags, btags,
                         dtype=plan.tiff_dtype)
@@ -371,6 +392,8 @@ def apply_flight(
     t_ingest = time.perf_counter() - t0
     quarantined = list(ing.quarantined)
     raw = xr.open_zarr(out / "raw.zarr")
+    # frame coordinates in memory once (they are small); dn stays lazy
+    raw = raw.assign_coords({c: raw[c].load() for c in raw.coords if c != "frame"})
     frames = [str(f) for f in raw["frame"].values]
     fingerprint = {
         "frames_sha256": hashlib.sha256("".join(map(str, raw["sha256"].values)).encode()).hexdigest(),
@@ -403,12 +426,9 @@ def apply_flight(
         warnings.filterwarnings("ignore", message="Consolidated metadata")
         ds.to_zarr(tmp_store, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
 
-    lut, inv_v = eq15_tables(calib["inverse_response"].values, calib["vignetting"].values,
-                             calib["spectral_factor"].values)
     plan = FramePlan(
-        raw_dn=zarr_array(out / "raw.zarr", "dn"),
-        outputs={v: zarr_array(tmp_store, v) for v in ds.data_vars},
-        lut=lut, inv_v=inv_v, sat=sat, norm=norm,
+        raw_store=out / "raw.zarr", out_store=tmp_store, calibration=calib_path,
+        outputs=tuple(str(v) for v in ds.data_vars), sat=sat, norm=norm,
         indices=tuple((ix, roles[ix.name]) for ix in indices),
         bands=tuple(
             (b, BandTags(name=camera.bands[b].name, wavelength_nm=camera.bands[b].wavelength_nm,
@@ -425,7 +445,8 @@ def apply_flight(
         for f, name in enumerate(frames)
     ]
     t0 = time.perf_counter()
-    sat_counts = dask.compute(*tasks, scheduler="threads", num_workers=_threads())
+    scheduler, workers = scheduler_for(len(frames))
+    sat_counts = dask.compute(*tasks, scheduler=scheduler, num_workers=workers)
     t_compute = time.perf_counter() - t0
     final = out / "reflectance.zarr"
     if final.exists():

@@ -269,3 +269,20 @@ def test_sigkill_at_any_moment_then_rerun_gives_identical_outputs(small, tmp_pat
                 np.testing.assert_array_equal(got[key], value)
         leftovers = [p for p in out.rglob("*") if ".tmp-" in p.name]
         assert leftovers == []
+
+
+@pytest.mark.slow
+def test_worker_processes_give_the_same_outputs(small, tmp_path, monkeypatch) -> None:
+    session, calib = small
+    flight = session / "flights" / "field"
+    monkeypatch.setenv("MSCAL_APPLY_SCHEDULER", "threads")
+    assert _apply(flight, calib, tmp_path / "threads") == 0
+    monkeypatch.setenv("MSCAL_APPLY_SCHEDULER", "processes")
+    assert _apply(flight, calib, tmp_path / "processes") == 0
+    a, b = _outputs(tmp_path / "threads"), _outputs(tmp_path / "processes")
+    assert a.keys() == b.keys()
+    for key in a:
+        if isinstance(a[key], bytes):
+            assert a[key] == b[key], key
+        else:
+            np.testing.assert_array_equal(a[key], b[key])
