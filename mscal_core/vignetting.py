@@ -537,3 +537,34 @@ def fit_vignetting(
         iterations=iterations,
         converged=converged,
     )
+
+
+def view_inconsistency(
+    fit: VignettingFit, pixel_index: np.ndarray, cell_index: np.ndarray, values: np.ndarray, tol: float = 0.1
+) -> float:
+    """Fraction of one view's observations that the fitted model (Eq. 8: ``y = V(x) L(p)``)
+    misses by more than ``tol`` (relative).
+
+    A good view scatters by its noise only (about 1 %); a view whose marker pose is wrong
+    (e.g. the wrong one of the two planar-pose solutions) maps lawn or the marker's paper onto
+    reflector cells and misses by tens of percent on a large part of its pixels. Observations
+    in cells the fit never saw are ignored. Returns NaN when nothing is comparable.
+    """
+    v = fit.vignetting.ravel()[pixel_index]
+    lp = fit.radiance[cell_index]
+    ok = np.isfinite(lp) & (lp > 0) & (v > 0) & np.isfinite(values)
+    if not ok.any():
+        return float("nan")
+    rel = values[ok] / (v[ok] * lp[ok]) - 1.0
+    return float(np.mean(np.abs(rel) > tol))
+
+
+def inconsistent_views(fractions: np.ndarray, floor: float = 0.02, factor: float = 5.0) -> np.ndarray:
+    """Indices of views whose :func:`view_inconsistency` is above ``max(floor, factor x the
+    median over views)``: the views to drop before the per-band fits."""
+    f = np.asarray(fractions, dtype=np.float64)
+    finite = f[np.isfinite(f)]
+    if finite.size == 0:
+        return np.array([], dtype=np.int64)
+    limit = max(floor, factor * float(np.median(finite)))
+    return np.nonzero(np.isfinite(f) & (f > limit))[0]

@@ -237,21 +237,43 @@ def fit_vignetting_frames(
     n_cells = grid[0] * grid[1]
     exclude, edge = _exclude_half(session), _edge_margin(session)
 
-    def one(b: int) -> vignetting.VignettingFit:
+    def observations(b: int, use: Sequence[tuple[int, View]]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         rays = geometry.pixel_rays(session.intrinsics, shape, tuple(offsets[b]))
-        pix, cell, val = [], [], []
-        for i, view in views:
+        obs = []
+        for i, view in use:
             t = view.record.effective_exposure
             energy = _energy(stack[i, b], inverse_response[b], t, int(saturation_dn[b]))
             uv = geometry.pixels_to_plane(view.pose, session.intrinsics, shape, rays=rays)
             mask = geometry.reflector_mask(uv, session.reflector.size_m, exclude, edge)
-            p, c, v = vignetting.view_observations(energy, uv, mask, session.reflector.size_m, grid=grid)
-            pix.append(p)
-            cell.append(c)
-            val.append(v)
+            obs.append(vignetting.view_observations(energy, uv, mask, session.reflector.size_m, grid=grid))
+        return obs
+
+    def fit(obs: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> vignetting.VignettingFit:
         return vignetting.fit_vignetting(
-            np.concatenate(pix), np.concatenate(cell), np.concatenate(val), shape, n_cells
+            *(np.concatenate([o[k] for o in obs]) for k in range(3)), shape, n_cells
         )
+
+    # Screen the views on one band first: a view whose marker pose is wrong (planar-pose
+    # ambiguity, a mis-detected corner) disagrees with all the others and is dropped.
+    ref = camera.n_bands // 2
+    ref_obs = observations(ref, views)
+    ref_fit = fit(ref_obs)
+    frac = np.array([vignetting.view_inconsistency(ref_fit, *o) for o in ref_obs])
+    bad = set(vignetting.inconsistent_views(frac).tolist())
+    if bad:
+        med = float(np.nanmedian(frac))
+        for k in sorted(bad):
+            report.skipped.append({
+                "file": views[k][1].record.path.name,
+                "reason": f"inconsistent with the other views ({frac[k]:.0%} of its reflector pixels off "
+                          f"by >10 %, median view {med:.1%}): marker pose likely wrong",
+            })
+        views = [v for k, v in enumerate(views) if k not in bad]
+
+    def one(b: int) -> vignetting.VignettingFit:
+        if b == ref and not bad:
+            return ref_fit
+        return fit(observations(b, views))
 
     fits = _map(one, camera.n_bands)
     report.residuals = {

@@ -336,3 +336,25 @@ def test_count_excludes_uninformative_cells():
     np.testing.assert_array_equal(fit.count.ravel(), [2, 2, 0, 2])
     assert not fit.observed.ravel()[2]
     assert np.isfinite(fit.radiance).all()  # cell 1 gets L from the filled V
+
+
+def test_a_view_with_a_wrong_pose_is_found() -> None:
+    from mscal_core.vignetting import VignettingFit, inconsistent_views, view_inconsistency
+
+    rng = np.random.default_rng(7)
+    shape, n_cells = (20, 30), 400
+    V = np.linspace(0.6, 1.0, shape[0] * shape[1]).reshape(shape)
+    L = rng.uniform(0.5, 2.0, n_cells)
+    fit = VignettingFit(V, np.ones(shape, int), np.ones(shape, bool), L, 0.01, 5, True)
+    fractions = []
+    for k in range(12):
+        pix = rng.integers(0, V.size, 2000)
+        cell = rng.integers(0, n_cells, 2000)
+        y = V.ravel()[pix] * L[cell] * (1 + 0.01 * rng.standard_normal(2000))
+        if k == 5:  # wrong pose: a quarter of the pixels see lawn at 0.22x
+            y[:500] *= 0.22
+        fractions.append(view_inconsistency(fit, pix, cell, y))
+    assert fractions[5] == pytest.approx(0.25, abs=0.01)
+    assert max(f for i, f in enumerate(fractions) if i != 5) < 0.001
+    assert inconsistent_views(np.array(fractions)).tolist() == [5]
+    assert inconsistent_views(np.array(fractions[:5] + fractions[6:])).tolist() == []
