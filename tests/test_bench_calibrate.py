@@ -1,0 +1,73 @@
+"""bench/bench_calibrate.py's markdown section writer (no benchmark is run here)."""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "bench" / "bench_calibrate.py"
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("bench_calibrate_under_test", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod  # dataclasses look their module up there
+    spec.loader.exec_module(mod)
+    return mod
+
+
+bench = _load()
+
+
+def test_import_has_no_side_effects() -> None:
+    code = (
+        "import importlib.util, sys\n"
+        f"spec = importlib.util.spec_from_file_location('b', {str(SCRIPT)!r})\n"
+        "m = importlib.util.module_from_spec(spec); sys.modules['b'] = m; spec.loader.exec_module(m)\n"
+        "heavy = [k for k in ('pipeline.synth', 'pipeline.calibrate', 'xarray', 'cv2') if k in sys.modules]\n"
+        "print(heavy)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60)
+    assert out.stdout.strip() == "[]"
+    assert out.stderr == ""
+
+
+def test_replace_section_replaces_only_its_section() -> None:
+    start, end = bench.markers()
+    qs, qe = bench.markers(bench.QUICK_SECTION_KEY)
+    before = "# Benchmarks\n\nIntro text.\n\n## Other benchmark\n\n| a | b |\n|---|---|\n| 1 | 2 |\n\n"
+    middle = f"\n\n{qs}\nquick figures\n{qe}\n\n## Yet another\n\nkept.\n"
+    text = before + f"{start}\nold figures\nmore old lines\n{end}" + middle
+    new = bench.replace_section(text, "## Calibration benchmark\n\nnew figures\n")
+    assert new == before + f"{start}\n## Calibration benchmark\n\nnew figures\n{end}" + middle
+    assert "old figures" not in new
+    # Running again with the same body is a fixed point; the other marked section is untouched.
+    assert bench.replace_section(new, "## Calibration benchmark\n\nnew figures\n") == new
+    assert bench.replace_section(new, "quick 2", bench.QUICK_SECTION_KEY).count("new figures") == 1
+
+
+def test_replace_section_appends_when_absent_and_creates_header() -> None:
+    start, end = bench.markers()
+    assert bench.replace_section("", "body") == f"# Benchmarks\n\n{start}\nbody\n{end}\n"
+    assert bench.replace_section("# B\n\nother\n", "body") == f"# B\n\nother\n\n{start}\nbody\n{end}\n"
+
+
+def test_replace_section_refuses_unbalanced_markers() -> None:
+    start, _ = bench.markers()
+    with pytest.raises(ValueError, match="unbalanced"):
+        bench.replace_section(f"# B\n{start}\nhalf a section\n", "body")
+
+
+def test_write_section_keeps_other_sections(tmp_path: Path) -> None:
+    path = tmp_path / "docs" / "benchmarks.md"
+    bench.write_section(path, "first run")
+    path.write_text(path.read_text() + "\n## Hand-written notes\n\nkeep me\n")
+    bench.write_section(path, "second run")
+    text = path.read_text()
+    assert "second run" in text and "first run" not in text
+    assert text.endswith("## Hand-written notes\n\nkeep me\n")
+    assert not list(path.parent.glob("*.tmp"))
