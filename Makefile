@@ -24,8 +24,10 @@ test-fast: setup
 demo: setup
 	$(BIN)/mscal demo
 
+# Figures into docs/benchmarks.md, each beside its baseline measured in the same run.
 bench: setup
-	$(BIN)/python bench/bench_calibrate.py
+	$(BIN)/python bench/bench_calibrate.py --seeds 0 1 2
+	$(BIN)/python bench/bench_apply.py --frames 600 --large 2400
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache
