@@ -357,7 +357,8 @@ def project_to_pixels(points_uv: np.ndarray, pose: Pose, intrinsics: Intrinsics)
     return img.reshape(-1, 2)
 
 
-def _size_wh(size_m: float | Sequence[float]) -> tuple[float, float]:
+def size_wh(size_m: float | Sequence[float]) -> tuple[float, float]:
+    """A reflector size given as one side or ``[width, height]`` (metres), validated."""
     arr = np.asarray(size_m, dtype=np.float64).ravel()
     if arr.size == 1:
         arr = np.repeat(arr, 2)
@@ -382,7 +383,7 @@ def reflector_mask(
     ``|u| <= exclude_half_m and |v| <= exclude_half_m`` (the marker, its white paper border
     and a safety margin). NaN plane points are False.
     """
-    w, h = _size_wh(size_m)
+    w, h = size_wh(size_m)
     excl = float(exclude_half_m)
     margin = float(edge_margin_m)
     if not np.isfinite(excl) or excl < 0 or not np.isfinite(margin) or margin < 0:

@@ -43,6 +43,7 @@ from scipy.optimize import least_squares
 from scipy.sparse.csgraph import connected_components
 
 from .errors import FitError, InputError
+from .geometry import size_wh
 
 __all__ = [
     "DEFAULT_CELLS_ALONG",
@@ -106,18 +107,6 @@ class VignettingFit:
 # --------------------------------------------------------------------------- plane cells
 
 
-def _size_wh(size_m: float | Sequence[float]) -> tuple[float, float]:
-    arr = np.asarray(size_m, dtype=np.float64).ravel()
-    if arr.size == 1:
-        arr = np.repeat(arr, 2)
-    if arr.size != 2 or not np.all(np.isfinite(arr)) or np.any(arr <= 0):
-        raise InputError(
-            f"reflector size must be [width, height] positive metres, got {size_m!r}",
-            hint="check size_m of the reflector target",
-        )
-    return float(arr[0]), float(arr[1])
-
-
 def cell_grid(
     size_m: float | Sequence[float],
     *,
@@ -130,7 +119,7 @@ def cell_grid(
     ``nv``); else square cells with :data:`DEFAULT_CELLS_ALONG` along the longer side.
     ``n_cells = nu * nv``.
     """
-    w, h = _size_wh(size_m)
+    w, h = size_wh(size_m)
     if grid is not None:
         try:
             nu, nv = (int(grid[0]), int(grid[1]))
@@ -156,7 +145,7 @@ def cell_centres(size_m: float | Sequence[float], grid: tuple[int, int]) -> np.n
     Cell ``iv * nu + iu`` spans ``u in [-w/2 + iu w/nu, -w/2 + (iu+1) w/nu)`` and likewise in
     ``v`` (``v`` up, as in the marker frame).
     """
-    w, h = _size_wh(size_m)
+    w, h = size_wh(size_m)
     nu, nv = cell_grid(size_m, grid=grid)
     uc = -0.5 * w + (np.arange(nu) + 0.5) * (w / nu)
     vc = -0.5 * h + (np.arange(nv) + 0.5) * (h / nv)
@@ -192,7 +181,7 @@ def view_observations(
             f"energy (H, W), uv (H, W, 2) and mask (H, W) must match, got {e.shape}, "
             f"{pts.shape}, {m.shape}"
         )
-    w, h = _size_wh(size_m)
+    w, h = size_wh(size_m)
     nu, nv = cell_grid(size_m, cells_per_m=cells_per_m, grid=grid)
     flat = np.flatnonzero(m.ravel())
     vals = e.ravel()[flat]

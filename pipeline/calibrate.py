@@ -195,6 +195,25 @@ def find_views(
     return views
 
 
+def load_marker_frames(
+    session: Session, folder: Path, inverse_response: np.ndarray, report: StageReport
+) -> tuple[list[FrameRecord], np.ndarray, list[tuple[int, View]]]:
+    """Frames of a marker folder (vignetting/ or reflector/), their band stacks and the views
+    whose marker was found; :class:`FitError` naming the folder if it was found in none."""
+    recs = read_frame_table(folder)
+    stack = read_stack(recs, session.camera)
+    report.inputs = content_hashes([r.path for r in recs], session.root)
+    views = find_views(recs, stack, session, inverse_response, report)
+    if not views:
+        raise FitError(
+            f"marker {session.marker.dictionary} id {session.marker.id} was not found in any of the "
+            f"{len(recs)} frames",
+            path=folder,
+            hint="check marker.dictionary and marker.id in session.yaml, and that the marker is in view and sharp",
+        )
+    return recs, stack, views
+
+
 def _exclude_half(session: Session) -> float:
     return session.marker.size_m / 2 + session.marker.border_m + MARKER_MARGIN_M
 
@@ -219,18 +238,7 @@ def fit_vignetting_frames(
     t0 = time.perf_counter()
     camera = session.camera
     report = StageReport("vignetting")
-    folder = session.vignetting_dir
-    recs = read_frame_table(folder)
-    stack = read_stack(recs, camera)
-    report.inputs = content_hashes([r.path for r in recs], session.root)
-    views = find_views(recs, stack, session, inverse_response, report)
-    if not views:
-        raise FitError(
-            f"marker {session.marker.dictionary} id {session.marker.id} was not found in any of the "
-            f"{len(recs)} frames",
-            path=folder,
-            hint="check marker.dictionary and marker.id in session.yaml, and that the marker is in view and sharp",
-        )
+    recs, stack, views = load_marker_frames(session, session.vignetting_dir, inverse_response, report)
     shape = stack.shape[2:]
     offsets = _offsets(camera)
     grid = vignetting.cell_grid(session.reflector.size_m)
@@ -325,16 +333,7 @@ def fit_illumination_frames(
     camera = session.camera
     report = StageReport("illumination")
     folder = session.reflector_dir
-    recs = read_frame_table(folder)
-    stack = read_stack(recs, camera)
-    report.inputs = content_hashes([r.path for r in recs], session.root)
-    views = find_views(recs, stack, session, inverse_response, report)
-    if not views:
-        raise FitError(
-            f"marker {session.marker.dictionary} id {session.marker.id} was not found in any reflector image",
-            path=folder,
-            hint="the illumination fit locates the reflector through the marker; check session.yaml's marker",
-        )
+    recs, stack, views = load_marker_frames(session, folder, inverse_response, report)
     rho = session.reflector.reflectance.at(camera.wavelengths)
     shape = stack.shape[2:]
     centre = tuple(_offsets(camera).mean(axis=0))
