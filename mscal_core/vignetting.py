@@ -548,7 +548,7 @@ def view_inconsistency(
     return float(np.mean(np.abs(rel) > tol))
 
 
-def inconsistent_views(fractions: np.ndarray, floor: float = 0.02, factor: float = 5.0) -> np.ndarray:
+def inconsistent_views(fractions: np.ndarray, floor: float = 0.05, factor: float = 5.0) -> np.ndarray:
     """Indices of views whose :func:`view_inconsistency` is above ``max(floor, factor x the
     median over views)``: the views to drop before the per-band fits."""
     f = np.asarray(fractions, dtype=np.float64)
