@@ -16,23 +16,54 @@ on ``U(I)`` while it is on the DN, and converges to a biased fixed point (PAPER.
 
 The default ``method="forward"`` models the noise where it is. It fits the forward response
 ``C`` (monotone piecewise linear in the exposure energy ``x``: ``C(0)`` plus segment slopes
-``>= 0``, knots at even DN steps, a light second-difference prior) and ``E`` per pixel by
-weighted least squares on the DN:
+``>= 0``, knots at even DN steps, a smoothness prior) and ``E`` per pixel by weighted least
+squares on the DN:
 
-    M(C, E) = sum_i sum_x w_ix (I_i(x) - C(t_i E(x)))^2 + prior(C),
-    w = 1 / (a + b (C(t_i E(x)) - black))            (read + shot noise variance of the DN)
+    M(C, E) = sum_i sum_x w_ix (I_i(x) - C(t_i E(x)))^2 + censored terms + prior(C),
+    w = rho_ix / var_ix,  var = a + b (C(t_i E(x)) - black) + c g_ix^2
 
 Each iteration takes (b) the C update given E, the errors-in-DN analogue of Eq. 6, which is
 a bounded linear least-squares problem because C is linear in its parameters, jointly with
 (a) the E update of every pixel linearised (the Eq. 7 analogue), E eliminated through its
 Schur complement (a Gauss-Newton step on both, with backtracking), then a per-pixel
-Gauss-Newton step on E alone. ``a, b`` are re-estimated from the residuals (leverage
-corrected); the knots are re-spread evenly in DN a few times. Finally ``U = C^{-1}`` on the
-DN grid; ``C(0)`` is the estimated black level, so ``U = 0`` there.
+Gauss-Newton step on E alone. Finally ``U = C^{-1}`` on the DN grid; ``C(0)`` is the
+estimated black level, so ``U = 0`` there.
+
+Photographs (8-bit JPEG brackets, handheld) break the clean-sweep assumptions of Eq. 5 in
+ways the fit handles explicitly (measured on ``mscal_core.synth.photo``):
+
+- noise model ``var``: read + shot noise ``a + b mu`` plus ``c g^2``, ``g`` the sample's local
+  DN gradient (neighbours in the band): a camera shifted by ``s`` pixels between frames moves
+  a sample by about ``s g``, so ``c`` (a mean squared shift, 0 on a tripod) is estimated
+  from the residuals and edges weigh less where the frames are misaligned; ``a, b, c`` from
+  robust (median) binned squared residuals, leverage corrected;
+- outliers ``rho``: samples more than 3 standard deviations off the curve taper to weight 0
+  at 6 (moving things, parallax, JPEG ringing); Gaussian noise keeps full weight;
+- ceilings: a pixel's samples from its first saturated exposure on, or from a value in the
+  upper half that a clearly longer exposure does not exceed (stuck below the clip: a colour
+  channel clipped before the camera's colour matrix), are not points of the curve;
+- censoring: DN 0 (where the neighbours are dark too: a 0 next to an edge is more often a
+  shifted edge or a colour-matrix / chroma artefact) and a pixel's first saturated sample
+  are censored observations (Tobit terms ``-2 log Phi``, as Newton pseudo-observations), not
+  dropped: dropping them keeps only the noise draws that stayed inside the range, biased
+  towards mid-range (a black level above 0 and a too flat shoulder);
+- hidden saturation: in JPEG photographs a blown highlight is partly 245-254 (ringing);
+  where such samples are common the top of U follows the paper's Eq. 6 in the log domain
+  (:func:`_hidden_saturation_top`);
+- prior: second differences of ``log C'`` against ``log x`` with the best power law projected
+  out (every gamma curve and the linear sensor are free), weighted adaptively: the exposure
+  ratios of a bracket are powers of one step, which leaves U determined by the data only
+  up to a factor periodic in ``log x`` with that step (:func:`exposure_period`), so the
+  weight grows with the step squared (2 frames 4 stops apart need a strong prior) and with
+  the cube of the robust noise relative to the DN range (misfit of JPEG, sharpening and
+  misalignment is absorbed by the prior rather than by wiggles of C).
+
+Large bands (the pipeline passes every pixel, e.g. 9 frames x 24 Mpx) are thinned to a seeded
+random subset of candidate pixels before anything else: no full-size temporaries or copies.
 
 Gauge (docs/architecture.md): ``U[k] = 0`` at/below black, ``U[k_ref] = k_ref - black`` with
-``k_ref = dn_max // 2``. Saturated samples (``>= saturation_dn``, default ``dn_max``) and
-clipped samples (``0`` or ``dn_max``) are excluded; DN never observed are filled monotonically
+``k_ref = dn_max // 2``. Saturated (``>= saturation_dn``, default ``dn_max``) and clipped
+(``0``) samples enter only as censored terms; DN never observed are filled monotonically
 (linear extrapolation above the highest observed DN).
 """
 
@@ -44,10 +75,16 @@ from functools import cached_property
 import numpy as np
 from scipy.linalg import cho_factor, solve_triangular
 from scipy.optimize import lsq_linear
+from scipy.special import log_ndtr
 
 from .errors import FitError, InputError
 
 METHODS = ("forward", "alternating")
+PRIORS = ("adaptive", "loglog", "linear")
+
+#: Bands with more than this many pixels per ``max_pixels`` are first thinned to a seeded
+#: random subset of that many candidates (a 24 Mpx band: 100 000 candidates for 4000 pixels).
+CANDIDATES_PER_PIXEL = 25
 
 
 @dataclass(frozen=True)
@@ -68,7 +105,10 @@ class ResponseFit:
 
 
 def _validate(dn: np.ndarray, exposure: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
-    """Check shapes and values; return ``(dn as int32 (n_frames, n_pixels), t float64)``."""
+    """Check shapes and values; return ``(dn (n_frames, n_pixels), t float64)``.
+
+    Integer ``dn`` is returned as given (no copy: the pipeline passes every pixel of a band,
+    e.g. 9 frames x 24 Mpx); integer-valued floats are converted to int32."""
     if not isinstance(bits, (int, np.integer)) or not 1 <= bits <= 16:
         raise InputError(f"bit depth must be an integer 1..16, got {bits!r}")
     dn = np.asarray(dn)
@@ -88,12 +128,20 @@ def _validate(dn: np.ndarray, exposure: np.ndarray, bits: int) -> tuple[np.ndarr
         if not np.all(np.isfinite(dn)) or np.any(dn != np.round(dn)):
             raise InputError("response samples must be integer DN")
     dn_max = 2**bits - 1
-    if dn.min() < 0 or dn.max() > dn_max:
+    lo, hi = dn.min(), dn.max()
+    if lo < 0 or hi > dn_max:
         raise InputError(
-            f"DN outside 0..{dn_max} for a {bits}-bit camera (range {dn.min()}..{dn.max()}); "
+            f"DN outside 0..{dn_max} for a {bits}-bit camera (range {lo}..{hi}); "
             "check the camera's bit depth"
         )
-    return dn.astype(np.int32), t
+    if not np.issubdtype(dn.dtype, np.integer):
+        dn = dn.astype(np.int32)
+    return dn, t
+
+
+#: Frames larger than this are subsampled (evenly strided) for the per-frame median of
+#: :func:`check_exposure_consistency`.
+_MEDIAN_PIXELS = 1 << 18
 
 
 def _usable(dn: np.ndarray, saturation_dn: int, dn_max: int) -> np.ndarray:
@@ -103,10 +151,53 @@ def _usable(dn: np.ndarray, saturation_dn: int, dn_max: int) -> np.ndarray:
 
 def _usable_sweep(dn: np.ndarray, t: np.ndarray, saturation_dn: int, dn_max: int) -> np.ndarray:
     """:func:`_usable`, also dropping a pixel's samples at exposures >= the shortest one at
-    which it is already saturated (noise can pull a saturated pixel just below the clip)."""
-    sat = (dn >= saturation_dn) | (dn >= dn_max)
-    t_sat = np.where(sat, t[:, None], np.inf).min(axis=0)
-    return _usable(dn, saturation_dn, dn_max) & (t[:, None] < t_sat[None, :])
+    which it has reached its ceiling (see :func:`_sweep_masks`)."""
+    return _sweep_masks(dn, t, saturation_dn, dn_max)[0]
+
+
+def _sweep_masks(
+    dn: np.ndarray, t: np.ndarray, saturation_dn: int, dn_max: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(usable, censored_low, censored_high)`` masks of a sweep's samples.
+
+    A pixel's samples at exposures >= the shortest one at which it reached its ceiling are
+    not usable:
+
+    - saturated (``>= saturation_dn`` or ``dn_max``): noise (or JPEG ringing) can pull a
+      saturated pixel just below the clip at longer exposures;
+    - or, in the upper half of the range, not exceeded by a clearly longer exposure
+      (``>= 1.25 t``) of the same pixel: a value stuck below the clip (one colour channel
+      clipped before the colour matrix of a camera, highlight compression, a pixel that
+      changed) is not a point of the response curve.
+
+    Of the others, DN ``0`` samples are censored low (the signal was <= 0.5 DN) and the
+    samples at a pixel's first saturated exposure censored high (>= saturation - 0.5), if
+    the pixel stopped by saturating: dropping them would leave only the noise draws that
+    stayed inside the range near 0 and near the clip, biased towards the middle.
+    """
+    n = t.size
+    order = np.argsort(t, kind="stable")
+    ts = t[order]
+    d = dn[order]
+    sat = (d >= saturation_dn) | (d >= dn_max)
+    stop = sat.copy()
+    if n > 1:
+        suffix_min = np.minimum.accumulate(d[::-1], axis=0)[::-1]
+        first_longer = np.searchsorted(ts, 1.25 * ts, side="left")
+        half = (dn_max + 1) // 2
+        for i in range(n):
+            k = int(first_longer[i])
+            if k < n:
+                stop[i] |= (d[i] >= half) & (suffix_min[k] <= d[i])
+    any_stop, any_sat = stop.any(axis=0), sat.any(axis=0)
+    t_stop = np.where(any_stop, ts[np.argmax(stop, axis=0)], np.inf)
+    t_sat = np.where(any_sat, ts[np.argmax(sat, axis=0)], np.inf)
+    before = t[:, None] < t_stop[None, :]
+    usable = _usable(dn, saturation_dn, dn_max) & before
+    low = (dn == 0) & before
+    high = ((dn >= saturation_dn) | (dn >= dn_max)) & (t[:, None] == t_stop[None, :]) & (
+        t_sat == t_stop)[None, :]
+    return usable, low, high
 
 
 # =============================================================================== consistency
@@ -123,7 +214,7 @@ def check_exposure_consistency(dn: np.ndarray, exposure: np.ndarray, bits: int) 
     """
     dn, t = _validate(dn, exposure, bits)
     dn_max = 2**bits - 1
-    med = np.median(dn, axis=1).astype(np.float64)
+    med = _frame_medians(dn)
     tol = max(1.0, 0.005 * dn_max)
     longer = t[:, None] >= 1.25 * t[None, :]  # [a, b]: a clearly longer than b
     bad = longer & (med[:, None] < med[None, :] - tol)
@@ -143,6 +234,13 @@ def check_exposure_consistency(dn: np.ndarray, exposure: np.ndarray, bits: int) 
         worst = int(cand[np.argmax(dev[cand])])
         alive[worst] = False
         removed.append(worst)
+
+
+def _frame_medians(dn: np.ndarray) -> np.ndarray:
+    """Median DN of every frame; on an evenly strided subsample of at most about
+    ``_MEDIAN_PIXELS`` pixels for large frames (no sorted copy of a whole band)."""
+    step = max(1, -(-dn.shape[1] // _MEDIAN_PIXELS))
+    return np.median(dn[:, ::step], axis=1).astype(np.float64)
 
 
 def _pava(y: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -167,23 +265,33 @@ def _pava(y: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def _select_pixels(
-    dn: np.ndarray, usable: np.ndarray, max_pixels: int, seed: int
+    dn: np.ndarray, el: np.ndarray, max_pixels: int, rng: np.random.Generator
 ) -> np.ndarray:
-    """Indices of at most ``max_pixels`` pixels with >= 2 usable samples spanning the
-    brightness range: half evenly spaced in summed DN (a monotone proxy of E), the rest
-    drawn at random (seeded)."""
-    eligible = np.flatnonzero(usable.sum(axis=0) >= 2)
-    if eligible.size <= max_pixels:
-        return eligible
-    proxy = dn[:, eligible].sum(axis=0, dtype=np.int64).astype(np.float64)
+    """At most ``max_pixels`` of the eligible pixels ``el`` (indices into ``dn``) spanning
+    the brightness range: half evenly spaced in summed DN (a monotone proxy of E), the rest
+    drawn at random."""
+    if el.size <= max_pixels:
+        return el
+    proxy = dn[:, el].sum(axis=0, dtype=np.int64).astype(np.float64)
     order = np.argsort(proxy, kind="stable")
     targets = np.linspace(proxy[order[0]], proxy[order[-1]], max_pixels // 2)
     pos = np.clip(np.searchsorted(proxy[order], targets), 0, order.size - 1)
     spread = np.unique(order[pos])
-    rest = np.setdiff1d(np.arange(eligible.size), spread, assume_unique=True)
-    rng = np.random.default_rng(seed)
+    rest = np.setdiff1d(np.arange(el.size), spread, assume_unique=True)
     extra = rng.choice(rest, size=max_pixels - spread.size, replace=False)
-    return np.sort(eligible[np.concatenate([spread, extra])])
+    return np.sort(el[np.concatenate([spread, extra])])
+
+
+def _neighbour_gradient2(dn: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """Squared local DN gradient ``((I(p+1) - I(p-1)) / 2)^2`` of every sample of the pixels
+    ``cols``, from their neighbours in the flattened band: horizontal neighbours of a
+    row-major image (a row boundary pairs a row's end with the next row's start). A camera
+    moved by ``s`` pixels between frames changes a sample by about ``s`` times the gradient
+    (:func:`_gradient_noise`)."""
+    n_pix = dn.shape[1]
+    left = dn[:, np.maximum(cols - 1, 0)].astype(np.float64)
+    right = dn[:, np.minimum(cols + 1, n_pix - 1)].astype(np.float64)
+    return ((right - left) / 2.0) ** 2
 
 
 def _linear_init(
@@ -317,14 +425,21 @@ def _normal_matrix(x: np.ndarray, seg: np.ndarray, w: np.ndarray, xk: np.ndarray
     return M
 
 
-def _prior(xk: np.ndarray, seg_weight: float, total_weight: float, smoothness: float
-           ) -> tuple[np.ndarray, np.ndarray]:
+def _prior(xk: np.ndarray, seg_weight: float, total_weight: float, smoothness: float,
+           slopes: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Quadratic prior ``theta' P theta - 2 p' theta`` on ``theta = [C(0), s_0 .. s_{K-1}]``:
 
     - light smoothness ``lam sum_k ((s_{k+1} - s_k) (Δ_k + Δ_{k+1}) / 2)^2`` with
       ``lam = smoothness * mean segment weight``: a change of slope, in DN over the local knot
       spacing (knots sit at even DN steps, so this is scale-free: a relative change of slope
-      times the DN step), weighs like ``smoothness`` times one segment's data,
+      times the DN step), weighs like ``smoothness`` times one segment's data.
+      With ``slopes`` (the current curve's) the change of slope is measured in the log-log
+      domain instead, relative to the best power law ``C' ~ x^q``:
+      ``lam min_q sum_k (DN_k (log s_{k+1} - log s_k - q (log x_{k+1} - log x_k)))^2``
+      (``x_k`` segment midpoints, ``DN_k`` the DN the two segments span / 2, q projected
+      out), linearised at the current slopes. Every power law, a gamma-encoded camera
+      (sRGB: ``C' ~ x^(1/2.4 - 1)``) as well as a linear sensor (q = 0), is then a null
+      direction of the prior: the data alone choose the exponent,
     - the scale gauge ``mu (sum_k s_k Δ_k - x_K)^2`` (C rises by x_K over the knots: mean
       slope 1), ``mu = total weight``: it only pins the scale direction, which the data
       leave (almost) free, without stiffening the system.
@@ -333,11 +448,28 @@ def _prior(xk: np.ndarray, seg_weight: float, total_weight: float, smoothness: f
     dx = np.diff(xk)
     D = np.diff(np.eye(K), axis=0)
     P = np.zeros((K + 1, K + 1))
-    D *= ((dx[:-1] + dx[1:]) / 2)[:, None]
-    P[1:, 1:] = smoothness * seg_weight * (D.T @ D)
+    p = np.zeros(K + 1)
+    lam = smoothness * seg_weight
+    if slopes is None:
+        D *= ((dx[:-1] + dx[1:]) / 2)[:, None]
+        P[1:, 1:] = lam * (D.T @ D)
+    else:
+        sh = np.maximum(slopes, 1e-3 * float(np.sum(slopes * dx)) / xk[-1])
+        lx = np.log((xk[:-1] + xk[1:]) / 2)
+        ls = np.log(sh)
+        A = D / sh[None, :]  # d(log s) = ds / s at the current slopes
+        c = np.diff(ls) - A @ sh
+        scale = (dx[:-1] * sh[:-1] + dx[1:] * sh[1:]) / 2
+        A *= scale[:, None]
+        c *= scale
+        beta = scale * np.diff(lx)  # the power-law direction, q free: projected out
+        proj = np.eye(K - 1) - np.outer(beta, beta) / max(float(beta @ beta), 1e-300)
+        PA = proj @ A
+        P[1:, 1:] = lam * (A.T @ PA)
+        p[1:] = -lam * (PA.T @ c)
     mu = total_weight
     P[1:, 1:] += mu * np.outer(dx, dx)
-    p = np.concatenate([[0.0], mu * xk[-1] * dx])
+    p[1:] += mu * xk[-1] * dx
     return P, p
 
 
@@ -444,14 +576,17 @@ def _fit_energy(
     return e
 
 
-def _noise_model(r: np.ndarray, mu: np.ndarray, leverage: np.ndarray, floor: float
-                 ) -> tuple[float, float]:
+def _noise_model(r: np.ndarray, mu: np.ndarray, leverage: np.ndarray, floor: float,
+                 robust: bool = False, offset: np.ndarray | None = None) -> tuple[float, float]:
     """Fit ``var(I) = a + b * mu`` (read + shot noise, ``mu = C - black``) to the squared
     residuals, each divided by ``1 - leverage`` (the share of the sample's noise absorbed by
-    its pixel's fitted E), averaged in 16 quantile bins of mu; two weighted passes,
-    ``a >= floor``."""
+    its pixel's fitted E), less a known ``offset`` (the gradient term), averaged in 16
+    quantile bins of mu (``robust``: median / 0.4549, so outliers do not inflate it); two
+    weighted passes, ``a >= floor``."""
     keep = leverage < 0.9
     r2 = r[keep] ** 2 / (1.0 - leverage[keep])
+    if offset is not None:  # a known part of the variance (gradient term)
+        r2 = np.maximum(r2 - offset[keep], 0.0)
     mu = mu[keep]
     if r2.size < 10:
         return max(float(np.mean(r ** 2)) if r.size else 1.0, floor), 0.0
@@ -461,12 +596,27 @@ def _noise_model(r: np.ndarray, mu: np.ndarray, leverage: np.ndarray, floor: flo
     k = np.clip(np.searchsorted(edges, mu, side="right") - 1, 0, edges.size - 2)
     cnt = np.bincount(k, minlength=edges.size - 1).astype(np.float64)
     ok = cnt > 0
-    mv = np.bincount(k, r2, edges.size - 1)[ok] / cnt[ok]
+    if robust:  # median / 0.4549 (median of chi2_1): outliers do not inflate the scale
+        srt = np.lexsort((r2, k))
+        rs = r2[srt]
+        starts = np.concatenate([[0], np.cumsum(cnt.astype(np.intp))])
+        mid_lo = starts[:-1] + (cnt.astype(np.intp) - 1) // 2
+        mid_hi = starts[:-1] + cnt.astype(np.intp) // 2
+        top = rs.size - 1
+        med = np.where(ok, 0.5 * (rs[np.minimum(mid_lo, top)] + rs[np.minimum(mid_hi, top)]), 0.0)
+        mv = med[ok] / 0.4549
+    else:
+        mv = np.bincount(k, r2, edges.size - 1)[ok] / cnt[ok]
     mm = np.bincount(k, mu, edges.size - 1)[ok] / cnt[ok]
     X = np.stack([np.ones_like(mm), mm], 1)
     sw = np.sqrt(cnt[ok]) / np.maximum(mv, floor)
+    sol = np.array([max(float(np.mean(mv)), floor), 0.0])
     for _ in range(2):
-        sol = lsq_linear(X * sw[:, None], mv * sw, bounds=([floor, 0.0], [np.inf, np.inf])).x
+        with np.errstate(invalid="ignore", over="ignore"):
+            trial = lsq_linear(X * sw[:, None], mv * sw, bounds=([floor, 0.0], [np.inf, np.inf])).x
+        if not np.all(np.isfinite(trial)):
+            break
+        sol = trial
         sw = np.sqrt(cnt[ok]) / np.maximum(X @ sol, floor)
     return float(sol[0]), float(sol[1])
 
@@ -491,26 +641,40 @@ def fit_response(
     saturation_dn: int | None = None,
     max_pixels: int = 4000,
     seed: int = 0,
-    smoothness: float = 0.05,
+    smoothness: float = 0.025,
     max_iter: int = 60,
     tol: float = 1e-4,
+    robust: bool = True,
+    prior: str = "adaptive",
+    gradient_noise: bool = True,
+    censored: bool = True,
 ) -> ResponseFit:
     """Fit the inverse response U of one band from a sweep (Eq. 5-7).
 
-    ``dn`` ``(n_frames, n_pixels)`` integer samples of a static scene, ``exposure``
-    ``(n_frames,)`` effective exposures (ms * gain). ``method="forward"`` (default) fits the
-    forward response with the noise on the DN (see module docstring), iterating
+    ``dn`` ``(n_frames, n_pixels)`` integer samples of a static scene (any integer dtype; not
+    copied), ``exposure`` ``(n_frames,)`` effective exposures (ms * gain). ``method="forward"``
+    (default) fits the forward response with the noise on the DN (see module docstring),
+    iterating
 
     - (a) ``E(x) = argmin_E sum_i w (I_i(x) - C(t_i E))^2`` (Gauss-Newton; Eq. 7 analogue),
     - (b) ``C = argmin_C sum_{i,x} w (I_i(x) - C(t_i E(x)))^2 + prior``, C monotone
       (Eq. 6 analogue), taken jointly with a linearised (a),
 
-    ``w = 1/(a + b (C - black))`` re-estimated from the residuals, until U changes by less
-    than ``tol`` (relative to U at the top) or ``max_iter``. ``smoothness`` weighs the
-    second-difference prior on C against one knot segment's data. ``method="alternating"``
-    runs the paper's plain Eq. 6/7 (:func:`fit_response_alternating`). Pixels (at most
-    ``max_pixels``, half evenly spread over the brightness range, the rest drawn with
-    ``seed``) with >= 2 usable samples are used.
+    ``w`` = robust weight / noise variance, re-estimated from the residuals (first 7
+    iterations), until U changes by less than ``tol`` (relative to U at mid-range) or
+    ``max_iter``. ``method="alternating"`` runs the paper's plain Eq. 6/7
+    (:func:`fit_response_alternating`). Pixels (at most ``max_pixels``, half evenly spread
+    over the brightness range, the rest drawn with ``seed``; from at most
+    ``CANDIDATES_PER_PIXEL * max_pixels`` random candidates) with >= 2 usable samples are
+    used.
+
+    Options of the forward fit (defaults: all on, measured best on photographs and on
+    10-bit sweeps): ``robust`` outlier weights; ``gradient_noise`` the misalignment term
+    ``c g^2`` of the noise; ``censored`` DN 0 / first saturated samples as censored terms;
+    ``prior`` ``"adaptive"`` (log-log smoothness weighted by noise and exposure step),
+    ``"loglog"`` (fixed weight) or ``"linear"`` (second differences of C, the previous
+    default, with ``smoothness=0.05``). ``smoothness`` weighs the prior against one knot
+    segment's data (``"adaptive"``: at 0.5 % noise and 1-stop steps).
 
     Raises ``InputError`` on bad shapes or non-positive exposures, ``FitError`` on fewer than
     2 distinct exposures, frames whose brightness contradicts their exposure
@@ -518,27 +682,43 @@ def fit_response(
     """
     if method not in METHODS:
         raise InputError(f"unknown response method {method!r}; use one of {', '.join(METHODS)}")
+    if prior not in PRIORS:
+        raise InputError(f"unknown response prior {prior!r}; use one of {', '.join(PRIORS)}")
     d_all, t = _validate(dn, exposure, bits)
     dn_max = 2**bits - 1
     sat = dn_max if saturation_dn is None else int(saturation_dn)
     if not 1 <= sat <= dn_max:
         raise InputError(f"saturation_dn must be in 1..{dn_max}, got {saturation_dn}")
     _check_sweep(d_all, t, bits)
-    usable_all = _usable_sweep(d_all, t, sat, dn_max)
-    if not usable_all.any():
+    # large bands: a seeded random subset of candidate pixels (no full-size temporaries)
+    rng = np.random.default_rng(seed)
+    n_pix = d_all.shape[1]
+    cand = None
+    if n_pix > CANDIDATES_PER_PIXEL * max_pixels:
+        cand = np.unique(rng.integers(0, n_pix, CANDIDATES_PER_PIXEL * max_pixels))
+    sub = d_all if cand is None else d_all[:, cand]
+    usable = _usable_sweep(sub, t, sat, dn_max)
+    if not usable.any():
         raise FitError(
             "no unsaturated samples in the sweep: every DN is 0 or saturated",
             hint="add shorter exposures (or check the saturation level)",
         )
-    observed = (int(d_all[usable_all].min()), int(d_all[usable_all].max()))
-    cols = _select_pixels(d_all, usable_all, max_pixels, seed)
+    observed = (int(sub.min(where=usable, initial=dn_max)), int(sub.max(where=usable, initial=0)))
+    el = np.flatnonzero(np.count_nonzero(usable, axis=0) >= 2)
+    cols = _select_pixels(d_all, el if cand is None else cand[el], max_pixels, rng)
     if cols.size == 0:
         raise FitError(
             "no pixel has unsaturated samples in 2 or more frames",
             hint="add exposures so that each brightness is seen unsaturated at least twice",
         )
-    d = d_all[:, cols].astype(np.float64)
-    m = usable_all[:, cols]
+    sel = d_all[:, cols]
+    m, cen_lo, cen_hi = _sweep_masks(sel, t, sat, dn_max)
+    grad2 = _neighbour_gradient2(d_all, cols)
+    g2 = grad2 if gradient_noise else None
+    # DN 0 next to an edge is more often a shifted edge or a colour/chroma artefact than a
+    # signal below 0.5 DN: censored only where the neighbours are dark too
+    cen_lo &= grad2 <= CENSOR_LOW_MAX_GRADIENT**2
+    d = sel.astype(np.float64)
     if np.unique(d[m]).size < 3:
         raise FitError(
             f"the sweep shows only {np.unique(d[m]).size} distinct unsaturated DN",
@@ -546,7 +726,8 @@ def fit_response(
         )
     if method == "alternating":
         return _alternating(d, m, t, bits, sat, observed)
-    return _forward(d, m, t, bits, sat, observed, smoothness, max_iter, tol)
+    return _forward(d, m, t, bits, sat, observed, smoothness, max_iter, tol, robust, prior, g2,
+                    (cen_lo, cen_hi) if censored else None)
 
 
 def _check_sweep(d: np.ndarray, t: np.ndarray, bits: int) -> None:
@@ -565,6 +746,38 @@ def _check_sweep(d: np.ndarray, t: np.ndarray, bits: int) -> None:
         )
 
 
+#: Adaptive prior weight (see :func:`fit_response`): ``smoothness * (sigma / SIGMA_REF)^SIGMA_POW
+#: * (period / PERIOD_REF)^PERIOD_POW`` with ``sigma`` the robust DN noise relative to the DN
+#: range and ``period`` the exposure step (:func:`exposure_period`, natural log).
+SIGMA_REF = 0.005
+SIGMA_POW = 3.0
+SIGMA_MAX = 0.08  # noise factor at most (0.08 / 0.005)^3 = 4096
+ADAPT_FROM = 3  # iterations with the base weight (times the period factor) first
+PERIOD_REF = float(np.log(2.0))
+PERIOD_POW = 2.0
+
+
+def exposure_period(exposure: np.ndarray, tol: float = 0.2) -> float:
+    """The exposure step of a sweep, ``log`` of the ratio: the largest ``g`` such that every
+    step between consecutive distinct exposures is (within ``tol`` of) a whole multiple of
+    ``g``. Brackets are geometric (1/1000, 1/500, ... or third stops), so every exposure
+    ratio is a power of the step; U is then determined by the data only up to a factor that
+    is periodic in ``log x`` with this period, which the prior must resolve."""
+    lt = np.unique(np.log(np.asarray(exposure, dtype=np.float64)))
+    steps = np.diff(lt)
+    steps = steps[steps > 0.05]
+    if steps.size == 0:
+        return PERIOD_REF
+    best = float(steps.min())
+    for g in sorted({float(d / k) for d in steps for k in (1, 2, 3, 4)}, reverse=True):
+        if g < best:
+            break
+        ratio = steps / g
+        if np.all(np.abs(ratio - np.round(ratio)) <= tol) and np.all(np.round(ratio) >= 1):
+            return g
+    return best
+
+
 def _forward(
     d: np.ndarray,
     m: np.ndarray,
@@ -575,8 +788,13 @@ def _forward(
     smoothness: float,
     max_iter: int,
     tol: float,
+    robust: bool = True,
+    prior: str = "adaptive",
+    g2: np.ndarray | None = None,
+    cen: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> ResponseFit:
-    """The errors-in-DN fit of :func:`fit_response` on the selected samples ``d[m]``."""
+    """The errors-in-DN fit of :func:`fit_response` on the selected samples ``d[m]``
+    (and the censored samples ``cen = (low, high)``, see :func:`_censored_terms`)."""
     dn_max = 2**bits - 1
     lo, hi = observed
     n_seg = int(np.clip((hi - lo) // 4, 4, 64))
@@ -584,28 +802,53 @@ def _forward(
     xk = np.linspace(0.0, max(hi - b0, 1.0), n_seg + 1)
     curve = _Curve(xk=xk, c=b0 + xk)
     mf = m.astype(np.float64)
-    a_var, b_var = 1.0, 0.0
+    rob = np.ones_like(mf)
+    period = exposure_period(t)
+    a_var, b_var, c_var = 1.0, 0.0, 0.0
+    g2 = np.zeros_like(mf) if g2 is None else g2
     s_min = 1e-4
     grid = np.linspace(lo, lo + 0.95 * (hi - lo), 129)  # convergence: U relative to mid-range
     prev_u = _relative_u(curve, grid)
     reknot_at = (1, 3, 6)
     settle = 7  # last re-knot / noise-model update; weights frozen afterwards
     it = 0
+    dw = d  # working samples: observed, and censored ones as pseudo-observations
     for it in range(1, max_iter + 1):
         if it in reknot_at:
             curve, e = _reknot(curve, e, t, m, hi, n_seg)
         if it <= settle:
             mu, _ = curve(t[:, None] * e[None, :])
-            w = mf / (a_var + b_var * np.maximum(mu - curve.c[0], 0.0))
-            prior = _prior(curve.xk, w.sum() / n_seg, w.sum(), smoothness)
-        theta_new, e_new = _joint_step(d, w, t, e, curve, prior, s_min)
-        curve, e, gain = _line_search(d, w, t, e, curve, prior, theta_new, e_new)
+            var = a_var + b_var * np.maximum(mu - curve.c[0], 0.0) + c_var * g2
+            w = w_obs = mf * rob / var
+            sm = smoothness
+            if prior == "adaptive":
+                # the noise factor only once the curve has been fitted (a first curve far off
+                # inflates the noise, whose prior would then freeze it), and bounded
+                sigma_rel = SIGMA_REF
+                if it > ADAPT_FROM:
+                    span = max(hi - curve.c[0], 1.0)
+                    sigma_rel = min(float(np.sqrt(var[m & (rob > 0)].mean())) / span, SIGMA_MAX)
+                sm = (smoothness * (sigma_rel / SIGMA_REF) ** SIGMA_POW
+                      * (period / PERIOD_REF) ** PERIOD_POW)
+            quad = _prior(curve.xk, w.sum() / n_seg, w.sum(), sm,
+                          None if prior == "linear" else curve.slopes)
+        noise = (a_var, b_var, c_var * g2)
+        if cen is not None and it >= 2:  # refreshed every iteration (a Newton step on them)
+            dw, wc = _censored_terms(d, cen, t, e, curve, noise, sat)
+            w = w_obs + wc * rob
+        theta_new, e_new = _joint_step(dw, w, t, e, curve, quad, s_min)
+        curve, e, gain = _line_search(dw, w, t, e, curve, quad, theta_new, e_new)
         if gain == 0.0:  # Gauss-Newton stalled on a kink: an exact block step on C instead
-            theta_new, e_new = _joint_step(d, w, t, e, curve, prior, s_min, joint=False)
-            curve, e, gain = _line_search(d, w, t, e, curve, prior, theta_new, e_new)
-        e = _fit_energy(d, w, t, e, curve, steps=1)
+            theta_new, e_new = _joint_step(dw, w, t, e, curve, quad, s_min, joint=False)
+            curve, e, gain = _line_search(dw, w, t, e, curve, quad, theta_new, e_new)
+        e = _fit_energy(dw, w, t, e, curve, steps=1)
         if it <= 3 or it in (5, settle):
-            a_var, b_var = _noise_update(d, m, w, t, e, curve)
+            a_var, b_var, c_var = _noise_update(d, m, w, t, e, curve, robust, g2)
+            noise = (a_var, b_var, c_var * g2)
+            if robust and it >= 3:
+                rob = _outlier_weights(d, m, w, t, e, curve, a_var, b_var, noise[2])
+                if cen is not None:  # a censored sample deep on the wrong side is an outlier
+                    rob = np.maximum(rob, _censored_outlier_weights(cen, t, e, curve, noise, sat))
         u = _relative_u(curve, grid)
         change = float(np.max(np.abs(u - prev_u)))
         prev_u = u
@@ -614,10 +857,114 @@ def _forward(
             break
     black = float(curve.c[0])
     u_raw = curve.inverse(np.arange(dn_max + 1, dtype=np.float64))
+    if robust:
+        noise = (a_var, b_var, c_var * g2)
+        u_raw = _hidden_saturation_top(u_raw, d, t, e, curve, noise, sat, lo, hi)
     U = _finalise(u_raw, black, hi, bits)
     mu, _ = curve(t[:, None] * e[None, :])
     rms = float(np.sqrt(np.mean((d - mu)[m] ** 2)))
     return ResponseFit(U, black, sat, observed, rms, "forward", it, int(m.sum()))
+
+
+#: DN-0 samples are censored only where the local gradient (:func:`_neighbour_gradient2`)
+#: is at most this many DN; elsewhere they are dropped.
+CENSOR_LOW_MAX_GRADIENT = 1.0
+
+#: Top of U from Eq. 6 where saturated pixels hide below the clip: DN in the upper
+#: ``1 - HIDDEN_FROM`` of the observed range where at least ``HIDDEN_FRACTION`` of the
+#: samples come from pixels the fit puts clearly (3 sd) above the clip.
+HIDDEN_FROM = 0.95
+HIDDEN_FRACTION = 0.1
+
+
+def _hidden_saturation_top(
+    u_raw: np.ndarray, d: np.ndarray, t: np.ndarray, e: np.ndarray, curve: _Curve,
+    noise: tuple[float, float, np.ndarray], sat: int, lo: int, hi: int,
+) -> np.ndarray:
+    """Raise the top of ``u_raw = C^{-1}`` to the paper's Eq. 6, in the log domain,
+    ``log U(k) = mean_{(i,x) in Omega_k} log(t_i E(x))``, at the DN ``k`` where saturated
+    pixels hide below the clip.
+
+    In JPEG photographs a blown highlight is not all 255: ringing of the compression (and
+    sharpening) spreads 245-254 into it. The curve fit rightly treats those samples as
+    outliers (their pixel's E puts them far above the clip), so ``C^{-1}(k)`` describes only
+    the pixels really at ``k``; but a DN of 250 then more often than not means "saturated",
+    and U used to predict or to linearise such a pixel should say so. Where at least
+    ``HIDDEN_FRACTION`` of the samples at ``k`` (in the upper part of the range) come from
+    pixels with ``C(t E) > sat - 0.5 + 3 sd``, U(k) becomes the larger of the two (then
+    monotone). Clean sweeps (no hidden saturation) are unchanged."""
+    k0 = int(np.ceil(lo + HIDDEN_FROM * (hi - lo)))
+    sel = (d >= k0) & (d <= hi)
+    if not sel.any():
+        return u_raw
+    x = (t[:, None] * e[None, :])[sel]
+    a_var, b_var, extra = noise
+    mu, _ = curve(x)
+    extra_sel = np.broadcast_to(extra, d.shape)[sel]
+    sd = np.sqrt(a_var + b_var * np.maximum(mu - curve.c[0], 0.0) + extra_sel)
+    k = d[sel].astype(np.intp) - k0
+    n_k = hi - k0 + 1
+    cnt = np.bincount(k, minlength=n_k)
+    hidden = np.bincount(k, (mu > sat - 0.5 + 3.0 * sd).astype(np.float64), n_k)
+    logx = np.bincount(k, np.log(np.maximum(x, 1e-12)), n_k)
+    use = (cnt >= 5) & (hidden >= HIDDEN_FRACTION * cnt)
+    if not use.any():
+        return u_raw
+    out = u_raw.copy()
+    ks = np.flatnonzero(use)
+    out[k0 + ks] = np.maximum(out[k0 + ks], np.exp(logx[ks] / cnt[ks]))
+    out[k0:] = np.maximum.accumulate(out[k0:])
+    return out
+
+
+def _censored_terms(
+    d: np.ndarray, cen: tuple[np.ndarray, np.ndarray], t: np.ndarray, e: np.ndarray,
+    curve: _Curve, noise: tuple[float, float, np.ndarray], sat: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Censored (Tobit) samples as weighted pseudo-observations: a sample censored low (DN
+    0: the signal was below ``0.5``) or high (first saturated exposure: above ``sat - 0.5``)
+    adds ``-2 log Phi(z)``, ``z = s (mu - bound) / sd`` (``s = -1`` low, ``+1`` high,
+    ``mu = C(t E)``), to the cost. Its Newton quadratic at the current ``mu`` is
+    ``w (y - mu)^2`` with ``w = lam (z + lam) / sd^2`` and ``y = mu + s sd / (z + lam)``,
+    ``lam = phi(z) / Phi(z)``: a sample far inside its allowed side weighs nothing, one on
+    the wrong side acts like an observation at the bound. Returns ``(samples, weights)`` with
+    ``d`` elsewhere and weight 0 there."""
+    low, high = cen
+    a_var, b_var, extra = noise
+    mu, _ = curve(t[:, None] * e[None, :])
+    sd = np.sqrt(a_var + b_var * np.maximum(mu - curve.c[0], 0.0) + extra)
+    dw = d.copy()
+    wc = np.zeros_like(d)
+    for mask, sign, bound in ((low, -1.0, 0.5), (high, 1.0, sat - 0.5)):
+        if mask.any():
+            mu_c, sd_c = mu[mask], sd[mask]
+            z = sign * (mu_c - bound) / sd_c
+            lam = np.exp(_log_phi(z) - log_ndtr(z))
+            den = z + lam
+            dw[mask] = mu_c + sign * sd_c / den
+            wc[mask] = lam * den / (sd_c * sd_c)
+    return dw, wc
+
+
+def _censored_outlier_weights(
+    cen: tuple[np.ndarray, np.ndarray], t: np.ndarray, e: np.ndarray, curve: _Curve,
+    noise: tuple[float, float, np.ndarray], sat: int,
+) -> np.ndarray:
+    """Robust weights (``OUTLIER_Z`` taper) of the censored samples from how far the curve
+    puts them on the wrong side of their bound, in noise standard deviations; 0 elsewhere."""
+    low, high = cen
+    z0, z1 = OUTLIER_Z
+    a_var, b_var, extra = noise
+    mu, _ = curve(t[:, None] * e[None, :])
+    sd = np.sqrt(a_var + b_var * np.maximum(mu - curve.c[0], 0.0) + extra)
+    deficit = np.where(low, (mu - 0.5) / sd, np.where(high, (sat - 0.5 - mu) / sd, 0.0))
+    u = np.clip((deficit - z0) / (z1 - z0), 0.0, 1.0)
+    return np.where(low | high, (1.0 - u * u) ** 2, 0.0)
+
+
+def _log_phi(a: np.ndarray) -> np.ndarray:
+    """Log of the standard normal density."""
+    return -0.5 * a * a - 0.5 * np.log(2 * np.pi)
 
 
 def _relative_u(curve: _Curve, grid: np.ndarray) -> np.ndarray:
@@ -626,15 +973,94 @@ def _relative_u(curve: _Curve, grid: np.ndarray) -> np.ndarray:
     return u / max(float(u[grid.size // 2]), 1e-300)
 
 
-def _noise_update(
-    d: np.ndarray, m: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: _Curve
-) -> tuple[float, float]:
-    """Re-estimate the DN noise model from the residuals (see :func:`_noise_model`), the
-    leverage of a sample being ``w J^2 / sum_i w J^2`` over its pixel, ``J = t C'(t E)``."""
-    mu, s = curve(t[:, None] * e[None, :])
+def _leverage(w: np.ndarray, t: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Leverage of every sample on its pixel's E: ``w J^2 / sum_i w J^2``, ``J = t C'(t E)``."""
     wj2 = w * (t[:, None] * s) ** 2
-    lev = wj2 / np.maximum(wj2.sum(0), 1e-300)
-    return _noise_model((d - mu)[m], np.maximum(mu - curve.c[0], 0.0)[m], lev[m], 1 / 12)
+    return wj2 / np.maximum(wj2.sum(0), 1e-300)
+
+
+def _noise_update(
+    d: np.ndarray, m: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: _Curve,
+    robust: bool = False, g2: np.ndarray | None = None,
+) -> tuple[float, float, float]:
+    """Re-estimate the DN noise model ``var = a + b mu + c g2`` from the residuals (see
+    :func:`_noise_model`; ``c = 0`` without ``g2``)."""
+    mu, s = curve(t[:, None] * e[None, :])
+    lev = _leverage(w, t, s)
+    r, above = (d - mu)[m], np.maximum(mu - curve.c[0], 0.0)[m]
+    if g2 is None or not np.any(g2[m] > 0):
+        return (*_noise_model(r, above, lev[m], 1 / 12, robust), 0.0)
+    gm = g2[m]
+    a, b, c = 1.0, 0.0, 0.0
+    for _ in range(2):
+        a, b = _noise_model(r, above, lev[m], 1 / 12, robust, offset=c * gm)
+        c = _gradient_noise(r, lev[m], a + b * above, gm)
+    return a, b, c
+
+
+def _gradient_noise(r: np.ndarray, leverage: np.ndarray, base: np.ndarray, g2: np.ndarray) -> float:
+    """``c >= 0`` in ``var = base + c g2``: the squared residuals in 8 quantile bins of the
+    squared local DN gradient ``g2``, robust (median / 0.4549) minus the mean ``base`` of
+    the bin, regressed on the bin's mean ``g2`` (weights: counts / variance^2). ``c`` is
+    the mean squared shift (pixels^2) of a scene between frames: 0 on a tripod."""
+    keep = leverage < 0.9
+    r2 = r[keep] ** 2 / (1.0 - leverage[keep])
+    g2, base = g2[keep], base[keep]
+    edges = np.unique(np.quantile(g2, np.linspace(0, 1, 9)))
+    if edges.size < 3 or r2.size < 64:
+        return 0.0
+    k = np.clip(np.searchsorted(edges, g2, side="right") - 1, 0, edges.size - 2)
+    cnt = np.bincount(k, minlength=edges.size - 1)
+    ok = cnt > 0
+    srt = np.lexsort((r2, k))
+    starts = np.concatenate([[0], np.cumsum(cnt)])[:-1]
+    med = r2[srt][np.minimum(starts + cnt // 2, r2.size - 1)] / 0.4549
+    gmean = np.bincount(k, g2, edges.size - 1)[ok] / cnt[ok]
+    excess = med[ok] - np.bincount(k, base, edges.size - 1)[ok] / cnt[ok]
+    wts = cnt[ok] / np.maximum(med[ok], 1e-6) ** 2
+    c = float(np.sum(wts * gmean * excess) / max(float(np.sum(wts * gmean * gmean)), 1e-300))
+    return max(c, 0.0)
+
+
+#: Outlier weights: 1 up to ``OUTLIER_Z[0]`` standard deviations, tapering (biweight) to 0
+#: at ``OUTLIER_Z[1]``.
+OUTLIER_Z = (3.0, 6.0)
+
+
+def _outlier_weights(
+    d: np.ndarray, m: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: _Curve,
+    a_var: float, b_var: float, extra: np.ndarray | float = 0.0,
+) -> np.ndarray:
+    """Robust weights of the standardised residuals ``z = (I - C(t E)) / sqrt(var (1 -
+    leverage))``: 1 for ``|z| <= z0``, ``(1 - ((|z| - z0) / (z1 - z0))^2)^2`` up to ``z1``,
+    0 beyond (``OUTLIER_Z``). Samples a moving object, a shifted edge or a compression
+    artefact put far off the curve stop pulling on it, while Gaussian noise keeps full
+    weight (efficiency on clean sweeps is that of plain least squares).
+
+    ``var`` is the larger of the noise model ``a + b mu`` and a local robust variance (median
+    of the squared residuals in 16 quantile bins of the expected DN, / 0.4549): where the
+    current curve is still off in some DN range, its samples are not all rejected at once
+    (which would leave that range to the prior)."""
+    z0, z1 = OUTLIER_Z
+    mu, s = curve(t[:, None] * e[None, :])
+    lev = np.minimum(_leverage(w, t, s), 0.9)
+    r2 = (d - mu) ** 2 / (1.0 - lev)
+    var = a_var + b_var * np.maximum(mu - curve.c[0], 0.0) + extra
+    mu_m, r2_m = mu[m], r2[m]
+    if mu_m.size >= 64:
+        edges = np.unique(np.quantile(mu_m, np.linspace(0, 1, 17)))
+        if edges.size >= 3:
+            k = np.clip(np.searchsorted(edges, mu_m, side="right") - 1, 0, edges.size - 2)
+            srt = np.lexsort((r2_m, k))
+            cnt = np.bincount(k, minlength=edges.size - 1)
+            starts = np.concatenate([[0], np.cumsum(cnt)])[:-1]
+            ok = cnt > 0
+            med = r2_m[srt][np.minimum(starts + cnt // 2, r2_m.size - 1)][ok] / 0.4549
+            centre = (np.bincount(k, mu_m, edges.size - 1)[ok] / cnt[ok])
+            var = np.maximum(var, np.interp(mu, centre, med))
+    z = np.sqrt(r2 / var)
+    u = np.clip((z - z0) / (z1 - z0), 0.0, 1.0)
+    return np.where(m, (1.0 - u * u) ** 2, 0.0)
 
 
 def _reknot(

@@ -17,11 +17,13 @@ from mscal_core.errors import FitError, InputError
 from mscal_core.response import (
     ResponseFit,
     check_exposure_consistency,
+    exposure_period,
     fit_response,
     fit_response_alternating,
     predict_dn,
     predict_heldout_rms,
 )
+from mscal_core.synth.photo import PhotoSet, make_photo_set
 from mscal_core.synth.sensor import SensorModel
 
 # name -> (sensor, n_frames, exposure step)
@@ -69,7 +71,7 @@ def _fit(setting: str, seed: int, method: str) -> tuple[ResponseFit, float]:
 def test_forward_fit_within_2_percent(setting: str, seed: int) -> None:
     fit, err = _fit(setting, seed, "forward")
     assert err <= 0.02  # acceptance criterion
-    assert err <= 0.008  # measured 0.09-0.63 % over seeds 0-7
+    assert err <= 0.008  # measured 0.09-0.47 % over seeds 0-7 (previous estimator: 0.09-0.63 %)
     assert fit.method == "forward"
 
 
@@ -314,7 +316,7 @@ def heldout_comparison(frames: np.ndarray, t: np.ndarray, held: int) -> dict[str
 def test_rgb8_heldout_prediction_at_least_as_good_as_debevec(seed: int) -> None:
     frames, t = rgb_sweep(RGB8, 7, 2.0, (60, 80), seed)
     rms = heldout_comparison(frames, t, held=3)
-    # measured (seeds 0-5): ours 2.105-2.119, Debevec 2.160-2.197, true U 2.091-2.104 DN
+    # measured (seeds 0-5): ours 2.103-2.114, Debevec 2.160-2.197, true U 2.091-2.104 DN
     assert rms["ours"] <= rms["debevec"]
     assert rms["ours"] <= 1.02 * rms["true"]
 
@@ -347,3 +349,177 @@ def test_forward_fit_speed_per_band() -> None:
     t0 = time.perf_counter()
     fit_response(dn, t, 10)
     assert time.perf_counter() - t0 < 1.0  # target 0.5 s; slack for a shared machine
+
+
+# ------------------------------------------------------------------ harder conditions
+# Real photographs are not clean sweeps: values stuck below the clip (a colour channel clipped
+# before the camera's colour matrix), pixels that change between frames (moving things,
+# a handheld camera), pixels that never leave 0 or dn_max. Measured with the previous
+# estimator (plain weighted least squares, only samples >= dn_max treated as saturated):
+# stuck 36-97 % max U error, movers 10-43 %.
+
+
+def _stuck_below_clip(dn: np.ndarray, rng: np.random.Generator, frac: float = 0.1,
+                      level: int = 800) -> np.ndarray:
+    """``frac`` of the pixels stop rising once they reach ``level``: later samples repeat that
+    value minus 0-14 DN (never the clip value, so not flagged as saturated)."""
+    out = dn.copy()
+    n = dn.shape[0]
+    for c in rng.choice(dn.shape[1], int(frac * dn.shape[1]), replace=False):
+        above = np.flatnonzero(dn[:, c] >= level)
+        if above.size:
+            i = above[0]
+            out[i:, c] = np.clip(dn[i, c] - rng.integers(0, 15, n - i), 0, 1022)
+    return out
+
+
+def _movers(dn: np.ndarray, rng: np.random.Generator, frac: float = 0.1, n_bad: int = 3
+            ) -> np.ndarray:
+    """``frac`` of the pixels show something else (uniform DN 40..999) in ``n_bad`` frames."""
+    out = dn.copy()
+    for c in rng.choice(dn.shape[1], int(frac * dn.shape[1]), replace=False):
+        rows = rng.choice(dn.shape[0], n_bad, replace=False)
+        out[rows, c] = rng.integers(40, 1000, n_bad)
+    return out
+
+
+@pytest.mark.parametrize("setting", ["14x1.66", "7x3"])
+def test_values_stuck_below_the_clip_are_treated_as_saturated(setting: str) -> None:
+    sensor, n, step = SETTINGS[setting]
+    dn, t = make_sweep(sensor, n, step, 4000, 0)
+    fit = fit_response(_stuck_below_clip(dn, np.random.default_rng(0)), t, 10)
+    # measured 0.11-0.65 % over seeds 0-3
+    assert u_error(fit.inverse_response, sensor.inverse_response()) < 0.008
+
+
+@pytest.mark.parametrize("setting", ["14x1.66", "7x3"])
+def test_pixels_that_change_between_frames_are_outliers(setting: str) -> None:
+    sensor, n, step = SETTINGS[setting]
+    dn, t = make_sweep(sensor, n, step, 4000, 1)
+    fit = fit_response(_movers(dn, np.random.default_rng(1)), t, 10)
+    # measured 0.15-0.37 % over seeds 0-3
+    assert u_error(fit.inverse_response, sensor.inverse_response()) < 0.008
+
+
+def test_pixels_always_clipped_are_ignored() -> None:
+    sensor, n, step = SETTINGS["14x1.66"]
+    dn, t = make_sweep(sensor, n, step, 4000, 2)
+    dn[:, :600] = 0
+    dn[:, 600:1200] = 1023
+    fit = fit_response(dn, t, 10)
+    assert u_error(fit.inverse_response, sensor.inverse_response()) < 0.008
+    assert fit.n_samples <= 14 * 2800
+
+
+def test_large_band_is_not_copied() -> None:
+    """The pipeline passes every pixel of a band (9 frames x 6 Mpx x 3 bands): the fit works on
+    a seeded subset of candidates and must not make full-size temporaries (int32 / float64
+    copies, per-pixel float masks)."""
+    import tracemalloc
+
+    sensor, n, step = SETTINGS["7x3"]
+    dn_small, t = make_sweep(sensor, n, step, 20000, 3)
+    dn = np.tile(dn_small, (1, 150))  # (7, 3 000 000) uint16: 42 MB
+    tracemalloc.start()
+    try:
+        fit_response(dn, t, 10)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 0.5 * dn.nbytes  # measured 15 MB for this 42 MB band
+
+
+def test_exposure_period_of_geometric_brackets() -> None:
+    stop = np.log(2.0)
+    assert exposure_period(2.0 ** np.arange(7)) == pytest.approx(stop)
+    # nominal markings of third-stop shutter times (1/1000 1/500 1/250 1/125 1/60 1/30)
+    nominal = 1.0 / np.array([1000, 500, 250, 125, 60, 30])
+    assert exposure_period(nominal) / stop == pytest.approx(1.0, abs=0.1)
+    # the middle frame of a 2-stop bracket held out: one 4-stop step
+    assert exposure_period(np.array([1.0, 16.0])) == pytest.approx(4 * stop)
+    assert exposure_period(np.array([1.0, 4.0, 16.0, 32.0])) == pytest.approx(stop)
+
+
+# ------------------------------------------------------------------ photographs (8-bit brackets)
+
+
+def photo_heldout(ps: PhotoSet, held: int) -> dict[str, float]:
+    """Held-out RMS DN predicting frame ``held`` from every other frame (responses fitted on
+    all frames but ``held``), per method: ours, OpenCV Debevec, the true response."""
+    fr, t = ps.frames, ps.exposure_ms
+    idx = [i for i in range(len(t)) if i != held]
+    debevec = cv2.createCalibrateDebevec().process(
+        [fr[i] for i in idx], (t[idx] / 1000.0).astype(np.float32)
+    )
+    errs: dict[str, list[float]] = {"ours": [], "debevec": [], "true": []}
+    for c in range(3):
+        us = {
+            "ours": fit_response(fr[idx][..., c].reshape(len(idx), -1), t[idx], 8).inverse_response,
+            "debevec": debevec[:, 0, c].astype(np.float64),
+            "true": ps.inverse_response[c],
+        }
+        for ref in idx:
+            for name, u in us.items():
+                errs[name].append(
+                    predict_heldout_rms(u, fr[ref][..., c], t[ref], fr[held][..., c], t[held])
+                )
+    return {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in errs.items()}
+
+
+PHOTO = dict(shape=(240, 320), n_frames=7, step_thirds=3)
+PHOTO_SETTINGS = {
+    # JPEG q90, 0.5-3 px handheld shifts, foliage + walking figure, sharpening, 1/60-style EXIF
+    "handheld": PHOTO,
+    "tripod-jpeg": PHOTO | dict(shift_px=0.0, rotation_deg=0.0, moving=False),
+    "tripod-raw-tone": PHOTO | dict(shift_px=0.0, rotation_deg=0.0, moving=False,
+                                    jpeg_quality=None, sharpen=0.0),
+}
+
+
+@pytest.mark.parametrize("setting", list(PHOTO_SETTINGS))
+def test_photo_bracket_heldout_at_least_as_good_as_debevec(setting: str) -> None:
+    ps = make_photo_set(31, **PHOTO_SETTINGS[setting])
+    rms = photo_heldout(ps, held=4)  # a bright frame: toe and shoulder of U both matter
+    # measured (seeds 31, 41, 51): ours / Debevec 0.89-0.98, ours / true U 0.89-1.02
+    assert rms["ours"] <= rms["debevec"]
+    assert rms["ours"] <= 1.05 * rms["true"]
+
+
+def test_photo_two_frames_four_stops_apart() -> None:
+    """A 3-frame bracket 2 stops apart with its middle frame held out: 2 frames 16x apart
+    determine U only up to a factor periodic in log exposure; the adaptive log-log prior
+    resolves it (Debevec: 1.4-1.7x the error of the true U on these sets)."""
+    ps = make_photo_set(32, shape=(240, 320), n_frames=3, step_thirds=6)
+    rms = photo_heldout(ps, held=1)
+    assert rms["ours"] <= 0.85 * rms["debevec"]  # measured 0.51-0.80 (seeds 32, 42, 52)
+    assert rms["ours"] <= 1.3 * rms["true"]  # measured 1.05-1.22
+
+
+def test_photo_response_close_to_truth() -> None:
+    """On a tripod bracket without JPEG the fitted U follows the camera's tone curve (toe,
+    sRGB-like gamma, shoulder) within a few percent over DN 5..250."""
+    ps = make_photo_set(33, **PHOTO_SETTINGS["tripod-raw-tone"])
+    k = np.arange(5, 251)
+    for c in range(3):
+        u = fit_response(ps.frames[..., c].reshape(7, -1), ps.exposure_ms, 8).inverse_response
+        r = np.log(u[k] / ps.inverse_response[c][k])
+        assert np.all(np.diff(u) >= 0)
+        assert np.sqrt(np.mean((r - r.mean()) ** 2)) < 0.06  # measured 0.017-0.047 (rms log)
+
+
+def test_dn0_and_first_saturated_samples_are_censored_not_dropped() -> None:
+    """Dark frames of a photograph are mostly 0-5 DN. Dropping the DN-0 samples keeps only
+    the noise draws above 0: the black level came out 1.2-2.0 DN and U(2) was 0 (seeds 33,
+    43, 53, ``censored=False``); as censored terms the black level stays near 0."""
+    ps = make_photo_set(43, **PHOTO_SETTINGS["tripod-raw-tone"])
+    k = np.arange(2, 251)
+    for c in range(3):
+        fit = fit_response(ps.frames[..., c].reshape(7, -1), ps.exposure_ms, 8)
+        u = fit.inverse_response
+        assert -1.5 < fit.black_level < 1.0  # measured -1.4 .. 0.6
+        assert u[2] > 0
+        r = np.log(u[k] / ps.inverse_response[c][k])
+        assert np.max(np.abs(r[:4] - np.median(r))) < 0.8  # DN 2-5; measured 0.09-0.77
+    dropped = [fit_response(ps.frames[..., c].reshape(7, -1), ps.exposure_ms, 8,
+                            censored=False).black_level for c in range(3)]
+    assert max(dropped) > 1.5
