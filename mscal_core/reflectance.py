@@ -226,21 +226,24 @@ def eq15_fast(
     d = np.asarray(dn)
     if d.ndim != 4 or not np.issubdtype(d.dtype, np.unsignedinteger):
         raise InputError(f"DN must be unsigned integers (n_frames, n_bands, H, W), got {d.dtype} {d.shape}")
-    if d.size and int(d.max()) >= lut.shape[1]:
-        raise InputError(
-            f"DN {int(d.max())} outside the response table 0..{lut.shape[1] - 1}",
-            hint="is the calibration for this camera's bit depth?",
-        )
     t = np.broadcast_to(np.asarray(exposure, dtype=np.float64).reshape(-1), (d.shape[0],))
     if not np.all(np.isfinite(t) & (t > 0)):
         raise InputError("exposure times must be positive and finite")
     out = np.empty(d.shape, dtype=np.float32)
+    sat = max(0, min(int(saturation_dn), lut.shape[1]))
     for f in range(d.shape[0]):
-        inv_t = np.float32(1.0 / t[f])
+        # 1/t and the saturation mask folded into the frame's table: NaN from DN >= saturation
+        # propagates through the product, so each band is one lookup and one multiply
+        table = lut * np.float32(1.0 / t[f])
+        table[:, sat:] = np.nan
         for b in range(d.shape[1]):
             o = out[f, b]
-            np.take(lut[b], d[f, b], out=o)
+            try:
+                np.take(table[b], d[f, b], out=o)  # bounds-checked
+            except IndexError:
+                raise InputError(
+                    f"DN {int(d.max())} outside the response table 0..{lut.shape[1] - 1}",
+                    hint="is the calibration for this camera's bit depth?",
+                ) from None
             o *= inv_v[b]
-            o *= inv_t
-        out[f][d[f] >= saturation_dn] = np.nan
     return out

@@ -1,29 +1,35 @@
-"""``mscal apply``: Eq. 15 over a whole flight, lazily, all outputs in one pass.
+"""``mscal apply``: Eq. 15 over a whole flight, all outputs in one pass over the frames.
 
-1. ingest the flight folder into ``OUT/raw.zarr`` (incremental; bad frames quarantined);
-2. build a dask graph over the datacube (one chunk = one frame): U lookup, divide by t V S
-   (``mscal_core.reflectance.eq15``), optional normalisation, indices;
-3. compute once: ``OUT/reflectance.zarr``, the per-frame photogrammetry TIFFs and NDVI TIFFs
-   and the saturation counts come from the same chunks in a single ``dask.compute``;
+1. discover the flight (bad frames quarantined with their reasons) and open ``OUT/raw.zarr``;
+2. plan one dask task per frame (:func:`process_frame`): its DN (from the file for a flight
+   whose cube is still empty: read once, hashed, checked and written into raw.zarr; else from
+   raw.zarr), Eq. 15 with the ``mscal_core`` kernel (U lookup, divide by t V S), optional
+   normalisation, indices, Otsu mask, and every output of that frame: its whole chunk of each
+   ``reflectance.zarr`` variable (no two tasks share a chunk), its photogrammetry TIFFs and
+   its NDVI TIFF. Nothing is computed until the pass runs; each frame is read once;
+3. run the pass on the caller's ``distributed`` client, or on local threads (processes on
+   request); raw.zarr is committed batch by batch, reflectance.zarr is renamed into place;
 4. write ``OUT/run.json`` last. Every output is written under a temporary name and renamed;
    a run that finds ``run.json`` matching its inputs, calibration and options does nothing.
 """
-
 from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
 import os
 import platform
 import re
 import shutil
+import signal
 import time
 import uuid
 import warnings
-from dataclasses import asdict, dataclass, field
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import cv2
 import dask
@@ -36,12 +42,16 @@ from mscal_core.errors import FrameError, InputError
 from mscal_core.reflectance import eq15_fast, eq15_tables
 
 from .catalog import Camera, Index, load_camera, load_index, parse_reflectance
-from .ingest import ingest_flight
+from .chunks import FLAT_CHUNK_KEYS, FrameChunks
+from .discover import quarantine_entry
+from .ingest import FRAME_COORDS, Cube, _Writer, frame_coords, frame_row, ingest_flight, open_cube, read_frame, shape_problem
+from .session import FrameRecord
 from .store import open_calibration
 from .writers import TMP_MARK, BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
 
 RUN_JSON = "run.json"
 MAX_EXPORT_BANDS = 8
+FRESH_BATCH = 64  # frames per commit of the single pass (a kill loses at most this much ingest)
 
 
 @dataclass(frozen=True)
@@ -205,11 +215,14 @@ def lazy_reflectance(raw: xr.Dataset, calib: xr.Dataset, camera: Camera) -> xr.D
 
 
 def normalisation(
-    calib: xr.Dataset, raw: xr.Dataset, camera: Camera, options: ApplyOptions
+    options: ApplyOptions, camera: Camera, frames: Sequence[str],
+    panel_reflectance: Callable[[int], np.ndarray],
 ) -> tuple[str, float | int | None]:
     """How relative reflectance is scaled: ``("none", None)``, ``("band", b)`` (per frame,
     that band's median becomes 1) or ``("scalar", k)`` (one factor from a panel of known
-    reflectance, for every frame: Eq. 15's R is relative up to one scalar)."""
+    reflectance, for every frame: Eq. 15's R is relative up to one scalar).
+
+    ``panel_reflectance(f)`` gives Eq. 15 reflectance (band, y, x) of frame ``f``."""
     mode = options.normalise
     if mode == "relative":
         return "none", None
@@ -219,12 +232,11 @@ def normalisation(
         p = options.panel
         if p is None:
             raise InputError("--normalise panel needs --panel FRAME:x0,y0,x1,y1 and --panel-reflectance")
-        frames = [str(f) for f in raw["frame"].values]
+        frames = list(frames)
         if p.frame not in frames:
             raise InputError(f"--panel frame {p.frame!r} is not in the flight", hint=f"frames: {', '.join(frames[:5])}, ...")
         x0, y0, x1, y1 = p.box
-        refl = lazy_reflectance(raw, calib, camera)
-        region = refl.isel(frame=frames.index(p.frame), x=slice(x0, x1), y=slice(y0, y1)).values
+        region = panel_reflectance(frames.index(p.frame))[:, y0:y1, x0:x1]
         rho = p.reflectance.at(camera.wavelengths)
         med = np.nanmedian(region.reshape(region.shape[0], -1), axis=1) if region.size else np.array([np.nan])
         if not np.any(np.isfinite(med) & (med > 0)):
@@ -236,77 +248,105 @@ def normalisation(
 # --------------------------------------------------------------------------- outputs
 
 
-def _frame_tags(raw: xr.Dataset, f: int, camera: Camera) -> FrameTags:
+def _frame_tags(coords: xr.Dataset, f: int, camera: Camera) -> FrameTags:
+    """Photogrammetry tags of frame ``f`` (``capture_uuid`` from its sha256, empty if unknown)."""
     def opt(name: str) -> float | None:
-        v = float(raw[name].values[f])
+        v = float(coords[name].values[f])
         return None if not np.isfinite(v) else v
 
-    tval = raw["time"].values[f]
+    tval = coords["time"].values[f]
     time_iso = None if np.isnat(tval) else np.datetime_as_string(tval, unit="ms") + "Z"
+    sha = str(coords["sha256"].values[f])
     return FrameTags(
         time=time_iso, lat=opt("lat"), lon=opt("lon"), alt_m=opt("alt_m"),
-        capture_uuid=capture_uuid(camera, str(raw["sha256"].values[f])),
-        exposure_ms=float(raw["exposure_ms"].values[f]),
+        capture_uuid=capture_uuid(camera, sha) if sha else "",
+        exposure_ms=float(coords["exposure_ms"].values[f]),
         camera_make="mscal", camera_model=camera.name,
     )
 
 
 def scheduler_for(n_frames: int) -> tuple[str, int]:
-    """Dask scheduler of the per-frame pass.
-
-    The per-frame work holds the GIL most of the time (Zarr's I/O loop, TIFF encoding): more
-    threads do not go faster, processes do. Worker processes cost ~1.5 s to start, so short
-    flights stay in-process. ``MSCAL_APPLY_SCHEDULER`` (threads|processes) overrides.
+    """Dask scheduler of the per-frame pass when no ``distributed`` client is active: one
+    thread per core. The per-frame work is numpy, hashing and file writes, which release the
+    GIL (two threads run a 120-frame flight 1.8x faster than one), and threads start at once
+    where worker processes take 1-2 s. ``MSCAL_APPLY_SCHEDULER=processes`` chooses worker
+    processes instead (a forkserver that imports this module once).
     """
     cpus = os.cpu_count() or 1
-    choice = os.environ.get("MSCAL_APPLY_SCHEDULER", "")
+    choice = os.environ.get("MSCAL_APPLY_SCHEDULER", "threads")
     if choice not in ("threads", "processes"):
-        choice = "processes" if cpus > 1 and n_frames >= 8 * cpus else "threads"
-    return choice, (cpus if choice == "processes" else 1)
+        raise InputError(f"MSCAL_APPLY_SCHEDULER={choice!r}: use threads or processes")
+    return choice, max(1, min(cpus, n_frames))
 
 
-def _compressor():  # noqa: ANN202
-    import zarr.codecs
-
-    # Fast and still ~2x on float32 reflectance: zarr's default zstd level 3 costs several
-    # times more CPU than the whole Eq. 15 kernel.
-    return zarr.codecs.BloscCodec(cname="lz4", clevel=5, shuffle="shuffle")
+# Output variables are written uncompressed: lz4 gains only 1.24x on float32 reflectance for
+# 5.8 ms of CPU per full-resolution frame, more than writing the bytes it saves costs.
+OUTPUT_COMPRESSORS: tuple = ()
 
 
-_COMPRESSOR = _compressor()
+def _stamp(path: Path) -> tuple[str, int]:
+    """Cache key of a Zarr node: its path and the time its metadata was written (a store
+    replaced at the same path is not mistaken for the old one)."""
+    return str(path), os.stat(path / "zarr.json").st_mtime_ns
 
 
-@lru_cache(maxsize=8)
-def _zarr_array(store: str, name: str, mode: str):  # noqa: ANN202
+@lru_cache(maxsize=16)
+def _zarr_array(key: tuple[str, int]):  # noqa: ANN202
     import zarr
 
-    return zarr.open_array(store, path=name, mode=mode)
+    return zarr.open_array(key[0], mode="r+").with_config({"write_empty_chunks": True})
+
+
+@lru_cache(maxsize=16)
+def _frame_chunks(key: tuple[str, int]) -> FrameChunks | None:
+    return FrameChunks.open(key[0])
+
+
+def write_frame(array: Path, f: int, data: np.ndarray) -> None:
+    """Frame ``f``'s whole chunk of the Zarr array at ``array`` (direct when the layout allows)."""
+    key = _stamp(array)
+    fc = _frame_chunks(key)
+    if fc is not None:
+        fc.write(f, data)
+    else:
+        _zarr_array(key)[f] = data
+
+
+def read_frame_chunk(array: Path, f: int) -> np.ndarray:
+    key = _stamp(array)
+    fc = _frame_chunks(key)
+    return fc.read(f) if fc is not None else np.asarray(_zarr_array(key)[f])
+
+
+def _tables(calibration: str) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 15 tables of a calibration store, once per process and store."""
+    return _tables_of(_stamp(Path(calibration)))
 
 
 @lru_cache(maxsize=2)
-def _tables(calibration: str) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 15 tables of a calibration store, once per process."""
-    ds = xr.open_zarr(calibration)
+def _tables_of(key: tuple[str, int]) -> tuple[np.ndarray, np.ndarray]:
+    ds = xr.open_zarr(key[0])
     return eq15_tables(ds["inverse_response"].values, ds["vignetting"].values, ds["spectral_factor"].values)
 
 
-def output_template(raw: xr.Dataset, calib: xr.Dataset, camera: Camera, indices: Sequence[Index],
+def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, int], indices: Sequence[Index],
                     options: ApplyOptions) -> xr.Dataset:
-    """``reflectance.zarr`` as a lazy dataset: coordinates, attributes and the lazy Eq. 15
-    reflectance (``lazy_reflectance``) with its indices; the apply pass writes its data."""
-    refl = lazy_reflectance(raw, calib, camera)
-    coords = {
-        "frame": raw["frame"].values.astype(object),
-        "band": raw["band"].values,
+    """``reflectance.zarr`` as a lazy dataset (coordinates, attributes, variables of zeros
+    one chunk per frame); the apply pass writes its data frame by frame."""
+    n = coords.sizes.get("frame", 0)
+    out_coords = {
+        "frame": coords["frame"].values.astype(object),
+        "band": np.arange(shape[0]),
         "wavelength": ("band", camera.wavelengths, {"units": "nm"}),
         "band_name": ("band", np.array(camera.band_names, dtype=object)),
     }
     for c in ("exposure_ms", "gain", "time", "lat", "lon", "alt_m"):
-        coords[c] = ("frame", raw[c].values, dict(raw[c].attrs))
-    ds = xr.Dataset(coords=coords)
-    ds["reflectance"] = (("frame", "band", "y", "x"), refl.data,
+        out_coords[c] = ("frame", coords[c].values, dict(coords[c].attrs))
+    ds = xr.Dataset(coords=out_coords)
+    cube = da.zeros((n, *shape), chunks=(1, *shape), dtype=np.float32)
+    ds["reflectance"] = (("frame", "band", "y", "x"), cube,
                          {"long_name": "reflectance (Eq. 15)", "units": "1", "normalisation": options.normalise})
-    plane = da.zeros((refl.shape[0], *refl.shape[2:]), chunks=(1, *refl.shape[2:]), dtype=np.float32)
+    plane = da.zeros((n, *shape[1:]), chunks=(1, *shape[1:]), dtype=np.float32)
     for ix in indices:
         ds[ix.name] = (("frame", "y", "x"), plane, {"long_name": ix.description, "expression": ix.expression})
     if any(ix.name == "ndvi" for ix in indices):
@@ -319,10 +359,12 @@ def output_template(raw: xr.Dataset, calib: xr.Dataset, camera: Camera, indices:
 
 @dataclass(frozen=True)
 class FramePlan:
-    """Everything one frame's task needs: paths and small values, no arrays (it is sent to
-    worker processes once per task)."""
+    """What every frame's task needs: paths and small values, no arrays (it is sent to
+    worker processes with each task)."""
 
-    raw_store: Path
+    raw_dn: Path
+    cube_shape: tuple[int, int, int]
+    camera: Camera
     out_store: Path
     calibration: Path
     outputs: tuple[str, ...]
@@ -334,41 +376,333 @@ class FramePlan:
     out: Path
 
 
-def process_frame(plan: FramePlan, f: int, name: str, t: float, tags: FrameTags) -> int:
-    """One frame, every output: Eq. 15, normalisation, indices, Otsu mask, its chunk of each
-    reflectance.zarr variable (one whole chunk per variable: no two tasks share a chunk), its
-    photogrammetry and NDVI TIFFs. Returns its saturated pixel count."""
-    dn = np.asarray(_zarr_array(str(plan.raw_store), "dn", "r")[f])
+@dataclass(frozen=True)
+class FrameJob:
+    """One frame of the pass. ``rec`` set: a new frame, read from its file, checked, and
+    written into raw.zarr at ``index`` by its task; else the frame is read from raw.zarr."""
+
+    index: int
+    name: str
+    t: float  # effective exposure, exposure_ms x gain
+    tags: FrameTags
+    rec: FrameRecord | None = None
+
+
+@dataclass(frozen=True)
+class FrameOutcome:
+    name: str
+    sha256: str | None  # of the file, for a new frame
+    saturated: int
+    quarantine: dict[str, str] | None = None  # a new frame that cannot be used: nothing written
+
+
+def frame_dn(plan: FramePlan, job: FrameJob) -> tuple[np.ndarray, str | None]:
+    """DN (band, y, x) of a job's frame: from its file (checked; FrameError) or from raw.zarr."""
+    if job.rec is None:
+        return read_frame_chunk(plan.raw_dn, job.index), None
+    sha, dn = read_frame(job.rec, plan.camera)
+    assert dn is not None
+    problem = shape_problem(dn.shape, plan.cube_shape)
+    if problem:
+        raise FrameError(problem, path=job.rec.path)
+    return dn, sha
+
+
+def process_frame(plan: FramePlan, job: FrameJob) -> FrameOutcome:
+    """One frame, every output: (for a new frame) its raw.zarr chunk, Eq. 15, normalisation,
+    indices, Otsu mask, its chunk of each reflectance.zarr variable (one whole chunk per
+    variable: no two tasks share a chunk), its photogrammetry and NDVI TIFFs."""
+    try:
+        dn, sha = frame_dn(plan, job)
+    except FrameError as exc:
+        assert job.rec is not None  # a chunk of raw.zarr is never unreadable for this reason
+        return FrameOutcome(job.name, None, 0, quarantine_entry(job.rec.path.name, exc))
+    tags = job.tags
+    if sha is not None:
+        write_frame(plan.raw_dn, job.index, dn)
+        tags = replace(tags, capture_uuid=capture_uuid(plan.camera, sha))
     lut, inv_v = _tables(str(plan.calibration))
-    refl = eq15_fast(dn[None], lut, inv_v, t, plan.sat)[0]
-    outputs = {v: _zarr_array(str(plan.out_store), v, "r+") for v in plan.outputs}
+    refl = eq15_fast(dn[None], lut, inv_v, job.t, plan.sat)[0]
     kind, value = plan.norm
     if kind == "scalar":
         refl *= np.float32(value)
     elif kind == "band":
         med = np.nanmedian(refl[int(value)])
         refl *= np.float32(1.0 / med) if np.isfinite(med) and med > 0 else np.float32(np.nan)
-    outputs["reflectance"][f] = refl
+    store = plan.out_store
+    write_frame(store / "reflectance", job.index, refl)
     ndvi = None
     for ix, roles in plan.indices:
         val = ix.evaluate({role: refl[b] for role, b in roles.items()})
-        outputs[ix.name][f] = val
+        write_frame(store / ix.name, job.index, val)
         if ix.name == "ndvi":
             ndvi = val
-    if ndvi is not None and "vegetation_mask" in outputs:
-        outputs["vegetation_mask"][f] = otsu_mask(ndvi)
+    if ndvi is not None and "vegetation_mask" in plan.outputs:
+        write_frame(store / "vegetation_mask", job.index, otsu_mask(ndvi))
     for b, btags in plan.bands:
-        write_band_tiff(plan.out / "photogrammetry" / f"{name}_{btags.name}.tif", refl[b], tags, btags,
+        write_band_tiff(plan.out / "photogrammetry" / f"{job.name}_{btags.name}.tif", refl[b], tags, btags,
                         dtype=plan.tiff_dtype)
     if ndvi is not None:
-        write_ndvi_tiff(plan.out / "ndvi" / f"{name}.tif", ndvi, tags)
-    return int(np.count_nonzero(dn >= plan.sat))
+        write_ndvi_tiff(plan.out / "ndvi" / f"{job.name}.tif", ndvi, tags)
+    return FrameOutcome(job.name, sha, int(np.count_nonzero(dn >= plan.sat)))
+
+
+# --------------------------------------------------------------------------- running the tasks
+
+
+def _worker_init() -> None:
+    """Worker processes: die with the parent (a killed run leaves no writer behind) and keep
+    Blosc single-threaded (the workers already fill the cores)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux
+        pass
+    try:
+        from numcodecs import blosc
+
+        blosc.set_nthreads(1)
+    except ImportError:  # pragma: no cover
+        pass
+
+
+def _distributed_client():  # noqa: ANN202
+    """The active ``distributed`` client (the caller's ``with Client(...)``), if any."""
+    try:
+        from distributed import default_client
+    except ImportError:
+        return None
+    try:
+        return default_client()
+    except ValueError:
+        return None
+
+
+class Runner:
+    """Runs the per-frame tasks (dask.delayed) on the caller's ``distributed`` client if one is
+    active, else on worker processes (long flights) or threads; see :func:`scheduler_for`.
+    Worker processes are started when the runner is made, so they start while the main
+    process reads the calibration and the flight."""
+
+    def __init__(self, n_frames: int):
+        self.client = _distributed_client()
+        self.pool: ProcessPoolExecutor | None = None
+        self.scheduler, self.workers = ("distributed", 0) if self.client is not None else scheduler_for(n_frames)
+        if self.scheduler == "processes":
+            ctx = multiprocessing.get_context("forkserver")
+            ctx.set_forkserver_preload(["pipeline.apply"])
+            self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_worker_init)
+            for _ in range(self.workers):  # start them now
+                self.pool.submit(int)
+
+    def run(self, plan: FramePlan, jobs: Sequence[FrameJob]) -> list[FrameOutcome]:
+        # arguments wrapped whole: dask would otherwise walk every dataclass field of every
+        # argument of every task looking for collections (15 ms a task)
+        token = uuid.uuid4().hex
+        plan_d = dask.delayed(plan, traverse=False, name=f"mscal-plan-{token}")
+        tasks = [
+            dask.delayed(process_frame, pure=False)(plan_d, dask.delayed(job, traverse=False, name=f"mscal-job-{token}-{k}"))
+            for k, job in enumerate(jobs)
+        ]
+        if self.client is not None:
+            return list(dask.compute(*tasks))
+        if self.pool is not None:
+            return list(dask.compute(*tasks, scheduler="processes", pool=self.pool))
+        return list(dask.compute(*tasks, scheduler="threads", num_workers=self.workers))
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+            self.pool = None
+
+    def __enter__(self) -> "Runner":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# --------------------------------------------------------------------------- apply
+
+
+@dataclass
+class _Pass:
+    """One apply pass over the frames: the output store under its temporary name and the plan."""
+
+    coords: xr.Dataset
+    plan: FramePlan
+    tmp_store: Path
+
+
+def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tuple[int, int, int], camera: Camera,
+                calib: xr.Dataset, calib_path: Path, raw_dn: Path, indices: Sequence[Index],
+                roles: dict[str, dict[str, int]], export: Sequence[int], options: ApplyOptions, chash: str,
+                panel_reflectance: Callable[[int], np.ndarray]) -> _Pass:
+    """Normalisation, the output store's layout (metadata and coordinates; data written per
+    frame) under a temporary name, and the plan of the frames' tasks."""
+    sat = int(calib["saturation_dn"].values.min()) if "saturation_dn" in calib else camera.dn_max
+    frames = [str(f) for f in coords["frame"].values]
+    norm = normalisation(options, camera, frames, panel_reflectance)
+    ds = output_template(coords, camera, cube_shape, indices, options)
+    ds.attrs.update({"calibration_sha256": chash, "source": str(flight_dir)})
+    tmp_store = out / f".reflectance.zarr{TMP_MARK}{uuid.uuid4().hex[:8]}"
+    encoding = {v: {"chunks": (1, *ds[v].shape[1:]), "compressors": OUTPUT_COMPRESSORS,
+                    "chunk_key_encoding": FLAT_CHUNK_KEYS} for v in ds.data_vars}
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Consolidated metadata")
+        ds.to_zarr(tmp_store, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
+    plan = FramePlan(
+        raw_dn=raw_dn, cube_shape=tuple(cube_shape), camera=camera, out_store=tmp_store, calibration=calib_path,
+        outputs=tuple(str(v) for v in ds.data_vars), sat=sat, norm=norm,
+        indices=tuple((ix, roles[ix.name]) for ix in indices),
+        bands=tuple(
+            (b, BandTags(name=camera.bands[b].name, wavelength_nm=camera.bands[b].wavelength_nm,
+                         fwhm_nm=camera.bands[b].fwhm_nm, rig_camera_index=i))
+            for i, b in enumerate(export)
+        ),
+        tiff_dtype=options.tiff_dtype, out=out,
+    )
+    for sub in ("photogrammetry", "ndvi"):
+        (out / sub).mkdir(exist_ok=True)
+    return _Pass(coords, plan, tmp_store)
+
+
+def _effective_exposure(coords: xr.Dataset) -> np.ndarray:
+    return (coords["exposure_ms"] * coords["gain"]).values.astype(np.float64)
+
+
+def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path: Path, sat: int
+                ) -> Callable[[int], np.ndarray]:
+    def reflectance(f: int) -> np.ndarray:
+        lut, inv_v = _tables(str(calib_path))
+        return eq15_fast(plan_dn(f)[None], lut, inv_v, float(t[f]), sat)[0]
+    return reflectance
+
+
+def _remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export: Sequence[int]) -> None:
+    for name in names:
+        for b in export:
+            (out / "photogrammetry" / f"{name}_{camera.bands[b].name}.tif").unlink(missing_ok=True)
+        (out / "ndvi" / f"{name}.tif").unlink(missing_ok=True)
+
+
+def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_path: Path, sat: int,
+                batch: int) -> tuple[_Pass, list[FrameOutcome]] | None:
+    """Ingest and apply in one pass over the files, for a cube that has no frames yet.
+
+    Frames are given indices in file-name order before they are read, assuming each can be
+    used; batches are committed to raw.zarr as they finish. A frame that cannot be used (or
+    is a duplicate) would shift the frames after it: then the frames before it are committed
+    and ``None`` is returned, and the caller goes the general way (ingest, then a pass over
+    the cube), which gives the same outputs.
+    """
+    recs = list(cube.found.frames)
+    coords = frame_coords(cube.camera, [frame_row(r, "") for r in recs])
+    t = _effective_exposure(coords)
+
+    def file_dn(f: int) -> np.ndarray:
+        try:
+            dn = read_frame(recs[f], cube.camera)[1]
+        except FrameError as exc:
+            raise InputError(f"--panel frame {recs[f].name} cannot be used: {exc.reason}", path=recs[f].path) from None
+        assert dn is not None
+        return dn
+
+    ps = start(coords, _panel_from(file_dn, t, calib_path, sat))
+    writer = _Writer(cube.path, cube.group, cube.committed, cube.shape, cube.camera, commit_every=len(recs) + 1,
+                     pool=None, workers=1)  # type: ignore[arg-type]  (no chunk writes of its own)
+    seen: set[str] = set()
+    outcomes: list[FrameOutcome] = []
+    for b0 in range(0, len(recs), batch):
+        first = writer.reserve(min(batch, len(recs) - b0))
+        jobs = [FrameJob(first + k, recs[f].name, float(t[f]), _frame_tags(coords, f, cube.camera), recs[f])
+                for k, f in enumerate(range(b0, min(b0 + batch, len(recs))))]
+        results = runner.run(ps.plan, jobs)
+        for job, res in zip(jobs, results):
+            if res.quarantine is not None or res.sha256 in seen:
+                writer.commit()  # the frames before this one are in place
+                shutil.rmtree(ps.tmp_store, ignore_errors=True)
+                return None
+            assert job.rec is not None and res.sha256 is not None
+            writer.register(job.rec, res.sha256)
+            seen.add(res.sha256)
+            outcomes.append(res)
+        writer.commit()
+    shas = np.array([o.sha256 for o in outcomes], dtype=object)
+    ps.coords = ps.coords.assign_coords(sha256=("frame", shas))
+    return ps, outcomes
+
+
+def _cube_pass(out: Path, runner: Runner, start: Callable[..., _Pass], calib_path: Path, sat: int, camera: Camera
+               ) -> tuple[_Pass, list[FrameOutcome]]:
+    """A pass over the frames of raw.zarr (every frame already ingested)."""
+    raw = xr.open_zarr(out / "raw.zarr")
+    coords = xr.Dataset(coords={c: ("frame", raw[c].values, dict(raw[c].attrs)) for c in FRAME_COORDS})
+    t = _effective_exposure(coords)
+    raw_dn = out / "raw.zarr" / "dn"
+    ps = start(coords, _panel_from(lambda f: read_frame_chunk(raw_dn, f), t, calib_path, sat))
+    jobs = [FrameJob(f, str(name), float(t[f]), _frame_tags(coords, f, camera))
+            for f, name in enumerate(coords["frame"].values)]
+    return ps, runner.run(ps.plan, jobs)
+
+
+def _fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions) -> dict[str, Any]:
+    fingerprint = {
+        "frames_sha256": hashlib.sha256("".join(map(str, shas)).encode()).hexdigest(),
+        "calibration_sha256": chash,
+        "options": options.fingerprint(),
+        "mscal_version": mscal_core.__version__,
+    }
+    return json.loads(json.dumps(fingerprint))  # as it reads back from run.json
+
+
+def _up_to_date(out: Path, fingerprint: dict[str, Any]) -> dict[str, Any] | None:
+    """The previous run's record if it made the outputs of exactly these inputs."""
+    run_path = out / RUN_JSON
+    if not (run_path.is_file() and (out / "reflectance.zarr").is_dir()):
+        return None
+    try:
+        previous = json.loads(run_path.read_text())
+    except (OSError, ValueError):
+        return None
+    return previous if previous.get("fingerprint") == fingerprint else None
+
+
+def _install(out: Path, tmp_store: Path) -> None:
+    final = out / "reflectance.zarr"
+    if final.exists():
+        old = out / f".reflectance.zarr.old{TMP_MARK}{uuid.uuid4().hex[:8]}"
+        os.replace(final, old)
+        os.replace(tmp_store, final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp_store, final)
+
+
+def _versions() -> dict[str, str]:
+    versions = {"mscal": mscal_core.__version__, "python": platform.python_version(), "numpy": np.__version__,
+                "dask": dask.__version__, "xarray": xr.__version__, "opencv": cv2.__version__}
+    try:
+        import zarr
+
+        versions["zarr"] = zarr.__version__
+    except ImportError:  # pragma: no cover
+        pass
+    return versions
 
 
 def apply_flight(
     flight_dir: str | Path, calibration: str | Path, out: str | Path, options: ApplyOptions = ApplyOptions()
 ) -> ApplyResult:
-    """``mscal apply FLIGHT_DIR --calibration CALIB.zarr -o OUT``."""
+    """``mscal apply FLIGHT_DIR --calibration CALIB.zarr -o OUT``.
+
+    A flight whose ``OUT/raw.zarr`` holds no frames yet is ingested and calibrated in one pass
+    over its files (each read once); otherwise new frames are ingested first and the pass
+    reads raw.zarr. Either way each frame's outputs are written by one task, and both ways
+    give the same bytes. The tasks run on the caller's ``distributed`` client when one is
+    active (``with distributed.Client(address):``), else on local worker processes.
+    """
     t_start = time.perf_counter()
     flight_dir, out = Path(flight_dir), Path(out)
     if not flight_dir.is_dir():
@@ -384,88 +718,58 @@ def apply_flight(
     export = export_band_indices(camera, options.export_bands)
     indices = [load_index(n) for n in options.indices]
     roles = {ix.name: _index_roles(camera, ix) for ix in indices}
+    sat = int(calib["saturation_dn"].values.min()) if "saturation_dn" in calib else camera.dn_max
     out.mkdir(parents=True, exist_ok=True)
     _clean_temporaries(out)
+    raw_path = out / "raw.zarr"
+
+    def start(coords: xr.Dataset, panel: Callable[[int], np.ndarray]) -> _Pass:
+        shape = tuple(xr.open_zarr(raw_path)["dn"].shape[1:])
+        v_shape = calib["vignetting"].shape[1:]
+        if tuple(v_shape) != shape[1:]:
+            raise InputError(
+                f"calibration vignetting is {v_shape[1]}x{v_shape[0]} but frames are {shape[2]}x{shape[1]}",
+                hint="use a calibration of this camera",
+            )
+        return _start_pass(out, flight_dir, coords, shape, camera, calib, calib_path, raw_path / "dn", indices,
+                           roles, export, options, chash, panel)
 
     t0 = time.perf_counter()
-    ing = ingest_flight(flight_dir, camera, out / "raw.zarr")
-    t_ingest = time.perf_counter() - t0
-    quarantined = list(ing.quarantined)
-    raw = xr.open_zarr(out / "raw.zarr")
-    # frame coordinates in memory once (they are small); dn stays lazy
-    raw = raw.assign_coords({c: raw[c].load() for c in raw.coords if c != "frame"})
-    frames = [str(f) for f in raw["frame"].values]
-    fingerprint = {
-        "frames_sha256": hashlib.sha256("".join(map(str, raw["sha256"].values)).encode()).hexdigest(),
-        "calibration_sha256": chash,
-        "options": options.fingerprint(),
-        "mscal_version": mscal_core.__version__,
-    }
-    fingerprint = json.loads(json.dumps(fingerprint))  # as it reads back from run.json
-    run_path = out / RUN_JSON
-    if run_path.is_file() and (out / "reflectance.zarr").is_dir():
+    cube = open_cube(flight_dir, camera, raw_path)
+    n_hint = len(cube.found.frames)
+    fresh = cube.group is not None and cube.committed == 0 and n_hint > 0
+    quarantined = list(cube.found.quarantined)
+    done: tuple[_Pass, list[FrameOutcome]] | None = None
+    with Runner(n_hint) as runner:
         try:
-            previous = json.loads(run_path.read_text())
-        except (OSError, ValueError):
-            previous = {}
-        if previous.get("fingerprint") == fingerprint:
-            previous["quarantined"] = quarantined
-            return ApplyResult(out, previous, up_to_date=True, quarantined=quarantined)
-    if not frames:
-        raise FrameError("no usable frames in the flight (all quarantined)", path=flight_dir,
-                         hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
-
-    # ----- the output store's layout (metadata and coordinates only; data written per frame)
-    sat = int(calib["saturation_dn"].values.min()) if "saturation_dn" in calib else camera.dn_max
-    norm = normalisation(calib, raw, camera, options)
-    ds = output_template(raw, calib, camera, indices, options)
-    ds.attrs.update({"calibration_sha256": chash, "source": str(flight_dir)})
-    tmp_store = out / f".reflectance.zarr{TMP_MARK}{uuid.uuid4().hex[:8]}"
-    encoding = {v: {"chunks": (1, *ds[v].shape[1:]), "compressors": [_COMPRESSOR]} for v in ds.data_vars}
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Consolidated metadata")
-        ds.to_zarr(tmp_store, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
-
-    plan = FramePlan(
-        raw_store=out / "raw.zarr", out_store=tmp_store, calibration=calib_path,
-        outputs=tuple(str(v) for v in ds.data_vars), sat=sat, norm=norm,
-        indices=tuple((ix, roles[ix.name]) for ix in indices),
-        bands=tuple(
-            (b, BandTags(name=camera.bands[b].name, wavelength_nm=camera.bands[b].wavelength_nm,
-                         fwhm_nm=camera.bands[b].fwhm_nm, rig_camera_index=i))
-            for i, b in enumerate(export)
-        ),
-        tiff_dtype=options.tiff_dtype, out=out,
-    )
-    for sub in ("photogrammetry", "ndvi"):
-        (out / sub).mkdir(exist_ok=True)
-    t_eff = (raw["exposure_ms"] * raw["gain"]).values.astype(np.float64)
-    tasks = [
-        dask.delayed(process_frame, pure=False)(plan, f, name, float(t_eff[f]), _frame_tags(raw, f, camera))
-        for f, name in enumerate(frames)
-    ]
-    t0 = time.perf_counter()
-    scheduler, workers = scheduler_for(len(frames))
-    sat_counts = dask.compute(*tasks, scheduler=scheduler, num_workers=workers)
-    t_compute = time.perf_counter() - t0
-    final = out / "reflectance.zarr"
-    if final.exists():
-        old = out / f".reflectance.zarr.old{TMP_MARK}{uuid.uuid4().hex[:8]}"
-        os.replace(final, old)
-        os.replace(tmp_store, final)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp_store, final)
-    # TIFFs of frames no longer in the flight (none, unless files were removed) are left alone.
-
-    versions = {"mscal": mscal_core.__version__, "python": platform.python_version(), "numpy": np.__version__,
-                "dask": dask.__version__, "xarray": xr.__version__, "opencv": cv2.__version__}
-    try:
-        import zarr
-
-        versions["zarr"] = zarr.__version__
-    except ImportError:  # pragma: no cover
-        pass
+            if fresh:
+                done = _fresh_pass(cube, runner, start, calib_path, sat, batch=FRESH_BATCH)
+        finally:
+            cube.release()
+        single = done is not None
+        if done is None:  # the general way: ingest what is new, then a pass over the cube
+            ing = ingest_flight(flight_dir, camera, raw_path)
+            quarantined = list(ing.quarantined)
+            raw = xr.open_zarr(raw_path)
+            shas = [str(s) for s in raw["sha256"].values]
+            if not shas:
+                raise FrameError("no usable frames in the flight (all quarantined)", path=flight_dir,
+                                 hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
+            fingerprint = _fingerprint(shas, chash, options)
+            previous = _up_to_date(out, fingerprint)
+            if previous is not None:
+                previous["quarantined"] = quarantined
+                return ApplyResult(out, previous, up_to_date=True, quarantined=quarantined)
+            _remove_frame_tiffs(out, [Path(q["file"]).stem for q in quarantined], camera, export)
+            done = _cube_pass(out, runner, start, calib_path, sat, camera)
+        else:
+            quarantined = sorted(quarantined, key=lambda q: q["file"])
+    ps, outcomes = done
+    t_pass = time.perf_counter() - t0
+    _install(out, ps.tmp_store)
+    frames = [o.name for o in outcomes]
+    sat_counts = [o.saturated for o in outcomes]
+    shas = [str(s) for s in xr.open_zarr(raw_path)["sha256"].values]
     run = {
         "flight": str(flight_dir),
         "calibration": str(calib_path),
@@ -477,10 +781,11 @@ def apply_flight(
         "saturated_pixels": {"total": int(np.sum(sat_counts)), "per_frame": {n: int(c) for n, c in zip(frames, sat_counts)}},
         "outputs": {"reflectance": "reflectance.zarr", "photogrammetry": "photogrammetry/", "ndvi": "ndvi/"},
         "export_bands": [camera.bands[b].name for b in export],
-        "versions": versions,
-        "timings_s": {"ingest": round(t_ingest, 3), "compute_and_write": round(t_compute, 3),
-                      "total": round(time.perf_counter() - t_start, 3)},
-        "fingerprint": fingerprint,
+        "versions": _versions(),
+        "scheduler": runner.scheduler,
+        "single_pass": single,
+        "timings_s": {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
+        "fingerprint": _fingerprint(shas, chash, options),
     }
-    _write_json_atomic(run_path, run)
+    _write_json_atomic(out / RUN_JSON, run)
     return ApplyResult(out, run, up_to_date=False, quarantined=quarantined)

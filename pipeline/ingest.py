@@ -55,6 +55,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import zarr
@@ -63,11 +64,12 @@ import mscal_core
 from mscal_core.errors import FrameError, InputError
 
 from .catalog import Camera, load_camera
-from .discover import discover_flight, quarantine_entry
-from .session import FrameRecord, read_bands
+from .chunks import FLAT_CHUNK_KEYS
+from .discover import Discovery, discover_flight, quarantine_entry
+from .session import FrameRecord, decode_raw, to_bands
 from .store import file_sha256
 
-__all__ = ["IngestResult", "ingest_flight", "RAW_FORMAT", "FRAME_COORDS"]
+__all__ = ["Cube", "IngestResult", "ingest_flight", "open_cube", "RAW_FORMAT", "FRAME_COORDS"]
 
 log = logging.getLogger(__name__)
 
@@ -129,23 +131,24 @@ def _band_shape(camera: Camera) -> tuple[int, int, int] | None:
     return None
 
 
-def _examine(
-    rec: FrameRecord, camera: Camera, in_cube: dict[str, str], cube_shas: dict[str, str]
-) -> tuple[str, np.ndarray | None]:
-    """Hash one frame file and, unless the cube already has its name or content, decode it.
+def read_frame(rec: FrameRecord, camera: Camera, known: "Callable[[str], bool] | None" = None
+               ) -> tuple[str, np.ndarray | None]:
+    """The sha256 of one frame file's bytes and, unless ``known(sha)`` says the cube has it
+    already, its band stack (the file's size and time checked unchanged from before the hash
+    to after the decode).
 
-    Returns ``(sha256, bands or None)``; :class:`FrameError` if it is unreadable, unusable,
-    or changed while it was being read (a copy still in progress).
+    :class:`FrameError` naming the file if it is unreadable, unusable, or changed while it was
+    being read (a copy still in progress).
     """
     try:
         st0 = rec.path.stat()
         sha = file_sha256(rec.path)
     except OSError as exc:
         raise FrameError(f"cannot read: {exc.strerror}", path=rec.path) from None
-    if rec.name in in_cube or sha in cube_shas:
+    if known is not None and known(sha):
         return sha, None  # known: never decoded again
     try:
-        bands = read_bands(rec, camera)
+        bands = to_bands(decode_raw(rec.path, rec.path), camera, rec.path)
     except FrameError:
         raise
     except InputError as exc:  # e.g. the mosaic split of a frame too small for the camera
@@ -157,6 +160,62 @@ def _examine(
     if (st0.st_size, st0.st_mtime_ns) != (st1.st_size, st1.st_mtime_ns):
         raise FrameError("the file changed while it was being read", path=rec.path, hint="run ingest again")
     return sha, bands
+
+
+def _examine(
+    rec: FrameRecord, camera: Camera, in_cube: dict[str, str], cube_shas: dict[str, str]
+) -> tuple[str, np.ndarray | None]:
+    """:func:`read_frame`, decoding only frames whose name and content the cube does not hold."""
+    return read_frame(rec, camera, lambda sha: rec.name in in_cube or sha in cube_shas)
+
+
+def shape_problem(bands_shape: tuple[int, ...], cube_shape: tuple[int, ...] | None) -> str | None:
+    """Why a frame's band stack does not fit the cube (None if it does)."""
+    if cube_shape is None or tuple(bands_shape) == tuple(cube_shape):
+        return None
+    b, c = bands_shape, cube_shape
+    return (f"its band stack is {b[0]}x{b[1]}x{b[2]} but the datacube's is "
+            f"{c[0]}x{c[1]}x{c[2]} (bands x rows x columns)")
+
+
+def frame_row(rec: FrameRecord, sha: str) -> dict:
+    """One frame's values of the cube's frame coordinates (as :meth:`_Writer.commit` stores them)."""
+    return {
+        "frame": rec.name,
+        "exposure_ms": float(rec.exposure_ms),
+        "gain": float(rec.gain),
+        "time": _time_ns(rec.time),
+        "lat": _nan(rec.lat),
+        "lon": _nan(rec.lon),
+        "alt_m": _nan(rec.alt_m),
+        "source_file": rec.path.name,
+        "sha256": sha,
+    }
+
+
+def _column(name: str, values: list) -> np.ndarray:
+    if name == "time":
+        return np.array(values, dtype=np.int64)
+    if name in STRING_COORDS:
+        return np.array(values, dtype=np.dtypes.StringDType())
+    return np.array(values, dtype=np.float64)
+
+
+def frame_coords(camera: Camera, rows: list[dict]):
+    """The cube's frame coordinates of ``rows`` (:func:`frame_row`) as an ``xarray.Dataset``,
+    decoded as ``xarray.open_zarr`` gives them (time as datetime64[ns], NaT if unknown)."""
+    template = _template(camera, (camera.n_bands, 0, 0))
+    coords = {}
+    for name in FRAME_COORDS:
+        col = _column(name, [row[name] for row in rows])
+        if name == "time":
+            col = col.astype("datetime64[ns]")
+        elif name in STRING_COORDS:
+            col = col.astype(object)
+        coords[name] = ("frame", col, dict(template[name].attrs))
+    import xarray as xr
+
+    return xr.Dataset(coords=coords)
 
 
 def _consolidate(path: Path) -> None:
@@ -235,7 +294,8 @@ def _encoding(shape: tuple[int, int, int], compress: bool = True) -> dict:
     # Blosc zstd level 1 on bit-shuffled uint16: ~8 ms CPU per full-res Ximea frame for ~1.9x
     # on 10-bit DN (zarr's default zstd level 0: ~30 ms for 1.7x; lz4: ~1.05x on noisy DN).
     codec = BloscCodec(cname="zstd", clevel=1, shuffle="bitshuffle", typesize=2)
-    enc: dict = {"dn": {"chunks": (1, *shape), "compressors": (codec,) if compress else None}}
+    enc: dict = {"dn": {"chunks": (1, *shape), "compressors": (codec,) if compress else None,
+                        "chunk_key_encoding": FLAT_CHUNK_KEYS}}
     for name in FRAME_COORDS:
         enc[name] = {"chunks": (COORD_CHUNK,)}
     enc["time"].update({"units": TIME_UNITS, "calendar": "proleptic_gregorian", "dtype": "int64"})
@@ -337,6 +397,52 @@ class _Lock:
 # --------------------------------------------------------------------------- ingest
 
 
+@dataclass
+class Cube:
+    """An open raw datacube, locked for appending (:func:`open_cube`); ``release()`` it."""
+
+    path: Path
+    camera: Camera
+    found: Discovery
+    lock: "_Lock"
+    group: zarr.Group | None
+    committed: int
+    shape: tuple[int, int, int] | None
+    names: list[str]
+    shas: list[str]
+
+    def release(self) -> None:
+        self.lock.release()
+
+
+def open_cube(flight_dir: str | Path, camera: Camera | str, out_zarr: str | Path, *, compress: bool = True) -> Cube:
+    """Discover the flight's frames, lock the cube's folder, and open the cube (created empty
+    if the camera fixes the band grid; uncommitted frames of a killed run cut off)."""
+    flight_dir, out = Path(flight_dir), Path(out_zarr)
+    if isinstance(camera, str):
+        camera = load_camera(camera)
+    found = discover_flight(flight_dir, camera)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    lock = _Lock(out.parent, out)
+    try:
+        for p in out.parent.glob(f".{out.name}{TMP_MARK}*"):  # a killed creation
+            shutil.rmtree(p, ignore_errors=True)
+        shape = _band_shape(camera)
+        if not out.exists() and shape is not None:
+            _create(out, camera, shape, compress)
+        group, committed = _open(out, camera) if out.exists() else (None, 0)
+        if group is not None:
+            shape = tuple(group["dn"].shape[1:])
+            names = [str(s) for s in group["frame"][:]]
+            shas = [str(s) for s in group["sha256"][:]]
+        else:
+            names, shas = [], []
+    except BaseException:
+        lock.release()
+        raise
+    return Cube(out, camera, found, lock, group, committed, shape, names, shas)
+
+
 def ingest_flight(
     flight_dir: str | Path,
     camera: Camera | str,
@@ -358,29 +464,12 @@ def ingest_flight(
     datacube of this camera or is being written by another process.
     """
     t_start = _time.perf_counter()
-    flight_dir = Path(flight_dir)
-    out = Path(out_zarr)
-    if isinstance(camera, str):
-        camera = load_camera(camera)
-    found = discover_flight(flight_dir, camera)
+    cube = open_cube(flight_dir, camera, out_zarr, compress=compress)
+    camera, out, found, lock, group = cube.camera, cube.path, cube.found, cube.lock, cube.group
+    committed, shape = cube.committed, cube.shape
     quarantined = list(found.quarantined)
-
-    out.parent.mkdir(parents=True, exist_ok=True)
-    lock = _Lock(out.parent, out)
     try:
-        for p in out.parent.glob(f".{out.name}{TMP_MARK}*"):  # a killed creation
-            shutil.rmtree(p, ignore_errors=True)
-        shape = _band_shape(camera)
-        if not out.exists() and shape is not None:
-            _create(out, camera, shape, compress)
-        group, committed = _open(out, camera) if out.exists() else (None, 0)
-        if group is not None:
-            shape = tuple(group["dn"].shape[1:])
-            names = [str(s) for s in group["frame"][:]]
-            shas = [str(s) for s in group["sha256"][:]]
-        else:
-            names, shas = [], []
-        in_cube = dict(zip(names, shas))
+        in_cube = dict(zip(cube.names, cube.shas))
         cube_by_sha = {s: n for n, s in in_cube.items()}
         new_by_sha: dict[str, str] = {}
         present = 0
@@ -493,32 +582,33 @@ class _Writer:
             _create(self.out, self.camera, tuple(bands.shape), self.compress)
             self.group, self.committed = _open(self.out, self.camera)
             self.shape = tuple(bands.shape)
-        if tuple(bands.shape) != self.shape:
-            return (
-                f"its band stack is {bands.shape[0]}x{bands.shape[1]}x{bands.shape[2]} but the datacube's is "
-                f"{self.shape[0]}x{self.shape[1]}x{self.shape[2]} (bands x rows x columns)"
-            )
+        problem = shape_problem(bands.shape, self.shape)
+        if problem:
+            return problem
         dn = self._dn()
         if not self.pending:  # a new batch: room for it beyond the committed frames
             dn.resize((self.committed + self.commit_every, *self.shape))
         ordinal = len(self.added) + len(self.pending) + 1
         self.writes.append(self.pool.submit(_write_chunk, dn, self.n, bands, ordinal))
         self.n += 1
-        self.pending.append({
-            "frame": rec.name,
-            "exposure_ms": float(rec.exposure_ms),
-            "gain": float(rec.gain),
-            "time": _time_ns(rec.time),
-            "lat": _nan(rec.lat),
-            "lon": _nan(rec.lon),
-            "alt_m": _nan(rec.alt_m),
-            "source_file": rec.path.name,
-            "sha256": sha,
-        })
+        self.pending.append(frame_row(rec, sha))
         self._drain(self.max_writes)
         if len(self.pending) >= self.commit_every:
             self.commit()
         return None
+
+    def reserve(self, n_frames: int) -> int:
+        """Room for ``n_frames`` more frames beyond those written or being written, for chunks
+        that others write (:meth:`register` them in order); returns the first new index."""
+        dn = self._dn()
+        if dn.shape[0] < self.n + n_frames:
+            dn.resize((self.n + n_frames, *dn.shape[1:]))
+        return self.n
+
+    def register(self, rec: FrameRecord, sha: str) -> None:
+        """Frame ``rec``'s whole chunk was written at index ``self.n`` by someone else."""
+        self.n += 1
+        self.pending.append(frame_row(rec, sha))
 
     def _drain(self, limit: int) -> None:
         while len(self.writes) > limit:
@@ -535,14 +625,7 @@ class _Writer:
             arr = g[name]
             if arr.shape[0] != n:
                 arr.resize((n,))
-            values = [row[name] for row in self.pending]
-            if name == "time":
-                col = np.array(values, dtype=np.int64)
-            elif name in STRING_COORDS:
-                col = np.array(values, dtype=np.dtypes.StringDType())
-            else:
-                col = np.array(values, dtype=np.float64)
-            arr[k0:n] = col
+            arr[k0:n] = _column(name, [row[name] for row in self.pending])
         dn = self._dn()
         if dn.shape[0] != n:
             dn.resize((n, *dn.shape[1:]))

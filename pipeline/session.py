@@ -393,29 +393,36 @@ def exif_record(path: Path) -> FrameRecord:
 
 
 def read_raw(path: str | Path) -> np.ndarray:
-    """Pixels of one frame file as stored (TIFF via tifffile; PNG and JPEG via OpenCV, RGB order).
+    """Pixels of one frame file as stored (TIFF via tifffile; PNG and JPEG via OpenCV, RGB order)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FrameError("frame file does not exist", path=path)
+    return decode_raw(path, path)
+
+
+def decode_raw(source: bytes | Path, path: str | Path) -> np.ndarray:
+    """Pixels of a frame file, from its bytes or (``source`` a path) from the file itself;
+    ``path`` names the format by its suffix and the file in errors.
 
     A JPEG without its end-of-image marker is truncated: libjpeg would silently return the
     decoded part padded with gray, so it is rejected here.
     """
     path = Path(path)
-    if not path.is_file():
-        raise FrameError("frame file does not exist", path=path)
     suffix = path.suffix.lower()
     try:
         if suffix in (".tif", ".tiff"):
+            import io
+
             import tifffile
 
-            img = tifffile.imread(path)
+            img = tifffile.imread(io.BytesIO(source) if isinstance(source, (bytes, bytearray)) else source)
         else:
             import cv2
 
-            if suffix in (".jpg", ".jpeg"):
-                with path.open("rb") as fh:
-                    fh.seek(max(0, path.stat().st_size - 2))
-                    if fh.read(2) != b"\xff\xd9":
-                        raise ValueError("JPEG end-of-image marker missing")
-            img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            data = source if isinstance(source, (bytes, bytearray)) else Path(source).read_bytes()
+            if suffix in (".jpg", ".jpeg") and data[-2:] != b"\xff\xd9":
+                raise ValueError("JPEG end-of-image marker missing")
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
             if img is None:
                 raise ValueError("OpenCV could not decode it")
             if img.ndim == 3:
@@ -489,6 +496,7 @@ __all__ = [
     "load_session",
     "read_bands",
     "read_frame_table",
+    "decode_raw",
     "read_raw",
     "to_bands",
 ]

@@ -175,14 +175,18 @@ def _fsync_dir(folder: Path) -> None:
 
 
 def encode_reflectance_uint16(reflectance: np.ndarray) -> np.ndarray:
-    """``round(R * 32768)`` clipped to 0 .. 65534, NaN -> 65535 (:data:`NODATA_UINT16`)."""
+    """``round(R * 32768)`` clipped to 0 .. 65534, NaN -> 65535 (:data:`NODATA_UINT16`).
+
+    In float32 throughout: scaling by a power of two and rounding to an integer are exact in
+    float32 for every value the clip keeps, so this equals the float64 computation."""
     r = np.asarray(reflectance, dtype=np.float32)
-    bad = np.isnan(r)
-    with np.errstate(invalid="ignore", over="ignore"):
-        v = np.rint(r.astype(np.float64) * REFLECTANCE_SCALE)
-    v = np.clip(np.where(bad, 0.0, v), 0, NODATA_UINT16 - 1).astype(np.uint16)
-    v[bad] = NODATA_UINT16
-    return v
+    v = r * np.float32(REFLECTANCE_SCALE)
+    np.rint(v, out=v)
+    np.clip(v, 0.0, float(NODATA_UINT16 - 1), out=v)  # NaN stays NaN
+    with np.errstate(invalid="ignore"):
+        out = v.astype(np.uint16)
+    out[np.isnan(v)] = NODATA_UINT16
+    return out
 
 
 # --------------------------------------------------------------------------- TIFF writing

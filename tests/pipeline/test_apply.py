@@ -286,3 +286,64 @@ def test_worker_processes_give_the_same_outputs(small, tmp_path, monkeypatch) ->
             assert a[key] == b[key], key
         else:
             np.testing.assert_array_equal(a[key], b[key])
+
+
+def _assert_same_outputs(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        if isinstance(a[key], bytes):
+            assert a[key] == b[key], key
+        else:
+            np.testing.assert_array_equal(a[key], b[key])
+
+
+def test_single_pass_equals_ingest_then_apply(applied, tmp_path) -> None:
+    """A fresh OUT is ingested and calibrated in one pass over the files; an OUT whose raw.zarr
+    already holds the frames is calibrated from the cube: the same bytes either way."""
+    from pipeline.catalog import load_camera
+    from pipeline.ingest import ingest_flight
+
+    session, calib, out = applied
+    assert json.loads((out / "run.json").read_text())["single_pass"] is True
+    cubed = tmp_path / "cubed"
+    ingest_flight(session / "flights" / "field", load_camera("ximea-mq022hg-sm5x5-nir"), cubed / "raw.zarr")
+    assert _apply(session / "flights" / "field", calib, cubed) == 0
+    assert json.loads((cubed / "run.json").read_text())["single_pass"] is False
+    _assert_same_outputs(_outputs(out), _outputs(cubed))
+    a, b = (xr.open_zarr(p / "raw.zarr") for p in (out, cubed))
+    np.testing.assert_array_equal(a["dn"].values, b["dn"].values)
+    assert list(a["sha256"].values) == list(b["sha256"].values)
+
+
+def test_duplicate_frame_in_a_fresh_flight(small, tmp_path) -> None:
+    """A duplicate found during the single pass: the frames before it stay, the rest go the
+    general way; outputs equal those of the flight without the duplicate."""
+    session, calib = small
+    flight = _flight_copy(session, tmp_path / "flight")
+    rows = _rows(flight)
+    clean = tmp_path / "clean"
+    assert _apply(flight, calib, clean) == 0
+    dup = dict(rows[0], file="IMG_0000b.tif")
+    shutil.copy(flight / rows[0]["file"], flight / dup["file"])
+    with (flight / "frames.csv").open("a", newline="") as fh:
+        csv.DictWriter(fh, fieldnames=list(rows[0])).writerow(dup)
+    out = tmp_path / "out"
+    assert _apply(flight, calib, out) == 0
+    run = json.loads((out / "run.json").read_text())
+    assert [q["file"] for q in run["quarantined"]] == ["IMG_0000b.tif"]
+    assert "duplicate" in run["quarantined"][0]["reason"] and run["single_pass"] is False
+    assert not list((out / "photogrammetry").glob("IMG_0000b_*")) and not (out / "ndvi" / "IMG_0000b.tif").exists()
+    _assert_same_outputs(_outputs(clean), _outputs(out))
+
+
+def test_lazy_reflectance_of_the_cube_equals_the_pass(applied) -> None:
+    from pipeline.apply import lazy_reflectance
+    from pipeline.catalog import load_camera
+    from pipeline.store import open_calibration
+
+    _, calib_path, out = applied
+    camera = load_camera("ximea-mq022hg-sm5x5-nir")
+    lazy = lazy_reflectance(xr.open_zarr(out / "raw.zarr"), open_calibration(calib_path, camera), camera)
+    assert lazy.chunks is not None  # dask-backed, nothing computed yet
+    stored = xr.open_zarr(out / "reflectance.zarr")["reflectance"].values
+    np.testing.assert_array_equal(lazy.values, stored)

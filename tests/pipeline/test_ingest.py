@@ -35,7 +35,7 @@ from mscal_core.errors import InputError, SessionError
 from pipeline.catalog import load_camera
 from pipeline.discover import discover_flight
 from pipeline.ingest import ingest_flight
-from pipeline.session import exif_record, read_bands
+from pipeline.session import decode_raw, exif_record, read_bands
 
 ROOT = Path(__file__).resolve().parents[2]
 MICASENSE = ROOT.parent / "shared" / "data" / "micasense-rededge"
@@ -136,22 +136,22 @@ def _assert_same(a: dict, b: dict) -> None:
 
 
 class _Spy:
-    """Records which files ingest decodes (read_bands runs in worker threads)."""
+    """Records which files ingest decodes (decode_raw runs in worker threads)."""
 
     def __init__(self) -> None:
         self.names: list[str] = []
         self.lock = threading.Lock()
 
-    def __call__(self, rec, camera):
+    def __call__(self, data, path):
         with self.lock:
-            self.names.append(Path(getattr(rec, "path", rec)).name)
-        return read_bands(rec, camera)
+            self.names.append(Path(path).name)
+        return decode_raw(data, path)
 
 
 @pytest.fixture
 def spy(monkeypatch) -> _Spy:
     s = _Spy()
-    monkeypatch.setattr(ingest_mod, "read_bands", s)
+    monkeypatch.setattr(ingest_mod, "decode_raw", s)
     return s
 
 
