@@ -419,3 +419,16 @@ def test_demo_report_renders_in_chromium(small, tmp_path) -> None:
     img = cv2.imread(str(shot))
     assert img is not None and img.shape[:2] == (3000, 1400)
     assert len(np.unique(img.reshape(-1, 3), axis=0)) > 50  # plots, not a blank page
+
+
+def test_older_and_partial_stores_still_report(calib_ds) -> None:
+    older = calib_ds.drop_vars(["reflector_brightness", "reflector_dn", "reflector_file", "reflector_exposure_ms"])
+    (sec,) = report.build_sections(older)
+    assert [c for c, _ in sec.figures] == ["Inverse response per band", "Vignetting per band",
+                                           "Coverage of the vignetting fit", "Spectral factor"]
+    partial = calib_ds[["inverse_response", "black_level", "saturation_dn"]]
+    partial.attrs = {k: v for k, v in calib_ds.attrs.items() if k not in ("vignetting", "illumination")}
+    (sec,) = report.build_sections(partial)
+    assert [c for c, _ in sec.figures] == ["Inverse response per band"]
+    assert report.calibration_warnings(partial) == []
+    assert "| b803 | 803 |" in report.sections_markdown([sec])
