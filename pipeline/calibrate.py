@@ -247,15 +247,21 @@ def fit_vignetting_frames(
     n_cells = grid[0] * grid[1]
     exclude, edge = _exclude_half(session), _edge_margin(session)
 
+    saturated: dict[int, float] = {}  # band -> saturated fraction of its reflector pixels (QA report)
+
     def observations(b: int, use: Sequence[tuple[int, View]]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         rays = geometry.pixel_rays(session.intrinsics, shape, tuple(offsets[b]))
         obs = []
+        n_sat = n_pix = 0
         for i, view in use:
             t = view.record.effective_exposure
             energy = _energy(stack[i, b], inverse_response[b], t, int(saturation_dn[b]))
             uv = geometry.pixels_to_plane(view.pose, session.intrinsics, shape, rays=rays)
             mask = geometry.reflector_mask(uv, session.reflector.size_m, exclude, edge)
+            n_sat += int(np.count_nonzero(stack[i, b][mask] >= saturation_dn[b]))
+            n_pix += int(np.count_nonzero(mask))
             obs.append(vignetting.view_observations(energy, uv, mask, session.reflector.size_m, grid=grid))
+        saturated[b] = n_sat / max(n_pix, 1)
         return obs
 
     def fit(obs: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> vignetting.VignettingFit:
@@ -301,6 +307,7 @@ def fit_vignetting_frames(
         "views_total": len(recs),
         "residual_rms": [round(float(f.residual_rms), 5) for f in fits],
         "observed_fraction": [round(float(f.observed.mean()), 4) for f in fits],
+        "saturated_fraction": [round(saturated.get(b, 0.0), 6) for b in range(camera.n_bands)],
     }
     report.seconds = time.perf_counter() - t0
     return fits, report
@@ -332,9 +339,25 @@ def add_vignetting(ds: xr.Dataset, fits: Sequence[vignetting.VignettingFit], rep
 
 @dataclass
 class IlluminationResult:
+    """The illumination fit and, for the QA report, per reflector image used: its
+    brightness map ``B(x)`` on the band grid (NaN off the reflector), its DN in ``qa_band``,
+    its effective exposure and file name."""
+
     fit: illumination.IlluminationFit
     report: StageReport
     views: list[tuple[int, View]]
+    brightness_maps: np.ndarray | None = None  # (image, H, W) float32
+    qa_band: int = 0
+    qa_dn: np.ndarray | None = None  # (image, H, W) uint16
+    exposures: np.ndarray | None = None  # (image,) effective exposure, ms
+
+
+def qa_band(camera: Camera) -> int:
+    """The band the QA report shows images of: the camera's NIR index band (803 nm for the
+    Ximea, as in the paper's figures), else the middle band."""
+    if "nir" in camera.index_bands:
+        return camera.band_for_wavelength(camera.index_bands["nir"])
+    return camera.n_bands // 2
 
 
 def fit_illumination_frames(
@@ -350,18 +373,22 @@ def fit_illumination_frames(
     shape = stack.shape[2:]
     centre = tuple(_offsets(camera).mean(axis=0))
     rays = geometry.pixel_rays(session.intrinsics, shape, centre)
-    columns, image_index = [], []
+    columns, image_index, masks = [], [], []
+    n_sat = np.zeros(camera.n_bands, dtype=np.int64)
     for k, (i, view) in enumerate(views):
         uv = geometry.pixels_to_plane(view.pose, session.intrinsics, shape, rays=rays)
         mask = geometry.reflector_mask(uv, session.reflector.size_m, _exclude_half(session), _edge_margin(session))
         t = view.record.effective_exposure
         rad = np.empty((camera.n_bands, int(mask.sum())), dtype=np.float64)
         for b in range(camera.n_bands):
-            e = _energy(stack[i, b][mask], inverse_response[b], t, int(saturation_dn[b]))
+            dn = stack[i, b][mask]
+            n_sat[b] += int(np.count_nonzero(dn >= saturation_dn[b]))
+            e = _energy(dn, inverse_response[b], t, int(saturation_dn[b]))
             with np.errstate(divide="ignore", invalid="ignore"):
                 rad[b] = e / vignetting_maps[b][mask]
         columns.append(rad)
         image_index.append(np.full(rad.shape[1], k))
+        masks.append(mask)
     radiance = np.concatenate(columns, axis=1)
     if radiance.shape[1] < 100:
         raise FitError(
@@ -370,13 +397,27 @@ def fit_illumination_frames(
             hint="take the reflector image closer, or check reflector.size_m in session.yaml",
         )
     fit = illumination.fit_illumination(radiance, rho, image_index=np.concatenate(image_index))
+    maps = np.full((len(views), *shape), np.nan, dtype=np.float32)
+    start = 0
+    for k, mask in enumerate(masks):
+        n = int(mask.sum())
+        maps[k][mask] = fit.brightness[start:start + n]
+        start += n
     report.residuals = {
         "images_used": len(views),
         "reflector_pixels": int(radiance.shape[1]),
+        "reflector_pixels_per_image": [int(m.sum()) for m in masks],
         "residual_rms": round(float(fit.residual_rms), 5),
+        "image_brightness": [round(float(v), 5) for v in (fit.image_brightness if fit.image_brightness is not None else [])],
+        "saturated_fraction": [round(float(v), 6) for v in n_sat / max(radiance.shape[1], 1)],
     }
     report.seconds = time.perf_counter() - t0
-    return IlluminationResult(fit, report, views)
+    qb = qa_band(camera)
+    return IlluminationResult(
+        fit, report, views, brightness_maps=maps, qa_band=qb,
+        qa_dn=np.stack([stack[i, qb] for i, _ in views]),
+        exposures=np.array([v.record.effective_exposure for _, v in views]),
+    )
 
 
 def add_illumination(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
@@ -386,6 +427,23 @@ def add_illumination(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
         np.asarray(result.fit.spectral_factor, dtype=np.float64),
         {"long_name": "spectral factor S (Eq. 11-14); reflector brightness B has median 1"},
     )
+    if result.brightness_maps is not None and result.qa_dn is not None:
+        # For the QA report (issue 5): B(x) of each reflector image and its DN in one band,
+        # so the report can show Eq. 15 beside the Eq. 16 baseline without the session.
+        ds = ds.assign_coords(
+            reflector_image=np.arange(len(result.views)),
+            reflector_file=("reflector_image", np.array([v.record.path.name for _, v in result.views], dtype=object)),
+            reflector_exposure_ms=("reflector_image", np.asarray(result.exposures, dtype=np.float64),
+                                   {"long_name": "effective exposure (exposure_ms x gain)"}),
+        )
+        ds["reflector_brightness"] = (
+            ("reflector_image", "y", "x"), result.brightness_maps.astype(np.float32),
+            {"long_name": "reflector brightness B(x) (Eq. 11-14), median 1; NaN off the reflector"},
+        )
+        ds["reflector_dn"] = (
+            ("reflector_image", "y", "x"), result.qa_dn.astype(np.uint16),
+            {"long_name": "reflector image DN in one band (QA report)", "band": int(result.qa_band)},
+        )
     ds.attrs["illumination"] = result.report.as_attrs()
     return ds
 

@@ -159,6 +159,23 @@ def index(ortho: Path, index_name: str, out: Path, bands: str | None) -> None:
 
 
 @cli.command()
+@click.option("--calibration", "calibration", default=None, type=click.Path(path_type=Path),
+              help="Calibration store (.zarr) to report on; calibration.json is written beside the report.")
+@click.option("--flight", "flights", multiple=True, type=click.Path(path_type=Path),
+              help="An 'mscal apply' OUT folder (repeat for several flights).")
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path), help="HTML file to write.")
+@click.option("--title", default=None, help="Page title (default: 'mscal QA report: CAMERA').")
+def report(calibration: Path | None, flights: tuple[Path, ...], out: Path, title: str | None) -> None:
+    """Self-contained HTML QA report (plots embedded, opens offline) of a calibration and flights."""
+    from .report import write_report
+
+    t0 = time.perf_counter()
+    write_report(out, calibration=calibration, flights=flights, title=title)
+    extra = f" and {out.parent / 'calibration.json'}" if calibration is not None else ""
+    click.echo(f"wrote {out}{extra} ({out.stat().st_size / 1e6:.1f} MB; {time.perf_counter() - t0:.1f} s)")
+
+
+@cli.command()
 @click.option("-o", "--output", "out", default=Path("demo-out"), show_default=True, type=click.Path(path_type=Path))
 @click.option("--size", type=click.Choice(["small", "full"]), default="small", show_default=True,
               help="'full' is the paper-sized session (40 views, 14-frame sweep).")

@@ -66,6 +66,34 @@ def test_store_contract_and_provenance(small) -> None:
     assert all("not found" in s["reason"] for s in ds.attrs["vignetting"]["skipped"])
 
 
+def test_store_keeps_what_the_qa_report_needs(small) -> None:
+    """B(x) per reflector image, one band of its DN, exposures and saturated fractions."""
+    session, calib = small
+    ds = xr.open_zarr(calib).load()
+    truth = np.load(session / "truth.npz")
+    n_img = len(list((session / "reflector").glob("*.tif")))
+    B = ds["reflector_brightness"].values
+    assert B.shape == (n_img, 217, 409)
+    res = ds.attrs["illumination"]["residuals"]
+    # B is set exactly on the reflector pixels the fit used, with median 1 over all of them
+    assert [int(np.isfinite(b).sum()) for b in B] == res["reflector_pixels_per_image"]
+    assert sum(res["reflector_pixels_per_image"]) == res["reflector_pixels"]
+    assert abs(float(np.nanmedian(B)) - 1.0) < 1e-6
+    # and it is the true brightness up to the gauge: the ratio is constant to noise (1.4 %)
+    ok = np.isfinite(B)
+    ratio = B[ok] / truth["reflector_B"][ok]
+    assert np.std(ratio) / np.median(ratio) < 0.03
+    band = ds["reflector_dn"].attrs["band"]
+    assert float(ds["wavelength"].values[band]) == 803.0  # the camera's NIR index band
+    assert ds["reflector_dn"].dtype == np.uint16 and ds["reflector_dn"].shape == B.shape
+    assert list(ds["reflector_file"].values) == [f"{n}.tif" for n in truth["reflector_names"]][:n_img]
+    np.testing.assert_allclose(ds["reflector_exposure_ms"].values, truth["reflector_exposure_ms"][:n_img])
+    assert len(res["image_brightness"]) == n_img
+    for stage in ("vignetting", "illumination"):
+        frac = ds.attrs[stage]["residuals"]["saturated_fraction"]
+        assert len(frac) == 25 and all(0.0 <= f < 0.01 for f in frac)
+
+
 def test_fit_stages_one_at_a_time_match_calibrate(small, tmp_path, capsys) -> None:
     session, calib = small
     u = tmp_path / "u.zarr"
