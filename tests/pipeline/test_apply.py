@@ -260,13 +260,7 @@ def test_sigkill_at_any_moment_then_rerun_gives_identical_outputs(small, tmp_pat
             os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
         assert _apply(flight, calib, out) == 0
-        got = _outputs(out)
-        assert got.keys() == reference.keys()
-        for key, value in reference.items():
-            if isinstance(value, bytes):
-                assert got[key] == value, key
-            else:
-                np.testing.assert_array_equal(got[key], value)
+        _assert_same_outputs(reference, _outputs(out))
         leftovers = [p for p in out.rglob("*") if ".tmp-" in p.name]
         assert leftovers == []
 
@@ -279,13 +273,7 @@ def test_worker_processes_give_the_same_outputs(small, tmp_path, monkeypatch) ->
     assert _apply(flight, calib, tmp_path / "threads") == 0
     monkeypatch.setenv("MSCAL_APPLY_SCHEDULER", "processes")
     assert _apply(flight, calib, tmp_path / "processes") == 0
-    a, b = _outputs(tmp_path / "threads"), _outputs(tmp_path / "processes")
-    assert a.keys() == b.keys()
-    for key in a:
-        if isinstance(a[key], bytes):
-            assert a[key] == b[key], key
-        else:
-            np.testing.assert_array_equal(a[key], b[key])
+    _assert_same_outputs(_outputs(tmp_path / "threads"), _outputs(tmp_path / "processes"))
 
 
 def _assert_same_outputs(a: dict, b: dict) -> None:
