@@ -13,6 +13,7 @@ import tifffile
 from mscal_core.errors import FrameError
 from pipeline import catalog
 from pipeline.camera_meta import meta_from_tags, read_capture_meta, xmp_properties
+from pipeline.session import read_bands, read_raw
 from pipeline.writers import build_xmp
 from tests.micasense_data import BANDS, FWHM_NM, WAVELENGTHS_NM, band_file
 
@@ -58,6 +59,16 @@ def test_catalog_agrees_with_the_files() -> None:
         m = read_capture_meta(band_file("0000", int(band.file_suffix)))
         assert (band.name, band.wavelength_nm, band.fwhm_nm) == (m.band_name, m.wavelength_nm, m.fwhm_nm)
         assert m.bits_per_sample == 16 and m.shape == cam.sensor
+
+
+def test_read_bands_gives_12_bit_dn() -> None:
+    cam = catalog.load_camera("micasense-rededge")
+    path = band_file("0000", 2)
+    raw = read_raw(path)
+    bands = read_bands(path, cam)
+    assert bands.shape == (1, 960, 1280) and bands.dtype == np.uint16
+    assert int(raw.max()) == 65520 and int(bands.max()) == 4095  # saturated green: 0xFFF0 >> 4
+    np.testing.assert_array_equal(bands[0].astype(np.uint32) * 16, raw)
 
 
 def test_xmp_attribute_and_element_forms() -> None:
