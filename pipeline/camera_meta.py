@@ -15,14 +15,18 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
+import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from mscal_core.errors import FrameError
 from mscal_core.factory import radiance, vignetting_map
+
+if TYPE_CHECKING:
+    from .catalog import Camera
 
 RDF_NS = "http://www.w3.org/1999/02/22-rdf-syntax-ns#"
 XMP_NAMESPACES = (
@@ -330,3 +334,94 @@ def factory_radiance(meta: CaptureMeta, dn: np.ndarray) -> np.ndarray:
         vignetting=factory_vignetting(meta),
         bits_per_sample=meta.bits_per_sample,
     )
+
+
+# --------------------------------------------------------------------------- captures
+
+DEFAULT_CAPTURE_PATTERN = r"^(?P<capture>.+)_(?P<band>[0-9]+)\.tif$"
+
+
+@dataclass(frozen=True)
+class Capture:
+    """One capture of a one-file-per-band camera: its band files in band order."""
+
+    name: str  # file name stem without the band suffix, e.g. IMG_0000
+    capture_id: str
+    metas: tuple[CaptureMeta, ...]  # ordered by band (catalog order, else by suffix)
+
+    @property
+    def files(self) -> tuple[Path, ...]:
+        return tuple(m.path for m in self.metas)
+
+
+def group_captures(
+    folder: str | Path, camera: Camera | None = None
+) -> tuple[list[Capture], list[dict[str, str]]]:
+    """Group ``IMG_XXXX_<band>.tif`` files into captures by their XMP CaptureId.
+
+    With ``camera`` its ``capture_pattern`` and band list are used: every band's file must be
+    present and its XMP BandName must be the catalog's. Without it, the band suffixes seen in
+    the folder are expected in every capture. Returns the complete captures (sorted by name)
+    and the problems as ``[{file, reason}]`` (``file`` the capture's first file; unreadable metadata, missing or extra bands, a
+    CaptureId shared by differently named files), for the run's quarantine list.
+    """
+    folder = Path(folder)
+    pattern = re.compile(camera.layout.capture_pattern or DEFAULT_CAPTURE_PATTERN) if camera else re.compile(
+        DEFAULT_CAPTURE_PATTERN
+    )
+    problems: list[dict[str, str]] = []
+    by_id: dict[str, dict[str, CaptureMeta]] = {}
+    names: dict[str, set[str]] = {}
+    for path in sorted(folder.iterdir()):
+        m = pattern.match(path.name)
+        if m is None or not path.is_file():
+            continue
+        try:
+            meta = read_capture_meta(path)
+        except FrameError as exc:
+            problems.append({"file": str(path), "reason": exc.reason})
+            continue
+        cid = meta.capture_id or m["capture"]
+        by_id.setdefault(cid, {})[m["band"]] = meta
+        names.setdefault(cid, set()).add(m["capture"])
+    expected = _expected_suffixes(camera, by_id)
+    captures: list[Capture] = []
+    for cid, bands in by_id.items():
+        reason = _capture_problem(bands, expected, names[cid], camera)
+        if reason:
+            problems.append({"file": str(min(m.path for m in bands.values())), "reason": reason})
+            continue
+        captures.append(Capture(name=min(names[cid]), capture_id=cid, metas=tuple(bands[s] for s in expected)))
+    return sorted(captures, key=lambda c: c.name), problems
+
+
+def _expected_suffixes(camera: Camera | None, by_id: dict[str, dict[str, CaptureMeta]]) -> list[str]:
+    if camera is not None:
+        return [str(b.file_suffix) for b in camera.bands]
+    seen = {s for bands in by_id.values() for s in bands}
+    return sorted(seen, key=lambda s: (len(s), s))
+
+
+def _capture_problem(
+    bands: dict[str, CaptureMeta], expected: list[str], names: set[str], camera: Camera | None
+) -> str | None:
+    """Why a capture's files do not make one complete capture, or None."""
+    label = ", ".join(sorted(names))
+    if len(names) > 1:
+        return f"capture {label}: files with different names share one CaptureId"
+    missing = [s for s in expected if s not in bands]
+    extra = sorted(set(bands) - set(expected))
+    if missing or extra:
+        parts = ([f"missing band file(s) {', '.join(missing)}"] if missing else []) + (
+            [f"unexpected band file(s) {', '.join(extra)}"] if extra else []
+        )
+        return f"capture {label}: {'; '.join(parts)}"
+    if camera is not None:
+        wrong = [
+            f"_{b.file_suffix} is {bands[str(b.file_suffix)].band_name!r}, catalog says {b.name!r}"
+            for b in camera.bands
+            if bands[str(b.file_suffix)].band_name != b.name
+        ]
+        if wrong:
+            return f"capture {label}: band names differ from camera {camera.name}: {'; '.join(wrong)}"
+    return None

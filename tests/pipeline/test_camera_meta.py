@@ -3,6 +3,7 @@ the XMP forms (attributes, elements, rdf:Seq), and bad metadata named, never def
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 from pathlib import Path
 
@@ -12,7 +13,7 @@ import tifffile
 
 from mscal_core.errors import FrameError
 from pipeline import catalog
-from pipeline.camera_meta import meta_from_tags, read_capture_meta, xmp_properties
+from pipeline.camera_meta import group_captures, meta_from_tags, read_capture_meta, xmp_properties
 from pipeline.session import read_bands, read_raw
 from pipeline.writers import build_xmp
 from tests.micasense_data import BANDS, FWHM_NM, WAVELENGTHS_NM, band_file
@@ -156,3 +157,40 @@ def test_black_level_falls_back_to_dark_rows() -> None:
     del tags[50714]
     m = meta_from_tags(path, tags, (960, 1280), 16)
     assert m.black_level == pytest.approx((5092 + 5082 + 5049 + 5063) / 4)
+
+
+def test_group_captures_on_the_real_folder() -> None:
+    cam = catalog.load_camera("micasense-rededge")
+    captures, problems = group_captures(band_file("0000", 1).parent, cam)
+    assert problems == []
+    assert [c.name for c in captures] == ["IMG_0000", "IMG_0001"]
+    assert [c.capture_id for c in captures] == ["5v25BtsZg3BQBhVH7Iaz", "g2R43Qr5m7EeTFGbkh1W"]
+    assert [p.name for p in captures[1].files] == [f"IMG_0001_{b}.tif" for b in range(1, 6)]
+    assert [m.band_name for m in captures[0].metas] == list(BANDS)
+    # without a camera the suffixes seen in the folder are expected
+    assert [c.files for c in group_captures(band_file("0000", 1).parent)[0]] == [c.files for c in captures]
+
+
+def test_incomplete_capture_is_reported_not_grouped(tmp_path: Path) -> None:
+    for b in range(1, 6):
+        shutil.copyfile(band_file("0000", b), tmp_path / f"IMG_0000_{b}.tif")
+        if b != 4:
+            shutil.copyfile(band_file("0001", b), tmp_path / f"IMG_0001_{b}.tif")
+    captures, problems = group_captures(tmp_path, catalog.load_camera("micasense-rededge"))
+    assert [c.name for c in captures] == ["IMG_0000"]
+    assert problems == [{"file": str(tmp_path / "IMG_0001_1.tif"), "reason": "capture IMG_0001: missing band file(s) 4"}]
+
+
+def test_capture_of_another_camera_is_reported() -> None:
+    folder = band_file("0000", 1).parent
+    captures, problems = group_captures(folder, catalog.load_camera("micasense-rededge-mx-dual"))
+    assert captures == [] and len(problems) == 2
+    assert problems[0]["reason"] == "capture IMG_0000: missing band file(s) 6, 7, 8, 9, 10"
+    rededge = catalog.load_camera("micasense-rededge")
+    first = dataclasses.replace(rededge.bands[0], name="Coastal")
+    swapped = dataclasses.replace(rededge, bands=(first, *rededge.bands[1:]))
+    captures, problems = group_captures(folder, swapped)
+    assert captures == []
+    assert problems[0]["reason"] == (
+        "capture IMG_0000: band names differ from camera micasense-rededge: _1 is 'Blue', catalog says 'Coastal'"
+    )
