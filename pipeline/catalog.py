@@ -122,10 +122,16 @@ class Camera:
     index_bands: Mapping[str, float] = field(default_factory=dict)
     export_bands: tuple[str, ...] = ()
     source: str = ""
+    container_bits: int | None = None  # bits per stored sample when the data sit in its high bits
 
     @property
     def dn_max(self) -> int:
         return 2**self.bit_depth - 1
+
+    @property
+    def dn_shift(self) -> int:
+        """Right shift from stored samples to sensor DN (4 for 12-bit data in 16-bit samples)."""
+        return 0 if self.container_bits is None else self.container_bits - self.bit_depth
 
     @property
     def n_bands(self) -> int:
@@ -152,7 +158,7 @@ class Camera:
 
 
 _CAMERA_REQUIRED = {"name", "description", "bit_depth", "layout", "bands"}
-_CAMERA_OPTIONAL = {"sensor", "index_bands", "export_bands"}
+_CAMERA_OPTIONAL = {"sensor", "index_bands", "export_bands", "container_bits"}
 _BAND_REQUIRED = {"name", "wavelength_nm"}
 _BAND_OPTIONAL = {"fwhm_nm", "mosaic", "channel", "file_suffix"}
 _LAYOUT_KEYS = {
@@ -168,6 +174,15 @@ def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
     bits = data["bit_depth"]
     if not isinstance(bits, int) or isinstance(bits, bool) or not 1 <= bits <= 16:
         raise CatalogError(f"bit_depth must be an integer 1..16, got {bits!r}", path=path)
+    container = data.get("container_bits")
+    if container is not None and (
+        not isinstance(container, int) or isinstance(container, bool) or not bits <= container <= 16
+    ):
+        raise CatalogError(
+            f"container_bits must be an integer from bit_depth ({bits}) to 16, got {container!r}",
+            path=path,
+            hint="container_bits is the stored sample size when the DN sit in its high bits",
+        )
 
     lay = data["layout"]
     if not isinstance(lay, dict) or lay.get("kind") not in LAYOUT_KINDS:
@@ -287,6 +302,7 @@ def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
         index_bands={str(k): float(v) for k, v in index_bands.items()},
         export_bands=export,
         source=str(path),
+        container_bits=container,
     )
     for role, wl in camera.index_bands.items():
         try:

@@ -469,6 +469,8 @@ def to_bands(img: np.ndarray, camera: Camera, path: Path | str = "") -> np.ndarr
         if img.ndim != 2:
             raise FrameError(f"expected a single-band image, got shape {img.shape}", path=path)
         bands = img[None]
+    if camera.dn_shift:  # e.g. MicaSense: 12-bit DN stored in the high bits of 16-bit samples
+        bands = np.right_shift(bands, camera.dn_shift)
     top = int(bands.max(initial=0))
     if top > camera.dn_max:
         raise FrameError(

@@ -72,6 +72,18 @@ def test_ndvi_value() -> None:
     assert out[0] == pytest.approx(0.8, abs=1e-6)
 
 
+def test_micasense_cameras_store_12_bit_dn_in_16_bit_samples() -> None:
+    for name, n_bands in (("micasense-rededge", 5), ("micasense-rededge-mx-dual", 10)):
+        cam = catalog.load_camera(name)
+        assert cam.layout.kind == "file_per_band" and cam.n_bands == n_bands
+        assert (cam.bit_depth, cam.container_bits, cam.dn_shift, cam.dn_max) == (12, 16, 4, 4095)
+        assert [b.file_suffix for b in cam.bands] == [str(i) for i in range(1, n_bands + 1)]
+    dual = catalog.load_camera("micasense-rededge-mx-dual")
+    assert sorted(dual.wavelengths) == [444, 475, 531, 560, 650, 668, 705, 717, 740, 842]
+    assert dual.bands[dual.band_for_wavelength(705)].name == "Red edge-705"
+    assert catalog.load_camera("generic-rgb8").dn_shift == 0
+
+
 def test_target_table_interpolates() -> None:
     t = catalog.load_target("micasense-rp02-1603036-sc")
     assert t.reflectance.at(np.array([668.0]))[0] == pytest.approx(0.68)
@@ -100,6 +112,7 @@ def _base_camera() -> dict:
         (lambda d: d.pop("bands"), "missing key(s) bands"),
         (lambda d: d["bands"][1].update(channel=0), "one band per channel"),
         (lambda d: d.update(export_bands=["uv"]), "unknown band(s) uv"),
+        (lambda d: d.update(container_bits=4), "container_bits must be an integer from bit_depth (8) to 16"),
     ],
 )
 def test_bad_camera_rejected_naming_file(tmp_path, monkeypatch, mutate, message) -> None:

@@ -1,0 +1,157 @@
+"""Factory radiometric model of MicaSense-style cameras, from the calibration their files carry.
+
+MicaSense RedEdge/Altum files hold, per band, a radiometric calibration ``[a1, a2, a3]``, a
+black level, and a vignetting model (a radial polynomial around a centre, or on newer
+firmware a 2-D polynomial). MicaSense's published model turns a raw frame into radiance
+(W m-2 sr-1 nm-1)::
+
+    L(x, y) = V(x, y) * a1 / g * (p - p_BL) / (t_e + a2 * y - a3 * t_e * y)
+
+with ``p = DN / 2**bits_per_sample`` the DN normalised by the *container* depth (2**16 for
+the 12-bit RedEdge data stored in 16-bit TIFFs: a1 is scaled for that), ``p_BL`` the
+normalised black level, ``g = ISO / 100`` the gain, ``t_e`` the exposure in seconds, ``y``
+the pixel row (0 at the top), ``a2, a3`` the row-gradient (rolling shutter) terms, and
+``V`` the vignetting correction (>= 1 away from the centre, so it *multiplies* the DN).
+Negative radiance (noise around the black level) is floored at 0, as MicaSense does.
+
+Pure numpy (OpenCV for the polygon mask): the metadata is read by ``pipeline.camera_meta``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+
+@dataclass(frozen=True)
+class PanelStats:
+    """Statistics of an image over a panel region."""
+
+    mean: float
+    std: float
+    count: int
+    saturated: int
+
+
+def radial_vignetting(shape: tuple[int, int], center: Sequence[float], poly: Sequence[float]) -> np.ndarray:
+    """Radial vignetting correction ``V = 1 / (1 + k1 r + k2 r^2 + ... + kn r^n)``.
+
+    ``r`` is the distance in pixels of the pixel centre grid point ``(x, y)`` (x = column,
+    y = row, integer coordinates) from ``center = (cx, cy)``; ``poly = [k1, ..., kn]`` in the
+    order MicaSense's XMP ``VignettingPolynomial`` lists them (lowest power first, no
+    constant term). Returns ``(H, W)`` float64, 1 at the centre.
+    """
+    h, w = shape
+    cx, cy = float(center[0]), float(center[1])
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    r = np.hypot(x - cx, y - cy)
+    denom = np.ones_like(r)
+    for power, k in enumerate(poly, start=1):
+        denom += float(k) * r**power
+    return 1.0 / denom
+
+
+def vignetting_2d(
+    shape: tuple[int, int], coefficients: Sequence[float], exponents: Sequence[float]
+) -> np.ndarray:
+    """2-D polynomial vignetting correction ``V = 1 / sum_i c_i u^ex_i v^ey_i``.
+
+    ``u = x / W`` and ``v = y / H`` are the normalised column and row; ``exponents`` is the
+    flat ``[ex_0, ey_0, ex_1, ey_1, ...]`` list of XMP ``VignettingPolynomial2DName``.
+    """
+    if len(exponents) != 2 * len(coefficients):
+        raise ValueError(
+            f"2-D vignetting needs two exponents per coefficient, got {len(exponents)} for {len(coefficients)}"
+        )
+    h, w = shape
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    u /= w
+    v /= h
+    poly = np.zeros((h, w), dtype=np.float64)
+    for i, c in enumerate(coefficients):
+        poly += float(c) * u ** float(exponents[2 * i]) * v ** float(exponents[2 * i + 1])
+    return 1.0 / poly
+
+
+def vignetting_map(
+    shape: tuple[int, int],
+    center: Sequence[float] | None = None,
+    poly: Sequence[float] | None = None,
+    *,
+    poly_2d: Sequence[float] | None = None,
+    exponents_2d: Sequence[float] | None = None,
+) -> np.ndarray:
+    """Factory vignetting correction of one band: the radial form if given, else the 2-D form.
+
+    Note the convention differs from mscal's field ``V`` (max 1, divides the energy): the
+    factory map is >= 1 off-centre and multiplies the DN; ``1 / map`` scaled to max 1 is the
+    field-style vignetting.
+    """
+    if center is not None and poly is not None and len(poly) > 0:
+        return radial_vignetting(shape, center, poly)
+    if poly_2d is not None and exponents_2d is not None and len(poly_2d) > 0:
+        return vignetting_2d(shape, poly_2d, exponents_2d)
+    raise ValueError("no vignetting model: give center and poly, or poly_2d and exponents_2d")
+
+
+def row_gradient(height: int, exposure_s: float, a2: float, a3: float) -> np.ndarray:
+    """Row-gradient factor ``R(y) = t_e / (t_e + a2 y - a3 t_e y)`` per row, shape ``(H, 1)``."""
+    y = np.arange(height, dtype=np.float64)[:, None]
+    return exposure_s / (exposure_s + a2 * y - a3 * exposure_s * y)
+
+
+def radiance(
+    dn: np.ndarray,
+    *,
+    exposure_s: float,
+    gain: float,
+    black_level: float,
+    calibration: Sequence[float],
+    vignetting: np.ndarray,
+    bits_per_sample: int = 16,
+) -> np.ndarray:
+    """Factory radiance ``L = V a1/g (p - p_BL) / (t_e + a2 y - a3 t_e y)``, W m-2 sr-1 nm-1.
+
+    ``dn`` is one band ``(H, W)`` as stored; ``black_level`` in DN; ``calibration`` is
+    ``[a1, a2, a3]``; ``vignetting`` the map from :func:`vignetting_map`; ``bits_per_sample``
+    the container depth the DN are normalised by. Negative values are floored at 0.
+    """
+    if exposure_s <= 0 or gain <= 0:
+        raise ValueError(f"exposure ({exposure_s}) and gain ({gain}) must be positive")
+    a1, a2, a3 = (float(c) for c in calibration)
+    dn = np.asarray(dn, dtype=np.float64)
+    if vignetting.shape != dn.shape:
+        raise ValueError(f"vignetting map {vignetting.shape} does not match the image {dn.shape}")
+    scale = 2.0**bits_per_sample
+    p = (dn - float(black_level)) / scale
+    out = vignetting * p * row_gradient(dn.shape[0], exposure_s, a2, a3) * (a1 / (gain * exposure_s))
+    return np.maximum(out, 0.0)
+
+
+def panel_stats(image: np.ndarray, mask: np.ndarray, saturation: float | None = None) -> PanelStats:
+    """Mean, standard deviation, pixel count and saturated count of ``image`` over ``mask``.
+
+    ``saturated`` counts pixels above ``saturation`` (0 when it is None).
+    """
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != image.shape:
+        raise ValueError(f"mask {mask.shape} does not match the image {image.shape}")
+    values = np.asarray(image, dtype=np.float64)[mask]
+    if values.size == 0:
+        raise ValueError("the panel region is empty")
+    sat = 0 if saturation is None else int(np.count_nonzero(values > saturation))
+    return PanelStats(mean=float(values.mean()), std=float(values.std()), count=int(values.size), saturated=sat)
+
+
+def polygon_mask(shape: tuple[int, int], corners: Sequence[Sequence[float]]) -> np.ndarray:
+    """Boolean ``(H, W)`` mask of the pixels inside (and on the edges of) a polygon.
+
+    ``corners`` are ``(x, y)`` pixel coordinates (x = column), e.g. a panel's four corners.
+    """
+    pts = np.round(np.asarray(corners, dtype=np.float64)).astype(np.int32).reshape(-1, 1, 2)
+    mask = np.zeros(shape, dtype=np.uint8)
+    cv2.fillPoly(mask, [pts], 1)
+    return mask.astype(bool)

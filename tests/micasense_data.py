@@ -1,0 +1,43 @@
+"""Where the real MicaSense RedEdge sample files live, and what MicaSense publishes about them.
+
+The folder is ``../shared/data/micasense-rededge/`` beside the repository (see its README).
+Tests that need it call :func:`require_data`, which skips with the reason when it is absent.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+# This file is tests/micasense_data.py: parents[1] is the repository, its parent holds shared/
+# (the same folder as ``Path(test_file).parents[2].parent`` from tests/<package>/test_*.py).
+DATA = Path(__file__).parents[1].parent / "shared" / "data" / "micasense-rededge"
+
+BANDS = ("Blue", "Green", "Red", "NIR", "Red edge")  # by file suffix 1..5
+WAVELENGTHS_NM = (475.0, 560.0, 668.0, 840.0, 717.0)
+FWHM_NM = (20.0, 20.0, 10.0, 40.0, 10.0)
+
+# Panel corners (x, y) per band of IMG_0000, as MicaSense's tutorials publish them for use
+# without a QR reader; band 1 is the README's (+-3 px).
+PANEL_CORNERS = (
+    ((809, 613), (648, 615), (646, 454), (808, 452)),
+    ((772, 623), (613, 625), (610, 464), (770, 462)),
+    ((771, 651), (611, 653), (610, 492), (770, 490)),
+    ((829, 658), (668, 659), (668, 496), (829, 496)),
+    ((807, 632), (648, 634), (645, 473), (805, 471)),
+)
+PANEL_RAW_DN = (45406.753893482026, 46924.919447148139, 53240.810340812051, 56187.417482757308, 54479.170371812339)
+PANEL_RADIANCE = (0.17028382320603955, 0.17940027272297152, 0.1622172746785481, 0.10647021248769974, 0.13081077851565506)
+
+
+def require_data() -> Path:
+    """The sample folder; skips the calling test when it is absent."""
+    if not (DATA / "IMG_0000_1.tif").is_file():
+        pytest.skip(f"MicaSense RedEdge sample files not found in {DATA}")
+    return DATA
+
+
+def band_file(capture: str, band: int) -> Path:
+    """``IMG_<capture>_<band>.tif`` in the sample folder (band 1..5); skips if absent."""
+    return require_data() / f"IMG_{capture}_{band}.tif"
