@@ -741,14 +741,14 @@ def apply_flight(
     quarantined = list(cube.found.quarantined)
     done: tuple[_Pass, list[FrameOutcome]] | None = None
     with Runner(n_hint) as runner:
-        try:
-            if fresh:
+        if fresh:
+            try:
                 done = _fresh_pass(cube, runner, start, calib_path, sat, batch=FRESH_BATCH)
-        finally:
-            cube.release()
+            finally:
+                cube.release()
         single = done is not None
         if done is None:  # the general way: ingest what is new, then a pass over the cube
-            ing = ingest_flight(flight_dir, camera, raw_path)
+            ing = ingest_flight(flight_dir, camera, raw_path, cube=None if fresh else cube)
             quarantined = list(ing.quarantined)
             raw = xr.open_zarr(raw_path)
             shas = [str(s) for s in raw["sha256"].values]

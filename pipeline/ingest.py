@@ -451,8 +451,12 @@ def ingest_flight(
     workers: int = 2,
     commit_every: int = 32,
     compress: bool = True,
+    cube: Cube | None = None,
 ) -> IngestResult:
     """Ingest (append) the frames of ``flight_dir`` into the raw datacube ``out_zarr``.
+
+    ``cube``: the cube as :func:`open_cube` just opened it (discovered and locked), if the
+    caller has it; it is released here.
 
     ``workers`` threads hash, read and demosaic frames and write their chunks;
     ``commit_every`` frames are made durable at a time (a kill loses at most that much work);
@@ -464,7 +468,8 @@ def ingest_flight(
     datacube of this camera or is being written by another process.
     """
     t_start = _time.perf_counter()
-    cube = open_cube(flight_dir, camera, out_zarr, compress=compress)
+    if cube is None:
+        cube = open_cube(flight_dir, camera, out_zarr, compress=compress)
     camera, out, found, lock, group = cube.camera, cube.path, cube.found, cube.lock, cube.group
     committed, shape = cube.committed, cube.shape
     quarantined = list(found.quarantined)
