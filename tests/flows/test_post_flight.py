@@ -132,3 +132,18 @@ def test_bad_dask_address_and_normalise_are_rejected(flow_session: Path, tmp_pat
     assert "--dask-address 'localhost' is not a scheduler address" in capsys.readouterr().err
     assert main(["run", str(flow_session), "-o", str(tmp_path / "o"), "--normalise", "panel"]) == 2
     assert "--normalise 'panel'" in capsys.readouterr().err
+
+
+def test_demo_runs_the_whole_flow_and_says_where_the_outputs_are(first_run: Path, tmp_path: Path, capsys) -> None:
+    """The demo's session is the flows' test session (seed 0, small, two flights): its
+    calibration comes from the cache, so this checks the demo's wiring, not the fits again."""
+    assert main(["demo", "-o", str(tmp_path / "demo")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert f"outputs: {tmp_path / 'demo'}" in lines
+    assert f"run record: {tmp_path / 'demo' / 'run.json'}" in lines
+    summary = json.loads((tmp_path / "demo" / "evaluation.json").read_text())
+    assert summary["calibration_cached"] is True
+    assert sorted(summary["flights"]) == sorted(FLIGHTS)
+    assert summary["errors_vs_truth"]["response_max_error"] < 0.02
+    for name in FLIGHTS:
+        assert_same_flight_outputs(first_run / "flights" / name, tmp_path / "demo" / "flights" / name)

@@ -33,11 +33,17 @@ def test_serve_processes_complete_sessions_once_and_survives_restarts(
     uploading = inbox / "tuesday"  # just copied, no READY: still being uploaded
     shutil.copytree(flow_session, uploading)
     (inbox / "empty").mkdir()  # no session.yaml at all
+    broken = inbox / "broken"  # complete, but its session.yaml names no camera
+    broken.mkdir()
+    (broken / "session.yaml").write_text("camera: no-such-camera\n")
+    (broken / READY).write_text("")
 
-    assert _serve(inbox, root) == 0
-    assert "monday: done" in capsys.readouterr().out
+    assert _serve(inbox, root) == 0  # a failed session does not stop the others
+    out = capsys.readouterr().out
+    assert "monday: done" in out and "broken: failed" in out
     state = _state(root)
-    assert sorted(state) == ["monday"] and state["monday"]["status"] == "done"
+    assert sorted(state) == ["broken", "monday"] and state["monday"]["status"] == "done"
+    assert state["broken"]["status"] == "failed"
     assert len(state["monday"]["content_sha256"]) == 64
     run = json.loads((root / "monday" / "run.json").read_text())
     assert run["calibration_cached"] is True and sorted(run["flights"]) == ["field", "orchard"]
@@ -58,7 +64,7 @@ def test_serve_processes_complete_sessions_once_and_survives_restarts(
         os.utime(p, None)
     assert _serve(inbox, root) == 0
     assert capsys.readouterr().out.splitlines() == [f"tuesday: done -> {root / 'tuesday'}"]
-    assert sorted(_state(root)) == ["monday", "tuesday"]
+    assert sorted(_state(root)) == ["broken", "monday", "tuesday"]
     assert (root / "monday" / "run.json").stat().st_mtime_ns == stamp
     assert (root / "tuesday" / "run.json").is_file()
 
