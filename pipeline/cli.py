@@ -158,16 +158,16 @@ def index(ortho: Path, index_name: str, out: Path, bands: str | None) -> None:
     click.echo(f"wrote {out}")
 
 
-def _post_flight():  # noqa: ANN202 (the Prefect flow)
-    """The post-flight flow, imported after Prefect's environment is set (runner.configure_prefect)."""
+def _flows():  # noqa: ANN202 (module flows.post_flight)
+    """``flows.post_flight``, imported after Prefect's environment is set (runner.configure_prefect)."""
     from .runner import configure_prefect
 
     configure_prefect()
     # Prefect's console handler names each flow and task run; it stands back if root has one.
     logging.getLogger().handlers.clear()
-    from flows.post_flight import post_flight
+    import flows.post_flight
 
-    return post_flight
+    return flows.post_flight
 
 
 def _echo_run(record: dict) -> None:
@@ -199,7 +199,7 @@ def run(session: str, out: str, response_method: str, normalise: str, dask_addre
         import os
 
         os.environ["MSCAL_CACHE_DIR"] = cache_dir
-    record = _post_flight()(session=session, out=out, response_method=response_method, normalise=normalise,
+    record = _flows().post_flight(session=session, out=out, response_method=response_method, normalise=normalise,
                             dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir)
     _echo_run(record)
 
@@ -226,9 +226,7 @@ def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, onc
 
     next_time(cron, datetime.now())  # a bad expression fails before anything runs
     pending_sessions(inbox_dir, out_root, settle_seconds)  # and so does a missing inbox
-    _post_flight()
-    from flows.post_flight import process_inbox
-
+    process_inbox = _flows().process_inbox
     while True:
         done = process_inbox(str(inbox_dir), str(out_root), settle_seconds=settle_seconds,
                              response_method=response_method, dask_address=dask_address)
@@ -251,7 +249,7 @@ def demo(out: Path, size: str, seed: int) -> None:
     it and compare the calibration with the truth."""
     from .demo import run_demo
 
-    summary = run_demo(out, size=size, seed=seed, flow=_post_flight())
+    summary = run_demo(out, size=size, seed=seed, flow=_flows().post_flight)
     click.echo(json.dumps(summary, indent=2))
     click.echo(f"outputs: {summary['outputs']}")
     click.echo(f"run record: {summary['run_json']}")

@@ -32,6 +32,11 @@ REFLECTANCE_VARS = ("reflectance", "ndvi", "ndre", "vegetation_mask")
 
 
 def pytest_sessionfinish(session, exitstatus) -> None:  # noqa: ANN001
+    """Remove the temporary PREFECT_HOME. Prefect's exit hook, which stops the embedded server,
+    logs to the streams pytest has closed by then: its "prefect" logger is quietened first."""
+    import logging
+
+    logging.getLogger("prefect").setLevel(logging.CRITICAL)
     shutil.rmtree(_HOME, ignore_errors=True)
 
 

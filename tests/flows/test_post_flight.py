@@ -147,3 +147,33 @@ def test_demo_runs_the_whole_flow_and_says_where_the_outputs_are(first_run: Path
     assert summary["errors_vs_truth"]["response_max_error"] < 0.02
     for name in FLIGHTS:
         assert_same_flight_outputs(first_run / "flights" / name, tmp_path / "demo" / "flights" / name)
+
+
+def test_io_tasks_retry_io_errors_but_not_bad_input() -> None:
+    """The retry policy of the flow's I/O tasks, on Prefect's engine (no delay here)."""
+    from prefect import flow, task
+
+    from flows.post_flight import IO
+    from mscal_core.errors import InputError
+
+    calls: list[str] = []
+
+    @task(**{**IO, "retry_delay_seconds": 0})
+    def flaky(kind: str) -> int:
+        calls.append(kind)
+        if calls.count(kind) == 1:
+            raise ConnectionResetError("connection reset") if kind == "io" else InputError("bad session")
+        return calls.count(kind)
+
+    @flow
+    def io() -> int:
+        return flaky("io")
+
+    @flow
+    def bad() -> int:
+        return flaky("bad")
+
+    assert io() == 2  # failed once, retried, succeeded
+    with pytest.raises(InputError, match="bad session"):
+        bad()
+    assert calls.count("bad") == 1  # not retried
