@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -186,7 +187,8 @@ def _echo_run(record: dict) -> None:
 @click.option("--normalise", default="relative", show_default=True, help="relative, or band:<name or nm>.")
 @click.option("--dask-address", default=None,
               help="tcp://HOST:PORT of a running 'dask scheduler' (default: a local cluster for long flights).")
-@click.option("--cache-dir", default=None, help="Calibration cache and Prefect home (default: $MSCAL_CACHE_DIR or ~/.cache/mscal).")
+@click.option("--cache-dir", default=None, help="Calibration cache, and Prefect's home unless PREFECT_HOME is set "
+                   "(default: $MSCAL_CACHE_DIR or ~/.cache/mscal).")
 @click.option("--work-dir", default=None, help="Where remote (s3://) inputs and outputs are staged (default: a temporary folder).")
 def run(session: str, out: str, response_method: str, normalise: str, dask_address: str | None,
         cache_dir: str | None, work_dir: str | None) -> None:
@@ -196,11 +198,9 @@ def run(session: str, out: str, response_method: str, normalise: str, dask_addre
 
     check_run_inputs(session, out, normalise=normalise, dask_address=dask_address)
     if cache_dir:
-        import os
-
-        os.environ["MSCAL_CACHE_DIR"] = cache_dir
+        os.environ["MSCAL_CACHE_DIR"] = cache_dir  # before Prefect starts: its home follows
     record = _flows().post_flight(session=session, out=out, response_method=response_method, normalise=normalise,
-                            dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir)
+                                  dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir)
     _echo_run(record)
 
 
@@ -264,7 +264,7 @@ def main(argv: list[str] | None = None) -> int:
     except MscalError as exc:
         click.echo(f"mscal: error: {exc}", err=True)
         return exc.exit_code
-    except click.exceptions.Abort:
+    except (click.exceptions.Abort, KeyboardInterrupt):  # Ctrl-C, e.g. of a long mscal serve
         click.echo("mscal: aborted", err=True)
         return 130
     except click.ClickException as exc:

@@ -12,6 +12,7 @@ import pytest
 
 from mscal_core.errors import FitError, InputError, SessionError
 from pipeline import inbox, runner
+from pipeline.session import load_session
 
 SESSION_YAML = """\
 camera: ximea-mq022hg-sm5x5-nir
@@ -34,7 +35,7 @@ def session(tmp_path: Path) -> Path:
 
 
 def _keys(session: Path, method: str = "forward") -> list[str]:
-    return list(runner.stage_keys(runner.load_session(session), method).values())
+    return list(runner.stage_keys(load_session(session), method).values())
 
 
 @pytest.mark.parametrize(
