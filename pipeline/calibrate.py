@@ -533,3 +533,20 @@ def fit_stage_cli(stage: str, session_dir: str | Path, out: str | Path, partial:
     ds = provenance(ds, session.root)
     write_store(ds, out)
     return ds
+
+
+#: The fits in dependency order: each needs the stores of the ones before it.
+STAGES = ("response", "vignetting", "illumination")
+
+
+def fit_stage(stage: str, session_dir: str | Path, out: str | Path, partial: str | Path | None = None,
+              response_method: str = "forward") -> xr.Dataset:
+    """One stage of a session's calibration into ``out``: ``response`` from the session's
+    sweep; ``vignetting`` and ``illumination`` on top of ``partial``, the store of the stage
+    before (the post-flight flow caches each stage's store, so a changed input re-fits only
+    the stages that depend on it)."""
+    if stage == "response":
+        return fit_response_cli(session_dir, out, None, response_method)
+    if stage not in STAGES:
+        raise ValueError(f"unknown calibration stage {stage!r}; stages: {', '.join(STAGES)}")
+    return fit_stage_cli(stage, session_dir, out, partial, response_method)

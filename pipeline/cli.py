@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -158,6 +159,86 @@ def index(ortho: Path, index_name: str, out: Path, bands: str | None) -> None:
     click.echo(f"wrote {out}")
 
 
+def _flows():  # noqa: ANN202 (module flows.post_flight)
+    """``flows.post_flight``, imported after Prefect's environment is set (runner.configure_prefect)."""
+    from .runner import configure_prefect
+
+    configure_prefect()
+    # Prefect's console handler names each flow and task run; it stands back if root has one.
+    logging.getLogger().handlers.clear()
+    import flows.post_flight
+
+    return flows.post_flight
+
+
+def _echo_run(record: dict) -> None:
+    for name, f in record["flights"].items():
+        for q in f["quarantined"]:
+            click.echo(f"quarantined {name}/{q['file']}: {q['reason']}", err=True)
+    calib = "reused from the cache" if record["calibration_cached"] else "fitted: " + ", ".join(record["fitted"])
+    click.echo(f"wrote {record['out']} (calibration {calib}; {len(record['flights'])} flight(s); "
+               f"{record['timings_s']['total']:.1f} s)")
+
+
+@cli.command()
+@click.argument("session")
+@click.option("-o", "--output", "out", required=True, help="Output folder or fsspec URL (s3://bucket/prefix).")
+@click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True)
+@click.option("--normalise", default="relative", show_default=True, help="relative, or band:<name or nm>.")
+@click.option("--dask-address", default=None,
+              help="tcp://HOST:PORT of a running 'dask scheduler' (default: a local cluster for long flights).")
+@click.option("--cache-dir", default=None, help="Calibration cache, and Prefect's home unless PREFECT_HOME is set "
+                   "(default: $MSCAL_CACHE_DIR or ~/.cache/mscal).")
+@click.option("--work-dir", default=None, help="Where remote (s3://) inputs and outputs are staged (default: a temporary folder).")
+def run(session: str, out: str, response_method: str, normalise: str, dask_address: str | None,
+        cache_dir: str | None, work_dir: str | None) -> None:
+    """The whole post-flight flow on Prefect's embedded server: calibrate SESSION (cached by
+    content) and apply it to every SESSION/flights/<name>; SESSION and OUT may be s3:// URLs."""
+    from .runner import check_run_inputs
+
+    check_run_inputs(session, out, normalise=normalise, dask_address=dask_address)
+    if cache_dir:
+        os.environ["MSCAL_CACHE_DIR"] = cache_dir  # before Prefect starts: its home follows
+    record = _flows().post_flight(session=session, out=out, response_method=response_method, normalise=normalise,
+                                  dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir)
+    _echo_run(record)
+
+
+@cli.command()
+@click.option("--inbox", "inbox_dir", required=True, type=click.Path(path_type=Path), help="Folder of session folders.")
+@click.option("-o", "--output", "out_root", required=True, type=click.Path(path_type=Path),
+              help="Outputs: OUT_ROOT/<session name>/, and the state file OUT_ROOT/.mscal-serve.json.")
+@click.option("--cron", default="*/15 * * * *", show_default=True, help="When to look at the inbox (cron expression).")
+@click.option("--settle-seconds", default=600.0, show_default=True, type=float,
+              help="A session without a READY file is complete once nothing in it changed for this long.")
+@click.option("--once", is_flag=True, help="Look at the inbox once and exit.")
+@click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True)
+@click.option("--dask-address", default=None, help="tcp://HOST:PORT of a running 'dask scheduler'.")
+def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, once: bool, response_method: str,
+          dask_address: str | None) -> None:
+    """Process every complete session folder of an INBOX once, now and then on a cron schedule.
+
+    Complete: session.yaml and a READY file, or nothing modified for --settle-seconds.
+    Processed sessions are recorded in OUT_ROOT/.mscal-serve.json; a restart does not redo them."""
+    from datetime import datetime
+
+    from .inbox import next_time, pending_sessions
+
+    next_time(cron, datetime.now())  # a bad expression fails before anything runs
+    pending_sessions(inbox_dir, out_root, settle_seconds)  # and so does a missing inbox
+    process_inbox = _flows().process_inbox
+    while True:
+        done = process_inbox(str(inbox_dir), str(out_root), settle_seconds=settle_seconds,
+                             response_method=response_method, dask_address=dask_address)
+        for name, status in done.items():
+            click.echo(f"{name}: {status} -> {out_root / name}")
+        if once:
+            return
+        wake = next_time(cron, datetime.now())
+        click.echo(f"next look at {inbox_dir}: {wake:%Y-%m-%d %H:%M}", err=True)
+        time.sleep(max(0.0, (wake - datetime.now()).total_seconds()))
+
+
 @cli.command()
 @click.option("--calibration", "calibration", default=None, type=click.Path(path_type=Path),
               help="Calibration store (.zarr) to report on; calibration.json is written beside the report.")
@@ -181,11 +262,16 @@ def report(calibration: Path | None, flights: tuple[Path, ...], out: Path, title
               help="'full' is the paper-sized session (40 views, 14-frame sweep).")
 @click.option("--seed", default=0, show_default=True, type=int)
 def demo(out: Path, size: str, seed: int) -> None:
-    """Synthesize a session with known truth, calibrate it, and compare with the truth."""
+    """Synthesize a session with known truth (two flights), run the whole post-flight flow on
+    it and compare the calibration with the truth."""
     from .demo import run_demo
 
-    summary = run_demo(out, size=size, seed=seed)
+    summary = run_demo(out, size=size, seed=seed, flow=_flows().post_flight)
     click.echo(json.dumps(summary, indent=2))
+    click.echo(f"outputs: {summary['outputs']}")
+    click.echo(f"run record: {summary['run_json']}")
+    if summary.get("report"):
+        click.echo(f"report: {summary['report']}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -195,7 +281,7 @@ def main(argv: list[str] | None = None) -> int:
     except MscalError as exc:
         click.echo(f"mscal: error: {exc}", err=True)
         return exc.exit_code
-    except click.exceptions.Abort:
+    except (click.exceptions.Abort, KeyboardInterrupt):  # Ctrl-C, e.g. of a long mscal serve
         click.echo("mscal: aborted", err=True)
         return 130
     except click.ClickException as exc:

@@ -980,6 +980,14 @@ def write_report(out_html: str | Path, *, calibration: str | Path | xr.Dataset |
                  flights: Iterable[str | Path | FlightResults] = (), title: str | None = None) -> Path:
     """Write the self-contained ``out_html`` (atomically); with a calibration, also
     ``calibration.json`` beside it. Returns the HTML path."""
+    return write_report_and_markdown(out_html, calibration=calibration, flights=flights, title=title)[0]
+
+
+def write_report_and_markdown(out_html: str | Path, *, calibration: str | Path | xr.Dataset | None = None,
+                              flights: Iterable[str | Path | FlightResults] = (), title: str | None = None
+                              ) -> tuple[Path, str]:
+    """:func:`write_report`, also returning the page's warnings and tables as markdown (for a
+    Prefect artifact), from the same sections (the plots are made once)."""
     out_html = Path(out_html)
     ds = _calibration(calibration)
     sections = build_sections(ds, flights)
@@ -988,4 +996,4 @@ def write_report(out_html: str | Path, *, calibration: str | Path | xr.Dataset |
     if ds is not None:
         _write_atomic(out_html.parent / "calibration.json", json.dumps(calibration_summary(ds), indent=2))
     _write_atomic(out_html, page)
-    return out_html
+    return out_html, sections_markdown(sections, title)

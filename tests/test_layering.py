@@ -37,3 +37,40 @@ def test_core_does_no_file_io() -> None:
             if token in text:
                 offenders.append(f"{p.name}: {token}")
     assert offenders == []
+
+
+def _imports(path) -> set[str]:  # noqa: ANN001
+    """Top-level names of the modules a source file imports (absolute imports only)."""
+    import ast
+
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names.update(a.name.split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            names.add(node.module.split(".")[0])
+    return names
+
+
+def test_flows_import_prefect_and_pipeline_only() -> None:
+    """flows/ is wiring: Prefect, the pipeline, the standard library; nothing else."""
+    import pathlib
+
+    import flows
+
+    allowed = {"prefect", "pipeline"} | set(sys.stdlib_module_names)
+    files = sorted(pathlib.Path(flows.__file__).parent.glob("*.py"))
+    assert any(p.name == "post_flight.py" for p in files)
+    bad = {p.name: sorted(_imports(p) - allowed) for p in files if _imports(p) - allowed}
+    assert bad == {}
+
+
+def test_pipeline_does_not_import_prefect_or_flows() -> None:
+    """Only the command line (pipeline/cli.py) starts flows; the rest runs without Prefect."""
+    import pathlib
+
+    import pipeline
+
+    files = sorted(pathlib.Path(pipeline.__file__).parent.glob("*.py"))
+    bad = sorted(p.name for p in files if p.name != "cli.py" and _imports(p) & {"prefect", "flows"})
+    assert bad == []

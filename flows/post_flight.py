@@ -1,0 +1,159 @@
+"""The post-flight Prefect flow (issue 4): wiring only, each task one ``pipeline`` call on paths.
+
+``post_flight``: stage remote inputs, calibrate the session (each stage taken from the cache
+when its inputs are unchanged), apply the calibration to every ``SESSION/flights/<name>/``,
+write ``OUT/run.json``, upload remote outputs (``run.json`` last), and summarise the run as
+Prefect artifacts. ``process_inbox``: one pass over an inbox of session folders (``mscal
+serve``), each complete, unprocessed session through ``post_flight``.
+
+Import this module only after :func:`pipeline.runner.configure_prefect`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+from prefect import flow, get_run_logger, task
+from prefect.artifacts import create_markdown_artifact, create_table_artifact
+from prefect.cache_policies import NO_CACHE
+from prefect.runtime import flow_run
+from prefect.tasks import exponential_backoff
+
+from pipeline import calibrate, inbox, runner
+
+
+def _transient(task_: Any, task_run: Any, state: Any) -> bool:
+    """Retry only I/O failures (network, storage); bad input and failed fits fail at once."""
+    return runner.is_transient(state.result(raise_on_failure=False))
+
+
+#: I/O tasks: retried with exponential backoff (2 s, 4 s, 8 s).
+IO = {"retries": 3, "retry_delay_seconds": exponential_backoff(backoff_factor=2),
+      "retry_condition_fn": _transient, "cache_policy": NO_CACHE}
+
+
+@task(**IO)
+def stage_in(url: str, local: str) -> str:
+    return str(runner.stage_in(url, local))
+
+
+@task(cache_policy=NO_CACHE)
+def plan_calibration(session: str, cache_dir: str, response_method: str) -> runner.CalibrationPlan:
+    return runner.plan_calibration(session, cache_dir, response_method)
+
+
+@task(cache_policy=NO_CACHE, task_run_name="fit-{stage}")
+def fit_stage(stage: str, session: str, store: str, partial: str | None, response_method: str) -> str:
+    calibrate.fit_stage(stage, session, store, partial, response_method)
+    return store
+
+
+@task(**IO)
+def publish_calibration(store: str, out: str) -> str:
+    return str(runner.publish_calibration(store, out))
+
+
+@task(cache_policy=NO_CACHE)
+def list_flights(session: str) -> dict[str, str]:
+    return runner.flight_dirs(session)
+
+
+@task(**IO, task_run_name="apply-{name}")
+def apply_flight(name: str, flight_dir: str, calibration: str, out: str, normalise: str,
+                 dask_address: str | None) -> dict[str, Any]:
+    return runner.apply_one(flight_dir, calibration, out, normalise=normalise, dask_address=dask_address)
+
+
+@task(cache_policy=NO_CACHE)
+def write_report(out: str, flights: list[str]) -> str:
+    return runner.qa_report(out, flights)
+
+
+@task(**IO)
+def write_run_json(out: str, record: dict[str, Any]) -> str:
+    return str(runner.write_run_json(out, record))
+
+
+@task(**IO)
+def upload(local: str, url: str) -> int:
+    return runner.upload(local, url)
+
+
+@flow(name="post-flight")
+def post_flight(
+    session: str,
+    out: str,
+    response_method: Literal["forward", "alternating"] = "forward",
+    normalise: str = "relative",
+    dask_address: str | None = None,
+    cache_dir: str | None = None,
+    work_dir: str | None = None,
+) -> dict[str, Any]:
+    """Calibrate SESSION once and apply it to each of its flights; outputs in OUT.
+
+    ``session``/``out``: folders or fsspec URLs (``s3://bucket/prefix``). ``dask_address``:
+    ``tcp://HOST:PORT`` of a running ``dask scheduler`` (default: a local cluster for long
+    flights). ``cache_dir``: the calibration cache (default :func:`runner.default_cache_dir`).
+    ``work_dir``: where remote inputs and outputs are staged (default: a temporary folder).
+    """
+    log = get_run_logger()
+    timings = runner.Timings()
+    paths = runner.run_paths(session, out, work_dir)
+    if runner.is_remote(session):
+        with timings.step("stage_in"):
+            stage_in(session, paths.session)
+    plan = plan_calibration(paths.session, str(cache_dir or runner.default_cache_dir()), response_method)
+    flights = list_flights(paths.session)
+    summaries: dict[str, dict[str, Any]] = {}
+    with runner.progress(len(plan.stages) + len(flights), "post-flight") as advance:
+        for st in plan.stages:
+            if st.cached:
+                log.info("%s: inputs unchanged, calibration reused from the cache (%s), not re-fitted", st.name, st.store)
+            else:
+                with timings.step(f"fit_{st.name}"):
+                    fit_stage(st.name, paths.session, st.store, st.partial, response_method)
+            advance(1)
+        publish_calibration(plan.final_store, paths.out)
+        for name, flight_dir in flights.items():
+            with timings.step(f"apply_{name}"):
+                # apply reads the content-addressed cached store: its path changes when its content does
+                summaries[name] = apply_flight(name, flight_dir, plan.final_store, str(Path(paths.out) / "flights" / name),
+                                               normalise, dask_address)
+            advance(1)
+    with timings.step("report"):
+        qa_markdown = write_report(paths.out, list(summaries))
+    record = runner.run_record(session=session, out=out, plan=plan, flights=summaries, timings=timings,
+                               dask_address=dask_address, flow_run_id=flow_run.id)
+    write_run_json(paths.out, record)
+    if runner.is_remote(out):
+        upload(paths.out, out)
+    runner.remove_work(paths)
+    create_markdown_artifact(runner.summary_markdown(record), key="mscal-post-flight",
+                             description=f"mscal run {session}")
+    create_table_artifact(runner.flight_table(record), key="mscal-flights", description="flights of the run")
+    create_markdown_artifact(qa_markdown, key="mscal-qa-report", description="QA report: fits, warnings, flights")
+    log.info("calibration %s; %d flight(s); outputs in %s",
+             "reused from the cache (nothing re-fitted)" if plan.cached else f"fitted: {', '.join(record['fitted'])}",
+             len(summaries), out)
+    return record
+
+
+@flow(name="process-inbox")
+def process_inbox(inbox_dir: str, out_root: str, settle_seconds: float = 600.0,
+                  response_method: Literal["forward", "alternating"] = "forward",
+                  dask_address: str | None = None, cache_dir: str | None = None) -> dict[str, str]:
+    """One pass over INBOX: every complete, unprocessed session through ``post_flight`` into
+    ``OUT_ROOT/<session name>``; each recorded in the serve state file. Returns
+    ``{session name: status}`` of the sessions processed in this pass."""
+    log = get_run_logger()
+    done: dict[str, str] = {}
+    for p in inbox.pending_sessions(inbox_dir, out_root, settle_seconds):
+        log.info("session %s: complete and not processed yet", p.name)
+        state = post_flight(p.path, str(Path(out_root) / p.name), response_method=response_method,
+                            dask_address=dask_address, cache_dir=cache_dir, return_state=True)
+        status = "done" if state.is_completed() else "failed"
+        detail = "" if status == "done" else str(state.message or "")
+        inbox.record(Path(out_root), p.name, listing=p.listing, content=p.content, status=status, detail=detail)
+        done[p.name] = status
+    return done

@@ -1,0 +1,76 @@
+"""Post-flight flow tests: Prefect isolated from the user's, offline, on its embedded server.
+
+Prefect reads its settings once, at import, and its embedded server is started once per
+process (~15-25 s): every test process gets its own temporary PREFECT_HOME here, before
+anything imports Prefect, and the flow tests of that process share it. The calibration cache
+is one temporary folder per test process too, so that later runs reuse the first run's fits.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+_HOME = Path(tempfile.mkdtemp(prefix="mscal-test-prefect-"))
+os.environ.pop("PREFECT_API_URL", None)  # never a real server
+os.environ.pop("PREFECT_PROFILE", None)
+os.environ["PREFECT_HOME"] = str(_HOME)
+os.environ["MSCAL_CACHE_DIR"] = str(_HOME / "cache")
+
+from pipeline.runner import configure_prefect  # noqa: E402
+
+configure_prefect()
+
+FLIGHTS = ("field", "orchard")
+REFLECTANCE_VARS = ("reflectance", "ndvi", "ndre", "vegetation_mask")
+
+
+def pytest_sessionfinish(session, exitstatus) -> None:  # noqa: ANN001
+    """Remove the temporary PREFECT_HOME. Prefect's exit hook, which stops the embedded server,
+    logs to the streams pytest has closed by then: its "prefect" logger is quietened first."""
+    import logging
+
+    logging.getLogger("prefect").setLevel(logging.CRITICAL)
+    shutil.rmtree(_HOME, ignore_errors=True)
+
+
+@pytest.fixture(scope="session")
+def flow_session(tmp_path_factory) -> Path:
+    """The demo's small synthetic session with two 3-frame flights."""
+    from pipeline.synth import write_session
+
+    return write_session(tmp_path_factory.mktemp("flows") / "session", seed=0, size="small", flights=FLIGHTS)
+
+
+@pytest.fixture(scope="session")
+def first_run(flow_session, tmp_path_factory) -> Path:
+    """``mscal run`` on the session with an empty calibration cache: everything fitted."""
+    from pipeline.cli import main
+
+    out = tmp_path_factory.mktemp("run1") / "out"
+    assert not (Path(os.environ["MSCAL_CACHE_DIR"]) / "calibration").exists()
+    assert main(["run", str(flow_session), "-o", str(out)]) == 0
+    return out
+
+
+def output_files(flight_out: Path) -> dict[str, bytes]:
+    """Bytes of every TIFF a flight wrote, by path relative to the flight's output folder."""
+    return {str(p.relative_to(flight_out)): p.read_bytes()
+            for sub in ("photogrammetry", "ndvi") for p in sorted((flight_out / sub).glob("*.tif"))}
+
+
+def assert_same_flight_outputs(a: Path, b: Path) -> None:
+    """Two runs' outputs of one flight are identical: every reflectance.zarr array, every TIFF byte."""
+    ra, rb = xr.open_zarr(a / "reflectance.zarr"), xr.open_zarr(b / "reflectance.zarr")
+    assert list(ra["frame"].values) == list(rb["frame"].values)
+    for v in REFLECTANCE_VARS:
+        np.testing.assert_array_equal(ra[v].values, rb[v].values, err_msg=v)
+    fa, fb = output_files(a), output_files(b)
+    assert len(fa) > 0 and sorted(fa) == sorted(fb)
+    assert [k for k in fa if fa[k] != fb[k]] == []

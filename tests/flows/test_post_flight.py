@@ -1,0 +1,184 @@
+"""``mscal run``: the post-flight flow end to end on the small synthetic session."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from pipeline.apply import calibration_hash
+from pipeline.cli import main
+from pipeline.evaluate import evaluate_calibration
+from pipeline.store import open_calibration
+
+from .conftest import FLIGHTS, assert_same_flight_outputs
+
+STAGES = ["response", "vignetting", "illumination"]
+pytestmark = pytest.mark.xdist_group("flows")  # one worker: one Prefect server, one cache
+
+
+def _run_json(out: Path) -> dict:
+    return json.loads((out / "run.json").read_text())
+
+
+def test_first_run_fits_everything_and_writes_every_output(flow_session: Path, first_run: Path) -> None:
+    run = _run_json(first_run)
+    assert run["format"] == "mscal-run/1"
+    assert run["calibration_cached"] is False
+    assert run["fitted"] == STAGES
+    assert all(run["calibration_stages"][s]["seconds"] > 0 for s in STAGES)
+    assert sorted(run["flights"]) == sorted(FLIGHTS)
+    ds = open_calibration(first_run / "calibration.zarr", need="apply")
+    errors = evaluate_calibration(flow_session, ds)
+    assert errors["response_max_error"] < 0.02
+    assert errors["spectral_factor_max_error"] < 0.02
+    for name in FLIGHTS:
+        f = run["flights"][name]
+        assert (f["frames_in"], f["frames_out"], f["quarantined"], f["up_to_date"]) == (3, 3, [], False)
+        flight = json.loads((first_run / "flights" / name / "run.json").read_text())
+        assert flight["calibration_sha256"] == f["calibration_sha256"] == calibration_hash(ds)
+        refl = xr.open_zarr(first_run / "flights" / name / "reflectance.zarr")["reflectance"]
+        assert refl.shape == (3, 25, 217, 409)
+        assert np.isfinite(refl.values).mean() > 0.99
+        assert len(list((first_run / "flights" / name / "photogrammetry").glob("*.tif"))) == 3 * 8
+    assert {"prefect", "dask", "distributed", "mscal_code"} <= set(run["versions"])
+    # the QA report of the whole run: calibration plus one section per flight, images inline
+    assert run["report"] == "report.html" and (first_run / "calibration.json").is_file()
+    page = (first_run / "report.html").read_text()
+    assert all(f"flights/{name}" in page or name in page for name in FLIGHTS)
+    assert page.count('<img src="data:image/png;base64,') >= 6 + 3 * len(FLIGHTS)
+    assert run["timings_s"]["total"] >= sum(run["calibration_stages"][s]["seconds"] for s in STAGES)
+
+
+def test_second_run_refits_nothing_and_says_so(flow_session: Path, first_run: Path, capsys) -> None:
+    from prefect.artifacts import Artifact
+
+    before = {p: p.stat().st_mtime_ns for p in _cached_stores()}
+    assert [p.name.split("-")[0] for p in before] == ["illumination", "response", "vignetting"]
+    assert main(["run", str(flow_session), "-o", str(first_run)]) == 0
+    assert "calibration reused from the cache" in capsys.readouterr().out
+    run = _run_json(first_run)
+    assert run["calibration_cached"] is True
+    assert run["fitted"] == []
+    assert all(v["cached"] and v["seconds"] == 0.0 for v in run["calibration_stages"].values())
+    assert {p: p.stat().st_mtime_ns for p in _cached_stores()} == before  # no store rewritten
+    assert all(run["flights"][n]["up_to_date"] for n in FLIGHTS)
+    summary = Artifact.get("mscal-post-flight")
+    assert summary is not None and "reused from the cache" in summary.data
+    assert "| field | 3 / 3 | 0 |" in summary.data
+
+
+def _cached_stores() -> list[Path]:
+    return sorted((Path(os.environ["MSCAL_CACHE_DIR"]) / "calibration").glob("*.zarr"))
+
+
+def test_changed_reflector_refits_only_illumination(flow_session: Path, first_run: Path, tmp_path: Path) -> None:
+    session = tmp_path / "session"
+    shutil.copytree(flow_session, session)
+    table = session / "reflector" / "frames.csv"
+    with table.open() as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 2
+    (session / "reflector" / rows[1]["file"]).unlink()
+    with table.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerow(rows[0])
+    out = tmp_path / "out"
+    assert main(["run", str(session), "-o", str(out)]) == 0
+    run = _run_json(out)
+    assert run["calibration_cached"] is False
+    assert run["fitted"] == ["illumination"]
+    assert [run["calibration_stages"][s]["cached"] for s in STAGES] == [True, True, False]
+    old = open_calibration(first_run / "calibration.zarr")
+    new = open_calibration(out / "calibration.zarr")
+    for v in ("inverse_response", "vignetting"):
+        np.testing.assert_array_equal(new[v].values, old[v].values)
+    s_old, s_new = old["spectral_factor"].values, new["spectral_factor"].values
+    # Refitted from one reflector image instead of two: S is known up to the brightness
+    # normalisation of the images used, so it moves by one common factor, its shape stays.
+    ratio = s_new / s_old
+    assert abs(ratio.mean() - 1) > 1e-3
+    assert ratio.std() / ratio.mean() < 0.01
+    assert new.attrs["illumination"]["residuals"]["images_used"] == 1
+    assert all(not run["flights"][n]["up_to_date"] for n in FLIGHTS)
+
+
+def test_short_flights_compute_in_process(first_run: Path) -> None:
+    """Short flights run in-process by default (no cluster start-up for three frames)."""
+    run = _run_json(first_run)
+    assert {run["flights"][n]["computed_on"] for n in FLIGHTS} <= {"in-process", "nothing (up to date)"}
+    assert run["dask_address"] is None
+
+
+def test_identical_outputs_of_a_rerun_into_a_new_folder(flow_session: Path, first_run: Path, tmp_path: Path) -> None:
+    out = tmp_path / "again"
+    assert main(["run", str(flow_session), "-o", str(out)]) == 0
+    assert _run_json(out)["calibration_cached"] is True
+    for name in FLIGHTS:
+        assert_same_flight_outputs(first_run / "flights" / name, out / "flights" / name)
+
+
+def test_bad_input_is_one_line_and_exit_2_before_prefect_starts(tmp_path: Path, capsys) -> None:
+    assert main(["run", str(tmp_path / "nowhere"), "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"mscal: error: {tmp_path / 'nowhere'}: session folder not found (pass the folder that holds session.yaml)"]
+    assert not (tmp_path / "out").exists()
+
+
+def test_bad_dask_address_and_normalise_are_rejected(flow_session: Path, tmp_path: Path, capsys) -> None:
+    assert main(["run", str(flow_session), "-o", str(tmp_path / "o"), "--dask-address", "localhost"]) == 2
+    assert "--dask-address 'localhost' is not a scheduler address" in capsys.readouterr().err
+    assert main(["run", str(flow_session), "-o", str(tmp_path / "o"), "--normalise", "panel"]) == 2
+    assert "--normalise 'panel'" in capsys.readouterr().err
+
+
+def test_demo_runs_the_whole_flow_and_says_where_the_outputs_are(first_run: Path, tmp_path: Path, capsys) -> None:
+    """The demo's session is the flows' test session (seed 0, small, two flights): its
+    calibration comes from the cache, so this checks the demo's wiring, not the fits again."""
+    assert main(["demo", "-o", str(tmp_path / "demo")]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert f"outputs: {tmp_path / 'demo'}" in lines
+    assert f"run record: {tmp_path / 'demo' / 'run.json'}" in lines
+    summary = json.loads((tmp_path / "demo" / "evaluation.json").read_text())
+    assert summary["calibration_cached"] is True
+    assert sorted(summary["flights"]) == sorted(FLIGHTS)
+    assert summary["errors_vs_truth"]["response_max_error"] < 0.02
+    for name in FLIGHTS:
+        assert_same_flight_outputs(first_run / "flights" / name, tmp_path / "demo" / "flights" / name)
+
+
+def test_io_tasks_retry_io_errors_but_not_bad_input() -> None:
+    """The retry policy of the flow's I/O tasks, on Prefect's engine (no delay here)."""
+    from prefect import flow, task
+
+    from flows.post_flight import IO
+    from mscal_core.errors import InputError
+
+    calls: list[str] = []
+
+    @task(**{**IO, "retry_delay_seconds": 0})
+    def flaky(kind: str) -> int:
+        calls.append(kind)
+        if calls.count(kind) == 1:
+            raise ConnectionResetError("connection reset") if kind == "io" else InputError("bad session")
+        return calls.count(kind)
+
+    @flow
+    def io() -> int:
+        return flaky("io")
+
+    @flow
+    def bad() -> int:
+        return flaky("bad")
+
+    assert io() == 2  # failed once, retried, succeeded
+    with pytest.raises(InputError, match="bad session"):
+        bad()
+    assert calls.count("bad") == 1  # not retried
