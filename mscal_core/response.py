@@ -99,6 +99,26 @@ class ResponseFit:
     method: str  # "forward" or "alternating"
     iterations: int
     n_samples: int  # unsaturated samples used
+    residual_by_dn: np.ndarray | None = None  # rms of I - C(t E) per DN bin (see residual_profile)
+
+
+RESIDUAL_BINS = 32  # DN bins of ResponseFit.residual_by_dn over 0 .. 2**bits
+
+
+def residual_profile(dn: np.ndarray, predicted: np.ndarray, used: np.ndarray, bits: int,
+                     n_bins: int = RESIDUAL_BINS) -> np.ndarray:
+    """RMS of the fit residual ``I - C(t E)`` (Eq. 5) per bin of observed DN.
+
+    ``n_bins`` equal bins over ``0 .. 2**bits``; NaN for a bin without used samples. Its
+    sample-weighted mean square is the square of ``ResponseFit.residual_rms_dn``.
+    """
+    d = np.asarray(dn, dtype=np.float64)[used]
+    r2 = (d - np.asarray(predicted, dtype=np.float64)[used]) ** 2
+    k = np.clip((d * n_bins / 2**bits).astype(np.int64), 0, n_bins - 1)
+    counts = np.bincount(k, minlength=n_bins)
+    sums = np.bincount(k, weights=r2, minlength=n_bins)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(counts > 0, np.sqrt(sums / np.maximum(counts, 1)), np.nan)
 
 
 # =============================================================================== validation
@@ -863,7 +883,7 @@ def _forward(
     U = _finalise(u_raw, black, hi, bits)
     mu, _ = curve(t[:, None] * e[None, :])
     rms = float(np.sqrt(np.mean((d - mu)[m] ** 2)))
-    return ResponseFit(U, black, sat, observed, rms, "forward", it, int(m.sum()))
+    return ResponseFit(U, black, sat, observed, rms, "forward", it, int(m.sum()), residual_profile(d, mu, m, bits))
 
 
 #: DN-0 samples are censored only where the local gradient (:func:`_neighbour_gradient2`)
@@ -1168,7 +1188,8 @@ def _alternating(
     e = (mf * t[:, None] * U_fin[di]).sum(0) / np.where(tt > 0, tt, 1.0)
     mu = predict_dn(U_fin, t[:, None] * e[None, :])
     rms = float(np.sqrt(np.mean((d - mu)[m] ** 2)))
-    return ResponseFit(U_fin, black, sat, observed, rms, "alternating", it, int(m.sum()))
+    return ResponseFit(U_fin, black, sat, observed, rms, "alternating", it, int(m.sum()),
+                       residual_profile(d, mu, m, bits))
 
 
 def _zero_crossing(k: np.ndarray, u: np.ndarray) -> float:

@@ -137,6 +137,13 @@ def response_dataset(camera: Camera, fits: Sequence[response.ResponseFit], repor
     ds["black_level"] = ("band", np.array([f.black_level for f in fits]), {"units": "DN"})
     ds["saturation_dn"] = ("band", np.array([f.saturation_dn for f in fits], dtype=np.int32))
     ds.coords["dn"] = np.arange(2**camera.bit_depth, dtype=np.int32)
+    if all(f.residual_by_dn is not None for f in fits):
+        n_bins = len(fits[0].residual_by_dn)
+        ds.coords["dn_bin"] = ("dn_bin", (np.arange(n_bins) + 0.5) * 2**camera.bit_depth / n_bins,
+                               {"long_name": "centre of a DN bin of the response residual", "units": "DN"})
+        ds["response_residual"] = (("band", "dn_bin"), np.stack([f.residual_by_dn for f in fits]),
+                                   {"long_name": "rms of the sweep's fit residual I - C(t E) per DN bin (Eq. 5)",
+                                    "units": "DN"})
     ds.attrs["response"] = report.as_attrs()
     return ds
 

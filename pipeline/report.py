@@ -235,8 +235,16 @@ def plot_inverse_response(ds: xr.Dataset) -> Figure:
         ax.axvline(float(sat[b]), color="C3", lw=0.6)
         ax.set_title(f"{title}  rms {float(rms[b]):.1f} DN", fontsize=7)
         _few_ticks(ax, (0, len(k) // 2, len(k) - 1))
+        if "response_residual" in ds:  # the fit's residual along the DN axis, on its own scale
+            twin = ax.twinx()
+            twin.set_label("<twin>")  # not a panel of its own
+            twin.plot(ds["dn_bin"].values, ds["response_residual"].values[b], color="C1", lw=0.8,
+                      marker=".", ms=2, label="<residual>")
+            twin.tick_params(labelsize=5, colors="C1")
+            twin.set_ylim(bottom=0)
     fig.suptitle("Inverse response U(k) (Eq. 5-7): shaded = DN observed in the sweep, "
-                 "dotted = extrapolated, red = saturation", fontsize=9)
+                 "dotted = extrapolated, red = saturation, orange = rms fit residual per DN bin (DN, right axis)",
+                 fontsize=9)
     return fig
 
 

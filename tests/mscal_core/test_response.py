@@ -523,3 +523,19 @@ def test_dn0_and_first_saturated_samples_are_censored_not_dropped() -> None:
     dropped = [fit_response(ps.frames[..., c].reshape(7, -1), ps.exposure_ms, 8,
                             censored=False).black_level for c in range(3)]
     assert max(dropped) > 1.5
+
+
+def test_residual_profile_per_dn_bin_adds_up_to_the_rms() -> None:
+    from mscal_core.response import residual_profile
+
+    rng = np.random.default_rng(3)
+    d = rng.integers(0, 1024, size=(4, 500)).astype(np.float64)
+    mu = d + rng.normal(0.0, 1.0 + d / 512.0)  # noise growing with DN
+    used = d < 1000
+    prof = residual_profile(d, mu, used, bits=10, n_bins=8)
+    k = np.clip((d[used] * 8 / 1024).astype(int), 0, 7)
+    counts = np.bincount(k, minlength=8)
+    total = np.sqrt(np.sum(counts * prof**2) / counts.sum())
+    assert total == pytest.approx(np.sqrt(np.mean((d - mu)[used] ** 2)), rel=1e-12)
+    assert prof[7] > 1.5 * prof[0]  # the noise model's growth shows per bin
+    assert np.isnan(residual_profile(d, mu, d < 100, bits=10, n_bins=8)[5])

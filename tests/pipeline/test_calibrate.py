@@ -92,6 +92,16 @@ def test_store_keeps_what_the_qa_report_needs(small) -> None:
     for stage in ("vignetting", "illumination"):
         frac = ds.attrs[stage]["residuals"]["saturated_fraction"]
         assert len(frac) == 25 and all(0.0 <= f < 0.01 for f in frac)
+    # the response fit's residual per DN bin: defined over the DN the sweep observed, and its
+    # sample-weighted mean square is the stored overall rms (within the bins' rounding)
+    prof = ds["response_residual"].values
+    assert prof.shape == (25, 32) and ds["dn_bin"].values[0] == 16.0
+    obs = ds.attrs["response"]["residuals"]["observed_dn"]
+    rms = ds.attrs["response"]["residuals"]["residual_rms_dn"]
+    for b in (0, 12, 24):
+        inside = (ds["dn_bin"].values > obs[b][0] + 32) & (ds["dn_bin"].values < obs[b][1] - 32)
+        assert np.isfinite(prof[b][inside]).all()
+        assert np.nanmin(prof[b]) <= rms[b] <= np.nanmax(prof[b])
 
 
 def test_fit_stages_one_at_a_time_match_calibrate(small, tmp_path, capsys) -> None:

@@ -154,7 +154,7 @@ def flights(truth, calib, tmp_path_factory) -> dict[str, Path]:
 
 def _panels(fig) -> list:  # noqa: ANN001
     """Axes of a figure other than colour bars."""
-    return [ax for ax in fig.axes if ax.get_label() != "<colorbar>"]
+    return [ax for ax in fig.axes if ax.get_label() not in ("<colorbar>", "<twin>")]
 
 
 # --------------------------------------------------------------------------- calibration plots
@@ -168,6 +168,14 @@ def test_calibration_plots_have_one_panel_per_band(calib_ds) -> None:
     y = np.asarray(_panels(fig)[0].lines[0].get_ydata(), dtype=float)
     np.testing.assert_allclose(y[26:1023], ds["inverse_response"].values[0, 26:1023])
     assert np.isnan(y[:26]).all() and np.isnan(y[1023:]).all()
+    # with the fit's residual per DN bin stored, each panel gets it on a right-hand axis
+    resid = np.linspace(0.5, 3.0, N_BANDS * 32).reshape(N_BANDS, 32)
+    with_resid = ds.assign_coords(dn_bin=(np.arange(32) + 0.5) * 32).assign(
+        response_residual=(("band", "dn_bin"), resid))
+    fig = report.plot_inverse_response(with_resid)
+    twins = [ax for ax in fig.axes if ax.get_label() == "<twin>"]
+    assert len(_panels(fig)) == N_BANDS and len(twins) == N_BANDS
+    np.testing.assert_allclose(twins[3].lines[0].get_ydata(), resid[3])
     for plot, var in ((report.plot_vignetting, "vignetting"), (report.plot_coverage, "vignetting_count")):
         fig = plot(ds)
         panels = _panels(fig)
