@@ -25,6 +25,8 @@ import numpy as np
 from mscal_core.errors import FrameError
 from mscal_core.factory import radiance, vignetting_map
 
+from .session import signed_gps
+
 if TYPE_CHECKING:
     from .catalog import Camera
 
@@ -171,19 +173,13 @@ def _dms(value: tuple) -> float:
 
 
 def _gps(gps: dict[str, Any]) -> tuple[float | None, float | None, float | None]:
-    lat = lon = alt = None
-    if "GPSLatitude" in gps and "GPSLongitude" in gps:
-        lat = _dms(gps["GPSLatitude"])
-        lon = _dms(gps["GPSLongitude"])
-        if str(gps.get("GPSLatitudeRef", "N")).strip().upper().startswith("S"):
-            lat = -lat
-        if str(gps.get("GPSLongitudeRef", "E")).strip().upper().startswith("W"):
-            lon = -lon
-    if "GPSAltitude" in gps:
-        alt = _rational(gps["GPSAltitude"])
-        if gps.get("GPSAltitudeRef") in (1, b"\x01"):
-            alt = -alt
-    return lat, lon, alt
+    has_pos = "GPSLatitude" in gps and "GPSLongitude" in gps
+    return signed_gps(
+        _dms(gps["GPSLatitude"]) if has_pos else None, gps.get("GPSLatitudeRef"),
+        _dms(gps["GPSLongitude"]) if has_pos else None, gps.get("GPSLongitudeRef"),
+        _rational(gps["GPSAltitude"]) if "GPSAltitude" in gps else None,
+        gps.get("GPSAltitudeRef") in (1, b"\x01"),
+    )
 
 
 def _time(exif: dict[str, Any]) -> str | None:

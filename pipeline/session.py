@@ -345,6 +345,18 @@ def _dms(tag: Any) -> float:
     return sum(float(v.num) / float(v.den) / 60**k for k, v in enumerate(vals))
 
 
+def signed_gps(lat: float | None, lat_ref: Any, lon: float | None, lon_ref: Any, alt: float | None,
+               below_sea_level: bool) -> tuple[float | None, float | None, float | None]:
+    """EXIF GPS degrees and altitude with their signs from the reference tags (S, W, below)."""
+    if lat is not None and str(lat_ref or "N").strip().upper().startswith("S"):
+        lat = -lat
+    if lon is not None and str(lon_ref or "E").strip().upper().startswith("W"):
+        lon = -lon
+    if alt is not None and below_sea_level:
+        alt = -alt
+    return lat, lon, alt
+
+
 def exif_record(path: Path) -> FrameRecord:
     """A :class:`FrameRecord` from a file's EXIF tags (ExposureTime, ISO, GPS, DateTimeOriginal)."""
     import exifread
@@ -365,19 +377,14 @@ def exif_record(path: Path) -> FrameRecord:
         )
     iso = tags.get("EXIF ISOSpeedRatings")
     gain = float(iso.values[0]) / 100.0 if iso is not None and iso.values and iso.values[0] else 1.0
-    lat = lon = alt = None
-    if "GPS GPSLatitude" in tags and "GPS GPSLongitude" in tags:
-        lat = _dms(tags["GPS GPSLatitude"])
-        lon = _dms(tags["GPS GPSLongitude"])
-        if str(tags.get("GPS GPSLatitudeRef", "N")).strip().upper().startswith("S"):
-            lat = -lat
-        if str(tags.get("GPS GPSLongitudeRef", "E")).strip().upper().startswith("W"):
-            lon = -lon
-    if "GPS GPSAltitude" in tags:
-        alt = _ratio(tags["GPS GPSAltitude"])
-        ref = tags.get("GPS GPSAltitudeRef")
-        if ref is not None and ref.values and ref.values[0] == 1:
-            alt = -alt
+    has_pos = "GPS GPSLatitude" in tags and "GPS GPSLongitude" in tags
+    ref = tags.get("GPS GPSAltitudeRef")
+    lat, lon, alt = signed_gps(
+        _dms(tags["GPS GPSLatitude"]) if has_pos else None, tags.get("GPS GPSLatitudeRef"),
+        _dms(tags["GPS GPSLongitude"]) if has_pos else None, tags.get("GPS GPSLongitudeRef"),
+        _ratio(tags["GPS GPSAltitude"]) if "GPS GPSAltitude" in tags else None,
+        ref is not None and bool(ref.values) and ref.values[0] == 1,
+    )
     time = None
     dto = tags.get("EXIF DateTimeOriginal")
     if dto is not None:
