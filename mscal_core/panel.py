@@ -1,0 +1,185 @@
+"""Find a reflectance panel in one band image without manual help, and compare polygons.
+
+A calibrated panel (e.g. MicaSense RP02) shows up as the largest bright, *uniform*, convex
+quadrilateral in the frame: its QR sticker and instruction card are bright too but
+textured, vegetation and soil are neither quadrilateral nor uniform. :func:`detect_panel`
+
+1. normalises the image to 8 bits between its 1st and 99.9th percentile and smooths it;
+2. thresholds it at several levels from Otsu's up to near white, and keeps every outer
+   contour whose polygon approximation (``cv2.approxPolyDP``) has 4 convex corners, covers at
+   least ``min_area_frac`` of the frame, fills its polygon (a contour with holes or bites is
+   not a panel) and has a near-square minimum-area rectangle (``max_aspect``);
+3. keeps the candidates whose interior (eroded by 10 % of the side) has a coefficient of
+   variation below ``max_cv``, and takes the largest;
+4. refines its outline by thresholding a window around it at the mid level between the
+   panel's interior median and the surround's median (the 50 % point of a blurred edge).
+
+The outline is the whole bright surface. The region used for statistics is that outline
+shrunk about its centroid (:func:`shrink_polygon`): the panel's edges are blurred, shadowed
+by the panel's frame and shift between bands; MicaSense's published panel corners for its
+sample panel capture are the inner ~75 % (linear) of the bright surface.
+
+Pure numpy + OpenCV: no I/O. Returns None when no panel is found; the caller names the file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from .factory import polygon_mask
+
+__all__ = ["PanelDetection", "detect_panel", "order_corners", "polygon_iou", "shrink_polygon"]
+
+DEFAULT_INSET = 0.75  # linear fraction of the bright surface used for statistics
+
+
+@dataclass(frozen=True)
+class PanelDetection:
+    """A detected panel: ``outline`` (4, 2) float64 (x, y) corners of the bright surface in
+    :func:`order_corners` order, its interior coefficient of variation and area in pixels."""
+
+    outline: np.ndarray
+    cv: float
+    area: float
+
+
+def order_corners(corners: Sequence[Sequence[float]]) -> np.ndarray:
+    """Four (x, y) corners ordered clockwise on screen (bottom-right, bottom-left, top-left,
+    top-right) from the one with the largest x + y -- the order MicaSense lists its panel
+    corners in."""
+    pts = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+    if pts.shape != (4, 2):
+        raise ValueError(f"expected 4 corners, got {pts.shape[0]}")
+    c = pts.mean(axis=0)
+    # image y points down: increasing atan2 angle runs clockwise on screen
+    ang = np.arctan2(pts[:, 1] - c[1], pts[:, 0] - c[0])
+    pts = pts[np.argsort(ang)]
+    start = int(np.argmax(pts.sum(axis=1)))
+    return np.roll(pts, -start, axis=0)
+
+
+def shrink_polygon(corners: Sequence[Sequence[float]], factor: float) -> np.ndarray:
+    """The polygon scaled by ``factor`` (linear, 0 < factor <= 1) about its vertex centroid."""
+    if not 0 < factor <= 1:
+        raise ValueError(f"shrink factor must be in (0, 1], got {factor!r}")
+    pts = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+    c = pts.mean(axis=0)
+    return c + (pts - c) * float(factor)
+
+
+def polygon_iou(shape: tuple[int, int], a: Sequence[Sequence[float]], b: Sequence[Sequence[float]]) -> float:
+    """Intersection over union of two polygons rasterised on a ``shape`` pixel grid."""
+    ma, mb = polygon_mask(shape, a), polygon_mask(shape, b)
+    union = np.count_nonzero(ma | mb)
+    return float(np.count_nonzero(ma & mb) / union) if union else 0.0
+
+
+def _to_u8(image: np.ndarray) -> np.ndarray:
+    img = np.asarray(image, dtype=np.float64)
+    lo, hi = np.percentile(img, [1.0, 99.9])
+    if not hi > lo:
+        return np.zeros(img.shape, dtype=np.uint8)
+    u8 = np.clip((img - lo) / (hi - lo) * 255.0, 0, 255).astype(np.uint8)
+    return cv2.GaussianBlur(u8, (5, 5), 0)
+
+
+def _interior(shape: tuple[int, int], quad: np.ndarray) -> np.ndarray:
+    """Pixels of the quadrilateral away from its edges (eroded by 10 % of its side)."""
+    mask = polygon_mask(shape, quad).astype(np.uint8)
+    side = np.sqrt(max(cv2.contourArea(quad.astype(np.float32)), 1.0))
+    k = max(3, int(round(0.1 * side)) | 1)
+    return cv2.erode(mask, np.ones((k, k), np.uint8)).astype(bool)
+
+
+def _quad(contour: np.ndarray, min_area: float, max_aspect: float) -> np.ndarray | None:
+    """The contour's 4-corner convex approximation if it looks like a panel, else None."""
+    area = cv2.contourArea(contour)
+    if area < min_area:
+        return None
+    approx = cv2.approxPolyDP(contour, 0.04 * cv2.arcLength(contour, True), True)
+    if len(approx) != 4 or not cv2.isContourConvex(approx):
+        return None
+    if not 0.9 <= area / max(cv2.contourArea(approx), 1.0) <= 1.1:
+        return None
+    (_, _), (w, h), _ = cv2.minAreaRect(approx)
+    if min(w, h) <= 0 or max(w, h) / min(w, h) > max_aspect:
+        return None
+    return approx.reshape(4, 2).astype(np.float64)
+
+
+def _cv(image: np.ndarray, quad: np.ndarray) -> float:
+    inner = _interior(image.shape, quad)
+    values = image[inner]
+    if values.size < 16 or values.mean() <= 0:
+        return float("inf")
+    return float(values.std() / values.mean())
+
+
+def _refine(image: np.ndarray, quad: np.ndarray, min_area: float, max_aspect: float) -> np.ndarray:
+    """Outline at the 50 % level between the panel and its surround (coarse outline if that fails)."""
+    h, w = image.shape
+    side = np.sqrt(cv2.contourArea(quad.astype(np.float32)))
+    margin = int(round(0.25 * side))
+    x0, y0 = (np.floor(quad.min(axis=0)) - margin).astype(int)
+    x1, y1 = (np.ceil(quad.max(axis=0)) + margin).astype(int)
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, w - 1), min(y1, h - 1)
+    win = image[y0 : y1 + 1, x0 : x1 + 1]
+    local = quad - [x0, y0]
+    inside = polygon_mask(win.shape, local)
+    k = max(3, int(round(0.05 * side)) | 1)
+    ring = ~cv2.dilate(inside.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+    if not ring.any():
+        return quad
+    level = 0.5 * (np.median(win[_interior(win.shape, local)]) + np.median(win[ring]))
+    binary = (cv2.GaussianBlur(win, (3, 3), 0) > level).astype(np.uint8)
+    contours, _ = cv2.findContours(binary, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    centre = local.mean(axis=0)
+    for c in contours:
+        if cv2.pointPolygonTest(c, (float(centre[0]), float(centre[1])), False) > 0:
+            refined = _quad(c, min_area, max_aspect)
+            if refined is not None:
+                return refined + [x0, y0]
+    return quad
+
+
+def detect_panel(
+    image: np.ndarray,
+    *,
+    min_area_frac: float = 0.003,
+    max_cv: float = 0.05,
+    max_aspect: float = 2.0,
+    levels: int = 8,
+) -> PanelDetection | None:
+    """The largest bright, uniform, convex quadrilateral in one band ``(H, W)``, or None.
+
+    ``min_area_frac`` the smallest panel as a fraction of the frame; ``max_cv`` the largest
+    std/mean of the panel's interior (a panel is uniform to a few %, its QR sticker is not);
+    ``max_aspect`` the largest side ratio of its minimum-area rectangle (a square panel seen
+    at an angle); ``levels`` the number of thresholds from Otsu's to near white.
+    """
+    img = np.asarray(image, dtype=np.float64)
+    if img.ndim != 2:
+        raise ValueError(f"detect_panel needs one band (H, W), got shape {img.shape}")
+    u8 = _to_u8(img)
+    otsu, _ = cv2.threshold(u8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    min_area = min_area_frac * img.size
+    best: PanelDetection | None = None
+    for level in np.linspace(otsu, 250.0, levels):
+        contours, _ = cv2.findContours((u8 > level).astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        for c in contours:
+            quad = _quad(c, min_area, max_aspect)
+            if quad is None:
+                continue
+            cv = _cv(img, quad)
+            area = float(cv2.contourArea(quad.astype(np.float32)))
+            if cv <= max_cv and (best is None or area > best.area):
+                best = PanelDetection(outline=quad, cv=cv, area=area)
+    if best is None:
+        return None
+    outline = order_corners(_refine(img, best.outline, min_area, max_aspect))
+    area = float(cv2.contourArea(outline.astype(np.float32)))
+    return PanelDetection(outline=outline, cv=_cv(img, outline), area=area)
