@@ -51,6 +51,7 @@ class Session:
     intrinsics: Intrinsics
     reflector: ReflectorSpec
     marker: MarkerSpec
+    panel_polygon: tuple[tuple[float, float], ...] | None = None  # session.yaml panel.polygon
 
     @property
     def response_dir(self) -> Path:
@@ -94,6 +95,33 @@ def parse_intrinsics(data: Any, path: Path) -> Intrinsics:
     )
 
 
+def parse_panel_polygon(data: Any, path: Path) -> tuple[tuple[float, float], ...]:
+    """session.yaml ``panel: {polygon: [[x, y], ...]}``: at least 3 (x, y) pixel corners."""
+    if not isinstance(data, dict):
+        raise SessionError(f"panel must be a mapping {{polygon: [[x, y], ...]}}, got {data!r}", path=path)
+    check_keys(data, {"polygon"}, set(), path, "panel")
+    poly = data["polygon"]
+    if not isinstance(poly, list) or len(poly) < 3:
+        raise SessionError(
+            f"panel.polygon must be a list of at least 3 [x, y] pixel corners, got {poly!r}",
+            path=path,
+            hint="e.g. polygon: [[646, 454], [808, 452], [809, 613], [648, 615]]",
+        )
+    corners = []
+    for pt in poly:
+        if not isinstance(pt, list) or len(pt) != 2:
+            raise SessionError(f"panel.polygon: each corner must be [x, y], got {pt!r}", path=path)
+        x, y = (_number(v, path, "panel.polygon corner") for v in pt)
+        if x < 0 or y < 0:
+            raise SessionError(f"panel.polygon: corner {pt!r} has a negative pixel coordinate", path=path)
+        corners.append((x, y))
+    xs, ys = zip(*corners)
+    area2 = sum(xs[i] * ys[i - 1] - xs[i - 1] * ys[i] for i in range(len(corners)))
+    if abs(area2) < 2.0:
+        raise SessionError(f"panel.polygon {poly!r} encloses no area", path=path)
+    return tuple(corners)
+
+
 def load_session(root: str | Path) -> Session:
     """Read and validate ``SESSION/session.yaml``."""
     root = Path(root)
@@ -113,7 +141,7 @@ def load_session(root: str | Path) -> Session:
     if not isinstance(data, dict):
         raise SessionError("must be a YAML mapping (camera, intrinsics, reflector, marker)", path=path)
     try:
-        check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes"}, path, "session.yaml")
+        check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes", "panel"}, path, "session.yaml")
     except MscalError as exc:
         raise SessionError(exc.reason, path=path, hint=exc.hint) from None
     camera = load_camera(str(data["camera"]))
@@ -155,7 +183,10 @@ def load_session(root: str | Path) -> Session:
             path=path,
             hint="check marker.size_m and reflector.size_m (both in metres)",
         )
-    return Session(root=root, camera=camera, intrinsics=intr, reflector=reflector, marker=marker)
+    panel = parse_panel_polygon(data["panel"], path) if data.get("panel") is not None else None
+    return Session(
+        root=root, camera=camera, intrinsics=intr, reflector=reflector, marker=marker, panel_polygon=panel
+    )
 
 
 # --------------------------------------------------------------------------- frame tables
