@@ -32,7 +32,7 @@ import numpy as np
 
 from .factory import polygon_mask
 
-__all__ = ["PanelDetection", "detect_panel", "order_corners", "polygon_iou", "shrink_polygon"]
+__all__ = ["PanelDetection", "detect_panel", "order_corners", "polygon_iou", "sample_quad", "shrink_polygon"]
 
 DEFAULT_INSET = 0.75  # linear fraction of the bright surface used for statistics
 
@@ -183,3 +183,19 @@ def detect_panel(
     outline = order_corners(_refine(img, best.outline, min_area, max_aspect))
     area = float(cv2.contourArea(outline.astype(np.float32)))
     return PanelDetection(outline=outline, cv=_cv(img, outline), area=area)
+
+
+def sample_quad(image: np.ndarray, corners: Sequence[Sequence[float]], n: int = 32) -> np.ndarray:
+    """``image`` resampled on an ``n x n`` grid spanning a quadrilateral (bilinear, via the
+    homography from the unit square to ``corners`` in :func:`order_corners` order).
+
+    Maps the same physical points of a panel in bands that are not co-registered: grid cell
+    (i, j) of every band's panel quadrilateral is the same spot on the panel. Returns
+    ``(n, n)`` float64, row 0 along the top edge (top-left to top-right).
+    """
+    quad = order_corners(corners)  # BR, BL, TL, TR
+    dst = np.array([[n - 1, n - 1], [0, n - 1], [0, 0], [n - 1, 0]], dtype=np.float32)
+    h = cv2.getPerspectiveTransform(quad.astype(np.float32), dst)
+    return cv2.warpPerspective(
+        np.asarray(image, dtype=np.float64), h, (n, n), flags=cv2.INTER_LINEAR, borderValue=float("nan")
+    )

@@ -32,7 +32,8 @@ import numpy as np
 
 from mscal_core.errors import FrameError
 from mscal_core.factory import panel_stats, polygon_mask
-from mscal_core.panel import DEFAULT_INSET, detect_panel, shrink_polygon
+from mscal_core.illumination import IlluminationFit, fit_illumination
+from mscal_core.panel import DEFAULT_INSET, detect_panel, sample_quad, shrink_polygon
 from mscal_core.reflectance import ndvi
 
 from .camera_meta import CaptureMeta, factory_radiance
@@ -167,3 +168,25 @@ def capture_ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
     if red.shape != nir.shape:
         raise ValueError(f"red {red.shape} and NIR {nir.shape} images differ in shape")
     return ndvi(red, nir)
+
+
+def panel_illumination(
+    metas: Sequence[CaptureMeta], dns: Sequence[np.ndarray], bands: Sequence[PanelBand], *, grid: int = 32
+) -> IlluminationFit:
+    """Split the panel's radiance into colour S(lambda) and brightness B(x) (Eq. 11-14).
+
+    The bands are not co-registered, so each band's radiance is resampled on a ``grid x
+    grid`` lattice spanning *its own* four-corner panel region (:func:`sample_quad`): cell x
+    is the same spot of the panel in every band. ``B`` (grid * grid,) has median 1; its
+    spread is the light's non-uniformity over the panel (shadow, tilt, sky), which a mean
+    over the panel would fold into every band's factor alike.
+    """
+    rows = []
+    for meta, dn, band in zip(metas, dns, bands):
+        if len(band.region.corners) != 4:
+            raise FrameError(
+                f"the B(x)/S(lambda) split needs a four-corner panel region, got {len(band.region.corners)} corners",
+                path=meta.path,
+            )
+        rows.append(sample_quad(factory_radiance(meta, dn), band.region.corners, grid).ravel())
+    return fit_illumination(np.array(rows), np.array([b.reflectance for b in bands]))

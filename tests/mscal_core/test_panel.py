@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mscal_core.panel import detect_panel, order_corners, polygon_iou, shrink_polygon
+from mscal_core.panel import detect_panel, order_corners, polygon_iou, sample_quad, shrink_polygon
 
 
 def _render(angle_deg: float, seed: int, *, panel: bool = True, distractor: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -53,3 +53,14 @@ def test_corner_order_shrink_and_iou() -> None:
     assert polygon_iou((20, 20), sq, [(20, 20), (19, 20), (19, 19), (20, 19)]) == 0.0
     with pytest.raises(ValueError, match="shrink factor"):
         shrink_polygon(sq, 0.0)
+
+
+def test_sample_quad_maps_the_same_panel_spot_in_shifted_bands() -> None:
+    y, x = np.mgrid[0:100, 0:120].astype(np.float64)
+    image = x + 1000 * y  # value encodes the position
+    quad = [(20, 10), (80, 10), (80, 70), (20, 70)]
+    shifted = np.roll(image, (5, 7), axis=(0, 1))  # the same scene 7 px right, 5 px down
+    a = sample_quad(image, quad, 7)
+    b = sample_quad(shifted, [(qx + 7, qy + 5) for qx, qy in quad], 7)
+    assert np.allclose(a, b)
+    assert a[0, 0] == pytest.approx(20 + 1000 * 10) and a[-1, -1] == pytest.approx(80 + 1000 * 70)

@@ -19,6 +19,7 @@ from pipeline.panel import (
     capture_ndvi,
     dls_reflectance,
     panel_factors,
+    panel_illumination,
     panel_reflectance,
     panel_region,
     reflect_area_polygon,
@@ -149,3 +150,17 @@ def test_session_panel_polygon_parsing(tmp_path) -> None:
         with pytest.raises(InputError, match=msg) as exc:
             parse_panel_polygon(bad, path)
         assert str(path) in str(exc.value)
+
+
+def test_light_on_the_panel_split_into_colour_and_brightness(panel_capture, factors) -> None:
+    metas, dns = panel_capture
+    fit = panel_illumination(metas, dns, factors)
+    assert fit.converged and fit.residual_rms == pytest.approx(0.0135, abs=0.003)  # pixel noise
+    # S rho is the median-lit spot's radiance: within 0.2 % of each band's mean panel radiance
+    assert fit.spectral_factor * [f.reflectance for f in factors] == pytest.approx(
+        [f.radiance for f in factors], rel=2e-3)
+    b = fit.brightness.reshape(32, 32)
+    lo, hi = np.nanpercentile(b, [5, 95])
+    assert (lo, hi) == (pytest.approx(0.975, abs=0.005), pytest.approx(1.022, abs=0.005))
+    cols = np.nanmean(b, axis=0)  # measured: about 2 % darker on the panel's left edge
+    assert cols[:4].mean() < cols[12:20].mean() - 0.01
