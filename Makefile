@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 # The README's test command; CI runs exactly this. loadgroup keeps the flow tests on one
 # worker: one embedded Prefect server and one calibration cache instead of two.
 test: setup
-	$(BIN)/python -m pytest -n 2 --dist loadgroup -q
+	$(BIN)/python -m pytest -n 2 --dist loadgroup -q --durations=15
 
 test-fast: setup
 	$(BIN)/python -m pytest -n 2 --dist loadgroup -q -m "not slow"

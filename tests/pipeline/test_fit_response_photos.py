@@ -152,7 +152,7 @@ def test_few_frames_two_stops_apart(tmp_path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [21, 22, 23])
+@pytest.mark.parametrize("seed", [21, 23])  # two seeds x 4 settings x every interior frame: make test stays under 10 min
 @pytest.mark.parametrize("setting", ["handheld", "tripod", "9x2/3", "5x2"])
 def test_each_interior_frame_held_out(tmp_path, seed: int, setting: str) -> None:
     kw = {
