@@ -191,6 +191,12 @@ def otsu_mask(ndvi: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- the lazy graph
 
 
+def saturation_dn(calib: xr.Dataset, camera: Camera) -> int:
+    """DN from which pixels are saturated (NaN in reflectance): the calibration's lowest, else
+    the camera's full scale."""
+    return int(calib["saturation_dn"].values.min()) if "saturation_dn" in calib else camera.dn_max
+
+
 def _eq15_block(dn: np.ndarray, t: np.ndarray, lut: np.ndarray, inv_v: np.ndarray, sat: int) -> np.ndarray:
     return eq15_fast(dn, lut, inv_v, t.reshape(-1), sat)
 
@@ -208,7 +214,7 @@ def lazy_reflectance(raw: xr.Dataset, calib: xr.Dataset, camera: Camera) -> xr.D
             f"calibration vignetting is {V.shape[2]}x{V.shape[1]} but frames are {dn.shape[3]}x{dn.shape[2]}",
             hint="use a calibration of this camera",
         )
-    sat = int(calib["saturation_dn"].values.min()) if "saturation_dn" in calib else camera.dn_max
+    sat = saturation_dn(calib, camera)
     lut, inv_v = eq15_tables(U, V, S)
     refl = da.map_blocks(_eq15_block, dn, t_da, lut=lut, inv_v=inv_v, sat=sat, dtype=np.float32)
     return xr.DataArray(refl, dims=("frame", "band", "y", "x"), coords=raw["dn"].coords, name="reflectance")
@@ -536,12 +542,11 @@ class _Pass:
 
 
 def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tuple[int, int, int], camera: Camera,
-                calib: xr.Dataset, calib_path: Path, raw_dn: Path, indices: Sequence[Index],
+                calib_path: Path, raw_dn: Path, indices: Sequence[Index],
                 roles: dict[str, dict[str, int]], export: Sequence[int], options: ApplyOptions, chash: str,
-                panel_reflectance: Callable[[int], np.ndarray]) -> _Pass:
+                sat: int, panel_reflectance: Callable[[int], np.ndarray]) -> _Pass:
     """Normalisation, the output store's layout (metadata and coordinates; data written per
     frame) under a temporary name, and the plan of the frames' tasks."""
-    sat = int(calib["saturation_dn"].values.min()) if "saturation_dn" in calib else camera.dn_max
     frames = [str(f) for f in coords["frame"].values]
     norm = normalisation(options, camera, frames, panel_reflectance)
     ds = output_template(coords, camera, cube_shape, indices, options)
@@ -718,7 +723,7 @@ def apply_flight(
     export = export_band_indices(camera, options.export_bands)
     indices = [load_index(n) for n in options.indices]
     roles = {ix.name: _index_roles(camera, ix) for ix in indices}
-    sat = int(calib["saturation_dn"].values.min()) if "saturation_dn" in calib else camera.dn_max
+    sat = saturation_dn(calib, camera)
     out.mkdir(parents=True, exist_ok=True)
     _clean_temporaries(out)
     raw_path = out / "raw.zarr"
@@ -731,8 +736,8 @@ def apply_flight(
                 f"calibration vignetting is {v_shape[1]}x{v_shape[0]} but frames are {shape[2]}x{shape[1]}",
                 hint="use a calibration of this camera",
             )
-        return _start_pass(out, flight_dir, coords, shape, camera, calib, calib_path, raw_path / "dn", indices,
-                           roles, export, options, chash, panel)
+        return _start_pass(out, flight_dir, coords, shape, camera, calib_path, raw_path / "dn", indices,
+                           roles, export, options, chash, sat, panel)
 
     t0 = time.perf_counter()
     cube = open_cube(flight_dir, camera, raw_path)
@@ -769,7 +774,7 @@ def apply_flight(
     _install(out, ps.tmp_store)
     frames = [o.name for o in outcomes]
     sat_counts = [o.saturated for o in outcomes]
-    shas = [str(s) for s in xr.open_zarr(raw_path)["sha256"].values]
+    shas = [str(s) for s in ps.coords["sha256"].values]  # the pass's frames, in cube order
     run = {
         "flight": str(flight_dir),
         "calibration": str(calib_path),
