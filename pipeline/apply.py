@@ -278,7 +278,7 @@ def scheduler_for(n_frames: int) -> tuple[str, int]:
     where worker processes take 1-2 s. ``MSCAL_APPLY_SCHEDULER=processes`` chooses worker
     processes instead (a forkserver that imports this module once).
     """
-    cpus = os.cpu_count() or 1
+    cpus = int(os.environ.get("MSCAL_APPLY_WORKERS", 0)) or os.cpu_count() or 1
     choice = os.environ.get("MSCAL_APPLY_SCHEDULER", "threads")
     if choice not in ("threads", "processes"):
         raise InputError(f"MSCAL_APPLY_SCHEDULER={choice!r}: use threads or processes")
@@ -502,13 +502,14 @@ class Runner:
             for _ in range(self.workers):  # start them now
                 self.pool.submit(int)
 
-    def run(self, plan: FramePlan, jobs: Sequence[FrameJob]) -> list[FrameOutcome]:
+    def run(self, plan: Any, jobs: Sequence[Any], fn: Callable[[Any, Any], Any] | None = None) -> list[Any]:
+        """``fn(plan, job)`` (default :func:`process_frame`) for every job, in job order."""
         # arguments wrapped whole: dask would otherwise walk every dataclass field of every
         # argument of every task looking for collections (15 ms a task)
         token = uuid.uuid4().hex
         plan_d = dask.delayed(plan, traverse=False, name=f"mscal-plan-{token}")
         tasks = [
-            dask.delayed(process_frame, pure=False)(plan_d, dask.delayed(job, traverse=False, name=f"mscal-job-{token}-{k}"))
+            dask.delayed(fn or process_frame, pure=False)(plan_d, dask.delayed(job, traverse=False, name=f"mscal-job-{token}-{k}"))
             for k, job in enumerate(jobs)
         ]
         if self.client is not None:

@@ -11,6 +11,7 @@ import logging
 import os
 import sys
 import time
+from typing import Any
 from pathlib import Path
 
 import click
@@ -108,18 +109,39 @@ _stage_command("illumination")
 @click.option("--normalise", default="relative", show_default=True,
               help="relative (Eq. 15 as is), band:<name or nm> (that band's median is 1 in every frame), "
                    "or panel (see --panel).")
-@click.option("--panel", default=None, help="FRAME:x0,y0,x1,y1 region of known reflectance (band-grid pixels).")
+@click.option("--panel", default=None, help="FRAME:x0,y0,x1,y1 region of known reflectance (band-grid pixels). "
+              "With --calibration factory: the panel capture name(s), comma-separated (default: found among "
+              "the folder's first and last captures).")
 @click.option("--panel-reflectance", default=None, help="Reflectance of the panel: a number or a target name.")
+@click.option("--reference", default="auto", show_default=True, type=click.Choice(["auto", "panel", "dls"]),
+              help="--calibration factory only: reflectance from a panel capture or from the sun sensor (DLS); "
+                   "auto takes the panel when --panel-reflectance is given.")
 @click.option("--float32", "float32", is_flag=True, help="Photogrammetry TIFFs as float32 instead of uint16 x 32768.")
 @click.option("--export-bands", default=None, help="Comma-separated band names for the per-frame TIFFs (default: the camera's).")
 @click.option("--strict", is_flag=True, help="Exit non-zero if any frame was quarantined.")
 def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str | None, panel_reflectance: str | None,
-          float32: bool, export_bands: str | None, strict: bool) -> None:
-    """Reflectance (Eq. 15), indices and photogrammetry TIFFs for a FLIGHT folder."""
+          reference: str, float32: bool, export_bands: str | None, strict: bool) -> None:
+    """Reflectance (Eq. 15), indices and photogrammetry TIFFs for a FLIGHT folder; with
+    --calibration factory, for a folder of one-file-per-band captures from their factory metadata."""
     from mscal_core.errors import InputError
 
     from .apply import ApplyOptions, PanelSpec, apply_flight
 
+    bands = tuple(b.strip() for b in export_bands.split(",")) if export_bands else None
+    if calibration == "factory":
+        from .factory_apply import FactoryOptions, apply_factory
+
+        if normalise != "relative":
+            raise InputError("--normalise is for field calibrations; with --calibration factory use --reference")
+        fopts = FactoryOptions(
+            reference=reference, panel_captures=tuple(p.strip() for p in panel.split(",")) if panel else (),
+            panel_reflectance=panel_reflectance, tiff_dtype="float32" if float32 else "uint16",
+            export_bands=bands, strict=strict,
+        )
+        _report_apply(apply_factory(flight, out, fopts), out, strict)
+        return
+    if reference != "auto":
+        raise InputError("--reference is for --calibration factory")
     if (panel is None) != (panel_reflectance is None):
         raise InputError("--panel and --panel-reflectance go together")
     spec = PanelSpec.parse(panel, panel_reflectance) if panel else None
@@ -127,9 +149,12 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
         normalise = "panel"
     opts = ApplyOptions(
         normalise=normalise, panel=spec, tiff_dtype="float32" if float32 else "uint16",
-        export_bands=tuple(b.strip() for b in export_bands.split(",")) if export_bands else None, strict=strict,
+        export_bands=bands, strict=strict,
     )
-    res = apply_flight(flight, calibration, out, opts)
+    _report_apply(apply_flight(flight, calibration, out, opts), out, strict)
+
+
+def _report_apply(res: Any, out: Path, strict: bool) -> None:
     for q in res.quarantined:
         click.echo(f"quarantined {q['file']}: {q['reason']}", err=True)
     state = "up to date" if res.up_to_date else f"{res.run['timings_s']['total']:.1f} s"
