@@ -132,7 +132,12 @@ def _read_capture(capture: Capture) -> tuple[str, list[np.ndarray]]:
     for meta in capture.metas:
         data = meta.path.read_bytes()
         h.update(data)
-        dn = np.asarray(decode_raw(data, meta.path))
+        try:
+            dn = np.asarray(decode_raw(data, meta.path))
+        except FrameError:
+            raise
+        except Exception as exc:  # tifffile raises IndexError/ValueError on truncated files
+            raise FrameError(f"unreadable band file ({type(exc).__name__}: {exc})", path=meta.path) from None
         if dn.shape != meta.shape:
             raise FrameError(f"image {dn.shape} does not match its metadata {meta.shape}", path=meta.path)
         dns.append(dn)
