@@ -663,10 +663,11 @@ def _fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions) -> dict
     return json.loads(json.dumps(fingerprint))  # as it reads back from run.json
 
 
-def _up_to_date(out: Path, fingerprint: dict[str, Any]) -> dict[str, Any] | None:
-    """The previous run's record if it made the outputs of exactly these inputs."""
+def _up_to_date(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = ("reflectance.zarr",)
+                ) -> dict[str, Any] | None:
+    """The previous run's record if it made the outputs (``stores`` in ``out``) of exactly these inputs."""
     run_path = out / RUN_JSON
-    if not (run_path.is_file() and (out / "reflectance.zarr").is_dir()):
+    if not (run_path.is_file() and all((out / s).is_dir() for s in stores)):
         return None
     try:
         previous = json.loads(run_path.read_text())
@@ -675,10 +676,11 @@ def _up_to_date(out: Path, fingerprint: dict[str, Any]) -> dict[str, Any] | None
     return previous if previous.get("fingerprint") == fingerprint else None
 
 
-def _install(out: Path, tmp_store: Path) -> None:
-    final = out / "reflectance.zarr"
+def _install(out: Path, tmp_store: Path, name: str = "reflectance.zarr") -> None:
+    """Rename a store written under a temporary name to ``out/name``, replacing the old one."""
+    final = out / name
     if final.exists():
-        old = out / f".reflectance.zarr.old{TMP_MARK}{uuid.uuid4().hex[:8]}"
+        old = out / f".{name}.old{TMP_MARK}{uuid.uuid4().hex[:8]}"
         os.replace(final, old)
         os.replace(tmp_store, final)
         shutil.rmtree(old, ignore_errors=True)

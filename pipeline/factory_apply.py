@@ -31,7 +31,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
 import shutil
 import time
 import uuid
@@ -56,6 +55,8 @@ from .apply import (
     _clean_temporaries,
     _index_roles,
     _install,
+    _remove_frame_tiffs,
+    _up_to_date,
     _versions,
     _write_json_atomic,
     export_band_indices,
@@ -364,17 +365,6 @@ def _tmp(out: Path, name: str) -> Path:
     return out / f".{name}{TMP_MARK}{uuid.uuid4().hex[:8]}"
 
 
-def _install_as(out: Path, tmp: Path, name: str) -> None:
-    final = out / name
-    if final.exists():
-        old = _tmp(out, name + ".old")
-        os.replace(final, old)
-        os.replace(tmp, final)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, final)
-
-
 def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOptions = FactoryOptions()) -> ApplyResult:
     """``mscal apply CAPTURE_DIR --calibration factory -o OUT`` (see the module docstring)."""
     t_start = time.perf_counter()
@@ -401,7 +391,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         "mscal_version": mscal_core.__version__,
     }))
     out.mkdir(parents=True, exist_ok=True)
-    previous = _previous(out, fingerprint)
+    previous = _up_to_date(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
     if previous is not None:
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
     _clean_temporaries(out)
@@ -433,14 +423,14 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                 break
             ps.discard()
             for name, q in bad.items():
-                _remove_tiffs(out, name, camera, export)
+                _remove_frame_tiffs(out, [name], camera, export)
                 quarantined.append(q)
             captures = [c for c in captures if c.name not in bad]
             if not captures:
                 raise FrameError("no usable capture in the folder (all quarantined)", path=folder,
                                  hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
     t_pass = time.perf_counter() - t0
-    _install_as(out, ps.tmp_raw, "raw.zarr")
+    _install(out, ps.tmp_raw, "raw.zarr")
     _install(out, ps.tmp_refl)
     frames = [o.name for o in outcomes]
     quarantined.sort(key=lambda q: q["file"])
@@ -539,28 +529,11 @@ def _tags(camera: Camera, capture: Capture) -> FrameTags:
     )
 
 
-def _remove_tiffs(out: Path, name: str, camera: Camera, export: Sequence[int]) -> None:
-    for b in export:
-        (out / "photogrammetry" / f"{name}_{camera.bands[b].name}.tif").unlink(missing_ok=True)
-    (out / "ndvi" / f"{name}.tif").unlink(missing_ok=True)
-
-
 def _number_or_name(text: str) -> float | str:
     try:
         return float(text)
     except ValueError:
         return text
-
-
-def _previous(out: Path, fingerprint: dict[str, Any]) -> dict[str, Any] | None:
-    run_path = out / RUN_JSON
-    if not (run_path.is_file() and (out / "reflectance.zarr").is_dir() and (out / "raw.zarr").is_dir()):
-        return None
-    try:
-        previous = json.loads(run_path.read_text())
-    except (OSError, ValueError):
-        return None
-    return previous if previous.get("fingerprint") == fingerprint else None
 
 
 def _reference_record(reference: str, panels: Sequence[PanelReference], factor: tuple[float, ...] | None,
