@@ -254,3 +254,35 @@ def test_memory_is_bounded_by_tiles_not_the_mosaic(tmp_path: Path) -> None:
     assert rows[0]["n_valid"] == 512 * 512 and rows[0]["median"] == pytest.approx(0.5, abs=1e-6)
     mosaic_bytes = 2 * n * n * 4
     assert peak < mosaic_bytes / 4, (peak, mosaic_bytes)
+
+
+def test_season_plot_draws_the_table(tmp_path: Path) -> None:
+    """The plotted medians, p10-p90 band and means are the table's rows of the field, by date;
+    rows without numbers or a date are not drawn but counted in the report's table."""
+    import pandas as pd
+    from matplotlib.collections import PolyCollection
+
+    from pipeline.report import plot_season, season_sections, write_report
+
+    rows = []
+    for k, d in enumerate([date(2026, 6, 15), date(2026, 6, 1), date(2026, 6, 8), None]):
+        rows.append({"field_id": "f1", "date": d, "flight": f"fl{k}", "collection": "", "index": "ndvi", "source": "x",
+                     "n_pixels": 10, "n_valid": 10, "valid_fraction": 1.0, "mean": 0.3 + 0.1 * k,
+                     "median": 0.31 + 0.1 * k, "std": 0.05, "p10": 0.2 + 0.1 * k, "p90": 0.4 + 0.1 * k, "status": "ok"})
+    rows.append({**rows[0], "field_id": "f2", "n_valid": 0, "median": float("nan"), "status": "no_valid_pixels"})
+    df = pd.DataFrame(rows)
+    fig = plot_season(df, "f1", "ndvi")
+    ax = fig.axes[0]
+    median_line, mean_line = ax.lines[0], ax.lines[1]
+    np.testing.assert_allclose(median_line.get_ydata(), [0.41, 0.51, 0.31])  # 1, 8, 15 June
+    np.testing.assert_allclose(mean_line.get_ydata(), [0.4, 0.5, 0.3])
+    band = next(c for c in ax.collections if isinstance(c, PolyCollection))
+    ys = band.get_paths()[0].vertices[:, 1]
+    assert ys.min() == pytest.approx(0.2) and ys.max() == pytest.approx(0.6)  # the undated row (0.5-0.7) is not drawn
+    sec = season_sections(df)[0]
+    assert sec.tables[0].rows == [["f1", 4, 1, ""], ["f2", 0, 0, "no_valid_pixels"]]
+    assert len(sec.figures) == 1  # f2 has no numbers to draw
+    df.to_csv(tmp_path / "t.csv", index=False)  # as the CSV mscal stats writes, dates ISO
+    out = write_report(tmp_path / "r.html", stats=tmp_path / "t.csv")
+    page = out.read_text()
+    assert page.count("data:image/png;base64,") == 1 and "Season: ndvi" in page
