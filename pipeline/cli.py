@@ -254,17 +254,20 @@ def _echo_run(record: dict) -> None:
 @click.option("--cache-dir", default=None, help="Calibration cache, and Prefect's home unless PREFECT_HOME is set "
                    "(default: $MSCAL_CACHE_DIR or ~/.cache/mscal).")
 @click.option("--work-dir", default=None, help="Where remote (s3://) inputs and outputs are staged (default: a temporary folder).")
+@click.option("--catalog-root", default=None,
+              help="Local output root whose STAC catalog (ROOT/catalog.json) is updated after the run (default: OUT).")
 def run(session: str, out: str, response_method: str, normalise: str, dask_address: str | None,
-        cache_dir: str | None, work_dir: str | None) -> None:
+        cache_dir: str | None, work_dir: str | None, catalog_root: str | None) -> None:
     """The whole post-flight flow on Prefect's embedded server: calibrate SESSION (cached by
     content) and apply it to every SESSION/flights/<name>; SESSION and OUT may be s3:// URLs."""
     from .runner import check_run_inputs
 
-    check_run_inputs(session, out, normalise=normalise, dask_address=dask_address)
+    check_run_inputs(session, out, normalise=normalise, dask_address=dask_address, catalog_root=catalog_root)
     if cache_dir:
         os.environ["MSCAL_CACHE_DIR"] = cache_dir  # before Prefect starts: its home follows
     record = _flows().post_flight(session=session, out=out, response_method=response_method, normalise=normalise,
-                                  dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir)
+                                  dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir,
+                                  catalog_root=catalog_root)
     _echo_run(record)
 
 
