@@ -147,7 +147,7 @@ def write_session(
 
 def write_orthomosaic(path: str | Path, ndvi: np.ndarray, *, crs: str, transform: Sequence[float],
                       invalid: np.ndarray | None = None, seed: int = 0, block: int | None = 256,
-                      date: str | None = None, compress: str | None = None) -> Path:
+                      date: str | None = None, compress: str | None = None, dtype: str = "float32") -> Path:
     """A two-band float32 reflectance orthomosaic (``Red``, ``NIR``, NaN nodata) whose NDVI is
     ``ndvi`` (float64, ``(H, W)``, in [-0.9, 0.9]) up to float32 rounding.
 
@@ -155,6 +155,9 @@ def write_orthomosaic(path: str | Path, ndvi: np.ndarray, *, crs: str, transform
     ``invalid`` (bool ``(H, W)``) pixels are NaN in both bands. ``transform`` is a GDAL-order
     affine ``(a, b, c, d, e, f)``: ``x = a col + b row + c``, ``y = d col + e row + f``.
     ``block``: tile side (None: strips). ``date`` (YYYY-MM-DD) goes to ``TIFFTAG_DATETIME``.
+    ``dtype="uint16"`` stores reflectance x 32768 with nodata 65535 (``pipeline.writers``'
+    convention) instead of float32 with NaN (reflectance above 65534 / 32768 ~ 2 is clipped:
+    keep NDVI <= 0.8 there).
     """
     import rasterio
     from affine import Affine
@@ -165,12 +168,19 @@ def write_orthomosaic(path: str | Path, ndvi: np.ndarray, *, crs: str, transform
     rng = np.random.default_rng(seed)
     red = rng.uniform(0.03, 0.20, size=ndvi.shape)
     nir = red * (1.0 + ndvi) / (1.0 - ndvi)
-    data = np.stack([red, nir]).astype(np.float32)
+    if dtype == "uint16":
+        data = np.clip(np.rint(np.stack([red, nir]) * 32768.0), 0, 65534).astype(np.uint16)
+        nodata: float = 65535
+    elif dtype == "float32":
+        data = np.stack([red, nir]).astype(np.float32)
+        nodata = float("nan")
+    else:
+        raise ValueError(f"dtype {dtype!r}: float32 or uint16")
     if invalid is not None:
-        data[:, invalid] = np.nan
+        data[:, invalid] = nodata
     h, w = ndvi.shape
-    profile: dict = {"driver": "GTiff", "height": h, "width": w, "count": 2, "dtype": "float32",
-                     "nodata": float("nan"), "crs": crs, "transform": Affine(*transform)}
+    profile: dict = {"driver": "GTiff", "height": h, "width": w, "count": 2, "dtype": dtype,
+                     "nodata": nodata, "crs": crs, "transform": Affine(*transform)}
     if block:
         profile.update(tiled=True, blockxsize=block, blockysize=block)
     if compress:
