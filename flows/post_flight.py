@@ -76,8 +76,8 @@ def write_run_json(out: str, record: dict[str, Any]) -> str:
 
 
 @task(**IO)
-def update_catalog(root: str) -> dict[str, Any]:
-    return runner.update_catalog(root)
+def update_catalog(root: str, out_url: str | None) -> dict[str, Any]:
+    return runner.update_catalog(root, out_url)
 
 
 @task(**IO)
@@ -135,7 +135,7 @@ def post_flight(
                                dask_address=dask_address, flow_run_id=flow_run.id)
     write_run_json(paths.out, record)
     with timings.step("catalog"):
-        stac = update_catalog(catalog_root or paths.out)
+        stac = update_catalog(catalog_root or paths.out, None if catalog_root else out)
     if "error" in stac:
         log.warning("STAC catalog not updated: %s", stac["error"])
     if runner.is_remote(out):

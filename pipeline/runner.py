@@ -393,8 +393,10 @@ def qa_report(out_dir: str | Path, flights: Iterable[str]) -> str:
     return markdown
 
 
-def update_catalog(root: str | Path) -> dict[str, Any]:
+def update_catalog(root: str | Path, out_url: str | None = None) -> dict[str, Any]:
     """Update the STAC catalog of ``root`` (:func:`pipeline.stac.update_catalog`) after a run.
+    ``out_url``: the run's OUT when ``root`` is its staged local copy (names the catalog and
+    its default collection after the URL's last part instead of the staging folder).
 
     Bad content elsewhere under the root (another flight's broken output, a project file with
     a typo) must not fail the run whose outputs are already complete: such an
@@ -402,8 +404,9 @@ def update_catalog(root: str | Path) -> dict[str, Any]:
     (the flow retries them)."""
     from .stac import update_catalog as _update
 
+    name = out_url.rstrip("/").rsplit("/", 1)[-1] if out_url and is_remote(out_url) else None
     try:
-        return _update(root)
+        return _update(root, root_name=name)
     except MscalError as exc:
         log.warning("STAC catalog of %s not updated: %s", root, exc)
         return {"error": str(exc), "catalog": str(Path(root) / "catalog.json")}

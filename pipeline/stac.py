@@ -149,8 +149,9 @@ def find_flights(root: str | Path) -> list[Path]:
     return sorted(out)
 
 
-def project_for(root: Path, flight: Path, level: int) -> tuple[Project, Path]:
-    """The project of ``flight`` and its folder (module docstring)."""
+def project_for(root: Path, flight: Path, level: int, root_name: str | None = None) -> tuple[Project, Path]:
+    """The project of ``flight`` and its folder (module docstring); ``root_name`` names ROOT's
+    own project instead of its folder name (a staged copy of a remote OUT)."""
     rel = flight.relative_to(root)
     for k in range(len(rel.parts), -1, -1):
         d = root.joinpath(*rel.parts[:k])
@@ -158,7 +159,7 @@ def project_for(root: Path, flight: Path, level: int) -> tuple[Project, Path]:
             return load_project(d / PROJECT_FILE), d
     k = min(level, len(rel.parts))
     d = root.joinpath(*rel.parts[:k])
-    return Project(_clean_id(d.resolve().name)), d
+    return Project(_clean_id(root_name if k == 0 and root_name else d.resolve().name)), d
 
 
 def _item_id(project_dir: Path, flight: Path) -> str:
@@ -442,8 +443,11 @@ def _write_json(path: Path, d: dict[str, Any]) -> None:
         tmp.write_text(json.dumps(d, indent=2, sort_keys=False) + "\n", encoding="utf-8")
 
 
-def update_catalog(root: str | Path, *, project_level: int | None = None, validate: bool = True) -> dict[str, Any]:
+def update_catalog(root: str | Path, *, project_level: int | None = None, validate: bool = True,
+                   root_name: str | None = None) -> dict[str, Any]:
     """Build or update ``ROOT/catalog.json`` and its collections and items (module docstring).
+    ``root_name``: the name of ROOT's own project and of the catalog, when ROOT's folder name
+    is not it (the flow's staged copy of a remote OUT).
 
     Returns ``{"catalog": path, "items": n, "added": [...], "updated": [...], "unchanged": n,
     "removed": [...], "collections": [...]}`` (item ids as ``<collection>/<item>``)."""
@@ -466,7 +470,7 @@ def update_catalog(root: str | Path, *, project_level: int | None = None, valida
         written: set[Path] = set()
         item_ids: dict[tuple[str, str], Path] = {}
         for flight in flights:
-            project, pdir = project_for(root, flight, project_level)
+            project, pdir = project_for(root, flight, project_level, root_name)
             iid = _item_id(pdir, flight)
             if (project.id, iid) in item_ids:
                 raise InputError(f"flights {item_ids[(project.id, iid)]} and {flight} would both be item {iid!r} "
@@ -488,8 +492,9 @@ def update_catalog(root: str | Path, *, project_level: int | None = None, valida
                 raise InputError(f"two different projects are both named {project.id!r}", path=flight,
                                  hint=f"give each its own id in {PROJECT_FILE}")
             groups.setdefault(project.id, (project, []))[1].append(item)
-        catalog = pystac.Catalog(id="mscal", description=f"Calibrated products of mscal under {root.resolve().name}",
-                                 title=f"mscal: {root.resolve().name}",
+        name = root_name or root.resolve().name
+        catalog = pystac.Catalog(id="mscal", description=f"Calibrated products of mscal under {name}",
+                                 title=f"mscal: {name}",
                                  extra_fields={"mscal:project_level": project_level},
                                  catalog_type=pystac.CatalogType.SELF_CONTAINED)
         catalog.set_self_href(str(cat_path))

@@ -517,11 +517,10 @@ def write_table(df: Any, out: str | Path) -> tuple[Path, Path]:
     stem = out.with_suffix("") if out.suffix.lower() in (".parquet", ".csv") else out
     pq_path, csv_path = stem.with_name(stem.name + ".parquet"), stem.with_name(stem.name + ".csv")
     pq_path.parent.mkdir(parents=True, exist_ok=True)
-    table = pa.Table.from_pandas(df, preserve_index=False,
-                                 schema=pa.schema([(c, _ARROW_TYPES[c]) for c in COLUMNS]))
-    table = table.replace_schema_metadata({**(table.schema.metadata or {}),
-                                           b"mscal": json.dumps({"created_utc": datetime.now(timezone.utc).isoformat(
-                                               timespec="seconds")}).encode()})
+    types = _arrow_types()
+    table = pa.Table.from_pandas(df, preserve_index=False, schema=pa.schema([(c, types[c]) for c in COLUMNS]))
+    table = table.replace_schema_metadata({**(table.schema.metadata or {}), b"mscal": json.dumps(
+        {"created_utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}).encode()})
     with atomic_path(pq_path) as tmp:
         pq.write_table(table, tmp)
     with atomic_path(csv_path) as tmp:
@@ -538,15 +537,6 @@ def _arrow_types() -> dict[str, Any]:
               "index": pa.string(), "source": pa.string(), "n_pixels": pa.int64(), "n_valid": pa.int64(),
               "status": pa.string()})
     return t
-
-
-class _LazyTypes(dict):
-    def __missing__(self, key: str) -> Any:
-        self.update(_arrow_types())
-        return dict.__getitem__(self, key)
-
-
-_ARROW_TYPES: dict[str, Any] = _LazyTypes()
 
 
 def read_table(path: str | Path) -> Any:

@@ -205,3 +205,37 @@ def test_stats_over_the_catalog(root: Path, tmp_path: Path) -> None:
     assert row["status"] == "ok" and row["n_valid"] == 40 * 40
     assert row["median"] == pytest.approx(0.4, abs=1e-6) and row["std"] == pytest.approx(0.0, abs=1e-6)
     assert os.path.basename(row["source"]) == "ndvi_map.tif"
+
+
+def test_stats_command_over_the_catalog(root: Path, tmp_path: Path) -> None:
+    update_catalog(root, project_level=1)
+    ring = [[500010.1, 5000010.1], [500030.1, 5000010.1], [500030.1, 5000030.1], [500010.1, 5000030.1],
+            [500010.1, 5000010.1]]
+    doc = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"id": "p1"}, "geometry": {"type": "Polygon", "coordinates": [ring]}},
+        {"type": "Feature", "properties": {"id": "p2"}, "geometry": {"type": "Polygon", "coordinates": [
+            [[p[0] + 5000, p[1]] for p in ring]]}}]}
+    (tmp_path / "f.geojson").write_text(json.dumps(doc))
+    assert main(["stats", "--fields", str(tmp_path / "f.geojson"), "--fields-crs", UTM, "--catalog", str(root),
+                 "-o", str(tmp_path / "t.csv"), "--workers", "1"]) == 0
+    import pandas as pd
+
+    t = pd.read_csv(tmp_path / "t.csv")
+    assert list(zip(t["field_id"], t["flight"].fillna(""), t["status"])) == [
+        ("p1", "2026-06-08__field", "ok"), ("p2", "", "outside_all_mosaics")]
+    assert t.loc[0, "date"] == "2026-06-08" and t.loc[0, "collection"] == "farm-north"
+
+
+def test_the_flow_step_reports_a_broken_root_instead_of_failing(root: Path) -> None:
+    """runner.update_catalog (the flow's task): a typo elsewhere under the root is returned as
+    an error, the run whose outputs are complete is not failed; a staged remote OUT is named
+    after its URL."""
+    from pipeline import runner
+
+    (root / "farm-a" / "mscal-project.yaml").write_text("id: [not, a, string]\n")
+    res = runner.update_catalog(root)
+    assert "mscal-project.yaml" in res["error"] and "id" in res["error"]
+    (root / "farm-a" / "mscal-project.yaml").unlink()
+    res = runner.update_catalog(root, "s3://bucket/farms/north-2026/")
+    assert res["collections"] == ["north-2026"]
+    assert json.loads((root / "catalog.json").read_text())["title"] == "mscal: north-2026"
