@@ -8,7 +8,8 @@ Layout (static JSON, every link relative, so the tree can be moved or served as 
 
 **Flights.** Every folder under ROOT that holds ``run.json`` and ``reflectance.zarr`` (an
 ``mscal apply`` OUT, or ``OUT/flights/<name>/`` of ``mscal run`` / ``mscal serve``). The walk
-does not enter ``*.zarr``, ``photogrammetry/``, ``ndvi/``, ``stac/`` or hidden folders.
+does not enter ``*.zarr``, hidden folders, ``ROOT/stac/`` or a flight's ``photogrammetry/`` and
+``ndvi/``.
 
 **Projects** (Collections), for each flight, in this order:
 
@@ -81,7 +82,7 @@ STAC_DIR = "stac"
 PROJECT_FILE = "mscal-project.yaml"
 LOCK_FILE = ".mscal-catalog.lock"
 ITEM_FORMAT = 1  # bump when items gain or change fields: every item is rebuilt once
-SKIP_DIRS = {"photogrammetry", "ndvi", STAC_DIR}
+SKIP_DIRS = {"photogrammetry", "ndvi"}  # per-frame folders of a flight: never walked
 MEDIA_ZARR = "application/vnd+zarr"
 MEDIA_GEOTIFF = "image/tiff; application=geotiff"
 MEDIA_COG = "image/tiff; application=geotiff; profile=cloud-optimized"
@@ -142,10 +143,13 @@ def find_flights(root: str | Path) -> list[Path]:
     out = []
     for dirpath, dirnames, filenames in os.walk(root):
         d = Path(dirpath)
+        skip = {n for n in dirnames if n.startswith(".") or n.endswith(".zarr")}
+        if d == root:
+            skip.add(STAC_DIR)  # the catalog's own folder
         if "run.json" in filenames and (d / "reflectance.zarr").is_dir():
             out.append(d)
-        dirnames[:] = sorted(n for n in dirnames if not n.startswith(".") and not n.endswith(".zarr")
-                             and n not in SKIP_DIRS)
+            skip |= SKIP_DIRS  # a flight's per-frame folders
+        dirnames[:] = sorted(set(dirnames) - skip)
     return sorted(out)
 
 

@@ -26,6 +26,8 @@ dropped. Peak memory of a task is therefore about ``max_cached_tiles`` index til
 a pixel each, plus the reflectance bands of one tile while it is evaluated) plus the valid
 pixels of the largest field times ~16 bytes (the float32 values, and float64 copies while
 sorting). Fields are visited in tile order so that neighbouring fields reuse cached tiles.
+Time grows with a field's area in the mosaic's pixels, including the part beyond the mosaic's
+edge, which is rasterised too so that ``n_pixels`` (and so ``valid_fraction``) is exact.
 Mosaics are processed in parallel, one Dask task each (threads; rasterio releases the GIL
 while reading); peak memory is the sum over the tasks running at once (``workers``).
 
