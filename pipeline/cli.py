@@ -208,7 +208,11 @@ def stats(orthos: tuple[Path, ...], fields_path: Path, index_name: str, catalog_
     fields = read_fields(fields_path, id_property=id_property, crs=fields_crs)
     mosaics = mosaics_from_files(orthos) if orthos else []
     if catalog_path is not None:
-        mosaics += mosaics_from_catalog(catalog_path, index_name)
+        skipped: list[str] = []
+        mosaics += mosaics_from_catalog(catalog_path, index_name, skipped)
+        if skipped:
+            click.echo(f"{len(skipped)} flight(s) of the catalog have no orthomosaic or {index_name} map, so no "
+                       f"statistics: {', '.join(skipped[:10])}{' ...' if len(skipped) > 10 else ''}", err=True)
     t0 = time.perf_counter()
     df = zonal_table(fields, mosaics, index_name, bands=parse_bands_option(bands) if bands else None, workers=workers)
     pq, csv = write_table(df, out)

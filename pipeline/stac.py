@@ -555,10 +555,10 @@ def _extent(items: list[Any]) -> Any:
     return pystac.Extent(pystac.SpatialExtent([bbox]), pystac.TemporalExtent([span]))
 
 
-def catalog_rasters(catalog: str | Path, index_name: str) -> list[dict[str, Any]]:
+def catalog_rasters(catalog: str | Path, index_name: str, skipped: list[str] | None = None) -> list[dict[str, Any]]:
     """Per item of ``catalog`` (a catalog.json or its folder): the index map of ``index_name``
     if it has one, else its orthomosaic; ``{"path", "item", "collection", "date"}``. Items
-    with neither are left out (and logged)."""
+    with neither are left out, their ``<collection>/<item>`` appended to ``skipped``."""
     catalog = Path(catalog)
     if catalog.is_dir():
         catalog = catalog / CATALOG_FILE
@@ -580,6 +580,8 @@ def catalog_rasters(catalog: str | Path, index_name: str) -> list[dict[str, Any]
         pick = pick or next((a for a in assets.values() if a.get("mscal:kind") == "orthomosaic"), None)
         if pick is None:
             log.info("%s: item %s has no orthomosaic or %s map", p, d.get("id"), index_name)
+            if skipped is not None:
+                skipped.append(f"{d.get('collection', '')}/{d.get('id')}")
             continue
         props = d.get("properties", {})
         when = props.get("datetime") or props.get("start_datetime")

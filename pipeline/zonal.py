@@ -274,12 +274,14 @@ def mosaics_from_files(paths: Sequence[str | Path]) -> list[Mosaic]:
     return out
 
 
-def mosaics_from_catalog(catalog: str | Path, index_name: str) -> list[Mosaic]:
+def mosaics_from_catalog(catalog: str | Path, index_name: str, skipped: list[str] | None = None) -> list[Mosaic]:
     """Every flight of an ``mscal catalog`` with an index map of ``index_name`` or an
-    orthomosaic (the index map is preferred: no evaluation needed)."""
+    orthomosaic (the index map is preferred: no evaluation needed); flights with neither are
+    appended to ``skipped`` as ``<collection>/<item>``."""
     from .stac import catalog_rasters
 
-    return [Mosaic(r["path"], r["item"], r["date"], r["collection"]) for r in catalog_rasters(catalog, index_name)]
+    return [Mosaic(r["path"], r["item"], r["date"], r["collection"])
+            for r in catalog_rasters(catalog, index_name, skipped)]
 
 
 def _is_index_map(src: Any, index: Index) -> bool:

@@ -207,7 +207,7 @@ def test_stats_over_the_catalog(root: Path, tmp_path: Path) -> None:
     assert os.path.basename(row["source"]) == "ndvi_map.tif"
 
 
-def test_stats_command_over_the_catalog(root: Path, tmp_path: Path) -> None:
+def test_stats_command_over_the_catalog(root: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     update_catalog(root, project_level=1)
     ring = [[500010.1, 5000010.1], [500030.1, 5000010.1], [500030.1, 5000030.1], [500010.1, 5000030.1],
             [500010.1, 5000010.1]]
@@ -218,6 +218,9 @@ def test_stats_command_over_the_catalog(root: Path, tmp_path: Path) -> None:
     (tmp_path / "f.geojson").write_text(json.dumps(doc))
     assert main(["stats", "--fields", str(tmp_path / "f.geojson"), "--fields-crs", UTM, "--catalog", str(root),
                  "-o", str(tmp_path / "t.csv"), "--workers", "1"]) == 0
+    err = capsys.readouterr().err
+    assert "2 flight(s) of the catalog have no orthomosaic or ndvi map" in err and "farm-b/2026-06-02__plot7" in err
+    assert "field p2: outside_all_mosaics" in err
     import pandas as pd
 
     t = pd.read_csv(tmp_path / "t.csv")

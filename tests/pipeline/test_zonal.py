@@ -229,7 +229,7 @@ def test_cli_writes_tables_and_season_plot(scene: dict, tmp_path: Path) -> None:
     assert df.loc[df["field_id"] == "north", "status"].tolist() == ["ok", "ok"]
     page = (tmp_path / "season.html").read_text()
     assert page.count("<img") >= 1 and "north" in page
-    # a mosaic without CRS: one line naming it, exit 2
+    # a mosaic that is not there: one line naming it, exit 2
     assert main(["stats", "--fields", str(scene["fields"]), str(tmp_path / "missing.tif"), "-o", str(out)]) == 2
 
 
