@@ -3,8 +3,9 @@
 ``post_flight``: stage remote inputs, calibrate the session (each stage taken from the cache
 when its inputs are unchanged), apply the calibration to every ``SESSION/flights/<name>/``,
 write ``OUT/run.json``, update the STAC catalog of the output root, upload remote outputs
-(``run.json`` last), and summarise the run as Prefect artifacts. ``process_inbox``: one pass over an inbox of session folders (``mscal
-serve``), each complete, unprocessed session through ``post_flight``.
+(``run.json`` last), and summarise the run as Prefect artifacts. ``process_inbox``: one pass
+over an inbox of session folders (``mscal serve``), each complete, unprocessed session through
+``post_flight``; it updates OUT_ROOT's catalog.
 
 Import this module only after :func:`pipeline.runner.configure_prefect`.
 """
@@ -134,10 +135,7 @@ def post_flight(
     record = runner.run_record(session=session, out=out, plan=plan, flights=summaries, timings=timings,
                                dask_address=dask_address, flow_run_id=flow_run.id)
     write_run_json(paths.out, record)
-    with timings.step("catalog"):
-        stac = update_catalog(catalog_root or paths.out, None if catalog_root else out)
-    if "error" in stac:
-        log.warning("STAC catalog not updated: %s", stac["error"])
+    update_catalog(catalog_root or paths.out, None if catalog_root else out)  # a bad root is logged, not fatal
     if runner.is_remote(out):
         upload(paths.out, out)
     runner.remove_work(paths)
