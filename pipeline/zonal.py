@@ -487,8 +487,11 @@ def zonal_table(fields: Fields, mosaics: Sequence[Mosaic], index_name: str, *, b
                          hint="give orthomosaic files, or a catalog whose flights have orthomosaics or index maps")
     for m in mosaics:
         check_mosaic(m.path, index, bands)
-    tasks = [dask.delayed(mosaic_stats, traverse=False)(m, fields, index.name, bands=bands, tile=tile,
-                                                         max_cached_tiles=max_cached_tiles) for m in mosaics]
+    # arguments wrapped whole: dask would otherwise walk every dataclass field of every argument
+    fd = dask.delayed(fields, traverse=False)
+    bd = dask.delayed(dict(bands) if bands else None, traverse=False)
+    tasks = [dask.delayed(mosaic_stats)(dask.delayed(m, traverse=False), fd, index.name, bands=bd, tile=tile,
+                                        max_cached_tiles=max_cached_tiles) for m in mosaics]
     n = workers or os.cpu_count() or 1
     results = dask.compute(*tasks, scheduler="threads", num_workers=n) if n > 1 else [t.compute(scheduler="sync") for t in tasks]
     rows = [r for rs in results for r in rs]
