@@ -2,9 +2,10 @@
 
 ``post_flight``: stage remote inputs, calibrate the session (each stage taken from the cache
 when its inputs are unchanged), apply the calibration to every ``SESSION/flights/<name>/``,
-write ``OUT/run.json``, upload remote outputs (``run.json`` last), and summarise the run as
-Prefect artifacts. ``process_inbox``: one pass over an inbox of session folders (``mscal
-serve``), each complete, unprocessed session through ``post_flight``.
+write ``OUT/run.json``, update the STAC catalog of the output root, upload remote outputs
+(``run.json`` last), and summarise the run as Prefect artifacts. ``process_inbox``: one pass
+over an inbox of session folders (``mscal serve``), each complete, unprocessed session through
+``post_flight``; it updates OUT_ROOT's catalog.
 
 Import this module only after :func:`pipeline.runner.configure_prefect`.
 """
@@ -76,6 +77,11 @@ def write_run_json(out: str, record: dict[str, Any]) -> str:
 
 
 @task(**IO)
+def update_catalog(root: str, out_url: str | None) -> dict[str, Any]:
+    return runner.update_catalog(root, out_url)
+
+
+@task(**IO)
 def upload(local: str, url: str) -> int:
     return runner.upload(local, url)
 
@@ -89,6 +95,7 @@ def post_flight(
     dask_address: str | None = None,
     cache_dir: str | None = None,
     work_dir: str | None = None,
+    catalog_root: str | None = None,
 ) -> dict[str, Any]:
     """Calibrate SESSION once and apply it to each of its flights; outputs in OUT.
 
@@ -96,6 +103,8 @@ def post_flight(
     ``tcp://HOST:PORT`` of a running ``dask scheduler`` (default: a local cluster for long
     flights). ``cache_dir``: the calibration cache (default :func:`runner.default_cache_dir`).
     ``work_dir``: where remote inputs and outputs are staged (default: a temporary folder).
+    ``catalog_root``: the local output root whose STAC catalog is updated after the run
+    (default: OUT itself; ``process_inbox`` gives its OUT_ROOT).
     """
     log = get_run_logger()
     timings = runner.Timings()
@@ -126,6 +135,7 @@ def post_flight(
     record = runner.run_record(session=session, out=out, plan=plan, flights=summaries, timings=timings,
                                dask_address=dask_address, flow_run_id=flow_run.id)
     write_run_json(paths.out, record)
+    update_catalog(catalog_root or paths.out, None if catalog_root else out)  # a bad root is logged, not fatal
     if runner.is_remote(out):
         upload(paths.out, out)
     runner.remove_work(paths)
@@ -151,7 +161,8 @@ def process_inbox(inbox_dir: str, out_root: str, settle_seconds: float = 600.0,
     for p in inbox.pending_sessions(inbox_dir, out_root, settle_seconds):
         log.info("session %s: complete and not processed yet", p.name)
         state = post_flight(p.path, str(Path(out_root) / p.name), response_method=response_method,
-                            dask_address=dask_address, cache_dir=cache_dir, return_state=True)
+                            dask_address=dask_address, cache_dir=cache_dir, catalog_root=str(out_root),
+                            return_state=True)
         status = "done" if state.is_completed() else "failed"
         detail = "" if status == "done" else str(state.message or "")
         inbox.record(Path(out_root), p.name, listing=p.listing, content=p.content, status=status, detail=detail)

@@ -184,6 +184,74 @@ def index(ortho: Path, index_name: str, out: Path, bands: str | None) -> None:
     click.echo(f"wrote {out}")
 
 
+@cli.command()
+@click.argument("root", type=click.Path(path_type=Path))
+@click.option("--project-level", type=int, default=None,
+              help="Collections by the folder this many levels below ROOT (0: one collection named after ROOT; "
+                   "default: as the catalog was built, else 0). mscal-project.yaml files override it.")
+@click.option("--validate-only", is_flag=True, help="Only validate ROOT/catalog.json and everything it links to.")
+def catalog(root: Path, project_level: int | None, validate_only: bool) -> None:
+    """Build or update the STAC catalog ROOT/catalog.json of every flight under ROOT
+    (one collection per project, one item per flight), validated offline."""
+    from .stac import update_catalog, validate_catalog
+
+    if validate_only:
+        n = validate_catalog(root)
+        click.echo(f"{root / 'catalog.json'}: {n} STAC object(s) valid")
+        return
+    s = update_catalog(root, project_level=project_level)
+    for key in s["removed"]:
+        click.echo(f"removed {key} (its flight is gone)", err=True)
+    click.echo(f"wrote {s['catalog']} ({s['items']} item(s) in {len(s['collections'])} collection(s): "
+               f"{len(s['added'])} added, {len(s['updated'])} updated, {s['unchanged']} unchanged, "
+               f"{len(s['removed'])} removed)")
+
+
+@cli.command()
+@click.argument("orthos", nargs=-1, type=click.Path(path_type=Path))
+@click.option("--fields", "fields_path", required=True, type=click.Path(path_type=Path),
+              help="GeoJSON of the fields (polygons; WGS 84 unless it names a CRS or --fields-crs is given).")
+@click.option("--index", "index_name", default="ndvi", show_default=True, help="Index name from catalogs/indices.")
+@click.option("--catalog", "catalog_path", default=None, type=click.Path(path_type=Path),
+              help="An mscal catalog (ROOT or ROOT/catalog.json): every flight's index map or orthomosaic.")
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
+              help="Table to write: OUT.parquet and OUT.csv.")
+@click.option("--bands", default=None, help="Band numbers of the roles in the orthomosaics, e.g. red=3,nir=5.")
+@click.option("--id-property", default=None, help="Feature property holding the field id (default: id, field_id, name, fid).")
+@click.option("--fields-crs", default=None, help="CRS of the fields file when it names none and is not lon/lat.")
+@click.option("--workers", type=int, default=None, help="Mosaics processed at once (default: one per core).")
+@click.option("--plot", "plot", default=None, type=click.Path(path_type=Path),
+              help="Also write a self-contained HTML page with each field's season plot.")
+def stats(orthos: tuple[Path, ...], fields_path: Path, index_name: str, catalog_path: Path | None, out: Path,
+          bands: str | None, id_property: str | None, fields_crs: str | None, workers: int | None,
+          plot: Path | None) -> None:
+    """Per-field statistics (mean, median, std, p10, p90, valid fraction) of an index over
+    reflectance orthomosaics ORTHOS and/or the flights of a --catalog, as a tidy table."""
+    from .indexmap import parse_bands_option
+    from .zonal import mosaics_from_catalog, mosaics_from_files, read_fields, write_table, zonal_table
+
+    fields = read_fields(fields_path, id_property=id_property, crs=fields_crs)
+    mosaics = mosaics_from_files(orthos) if orthos else []
+    if catalog_path is not None:
+        skipped: list[str] = []
+        mosaics += mosaics_from_catalog(catalog_path, index_name, skipped)
+        if skipped:
+            click.echo(f"{len(skipped)} flight(s) of the catalog have no orthomosaic or {index_name} map, so no "
+                       f"statistics: {', '.join(skipped[:10])}{' ...' if len(skipped) > 10 else ''}", err=True)
+    t0 = time.perf_counter()
+    df = zonal_table(fields, mosaics, index_name, bands=parse_bands_option(bands) if bands else None, workers=workers)
+    pq, csv = write_table(df, out)
+    for r in df[df["status"] != "ok"].itertuples():
+        click.echo(f"field {r.field_id}{' on ' + r.flight if r.flight else ''}: {r.status}", err=True)
+    click.echo(f"wrote {pq} and {csv} ({len(fields.fields)} field(s), {len(mosaics)} mosaic(s), {len(df)} row(s); "
+               f"{time.perf_counter() - t0:.1f} s)")
+    if plot is not None:
+        from .report import write_season_report
+
+        write_season_report(df, plot)
+        click.echo(f"wrote {plot}")
+
+
 def _flows():  # noqa: ANN202 (module flows.post_flight)
     """``flows.post_flight``, imported after Prefect's environment is set (runner.configure_prefect)."""
     from .runner import configure_prefect
@@ -215,17 +283,20 @@ def _echo_run(record: dict) -> None:
 @click.option("--cache-dir", default=None, help="Calibration cache, and Prefect's home unless PREFECT_HOME is set "
                    "(default: $MSCAL_CACHE_DIR or ~/.cache/mscal).")
 @click.option("--work-dir", default=None, help="Where remote (s3://) inputs and outputs are staged (default: a temporary folder).")
+@click.option("--catalog-root", default=None,
+              help="Local output root whose STAC catalog (ROOT/catalog.json) is updated after the run (default: OUT).")
 def run(session: str, out: str, response_method: str, normalise: str, dask_address: str | None,
-        cache_dir: str | None, work_dir: str | None) -> None:
+        cache_dir: str | None, work_dir: str | None, catalog_root: str | None) -> None:
     """The whole post-flight flow on Prefect's embedded server: calibrate SESSION (cached by
     content) and apply it to every SESSION/flights/<name>; SESSION and OUT may be s3:// URLs."""
     from .runner import check_run_inputs
 
-    check_run_inputs(session, out, normalise=normalise, dask_address=dask_address)
+    check_run_inputs(session, out, normalise=normalise, dask_address=dask_address, catalog_root=catalog_root)
     if cache_dir:
         os.environ["MSCAL_CACHE_DIR"] = cache_dir  # before Prefect starts: its home follows
     record = _flows().post_flight(session=session, out=out, response_method=response_method, normalise=normalise,
-                                  dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir)
+                                  dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir,
+                                  catalog_root=catalog_root)
     _echo_run(record)
 
 
@@ -271,12 +342,16 @@ def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, onc
               help="An 'mscal apply' OUT folder (repeat for several flights).")
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path), help="HTML file to write.")
 @click.option("--title", default=None, help="Page title (default: 'mscal QA report: CAMERA').")
-def report(calibration: Path | None, flights: tuple[Path, ...], out: Path, title: str | None) -> None:
-    """Self-contained HTML QA report (plots embedded, opens offline) of a calibration and flights."""
+@click.option("--stats", "stats_table", default=None, type=click.Path(path_type=Path),
+              help="An 'mscal stats' table (.parquet or .csv): adds each field's season plot.")
+def report(calibration: Path | None, flights: tuple[Path, ...], out: Path, title: str | None,
+           stats_table: Path | None) -> None:
+    """Self-contained HTML QA report (plots embedded, opens offline) of a calibration, flights
+    and the season of each field."""
     from .report import write_report
 
     t0 = time.perf_counter()
-    write_report(out, calibration=calibration, flights=flights, title=title)
+    write_report(out, calibration=calibration, flights=flights, title=title, stats=stats_table)
     extra = f" and {out.parent / 'calibration.json'}" if calibration is not None else ""
     click.echo(f"wrote {out}{extra} ({out.stat().st_size / 1e6:.1f} MB; {time.perf_counter() - t0:.1f} s)")
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 import hashlib
 import importlib.metadata
 import json
+import logging
 import os
 import platform
 import re
@@ -40,6 +41,8 @@ from .calibrate import STAGES
 from .catalog import CATALOG_ROOT
 from .session import Session, load_session, read_frame_table
 from .store import content_hashes, file_sha256, open_calibration, write_store
+
+log = logging.getLogger(__name__)
 
 RUN_FORMAT = "mscal-run/1"
 CALIBRATION_STORE = "calibration.zarr"
@@ -333,8 +336,12 @@ def remove_work(paths: RunPaths) -> None:
         shutil.rmtree(paths.work, ignore_errors=True)
 
 
-def check_run_inputs(session: str, out: str, *, normalise: str = "relative", dask_address: str | None = None) -> None:
+def check_run_inputs(session: str, out: str, *, normalise: str = "relative", dask_address: str | None = None,
+                     catalog_root: str | None = None) -> None:
     """Fail fast, before Prefect starts: a session that is not there, an unusable option."""
+    if catalog_root is not None and is_remote(catalog_root):
+        raise InputError(f"--catalog-root {catalog_root!r} must be a local folder",
+                         hint="leave it out to catalogue OUT itself (uploaded with the run)")
     if is_remote(session):
         fs, root = _fs(session)
         if not fs.exists(f"{root.rstrip('/')}/session.yaml"):
@@ -384,6 +391,25 @@ def qa_report(out_dir: str | Path, flights: Iterable[str]) -> str:
     _, markdown = write_report_and_markdown(out_dir / REPORT_HTML, calibration=out_dir / CALIBRATION_STORE,
                                             flights=[out_dir / "flights" / name for name in flights])
     return markdown
+
+
+def update_catalog(root: str | Path, out_url: str | None = None) -> dict[str, Any]:
+    """Update the STAC catalog of ``root`` (:func:`pipeline.stac.update_catalog`) after a run.
+    ``out_url``: the run's OUT when ``root`` is its staged local copy (names the catalog and
+    its default collection after the URL's last part instead of the staging folder).
+
+    Bad content elsewhere under the root (another flight's broken output, a project file with
+    a typo) must not fail the run whose outputs are already complete: such an
+    :class:`MscalError` is returned as ``{"error": message}`` and logged; I/O errors propagate
+    (the flow retries them)."""
+    from .stac import update_catalog as _update
+
+    name = out_url.rstrip("/").rsplit("/", 1)[-1] if out_url and is_remote(out_url) else None
+    try:
+        return _update(root, root_name=name)
+    except MscalError as exc:
+        log.warning("STAC catalog of %s not updated: %s", root, exc)
+        return {"error": str(exc), "catalog": str(Path(root) / "catalog.json")}
 
 
 def run_record(*, session: str, out: str, plan: CalibrationPlan, flights: dict[str, dict[str, Any]],
@@ -466,5 +492,5 @@ def progress(total: int, label: str) -> Iterator[Callable[[int], None]]:
 __all__ = [
     "CalibrationPlan", "RunPaths", "StagePlan", "Timings", "apply_one", "check_run_inputs", "configure_prefect",
     "default_cache_dir", "flight_dirs", "is_remote", "is_transient", "plan_calibration", "publish_calibration",
-    "remove_work", "run_paths", "run_record", "stage_in", "summary_markdown", "upload", "write_run_json",
+    "remove_work", "run_paths", "run_record", "update_catalog", "stage_in", "summary_markdown", "upload", "write_run_json",
 ]

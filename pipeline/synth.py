@@ -35,7 +35,7 @@ import yaml
 
 from mscal_core.synth.scene import FrameSet, SyntheticSession, synthesize_session
 
-__all__ = ["write_session", "write_frameset", "session_yaml"]
+__all__ = ["write_session", "write_frameset", "session_yaml", "write_orthomosaic"]
 
 FRAMES_CSV_COLUMNS = ("file", "exposure_ms", "gain", "time", "lat", "lon", "alt_m")
 
@@ -140,3 +140,57 @@ def write_session(
         write_frameset(root / "flights" / name, fs)
     np.savez_compressed(root / "truth.npz", **session.truth_arrays())
     return root
+
+
+# --------------------------------------------------------------------------- orthomosaics (issue 10)
+
+
+def write_orthomosaic(path: str | Path, ndvi: np.ndarray, *, crs: str, transform: Sequence[float],
+                      invalid: np.ndarray | None = None, seed: int = 0, block: int | None = 256,
+                      date: str | None = None, compress: str | None = None, dtype: str = "float32") -> Path:
+    """A two-band float32 reflectance orthomosaic (``Red``, ``NIR``, NaN nodata) whose NDVI is
+    ``ndvi`` (float64, ``(H, W)``, in [-0.9, 0.9]) up to float32 rounding.
+
+    Red is drawn uniformly in [0.03, 0.20] (seeded); ``NIR = Red (1 + NDVI) / (1 - NDVI)``.
+    ``invalid`` (bool ``(H, W)``) pixels are NaN in both bands. ``transform`` is a GDAL-order
+    affine ``(a, b, c, d, e, f)``: ``x = a col + b row + c``, ``y = d col + e row + f``.
+    ``block``: tile side (None: strips). ``date`` (YYYY-MM-DD) goes to ``TIFFTAG_DATETIME``.
+    ``dtype="uint16"`` stores reflectance x 32768 with nodata 65535 (``pipeline.writers``'
+    convention) instead of float32 with NaN (reflectance above 65534 / 32768 ~ 2 is clipped:
+    keep NDVI <= 0.8 there).
+    """
+    import rasterio
+    from affine import Affine
+
+    ndvi = np.asarray(ndvi, dtype=np.float64)
+    if np.nanmax(np.abs(ndvi)) > 0.9:
+        raise ValueError("ndvi must be within [-0.9, 0.9]")
+    rng = np.random.default_rng(seed)
+    red = rng.uniform(0.03, 0.20, size=ndvi.shape)
+    nir = red * (1.0 + ndvi) / (1.0 - ndvi)
+    if dtype == "uint16":
+        data = np.clip(np.rint(np.stack([red, nir]) * 32768.0), 0, 65534).astype(np.uint16)
+        nodata: float = 65535
+    elif dtype == "float32":
+        data = np.stack([red, nir]).astype(np.float32)
+        nodata = float("nan")
+    else:
+        raise ValueError(f"dtype {dtype!r}: float32 or uint16")
+    if invalid is not None:
+        data[:, invalid] = nodata
+    h, w = ndvi.shape
+    profile: dict = {"driver": "GTiff", "height": h, "width": w, "count": 2, "dtype": dtype,
+                     "nodata": nodata, "crs": crs, "transform": Affine(*transform)}
+    if block:
+        profile.update(tiled=True, blockxsize=block, blockysize=block)
+    if compress:
+        profile["compress"] = compress
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with rasterio.open(path, "w", **profile) as dst:
+        dst.write(data)
+        dst.set_band_description(1, "Red")
+        dst.set_band_description(2, "NIR")
+        if date:
+            dst.update_tags(TIFFTAG_DATETIME=date.replace("-", ":") + " 12:00:00")
+    return path

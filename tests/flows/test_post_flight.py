@@ -54,6 +54,15 @@ def test_first_run_fits_everything_and_writes_every_output(flow_session: Path, f
     assert all(f"flights/{name}" in page or name in page for name in FLIGHTS)
     assert page.count('<img src="data:image/png;base64,') >= 6 + 3 * len(FLIGHTS)
     assert run["timings_s"]["total"] >= sum(run["calibration_stages"][s]["seconds"] for s in STAGES)
+    # the flow catalogued its flights: OUT/catalog.json, one item per flight, valid STAC
+    from pipeline.stac import validate_catalog
+
+    items = sorted(p.stem for p in (first_run / "stac").glob("*/items/*.json"))
+    assert items == sorted(FLIGHTS)
+    assert validate_catalog(first_run) == 1 + 1 + len(FLIGHTS)
+    item = json.loads(next((first_run / "stac").glob("*/items/field.json")).read_text())
+    assert item["properties"]["mscal:calibration_sha256"] == run["flights"]["field"]["calibration_sha256"]
+    assert item["properties"]["mscal:calibration_cached"] is False and item["geometry"]["type"] in ("Polygon", "LineString")
 
 
 def test_second_run_refits_nothing_and_says_so(flow_session: Path, first_run: Path, capsys) -> None:

@@ -67,6 +67,9 @@ def test_serve_processes_complete_sessions_once_and_survives_restarts(
     assert sorted(_state(root)) == ["broken", "monday", "tuesday"]
     assert (root / "monday" / "run.json").stat().st_mtime_ns == stamp
     assert (root / "tuesday" / "run.json").is_file()
+    # OUT_ROOT's STAC catalog gained each session's flights as they were processed
+    items = sorted(str(p.relative_to(root / "stac")) for p in (root / "stac").glob("*/items/*.json"))
+    assert items == [f"processed/items/{d}__{f}.json" for d in ("monday", "tuesday") for f in ("field", "orchard")]
 
 
 def test_serve_rejects_a_bad_cron_and_a_missing_inbox(tmp_path: Path, capsys) -> None:
