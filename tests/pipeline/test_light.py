@@ -277,3 +277,32 @@ def test_micasense_sun_sensor_readings() -> None:
     assert light.irradiance_used.tolist() == [True]
     assert light.level[0] == pytest.approx(e[1] / e[0])
     assert xmp_irradiance(data / "README.md") is None
+
+
+def test_report_shows_the_light_over_time_and_warns_on_colour_change(drifting, tmp_path) -> None:
+    """QA report: S and brightness over time with the frames marked, and a warning with its
+    number when the light's colour changed more than CAPTURE_COLOUR_CHANGE_MAX between captures
+    (here the 3 % tilt of the drift); a single capture gives neither."""
+    from pipeline import report
+
+    root, store, _ = drifting
+    ds = xr.open_zarr(store).load()
+    warn = [w for w in report.calibration_warnings(ds) if w.code == "light_colour_changed"]
+    assert len(warn) == 1 and warn[0].threshold == report.CAPTURE_COLOUR_CHANGE_MAX
+    assert 0.025 < warn[0].value < 0.045 and "capture_0 and capture_1" in warn[0].message
+    _apply(root / "session" / "flights" / "drift", store, tmp_path / "out")
+    flight = report.open_flight(tmp_path / "out")
+    fig = report.plot_light_over_time(ds, [flight])
+    top, bottom = fig.axes[:2]
+    # per band, S at the last capture relative to the first: the drift's 25 % less light
+    last = np.array([line.get_ydata()[-1] for line in top.get_lines() if len(line.get_xdata()) == 2])
+    assert last.size == 25 and np.all((-31 < last) & (last < -24))
+    ticks = [line for line in bottom.get_lines() if line.get_marker() == "|"]
+    assert len(ticks) == 1 and ticks[0].get_xdata().size == 3  # the flight's three frame times
+    summary = report.calibration_summary(ds)
+    assert [c["name"] for c in summary["reflector_captures"]] == ["capture_0", "capture_1"]
+    assert summary["reflector_captures"][1]["colour_change_from_previous"] == pytest.approx(warn[0].value)
+    one = ds.isel(capture=[0])
+    assert not [w for w in report.calibration_warnings(one) if w.code == "light_colour_changed"]
+    assert all("Light over time" not in c for c, _ in report.calibration_section(one).figures)
+    assert any("Light over time" in c for c, _ in report.calibration_section(ds, [flight]).figures)
