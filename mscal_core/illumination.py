@@ -30,6 +30,7 @@ __all__ = [
     "INTERPOLATION_MODES",
     "IlluminationFit",
     "capture_weights",
+    "centre_brightness",
     "colour_change",
     "eq16_reflectance",
     "fit_illumination",
@@ -357,3 +358,33 @@ def colour_change(capture_spectral_factor: np.ndarray) -> np.ndarray:
     if colour.shape[0] < 2:
         return np.zeros(0)
     return np.max(np.abs(colour[1:] / colour[:-1] - 1.0), axis=1)
+
+
+def centre_brightness(uv: np.ndarray, brightness: np.ndarray, *, reject: float = 0.1, iterations: int = 3) -> float:
+    """Brightness at the reflector's centre from a plane fit ``B(u, v) = a + b u + c v``: ``a``.
+
+    ``uv`` (n, 2) reflector-plane coordinates (metres, origin at the reflector's centre) of
+    the pixels, ``brightness`` (n,) their B (Eq. 14). Least squares, then ``iterations``
+    refits without the pixels more than ``reject`` (relative) off the plane, i.e. a shadow or
+    a glint. The median-B gauge of :func:`fit_illumination` depends on which part of a
+    non-uniformly lit reflector the camera sees (pose, crop); for a light that is linear over
+    the reflector, ``a`` does not, so captures under different light compare by it (issue 8).
+    NaN when fewer than 3 finite pixels remain.
+    """
+    p = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    b = np.asarray(brightness, dtype=np.float64).ravel()
+    keep = np.all(np.isfinite(p), axis=1) & np.isfinite(b)
+    a = float("nan")
+    for _ in range(int(iterations) + 1):
+        if np.count_nonzero(keep) < 3:
+            return float("nan")
+        design = np.column_stack([np.ones(np.count_nonzero(keep)), p[keep]])
+        coef, *_ = np.linalg.lstsq(design, b[keep], rcond=None)
+        a = float(coef[0])
+        pred = coef[0] + p @ coef[1:]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            new = np.isfinite(b) & np.all(np.isfinite(p), axis=1) & (np.abs(b / pred - 1.0) <= reject)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return a

@@ -451,6 +451,7 @@ class CaptureFit:
     capture: ReflectorCapture
     fit: illumination.IlluminationFit
     views: tuple[int, ...]  # indices into IlluminationResult.views
+    centre_brightness: float = float("nan")  # B at the reflector centre (plane fit); NaN: one capture
 
 
 @dataclass
@@ -504,7 +505,7 @@ def fit_illumination_frames(
     shape = stack.shape[2:]
     centre = tuple(_offsets(camera).mean(axis=0))
     rays = geometry.pixel_rays(session.intrinsics, shape, centre)
-    columns, masks = [], []
+    columns, masks, plane = [], [], []
     n_sat = np.zeros(camera.n_bands, dtype=np.int64)
     for k, (i, view) in enumerate(views):
         uv = geometry.pixels_to_plane(view.pose, session.intrinsics, shape, rays=rays)
@@ -519,6 +520,7 @@ def fit_illumination_frames(
                 rad[b] = e / vignetting_maps[b][mask]
         columns.append(rad)
         masks.append(mask)
+        plane.append(uv[mask] if len(captures) > 1 else None)
     n_pixels = sum(c.shape[1] for c in columns)
     maps = np.full((len(views), *shape), np.nan, dtype=np.float32)
     image_brightness = np.full(len(views), np.nan)
@@ -550,7 +552,16 @@ def fit_illumination_frames(
             start += n
             if fit.image_brightness is not None:
                 image_brightness[k] = fit.image_brightness[j]
-        fits.append(CaptureFit(cap, fit, tuple(mine)))
+        centre = float("nan")
+        if len(captures) > 1:  # the light's level at the reflector centre, for comparing captures
+            start = 0
+            per_image = []
+            for k in mine:
+                n = int(masks[k].sum())
+                per_image.append(illumination.centre_brightness(plane[k], fit.brightness[start:start + n]))
+                start += n
+            centre = float(np.nanmedian(per_image)) if np.isfinite(per_image).any() else 1.0
+        fits.append(CaptureFit(cap, fit, tuple(mine), centre))
     report.residuals = {
         "images_used": len(views),
         "reflector_pixels": int(n_pixels),
@@ -562,7 +573,7 @@ def fit_illumination_frames(
     if len(fits) > 1:
         report.residuals["captures"] = [
             {"name": f.capture.name, "images": len(f.views), "residual_rms": round(float(f.fit.residual_rms), 5),
-             "irradiance": f.capture.irradiance}
+             "irradiance": f.capture.irradiance, "centre_brightness": round(f.centre_brightness, 5)}
             for f in fits
         ]
     report.seconds = time.perf_counter() - t0
@@ -612,6 +623,12 @@ def add_captures(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
     ``capture`` dimension, and which capture each reflector image belongs to."""
     caps = result.captures
     s = np.stack([np.asarray(c.fit.spectral_factor, dtype=np.float64) for c in caps])
+    if len(caps) > 1:
+        # Each fit's S has its own gauge (median B = 1 over the pixels that capture saw); the
+        # light of capture c is S_c times its reflector-centre brightness, relative to the
+        # first capture's so that capture 0 keeps the store's S (illumination.centre_brightness).
+        centre = np.array([c.centre_brightness for c in caps])
+        s = s * (centre / centre[0])[:, None]
     level, _ = illumination.split_level(s)
     times = np.array([np.datetime64(int(round(c.capture.time_s * 1e9)), "ns") if np.isfinite(c.capture.time_s)
                       else np.datetime64("NaT", "ns") for c in caps], dtype="datetime64[ns]")
@@ -621,7 +638,8 @@ def add_captures(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
         capture_time=("capture", times, {"long_name": "mean time of the capture's frames (UTC)"}),
     )
     ds["capture_spectral_factor"] = (
-        ("capture", "band"), s, {"long_name": "spectral factor S of each reflector capture (Eq. 11-14, median B 1)"},
+        ("capture", "band"), s, {"long_name": "spectral factor S of each reflector capture (Eq. 11-14): the light at "
+                                              "the reflector centre, in the gauge of the first capture's S"},
     )
     ds["capture_level"] = (
         "capture", np.asarray(level, dtype=np.float64),

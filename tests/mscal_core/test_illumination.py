@@ -227,3 +227,21 @@ def test_colour_change_ignores_the_level():
     change = colour_change(np.stack([s0, tilted]))
     assert 0.018 < change[0] < 0.022
     assert colour_change(s0[None]).size == 0
+
+
+def test_centre_brightness_ignores_where_the_camera_looked_and_shadows():
+    """The median-B gauge depends on the part of a graded reflector in view; the plane fit's
+    centre value does not, and pixels in a shadow are left out."""
+    from mscal_core.illumination import centre_brightness
+
+    rng = np.random.default_rng(7)
+    uv = rng.uniform(-0.25, 0.25, (20000, 2))
+    light = 1.0 + 0.6 * uv[:, 0] - 0.3 * uv[:, 1]  # ~2:1 across the reflector, 1 at the centre
+    seen = uv[:, 0] > -0.1  # the camera saw mostly the bright side
+    b = light * (1.0 + 0.01 * rng.standard_normal(light.size))
+    assert np.median(b[seen]) > 1.02  # what the median gauge would call the level
+    assert centre_brightness(uv[seen], b[seen]) == pytest.approx(1.0, abs=0.003)
+    shadow = b.copy()
+    shadow[uv[:, 1] > 0.15] *= 0.6
+    assert centre_brightness(uv, shadow) == pytest.approx(1.0, abs=0.003)
+    assert np.isnan(centre_brightness(uv[:2], b[:2]))
