@@ -569,12 +569,11 @@ class _Pass:
 def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tuple[int, int, int], camera: Camera,
                 calib_path: Path, raw_dn: Path, indices: Sequence[Index],
                 roles: dict[str, dict[str, int]], export: Sequence[int], options: ApplyOptions, chash: str,
-                sat: int, frame_dn: Callable[[int], np.ndarray]) -> _Pass:
+                sat: int, frame_dn: Callable[[int], np.ndarray], calib: xr.Dataset) -> _Pass:
     """The light of each frame, normalisation, the output store's layout (metadata and
     coordinates; data written per frame) under a temporary name, and the plan of the frames'
     tasks."""
     frames = [str(f) for f in coords["frame"].values]
-    calib = open_calibration(calib_path)
     illum = illumination_plan(calib, frames, coords["time"].values, flight_dir, options.illumination)
     panel_reflectance = _panel_from(frame_dn, _effective_exposure(coords), calib_path, sat, illum)
     norm = normalisation(options, camera, frames, panel_reflectance)
@@ -780,7 +779,7 @@ def apply_flight(
                 hint="use a calibration of this camera",
             )
         return _start_pass(out, flight_dir, coords, shape, camera, calib_path, raw_path / "dn", indices,
-                           roles, export, options, chash, sat, frame_dn)
+                           roles, export, options, chash, sat, frame_dn, calib)
 
     t0 = time.perf_counter()
     cube = open_cube(flight_dir, camera, raw_path)
