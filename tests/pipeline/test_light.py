@@ -310,3 +310,12 @@ def test_report_shows_the_light_over_time_and_warns_on_colour_change(drifting, t
     assert not [w for w in report.calibration_warnings(one) if w.code == "light_colour_changed"]
     assert all("Light over time" not in c for c, _ in report.calibration_section(one).figures)
     assert any("Light over time" in c for c, _ in report.calibration_section(ds, [flight]).figures)
+
+
+def test_run_checks_the_illumination_mode_before_prefect_starts(drifting, tmp_path) -> None:
+    from pipeline.runner import check_run_inputs
+
+    root, _, _ = drifting
+    check_run_inputs(str(root / "session"), str(tmp_path / "out"), illumination="nearest")
+    with pytest.raises(InputError, match="--illumination 'cubic': use one of nearest, linear"):
+        check_run_inputs(str(root / "session"), str(tmp_path / "out"), illumination="cubic")
