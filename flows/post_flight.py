@@ -62,8 +62,9 @@ def list_flights(session: str) -> dict[str, str]:
 
 @task(**IO, task_run_name="apply-{name}")
 def apply_flight(name: str, flight_dir: str, calibration: str, out: str, normalise: str,
-                 dask_address: str | None) -> dict[str, Any]:
-    return runner.apply_one(flight_dir, calibration, out, normalise=normalise, dask_address=dask_address)
+                 dask_address: str | None, illumination: str = "linear") -> dict[str, Any]:
+    return runner.apply_one(flight_dir, calibration, out, normalise=normalise, dask_address=dask_address,
+                            illumination=illumination)
 
 
 @task(cache_policy=NO_CACHE)
@@ -96,6 +97,7 @@ def post_flight(
     cache_dir: str | None = None,
     work_dir: str | None = None,
     catalog_root: str | None = None,
+    illumination: Literal["nearest", "linear"] = "linear",
 ) -> dict[str, Any]:
     """Calibrate SESSION once and apply it to each of its flights; outputs in OUT.
 
@@ -105,6 +107,8 @@ def post_flight(
     ``work_dir``: where remote inputs and outputs are staged (default: a temporary folder).
     ``catalog_root``: the local output root whose STAC catalog is updated after the run
     (default: OUT itself; ``process_inbox`` gives its OUT_ROOT).
+    ``illumination``: how the light of several reflector captures is interpolated to each
+    frame's time (``nearest`` or ``linear``; issue 8).
     """
     log = get_run_logger()
     timings = runner.Timings()
@@ -128,7 +132,7 @@ def post_flight(
             with timings.step(f"apply_{name}"):
                 # apply reads the content-addressed cached store: its path changes when its content does
                 summaries[name] = apply_flight(name, flight_dir, plan.final_store, str(Path(paths.out) / "flights" / name),
-                                               normalise, dask_address)
+                                               normalise, dask_address, illumination)
             advance(1)
     with timings.step("report"):
         qa_markdown = write_report(paths.out, list(summaries))

@@ -25,7 +25,18 @@ import numpy as np
 
 from .errors import FitError, InputError
 
-__all__ = ["IlluminationFit", "eq16_reflectance", "fit_illumination"]
+__all__ = [
+    "FrameIllumination",
+    "INTERPOLATION_MODES",
+    "IlluminationFit",
+    "capture_weights",
+    "centre_brightness",
+    "colour_change",
+    "eq16_reflectance",
+    "fit_illumination",
+    "frame_illumination",
+    "split_level",
+]
 
 
 @dataclass(frozen=True, eq=False)
@@ -206,3 +217,174 @@ def eq16_reflectance(
     with np.errstate(invalid="ignore", divide="ignore"):
         out = tgt / ref * rs
     return np.where(np.isfinite(out) & (ref > 0), out, np.nan)
+
+
+# --------------------------------------------------------------------------- light over time (issue 8)
+
+#: Interpolation of the light between reflector captures (:func:`capture_weights`).
+INTERPOLATION_MODES = ("nearest", "linear")
+
+
+@dataclass(frozen=True, eq=False)
+class FrameIllumination:
+    """The light of each flight frame, from :func:`frame_illumination`.
+
+    - ``spectral_factor`` (n_frames, n_bands) ``S(lambda, tau) = level(tau) colour(lambda, tau)``.
+    - ``level`` (n_frames,) the overall brightness level ``beta(tau)``.
+    - ``colour`` (n_frames, n_bands) ``s(lambda, tau)``, geometric mean 1 over the bands.
+    - ``weights`` (n_frames, n_captures) the capture weights used (rows sum to 1).
+    - ``irradiance_used`` (n_frames,) bool: the frame's level came from its irradiance reading.
+    """
+
+    spectral_factor: np.ndarray
+    level: np.ndarray
+    colour: np.ndarray
+    weights: np.ndarray
+    irradiance_used: np.ndarray
+
+
+def split_level(spectral_factor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Split spectral factors into brightness level and colour: ``S(lambda) = beta s(lambda)``.
+
+    ``beta = exp(mean_lambda log S(lambda))`` (the geometric mean over the bands) and
+    ``s(lambda) = S(lambda) / beta`` (geometric mean 1). ``spectral_factor`` (n_bands,) or
+    (n_captures, n_bands); returns ``(beta, s)`` of shapes () / (n_captures,) and the input's.
+    Raises InputError unless every S is positive and finite.
+    """
+    s = np.asarray(spectral_factor, dtype=np.float64)
+    if s.ndim not in (1, 2) or s.shape[-1] < 1 or not np.all(np.isfinite(s) & (s > 0)):
+        raise InputError(f"spectral factors must be positive and finite, (n_bands,) or (n, n_bands); got shape {s.shape}")
+    level = np.exp(np.mean(np.log(s), axis=-1))
+    return level, s / np.expand_dims(level, -1)
+
+
+def capture_weights(capture_times: np.ndarray, frame_times: np.ndarray, mode: str = "linear") -> np.ndarray:
+    """Weights ``w[f, c]`` of the reflector captures for each frame time (rows sum to 1).
+
+    Times in seconds on one clock. ``nearest``: weight 1 on the capture closest in time (the
+    earlier one on a tie). ``linear``: between the two captures ``a < b`` that bracket the
+    frame, ``w_b = (tau - tau_a) / (tau_b - tau_a)``, ``w_a = 1 - w_b``; before the first and
+    after the last capture the light is held at that capture's (no extrapolation). One capture:
+    all weights 1. Raises InputError for an unknown mode, NaN times, or two captures at the
+    same time.
+    """
+    if mode not in INTERPOLATION_MODES:
+        raise InputError(f"illumination interpolation {mode!r}: use one of {', '.join(INTERPOLATION_MODES)}")
+    tc = np.asarray(capture_times, dtype=np.float64).ravel()
+    tf = np.asarray(frame_times, dtype=np.float64).ravel()
+    n_c = tc.size
+    if n_c < 1:
+        raise InputError("at least one reflector capture is needed")
+    w = np.zeros((tf.size, n_c))
+    if n_c == 1:
+        w[:, 0] = 1.0
+        return w
+    if not (np.all(np.isfinite(tc)) and np.all(np.isfinite(tf))):
+        raise InputError("every reflector capture and flight frame needs a time to interpolate the light")
+    order = np.argsort(tc, kind="stable")
+    ts = tc[order]
+    if np.any(np.diff(ts) <= 0):
+        raise InputError(f"two reflector captures have the same time ({ts.tolist()})")
+    rows = np.arange(tf.size)
+    if mode == "nearest":
+        k = np.clip(np.searchsorted(ts, tf, side="left"), 1, n_c - 1)
+        later = (ts[k] - tf) < (tf - ts[k - 1])
+        w[rows, order[np.where(later, k, k - 1)]] = 1.0
+        return w
+    clamped = np.clip(tf, ts[0], ts[-1])
+    k = np.clip(np.searchsorted(ts, clamped, side="right"), 1, n_c - 1)
+    wb = (clamped - ts[k - 1]) / (ts[k] - ts[k - 1])
+    w[rows, order[k - 1]] += 1.0 - wb
+    w[rows, order[k]] += wb
+    return w
+
+
+def frame_illumination(
+    capture_spectral_factor: np.ndarray,
+    capture_times: np.ndarray,
+    frame_times: np.ndarray,
+    mode: str = "linear",
+    *,
+    capture_irradiance: np.ndarray | None = None,
+    frame_irradiance: np.ndarray | None = None,
+) -> FrameIllumination:
+    """The light of each frame from the reflector captures (Eq. 11-14 per capture) and,
+    optionally, an irradiance sensor.
+
+    Per capture ``c`` (``capture_spectral_factor`` (n_captures, n_bands), its S from
+    Eq. 11-14 with median reflector B = 1): ``S_c(lambda) = beta_c s_c(lambda)``
+    (:func:`split_level`). With the weights ``w`` of :func:`capture_weights`:
+
+    - colour: ``s(lambda, tau) = sum_c w_c(tau) s_c(lambda)``;
+    - level without irradiance: ``beta(tau) = sum_c w_c(tau) beta_c``;
+    - level with irradiance readings ``E`` (any unit, the same sensor for captures and frames;
+      ``capture_irradiance`` (n_captures,), ``frame_irradiance`` (n_frames,)): the captures
+      anchor the scale, ``beta(tau) = E(tau) sum_c w_c(tau) beta_c / E_c``: the sensor's ratio
+      carries the level between (and beyond) the captures. A frame without a reading (NaN),
+      or any capture without one, falls back to the interpolated level.
+
+    ``S(lambda, tau) = beta(tau) s(lambda, tau)``. Times in seconds (see
+    :func:`capture_weights`).
+    """
+    s_c = np.asarray(capture_spectral_factor, dtype=np.float64)
+    if s_c.ndim == 1:
+        s_c = s_c[None]
+    beta_c, colour_c = split_level(s_c)
+    w = capture_weights(capture_times, frame_times, mode)
+    colour = w @ colour_c
+    level = w @ beta_c
+    used = np.zeros(w.shape[0], dtype=bool)
+    if capture_irradiance is not None and frame_irradiance is not None:
+        e_c = np.asarray(capture_irradiance, dtype=np.float64).ravel()
+        e_f = np.asarray(frame_irradiance, dtype=np.float64).ravel()
+        if e_c.size != s_c.shape[0] or e_f.size != w.shape[0]:
+            raise InputError(
+                f"irradiance readings: {e_c.size} for {s_c.shape[0]} captures and {e_f.size} for {w.shape[0]} frames"
+            )
+        if np.all(np.isfinite(e_c) & (e_c > 0)):
+            used = np.isfinite(e_f) & (e_f > 0)
+            scale = w @ (beta_c / e_c)
+            level = np.where(used, np.where(used, e_f, 1.0) * scale, level)
+    return FrameIllumination(
+        spectral_factor=level[:, None] * colour, level=level, colour=colour, weights=w, irradiance_used=used
+    )
+
+
+def colour_change(capture_spectral_factor: np.ndarray) -> np.ndarray:
+    """Largest relative change of the light's colour between consecutive captures:
+    ``max_lambda |s_{c+1}(lambda) / s_c(lambda) - 1|`` (n_captures - 1,), with ``s`` the colour
+    of :func:`split_level` (the level removed, so a passing cloud does not count)."""
+    _, colour = split_level(np.atleast_2d(np.asarray(capture_spectral_factor, dtype=np.float64)))
+    if colour.shape[0] < 2:
+        return np.zeros(0)
+    return np.max(np.abs(colour[1:] / colour[:-1] - 1.0), axis=1)
+
+
+def centre_brightness(uv: np.ndarray, brightness: np.ndarray, *, reject: float = 0.1, iterations: int = 3) -> float:
+    """Brightness at the reflector's centre from a plane fit ``B(u, v) = a + b u + c v``: ``a``.
+
+    ``uv`` (n, 2) reflector-plane coordinates (metres, origin at the reflector's centre) of
+    the pixels, ``brightness`` (n,) their B (Eq. 14). Least squares, then ``iterations``
+    refits without the pixels more than ``reject`` (relative) off the plane, i.e. a shadow or
+    a glint. The median-B gauge of :func:`fit_illumination` depends on which part of a
+    non-uniformly lit reflector the camera sees (pose, crop); for a light that is linear over
+    the reflector, ``a`` does not, so captures under different light compare by it (issue 8).
+    NaN when fewer than 3 finite pixels remain.
+    """
+    p = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
+    b = np.asarray(brightness, dtype=np.float64).ravel()
+    keep = np.all(np.isfinite(p), axis=1) & np.isfinite(b)
+    a = float("nan")
+    for _ in range(int(iterations) + 1):
+        if np.count_nonzero(keep) < 3:
+            return float("nan")
+        design = np.column_stack([np.ones(np.count_nonzero(keep)), p[keep]])
+        coef, *_ = np.linalg.lstsq(design, b[keep], rcond=None)
+        a = float(coef[0])
+        pred = coef[0] + p @ coef[1:]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            new = np.isfinite(b) & np.all(np.isfinite(p), axis=1) & (np.abs(b / pred - 1.0) <= reject)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+    return a

@@ -46,6 +46,7 @@ from .chunks import FLAT_CHUNK_KEYS, FrameChunks
 from .discover import quarantine_entry
 from .ingest import FRAME_COORDS, Cube, _Writer, frame_coords, frame_row, ingest_flight, open_cube, read_frame, shape_problem
 from .session import FrameRecord
+from .light import DEFAULT_MODE, IlluminationPlan, illumination_plan, varies_in_time
 from .store import open_calibration
 from .writers import TMP_MARK, BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
 
@@ -88,10 +89,12 @@ class ApplyOptions:
     export_bands: tuple[str, ...] | None = None
     indices: tuple[str, ...] = ("ndvi", "ndre")
     strict: bool = False
+    illumination: str = DEFAULT_MODE  # nearest | linear: light between reflector captures (issue 8)
 
     def fingerprint(self) -> dict[str, Any]:
         d = asdict(self)
         d.pop("strict")
+        d.pop("illumination")  # in the fingerprint only when the light varies (see _fingerprint)
         if self.panel is not None:
             d["panel"] = {"frame": self.panel.frame, "box": list(self.panel.box), "reflectance": repr(self.panel.reflectance)}
         return d
@@ -109,9 +112,13 @@ class ApplyResult:
 
 
 def calibration_hash(ds: xr.Dataset) -> str:
-    """sha256 of the calibration's arrays (U, V, S) and camera: what Eq. 15 depends on."""
+    """sha256 of the calibration's arrays (U, V, S) and camera: what Eq. 15 depends on; with
+    light that varies in time (issue 8) also the captures' S, level, time and irradiance."""
     h = hashlib.sha256(str(ds.attrs.get("camera")).encode())
-    for name in ("inverse_response", "vignetting", "spectral_factor"):
+    names = ["inverse_response", "vignetting", "spectral_factor"]
+    if varies_in_time(ds):
+        names += ["capture_spectral_factor", "capture_level", "capture_time", "capture_irradiance"]
+    for name in names:
         arr = np.ascontiguousarray(ds[name].values)
         h.update(name.encode())
         h.update(str(arr.dtype).encode() + str(arr.shape).encode())
@@ -336,7 +343,7 @@ def _tables_of(key: tuple[str, int]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, int], indices: Sequence[Index],
-                    options: ApplyOptions) -> xr.Dataset:
+                    options: ApplyOptions, illum: IlluminationPlan | None = None) -> xr.Dataset:
     """``reflectance.zarr`` as a lazy dataset (coordinates, attributes, variables of zeros
     one chunk per frame); the apply pass writes its data frame by frame."""
     n = coords.sizes.get("frame", 0)
@@ -360,6 +367,17 @@ def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, i
                                  {"long_name": "vegetation (Otsu threshold of NDVI per frame)",
                                   "flag_values": [0, 1, 255], "flag_meanings": "other vegetation undefined"})
     ds.attrs.update({"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__})
+    if illum is not None:
+        ds = ds.assign_coords(
+            illumination_level=("frame", illum.level.astype(np.float64),
+                                {"long_name": "brightness level beta of the light at the frame's time (issue 8)"}),
+            illumination_scale=(("frame", "band"), illum.scale.astype(np.float64),
+                                {"long_name": "factor on Eq. 15 reflectance: S / S(lambda, time) (issue 8)"}),
+            irradiance=("frame", illum.irradiance.astype(np.float64),
+                        {"long_name": "sun-sensor irradiance of the frame (NaN: none)"}),
+        )
+        ds.attrs["illumination_mode"] = illum.mode
+        ds.attrs["illumination_captures"] = list(illum.captures)
     return ds
 
 
@@ -392,6 +410,7 @@ class FrameJob:
     t: float  # effective exposure, exposure_ms x gain
     tags: FrameTags
     rec: FrameRecord | None = None
+    scale: tuple[float, ...] | None = None  # per band: S / S(lambda, time) (issue 8); None: 1
 
 
 @dataclass(frozen=True)
@@ -428,7 +447,8 @@ def process_frame(plan: FramePlan, job: FrameJob) -> FrameOutcome:
         write_frame(plan.raw_dn, job.index, dn)
         tags = replace(tags, capture_uuid=capture_uuid(plan.camera, sha))
     lut, inv_v = _tables(str(plan.calibration))
-    refl = eq15_fast(dn[None], lut, inv_v, job.t, plan.sat)[0]
+    refl = eq15_fast(dn[None], lut, inv_v, job.t, plan.sat,
+                     None if job.scale is None else np.asarray(job.scale)[None])[0]
     kind, value = plan.norm
     if kind == "scalar":
         refl *= np.float32(value)
@@ -540,17 +560,25 @@ class _Pass:
     coords: xr.Dataset
     plan: FramePlan
     tmp_store: Path
+    illum: IlluminationPlan | None = None
+
+    def scale(self, f: int) -> tuple[float, ...] | None:
+        """Frame ``f``'s illumination factors per band (None: the store's S)."""
+        return None if self.illum is None else tuple(float(v) for v in self.illum.scale[f])
 
 
 def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tuple[int, int, int], camera: Camera,
                 calib_path: Path, raw_dn: Path, indices: Sequence[Index],
                 roles: dict[str, dict[str, int]], export: Sequence[int], options: ApplyOptions, chash: str,
-                sat: int, panel_reflectance: Callable[[int], np.ndarray]) -> _Pass:
-    """Normalisation, the output store's layout (metadata and coordinates; data written per
-    frame) under a temporary name, and the plan of the frames' tasks."""
+                sat: int, frame_dn: Callable[[int], np.ndarray], calib: xr.Dataset) -> _Pass:
+    """The light of each frame, normalisation, the output store's layout (metadata and
+    coordinates; data written per frame) under a temporary name, and the plan of the frames'
+    tasks."""
     frames = [str(f) for f in coords["frame"].values]
+    illum = illumination_plan(calib, frames, coords["time"].values, flight_dir, options.illumination)
+    panel_reflectance = _panel_from(frame_dn, _effective_exposure(coords), calib_path, sat, illum)
     norm = normalisation(options, camera, frames, panel_reflectance)
-    ds = output_template(coords, camera, cube_shape, indices, options)
+    ds = output_template(coords, camera, cube_shape, indices, options, illum)
     ds.attrs.update({"calibration_sha256": chash, "source": str(flight_dir)})
     tmp_store = out / f".reflectance.zarr{TMP_MARK}{uuid.uuid4().hex[:8]}"
     encoding = {v: {"chunks": (1, *ds[v].shape[1:]), "compressors": OUTPUT_COMPRESSORS,
@@ -571,18 +599,19 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
     )
     for sub in ("photogrammetry", "ndvi"):
         (out / sub).mkdir(exist_ok=True)
-    return _Pass(coords, plan, tmp_store)
+    return _Pass(coords, plan, tmp_store, illum)
 
 
 def _effective_exposure(coords: xr.Dataset) -> np.ndarray:
     return (coords["exposure_ms"] * coords["gain"]).values.astype(np.float64)
 
 
-def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path: Path, sat: int
-                ) -> Callable[[int], np.ndarray]:
+def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path: Path, sat: int,
+                illum: IlluminationPlan | None = None) -> Callable[[int], np.ndarray]:
     def reflectance(f: int) -> np.ndarray:
         lut, inv_v = _tables(str(calib_path))
-        return eq15_fast(plan_dn(f)[None], lut, inv_v, float(t[f]), sat)[0]
+        scale = None if illum is None else illum.scale[f][None]
+        return eq15_fast(plan_dn(f)[None], lut, inv_v, float(t[f]), sat, scale)[0]
     return reflectance
 
 
@@ -615,14 +644,15 @@ def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_p
         assert dn is not None
         return dn
 
-    ps = start(coords, _panel_from(file_dn, t, calib_path, sat))
+    ps = start(coords, file_dn)
     writer = _Writer(cube.path, cube.group, cube.committed, cube.shape, cube.camera, commit_every=len(recs) + 1,
                      pool=None, workers=1)  # type: ignore[arg-type]  (no chunk writes of its own)
     seen: set[str] = set()
     outcomes: list[FrameOutcome] = []
     for b0 in range(0, len(recs), batch):
         first = writer.reserve(min(batch, len(recs) - b0))
-        jobs = [FrameJob(first + k, recs[f].name, float(t[f]), _frame_tags(coords, f, cube.camera), recs[f])
+        jobs = [FrameJob(first + k, recs[f].name, float(t[f]), _frame_tags(coords, f, cube.camera), recs[f],
+                         ps.scale(f))
                 for k, f in enumerate(range(b0, min(b0 + batch, len(recs))))]
         results = runner.run(ps.plan, jobs)
         for job, res in zip(jobs, results):
@@ -647,19 +677,31 @@ def _cube_pass(out: Path, runner: Runner, start: Callable[..., _Pass], calib_pat
     coords = xr.Dataset(coords={c: ("frame", raw[c].values, dict(raw[c].attrs)) for c in FRAME_COORDS})
     t = _effective_exposure(coords)
     raw_dn = out / "raw.zarr" / "dn"
-    ps = start(coords, _panel_from(lambda f: read_frame_chunk(raw_dn, f), t, calib_path, sat))
-    jobs = [FrameJob(f, str(name), float(t[f]), _frame_tags(coords, f, camera))
+    ps = start(coords, lambda f: read_frame_chunk(raw_dn, f))
+    jobs = [FrameJob(f, str(name), float(t[f]), _frame_tags(coords, f, camera), scale=ps.scale(f))
             for f, name in enumerate(coords["frame"].values)]
     return ps, runner.run(ps.plan, jobs)
 
 
-def _fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions) -> dict[str, Any]:
+def _illumination_record(ps: _Pass, calib: xr.Dataset, options: ApplyOptions) -> dict[str, Any]:
+    """run.json's ``illumination``: the mode and each frame's factors when the light varies
+    in time (issue 8), else that the store's S was used for every frame."""
+    if ps.illum is None:
+        n = calib.sizes.get("capture", 1)
+        return {"varies_in_time": False, "captures": int(n)}
+    return {"varies_in_time": True, **ps.illum.summary([str(f) for f in ps.coords["frame"].values])}
+
+
+def _fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
+                 illum: IlluminationPlan | None = None) -> dict[str, Any]:
     fingerprint = {
         "frames_sha256": hashlib.sha256("".join(map(str, shas)).encode()).hexdigest(),
         "calibration_sha256": chash,
         "options": options.fingerprint(),
         "mscal_version": mscal_core.__version__,
     }
+    if illum is not None:  # light that varies in time: the mode and the factors (readings) count
+        fingerprint["illumination"] = {"mode": illum.mode, "scale_sha256": illum.digest()}
     return json.loads(json.dumps(fingerprint))  # as it reads back from run.json
 
 
@@ -731,7 +773,7 @@ def apply_flight(
     _clean_temporaries(out)
     raw_path = out / "raw.zarr"
 
-    def start(coords: xr.Dataset, panel: Callable[[int], np.ndarray]) -> _Pass:
+    def start(coords: xr.Dataset, frame_dn: Callable[[int], np.ndarray]) -> _Pass:
         shape = tuple(xr.open_zarr(raw_path)["dn"].shape[1:])
         v_shape = calib["vignetting"].shape[1:]
         if tuple(v_shape) != shape[1:]:
@@ -740,7 +782,7 @@ def apply_flight(
                 hint="use a calibration of this camera",
             )
         return _start_pass(out, flight_dir, coords, shape, camera, calib_path, raw_path / "dn", indices,
-                           roles, export, options, chash, sat, panel)
+                           roles, export, options, chash, sat, frame_dn, calib)
 
     t0 = time.perf_counter()
     cube = open_cube(flight_dir, camera, raw_path)
@@ -763,7 +805,9 @@ def apply_flight(
             if not shas:
                 raise FrameError("no usable frames in the flight (all quarantined)", path=flight_dir,
                                  hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
-            fingerprint = _fingerprint(shas, chash, options)
+            illum = illumination_plan(calib, [str(f) for f in raw["frame"].values], raw["time"].values,
+                                      flight_dir, options.illumination)
+            fingerprint = _fingerprint(shas, chash, options, illum)
             previous = _up_to_date(out, fingerprint)
             if previous is not None:
                 previous["quarantined"] = quarantined
@@ -793,7 +837,8 @@ def apply_flight(
         "scheduler": runner.scheduler,
         "single_pass": single,
         "timings_s": {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
-        "fingerprint": _fingerprint(shas, chash, options),
+        "illumination": _illumination_record(ps, calib, options),
+        "fingerprint": _fingerprint(shas, chash, options, ps.illum),
     }
     _write_json_atomic(out / RUN_JSON, run)
     return ApplyResult(out, run, up_to_date=False, quarantined=quarantined)

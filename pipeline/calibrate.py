@@ -24,7 +24,9 @@ from mscal_core.errors import FitError, SessionError
 from mscal_core.mosaic import band_offsets
 
 from .catalog import Camera, load_camera
-from .session import FrameRecord, Session, load_session, read_bands, read_frame_table
+from .camera_meta import xmp_irradiance
+from .ingest import NAT, _time_ns
+from .session import FRAMES_CSV, IMAGE_SUFFIXES, FrameRecord, Session, load_session, read_bands, read_frame_table
 from .store import content_hashes, new_dataset, open_calibration, write_store
 
 log = logging.getLogger("mscal.calibrate")
@@ -344,11 +346,120 @@ def add_vignetting(ds: xr.Dataset, fits: Sequence[vignetting.VignettingFit], rep
 # --------------------------------------------------------------------------- illumination (Eq. 11-14)
 
 
+#: Reflector frames more than this apart in time are different captures (seconds). A capture
+#: (a few images of the reflector, turned or re-framed) takes well under a minute; the
+#: captures the issue asks for (before, during, after a flight) are minutes apart. Frames of
+#: one folder without times are one capture; subfolders of ``reflector/`` are always one
+#: capture each, whatever their times.
+CAPTURE_GAP_S = 120.0
+
+
+@dataclass(frozen=True)
+class ReflectorCapture:
+    """Reflector images taken under one light: ``frames`` are indices into the records of
+    :func:`reflector_captures`; ``time_s`` the mean frame time (s since the epoch, UTC; NaN
+    if unknown); ``irradiance`` the median sun-sensor reading of its frames (frames.csv
+    ``irradiance``, else the files' XMP Irradiance), None if any frame has none."""
+
+    name: str
+    frames: tuple[int, ...]
+    time_s: float
+    irradiance: float | None
+    folder: Path
+
+
+def _time_s(rec: FrameRecord) -> float:
+    ns = _time_ns(rec.time)
+    return float("nan") if ns == NAT else ns / 1e9
+
+
+def frame_irradiance(rec: FrameRecord) -> float | None:
+    """The sun-sensor reading of a frame: its frames.csv ``irradiance``, else its XMP Irradiance."""
+    return rec.irradiance if rec.irradiance is not None else xmp_irradiance(rec.path)
+
+
+def reflector_captures(folder: Path) -> tuple[list[FrameRecord], list[ReflectorCapture]]:
+    """The frames of ``reflector/`` and how they split into captures (issue 8).
+
+    Subfolders of ``folder`` that hold frames are one capture each (named after the
+    subfolder); frames directly in ``folder`` are a capture too (named ``reflector``).
+    Without subfolders, the frames are split where consecutive frame times are more than
+    :data:`CAPTURE_GAP_S` apart (frames.csv ``time`` or EXIF DateTimeOriginal); frames
+    without times are one capture. Records keep their folder's order (sorted by name), so a
+    session with one capture reads exactly as before. Captures are sorted by time.
+    """
+    subs = sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")) if folder.is_dir() else []
+    groups: list[tuple[str, Path, list[FrameRecord]]] = []
+    has_top = any(p.is_file() and (p.suffix.lower() in IMAGE_SUFFIXES or p.name == FRAMES_CSV)
+                  for p in folder.iterdir()) if folder.is_dir() else False
+    if not subs or has_top:
+        groups.append(("reflector", folder, read_frame_table(folder)))
+    for sub in subs:
+        groups.append((sub.name, sub, read_frame_table(sub)))
+    records: list[FrameRecord] = []
+    captures: list[ReflectorCapture] = []
+
+    def add(name: str, where: Path, idx: list[int]) -> None:
+        times = np.array([_time_s(records[i]) for i in idx])
+        irr = [frame_irradiance(records[i]) for i in idx]
+        time_s = float(np.mean(times)) if np.all(np.isfinite(times)) else float("nan")
+        level = float(np.median(irr)) if all(v is not None for v in irr) else None  # type: ignore[arg-type]
+        captures.append(ReflectorCapture(name, tuple(idx), time_s, level, where))
+
+    for name, where, recs in groups:
+        first = len(records)
+        records.extend(recs)
+        idx = list(range(first, len(records)))
+        if len(groups) > 1:
+            add(name, where, idx)
+            continue
+        times = np.array([_time_s(r) for r in recs])
+        known = np.isfinite(times)
+        if not known.any():
+            add(name, where, idx)
+            continue
+        if not known.all():
+            missing = ", ".join(recs[i].path.name for i in np.flatnonzero(~known)[:3])
+            raise SessionError(
+                f"reflector frame(s) {missing} have no time while others do: the frames cannot be "
+                "split into captures",
+                path=where / FRAMES_CSV,
+                hint="give every reflector frame a time, or put each capture in its own subfolder of reflector/",
+            )
+        order = np.argsort(times, kind="stable")
+        cut = np.flatnonzero(np.diff(times[order]) > CAPTURE_GAP_S) + 1
+        parts = np.split(order, cut)
+        for k, part in enumerate(parts):
+            add(name if len(parts) == 1 else f"capture_{k}", where, sorted(first + int(i) for i in part))
+    if len(captures) > 1:
+        undated = [c.name for c in captures if not np.isfinite(c.time_s)]
+        if undated:
+            raise SessionError(
+                f"reflector capture(s) {', '.join(undated)} have no time: several captures need times to "
+                "interpolate the light between them",
+                path=folder,
+                hint="add a time column (ISO 8601) to their frames.csv",
+            )
+        captures.sort(key=lambda c: c.time_s)
+    return records, captures
+
+
+@dataclass
+class CaptureFit:
+    """The illumination fit of one reflector capture: which of the result's views are its."""
+
+    capture: ReflectorCapture
+    fit: illumination.IlluminationFit
+    views: tuple[int, ...]  # indices into IlluminationResult.views
+    centre_brightness: float = float("nan")  # B at the reflector centre (plane fit); NaN: one capture
+
+
 @dataclass
 class IlluminationResult:
     """The illumination fit and, for the QA report, per reflector image used: its
     brightness map ``B(x)`` on the band grid (NaN off the reflector), its DN in ``qa_band``,
-    its effective exposure and file name."""
+    its effective exposure and file name. ``fit`` is the first capture's (its S is the store's
+    ``spectral_factor``); ``captures`` holds every capture's fit (issue 8)."""
 
     fit: illumination.IlluminationFit
     report: StageReport
@@ -357,6 +468,7 @@ class IlluminationResult:
     qa_band: int = 0
     qa_dn: np.ndarray | None = None  # (image, H, W) uint16
     exposures: np.ndarray | None = None  # (image,) effective exposure, ms
+    captures: list[CaptureFit] = field(default_factory=list)
 
 
 def qa_band(camera: Camera) -> int:
@@ -370,17 +482,30 @@ def qa_band(camera: Camera) -> int:
 def fit_illumination_frames(
     session: Session, inverse_response: np.ndarray, saturation_dn: np.ndarray, vignetting_maps: np.ndarray
 ) -> IlluminationResult:
-    """Eq. 11-14 from the session's ``reflector/`` image(s)."""
+    """Eq. 11-14 from the session's ``reflector/`` image(s), per capture (:func:`reflector_captures`):
+    S and B of each capture's images under its own light."""
     t0 = time.perf_counter()
     camera = session.camera
     report = StageReport("illumination")
     folder = session.reflector_dir
-    recs, stack, views = load_marker_frames(session, folder, inverse_response, report)
+    if not folder.is_dir():
+        raise SessionError("frame folder not found", path=folder)
+    recs, captures = reflector_captures(folder)
+    stack = read_stack(recs, camera)
+    report.inputs = content_hashes([r.path for r in recs], session.root)
+    views = find_views(recs, stack, session, inverse_response, report)
+    if not views:
+        raise FitError(
+            f"marker {session.marker.dictionary} id {session.marker.id} was not found in any of the "
+            f"{len(recs)} frames",
+            path=folder,
+            hint="check marker.dictionary and marker.id in session.yaml, and that the marker is in view and sharp",
+        )
     rho = session.reflector.reflectance.at(camera.wavelengths)
     shape = stack.shape[2:]
     centre = tuple(_offsets(camera).mean(axis=0))
     rays = geometry.pixel_rays(session.intrinsics, shape, centre)
-    columns, image_index, masks = [], [], []
+    columns, masks, plane = [], [], []
     n_sat = np.zeros(camera.n_bands, dtype=np.int64)
     for k, (i, view) in enumerate(views):
         uv = geometry.pixels_to_plane(view.pose, session.intrinsics, shape, rays=rays)
@@ -394,36 +519,70 @@ def fit_illumination_frames(
             with np.errstate(divide="ignore", invalid="ignore"):
                 rad[b] = e / vignetting_maps[b][mask]
         columns.append(rad)
-        image_index.append(np.full(rad.shape[1], k))
         masks.append(mask)
-    radiance = np.concatenate(columns, axis=1)
-    if radiance.shape[1] < 100:
-        raise FitError(
-            f"only {radiance.shape[1]} reflector pixels found",
-            path=folder,
-            hint="take the reflector image closer, or check reflector.size_m in session.yaml",
-        )
-    fit = illumination.fit_illumination(radiance, rho, image_index=np.concatenate(image_index))
+        plane.append(uv[mask] if len(captures) > 1 else None)
+    n_pixels = sum(c.shape[1] for c in columns)
     maps = np.full((len(views), *shape), np.nan, dtype=np.float32)
-    start = 0
-    for k, mask in enumerate(masks):
-        n = int(mask.sum())
-        maps[k][mask] = fit.brightness[start:start + n]
-        start += n
+    image_brightness = np.full(len(views), np.nan)
+    fits: list[CaptureFit] = []
+    for cap in captures:
+        mine = [k for k, (i, _) in enumerate(views) if i in set(cap.frames)]
+        where = folder if len(captures) == 1 else cap.folder
+        label = "" if len(captures) == 1 else f"capture {cap.name}: "
+        if not mine:
+            raise FitError(
+                f"{label}marker {session.marker.dictionary} id {session.marker.id} was not found in any of its "
+                f"{len(cap.frames)} frames",
+                path=where,
+                hint="check that the marker is in view and sharp, or remove the capture",
+            )
+        radiance = np.concatenate([columns[k] for k in mine], axis=1)
+        if radiance.shape[1] < 100:
+            raise FitError(
+                f"{label}only {radiance.shape[1]} reflector pixels found",
+                path=where,
+                hint="take the reflector image closer, or check reflector.size_m in session.yaml",
+            )
+        image_index = np.concatenate([np.full(columns[k].shape[1], j) for j, k in enumerate(mine)])
+        fit = illumination.fit_illumination(radiance, rho, image_index=image_index)
+        start = 0
+        for j, k in enumerate(mine):
+            n = int(masks[k].sum())
+            maps[k][masks[k]] = fit.brightness[start:start + n]
+            start += n
+            if fit.image_brightness is not None:
+                image_brightness[k] = fit.image_brightness[j]
+        centre = float("nan")
+        if len(captures) > 1:  # the light's level at the reflector centre, for comparing captures
+            start = 0
+            per_image = []
+            for k in mine:
+                n = int(masks[k].sum())
+                per_image.append(illumination.centre_brightness(plane[k], fit.brightness[start:start + n]))
+                start += n
+            centre = float(np.nanmedian(per_image)) if np.isfinite(per_image).any() else 1.0
+        fits.append(CaptureFit(cap, fit, tuple(mine), centre))
     report.residuals = {
         "images_used": len(views),
-        "reflector_pixels": int(radiance.shape[1]),
+        "reflector_pixels": int(n_pixels),
         "reflector_pixels_per_image": [int(m.sum()) for m in masks],
-        "residual_rms": round(float(fit.residual_rms), 5),
-        "image_brightness": [round(float(v), 5) for v in (fit.image_brightness if fit.image_brightness is not None else [])],
-        "saturated_fraction": [round(float(v), 6) for v in n_sat / max(radiance.shape[1], 1)],
+        "residual_rms": round(float(max(f.fit.residual_rms for f in fits)), 5),
+        "image_brightness": [round(float(v), 5) for v in image_brightness],
+        "saturated_fraction": [round(float(v), 6) for v in n_sat / max(n_pixels, 1)],
     }
+    if len(fits) > 1:
+        report.residuals["captures"] = [
+            {"name": f.capture.name, "images": len(f.views), "residual_rms": round(float(f.fit.residual_rms), 5),
+             "irradiance": f.capture.irradiance, "centre_brightness": round(f.centre_brightness, 5)}
+            for f in fits
+        ]
     report.seconds = time.perf_counter() - t0
     qb = qa_band(camera)
     return IlluminationResult(
-        fit, report, views, brightness_maps=maps, qa_band=qb,
+        fits[0].fit, report, views, brightness_maps=maps, qa_band=qb,
         qa_dn=np.stack([stack[i, qb] for i, _ in views]),
         exposures=np.array([v.record.effective_exposure for _, v in views]),
+        captures=fits,
     )
 
 
@@ -432,7 +591,9 @@ def add_illumination(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
     ds["spectral_factor"] = (
         "band",
         np.asarray(result.fit.spectral_factor, dtype=np.float64),
-        {"long_name": "spectral factor S (Eq. 11-14); reflector brightness B has median 1"},
+        {"long_name": "spectral factor S (Eq. 11-14); reflector brightness B has median 1"
+                      + ("; of the first reflector capture (capture_spectral_factor: every capture)"
+                         if len(result.captures) > 1 else "")},
     )
     if result.brightness_maps is not None and result.qa_dn is not None:
         # For the QA report (issue 5): B(x) of each reflector image and its DN in one band,
@@ -451,7 +612,48 @@ def add_illumination(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
             ("reflector_image", "y", "x"), result.qa_dn.astype(np.uint16),
             {"long_name": "reflector image DN in one band (QA report)", "band": int(result.qa_band)},
         )
+    if result.captures:
+        ds = add_captures(ds, result)
     ds.attrs["illumination"] = result.report.as_attrs()
+    return ds
+
+
+def add_captures(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
+    """Per reflector capture (issue 8): its S, brightness level, time and irradiance, on a
+    ``capture`` dimension, and which capture each reflector image belongs to."""
+    caps = result.captures
+    s = np.stack([np.asarray(c.fit.spectral_factor, dtype=np.float64) for c in caps])
+    if len(caps) > 1:
+        # Each fit's S has its own gauge (median B = 1 over the pixels that capture saw); the
+        # light of capture c is S_c times its reflector-centre brightness, relative to the
+        # first capture's so that capture 0 keeps the store's S (illumination.centre_brightness).
+        centre = np.array([c.centre_brightness for c in caps])
+        s = s * (centre / centre[0])[:, None]
+    level, _ = illumination.split_level(s)
+    times = np.array([np.datetime64(int(round(c.capture.time_s * 1e9)), "ns") if np.isfinite(c.capture.time_s)
+                      else np.datetime64("NaT", "ns") for c in caps], dtype="datetime64[ns]")
+    ds = ds.assign_coords(
+        capture=np.arange(len(caps)),
+        capture_name=("capture", np.array([c.capture.name for c in caps], dtype=object)),
+        capture_time=("capture", times, {"long_name": "mean time of the capture's frames (UTC)"}),
+    )
+    ds["capture_spectral_factor"] = (
+        ("capture", "band"), s, {"long_name": "spectral factor S of each reflector capture (Eq. 11-14): the light at "
+                                              "the reflector centre, in the gauge of the first capture's S"},
+    )
+    ds["capture_level"] = (
+        "capture", np.asarray(level, dtype=np.float64),
+        {"long_name": "brightness level of each capture: geometric mean of its S over the bands"},
+    )
+    ds["capture_irradiance"] = (
+        "capture", np.array([np.nan if c.capture.irradiance is None else c.capture.irradiance for c in caps]),
+        {"long_name": "median sun-sensor irradiance of the capture's frames (NaN: none)"},
+    )
+    if "reflector_image" in ds.coords:
+        owner = np.zeros(ds.sizes["reflector_image"], dtype=np.int32)
+        for c, cf in enumerate(caps):
+            owner[list(cf.views)] = c
+        ds = ds.assign_coords(reflector_capture=("reflector_image", owner))
     return ds
 
 

@@ -332,6 +332,53 @@ def factory_radiance(meta: CaptureMeta, dn: np.ndarray) -> np.ndarray:
     )
 
 
+# --------------------------------------------------------------------------- irradiance (issue 8)
+
+
+def xmp_irradiance(path: str | Path) -> float | None:
+    """The XMP ``Irradiance`` (downwelling light sensor) of a TIFF frame, else None.
+
+    Reads only the first page's tags (no pixels); a file that is not a TIFF or has no XMP
+    packet, or whose packet has no Irradiance, gives None (most cameras do not write one).
+    A present but unusable value (not a number, not positive) raises :class:`FrameError`
+    naming the file.
+    """
+    import tifffile
+
+    path = Path(path)
+    if path.suffix.lower() not in (".tif", ".tiff"):
+        return None
+    try:
+        with tifffile.TiffFile(path) as tif:
+            tag = tif.pages[0].tags.get(700)
+            packet = None if tag is None else tag.value
+    except (tifffile.TiffFileError, ValueError, OSError):
+        return None
+    if packet is None:
+        return None
+    try:
+        props = xmp_properties(packet, path)
+    except FrameError:
+        return None
+    values = _optional_floats(props, "Irradiance", path)
+    if not values:
+        return None
+    if not (math.isfinite(values[0]) and values[0] > 0):
+        raise FrameError(f"XMP Irradiance {values[0]!r} is not a positive number", path=path,
+                         hint="the sun sensor reading is unusable; remove the frame or give an irradiance column in frames.csv")
+    return float(values[0])
+
+
+def capture_irradiance(capture: "Capture") -> float | None:
+    """One irradiance level of a one-file-per-band capture: the mean of its bands' XMP
+    Irradiance (each band's sensor reading), None unless every band has one. Only ratios of
+    these levels are used (:func:`mscal_core.illumination.frame_illumination`)."""
+    values = [m.irradiance for m in capture.metas]
+    if not values or any(v is None or not v > 0 for v in values):
+        return None
+    return float(sum(values) / len(values))  # type: ignore[arg-type]
+
+
 # --------------------------------------------------------------------------- captures
 
 DEFAULT_CAPTURE_PATTERN = r"^(?P<capture>.+)_(?P<band>[0-9]+)\.tif$"

@@ -19,6 +19,7 @@ import click
 from mscal_core.errors import MscalError
 
 RESPONSE_METHODS = click.Choice(["forward", "alternating"])
+ILLUMINATION_MODES = click.Choice(["nearest", "linear"])  # mscal_core.illumination.INTERPOLATION_MODES
 
 
 def _summary(ds) -> str:  # noqa: ANN001 (xarray Dataset)
@@ -119,8 +120,12 @@ _stage_command("illumination")
 @click.option("--float32", "float32", is_flag=True, help="Photogrammetry TIFFs as float32 instead of uint16 x 32768.")
 @click.option("--export-bands", default=None, help="Comma-separated band names for the per-frame TIFFs (default: the camera's).")
 @click.option("--strict", is_flag=True, help="Exit non-zero if any frame was quarantined.")
+@click.option("--illumination", type=ILLUMINATION_MODES, default="linear", show_default=True,
+              help="Light of each frame between several reflector captures: the nearest capture in time, or "
+                   "linear in time (irradiance readings, if any, scale the brightness in both).")
 def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str | None, panel_reflectance: str | None,
-          reference: str, float32: bool, export_bands: str | None, strict: bool) -> None:
+          reference: str, float32: bool, export_bands: str | None, strict: bool,
+          illumination: str) -> None:
     """Reflectance (Eq. 15), indices and photogrammetry TIFFs for a FLIGHT folder; with
     --calibration factory, for a folder of one-file-per-band captures from their factory metadata."""
     from mscal_core.errors import InputError
@@ -149,7 +154,7 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
         normalise = "panel"
     opts = ApplyOptions(
         normalise=normalise, panel=spec, tiff_dtype="float32" if float32 else "uint16",
-        export_bands=bands, strict=strict,
+        export_bands=bands, strict=strict, illumination=illumination,
     )
     _report_apply(apply_flight(flight, calibration, out, opts), out, strict)
 
@@ -285,18 +290,22 @@ def _echo_run(record: dict) -> None:
 @click.option("--work-dir", default=None, help="Where remote (s3://) inputs and outputs are staged (default: a temporary folder).")
 @click.option("--catalog-root", default=None,
               help="Local output root whose STAC catalog (ROOT/catalog.json) is updated after the run (default: OUT).")
+@click.option("--illumination", type=ILLUMINATION_MODES, default="linear", show_default=True,
+              help="Light of each frame between several reflector captures: nearest or linear in time.")
 def run(session: str, out: str, response_method: str, normalise: str, dask_address: str | None,
-        cache_dir: str | None, work_dir: str | None, catalog_root: str | None) -> None:
+        cache_dir: str | None, work_dir: str | None, catalog_root: str | None,
+        illumination: str) -> None:
     """The whole post-flight flow on Prefect's embedded server: calibrate SESSION (cached by
     content) and apply it to every SESSION/flights/<name>; SESSION and OUT may be s3:// URLs."""
     from .runner import check_run_inputs
 
-    check_run_inputs(session, out, normalise=normalise, dask_address=dask_address, catalog_root=catalog_root)
+    check_run_inputs(session, out, normalise=normalise, dask_address=dask_address, catalog_root=catalog_root,
+                     illumination=illumination)
     if cache_dir:
         os.environ["MSCAL_CACHE_DIR"] = cache_dir  # before Prefect starts: its home follows
     record = _flows().post_flight(session=session, out=out, response_method=response_method, normalise=normalise,
                                   dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir,
-                                  catalog_root=catalog_root)
+                                  catalog_root=catalog_root, illumination=illumination)
     _echo_run(record)
 
 

@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
+import matplotlib
 import numpy as np
 import xarray as xr
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -35,6 +36,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import MaxNLocator
 
 from mscal_core.errors import InputError
+from mscal_core.illumination import colour_change, split_level
 from mscal_core.reflectance import eq15, ndvi
 
 from .catalog import Camera, load_camera
@@ -73,6 +75,12 @@ REFLECTOR_BRIGHTNESS_RATIO_MAX = 1.5
 #: factor 2 off the flight's median: clouds change the light by less over one flight, a
 #: wrong exposure_ms or gain by more.
 FRAME_LEVEL_RATIO_MAX = 2.0
+#: The light's colour (S with its level removed, ``mscal_core.illumination.colour_change``)
+#: may change by at most 2 % in any band between consecutive reflector captures. The light
+#: is interpolated between captures (issue 8); if a change was not linear in time, the
+#: interpolated colour can be off by up to about half of it mid-way, and mscal aims at 1 %.
+#: Above it, capture the reflector more often or re-fly in steadier light.
+CAPTURE_COLOUR_CHANGE_MAX = 0.02
 
 # --------------------------------------------------------------------------- sampling bounds
 
@@ -297,6 +305,56 @@ def plot_spectral_factor(ds: xr.Dataset) -> Figure:
     return fig
 
 
+def _seconds(times: np.ndarray) -> np.ndarray:
+    t = np.asarray(times).astype("datetime64[ns]")
+    return np.where(np.isnat(t), np.nan, t.astype(np.int64) / 1e9)
+
+
+def plot_light_over_time(ds: xr.Dataset, flights: Sequence["FlightResults"] = ()) -> Figure:
+    """The light over the session (issue 8): above, S of every band at each reflector capture
+    relative to the first capture's; below, the brightness level of each capture and, for
+    flights applied with light varying in time, of each frame; every flight frame's time is
+    marked (ticks at the bottom of both panels). Time in minutes from the first capture."""
+    s = ds["capture_spectral_factor"].values.astype(float)
+    tc = _seconds(ds["capture_time"].values)
+    level = ds["capture_level"].values.astype(float)
+    names = [str(n) for n in ds["capture_name"].values]
+    t0 = float(np.nanmin(tc)) if np.isfinite(tc).any() else 0.0
+    x = (tc - t0) / 60.0 if np.isfinite(tc).all() else np.arange(tc.size, dtype=float)
+    fig = Figure(figsize=(7.5, 5.0), layout="constrained")
+    ax1, ax2 = fig.add_subplot(2, 1, 1), fig.add_subplot(2, 1, 2)
+    wl = ds["wavelength"].values.astype(float)
+    cmap = matplotlib.colormaps["turbo"]
+    span = max(float(wl.max() - wl.min()), 1.0)
+    for b in np.argsort(wl):
+        ax1.plot(x, 100.0 * (s[:, b] / s[0, b] - 1.0), "o-", ms=3, lw=0.8,
+                 color=cmap((wl[b] - wl.min()) / span), label=f"{wl[b]:.0f} nm" if b in (int(np.argmin(wl)), int(np.argmax(wl))) else None)
+    ax1.set_ylabel("S(λ) / S(λ, first) - 1 (%)")
+    ax1.set_title("Spectral factor of each band at each reflector capture", fontsize=9)
+    ax2.plot(x, level / level[0], "s", color="k", ms=6, label="reflector captures")
+    for n, xi, li in zip(names, x, level / level[0]):
+        ax2.annotate(n, (xi, li), textcoords="offset points", xytext=(4, 4), fontsize=7)
+    for k, f in enumerate(flights):
+        ft = _seconds(f.reflectance["time"].values)
+        if not np.isfinite(ft).any():
+            continue
+        fx = (ft - t0) / 60.0
+        colour = f"C{k % 10}"
+        if "illumination_level" in f.reflectance.coords:
+            ax2.plot(fx, f.reflectance["illumination_level"].values / level[0], ".", color=colour, ms=4,
+                     label=f"{f.name}: frames")
+        for ax in (ax1, ax2):
+            ax.plot(fx, np.zeros_like(fx), "|", color=colour, ms=10, transform=ax.get_xaxis_transform(),
+                    label=f"{f.name}: frame times" if ax is ax1 else None)
+    ax2.set_ylabel("brightness level / first capture's")
+    ax2.set_xlabel("minutes from the first capture" if np.isfinite(tc).all() else "capture")
+    ax2.set_title("Brightness level (geometric mean of S over the bands)", fontsize=9)
+    for ax in (ax1, ax2):
+        ax.legend(fontsize=7, loc="best")
+        ax.grid(alpha=0.3)
+    return fig
+
+
 def _reflector_images(ds: xr.Dataset) -> list[str]:
     if "reflector_file" in ds.coords:
         return [str(v) for v in ds["reflector_file"].values]
@@ -323,12 +381,16 @@ def reflector_corrections(ds: xr.Dataset) -> list[dict[str, Any]]:
     t = ds["reflector_exposure_ms"].values.astype(float)
     b = int(ds["reflector_dn"].attrs.get("band", 0))
     U, V, S = (ds["inverse_response"].values[b], ds["vignetting"].values[b], ds["spectral_factor"].values[b])
+    if "reflector_capture" in ds.coords and "capture_spectral_factor" in ds:  # each image under its capture's light
+        S_of = ds["capture_spectral_factor"].values[ds["reflector_capture"].values, b]
+    else:
+        S_of = np.full(dn.shape[0], S)
     sat = int(ds["saturation_dn"].values[b]) if "saturation_dn" in ds else None
     out = []
     n = dn.shape[0]
     for k in range(n):
         mask = np.isfinite(B[k])
-        r15 = eq15(dn[k][None], U, t[k], V[None], np.array([S]), np.where(mask, B[k], np.nan)[None],
+        r15 = eq15(dn[k][None], U, t[k], V[None], np.array([S_of[k]]), np.where(mask, B[k], np.nan)[None],
                    saturation_dn=sat)[0]
         r15 = np.where(mask, r15, np.nan)
         ref = (k + 1) % n
@@ -461,6 +523,16 @@ def calibration_warnings(ds: xr.Dataset) -> list[QAWarning]:
     if rms > ILLUMINATION_RESIDUAL_RMS_MAX:
         out.append(QAWarning("illumination_residual", f"illumination fit residual {rms:.1%} rms",
                              rms, ILLUMINATION_RESIDUAL_RMS_MAX))
+    if "capture_spectral_factor" in ds and ds.sizes.get("capture", 1) > 1:
+        change = colour_change(ds["capture_spectral_factor"].values)
+        names = [str(n) for n in ds["capture_name"].values]
+        for c in np.flatnonzero(change > CAPTURE_COLOUR_CHANGE_MAX):
+            worst = int(np.argmax(np.abs(split_level(ds["capture_spectral_factor"].values[c + 1])[1]
+                                         / split_level(ds["capture_spectral_factor"].values[c])[1] - 1.0)))
+            out.append(QAWarning("light_colour_changed",
+                                 f"the light's colour changed {change[c]:.1%} (at {_band_name(ds, worst)}) between "
+                                 f"reflector captures {names[c]} and {names[c + 1]}: capture the reflector more "
+                                 "often, or re-fly in steadier light", float(change[c]), CAPTURE_COLOUR_CHANGE_MAX))
     ib = np.asarray(ires.get("image_brightness") or [], dtype=float)
     ib = ib[np.isfinite(ib) & (ib > 0)]
     if ib.size >= 2 and ib.max() / ib.min() > REFLECTOR_BRIGHTNESS_RATIO_MAX:
@@ -781,7 +853,7 @@ def skipped_table(ds: xr.Dataset) -> Table:
                  note="" if rows else "none")
 
 
-def calibration_section(ds: xr.Dataset) -> Section:
+def calibration_section(ds: xr.Dataset, flights: Sequence["FlightResults"] = ()) -> Section:
     sec = Section(f"Calibration: {ds.attrs.get('camera', '?')}", "calibration", calibration_warnings(ds),
                   [band_table(ds), skipped_table(ds)])
     plots: list[tuple[str, str, Callable[[xr.Dataset], Figure]]] = [
@@ -795,6 +867,9 @@ def calibration_section(ds: xr.Dataset) -> Section:
     for var, caption, fn in plots:
         if var in ds:
             sec.figures.append((caption, (lambda fn=fn: fn(ds))))
+    if "capture_spectral_factor" in ds and ds.sizes.get("capture", 1) > 1:
+        sec.figures.append(("Light over time: reflector captures and flight frames",
+                            lambda: plot_light_over_time(ds, flights)))
     return sec
 
 
@@ -831,7 +906,7 @@ def build_sections(calibration: str | Path | xr.Dataset | None = None,
     if ds is None and not fl and stats is None:
         raise InputError("nothing to report",
                          hint="give --calibration CALIB.zarr, --flight OUT_DIR and/or --stats TABLE.parquet")
-    sections = [calibration_section(ds)] if ds is not None else []
+    sections = [calibration_section(ds, fl)] if ds is not None else []
     sections += [flight_section(f, ds) for f in fl]
     if stats is not None:
         sections += season_sections(stats)
@@ -938,6 +1013,15 @@ def calibration_summary(ds: xr.Dataset) -> dict[str, Any]:
         "bands": [dict(zip(t.columns, row)) for row in t.rows], "stages": stages,
         "warnings": [asdict(w) for w in calibration_warnings(ds)],
     }
+    if "capture_spectral_factor" in ds:
+        change = colour_change(ds["capture_spectral_factor"].values)
+        out["reflector_captures"] = [
+            {"name": str(ds["capture_name"].values[c]),
+             "time": None if np.isnat(ds["capture_time"].values[c]) else str(ds["capture_time"].values[c])[:23] + "Z",
+             "level": float(ds["capture_level"].values[c]),
+             "irradiance": None if not np.isfinite(ds["capture_irradiance"].values[c]) else float(ds["capture_irradiance"].values[c]),
+             "colour_change_from_previous": None if c == 0 else float(change[c - 1])}
+            for c in range(ds.sizes["capture"])]
     if "reflector_dn" in ds:
         out["reflector_eq15_vs_eq16"] = [
             {"image": _reflector_images(ds)[r["image"]], "eq15_spread": r["eq15_spread"], "eq16_spread": r["eq16_spread"]}

@@ -38,6 +38,7 @@ from mscal_core.errors import InputError, MscalError, SessionError
 
 from .apply import RUN_JSON, ApplyOptions, _write_json_atomic, apply_flight, scheduler_for
 from .calibrate import STAGES
+from .light import INTERPOLATION_MODES
 from .catalog import CATALOG_ROOT
 from .session import Session, load_session, read_frame_table
 from .store import content_hashes, file_sha256, open_calibration, write_store
@@ -237,11 +238,11 @@ def count_frames(flight_dir: str | Path) -> int:
 
 
 def apply_one(flight_dir: str, calibration: str, out: str, *, normalise: str = "relative",
-              dask_address: str | None = None) -> dict[str, Any]:
+              dask_address: str | None = None, illumination: str = "linear") -> dict[str, Any]:
     """``apply_flight`` under :func:`dask_client`; returns the flight's summary for run.json."""
     t0 = time.perf_counter()
     with dask_client(dask_address, count_frames(flight_dir)) as where:
-        res = apply_flight(flight_dir, calibration, out, ApplyOptions(normalise=normalise))
+        res = apply_flight(flight_dir, calibration, out, ApplyOptions(normalise=normalise, illumination=illumination))
     run = res.run
     return {
         "frames_in": run["frames_in"],
@@ -251,6 +252,7 @@ def apply_one(flight_dir: str, calibration: str, out: str, *, normalise: str = "
         "calibration_sha256": run["calibration_sha256"],
         "up_to_date": res.up_to_date,
         "computed_on": "nothing (up to date)" if res.up_to_date else where,
+        "illumination": {k: v for k, v in run.get("illumination", {}).items() if k != "per_frame"},
         "seconds": round(time.perf_counter() - t0, 3),
     }
 
@@ -337,7 +339,7 @@ def remove_work(paths: RunPaths) -> None:
 
 
 def check_run_inputs(session: str, out: str, *, normalise: str = "relative", dask_address: str | None = None,
-                     catalog_root: str | None = None) -> None:
+                     catalog_root: str | None = None, illumination: str = "linear") -> None:
     """Fail fast, before Prefect starts: a session that is not there, an unusable option."""
     if catalog_root is not None and is_remote(catalog_root):
         raise InputError(f"--catalog-root {catalog_root!r} must be a local folder",
@@ -353,6 +355,8 @@ def check_run_inputs(session: str, out: str, *, normalise: str = "relative", das
     if not (normalise == "relative" or re.fullmatch(r"band:\S+", normalise)):
         raise InputError(f"--normalise {normalise!r}: use relative or band:<name or nm>",
                          hint="panel normalisation needs 'mscal apply --panel' on one flight")
+    if illumination not in INTERPOLATION_MODES:
+        raise InputError(f"--illumination {illumination!r}: use one of {', '.join(INTERPOLATION_MODES)}")
     if not is_remote(out) and Path(out).exists() and not Path(out).is_dir():
         raise InputError("output exists and is not a folder", path=out)
 

@@ -203,6 +203,7 @@ class FrameRecord:
     lat: float | None = None
     lon: float | None = None
     alt_m: float | None = None
+    irradiance: float | None = None  # sun-sensor reading (frames.csv column), any unit, > 0
 
     @property
     def effective_exposure(self) -> float:
@@ -247,7 +248,7 @@ def read_frame_table(
 ) -> list[FrameRecord]:
     """Frames of a folder with their exposure and position (SPEC.md, Session folder).
 
-    ``frames.csv`` (columns ``file,exposure_ms`` required; ``gain,time,lat,lon,alt_m``
+    ``frames.csv`` (columns ``file,exposure_ms`` required; ``gain,time,lat,lon,alt_m,irradiance``
     optional) is read first; image files without a row fall back to their EXIF tags. A frame
     with no exposure anywhere, a zero or negative exposure, or a listed file that does not
     exist raises :class:`FrameError` naming the file.
@@ -339,8 +340,12 @@ def _table_row(
         lat=_parse_float(row.get("lat", ""), csv_path, line, "lat"),
         lon=_parse_float(row.get("lon", ""), csv_path, line, "lon"),
         alt_m=_parse_float(row.get("alt_m", ""), csv_path, line, "alt_m"),
+        irradiance=_parse_float(row.get("irradiance", ""), csv_path, line, "irradiance"),
     )
     _check_exposure(rec, csv_path, line)
+    if rec.irradiance is not None and rec.irradiance <= 0:
+        raise FrameError(f"line {line}: frame {name} has irradiance {rec.irradiance:g}; it must be positive",
+                         path=csv_path, hint="leave the cell empty when the sun sensor gave no reading")
     if rec.lat is not None and not -90 <= rec.lat <= 90:
         raise FrameError(f"line {line}: lat {rec.lat} outside [-90, 90]", path=csv_path)
     if rec.lon is not None and not -180 <= rec.lon <= 180:

@@ -33,9 +33,17 @@ import numpy as np
 import tifffile
 import yaml
 
-from mscal_core.synth.scene import FrameSet, SyntheticSession, synthesize_session
+from mscal_core.synth.scene import (
+    FrameSet,
+    LightDrift,
+    SyntheticSession,
+    flight_frames,
+    make_truth,
+    reflector_images,
+    synthesize_session,
+)
 
-__all__ = ["write_session", "write_frameset", "session_yaml", "write_orthomosaic"]
+__all__ = ["write_session", "write_frameset", "session_yaml", "write_orthomosaic", "write_light_drift"]
 
 FRAMES_CSV_COLUMNS = ("file", "exposure_ms", "gain", "time", "lat", "lon", "alt_m")
 
@@ -95,8 +103,13 @@ def write_frameset(folder: Path, frames: FrameSet) -> list[Path]:
             "lon": _fmt(meta.get("lon"), 8),
             "alt_m": _fmt(meta.get("alt_m"), 3),
         })
+    columns = FRAMES_CSV_COLUMNS
+    if any("irradiance" in m for m in frames.meta):  # a sun sensor (issue 8); otherwise no column
+        columns = (*FRAMES_CSV_COLUMNS, "irradiance")
+        for row, meta in zip(rows, frames.meta):
+            row["irradiance"] = _fmt(meta.get("irradiance"), 6)
     with open(folder / "frames.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=FRAMES_CSV_COLUMNS)
+        writer = csv.DictWriter(fh, fieldnames=columns)
         writer.writeheader()
         writer.writerows(rows)
     return paths
@@ -194,3 +207,61 @@ def write_orthomosaic(path: str | Path, ndvi: np.ndarray, *, crs: str, transform
         if date:
             dst.update_tags(TIFFTAG_DATETIME=date.replace("-", ":") + " 12:00:00")
     return path
+def write_light_drift(
+    path: str | Path,
+    drift: LightDrift,
+    *,
+    seed: int = 0,
+    capture_times_s: Sequence[float] = (1100.0, 3100.0),
+    images_per_capture: int = 1,
+    flights: dict[str, dict] | None = None,
+    subfolders: bool = True,
+    gradient_ratio: float = 2.0,
+) -> dict[str, FrameSet]:
+    """A session folder whose light drifts over the flight (issue 8): ``session.yaml``,
+    ``reflector/`` with one capture per time in ``capture_times_s`` (seconds after the
+    session start; subfolders ``capture_0/``, ... or, with ``subfolders=False``, all frames in
+    ``reflector/`` told apart by their times), each frame with a sun-sensor ``irradiance``,
+    and ``flights/<name>/`` for each entry of ``flights`` (keyword arguments of
+    :func:`mscal_core.synth.scene.flight_frames`, e.g. ``n_frames``, ``time_offset_s``,
+    ``frame_interval_s``, ``clouds``, ``irradiance``; default one 3-frame flight ``drift``
+    from 1200 s every 900 s without clouds).
+
+    The camera truth is ``make_truth(seed)``, as in :func:`write_session` with the same seed,
+    so the response and vignetting of that session's calibration apply (``mscal fit
+    illumination PATH --calibration CALIB``). Returns the flights' frame sets (with truth).
+    """
+    root = Path(path)
+    root.mkdir(parents=True, exist_ok=True)
+    truth = make_truth(seed)
+    fake = SyntheticSession(truth=truth, response=None, vignetting=None, reflector=None, size="drift")  # type: ignore[arg-type]
+    with open(root / "session.yaml", "w") as fh:
+        yaml.safe_dump(session_yaml(fake), fh, sort_keys=False)
+    if (root / "reflector").exists():
+        shutil.rmtree(root / "reflector")
+    captures = [
+        reflector_images(truth, seed=seed + 101 * (c + 1), n_images=images_per_capture,
+                         times_s=[t + 20.0 * i for i in range(images_per_capture)], drift=drift,
+                         irradiance=True, name_prefix=f"capture{c}_", gradient_ratio=gradient_ratio)
+        for c, t in enumerate(capture_times_s)
+    ]
+    if subfolders:
+        for c, fs in enumerate(captures):
+            write_frameset(root / "reflector" / f"capture_{c}", fs)
+    else:
+        write_frameset(root / "reflector", FrameSet(
+            kind="reflector", dn=[d for fs in captures for d in fs.dn],
+            exposure_ms=np.concatenate([fs.exposure_ms for fs in captures]),
+            names=[n for fs in captures for n in fs.names], meta=[m for fs in captures for m in fs.meta],
+            truth={}, camera=truth.camera, black_level=captures[0].black_level))
+    flights = flights if flights is not None else {
+        "drift": dict(n_frames=3, time_offset_s=1200.0, frame_interval_s=900.0, clouds=False)}
+    out: dict[str, FrameSet] = {}
+    for name, kw in flights.items():
+        fs = flight_frames(truth, seed=seed, name=name, drift=drift, **kw)
+        if (root / "flights" / name).exists():
+            shutil.rmtree(root / "flights" / name)
+        write_frameset(root / "flights" / name, fs)
+        out[name] = fs
+    return out
+

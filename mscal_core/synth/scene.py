@@ -54,6 +54,7 @@ __all__ = [
     "FieldScene",
     "FrameSet",
     "GradientShadowLight",
+    "LightDrift",
     "MarkerSpec",
     "Panel",
     "PeriodicNoise",
@@ -431,6 +432,36 @@ class GradientShadowLight:
     def from_params(p) -> GradientShadowLight:
         p = [float(x) for x in p]
         return GradientShadowLight(p[0], p[1], p[2], (p[3], p[4]), p[5], p[6], p[7], p[8])
+
+
+@dataclass(frozen=True)
+class LightDrift:
+    """Light whose level and colour drift linearly over a flight (issue 8).
+
+    At time ``tau`` (seconds after ``SESSION_START``) the sun's brightness is multiplied by
+    ``level(tau) = 1 + (level_end - 1) f`` and its colour ``S(lambda)`` by
+    ``colour(lambda, tau) = 1 + colour_tilt_end f x(lambda)``, with
+    ``f = (tau - t0_s) / (t1_s - t0_s)`` (not clamped: the drift goes on before and after)
+    and ``x`` from -1 at the shortest to +1 at the longest wavelength: e.g. ``level_end =
+    0.8`` is 20 % less light at ``t1_s``, ``colour_tilt_end = 0.02`` a light 2 % redder
+    (NIR up, blue-ish bands down) by then.
+    """
+
+    t0_s: float
+    t1_s: float
+    level_end: float = 1.0
+    colour_tilt_end: float = 0.0
+
+    def _f(self, tau: float) -> float:
+        return (float(tau) - self.t0_s) / (self.t1_s - self.t0_s)
+
+    def level(self, tau: float) -> float:
+        return 1.0 + (self.level_end - 1.0) * self._f(tau)
+
+    def colour(self, tau: float, wavelengths: np.ndarray) -> np.ndarray:
+        wl = np.asarray(wavelengths, dtype=np.float64)
+        x = 2.0 * (wl - wl.min()) / max(float(wl.max() - wl.min()), 1e-9) - 1.0
+        return 1.0 + self.colour_tilt_end * self._f(tau) * x
 
 
 # --------------------------------------------------------------------------------------------
@@ -1135,13 +1166,23 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
 
 def reflector_images(truth: SyntheticTruth, *, seed: int = 0, n_images: int = 3,
                      distance_m: tuple[float, float] = (0.55, 0.75), max_tilt_deg: float = 12.0,
-                     supersample: int = 4, max_attempts: int = 200) -> FrameSet:
+                     supersample: int = 4, max_attempts: int = 200,
+                     times_s: Sequence[float] | None = None, drift: LightDrift | None = None,
+                     irradiance: bool = False, name_prefix: str = "reflector_",
+                     gradient_ratio: float = 2.0) -> FrameSet:
     """Gray reflector under the illumination of the flight (input of Eq. 11-14).
 
     Near-nadir views from 0.55-0.75 m, the reflector filling much of the frame. Each image has
     its own light: sun brightness (x 0.9-1.1) with a 2:1 linear gradient across the reflector
     in a random direction and a soft shadow over 20-35 % of it; the light colour S is the
     flight's. Exposure: brightest gray-reflector pixel at 70-85 %.
+
+    Light that changes over the flight (issue 8): image ``k`` is taken at ``times_s[k]``
+    (seconds after ``SESSION_START``; default 900 + 20 k). With ``drift`` its brightness is
+    the sun's times ``drift.level(time)`` (no random factor), its colour ``S`` times
+    ``drift.colour(time)``, and the light has a ``gradient_ratio`` gradient but no shadow (the
+    reflector fully in the sun, as a capture for the light's level should be). ``irradiance`` writes a
+    sun-sensor reading (the brightness, in arbitrary units) into each frame's ``meta``.
 
     truth: ``rvec``, ``tvec`` (n, 3); ``B`` (n, H, W) float32 brightness at the band-grid pixel
     centres (band 0 sample positions; NaN where the ray misses the plane); ``gray_mask``
@@ -1155,9 +1196,17 @@ def reflector_images(truth: SyntheticTruth, *, seed: int = 0, n_images: int = 3,
     uu, vv = _plane_grid(truth.reflector_size_m)
     U, Vg = np.meshgrid(uu, vv)
     dns, exposures, rvecs, tvecs, Bs, masks, lights, Bp = [], [], [], [], [], [], [], []
+    times = [900.0 + 20.0 * i for i in range(n_images)] if times_s is None else [float(x) for x in times_s]
+    S = truth.spectral_factor
     for k in range(n_images):
-        light = _random_light(rng, truth.sun_brightness * rng.uniform(0.9, 1.1),
-                              truth.reflector_size_m)
+        jitter = rng.uniform(0.9, 1.1)  # drawn in every case: the seeded stream stays the same
+        if drift is None:
+            light = _random_light(rng, truth.sun_brightness * jitter, truth.reflector_size_m)
+        else:
+            light = GradientShadowLight(brightness=truth.sun_brightness * drift.level(times[k]),
+                                        gradient_dir=rng.uniform(0, 2 * np.pi), gradient_ratio=gradient_ratio,
+                                        extent_m=truth.reflector_size_m)
+            S = truth.spectral_factor * drift.colour(times[k], cam.wavelengths)
         scene = ReflectorScene(cam.wavelengths, truth.reflector_reflectance,
                                truth.reflector_size_m, mk, light, ground_seed=seed + 17 * k)
         for _attempt in range(max_attempts):
@@ -1169,7 +1218,7 @@ def reflector_images(truth: SyntheticTruth, *, seed: int = 0, n_images: int = 3,
                 continue
             rend = render(cam, pose, scene, supersample=supersample)
             gray = rend.pure(ReflectorScene.GRAY)
-            energy = (truth.vignetting * truth.spectral_factor[:, None, None]
+            energy = (truth.vignetting * S[:, None, None]
                       * rend.light_times_reflectance(scene.reflectance)).astype(np.float32)
             t = _exposure_for(truth, float(energy[:, gray].max()), rng.uniform(0.70, 0.85))
             dn = _expose(truth, energy, t, rng)
@@ -1189,10 +1238,14 @@ def reflector_images(truth: SyntheticTruth, *, seed: int = 0, n_images: int = 3,
         masks.append(gray)
         lights.append(light.params())
         Bp.append(light(U, Vg))
+    meta = [{"time": _time(times[i])} for i in range(n_images)]
+    if irradiance:
+        for i in range(n_images):
+            meta[i]["irradiance"] = float(lights[i][0])  # the brightness the image was rendered with
     return FrameSet(
         kind="reflector", dn=dns, exposure_ms=np.array(exposures),
-        names=[f"reflector_{i}" for i in range(n_images)],
-        meta=[{"time": _time(900.0 + 20.0 * i)} for i in range(n_images)],
+        names=[f"{name_prefix}{i}" for i in range(n_images)],
+        meta=meta,
         truth={
             "rvec": np.array(rvecs), "tvec": np.array(tvecs), "B": np.array(Bs),
             "gray_mask": np.array(masks), "light": np.array(lights),
@@ -1213,7 +1266,8 @@ DEFAULT_PANELS = (
 def flight_frames(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 8,
                   name: str = "field", altitude_m: float = 25.0, spacing_m: float = 1.8,
                   panels: Sequence[Panel] = DEFAULT_PANELS, supersample: int = 3,
-                  time_offset_s: float = 1200.0) -> FrameSet:
+                  time_offset_s: float = 1200.0, frame_interval_s: float = 2.0,
+                  drift: LightDrift | None = None, clouds: bool = True, irradiance: bool = False) -> FrameSet:
     """Nadir-ish survey frames of a crop field with gray panels (target of Eq. 15).
 
     Frames are taken along a north-going line at ~``altitude_m`` (GSD ~5.7 cm per band-grid
@@ -1228,6 +1282,10 @@ def flight_frames(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 8,
     float16: the true reflectance of each pixel's footprint (= U(I) / (t V S sun));
     ``labels`` (n, H, W) int8: material index (into ``material_names``) where the pixel is pure
     in every band, -1 where mixed; ``material_names`` (M,); ``material_reflectance``
+    (issue 8: frame ``k`` is taken at ``time_offset_s + frame_interval_s k``; with ``drift``
+    the sun is also multiplied by ``drift.level(time)`` and ``S`` by ``drift.colour(time)``;
+    ``clouds=False`` drops the random per-frame factor 0.75-1.15; ``irradiance`` writes the
+    frame's sun brightness into its ``meta`` as a sun-sensor reading)
     (M, n_bands); ``ndvi`` (n, H, W) float32 from the 670 / 803 nm bands of ``reflectance``;
     ``panel_reflectance`` (P,); ``panel_centre_m`` (P, 2); ``height_m`` (n,).
     """
@@ -1241,7 +1299,13 @@ def flight_frames(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 8,
     meta = []
     scene0 = None
     for k in range(n_frames):
-        sun = truth.sun_brightness * rng.uniform(0.75, 1.15)
+        tau = time_offset_s + frame_interval_s * k
+        cloud = rng.uniform(0.75, 1.15)  # drawn in every case: the seeded stream stays the same
+        sun = truth.sun_brightness * (cloud if clouds else 1.0)
+        S = truth.spectral_factor
+        if drift is not None:
+            sun *= drift.level(tau)
+            S = truth.spectral_factor * drift.colour(tau, cam.wavelengths)
         scene = FieldScene(cam.wavelengths, panels, sun, field_seed=seed)
         scene0 = scene0 or scene
         height = altitude_m + rng.normal(0.0, 0.3)
@@ -1253,7 +1317,7 @@ def flight_frames(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 8,
         pose = Pose.from_matrix(R, -R @ np.array([cu, cv_, height]))
         rend = render(cam, pose, scene, supersample=supersample)
         br = rend.light_times_reflectance(scene.reflectance)
-        energy = (truth.vignetting * truth.spectral_factor[:, None, None] * br).astype(np.float32)
+        energy = (truth.vignetting * S[:, None, None] * br).astype(np.float32)
         t = _exposure_for(truth, float(energy.max()), rng.uniform(0.72, 0.82))
         dn = _expose(truth, energy, t, rng)
         refl = br / sun
@@ -1280,11 +1344,13 @@ def flight_frames(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 8,
         out["ndvi"].append(ndvi)
         out["height"].append(height)
         meta.append({
-            "time": _time(time_offset_s + 2.0 * k),
+            "time": _time(tau),
             "lat": lat0 + cv_ / 111_320.0,
             "lon": lon0 + cu / (111_320.0 * math.cos(math.radians(lat0))),
             "alt_m": FIELD_GROUND_ALT_M + height,
         })
+        if irradiance:
+            meta[-1]["irradiance"] = float(sun)
     return FrameSet(
         kind="flight", dn=out["dn"], exposure_ms=np.array(out["t"]),
         names=[f"IMG_{i:04d}" for i in range(n_frames)], meta=meta,

@@ -136,3 +136,112 @@ def test_fit_errors(scene):
         fit_illumination(radiance[0], r_s)
     with pytest.raises(InputError):
         fit_illumination(radiance, r_s, image_index=np.zeros(5, int))
+
+
+# --------------------------------------------------------------------------- light over time (issue 8)
+
+
+def test_split_level_is_the_geometric_mean():
+    from mscal_core.illumination import split_level
+
+    s = np.array([[1.0, 2.0, 4.0], [2.0, 4.0, 8.0]])
+    level, colour = split_level(s)
+    np.testing.assert_allclose(level, [2.0, 4.0])
+    np.testing.assert_allclose(colour, [[0.5, 1.0, 2.0], [0.5, 1.0, 2.0]])
+    with pytest.raises(InputError, match="positive and finite"):
+        split_level(np.array([1.0, 0.0]))
+
+
+def test_capture_weights_nearest_and_linear():
+    from mscal_core.illumination import capture_weights
+
+    tc = np.array([100.0, 300.0, 200.0])  # not in time order: weights follow the captures given
+    tf = np.array([0.0, 100.0, 150.0, 240.0, 300.0, 500.0])
+    lin = capture_weights(tc, tf, "linear")
+    np.testing.assert_allclose(lin.sum(axis=1), 1.0)
+    np.testing.assert_allclose(lin[:, 0], [1.0, 1.0, 0.5, 0.0, 0.0, 0.0])  # held before the first
+    np.testing.assert_allclose(lin[:, 2], [0.0, 0.0, 0.5, 0.6, 0.0, 0.0])
+    np.testing.assert_allclose(lin[:, 1], [0.0, 0.0, 0.0, 0.4, 1.0, 1.0])  # held after the last
+    near = capture_weights(tc, tf, "nearest")
+    assert near.argmax(axis=1).tolist() == [0, 0, 0, 2, 1, 1]  # 150 s: a tie goes to the earlier
+    assert set(np.unique(near)) == {0.0, 1.0}
+    one = capture_weights([np.nan], [np.nan, 5.0], "linear")  # one capture: no time needed
+    assert one.tolist() == [[1.0], [1.0]]
+    with pytest.raises(InputError, match="needs a time"):
+        capture_weights(tc, [np.nan], "linear")
+    with pytest.raises(InputError, match="same time"):
+        capture_weights([1.0, 1.0], [1.0], "nearest")
+    with pytest.raises(InputError, match="use one of nearest, linear"):
+        capture_weights(tc, tf, "cubic")
+
+
+def test_frame_illumination_follows_a_linear_drift():
+    from mscal_core.illumination import frame_illumination, split_level
+
+    rng = np.random.default_rng(3)
+    base = rng.uniform(1.5, 2.5, N_BANDS)
+    tilt = np.linspace(-1.0, 1.0, N_BANDS)
+
+    def light(t):  # level 1 -> 0.7 and colour tilted 3 % over 1000 s
+        return (1.0 - 0.3e-3 * t) * base * (1.0 + 0.03e-3 * t * tilt)
+
+    tc = np.array([0.0, 1000.0])
+    tf = np.array([250.0, 500.0, 750.0])
+    got = frame_illumination(np.stack([light(t) for t in tc]), tc, tf, "linear")
+    truth = np.stack([light(t) for t in tf])
+    # the level is exact for a linear drift; the colour to second order in the tilt
+    np.testing.assert_allclose(got.level / split_level(truth)[0], 1.0, atol=2e-4)
+    np.testing.assert_allclose(got.spectral_factor / truth, 1.0, atol=5e-4)
+    assert not got.irradiance_used.any()
+    near = frame_illumination(np.stack([light(t) for t in tc]), tc, tf, "nearest")
+    np.testing.assert_allclose(near.spectral_factor[0], light(0.0))
+    np.testing.assert_allclose(near.spectral_factor[2], light(1000.0))
+
+
+def test_irradiance_scales_the_level_between_anchors():
+    from mscal_core.illumination import frame_illumination
+
+    s = np.stack([np.full(4, 2.0), np.full(4, 1.0)])  # level 2 at t=0, 1 at t=100
+    e_c = np.array([800.0, 400.0])  # the sensor agrees with the captures: level = E / 400
+    e_f = np.array([600.0, 200.0, np.nan])  # a cloud at t=50 halves the light; no reading at t=80
+    got = frame_illumination(s, [0.0, 100.0], [20.0, 50.0, 80.0], "linear",
+                             capture_irradiance=e_c, frame_irradiance=e_f)
+    np.testing.assert_allclose(got.level, [1.5, 0.5, 1.2])  # E(t) * beta_c / E_c; fallback: 2 - 0.8
+    assert got.irradiance_used.tolist() == [True, True, False]
+    # one capture whose sensor reading anchors a frame's: level scales by E_f / E_c
+    one = frame_illumination(s[:1], [np.nan], [np.nan], "nearest", capture_irradiance=e_c[:1],
+                             frame_irradiance=[400.0])
+    np.testing.assert_allclose(one.spectral_factor, [np.full(4, 1.0)])
+    # captures without readings: the frames' readings are not used
+    none = frame_illumination(s, [0.0, 100.0], [50.0], "linear", capture_irradiance=[np.nan, 400.0],
+                              frame_irradiance=[100.0])
+    np.testing.assert_allclose(none.level, [1.5])
+
+
+def test_colour_change_ignores_the_level():
+    from mscal_core.illumination import colour_change
+
+    s0 = np.array([1.0, 2.0, 3.0])
+    assert colour_change(np.stack([s0, 0.5 * s0])) == pytest.approx([0.0], abs=1e-12)  # a cloud
+    tilted = s0 * np.array([0.98, 1.0, 1.02])
+    change = colour_change(np.stack([s0, tilted]))
+    assert 0.018 < change[0] < 0.022
+    assert colour_change(s0[None]).size == 0
+
+
+def test_centre_brightness_ignores_where_the_camera_looked_and_shadows():
+    """The median-B gauge depends on the part of a graded reflector in view; the plane fit's
+    centre value does not, and pixels in a shadow are left out."""
+    from mscal_core.illumination import centre_brightness
+
+    rng = np.random.default_rng(7)
+    uv = rng.uniform(-0.25, 0.25, (20000, 2))
+    light = 1.0 + 0.6 * uv[:, 0] - 0.3 * uv[:, 1]  # ~2:1 across the reflector, 1 at the centre
+    seen = uv[:, 0] > -0.1  # the camera saw mostly the bright side
+    b = light * (1.0 + 0.01 * rng.standard_normal(light.size))
+    assert np.median(b[seen]) > 1.02  # what the median gauge would call the level
+    assert centre_brightness(uv[seen], b[seen]) == pytest.approx(1.0, abs=0.003)
+    shadow = b.copy()
+    shadow[uv[:, 1] > 0.15] *= 0.6
+    assert centre_brightness(uv, shadow) == pytest.approx(1.0, abs=0.003)
+    assert np.isnan(centre_brightness(uv[:2], b[:2]))

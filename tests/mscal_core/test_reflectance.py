@@ -187,3 +187,28 @@ def test_eq15_fast_agrees_with_eq15() -> None:
     np.testing.assert_allclose(fast, ref, rtol=2e-6, equal_nan=True)
     assert np.isnan(fast[:, 0, 0, 0]).all() and (dn[:, 1:] >= 1000).sum() == np.isnan(fast[:, 1:]).sum()
     assert np.nanmin(fast) >= 0
+
+
+def test_eq15_fast_band_scale_is_eq15_with_another_s() -> None:
+    """A per-frame, per-band factor k folded into the frame's table is Eq. 15 with S / k."""
+    from mscal_core.reflectance import eq15, eq15_fast, eq15_tables
+
+    rng = np.random.default_rng(5)
+    n_bands, h, w = 4, 20, 30
+    U = np.cumsum(rng.uniform(0, 2, size=(n_bands, 1024)), axis=1)
+    V = rng.uniform(0.4, 1.0, size=(n_bands, h, w))
+    S = rng.uniform(1.5, 2.5, size=n_bands)
+    dn = rng.integers(0, 1024, size=(2, n_bands, h, w)).astype(np.uint16)
+    t = np.array([1.5, 3.0])
+    k = rng.uniform(0.7, 1.3, size=(2, n_bands))
+    lut, inv_v = eq15_tables(U, V, S)
+    fast = eq15_fast(dn, lut, inv_v, t, 1000, band_scale=k)
+    for f in range(2):
+        ref = eq15(dn[f], U, t[f], V, S / k[f], saturation_dn=1000)
+        np.testing.assert_allclose(fast[f], ref, rtol=3e-6, equal_nan=True)
+    plain = eq15_fast(dn, lut, inv_v, t, 1000)
+    np.testing.assert_array_equal(eq15_fast(dn, lut, inv_v, t, 1000, band_scale=None), plain)
+    with pytest.raises(InputError, match="positive and finite"):
+        eq15_fast(dn, lut, inv_v, t, 1000, band_scale=np.zeros(n_bands))
+    with pytest.raises(InputError, match="does not fit"):
+        eq15_fast(dn, lut, inv_v, t, 1000, band_scale=np.ones((3, n_bands)))

@@ -1,0 +1,98 @@
+#!/usr/bin/env python
+"""Light that changes during a flight (issue 8): how well the same gray panel agrees early and
+late in a flight whose light drifts, per interpolation mode, with and without sun-sensor readings.
+
+Usage::
+
+    .venv/bin/python bench/bench_light.py [--seed 0] [--level-end 0.75] [--colour-tilt 0.03]
+        [--gradient 1.2] [--images 2] [--work DIR]
+
+1. a small synthetic session (``write_session(size="small")``) and ``mscal calibrate`` on it,
+   for the response and vignetting (reused from ``--work`` if there);
+2. a drifting-light session with the same camera truth (``pipeline.synth.write_light_drift``):
+   the light's level goes from 1 to ``--level-end`` and its colour tilts by ``--colour-tilt``
+   between 1200 s and 3000 s (linear in time); reflector captured at 1100 s and 3100 s
+   (``--images`` images each, light with a ``--gradient``:1 gradient, no shadow); two
+   3-frame flights at 1200, 2100, 3000 s: ``drift`` (no clouds, no sun sensor) and
+   ``clouds`` (a random cloud factor 0.75-1.15 per frame and a sun-sensor reading);
+3. ``mscal fit illumination`` on top of step 1's store, then ``mscal apply
+   --illumination linear|nearest`` on both flights;
+4. per flight and mode, the 0.5 panel's median reflectance per band in the last and middle
+   frame over the first: the largest and the median |ratio - 1| over the 25 bands, corrected,
+   and uncorrected (the illumination factors divided out: the first capture's S for every
+   frame, as mscal did before issue 8).
+
+Prints a markdown table. Importing this module runs nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+
+def panel_medians(out: Path, labels: np.ndarray, corrected: bool, label: int = 4) -> np.ndarray:
+    import xarray as xr
+
+    ds = xr.open_zarr(out / "reflectance.zarr")
+    refl = ds["reflectance"].values
+    if not corrected:
+        refl = refl / ds["illumination_scale"].values[:, :, None, None]
+    return np.array([[np.nanmedian(refl[f, b][labels[f] == label]) for b in range(refl.shape[1])]
+                     for f in range(refl.shape[0])])
+
+
+def main() -> None:
+    from mscal_core.synth.scene import LightDrift
+    from pipeline.cli import main as mscal
+    from pipeline.synth import write_light_drift, write_session
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--level-end", type=float, default=0.75)
+    ap.add_argument("--colour-tilt", type=float, default=0.03)
+    ap.add_argument("--gradient", type=float, default=1.2)
+    ap.add_argument("--images", type=int, default=2)
+    ap.add_argument("--work", type=Path, default=None, help="work folder (kept; default a temporary one)")
+    args = ap.parse_args()
+    work = args.work or Path(tempfile.mkdtemp(prefix="mscal-light-"))
+    work.mkdir(parents=True, exist_ok=True)
+    calib = work / f"small-seed{args.seed}.zarr"
+    if not calib.exists():
+        session = write_session(work / f"small-seed{args.seed}", seed=args.seed, size="small")
+        assert mscal(["calibrate", str(session), "-o", str(calib)]) == 0
+    drift = LightDrift(1200.0, 3000.0, level_end=args.level_end, colour_tilt_end=args.colour_tilt)
+    flight = dict(n_frames=3, time_offset_s=1200.0, frame_interval_s=900.0)
+    root = work / "drift"
+    truth = write_light_drift(root, drift, seed=args.seed, images_per_capture=args.images,
+                              gradient_ratio=args.gradient,
+                              flights={"drift": dict(flight, clouds=False),
+                                       "clouds": dict(flight, clouds=True, irradiance=True)})
+    store = work / "drift.zarr"
+    assert mscal(["fit", "illumination", str(root), "-o", str(store), "--calibration", str(calib)]) == 0
+    print(f"\nseed {args.seed}, level 1 -> {args.level_end}, colour tilt {args.colour_tilt:.0%}, reflector gradient "
+          f"{args.gradient}:1, {args.images} image(s) per capture\n")
+    print("| flight | mode | frame | corrected max | corrected median | uncorrected max | uncorrected median |")
+    print("|---|---|---|---|---|---|---|")
+    for name, fs in truth.items():
+        for mode in ("linear", "nearest"):
+            out = work / f"out-{name}-{mode}"
+            shutil.rmtree(out, ignore_errors=True)
+            assert mscal(["apply", str(root / "flights" / name), "--calibration", str(store), "-o", str(out),
+                          "--illumination", mode]) == 0
+            labels = fs.truth["labels"]
+            cor, unc = panel_medians(out, labels, True), panel_medians(out, labels, False)
+            for f in (1, 2):
+                rc, ru = np.abs(cor[f] / cor[0] - 1.0), np.abs(unc[f] / unc[0] - 1.0)
+                print(f"| {name} | {mode} | {f} vs 0 | {rc.max():.2%} | {np.median(rc):.2%} | "
+                      f"{ru.max():.2%} | {np.median(ru):.2%} |")
+    if args.work is None:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
