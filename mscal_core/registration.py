@@ -541,28 +541,54 @@ def mosaic_centre_offsets(pattern_shape: tuple[int, int]) -> np.ndarray:
     return np.stack([(cc.ravel() - (cols - 1) / 2) / cols, (rr.ravel() - (rows - 1) / 2) / rows], axis=1)
 
 
-def shift_bands(stack: np.ndarray, offsets: np.ndarray, *, interpolation: int = cv2.INTER_CUBIC,
-                fill: float = float("nan")) -> np.ndarray:
+def cubic_weights(t: float, a: float = -0.5) -> np.ndarray:
+    """Keys' cubic convolution weights (a = -0.5: exact for quadratics) of the samples at
+    offsets -1, 0, 1, 2 for a point a fraction ``t`` in [0, 1) past sample 0."""
+    d = np.abs(np.array([-1.0, 0.0, 1.0, 2.0]) - t)
+    return np.where(d <= 1, (a + 2) * d**3 - (a + 3) * d**2 + 1,
+                    np.where(d < 2, a * d**3 - 5 * a * d**2 + 8 * a * d - 4 * a, 0.0))
+
+
+def _shift_axis(band: np.ndarray, shift: float, axis: int, fill: float) -> np.ndarray:
+    """``out[..., j] = band(j - shift)`` along ``axis`` by cubic convolution (four shifted
+    copies and scalar weights: no fixed-point rounding of the position as in cv2.remap);
+    ``fill`` where a needed sample is outside."""
+    if shift == 0:
+        return band
+    pos0 = -shift
+    k0 = int(np.floor(pos0))
+    w = cubic_weights(pos0 - k0)
+    n = band.shape[axis]
+    out = np.zeros_like(band)
+    valid = np.ones(n, dtype=bool)
+    for m, wm in zip(range(-1, 3), w):
+        k = k0 + m  # out[j] uses band[j + k]
+        lo, hi = max(0, -k), min(n, n - k)
+        if wm != 0.0:
+            dst = [slice(None)] * band.ndim
+            src = [slice(None)] * band.ndim
+            dst[axis], src[axis] = slice(lo, hi), slice(lo + k, hi + k)
+            out[tuple(dst)] += wm * band[tuple(src)]
+            valid[:lo] = False
+            valid[hi:] = False
+    shape = [1] * band.ndim
+    shape[axis] = n
+    return np.where(valid.reshape(shape), out, fill)
+
+
+def shift_bands(stack: np.ndarray, offsets: np.ndarray, *, fill: float = float("nan")) -> np.ndarray:
     """Resample each band of ``stack`` (band, H, W) to the common centre position: band b's
     samples sit ``offsets[b] = (dx, dy)`` px from it (:func:`mosaic_centre_offsets`), so the
     value at the centre position of pixel (i, j) is band b at ``(j - dx, i - dy)`` of its own
-    grid (``cv2.remap``, bicubic by default). Pixels whose source lies outside the band are
-    ``fill``. float32 (float64 for a float64 stack)."""
+    grid: separable cubic convolution (:func:`cubic_weights`), exact for quadratic images.
+    Pixels that need a sample outside the band are ``fill``. float32 (float64 for a float64
+    stack)."""
     offsets = np.asarray(offsets, dtype=np.float64)
     if offsets.shape != (stack.shape[0], 2):
         raise InputError(f"{len(offsets)} offsets for a {stack.shape[0]}-band stack")
     dtype = np.float64 if stack.dtype == np.float64 else np.float32
-    h, w = stack.shape[1:]
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
     out = np.empty(stack.shape, dtype=dtype)
     for b, (dx, dy) in enumerate(offsets):
-        if dx == 0 and dy == 0:
-            out[b] = stack[b]
-            continue
-        mx = xs - np.float32(dx)
-        my = ys - np.float32(dy)
         band = stack[b].astype(dtype, copy=False)
-        out[b] = cv2.remap(band, mx, my, interpolation, borderMode=cv2.BORDER_CONSTANT, borderValue=fill)
-        outside = (mx < 0) | (mx > w - 1) | (my < 0) | (my > h - 1)
-        out[b][outside] = fill
+        out[b] = _shift_axis(_shift_axis(band, float(dx), 1, fill), float(dy), 0, fill)
     return out
