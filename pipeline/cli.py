@@ -102,6 +102,38 @@ _stage_command("illumination")
 
 
 @cli.command()
+@click.argument("captures", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
+              help="Calibration store (.zarr): the registration is added to it, or a new store is created.")
+@click.option("--camera", default=None, help="Camera catalog name (default: the existing store's camera).")
+@click.option("--reference", default=None, help="Band to align to (default: the lens in the middle of the rig).")
+@click.option("--min-ecc", default=0.3, show_default=True, type=float,
+              help="Reject a band's transform whose gradient correlation after alignment is lower.")
+@click.option("--max-captures", default=12, show_default=True, type=int,
+              help="Register at most this many captures, evenly spread over those given.")
+def register(captures: tuple[Path, ...], out: Path, camera: str | None, reference: str | None, min_ecc: float,
+             max_captures: int) -> None:
+    """Band co-registration of a multi-lens camera from CAPTURES (folders or band files): one
+    homography per band to the reference band, stored with its quality figures."""
+    from mscal_core.registration import Thresholds
+
+    from .registration import register_cli
+
+    t0 = time.perf_counter()
+    ds, problems = register_cli(list(captures), out, camera, reference, Thresholds(min_ecc=min_ecc), max_captures)
+    for p in problems:
+        click.echo(f"not used {p['file']}: {p['reason']}", err=True)
+    reg = ds.attrs["registration"]
+    for f in reg["fallbacks"]:
+        click.echo(f"capture {f['capture']} fell back to the session transform for {', '.join(f['bands'])}: {f['reason']}",
+                   err=True)
+    spread = ", ".join(f"{n} {s:.2f}" for n, s in zip(ds["band_name"].values, ds["registration_spread_px"].values))
+    click.echo(f"wrote {out} (reference band {reg['reference_band']}; {len(reg['captures'])} of {reg['registered_of']} "
+               f"captures registered, {len(reg['fallbacks'])} fell back; spread px: {spread}; "
+               f"{time.perf_counter() - t0:.1f} s)")
+
+
+@cli.command()
 @click.argument("flight", type=click.Path(path_type=Path))
 @click.option("--calibration", "calibration", required=True,
               help="Calibration store (.zarr) from 'mscal calibrate', or 'factory' for cameras with factory metadata.")
