@@ -510,8 +510,9 @@ def align_bands(stack: np.ndarray, transforms: np.ndarray, *, interpolation: int
     """Band stack ``(band, H, W)`` resampled onto the reference band's grid:
     ``aligned_b(x) = stack_b(H_b x)`` (bilinear by default); pixels that no band b sample
     covers are ``fill``. ``transforms`` (band, 3, 3) as stored by the registration. Returns
-    float32 (float64 for a float64 stack). NaN in a band spreads to the pixels interpolated
-    from it."""
+    float32 (float64 for a float64 stack). A NaN pixel makes NaN the aligned pixels it
+    contributes to (weight above 1e-3); an aligned pixel needing any sample outside the band
+    is ``fill``."""
     transforms = np.asarray(transforms, dtype=np.float64)
     if transforms.shape != (stack.shape[0], 3, 3):
         raise InputError(f"{transforms.shape[0]} band transforms for a {stack.shape[0]}-band stack",
@@ -522,8 +523,20 @@ def align_bands(stack: np.ndarray, transforms: np.ndarray, *, interpolation: int
     for b in range(stack.shape[0]):
         if np.allclose(transforms[b], np.eye(3), atol=0.0, rtol=0.0):
             out[b] = stack[b]
-        else:
-            out[b] = warp_to_reference(stack[b].astype(dtype, copy=False), transforms[b], shape, interpolation, fill)
+            continue
+        band = stack[b].astype(dtype, copy=False)
+        bad = ~np.isfinite(band)
+        # warped with zeros outside; coverage and NaN by warping masks: OpenCV multiplies a
+        # NaN border or NaN pixel into its neighbours even where the weight is 0
+        h = transforms[b]
+        val = warp_to_reference(np.where(bad, 0, band).astype(dtype) if bad.any() else band, h, shape,
+                                interpolation, 0.0)
+        inside = warp_to_reference(np.ones(shape, np.float32), h, shape, interpolation, 0.0)
+        if bad.any():
+            good = warp_to_reference((~bad).astype(np.float32), h, shape, interpolation, 0.0)
+            val[good < inside - 1e-3] = np.nan
+        val[inside < 1.0 - 1e-3] = fill
+        out[b] = val
     return out
 
 

@@ -40,10 +40,12 @@ import xarray as xr
 import mscal_core
 from mscal_core.errors import FrameError, InputError
 from mscal_core.reflectance import eq15_fast, eq15_tables
+from mscal_core.registration import align_bands, mosaic_centre_offsets, shift_bands
 
 from .catalog import Camera, Index, load_camera, load_index, parse_reflectance
 from .chunks import FLAT_CHUNK_KEYS, FrameChunks
 from .discover import quarantine_entry
+from .registration import check_transforms, frame_transforms
 from .ingest import FRAME_COORDS, Cube, _Writer, frame_coords, frame_row, ingest_flight, open_cube, read_frame, shape_problem
 from .session import FrameRecord
 from .store import open_calibration
@@ -88,10 +90,15 @@ class ApplyOptions:
     export_bands: tuple[str, ...] | None = None
     indices: tuple[str, ...] = ("ndvi", "ndre")
     strict: bool = False
+    align: bool = True  # align bands with the store's band_transform, if it has one (issue 9)
+    centre_bands: bool = False  # snapshot mosaics: resample every band to the mosaic's centre position
 
     def fingerprint(self) -> dict[str, Any]:
         d = asdict(self)
         d.pop("strict")
+        for key, default in (("align", True), ("centre_bands", False)):  # runs before issue 9 stay up to date
+            if d[key] == default:
+                d.pop(key)
         if self.panel is not None:
             d["panel"] = {"frame": self.panel.frame, "box": list(self.panel.box), "reflectance": repr(self.panel.reflectance)}
         return d
@@ -111,7 +118,9 @@ class ApplyResult:
 def calibration_hash(ds: xr.Dataset) -> str:
     """sha256 of the calibration's arrays (U, V, S) and camera: what Eq. 15 depends on."""
     h = hashlib.sha256(str(ds.attrs.get("camera")).encode())
-    for name in ("inverse_response", "vignetting", "spectral_factor"):
+    names = ["inverse_response", "vignetting", "spectral_factor"]
+    names += [n for n in ("band_transform", "capture_transform") if n in ds]  # only stores that have them
+    for name in names:
         arr = np.ascontiguousarray(ds[name].values)
         h.update(name.encode())
         h.update(str(arr.dtype).encode() + str(arr.shape).encode())
@@ -380,6 +389,8 @@ class FramePlan:
     bands: tuple[tuple[int, BandTags], ...]
     tiff_dtype: str
     out: Path
+    align: bool = False  # the store has band transforms and they are applied
+    band_shift: tuple[tuple[float, float], ...] | None = None  # --centre-bands: (dx, dy) per band
 
 
 @dataclass(frozen=True)
@@ -414,6 +425,28 @@ def frame_dn(plan: FramePlan, job: FrameJob) -> tuple[np.ndarray, str | None]:
     return dn, sha
 
 
+@lru_cache(maxsize=2)
+def _store_of(key: tuple[str, int]) -> xr.Dataset:
+    return xr.open_zarr(key[0]).load()
+
+
+def geometry_step(calibration: Path, align: bool, band_shift: Sequence[tuple[float, float]] | None, name: str,
+                  refl: np.ndarray) -> np.ndarray:
+    """Eq. 15 reflectance (band, y, x) of frame ``name`` put on one pixel grid (issue 9): the
+    bands of a multi-lens camera warped onto the reference band (``align``: the capture's own
+    transforms if it was registered, else the session's; ``mscal_core.registration.align_bands``,
+    NaN where a band does not cover), or a snapshot mosaic's bands resampled to the mosaic's
+    centre position (``band_shift``). Unchanged otherwise. Eq. 15 runs before: U, V and S
+    belong to each band's own pixels."""
+    if align:
+        H = frame_transforms(_store_of(_stamp(Path(calibration))), name)
+        if H is not None:
+            refl = align_bands(refl, H)
+    if band_shift is not None:
+        refl = shift_bands(refl, np.asarray(band_shift, dtype=np.float64))
+    return refl
+
+
 def process_frame(plan: FramePlan, job: FrameJob) -> FrameOutcome:
     """One frame, every output: (for a new frame) its raw.zarr chunk, Eq. 15, normalisation,
     indices, Otsu mask, its chunk of each reflectance.zarr variable (one whole chunk per
@@ -429,6 +462,8 @@ def process_frame(plan: FramePlan, job: FrameJob) -> FrameOutcome:
         tags = replace(tags, capture_uuid=capture_uuid(plan.camera, sha))
     lut, inv_v = _tables(str(plan.calibration))
     refl = eq15_fast(dn[None], lut, inv_v, job.t, plan.sat)[0]
+    if plan.align or plan.band_shift is not None:
+        refl = geometry_step(plan.calibration, plan.align, plan.band_shift, job.name, refl)
     kind, value = plan.norm
     if kind == "scalar":
         refl *= np.float32(value)
@@ -545,13 +580,19 @@ class _Pass:
 def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tuple[int, int, int], camera: Camera,
                 calib_path: Path, raw_dn: Path, indices: Sequence[Index],
                 roles: dict[str, dict[str, int]], export: Sequence[int], options: ApplyOptions, chash: str,
-                sat: int, panel_reflectance: Callable[[int], np.ndarray]) -> _Pass:
+                sat: int, panel_reflectance: Callable[[int], np.ndarray],
+                geometry: tuple[bool, tuple[tuple[float, float], ...] | None, str | None] = (False, None, None)) -> _Pass:
     """Normalisation, the output store's layout (metadata and coordinates; data written per
     frame) under a temporary name, and the plan of the frames' tasks."""
     frames = [str(f) for f in coords["frame"].values]
     norm = normalisation(options, camera, frames, panel_reflectance)
     ds = output_template(coords, camera, cube_shape, indices, options)
     ds.attrs.update({"calibration_sha256": chash, "source": str(flight_dir)})
+    align, band_shift, reference = geometry
+    if align:
+        ds["reflectance"].attrs["aligned_to_band"] = reference
+    if band_shift is not None:
+        ds["reflectance"].attrs["band_positions"] = "resampled to the mosaic's centre position (--centre-bands)"
     tmp_store = out / f".reflectance.zarr{TMP_MARK}{uuid.uuid4().hex[:8]}"
     encoding = {v: {"chunks": (1, *ds[v].shape[1:]), "compressors": OUTPUT_COMPRESSORS,
                     "chunk_key_encoding": FLAT_CHUNK_KEYS} for v in ds.data_vars}
@@ -567,7 +608,7 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
                          fwhm_nm=camera.bands[b].fwhm_nm, rig_camera_index=i))
             for i, b in enumerate(export)
         ),
-        tiff_dtype=options.tiff_dtype, out=out,
+        tiff_dtype=options.tiff_dtype, out=out, align=align, band_shift=band_shift,
     )
     for sub in ("photogrammetry", "ndvi"):
         (out / sub).mkdir(exist_ok=True)
@@ -578,11 +619,16 @@ def _effective_exposure(coords: xr.Dataset) -> np.ndarray:
     return (coords["exposure_ms"] * coords["gain"]).values.astype(np.float64)
 
 
-def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path: Path, sat: int
-                ) -> Callable[[int], np.ndarray]:
+def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path: Path, sat: int,
+                names: Sequence[str] = (), geometry: tuple = (False, None, None)) -> Callable[[int], np.ndarray]:
+    """Eq. 15 reflectance of frame ``f`` on the pixel grid of the outputs (``geometry_step``)."""
     def reflectance(f: int) -> np.ndarray:
         lut, inv_v = _tables(str(calib_path))
-        return eq15_fast(plan_dn(f)[None], lut, inv_v, float(t[f]), sat)[0]
+        refl = eq15_fast(plan_dn(f)[None], lut, inv_v, float(t[f]), sat)[0]
+        align, band_shift, _ = geometry
+        if align or band_shift is not None:
+            refl = geometry_step(calib_path, align, band_shift, str(names[f]), refl)
+        return refl
     return reflectance
 
 
@@ -594,7 +640,7 @@ def _remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export:
 
 
 def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_path: Path, sat: int,
-                batch: int) -> tuple[_Pass, list[FrameOutcome]] | None:
+                batch: int, geometry: tuple = (False, None, None)) -> tuple[_Pass, list[FrameOutcome]] | None:
     """Ingest and apply in one pass over the files, for a cube that has no frames yet.
 
     Frames are given indices in file-name order before they are read, assuming each can be
@@ -615,7 +661,7 @@ def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_p
         assert dn is not None
         return dn
 
-    ps = start(coords, _panel_from(file_dn, t, calib_path, sat))
+    ps = start(coords, _panel_from(file_dn, t, calib_path, sat, [r.name for r in recs], geometry))
     writer = _Writer(cube.path, cube.group, cube.committed, cube.shape, cube.camera, commit_every=len(recs) + 1,
                      pool=None, workers=1)  # type: ignore[arg-type]  (no chunk writes of its own)
     seen: set[str] = set()
@@ -640,14 +686,15 @@ def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_p
     return ps, outcomes
 
 
-def _cube_pass(out: Path, runner: Runner, start: Callable[..., _Pass], calib_path: Path, sat: int, camera: Camera
-               ) -> tuple[_Pass, list[FrameOutcome]]:
+def _cube_pass(out: Path, runner: Runner, start: Callable[..., _Pass], calib_path: Path, sat: int, camera: Camera,
+               geometry: tuple = (False, None, None)) -> tuple[_Pass, list[FrameOutcome]]:
     """A pass over the frames of raw.zarr (every frame already ingested)."""
     raw = xr.open_zarr(out / "raw.zarr")
     coords = xr.Dataset(coords={c: ("frame", raw[c].values, dict(raw[c].attrs)) for c in FRAME_COORDS})
     t = _effective_exposure(coords)
     raw_dn = out / "raw.zarr" / "dn"
-    ps = start(coords, _panel_from(lambda f: read_frame_chunk(raw_dn, f), t, calib_path, sat))
+    names = [str(n) for n in coords["frame"].values]
+    ps = start(coords, _panel_from(lambda f: read_frame_chunk(raw_dn, f), t, calib_path, sat, names, geometry))
     jobs = [FrameJob(f, str(name), float(t[f]), _frame_tags(coords, f, camera))
             for f, name in enumerate(coords["frame"].values)]
     return ps, runner.run(ps.plan, jobs)
@@ -698,6 +745,20 @@ def _versions() -> dict[str, str]:
     return versions
 
 
+def _geometry(calib: xr.Dataset, camera: Camera, options: ApplyOptions
+              ) -> tuple[bool, tuple[tuple[float, float], ...] | None, str | None]:
+    """``(align, band_shift, reference band)`` of the pass (``geometry_step``)."""
+    align = bool(options.align and "band_transform" in calib)
+    reference = (calib.attrs.get("registration") or {}).get("reference_band") if align else None
+    band_shift = None
+    if options.centre_bands:
+        if camera.layout.kind != "mosaic" or camera.layout.pattern is None:
+            raise InputError(f"--centre-bands is for snapshot mosaic cameras; {camera.name} is {camera.layout.kind}",
+                             hint="multi-lens cameras are aligned with 'mscal register' transforms instead")
+        band_shift = tuple((float(dx), float(dy)) for dx, dy in mosaic_centre_offsets(camera.layout.pattern))
+    return align, band_shift, reference
+
+
 def apply_flight(
     flight_dir: str | Path, calibration: str | Path, out: str | Path, options: ApplyOptions = ApplyOptions()
 ) -> ApplyResult:
@@ -725,6 +786,7 @@ def apply_flight(
     indices = [load_index(n) for n in options.indices]
     roles = {ix.name: _index_roles(camera, ix) for ix in indices}
     sat = saturation_dn(calib, camera)
+    geometry = _geometry(calib, camera, options)
     out.mkdir(parents=True, exist_ok=True)
     _clean_temporaries(out)
     raw_path = out / "raw.zarr"
@@ -737,8 +799,10 @@ def apply_flight(
                 f"calibration vignetting is {v_shape[1]}x{v_shape[0]} but frames are {shape[2]}x{shape[1]}",
                 hint="use a calibration of this camera",
             )
+        if geometry[0]:
+            check_transforms(calib, shape[0], shape[1:], calib_path)
         return _start_pass(out, flight_dir, coords, shape, camera, calib_path, raw_path / "dn", indices,
-                           roles, export, options, chash, sat, panel)
+                           roles, export, options, chash, sat, panel, geometry)
 
     t0 = time.perf_counter()
     cube = open_cube(flight_dir, camera, raw_path)
@@ -749,7 +813,7 @@ def apply_flight(
     with Runner(n_hint) as runner:
         if fresh:
             try:
-                done = _fresh_pass(cube, runner, start, calib_path, sat, batch=FRESH_BATCH)
+                done = _fresh_pass(cube, runner, start, calib_path, sat, batch=FRESH_BATCH, geometry=geometry)
             finally:
                 cube.release()
         single = done is not None
@@ -767,7 +831,7 @@ def apply_flight(
                 previous["quarantined"] = quarantined
                 return ApplyResult(out, previous, up_to_date=True, quarantined=quarantined)
             _remove_frame_tiffs(out, [Path(q["file"]).stem for q in quarantined], camera, export)
-            done = _cube_pass(out, runner, start, calib_path, sat, camera)
+            done = _cube_pass(out, runner, start, calib_path, sat, camera, geometry)
         else:
             quarantined = sorted(quarantined, key=lambda q: q["file"])
     ps, outcomes = done

@@ -151,8 +151,13 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
 @click.option("--float32", "float32", is_flag=True, help="Photogrammetry TIFFs as float32 instead of uint16 x 32768.")
 @click.option("--export-bands", default=None, help="Comma-separated band names for the per-frame TIFFs (default: the camera's).")
 @click.option("--strict", is_flag=True, help="Exit non-zero if any frame was quarantined.")
+@click.option("--no-align", "no_align", is_flag=True,
+              help="Keep each band on its own pixel grid even if the calibration has band transforms ('mscal register').")
+@click.option("--centre-bands", "centre_bands", is_flag=True,
+              help="Snapshot mosaics: resample every band to the mosaic's centre position (sub-pixel band offsets).")
 def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str | None, panel_reflectance: str | None,
-          reference: str, float32: bool, export_bands: str | None, strict: bool) -> None:
+          reference: str, float32: bool, export_bands: str | None, strict: bool, no_align: bool,
+          centre_bands: bool) -> None:
     """Reflectance (Eq. 15), indices and photogrammetry TIFFs for a FLIGHT folder; with
     --calibration factory, for a folder of one-file-per-band captures from their factory metadata."""
     from mscal_core.errors import InputError
@@ -181,7 +186,7 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
         normalise = "panel"
     opts = ApplyOptions(
         normalise=normalise, panel=spec, tiff_dtype="float32" if float32 else "uint16",
-        export_bands=bands, strict=strict,
+        export_bands=bands, strict=strict, align=not no_align, centre_bands=centre_bands,
     )
     _report_apply(apply_flight(flight, calibration, out, opts), out, strict)
 

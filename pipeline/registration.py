@@ -153,13 +153,14 @@ def register_session(stacks: Sequence[tuple[str, np.ndarray]], camera: Camera, *
                 hint="register captures with more texture (a flight over crops or soil, not sky or water), or lower --min-ecc",
             )
         session[b], _ = combine_homographies(good, shape)
-    per_capture = np.stack([np.stack([c.bands[b].homography if c.accepted[b] else session[b]
-                                      for b in range(camera.n_bands)]) for c in results])
     ref = anchor
     if reference is None:
         ref = centre_reference(session, shape)
-        session = rebase(session, ref)
-        per_capture = np.stack([rebase(h, ref) for h in per_capture])
+    own = [rebase(np.stack([c.bands[b].homography if c.accepted[b] else session[b] for b in range(camera.n_bands)]), ref)
+           if c.accepted[ref] else None for c in results]
+    session = rebase(session, ref)
+    per_capture = np.stack([np.stack([o[b] if o is not None and c.accepted[b] else session[b]
+                                      for b in range(camera.n_bands)]) for o, c in zip(own, results)])
     for b in range(camera.n_bands):  # spread about the session transform, on the final reference
         d = [np.median(transform_distance(per_capture[k, b], session[b], shape))
              for k, c in enumerate(results) if c.accepted[b]]

@@ -1,0 +1,113 @@
+"""Session band co-registration (issue 9): combination, fallbacks, store, real RedEdge data."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+
+from mscal_core import registration as reg
+from mscal_core.errors import InputError
+from mscal_core.synth.multilens import multilens_capture
+from pipeline.camera_meta import read_capture_meta
+from pipeline.catalog import load_camera
+from pipeline.cli import main
+from pipeline.registration import frame_transforms, register_session, with_registration
+from pipeline.store import new_dataset, open_calibration, write_store
+from tests.micasense_data import band_file
+
+CAMERA = "micasense-rededge"
+
+
+@pytest.fixture(scope="module")
+def session_reg():
+    """Three captures of one rig over different ground; in the third the blue band is a
+    covered lens (noise): it must fall back to the session transform."""
+    camera = load_camera(CAMERA)
+    first = multilens_capture(10)
+    truth = first.homographies
+    stacks = [("IMG_0010", first.dn), ("IMG_0011", multilens_capture(11, homographies=truth).dn)]
+    bad = multilens_capture(12, homographies=truth).dn.copy()
+    bad[0] = np.random.default_rng(0).normal(400, 20, bad[0].shape).clip(0, 4095).astype(np.uint16)
+    stacks.append(("IMG_0012", bad))
+    return camera, truth, register_session(stacks, camera)
+
+
+def test_session_transform_and_fallback(session_reg) -> None:
+    camera, truth, r = session_reg
+    shape = r.shape
+    # transforms are rebased onto the rig's middle lens; compare in that frame
+    truth_ref = reg.rebase(truth, r.reference)
+    for b in range(camera.n_bands):
+        d = reg.transform_distance(r.transforms[b], truth_ref[b], shape)
+        assert np.sqrt(np.mean(d**2)) < 0.3, (b, d.max())
+    assert [f["capture"] for f in r.fallbacks] == ["IMG_0012"]
+    assert r.fallbacks[0]["bands"] == ["Blue"] and "gradient correlation" in r.fallbacks[0]["reason"]
+    np.testing.assert_allclose(r.capture_transforms[2, 0], r.transforms[0])  # fell back
+    assert not np.allclose(r.capture_transforms[0, 0], r.transforms[0], atol=0.0, rtol=0.0)  # its own
+    assert np.all(r.spread_px[np.isfinite(r.spread_px)] < 0.3)
+
+
+def test_store_round_trip_and_old_stores(session_reg, tmp_path) -> None:
+    camera, _, r = session_reg
+    old = new_dataset(camera)
+    write_store(old, tmp_path / "old.zarr")
+    assert frame_transforms(open_calibration(tmp_path / "old.zarr", camera), "IMG_0010") is None
+    write_store(with_registration(old, r, camera), tmp_path / "reg.zarr")
+    ds = open_calibration(tmp_path / "reg.zarr", camera)
+    np.testing.assert_allclose(frame_transforms(ds, "IMG_0011"), r.capture_transforms[1])
+    np.testing.assert_allclose(frame_transforms(ds, "IMG_9999"), r.transforms)  # not registered: session's
+    assert ds["registration_fallback"].sel(capture="IMG_0012").values.tolist() == [True, False, False, False, False]
+    assert ds.attrs["registration"]["reference_band"] == camera.band_names[r.reference]
+    assert float(ds["registration_ecc"].sel(capture="IMG_0010").min()) > reg.Thresholds().min_ecc
+
+
+def test_register_refuses_a_snapshot_mosaic(tmp_path, capsys) -> None:
+    code = main(["register", str(tmp_path), "--camera", "ximea-mq022hg-sm5x5-nir", "-o", str(tmp_path / "r.zarr")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "snapshot mosaic" in err and len(err.splitlines()) == 1
+
+
+def _half(path) -> np.ndarray:  # noqa: ANN001
+    img = tifffile.imread(path).astype(np.float32)
+    return cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
+
+
+def _ndvi_edge_energy(red: np.ndarray, nir: np.ndarray, mask: np.ndarray) -> float:
+    """Mean |grad NDVI| over ``mask``: misaligned bands add false NDVI edges at every edge."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        v = (nir - red) / (nir + red)
+    v = np.nan_to_num(v.astype(np.float32))
+    g = cv2.magnitude(cv2.Sobel(v, cv2.CV_32F, 1, 0), cv2.Sobel(v, cv2.CV_32F, 0, 1))
+    return float(g[mask].mean())
+
+
+@pytest.mark.slow
+def test_real_rededge_flight_capture_aligns() -> None:
+    """The RedEdge flight capture IMG_0001 at half resolution (test time): band-to-band
+    gradient correlation and NDVI false edges before/after alignment (full-resolution figures:
+    docs/registration.md)."""
+    stack = np.stack([_half(band_file("0001", b)) for b in range(1, 6)])
+    black = np.array([read_capture_meta(band_file("0001", b)).black_level for b in range(1, 6)])[:, None, None]
+    regs = reg.register_stack(stack, 3, wavelengths=load_camera(CAMERA).wavelengths)
+    assert all(reg.accept(r) for r in regs)
+    aligned = reg.align_bands(stack, np.stack([r.homography for r in regs]))
+    ok = cv2.erode(np.isfinite(aligned).all(axis=0).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    assert ok.mean() > 0.85
+    for b in (0, 1, 2, 4):
+        before = reg.gradient_correlation(stack[3], stack[b], ok)
+        after = reg.gradient_correlation(aligned[3], np.nan_to_num(aligned[b]), ok)
+        assert after > before + 0.15 and after > 0.4, (b, before, after)
+    dn = stack - black
+    al = aligned - black
+    before = _ndvi_edge_energy(dn[2], dn[3], ok)
+    after = _ndvi_edge_energy(al[2], al[3], ok)
+    assert after < 0.8 * before, (before, after)
+
+
+def test_collect_needs_a_camera_for_a_new_store(tmp_path) -> None:
+    from pipeline.registration import register_cli
+
+    with pytest.raises(InputError, match="--camera is needed"):
+        register_cli([tmp_path], tmp_path / "r.zarr", None, None)
