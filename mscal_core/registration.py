@@ -259,11 +259,14 @@ def phase_shift(ref: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, float]:
 
 def ecc_homography(ref_grad: np.ndarray, band_grad: np.ndarray, init: np.ndarray | None = None, *,
                    levels: int | None = None, iterations: int = 100, eps: float = 1e-6,
-                   fine_iterations: int = FINE_ITERATIONS) -> np.ndarray | None:
+                   fine_iterations: int = FINE_ITERATIONS, min_cc: float | None = None) -> np.ndarray | None:
     """Pyramid ECC (``cv2.findTransformECC``, ``MOTION_HOMOGRAPHY``) of two gradient images:
     the homography mapping reference pixels to band pixels, or None if ECC fails to converge
     at the finest level. ``init`` (full-resolution homography) defaults to a phase-correlation
-    shift at the coarsest level (:func:`phase_shift`)."""
+    shift at the coarsest level (:func:`phase_shift`). ``min_cc``: give up (None) as soon as
+    a coarser level converges below it -- the correlation of smoothed coarse gradient images
+    is higher than at full resolution, so such a pair would fail the threshold anyway, and
+    the full-resolution iterations are the costly ones."""
     if levels is None:
         levels = pyramid_levels(ref_grad.shape)
     ref_p = _pyramid(ref_grad, levels)
@@ -280,11 +283,13 @@ def ecc_homography(ref_grad: np.ndarray, band_grad: np.ndarray, init: np.ndarray
         warp = h.astype(np.float32)
         criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations if level else fine_iterations, eps)
         try:
-            _, warp = cv2.findTransformECC(ref_p[level], band_p[level], warp, cv2.MOTION_HOMOGRAPHY, criteria, None, 1)
+            cc, warp = cv2.findTransformECC(ref_p[level], band_p[level], warp, cv2.MOTION_HOMOGRAPHY, criteria, None, 1)
         except cv2.error:
-            if level == 0:
+            if level == 0 or min_cc is not None:
                 return None
             continue  # keep the estimate and try the finer level
+        if min_cc is not None and level > 0 and cc < min_cc:
+            return None
         h = _normalised(warp.astype(np.float64))
     return h
 
@@ -390,7 +395,7 @@ def register_band(ref_grad: np.ndarray, band_grad: np.ndarray, *, init: np.ndarr
                          hint="every band of a multi-lens capture must have the same pixel grid")
     matches = feature_matches(ref_features or detect_features(ref_grad), band_features or detect_features(band_grad))
     candidates: list[BandRegistration] = []
-    h_ecc = ecc_homography(ref_grad, band_grad, init)
+    h_ecc = ecc_homography(ref_grad, band_grad, init, min_cc=thresholds.min_ecc)
     if h_ecc is not None:
         candidates.append(evaluate(h_ecc, "ecc", ref_grad, band_grad, matches))
     if not candidates or not accept(candidates[0], thresholds):
@@ -422,7 +427,8 @@ def _pairs(n: int, reference: int, wavelengths: Sequence[float] | None, neighbou
 
 
 def _compose(edges: Sequence[BandRegistration], path: tuple[int, ...]) -> BandRegistration:
-    """A transform along a path of pairwise registrations; its quality is the weakest edge's."""
+    """A transform along a path of pairwise registrations; its quality is the weakest edge's
+    (NaN, i.e. failing, if any edge's figure is NaN)."""
     h = np.eye(3)
     for e in edges:
         h = e.homography @ h
@@ -430,8 +436,8 @@ def _compose(edges: Sequence[BandRegistration], path: tuple[int, ...]) -> BandRe
         return replace(edges[0], path=path)
     return BandRegistration(
         _normalised(h), "+".join(sorted({e.method for e in edges})),
-        min(e.ecc for e in edges), min(e.n_matches for e in edges), min(e.n_inliers for e in edges),
-        min(e.inlier_ratio for e in edges), max(e.residual_px for e in edges), path,
+        float(np.min([e.ecc for e in edges])), min(e.n_matches for e in edges), min(e.n_inliers for e in edges),
+        float(np.min([e.inlier_ratio for e in edges])), float(np.max([e.residual_px for e in edges])), path,
     )
 
 

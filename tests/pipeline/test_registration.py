@@ -25,10 +25,11 @@ def session_reg():
     """Three captures of one rig over different ground; in the third the blue band is a
     covered lens (noise): it must fall back to the session transform."""
     camera = load_camera(CAMERA)
-    first = multilens_capture(10)
+    size = (180, 240)  # small: three captures, test time
+    first = multilens_capture(10, shape=size)
     truth = first.homographies
-    stacks = [("IMG_0010", first.dn), ("IMG_0011", multilens_capture(11, homographies=truth).dn)]
-    bad = multilens_capture(12, homographies=truth).dn.copy()
+    stacks = [("IMG_0010", first.dn), ("IMG_0011", multilens_capture(11, shape=size, homographies=truth).dn)]
+    bad = multilens_capture(12, shape=size, homographies=truth).dn.copy()
     bad[0] = np.random.default_rng(0).normal(400, 20, bad[0].shape).clip(0, 4095).astype(np.uint16)
     stacks.append(("IMG_0012", bad))
     return camera, truth, register_session(stacks, camera)
@@ -69,9 +70,9 @@ def test_register_refuses_a_snapshot_mosaic(tmp_path, capsys) -> None:
     assert code == 2 and "snapshot mosaic" in err and len(err.splitlines()) == 1
 
 
-def _half(path) -> np.ndarray:  # noqa: ANN001
+def _third(path) -> np.ndarray:  # noqa: ANN001
     img = tifffile.imread(path).astype(np.float32)
-    return cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
+    return cv2.resize(img, (img.shape[1] // 3, img.shape[0] // 3), interpolation=cv2.INTER_AREA)
 
 
 def _ndvi_edge_energy(red: np.ndarray, nir: np.ndarray, mask: np.ndarray) -> float:
@@ -85,10 +86,10 @@ def _ndvi_edge_energy(red: np.ndarray, nir: np.ndarray, mask: np.ndarray) -> flo
 
 @pytest.mark.slow
 def test_real_rededge_flight_capture_aligns() -> None:
-    """The RedEdge flight capture IMG_0001 at half resolution (test time): band-to-band
+    """The RedEdge flight capture IMG_0001 at a third of its resolution (test time): band-to-band
     gradient correlation and NDVI false edges before/after alignment (full-resolution figures:
     docs/registration.md)."""
-    stack = np.stack([_half(band_file("0001", b)) for b in range(1, 6)])
+    stack = np.stack([_third(band_file("0001", b)) for b in range(1, 6)])
     black = np.array([read_capture_meta(band_file("0001", b)).black_level for b in range(1, 6)])[:, None, None]
     regs = reg.register_stack(stack, 3, wavelengths=load_camera(CAMERA).wavelengths)
     assert all(reg.accept(r) for r in regs)
@@ -98,7 +99,7 @@ def test_real_rededge_flight_capture_aligns() -> None:
     for b in (0, 1, 2, 4):
         before = reg.gradient_correlation(stack[3], stack[b], ok)
         after = reg.gradient_correlation(aligned[3], np.nan_to_num(aligned[b]), ok)
-        assert after > before + 0.15 and after > 0.4, (b, before, after)
+        assert after > before + 0.15 and after > 0.3, (b, before, after)
     dn = stack - black
     al = aligned - black
     before = _ndvi_edge_energy(dn[2], dn[3], ok)
