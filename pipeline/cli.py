@@ -153,11 +153,13 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
 @click.option("--strict", is_flag=True, help="Exit non-zero if any frame was quarantined.")
 @click.option("--no-align", "no_align", is_flag=True,
               help="Keep each band on its own pixel grid even if the calibration has band transforms ('mscal register').")
+@click.option("--registration", default=None, type=click.Path(path_type=Path),
+              help="--calibration factory: align the bands with the transforms of this store ('mscal register').")
 @click.option("--centre-bands", "centre_bands", is_flag=True,
               help="Snapshot mosaics: resample every band to the mosaic's centre position (sub-pixel band offsets).")
 def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str | None, panel_reflectance: str | None,
           reference: str, float32: bool, export_bands: str | None, strict: bool, no_align: bool,
-          centre_bands: bool) -> None:
+          registration: Path | None, centre_bands: bool) -> None:
     """Reflectance (Eq. 15), indices and photogrammetry TIFFs for a FLIGHT folder; with
     --calibration factory, for a folder of one-file-per-band captures from their factory metadata."""
     from mscal_core.errors import InputError
@@ -174,11 +176,15 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
             reference=reference, panel_captures=tuple(p.strip() for p in panel.split(",")) if panel else (),
             panel_reflectance=panel_reflectance, tiff_dtype="float32" if float32 else "uint16",
             export_bands=bands, strict=strict,
+            registration=None if (registration is None or no_align) else str(registration),
         )
         _report_apply(apply_factory(flight, out, fopts), out, strict)
         return
     if reference != "auto":
         raise InputError("--reference is for --calibration factory")
+    if registration is not None:
+        raise InputError("--registration is for --calibration factory; a field calibration holds its own band "
+                         "transforms ('mscal register CAPTURES -o CALIB.zarr')")
     if (panel is None) != (panel_reflectance is None):
         raise InputError("--panel and --panel-reflectance go together")
     spec = PanelSpec.parse(panel, panel_reflectance) if panel else None
