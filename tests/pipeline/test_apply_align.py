@@ -133,3 +133,10 @@ def test_centre_bands_resamples_to_the_mosaic_centre(plain, tmp_path) -> None:
     np.testing.assert_allclose(got, want, rtol=1e-5, equal_nan=True)
     np.testing.assert_array_equal(got[12], ref[12])  # the centre band is not moved
     assert not np.allclose(got[0][5:-5, 5:-5], ref[0][5:-5, 5:-5])
+
+
+def test_registration_option_is_for_factory_calibrations(plain, tmp_path, capsys) -> None:
+    session, calib, _ = plain
+    code = _apply(session / "flights" / "field", calib, tmp_path / "o", "--registration", str(calib))
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "--registration is for --calibration factory" in err
