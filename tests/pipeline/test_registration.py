@@ -130,3 +130,17 @@ def test_collect_needs_a_camera_for_a_new_store(tmp_path) -> None:
 
     with pytest.raises(InputError, match="--camera is needed"):
         register_cli([tmp_path], tmp_path / "r.zarr", None, None)
+
+
+def test_captures_named_by_folder_or_band_file() -> None:
+    from pipeline.registration import _collect
+
+    camera = load_camera(CAMERA)
+    one = band_file("0001", 3)
+    caps, problems = _collect([one], camera)
+    assert [c.name for c in caps] == ["IMG_0001"] and problems == []
+    assert [m.band_name for m in caps[0].metas] == list(camera.band_names)
+    caps, _ = _collect([one.parent], camera)
+    assert [c.name for c in caps] == ["IMG_0000", "IMG_0001"]
+    with pytest.raises(InputError, match="not found"):
+        _collect([one.parent / "nope"], camera)
