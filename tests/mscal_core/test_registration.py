@@ -44,8 +44,8 @@ def test_residual_misalignment_below_0_3_px(seed: int, texture: float) -> None:
 
 
 def test_alignment_restores_band_to_band_gradient_correlation() -> None:
-    cap = _capture(0)
-    regs = _registered(0)
+    cap = _capture(0, 0.12)
+    regs = _registered(0, 0.12)
     aligned = reg.align_bands(cap.dn.astype(np.float32), np.stack([r.homography for r in regs]))
     ok = np.isfinite(aligned).all(axis=0)
     assert 0.6 < ok.mean() < 1.0  # the border no band covers is NaN, the rest kept
@@ -62,8 +62,8 @@ def test_alignment_restores_band_to_band_gradient_correlation() -> None:
 def test_aligned_ndvi_matches_the_truth_at_edges() -> None:
     """NDVI of the aligned bands against the NDVI of the true reflectance on the reference
     grid: the unaligned bands give errors of tenths at every crop-row edge."""
-    cap = _capture(0)
-    regs = _registered(0)
+    cap = _capture(0, 0.12)
+    regs = _registered(0, 0.12)
     red, nir = 2, 3
     dn = cap.dn.astype(np.float32) - 100.0  # black level of the synthetic sensor
     true = (cap.reflectance[nir] - cap.reflectance[red]) / (cap.reflectance[nir] + cap.reflectance[red])
@@ -82,7 +82,7 @@ def test_aligned_ndvi_matches_the_truth_at_edges() -> None:
 
 
 def test_unrelated_band_fails_the_threshold() -> None:
-    cap = _capture(0)
+    cap = _capture(0, 0.12)
     rng = np.random.default_rng(5)
     noise = rng.normal(1000.0, 30.0, cap.dn.shape[1:]).astype(np.float32)
     g_ref = reg.gradient_image(cap.dn[cap.reference])
@@ -92,7 +92,7 @@ def test_unrelated_band_fails_the_threshold() -> None:
 
 
 def test_feature_route_alone_locates_the_band() -> None:
-    cap = _capture(0)
+    cap = _capture(0, 0.12)
     g = [reg.gradient_image(b) for b in cap.dn]
     f = [reg.detect_features(x) for x in g]
     h = reg.feature_homography(*reg.feature_matches(f[cap.reference], f[4]))
