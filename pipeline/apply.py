@@ -210,8 +210,19 @@ def _eq15_block(dn: np.ndarray, t: np.ndarray, lut: np.ndarray, inv_v: np.ndarra
     return eq15_fast(dn, lut, inv_v, t.reshape(-1), sat)
 
 
-def lazy_reflectance(raw: xr.Dataset, calib: xr.Dataset, camera: Camera) -> xr.DataArray:
-    """Eq. 15, ``R = U(I) / (t V S)``, as a dask-backed DataArray (frame, band, y, x)."""
+def _aligned_block(refl: np.ndarray, names: np.ndarray, calib: xr.Dataset, block_info: dict | None = None) -> np.ndarray:
+    f0 = block_info[0]["array-location"][0][0] if block_info else 0
+    out = np.empty_like(refl)
+    for k in range(refl.shape[0]):
+        H = frame_transforms(calib, str(names[f0 + k]))
+        out[k] = refl[k] if H is None else align_bands(refl[k], H)
+    return out
+
+
+def lazy_reflectance(raw: xr.Dataset, calib: xr.Dataset, camera: Camera, *, align: bool = False) -> xr.DataArray:
+    """Eq. 15, ``R = U(I) / (t V S)``, as a dask-backed DataArray (frame, band, y, x); with
+    ``align`` and a calibration holding band transforms, each frame's bands warped onto the
+    reference band as the apply pass does (:func:`geometry_step`)."""
     dn = raw["dn"].data
     t = (raw["exposure_ms"] * raw["gain"]).values.astype(np.float64)
     t_da = da.from_array(t.reshape(-1, 1, 1, 1), chunks=(dn.chunks[0], 1, 1, 1))
@@ -226,6 +237,8 @@ def lazy_reflectance(raw: xr.Dataset, calib: xr.Dataset, camera: Camera) -> xr.D
     sat = saturation_dn(calib, camera)
     lut, inv_v = eq15_tables(U, V, S)
     refl = da.map_blocks(_eq15_block, dn, t_da, lut=lut, inv_v=inv_v, sat=sat, dtype=np.float32)
+    if align and "band_transform" in calib:
+        refl = da.map_blocks(_aligned_block, refl, names=raw["frame"].values, calib=calib, dtype=np.float32)
     return xr.DataArray(refl, dims=("frame", "band", "y", "x"), coords=raw["dn"].coords, name="reflectance")
 
 

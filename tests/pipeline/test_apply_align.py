@@ -105,6 +105,12 @@ def test_stored_transforms_align_each_frame(plain, tmp_path) -> None:
         assert np.isnan(a[:, -1]).all()
         np.testing.assert_array_equal(al["reflectance"].values[f, 0], ref["reflectance"].values[f, 0])
     assert "IMG_0001" in frames
+    from pipeline.apply import lazy_reflectance
+    from pipeline.catalog import load_camera
+
+    lazy = lazy_reflectance(xr.open_zarr(aligned / "raw.zarr"), open_calibration(store),
+                            load_camera("ximea-mq022hg-sm5x5-nir"), align=True)
+    np.testing.assert_array_equal(lazy.values, al["reflectance"].values)
     raw = tmp_path / "raw"
     assert _apply(session / "flights" / "field", store, raw, "--no-align") == 0
     np.testing.assert_array_equal(xr.open_zarr(raw / "reflectance.zarr")["reflectance"].values, ref["reflectance"].values)
