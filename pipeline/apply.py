@@ -40,10 +40,12 @@ import xarray as xr
 import mscal_core
 from mscal_core.errors import FrameError, InputError
 from mscal_core.reflectance import eq15_fast, eq15_tables
+from mscal_core.registration import align_bands, mosaic_centre_offsets, shift_bands
 
 from .catalog import Camera, Index, load_camera, load_index, parse_reflectance
 from .chunks import FLAT_CHUNK_KEYS, FrameChunks
 from .discover import quarantine_entry
+from .registration import check_transforms, frame_transforms
 from .ingest import FRAME_COORDS, Cube, _Writer, frame_coords, frame_row, ingest_flight, open_cube, read_frame, shape_problem
 from .session import FrameRecord
 from .light import DEFAULT_MODE, IlluminationPlan, illumination_plan, varies_in_time
@@ -90,11 +92,16 @@ class ApplyOptions:
     indices: tuple[str, ...] = ("ndvi", "ndre")
     strict: bool = False
     illumination: str = DEFAULT_MODE  # nearest | linear: light between reflector captures (issue 8)
+    align: bool = True  # align bands with the store's band_transform, if it has one (issue 9)
+    centre_bands: bool = False  # snapshot mosaics: resample every band to the mosaic's centre position
 
     def fingerprint(self) -> dict[str, Any]:
         d = asdict(self)
         d.pop("strict")
         d.pop("illumination")  # in the fingerprint only when the light varies (see _fingerprint)
+        for key, default in (("align", True), ("centre_bands", False)):  # runs before issue 9 stay up to date
+            if d[key] == default:
+                d.pop(key)
         if self.panel is not None:
             d["panel"] = {"frame": self.panel.frame, "box": list(self.panel.box), "reflectance": repr(self.panel.reflectance)}
         return d
@@ -118,6 +125,7 @@ def calibration_hash(ds: xr.Dataset) -> str:
     names = ["inverse_response", "vignetting", "spectral_factor"]
     if varies_in_time(ds):
         names += ["capture_spectral_factor", "capture_level", "capture_time", "capture_irradiance"]
+    names += [n for n in ("band_transform", "capture_transform") if n in ds]  # only stores that have them
     for name in names:
         arr = np.ascontiguousarray(ds[name].values)
         h.update(name.encode())
@@ -208,8 +216,19 @@ def _eq15_block(dn: np.ndarray, t: np.ndarray, lut: np.ndarray, inv_v: np.ndarra
     return eq15_fast(dn, lut, inv_v, t.reshape(-1), sat)
 
 
-def lazy_reflectance(raw: xr.Dataset, calib: xr.Dataset, camera: Camera) -> xr.DataArray:
-    """Eq. 15, ``R = U(I) / (t V S)``, as a dask-backed DataArray (frame, band, y, x)."""
+def _aligned_block(refl: np.ndarray, names: np.ndarray, calib: xr.Dataset, block_info: dict | None = None) -> np.ndarray:
+    f0 = block_info[0]["array-location"][0][0] if block_info else 0
+    out = np.empty_like(refl)
+    for k in range(refl.shape[0]):
+        H = frame_transforms(calib, str(names[f0 + k]))
+        out[k] = refl[k] if H is None else align_bands(refl[k], H)
+    return out
+
+
+def lazy_reflectance(raw: xr.Dataset, calib: xr.Dataset, camera: Camera, *, align: bool = False) -> xr.DataArray:
+    """Eq. 15, ``R = U(I) / (t V S)``, as a dask-backed DataArray (frame, band, y, x); with
+    ``align`` and a calibration holding band transforms, each frame's bands warped onto the
+    reference band as the apply pass does (:func:`geometry_step`)."""
     dn = raw["dn"].data
     t = (raw["exposure_ms"] * raw["gain"]).values.astype(np.float64)
     t_da = da.from_array(t.reshape(-1, 1, 1, 1), chunks=(dn.chunks[0], 1, 1, 1))
@@ -224,6 +243,8 @@ def lazy_reflectance(raw: xr.Dataset, calib: xr.Dataset, camera: Camera) -> xr.D
     sat = saturation_dn(calib, camera)
     lut, inv_v = eq15_tables(U, V, S)
     refl = da.map_blocks(_eq15_block, dn, t_da, lut=lut, inv_v=inv_v, sat=sat, dtype=np.float32)
+    if align and "band_transform" in calib:
+        refl = da.map_blocks(_aligned_block, refl, names=raw["frame"].values, calib=calib, dtype=np.float32)
     return xr.DataArray(refl, dims=("frame", "band", "y", "x"), coords=raw["dn"].coords, name="reflectance")
 
 
@@ -398,6 +419,8 @@ class FramePlan:
     bands: tuple[tuple[int, BandTags], ...]
     tiff_dtype: str
     out: Path
+    align: bool = False  # the store has band transforms and they are applied
+    band_shift: tuple[tuple[float, float], ...] | None = None  # --centre-bands: (dx, dy) per band
 
 
 @dataclass(frozen=True)
@@ -433,6 +456,28 @@ def frame_dn(plan: FramePlan, job: FrameJob) -> tuple[np.ndarray, str | None]:
     return dn, sha
 
 
+@lru_cache(maxsize=2)
+def _store_of(key: tuple[str, int]) -> xr.Dataset:
+    return xr.open_zarr(key[0]).load()
+
+
+def geometry_step(calibration: Path, align: bool, band_shift: Sequence[tuple[float, float]] | None, name: str,
+                  refl: np.ndarray) -> np.ndarray:
+    """Eq. 15 reflectance (band, y, x) of frame ``name`` put on one pixel grid (issue 9): the
+    bands of a multi-lens camera warped onto the reference band (``align``: the capture's own
+    transforms if it was registered, else the session's; ``mscal_core.registration.align_bands``,
+    NaN where a band does not cover), or a snapshot mosaic's bands resampled to the mosaic's
+    centre position (``band_shift``). Unchanged otherwise. Eq. 15 runs before: U, V and S
+    belong to each band's own pixels."""
+    if align:
+        H = frame_transforms(_store_of(_stamp(Path(calibration))), name)
+        if H is not None:
+            refl = align_bands(refl, H)
+    if band_shift is not None:
+        refl = shift_bands(refl, np.asarray(band_shift, dtype=np.float64))
+    return refl
+
+
 def process_frame(plan: FramePlan, job: FrameJob) -> FrameOutcome:
     """One frame, every output: (for a new frame) its raw.zarr chunk, Eq. 15, normalisation,
     indices, Otsu mask, its chunk of each reflectance.zarr variable (one whole chunk per
@@ -449,6 +494,8 @@ def process_frame(plan: FramePlan, job: FrameJob) -> FrameOutcome:
     lut, inv_v = _tables(str(plan.calibration))
     refl = eq15_fast(dn[None], lut, inv_v, job.t, plan.sat,
                      None if job.scale is None else np.asarray(job.scale)[None])[0]
+    if plan.align or plan.band_shift is not None:
+        refl = geometry_step(plan.calibration, plan.align, plan.band_shift, job.name, refl)
     kind, value = plan.norm
     if kind == "scalar":
         refl *= np.float32(value)
@@ -570,16 +617,22 @@ class _Pass:
 def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tuple[int, int, int], camera: Camera,
                 calib_path: Path, raw_dn: Path, indices: Sequence[Index],
                 roles: dict[str, dict[str, int]], export: Sequence[int], options: ApplyOptions, chash: str,
-                sat: int, frame_dn: Callable[[int], np.ndarray], calib: xr.Dataset) -> _Pass:
+                sat: int, frame_dn: Callable[[int], np.ndarray], calib: xr.Dataset,
+                geometry: tuple[bool, tuple[tuple[float, float], ...] | None, str | None] = (False, None, None)) -> _Pass:
     """The light of each frame, normalisation, the output store's layout (metadata and
     coordinates; data written per frame) under a temporary name, and the plan of the frames'
     tasks."""
     frames = [str(f) for f in coords["frame"].values]
     illum = illumination_plan(calib, frames, coords["time"].values, flight_dir, options.illumination)
-    panel_reflectance = _panel_from(frame_dn, _effective_exposure(coords), calib_path, sat, illum)
+    panel_reflectance = _panel_from(frame_dn, _effective_exposure(coords), calib_path, sat, illum, frames, geometry)
     norm = normalisation(options, camera, frames, panel_reflectance)
     ds = output_template(coords, camera, cube_shape, indices, options, illum)
     ds.attrs.update({"calibration_sha256": chash, "source": str(flight_dir)})
+    align, band_shift, reference = geometry
+    if align:
+        ds["reflectance"].attrs["aligned_to_band"] = reference
+    if band_shift is not None:
+        ds["reflectance"].attrs["band_positions"] = "resampled to the mosaic's centre position (--centre-bands)"
     tmp_store = out / f".reflectance.zarr{TMP_MARK}{uuid.uuid4().hex[:8]}"
     encoding = {v: {"chunks": (1, *ds[v].shape[1:]), "compressors": OUTPUT_COMPRESSORS,
                     "chunk_key_encoding": FLAT_CHUNK_KEYS} for v in ds.data_vars}
@@ -595,7 +648,7 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
                          fwhm_nm=camera.bands[b].fwhm_nm, rig_camera_index=i))
             for i, b in enumerate(export)
         ),
-        tiff_dtype=options.tiff_dtype, out=out,
+        tiff_dtype=options.tiff_dtype, out=out, align=align, band_shift=band_shift,
     )
     for sub in ("photogrammetry", "ndvi"):
         (out / sub).mkdir(exist_ok=True)
@@ -607,11 +660,18 @@ def _effective_exposure(coords: xr.Dataset) -> np.ndarray:
 
 
 def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path: Path, sat: int,
-                illum: IlluminationPlan | None = None) -> Callable[[int], np.ndarray]:
+                illum: IlluminationPlan | None = None, names: Sequence[str] = (),
+                geometry: tuple = (False, None, None)) -> Callable[[int], np.ndarray]:
+    """Eq. 15 reflectance of frame ``f`` (with its light, issue 8) on the pixel grid of the
+    outputs (``geometry_step``, issue 9)."""
     def reflectance(f: int) -> np.ndarray:
         lut, inv_v = _tables(str(calib_path))
         scale = None if illum is None else illum.scale[f][None]
-        return eq15_fast(plan_dn(f)[None], lut, inv_v, float(t[f]), sat, scale)[0]
+        refl = eq15_fast(plan_dn(f)[None], lut, inv_v, float(t[f]), sat, scale)[0]
+        align, band_shift, _ = geometry
+        if align or band_shift is not None:
+            refl = geometry_step(calib_path, align, band_shift, str(names[f]), refl)
+        return refl
     return reflectance
 
 
@@ -742,6 +802,20 @@ def _versions() -> dict[str, str]:
     return versions
 
 
+def _geometry(calib: xr.Dataset, camera: Camera, options: ApplyOptions
+              ) -> tuple[bool, tuple[tuple[float, float], ...] | None, str | None]:
+    """``(align, band_shift, reference band)`` of the pass (``geometry_step``)."""
+    align = bool(options.align and "band_transform" in calib)
+    reference = (calib.attrs.get("registration") or {}).get("reference_band") if align else None
+    band_shift = None
+    if options.centre_bands:
+        if camera.layout.kind != "mosaic" or camera.layout.pattern is None:
+            raise InputError(f"--centre-bands is for snapshot mosaic cameras; {camera.name} is {camera.layout.kind}",
+                             hint="multi-lens cameras are aligned with 'mscal register' transforms instead")
+        band_shift = tuple((float(dx), float(dy)) for dx, dy in mosaic_centre_offsets(camera.layout.pattern))
+    return align, band_shift, reference
+
+
 def apply_flight(
     flight_dir: str | Path, calibration: str | Path, out: str | Path, options: ApplyOptions = ApplyOptions()
 ) -> ApplyResult:
@@ -769,6 +843,7 @@ def apply_flight(
     indices = [load_index(n) for n in options.indices]
     roles = {ix.name: _index_roles(camera, ix) for ix in indices}
     sat = saturation_dn(calib, camera)
+    geometry = _geometry(calib, camera, options)
     out.mkdir(parents=True, exist_ok=True)
     _clean_temporaries(out)
     raw_path = out / "raw.zarr"
@@ -781,8 +856,10 @@ def apply_flight(
                 f"calibration vignetting is {v_shape[1]}x{v_shape[0]} but frames are {shape[2]}x{shape[1]}",
                 hint="use a calibration of this camera",
             )
+        if geometry[0]:
+            check_transforms(calib, shape[0], shape[1:], calib_path)
         return _start_pass(out, flight_dir, coords, shape, camera, calib_path, raw_path / "dn", indices,
-                           roles, export, options, chash, sat, frame_dn, calib)
+                           roles, export, options, chash, sat, frame_dn, calib, geometry)
 
     t0 = time.perf_counter()
     cube = open_cube(flight_dir, camera, raw_path)

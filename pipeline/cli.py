@@ -103,6 +103,38 @@ _stage_command("illumination")
 
 
 @cli.command()
+@click.argument("captures", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
+              help="Calibration store (.zarr): the registration is added to it, or a new store is created.")
+@click.option("--camera", default=None, help="Camera catalog name (default: the existing store's camera).")
+@click.option("--reference", default=None, help="Band to align to (default: the lens in the middle of the rig).")
+@click.option("--min-ecc", default=0.3, show_default=True, type=float,
+              help="Reject a band's transform whose gradient correlation after alignment is lower.")
+@click.option("--max-captures", default=12, show_default=True, type=int,
+              help="Register at most this many captures, evenly spread over those given.")
+def register(captures: tuple[Path, ...], out: Path, camera: str | None, reference: str | None, min_ecc: float,
+             max_captures: int) -> None:
+    """Band co-registration of a multi-lens camera from CAPTURES (folders or band files): one
+    homography per band to the reference band, stored with its quality figures."""
+    from mscal_core.registration import Thresholds
+
+    from .registration import register_cli
+
+    t0 = time.perf_counter()
+    ds, problems = register_cli(list(captures), out, camera, reference, Thresholds(min_ecc=min_ecc), max_captures)
+    for p in problems:
+        click.echo(f"not used {p['file']}: {p['reason']}", err=True)
+    reg = ds.attrs["registration"]
+    for f in reg["fallbacks"]:
+        click.echo(f"capture {f['capture']} fell back to the session transform for {', '.join(f['bands'])}: {f['reason']}",
+                   err=True)
+    spread = ", ".join(f"{n} {s:.2f}" for n, s in zip(ds["band_name"].values, ds["registration_spread_px"].values))
+    click.echo(f"wrote {out} (reference band {reg['reference_band']}; {len(reg['captures'])} of {reg['registered_of']} "
+               f"captures registered, {len(reg['fallbacks'])} fell back; spread px: {spread}; "
+               f"{time.perf_counter() - t0:.1f} s)")
+
+
+@cli.command()
 @click.argument("flight", type=click.Path(path_type=Path))
 @click.option("--calibration", "calibration", required=True,
               help="Calibration store (.zarr) from 'mscal calibrate', or 'factory' for cameras with factory metadata.")
@@ -123,9 +155,15 @@ _stage_command("illumination")
 @click.option("--illumination", type=ILLUMINATION_MODES, default="linear", show_default=True,
               help="Light of each frame between several reflector captures: the nearest capture in time, or "
                    "linear in time (irradiance readings, if any, scale the brightness in both).")
+@click.option("--no-align", "no_align", is_flag=True,
+              help="Keep each band on its own pixel grid even if the calibration has band transforms ('mscal register').")
+@click.option("--registration", default=None, type=click.Path(path_type=Path),
+              help="--calibration factory: align the bands with the transforms of this store ('mscal register').")
+@click.option("--centre-bands", "centre_bands", is_flag=True,
+              help="Snapshot mosaics: resample every band to the mosaic's centre position (sub-pixel band offsets).")
 def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str | None, panel_reflectance: str | None,
           reference: str, float32: bool, export_bands: str | None, strict: bool,
-          illumination: str) -> None:
+          illumination: str, no_align: bool, registration: Path | None, centre_bands: bool) -> None:
     """Reflectance (Eq. 15), indices and photogrammetry TIFFs for a FLIGHT folder; with
     --calibration factory, for a folder of one-file-per-band captures from their factory metadata."""
     from mscal_core.errors import InputError
@@ -142,11 +180,15 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
             reference=reference, panel_captures=tuple(p.strip() for p in panel.split(",")) if panel else (),
             panel_reflectance=panel_reflectance, tiff_dtype="float32" if float32 else "uint16",
             export_bands=bands, strict=strict,
+            registration=None if (registration is None or no_align) else str(registration),
         )
         _report_apply(apply_factory(flight, out, fopts), out, strict)
         return
     if reference != "auto":
         raise InputError("--reference is for --calibration factory")
+    if registration is not None:
+        raise InputError("--registration is for --calibration factory; a field calibration holds its own band "
+                         "transforms ('mscal register CAPTURES -o CALIB.zarr')")
     if (panel is None) != (panel_reflectance is None):
         raise InputError("--panel and --panel-reflectance go together")
     spec = PanelSpec.parse(panel, panel_reflectance) if panel else None
@@ -154,7 +196,7 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
         normalise = "panel"
     opts = ApplyOptions(
         normalise=normalise, panel=spec, tiff_dtype="float32" if float32 else "uint16",
-        export_bands=bands, strict=strict, illumination=illumination,
+        export_bands=bands, strict=strict, illumination=illumination, align=not no_align, centre_bands=centre_bands,
     )
     _report_apply(apply_flight(flight, calibration, out, opts), out, strict)
 

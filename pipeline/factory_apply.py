@@ -21,7 +21,10 @@ Outputs as for every apply (SPEC "Outputs of apply"): ``reflectance.zarr`` with
 ``reflectance`` and ``radiance`` (frame, band, y, x) float32 and the indices, ``raw.zarr``
 (the stored DN, frame x band x y x x), photogrammetry and NDVI TIFFs, ``run.json``. Bands are
 *not* co-registered here (each band keeps its own pixel grid): per-pixel indices mix
-neighbouring ground points near edges; ``reflectance.zarr`` says so in its attributes.
+neighbouring ground points near edges; ``reflectance.zarr`` says so in its attributes. With
+``--registration REG.zarr`` (a store from ``mscal register``, issue 9) the radiance of each
+band is warped onto the reference band's grid before the factor (the capture's own transforms
+if it was registered, else the session's; NaN where a band does not cover).
 
 Every output is written under a temporary name and renamed; a run that finds ``run.json``
 matching its inputs (file names, sizes and modification times) and options does nothing.
@@ -43,11 +46,12 @@ import numpy as np
 import xarray as xr
 
 import mscal_core
-from mscal_core.errors import FrameError, InputError
+from mscal_core.errors import CalibrationStoreError, FrameError, InputError
 from mscal_core.illumination import fit_illumination
 from mscal_core.panel import sample_quad
 
 from .apply import (
+    geometry_step,
     OUTPUT_COMPRESSORS,
     RUN_JSON,
     ApplyResult,
@@ -89,13 +93,17 @@ class FactoryOptions:
     export_bands: tuple[str, ...] | None = None
     indices: tuple[str, ...] = ("ndvi", "ndre")
     strict: bool = False
+    registration: str | None = None  # a store from 'mscal register': bands aligned to its reference (issue 9)
 
     def __post_init__(self) -> None:
         if self.reference not in REFERENCES:
             raise InputError(f"reference {self.reference!r} is not one of {', '.join(REFERENCES)}")
 
     def fingerprint(self) -> dict[str, Any]:
-        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items() if k != "strict"}
+        d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items() if k != "strict"}
+        if d["registration"] is None:  # runs before issue 9 stay up to date
+            d.pop("registration")
+        return d
 
 
 # --------------------------------------------------------------------------- camera and captures
@@ -244,6 +252,7 @@ class CapturePlan:
     bands: tuple[tuple[int, BandTags], ...]
     tiff_dtype: str
     outputs: tuple[str, ...]
+    registration: Path | None = None  # band transforms (issue 9): radiance and reflectance aligned
 
 
 @dataclass(frozen=True)
@@ -293,6 +302,8 @@ def process_capture(plan: CapturePlan, job: CaptureJob) -> CaptureOutcome:
     raw = np.stack(dns)
     saturated = raw >= plan.sat
     rad[saturated] = np.nan
+    if plan.registration is not None:  # each band onto the reference band's grid (NaN where uncovered)
+        rad = geometry_step(plan.registration, True, None, cap.name, rad)
     refl = rad * k.astype(np.float32)[:, None, None]
     write_frame(plan.raw_store / "dn", job.index, raw)
     write_frame(plan.out_store / "radiance", job.index, rad)
@@ -365,6 +376,27 @@ def _tmp(out: Path, name: str) -> Path:
     return out / f".{name}{TMP_MARK}{uuid.uuid4().hex[:8]}"
 
 
+def _registration(options: FactoryOptions, camera: Camera, shape: tuple[int, int, int]) -> tuple[Path, str] | None:
+    """The ``--registration`` store (checked against the camera and image size) and the hash
+    of its transforms, or None."""
+    if options.registration is None:
+        return None
+    from .registration import check_transforms
+    from .store import open_calibration
+
+    path = Path(options.registration)
+    ds = open_calibration(path, camera)
+    if "band_transform" not in ds:
+        raise CalibrationStoreError("store holds no band transforms", path=path,
+                                    hint="make one with 'mscal register CAPTURES -o REG.zarr'")
+    check_transforms(ds, camera.n_bands, shape[1:], path)
+    h = hashlib.sha256()
+    for name in ("band_transform", "capture_transform"):
+        if name in ds:
+            h.update(name.encode() + np.ascontiguousarray(ds[name].values).tobytes())
+    return path, h.hexdigest()
+
+
 def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOptions = FactoryOptions()) -> ApplyResult:
     """``mscal apply CAPTURE_DIR --calibration factory -o OUT`` (see the module docstring)."""
     t_start = time.perf_counter()
@@ -386,10 +418,14 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     indices = [load_index(n) for n in options.indices]
     roles = {ix.name: _index_roles(camera, ix) for ix in indices}
 
-    fingerprint = json.loads(json.dumps({
+    registration = _registration(options, camera, shape)
+    fingerprint = {
         "inputs": _stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
         "mscal_version": mscal_core.__version__,
-    }))
+    }
+    if registration is not None:
+        fingerprint["registration_sha256"] = registration[1]
+    fingerprint = json.loads(json.dumps(fingerprint))
     out.mkdir(parents=True, exist_ok=True)
     previous = _up_to_date(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
     if previous is not None:
@@ -477,6 +513,10 @@ class _Pass:
         attrs = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__,
                  "calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
                  "comment": "bands are not co-registered: each band keeps its own pixel grid"}
+        if options.registration is not None:
+            attrs.update({"co_registered": 1, "registration": str(options.registration),
+                          "comment": "bands aligned to the reference band of the registration store "
+                                     "(mscal register); NaN where a band does not cover the reference grid"})
         rvars: dict[str, tuple[tuple[str, ...], Any, dict]] = {
             "reflectance": (("frame", "band", "y", "x"), np.float32,
                             {"long_name": f"reflectance (factory radiance x {reference} factor)", "units": "1"}),
@@ -505,6 +545,7 @@ class _Pass:
                                      fwhm_nm=first[b].fwhm_nm, rig_camera_index=i))
                         for i, b in enumerate(export)),
             tiff_dtype=options.tiff_dtype, outputs=tuple(str(v) for v in refl_ds.data_vars),
+            registration=None if options.registration is None else Path(options.registration),
         )
         return _Pass(plan, tmp_refl, tmp_raw)
 

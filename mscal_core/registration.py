@@ -1,0 +1,613 @@
+"""Band co-registration of multi-lens cameras (issue 9): pure numpy + OpenCV, no I/O.
+
+A camera with one lens per band (MicaSense, DJI P4 Multispectral / Mavic 3M, Parrot Sequoia)
+sees each band from a slightly different point. For a flat scene (the ground seen from flight
+altitude) band ``b`` is the reference band seen through a plane homography ``H_b``:
+
+    x_b ~ H_b x_ref          (homogeneous pixel coordinates, x = column, y = row)
+
+Convention used everywhere in mscal: ``H_b`` maps **reference-band pixels to band-b pixels**
+(OpenCV's ECC warp from template to input), so the aligned band is
+``aligned_b(x) = band_b(H_b x)``, i.e. ``cv2.warpPerspective(band_b, H_b, ...,
+flags=WARP_INVERSE_MAP)``. ``H_ref`` is the identity. Pixel centres are at integer
+coordinates.
+
+Estimation (:func:`register_band`):
+
+1. both images become gradient-magnitude images (:func:`gradient_image`): edges of vegetation
+   are dark-on-bright in red and bright-on-dark in NIR; the gradient magnitude is the same
+   for both, and ECC's correlation coefficient is invariant to the remaining gain and offset;
+2. the translation at the coarsest pyramid level from phase correlation (``cv2.phaseCorrelate``)
+   starts the search (lenses tens of pixels apart, beyond ECC's basin at full resolution);
+3. enhanced correlation coefficient maximisation (Evangelidis & Psarakis 2008,
+   ``cv2.findTransformECC``, ``MOTION_HOMOGRAPHY``) from the coarsest to the finest level;
+4. if ECC fails or its quality is below the thresholds, feature matching on the gradient
+   images (SIFT, ORB if SIFT finds too few) with a RANSAC homography is tried, and the
+   better of the two kept (:func:`feature_homography`).
+
+Quality figures of every estimate (:class:`BandRegistration`): ``ecc`` the correlation
+coefficient of the gradient images after warping (full resolution, overlap only),
+``n_inliers``/``inlier_ratio`` of feature matches that agree with the estimate within
+:data:`INLIER_PX`, ``residual_px`` their rms reprojection error. :func:`accept` applies the
+reject thresholds (:class:`Thresholds`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+import cv2
+import numpy as np
+
+from .errors import FitError, InputError
+
+INLIER_PX = 2.0  # a feature match agrees with a homography within this (px), see feature_homography
+# Pyramid levels until the coarsest image is this small (px, shorter side): phase correlation
+# there finds shifts up to about half of it, i.e. about a quarter of the frame at any size.
+COARSEST_PX = 120
+# ECC iterations at full resolution (each costs a warp of the whole image, ~60 ms at 1.2 MP);
+# the coarser levels have converged by then (docs/registration.md: within 0.04 px of
+# the 300-iteration result on the RedEdge sample)
+FINE_ITERATIONS = 30
+MAX_FEATURES = 3000  # keypoints per image: plenty for a homography, bounded cost on 1.2 MP bands
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """Reject thresholds of one band's transform (:func:`accept`).
+
+    Defaults: ``min_ecc`` 0.3 -- the gradient correlation of aligned bands of the real RedEdge
+    captures is 0.43-0.97 (NIR against red over vegetation the lowest) while a wrong or
+    unrelated alignment leaves 0.04-0.2 (docs/registration.md); ``min_inliers`` 12 -- a
+    homography has 8 degrees of freedom, 12 matches that agree within 2 px leave a margin
+    against chance agreements; ``max_residual_px`` 1.0 -- above the 0.3-0.7 px that agreeing
+    SIFT matches on gradient images show on correctly aligned bands (synthetic and real),
+    below the 2 px of :data:`INLIER_PX`.
+    A transform passes if its ECC correlation passes and, where feature matches were
+    found at all, the inlier count and residual pass too (low texture gives few features but
+    may still give a good ECC correlation)."""
+
+    min_ecc: float = 0.3
+    min_inliers: int = 12
+    max_residual_px: float = 1.0
+
+
+@dataclass(frozen=True)
+class BandRegistration:
+    """Transform of one band to the reference band and its quality figures.
+
+    ``homography`` (3, 3) float64 maps reference pixels to band pixels; ``method`` is
+    ``"identity"`` (the reference itself), ``"ecc"`` or ``"features"``; ``ecc`` the gradient
+    correlation after warping (nan if not computable); ``n_matches`` feature matches found,
+    ``n_inliers`` those within :data:`INLIER_PX` of the transform, ``inlier_ratio``
+    = n_inliers / n_matches (nan without matches), ``residual_px`` rms reprojection error of
+    the inliers (nan without inliers)."""
+
+    homography: np.ndarray
+    method: str
+    ecc: float
+    n_matches: int
+    n_inliers: int
+    inlier_ratio: float
+    residual_px: float
+    path: tuple[int, ...] = ()  # bands from the reference to this band (register_stack)
+
+
+# --------------------------------------------------------------------------- images
+
+
+def normalise(image: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """Image scaled to about [0, 1] by its 1st and 99th percentiles (float32): DN of any bit
+    depth and exposure look alike to the next steps. ``mask`` (bool) selects the pixels used
+    for the percentiles."""
+    a = np.asarray(image, dtype=np.float32)
+    vals = a[mask] if mask is not None else a
+    vals = vals[np.isfinite(vals)]
+    if vals.size == 0:
+        return np.zeros_like(a)
+    lo, hi = np.percentile(vals, (1.0, 99.0))
+    scale = 1.0 / (hi - lo) if hi > lo else 1.0
+    out = (a - np.float32(lo)) * np.float32(scale)
+    return np.nan_to_num(out, nan=0.0, posinf=1.0, neginf=0.0)
+
+
+def gradient_image(image: np.ndarray, sigma: float = 1.0) -> np.ndarray:
+    """Gradient magnitude ``|grad(G_sigma * I)|`` (3x3 Sobel after a Gaussian of ``sigma`` px)
+    of the percentile-normalised image (:func:`normalise`), float32.
+
+    The magnitude is blind to the sign of an edge, so vegetation that is dark in red and
+    bright in NIR gives the same edges in both bands."""
+    a = normalise(image)
+    if sigma > 0:
+        a = cv2.GaussianBlur(a, (0, 0), sigma)
+    gx = cv2.Sobel(a, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(a, cv2.CV_32F, 0, 1, ksize=3)
+    return cv2.magnitude(gx, gy)
+
+
+def correlation(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Pearson correlation coefficient of two images over ``mask`` (and finite pixels);
+    nan with fewer than 100 pixels or a constant image. This is ECC's criterion (the
+    zero-mean normalised correlation) evaluated once."""
+    ok = np.isfinite(a) & np.isfinite(b)
+    if mask is not None:
+        ok &= mask
+    if ok.sum() < 100:
+        return float("nan")
+    x = a[ok].astype(np.float64)
+    y = b[ok].astype(np.float64)
+    x -= x.mean()
+    y -= y.mean()
+    d = math.sqrt(float(x @ x) * float(y @ y))
+    return float(x @ y / d) if d > 0 else float("nan")
+
+
+def gradient_correlation(ref: np.ndarray, band: np.ndarray, mask: np.ndarray | None = None,
+                         sigma: float = 1.0) -> float:
+    """Correlation of the gradient magnitudes of two images of the same grid (the figure used
+    to judge band-to-band alignment: high where edges coincide)."""
+    return correlation(gradient_image(ref, sigma), gradient_image(band, sigma), mask)
+
+
+def warp_to_reference(band: np.ndarray, homography: np.ndarray, shape: tuple[int, int],
+                      interpolation: int = cv2.INTER_LINEAR, fill: float = float("nan")) -> np.ndarray:
+    """``aligned(x) = band(H x)`` on a reference grid of ``shape`` (H, W); pixels whose source
+    lies outside the band are ``fill``. float32 unless ``band`` is float64."""
+    src = band if band.dtype in (np.float32, np.float64) else band.astype(np.float32)
+    return cv2.warpPerspective(src, np.asarray(homography, dtype=np.float64), (shape[1], shape[0]),
+                               flags=interpolation | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=fill)
+
+
+def valid_mask(homography: np.ndarray, band_shape: tuple[int, int], shape: tuple[int, int],
+               margin: float = 1.0) -> np.ndarray:
+    """Reference pixels ``x`` whose band pixel ``H x`` lies at least ``margin`` px inside the band."""
+    h, w = shape
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
+    p = map_points(homography, np.stack([xs.ravel(), ys.ravel()], axis=1))
+    bh, bw = band_shape
+    ok = (p[:, 0] >= margin) & (p[:, 0] <= bw - 1 - margin) & (p[:, 1] >= margin) & (p[:, 1] <= bh - 1 - margin)
+    return ok.reshape(h, w)
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def map_points(homography: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``H x`` for (N, 2) points (x, y), dehomogenised; (N, 2) float64."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    q = np.c_[p, np.ones(len(p))] @ np.asarray(homography, dtype=np.float64).T
+    return q[:, :2] / q[:, 2:3]
+
+
+def grid_points(shape: tuple[int, int], n: tuple[int, int] = (9, 12), margin: float = 0.05) -> np.ndarray:
+    """An ``n = (rows, cols)`` grid of points (x, y) over an image of ``shape`` (H, W), inset
+    by ``margin`` of the size on each side; (rows * cols, 2) float64."""
+    h, w = shape
+    ys = np.linspace(margin * (h - 1), (1 - margin) * (h - 1), n[0])
+    xs = np.linspace(margin * (w - 1), (1 - margin) * (w - 1), n[1])
+    gx, gy = np.meshgrid(xs, ys)
+    return np.stack([gx.ravel(), gy.ravel()], axis=1)
+
+
+def transform_distance(h_a: np.ndarray, h_b: np.ndarray, shape: tuple[int, int],
+                       n: tuple[int, int] = (9, 12)) -> np.ndarray:
+    """Distances (px) between ``H_a x`` and ``H_b x`` over :func:`grid_points` of ``shape``:
+    the misalignment one transform leaves against the other. (N,) float64."""
+    pts = grid_points(shape, n)
+    return np.linalg.norm(map_points(h_a, pts) - map_points(h_b, pts), axis=1)
+
+
+def scale_homography(homography: np.ndarray, factor: float) -> np.ndarray:
+    """The same mapping on images scaled by ``factor`` (coordinates ``x' = factor x``):
+    ``S H S^-1`` with ``S = diag(f, f, 1)``."""
+    s = np.diag([factor, factor, 1.0])
+    return s @ np.asarray(homography, dtype=np.float64) @ np.diag([1.0 / factor, 1.0 / factor, 1.0])
+
+
+def _normalised(h: np.ndarray) -> np.ndarray:
+    h = np.asarray(h, dtype=np.float64)
+    return h / h[2, 2]
+
+
+def combine_homographies(homographies: Sequence[np.ndarray], shape: tuple[int, int],
+                         n: tuple[int, int] = (9, 12)) -> tuple[np.ndarray, float]:
+    """Robust combination of several estimates of one transform: every estimate maps the
+    :func:`grid_points` of ``shape``; the coordinate-wise median of the mapped points is fitted
+    by a least-squares homography (``cv2.findHomography``, method 0). Half of the estimates
+    may be arbitrarily wrong (breakdown point of the median). Returns the homography and the
+    spread: the median over grid points of the median distance of the estimates to it (px)."""
+    hs = [np.asarray(h, dtype=np.float64) for h in homographies]
+    if not hs:
+        raise FitError("no transform estimates to combine", hint="register at least one capture")
+    if len(hs) == 1:
+        return _normalised(hs[0]), 0.0
+    pts = grid_points(shape, n)
+    mapped = np.stack([map_points(h, pts) for h in hs])  # (k, N, 2)
+    med = np.median(mapped, axis=0)
+    h, _ = cv2.findHomography(pts, med, 0)
+    if h is None:
+        raise FitError("the median of the transforms is degenerate", hint="check the captures' registrations")
+    spread = float(np.median(np.median(np.linalg.norm(mapped - med[None], axis=2), axis=0)))
+    return _normalised(h), spread
+
+
+# --------------------------------------------------------------------------- estimation
+
+
+def _pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
+    out = [image]
+    for _ in range(levels):
+        out.append(cv2.pyrDown(out[-1]))
+    return out
+
+
+def pyramid_levels(shape: tuple[int, int], coarsest_px: int = COARSEST_PX) -> int:
+    """Number of halvings until the shorter side is about ``coarsest_px``."""
+    return max(0, int(math.floor(math.log2(max(1.0, min(shape) / coarsest_px)))))
+
+
+def phase_shift(ref: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, float]:
+    """Translation ``d`` with ``band(x + d) ~ ref(x)`` by phase correlation (Hanning window)
+    and its peak response (0-1). Returns the homography ``[[1, 0, dx], [0, 1, dy], [0, 0, 1]]``."""
+    win = cv2.createHanningWindow((ref.shape[1], ref.shape[0]), cv2.CV_32F)
+    (dx, dy), response = cv2.phaseCorrelate(ref.astype(np.float32), band.astype(np.float32), win)
+    return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]]), float(response)
+
+
+def ecc_homography(ref_grad: np.ndarray, band_grad: np.ndarray, init: np.ndarray | None = None, *,
+                   levels: int | None = None, iterations: int = 100, eps: float = 1e-6,
+                   fine_iterations: int = FINE_ITERATIONS, min_cc: float | None = None) -> np.ndarray | None:
+    """Pyramid ECC (``cv2.findTransformECC``, ``MOTION_HOMOGRAPHY``) of two gradient images:
+    the homography mapping reference pixels to band pixels, or None if ECC fails to converge
+    at the finest level. ``init`` (full-resolution homography) defaults to a phase-correlation
+    shift at the coarsest level (:func:`phase_shift`). ``min_cc``: give up (None) as soon as
+    a coarser level converges below it -- the correlation of smoothed coarse gradient images
+    is higher than at full resolution, so such a pair would fail the threshold anyway, and
+    the full-resolution iterations are the costly ones."""
+    if levels is None:
+        levels = pyramid_levels(ref_grad.shape)
+    ref_p = _pyramid(ref_grad, levels)
+    band_p = _pyramid(band_grad, levels)
+    factor = 0.5**levels
+    if init is None:
+        shift, _ = phase_shift(ref_p[-1], band_p[-1])
+        h = shift
+    else:
+        h = scale_homography(init, factor)
+    for level in range(levels, -1, -1):
+        if level != levels:
+            h = scale_homography(h, 2.0)
+        warp = h.astype(np.float32)
+        criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, iterations if level else fine_iterations, eps)
+        try:
+            cc, warp = cv2.findTransformECC(ref_p[level], band_p[level], warp, cv2.MOTION_HOMOGRAPHY, criteria, None, 1)
+        except cv2.error:
+            if level == 0 or min_cc is not None:
+                return None
+            continue  # keep the estimate and try the finer level
+        if min_cc is not None and level > 0 and cc < min_cc:
+            return None
+        h = _normalised(warp.astype(np.float64))
+    return h
+
+
+@dataclass(frozen=True)
+class Features:
+    """Keypoints (N, 2) (x, y), their descriptors and the descriptor norm of one image."""
+
+    points: np.ndarray
+    descriptors: np.ndarray | None
+    norm: int
+
+
+def detect_features(grad: np.ndarray) -> Features:
+    """Keypoints of a gradient image (scaled to 8 bits at its 99.5th percentile): SIFT
+    (OpenCV 5's main modules have no AKAZE), ORB when SIFT finds fewer than 50."""
+    hi = float(np.percentile(grad, 99.5)) or 1.0
+    image8 = np.clip(grad * (255.0 / hi), 0, 255).astype(np.uint8)
+    kp, des = cv2.SIFT_create(nfeatures=MAX_FEATURES).detectAndCompute(image8, None)
+    norm = cv2.NORM_L2
+    if des is None or len(kp) < 50:
+        kp, des = cv2.ORB_create(nfeatures=MAX_FEATURES).detectAndCompute(image8, None)
+        norm = cv2.NORM_HAMMING
+    pts = np.array([k.pt for k in kp], dtype=np.float64).reshape(-1, 2)
+    return Features(pts, des, norm)
+
+
+def feature_matches(ref: Features, band: Features, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+    """Matched keypoints ``(ref_xy, band_xy)`` (N, 2) of two images' :func:`detect_features`:
+    Lowe's ratio test ``ratio`` and mutual best matches only."""
+    empty = (np.zeros((0, 2)), np.zeros((0, 2)))
+    if (ref.descriptors is None or band.descriptors is None or len(ref.points) < 2 or len(band.points) < 2
+            or ref.norm != band.norm):
+        return empty
+    matcher = cv2.BFMatcher(ref.norm)
+    fwd = matcher.knnMatch(ref.descriptors, band.descriptors, k=2)
+    back = {m.queryIdx: m.trainIdx for m in matcher.match(band.descriptors, ref.descriptors)}
+    good = [m[0] for m in fwd if len(m) == 2 and m[0].distance < ratio * m[1].distance
+            and back.get(m[0].trainIdx) == m[0].queryIdx]
+    if not good:
+        return empty
+    return (ref.points[[m.queryIdx for m in good]], band.points[[m.trainIdx for m in good]])
+
+
+def feature_homography(ref_xy: np.ndarray, band_xy: np.ndarray) -> np.ndarray | None:
+    """RANSAC homography (``cv2.findHomography``, reprojection threshold :data:`INLIER_PX`)
+    of matched points, refined on its inliers (Levenberg-Marquardt inside OpenCV); None with
+    fewer than 8 matches or no consensus."""
+    if len(ref_xy) < 8:
+        return None
+    h, _ = cv2.findHomography(ref_xy, band_xy, cv2.RANSAC, INLIER_PX, maxIters=5000, confidence=0.999)
+    return None if h is None else _normalised(h)
+
+
+def match_quality(homography: np.ndarray, ref_xy: np.ndarray, band_xy: np.ndarray) -> tuple[int, float, float]:
+    """``(n_inliers, inlier_ratio, residual_px)`` of matches against a homography: matches
+    with ``|H x_ref - x_band| <= INLIER_PX`` are inliers; the residual is their rms distance."""
+    if len(ref_xy) == 0:
+        return 0, float("nan"), float("nan")
+    d = np.linalg.norm(map_points(homography, ref_xy) - band_xy, axis=1)
+    inl = d <= INLIER_PX
+    n = int(inl.sum())
+    res = float(np.sqrt(np.mean(d[inl] ** 2))) if n else float("nan")
+    return n, n / len(d), res
+
+
+def evaluate(homography: np.ndarray, method: str, ref_grad: np.ndarray, band_grad: np.ndarray,
+             matches: tuple[np.ndarray, np.ndarray]) -> BandRegistration:
+    """Quality figures of one homography (see :class:`BandRegistration`)."""
+    warped = warp_to_reference(band_grad, homography, ref_grad.shape)
+    ecc = correlation(ref_grad, warped)
+    n_in, ratio, res = match_quality(homography, *matches)
+    return BandRegistration(_normalised(homography), method, ecc, len(matches[0]), n_in, ratio, res)
+
+
+def accept(reg: BandRegistration, thresholds: Thresholds = Thresholds()) -> bool:
+    """Whether a band's transform passes the reject thresholds (:class:`Thresholds`)."""
+    if reg.method == "identity":
+        return True
+    if not (np.isfinite(reg.ecc) and reg.ecc >= thresholds.min_ecc):
+        return False
+    if reg.n_matches >= thresholds.min_inliers:
+        if reg.n_inliers < thresholds.min_inliers:
+            return False
+        if not (np.isfinite(reg.residual_px) and reg.residual_px <= thresholds.max_residual_px):
+            return False
+    return True
+
+
+def _score(reg: BandRegistration) -> tuple[float, float]:
+    return (reg.ecc if np.isfinite(reg.ecc) else -1.0, reg.n_inliers)
+
+
+def register_band(ref_grad: np.ndarray, band_grad: np.ndarray, *, init: np.ndarray | None = None,
+                  thresholds: Thresholds = Thresholds(), ref_features: Features | None = None,
+                  band_features: Features | None = None) -> BandRegistration:
+    """Transform of one band to the reference from their gradient images
+    (:func:`gradient_image`): pyramid ECC; if ECC fails or does not pass ``thresholds``,
+    features + RANSAC, keeping the estimate with the higher gradient correlation. The result
+    is returned even when it fails the thresholds (see :func:`accept`)."""
+    if ref_grad.shape != band_grad.shape:
+        raise InputError(f"bands of one capture differ in size: {ref_grad.shape} vs {band_grad.shape}",
+                         hint="every band of a multi-lens capture must have the same pixel grid")
+    matches = feature_matches(ref_features or detect_features(ref_grad), band_features or detect_features(band_grad))
+    candidates: list[BandRegistration] = []
+    h_ecc = ecc_homography(ref_grad, band_grad, init, min_cc=thresholds.min_ecc)
+    if h_ecc is not None:
+        candidates.append(evaluate(h_ecc, "ecc", ref_grad, band_grad, matches))
+    if not candidates or not accept(candidates[0], thresholds):
+        h_feat = feature_homography(*matches)
+        if h_feat is not None:
+            feat = evaluate(h_feat, "features", ref_grad, band_grad, matches)
+            # ECC from the feature estimate: features locate, ECC refines to sub-pixel
+            h_ref = ecc_homography(ref_grad, band_grad, h_feat, levels=0)
+            if h_ref is not None:
+                refined = evaluate(h_ref, "features", ref_grad, band_grad, matches)
+                feat = max(feat, refined, key=_score)
+            candidates.append(feat)
+    if not candidates:
+        eye = np.eye(3)
+        return BandRegistration(eye, "failed", float("nan"), len(matches[0]), 0, float("nan"), float("nan"))
+    return max(candidates, key=_score)
+
+
+def _pairs(n: int, reference: int, wavelengths: Sequence[float] | None, neighbours: int) -> list[tuple[int, int]]:
+    if wavelengths is None or neighbours >= n - 1:
+        return [(a, b) for a in range(n) for b in range(a + 1, n)]
+    wl = np.asarray(wavelengths, dtype=np.float64)
+    pairs = set()
+    for a in range(n):
+        order = [int(b) for b in np.argsort(np.abs(wl - wl[a]), kind="stable") if b != a]
+        for b in order[:neighbours] + ([reference] if a != reference else []):
+            pairs.add((min(a, b), max(a, b)))
+    return sorted(pairs)
+
+
+def _compose(edges: Sequence[BandRegistration], path: tuple[int, ...]) -> BandRegistration:
+    """A transform along a path of pairwise registrations; its quality is the weakest edge's
+    (NaN, i.e. failing, if any edge's figure is NaN)."""
+    h = np.eye(3)
+    for e in edges:
+        h = e.homography @ h
+    if len(edges) == 1:
+        return replace(edges[0], path=path)
+    return BandRegistration(
+        _normalised(h), "+".join(sorted({e.method for e in edges})),
+        float(np.min([e.ecc for e in edges])), min(e.n_matches for e in edges), min(e.n_inliers for e in edges),
+        float(np.min([e.inlier_ratio for e in edges])), float(np.max([e.residual_px for e in edges])), path,
+    )
+
+
+def register_stack(stack: np.ndarray, reference: int, *, wavelengths: Sequence[float] | None = None,
+                   neighbours: int = 3, sigma: float = 1.0,
+                   thresholds: Thresholds = Thresholds()) -> list[BandRegistration]:
+    """Every band of one capture ``(band, H, W)`` registered to band ``reference``.
+
+    Distant bands can look too different to register directly (blue against NIR over
+    vegetation: gradient correlation ~0.1 on the real RedEdge flight capture, where blue
+    against green is 0.84 and green against NIR 0.77). So pairs of bands are registered
+    (:func:`register_band`: each band with its ``neighbours`` nearest bands in wavelength and
+    with the reference; every pair when ``wavelengths`` is None), and each band's transform
+    is composed along the maximum spanning tree of the pairs' gradient correlations (Prim's
+    algorithm, pairs that fail ``thresholds`` only when nothing else connects a band). A
+    composed transform carries the weakest quality figures of its edges and its ``path``.
+    The reference band's own entry is the identity."""
+    if stack.ndim != 3:
+        raise InputError(f"a capture must be a (band, H, W) stack, got shape {stack.shape}")
+    n = stack.shape[0]
+    if not 0 <= reference < n:
+        raise InputError(f"reference band {reference} is not one of the {n} bands")
+    grads = [gradient_image(b, sigma) for b in stack]
+    feats = [detect_features(g) for g in grads]
+    edge: dict[tuple[int, int], BandRegistration] = {}
+    for a, b in _pairs(n, reference, wavelengths, neighbours):
+        reg = register_band(grads[a], grads[b], thresholds=thresholds, ref_features=feats[a], band_features=feats[b])
+        edge[(a, b)] = reg  # a -> b
+        inv = _normalised(np.linalg.inv(reg.homography))
+        edge[(b, a)] = replace(reg, homography=inv)
+    out: dict[int, BandRegistration] = {
+        reference: BandRegistration(np.eye(3), "identity", 1.0, 0, 0, float("nan"), 0.0, (reference,))}
+    chain: dict[int, list[BandRegistration]] = {reference: []}
+    while len(out) < n:
+        best = None
+        for (a, b), reg in edge.items():
+            if a in out and b not in out:
+                key = (accept(reg, thresholds), _score(reg))
+                if best is None or key > best[0]:
+                    best = (key, a, b, reg)
+        if best is None:  # unreachable: no pair at all (cannot happen with every pair tried)
+            raise FitError("bands could not be linked by any registration", hint="check the capture's band files")
+        _, a, b, reg = best
+        chain[b] = chain[a] + [reg]
+        out[b] = _compose(chain[b], out[a].path + (b,))
+    return [out[b] for b in range(n)]
+
+
+def centre_reference(homographies: np.ndarray, shape: tuple[int, int]) -> int:
+    """The band whose transforms to all other bands move the grid least (sum over bands of the
+    median grid displacement), i.e. the lens in the middle of the rig: aligning to it keeps
+    the warps and the lost border smallest. ``homographies`` (band, 3, 3) to any one band."""
+    n = len(homographies)
+    pts = grid_points(shape)
+    cost = np.zeros(n)
+    for c in range(n):
+        inv_c = np.linalg.inv(homographies[c])
+        for b in range(n):
+            h = homographies[b] @ inv_c
+            cost[c] += float(np.median(np.linalg.norm(map_points(h, pts) - pts, axis=1)))
+    return int(np.argmin(cost))
+
+
+def rebase(homographies: np.ndarray, reference: int) -> np.ndarray:
+    """Transforms to another reference band: ``H'_b = H_b H_ref^-1`` (band ``reference``'s
+    pixels -> old reference pixels -> band b pixels); ``H'_reference`` is the identity."""
+    inv = np.linalg.inv(homographies[reference])
+    return np.stack([_normalised(h @ inv) for h in homographies])
+
+
+# --------------------------------------------------------------------------- applying
+
+
+def align_bands(stack: np.ndarray, transforms: np.ndarray, *, interpolation: int = cv2.INTER_LINEAR,
+                fill: float = float("nan")) -> np.ndarray:
+    """Band stack ``(band, H, W)`` resampled onto the reference band's grid:
+    ``aligned_b(x) = stack_b(H_b x)`` (bilinear by default); pixels that no band b sample
+    covers are ``fill``. ``transforms`` (band, 3, 3) as stored by the registration. Returns
+    float32 (float64 for a float64 stack). A NaN pixel makes NaN the aligned pixels it
+    contributes to (weight above 1e-3); an aligned pixel needing any sample outside the band
+    is ``fill``."""
+    transforms = np.asarray(transforms, dtype=np.float64)
+    if transforms.shape != (stack.shape[0], 3, 3):
+        raise InputError(f"{transforms.shape[0]} band transforms for a {stack.shape[0]}-band stack",
+                         hint="use a registration of this camera")
+    dtype = np.float64 if stack.dtype == np.float64 else np.float32
+    out = np.empty(stack.shape, dtype=dtype)
+    shape = stack.shape[1:]
+    for b in range(stack.shape[0]):
+        if np.allclose(transforms[b], np.eye(3), atol=0.0, rtol=0.0):
+            out[b] = stack[b]
+            continue
+        band = stack[b].astype(dtype, copy=False)
+        bad = ~np.isfinite(band)
+        # warped with zeros outside; coverage and NaN by warping masks: OpenCV multiplies a
+        # NaN border or NaN pixel into its neighbours even where the weight is 0
+        h = transforms[b]
+        val = warp_to_reference(np.where(bad, 0, band).astype(dtype) if bad.any() else band, h, shape,
+                                interpolation, 0.0)
+        inside = warp_to_reference(np.ones(shape, np.float32), h, shape, interpolation, 0.0)
+        if bad.any():
+            good = warp_to_reference((~bad).astype(np.float32), h, shape, interpolation, 0.0)
+            val[good < inside - 1e-3] = np.nan
+        val[inside < 1.0 - 1e-3] = fill
+        out[b] = val
+    return out
+
+
+# --------------------------------------------------------------------------- snapshot mosaics
+
+
+def mosaic_centre_offsets(pattern_shape: tuple[int, int]) -> np.ndarray:
+    """Offsets ``(dx, dy)`` (band-grid pixels) of each band's samples from the mosaic's centre
+    position: band (r, c) pixel (i, j) samples band-grid point ``(j + c/C, i + r/R)``
+    (docs/architecture.md), the centre band ``((R-1)/2, (C-1)/2)`` samples
+    ``(j + ((C-1)/2)/C, ...)``; the difference is ``((c - (C-1)/2)/C, (r - (R-1)/2)/R)``,
+    i.e. ``((c-2)/5, (r-2)/5)`` for a 5 x 5 mosaic. (R*C, 2) float64."""
+    rows, cols = pattern_shape
+    rr, cc = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
+    return np.stack([(cc.ravel() - (cols - 1) / 2) / cols, (rr.ravel() - (rows - 1) / 2) / rows], axis=1)
+
+
+def cubic_weights(t: float, a: float = -0.5) -> np.ndarray:
+    """Keys' cubic convolution weights (a = -0.5: exact for quadratics) of the samples at
+    offsets -1, 0, 1, 2 for a point a fraction ``t`` in [0, 1) past sample 0."""
+    d = np.abs(np.array([-1.0, 0.0, 1.0, 2.0]) - t)
+    return np.where(d <= 1, (a + 2) * d**3 - (a + 3) * d**2 + 1,
+                    np.where(d < 2, a * d**3 - 5 * a * d**2 + 8 * a * d - 4 * a, 0.0))
+
+
+def _shift_axis(band: np.ndarray, shift: float, axis: int, fill: float) -> np.ndarray:
+    """``out[..., j] = band(j - shift)`` along ``axis`` by cubic convolution (four shifted
+    copies and scalar weights: no fixed-point rounding of the position as in cv2.remap);
+    ``fill`` where a needed sample is outside."""
+    if shift == 0:
+        return band
+    pos0 = -shift
+    k0 = int(np.floor(pos0))
+    w = cubic_weights(pos0 - k0)
+    n = band.shape[axis]
+    out = np.zeros_like(band)
+    valid = np.ones(n, dtype=bool)
+    for m, wm in zip(range(-1, 3), w):
+        k = k0 + m  # out[j] uses band[j + k]
+        lo, hi = max(0, -k), min(n, n - k)
+        if wm != 0.0:
+            dst = [slice(None)] * band.ndim
+            src = [slice(None)] * band.ndim
+            dst[axis], src[axis] = slice(lo, hi), slice(lo + k, hi + k)
+            out[tuple(dst)] += wm * band[tuple(src)]
+            valid[:lo] = False
+            valid[hi:] = False
+    shape = [1] * band.ndim
+    shape[axis] = n
+    return np.where(valid.reshape(shape), out, fill)
+
+
+def shift_bands(stack: np.ndarray, offsets: np.ndarray, *, fill: float = float("nan")) -> np.ndarray:
+    """Resample each band of ``stack`` (band, H, W) to the common centre position: band b's
+    samples sit ``offsets[b] = (dx, dy)`` px from it (:func:`mosaic_centre_offsets`), so the
+    value at the centre position of pixel (i, j) is band b at ``(j - dx, i - dy)`` of its own
+    grid: separable cubic convolution (:func:`cubic_weights`), exact for quadratic images.
+    Pixels that need a sample outside the band are ``fill``. float32 (float64 for a float64
+    stack)."""
+    offsets = np.asarray(offsets, dtype=np.float64)
+    if offsets.shape != (stack.shape[0], 2):
+        raise InputError(f"{len(offsets)} offsets for a {stack.shape[0]}-band stack")
+    dtype = np.float64 if stack.dtype == np.float64 else np.float32
+    out = np.empty(stack.shape, dtype=dtype)
+    for b, (dx, dy) in enumerate(offsets):
+        band = stack[b].astype(dtype, copy=False)
+        out[b] = _shift_axis(_shift_axis(band, float(dx), 1, fill), float(dy), 0, fill)
+    return out
