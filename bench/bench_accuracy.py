@@ -404,8 +404,8 @@ def reading(results: dict[tuple, dict[str, Any]], quick: bool) -> str:
     r16 = [p["eq16:panel"] / p["forward:panel"] for p in allp if p["forward:panel"] > 0]
     if r16:
         lines.append(f"- Panel error of Eq. 16 / Eq. 15 with the default calibration: {min(r16):.1f}x to {max(r16):.1f}x.")
-    lines.append("- One seed per point: differences of less than about 30 % between neighbouring points are within "
-                 "what another seed moves them (compare the three seeds of the calibration benchmark above).")
+    lines.append("- One seed per point (another seed moves each figure too: see the spread over three seeds in the "
+                 "calibration benchmark); read the trends, not single differences.")
     if quick:
         lines.append("- Quick smoke run: two points only; the figures are indicative.")
     return "\n".join(lines)
@@ -415,6 +415,8 @@ def render(results: dict[tuple, dict[str, Any]], quick: bool, command: str, info
            started: str, loads: dict[str, str], wall_s: float, img_rel: dict[str, str]) -> str:
     title = "Accuracy vs difficulty" + (" (quick smoke run)" if quick else "")
     parts = [
+        f'<a id="bench-accuracy"></a>',
+        "",
         f"## {title}",
         "",
         f"Produced by `bench/bench_accuracy.py`; a later run replaces this section. Run started {started}, "

@@ -285,8 +285,11 @@ def measure_dask(workers: Sequence[int], big: Path, n: int, calib: Path, work: P
     return rows
 
 
-def measure_views(session: Path, views: Sequence[int], work: Path, log=print) -> list[dict]:
+def measure_views(session: Path, views: Sequence[int], work: Path, keep: Path | None = None, log=print) -> list[dict]:
+    """``mscal calibrate`` per view count; the store of the run with every view is moved to ``keep``."""
     import xarray as xr
+
+    total = len(list(csv.DictReader((session / "vignetting" / "frames.csv").open())))
 
     rows = []
     mscal = bc.mscal_command()
@@ -299,6 +302,8 @@ def measure_views(session: Path, views: Sequence[int], work: Path, log=print) ->
         stages = {k: float((attrs.get(k) or {}).get("seconds", float("nan")))
                   for k in ("response", "vignetting", "illumination")}
         skipped = len((attrs.get("vignetting") or {}).get("skipped", []))
+        if keep is not None and n >= total and not keep.exists():
+            shutil.move(str(cal), str(keep))  # the flights below are applied with it
         shutil.rmtree(cal, ignore_errors=True)
         shutil.rmtree(sdir, ignore_errors=True)
         rows.append({"views": n, "floor": floor, "run": run, "stages": stages, "skipped": skipped})
@@ -377,6 +382,8 @@ def render(res: dict, cfg: dict, quick: bool, command: str, info: dict[str, str]
     full_rows = res["frames_full"]
     local = next((r for r in full_rows if "skipped" not in r and r["frames"] == cfg["dask_frames"]), None)
     parts = [
+        '<a id="bench-scale"></a>',
+        "",
         "## Scale" + (" (quick smoke run)" if quick else ""),
         "",
         f"Produced by `bench/bench_scale.py`; a later run replaces this section. Run started {started}, "
@@ -495,9 +502,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         log(f"synthesizing a {cfg['session']} session")
         bc._check(bc.run_measured([sys.executable, str(HERE / "bench_calibrate.py"), "--_child", "synth",
                                    str(session), "0", cfg["session"]]), "synthesis")
-        res["views"] = measure_views(session, cfg["views"], work, log)
         calib = work / "calib.zarr"
-        bc._check(bc.run_measured([*bc.mscal_command(), "calibrate", str(session), "-o", str(calib)]), "calibrate")
+        res["views"] = measure_views(session, cfg["views"], work, calib, log)
+        if not calib.exists():
+            bc._check(bc.run_measured([*bc.mscal_command(), "calibrate", str(session), "-o", str(calib)]), "calibrate")
         nmax = max(cfg["frames"])
         if free_gb(work) >= nmax * MB_PER_FRAME["full"][0] / 1e3 + DISK_MARGIN_GB:
             big = make_full_flight(session / "flights" / "field", work / "flight-full", nmax, seed=1)
