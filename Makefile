@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup test test-fast demo bench clean
+.PHONY: setup test test-fast demo bench bench-quick clean
 
 setup: $(STAMP)
 
@@ -25,10 +25,24 @@ test-fast: setup
 demo: setup
 	$(BIN)/mscal demo
 
-# Figures into docs/benchmarks.md, each beside its baseline measured in the same run.
+# Every generated section of docs/benchmarks.md (and the plots in docs/img/), each figure beside
+# its baseline measured in the same run; < 30 min on the 2-core machine when it is quiet.
+# Memory vs frames (formerly bench_apply --large) is in bench_scale's tables.
 bench: setup
 	$(BIN)/python bench/bench_calibrate.py --seeds 0 1 2
-	$(BIN)/python bench/bench_apply.py --frames 600 --large 2400
+	$(BIN)/python bench/bench_apply.py --frames 600 --large 0
+	$(BIN)/python bench/bench_accuracy.py
+	$(BIN)/python bench/bench_scale.py
+
+# Smoke run of the same scripts at small sizes (< 5 min), into build/bench-quick/ so the
+# published figures are not replaced.
+BENCH_QUICK := build/bench-quick
+bench-quick: setup
+	mkdir -p $(BENCH_QUICK)
+	$(BIN)/python bench/bench_calibrate.py --quick --out $(BENCH_QUICK)/benchmarks.md
+	$(BIN)/python bench/bench_apply.py --frames 60 --large 0 --out $(BENCH_QUICK)/benchmarks.md
+	$(BIN)/python bench/bench_accuracy.py --quick --out $(BENCH_QUICK)/benchmarks.md --img-dir $(BENCH_QUICK)/img
+	$(BIN)/python bench/bench_scale.py --quick --out $(BENCH_QUICK)/benchmarks.md
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -144,11 +144,11 @@ def render(res: dict, command: str) -> str:
     n = res["frames"]
     ratio_floor = ap.wall_s / f.wall_s
     speedup = lp.wall_s / ap.wall_s
-    rows = [
-        ("I/O floor (read + decode, write float32)", f),
-        ("per-frame numpy loop (read, demosaic, LUT, divide, save)", lp),
-        ("`mscal apply`", ap),
-        ("`mscal apply` again on the finished OUT", rr),
+    rows = [  # label, measurement, HTML id of the row (README figures link to it)
+        ("I/O floor (read + decode, write float32)", f, "apply-floor"),
+        ("per-frame numpy loop (read, demosaic, LUT, divide, save)", lp, "apply-loop"),
+        ("`mscal apply`", ap, "apply-mscal"),
+        ("`mscal apply` again on the finished OUT", rr, "apply-rerun"),
     ]
     lines = [
         "## Apply benchmark",
@@ -170,15 +170,18 @@ def render(res: dict, command: str) -> str:
         f"| command ({n} frames) | wall (s) | frames/s | CPU (s) | peak RSS (MiB) | 1-min load before |",
         "|---|---:|---:|---:|---:|---:|",
     ]
-    for label, r in rows:
-        lines.append(f"| {label} | {r.wall_s:.1f} | {n / r.wall_s:.1f} | {r.cpu_s:.1f} | {r.maxrss_mib:.0f} | {r.load_before[0]:.2f} |")
+    for label, r, aid in rows:
+        lines.append(f'| <a id="{aid}"></a>{label} |' f" {r.wall_s:.1f} | {n / r.wall_s:.1f} | {r.cpu_s:.1f} | {r.maxrss_mib:.0f} | {r.load_before[0]:.2f} |")
     lines += [
         "",
         "| figure | value | target | result |",
         "|---|---:|---:|:---:|",
-        f"| apply wall / I/O floor wall | {ratio_floor:.2f}x | <= 2.0x | {'PASS' if ratio_floor <= 2.0 else 'FAIL'} |",
-        f"| loop wall / apply wall | {speedup:.2f}x | >= 1.2x | {'PASS' if speedup >= 1.2 else 'FAIL'} |",
-        f"| apply peak RSS | {ap.maxrss_mib:.0f} MiB | <= 2048 MiB | {'PASS' if ap.maxrss_mib <= 2048 else 'FAIL'} |",
+        f'| <a id="apply-vs-floor"></a>apply wall / I/O floor wall | {ratio_floor:.2f}x'
+        f" | <= 2.0x | {'PASS' if ratio_floor <= 2.0 else 'FAIL'} |",
+        f'| <a id="apply-vs-loop"></a>loop wall / apply wall | {speedup:.2f}x'
+        f" | >= 1.2x | {'PASS' if speedup >= 1.2 else 'FAIL'} |",
+        f'| <a id="apply-rss"></a>apply peak RSS | {ap.maxrss_mib:.0f} MiB'
+        f" | <= 2048 MiB | {'PASS' if ap.maxrss_mib <= 2048 else 'FAIL'} |",
     ]
     if "apply_large" in res:
         al, fl = res["apply_large"], res["floor_large"]

@@ -303,6 +303,7 @@ class Row:
     target: float | None = None  # upper bound
     fmt: str = "{:.4f}"
     note: str = ""
+    anchor: str = ""  # HTML id of the row (README figures link to it), stable across runs
 
     @property
     def worst(self) -> float:
@@ -333,12 +334,12 @@ def performance_rows(results: Sequence[SeedResult]) -> list[Row]:
     f = lambda attr: [getattr(r, attr) for r in results]  # noqa: E731
     fwd, alt, floor = f("forward"), f("alternating"), f("floor")
     return [
-        Row("`mscal calibrate` wall (s)", [r.wall_s for r in fwd], WALL_TARGET_S, "{:.1f}"),
-        Row("`mscal calibrate` peak RSS (MiB)", [r.maxrss_mib for r in fwd], RSS_TARGET_MIB, "{:.0f}"),
+        Row("`mscal calibrate` wall (s)", [r.wall_s for r in fwd], WALL_TARGET_S, "{:.1f}", anchor="cal-wall"),
+        Row("`mscal calibrate` peak RSS (MiB)", [r.maxrss_mib for r in fwd], RSS_TARGET_MIB, "{:.0f}", anchor="cal-rss"),
         Row("`mscal calibrate` CPU user+sys (s)", [r.cpu_s for r in fwd], None, "{:.1f}"),
         Row("I/O floor wall (s)", [r.wall_s for r in floor], None, "{:.1f}"),
         Row("I/O floor peak RSS (MiB)", [r.maxrss_mib for r in floor], None, "{:.0f}"),
-        Row("wall / I/O floor", [a.wall_s / b.wall_s for a, b in zip(fwd, floor)], None, "{:.1f}x"),
+        Row("wall / I/O floor", [a.wall_s / b.wall_s for a, b in zip(fwd, floor)], None, "{:.1f}x", anchor="cal-wall-floor"),
         Row("peak RSS / I/O floor", [a.maxrss_mib / b.maxrss_mib for a, b in zip(fwd, floor)], None, "{:.1f}x"),
         Row("stage: response (s)", [r.stage_seconds.get("response", float("nan")) for r in results], None, "{:.1f}"),
         Row("stage: vignetting (s)", [r.stage_seconds.get("vignetting", float("nan")) for r in results], None, "{:.1f}"),
@@ -354,25 +355,33 @@ def performance_rows(results: Sequence[SeedResult]) -> list[Row]:
 def accuracy_rows(results: Sequence[SeedResult]) -> list[tuple[str, list[Row]]]:
     T = ACCURACY_TARGETS
     groups: list[tuple[str, list[Row]]] = []
-    for name, key in (("default (`forward`)", "eval_forward"), ("`alternating` (paper Eq. 6/7, baseline)", "eval_alternating")):
+    for name, key, a in (("default (`forward`)", "eval_forward", "cal-forward"),
+                         ("`alternating` (paper Eq. 6/7, baseline)", "eval_alternating", "cal-alternating")):
         evs = [getattr(r, key) for r in results]
         groups.append((f"Calibration fits, response estimator {name}", [
-            Row("response: max abs U error, 5-95 % DN / U(95 %)", [e["response_max_error"] for e in evs], T["response"]),
-            Row("response: median over bands", [e["response_median_error"] for e in evs], None),
-            Row("vignetting: RMS of V/V_true - 1 (all pixels, worst band)", [e["vignetting_rms_error"] for e in evs], T["vignetting"]),
-            Row("vignetting: same, observed pixels only", [e.get("vignetting_rms_error_observed", float("nan")) for e in evs], None),
-            Row("spectral factor S: max relative error", [e["spectral_factor_max_error"] for e in evs], T["spectral"]),
+            Row("response: max abs U error, 5-95 % DN / U(95 %)", [e["response_max_error"] for e in evs], T["response"],
+                anchor=f"{a}-response"),
+            Row("response: median over bands", [e["response_median_error"] for e in evs], None,
+                anchor=f"{a}-response-median"),
+            Row("vignetting: RMS of V/V_true - 1 (all pixels, worst band)", [e["vignetting_rms_error"] for e in evs],
+                T["vignetting"], anchor=f"{a}-vignetting"),
+            Row("vignetting: same, observed pixels only", [e.get("vignetting_rms_error_observed", float("nan")) for e in evs],
+                None, anchor=f"{a}-vignetting-observed"),
+            Row("spectral factor S: max relative error", [e["spectral_factor_max_error"] for e in evs], T["spectral"],
+                anchor=f"{a}-spectral"),
         ]))
-    for name, key, which in (
-        ("Flight, Eq. 15 with the default calibration", "eval_forward", "eq15"),
-        ("Flight, Eq. 15 with the `alternating` calibration (baseline)", "eval_alternating", "eq15"),
-        ("Flight, Eq. 16 (divide by reflector DN; baseline, independent of the calibration)", "eval_forward", "eq16"),
+    for name, key, which, a in (
+        ("Flight, Eq. 15 with the default calibration", "eval_forward", "eq15", "cal-eq15"),
+        ("Flight, Eq. 15 with the `alternating` calibration (baseline)", "eval_alternating", "eq15", "cal-eq15-alternating"),
+        ("Flight, Eq. 16 (divide by reflector DN; baseline, independent of the calibration)", "eval_forward", "eq16",
+         "cal-eq16"),
     ):
         fl = [_flight(getattr(r, key), which) for r in results]
         groups.append((name, [
-            Row("gray panel reflectance, abs error (white-panel normalised)", [x["panel_abs_error"] for x in fl], T["panel"]),
-            Row("vegetation NDVI, abs error", [x["vegetation_ndvi_error"] for x in fl], T["ndvi"]),
-            Row("same panel across frames, CV", [x["panel_cv_across_frames"] for x in fl], T["cv"]),
+            Row("gray panel reflectance, abs error (white-panel normalised)", [x["panel_abs_error"] for x in fl], T["panel"],
+                anchor=f"{a}-panel"),
+            Row("vegetation NDVI, abs error", [x["vegetation_ndvi_error"] for x in fl], T["ndvi"], anchor=f"{a}-ndvi"),
+            Row("same panel across frames, CV", [x["panel_cv_across_frames"] for x in fl], T["cv"], anchor=f"{a}-cv"),
         ]))
     return groups
 
@@ -388,7 +397,8 @@ def table(rows: Sequence[Row], seeds: Sequence[int]) -> str:
     lines = ["| " + " | ".join(head) + " |", "|" + "|".join(["---"] + ["---:"] * (len(seeds) + 2) + [":---:"]) + "|"]
     for r in rows:
         tgt = ("<= " + _fmt(r.fmt, r.target)) if r.target is not None else ""
-        cells = [r.label] + [_fmt(r.fmt, v) for v in r.values] + [_fmt(r.fmt, r.worst), tgt, r.verdict()]
+        label = (f'<a id="{r.anchor}"></a>' if r.anchor else "") + r.label
+        cells = [label] + [_fmt(r.fmt, v) for v in r.values] + [_fmt(r.fmt, r.worst), tgt, r.verdict()]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

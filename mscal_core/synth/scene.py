@@ -984,16 +984,30 @@ def _plane_grid(size_m, step_m=0.0025):
     return uu, vv
 
 
-def _random_light(rng, brightness: float, size_m, shadow: bool = True) -> GradientShadowLight:
+def _random_light(rng, brightness: float, size_m, shadow: bool = True,
+                  nonuniformity: float = 1.0) -> GradientShadowLight:
+    """Random 2:1 gradient + soft shadow (35-50 % deep) on the reflector.
+
+    ``nonuniformity`` ``a`` scales how uneven the light is, with the same random draws:
+    gradient ratio ``2**a`` and shadow transmission ``(1 - depth)**a`` (``a = 0``: uniform
+    light; ``1``: the default; ``2``: a 4:1 gradient and a 58-75 % deep shadow).
+    """
+    if nonuniformity < 0:
+        raise ValueError(f"light nonuniformity must be >= 0, got {nonuniformity}")
+    ratio = 2.0 if nonuniformity == 1.0 else 2.0**nonuniformity
     if not shadow:
         return GradientShadowLight(brightness=brightness, gradient_dir=rng.uniform(0, 2 * np.pi),
-                                   extent_m=size_m)
+                                   extent_m=size_m, gradient_ratio=ratio)
     sdir = rng.uniform(0, 2 * np.pi)
     # the shadow edge crosses the reflector so that 20-35 % of it is in shadow
     half = 0.5 * size_m[0] * abs(math.cos(sdir)) + 0.5 * size_m[1] * abs(math.sin(sdir))
+    gdir = rng.uniform(0, 2 * np.pi)
+    depth = rng.uniform(0.35, 0.5)
+    if nonuniformity != 1.0:
+        depth = 1.0 - (1.0 - depth) ** nonuniformity
     return GradientShadowLight(
-        brightness=brightness, gradient_dir=rng.uniform(0, 2 * np.pi), gradient_ratio=2.0,
-        extent_m=size_m, shadow_depth=rng.uniform(0.35, 0.5), shadow_dir=sdir,
+        brightness=brightness, gradient_dir=gdir, gradient_ratio=ratio,
+        extent_m=size_m, shadow_depth=depth, shadow_dir=sdir,
         shadow_offset_m=half * rng.uniform(0.3, 0.6), shadow_softness_m=rng.uniform(0.008, 0.015),
     )
 
@@ -1031,7 +1045,7 @@ def _facing(pose: Pose, max_view_deg: float) -> bool:
 def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
                      n_missing: int = 1, max_tilt_deg: float = 35.0,
                      distance_m: tuple[float, float] = (0.8, 1.6), supersample: int = 4,
-                     max_attempts: int = 400) -> FrameSet:
+                     max_attempts: int = 400, light_nonuniformity: float = 1.0) -> FrameSet:
     """Gray reflector + marker from many viewpoints under fixed non-uniform light (Eq. 8-10).
 
     The light ``B(p)`` (2:1 gradient + soft shadow) is fixed on the plane, so the radiance
@@ -1042,6 +1056,8 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
     fully inside the frame and is detected by ArUco in bands 0, 12 and 24. ``n_missing`` views
     (spread over the sequence) have the marker out of frame while the reflector is partly in
     view: the pipeline must skip them. Exposure: brightest gray-reflector pixel at 70-85 %.
+    ``light_nonuniformity`` scales how uneven the light is (0 uniform, 1 default, 2 a 4:1
+    gradient and a deeper shadow; see :func:`_random_light`).
 
     truth: ``rvec``, ``tvec`` (n, 3); ``marker_in_frame`` (n,) bool; ``pose_error_deg``,
     ``pose_error_rel`` (n,) error of the pose from ArUco + IPPE on band 0 (NaN if missing);
@@ -1055,7 +1071,8 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
     cam = truth.camera
     h, w = cam.grid_shape
     rng = np.random.default_rng([seed, 3])
-    light = _random_light(rng, 0.8 * truth.sun_brightness, truth.reflector_size_m)
+    light = _random_light(rng, 0.8 * truth.sun_brightness, truth.reflector_size_m,
+                          nonuniformity=light_nonuniformity)
     scene = ReflectorScene(cam.wavelengths, truth.reflector_reflectance, truth.reflector_size_m,
                            truth.marker, light, ground_seed=seed)
     mk = truth.marker
@@ -1169,13 +1186,14 @@ def reflector_images(truth: SyntheticTruth, *, seed: int = 0, n_images: int = 3,
                      supersample: int = 4, max_attempts: int = 200,
                      times_s: Sequence[float] | None = None, drift: LightDrift | None = None,
                      irradiance: bool = False, name_prefix: str = "reflector_",
-                     gradient_ratio: float = 2.0) -> FrameSet:
+                     gradient_ratio: float = 2.0, light_nonuniformity: float = 1.0) -> FrameSet:
     """Gray reflector under the illumination of the flight (input of Eq. 11-14).
 
     Near-nadir views from 0.55-0.75 m, the reflector filling much of the frame. Each image has
     its own light: sun brightness (x 0.9-1.1) with a 2:1 linear gradient across the reflector
     in a random direction and a soft shadow over 20-35 % of it; the light colour S is the
     flight's. Exposure: brightest gray-reflector pixel at 70-85 %.
+    ``light_nonuniformity`` as in :func:`vignetting_views`.
 
     Light that changes over the flight (issue 8): image ``k`` is taken at ``times_s[k]``
     (seconds after ``SESSION_START``; default 900 + 20 k). With ``drift`` its brightness is
@@ -1201,7 +1219,8 @@ def reflector_images(truth: SyntheticTruth, *, seed: int = 0, n_images: int = 3,
     for k in range(n_images):
         jitter = rng.uniform(0.9, 1.1)  # drawn in every case: the seeded stream stays the same
         if drift is None:
-            light = _random_light(rng, truth.sun_brightness * jitter, truth.reflector_size_m)
+            light = _random_light(rng, truth.sun_brightness * jitter, truth.reflector_size_m,
+                                  nonuniformity=light_nonuniformity)
         else:
             light = GradientShadowLight(brightness=truth.sun_brightness * drift.level(times[k]),
                                         gradient_dir=rng.uniform(0, 2 * np.pi), gradient_ratio=gradient_ratio,

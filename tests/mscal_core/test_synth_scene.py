@@ -323,3 +323,24 @@ def test_full_vignetting_dataset_covers_the_whole_image(truth):
     assert d.min() < 1.0 and d.max() > 1.4
     err = T["pose_error_deg"][T["marker_in_frame"]]
     assert np.median(err) < 2.0
+
+
+def test_light_nonuniformity_scales_gradient_and_shadow_with_the_same_draws():
+    size = (0.5, 0.5)
+    uu, vv = np.meshgrid(np.linspace(-0.24, 0.24, 97), np.linspace(-0.24, 0.24, 97))
+
+    def light(a):
+        return S._random_light(np.random.default_rng(3), 300.0, size, nonuniformity=a)
+
+    default, flat, strong = light(1.0), light(0.0), light(2.0)
+    # a = 1 is the default light, draw for draw
+    assert default.params().tolist() == S._random_light(np.random.default_rng(3), 300.0, size).params().tolist()
+    assert default.gradient_ratio == 2.0
+    # a = 0: uniform; a = 2: 4:1 gradient and shadow transmission squared
+    np.testing.assert_allclose(flat(uu, vv), 300.0, rtol=1e-6)
+    assert strong.gradient_ratio == 4.0
+    np.testing.assert_allclose(1.0 - strong.shadow_depth, (1.0 - default.shadow_depth) ** 2, rtol=1e-12)
+    spread = [float(b.max() / b.min()) for b in (default(uu, vv), strong(uu, vv))]
+    assert spread[1] > 1.5 * spread[0] > 1.5 * 2.0
+    with pytest.raises(ValueError, match="nonuniformity"):
+        light(-0.5)

@@ -1,0 +1,138 @@
+"""bench/bench_accuracy.py and bench/bench_scale.py logic on tiny inputs (no benchmark is run),
+and the README's links to docs/benchmarks.md."""
+
+from __future__ import annotations
+
+import importlib.util
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+BENCH = ROOT / "bench"
+
+
+def _load(name: str):
+    spec = importlib.util.spec_from_file_location(f"{name}_under_test", BENCH / f"{name}.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+acc = _load("bench_accuracy")
+scale = _load("bench_scale")
+
+
+# --------------------------------------------------------------------------- bench_accuracy
+
+
+def test_sweep_points_share_the_base_and_quick_is_two_points() -> None:
+    full = acc.axis_points(quick=False)
+    assert ("noise", 4.0) in full and ("views", 32) in full and ("light", 0.0) in full
+    distinct = {acc.params_key(acc.point_params(a, lv)) for a, lv in full}
+    # every axis passes through the base point, which is computed once
+    assert len(distinct) == len(full) - (len(acc.AXES) - 1)
+    quick = {acc.params_key(acc.point_params(a, lv)) for a, lv in acc.axis_points(quick=True)}
+    assert len(quick) == 2
+    assert acc.point_params("views", 16) == {**acc.BASE, "views": 16}
+    with pytest.raises(ValueError, match="unknown axis"):
+        acc.point_params("gain", 2)
+    assert acc.anchor("noise", 0.5) == "acc-noise-0p5" and acc.anchor("views", 16) == "acc-views-16"
+
+
+def test_true_u8_is_the_mean_of_the_four_10bit_codes() -> None:
+    u10 = np.arange(1024, dtype=float) ** 1.1
+    u8 = acc.true_u8(u10)
+    assert u8.shape == (256,)
+    assert u8[10] == pytest.approx(np.mean(u10[40:44]))
+
+
+def test_response_8bit_on_a_tiny_linear_sweep() -> None:
+    """A noisy 10-bit sweep of a linear sensor: every estimator returns a finite error and
+    mscal's forward fit is within 3 % of the truth (the metric of the tables)."""
+    from mscal_core.synth.sensor import SensorModel
+
+    sensor = SensorModel(curvature=0.0)
+    rng = np.random.default_rng(0)
+    energy = 10 ** rng.uniform(-2.5, 0, size=(3, 24, 32)) * 1000.0
+    times = 0.35 * 3.0 ** np.arange(6)
+    dn = np.stack([sensor.expose(energy, t, rng) for t in times])
+    u10 = np.tile(sensor.inverse_response(), (3, 1))
+    errs = acc.response_8bit(dn, times, u10, bands=(0, 1, 2))
+    assert set(errs) == {"debevec", "robertson", "forward", "alternating"}
+    assert all(np.isfinite(v) and v >= 0 for v in errs.values())
+    assert errs["forward"] < 0.03
+    u = acc.fill_gaps(np.array([np.nan, 1.0, np.nan, 3.0, np.nan]))
+    assert u.tolist() == [1.0, 1.0, 2.0, 3.0, 3.0]
+
+
+def _fake_result(noise: float) -> dict:
+    ev = {"response_max_error": 0.003 * noise, "vignetting_rms_error": 0.01, "vignetting_rms_error_observed": 0.008,
+          "spectral_factor_max_error": 0.005,
+          "flight_field": {"eq15": {"panel_abs_error": 0.004, "vegetation_ndvi_error": 0.001,
+                                    "panel_cv_across_frames": 0.006},
+                           "eq16": {"panel_abs_error": 0.06, "vegetation_ndvi_error": 0.12,
+                                    "panel_cv_across_frames": 0.05}}}
+    return {"params": acc.point_params("noise", noise), "light_spread": 3.1, "forward": ev,
+            "alternating": {**ev, "response_max_error": 0.04 * noise},
+            "bit8": {"debevec": 0.2, "robertson": 0.1, "forward": 0.004, "alternating": 0.05}}
+
+
+def test_accuracy_render_has_row_anchors_and_both_tables(tmp_path: Path) -> None:
+    results = {acc.params_key(acc.point_params("noise", k)): _fake_result(k) for k in (1.0, 4.0)}
+    info = {k: "x" for k in ("nproc", "cpu", "memory", "os", "python", "numpy", "opencv", "git")}
+    md = acc.render(results, True, "cmd", info, 0, "t", {"start": "a", "end": "b"}, 60.0, {"noise": "img/n.png"})
+    assert '<a id="acc-noise-1"></a>1 (base)' in md and '<a id="acc-noise-4-flight"></a>4' in md
+    assert "| 0.0120 | 0.1600 |" in md  # response default / alternating at 4x noise
+    assert "![error vs sensor noise](img/n.png)" in md
+    assert "13.3x to 13.3x" in md  # alternating / default response error
+    png = acc.plot_axis(acc.AXES[0], (1.0, 4.0), results, tmp_path / "n.png")
+    assert png.stat().st_size > 5000 and png.read_bytes()[:4] == b"\x89PNG"
+
+
+# --------------------------------------------------------------------------- bench_scale
+
+
+def test_subset_flight_links_the_first_frames(tmp_path: Path) -> None:
+    big = scale.make_small_flight(tmp_path / "big", 5, shape=(8, 10))
+    sub = scale.subset_flight(big, tmp_path / "sub", 3)
+    rows = (sub / "frames.csv").read_text().splitlines()
+    assert rows == ["file,exposure_ms", "IMG_00000.tif,1.0", "IMG_00001.tif,1.0", "IMG_00002.tif,1.0"]
+    assert (sub / "IMG_00002.tif").stat().st_ino == (big / "IMG_00002.tif").stat().st_ino
+    assert not (sub / "IMG_00003.tif").exists()
+    # distinct content per frame (mscal apply quarantines duplicates)
+    assert len({(big / f"IMG_{i:05d}.tif").read_bytes() for i in range(5)}) == 5
+    with pytest.raises(ValueError, match="has 5 frames"):
+        scale.subset_flight(big, tmp_path / "sub2", 6)
+
+
+def test_scale_config_disk_estimate_and_skipped_row() -> None:
+    cfg = scale.config(scale.parse_args(["--quick", "--frames", "10", "30"]))
+    assert cfg["frames"] == (10, 30) and cfg["dask_frames"] == 10 and cfg["workers"] == (1, 2)
+    assert scale.config(scale.parse_args([]))["small_frames"][-1] == 5000
+    assert scale.disk_needed_gb("full", 5000) == pytest.approx(90.5)
+    md = scale.frame_table([{"kind": "full", "frames": 5000, "skipped": "needs ~90 GB of disk, 40 GB free"}], "full")
+    assert '<a id="scale-full-5000"></a>5000 | skipped: needs ~90 GB' in md
+
+
+# --------------------------------------------------------------------------- README links
+
+
+def _anchors(md: str) -> set[str]:
+    ids = set(re.findall(r'<a id="([^"]+)"></a>', md))
+    for h in re.findall(r"^#+ (.+)$", md, flags=re.M):  # GitHub's heading slugs
+        ids.add(re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-"))
+    return ids
+
+
+def test_every_readme_figure_link_resolves_to_an_anchor_of_benchmarks_md() -> None:
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    links = re.findall(r"\]\(docs/benchmarks\.md#([^)\s]+)\)", readme)
+    assert links, "README links no figure to docs/benchmarks.md"
+    anchors = _anchors((ROOT / "docs" / "benchmarks.md").read_text(encoding="utf-8"))
+    missing = sorted(set(links) - anchors)
+    assert not missing, f"README links to anchors not in docs/benchmarks.md: {missing}"
