@@ -19,3 +19,10 @@ def small(tmp_path_factory) -> tuple[Path, Path]:
     calib = root / "calib.zarr"
     assert main(["calibrate", str(session), "-o", str(calib)]) == 0
     return session, calib
+
+
+@pytest.fixture(scope="session")
+def full_session(tmp_path_factory) -> Path:
+    """A full-size synthetic session (seed 11; ~60 s to write). Read-only for its users, which
+    carry ``xdist_group("full_session")`` so that one test process writes it once."""
+    return write_session(tmp_path_factory.mktemp("full") / "session", seed=11, size="full")

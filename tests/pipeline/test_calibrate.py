@@ -13,7 +13,6 @@ import xarray as xr
 
 from pipeline.cli import main
 from pipeline.evaluate import evaluate_calibration
-from pipeline.synth import write_session
 
 
 def _run(args: list[str], capsys) -> tuple[int, str, str]:
@@ -265,8 +264,9 @@ def test_partial_store_of_another_kind_is_named(small, tmp_path, capsys) -> None
 
 
 @pytest.mark.slow
-def test_full_size_session_meets_the_targets(tmp_path) -> None:
-    session = write_session(tmp_path / "session", seed=11, size="full")
+@pytest.mark.xdist_group("full_session")
+def test_full_size_session_meets_the_targets(full_session, tmp_path) -> None:
+    session = full_session
     calib = tmp_path / "calib.zarr"
     assert main(["calibrate", str(session), "-o", str(calib)]) == 0
     err = evaluate_calibration(session, calib)

@@ -102,16 +102,17 @@ def test_session_loads_with_the_pipeline_reader(session):
 
 
 @pytest.mark.slow
-def test_full_session_reproducible_and_seed_dependent(tmp_path):
-    a = write_session(tmp_path / "a", seed=1, size="full")
-    b = write_session(tmp_path / "b", seed=1, size="small")
-    c = write_session(tmp_path / "c", seed=2, size="small")
+@pytest.mark.xdist_group("full_session")
+def test_full_session_reproducible_and_seed_dependent(full_session, tmp_path):
+    a = full_session  # seed 11
+    b = write_session(tmp_path / "b", seed=11, size="small")
+    c = write_session(tmp_path / "c", seed=12, size="small")
     assert len(_rows(a / "vignetting")) == 40 and len(_rows(a / "response")) == 14
     assert len(_rows(a / "reflector")) == 3
     ta, tb, tc = (np.load(p / "truth.npz") for p in (a, b, c))
     np.testing.assert_array_equal(ta["vignetting"], tb["vignetting"])  # same camera truth
     assert not np.array_equal(tb["vignetting"], tc["vignetting"])
-    b2 = write_session(tmp_path / "b2", seed=1, size="small")
+    b2 = write_session(tmp_path / "b2", seed=11, size="small")
     for ds in DATASETS:
         for r in _rows(b / ds):
             assert (b / ds / r["file"]).read_bytes() == (b2 / ds / r["file"]).read_bytes()
