@@ -221,12 +221,16 @@ def read_capture_meta(path: str | Path) -> CaptureMeta:
         raise FrameError("file does not exist", path=path)
     try:
         with tifffile.TiffFile(path) as tif:
+            if len(tif.pages) == 0:  # header read, but the first IFD lies past the end of the file
+                raise FrameError("TIFF has no readable image directory (file truncated?)", path=path,
+                                 hint="copy the file again from the camera's card")
             page = tif.pages[0]
             tags = {tag.code: tag.value for tag in page.tags.values()}
             shape = (int(page.imagelength), int(page.imagewidth))
             bits = int(page.bitspersample)
-    except (tifffile.TiffFileError, ValueError, OSError) as exc:
-        raise FrameError(f"not a readable TIFF ({exc})", path=path) from None
+    except (tifffile.TiffFileError, ValueError, OSError, IndexError) as exc:
+        raise FrameError(f"not a readable TIFF ({type(exc).__name__}: {exc})", path=path,
+                         hint="copy the file again from the camera's card") from None
     if 700 not in tags:
         raise FrameError("no XMP packet (TIFF tag 700)", path=path, hint=FIRMWARE_HINT)
     return meta_from_tags(path, tags, shape, bits)
@@ -352,7 +356,7 @@ def xmp_irradiance(path: str | Path) -> float | None:
         with tifffile.TiffFile(path) as tif:
             tag = tif.pages[0].tags.get(700)
             packet = None if tag is None else tag.value
-    except (tifffile.TiffFileError, ValueError, OSError):
+    except (tifffile.TiffFileError, ValueError, OSError, IndexError):  # IndexError: truncated, no IFD
         return None
     if packet is None:
         return None
@@ -400,42 +404,57 @@ class Capture:
 def group_captures(
     folder: str | Path, camera: Camera | None = None
 ) -> tuple[list[Capture], list[dict[str, str]]]:
-    """Group ``IMG_XXXX_<band>.tif`` files into captures by their XMP CaptureId.
+    """Group ``IMG_XXXX_<band>.tif`` files into captures by their name and check them.
 
     With ``camera`` its ``capture_pattern`` and band list are used: every band's file must be
     present and its XMP BandName must be the catalog's. Without it, the band suffixes seen in
-    the folder are expected in every capture. Returns the complete captures (sorted by name)
-    and the problems as ``[{file, reason}]`` (``file`` the capture's first file; unreadable metadata, missing or extra bands, a
-    CaptureId shared by differently named files), for the run's quarantine list.
+    the folder are expected in every capture. The band files of one capture must carry one
+    XMP CaptureId, and no two captures may share one (the later name is a copy).
+
+    Returns the complete captures (sorted by name) and one problem per incomplete or unusable
+    capture as ``[{file, reason}]`` (``file`` the offending band file, else the capture's first
+    file), for the run's quarantine list.
     """
     folder = Path(folder)
     pattern = re.compile(camera.layout.capture_pattern or DEFAULT_CAPTURE_PATTERN) if camera else re.compile(
         DEFAULT_CAPTURE_PATTERN
     )
-    problems: list[dict[str, str]] = []
-    by_id: dict[str, dict[str, CaptureMeta]] = {}
-    names: dict[str, set[str]] = {}
+    by_name: dict[str, dict[str, CaptureMeta]] = {}
+    unusable: dict[str, list[tuple[Path, str]]] = {}
     for path in sorted(folder.iterdir()):
         m = pattern.match(path.name)
         if m is None or not path.is_file():
             continue
+        bands = by_name.setdefault(m["capture"], {})
         try:
-            meta = read_capture_meta(path)
+            bands[m["band"]] = read_capture_meta(path)
         except FrameError as exc:
-            problems.append({"file": str(path), "reason": exc.reason})
-            continue
-        cid = meta.capture_id or m["capture"]
-        by_id.setdefault(cid, {})[m["band"]] = meta
-        names.setdefault(cid, set()).add(m["capture"])
-    expected = _expected_suffixes(camera, by_id)
+            unusable.setdefault(m["capture"], []).append((path, exc.reason))
+    expected = _expected_suffixes(camera, by_name)
+    problems: list[dict[str, str]] = []
     captures: list[Capture] = []
-    for cid, bands in by_id.items():
-        reason = _capture_problem(bands, expected, names[cid], camera)
-        if reason:
-            problems.append({"file": str(min(m.path for m in bands.values())), "reason": reason})
+    owner: dict[str, str] = {}  # CaptureId -> the first capture name that carries it
+    for name in sorted(by_name):
+        bands = by_name[name]
+        first = min([m.path for m in bands.values()] + [p for p, _ in unusable.get(name, [])])
+        if name in unusable:
+            (path, why), more = unusable[name][0], len(unusable[name]) - 1
+            problems.append({"file": str(path), "reason": f"capture {name}: band file {path.name}: {why}"
+                             + (f" (and {more} more unusable band file(s))" if more else "")})
             continue
-        captures.append(Capture(name=min(names[cid]), capture_id=cid, metas=tuple(bands[s] for s in expected)))
-    return sorted(captures, key=lambda c: c.name), problems
+        reason = _capture_problem(bands, expected, name, camera)
+        ids = sorted({m.capture_id for m in bands.values() if m.capture_id})
+        if reason is None and len(ids) > 1:
+            reason = f"capture {name}: its band files carry {len(ids)} different XMP CaptureIds (files of other captures renamed?)"
+        cid = ids[0] if ids else name
+        if reason is None and cid in owner:
+            reason = f"capture {name}: same XMP CaptureId as {owner[cid]} (a copy of that capture?)"
+        if reason:
+            problems.append({"file": str(first), "reason": reason})
+            continue
+        owner[cid] = name
+        captures.append(Capture(name=name, capture_id=cid, metas=tuple(bands[s] for s in expected)))
+    return captures, problems
 
 
 def _expected_suffixes(camera: Camera | None, by_id: dict[str, dict[str, CaptureMeta]]) -> list[str]:
@@ -446,19 +465,16 @@ def _expected_suffixes(camera: Camera | None, by_id: dict[str, dict[str, Capture
 
 
 def _capture_problem(
-    bands: dict[str, CaptureMeta], expected: list[str], names: set[str], camera: Camera | None
+    bands: dict[str, CaptureMeta], expected: list[str], name: str, camera: Camera | None
 ) -> str | None:
     """Why a capture's files do not make one complete capture, or None."""
-    label = ", ".join(sorted(names))
-    if len(names) > 1:
-        return f"capture {label}: files with different names share one CaptureId"
     missing = [s for s in expected if s not in bands]
     extra = sorted(set(bands) - set(expected))
     if missing or extra:
         parts = ([f"missing band file(s) {', '.join(missing)}"] if missing else []) + (
             [f"unexpected band file(s) {', '.join(extra)}"] if extra else []
         )
-        return f"capture {label}: {'; '.join(parts)}"
+        return f"capture {name}: {'; '.join(parts)}"
     if camera is not None:
         wrong = [
             f"_{b.file_suffix} is {bands[str(b.file_suffix)].band_name!r}, catalog says {b.name!r}"
@@ -466,5 +482,5 @@ def _capture_problem(
             if bands[str(b.file_suffix)].band_name != b.name
         ]
         if wrong:
-            return f"capture {label}: band names differ from camera {camera.name}: {'; '.join(wrong)}"
+            return f"capture {name}: band names differ from camera {camera.name}: {'; '.join(wrong)}"
     return None

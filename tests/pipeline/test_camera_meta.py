@@ -181,6 +181,19 @@ def test_incomplete_capture_is_reported_not_grouped(tmp_path: Path) -> None:
     assert problems == [{"file": str(tmp_path / "IMG_0001_1.tif"), "reason": "capture IMG_0001: missing band file(s) 4"}]
 
 
+def test_truncated_band_file_and_copied_capture_give_one_entry_each(tmp_path: Path) -> None:
+    for b in range(1, 6):
+        for src, dst in (("0000", "0000"), ("0001", "0001"), ("0000", "0003"), ("0001", "0007")):
+            shutil.copyfile(band_file(src, b), tmp_path / f"IMG_{dst}_{b}.tif")
+    blob = (tmp_path / "IMG_0003_2.tif").read_bytes()
+    (tmp_path / "IMG_0003_2.tif").write_bytes(blob[: len(blob) // 3])  # the IFD is at the end: cut off
+    captures, problems = group_captures(tmp_path, catalog.load_camera("micasense-rededge"))
+    assert [c.name for c in captures] == ["IMG_0000", "IMG_0001"]
+    assert [p["file"] for p in problems] == [str(tmp_path / "IMG_0003_2.tif"), str(tmp_path / "IMG_0007_1.tif")]
+    assert problems[0]["reason"].startswith("capture IMG_0003: band file IMG_0003_2.tif: TIFF has no readable")
+    assert problems[1]["reason"] == "capture IMG_0007: same XMP CaptureId as IMG_0001 (a copy of that capture?)"
+
+
 def test_capture_of_another_camera_is_reported() -> None:
     folder = band_file("0000", 1).parent
     captures, problems = group_captures(folder, catalog.load_camera("micasense-rededge-mx-dual"))
