@@ -42,7 +42,7 @@ from mscal_core.errors import FrameError, InputError
 from mscal_core.reflectance import eq15_fast, eq15_tables
 from mscal_core.registration import align_bands, mosaic_centre_offsets, shift_bands
 
-from .catalog import Camera, Index, load_camera, load_index, parse_reflectance
+from .catalog import Camera, Index, load_camera, load_index, reflectance_option
 from .chunks import FLAT_CHUNK_KEYS, FrameChunks
 from .discover import quarantine_entry
 from .registration import check_transforms, frame_transforms
@@ -76,11 +76,7 @@ class PanelSpec:
         x0, y0, x1, y1 = (int(m[i]) for i in range(2, 6))
         if x1 <= x0 or y1 <= y0:
             raise InputError(f"--panel {text!r}: empty box (need x1 > x0 and y1 > y0)")
-        try:
-            value: Any = float(reflectance)
-        except ValueError:
-            value = reflectance
-        return PanelSpec(m[1], (x0, y0, x1, y1), parse_reflectance(value, "--panel-reflectance", "--panel-reflectance"))
+        return PanelSpec(m[1], (x0, y0, x1, y1), reflectance_option(reflectance))
 
 
 @dataclass(frozen=True)

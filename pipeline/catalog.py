@@ -363,6 +363,15 @@ class ReflectanceSpec:
         return np.interp(wl, t[:, 0], t[:, 1])
 
 
+def reflectance_option(text: str, option: str = "--panel-reflectance") -> ReflectanceSpec:
+    """A command-line reflectance: a number in (0, 1] or a reflectance target's name."""
+    try:
+        value: Any = float(text)
+    except ValueError:
+        value = text
+    return parse_reflectance(value, option, option)
+
+
 def parse_reflectance(value: Any, path: Path | str, where: str) -> ReflectanceSpec:
     """Validate a reflectance: a number in (0, 1], a [[nm, rho], ...] table, or a target name."""
     if isinstance(value, str):

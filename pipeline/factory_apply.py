@@ -68,7 +68,7 @@ from .apply import (
     write_frame,
 )
 from .camera_meta import Capture, CaptureMeta, factory_radiance, group_captures, read_capture_meta
-from .catalog import Camera, Index, load_camera, load_index, parse_reflectance
+from .catalog import Camera, Index, load_camera, load_index, reflectance_option
 from .chunks import FLAT_CHUNK_KEYS
 from .discover import quarantine_entry
 from .panel import SATURATION_DN, PanelBand, panel_factors
@@ -441,7 +441,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         if options.panel_reflectance is None:
             raise InputError("--reference panel needs --panel-reflectance (a number or a target name)",
                              hint="e.g. --panel-reflectance micasense-rp02-1603036-sc")
-        spec = parse_reflectance(_number_or_name(options.panel_reflectance), "--panel-reflectance", "--panel-reflectance")
+        spec = reflectance_option(options.panel_reflectance)
         rho = [float(r) for r in spec.at(np.array([m.wavelength_nm for m in captures[0].metas]))]
         panels = _find_panels(captures, options.panel_captures, rho, folder)
         panel_factor = tuple(float(np.mean([p.factor_split[b] for p in panels])) for b in range(camera.n_bands))
@@ -568,13 +568,6 @@ def _tags(camera: Camera, capture: Capture) -> FrameTags:
         exposure_ms=float(np.median([x.exposure_s * 1e3 for x in capture.metas])),
         camera_make="mscal", camera_model=camera.name,
     )
-
-
-def _number_or_name(text: str) -> float | str:
-    try:
-        return float(text)
-    except ValueError:
-        return text
 
 
 def _reference_record(reference: str, panels: Sequence[PanelReference], factor: tuple[float, ...] | None,

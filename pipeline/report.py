@@ -81,6 +81,11 @@ FRAME_LEVEL_RATIO_MAX = 2.0
 #: interpolated colour can be off by up to about half of it mid-way, and mscal aims at 1 %.
 #: Above it, capture the reflector more often or re-fly in steadier light.
 CAPTURE_COLOUR_CHANGE_MAX = 0.02
+#: Panel and sun sensor (DLS) on the same capture (factory apply, issue 6): their factor ratio
+#: carries the DLS's tilt and cosine error, one number for all bands; its spread across bands
+#: (max/min - 1) is a disagreement in colour that goes straight into every index. Above 5 %
+#: the two references give NDVI differing by more than about 0.02 on vegetation: keep the panel.
+PANEL_DLS_COLOUR_SPREAD_MAX = 0.05
 
 # --------------------------------------------------------------------------- sampling bounds
 
@@ -873,6 +878,59 @@ def calibration_section(ds: xr.Dataset, flights: Sequence["FlightResults"] = ())
     return sec
 
 
+def _panel_dls(panel: dict[str, Any]) -> dict[str, float]:
+    ratio = panel.get("panel_over_dls") or {}
+    return {b: float(v) for b, v in ratio.items() if v is not None and math.isfinite(float(v)) and float(v) > 0}
+
+
+def reference_table(run: dict[str, Any], band_names: Sequence[str] = ()) -> Table | None:
+    """The reflectance reference of a factory apply (run.json ``reference``): per panel capture
+    and band, the panel's factor (Eq. 11-14 split and plain mean) beside the sun sensor's
+    ``pi / E`` on the same capture and their ratio, bands in ``band_names`` order (the
+    camera's; run.json keeps them sorted by name). None for runs without one."""
+    rec = run.get("reference")
+    if not isinstance(rec, dict):
+        return None
+    if rec.get("route") != "panel":
+        return Table("Reflectance reference", ["route", "formula"], [[rec.get("route"), rec.get("formula")]],
+                     note="each capture's own sun-sensor reading; no panel to compare it with "
+                          "(give --panel-reflectance to use and compare a panel capture)")
+    rows = []
+    for p in rec.get("panels") or []:
+        split = p.get("factor_split") or {}
+        order = [b for b in band_names if b in split] + sorted(b for b in split if b not in band_names)
+        for band in order:
+            k = split[band]
+            rows.append([p.get("capture"), band, k, (p.get("factor_mean") or {}).get(band),
+                         (p.get("factor_dls") or {}).get(band), (p.get("panel_over_dls") or {}).get(band)])
+    return Table("Reflectance reference: panel vs sun sensor",
+                 ["panel capture", "band", "k panel (S/B split)", "k panel (mean)", "k DLS (pi/E)", "panel / DLS"],
+                 rows, note=f"{rec.get('formula')}; a panel/DLS ratio equal in all bands is the DLS's tilt "
+                            "(brightness only), a spread across bands changes every index")
+
+
+def reference_warnings(run: dict[str, Any]) -> list[QAWarning]:
+    """A panel capture whose panel/DLS factor ratio spreads across bands by more than
+    :data:`PANEL_DLS_COLOUR_SPREAD_MAX`."""
+    rec = run.get("reference")
+    out: list[QAWarning] = []
+    if not isinstance(rec, dict):
+        return out
+    for p in rec.get("panels") or []:
+        ratio = _panel_dls(p)
+        if len(ratio) < 2:
+            continue
+        lo, hi = min(ratio, key=ratio.__getitem__), max(ratio, key=ratio.__getitem__)
+        spread = ratio[hi] / ratio[lo] - 1.0
+        if spread > PANEL_DLS_COLOUR_SPREAD_MAX:
+            out.append(QAWarning(
+                "panel_dls_colour", f"panel {p.get('capture')}: panel and sun sensor disagree in colour by "
+                f"{spread:.0%} (panel/DLS {ratio[lo]:.3f} at {lo} to {ratio[hi]:.3f} at {hi}); reflectance uses "
+                "the panel, a DLS-only flight of this camera would carry that error into its indices",
+                spread, PANEL_DLS_COLOUR_SPREAD_MAX))
+    return out
+
+
 def flight_section(flight: FlightResults, calibration: xr.Dataset | None) -> Section:
     rows = frame_rows(flight)
     ok = [r for r in rows if r["status"] == "ok"]
@@ -887,8 +945,13 @@ def flight_section(flight: FlightResults, calibration: xr.Dataset | None) -> Sec
     summary = Table("Run", ["frames in", "frames out", "quarantined", "saturated pixels", "seconds"], [[
         run.get("frames_in"), run.get("frames_out"), len(bad),
         (run.get("saturated_pixels") or {}).get("total"), (run.get("timings_s") or {}).get("total")]])
-    sec = Section(f"Flight: {flight.name}", f"flight-{flight.name}", flight_warnings(flight, calibration),
-                  [summary, qtable, table])
+    tables = [summary, qtable]
+    warns = flight_warnings(flight, calibration)
+    ref = reference_table(run, flight.camera.band_names if flight.camera is not None else ())
+    if ref is not None:
+        tables.append(ref)
+        warns += reference_warnings(run)
+    sec = Section(f"Flight: {flight.name}", f"flight-{flight.name}", warns, tables + [table])
     sec.figures += [
         ("NDVI quick-looks", lambda: plot_ndvi(flight)),
         ("Track", lambda: plot_track(flight)),

@@ -90,6 +90,14 @@ def test_target_table_interpolates() -> None:
     assert t.reflectance.at(np.array([840.0]))[0] == pytest.approx(0.61)
 
 
+def test_reflectance_option_takes_a_number_or_a_target_name() -> None:
+    assert catalog.reflectance_option("0.5").at(np.array([550.0]))[0] == pytest.approx(0.5)
+    table = catalog.reflectance_option("micasense-rp02-1603036-sc")
+    assert table.at(np.array([668.0]))[0] == pytest.approx(0.68)
+    with pytest.raises(CatalogError, match=r"--panel-reflectance must be in \(0, 1\], got 1.5"):
+        catalog.reflectance_option("1.5")
+
+
 def _write_camera(tmp_path: Path, data: dict) -> Path:
     d = tmp_path / "cameras"
     d.mkdir(exist_ok=True)

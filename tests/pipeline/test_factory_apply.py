@@ -99,6 +99,26 @@ def test_panel_and_dls_are_compared_in_run_json(panel_run) -> None:
         assert 0.5 < ratio < 2.0  # same light, two references: of the same order, not equal (DLS tilt)
 
 
+def test_report_compares_panel_and_dls(panel_run, dls_run, tmp_path) -> None:
+    from pipeline.report import PANEL_DLS_COLOUR_SPREAD_MAX, report_dict, write_report
+
+    sec = report_dict(flights=[panel_run])["sections"][0]
+    table = next(t for t in sec["tables"] if t["title"].startswith("Reflectance reference: panel vs sun sensor"))
+    ratio = json.loads((panel_run / "run.json").read_text())["reference"]["panels"][0]["panel_over_dls"]
+    assert [r[1] for r in table["rows"]] == list(BANDS) and all(r[0] == "IMG_0000" for r in table["rows"])
+    assert [float(r[5]) for r in table["rows"]] == pytest.approx([ratio[b] for b in BANDS], rel=1e-3)
+    # this RedEdge's DLS (no tilt correction) and its panel disagree in colour by tens of per cent
+    spread = max(ratio.values()) / min(ratio.values()) - 1
+    warned = [w for w in sec["warnings"] if w["code"] == "panel_dls_colour"]
+    assert spread > PANEL_DLS_COLOUR_SPREAD_MAX and len(warned) == 1
+    assert warned[0]["value"] == pytest.approx(spread) and "NIR" in warned[0]["message"]
+    dls = report_dict(flights=[dls_run])["sections"][0]
+    assert [t["rows"][0][0] for t in dls["tables"] if t["title"] == "Reflectance reference"] == ["dls"]
+    assert not [w for w in dls["warnings"] if w["code"] == "panel_dls_colour"]
+    html = write_report(tmp_path / "r.html", flights=[panel_run]).read_text()
+    assert "panel vs sun sensor" in html and "panel_dls_colour" in html
+
+
 def test_photogrammetry_tiffs_of_a_capture_share_its_uuid(panel_run) -> None:
     uuids = set()
     for rig, band in enumerate(BANDS):
