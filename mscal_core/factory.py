@@ -14,6 +14,16 @@ the pixel row (0 at the top), ``a2, a3`` the row-gradient (rolling shutter) term
 ``V`` the vignetting correction (>= 1 away from the centre, so it *multiplies* the DN).
 Negative radiance (noise around the black level) is floored at 0, as MicaSense does.
 
+Components from the field fits may replace the factory's (issue 6), one at a time:
+
+- *field vignetting*: ``V(x, y)`` of the paper (Eq. 8-10, max 1, multiplies the scene) enters
+  as the correction ``1 / V``;
+- *field response*: the paper's inverse response ``U`` (Eq. 5-7, over the sensor's DN ``k``)
+  replaces the linear ``p - p_BL``. ``U`` is relative (its scale is free in Eq. 5), so it is
+  scaled by :func:`field_response_scale` to the factory's linear model over the lower half
+  of the sensor range, where the sensor is linear by design: the radiance keeps its unit and
+  only the *shape* (black level, shoulder) comes from the field.
+
 Pure numpy (OpenCV for the polygon mask): the metadata is read by ``pipeline.camera_meta``.
 """
 
@@ -112,12 +122,15 @@ def radiance(
     calibration: Sequence[float],
     vignetting: np.ndarray,
     bits_per_sample: int = 16,
+    signal: np.ndarray | None = None,
 ) -> np.ndarray:
     """Factory radiance ``L = V a1/g (p - p_BL) / (t_e + a2 y - a3 t_e y)``, W m-2 sr-1 nm-1.
 
     ``dn`` is one band ``(H, W)`` as stored; ``black_level`` in DN; ``calibration`` is
-    ``[a1, a2, a3]``; ``vignetting`` the map from :func:`vignetting_map`; ``bits_per_sample``
-    the container depth the DN are normalised by. Negative values are floored at 0.
+    ``[a1, a2, a3]``; ``vignetting`` the correction map (:func:`vignetting_map`, or ``1/V``
+    of a field fit); ``bits_per_sample`` the container depth the DN are normalised by.
+    ``signal``, if given, replaces ``p - p_BL`` (a field response, see
+    :func:`field_response_signal`). Negative values are floored at 0.
     """
     if exposure_s <= 0 or gain <= 0:
         raise ValueError(f"exposure ({exposure_s}) and gain ({gain}) must be positive")
@@ -125,10 +138,44 @@ def radiance(
     dn = np.asarray(dn, dtype=np.float64)
     if vignetting.shape != dn.shape:
         raise ValueError(f"vignetting map {vignetting.shape} does not match the image {dn.shape}")
-    scale = 2.0**bits_per_sample
-    p = (dn - float(black_level)) / scale
+    if signal is None:
+        p = (dn - float(black_level)) / 2.0**bits_per_sample
+    else:
+        p = np.asarray(signal, dtype=np.float64)
+        if p.shape != dn.shape:
+            raise ValueError(f"signal {p.shape} does not match the image {dn.shape}")
     out = vignetting * p * row_gradient(dn.shape[0], exposure_s, a2, a3) * (a1 / (gain * exposure_s))
     return np.maximum(out, 0.0)
+
+
+def field_response_scale(
+    inverse_response: np.ndarray, *, dn_shift: int, black_level: float, bits_per_sample: int = 16
+) -> float:
+    """Scale ``c`` that puts a field inverse response on the factory's linear scale.
+
+    ``inverse_response`` is ``U(k)`` for every sensor DN ``k`` (Eq. 5-7, relative units);
+    a stored value is ``k * 2**dn_shift``. ``c`` minimises
+    ``sum_k (c U(k) - (k 2**dn_shift - p_BL) / 2**bits_per_sample)**2`` over the DN from the
+    black level to half of full scale, where the factory model (linear) holds:
+    ``c = sum U f / sum U**2`` with ``f`` the factory's ``p - p_BL``.
+    """
+    u = np.asarray(inverse_response, dtype=np.float64)
+    k = np.arange(u.size, dtype=np.float64)
+    stored = k * 2.0**dn_shift
+    f = (stored - float(black_level)) / 2.0**bits_per_sample
+    use = (stored > black_level) & (k <= (u.size - 1) / 2) & np.isfinite(u)
+    den = float(np.sum(u[use] ** 2))
+    if not np.any(use) or den <= 0:
+        raise ValueError("the inverse response is zero over the lower half of the DN range: no scale")
+    return float(np.sum(u[use] * f[use]) / den)
+
+
+def field_response_signal(dn: np.ndarray, inverse_response: np.ndarray, *, dn_shift: int, scale: float) -> np.ndarray:
+    """``c U(DN >> dn_shift)`` per pixel: the field response in the factory's units (see
+    :func:`field_response_scale` for ``c``)."""
+    k = np.right_shift(np.asarray(dn).astype(np.int64), dn_shift)
+    k = np.clip(k, 0, inverse_response.size - 1)
+    return scale * np.asarray(inverse_response, dtype=np.float64)[k]
 
 
 def panel_stats(image: np.ndarray, mask: np.ndarray, saturation: float | None = None) -> PanelStats:

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from mscal_core.errors import FrameError
-from mscal_core.factory import radiance, vignetting_map
+from mscal_core.factory import field_response_scale, field_response_signal, radiance, vignetting_map
 
 from .session import signed_gps
 
@@ -321,18 +321,43 @@ def factory_vignetting(meta: CaptureMeta) -> np.ndarray:
     )
 
 
-def factory_radiance(meta: CaptureMeta, dn: np.ndarray) -> np.ndarray:
-    """Radiance (W m-2 sr-1 nm-1) of one band file's DN with its own factory calibration."""
+@dataclass(frozen=True, eq=False)
+class FieldParts:
+    """Components of one band fitted in the field that replace the factory's (issue 6;
+    see :mod:`mscal_core.factory`): ``inverse_response`` U over the sensor DN (Eq. 5-7) and
+    ``vignetting`` V ``(H, W)``, max 1 (Eq. 8-10); None keeps the factory's."""
+
+    inverse_response: np.ndarray | None = None
+    vignetting: np.ndarray | None = None
+    dn_shift: int = 0  # stored DN = sensor DN << dn_shift (4 for 12-bit data in 16-bit TIFFs)
+
+
+def factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None = None) -> np.ndarray:
+    """Radiance (W m-2 sr-1 nm-1) of one band file's DN with its own factory calibration,
+    or with the field-fitted ``parts`` in place of the factory's response and/or vignetting."""
     if dn.shape != meta.shape:
         raise FrameError(f"image {dn.shape} does not match its metadata {meta.shape}", path=meta.path)
+    vignetting = factory_vignetting(meta)
+    signal = None
+    if parts is not None and parts.vignetting is not None:
+        if parts.vignetting.shape != dn.shape:
+            raise FrameError(f"field vignetting {parts.vignetting.shape} does not match the image {dn.shape}",
+                             path=meta.path)
+        v = np.asarray(parts.vignetting, dtype=np.float64)
+        vignetting = np.divide(1.0, v, out=np.full(v.shape, np.nan), where=v > 0)
+    if parts is not None and parts.inverse_response is not None:
+        c = field_response_scale(parts.inverse_response, dn_shift=parts.dn_shift, black_level=meta.black_level,
+                                 bits_per_sample=meta.bits_per_sample)
+        signal = field_response_signal(dn, parts.inverse_response, dn_shift=parts.dn_shift, scale=c)
     return radiance(
         dn,
         exposure_s=meta.exposure_s,
         gain=meta.gain,
         black_level=meta.black_level,
         calibration=meta.radiometric_calibration,
-        vignetting=factory_vignetting(meta),
+        vignetting=vignetting,
         bits_per_sample=meta.bits_per_sample,
+        signal=signal,
     )
 
 

@@ -161,9 +161,16 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
               help="--calibration factory: align the bands with the transforms of this store ('mscal register').")
 @click.option("--centre-bands", "centre_bands", is_flag=True,
               help="Snapshot mosaics: resample every band to the mosaic's centre position (sub-pixel band offsets).")
+@click.option("--field-calibration", default=None, type=click.Path(path_type=Path),
+              help="--calibration factory: take components of the radiance model from this field calibration "
+                   "of the same camera ('mscal calibrate' / 'mscal fit') instead of the factory's.")
+@click.option("--field-components", default=None,
+              help="With --field-calibration: response and/or vignetting, comma-separated (default: those the "
+                   "store holds). E.g. 'vignetting': field V (Eq. 8-10) with the factory response.")
 def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str | None, panel_reflectance: str | None,
           reference: str, float32: bool, export_bands: str | None, strict: bool,
-          illumination: str, no_align: bool, registration: Path | None, centre_bands: bool) -> None:
+          illumination: str, no_align: bool, registration: Path | None, centre_bands: bool,
+          field_calibration: Path | None, field_components: str | None) -> None:
     """Reflectance (Eq. 15), indices and photogrammetry TIFFs for a FLIGHT folder; with
     --calibration factory, for a folder of one-file-per-band captures from their factory metadata."""
     from mscal_core.errors import InputError
@@ -181,11 +188,17 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
             panel_reflectance=panel_reflectance, tiff_dtype="float32" if float32 else "uint16",
             export_bands=bands, strict=strict,
             registration=None if (registration is None or no_align) else str(registration),
+            field_calibration=None if field_calibration is None else str(field_calibration),
+            field_components=tuple(c.strip() for c in field_components.split(",") if c.strip())
+            if field_components else (),
         )
         _report_apply(apply_factory(flight, out, fopts), out, strict)
         return
     if reference != "auto":
         raise InputError("--reference is for --calibration factory")
+    if field_calibration is not None or field_components is not None:
+        raise InputError("--field-calibration/--field-components are for --calibration factory; "
+                         "--calibration CALIB.zarr already uses every field fit")
     if registration is not None:
         raise InputError("--registration is for --calibration factory; a field calibration holds its own band "
                          "transforms ('mscal register CAPTURES -o CALIB.zarr')")

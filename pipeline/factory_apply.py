@@ -26,11 +26,17 @@ neighbouring ground points near edges; ``reflectance.zarr`` says so in its attri
 band is warped onto the reference band's grid before the factor (the capture's own transforms
 if it was registered, else the session's; NaN where a band does not cover).
 
+With ``--field-calibration CALIB.zarr`` components of a field calibration of the same camera
+replace the factory's (``--field-components``: ``response`` = U of Eq. 5-7 on the factory's
+scale, ``vignetting`` = V of Eq. 8-10; :func:`pipeline.camera_meta.factory_radiance`); run.json
+``components`` records where each came from.
+
 Every output is written under a temporary name and renamed; a run that finds ``run.json``
 matching its inputs (file names, sizes and modification times) and options does nothing.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import math
@@ -67,7 +73,7 @@ from .apply import (
     otsu_mask,
     write_frame,
 )
-from .camera_meta import Capture, CaptureMeta, factory_radiance, group_captures, read_capture_meta
+from .camera_meta import Capture, CaptureMeta, FieldParts, factory_radiance, group_captures, read_capture_meta
 from .catalog import Camera, Index, load_camera, load_index, reflectance_option
 from .chunks import FLAT_CHUNK_KEYS
 from .discover import quarantine_entry
@@ -80,6 +86,7 @@ REFERENCES = ("auto", "panel", "dls")
 PANEL_SEARCH = 3  # captures at each end of the folder searched for a panel when none is named
 PANEL_GRID = 32  # cells per side of the panel grid for the S/B split (Eq. 11-14)
 FACTORY_CAMERAS = ("micasense-rededge", "micasense-rededge-mx-dual")
+FIELD_COMPONENTS = ("response", "vignetting")  # store variables: inverse_response, vignetting
 
 
 @dataclass(frozen=True)
@@ -94,15 +101,26 @@ class FactoryOptions:
     indices: tuple[str, ...] = ("ndvi", "ndre")
     strict: bool = False
     registration: str | None = None  # a store from 'mscal register': bands aligned to its reference (issue 9)
+    field_calibration: str | None = None  # a store from 'mscal calibrate' / 'mscal fit' of this camera
+    field_components: tuple[str, ...] = ()  # of FIELD_COMPONENTS taken from it; () = all it holds
 
     def __post_init__(self) -> None:
         if self.reference not in REFERENCES:
             raise InputError(f"reference {self.reference!r} is not one of {', '.join(REFERENCES)}")
+        unknown = [c for c in self.field_components if c not in FIELD_COMPONENTS]
+        if unknown:
+            raise InputError(f"--field-components {', '.join(unknown)}: not one of {', '.join(FIELD_COMPONENTS)}",
+                             hint="e.g. --field-components vignetting (factory response, field vignetting)")
+        if self.field_components and self.field_calibration is None:
+            raise InputError("--field-components needs --field-calibration CALIB.zarr (the store to take them from)")
 
     def fingerprint(self) -> dict[str, Any]:
         d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items() if k != "strict"}
-        if d["registration"] is None:  # runs before issue 9 stay up to date
-            d.pop("registration")
+        for key in ("registration", "field_calibration"):  # runs before issues 9 / 6-components stay up to date
+            if d[key] is None:
+                d.pop(key)
+        if not d["field_components"]:
+            d.pop("field_components")
         return d
 
 
@@ -179,12 +197,15 @@ class PanelReference:
     region_source: tuple[str, ...]
 
 
-def panel_reference(capture: Capture, dns: Sequence[np.ndarray], rho: Sequence[float]) -> PanelReference:
-    """Factors of one panel capture (FrameError naming the file if no panel is found in a band)."""
-    bands: list[PanelBand] = panel_factors(capture.metas, dns, rho)
+def panel_reference(capture: Capture, dns: Sequence[np.ndarray], rho: Sequence[float],
+                    parts: Sequence[FieldParts | None] | None = None) -> PanelReference:
+    """Factors of one panel capture (FrameError naming the file if no panel is found in a band);
+    ``parts``: field components per band in place of the factory's."""
+    parts = list(parts) if parts is not None else [None] * len(capture.metas)
+    bands: list[PanelBand] = panel_factors(capture.metas, dns, rho, parts=parts)
     rows = []
-    for meta, dn, band in zip(capture.metas, dns, bands):
-        rad = factory_radiance(meta, dn)
+    for meta, dn, band, part in zip(capture.metas, dns, bands, parts):
+        rad = factory_radiance(meta, dn, part)
         if len(band.region.corners) == 4:
             rows.append(sample_quad(rad, band.region.corners, PANEL_GRID).ravel())
     if len(rows) == len(bands):
@@ -205,8 +226,8 @@ def panel_reference(capture: Capture, dns: Sequence[np.ndarray], rho: Sequence[f
     )
 
 
-def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequence[float], folder: Path
-                 ) -> list[PanelReference]:
+def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequence[float], folder: Path,
+                 parts: Sequence[FieldParts | None] | None = None) -> list[PanelReference]:
     by_name = {c.name: c for c in captures}
     if named:
         unknown = [n for n in named if n not in by_name]
@@ -216,7 +237,7 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
         refs = []
         for n in named:
             try:
-                refs.append(panel_reference(by_name[n], _read_capture(by_name[n])[1], rho))
+                refs.append(panel_reference(by_name[n], _read_capture(by_name[n])[1], rho, parts))
             except FrameError as exc:
                 raise InputError(f"panel capture {n}: {exc.reason}", path=exc.path, hint=exc.hint) from None
         return refs
@@ -224,7 +245,7 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
     refs = []
     for c in ends:
         try:
-            refs.append(panel_reference(c, _read_capture(c)[1], rho))
+            refs.append(panel_reference(c, _read_capture(c)[1], rho, parts))
         except FrameError:
             continue
     if not refs:
@@ -253,6 +274,7 @@ class CapturePlan:
     tiff_dtype: str
     outputs: tuple[str, ...]
     registration: Path | None = None  # band transforms (issue 9): radiance and reflectance aligned
+    field: tuple[str, tuple[str, ...]] | None = None  # (store, components) replacing factory components
 
 
 @dataclass(frozen=True)
@@ -294,9 +316,10 @@ def process_capture(plan: CapturePlan, job: CaptureJob) -> CaptureOutcome:
         if any(dn.shape != plan.shape[1:] for dn in dns):
             raise FrameError(f"band images {[d.shape for d in dns]} are not all {plan.shape[1:]}", path=cap.files[0])
         k = capture_factors(plan, cap)
+        parts = field_parts(plan.field[0], plan.field[1], plan.camera.name) if plan.field else [None] * len(dns)
         rad = np.empty(plan.shape, np.float32)
         for b, (meta, dn) in enumerate(zip(cap.metas, dns)):
-            rad[b] = factory_radiance(meta, dn)
+            rad[b] = factory_radiance(meta, dn, parts[b])
     except FrameError as exc:
         return CaptureOutcome(cap.name, None, 0, quarantine_entry(Path(exc.path or cap.files[0]).name, exc))
     raw = np.stack(dns)
@@ -397,6 +420,46 @@ def _registration(options: FactoryOptions, camera: Camera, shape: tuple[int, int
     return path, h.hexdigest()
 
 
+@functools.lru_cache(maxsize=2)
+def field_parts(store: str, components: tuple[str, ...], camera_name: str) -> tuple[FieldParts, ...]:
+    """Per band, the ``components`` of a field calibration ``store`` (loaded once per process)."""
+    from .store import open_calibration
+
+    camera = load_camera(camera_name)
+    ds = open_calibration(store, camera)
+    lut = ds["inverse_response"].values.astype(np.float64) if "response" in components else None
+    vig = ds["vignetting"].values.astype(np.float64) if "vignetting" in components else None
+    return tuple(FieldParts(inverse_response=None if lut is None else lut[b], vignetting=None if vig is None else vig[b],
+                            dn_shift=camera.dn_shift) for b in range(camera.n_bands))
+
+
+def _field(options: FactoryOptions, camera: Camera, shape: tuple[int, int, int]
+           ) -> tuple[str, tuple[str, ...], str] | None:
+    """The ``--field-calibration`` store, the components taken from it (checked against the
+    camera and image size) and the hash of those arrays, or None."""
+    if options.field_calibration is None:
+        return None
+    from .store import open_calibration
+
+    path = Path(options.field_calibration)
+    ds = open_calibration(path, camera)
+    held = tuple(c for c in FIELD_COMPONENTS if ("inverse_response" if c == "response" else c) in ds)
+    components = tuple(c for c in FIELD_COMPONENTS if c in (options.field_components or held))
+    missing = [c for c in components if c not in held]
+    if not components or missing:
+        raise CalibrationStoreError(
+            f"store holds no {' or '.join(missing or FIELD_COMPONENTS)} fit", path=path,
+            hint="fit it with 'mscal fit response|vignetting' for this camera, or leave that component to the factory")
+    if "vignetting" in components and tuple(ds["vignetting"].shape[1:]) != shape[1:]:
+        raise CalibrationStoreError(f"vignetting is {tuple(ds['vignetting'].shape[1:])} pixels, the band files "
+                                    f"{shape[1:]}", path=path, hint="use a store fitted on this camera's band files")
+    h = hashlib.sha256()
+    for c in components:
+        name = "inverse_response" if c == "response" else c
+        h.update(name.encode() + np.ascontiguousarray(ds[name].values).tobytes())
+    return str(path.resolve()), components, h.hexdigest()
+
+
 def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOptions = FactoryOptions()) -> ApplyResult:
     """``mscal apply CAPTURE_DIR --calibration factory -o OUT`` (see the module docstring)."""
     t_start = time.perf_counter()
@@ -419,12 +482,16 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     roles = {ix.name: _index_roles(camera, ix) for ix in indices}
 
     registration = _registration(options, camera, shape)
+    field = _field(options, camera, shape)
+    parts = field_parts(field[0], field[1], camera.name) if field else None
     fingerprint = {
         "inputs": _stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
         "mscal_version": mscal_core.__version__,
     }
     if registration is not None:
         fingerprint["registration_sha256"] = registration[1]
+    if field is not None:
+        fingerprint["field_sha256"] = field[2]
     fingerprint = json.loads(json.dumps(fingerprint))
     out.mkdir(parents=True, exist_ok=True)
     previous = _up_to_date(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
@@ -443,7 +510,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                              hint="e.g. --panel-reflectance micasense-rp02-1603036-sc")
         spec = reflectance_option(options.panel_reflectance)
         rho = [float(r) for r in spec.at(np.array([m.wavelength_nm for m in captures[0].metas]))]
-        panels = _find_panels(captures, options.panel_captures, rho, folder)
+        panels = _find_panels(captures, options.panel_captures, rho, folder, parts)
         panel_factor = tuple(float(np.mean([p.factor_split[b] for p in panels])) for b in range(camera.n_bands))
 
 
@@ -451,7 +518,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     with Runner(len(captures)) as runner:
         while True:  # a capture found unusable in the pass is quarantined and the pass redone without it
             ps = _Pass.start(out, camera, captures, shape, indices, roles, export, reference, panel_factor,
-                             options, folder)
+                             options, folder, None if field is None else field[:2])
             outcomes = runner.run(ps.plan, [CaptureJob(f, c, _tags(camera, c)) for f, c in enumerate(captures)],
                                   fn=process_capture)
             bad = {o.name: o.quarantine for o in outcomes if o.quarantine is not None}
@@ -474,6 +541,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         "flight": str(folder),
         "calibration": FACTORY,
         "calibration_sha256": None,
+        "components": _components_record(field),
         "camera": camera.name,
         "reference": _reference_record(reference, panels, panel_factor, camera),
         "frames_in": len(frames) + len(quarantined),
@@ -506,13 +574,15 @@ class _Pass:
     @staticmethod
     def start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[int, int, int],
               indices: Sequence[Index], roles: dict[str, dict[str, int]], export: Sequence[int], reference: str,
-              panel_factor: tuple[float, ...] | None, options: FactoryOptions, folder: Path) -> "_Pass":
+              panel_factor: tuple[float, ...] | None, options: FactoryOptions, folder: Path,
+              field: tuple[str, tuple[str, ...]] | None = None) -> "_Pass":
         import zarr.codecs
 
         coords = _coords(camera, captures)
         attrs = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__,
                  "calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
-                 "comment": "bands are not co-registered: each band keeps its own pixel grid"}
+                 "comment": "bands are not co-registered: each band keeps its own pixel grid",
+                 "components": json.dumps(_components_record(None if field is None else (*field, "")))}
         if options.registration is not None:
             attrs.update({"co_registered": 1, "registration": str(options.registration),
                           "comment": "bands aligned to the reference band of the registration store "
@@ -546,6 +616,7 @@ class _Pass:
                         for i, b in enumerate(export)),
             tiff_dtype=options.tiff_dtype, outputs=tuple(str(v) for v in refl_ds.data_vars),
             registration=None if options.registration is None else Path(options.registration),
+            field=field,
         )
         return _Pass(plan, tmp_refl, tmp_raw)
 
@@ -568,6 +639,11 @@ def _tags(camera: Camera, capture: Capture) -> FrameTags:
         exposure_ms=float(np.median([x.exposure_s * 1e3 for x in capture.metas])),
         camera_make="mscal", camera_model=camera.name,
     )
+
+
+def _components_record(field: tuple[str, tuple[str, ...], str] | None) -> dict[str, str]:
+    """Where each part of the radiance model came from: 'factory' or 'field:STORE'."""
+    return {c: (f"field:{field[0]}" if field is not None and c in field[1] else FACTORY) for c in FIELD_COMPONENTS}
 
 
 def _reference_record(reference: str, panels: Sequence[PanelReference], factor: tuple[float, ...] | None,

@@ -36,7 +36,7 @@ from mscal_core.illumination import IlluminationFit, fit_illumination
 from mscal_core.panel import DEFAULT_INSET, detect_panel, sample_quad, shrink_polygon
 from mscal_core.reflectance import ndvi
 
-from .camera_meta import CaptureMeta, factory_radiance
+from .camera_meta import CaptureMeta, FieldParts, factory_radiance
 
 SATURATION_DN = 65000  # 16-bit container: above this a RedEdge pixel is clipped
 
@@ -120,15 +120,18 @@ def panel_factors(
     rho: Sequence[float],
     *,
     session_polygon: Sequence[Sequence[float]] | None = None,
+    parts: Sequence[FieldParts | None] | None = None,
 ) -> list[PanelBand]:
-    """Per band of a panel capture: ``k_b = rho_b / mean factory radiance on the panel``.
+    """Per band of a panel capture: ``k_b = rho_b / mean factory radiance on the panel``
+    (``parts``: field components per band in place of the factory's, see :func:`factory_radiance`).
 
     Saturated panel pixels make the factor meaningless: FrameError naming the file.
     """
     if not len(metas) == len(dns) == len(rho):
         raise ValueError(f"{len(metas)} band files, {len(dns)} images and {len(rho)} reflectances differ")
     out = []
-    for meta, dn, rho_b in zip(metas, dns, rho):
+    parts = list(parts) if parts is not None else [None] * len(metas)
+    for meta, dn, rho_b, part in zip(metas, dns, rho, parts):
         region = panel_region(meta, dn, session_polygon=session_polygon)
         mask = polygon_mask(dn.shape, region.corners)
         raw = panel_stats(dn, mask, saturation=SATURATION_DN)
@@ -138,7 +141,7 @@ def panel_factors(
                 path=meta.path,
                 hint="take the panel capture with a shorter exposure",
             )
-        rad = panel_stats(factory_radiance(meta, dn), mask)
+        rad = panel_stats(factory_radiance(meta, dn, part), mask)
         out.append(
             PanelBand(region, rad.mean, rad.std, float(rho_b), float(rho_b) / rad.mean, meta.irradiance)
         )

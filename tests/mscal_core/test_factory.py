@@ -6,7 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mscal_core.factory import panel_stats, polygon_mask, radial_vignetting, radiance, vignetting_2d, vignetting_map
+from mscal_core.factory import (
+    field_response_scale,
+    field_response_signal,
+    panel_stats,
+    polygon_mask,
+    radial_vignetting,
+    radiance,
+    vignetting_2d,
+    vignetting_map,
+)
 from pipeline.camera_meta import factory_radiance, read_capture_meta
 from pipeline.session import read_raw
 from tests.micasense_data import PANEL_CORNERS, PANEL_RADIANCE, PANEL_RAW_DN, band_file
@@ -81,3 +90,28 @@ def test_vignetting_polynomial_divides() -> None:
     wrong = panel_stats(radiance(dn, vignetting=1.0 / right, **kwargs), mask).mean
     good = panel_stats(radiance(dn, vignetting=right, **kwargs), mask).mean
     assert abs(good / PANEL_RADIANCE[0] - 1) < 1e-3 < 5e-3 < abs(wrong / PANEL_RADIANCE[0] - 1)
+
+
+def test_field_response_is_put_on_the_factory_scale_from_the_lower_half() -> None:
+    k = np.arange(4096, dtype=np.float64)
+    black = 4800.0  # stored DN (300 sensor DN << 4)
+    u = 2.5 * (k * 16 - black)  # a field U that is linear, in its own units
+    c = field_response_scale(u, dn_shift=4, black_level=black, bits_per_sample=16)
+    assert c == pytest.approx(1 / (2.5 * 65536), rel=1e-12)
+    shoulder = u.copy()
+    shoulder[3000:] *= 1.3  # a different shoulder near saturation does not move the scale
+    assert field_response_scale(shoulder, dn_shift=4, black_level=black) == pytest.approx(c, rel=1e-12)
+    dn = np.array([[4800, 4816], [32768, 65520]], dtype=np.uint16)
+    sig = field_response_signal(dn, shoulder, dn_shift=4, scale=c)
+    np.testing.assert_allclose(sig[0], [0.0, 16 / 65536], atol=1e-15)
+    assert sig[1, 1] == pytest.approx(1.3 * (65520 - black) / 65536)
+    # with that signal the radiance is the factory's where the field U is linear
+    rad = radiance(dn, exposure_s=0.001, gain=1.0, black_level=black, calibration=(1.0, 0.0, 0.0),
+                   vignetting=np.ones((2, 2)), signal=sig)
+    plain = radiance(dn, exposure_s=0.001, gain=1.0, black_level=black, calibration=(1.0, 0.0, 0.0),
+                     vignetting=np.ones((2, 2)))
+    np.testing.assert_allclose(rad[:, 0], plain[:, 0])
+    np.testing.assert_allclose(rad[0], plain[0])
+    assert rad[1, 1] == pytest.approx(1.3 * plain[1, 1])
+    with pytest.raises(ValueError, match="no scale"):
+        field_response_scale(np.zeros(4096), dn_shift=4, black_level=black)

@@ -166,6 +166,78 @@ def test_incomplete_and_truncated_captures_are_quarantined(tmp_path, capsys) -> 
     assert _apply(folder, tmp_path / "strict", "--strict") == 3
 
 
+def _field_store(path: Path, capture: str, *, response: str, vignetting: str) -> Path:
+    """A field calibration store for the RedEdge: ``response`` 'factory' (U linear with the
+    capture's black level, arbitrary scale) or 'square'; ``vignetting`` 'factory' (V = 1 /
+    the factory correction) or 'flat'."""
+    from pipeline.camera_meta import factory_vignetting
+    from pipeline.catalog import load_camera
+    from pipeline.store import new_dataset, write_store
+
+    data = require_data()
+    metas = [read_capture_meta(data / f"{capture}_{b + 1}.tif") for b in range(5)]
+    k = np.arange(4096, dtype=np.float64)
+    lut = np.stack([3.0 * (k * 16 - m.black_level) if response == "factory" else k**2 for m in metas])
+    vig = np.stack([1 / factory_vignetting(m) if vignetting == "factory" else np.ones(m.shape) for m in metas])
+    ds = new_dataset(load_camera("micasense-rededge"))
+    ds["inverse_response"] = (("band", "dn"), lut)
+    ds["vignetting"] = (("band", "y", "x"), vig)
+    return write_store(ds, path)
+
+
+def test_field_components_replace_the_factory_ones(tmp_path) -> None:
+    data = require_data()
+    folder = tmp_path / "caps"
+    folder.mkdir()
+    for p in data.glob("IMG_0001_*.tif"):
+        shutil.copy(p, folder / p.name)
+    same = _field_store(tmp_path / "same.zarr", "IMG_0001", response="factory", vignetting="factory")
+    flat = _field_store(tmp_path / "flat.zarr", "IMG_0001", response="square", vignetting="flat")
+    outs = {}
+    for name, extra in {
+        "factory": [],
+        "both": ["--field-calibration", str(same)],  # the factory model re-expressed as field fits
+        "vignetting": ["--field-calibration", str(flat), "--field-components", "vignetting"],
+        "response": ["--field-calibration", str(flat), "--field-components", "response"],
+    }.items():
+        assert _apply(folder, tmp_path / name, *extra) == 0, name
+        outs[name] = xr.open_zarr(tmp_path / name / "reflectance.zarr")["radiance"].isel(frame=0).values
+    np.testing.assert_allclose(outs["both"], outs["factory"], rtol=2e-6, equal_nan=True)
+    run = json.loads((tmp_path / "vignetting" / "run.json").read_text())
+    assert run["components"] == {"response": "factory", "vignetting": f"field:{flat.resolve()}"}
+    assert json.loads((tmp_path / "factory" / "run.json").read_text())["components"] == {
+        "response": "factory", "vignetting": "factory"}
+    for b in range(5):
+        meta = read_capture_meta(folder / f"IMG_0001_{b + 1}.tif")
+        from pipeline.camera_meta import factory_vignetting
+
+        corr = factory_vignetting(meta)
+        # flat field V: the factory radiance without its vignetting correction
+        np.testing.assert_allclose(outs["vignetting"][b], outs["factory"][b] / corr, rtol=2e-6, equal_nan=True)
+        # a squared U: radiance grows with the square of (DN - 0), scaled to the factory at the low end
+        dn = read_raw(meta.path).astype(np.float64)
+        lit = (dn > 8 * meta.black_level) & (dn < 65520)
+        ratio = outs["response"][b][lit] / outs["factory"][b][lit]
+        slope = np.polyfit(dn[lit], ratio, 1)[0]
+        assert slope > 0 and np.corrcoef(dn[lit], ratio)[0, 1] > 0.99, b
+
+
+@pytest.mark.parametrize(
+    ("extra", "expect"),
+    [
+        (["--field-components", "vignetting"], "needs --field-calibration"),
+        (["--field-calibration", "STORE", "--field-components", "spectral_factor"], "not one of response, vignetting"),
+        (["--field-calibration", "NOSTORE"], "calibration store not found"),
+    ],
+)
+def test_bad_field_components_exit_2(tmp_path, capsys, extra, expect) -> None:
+    store = _field_store(tmp_path / "s.zarr", "IMG_0001", response="factory", vignetting="factory")
+    extra = [str(store) if e == "STORE" else str(tmp_path / "none.zarr") if e == "NOSTORE" else e for e in extra]
+    assert _apply(require_data(), tmp_path / "o", *extra) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and expect in err, err
+
+
 @pytest.mark.parametrize(
     ("extra", "expect"),
     [
