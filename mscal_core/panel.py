@@ -32,7 +32,15 @@ import numpy as np
 
 from .factory import polygon_mask
 
-__all__ = ["PanelDetection", "detect_panel", "order_corners", "polygon_iou", "sample_quad", "shrink_polygon"]
+__all__ = [
+    "PanelDetection",
+    "detect_panel",
+    "order_corners",
+    "panel_from_marker",
+    "polygon_iou",
+    "sample_quad",
+    "shrink_polygon",
+]
 
 # Linear fraction of the bright surface used for statistics: the panel's edges are blurred
 # by the lens and soiled by handling, so only its centre is sampled (as MicaSense's published
@@ -203,3 +211,39 @@ def sample_quad(image: np.ndarray, corners: Sequence[Sequence[float]], n: int = 
     return cv2.warpPerspective(
         np.asarray(image, dtype=np.float64), h, (n, n), flags=cv2.INTER_LINEAR, borderValue=float("nan")
     )
+
+
+def panel_from_marker(
+    marker_corners: Sequence[Sequence[float]],
+    marker_size_m: float,
+    panel_size_m: tuple[float, float],
+    panel_offset_m: tuple[float, float],
+) -> np.ndarray:
+    """Image corners of a rectangular panel lying in the plane of an ArUco/AprilTag marker.
+
+    The marker frame is that of :mod:`mscal_core.geometry` (centre at the origin, ``u`` right,
+    ``v`` up as printed; ``marker_corners`` TL, TR, BR, BL in image pixels as
+    :func:`mscal_core.geometry.detect_marker` returns them). The panel is the rectangle of
+    ``panel_size_m = (w, h)`` centred at ``panel_offset_m = (du, dv)``. The plane-to-image map
+    of a pinhole camera is the homography ``H`` with ``H (u_k, v_k, 1) ~ (x_k, y_k, 1)`` for
+    the four marker corners ``k`` (solved exactly from the 4 correspondences); the panel corners are
+    ``H`` applied to theirs, returned in :func:`order_corners` order. Lens distortion is not
+    modelled: keep the panel near the marker.
+    """
+    h = 0.5 * float(marker_size_m)
+    src = np.array([[-h, h], [h, h], [h, -h], [-h, -h]], dtype=np.float64)
+    dst = np.asarray(marker_corners, dtype=np.float64).reshape(4, 2)
+    # exact 4-point solve with h33 = 1: x (h31 u + h32 v + 1) = h11 u + h12 v + h13, same for y
+    A = np.zeros((8, 8))
+    for k, ((u, v), (x, y)) in enumerate(zip(src, dst)):
+        A[2 * k] = [u, v, 1, 0, 0, 0, -x * u, -x * v]
+        A[2 * k + 1] = [0, 0, 0, u, v, 1, -y * u, -y * v]
+    try:
+        H = np.append(np.linalg.solve(A, dst.ravel()), 1.0).reshape(3, 3)
+    except np.linalg.LinAlgError:
+        raise ValueError(f"marker corners {dst.tolist()} do not define a plane-to-image map") from None
+    w, hh = 0.5 * float(panel_size_m[0]), 0.5 * float(panel_size_m[1])
+    du, dv = (float(v) for v in panel_offset_m)
+    panel = np.array([[du - w, dv + hh], [du + w, dv + hh], [du + w, dv - hh], [du - w, dv - hh]], dtype=np.float64)
+    out = cv2.perspectiveTransform(panel.reshape(-1, 1, 2), H).reshape(4, 2)
+    return order_corners(out)

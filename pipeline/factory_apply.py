@@ -11,7 +11,10 @@ A frame is one capture (all its band files, grouped by XMP CaptureId). Per band 
     folder. The light on the panel is split into colour and brightness (Eq. 11-14,
     ``L_b(x) = S_b B(x) rho_b`` over a grid on the panel, gauge ``median(B) = 1``) and
     ``k_b = 1 / S_b``: a partly shaded panel sets the factor of its median-lit part instead
-    of its mean. Several panel captures: ``k_b`` is their mean (each is in run.json);
+    of its mean. Several panel captures: ``k_b`` is their mean (each is in run.json). The
+    panel region: XMP ReflectArea, else a marker in the panel's plane, else detected, else a
+    pixel polygon (the last two from ``panel`` of a session.yaml in the folder or up to two
+    levels above it; :func:`pipeline.session.parse_panel`);
   - ``dls``: the capture's own downwelling light sensor, ``k_b = pi / E_b`` (XMP Irradiance,
     W m-2 nm-1, no tilt correction).
 
@@ -78,7 +81,7 @@ from .catalog import Camera, Index, load_camera, load_index, reflectance_option
 from .chunks import FLAT_CHUNK_KEYS
 from .discover import quarantine_entry
 from .panel import SATURATION_DN, PanelBand, panel_factors
-from .session import decode_raw
+from .session import PanelConfig, decode_raw, panel_config_near
 from .writers import TMP_MARK, BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
 
 FACTORY = "factory"
@@ -198,11 +201,13 @@ class PanelReference:
 
 
 def panel_reference(capture: Capture, dns: Sequence[np.ndarray], rho: Sequence[float],
-                    parts: Sequence[FieldParts | None] | None = None) -> PanelReference:
+                    parts: Sequence[FieldParts | None] | None = None, config: PanelConfig | None = None
+                    ) -> PanelReference:
     """Factors of one panel capture (FrameError naming the file if no panel is found in a band);
-    ``parts``: field components per band in place of the factory's."""
+    ``parts``: field components per band in place of the factory's; ``config``: session.yaml's
+    ``panel`` (marker, polygon)."""
     parts = list(parts) if parts is not None else [None] * len(capture.metas)
-    bands: list[PanelBand] = panel_factors(capture.metas, dns, rho, parts=parts)
+    bands: list[PanelBand] = panel_factors(capture.metas, dns, rho, parts=parts, config=config)
     rows = []
     for meta, dn, band, part in zip(capture.metas, dns, bands, parts):
         rad = factory_radiance(meta, dn, part)
@@ -227,7 +232,8 @@ def panel_reference(capture: Capture, dns: Sequence[np.ndarray], rho: Sequence[f
 
 
 def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequence[float], folder: Path,
-                 parts: Sequence[FieldParts | None] | None = None) -> list[PanelReference]:
+                 parts: Sequence[FieldParts | None] | None = None, config: PanelConfig | None = None
+                 ) -> list[PanelReference]:
     by_name = {c.name: c for c in captures}
     if named:
         unknown = [n for n in named if n not in by_name]
@@ -237,7 +243,7 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
         refs = []
         for n in named:
             try:
-                refs.append(panel_reference(by_name[n], _read_capture(by_name[n])[1], rho, parts))
+                refs.append(panel_reference(by_name[n], _read_capture(by_name[n])[1], rho, parts, config))
             except FrameError as exc:
                 raise InputError(f"panel capture {n}: {exc.reason}", path=exc.path, hint=exc.hint) from None
         return refs
@@ -245,7 +251,7 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
     refs = []
     for c in ends:
         try:
-            refs.append(panel_reference(c, _read_capture(c)[1], rho, parts))
+            refs.append(panel_reference(c, _read_capture(c)[1], rho, parts, config))
         except FrameError:
             continue
     if not refs:
@@ -483,6 +489,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
 
     registration = _registration(options, camera, shape)
     field = _field(options, camera, shape)
+    near = panel_config_near(folder)
     parts = field_parts(field[0], field[1], camera.name) if field else None
     fingerprint = {
         "inputs": _stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
@@ -492,6 +499,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         fingerprint["registration_sha256"] = registration[1]
     if field is not None:
         fingerprint["field_sha256"] = field[2]
+    if near is not None:
+        fingerprint["panel_config"] = {"session_yaml": str(near[1].resolve()), "panel": repr(near[0])}
     fingerprint = json.loads(json.dumps(fingerprint))
     out.mkdir(parents=True, exist_ok=True)
     previous = _up_to_date(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
@@ -510,7 +519,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                              hint="e.g. --panel-reflectance micasense-rp02-1603036-sc")
         spec = reflectance_option(options.panel_reflectance)
         rho = [float(r) for r in spec.at(np.array([m.wavelength_nm for m in captures[0].metas]))]
-        panels = _find_panels(captures, options.panel_captures, rho, folder, parts)
+        panels = _find_panels(captures, options.panel_captures, rho, folder, parts,
+                              None if near is None else near[0])
         panel_factor = tuple(float(np.mean([p.factor_split[b] for p in panels])) for b in range(camera.n_bands))
 
 

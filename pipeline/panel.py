@@ -4,6 +4,9 @@ Panel region of one band file, first that applies:
 
 1. XMP ``ReflectArea`` written by the camera: 8 numbers are four (x, y) corners, 4 numbers
    an axis-aligned ``x, y, width, height`` box (used whole: the camera chose it);
+1b. an ArUco/AprilTag marker in the panel's plane, when session.yaml ``panel.marker`` names one
+   and the band shows it: the configured rectangle through the marker's homography
+   (:func:`mscal_core.panel.panel_from_marker`), shrunk to its inner ``inset`` like a detection;
 2. automatic detection (:func:`mscal_core.panel.detect_panel`), shrunk to its inner
    ``inset`` (linear, default 0.75) to keep the blurred, shadowed edges out;
 3. the polygon from session.yaml ``panel: {polygon: [[x, y], ...]}``
@@ -33,10 +36,12 @@ import numpy as np
 from mscal_core.errors import FrameError
 from mscal_core.factory import panel_stats, polygon_mask
 from mscal_core.illumination import IlluminationFit, fit_illumination
-from mscal_core.panel import DEFAULT_INSET, detect_panel, sample_quad, shrink_polygon
+from mscal_core.geometry import detect_marker
+from mscal_core.panel import DEFAULT_INSET, detect_panel, panel_from_marker, sample_quad, shrink_polygon
 from mscal_core.reflectance import ndvi
 
 from .camera_meta import CaptureMeta, FieldParts, factory_radiance
+from .session import PanelConfig
 
 SATURATION_DN = 65000  # 16-bit container: above this a RedEdge pixel is clipped
 
@@ -44,7 +49,7 @@ SATURATION_DN = 65000  # 16-bit container: above this a RedEdge pixel is clipped
 @dataclass(frozen=True)
 class PanelRegion:
     """Panel polygon of one band file: ``corners`` (n, 2) (x, y) and where it came from
-    (``"xmp"``, ``"detected"`` or ``"session"``)."""
+    (``"xmp"``, ``"marker"``, ``"detected"`` or ``"session"``)."""
 
     corners: np.ndarray
     source: str
@@ -83,11 +88,23 @@ def panel_region(
     *,
     session_polygon: Sequence[Sequence[float]] | None = None,
     inset: float = DEFAULT_INSET,
+    config: PanelConfig | None = None,
 ) -> PanelRegion:
-    """The panel polygon of one band file: XMP ReflectArea, else detected, else session.yaml's."""
+    """The panel polygon of one band file: XMP ReflectArea, else through the session's panel
+    marker if this band shows it, else detected, else session.yaml's polygon (``config``'s, or
+    ``session_polygon``)."""
     corners = reflect_area_polygon(meta)
     if corners is not None:
         return PanelRegion(corners, "xmp")
+    if config is not None and config.marker is not None:
+        mk = config.marker
+        found_marker = detect_marker(dn, mk.dictionary, mk.id)
+        if found_marker is not None:
+            quad = shrink_polygon(panel_from_marker(found_marker, mk.size_m, mk.panel_size_m, mk.offset_m), inset)
+            _check_inside(quad, meta, f"the panel placed by marker {mk.id}")
+            return PanelRegion(quad, "marker")
+    if session_polygon is None and config is not None:
+        session_polygon = config.polygon
     found = detect_panel(dn)
     if found is not None:
         return PanelRegion(shrink_polygon(found.outline, inset), "detected")
@@ -96,9 +113,10 @@ def panel_region(
         _check_inside(corners, meta, "session.yaml panel.polygon")
         return PanelRegion(corners, "session")
     raise FrameError(
-        "no reflectance panel found (no XMP ReflectArea, no bright uniform quadrilateral in the image)",
+        "no reflectance panel found (no XMP ReflectArea, no panel marker, no bright uniform quadrilateral in the image)",
         path=meta.path,
-        hint="photograph the panel filling more of the frame, or give panel: {polygon: [[x, y], ...]} in session.yaml",
+        hint="photograph the panel filling more of the frame, or say where it is in session.yaml: "
+             "panel: {polygon: [[x, y], ...]} or panel: {marker: {dictionary, id, size_m}, size_m, offset_m}",
     )
 
 
@@ -121,6 +139,7 @@ def panel_factors(
     *,
     session_polygon: Sequence[Sequence[float]] | None = None,
     parts: Sequence[FieldParts | None] | None = None,
+    config: PanelConfig | None = None,
 ) -> list[PanelBand]:
     """Per band of a panel capture: ``k_b = rho_b / mean factory radiance on the panel``
     (``parts``: field components per band in place of the factory's, see :func:`factory_radiance`).
@@ -132,7 +151,7 @@ def panel_factors(
     out = []
     parts = list(parts) if parts is not None else [None] * len(metas)
     for meta, dn, rho_b, part in zip(metas, dns, rho, parts):
-        region = panel_region(meta, dn, session_polygon=session_polygon)
+        region = panel_region(meta, dn, session_polygon=session_polygon, config=config)
         mask = polygon_mask(dn.shape, region.corners)
         raw = panel_stats(dn, mask, saturation=SATURATION_DN)
         if raw.saturated:

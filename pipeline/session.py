@@ -52,6 +52,7 @@ class Session:
     reflector: ReflectorSpec
     marker: MarkerSpec
     panel_polygon: tuple[tuple[float, float], ...] | None = None  # session.yaml panel.polygon
+    panel_marker: "PanelMarker | None" = None  # session.yaml panel.marker (+ size_m, offset_m)
 
     @property
     def response_dir(self) -> Path:
@@ -93,6 +94,75 @@ def parse_intrinsics(data: Any, path: Path) -> Intrinsics:
         cy=_number(data["cy"], path, "intrinsics.cy"),
         dist=tuple(d[:5]) if len(d) <= 5 else tuple(d),
     )
+
+
+@dataclass(frozen=True)
+class PanelMarker:
+    """A reflectance panel found through an ArUco/AprilTag marker printed in its plane:
+    the panel is the ``panel_size_m`` rectangle centred at ``offset_m`` in the marker frame
+    (u right, v up as printed; :func:`mscal_core.panel.panel_from_marker`)."""
+
+    dictionary: str  # an OpenCV name: DICT_4X4_50, DICT_APRILTAG_36h11, ...
+    id: int
+    size_m: float  # black square side
+    panel_size_m: tuple[float, float]
+    offset_m: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class PanelConfig:
+    """session.yaml ``panel``: a pixel polygon and/or a marker that locates the panel."""
+
+    polygon: tuple[tuple[float, float], ...] | None = None
+    marker: PanelMarker | None = None
+
+
+PANEL_EXAMPLE = ("panel: {marker: {dictionary: DICT_APRILTAG_36h11, id: 7, size_m: 0.06}, "
+                 "size_m: [0.15, 0.15], offset_m: [0.12, 0.0]}  or  panel: {polygon: [[x, y], ...]}")
+
+
+def parse_panel(data: Any, path: Path) -> PanelConfig:
+    """session.yaml ``panel``: ``polygon`` (pixel corners, :func:`parse_panel_polygon`) and/or
+    ``marker: {dictionary, id, size_m}`` with the panel's ``size_m`` (``[w, h]`` or one side)
+    and ``offset_m`` (``[du, dv]`` of its centre from the marker's, default ``[0, 0]``); the
+    panel rectangle must not cover the marker."""
+    import cv2
+
+    if not isinstance(data, dict):
+        raise SessionError(f"panel must be a mapping, got {data!r}", path=path, hint=PANEL_EXAMPLE)
+    check_keys(data, set(), {"polygon", "marker", "size_m", "offset_m"}, path, "panel")
+    if "polygon" not in data and "marker" not in data:
+        raise SessionError("panel needs a polygon or a marker", path=path, hint=PANEL_EXAMPLE)
+    polygon = parse_panel_polygon({"polygon": data["polygon"]}, path) if "polygon" in data else None
+    if "marker" not in data:
+        if "size_m" in data or "offset_m" in data:
+            raise SessionError("panel.size_m and panel.offset_m go with panel.marker", path=path, hint=PANEL_EXAMPLE)
+        return PanelConfig(polygon=polygon)
+    mk = data["marker"]
+    if not isinstance(mk, dict):
+        raise SessionError("panel.marker must be a mapping {dictionary, id, size_m}", path=path, hint=PANEL_EXAMPLE)
+    check_keys(mk, {"dictionary", "id", "size_m"}, set(), path, "panel.marker")
+    name = str(mk["dictionary"])
+    if not (name.startswith("DICT_") and isinstance(getattr(cv2.aruco, name, None), int)):
+        raise SessionError(f"panel.marker.dictionary {name!r} is not an OpenCV ArUco/AprilTag dictionary", path=path,
+                           hint="e.g. DICT_4X4_50, DICT_5X5_100, DICT_APRILTAG_36h11")
+    if not isinstance(mk["id"], int) or isinstance(mk["id"], bool) or mk["id"] < 0:
+        raise SessionError(f"panel.marker.id must be a non-negative integer, got {mk['id']!r}", path=path)
+    msize = _number(mk["size_m"], path, "panel.marker.size_m", positive=True)
+    if "size_m" not in data:
+        raise SessionError("panel.marker needs the panel's size_m ([w, h] in metres)", path=path, hint=PANEL_EXAMPLE)
+    size = data["size_m"]
+    size = [size, size] if not isinstance(size, list) else size
+    off = data.get("offset_m", [0.0, 0.0])
+    if len(size) != 2 or not isinstance(off, list) or len(off) != 2:
+        raise SessionError("panel.size_m must be [w, h] (or one side) and panel.offset_m [du, dv]", path=path,
+                           hint=PANEL_EXAMPLE)
+    w, h = (_number(v, path, "panel.size_m", positive=True) for v in size)
+    du, dv = (_number(v, path, "panel.offset_m") for v in off)
+    if abs(du) < (w + msize) / 2 and abs(dv) < (h + msize) / 2:
+        raise SessionError("the panel rectangle covers the marker", path=path,
+                           hint="give panel.offset_m: where the panel's centre is from the marker's, in metres")
+    return PanelConfig(polygon=polygon, marker=PanelMarker(name, int(mk["id"]), msize, (w, h), (du, dv)))
 
 
 def parse_panel_polygon(data: Any, path: Path) -> tuple[tuple[float, float], ...]:
@@ -183,10 +253,29 @@ def load_session(root: str | Path) -> Session:
             path=path,
             hint="check marker.size_m and reflector.size_m (both in metres)",
         )
-    panel = parse_panel_polygon(data["panel"], path) if data.get("panel") is not None else None
+    panel = parse_panel(data["panel"], path) if data.get("panel") is not None else PanelConfig()
     return Session(
-        root=root, camera=camera, intrinsics=intr, reflector=reflector, marker=marker, panel_polygon=panel
+        root=root, camera=camera, intrinsics=intr, reflector=reflector, marker=marker, panel_polygon=panel.polygon,
+        panel_marker=panel.marker,
     )
+
+
+def panel_config_near(folder: str | Path) -> tuple[PanelConfig, Path] | None:
+    """The ``panel`` of the session.yaml in ``folder`` or up to two levels above it
+    (``SESSION/flights/<name>/``), with its path; None if no session.yaml there says one.
+    Only ``panel`` is read: a folder of factory captures needs no other session key."""
+    folder = Path(folder)
+    for d in (folder, folder.parent, folder.parent.parent):
+        path = d / "session.yaml"
+        if path.is_file():
+            try:
+                data = yaml.safe_load(path.read_text())
+            except (OSError, yaml.YAMLError) as exc:
+                raise SessionError(f"session.yaml is unreadable ({type(exc).__name__})", path=path) from None
+            if isinstance(data, dict) and data.get("panel") is not None:
+                return parse_panel(data["panel"], path), path
+            return None
+    return None
 
 
 # --------------------------------------------------------------------------- frame tables

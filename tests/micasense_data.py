@@ -41,3 +41,26 @@ def require_data() -> Path:
 def band_file(capture: str, band: int) -> Path:
     """``IMG_<capture>_<band>.tif`` in the sample folder (band 1..5); skips if absent."""
     return require_data() / f"IMG_{capture}_{band}.tif"
+
+
+# A marker painted beside the sample panel (tests of the marker route, issue 6): 1 mm per pixel
+# at the panel; the panel's bright surface is about 0.215 m (its published corners are the
+# inner 75 %), the marker's centre 0.19 m left of the panel's.
+MARKER = {"dictionary": "DICT_APRILTAG_36h11", "id": 7, "size_m": 0.08}
+MARKER_PANEL = {"marker": MARKER, "size_m": [0.215, 0.215], "offset_m": [0.19, 0.0]}
+
+
+def paint_marker(dn, band: int) -> None:
+    """Paint :data:`MARKER` (with a white quiet zone) into band ``band`` (1..5) of IMG_0000 in
+    place, 190 px left of the panel's centre, upright: :data:`MARKER_PANEL` then describes the
+    panel (its ``offset_m`` is the panel centre from the marker's)."""
+    import cv2
+    import numpy as np
+
+    side, quiet = 80, 14
+    img = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11),
+                                        MARKER["id"], side)
+    img = cv2.copyMakeBorder(img, quiet, quiet, quiet, quiet, cv2.BORDER_CONSTANT, value=255)
+    cx, cy = np.mean(np.asarray(PANEL_CORNERS[band - 1], dtype=float), axis=0)
+    x0, y0 = int(round(cx - 190 - img.shape[1] / 2)), int(round(cy - img.shape[0] / 2))
+    dn[y0:y0 + img.shape[0], x0:x0 + img.shape[1]] = np.where(img > 127, 40000, 3000).astype(dn.dtype)

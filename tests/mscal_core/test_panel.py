@@ -64,3 +64,20 @@ def test_sample_quad_maps_the_same_panel_spot_in_shifted_bands() -> None:
     b = sample_quad(shifted, [(qx + 7, qy + 5) for qx, qy in quad], 7)
     assert np.allclose(a, b)
     assert a[0, 0] == pytest.approx(20 + 1000 * 10) and a[-1, -1] == pytest.approx(80 + 1000 * 70)
+
+
+def test_panel_from_marker_maps_the_plane_rectangle_through_the_marker_homography() -> None:
+    from mscal_core.panel import panel_from_marker
+
+    # a known plane-to-image homography (tilted view), the marker's and the panel's corners through it
+    H = np.array([[900.0, 120.0, 640.0], [-60.0, -820.0, 480.0], [0.15, -0.2, 1.0]])
+
+    def project(uv: np.ndarray) -> np.ndarray:
+        p = np.c_[uv, np.ones(len(uv))] @ H.T
+        return p[:, :2] / p[:, 2:]
+
+    s = 0.08
+    marker = project(np.array([[-s / 2, s / 2], [s / 2, s / 2], [s / 2, -s / 2], [-s / 2, -s / 2]]))
+    got = panel_from_marker(marker, s, (0.15, 0.10), (0.14, -0.02))
+    want = order_corners(project(np.array([[0.065, 0.03], [0.215, 0.03], [0.215, -0.07], [0.065, -0.07]])))
+    np.testing.assert_allclose(got, want, atol=1e-6)

@@ -21,7 +21,7 @@ from pipeline.camera_meta import factory_radiance, read_capture_meta
 from pipeline.catalog import load_target
 from pipeline.cli import main
 from pipeline.session import read_raw
-from tests.micasense_data import BANDS, PANEL_CORNERS, require_data
+from tests.micasense_data import BANDS, MARKER_PANEL, PANEL_CORNERS, paint_marker, require_data
 
 PANEL_TARGET = "micasense-rp02-1603036-sc"
 
@@ -164,6 +164,37 @@ def test_incomplete_and_truncated_captures_are_quarantined(tmp_path, capsys) -> 
     assert not list((out / "photogrammetry").glob("IMG_0003_*")) and not list(out.rglob("*.tmp*"))
     assert xr.open_zarr(out / "reflectance.zarr").sizes["frame"] == 2
     assert _apply(folder, tmp_path / "strict", "--strict") == 3
+
+
+def test_panel_marker_from_session_yaml(panel_run, tmp_path) -> None:
+    """A session.yaml beside the captures says where the panel is from a marker in its plane;
+    the factors agree with the ones from the detected panel (same panel, 0.75-inset regions)."""
+    import yaml
+
+    data = require_data()
+    session = tmp_path / "session"
+    folder = session / "flights" / "f1"
+    folder.mkdir(parents=True)
+    for p in data.glob("IMG_000[01]_*.tif"):
+        shutil.copy(p, folder / p.name)
+    for b in range(1, 6):
+        dn = tifffile.memmap(folder / f"IMG_0000_{b}.tif", mode="r+")
+        paint_marker(dn, b)
+        dn.flush()
+        del dn
+    (session / "session.yaml").write_text(yaml.safe_dump({"panel": MARKER_PANEL}))
+    assert _apply(folder, tmp_path / "out", "--panel-reflectance", PANEL_TARGET) == 0
+    (panel,) = json.loads((tmp_path / "out" / "run.json").read_text())["reference"]["panels"]
+    assert panel["region_source"] == ["marker"] * 5
+    (detected,) = json.loads((panel_run / "run.json").read_text())["reference"]["panels"]
+    for band in BANDS:
+        assert panel["factor_split"][band] == pytest.approx(detected["factor_split"][band], rel=0.01), band
+    # a marker config the images do not show: the detection is used, as without session.yaml
+    (session / "session.yaml").write_text(yaml.safe_dump({"panel": {**MARKER_PANEL,
+                                                                    "marker": {**MARKER_PANEL["marker"], "id": 8}}}))
+    assert _apply(folder, tmp_path / "out8", "--panel-reflectance", PANEL_TARGET) == 0
+    (panel8,) = json.loads((tmp_path / "out8" / "run.json").read_text())["reference"]["panels"]
+    assert panel8["region_source"] == ["detected"] * 5
 
 
 def _field_store(path: Path, capture: str, *, response: str, vignetting: str) -> Path:

@@ -24,8 +24,8 @@ from pipeline.panel import (
     panel_region,
     reflect_area_polygon,
 )
-from pipeline.session import parse_panel_polygon, read_raw
-from tests.micasense_data import PANEL_CORNERS, PANEL_RAW_DN, band_file
+from pipeline.session import parse_panel, parse_panel_polygon, read_raw
+from tests.micasense_data import MARKER_PANEL, PANEL_CORNERS, PANEL_RAW_DN, band_file, paint_marker
 
 BANDS = range(1, 6)
 
@@ -149,6 +149,39 @@ def test_session_panel_polygon_parsing(tmp_path) -> None:
     ]:
         with pytest.raises(InputError, match=msg) as exc:
             parse_panel_polygon(bad, path)
+        assert str(path) in str(exc.value)
+
+
+@pytest.mark.parametrize("band", BANDS)
+def test_panel_placed_by_a_marker_in_its_plane(panel_capture, band: int, tmp_path) -> None:
+    metas, dns = panel_capture
+    config = parse_panel(MARKER_PANEL, tmp_path / "session.yaml")
+    dn = dns[band - 1].copy()
+    assert panel_region(metas[band - 1], dn, config=config).source == "detected"  # no marker in view
+    paint_marker(dn, band)
+    region = panel_region(metas[band - 1], dn, config=config)
+    assert region.source == "marker"
+    iou = polygon_iou(dn.shape, region.corners, PANEL_CORNERS[band - 1])
+    assert iou >= 0.85, iou  # the panel is tilted by ~0.7 degrees, the configured rectangle is not
+
+
+def test_session_panel_marker_parsing(tmp_path) -> None:
+    path = tmp_path / "session.yaml"
+    cfg = parse_panel({**MARKER_PANEL, "polygon": [[0, 0], [5, 0], [5, 5]]}, path)
+    assert cfg.marker is not None and cfg.marker.offset_m == (0.19, 0.0) and cfg.marker.panel_size_m == (0.215, 0.215)
+    assert cfg.polygon == ((0.0, 0.0), (5.0, 0.0), (5.0, 5.0))
+    mk = MARKER_PANEL["marker"]
+    for bad, msg in [
+        ({}, "needs a polygon or a marker"),
+        ({"marker": mk}, "needs the panel's size_m"),
+        ({**MARKER_PANEL, "offset_m": [0.05, 0.0]}, "covers the marker"),
+        ({**MARKER_PANEL, "marker": {**mk, "dictionary": "DICT_9X9_1"}}, "not an OpenCV ArUco/AprilTag dictionary"),
+        ({**MARKER_PANEL, "marker": {**mk, "id": -1}}, "non-negative integer"),
+        ({"polygon": [[0, 0], [5, 0], [5, 5]], "size_m": 0.2}, "go with panel.marker"),
+        ({**MARKER_PANEL, "rotation": 3}, "unknown key"),
+    ]:
+        with pytest.raises(InputError, match=msg) as exc:
+            parse_panel(bad, path)
         assert str(path) in str(exc.value)
 
 
