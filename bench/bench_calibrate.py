@@ -154,7 +154,12 @@ with open(res, "w") as fh:
 
 
 def run_measured(cmd: Sequence[str], timeout: float = CHILD_TIMEOUT_S) -> Run:
-    """Run ``cmd`` under :data:`LAUNCHER` in a fresh process; its figures are the child's alone."""
+    """Run ``cmd`` under :data:`LAUNCHER` in a fresh process; its figures are the child's alone.
+
+    Dirty pages of earlier steps (e.g. the flight just written) are flushed first (``os.sync``):
+    otherwise the first command measured pays for their writeback (seen: the I/O floor slower
+    than the loop that does the same writes and more)."""
+    os.sync()
     with tempfile.TemporaryDirectory(prefix="mscal-bench-run-") as tmp:
         res, out, err = (str(Path(tmp) / n) for n in ("result.json", "stdout", "stderr"))
         subprocess.run([sys.executable, "-I", "-S", "-c", LAUNCHER, res, out, err, str(timeout), *cmd],
