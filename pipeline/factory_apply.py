@@ -1,7 +1,7 @@
 """``mscal apply CAPTURE_DIR --calibration factory -o OUT``: cameras that write one file per
 band per capture and carry factory radiometric metadata (MicaSense RedEdge and the like).
 
-A frame is one capture (all its band files, grouped by XMP CaptureId). Per band file:
+A frame is one capture (all its band files, grouped by file name, one XMP CaptureId per capture; :func:`pipeline.camera_meta.group_captures`). Per band file:
 
 - radiance ``L_b`` with the file's own factory model (black level, ``a1/gain/exposure`` with
   the row-gradient terms, radial vignetting polynomial; :func:`pipeline.camera_meta.factory_radiance`);
