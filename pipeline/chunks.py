@@ -18,7 +18,8 @@ itself, as the Zarr v3 specification lays it out, for the arrays this package cr
 Anything else (sharding, other codecs, other encodings) is refused by :meth:`FrameChunks.open`
 with ``None``, and the caller falls back to zarr. Every chunk is written to a temporary
 sibling name and renamed, as zarr-python's local store does, so a killed writer leaves the
-old chunk or the new one, never a torn one (temporaries end in ``.partial``, which
+old chunk or the new one, never a torn one; the bytes go past the page cache where the file
+system allows (:mod:`pipeline.directio`) (temporaries end in ``.partial``, which
 :mod:`pipeline.ingest` cleans up). Tests read every chunk back through ``zarr`` and
 ``xarray``.
 """
@@ -32,6 +33,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from pipeline.directio import write_file
 
 __all__ = ["FLAT_CHUNK_KEYS", "FrameChunks"]
 
@@ -114,12 +117,10 @@ class FrameChunks:
         tmp = target.with_name(f"{target.name}.{uuid.uuid4().hex[:12]}.partial")
         try:
             try:
-                fh = open(tmp, "wb")
+                write_file(tmp, [payload])
             except FileNotFoundError:  # the chunk's folders ("/" separator) do not exist yet
                 target.parent.mkdir(parents=True, exist_ok=True)
-                fh = open(tmp, "wb")
-            with fh:
-                fh.write(payload)
+                write_file(tmp, [payload])
             os.replace(tmp, target)
         finally:
             if tmp.exists():

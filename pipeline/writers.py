@@ -56,6 +56,7 @@ from xml.sax.saxutils import escape, quoteattr
 import numpy as np
 
 from mscal_core.errors import CatalogError
+from pipeline.directio import write_file
 
 __all__ = [
     "BandTags",
@@ -492,10 +493,7 @@ def _write_tiff(
         assert len(head) == gps_pos
         head += gps.serialize(gps_pos)
     head += b"\0" * (data_pos - len(head))
-    with open(path, "xb") as f:
-        f.write(head)
-        f.write(np.ascontiguousarray(pixels).tobytes())
-        f.flush()
+    write_file(path, [head, np.ascontiguousarray(pixels)])
 
 
 # --------------------------------------------------------------------------- public writers
