@@ -80,6 +80,7 @@ from .camera_meta import Capture, CaptureMeta, FieldParts, factory_radiance, gro
 from .catalog import Camera, Index, load_camera, load_index, reflectance_option
 from .chunks import FLAT_CHUNK_KEYS
 from .discover import quarantine_entry
+from .ingest import raw_codec
 from .panel import SATURATION_DN, PanelBand, panel_factors
 from .session import PanelConfig, decode_raw, panel_config_near
 from .writers import TMP_MARK, BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
@@ -614,7 +615,7 @@ class _Pass:
         _create(refl_ds, tmp_refl, OUTPUT_COMPRESSORS)
         raw_ds = _template(coords, shape, {"dn": (("frame", "band", "y", "x"), np.uint16,
                                                   {"long_name": "stored DN of each band file"})}, attrs)
-        _create(raw_ds, tmp_raw, [zarr.codecs.BloscCodec(cname="zstd", clevel=1, shuffle="bitshuffle", typesize=2)])
+        _create(raw_ds, tmp_raw, [raw_codec()])
         for sub in ("photogrammetry", "ndvi"):
             (out / sub).mkdir(exist_ok=True)
         first = captures[0].metas
