@@ -40,7 +40,7 @@ BENCH_QUICK := build/bench-quick
 bench-quick: setup
 	mkdir -p $(BENCH_QUICK)
 	$(BIN)/python bench/bench_calibrate.py --quick --out $(BENCH_QUICK)/benchmarks.md
-	$(BIN)/python bench/bench_apply.py --frames 60 --large 0 --out $(BENCH_QUICK)/benchmarks.md
+	$(BIN)/python bench/bench_apply.py --frames 60 --large 0 --settle 0 --repeat 1 --out $(BENCH_QUICK)/benchmarks.md
 	$(BIN)/python bench/bench_accuracy.py --quick --out $(BENCH_QUICK)/benchmarks.md --img-dir $(BENCH_QUICK)/img
 	$(BIN)/python bench/bench_scale.py --quick --out $(BENCH_QUICK)/benchmarks.md
 
