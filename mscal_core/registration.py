@@ -182,6 +182,22 @@ def map_points(homography: np.ndarray, points: np.ndarray) -> np.ndarray:
     return q[:, :2] / q[:, 2:3]
 
 
+def local_motion(homography: np.ndarray, point: tuple[float, float]) -> tuple[float, float, float, float]:
+    """What ``H`` does near ``point`` (x, y) of the reference image, for people to read:
+    the shift ``H x - x`` (dx, dy, px), the rotation (degrees, counter-clockwise in image
+    coordinates) and the scale of its Jacobian ``J = d(H x)/dx`` there, with
+    rotation = atan2(J10 - J01, J00 + J11) and scale = sqrt(|det J|)."""
+    h = _normalised(homography)
+    x, y = float(point[0]), float(point[1])
+    w = h[2, 0] * x + h[2, 1] * y + 1.0
+    u = (h[0, 0] * x + h[0, 1] * y + h[0, 2]) / w
+    v = (h[1, 0] * x + h[1, 1] * y + h[1, 2]) / w
+    j = np.array([[h[0, 0] - u * h[2, 0], h[0, 1] - u * h[2, 1]],
+                  [h[1, 0] - v * h[2, 0], h[1, 1] - v * h[2, 1]]]) / w
+    rotation = float(np.degrees(np.arctan2(j[1, 0] - j[0, 1], j[0, 0] + j[1, 1])))
+    return u - x, v - y, rotation, float(np.sqrt(abs(np.linalg.det(j))))
+
+
 def grid_points(shape: tuple[int, int], n: tuple[int, int] = (9, 12), margin: float = 0.05) -> np.ndarray:
     """An ``n = (rows, cols)`` grid of points (x, y) over an image of ``shape`` (H, W), inset
     by ``margin`` of the size on each side; (rows * cols, 2) float64."""

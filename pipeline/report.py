@@ -38,6 +38,7 @@ from matplotlib.ticker import MaxNLocator
 from mscal_core.errors import InputError
 from mscal_core.illumination import colour_change, split_level
 from mscal_core.reflectance import eq15, ndvi
+from mscal_core.registration import local_motion
 
 from .catalog import Camera, load_camera
 from .store import open_calibration
@@ -86,6 +87,13 @@ CAPTURE_COLOUR_CHANGE_MAX = 0.02
 #: (max/min - 1) is a disagreement in colour that goes straight into every index. Above 5 %
 #: the two references give NDVI differing by more than about 0.02 on vegetation: keep the panel.
 PANEL_DLS_COLOUR_SPREAD_MAX = 0.05
+#: Band registration (issue 9): the median distance of the registered captures' transforms
+#: to the session transform of a band. Captures of one flight at one altitude agree to a few
+#: tenths of a pixel (synthetic rigs: < 0.3 px); above 1 px the captures saw the rig from
+#: different distances (parallax: a panel capture at 1 m beside flight captures) or one
+#: registration went wrong, and frames that were not registered themselves take a median
+#: that fits none of them.
+REGISTRATION_SPREAD_MAX_PX = 1.0
 
 # --------------------------------------------------------------------------- sampling bounds
 
@@ -858,9 +866,105 @@ def skipped_table(ds: xr.Dataset) -> Table:
                  note="" if rows else "none")
 
 
+def _band_label(ds: xr.Dataset, b: int) -> str:
+    """``Green (560 nm)``: the band's name and wavelength (multi-lens cameras name their bands)."""
+    if "band_name" in ds.coords:
+        return f"{ds['band_name'].values[b]} ({_band_name(ds, b)})"
+    return _band_name(ds, b)
+
+
+def _registration(ds: xr.Dataset) -> dict[str, Any]:
+    rec = ds.attrs.get("registration")
+    return rec if isinstance(rec, dict) else {}
+
+
+def registration_table(ds: xr.Dataset) -> Table | None:
+    """Per band of a registered store (``mscal register``): what the session transform does
+    at the image centre (shift, rotation, scale; :func:`mscal_core.registration.local_motion`),
+    how many captures passed the thresholds and their weakest figures, and the captures'
+    spread about the session transform. None for stores without a registration."""
+    if "band_transform" not in ds:
+        return None
+    rec = _registration(ds)
+    shape = rec.get("shape") or [0, 0]
+    centre = ((float(shape[1]) - 1) / 2, (float(shape[0]) - 1) / 2)
+    fallback = np.asarray(ds["registration_fallback"].values, dtype=bool) if "registration_fallback" in ds else None
+    n_cap = int(ds.sizes.get("capture", 0))
+
+    def weakest(var: str, b: int, fn: Callable[[np.ndarray], float]) -> float | None:
+        if var not in ds or fallback is None:
+            return None
+        vals = np.asarray(ds[var].values[:, b], dtype=np.float64)[~fallback[:, b]]
+        vals = vals[np.isfinite(vals)]
+        return float(fn(vals)) if vals.size else None
+
+    rows = []
+    for b in range(ds.sizes["band"]):
+        dx, dy, rot, scale = local_motion(ds["band_transform"].values[b], centre)
+        passed = int(n_cap - fallback[:, b].sum()) if fallback is not None else None
+        spread = float(ds["registration_spread_px"].values[b]) if "registration_spread_px" in ds else None
+        rows.append([_band_label(ds, b) + (" (reference)" if b == rec.get("reference_index") else ""),
+                     round(dx, 2), round(dy, 2), round(rot, 3), round(scale, 4),
+                     f"{passed}/{n_cap}" if passed is not None else None,
+                     weakest("registration_ecc", b, np.min), weakest("registration_inliers", b, np.min),
+                     weakest("registration_residual_px", b, np.max), spread])
+    th = rec.get("thresholds") or {}
+    note = (f"session transform of each band onto {rec.get('reference_band')} at the image centre; "
+            f"captures pass with gradient correlation >= {th.get('min_ecc')}, >= {th.get('min_inliers')} "
+            f"feature inliers and <= {th.get('max_residual_px')} px residual; weakest figures over the captures "
+            f"that passed; spread = median distance of their transforms to the session's")
+    if rec.get("registered_of"):
+        note += f"; {n_cap} of {rec['registered_of']} captures registered"
+    return Table("Band registration", ["band", "shift x px", "shift y px", "rotation deg", "scale", "captures passed",
+                                       "min gradient corr.", "min inliers", "max residual px", "spread px"], rows,
+                 note=note)
+
+
+def registration_fallback_table(ds: xr.Dataset) -> Table | None:
+    """Captures with a band that failed the thresholds (they use the session transform for it)."""
+    if "band_transform" not in ds:
+        return None
+    rows = [[f.get("capture"), ", ".join(f.get("bands") or []), f.get("reason")]
+            for f in _registration(ds).get("fallbacks") or []]
+    return Table("Captures that fell back to the session transform", ["capture", "bands", "reason"], rows,
+                 note="" if rows else "none")
+
+
+def registration_warnings(ds: xr.Dataset) -> list[QAWarning]:
+    """Captures that fell back, and bands whose captures disagree by more than
+    :data:`REGISTRATION_SPREAD_MAX_PX`."""
+    if "band_transform" not in ds:
+        return []
+    out: list[QAWarning] = []
+    fallbacks = _registration(ds).get("fallbacks") or []
+    n_cap = int(ds.sizes.get("capture", 0))
+    if fallbacks:
+        named = "; ".join(f"{f.get('capture')}: {', '.join(f.get('bands') or [])}" for f in fallbacks[:5])
+        more = f" and {len(fallbacks) - 5} more" if len(fallbacks) > 5 else ""
+        out.append(QAWarning(
+            "registration_fallback",
+            f"{len(fallbacks)} of {n_cap} registered captures failed the thresholds for some band and use the "
+            f"session transform there ({named}{more}); check those captures' NDVI edges",
+            float(len(fallbacks)), 0.0))
+    if "registration_spread_px" in ds:
+        spread = np.asarray(ds["registration_spread_px"].values, dtype=np.float64)
+        b, worst = _worst([float(v) if np.isfinite(v) else float("nan") for v in spread])
+        if b >= 0 and worst > REGISTRATION_SPREAD_MAX_PX:
+            out.append(QAWarning(
+                "registration_spread",
+                f"the registered captures disagree by {worst:.1f} px at {_band_label(ds, b)}: parallax between "
+                "captures at different distances (e.g. a panel capture beside flight captures) or a failed "
+                "registration; frames that were not registered take the session transform, so register captures "
+                "from the flight's altitude",
+                worst, REGISTRATION_SPREAD_MAX_PX))
+    return out
+
+
 def calibration_section(ds: xr.Dataset, flights: Sequence["FlightResults"] = ()) -> Section:
-    sec = Section(f"Calibration: {ds.attrs.get('camera', '?')}", "calibration", calibration_warnings(ds),
-                  [band_table(ds), skipped_table(ds)])
+    tables = [band_table(ds), skipped_table(ds)]
+    tables += [t for t in (registration_table(ds), registration_fallback_table(ds)) if t is not None]
+    sec = Section(f"Calibration: {ds.attrs.get('camera', '?')}", "calibration",
+                  calibration_warnings(ds) + registration_warnings(ds), tables)
     plots: list[tuple[str, str, Callable[[xr.Dataset], Figure]]] = [
         ("inverse_response", "Inverse response per band", plot_inverse_response),
         ("vignetting", "Vignetting per band", plot_vignetting),

@@ -151,3 +151,32 @@ def test_mosaic_centre_offsets_and_shift() -> None:
     for b in range(25):
         np.testing.assert_allclose(out[b][inner], centre[inner], atol=1e-9)
     assert np.isnan(out[0][0, 0]) and np.isnan(out[24][-1, -1])  # sources outside: NaN
+
+
+def test_local_motion_reads_shift_rotation_and_scale() -> None:
+    from mscal_core.registration import local_motion
+
+    a, s, t = np.radians(0.8), 1.01, (3.5, -2.0)
+    c, n = np.cos(a) * s, np.sin(a) * s
+    sim = np.array([[c, -n, t[0]], [n, c, t[1]], [0.0, 0.0, 1.0]])
+    dx, dy, rot, scale = local_motion(sim, (0.0, 0.0))
+    assert (dx, dy) == pytest.approx(t) and rot == pytest.approx(0.8) and scale == pytest.approx(1.01)
+    # at another point the shift is the mapped point minus the point; rotation/scale unchanged
+    p = np.array([100.0, 50.0])
+    q = sim[:2, :2] @ p + sim[:2, 2]
+    assert local_motion(sim, tuple(p))[:2] == pytest.approx(tuple(q - p))
+    # with perspective: the Jacobian matches finite differences of the mapping
+    h = sim.copy()
+    h[2, :2] = [2e-5, -1e-5]
+    x0 = np.array([320.0, 240.0])
+
+    def f(x: np.ndarray) -> np.ndarray:
+        v = h @ np.r_[x, 1.0]
+        return v[:2] / v[2]
+
+    eps = 1e-3
+    jac = np.stack([(f(x0 + e) - f(x0 - e)) / (2 * eps) for e in np.eye(2) * eps], axis=1)
+    dx, dy, rot, scale = local_motion(h * 3.0, tuple(x0))  # scale of H itself is irrelevant
+    assert (dx, dy) == pytest.approx(tuple(f(x0) - x0))
+    assert rot == pytest.approx(np.degrees(np.arctan2(jac[1, 0] - jac[0, 1], jac[0, 0] + jac[1, 1])), abs=1e-6)
+    assert scale == pytest.approx(np.sqrt(abs(np.linalg.det(jac))), rel=1e-6)

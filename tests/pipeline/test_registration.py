@@ -144,3 +144,52 @@ def test_captures_named_by_folder_or_band_file() -> None:
     assert [c.name for c in caps] == ["IMG_0000", "IMG_0001"]
     with pytest.raises(InputError, match="not found"):
         _collect([one.parent / "nope"], camera)
+
+
+def test_report_shows_the_session_transform_passes_and_fallbacks(session_reg, tmp_path) -> None:
+    from pipeline.report import (REGISTRATION_SPREAD_MAX_PX, registration_fallback_table, registration_table,
+                                 registration_warnings, report_dict)
+
+    camera, truth, r = session_reg
+    ds = with_registration(new_dataset(camera), r, camera)
+    table = registration_table(ds)
+    assert table is not None and len(table.rows) == camera.n_bands
+    cols = table.columns
+    truth_ref = reg.rebase(truth, r.reference)
+    h, w = r.shape
+    for b, row in enumerate(table.rows):
+        dx, dy, rot, scale = reg.local_motion(truth_ref[b], ((w - 1) / 2, (h - 1) / 2))
+        assert abs(row[cols.index("shift x px")] - dx) < 0.3 and abs(row[cols.index("shift y px")] - dy) < 0.3, (b, row)
+        assert abs(row[cols.index("rotation deg")] - rot) < 0.05 and abs(row[cols.index("scale")] - scale) < 2e-3
+        assert row[cols.index("captures passed")] == ("2/3" if camera.band_names[b] == "Blue" else "3/3")
+        assert row[cols.index("spread px")] < 0.3
+    ref_row = table.rows[r.reference]
+    assert ref_row[0].endswith("(reference)") and ref_row[1:5] == [0.0, 0.0, 0.0, 1.0]
+    fb = registration_fallback_table(ds)
+    assert fb is not None and [row[:2] for row in fb.rows] == [["IMG_0012", "Blue"]]
+    assert "gradient correlation" in fb.rows[0][2]
+    assert [x.code for x in registration_warnings(ds)] == ["registration_fallback"]
+
+    # captures that disagree (parallax between altitudes): one more warning, naming the band
+    far = ds.copy(deep=True)
+    far["registration_spread_px"].values[1] = 4.0
+    warns = {x.code: x for x in registration_warnings(far)}
+    assert warns["registration_spread"].value == 4.0 and warns["registration_spread"].threshold == REGISTRATION_SPREAD_MAX_PX
+    assert camera.band_names[1] in warns["registration_spread"].message
+
+    # through the store and the JSON form of the report: the calibration section carries it
+    write_store(ds, tmp_path / "reg.zarr")
+    d = report_dict(tmp_path / "reg.zarr")
+    sec = d["sections"][0]
+    titles = [t["title"] for t in sec["tables"]]
+    assert "Band registration" in titles and "Captures that fell back to the session transform" in titles
+    assert [x["code"] for x in sec["warnings"] if x["code"].startswith("registration")] == ["registration_fallback"]
+
+
+def test_report_without_registration_has_no_registration_tables(session_reg) -> None:
+    from pipeline.report import registration_fallback_table, registration_table, registration_warnings
+
+    camera, _, _ = session_reg
+    ds = new_dataset(camera)
+    assert registration_table(ds) is None and registration_fallback_table(ds) is None
+    assert registration_warnings(ds) == []
