@@ -118,9 +118,7 @@ def write_file(path: str | Path, parts: Sequence, *, exclusive: bool = True) -> 
         # the file system accepted the flag at open but not the write: write it buffered
         os.close(fd)
         _refused.add(parent_dev)
-        with open(path, "wb") as fh:
-            for v in views:
-                fh.write(v)
+        _buffered(path, views, exclusive=False)  # the file exists now (created by the open above)
         return "buffered"
     os.close(fd)
     return "direct"
