@@ -18,9 +18,9 @@ itself, as the Zarr v3 specification lays it out, for the arrays this package cr
 Anything else (sharding, other codecs, other encodings) is refused by :meth:`FrameChunks.open`
 with ``None``, and the caller falls back to zarr. Every chunk is written to a temporary
 sibling name and renamed, as zarr-python's local store does, so a killed writer leaves the
-old chunk or the new one, never a torn one; the bytes go past the page cache where the file
-system allows (:mod:`pipeline.directio`) (temporaries end in ``.partial``, which
-:mod:`pipeline.ingest` cleans up). Tests read every chunk back through ``zarr`` and
+old chunk or the new one, never a torn one (temporaries end in ``.partial``, which
+:mod:`pipeline.ingest` cleans up); the bytes go past the page cache where the file system
+allows (:mod:`pipeline.directio`). Tests read every chunk back through ``zarr`` and
 ``xarray``.
 """
 

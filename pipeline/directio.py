@@ -58,6 +58,13 @@ def _buffer(size: int) -> mmap.mmap:
     return buf
 
 
+def _device(folder: Path) -> int:
+    try:
+        return os.stat(folder).st_dev
+    except OSError:
+        return -1
+
+
 def _buffered(path: Path, parts: Sequence, exclusive: bool) -> None:
     with open(path, "xb" if exclusive else "wb") as fh:
         for part in parts:
@@ -77,11 +84,7 @@ def write_file(path: str | Path, parts: Sequence, *, exclusive: bool = True) -> 
         _buffered(path, views, exclusive)
         return "buffered"
     flags = os.O_WRONLY | os.O_CREAT | getattr(os, "O_CLOEXEC", 0) | (os.O_EXCL if exclusive else os.O_TRUNC)
-    try:
-        parent_dev = os.stat(path.parent).st_dev
-    except OSError:
-        parent_dev = -1
-    if parent_dev in _refused:
+    if _refused and _device(path.parent) in _refused:  # stat only once some file system refused
         _buffered(path, views, exclusive)
         return "buffered"
     try:
@@ -89,13 +92,12 @@ def write_file(path: str | Path, parts: Sequence, *, exclusive: bool = True) -> 
     except OSError as exc:
         if exc.errno != errno.EINVAL:
             raise
-        _refused.add(parent_dev)
+        _refused.add(_device(path.parent))
         _buffered(path, views, exclusive)
         return "buffered"
     size = -(-n // _ALIGN) * _ALIGN
     try:
-        buf = _buffer(size)
-        mv = memoryview(buf)
+        mv = memoryview(_buffer(size))
         try:
             pos = 0
             for v in views:
@@ -113,12 +115,14 @@ def write_file(path: str | Path, parts: Sequence, *, exclusive: bool = True) -> 
         os.ftruncate(fd, n)
     except OSError as exc:
         if exc.errno != errno.EINVAL:
-            os.close(fd)
             raise
-        # the file system accepted the flag at open but not the write: write it buffered
+        refused_write = True  # the file system accepted the flag at open but not the write
+    else:
+        refused_write = False
+    finally:
         os.close(fd)
-        _refused.add(parent_dev)
+    if refused_write:
+        _refused.add(_device(path.parent))
         _buffered(path, views, exclusive=False)  # the file exists now (created by the open above)
         return "buffered"
-    os.close(fd)
     return "direct"

@@ -587,8 +587,6 @@ class _Pass:
               indices: Sequence[Index], roles: dict[str, dict[str, int]], export: Sequence[int], reference: str,
               panel_factor: tuple[float, ...] | None, options: FactoryOptions, folder: Path,
               field: tuple[str, tuple[str, ...]] | None = None) -> "_Pass":
-        import zarr.codecs
-
         coords = _coords(camera, captures)
         attrs = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__,
                  "calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
