@@ -391,13 +391,14 @@ def centre_brightness(uv: np.ndarray, brightness: np.ndarray, *, reject: float =
     return a
 
 
-def shared_reflector_pixels(masks, owner, min_pixels: int = 1) -> list[np.ndarray]:
+def shared_reflector_pixels(masks, owner, min_pixels: int = 1) -> tuple[list[np.ndarray], bool]:
     """Restrict each reflector image's pixels to the sensor pixels every capture saw (issue 8).
 
     ``masks`` (one (H, W) bool per reflector image: its reflector pixels), ``owner`` the
-    capture index of each image. Returns ``mask_k & C`` with ``C`` the intersection over the
-    captures of the union of their images' masks; or the masks unchanged when some capture
-    would keep fewer than ``min_pixels`` pixels (the captures barely overlap on the sensor).
+    capture index of each image. Returns ``(masks, shared)``: ``mask_k & C`` with ``C`` the
+    intersection over the captures of the union of their images' masks and ``shared=True``;
+    or the masks unchanged and ``False`` when some capture would keep fewer than
+    ``min_pixels`` pixels (the captures barely overlap on the sensor).
 
     Why: with the radiance ``L = U(I) / (t V_hat)`` of Eq. 11 and a vignetting estimate
     ``V_hat = V (1 + e(lambda, x))``, Eq. 13 gives ``S(lambda)`` times a ``B^2``-weighted mean of
@@ -415,7 +416,7 @@ def shared_reflector_pixels(masks, owner, min_pixels: int = 1) -> list[np.ndarra
     if len(ms) != own.size:
         raise InputError(f"{len(ms)} reflector masks but {own.size} capture indices")
     if not ms:
-        return ms
+        return ms, True
     common = np.ones(ms[0].shape, dtype=bool)
     for c in np.unique(own):
         seen = np.zeros_like(common)
@@ -426,5 +427,5 @@ def shared_reflector_pixels(masks, owner, min_pixels: int = 1) -> list[np.ndarra
     out = [m & common for m in ms]
     for c in np.unique(own):
         if sum(int(np.count_nonzero(m)) for m, o in zip(out, own) if o == c) < int(min_pixels):
-            return ms
-    return out
+            return ms, False
+    return out, True

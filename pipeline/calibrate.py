@@ -492,7 +492,9 @@ def fit_illumination_frames(
     every capture saw the reflector at (:func:`mscal_core.illumination.shared_reflector_pixels`),
     so an error of the vignetting estimate there biases every capture alike and cancels between
     them (bench/bench_light.py: the capture-to-capture error of S 0.5-0.6 % -> 0.15 % worst
-    band); the fraction of reflector pixels kept is reported as ``shared_pixel_fraction``."""
+    band); the fraction of reflector pixels kept is reported as ``shared_pixel_fraction`` (0
+    when some capture would keep fewer than :data:`MIN_REFLECTOR_PIXELS`: all pixels are used,
+    and the QA report warns)."""
     t0 = time.perf_counter()
     camera = session.camera
     report = StageReport("illumination")
@@ -525,8 +527,8 @@ def fit_illumination_frames(
         # then common to every capture and cancels between them (shared_reflector_pixels)
         owner = [next(c for c, cap in enumerate(captures) if i in cap.frames) for i, _ in views]
         before = sum(int(m.sum()) for m in masks)
-        masks = illumination.shared_reflector_pixels(masks, owner, MIN_REFLECTOR_PIXELS)
-        shared_fraction = sum(int(m.sum()) for m in masks) / max(before, 1)
+        masks, shared = illumination.shared_reflector_pixels(masks, owner, MIN_REFLECTOR_PIXELS)
+        shared_fraction = sum(int(m.sum()) for m in masks) / max(before, 1) if shared else 0.0
     for k, (i, view) in enumerate(views):
         uv, mask = uvs[k], masks[k]
         t = view.record.effective_exposure
@@ -589,7 +591,7 @@ def fit_illumination_frames(
         "saturated_fraction": [round(float(v), 6) for v in n_sat / max(n_pixels, 1)],
     }
     if shared_fraction is not None:
-        # 1.0 also when the captures barely overlap on the sensor and all pixels were kept
+        # 0.0: the captures barely overlap on the sensor, each was fitted on all its pixels
         report.residuals["shared_pixel_fraction"] = round(float(shared_fraction), 4)
     if len(fits) > 1:
         report.residuals["captures"] = [

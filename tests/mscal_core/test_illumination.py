@@ -256,13 +256,15 @@ def test_shared_reflector_pixels_intersects_the_captures():
     b[:2, :] = True  # capture 0, image 1: rows 0-1
     c = np.zeros_like(a)
     c[:, 2:] = True  # capture 1: columns 2-5
-    out = shared_reflector_pixels([a, b, c], [0, 0, 1])
+    out, shared = shared_reflector_pixels([a, b, c], [0, 0, 1])
+    assert shared
     seen0 = a | b
     np.testing.assert_array_equal(out[0], a & c)
     np.testing.assert_array_equal(out[1], b & c)
     np.testing.assert_array_equal(out[2], c & seen0)  # capture 1 keeps what capture 0 saw
     # too little overlap for some capture: every mask unchanged
-    same = shared_reflector_pixels([a, b, c], [0, 0, 1], min_pixels=int((c & seen0).sum()) + 1)
+    same, shared = shared_reflector_pixels([a, b, c], [0, 0, 1], min_pixels=int((c & seen0).sum()) + 1)
+    assert not shared
     assert all(np.array_equal(x, y) for x, y in zip(same, [a, b, c]))
     with pytest.raises(InputError):
         shared_reflector_pixels([a, b], [0])
@@ -316,12 +318,12 @@ def test_shared_pixels_cancel_a_vignetting_error_between_captures():
     # reflector centres 30 px apart: the colour cancels, the level does not
     masks, ratio = _two_captures([(slice(5, 65), slice(5, 85)), (slice(15, 75), slice(35, 115))], err, s_true, rng)
     colour_all = split_level(ratio(masks))[1] - 1.0
-    colour_shared = split_level(ratio(shared_reflector_pixels(masks, [0, 1])))[1] - 1.0
+    colour_shared = split_level(ratio(shared_reflector_pixels(masks, [0, 1])[0]))[1] - 1.0
     assert np.abs(colour_all).max() > 0.0015, colour_all  # measured 0.22 %
     assert np.abs(colour_shared).max() < 0.0003, colour_shared  # 0.011 %
 
     # the same centre pixel, one capture framed wider and tilted: level and colour both cancel
     masks, ratio = _two_captures([(slice(25, 55), slice(30, 90)), (slice(5, 75), slice(10, 110))], err, s_true, rng)
-    everywhere, shared = ratio(masks) - 1.0, ratio(shared_reflector_pixels(masks, [0, 1])) - 1.0
+    everywhere, shared = ratio(masks) - 1.0, ratio(shared_reflector_pixels(masks, [0, 1])[0]) - 1.0
     assert np.abs(everywhere).max() > 0.005, everywhere  # measured 0.82 %
     assert np.abs(shared).max() < 0.001, shared  # 0.04 %

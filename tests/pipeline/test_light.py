@@ -304,6 +304,11 @@ def test_report_shows_the_light_over_time_and_warns_on_colour_change(drifting, t
     ds = xr.open_zarr(store).load()
     warn = [w for w in report.calibration_warnings(ds) if w.code == "light_colour_changed"]
     assert len(warn) == 1 and warn[0].threshold == report.CAPTURE_COLOUR_CHANGE_MAX
+    assert not [w for w in report.calibration_warnings(ds) if w.code == "captures_not_shared"]
+    apart = ds.copy()
+    apart.attrs = dict(ds.attrs, illumination=dict(ds.attrs["illumination"], residuals=dict(
+        ds.attrs["illumination"]["residuals"], shared_pixel_fraction=0.0)))  # captures that did not overlap
+    assert [w.code for w in report.calibration_warnings(apart)].count("captures_not_shared") == 1
     assert 0.025 < warn[0].value < 0.045 and "capture_0 and capture_1" in warn[0].message
     _apply(root / "session" / "flights" / "drift", store, tmp_path / "out")
     flight = report.open_flight(tmp_path / "out")
