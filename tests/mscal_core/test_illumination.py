@@ -247,7 +247,7 @@ def test_centre_brightness_ignores_where_the_camera_looked_and_shadows():
     assert np.isnan(centre_brightness(uv[:2], b[:2]))
 
 
-def test_shared_reflector_pixels_intersects_the_captures():
+def test_shared_reflector_pixels_intersects_the_images_then_the_captures():
     from mscal_core.illumination import shared_reflector_pixels
 
     a = np.zeros((4, 6), dtype=bool)
@@ -256,16 +256,19 @@ def test_shared_reflector_pixels_intersects_the_captures():
     b[:2, :] = True  # capture 0, image 1: rows 0-1
     c = np.zeros_like(a)
     c[:, 2:] = True  # capture 1: columns 2-5
+    every = a & b & c  # rows 0-1, columns 2-3: 4 pixels
     out, shared = shared_reflector_pixels([a, b, c], [0, 0, 1])
-    assert shared
-    seen0 = a | b
-    np.testing.assert_array_equal(out[0], a & c)
-    np.testing.assert_array_equal(out[1], b & c)
-    np.testing.assert_array_equal(out[2], c & seen0)  # capture 1 keeps what capture 0 saw
-    # too little overlap for some capture: every mask unchanged
-    same, shared = shared_reflector_pixels([a, b, c], [0, 0, 1], min_pixels=int((c & seen0).sum()) + 1)
-    assert not shared
-    assert all(np.array_equal(x, y) for x, y in zip(same, [a, b, c]))
+    assert shared and all(np.array_equal(m, every) for m in out)
+    # capture 1 would keep 4 < 5 pixels: the pixels each capture saw in some image instead
+    out, shared = shared_reflector_pixels([a, b, c], [0, 0, 1], min_pixels=5)
+    seen = (a | b) & c
+    assert shared and seen.sum() == 12
+    np.testing.assert_array_equal(out[0], a & seen)
+    np.testing.assert_array_equal(out[1], b & seen)
+    np.testing.assert_array_equal(out[2], seen)
+    # too little overlap either way: every mask unchanged
+    same, shared = shared_reflector_pixels([a, b, c], [0, 0, 1], min_pixels=13)
+    assert not shared and all(np.array_equal(x, y) for x, y in zip(same, [a, b, c]))
     with pytest.raises(InputError):
         shared_reflector_pixels([a, b], [0])
 
