@@ -491,7 +491,7 @@ def fit_illumination_frames(
     Several captures: with ``shared_pixels`` (default) each is fitted on the sensor pixels
     every capture saw the reflector at (:func:`mscal_core.illumination.shared_reflector_pixels`),
     so an error of the vignetting estimate there biases every capture alike and cancels between
-    them (bench/bench_light.py: the capture-to-capture error of S 0.5-0.6 % -> 0.15 % worst
+    them (bench/bench_light.py: the capture-to-capture error of S 0.5-0.6 % -> 0.11-0.13 % worst
     band); the fraction of reflector pixels kept is reported as ``shared_pixel_fraction`` (0
     when some capture would keep fewer than :data:`MIN_REFLECTOR_PIXELS`: all pixels are used,
     and the QA report warns)."""
