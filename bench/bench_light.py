@@ -5,10 +5,11 @@ late in a flight whose light drifts, per interpolation mode, with and without su
 Usage::
 
     .venv/bin/python bench/bench_light.py [--seed 0] [--level-end 0.75] [--colour-tilt 0.03]
-        [--gradient 1.2] [--images 2] [--work DIR]
+        [--gradient 1.2] [--images 2] [--size small] [--work DIR]
 
-1. a small synthetic session (``write_session(size="small")``) and ``mscal calibrate`` on it,
-   for the response and vignetting (reused from ``--work`` if there);
+1. a synthetic session (``write_session(size=--size)``: ``small`` 7 response frames and 8
+   vignetting views, ``full`` 14 and 40) and ``mscal calibrate`` on it, for the response and
+   vignetting (reused from ``--work`` if there);
 2. a drifting-light session with the same camera truth (``pipeline.synth.write_light_drift``):
    the light's level goes from 1 to ``--level-end`` and its colour tilts by ``--colour-tilt``
    between 1200 s and 3000 s (linear in time); reflector captured at 1100 s and 3100 s
@@ -57,13 +58,15 @@ def main() -> None:
     ap.add_argument("--colour-tilt", type=float, default=0.03)
     ap.add_argument("--gradient", type=float, default=1.2)
     ap.add_argument("--images", type=int, default=2)
+    ap.add_argument("--size", choices=("small", "full"), default="small",
+                    help="calibration session of step 1 (its response and vignetting estimates)")
     ap.add_argument("--work", type=Path, default=None, help="work folder (kept; default a temporary one)")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="mscal-light-"))
     work.mkdir(parents=True, exist_ok=True)
-    calib = work / f"small-seed{args.seed}.zarr"
+    calib = work / f"{args.size}-seed{args.seed}.zarr"
     if not calib.exists():
-        session = write_session(work / f"small-seed{args.seed}", seed=args.seed, size="small")
+        session = write_session(work / f"{args.size}-seed{args.seed}", seed=args.seed, size=args.size)
         assert mscal(["calibrate", str(session), "-o", str(calib)]) == 0
     drift = LightDrift(1200.0, 3000.0, level_end=args.level_end, colour_tilt_end=args.colour_tilt)
     flight = dict(n_frames=3, time_offset_s=1200.0, frame_interval_s=900.0)
@@ -74,7 +77,8 @@ def main() -> None:
                                        "clouds": dict(flight, clouds=True, irradiance=True)})
     store = work / "drift.zarr"
     assert mscal(["fit", "illumination", str(root), "-o", str(store), "--calibration", str(calib)]) == 0
-    print(f"\nseed {args.seed}, level 1 -> {args.level_end}, colour tilt {args.colour_tilt:.0%}, reflector gradient "
+    print(f"\nseed {args.seed} ({args.size} calibration session), level 1 -> {args.level_end}, "
+          f"colour tilt {args.colour_tilt:.0%}, reflector gradient "
           f"{args.gradient}:1, {args.images} image(s) per capture\n")
     print("| flight | mode | frame | corrected max | corrected median | uncorrected max | uncorrected median |")
     print("|---|---|---|---|---|---|---|")

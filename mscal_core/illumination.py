@@ -35,6 +35,7 @@ __all__ = [
     "eq16_reflectance",
     "fit_illumination",
     "frame_illumination",
+    "shared_reflector_pixels",
     "split_level",
 ]
 
@@ -388,3 +389,45 @@ def centre_brightness(uv: np.ndarray, brightness: np.ndarray, *, reject: float =
             break
         keep = new
     return a
+
+
+def shared_reflector_pixels(masks, owner, min_pixels: int = 1) -> tuple[list[np.ndarray], bool]:
+    """Restrict each reflector image's pixels to sensor pixels shared by the captures (issue 8).
+
+    ``masks`` (one (H, W) bool per reflector image: its reflector pixels), ``owner`` the
+    capture index of each image. Returns ``(masks, shared)``, the first of these that leaves
+    every capture at least ``min_pixels`` pixels:
+
+    1. ``mask_k & C`` with ``C`` the pixels every image saw the reflector at (``shared=True``);
+    2. ``C`` the pixels every capture saw it at in some image: the intersection over the
+       captures of the union of their images' masks (``shared=True``);
+    3. the masks unchanged (``shared=False``: the captures barely overlap on the sensor).
+
+    Why: with the radiance ``L = U(I) / (t V_hat)`` of Eq. 11 and a vignetting estimate
+    ``V_hat = V (1 + e(lambda, x))``, Eq. 13 gives ``S(lambda)`` times a ``B^2``-weighted mean of
+    ``1 / (1 + e(lambda, x))`` over the pixels the capture used, and Eq. 14's ``B(x)`` absorbs the
+    band-common part of ``e`` (so does the level read from it, :func:`centre_brightness`).
+    Captures that see the reflector at different pixels thus get different biases, which
+    become an error of ``S(lambda, tau)`` between them; on the same pixels they share the bias,
+    and its band-dependent part cancels in ``S_c / S_0`` (to first order, up to the different
+    ``B`` weights; exactly the same pixels in every image, 1., also the same weight per pixel).
+    The band-common part enters the level read at the reflector centre (a gradient of ``e``
+    across the image looks like a light gradient in one image): it cancels as far as the
+    captures have the reflector centre near the same pixel.
+    """
+    ms = [np.asarray(m, dtype=bool) for m in masks]
+    own = np.asarray(owner, dtype=np.int64).ravel()
+    if len(ms) != own.size:
+        raise InputError(f"{len(ms)} reflector masks but {own.size} capture indices")
+    if not ms:
+        return ms, True
+    every_image = np.logical_and.reduce(ms)
+    every_capture = np.ones(ms[0].shape, dtype=bool)
+    for c in np.unique(own):
+        every_capture &= np.logical_or.reduce([m for m, o in zip(ms, own) if o == c])
+    for common in (every_image, every_capture):
+        out = [m & common for m in ms]
+        if all(sum(int(np.count_nonzero(m)) for m, o in zip(out, own) if o == c) >= int(min_pixels)
+               for c in np.unique(own)):
+            return out, True
+    return ms, False

@@ -546,6 +546,12 @@ def calibration_warnings(ds: xr.Dataset) -> list[QAWarning]:
                                  f"the light's colour changed {change[c]:.1%} (at {_band_name(ds, worst)}) between "
                                  f"reflector captures {names[c]} and {names[c + 1]}: capture the reflector more "
                                  "often, or re-fly in steadier light", float(change[c]), CAPTURE_COLOUR_CHANGE_MAX))
+    if ires.get("shared_pixel_fraction") == 0.0:
+        out.append(QAWarning("captures_not_shared",
+                             "the reflector captures saw the reflector at different parts of the image (too few "
+                             "sensor pixels in common to compare them on): the vignetting estimate's error there "
+                             "enters the light between captures (0.5 % per band in bench_light); frame the "
+                             "reflector alike, centred, in every capture", 0.0, 0.0))
     ib = np.asarray(ires.get("image_brightness") or [], dtype=float)
     ib = ib[np.isfinite(ib) & (ib > 0)]
     if ib.size >= 2 and ib.max() / ib.min() > REFLECTOR_BRIGHTNESS_RATIO_MAX:

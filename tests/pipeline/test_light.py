@@ -64,8 +64,8 @@ def _panel(out: Path, labels: np.ndarray, *, corrected: bool = True) -> np.ndarr
                      for f in range(refl.shape[0])])
 
 
-def _within_one_percent(ratio: np.ndarray) -> None:
-    assert abs(ratio.mean()) < 0.01 and np.median(np.abs(ratio)) < 0.01 and np.abs(ratio).max() < 0.015, ratio
+def _within_one_percent(ratio: np.ndarray, worst: float = 0.01) -> None:
+    assert abs(ratio.mean()) < 0.01 and np.median(np.abs(ratio)) < 0.01 and np.abs(ratio).max() < worst, ratio
 
 
 def test_store_holds_every_capture(drifting) -> None:
@@ -81,7 +81,15 @@ def test_store_holds_every_capture(drifting) -> None:
     np.testing.assert_array_equal(ds["spectral_factor"].values, s[0])  # the first capture's
     # the level fell with the drift (levels compared at the reflector centre)
     ratio = float(ds["capture_level"].values[1] / ds["capture_level"].values[0])
-    assert ratio == pytest.approx(DRIFT.level(3110.0) / DRIFT.level(1110.0), rel=0.005)
+    assert ratio == pytest.approx(DRIFT.level(3110.0) / DRIFT.level(1110.0), rel=0.002)
+    # and every band's S followed the light: both captures fitted on the sensor pixels they
+    # share, the vignetting estimate's error cancels between them (0.13 % worst band; 0.54 %
+    # when each capture used all its reflector pixels)
+    wl = ds["wavelength"].values
+    true = DRIFT.level(3110.0) * DRIFT.colour(3110.0, wl) / (DRIFT.level(1110.0) * DRIFT.colour(1110.0, wl))
+    assert np.abs(s[1] / s[0] / true - 1.0).max() < 0.003
+    shared = ds.attrs["illumination"]["residuals"]["shared_pixel_fraction"]
+    assert 0.3 < shared < 1.0, shared
     irr = ds["capture_irradiance"].values
     assert irr[1] / irr[0] == pytest.approx(DRIFT.level(3110.0) / DRIFT.level(1110.0), rel=1e-4)
     assert ds["reflector_capture"].values.tolist() == [0, 0, 1, 1]
@@ -90,11 +98,11 @@ def test_store_holds_every_capture(drifting) -> None:
 
 
 def test_drifting_light_corrected_within_one_percent(drifting, tmp_path) -> None:
-    """Linear in time: the panel early and late agrees within 1 % (its level, the mean over the
-    bands, and the median band; every band within 1.5 %: each capture's S comes from two
-    images, ~0.5 % rms per band; bench/bench_light.py, seeds 0-2: worst band 1.2 %); without
-    the correction (the first capture's S for every frame, what mscal did before) it is off
-    by the drift, > 20 %."""
+    """Linear in time: the panel early and late agrees within 1 % in every band (here 0.56 %
+    worst band; bench/bench_light.py, seeds 0-2: <= 0.96 %, of which ~0.15 % the captures'
+    S and the rest the panel's pixel noise and the vignetting estimate at the panel's
+    pixels); without the correction (the first capture's S for every frame, what mscal did
+    before) it is off by the drift, > 20 %."""
     root, store, truth = drifting
     out = tmp_path / "linear"
     _apply(root / "session" / "flights" / "drift", store, out)
@@ -137,7 +145,10 @@ def test_nearest_capture_is_coarser_and_recorded(drifting, tmp_path) -> None:
 def test_sun_sensor_readings_follow_clouds(drifting, tmp_path) -> None:
     """Random clouds per frame (x 0.75-1.15) on top of the drift: the frames' irradiance
     readings, anchored by the readings at the reflector captures, bring the panel within 1 %
-    (as above). Without the readings the clouds stay in it."""
+    (level and median band; the worst band within 1.5 %: in this flight the panel moves
+    across the image, and the small session's vignetting estimate differs from the truth by
+    up to ~1 % between those pixels: 1.17 % worst band with the true light, 0.66 % with the
+    true vignetting too). Without the readings the clouds stay in it."""
     root, store, truth = drifting
     flight = root / "session" / "flights" / "clouds"
     out = tmp_path / "clouds"
@@ -145,7 +156,7 @@ def test_sun_sensor_readings_follow_clouds(drifting, tmp_path) -> None:
     labels = truth["clouds"].truth["labels"]
     corrected = _panel(out, labels)
     for f in (1, 2):
-        _within_one_percent(corrected[f] / corrected[0] - 1.0)
+        _within_one_percent(corrected[f] / corrected[0] - 1.0, worst=0.015)
     run = json.loads((out / "run.json").read_text())
     assert run["illumination"]["frames_with_irradiance"] == 3
     sun = truth["clouds"].truth["sun"]
@@ -293,6 +304,11 @@ def test_report_shows_the_light_over_time_and_warns_on_colour_change(drifting, t
     ds = xr.open_zarr(store).load()
     warn = [w for w in report.calibration_warnings(ds) if w.code == "light_colour_changed"]
     assert len(warn) == 1 and warn[0].threshold == report.CAPTURE_COLOUR_CHANGE_MAX
+    assert not [w for w in report.calibration_warnings(ds) if w.code == "captures_not_shared"]
+    apart = ds.copy()
+    apart.attrs = dict(ds.attrs, illumination=dict(ds.attrs["illumination"], residuals=dict(
+        ds.attrs["illumination"]["residuals"], shared_pixel_fraction=0.0)))  # captures that did not overlap
+    assert [w.code for w in report.calibration_warnings(apart)].count("captures_not_shared") == 1
     assert 0.025 < warn[0].value < 0.045 and "capture_0 and capture_1" in warn[0].message
     _apply(root / "session" / "flights" / "drift", store, tmp_path / "out")
     flight = report.open_flight(tmp_path / "out")
