@@ -132,3 +132,33 @@ def test_threads_each_write_their_own_bytes(tmp_path) -> None:
     for k, n in enumerate(sizes):
         for rep in range(3):
             assert (tmp_path / f"f{k}_{rep}.bin").read_bytes() == _payload(n, seed=k * 10 + rep)
+
+
+@pytest.mark.parametrize("n", [MIN_BYTES + 1, 4096 * 40 + 4095, 8_874_100])
+def test_partial_last_block_is_written_without_truncating(tmp_path, monkeypatch, n) -> None:
+    """The whole blocks go direct and the partial last block through the page cache, after
+    O_DIRECT is cleared on the descriptor: no padding and no ftruncate, which made ext4 read
+    the last block back from the device for every file."""
+    if not _direct_possible(tmp_path):
+        pytest.skip("this file system does not take O_DIRECT")
+
+    def no_truncate(*args, **kwargs):
+        raise AssertionError("write_file must not truncate")
+
+    writes: list[tuple[int, int, bool]] = []
+    real_pwrite = os.pwrite
+
+    def recording_pwrite(fd, data, offset):
+        direct = bool(directio.fcntl.fcntl(fd, directio.fcntl.F_GETFL) & os.O_DIRECT)
+        writes.append((offset, len(data), direct))
+        return real_pwrite(fd, data, offset)
+
+    monkeypatch.setattr(directio.os, "ftruncate", no_truncate)
+    monkeypatch.setattr(directio.os, "pwrite", recording_pwrite)
+    data = _payload(n, seed=n)
+    assert write_file(tmp_path / "f.bin", [data]) == "direct"
+    assert (tmp_path / "f.bin").read_bytes() == data
+    head = n // 4096 * 4096
+    assert sum(k for off, k, direct in writes if direct) == head
+    assert all(off + k <= head for off, k, direct in writes if direct)
+    assert [(off, k) for off, k, direct in writes if not direct] == [(head, n - head)]
