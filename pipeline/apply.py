@@ -22,6 +22,7 @@ import platform
 import re
 import shutil
 import signal
+import sys
 import time
 import uuid
 import warnings
@@ -34,6 +35,8 @@ from typing import Any, Callable, Sequence
 import cv2
 import dask
 import dask.array as da
+import dask.multiprocessing
+import dask.threaded
 import numpy as np
 import xarray as xr
 
@@ -46,7 +49,8 @@ from .catalog import Camera, Index, load_camera, load_index, reflectance_option
 from .chunks import FLAT_CHUNK_KEYS, FrameChunks
 from .discover import quarantine_entry
 from .registration import check_transforms, frame_transforms
-from .ingest import FRAME_COORDS, Cube, _Writer, frame_coords, frame_row, ingest_flight, open_cube, read_frame, shape_problem
+from .ingest import (FRAME_COORDS, Cube, _Writer, frame_coords, frame_row, ingest_flight, open_cube, prefetch_file, read_frame,
+                     shape_problem)
 from .session import FrameRecord
 from .light import DEFAULT_MODE, IlluminationPlan, illumination_plan, varies_in_time
 from .store import open_calibration
@@ -55,6 +59,7 @@ from .writers import TMP_MARK, BandTags, FrameTags, write_band_tiff, write_ndvi_
 RUN_JSON = "run.json"
 MAX_EXPORT_BANDS = 8
 FRESH_BATCH = 64  # frames per commit of the single pass (a kill loses at most this much ingest)
+READ_AHEAD = 4  # a frame's task starts reading the file this many frames on (prefetch_file)
 
 
 @dataclass(frozen=True)
@@ -355,7 +360,7 @@ def _tables(calibration: str) -> tuple[np.ndarray, np.ndarray]:
 
 @lru_cache(maxsize=2)
 def _tables_of(key: tuple[str, int]) -> tuple[np.ndarray, np.ndarray]:
-    ds = xr.open_zarr(key[0])
+    ds = xr.open_zarr(key[0], chunks=None)  # read straight into numpy: no dask for a small store
     return eq15_tables(ds["inverse_response"].values, ds["vignetting"].values, ds["spectral_factor"].values)
 
 
@@ -430,6 +435,7 @@ class FrameJob:
     tags: FrameTags
     rec: FrameRecord | None = None
     scale: tuple[float, ...] | None = None  # per band: S / S(lambda, time) (issue 8); None: 1
+    ahead: Path | None = None  # the file of a frame a few places on, to read ahead (prefetch_file)
 
 
 @dataclass(frozen=True)
@@ -454,7 +460,7 @@ def frame_dn(plan: FramePlan, job: FrameJob) -> tuple[np.ndarray, str | None]:
 
 @lru_cache(maxsize=2)
 def _store_of(key: tuple[str, int]) -> xr.Dataset:
-    return xr.open_zarr(key[0]).load()
+    return xr.open_zarr(key[0], chunks=None).load()
 
 
 def geometry_step(calibration: Path, align: bool, band_shift: Sequence[tuple[float, float]] | None, name: str,
@@ -477,7 +483,10 @@ def geometry_step(calibration: Path, align: bool, band_shift: Sequence[tuple[flo
 def process_frame(plan: FramePlan, job: FrameJob) -> FrameOutcome:
     """One frame, every output: (for a new frame) its raw.zarr chunk, Eq. 15, normalisation,
     indices, Otsu mask, its chunk of each reflectance.zarr variable (one whole chunk per
-    variable: no two tasks share a chunk), its photogrammetry and NDVI TIFFs."""
+    variable: no two tasks share a chunk), its photogrammetry and NDVI TIFFs. First it asks
+    for a later frame's file to be read ahead (``job.ahead``)."""
+    if job.ahead is not None:
+        prefetch_file(job.ahead)
     try:
         dn, sha = frame_dn(plan, job)
     except FrameError as exc:
@@ -537,7 +546,11 @@ def _worker_init() -> None:
 
 
 def _distributed_client():  # noqa: ANN202
-    """The active ``distributed`` client (the caller's ``with Client(...)``), if any."""
+    """The active ``distributed`` client (the caller's ``with Client(...)``), if any. A caller
+    with a client has imported ``distributed``; without one it is not imported here (0.2 s of
+    every run's start)."""
+    if "distributed" not in sys.modules:
+        return None
     try:
         from distributed import default_client
     except ImportError:
@@ -578,8 +591,10 @@ class Runner:
         if self.client is not None:
             return list(dask.compute(*tasks))
         if self.pool is not None:
-            return list(dask.compute(*tasks, scheduler="processes", pool=self.pool))
-        return list(dask.compute(*tasks, scheduler="threads", num_workers=self.workers))
+            return list(dask.compute(*tasks, scheduler=dask.multiprocessing.get, pool=self.pool))
+        # the schedulers' functions, not their names: a name makes dask import distributed
+        # (0.2 s) to look for a client, which _distributed_client has done already
+        return list(dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=self.workers))
 
     def close(self) -> None:
         if self.pool is not None:
@@ -708,7 +723,7 @@ def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_p
     for b0 in range(0, len(recs), batch):
         first = writer.reserve(min(batch, len(recs) - b0))
         jobs = [FrameJob(first + k, recs[f].name, float(t[f]), _frame_tags(coords, f, cube.camera), recs[f],
-                         ps.scale(f))
+                         ps.scale(f), recs[f + READ_AHEAD].path if f + READ_AHEAD < len(recs) else None)
                 for k, f in enumerate(range(b0, min(b0 + batch, len(recs))))]
         results = runner.run(ps.plan, jobs)
         for job, res in zip(jobs, results):

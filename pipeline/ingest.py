@@ -131,6 +131,28 @@ def _band_shape(camera: Camera) -> tuple[int, int, int] | None:
     return None
 
 
+def prefetch_file(path: Path) -> None:
+    """Ask the kernel to start reading ``path`` into the page cache now, without waiting
+    (``posix_fadvise(WILLNEED)``), so that a later read finds it there. The per-frame tasks
+    call it for a frame a few places ahead of their own: a flight that is not in memory is
+    otherwise read one file at a time, each read waiting behind the output writes on the
+    device (measured on a 600-frame flight: 1.2 GB read at 4 ms per request). Never fails:
+    a file that cannot be opened is left for its own task to report."""
+    advise = getattr(os, "posix_fadvise", None)
+    if advise is None:  # pragma: no cover - not POSIX
+        return
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_CLOEXEC", 0))
+    except OSError:
+        return
+    try:
+        advise(fd, 0, 0, os.POSIX_FADV_WILLNEED)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
 def read_frame(rec: FrameRecord, camera: Camera, known: "Callable[[str], bool] | None" = None
                ) -> tuple[str, np.ndarray | None]:
     """The sha256 of one frame file's bytes and, unless ``known(sha)`` says the cube has it

@@ -617,3 +617,22 @@ def test_throughput_and_flat_memory_full_size(tmp_path) -> None:
         print(f"{n} frames: {n / dt:.1f} frames/s, traced peak {peaks[n] / 2**20:.0f} MiB")
     frame_bytes = 1088 * 2048 * 2
     assert peaks[48] < peaks[8] + 4 * frame_bytes  # flat: not proportional to the flight
+
+
+def test_prefetch_file_asks_for_the_whole_file_and_never_fails(tmp_path, monkeypatch) -> None:
+    calls: list[tuple[int, int, int]] = []
+    opened: list[str] = []
+    real_open = os.open
+
+    def recording_open(path, flags, *args):
+        opened.append(str(path))
+        return real_open(path, flags, *args)
+
+    monkeypatch.setattr(ingest_mod.os, "posix_fadvise", lambda fd, off, n, advice: calls.append((off, n, advice)))
+    monkeypatch.setattr(ingest_mod.os, "open", recording_open)
+    f = tmp_path / "IMG_0001.tif"
+    f.write_bytes(b"x" * 10_000)
+    ingest_mod.prefetch_file(f)
+    assert opened == [str(f)] and calls == [(0, 0, os.POSIX_FADV_WILLNEED)]
+    ingest_mod.prefetch_file(tmp_path / "missing.tif")  # its own task reports it
+    assert calls == [(0, 0, os.POSIX_FADV_WILLNEED)]
