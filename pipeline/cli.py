@@ -6,6 +6,7 @@ traceback (an :class:`~mscal_core.errors.MscalError` is always caught here).
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
 import os
@@ -453,7 +454,26 @@ def main(argv: list[str] | None = None) -> int:
         return exc.exit_code
     except SystemExit as exc:
         return int(exc.code or 0)
+    except OSError as exc:
+        hint = _OS_HINTS.get(exc.errno or 0)
+        if hint is None:
+            raise
+        where = f"{exc.filename}: " if exc.filename else ""
+        click.echo(f"mscal: error: {where}{exc.strerror or exc} ({hint})", err=True)
+        return 2
     return 0
+
+
+#: Errors of the machine rather than of mscal's input, reported in one line like an
+#: MscalError. Outputs are written under temporary names and renamed, so what was complete
+#: stays, and the same command run again resumes.
+_OS_HINTS = {
+    errno.ENOSPC: "the disk is full: free space, or give another -o, and run the same command again; "
+                  "finished outputs are kept and the run resumes",
+    errno.EDQUOT: "the disk quota is used up: free space and run the same command again; the run resumes",
+    errno.EACCES: "no permission: check that you may write to the output folder and read the inputs",
+    errno.EROFS: "the file system is read-only: give an output folder on a writable disk",
+}
 
 
 if __name__ == "__main__":

@@ -335,3 +335,52 @@ def test_lazy_reflectance_of_the_cube_equals_the_pass(applied) -> None:
     assert lazy.chunks is not None  # dask-backed, nothing computed yet
     stored = xr.open_zarr(out / "reflectance.zarr")["reflectance"].values
     np.testing.assert_array_equal(lazy.values, stored)
+
+
+def test_each_frame_reads_ahead_a_later_frame(small, tmp_path, monkeypatch) -> None:
+    """The single pass asks the kernel to read each file READ_AHEAD frames before its task
+    needs it (prefetch_file), and the outputs are those of a pass without read-ahead."""
+    import pipeline.apply as apply_mod
+
+    session, calib = small
+    flight = _flight_copy(session, tmp_path / "flight")
+    files = sorted(flight / r["file"] for r in _rows(flight))  # frames go in file-name order
+    asked: list[Path] = []
+    monkeypatch.setattr(apply_mod, "prefetch_file", lambda p: asked.append(Path(p)))
+    monkeypatch.setattr(apply_mod, "READ_AHEAD", 2)  # the small flight has 3 frames
+    assert _apply(flight, calib, tmp_path / "ahead") == 0
+    assert len(files) == 3 and sorted(asked) == files[2:]
+    monkeypatch.setattr(apply_mod, "READ_AHEAD", len(files))  # nothing to read ahead
+    asked.clear()
+    assert _apply(flight, calib, tmp_path / "plain") == 0
+    assert asked == []
+    _assert_same_outputs(_outputs(tmp_path / "ahead"), _outputs(tmp_path / "plain"))
+
+
+def test_disk_full_is_one_line_and_the_same_command_then_resumes(small, tmp_path, monkeypatch, capsys) -> None:
+    """A full disk mid-run: one line naming the file with what to do, no traceback; once
+    there is space the same command finishes with the outputs of an uninterrupted run."""
+    import errno
+
+    import pipeline.apply as apply_mod
+
+    session, calib = small
+    flight = session / "flights" / "field"
+    assert _apply(flight, calib, tmp_path / "clean") == 0
+    real = apply_mod.write_band_tiff
+    full = tmp_path / "out" / "photogrammetry" / "IMG_0001_b700.tif"
+
+    def disk_full(path, *args, **kwargs):
+        if Path(path).name == full.name:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(apply_mod, "write_band_tiff", disk_full)
+    capsys.readouterr()
+    assert _apply(flight, calib, tmp_path / "out") == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err
+    assert err.startswith(f"mscal: error: {full}: No space left on device") and "run the same command again" in err
+    monkeypatch.setattr(apply_mod, "write_band_tiff", real)
+    assert _apply(flight, calib, tmp_path / "out") == 0
+    _assert_same_outputs(_outputs(tmp_path / "clean"), _outputs(tmp_path / "out"))
