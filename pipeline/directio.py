@@ -81,6 +81,16 @@ def _buffered(path: Path, parts: Sequence, exclusive: bool) -> None:
             fh.write(part)
 
 
+def _pwrite_all(fd: int, mv: memoryview, start: int, end: int, path: Path) -> None:
+    """Write ``mv[start:end]`` at file offset ``start`` (system calls may take part of it)."""
+    done = start
+    while done < end:
+        k = os.pwrite(fd, mv[done:end], done)
+        if k <= 0:
+            raise OSError(errno.ENOSPC, f"{path}: the device took no more bytes")
+        done += k
+
+
 def write_file(path: str | Path, parts: Sequence, *, exclusive: bool = True) -> str:
     """Create ``path`` holding the concatenation of ``parts`` (bytes-like objects).
 
@@ -116,22 +126,13 @@ def write_file(path: str | Path, parts: Sequence, *, exclusive: bool = True) -> 
         del dst
         mv = memoryview(buf)
         try:
-            done = 0
-            while done < head:
-                k = os.pwrite(fd, mv[done:head], done)
-                if k <= 0:
-                    raise OSError(errno.ENOSPC, f"{path}: the device took no more bytes")
-                done += k
+            _pwrite_all(fd, mv, 0, head, path)
             if n > head:
                 # a buffered write of the last partial block: padding it and truncating the file
                 # afterwards made ext4 read that block back from the device, synchronously, to
                 # zero its end (one read per file, queued behind the writes)
                 fcntl.fcntl(fd, fcntl.F_SETFL, fcntl.fcntl(fd, fcntl.F_GETFL) & ~os.O_DIRECT)
-                while done < n:
-                    k = os.pwrite(fd, mv[done:n], done)
-                    if k <= 0:
-                        raise OSError(errno.ENOSPC, f"{path}: the device took no more bytes")
-                    done += k
+                _pwrite_all(fd, mv, head, n, path)
         finally:
             mv.release()
     except OSError as exc:
