@@ -360,7 +360,7 @@ def _tables(calibration: str) -> tuple[np.ndarray, np.ndarray]:
 
 @lru_cache(maxsize=2)
 def _tables_of(key: tuple[str, int]) -> tuple[np.ndarray, np.ndarray]:
-    ds = xr.open_zarr(key[0], chunks=None)  # read straight into numpy: no dask for a small store
+    ds = _store_of(key)  # the process's one in-memory copy of the store (also read for band transforms)
     return eq15_tables(ds["inverse_response"].values, ds["vignetting"].values, ds["spectral_factor"].values)
 
 
@@ -460,6 +460,8 @@ def frame_dn(plan: FramePlan, job: FrameJob) -> tuple[np.ndarray, str | None]:
 
 @lru_cache(maxsize=2)
 def _store_of(key: tuple[str, int]) -> xr.Dataset:
+    """A calibration store in memory, once per process and store (read straight into numpy:
+    no dask for a small store)."""
     return xr.open_zarr(key[0], chunks=None).load()
 
 
