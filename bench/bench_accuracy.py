@@ -9,7 +9,7 @@ Usage::
 One synthetic session per point, built from the seeded forward model of
 ``mscal_core.synth`` (the camera truth U, V, S is the same at every point of a seed; only
 the difficulty changes). The base point is the ``small`` session preset of
-``pipeline.synth.write_session`` (10-bit, 7-frame sweep with a 729x exposure span, 8
+``pipeline.sim.synth.write_session`` (10-bit, 7-frame sweep with a 729x exposure span, 8
 viewpoints of which 1 without the marker, 2 reflector images, 3 flight frames) with the
 default sensor noise and light. Each axis moves one setting away from the base, the others
 held at the base:
@@ -21,7 +21,7 @@ held at the base:
 - ``light``: non-uniformity ``a`` of the light on the reflector (gradient ``2**a``:1, shadow
   transmission ``(1 - depth)**a``; ``mscal_core.synth.scene._random_light``).
 
-At each point, against the session's truth (``pipeline.evaluate.evaluate_calibration``):
+At each point, against the session's truth (``pipeline.sim.evaluate.evaluate_calibration``):
 
 - (a) mscal's default calibration (``calibrate_session``, response ``forward``);
 - (b) the paper's plain alternation of Eq. 6/7 (response ``alternating``; V and S then fitted
@@ -162,11 +162,11 @@ class Synth:
 
 
 def write_synthetic(session, root: Path) -> Path:  # noqa: ANN001
-    """A session folder as ``pipeline.synth.write_session`` writes it, from a built session."""
+    """A session folder as ``pipeline.sim.synth.write_session`` writes it, from a built session."""
     import numpy as np
     import yaml
 
-    from pipeline.synth import session_yaml, write_frameset
+    from pipeline.sim.synth import session_yaml, write_frameset
 
     if root.exists():
         shutil.rmtree(root)
@@ -186,11 +186,11 @@ def write_synthetic(session, root: Path) -> Path:  # noqa: ANN001
 
 
 def calibrate(session_dir: Path, out: Path, method: str, response_cache: dict) -> None:
-    """``pipeline.calibrate.calibrate_session`` with the response stage cached by sweep."""
-    from pipeline.calibrate import (add_illumination, add_vignetting, fit_illumination_frames,
+    """``pipeline.calibrate.fit.calibrate_session`` with the response stage cached by sweep."""
+    from pipeline.calibrate.fit import (add_illumination, add_vignetting, fit_illumination_frames,
                                     fit_response_frames, fit_vignetting_frames, provenance, response_dataset)
-    from pipeline.session import load_session
-    from pipeline.store import write_store
+    from pipeline.ingest.session import load_session
+    from pipeline.storage.store import write_store
 
     session = load_session(session_dir)
     cam = session.camera
@@ -271,7 +271,7 @@ def run_point(synth: Synth, p: dict[str, float], workdir: Path, response_cache: 
     """All errors of one point (see the module docstring)."""
     import numpy as np
 
-    from pipeline.evaluate import evaluate_calibration
+    from pipeline.sim.evaluate import evaluate_calibration
 
     t0 = time.perf_counter()
     sess = synth.session(p)
@@ -433,7 +433,7 @@ def render(results: dict[tuple, dict[str, Any]], quick: bool, command: str, info
         f"Sessions: seed {seed}, synthesized with `mscal_core.synth` (same camera truth at every point). Base point: "
         "10-bit sensor, 7-frame sweep spanning 729x in exposure, 8 vignetting viewpoints (1 without the marker), "
         "2 reflector images, 3 flight frames, default noise and light. Each axis changes one setting; the rest stay "
-        "at the base. All figures of a row come from the same session. Errors (`pipeline.evaluate`, "
+        "at the base. All figures of a row come from the same session. Errors (`pipeline.sim.evaluate`, "
         "`mscal_core.metrics`): response = max |U - U_true| over 5-95 % of the DN range / U_true(95 %) after a "
         "least-squares scale, worst band; V = RMS of V/V_true - 1 over all pixels, worst band (\"observed px\": "
         "pixels some view saw); S = max relative error after a scale; panel = abs error of the gray panels' "

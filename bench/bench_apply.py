@@ -76,7 +76,7 @@ def child_floor(flight: str, out: str) -> None:
     """I/O floor: read + decode each frame, write a float32 array of the reflectance's size."""
     import tifffile
 
-    from pipeline.catalog import load_camera
+    from pipeline.ingest.catalog import load_camera
 
     cam = load_camera("ximea-mq022hg-sm5x5-nir")
     shape = (cam.n_bands, *cam.layout.grid)
@@ -124,7 +124,7 @@ def child_loop_same(flight: str, calib: str, out: str) -> None:
     import cv2
     import tifffile
 
-    from pipeline.catalog import load_camera
+    from pipeline.ingest.catalog import load_camera
 
     cam = load_camera("ximea-mq022hg-sm5x5-nir")
     red, nir, edge = (cam.band_for_wavelength(cam.index_bands[k]) for k in ("red", "nir", "rededge"))
@@ -301,7 +301,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if a.child:
         kind, *rest = a.child
         if kind == "synth":
-            from pipeline.synth import write_session
+            from pipeline.sim.synth import write_session
 
             write_session(rest[0], seed=5, size="small")
         elif kind == "floor":

@@ -7,7 +7,7 @@ Usage::
 
 Per seed:
 
-1. synthesize a session (``pipeline.synth.write_session``) into a temporary folder, in its own
+1. synthesize a session (``pipeline.sim.synth.write_session``) into a temporary folder, in its own
    process (timed separately; not part of the calibrate figure);
 2. baseline measured in the same run, the I/O floor: a fresh process that reads and demosaics
    every frame of ``response/``, ``vignetting/`` and ``reflector/`` (``read_frame_table`` +
@@ -15,7 +15,7 @@ Per seed:
 3. ``mscal calibrate SESSION -o CALIB.zarr`` (default response estimator) in a fresh process;
 4. ``mscal calibrate ... --response-method alternating`` (the paper's plain Eq. 6/7) as an
    accuracy baseline;
-5. ``pipeline.evaluate.evaluate_calibration`` on both stores (in this process, not timed).
+5. ``pipeline.sim.evaluate.evaluate_calibration`` on both stores (in this process, not timed).
 
 Wall time and peak RSS are those of each child alone: every measured command is started by a
 tiny fresh launcher process (:data:`LAUNCHER`) that reaps it with ``os.wait4`` and reports that
@@ -188,21 +188,21 @@ def mscal_command() -> list[str]:
     found = shutil.which("mscal")
     if found:
         return [found]
-    return [sys.executable, "-m", "pipeline.cli"]
+    return [sys.executable, "-m", "pipeline.run.cli"]
 
 
 # --------------------------------------------------------------------------- child modes
 
 
 def _child_synth(path: str, seed: int, size: str) -> None:
-    from pipeline.synth import write_session
+    from pipeline.sim.synth import write_session
 
     write_session(path, seed=seed, size=size)
 
 
 def _child_io_floor(session_dir: str) -> None:
     """Read + demosaic every calibration frame, one at a time, keep nothing."""
-    from pipeline.session import load_session, read_bands, read_frame_table
+    from pipeline.ingest.session import load_session, read_bands, read_frame_table
 
     session = load_session(session_dir)
     n = 0
@@ -259,7 +259,7 @@ def _per_band_detail(session: Path, calib: Path) -> dict[str, str]:
 
 
 def run_seed(seed: int, size: str, workdir: Path, keep: bool, log=print) -> SeedResult:
-    from pipeline.evaluate import evaluate_calibration
+    from pipeline.sim.evaluate import evaluate_calibration
 
     sdir = workdir / f"seed{seed}"
     session = sdir / "session"
@@ -547,7 +547,7 @@ def render(results: Sequence[SeedResult], command: str, info: dict[str, str], lo
         "other work may have run during the measurements (the 1-min load before each calibrate run is in "
         "the first table).",
         "",
-        f"Session: `pipeline.synth.write_session(size=\"{size}\", seed=...)`"
+        f"Session: `pipeline.sim.synth.write_session(size=\"{size}\", seed=...)`"
         + (" (10-bit, 14-frame sweep, 40 viewpoints of which 2 without the marker, 3 reflector images, "
            "8 flight frames)." if size == "full" else " (7-frame sweep, 8 viewpoints, 2 reflector images, 3 flight "
                                                        "frames). The targets are defined for the full session; "
@@ -558,7 +558,7 @@ def render(results: Sequence[SeedResult], command: str, info: dict[str, str], lo
         "The I/O floor is a process that reads and "
         "demosaics every frame of `response/`, `vignetting/` and `reflector/` (one frame at a time, "
         f"{results[0].floor_frames} frames) and does nothing else. The frames are in the page cache "
-        "for both (the session was just written). Accuracy is `pipeline.evaluate.evaluate_calibration` "
+        "for both (the session was just written). Accuracy is `pipeline.sim.evaluate.evaluate_calibration` "
         "against the session's `truth.npz`; \"worst\" is the maximum over seeds.",
         "",
         "### Speed and memory",

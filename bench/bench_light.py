@@ -11,7 +11,7 @@ Usage::
    and 40 vignetting views, as a user's calibration session; ``small`` 7 and 8, quicker, whose
    vignetting estimate is off by up to 5.5 % rms and shows at the panel's pixels) and
    ``mscal calibrate`` on it, for the response and vignetting (reused from ``--work`` if there);
-2. a drifting-light session with the same camera truth (``pipeline.synth.write_light_drift``):
+2. a drifting-light session with the same camera truth (``pipeline.sim.synth.write_light_drift``):
    the light's level goes from 1 to ``--level-end`` and its colour tilts by ``--colour-tilt``
    between 1200 s and 3000 s (linear in time); reflector captured at 1100 s and 3100 s
    (``--images`` images each, light with a ``--gradient``:1 gradient, no shadow); two
@@ -50,8 +50,8 @@ def panel_medians(out: Path, labels: np.ndarray, corrected: bool, label: int = 4
 
 def main() -> None:
     from mscal_core.synth.scene import LightDrift
-    from pipeline.cli import main as mscal
-    from pipeline.synth import write_light_drift, write_session
+    from pipeline.run.cli import main as mscal
+    from pipeline.sim.synth import write_light_drift, write_session
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seed", type=int, default=0)

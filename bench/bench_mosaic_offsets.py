@@ -92,10 +92,10 @@ def measure(seeds: int, frames: int) -> None:
 def vignetting_fit(seed: int) -> None:
     import tempfile
 
-    import pipeline.calibrate as cal
+    import pipeline.calibrate.fit as cal
     from mscal_core import metrics
-    from pipeline.session import load_session
-    from pipeline.synth import write_session
+    from pipeline.ingest.session import load_session
+    from pipeline.sim.synth import write_session
 
     with tempfile.TemporaryDirectory() as tmp:
         session_dir = write_session(Path(tmp) / "s", seed=seed, size="small")

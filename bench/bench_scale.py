@@ -15,7 +15,7 @@ CPU and peak RSS of that process alone). Measured in the same run:
 2. **Frames, small** (``--small-frames``, up to 5000): the same on 256 x 320 8-bit RGB frames
    (``generic-rgb8`` camera, a calibration store with U = identity, V = 1, S = 1, no index
    maps because that camera has no NIR band), through the Python API
-   (``pipeline.apply.apply_flight``). Disk: a full-resolution frame is 4.4 MB in and 13.7 MB
+   (``pipeline.apply.flight.apply_flight``). Disk: a full-resolution frame is 4.4 MB in and 13.7 MB
    out, so 5000 of them need ~90 GB; the small frames need ~1.9 MB per frame. Each run's
    outputs (and the floor's) are deleted before the next; the flight of the largest count is
    written once and the smaller counts use its first N frames (a ``frames.csv`` of N rows in
@@ -133,8 +133,8 @@ def small_calibration(path: Path, shape: tuple[int, int] = SMALL_SHAPE) -> Path:
     """A ``generic-rgb8`` calibration store with U = DN, V = 1, S = 1 (throughput only)."""
     import numpy as np
 
-    from pipeline.catalog import load_camera
-    from pipeline.store import new_dataset, write_store
+    from pipeline.ingest.catalog import load_camera
+    from pipeline.storage.store import new_dataset, write_store
 
     cam = load_camera("generic-rgb8")
     nb, levels = cam.n_bands, 2**cam.bit_depth
@@ -183,7 +183,7 @@ def child_floor(flight: str, out: str, kind: str) -> None:
 
 def child_apply(flight: str, calib: str, out: str, kind: str) -> None:
     """``apply_flight`` through the Python API (the small frames need ``indices=()``)."""
-    from pipeline.apply import ApplyOptions, apply_flight
+    from pipeline.apply.flight import ApplyOptions, apply_flight
 
     opts = ApplyOptions(indices=()) if kind == "small" else ApplyOptions()
     res = apply_flight(flight, calib, out, opts)
@@ -200,7 +200,7 @@ def child_dask(flight: str, calib: str, out: str, workers: str) -> None:
     """``apply_flight`` on a LocalCluster of ``workers`` single-threaded worker processes."""
     from distributed import Client, LocalCluster
 
-    from pipeline.apply import apply_flight
+    from pipeline.apply.flight import apply_flight
 
     t0 = time.perf_counter()
     with LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True, dashboard_address=None,
@@ -421,7 +421,7 @@ def render(res: dict, cfg: dict, quick: bool, command: str, info: dict[str, str]
         "",
         f"{SMALL_SHAPE[0]} x {SMALL_SHAPE[1]} 8-bit RGB frames (`generic-rgb8` camera), a throughput-only "
         "calibration store (U = DN, V = 1, S = 1), no index maps (the camera has no NIR band); "
-        "`pipeline.apply.apply_flight` through the Python API (what `mscal apply` calls). Per-frame work is "
+        "`pipeline.apply.flight.apply_flight` through the Python API (what `mscal apply` calls). Per-frame work is "
         "small, so this table shows the per-frame overhead and whether memory stays flat over thousands of "
         "frames. Each run's outputs are deleted before the next.",
         "",
@@ -445,7 +445,7 @@ def render(res: dict, cfg: dict, quick: bool, command: str, info: dict[str, str]
         "",
         "### Calibration time vs vignetting views",
         "",
-        f"One `pipeline.synth.write_session(size=\"{cfg['session']}\", seed=0)` session; `vignetting/` keeps its "
+        f"One `pipeline.sim.synth.write_session(size=\"{cfg['session']}\", seed=0)` session; `vignetting/` keeps its "
         "first N views (hard links; the synthetic sequence puts views without the marker among them). I/O floor: "
         "read and demosaic every frame of `response/`, `vignetting/` and `reflector/`, nothing else.",
         "",

@@ -3,7 +3,7 @@
     .venv/bin/python bench/bench_stats.py [--mosaics 200] [--size 4000] [--fields 100] [--quick]
 
 Data: ``--mosaics`` synthetic reflectance orthomosaics of ``--size`` x ``--size`` px (Red, NIR as
-uint16 reflectance x 32768, nodata 65535, 512 x 512 tiles, DEFLATE; ``pipeline.synth.
+uint16 reflectance x 32768, nodata 65535, 512 x 512 tiles, DEFLATE; ``pipeline.sim.synth.
 write_orthomosaic``), 0.1 m pixels in UTM 33N, each shifted by a random few metres over the same
 ground, with a nodata stripe; ``--fields`` square fields on a grid over that ground, in a WGS 84
 GeoJSON. ``--distinct`` files are written (default: all); the rest are symbolic links to them
@@ -53,7 +53,7 @@ PX = 0.1
 def _child_synth(workdir: str, n: int, size: int, n_fields: int, distinct: int, seed: int) -> None:
     from rasterio.warp import transform
 
-    from pipeline.synth import write_orthomosaic
+    from pipeline.sim.synth import write_orthomosaic
 
     work = Path(workdir)
     rng = np.random.default_rng(seed)
@@ -207,7 +207,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         loads0 = bc._uptime()
         paths = (work / "mosaics.txt").read_text().split()
         runs = {
-            "stats": bc._check(bc.run_measured([sys.executable, "-m", "pipeline.cli", "stats", "--fields", str(work / "fields.geojson"),
+            "stats": bc._check(bc.run_measured([sys.executable, "-m", "pipeline.run.cli", "stats", "--fields", str(work / "fields.geojson"),
                                                 "--index", "ndvi", *paths, "-o", str(work / "table"),
                                                 "--workers", str(args.workers)]), "mscal stats"),
             "loop": bc._check(bc.run_measured([*me, "--child", "loop", str(work / "fields.geojson"),

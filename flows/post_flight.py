@@ -7,7 +7,7 @@ write ``OUT/run.json``, update the STAC catalog of the output root, upload remot
 over an inbox of session folders (``mscal serve``), each complete, unprocessed session through
 ``post_flight``; it updates OUT_ROOT's catalog.
 
-Import this module only after :func:`pipeline.runner.configure_prefect`.
+Import this module only after :func:`pipeline.run.runner.configure_prefect`.
 """
 
 from __future__ import annotations
@@ -21,7 +21,9 @@ from prefect.cache_policies import NO_CACHE
 from prefect.runtime import flow_run
 from prefect.tasks import exponential_backoff
 
-from pipeline import calibrate, inbox, runner
+from pipeline.calibrate import fit as calibrate
+from pipeline.run import inbox
+from pipeline.run import runner
 
 
 def _transient(task_: Any, task_run: Any, state: Any) -> bool:

@@ -24,7 +24,7 @@ Components from the field fits may replace the factory's (issue 6), one at a tim
   of the sensor range, where the sensor is linear by design: the radiance keeps its unit and
   only the *shape* (black level, shoulder) comes from the field.
 
-Pure numpy (OpenCV for the polygon mask): the metadata is read by ``pipeline.camera_meta``.
+Pure numpy (OpenCV for the polygon mask): the metadata is read by ``pipeline.ingest.camera_meta``.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ centres fall inside the field (GDAL's rasterisation rule, ``all_touched=False``)
   ``k = floor(h)`` (Hyndman & Fan type 7, numpy's default ``method="linear"``).
 
 Everything is computed in float64 from the values as stored (float32 index maps). These need
-every valid value of a field at once (exact order statistics); see ``pipeline/zonal.py`` for
+every valid value of a field at once (exact order statistics); see ``pipeline/products/zonal.py`` for
 how the memory is bounded.
 """
 

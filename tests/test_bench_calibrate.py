@@ -28,7 +28,7 @@ def test_import_has_no_side_effects() -> None:
         "import importlib.util, sys\n"
         f"spec = importlib.util.spec_from_file_location('b', {str(SCRIPT)!r})\n"
         "m = importlib.util.module_from_spec(spec); sys.modules['b'] = m; spec.loader.exec_module(m)\n"
-        "heavy = [k for k in ('pipeline.synth', 'pipeline.calibrate', 'xarray', 'cv2') if k in sys.modules]\n"
+        "heavy = [k for k in ('pipeline.sim.synth', 'pipeline.calibrate.fit', 'xarray', 'cv2') if k in sys.modules]\n"
         "print(heavy)\n"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60)

@@ -29,7 +29,7 @@ fitting code), intersected with the plane and the scene evaluated there; pixels 
 (reflector edge, paper, marker cells, panels) are supersampled over the sensor pixel's footprint
 and a small Gaussian lens PSF is applied before the bands are split.
 
-Nothing here reads or writes files; ``pipeline/synth.py`` writes a session folder.
+Nothing here reads or writes files; ``pipeline/sim/synth.py`` writes a session folder.
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from mscal_core.errors import CatalogError
-from pipeline import catalog
+from pipeline.ingest import catalog
 
 ROOT = catalog.CATALOG_ROOT
 

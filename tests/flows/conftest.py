@@ -23,7 +23,7 @@ os.environ.pop("PREFECT_PROFILE", None)
 os.environ["PREFECT_HOME"] = str(_HOME)
 os.environ["MSCAL_CACHE_DIR"] = str(_HOME / "cache")
 
-from pipeline.runner import configure_prefect  # noqa: E402
+from pipeline.run.runner import configure_prefect  # noqa: E402
 
 configure_prefect()
 
@@ -43,7 +43,7 @@ def pytest_sessionfinish(session, exitstatus) -> None:  # noqa: ANN001
 @pytest.fixture(scope="session")
 def flow_session(tmp_path_factory) -> Path:
     """The demo's small synthetic session with two 3-frame flights."""
-    from pipeline.synth import write_session
+    from pipeline.sim.synth import write_session
 
     return write_session(tmp_path_factory.mktemp("flows") / "session", seed=0, size="small", flights=FLIGHTS)
 
@@ -51,7 +51,7 @@ def flow_session(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def first_run(flow_session, tmp_path_factory) -> Path:
     """``mscal run`` on the session with an empty calibration cache: everything fitted."""
-    from pipeline.cli import main
+    from pipeline.run.cli import main
 
     out = tmp_path_factory.mktemp("run1") / "out"
     assert not (Path(os.environ["MSCAL_CACHE_DIR"]) / "calibration").exists()

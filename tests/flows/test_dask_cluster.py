@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import main
+from pipeline.run.cli import main
 
 from .conftest import FLIGHTS, assert_same_flight_outputs
 

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from pipeline.apply import calibration_hash
-from pipeline.cli import main
-from pipeline.evaluate import evaluate_calibration
-from pipeline.store import open_calibration
+from pipeline.apply.flight import calibration_hash
+from pipeline.run.cli import main
+from pipeline.sim.evaluate import evaluate_calibration
+from pipeline.storage.store import open_calibration
 
 from .conftest import FLIGHTS, assert_same_flight_outputs
 
@@ -55,7 +55,7 @@ def test_first_run_fits_everything_and_writes_every_output(flow_session: Path, f
     assert page.count('<img src="data:image/png;base64,') >= 6 + 3 * len(FLIGHTS)
     assert run["timings_s"]["total"] >= sum(run["calibration_stages"][s]["seconds"] for s in STAGES)
     # the flow catalogued its flights: OUT/catalog.json, one item per flight, valid STAC
-    from pipeline.stac import validate_catalog
+    from pipeline.products.stac import validate_catalog
 
     items = sorted(p.stem for p in (first_run / "stac").glob("*/items/*.json"))
     assert items == sorted(FLIGHTS)

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import requests
 
-from pipeline.cli import main
+from pipeline.run.cli import main
 
 from .conftest import FLIGHTS, assert_same_flight_outputs
 

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import main
-from pipeline.inbox import READY, STATE_FILE
+from pipeline.run.cli import main
+from pipeline.run.inbox import READY, STATE_FILE
 
 pytestmark = pytest.mark.xdist_group("flows")
 

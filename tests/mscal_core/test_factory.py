@@ -16,8 +16,8 @@ from mscal_core.factory import (
     vignetting_2d,
     vignetting_map,
 )
-from pipeline.camera_meta import factory_radiance, read_capture_meta
-from pipeline.session import read_raw
+from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta
+from pipeline.ingest.session import read_raw
 from tests.micasense_data import PANEL_CORNERS, PANEL_RADIANCE, PANEL_RAW_DN, band_file
 
 

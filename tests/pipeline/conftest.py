@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.cli import main
-from pipeline.synth import write_session
+from pipeline.run.cli import main
+from pipeline.sim.synth import write_session
 
 
 @pytest.fixture(scope="session")

@@ -1,0 +1,934 @@
+"""``mscal apply``: Eq. 15 over a whole flight, all outputs in one pass over the frames.
+
+1. discover the flight (bad frames quarantined with their reasons) and open ``OUT/raw.zarr``;
+2. plan one dask task per frame (:func:`process_frame`): its DN (from the file for a flight
+   whose cube is still empty: read once, hashed, checked and written into raw.zarr; else from
+   raw.zarr), Eq. 15 with the ``mscal_core`` kernel (U lookup, divide by t V S), optional
+   normalisation, indices, Otsu mask, and every output of that frame: its whole chunk of each
+   ``reflectance.zarr`` variable (no two tasks share a chunk), its photogrammetry TIFFs and
+   its NDVI TIFF. Nothing is computed until the pass runs; each frame is read once;
+3. run the pass on the caller's ``distributed`` client, or on local threads (processes on
+   request); raw.zarr is committed batch by batch, reflectance.zarr is renamed into place;
+4. write ``OUT/run.json`` last. Every output is written under a temporary name and renamed;
+   a run that finds ``run.json`` matching its inputs, calibration and options does nothing.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import multiprocessing
+import os
+import platform
+import re
+import shutil
+import signal
+import sys
+import time
+import uuid
+import warnings
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field, replace
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import cv2
+import dask
+import dask.array as da
+import dask.multiprocessing
+import dask.threaded
+import numpy as np
+import xarray as xr
+
+import mscal_core
+from mscal_core.errors import FrameError, InputError
+from mscal_core.reflectance import eq15_fast, eq15_tables
+from mscal_core.registration import align_bands, mosaic_centre_offsets, shift_bands
+
+from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
+from pipeline.storage.chunks import FLAT_CHUNK_KEYS, FrameChunks
+from pipeline.ingest.discover import quarantine_entry
+from pipeline.calibrate.registration import check_transforms, frame_transforms
+from pipeline.ingest.raw import (FRAME_COORDS, Cube, _Writer, frame_coords, frame_row, ingest_flight, open_cube, prefetch_file, read_frame,
+                     shape_problem)
+from pipeline.ingest.session import FrameRecord
+from pipeline.apply.light import DEFAULT_MODE, IlluminationPlan, illumination_plan, varies_in_time
+from pipeline.storage.store import open_calibration
+from pipeline.products.writers import TMP_MARK, BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
+
+RUN_JSON = "run.json"
+MAX_EXPORT_BANDS = 8
+FRESH_BATCH = 64  # frames per commit of the single pass (a kill loses at most this much ingest)
+READ_AHEAD = 4  # a frame's task starts reading the file this many frames on (prefetch_file)
+
+
+@dataclass(frozen=True)
+class PanelSpec:
+    """A region of known reflectance in one frame: ``FRAME:x0,y0,x1,y1`` (band-grid pixels)."""
+
+    frame: str
+    box: tuple[int, int, int, int]
+    reflectance: Any  # catalog.ReflectanceSpec
+
+    @staticmethod
+    def parse(text: str, reflectance: str) -> "PanelSpec":
+        m = re.fullmatch(r"\s*([^:]+):\s*(\d+),\s*(\d+),\s*(\d+),\s*(\d+)\s*", text or "")
+        if not m:
+            raise InputError(
+                f"--panel {text!r} is not FRAME:x0,y0,x1,y1",
+                hint="e.g. --panel IMG_0003:120,80,140,95 (band-grid pixel columns and rows, end exclusive)",
+            )
+        x0, y0, x1, y1 = (int(m[i]) for i in range(2, 6))
+        if x1 <= x0 or y1 <= y0:
+            raise InputError(f"--panel {text!r}: empty box (need x1 > x0 and y1 > y0)")
+        return PanelSpec(m[1], (x0, y0, x1, y1), reflectance_option(reflectance))
+
+
+@dataclass(frozen=True)
+class ApplyOptions:
+    normalise: str = "relative"  # relative | band:<name or nm> | panel
+    panel: PanelSpec | None = None
+    tiff_dtype: str = "uint16"
+    export_bands: tuple[str, ...] | None = None
+    indices: tuple[str, ...] = ("ndvi", "ndre")
+    strict: bool = False
+    illumination: str = DEFAULT_MODE  # nearest | linear: light between reflector captures (issue 8)
+    align: bool = True  # align bands with the store's band_transform, if it has one (issue 9)
+    centre_bands: bool = False  # snapshot mosaics: resample every band to the mosaic's centre position
+
+    def fingerprint(self) -> dict[str, Any]:
+        d = asdict(self)
+        d.pop("strict")
+        d.pop("illumination")  # in the fingerprint only when the light varies (see _fingerprint)
+        for key, default in (("align", True), ("centre_bands", False)):  # runs before issue 9 stay up to date
+            if d[key] == default:
+                d.pop(key)
+        if self.panel is not None:
+            d["panel"] = {"frame": self.panel.frame, "box": list(self.panel.box), "reflectance": repr(self.panel.reflectance)}
+        return d
+
+
+@dataclass
+class ApplyResult:
+    out: Path
+    run: dict[str, Any]
+    up_to_date: bool = False
+    quarantined: list[dict[str, str]] = field(default_factory=list)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def calibration_hash(ds: xr.Dataset) -> str:
+    """sha256 of the calibration's arrays (U, V, S) and camera: what Eq. 15 depends on; with
+    light that varies in time (issue 8) also the captures' S, level, time and irradiance."""
+    h = hashlib.sha256(str(ds.attrs.get("camera")).encode())
+    names = ["inverse_response", "vignetting", "spectral_factor"]
+    if varies_in_time(ds):
+        names += ["capture_spectral_factor", "capture_level", "capture_time", "capture_irradiance"]
+    names += [n for n in ("band_transform", "capture_transform") if n in ds]  # only stores that have them
+    for name in names:
+        arr = np.ascontiguousarray(ds[name].values)
+        h.update(name.encode())
+        h.update(str(arr.dtype).encode() + str(arr.shape).encode())
+        h.update(arr.tobytes())
+    return h.hexdigest()
+
+
+def _clean_temporaries(out: Path) -> None:
+    """Remove what a killed run left under temporary names."""
+    if not out.is_dir():
+        return
+    for p in list(out.rglob(f"*{TMP_MARK}*")):
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        elif p.exists():
+            p.unlink(missing_ok=True)
+
+
+def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
+    tmp = path.with_name(f".{path.name}{TMP_MARK}{uuid.uuid4().hex[:8]}")
+    with tmp.open("w") as fh:
+        json.dump(data, fh, indent=2, sort_keys=True)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def export_band_indices(camera: Camera, names: Sequence[str] | None) -> list[int]:
+    names = list(names) if names else list(camera.export_bands) or camera.band_names[:MAX_EXPORT_BANDS]
+    unknown = [n for n in names if n not in camera.band_names]
+    if unknown:
+        raise InputError(
+            f"--export-bands names unknown band(s) {', '.join(unknown)}",
+            hint=f"bands of {camera.name}: {', '.join(camera.band_names)}",
+        )
+    return [camera.band_names.index(n) for n in names]
+
+
+def _band_index(camera: Camera, text: str) -> int:
+    if text in camera.band_names:
+        return camera.band_names.index(text)
+    try:
+        return camera.band_for_wavelength(float(text))
+    except ValueError:
+        raise InputError(f"--normalise band:{text}: no such band name or wavelength",
+                         hint=f"bands: {', '.join(camera.band_names)}") from None
+
+
+def _index_roles(camera: Camera, index: Index) -> dict[str, int]:
+    missing = [r for r in index.inputs if r not in camera.index_bands]
+    if missing:
+        raise InputError(
+            f"index {index.name} needs band role(s) {', '.join(missing)} that camera {camera.name} does not define",
+            hint=f"add them under index_bands in {camera.source}",
+        )
+    return {r: camera.band_for_wavelength(camera.index_bands[r]) for r in index.inputs}
+
+
+def capture_uuid(camera: Camera, sha256: str) -> str:
+    """Deterministic CaptureUUID of a frame (the same on every re-run)."""
+    return str(uuid.uuid5(uuid.NAMESPACE_URL, f"mscal:{camera.name}:{sha256}"))
+
+
+def otsu_mask(ndvi: np.ndarray) -> np.ndarray:
+    """The paper's vegetation segmentation: Otsu threshold of the NDVI of one frame (uint8 0/1,
+    255 where NDVI is not defined)."""
+    ok = np.isfinite(ndvi)
+    out = np.full(ndvi.shape, 255, dtype=np.uint8)
+    if ok.sum() < 2:
+        return out
+    scaled = np.clip((ndvi[ok] + 1.0) * 127.5, 0, 255).astype(np.uint8)
+    thr, _ = cv2.threshold(scaled.reshape(-1, 1), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    out[ok] = (scaled > thr).astype(np.uint8)
+    return out
+
+
+# --------------------------------------------------------------------------- the lazy graph
+
+
+def saturation_dn(calib: xr.Dataset, camera: Camera) -> int:
+    """DN from which pixels are saturated (NaN in reflectance): the calibration's lowest, else
+    the camera's full scale."""
+    return int(calib["saturation_dn"].values.min()) if "saturation_dn" in calib else camera.dn_max
+
+
+def _eq15_block(dn: np.ndarray, t: np.ndarray, lut: np.ndarray, inv_v: np.ndarray, sat: int) -> np.ndarray:
+    return eq15_fast(dn, lut, inv_v, t.reshape(-1), sat)
+
+
+def _aligned_block(refl: np.ndarray, names: np.ndarray, calib: xr.Dataset, block_info: dict | None = None) -> np.ndarray:
+    f0 = block_info[0]["array-location"][0][0] if block_info else 0
+    out = np.empty_like(refl)
+    for k in range(refl.shape[0]):
+        H = frame_transforms(calib, str(names[f0 + k]))
+        out[k] = refl[k] if H is None else align_bands(refl[k], H)
+    return out
+
+
+def lazy_reflectance(raw: xr.Dataset, calib: xr.Dataset, camera: Camera, *, align: bool = False) -> xr.DataArray:
+    """Eq. 15, ``R = U(I) / (t V S)``, as a dask-backed DataArray (frame, band, y, x); with
+    ``align`` and a calibration holding band transforms, each frame's bands warped onto the
+    reference band as the apply pass does (:func:`geometry_step`)."""
+    dn = raw["dn"].data
+    t = (raw["exposure_ms"] * raw["gain"]).values.astype(np.float64)
+    t_da = da.from_array(t.reshape(-1, 1, 1, 1), chunks=(dn.chunks[0], 1, 1, 1))
+    U = calib["inverse_response"].values
+    V = calib["vignetting"].values
+    S = calib["spectral_factor"].values
+    if V.shape[1:] != dn.shape[2:]:
+        raise InputError(
+            f"calibration vignetting is {V.shape[2]}x{V.shape[1]} but frames are {dn.shape[3]}x{dn.shape[2]}",
+            hint="use a calibration of this camera",
+        )
+    sat = saturation_dn(calib, camera)
+    lut, inv_v = eq15_tables(U, V, S)
+    refl = da.map_blocks(_eq15_block, dn, t_da, lut=lut, inv_v=inv_v, sat=sat, dtype=np.float32)
+    if align and "band_transform" in calib:
+        refl = da.map_blocks(_aligned_block, refl, names=raw["frame"].values, calib=calib, dtype=np.float32)
+    return xr.DataArray(refl, dims=("frame", "band", "y", "x"), coords=raw["dn"].coords, name="reflectance")
+
+
+def normalisation(
+    options: ApplyOptions, camera: Camera, frames: Sequence[str],
+    panel_reflectance: Callable[[int], np.ndarray],
+) -> tuple[str, float | int | None]:
+    """How relative reflectance is scaled: ``("none", None)``, ``("band", b)`` (per frame,
+    that band's median becomes 1) or ``("scalar", k)`` (one factor from a panel of known
+    reflectance, for every frame: Eq. 15's R is relative up to one scalar).
+
+    ``panel_reflectance(f)`` gives Eq. 15 reflectance (band, y, x) of frame ``f``."""
+    mode = options.normalise
+    if mode == "relative":
+        return "none", None
+    if mode.startswith("band:"):
+        return "band", _band_index(camera, mode.split(":", 1)[1])
+    if mode == "panel":
+        p = options.panel
+        if p is None:
+            raise InputError("--normalise panel needs --panel FRAME:x0,y0,x1,y1 and --panel-reflectance")
+        frames = list(frames)
+        if p.frame not in frames:
+            raise InputError(f"--panel frame {p.frame!r} is not in the flight", hint=f"frames: {', '.join(frames[:5])}, ...")
+        x0, y0, x1, y1 = p.box
+        region = panel_reflectance(frames.index(p.frame))[:, y0:y1, x0:x1]
+        rho = p.reflectance.at(camera.wavelengths)
+        med = np.nanmedian(region.reshape(region.shape[0], -1), axis=1) if region.size else np.array([np.nan])
+        if not np.any(np.isfinite(med) & (med > 0)):
+            raise InputError(f"--panel region of {p.frame} has no valid pixels (saturated or outside the frame)")
+        return "scalar", float(np.nanmedian(rho / med))
+    raise InputError(f"--normalise {mode!r}: use relative, band:<name or nm>, or panel")
+
+
+# --------------------------------------------------------------------------- outputs
+
+
+def _frame_tags(coords: xr.Dataset, f: int, camera: Camera) -> FrameTags:
+    """Photogrammetry tags of frame ``f`` (``capture_uuid`` from its sha256, empty if unknown)."""
+    def opt(name: str) -> float | None:
+        v = float(coords[name].values[f])
+        return None if not np.isfinite(v) else v
+
+    tval = coords["time"].values[f]
+    time_iso = None if np.isnat(tval) else np.datetime_as_string(tval, unit="ms") + "Z"
+    sha = str(coords["sha256"].values[f])
+    return FrameTags(
+        time=time_iso, lat=opt("lat"), lon=opt("lon"), alt_m=opt("alt_m"),
+        capture_uuid=capture_uuid(camera, sha) if sha else "",
+        exposure_ms=float(coords["exposure_ms"].values[f]),
+        camera_make="mscal", camera_model=camera.name,
+    )
+
+
+def scheduler_for(n_frames: int) -> tuple[str, int]:
+    """Dask scheduler of the per-frame pass when no ``distributed`` client is active: one
+    thread per core. The per-frame work is numpy, hashing and file writes, which release the
+    GIL (two threads run a 120-frame flight 1.8x faster than one), and threads start at once
+    where worker processes take 1-2 s. ``MSCAL_APPLY_SCHEDULER=processes`` chooses worker
+    processes instead (a forkserver that imports this module once).
+    """
+    cpus = int(os.environ.get("MSCAL_APPLY_WORKERS", 0)) or os.cpu_count() or 1
+    choice = os.environ.get("MSCAL_APPLY_SCHEDULER", "threads")
+    if choice not in ("threads", "processes"):
+        raise InputError(f"MSCAL_APPLY_SCHEDULER={choice!r}: use threads or processes")
+    return choice, max(1, min(cpus, n_frames))
+
+
+# Output variables are written uncompressed: lz4 gains only 1.24x on float32 reflectance for
+# 5.8 ms of CPU per full-resolution frame, more than writing the bytes it saves costs.
+OUTPUT_COMPRESSORS: tuple = ()
+
+
+def _stamp(path: Path) -> tuple[str, int]:
+    """Cache key of a Zarr node: its path and the time its metadata was written (a store
+    replaced at the same path is not mistaken for the old one)."""
+    return str(path), os.stat(path / "zarr.json").st_mtime_ns
+
+
+@lru_cache(maxsize=16)
+def _zarr_array(key: tuple[str, int]):  # noqa: ANN202
+    import zarr
+
+    return zarr.open_array(key[0], mode="r+").with_config({"write_empty_chunks": True})
+
+
+@lru_cache(maxsize=16)
+def _frame_chunks(key: tuple[str, int]) -> FrameChunks | None:
+    return FrameChunks.open(key[0])
+
+
+def write_frame(array: Path, f: int, data: np.ndarray) -> None:
+    """Frame ``f``'s whole chunk of the Zarr array at ``array`` (direct when the layout allows)."""
+    key = _stamp(array)
+    fc = _frame_chunks(key)
+    if fc is not None:
+        fc.write(f, data)
+    else:
+        _zarr_array(key)[f] = data
+
+
+def read_frame_chunk(array: Path, f: int) -> np.ndarray:
+    key = _stamp(array)
+    fc = _frame_chunks(key)
+    return fc.read(f) if fc is not None else np.asarray(_zarr_array(key)[f])
+
+
+def _tables(calibration: str) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 15 tables of a calibration store, once per process and store."""
+    return _tables_of(_stamp(Path(calibration)))
+
+
+@lru_cache(maxsize=2)
+def _tables_of(key: tuple[str, int]) -> tuple[np.ndarray, np.ndarray]:
+    ds = _store_of(key)  # the process's one in-memory copy of the store (also read for band transforms)
+    return eq15_tables(ds["inverse_response"].values, ds["vignetting"].values, ds["spectral_factor"].values)
+
+
+def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, int], indices: Sequence[Index],
+                    options: ApplyOptions, illum: IlluminationPlan | None = None) -> xr.Dataset:
+    """``reflectance.zarr`` as a lazy dataset (coordinates, attributes, variables of zeros
+    one chunk per frame); the apply pass writes its data frame by frame."""
+    n = coords.sizes.get("frame", 0)
+    out_coords = {
+        "frame": coords["frame"].values.astype(object),
+        "band": np.arange(shape[0]),
+        "wavelength": ("band", camera.wavelengths, {"units": "nm"}),
+        "band_name": ("band", np.array(camera.band_names, dtype=object)),
+    }
+    for c in ("exposure_ms", "gain", "time", "lat", "lon", "alt_m"):
+        out_coords[c] = ("frame", coords[c].values, dict(coords[c].attrs))
+    ds = xr.Dataset(coords=out_coords)
+    cube = da.zeros((n, *shape), chunks=(1, *shape), dtype=np.float32)
+    ds["reflectance"] = (("frame", "band", "y", "x"), cube,
+                         {"long_name": "reflectance (Eq. 15)", "units": "1", "normalisation": options.normalise})
+    plane = da.zeros((n, *shape[1:]), chunks=(1, *shape[1:]), dtype=np.float32)
+    for ix in indices:
+        ds[ix.name] = (("frame", "y", "x"), plane, {"long_name": ix.description, "expression": ix.expression})
+    if any(ix.name == "ndvi" for ix in indices):
+        ds["vegetation_mask"] = (("frame", "y", "x"), plane.astype(np.uint8),
+                                 {"long_name": "vegetation (Otsu threshold of NDVI per frame)",
+                                  "flag_values": [0, 1, 255], "flag_meanings": "other vegetation undefined"})
+    ds.attrs.update({"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__})
+    if illum is not None:
+        ds = ds.assign_coords(
+            illumination_level=("frame", illum.level.astype(np.float64),
+                                {"long_name": "brightness level beta of the light at the frame's time (issue 8)"}),
+            illumination_scale=(("frame", "band"), illum.scale.astype(np.float64),
+                                {"long_name": "factor on Eq. 15 reflectance: S / S(lambda, time) (issue 8)"}),
+            irradiance=("frame", illum.irradiance.astype(np.float64),
+                        {"long_name": "sun-sensor irradiance of the frame (NaN: none)"}),
+        )
+        ds.attrs["illumination_mode"] = illum.mode
+        ds.attrs["illumination_captures"] = list(illum.captures)
+    return ds
+
+
+@dataclass(frozen=True)
+class FramePlan:
+    """What every frame's task needs: paths and small values, no arrays (it is sent to
+    worker processes with each task)."""
+
+    raw_dn: Path
+    cube_shape: tuple[int, int, int]
+    camera: Camera
+    out_store: Path
+    calibration: Path
+    outputs: tuple[str, ...]
+    sat: int
+    norm: tuple[str, float | int | None]
+    indices: tuple[tuple[Index, dict[str, int]], ...]
+    bands: tuple[tuple[int, BandTags], ...]
+    tiff_dtype: str
+    out: Path
+    align: bool = False  # the store has band transforms and they are applied
+    band_shift: tuple[tuple[float, float], ...] | None = None  # --centre-bands: (dx, dy) per band
+
+
+@dataclass(frozen=True)
+class FrameJob:
+    """One frame of the pass. ``rec`` set: a new frame, read from its file, checked, and
+    written into raw.zarr at ``index`` by its task; else the frame is read from raw.zarr."""
+
+    index: int
+    name: str
+    t: float  # effective exposure, exposure_ms x gain
+    tags: FrameTags
+    rec: FrameRecord | None = None
+    scale: tuple[float, ...] | None = None  # per band: S / S(lambda, time) (issue 8); None: 1
+    ahead: Path | None = None  # the file of a frame a few places on, to read ahead (prefetch_file)
+
+
+@dataclass(frozen=True)
+class FrameOutcome:
+    name: str
+    sha256: str | None  # of the file, for a new frame
+    saturated: int
+    quarantine: dict[str, str] | None = None  # a new frame that cannot be used: nothing written
+
+
+def frame_dn(plan: FramePlan, job: FrameJob) -> tuple[np.ndarray, str | None]:
+    """DN (band, y, x) of a job's frame: from its file (checked; FrameError) or from raw.zarr."""
+    if job.rec is None:
+        return read_frame_chunk(plan.raw_dn, job.index), None
+    sha, dn = read_frame(job.rec, plan.camera)
+    assert dn is not None
+    problem = shape_problem(dn.shape, plan.cube_shape)
+    if problem:
+        raise FrameError(problem, path=job.rec.path)
+    return dn, sha
+
+
+@lru_cache(maxsize=2)
+def _store_of(key: tuple[str, int]) -> xr.Dataset:
+    """A calibration store in memory, once per process and store (read straight into numpy:
+    no dask for a small store)."""
+    return xr.open_zarr(key[0], chunks=None).load()
+
+
+def geometry_step(calibration: Path, align: bool, band_shift: Sequence[tuple[float, float]] | None, name: str,
+                  refl: np.ndarray) -> np.ndarray:
+    """Eq. 15 reflectance (band, y, x) of frame ``name`` put on one pixel grid (issue 9): the
+    bands of a multi-lens camera warped onto the reference band (``align``: the capture's own
+    transforms if it was registered, else the session's; ``mscal_core.registration.align_bands``,
+    NaN where a band does not cover), or a snapshot mosaic's bands resampled to the mosaic's
+    centre position (``band_shift``). Unchanged otherwise. Eq. 15 runs before: U, V and S
+    belong to each band's own pixels."""
+    if align:
+        H = frame_transforms(_store_of(_stamp(Path(calibration))), name)
+        if H is not None:
+            refl = align_bands(refl, H)
+    if band_shift is not None:
+        refl = shift_bands(refl, np.asarray(band_shift, dtype=np.float64))
+    return refl
+
+
+def process_frame(plan: FramePlan, job: FrameJob) -> FrameOutcome:
+    """One frame, every output: (for a new frame) its raw.zarr chunk, Eq. 15, normalisation,
+    indices, Otsu mask, its chunk of each reflectance.zarr variable (one whole chunk per
+    variable: no two tasks share a chunk), its photogrammetry and NDVI TIFFs. First it asks
+    for a later frame's file to be read ahead (``job.ahead``)."""
+    if job.ahead is not None:
+        prefetch_file(job.ahead)
+    try:
+        dn, sha = frame_dn(plan, job)
+    except FrameError as exc:
+        assert job.rec is not None  # a chunk of raw.zarr is never unreadable for this reason
+        return FrameOutcome(job.name, None, 0, quarantine_entry(job.rec.path.name, exc))
+    tags = job.tags
+    if sha is not None:
+        write_frame(plan.raw_dn, job.index, dn)
+        tags = replace(tags, capture_uuid=capture_uuid(plan.camera, sha))
+    lut, inv_v = _tables(str(plan.calibration))
+    refl = eq15_fast(dn[None], lut, inv_v, job.t, plan.sat,
+                     None if job.scale is None else np.asarray(job.scale)[None])[0]
+    if plan.align or plan.band_shift is not None:
+        refl = geometry_step(plan.calibration, plan.align, plan.band_shift, job.name, refl)
+    kind, value = plan.norm
+    if kind == "scalar":
+        refl *= np.float32(value)
+    elif kind == "band":
+        med = np.nanmedian(refl[int(value)])
+        refl *= np.float32(1.0 / med) if np.isfinite(med) and med > 0 else np.float32(np.nan)
+    store = plan.out_store
+    write_frame(store / "reflectance", job.index, refl)
+    ndvi = None
+    for ix, roles in plan.indices:
+        val = ix.evaluate({role: refl[b] for role, b in roles.items()})
+        write_frame(store / ix.name, job.index, val)
+        if ix.name == "ndvi":
+            ndvi = val
+    if ndvi is not None and "vegetation_mask" in plan.outputs:
+        write_frame(store / "vegetation_mask", job.index, otsu_mask(ndvi))
+    for b, btags in plan.bands:
+        write_band_tiff(plan.out / "photogrammetry" / f"{job.name}_{btags.name}.tif", refl[b], tags, btags,
+                        dtype=plan.tiff_dtype)
+    if ndvi is not None:
+        write_ndvi_tiff(plan.out / "ndvi" / f"{job.name}.tif", ndvi, tags)
+    return FrameOutcome(job.name, sha, int(np.count_nonzero(dn >= plan.sat)))
+
+
+# --------------------------------------------------------------------------- running the tasks
+
+
+def _worker_init() -> None:
+    """Worker processes: die with the parent (a killed run leaves no writer behind) and keep
+    Blosc single-threaded (the workers already fill the cores)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux
+        pass
+    try:
+        from numcodecs import blosc
+
+        blosc.set_nthreads(1)
+    except ImportError:  # pragma: no cover
+        pass
+
+
+def _distributed_client():  # noqa: ANN202
+    """The active ``distributed`` client (the caller's ``with Client(...)``), if any. A caller
+    with a client has imported ``distributed``; without one it is not imported here (0.2 s of
+    every run's start)."""
+    if "distributed" not in sys.modules:
+        return None
+    try:
+        from distributed import default_client
+    except ImportError:
+        return None
+    try:
+        return default_client()
+    except ValueError:
+        return None
+
+
+class Runner:
+    """Runs the per-frame tasks (dask.delayed) on the caller's ``distributed`` client if one is
+    active, else on worker processes (long flights) or threads; see :func:`scheduler_for`.
+    Worker processes are started when the runner is made, so they start while the main
+    process reads the calibration and the flight."""
+
+    def __init__(self, n_frames: int):
+        self.client = _distributed_client()
+        self.pool: ProcessPoolExecutor | None = None
+        self.scheduler, self.workers = ("distributed", 0) if self.client is not None else scheduler_for(n_frames)
+        if self.scheduler == "processes":
+            ctx = multiprocessing.get_context("forkserver")
+            ctx.set_forkserver_preload(["pipeline.apply.flight"])
+            self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_worker_init)
+            for _ in range(self.workers):  # start them now
+                self.pool.submit(int)
+
+    def run(self, plan: Any, jobs: Sequence[Any], fn: Callable[[Any, Any], Any] | None = None) -> list[Any]:
+        """``fn(plan, job)`` (default :func:`process_frame`) for every job, in job order."""
+        # arguments wrapped whole: dask would otherwise walk every dataclass field of every
+        # argument of every task looking for collections (15 ms a task)
+        token = uuid.uuid4().hex
+        plan_d = dask.delayed(plan, traverse=False, name=f"mscal-plan-{token}")
+        tasks = [
+            dask.delayed(fn or process_frame, pure=False)(plan_d, dask.delayed(job, traverse=False, name=f"mscal-job-{token}-{k}"))
+            for k, job in enumerate(jobs)
+        ]
+        if self.client is not None:
+            return list(dask.compute(*tasks))
+        if self.pool is not None:
+            return list(dask.compute(*tasks, scheduler=dask.multiprocessing.get, pool=self.pool))
+        # the schedulers' functions, not their names: a name makes dask import distributed
+        # (0.2 s) to look for a client, which _distributed_client has done already
+        return list(dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=self.workers))
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+            self.pool = None
+
+    def __enter__(self) -> "Runner":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# --------------------------------------------------------------------------- apply
+
+
+@dataclass
+class _Pass:
+    """One apply pass over the frames: the output store under its temporary name and the plan."""
+
+    coords: xr.Dataset
+    plan: FramePlan
+    tmp_store: Path
+    illum: IlluminationPlan | None = None
+
+    def scale(self, f: int) -> tuple[float, ...] | None:
+        """Frame ``f``'s illumination factors per band (None: the store's S)."""
+        return None if self.illum is None else tuple(float(v) for v in self.illum.scale[f])
+
+
+def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tuple[int, int, int], camera: Camera,
+                calib_path: Path, raw_dn: Path, indices: Sequence[Index],
+                roles: dict[str, dict[str, int]], export: Sequence[int], options: ApplyOptions, chash: str,
+                sat: int, frame_dn: Callable[[int], np.ndarray], calib: xr.Dataset,
+                geometry: tuple[bool, tuple[tuple[float, float], ...] | None, str | None] = (False, None, None)) -> _Pass:
+    """The light of each frame, normalisation, the output store's layout (metadata and
+    coordinates; data written per frame) under a temporary name, and the plan of the frames'
+    tasks."""
+    frames = [str(f) for f in coords["frame"].values]
+    illum = illumination_plan(calib, frames, coords["time"].values, flight_dir, options.illumination)
+    panel_reflectance = _panel_from(frame_dn, _effective_exposure(coords), calib_path, sat, illum, frames, geometry)
+    norm = normalisation(options, camera, frames, panel_reflectance)
+    ds = output_template(coords, camera, cube_shape, indices, options, illum)
+    ds.attrs.update({"calibration_sha256": chash, "source": str(flight_dir)})
+    align, band_shift, reference = geometry
+    if align:
+        ds["reflectance"].attrs["aligned_to_band"] = reference
+    if band_shift is not None:
+        ds["reflectance"].attrs["band_positions"] = "resampled to the mosaic's centre position (--centre-bands)"
+    tmp_store = out / f".reflectance.zarr{TMP_MARK}{uuid.uuid4().hex[:8]}"
+    encoding = {v: {"chunks": (1, *ds[v].shape[1:]), "compressors": OUTPUT_COMPRESSORS,
+                    "chunk_key_encoding": FLAT_CHUNK_KEYS} for v in ds.data_vars}
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Consolidated metadata")
+        ds.to_zarr(tmp_store, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
+    plan = FramePlan(
+        raw_dn=raw_dn, cube_shape=tuple(cube_shape), camera=camera, out_store=tmp_store, calibration=calib_path,
+        outputs=tuple(str(v) for v in ds.data_vars), sat=sat, norm=norm,
+        indices=tuple((ix, roles[ix.name]) for ix in indices),
+        bands=tuple(
+            (b, BandTags(name=camera.bands[b].name, wavelength_nm=camera.bands[b].wavelength_nm,
+                         fwhm_nm=camera.bands[b].fwhm_nm, rig_camera_index=i))
+            for i, b in enumerate(export)
+        ),
+        tiff_dtype=options.tiff_dtype, out=out, align=align, band_shift=band_shift,
+    )
+    for sub in ("photogrammetry", "ndvi"):
+        (out / sub).mkdir(exist_ok=True)
+    return _Pass(coords, plan, tmp_store, illum)
+
+
+def _effective_exposure(coords: xr.Dataset) -> np.ndarray:
+    return (coords["exposure_ms"] * coords["gain"]).values.astype(np.float64)
+
+
+def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path: Path, sat: int,
+                illum: IlluminationPlan | None = None, names: Sequence[str] = (),
+                geometry: tuple = (False, None, None)) -> Callable[[int], np.ndarray]:
+    """Eq. 15 reflectance of frame ``f`` (with its light, issue 8) on the pixel grid of the
+    outputs (``geometry_step``, issue 9)."""
+    def reflectance(f: int) -> np.ndarray:
+        lut, inv_v = _tables(str(calib_path))
+        scale = None if illum is None else illum.scale[f][None]
+        refl = eq15_fast(plan_dn(f)[None], lut, inv_v, float(t[f]), sat, scale)[0]
+        align, band_shift, _ = geometry
+        if align or band_shift is not None:
+            refl = geometry_step(calib_path, align, band_shift, str(names[f]), refl)
+        return refl
+    return reflectance
+
+
+def _remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export: Sequence[int]) -> None:
+    for name in names:
+        for b in export:
+            (out / "photogrammetry" / f"{name}_{camera.bands[b].name}.tif").unlink(missing_ok=True)
+        (out / "ndvi" / f"{name}.tif").unlink(missing_ok=True)
+
+
+def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_path: Path, sat: int,
+                batch: int) -> tuple[_Pass, list[FrameOutcome]] | None:
+    """Ingest and apply in one pass over the files, for a cube that has no frames yet.
+
+    Frames are given indices in file-name order before they are read, assuming each can be
+    used; batches are committed to raw.zarr as they finish. A frame that cannot be used (or
+    is a duplicate) would shift the frames after it: then the frames before it are committed
+    and ``None`` is returned, and the caller goes the general way (ingest, then a pass over
+    the cube), which gives the same outputs.
+    """
+    recs = list(cube.found.frames)
+    coords = frame_coords(cube.camera, [frame_row(r, "") for r in recs])
+    t = _effective_exposure(coords)
+
+    def file_dn(f: int) -> np.ndarray:
+        try:
+            dn = read_frame(recs[f], cube.camera)[1]
+        except FrameError as exc:
+            raise InputError(f"--panel frame {recs[f].name} cannot be used: {exc.reason}", path=recs[f].path) from None
+        assert dn is not None
+        return dn
+
+    ps = start(coords, file_dn)
+    writer = _Writer(cube.path, cube.group, cube.committed, cube.shape, cube.camera, commit_every=len(recs) + 1,
+                     pool=None, workers=1)  # type: ignore[arg-type]  (no chunk writes of its own)
+    seen: set[str] = set()
+    outcomes: list[FrameOutcome] = []
+    for b0 in range(0, len(recs), batch):
+        first = writer.reserve(min(batch, len(recs) - b0))
+        jobs = [FrameJob(first + k, recs[f].name, float(t[f]), _frame_tags(coords, f, cube.camera), recs[f],
+                         ps.scale(f), recs[f + READ_AHEAD].path if f + READ_AHEAD < len(recs) else None)
+                for k, f in enumerate(range(b0, min(b0 + batch, len(recs))))]
+        results = runner.run(ps.plan, jobs)
+        for job, res in zip(jobs, results):
+            if res.quarantine is not None or res.sha256 in seen:
+                writer.commit()  # the frames before this one are in place
+                shutil.rmtree(ps.tmp_store, ignore_errors=True)
+                return None
+            assert job.rec is not None and res.sha256 is not None
+            writer.register(job.rec, res.sha256)
+            seen.add(res.sha256)
+            outcomes.append(res)
+        writer.commit()
+    shas = np.array([o.sha256 for o in outcomes], dtype=object)
+    ps.coords = ps.coords.assign_coords(sha256=("frame", shas))
+    return ps, outcomes
+
+
+def _cube_pass(out: Path, runner: Runner, start: Callable[..., _Pass], calib_path: Path, sat: int, camera: Camera
+               ) -> tuple[_Pass, list[FrameOutcome]]:
+    """A pass over the frames of raw.zarr (every frame already ingested)."""
+    raw = xr.open_zarr(out / "raw.zarr")
+    coords = xr.Dataset(coords={c: ("frame", raw[c].values, dict(raw[c].attrs)) for c in FRAME_COORDS})
+    t = _effective_exposure(coords)
+    raw_dn = out / "raw.zarr" / "dn"
+    ps = start(coords, lambda f: read_frame_chunk(raw_dn, f))
+    jobs = [FrameJob(f, str(name), float(t[f]), _frame_tags(coords, f, camera), scale=ps.scale(f))
+            for f, name in enumerate(coords["frame"].values)]
+    return ps, runner.run(ps.plan, jobs)
+
+
+def _illumination_record(ps: _Pass, calib: xr.Dataset, options: ApplyOptions) -> dict[str, Any]:
+    """run.json's ``illumination``: the mode and each frame's factors when the light varies
+    in time (issue 8), else that the store's S was used for every frame."""
+    if ps.illum is None:
+        n = calib.sizes.get("capture", 1)
+        return {"varies_in_time": False, "captures": int(n)}
+    return {"varies_in_time": True, **ps.illum.summary([str(f) for f in ps.coords["frame"].values])}
+
+
+def _fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
+                 illum: IlluminationPlan | None = None) -> dict[str, Any]:
+    fingerprint = {
+        "frames_sha256": hashlib.sha256("".join(map(str, shas)).encode()).hexdigest(),
+        "calibration_sha256": chash,
+        "options": options.fingerprint(),
+        "mscal_version": mscal_core.__version__,
+    }
+    if illum is not None:  # light that varies in time: the mode and the factors (readings) count
+        fingerprint["illumination"] = {"mode": illum.mode, "scale_sha256": illum.digest()}
+    return json.loads(json.dumps(fingerprint))  # as it reads back from run.json
+
+
+def _up_to_date(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = ("reflectance.zarr",)
+                ) -> dict[str, Any] | None:
+    """The previous run's record if it made the outputs (``stores`` in ``out``) of exactly these inputs."""
+    run_path = out / RUN_JSON
+    if not (run_path.is_file() and all((out / s).is_dir() for s in stores)):
+        return None
+    try:
+        previous = json.loads(run_path.read_text())
+    except (OSError, ValueError):
+        return None
+    return previous if previous.get("fingerprint") == fingerprint else None
+
+
+def _install(out: Path, tmp_store: Path, name: str = "reflectance.zarr") -> None:
+    """Rename a store written under a temporary name to ``out/name``, replacing the old one."""
+    final = out / name
+    if final.exists():
+        old = out / f".{name}.old{TMP_MARK}{uuid.uuid4().hex[:8]}"
+        os.replace(final, old)
+        os.replace(tmp_store, final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp_store, final)
+
+
+def _versions() -> dict[str, str]:
+    versions = {"mscal": mscal_core.__version__, "python": platform.python_version(), "numpy": np.__version__,
+                "dask": dask.__version__, "xarray": xr.__version__, "opencv": cv2.__version__}
+    try:
+        import zarr
+
+        versions["zarr"] = zarr.__version__
+    except ImportError:  # pragma: no cover
+        pass
+    return versions
+
+
+def _geometry(calib: xr.Dataset, camera: Camera, options: ApplyOptions
+              ) -> tuple[bool, tuple[tuple[float, float], ...] | None, str | None]:
+    """``(align, band_shift, reference band)`` of the pass (``geometry_step``)."""
+    align = bool(options.align and "band_transform" in calib)
+    reference = (calib.attrs.get("registration") or {}).get("reference_band") if align else None
+    band_shift = None
+    if options.centre_bands:
+        if camera.layout.kind != "mosaic" or camera.layout.pattern is None:
+            raise InputError(f"--centre-bands is for snapshot mosaic cameras; {camera.name} is {camera.layout.kind}",
+                             hint="multi-lens cameras are aligned with 'mscal register' transforms instead")
+        band_shift = tuple((float(dx), float(dy)) for dx, dy in mosaic_centre_offsets(camera.layout.pattern))
+    return align, band_shift, reference
+
+
+def apply_flight(
+    flight_dir: str | Path, calibration: str | Path, out: str | Path, options: ApplyOptions = ApplyOptions()
+) -> ApplyResult:
+    """``mscal apply FLIGHT_DIR --calibration CALIB.zarr -o OUT``.
+
+    A flight whose ``OUT/raw.zarr`` holds no frames yet is ingested and calibrated in one pass
+    over its files (each read once); otherwise new frames are ingested first and the pass
+    reads raw.zarr. Either way each frame's outputs are written by one task, and both ways
+    give the same bytes. The tasks run on the caller's ``distributed`` client when one is
+    active (``with distributed.Client(address):``), else on local worker processes.
+    """
+    t_start = time.perf_counter()
+    flight_dir, out = Path(flight_dir), Path(out)
+    if not flight_dir.is_dir():
+        raise InputError("flight folder not found", path=flight_dir)
+    if str(calibration) == "factory":
+        raise InputError("--calibration factory needs factory radiometric metadata, which this camera's files do not carry",
+                         hint="fit a calibration with 'mscal calibrate SESSION -o CALIB.zarr'")
+    calib_path = Path(calibration)
+    probe = open_calibration(calib_path, need="apply")
+    camera = load_camera(str(probe.attrs.get("camera")))
+    calib = open_calibration(calib_path, camera, need="apply")
+    chash = calibration_hash(calib)
+    export = export_band_indices(camera, options.export_bands)
+    indices = [load_index(n) for n in options.indices]
+    roles = {ix.name: _index_roles(camera, ix) for ix in indices}
+    sat = saturation_dn(calib, camera)
+    geometry = _geometry(calib, camera, options)
+    out.mkdir(parents=True, exist_ok=True)
+    _clean_temporaries(out)
+    raw_path = out / "raw.zarr"
+
+    def start(coords: xr.Dataset, frame_dn: Callable[[int], np.ndarray]) -> _Pass:
+        shape = tuple(xr.open_zarr(raw_path)["dn"].shape[1:])
+        v_shape = calib["vignetting"].shape[1:]
+        if tuple(v_shape) != shape[1:]:
+            raise InputError(
+                f"calibration vignetting is {v_shape[1]}x{v_shape[0]} but frames are {shape[2]}x{shape[1]}",
+                hint="use a calibration of this camera",
+            )
+        if geometry[0]:
+            check_transforms(calib, shape[0], shape[1:], calib_path)
+        return _start_pass(out, flight_dir, coords, shape, camera, calib_path, raw_path / "dn", indices,
+                           roles, export, options, chash, sat, frame_dn, calib, geometry)
+
+    t0 = time.perf_counter()
+    cube = open_cube(flight_dir, camera, raw_path)
+    n_hint = len(cube.found.frames)
+    fresh = cube.group is not None and cube.committed == 0 and n_hint > 0
+    quarantined = list(cube.found.quarantined)
+    done: tuple[_Pass, list[FrameOutcome]] | None = None
+    with Runner(n_hint) as runner:
+        if fresh:
+            try:
+                done = _fresh_pass(cube, runner, start, calib_path, sat, batch=FRESH_BATCH)
+            finally:
+                cube.release()
+        single = done is not None
+        if done is None:  # the general way: ingest what is new, then a pass over the cube
+            ing = ingest_flight(flight_dir, camera, raw_path, cube=None if fresh else cube)
+            quarantined = list(ing.quarantined)
+            raw = xr.open_zarr(raw_path)
+            shas = [str(s) for s in raw["sha256"].values]
+            if not shas:
+                raise FrameError("no usable frames in the flight (all quarantined)", path=flight_dir,
+                                 hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
+            illum = illumination_plan(calib, [str(f) for f in raw["frame"].values], raw["time"].values,
+                                      flight_dir, options.illumination)
+            fingerprint = _fingerprint(shas, chash, options, illum)
+            previous = _up_to_date(out, fingerprint)
+            if previous is not None:
+                previous["quarantined"] = quarantined
+                return ApplyResult(out, previous, up_to_date=True, quarantined=quarantined)
+            _remove_frame_tiffs(out, [Path(q["file"]).stem for q in quarantined], camera, export)
+            done = _cube_pass(out, runner, start, calib_path, sat, camera)
+        else:
+            quarantined = sorted(quarantined, key=lambda q: q["file"])
+    ps, outcomes = done
+    t_pass = time.perf_counter() - t0
+    _install(out, ps.tmp_store)
+    frames = [o.name for o in outcomes]
+    sat_counts = [o.saturated for o in outcomes]
+    shas = [str(s) for s in ps.coords["sha256"].values]  # the pass's frames, in cube order
+    run = {
+        "flight": str(flight_dir),
+        "calibration": str(calib_path),
+        "calibration_sha256": chash,
+        "frames_in": len(frames) + len(quarantined),
+        "frames_out": len(frames),
+        "frames": frames,
+        "quarantined": quarantined,
+        "saturated_pixels": {"total": int(np.sum(sat_counts)), "per_frame": {n: int(c) for n, c in zip(frames, sat_counts)}},
+        "outputs": {"reflectance": "reflectance.zarr", "photogrammetry": "photogrammetry/", "ndvi": "ndvi/"},
+        "export_bands": [camera.bands[b].name for b in export],
+        "versions": _versions(),
+        "scheduler": runner.scheduler,
+        "single_pass": single,
+        "timings_s": {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
+        "illumination": _illumination_record(ps, calib, options),
+        "fingerprint": _fingerprint(shas, chash, options, ps.illum),
+    }
+    _write_json_atomic(out / RUN_JSON, run)
+    return ApplyResult(out, run, up_to_date=False, quarantined=quarantined)

@@ -1,0 +1,485 @@
+"""Catalogs: cameras, reflectance targets and indices as YAML data.
+
+Each file is read with ``yaml.safe_load`` and validated into frozen dataclasses; unknown keys
+are rejected with a message naming the file and the keys that are allowed. The catalog folder
+is ``catalogs/`` at the top of the project, or the folders listed in ``MSCAL_CATALOG_PATH``
+(``os.pathsep``-separated) searched first.
+"""
+
+from __future__ import annotations
+
+import ast
+import os
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import yaml
+
+from mscal_core.errors import CatalogError
+
+CATALOG_ROOT = Path(__file__).resolve().parents[2] / "catalogs"
+LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band")
+
+
+def catalog_dirs(kind: str) -> list[Path]:
+    """Folders searched for catalog entries of ``kind`` (cameras, targets, indices)."""
+    extra = [Path(p) / kind for p in os.environ.get("MSCAL_CATALOG_PATH", "").split(os.pathsep) if p]
+    return [*extra, CATALOG_ROOT / kind]
+
+
+# --------------------------------------------------------------------------- validation helpers
+
+
+def _load_yaml(path: Path) -> dict[str, Any]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise CatalogError(f"cannot read catalog file: {exc.strerror}", path=path) from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise CatalogError(f"not valid YAML{where}", path=path, hint="fix the YAML syntax") from None
+    if not isinstance(data, dict):
+        raise CatalogError("must be a YAML mapping of keys to values", path=path)
+    return data
+
+
+def check_keys(
+    data: Mapping[str, Any], required: set[str], optional: set[str], path: Path | str, where: str
+) -> None:
+    """Reject missing and unknown keys with a message that lists the allowed ones."""
+    missing = sorted(required - set(data))
+    if missing:
+        raise CatalogError(f"{where}: missing key(s) {', '.join(missing)}", path=path)
+    unknown = sorted(set(data) - required - optional)
+    if unknown:
+        allowed = ", ".join(sorted(required | optional))
+        raise CatalogError(
+            f"{where}: unknown key(s) {', '.join(map(str, unknown))}",
+            path=path,
+            hint=f"allowed keys: {allowed}",
+        )
+
+
+def _int_pair(value: Any, path: Path, where: str) -> tuple[int, int]:
+    if (
+        not isinstance(value, (list, tuple))
+        or len(value) != 2
+        or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in value)
+    ):
+        raise CatalogError(f"{where} must be a pair of non-negative integers, got {value!r}", path=path)
+    return int(value[0]), int(value[1])
+
+
+def _positive_number(value: Any, path: Path, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+        raise CatalogError(f"{where} must be a positive number, got {value!r}", path=path)
+    return float(value)
+
+
+# --------------------------------------------------------------------------- cameras
+
+
+@dataclass(frozen=True)
+class Band:
+    """One spectral band of a camera."""
+
+    name: str
+    wavelength_nm: float
+    fwhm_nm: float | None = None
+    mosaic: tuple[int, int] | None = None  # (row, column) in the filter mosaic
+    channel: int | None = None  # channel index of a multi-channel image
+    file_suffix: str | None = None  # band id in one-file-per-band captures
+
+
+@dataclass(frozen=True)
+class Layout:
+    """How bands are laid out in the files a camera writes."""
+
+    kind: str  # mosaic | multichannel | file_per_band
+    pattern: tuple[int, int] | None = None
+    origin: tuple[int, int] = (0, 0)
+    grid: tuple[int, int] | None = None  # band grid (rows, columns)
+    channels: int | None = None
+    capture_pattern: str | None = None
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A camera catalog entry (``catalogs/cameras/<name>.yaml``)."""
+
+    name: str
+    description: str
+    bit_depth: int
+    layout: Layout
+    bands: tuple[Band, ...]
+    sensor: tuple[int, int] | None = None  # (height, width) in sensor pixels
+    index_bands: Mapping[str, float] = field(default_factory=dict)
+    export_bands: tuple[str, ...] = ()
+    source: str = ""
+    container_bits: int | None = None  # bits per stored sample when the data sit in its high bits
+
+    @property
+    def dn_max(self) -> int:
+        return 2**self.bit_depth - 1
+
+    @property
+    def dn_shift(self) -> int:
+        """Right shift from stored samples to sensor DN (4 for 12-bit data in 16-bit samples)."""
+        return 0 if self.container_bits is None else self.container_bits - self.bit_depth
+
+    @property
+    def n_bands(self) -> int:
+        return len(self.bands)
+
+    @property
+    def wavelengths(self) -> np.ndarray:
+        return np.array([b.wavelength_nm for b in self.bands], dtype=np.float64)
+
+    @property
+    def band_names(self) -> list[str]:
+        return [b.name for b in self.bands]
+
+    def band_for_wavelength(self, wavelength_nm: float, tolerance_nm: float = 10.0) -> int:
+        """Index of the band whose centre wavelength is nearest ``wavelength_nm``."""
+        d = np.abs(self.wavelengths - wavelength_nm)
+        i = int(np.argmin(d))
+        if d[i] > tolerance_nm:
+            raise CatalogError(
+                f"camera {self.name} has no band within {tolerance_nm:g} nm of {wavelength_nm:g} nm",
+                hint=f"bands: {', '.join(f'{w:g}' for w in self.wavelengths)}",
+            )
+        return i
+
+
+_CAMERA_REQUIRED = {"name", "description", "bit_depth", "layout", "bands"}
+_CAMERA_OPTIONAL = {"sensor", "index_bands", "export_bands", "container_bits"}
+_BAND_REQUIRED = {"name", "wavelength_nm"}
+_BAND_OPTIONAL = {"fwhm_nm", "mosaic", "channel", "file_suffix"}
+_LAYOUT_KEYS = {
+    "mosaic": ({"kind", "pattern", "grid"}, {"origin"}),
+    "multichannel": ({"kind", "channels"}, set()),
+    "file_per_band": ({"kind", "capture_pattern"}, set()),
+}
+
+
+def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
+    """Validate a camera mapping into a :class:`Camera`."""
+    check_keys(data, _CAMERA_REQUIRED, _CAMERA_OPTIONAL, path, "camera")
+    bits = data["bit_depth"]
+    if not isinstance(bits, int) or isinstance(bits, bool) or not 1 <= bits <= 16:
+        raise CatalogError(f"bit_depth must be an integer 1..16, got {bits!r}", path=path)
+    container = data.get("container_bits")
+    if container is not None and (
+        not isinstance(container, int) or isinstance(container, bool) or not bits <= container <= 16
+    ):
+        raise CatalogError(
+            f"container_bits must be an integer from bit_depth ({bits}) to 16, got {container!r}",
+            path=path,
+            hint="container_bits is the stored sample size when the DN sit in its high bits",
+        )
+
+    lay = data["layout"]
+    if not isinstance(lay, dict) or lay.get("kind") not in LAYOUT_KINDS:
+        raise CatalogError(
+            f"layout.kind must be one of {', '.join(LAYOUT_KINDS)}",
+            path=path,
+        )
+    req, opt = _LAYOUT_KEYS[lay["kind"]]
+    check_keys(lay, req, opt, path, f"layout ({lay['kind']})")
+    if lay["kind"] == "mosaic":
+        layout = Layout(
+            kind="mosaic",
+            pattern=_int_pair(lay["pattern"], path, "layout.pattern"),
+            origin=_int_pair(lay.get("origin", [0, 0]), path, "layout.origin"),
+            grid=_int_pair(lay["grid"], path, "layout.grid"),
+        )
+    elif lay["kind"] == "multichannel":
+        ch = lay["channels"]
+        if not isinstance(ch, int) or ch < 1:
+            raise CatalogError(f"layout.channels must be a positive integer, got {ch!r}", path=path)
+        layout = Layout(kind="multichannel", channels=ch)
+    else:
+        import re
+
+        try:
+            rx = re.compile(str(lay["capture_pattern"]))
+        except re.error as exc:
+            raise CatalogError(f"layout.capture_pattern is not a valid regex: {exc}", path=path) from None
+        if not {"capture", "band"} <= set(rx.groupindex):
+            raise CatalogError(
+                "layout.capture_pattern needs named groups (?P<capture>...) and (?P<band>...)", path=path
+            )
+        layout = Layout(kind="file_per_band", capture_pattern=rx.pattern)
+
+    raw_bands = data["bands"]
+    if not isinstance(raw_bands, list) or not raw_bands:
+        raise CatalogError("bands must be a non-empty list", path=path)
+    bands: list[Band] = []
+    for k, b in enumerate(raw_bands):
+        where = f"bands[{k}]"
+        if not isinstance(b, dict):
+            raise CatalogError(f"{where} must be a mapping", path=path)
+        check_keys(b, _BAND_REQUIRED, _BAND_OPTIONAL, path, where)
+        band = Band(
+            name=str(b["name"]),
+            wavelength_nm=_positive_number(b["wavelength_nm"], path, f"{where}.wavelength_nm"),
+            fwhm_nm=None if b.get("fwhm_nm") is None else _positive_number(b["fwhm_nm"], path, f"{where}.fwhm_nm"),
+            mosaic=None if b.get("mosaic") is None else _int_pair(b["mosaic"], path, f"{where}.mosaic"),
+            channel=b.get("channel"),
+            file_suffix=None if b.get("file_suffix") is None else str(b["file_suffix"]),
+        )
+        bands.append(band)
+    names = [b.name for b in bands]
+    if len(set(names)) != len(names):
+        raise CatalogError("band names must be unique", path=path)
+
+    if layout.kind == "mosaic":
+        assert layout.pattern is not None
+        rows, cols = layout.pattern
+        positions = [b.mosaic for b in bands]
+        expected = [(r, c) for r in range(rows) for c in range(cols)]
+        if positions != expected:
+            raise CatalogError(
+                f"a {rows}x{cols} mosaic needs {rows * cols} bands listed in row-major mosaic order "
+                "with a 'mosaic: [row, column]' each",
+                path=path,
+            )
+    elif layout.kind == "multichannel":
+        chans = [b.channel for b in bands]
+        if sorted(c for c in chans if isinstance(c, int)) != list(range(len(bands))) or len(bands) != layout.channels:
+            raise CatalogError(
+                f"a {layout.channels}-channel camera needs one band per channel with 'channel: 0..{len(bands) - 1}'",
+                path=path,
+            )
+    else:
+        sufs = [b.file_suffix for b in bands]
+        if any(s is None for s in sufs) or len(set(sufs)) != len(sufs):
+            raise CatalogError("one-file-per-band cameras need a unique 'file_suffix' per band", path=path)
+
+    sensor = None
+    if data.get("sensor") is not None:
+        s = data["sensor"]
+        if not isinstance(s, dict):
+            raise CatalogError("sensor must be a mapping {width, height}", path=path)
+        check_keys(s, {"width", "height"}, set(), path, "sensor")
+        sensor = (
+            int(_positive_number(s["height"], path, "sensor.height")),
+            int(_positive_number(s["width"], path, "sensor.width")),
+        )
+        if layout.kind == "mosaic":
+            assert layout.pattern and layout.grid
+            need = (layout.origin[0] + layout.pattern[0] * layout.grid[0],
+                    layout.origin[1] + layout.pattern[1] * layout.grid[1])
+            if need[0] > sensor[0] or need[1] > sensor[1]:
+                raise CatalogError(
+                    f"layout.grid {list(layout.grid)} does not fit the {sensor[1]}x{sensor[0]} sensor",
+                    path=path,
+                )
+
+    index_bands = data.get("index_bands") or {}
+    if not isinstance(index_bands, dict):
+        raise CatalogError("index_bands must map a role (red, nir, ...) to a wavelength", path=path)
+    for role, wl in index_bands.items():
+        _positive_number(wl, path, f"index_bands.{role}")
+    export = tuple(str(x) for x in (data.get("export_bands") or []))
+    unknown_export = [x for x in export if x not in names]
+    if unknown_export:
+        raise CatalogError(f"export_bands names unknown band(s) {', '.join(unknown_export)}", path=path)
+
+    camera = Camera(
+        name=str(data["name"]),
+        description=str(data["description"]),
+        bit_depth=bits,
+        layout=layout,
+        bands=tuple(bands),
+        sensor=sensor,
+        index_bands={str(k): float(v) for k, v in index_bands.items()},
+        export_bands=export,
+        source=str(path),
+        container_bits=container,
+    )
+    for role, wl in camera.index_bands.items():
+        try:
+            camera.band_for_wavelength(wl)
+        except CatalogError as exc:
+            raise CatalogError(f"index_bands.{role}: {exc.reason}", path=path) from None
+    if camera.name != path.stem:
+        raise CatalogError(f"name {camera.name!r} must match the file name {path.stem!r}", path=path)
+    return camera
+
+
+def _find(kind: str, name: str) -> Path:
+    for d in catalog_dirs(kind):
+        p = d / f"{name}.yaml"
+        if p.is_file():
+            return p
+    known = ", ".join(list_entries(kind)) or "none"
+    raise CatalogError(
+        f"unknown {kind[:-1]} {name!r}",
+        hint=f"known {kind}: {known}; add catalogs/{kind}/{name}.yaml to describe it",
+    )
+
+
+def list_entries(kind: str) -> list[str]:
+    """Names of the catalog entries of ``kind``."""
+    names: set[str] = set()
+    for d in catalog_dirs(kind):
+        if d.is_dir():
+            names.update(p.stem for p in d.glob("*.yaml"))
+    return sorted(names)
+
+
+@lru_cache(maxsize=None)
+def load_camera(name: str) -> Camera:
+    """The camera catalog entry ``name``; :class:`CatalogError` if unknown or invalid."""
+    path = _find("cameras", name)
+    return parse_camera(_load_yaml(path), path)
+
+
+# --------------------------------------------------------------------------- reflectance targets
+
+
+@dataclass(frozen=True)
+class ReflectanceSpec:
+    """Reflectance of a target: a scalar, or a table of (wavelength_nm, rho) rows."""
+
+    table: tuple[tuple[float, float], ...] | None = None
+    scalar: float | None = None
+    name: str = ""
+
+    def at(self, wavelengths_nm: np.ndarray) -> np.ndarray:
+        """Reflectance at each wavelength (linear interpolation, flat beyond the table)."""
+        wl = np.asarray(wavelengths_nm, dtype=np.float64)
+        if self.scalar is not None:
+            return np.full(wl.shape, self.scalar)
+        assert self.table is not None
+        t = np.array(self.table, dtype=np.float64)
+        return np.interp(wl, t[:, 0], t[:, 1])
+
+
+def reflectance_option(text: str, option: str = "--panel-reflectance") -> ReflectanceSpec:
+    """A command-line reflectance: a number in (0, 1] or a reflectance target's name."""
+    try:
+        value: Any = float(text)
+    except ValueError:
+        value = text
+    return parse_reflectance(value, option, option)
+
+
+def parse_reflectance(value: Any, path: Path | str, where: str) -> ReflectanceSpec:
+    """Validate a reflectance: a number in (0, 1], a [[nm, rho], ...] table, or a target name."""
+    if isinstance(value, str):
+        return load_target(value).reflectance
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        if not 0 < value <= 1:
+            raise CatalogError(f"{where} must be in (0, 1], got {value!r}", path=path)
+        return ReflectanceSpec(scalar=float(value))
+    if isinstance(value, list) and value:
+        rows: list[tuple[float, float]] = []
+        for row in value:
+            if (
+                not isinstance(row, (list, tuple))
+                or len(row) != 2
+                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in row)
+            ):
+                raise CatalogError(f"{where}: each row must be [wavelength_nm, reflectance], got {row!r}", path=path)
+            if not 0 < row[1] <= 1 or row[0] <= 0:
+                raise CatalogError(f"{where}: row {row!r} out of range (nm > 0, 0 < rho <= 1)", path=path)
+            rows.append((float(row[0]), float(row[1])))
+        wl = [r[0] for r in rows]
+        if wl != sorted(wl) or len(set(wl)) != len(wl):
+            raise CatalogError(f"{where}: wavelengths must be strictly increasing", path=path)
+        return ReflectanceSpec(table=tuple(rows))
+    raise CatalogError(
+        f"{where} must be a number, a table of [wavelength_nm, reflectance] rows or a target name, got {value!r}",
+        path=path,
+    )
+
+
+@dataclass(frozen=True)
+class Target:
+    name: str
+    description: str
+    reflectance: ReflectanceSpec
+
+
+@lru_cache(maxsize=None)
+def load_target(name: str) -> Target:
+    """A reflectance target from ``catalogs/targets/<name>.yaml``."""
+    path = _find("targets", name)
+    data = _load_yaml(path)
+    check_keys(data, {"name", "description", "reflectance"}, set(), path, "target")
+    if isinstance(data["reflectance"], str):
+        raise CatalogError("a target's reflectance must be a number or a table", path=path)
+    spec = parse_reflectance(data["reflectance"], path, "reflectance")
+    return Target(name=str(data["name"]), description=str(data["description"]), reflectance=spec)
+
+
+# --------------------------------------------------------------------------- indices
+
+_ALLOWED_NODES = (
+    ast.Expression, ast.BinOp, ast.UnaryOp, ast.Name, ast.Load, ast.Constant,
+    ast.Add, ast.Sub, ast.Mult, ast.Div, ast.Pow, ast.USub, ast.UAdd,
+)
+
+
+@dataclass(frozen=True)
+class Index:
+    """A spectral index: an arithmetic expression of band roles (red, nir, ...)."""
+
+    name: str
+    description: str
+    expression: str
+    inputs: tuple[str, ...]
+    valid_range: tuple[float, float] | None = None
+
+    def evaluate(self, bands: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Evaluate on arrays keyed by role; division by zero gives NaN, never inf."""
+        code = compile(ast.parse(self.expression, mode="eval"), "<index>", "eval")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out = eval(code, {"__builtins__": {}}, {k: bands[k] for k in self.inputs})  # noqa: S307 (validated AST)
+        out = np.asarray(out, dtype=np.float32)
+        out[~np.isfinite(out)] = np.nan
+        if self.valid_range is not None:
+            lo, hi = self.valid_range
+            out = np.where((out < lo) | (out > hi), np.nan, out).astype(np.float32)
+        return out
+
+
+def parse_index(data: Mapping[str, Any], path: Path) -> Index:
+    check_keys(data, {"name", "description", "expression"}, {"valid_range"}, path, "index")
+    expr = str(data["expression"])
+    try:
+        tree = ast.parse(expr, mode="eval")
+    except SyntaxError:
+        raise CatalogError(f"expression {expr!r} is not valid arithmetic", path=path) from None
+    bad = [type(n).__name__ for n in ast.walk(tree) if not isinstance(n, _ALLOWED_NODES)]
+    if bad:
+        raise CatalogError(
+            f"expression {expr!r} uses {', '.join(sorted(set(bad)))}",
+            path=path,
+            hint="only band roles, numbers and + - * / ** are allowed",
+        )
+    inputs = tuple(sorted({n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}))
+    vr = data.get("valid_range")
+    valid = None
+    if vr is not None:
+        if not isinstance(vr, list) or len(vr) != 2:
+            raise CatalogError("valid_range must be [low, high]", path=path)
+        valid = (float(vr[0]), float(vr[1]))
+    if str(data["name"]) != path.stem:
+        raise CatalogError(f"name {data['name']!r} must match the file name {path.stem!r}", path=path)
+    return Index(str(data["name"]), str(data["description"]), expr, inputs, valid)
+
+
+@lru_cache(maxsize=None)
+def load_index(name: str) -> Index:
+    """A spectral index from ``catalogs/indices/<name>.yaml``."""
+    path = _find("indices", name)
+    return parse_index(_load_yaml(path), path)

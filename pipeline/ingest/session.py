@@ -1,0 +1,636 @@
+"""Session folders (SPEC.md): session.yaml, frame tables and frame files.
+
+Reading is strict and names the file at fault: a session that cannot be trusted stops here
+with a one-line reason, before any fit runs.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import re
+from dataclasses import dataclass, replace
+from datetime import datetime
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import yaml
+
+from mscal_core.errors import FrameError, InputError, MscalError, SessionError
+from mscal_core.geometry import Intrinsics
+from mscal_core.mosaic import demosaic
+
+from pipeline.ingest.catalog import Camera, ReflectanceSpec, check_keys, load_camera, parse_reflectance
+
+IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
+FRAMES_CSV = "frames.csv"
+
+
+# --------------------------------------------------------------------------- session.yaml
+
+
+@dataclass(frozen=True)
+class MarkerSpec:
+    dictionary: str
+    id: int
+    size_m: float
+    border_m: float  # white paper around the black square, excluded from reflector pixels
+
+
+@dataclass(frozen=True)
+class ReflectorSpec:
+    reflectance: ReflectanceSpec
+    size_m: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class Session:
+    root: Path
+    camera: Camera
+    intrinsics: Intrinsics
+    reflector: ReflectorSpec
+    marker: MarkerSpec
+    panel_polygon: tuple[tuple[float, float], ...] | None = None  # session.yaml panel.polygon
+    panel_marker: "PanelMarker | None" = None  # session.yaml panel.marker (+ size_m, offset_m)
+
+    @property
+    def response_dir(self) -> Path:
+        return self.root / "response"
+
+    @property
+    def vignetting_dir(self) -> Path:
+        return self.root / "vignetting"
+
+    @property
+    def reflector_dir(self) -> Path:
+        return self.root / "reflector"
+
+    def flight_dirs(self) -> list[Path]:
+        d = self.root / "flights"
+        return sorted(p for p in d.iterdir() if p.is_dir()) if d.is_dir() else []
+
+
+def _number(value: Any, path: Path, where: str, *, positive: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise SessionError(f"{where} must be a number, got {value!r}", path=path)
+    if positive and value <= 0:
+        raise SessionError(f"{where} must be positive, got {value!r}", path=path)
+    return float(value)
+
+
+def parse_intrinsics(data: Any, path: Path) -> Intrinsics:
+    if not isinstance(data, dict):
+        raise SessionError("intrinsics must be a mapping {fx, fy, cx, cy, dist}", path=path)
+    check_keys(data, {"fx", "fy", "cx", "cy"}, {"dist"}, path, "intrinsics")
+    dist = data.get("dist", [0, 0, 0, 0, 0])
+    if not isinstance(dist, list) or len(dist) not in (4, 5, 8):
+        raise SessionError("intrinsics.dist must be [k1, k2, p1, p2, k3] (OpenCV order)", path=path)
+    d = [_number(v, path, "intrinsics.dist") for v in dist] + [0.0] * (5 - len(dist))
+    return Intrinsics(
+        fx=_number(data["fx"], path, "intrinsics.fx", positive=True),
+        fy=_number(data["fy"], path, "intrinsics.fy", positive=True),
+        cx=_number(data["cx"], path, "intrinsics.cx"),
+        cy=_number(data["cy"], path, "intrinsics.cy"),
+        dist=tuple(d[:5]) if len(d) <= 5 else tuple(d),
+    )
+
+
+@dataclass(frozen=True)
+class PanelMarker:
+    """A reflectance panel found through an ArUco/AprilTag marker printed in its plane:
+    the panel is the ``panel_size_m`` rectangle centred at ``offset_m`` in the marker frame
+    (u right, v up as printed; :func:`mscal_core.panel.panel_from_marker`)."""
+
+    dictionary: str  # an OpenCV name: DICT_4X4_50, DICT_APRILTAG_36h11, ...
+    id: int
+    size_m: float  # black square side
+    panel_size_m: tuple[float, float]
+    offset_m: tuple[float, float]
+
+
+@dataclass(frozen=True)
+class PanelConfig:
+    """session.yaml ``panel``: a pixel polygon and/or a marker that locates the panel."""
+
+    polygon: tuple[tuple[float, float], ...] | None = None
+    marker: PanelMarker | None = None
+
+
+PANEL_EXAMPLE = ("panel: {marker: {dictionary: DICT_APRILTAG_36h11, id: 7, size_m: 0.06}, "
+                 "size_m: [0.15, 0.15], offset_m: [0.12, 0.0]}  or  panel: {polygon: [[x, y], ...]}")
+
+
+def parse_panel(data: Any, path: Path) -> PanelConfig:
+    """session.yaml ``panel``: ``polygon`` (pixel corners, :func:`parse_panel_polygon`) and/or
+    ``marker: {dictionary, id, size_m}`` with the panel's ``size_m`` (``[w, h]`` or one side)
+    and ``offset_m`` (``[du, dv]`` of its centre from the marker's, default ``[0, 0]``); the
+    panel rectangle must not cover the marker."""
+    import cv2
+
+    if not isinstance(data, dict):
+        raise SessionError(f"panel must be a mapping, got {data!r}", path=path, hint=PANEL_EXAMPLE)
+    check_keys(data, set(), {"polygon", "marker", "size_m", "offset_m"}, path, "panel")
+    if "polygon" not in data and "marker" not in data:
+        raise SessionError("panel needs a polygon or a marker", path=path, hint=PANEL_EXAMPLE)
+    polygon = parse_panel_polygon({"polygon": data["polygon"]}, path) if "polygon" in data else None
+    if "marker" not in data:
+        if "size_m" in data or "offset_m" in data:
+            raise SessionError("panel.size_m and panel.offset_m go with panel.marker", path=path, hint=PANEL_EXAMPLE)
+        return PanelConfig(polygon=polygon)
+    mk = data["marker"]
+    if not isinstance(mk, dict):
+        raise SessionError("panel.marker must be a mapping {dictionary, id, size_m}", path=path, hint=PANEL_EXAMPLE)
+    check_keys(mk, {"dictionary", "id", "size_m"}, set(), path, "panel.marker")
+    name = str(mk["dictionary"])
+    if not (name.startswith("DICT_") and isinstance(getattr(cv2.aruco, name, None), int)):
+        raise SessionError(f"panel.marker.dictionary {name!r} is not an OpenCV ArUco/AprilTag dictionary", path=path,
+                           hint="e.g. DICT_4X4_50, DICT_5X5_100, DICT_APRILTAG_36h11")
+    if not isinstance(mk["id"], int) or isinstance(mk["id"], bool) or mk["id"] < 0:
+        raise SessionError(f"panel.marker.id must be a non-negative integer, got {mk['id']!r}", path=path)
+    msize = _number(mk["size_m"], path, "panel.marker.size_m", positive=True)
+    if "size_m" not in data:
+        raise SessionError("panel.marker needs the panel's size_m ([w, h] in metres)", path=path, hint=PANEL_EXAMPLE)
+    size = data["size_m"]
+    size = [size, size] if not isinstance(size, list) else size
+    off = data.get("offset_m", [0.0, 0.0])
+    if len(size) != 2 or not isinstance(off, list) or len(off) != 2:
+        raise SessionError("panel.size_m must be [w, h] (or one side) and panel.offset_m [du, dv]", path=path,
+                           hint=PANEL_EXAMPLE)
+    w, h = (_number(v, path, "panel.size_m", positive=True) for v in size)
+    du, dv = (_number(v, path, "panel.offset_m") for v in off)
+    if abs(du) < (w + msize) / 2 and abs(dv) < (h + msize) / 2:
+        raise SessionError("the panel rectangle covers the marker", path=path,
+                           hint="give panel.offset_m: where the panel's centre is from the marker's, in metres")
+    return PanelConfig(polygon=polygon, marker=PanelMarker(name, int(mk["id"]), msize, (w, h), (du, dv)))
+
+
+def parse_panel_polygon(data: Any, path: Path) -> tuple[tuple[float, float], ...]:
+    """session.yaml ``panel: {polygon: [[x, y], ...]}``: at least 3 (x, y) pixel corners."""
+    if not isinstance(data, dict):
+        raise SessionError(f"panel must be a mapping {{polygon: [[x, y], ...]}}, got {data!r}", path=path)
+    check_keys(data, {"polygon"}, set(), path, "panel")
+    poly = data["polygon"]
+    if not isinstance(poly, list) or len(poly) < 3:
+        raise SessionError(
+            f"panel.polygon must be a list of at least 3 [x, y] pixel corners, got {poly!r}",
+            path=path,
+            hint="e.g. polygon: [[646, 454], [808, 452], [809, 613], [648, 615]]",
+        )
+    corners = []
+    for pt in poly:
+        if not isinstance(pt, list) or len(pt) != 2:
+            raise SessionError(f"panel.polygon: each corner must be [x, y], got {pt!r}", path=path)
+        x, y = (_number(v, path, "panel.polygon corner") for v in pt)
+        if x < 0 or y < 0:
+            raise SessionError(f"panel.polygon: corner {pt!r} has a negative pixel coordinate", path=path)
+        corners.append((x, y))
+    xs, ys = zip(*corners)
+    area2 = sum(xs[i] * ys[i - 1] - xs[i - 1] * ys[i] for i in range(len(corners)))
+    if abs(area2) < 2.0:
+        raise SessionError(f"panel.polygon {poly!r} encloses no area", path=path)
+    return tuple(corners)
+
+
+def load_session(root: str | Path) -> Session:
+    """Read and validate ``SESSION/session.yaml``."""
+    root = Path(root)
+    if not root.is_dir():
+        raise SessionError("session folder not found", path=root, hint="pass the folder that holds session.yaml")
+    path = root / "session.yaml"
+    if not path.is_file():
+        raise SessionError("session.yaml is missing", path=path, hint="see SPEC.md for its keys")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise SessionError(f"not valid YAML{where}", path=path) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise SessionError(f"cannot read: {exc}", path=path) from None
+    if not isinstance(data, dict):
+        raise SessionError("must be a YAML mapping (camera, intrinsics, reflector, marker)", path=path)
+    try:
+        check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes", "panel"}, path, "session.yaml")
+    except MscalError as exc:
+        raise SessionError(exc.reason, path=path, hint=exc.hint) from None
+    camera = load_camera(str(data["camera"]))
+    if "intrinsics" not in data:
+        raise SessionError(
+            "intrinsics are missing",
+            path=path,
+            hint="add intrinsics: {fx, fy, cx, cy, dist} for the band grid",
+        )
+    intr = parse_intrinsics(data["intrinsics"], path)
+
+    refl = data["reflector"]
+    if not isinstance(refl, dict):
+        raise SessionError("reflector must be a mapping {reflectance, size_m}", path=path)
+    check_keys(refl, {"reflectance", "size_m"}, set(), path, "reflector")
+    size = refl["size_m"]
+    if not isinstance(size, list) or len(size) != 2:
+        raise SessionError("reflector.size_m must be [width_m, height_m]", path=path)
+    reflector = ReflectorSpec(
+        reflectance=parse_reflectance(refl["reflectance"], path, "reflector.reflectance"),
+        size_m=(
+            _number(size[0], path, "reflector.size_m", positive=True),
+            _number(size[1], path, "reflector.size_m", positive=True),
+        ),
+    )
+
+    mk = data["marker"]
+    if not isinstance(mk, dict):
+        raise SessionError("marker must be a mapping {dictionary, id, size_m}", path=path)
+    check_keys(mk, {"dictionary", "id", "size_m"}, {"border_m"}, path, "marker")
+    if not isinstance(mk["id"], int) or isinstance(mk["id"], bool) or mk["id"] < 0:
+        raise SessionError(f"marker.id must be a non-negative integer, got {mk['id']!r}", path=path)
+    msize = _number(mk["size_m"], path, "marker.size_m", positive=True)
+    border = _number(mk.get("border_m", 0.25 * msize), path, "marker.border_m")
+    marker = MarkerSpec(dictionary=str(mk["dictionary"]), id=int(mk["id"]), size_m=msize, border_m=max(border, 0.0))
+    if max(msize / 2 + border, 0) >= min(reflector.size_m) / 2:
+        raise SessionError(
+            "the marker and its border cover the whole reflector",
+            path=path,
+            hint="check marker.size_m and reflector.size_m (both in metres)",
+        )
+    panel = parse_panel(data["panel"], path) if data.get("panel") is not None else PanelConfig()
+    return Session(
+        root=root, camera=camera, intrinsics=intr, reflector=reflector, marker=marker, panel_polygon=panel.polygon,
+        panel_marker=panel.marker,
+    )
+
+
+def panel_config_near(folder: str | Path) -> tuple[PanelConfig, Path] | None:
+    """The ``panel`` of the session.yaml in ``folder`` or up to two levels above it
+    (``SESSION/flights/<name>/``), with its path; None if no session.yaml there says one.
+    Only ``panel`` is read: a folder of factory captures needs no other session key."""
+    folder = Path(folder)
+    for d in (folder, folder.parent, folder.parent.parent):
+        path = d / "session.yaml"
+        if path.is_file():
+            try:
+                data = yaml.safe_load(path.read_text())
+            except (OSError, yaml.YAMLError) as exc:
+                raise SessionError(f"session.yaml is unreadable ({type(exc).__name__})", path=path) from None
+            if isinstance(data, dict) and data.get("panel") is not None:
+                return parse_panel(data["panel"], path), path
+            return None
+    return None
+
+
+# --------------------------------------------------------------------------- frame tables
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """One frame and its metadata (from frames.csv, or the file's EXIF where no row exists)."""
+
+    path: Path
+    exposure_ms: float
+    gain: float = 1.0
+    time: str | None = None
+    lat: float | None = None
+    lon: float | None = None
+    alt_m: float | None = None
+    irradiance: float | None = None  # sun-sensor reading (frames.csv column), any unit, > 0
+
+    @property
+    def effective_exposure(self) -> float:
+        """Exposure time x linear gain (ms); the ``t`` of the paper's equations."""
+        return self.exposure_ms * self.gain
+
+    @property
+    def name(self) -> str:
+        return self.path.stem
+
+
+def _parse_float(text: str, csv_path: Path, line: int, column: str) -> float | None:
+    text = (text or "").strip()
+    if not text:
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise FrameError(f"line {line}: {column} {text!r} is not a number", path=csv_path) from None
+    if not math.isfinite(v):
+        raise FrameError(f"line {line}: {column} {text!r} is not finite", path=csv_path)
+    return v
+
+
+def _check_exposure(rec: FrameRecord, where: Path, line: int | None = None) -> None:
+    at = f"line {line}: " if line else ""
+    if not rec.exposure_ms > 0:
+        raise FrameError(
+            f"{at}frame {rec.path.name} has exposure_ms {rec.exposure_ms:g}; it must be positive",
+            path=where,
+            hint="fix the exposure in frames.csv or remove the frame",
+        )
+    if not rec.gain > 0:
+        raise FrameError(f"{at}frame {rec.path.name} has gain {rec.gain:g}; it must be positive", path=where)
+
+
+def read_frame_table(
+    folder: str | Path,
+    *,
+    require_files: bool = True,
+    on_frame_error: Callable[[str, FrameError], None] | None = None,
+) -> list[FrameRecord]:
+    """Frames of a folder with their exposure and position (SPEC.md, Session folder).
+
+    ``frames.csv`` (columns ``file,exposure_ms`` required; ``gain,time,lat,lon,alt_m,irradiance``
+    optional) is read first; image files without a row fall back to their EXIF tags. A frame
+    with no exposure anywhere, a zero or negative exposure, or a listed file that does not
+    exist raises :class:`FrameError` naming the file.
+
+    With ``on_frame_error`` (flights: process as far as possible) such a frame is instead
+    reported as ``on_frame_error(file_name, error)`` and left out; a frame listed twice is
+    left out entirely (its metadata is ambiguous). A table that cannot be read as a whole
+    (missing column, not UTF-8) still raises :class:`SessionError`.
+    """
+    dropped: set[str] = set()  # frames reported to on_frame_error: no EXIF fallback either
+
+    def frame_error(name: str, exc: FrameError) -> None:
+        if on_frame_error is None:
+            raise exc
+        dropped.add(name)
+        on_frame_error(name, exc)
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise SessionError("frame folder not found", path=folder)
+    csv_path = folder / FRAMES_CSV
+    records: dict[str, FrameRecord] = {}
+    if csv_path.is_file():
+        try:
+            with csv_path.open(newline="", encoding="utf-8-sig") as fh:
+                reader = csv.DictReader(fh)
+                cols = [c.strip() for c in (reader.fieldnames or [])]
+                for need in ("file", "exposure_ms"):
+                    if need not in cols:
+                        raise SessionError(
+                            f"column {need!r} is missing (columns: {', '.join(cols) or 'none'})",
+                            path=csv_path,
+                            hint="frames.csv needs at least file,exposure_ms",
+                        )
+                for line, row in enumerate(reader, start=2):
+                    row = {(k or "").strip(): (v or "") for k, v in row.items()}
+                    name = row["file"].strip()
+                    try:
+                        rec = _table_row(folder, csv_path, line, row, name, records, require_files)
+                    except FrameError as exc:
+                        if name in records:  # listed twice: neither row can be trusted
+                            del records[name]
+                        frame_error(name or f"{FRAMES_CSV} line {line}", exc)
+                        continue
+                    if name not in dropped:
+                        records[name] = rec
+        except UnicodeDecodeError:
+            raise SessionError("not a UTF-8 text file", path=csv_path) from None
+    for p in sorted(folder.iterdir()):
+        if p.suffix.lower() in IMAGE_SUFFIXES and p.name not in records and p.name not in dropped:
+            try:
+                records[p.name] = exif_record(p)
+            except FrameError as exc:
+                frame_error(p.name, exc)
+    if not records and not dropped:
+        raise SessionError(
+            "no frames found",
+            path=folder,
+            hint=f"put {', '.join(IMAGE_SUFFIXES)} frames and a frames.csv in the folder",
+        )
+    return sorted(records.values(), key=lambda r: r.path.name)
+
+
+def _table_row(
+    folder: Path,
+    csv_path: Path,
+    line: int,
+    row: dict[str, str],
+    name: str,
+    records: dict[str, FrameRecord],
+    require_files: bool,
+) -> FrameRecord:
+    """One validated frames.csv row (:class:`FrameError` naming the line and the frame)."""
+    if not name:
+        raise FrameError(f"line {line}: empty file name", path=csv_path)
+    exp = _parse_float(row["exposure_ms"], csv_path, line, "exposure_ms")
+    if exp is None:
+        raise FrameError(
+            f"line {line}: frame {name} has no exposure_ms",
+            path=csv_path,
+            hint="every frame needs its exposure time; mscal never guesses one",
+        )
+    gain = _parse_float(row.get("gain", ""), csv_path, line, "gain")
+    rec = FrameRecord(
+        path=folder / name,
+        exposure_ms=exp,
+        gain=1.0 if gain is None else gain,
+        time=_parse_time(row.get("time", ""), csv_path, line),
+        lat=_parse_float(row.get("lat", ""), csv_path, line, "lat"),
+        lon=_parse_float(row.get("lon", ""), csv_path, line, "lon"),
+        alt_m=_parse_float(row.get("alt_m", ""), csv_path, line, "alt_m"),
+        irradiance=_parse_float(row.get("irradiance", ""), csv_path, line, "irradiance"),
+    )
+    _check_exposure(rec, csv_path, line)
+    if rec.irradiance is not None and rec.irradiance <= 0:
+        raise FrameError(f"line {line}: frame {name} has irradiance {rec.irradiance:g}; it must be positive",
+                         path=csv_path, hint="leave the cell empty when the sun sensor gave no reading")
+    if rec.lat is not None and not -90 <= rec.lat <= 90:
+        raise FrameError(f"line {line}: lat {rec.lat} outside [-90, 90]", path=csv_path)
+    if rec.lon is not None and not -180 <= rec.lon <= 180:
+        raise FrameError(f"line {line}: lon {rec.lon} outside [-180, 180]", path=csv_path)
+    if name in records:
+        raise FrameError(f"line {line}: frame {name} is listed twice", path=csv_path)
+    if require_files and not rec.path.is_file():
+        raise FrameError(
+            f"line {line}: frame {name} is listed but the file does not exist",
+            path=csv_path,
+            hint="restore the file or remove its row",
+        )
+    return rec
+
+def _parse_time(text: str, csv_path: Path, line: int) -> str | None:
+    text = (text or "").strip()
+    if not text:
+        return None
+    try:
+        datetime.fromisoformat(text.replace("Z", "+00:00"))
+    except ValueError:
+        raise FrameError(f"line {line}: time {text!r} is not ISO 8601", path=csv_path) from None
+    return text
+
+
+def _ratio(tag: Any) -> float:
+    v = tag.values[0] if hasattr(tag, "values") else tag
+    return float(v.num) / float(v.den) if hasattr(v, "num") else float(v)
+
+
+def _dms(tag: Any) -> float:
+    vals = tag.values
+    return sum(float(v.num) / float(v.den) / 60**k for k, v in enumerate(vals))
+
+
+def signed_gps(lat: float | None, lat_ref: Any, lon: float | None, lon_ref: Any, alt: float | None,
+               below_sea_level: bool) -> tuple[float | None, float | None, float | None]:
+    """EXIF GPS degrees and altitude with their signs from the reference tags (S, W, below)."""
+    if lat is not None and str(lat_ref or "N").strip().upper().startswith("S"):
+        lat = -lat
+    if lon is not None and str(lon_ref or "E").strip().upper().startswith("W"):
+        lon = -lon
+    if alt is not None and below_sea_level:
+        alt = -alt
+    return lat, lon, alt
+
+
+def exif_record(path: Path) -> FrameRecord:
+    """A :class:`FrameRecord` from a file's EXIF tags (ExposureTime, ISO, GPS, DateTimeOriginal)."""
+    import exifread
+
+    try:
+        with path.open("rb") as fh:
+            tags = exifread.process_file(fh, details=False)
+    except OSError as exc:
+        raise FrameError(f"cannot read: {exc.strerror}", path=path) from None
+    except Exception:  # exifread raises a zoo of errors on corrupt files
+        tags = {}
+    exp = tags.get("EXIF ExposureTime")
+    if exp is None:
+        raise FrameError(
+            "no exposure time: the frame has no row in frames.csv and no EXIF ExposureTime",
+            path=path,
+            hint="add a row 'file,exposure_ms' for it to frames.csv",
+        )
+    iso = tags.get("EXIF ISOSpeedRatings")
+    gain = float(iso.values[0]) / 100.0 if iso is not None and iso.values and iso.values[0] else 1.0
+    has_pos = "GPS GPSLatitude" in tags and "GPS GPSLongitude" in tags
+    ref = tags.get("GPS GPSAltitudeRef")
+    lat, lon, alt = signed_gps(
+        _dms(tags["GPS GPSLatitude"]) if has_pos else None, tags.get("GPS GPSLatitudeRef"),
+        _dms(tags["GPS GPSLongitude"]) if has_pos else None, tags.get("GPS GPSLongitudeRef"),
+        _ratio(tags["GPS GPSAltitude"]) if "GPS GPSAltitude" in tags else None,
+        ref is not None and bool(ref.values) and ref.values[0] == 1,
+    )
+    time = None
+    dto = tags.get("EXIF DateTimeOriginal")
+    if dto is not None:
+        m = re.match(r"(\d{4}):(\d{2}):(\d{2}) (\d{2}:\d{2}:\d{2})", str(dto))
+        if m:
+            time = f"{m[1]}-{m[2]}-{m[3]}T{m[4]}"
+    rec = FrameRecord(path=path, exposure_ms=_ratio(exp) * 1000.0, gain=gain, time=time, lat=lat, lon=lon, alt_m=alt)
+    _check_exposure(rec, path)
+    return rec
+
+
+# --------------------------------------------------------------------------- frame files
+
+
+def read_raw(path: str | Path) -> np.ndarray:
+    """Pixels of one frame file as stored (TIFF via tifffile; PNG and JPEG via OpenCV, RGB order)."""
+    path = Path(path)
+    if not path.is_file():
+        raise FrameError("frame file does not exist", path=path)
+    return decode_raw(path, path)
+
+
+def decode_raw(source: bytes | Path, path: str | Path) -> np.ndarray:
+    """Pixels of a frame file, from its bytes or (``source`` a path) from the file itself;
+    ``path`` names the format by its suffix and the file in errors.
+
+    A JPEG without its end-of-image marker is truncated: libjpeg would silently return the
+    decoded part padded with gray, so it is rejected here.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix in (".tif", ".tiff"):
+            import io
+
+            import tifffile
+
+            img = tifffile.imread(io.BytesIO(source) if isinstance(source, (bytes, bytearray)) else source)
+        else:
+            import cv2
+
+            data = source if isinstance(source, (bytes, bytearray)) else Path(source).read_bytes()
+            if suffix in (".jpg", ".jpeg") and data[-2:] != b"\xff\xd9":
+                raise ValueError("JPEG end-of-image marker missing")
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+            if img is None:
+                raise ValueError("OpenCV could not decode it")
+            if img.ndim == 3:
+                img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB if img.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
+    except FrameError:
+        raise
+    except Exception as exc:  # decoders raise many types on truncated/corrupt data
+        raise FrameError(
+            f"unreadable or truncated image ({type(exc).__name__}: {str(exc)[:120]})",
+            path=path,
+            hint="re-copy the file from the camera or remove it from the folder",
+        ) from None
+    img = np.asarray(img)
+    if not np.issubdtype(img.dtype, np.integer):
+        raise FrameError(f"pixel type {img.dtype} is not integer DN", path=path)
+    return img
+
+
+def to_bands(img: np.ndarray, camera: Camera, path: Path | str = "") -> np.ndarray:
+    """Split a stored frame into the camera's band stack ``(band, H, W)`` (uint16 DN)."""
+    lay = camera.layout
+    if lay.kind == "mosaic":
+        if img.ndim != 2:
+            raise FrameError(f"expected a single-channel mosaic, got shape {img.shape}", path=path)
+        if camera.sensor is not None and img.shape != camera.sensor:
+            raise FrameError(
+                f"frame is {img.shape[1]}x{img.shape[0]} but camera {camera.name} has a "
+                f"{camera.sensor[1]}x{camera.sensor[0]} sensor",
+                path=path,
+                hint="is session.yaml naming the right camera?",
+            )
+        assert lay.pattern is not None
+        bands = demosaic(img, lay.pattern, lay.origin, lay.grid)
+    elif lay.kind == "multichannel":
+        if img.ndim != 3 or img.shape[2] < camera.n_bands:
+            raise FrameError(
+                f"expected {camera.n_bands} channels, got shape {img.shape}",
+                path=path,
+                hint=f"camera {camera.name} stores one band per channel",
+            )
+        order = [b.channel for b in camera.bands]
+        bands = np.moveaxis(img[:, :, order], 2, 0)
+    else:
+        if img.ndim != 2:
+            raise FrameError(f"expected a single-band image, got shape {img.shape}", path=path)
+        bands = img[None]
+    if camera.dn_shift:  # e.g. MicaSense: 12-bit DN stored in the high bits of 16-bit samples
+        bands = np.right_shift(bands, camera.dn_shift)
+    top = int(bands.max(initial=0))
+    if top > camera.dn_max:
+        raise FrameError(
+            f"DN {top} exceed the {camera.bit_depth}-bit range of camera {camera.name}",
+            path=path,
+            hint="DN must be in the low bits; check the camera's bit_depth",
+        )
+    return np.ascontiguousarray(bands, dtype=np.uint16)
+
+
+def read_bands(rec: FrameRecord | Path, camera: Camera) -> np.ndarray:
+    """Read one frame and split it into bands (:class:`FrameError` naming the file)."""
+    path = rec.path if isinstance(rec, FrameRecord) else Path(rec)
+    return to_bands(read_raw(path), camera, path)
+
+
+
+__all__ = [
+    "FrameRecord",
+    "InputError",
+    "MarkerSpec",
+    "ReflectorSpec",
+    "Session",
+    "exif_record",
+    "load_session",
+    "read_bands",
+    "read_frame_table",
+    "decode_raw",
+    "read_raw",
+    "to_bands",
+]

@@ -1,0 +1,547 @@
+"""Per-frame TIFFs for photogrammetry software (OpenDroneMap, Pix4D, Metashape).
+
+One single-band TIFF per exported band per frame (``write_band_tiff``) and one NDVI TIFF per
+frame (``write_ndvi_tiff``), each carrying the metadata these tools read:
+
+* IFD0: ``Make``, ``Model``, ``Software``, ``DateTime``, ``XMP`` (tag 700), and for GDAL-based
+  readers ``GDAL_METADATA`` (band description, scale of uint16 data, wavelength in the
+  ``IMAGERY`` domain) and ``GDAL_NODATA``.
+* EXIF IFD (tag 34665): ``ExposureTime``, ``DateTimeOriginal`` (+ ``SubSecTimeOriginal`` /
+  ``SubSecTime`` when the time has a fraction of a second, ``OffsetTimeOriginal`` when it has
+  a time zone), ``ExifVersion``, ``PixelXDimension`` / ``PixelYDimension``.
+* GPS IFD (tag 34853), when the frame has a position: ``GPSVersionID`` 2.3.0.0,
+  ``GPSLatitudeRef`` / ``GPSLatitude``, ``GPSLongitudeRef`` / ``GPSLongitude`` (degrees,
+  minutes, seconds as RATIONALs; seconds to 1e-6"), ``GPSAltitudeRef`` / ``GPSAltitude``
+  (metres to 1 mm), ``GPSMapDatum`` WGS-84, and ``GPSDateStamp`` / ``GPSTimeStamp`` when the
+  time zone is known.
+* XMP, namespace ``Camera`` = ``http://pix4d.com/camera/1.0/`` (Pix4D's camera tags, also read
+  by OpenDroneMap): ``Camera:BandName``, ``Camera:CentralWavelength``,
+  ``Camera:WavelengthFWHM`` as one-item ``rdf:Seq`` elements (Pix4D declares them sequences),
+  ``Camera:CaptureUUID`` and ``Camera:RigCameraIndex`` as attributes of ``rdf:Description``
+  (simple properties; OpenDroneMap's ``opendm/photo.py`` looks the capture UUID up only in
+  that attribute form, ``@Camera:CaptureUUID``).
+
+Times: ``FrameTags.time`` is ISO 8601. A time with a zone (``...Z``, ``+02:00``) is written
+in UTC with ``OffsetTimeOriginal = "+00:00"`` (OpenDroneMap reads ``DateTimeOriginal`` as
+UTC); a naive time is written as given, without an offset.
+
+Pixel encoding of reflectance (``dtype="uint16"``, the default): ``round(R * 32768)`` clipped
+to ``0 .. 65534`` (reflectance 0 .. 2.0 in steps of 3.05e-5) and **65535 for NaN**
+(saturated or invalid pixels), declared by a ``GDAL_NODATA`` tag. 65535 rather than 0 because
+0 is a real reflectance (deep shadow, water in the NIR) that must stay data, and because
+invalid pixels of Eq. 15 are mostly saturated ones, i.e. brighter than anything else: keeping
+them at the top of the range keeps the image's appearance for feature matching and texturing
+instead of punching black holes into bright objects. ``dtype="float32"`` keeps reflectance as
+is with NaN (``GDAL_NODATA = nan``). NDVI TIFFs are float32 with NaN.
+
+The TIFF is written here with ``struct`` (baseline, little-endian, uncompressed strips): it is
+a small, well-defined format and neither GDAL nor tifffile writes EXIF/GPS sub-IFDs. Every file
+is written to a temporary sibling name, fsynced, and renamed (:func:`atomic_path`).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import struct
+import uuid
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from fractions import Fraction
+from pathlib import Path
+from typing import Iterator
+from xml.sax.saxutils import escape, quoteattr
+
+import numpy as np
+
+from mscal_core.errors import CatalogError
+from pipeline.storage.directio import write_file
+
+__all__ = [
+    "BandTags",
+    "FrameTags",
+    "NODATA_UINT16",
+    "REFLECTANCE_SCALE",
+    "XMP_CAMERA_NS",
+    "atomic_path",
+    "build_xmp",
+    "encode_reflectance_uint16",
+    "write_band_tiff",
+    "write_ndvi_tiff",
+]
+
+REFLECTANCE_SCALE = 32768.0
+"""uint16 TIFFs store ``round(reflectance * REFLECTANCE_SCALE)``."""
+NODATA_UINT16 = 65535
+"""uint16 value of NaN (saturated / invalid) pixels; valid data is clipped to 0 .. 65534."""
+XMP_CAMERA_NS = "http://pix4d.com/camera/1.0/"
+SOFTWARE = "mscal"
+
+
+@dataclass(frozen=True)
+class FrameTags:
+    """Metadata of one capture (shared by all its band files)."""
+
+    time: str | None  # ISO 8601
+    lat: float | None
+    lon: float | None
+    alt_m: float | None
+    capture_uuid: str  # one per frame, the same in all its bands
+    exposure_ms: float | None
+    camera_make: str
+    camera_model: str
+
+
+@dataclass(frozen=True)
+class BandTags:
+    """Metadata of one band file of a capture."""
+
+    name: str
+    wavelength_nm: float
+    fwhm_nm: float | None
+    rig_camera_index: int
+
+
+# --------------------------------------------------------------------------- atomic files
+
+
+#: Marks temporary names; a restarted run removes whatever carries it (``apply``).
+TMP_MARK = ".tmp-"
+
+
+@contextmanager
+def atomic_path(path: str | Path, *, durable: bool = False) -> Iterator[Path]:
+    """Yield a temporary sibling of ``path``; on success rename it onto ``path``.
+
+    A killed process leaves either the old file or the complete new one, never a partial one.
+    ``durable`` also fsyncs the file and its folder (survives power loss); per-frame outputs
+    skip it because thousands of fsyncs cost more than the rest of the write, and a run cut
+    by power loss is redone anyway (run.json is written last).
+    The temporary name is hidden (``.<stem>.tmp-<random><suffix>``) and does not exist when
+    yielded: the caller creates it (so the file gets the usual permissions). On any exception
+    the temporary file and any sidecar GDAL left next to it (``<tmp>.aux.xml``, ``<tmp>.ovr``)
+    are removed and the exception propagates; ``path`` is untouched. The parent folder is
+    created if missing.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}{TMP_MARK}{uuid.uuid4().hex[:12]}{path.suffix}")
+    try:
+        yield tmp
+        if not tmp.is_file():
+            raise FileNotFoundError(f"{tmp}: nothing was written to the temporary file for {path}")
+        if durable:
+            fd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        os.replace(tmp, path)
+        if durable:
+            _fsync_dir(path.parent)
+    except BaseException:
+        _remove_tmp(tmp)
+        raise
+    finally:
+        # GDAL may leave PAM sidecars (.aux.xml) next to a temporary raster: never leave them.
+        for ext in _SIDECARS:
+            _remove_tmp(tmp.with_name(tmp.name + ext))
+
+
+_SIDECARS = (".aux.xml", ".ovr", ".msk")
+
+
+def _remove_tmp(tmp: Path) -> None:
+    try:
+        tmp.unlink(missing_ok=True)
+    except OSError:
+        pass
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+# --------------------------------------------------------------------------- pixel encoding
+
+
+def encode_reflectance_uint16(reflectance: np.ndarray) -> np.ndarray:
+    """``round(R * 32768)`` clipped to 0 .. 65534, NaN -> 65535 (:data:`NODATA_UINT16`).
+
+    In float32 throughout: scaling by a power of two and rounding to an integer are exact in
+    float32 for every value the clip keeps, so this equals the float64 computation."""
+    r = np.asarray(reflectance, dtype=np.float32)
+    v = r * np.float32(REFLECTANCE_SCALE)
+    np.rint(v, out=v)
+    np.clip(v, 0.0, float(NODATA_UINT16 - 1), out=v)  # NaN stays NaN
+    with np.errstate(invalid="ignore"):
+        out = v.astype(np.uint16)
+    out[np.isnan(v)] = NODATA_UINT16
+    return out
+
+
+# --------------------------------------------------------------------------- TIFF writing
+
+_BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _UNDEFINED = 1, 2, 3, 4, 5, 7
+_TYPE_SIZE = {_BYTE: 1, _ASCII: 1, _SHORT: 2, _LONG: 4, _RATIONAL: 8, _UNDEFINED: 1}
+_U32 = 0xFFFFFFFF
+
+
+def _align(n: int, a: int = 4) -> int:
+    return (n + a - 1) // a * a
+
+
+class _IFD:
+    """One TIFF image file directory: entries (tag, type, count, value bytes)."""
+
+    def __init__(self) -> None:
+        self.entries: dict[int, tuple[int, int, bytes]] = {}
+
+    def add(self, tag: int, typ: int, values) -> None:
+        if typ == _ASCII:
+            data = _ascii(values)
+            count = len(data)
+        elif typ in (_BYTE, _UNDEFINED):
+            data = bytes(values)
+            count = len(data)
+        elif typ == _SHORT:
+            vals = list(values)
+            data = struct.pack(f"<{len(vals)}H", *vals)
+            count = len(vals)
+        elif typ == _LONG:
+            vals = list(values)
+            data = struct.pack(f"<{len(vals)}I", *vals)
+            count = len(vals)
+        elif typ == _RATIONAL:
+            vals = [_rational(v) for v in values]
+            data = b"".join(struct.pack("<II", n, d) for n, d in vals)
+            count = len(vals)
+        else:  # pragma: no cover - programming error
+            raise ValueError(f"unsupported TIFF type {typ}")
+        self.entries[tag] = (typ, count, data)
+
+    def serialize(self, base: int) -> bytes:
+        """The IFD at absolute file offset ``base`` (4-aligned), followed by its large values."""
+        assert base % 4 == 0
+        n = len(self.entries)
+        head = 2 + 12 * n + 4
+        overflow = bytearray()
+        table = bytearray(struct.pack("<H", n))
+        for tag in sorted(self.entries):
+            typ, count, data = self.entries[tag]
+            if len(data) <= 4:
+                table += struct.pack("<HHI", tag, typ, count) + data.ljust(4, b"\0")
+            else:
+                pad = _align(base + head + len(overflow)) - (base + head + len(overflow))
+                overflow += b"\0" * pad
+                table += struct.pack("<HHII", tag, typ, count, base + head + len(overflow))
+                overflow += data
+        table += struct.pack("<I", 0)  # no next IFD
+        out = bytes(table) + bytes(overflow)
+        return out + b"\0" * (_align(len(out)) - len(out))
+
+
+def _ascii(text: str) -> bytes:
+    return str(text).encode("ascii", errors="replace") + b"\0"
+
+
+def _rational(v) -> tuple[int, int]:
+    if isinstance(v, tuple):
+        n, d = v
+    else:
+        f = Fraction(v)
+        if f.denominator > _U32 or f.numerator > _U32:
+            bound = min(_U32, int(_U32 / max(float(f), 1.0)))
+            f = f.limit_denominator(max(bound, 1))
+        n, d = f.numerator, f.denominator
+    if not (0 <= n <= _U32 and 0 < d <= _U32):
+        raise ValueError(f"value {v!r} does not fit an unsigned TIFF RATIONAL")
+    return int(n), int(d)
+
+
+def _exposure_rational(exposure_ms: float) -> tuple[int, int]:
+    """Exposure time in seconds as a reduced fraction (2.5 ms -> 1/400)."""
+    secs = exposure_ms / 1000.0
+    denom = 1_000_000_000
+    while denom > 1 and secs * denom > _U32:
+        denom //= 10
+    f = Fraction(round(secs * denom), denom)
+    if f == 0:
+        f = Fraction(1, _U32)  # shorter than a nanosecond: the smallest positive value
+    return f.numerator, f.denominator
+
+
+def _dms(deg: float) -> list[tuple[int, int]]:
+    """|deg| as (degrees/1, minutes/1, seconds/1e6) with exact integer carry."""
+    micro = round(abs(deg) * 3600 * 1_000_000)
+    d, rem = divmod(micro, 3600 * 1_000_000)
+    m, s = divmod(rem, 60 * 1_000_000)
+    return [(int(d), 1), (int(m), 1), (int(s), 1_000_000)]
+
+
+def _finite(v: float | None) -> float | None:
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def _parse_time(text: str | None) -> tuple[datetime, bool] | None:
+    """(datetime, zone_known): aware times converted to UTC; None if no time."""
+    if text is None or str(text).strip() in ("", "NaT", "nan", "None"):
+        return None
+    s = str(text).strip()
+    try:
+        t = datetime.fromisoformat(s)
+    except ValueError:
+        raise ValueError(f"frame time {text!r} is not ISO 8601") from None
+    if t.tzinfo is not None:
+        return t.astimezone(timezone.utc).replace(tzinfo=None), True
+    return t, False
+
+
+def _check_band_name(name: str) -> None:
+    if not name or name[0].isdigit() or name[0] in ",()":
+        raise CatalogError(
+            f"band name {name!r} cannot be written to Camera:BandName",
+            hint="Pix4D band names must not be empty or start with a digit, ',', '(' or ')'; rename the band "
+            "in the camera catalog (e.g. 'b670')",
+        )
+
+
+def build_xmp(
+    *, band_name: str, capture_uuid: str, wavelength_nm: float | None = None, fwhm_nm: float | None = None,
+    rig_camera_index: int | None = None,
+) -> bytes:
+    """The XMP packet (UTF-8) with the Pix4D ``Camera`` tags of one band file."""
+    attrs = [f"Camera:CaptureUUID={quoteattr(str(capture_uuid))}"]
+    if rig_camera_index is not None:
+        attrs.append(f'Camera:RigCameraIndex="{int(rig_camera_index)}"')
+
+    def seq(tag: str, value: str) -> str:
+        return (f"   <Camera:{tag}>\n    <rdf:Seq>\n     <rdf:li>{escape(value)}</rdf:li>\n"
+                f"    </rdf:Seq>\n   </Camera:{tag}>\n")
+
+    body = seq("BandName", band_name)
+    if wavelength_nm is not None:
+        body += seq("CentralWavelength", _num(wavelength_nm))
+    if fwhm_nm is not None:
+        body += seq("WavelengthFWHM", _num(fwhm_nm))
+    attr_text = "\n    ".join(attrs)
+    text = (
+        '<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
+        '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
+        ' <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n'
+        f'  <rdf:Description rdf:about=""\n    xmlns:Camera="{XMP_CAMERA_NS}"\n    {attr_text}>\n'
+        f"{body}"
+        "  </rdf:Description>\n"
+        " </rdf:RDF>\n"
+        "</x:xmpmeta>\n"
+        '<?xpacket end="w"?>'
+    )
+    return text.encode("utf-8")
+
+
+def _num(v: float) -> str:
+    v = float(v)
+    return str(int(v)) if v.is_integer() else repr(v)
+
+
+def _gdal_metadata(description: str, *, scale: float | None, wavelength_nm: float | None,
+                   fwhm_nm: float | None) -> str:
+    items = [f'  <Item name="DESCRIPTION" sample="0" role="description">{escape(description)}</Item>']
+    if scale is not None:
+        items.append(f'  <Item name="SCALE" sample="0" role="scale">{scale!r}</Item>')
+        items.append('  <Item name="OFFSET" sample="0" role="offset">0</Item>')
+    if wavelength_nm is not None:
+        items.append(f'  <Item name="CENTRAL_WAVELENGTH_UM" sample="0" domain="IMAGERY">'
+                     f"{float(wavelength_nm) / 1000.0!r}</Item>")
+    if fwhm_nm is not None:
+        items.append(f'  <Item name="FWHM_UM" sample="0" domain="IMAGERY">{float(fwhm_nm) / 1000.0!r}</Item>')
+    return "<GDALMetadata>\n" + "\n".join(items) + "\n</GDALMetadata>"
+
+
+def _write_tiff(
+    path: Path, data: np.ndarray, frame: FrameTags, *, xmp: bytes, gdal_metadata: str, nodata: str,
+) -> None:
+    """Baseline little-endian TIFF of one (H, W) uint16/float32 image with EXIF, GPS and XMP."""
+    if data.ndim != 2 or data.shape[0] < 1 or data.shape[1] < 1:
+        raise ValueError(f"expected a non-empty (H, W) image, got shape {data.shape}")
+    h, w = data.shape
+    if data.dtype == np.uint16:
+        pixels, bits, sample_format = data.astype("<u2", copy=False), 16, 1
+    elif data.dtype == np.float32:
+        pixels, bits, sample_format = data.astype("<f4", copy=False), 32, 3
+    else:  # pragma: no cover - internal
+        raise ValueError(f"unsupported dtype {data.dtype}")
+    row_bytes = w * bits // 8
+    rows_per_strip = max(1, min(h, (256 * 1024) // row_bytes))
+    n_strips = -(-h // rows_per_strip)
+    strip_counts = [min(rows_per_strip, h - i * rows_per_strip) * row_bytes for i in range(n_strips)]
+
+    tparsed = _parse_time(frame.time)
+    lat, lon, alt = _finite(frame.lat), _finite(frame.lon), _finite(frame.alt_m)
+    has_gps = lat is not None and lon is not None
+
+    # EXIF IFD
+    exif = _IFD()
+    exif.add(36864, _UNDEFINED, b"0232")  # ExifVersion 2.32
+    exif.add(40962, _LONG, [w])  # PixelXDimension
+    exif.add(40963, _LONG, [h])  # PixelYDimension
+    exposure = _finite(frame.exposure_ms)
+    if exposure is not None and exposure > 0:
+        exif.add(33434, _RATIONAL, [_exposure_rational(exposure)])  # ExposureTime (s)
+    date_text = None
+    if tparsed is not None:
+        t, zoned = tparsed
+        date_text = t.strftime("%Y:%m:%d %H:%M:%S")
+        exif.add(36867, _ASCII, date_text)  # DateTimeOriginal
+        exif.add(36868, _ASCII, date_text)  # DateTimeDigitized
+        if t.microsecond:
+            sub = f"{t.microsecond:06d}".rstrip("0")
+            exif.add(37521, _ASCII, sub)  # SubSecTimeOriginal
+            exif.add(37522, _ASCII, sub)  # SubSecTimeDigitized
+            exif.add(37520, _ASCII, sub)  # SubSecTime (of DateTime, which is the capture time too)
+        if zoned:
+            exif.add(36881, _ASCII, "+00:00")  # OffsetTimeOriginal
+            exif.add(36880, _ASCII, "+00:00")  # OffsetTime
+
+    gps = None
+    if has_gps:
+        assert lat is not None and lon is not None
+        if not (-90 <= lat <= 90 and -180 <= lon <= 180):
+            raise ValueError(f"GPS position ({lat}, {lon}) is not WGS84 degrees")
+        gps = _IFD()
+        gps.add(0, _BYTE, [2, 3, 0, 0])  # GPSVersionID
+        gps.add(1, _ASCII, "N" if lat >= 0 else "S")
+        gps.add(2, _RATIONAL, _dms(lat))
+        gps.add(3, _ASCII, "E" if lon >= 0 else "W")
+        gps.add(4, _RATIONAL, _dms(lon))
+        if alt is not None:
+            gps.add(5, _BYTE, [0 if alt >= 0 else 1])  # GPSAltitudeRef: above / below sea level
+            gps.add(6, _RATIONAL, [(round(abs(alt) * 1000), 1000)])
+        if tparsed is not None and tparsed[1]:
+            t = tparsed[0]
+            secs_micro = t.second * 1_000_000 + t.microsecond
+            gps.add(7, _RATIONAL, [(t.hour, 1), (t.minute, 1), (secs_micro, 1_000_000)])  # GPSTimeStamp (UTC)
+        gps.add(18, _ASCII, "WGS-84")  # GPSMapDatum
+        if tparsed is not None and tparsed[1]:
+            gps.add(29, _ASCII, tparsed[0].strftime("%Y:%m:%d"))  # GPSDateStamp (UTC)
+
+    # IFD0
+    ifd0 = _IFD()
+    ifd0.add(254, _LONG, [0])  # NewSubfileType
+    ifd0.add(256, _LONG, [w])
+    ifd0.add(257, _LONG, [h])
+    ifd0.add(258, _SHORT, [bits])
+    ifd0.add(259, _SHORT, [1])  # no compression
+    ifd0.add(262, _SHORT, [1])  # BlackIsZero
+    ifd0.add(271, _ASCII, frame.camera_make or "unknown")
+    ifd0.add(272, _ASCII, frame.camera_model or "unknown")
+    ifd0.add(273, _LONG, [0] * n_strips)  # StripOffsets, patched below
+    ifd0.add(274, _SHORT, [1])  # Orientation: top-left
+    ifd0.add(277, _SHORT, [1])
+    ifd0.add(278, _LONG, [rows_per_strip])
+    ifd0.add(279, _LONG, strip_counts)
+    ifd0.add(282, _RATIONAL, [(72, 1)])
+    ifd0.add(283, _RATIONAL, [(72, 1)])
+    ifd0.add(284, _SHORT, [1])  # chunky
+    ifd0.add(296, _SHORT, [2])  # inch
+    ifd0.add(305, _ASCII, SOFTWARE)
+    if date_text is not None:
+        ifd0.add(306, _ASCII, date_text)  # DateTime: the capture time, so outputs are reproducible
+    ifd0.add(339, _SHORT, [sample_format])
+    ifd0.add(700, _BYTE, xmp)
+    ifd0.add(34665, _LONG, [0])  # ExifIFD, patched below
+    if gps is not None:
+        ifd0.add(34853, _LONG, [0])  # GPSInfo, patched below
+    ifd0.add(42112, _ASCII, gdal_metadata)
+    ifd0.add(42113, _ASCII, nodata)
+
+    # layout: header | IFD0 (+values) | EXIF IFD | GPS IFD | pixel strips
+    pos0 = 8
+    exif_pos = pos0 + len(ifd0.serialize(pos0))
+    gps_pos = exif_pos + len(exif.serialize(exif_pos))
+    end = gps_pos + (len(gps.serialize(gps_pos)) if gps is not None else 0)
+    data_pos = _align(end, 16)
+    offsets, p = [], data_pos
+    for c in strip_counts:
+        offsets.append(p)
+        p += c
+    if p > _U32:
+        raise ValueError(f"image of {w}x{h} is too large for a classic TIFF")
+    ifd0.add(273, _LONG, offsets)
+    ifd0.add(34665, _LONG, [exif_pos])
+    if gps is not None:
+        ifd0.add(34853, _LONG, [gps_pos])
+
+    head = bytearray(b"II" + struct.pack("<HI", 42, pos0))
+    head += ifd0.serialize(pos0)
+    assert len(head) == exif_pos
+    head += exif.serialize(exif_pos)
+    if gps is not None:
+        assert len(head) == gps_pos
+        head += gps.serialize(gps_pos)
+    head += b"\0" * (data_pos - len(head))
+    write_file(path, [head, np.ascontiguousarray(pixels)])
+
+
+# --------------------------------------------------------------------------- public writers
+
+
+def write_band_tiff(
+    path: str | Path, reflectance: np.ndarray, frame: FrameTags, band: BandTags, *, dtype: str = "uint16",
+) -> Path:
+    """Write one band of one frame as a TIFF for photogrammetry; returns ``path``.
+
+    ``reflectance`` is ``(H, W)`` float32, NaN where saturated or invalid. ``dtype="uint16"``
+    stores ``round(R * 32768)`` clipped to 0 .. 65534 with NaN -> 65535 (GDAL_NODATA 65535,
+    GDAL scale 1/32768); ``dtype="float32"`` stores R with NaN (GDAL_NODATA nan).
+    """
+    path = Path(path)
+    refl = np.asarray(reflectance)
+    if refl.ndim != 2:
+        raise ValueError(f"reflectance must be (H, W), got shape {refl.shape}")
+    _check_band_name(band.name)
+    if dtype == "uint16":
+        data, scale, nodata = encode_reflectance_uint16(refl), 1.0 / REFLECTANCE_SCALE, str(NODATA_UINT16)
+    elif dtype == "float32":
+        data, scale, nodata = refl.astype(np.float32, copy=False), None, "nan"
+    else:
+        raise ValueError(f"dtype must be 'uint16' or 'float32', got {dtype!r}")
+    xmp = build_xmp(
+        band_name=band.name, capture_uuid=frame.capture_uuid, wavelength_nm=band.wavelength_nm,
+        fwhm_nm=band.fwhm_nm, rig_camera_index=band.rig_camera_index,
+    )
+    meta = _gdal_metadata(band.name, scale=scale, wavelength_nm=band.wavelength_nm, fwhm_nm=band.fwhm_nm)
+    with atomic_path(path) as tmp:
+        _write_tiff(tmp, data, frame, xmp=xmp, gdal_metadata=meta, nodata=nodata)
+    return path
+
+
+def write_ndvi_tiff(path: str | Path, ndvi: np.ndarray, frame: FrameTags) -> Path:
+    """Write the NDVI of one frame as a float32 TIFF (NaN kept) with the frame's EXIF/GPS tags.
+
+    The XMP names the band ``NDVI`` and carries the frame's capture UUID, without a rig camera
+    index or wavelength: keep NDVI TIFFs in their own folder, apart from the band TIFFs, or
+    photogrammetry software will take NDVI for one more band of the rig.
+    """
+    path = Path(path)
+    arr = np.asarray(ndvi)
+    if arr.ndim != 2:
+        raise ValueError(f"ndvi must be (H, W), got shape {arr.shape}")
+    xmp = build_xmp(band_name="NDVI", capture_uuid=frame.capture_uuid)
+    meta = _gdal_metadata("ndvi", scale=None, wavelength_nm=None, fwhm_nm=None)
+    with atomic_path(path) as tmp:
+        _write_tiff(tmp, arr.astype(np.float32, copy=False), frame, xmp=xmp, gdal_metadata=meta, nodata="nan")
+    return path

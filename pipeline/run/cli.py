@@ -1,0 +1,491 @@
+"""The ``mscal`` command line (SPEC.md, Command line).
+
+Exit status 0 on success; on bad input a one-line reason on stderr and exit status 2, never a
+traceback (an :class:`~mscal_core.errors.MscalError` is always caught here).
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import logging
+import os
+import sys
+import time
+from typing import Any
+from pathlib import Path
+
+import click
+
+from mscal_core.errors import MscalError
+
+RESPONSE_METHODS = click.Choice(["forward", "alternating"])
+ILLUMINATION_MODES = click.Choice(["nearest", "linear"])  # mscal_core.illumination.INTERPOLATION_MODES
+
+
+def _summary(ds) -> str:  # noqa: ANN001 (xarray Dataset)
+    parts = [f"camera {ds.attrs.get('camera')}", f"{ds.sizes.get('band')} bands"]
+    for stage in ("response", "vignetting", "illumination"):
+        rep = ds.attrs.get(stage)
+        if rep:
+            skipped = len(rep.get("skipped", []))
+            parts.append(f"{stage} {rep.get('seconds', 0):.1f} s" + (f" ({skipped} frame(s) skipped)" if skipped else ""))
+    return ", ".join(parts)
+
+
+def _report_skips(ds) -> None:  # noqa: ANN001
+    for stage in ("response", "vignetting", "illumination"):
+        for s in (ds.attrs.get(stage) or {}).get("skipped", []):
+            click.echo(f"skipped {stage} frame {s['file']}: {s['reason']}", err=True)
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.option("-v", "--verbose", is_flag=True, help="Log progress of each stage.")
+def cli(verbose: bool) -> None:
+    """mscal: field radiometric calibration of multispectral cameras (Khanna et al., ICRA 2017)."""
+    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(name)s: %(message)s")
+
+
+@cli.command()
+@click.argument("session", type=click.Path(path_type=Path))
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path), help="Calibration store (.zarr) to write.")
+@click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True,
+              help="'forward' fits the response with the noise on DN; 'alternating' is the paper's Eq. 6/7.")
+def calibrate(session: Path, out: Path, response_method: str) -> None:
+    """All three fits of a SESSION folder: response, vignetting, illumination."""
+    from pipeline.calibrate.fit import calibrate_session
+
+    t0 = time.perf_counter()
+    ds = calibrate_session(session, out, response_method=response_method)
+    _report_skips(ds)
+    click.echo(f"wrote {out} ({_summary(ds)}; {time.perf_counter() - t0:.1f} s)")
+
+
+@cli.group()
+def fit() -> None:
+    """One fit at a time."""
+
+
+@fit.command("response")
+@click.argument("directory", type=click.Path(path_type=Path))
+@click.option("--camera", "camera", default=None, help="Camera catalog name (required for a plain frame folder).")
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
+@click.option("--method", type=RESPONSE_METHODS, default="forward", show_default=True)
+def fit_response(directory: Path, camera: str | None, out: Path, method: str) -> None:
+    """Inverse response U per band (Eq. 5-7) from DIRECTORY: a frame folder with frames.csv,
+    or a session (its response/ folder)."""
+    from pipeline.calibrate.fit import fit_response_cli
+
+    ds = fit_response_cli(directory, out, camera, method)
+    click.echo(f"wrote {out} ({_summary(ds)})")
+
+
+def _stage_command(stage: str):  # noqa: ANN202
+    @click.argument("session", type=click.Path(path_type=Path))
+    @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
+    @click.option("--calibration", "partial", default=None, type=click.Path(path_type=Path),
+                  help="A store holding the earlier fits; without it they are fitted from SESSION.")
+    def command(session: Path, out: Path, partial: Path | None) -> None:
+        from pipeline.calibrate.fit import fit_stage_cli
+
+        ds = fit_stage_cli(stage, session, out, partial)
+        _report_skips(ds)
+        click.echo(f"wrote {out} ({_summary(ds)})")
+
+    command.__doc__ = {
+        "vignetting": "Per-pixel, per-band vignetting V (Eq. 8-10) from SESSION/vignetting.",
+        "illumination": "Spectral factor S and reflector brightness B (Eq. 11-14) from SESSION/reflector.",
+    }[stage]
+    return fit.command(stage)(command)
+
+
+_stage_command("vignetting")
+_stage_command("illumination")
+
+
+@cli.command()
+@click.argument("captures", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
+              help="Calibration store (.zarr): the registration is added to it, or a new store is created.")
+@click.option("--camera", default=None, help="Camera catalog name (default: the existing store's camera).")
+@click.option("--reference", default=None, help="Band to align to (default: the lens in the middle of the rig).")
+@click.option("--min-ecc", default=0.3, show_default=True, type=float,
+              help="Reject a band's transform whose gradient correlation after alignment is lower.")
+@click.option("--max-captures", default=12, show_default=True, type=int,
+              help="Register at most this many captures, evenly spread over those given.")
+def register(captures: tuple[Path, ...], out: Path, camera: str | None, reference: str | None, min_ecc: float,
+             max_captures: int) -> None:
+    """Band co-registration of a multi-lens camera from CAPTURES (folders or band files): one
+    homography per band to the reference band, stored with its quality figures."""
+    from mscal_core.registration import Thresholds
+
+    from pipeline.calibrate.registration import register_cli
+
+    t0 = time.perf_counter()
+    ds, problems = register_cli(list(captures), out, camera, reference, Thresholds(min_ecc=min_ecc), max_captures)
+    for p in problems:
+        click.echo(f"not used {p['file']}: {p['reason']}", err=True)
+    reg = ds.attrs["registration"]
+    for f in reg["fallbacks"]:
+        click.echo(f"capture {f['capture']} fell back to the session transform for {', '.join(f['bands'])}: {f['reason']}",
+                   err=True)
+    spread = ", ".join(f"{n} {s:.2f}" for n, s in zip(ds["band_name"].values, ds["registration_spread_px"].values))
+    click.echo(f"wrote {out} (reference band {reg['reference_band']}; {len(reg['captures'])} of {reg['registered_of']} "
+               f"captures registered, {len(reg['fallbacks'])} fell back; spread px: {spread}; "
+               f"{time.perf_counter() - t0:.1f} s)")
+
+
+@cli.command()
+@click.argument("flight", type=click.Path(path_type=Path))
+@click.option("--calibration", "calibration", required=True,
+              help="Calibration store (.zarr) from 'mscal calibrate', or 'factory' for cameras with factory metadata.")
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path), help="Output folder.")
+@click.option("--normalise", default="relative", show_default=True,
+              help="relative (Eq. 15 as is), band:<name or nm> (that band's median is 1 in every frame), "
+                   "or panel (see --panel).")
+@click.option("--panel", default=None, help="FRAME:x0,y0,x1,y1 region of known reflectance (band-grid pixels). "
+              "With --calibration factory: the panel capture name(s), comma-separated (default: found among "
+              "the folder's first and last captures).")
+@click.option("--panel-reflectance", default=None, help="Reflectance of the panel: a number or a target name.")
+@click.option("--reference", default="auto", show_default=True, type=click.Choice(["auto", "panel", "dls"]),
+              help="--calibration factory only: reflectance from a panel capture or from the sun sensor (DLS); "
+                   "auto takes the panel when --panel-reflectance is given.")
+@click.option("--float32", "float32", is_flag=True, help="Photogrammetry TIFFs as float32 instead of uint16 x 32768.")
+@click.option("--export-bands", default=None, help="Comma-separated band names for the per-frame TIFFs (default: the camera's).")
+@click.option("--strict", is_flag=True, help="Exit non-zero if any frame was quarantined.")
+@click.option("--illumination", type=ILLUMINATION_MODES, default="linear", show_default=True,
+              help="Light of each frame between several reflector captures: the nearest capture in time, or "
+                   "linear in time (irradiance readings, if any, scale the brightness in both).")
+@click.option("--no-align", "no_align", is_flag=True,
+              help="Keep each band on its own pixel grid even if the calibration has band transforms ('mscal register').")
+@click.option("--registration", default=None, type=click.Path(path_type=Path),
+              help="--calibration factory: align the bands with the transforms of this store ('mscal register').")
+@click.option("--centre-bands", "centre_bands", is_flag=True,
+              help="Snapshot mosaics: resample every band to the mosaic's centre position (sub-pixel band offsets).")
+@click.option("--field-calibration", default=None, type=click.Path(path_type=Path),
+              help="--calibration factory: take components of the radiance model from this field calibration "
+                   "of the same camera ('mscal calibrate' / 'mscal fit') instead of the factory's.")
+@click.option("--field-components", default=None,
+              help="With --field-calibration: response and/or vignetting, comma-separated (default: those the "
+                   "store holds). E.g. 'vignetting': field V (Eq. 8-10) with the factory response.")
+def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str | None, panel_reflectance: str | None,
+          reference: str, float32: bool, export_bands: str | None, strict: bool,
+          illumination: str, no_align: bool, registration: Path | None, centre_bands: bool,
+          field_calibration: Path | None, field_components: str | None) -> None:
+    """Reflectance (Eq. 15), indices and photogrammetry TIFFs for a FLIGHT folder; with
+    --calibration factory, for a folder of one-file-per-band captures from their factory metadata."""
+    from mscal_core.errors import InputError
+
+    from pipeline.apply.flight import ApplyOptions, PanelSpec, apply_flight
+
+    bands = tuple(b.strip() for b in export_bands.split(",")) if export_bands else None
+    if calibration == "factory":
+        from pipeline.apply.factory import FactoryOptions, apply_factory
+
+        if normalise != "relative":
+            raise InputError("--normalise is for field calibrations; with --calibration factory use --reference")
+        fopts = FactoryOptions(
+            reference=reference, panel_captures=tuple(p.strip() for p in panel.split(",")) if panel else (),
+            panel_reflectance=panel_reflectance, tiff_dtype="float32" if float32 else "uint16",
+            export_bands=bands, strict=strict,
+            registration=None if (registration is None or no_align) else str(registration),
+            field_calibration=None if field_calibration is None else str(field_calibration),
+            field_components=tuple(c.strip() for c in field_components.split(",") if c.strip())
+            if field_components else (),
+        )
+        _report_apply(apply_factory(flight, out, fopts), out, strict)
+        return
+    if reference != "auto":
+        raise InputError("--reference is for --calibration factory")
+    if field_calibration is not None or field_components is not None:
+        raise InputError("--field-calibration/--field-components are for --calibration factory; "
+                         "--calibration CALIB.zarr already uses every field fit")
+    if registration is not None:
+        raise InputError("--registration is for --calibration factory; a field calibration holds its own band "
+                         "transforms ('mscal register CAPTURES -o CALIB.zarr')")
+    if (panel is None) != (panel_reflectance is None):
+        raise InputError("--panel and --panel-reflectance go together")
+    spec = PanelSpec.parse(panel, panel_reflectance) if panel else None
+    if spec is not None and normalise == "relative":
+        normalise = "panel"
+    opts = ApplyOptions(
+        normalise=normalise, panel=spec, tiff_dtype="float32" if float32 else "uint16",
+        export_bands=bands, strict=strict, illumination=illumination, align=not no_align, centre_bands=centre_bands,
+    )
+    _report_apply(apply_flight(flight, calibration, out, opts), out, strict)
+
+
+def _report_apply(res: Any, out: Path, strict: bool) -> None:
+    for q in res.quarantined:
+        click.echo(f"quarantined {q['file']}: {q['reason']}", err=True)
+    state = "up to date" if res.up_to_date else f"{res.run['timings_s']['total']:.1f} s"
+    click.echo(f"wrote {out} ({res.run['frames_out']} frames, {len(res.quarantined)} quarantined; {state})")
+    if strict and res.quarantined:
+        raise SystemExit(3)
+
+
+@cli.command()
+@click.argument("ortho", type=click.Path(path_type=Path))
+@click.option("--index", "index_name", default="ndvi", show_default=True, help="Index name from catalogs/indices.")
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
+@click.option("--bands", default=None, help="Band numbers of the roles, e.g. red=3,nir=5 (default: from band descriptions).")
+def index(ortho: Path, index_name: str, out: Path, bands: str | None) -> None:
+    """Index map of a reflectance orthomosaic as a Cloud Optimized GeoTIFF."""
+    from mscal_core.errors import InputError
+
+    from pipeline.products.indexmap import index_map
+
+    mapping = None
+    if bands:
+        try:
+            mapping = {k.strip(): int(v) for k, v in (item.split("=") for item in bands.split(","))}
+        except ValueError:
+            raise InputError(f"--bands {bands!r} is not ROLE=NUMBER,...", hint="e.g. --bands red=3,nir=5") from None
+    index_map(ortho, index_name, out, bands=mapping)
+    click.echo(f"wrote {out}")
+
+
+@cli.command()
+@click.argument("root", type=click.Path(path_type=Path))
+@click.option("--project-level", type=int, default=None,
+              help="Collections by the folder this many levels below ROOT (0: one collection named after ROOT; "
+                   "default: as the catalog was built, else 0). mscal-project.yaml files override it.")
+@click.option("--validate-only", is_flag=True, help="Only validate ROOT/catalog.json and everything it links to.")
+def catalog(root: Path, project_level: int | None, validate_only: bool) -> None:
+    """Build or update the STAC catalog ROOT/catalog.json of every flight under ROOT
+    (one collection per project, one item per flight), validated offline."""
+    from pipeline.products.stac import update_catalog, validate_catalog
+
+    if validate_only:
+        n = validate_catalog(root)
+        click.echo(f"{root / 'catalog.json'}: {n} STAC object(s) valid")
+        return
+    s = update_catalog(root, project_level=project_level)
+    for key in s["removed"]:
+        click.echo(f"removed {key} (its flight is gone)", err=True)
+    click.echo(f"wrote {s['catalog']} ({s['items']} item(s) in {len(s['collections'])} collection(s): "
+               f"{len(s['added'])} added, {len(s['updated'])} updated, {s['unchanged']} unchanged, "
+               f"{len(s['removed'])} removed)")
+
+
+@cli.command()
+@click.argument("orthos", nargs=-1, type=click.Path(path_type=Path))
+@click.option("--fields", "fields_path", required=True, type=click.Path(path_type=Path),
+              help="GeoJSON of the fields (polygons; WGS 84 unless it names a CRS or --fields-crs is given).")
+@click.option("--index", "index_name", default="ndvi", show_default=True, help="Index name from catalogs/indices.")
+@click.option("--catalog", "catalog_path", default=None, type=click.Path(path_type=Path),
+              help="An mscal catalog (ROOT or ROOT/catalog.json): every flight's index map or orthomosaic.")
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
+              help="Table to write: OUT.parquet and OUT.csv.")
+@click.option("--bands", default=None, help="Band numbers of the roles in the orthomosaics, e.g. red=3,nir=5.")
+@click.option("--id-property", default=None, help="Feature property holding the field id (default: id, field_id, name, fid).")
+@click.option("--fields-crs", default=None, help="CRS of the fields file when it names none and is not lon/lat.")
+@click.option("--workers", type=int, default=None, help="Mosaics processed at once (default: one per core).")
+@click.option("--plot", "plot", default=None, type=click.Path(path_type=Path),
+              help="Also write a self-contained HTML page with each field's season plot.")
+def stats(orthos: tuple[Path, ...], fields_path: Path, index_name: str, catalog_path: Path | None, out: Path,
+          bands: str | None, id_property: str | None, fields_crs: str | None, workers: int | None,
+          plot: Path | None) -> None:
+    """Per-field statistics (mean, median, std, p10, p90, valid fraction) of an index over
+    reflectance orthomosaics ORTHOS and/or the flights of a --catalog, as a tidy table."""
+    from pipeline.products.indexmap import parse_bands_option
+    from pipeline.products.zonal import mosaics_from_catalog, mosaics_from_files, read_fields, write_table, zonal_table
+
+    fields = read_fields(fields_path, id_property=id_property, crs=fields_crs)
+    mosaics = mosaics_from_files(orthos) if orthos else []
+    if catalog_path is not None:
+        skipped: list[str] = []
+        mosaics += mosaics_from_catalog(catalog_path, index_name, skipped)
+        if skipped:
+            click.echo(f"{len(skipped)} flight(s) of the catalog have no orthomosaic or {index_name} map, so no "
+                       f"statistics: {', '.join(skipped[:10])}{' ...' if len(skipped) > 10 else ''}", err=True)
+    t0 = time.perf_counter()
+    df = zonal_table(fields, mosaics, index_name, bands=parse_bands_option(bands) if bands else None, workers=workers)
+    pq, csv = write_table(df, out)
+    for r in df[df["status"] != "ok"].itertuples():
+        click.echo(f"field {r.field_id}{' on ' + r.flight if r.flight else ''}: {r.status}", err=True)
+    click.echo(f"wrote {pq} and {csv} ({len(fields.fields)} field(s), {len(mosaics)} mosaic(s), {len(df)} row(s); "
+               f"{time.perf_counter() - t0:.1f} s)")
+    if plot is not None:
+        from pipeline.products.report import write_season_report
+
+        write_season_report(df, plot)
+        click.echo(f"wrote {plot}")
+
+
+#: Entry-point group through which ``flows`` registers the Prefect flows the commands run
+#: (``pyproject.toml``); the command line never imports ``flows`` itself.
+FLOW_GROUP = "mscal.flows"
+
+
+def _flow(name: str):  # noqa: ANN202 (a Prefect flow)
+    """The flow registered as ``name`` in :data:`FLOW_GROUP`, loaded after Prefect's
+    environment is set (runner.configure_prefect)."""
+    from importlib.metadata import entry_points
+
+    from pipeline.run.runner import configure_prefect
+
+    found = [ep for ep in entry_points(group=FLOW_GROUP) if ep.name == name]
+    if not found:
+        raise click.ClickException(
+            f"no flow {name!r} is registered in the entry-point group {FLOW_GROUP!r}: mscal is not installed "
+            "as a package (run `make setup`, or `pip install -e .` in the checkout)")
+    configure_prefect()
+    # Prefect's console handler names each flow and task run; it stands back if root has one.
+    logging.getLogger().handlers.clear()
+    return found[0].load()
+
+
+def _echo_run(record: dict) -> None:
+    for name, f in record["flights"].items():
+        for q in f["quarantined"]:
+            click.echo(f"quarantined {name}/{q['file']}: {q['reason']}", err=True)
+    calib = "reused from the cache" if record["calibration_cached"] else "fitted: " + ", ".join(record["fitted"])
+    click.echo(f"wrote {record['out']} (calibration {calib}; {len(record['flights'])} flight(s); "
+               f"{record['timings_s']['total']:.1f} s)")
+
+
+@cli.command()
+@click.argument("session")
+@click.option("-o", "--output", "out", required=True, help="Output folder or fsspec URL (s3://bucket/prefix).")
+@click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True)
+@click.option("--normalise", default="relative", show_default=True, help="relative, or band:<name or nm>.")
+@click.option("--dask-address", default=None,
+              help="tcp://HOST:PORT of a running 'dask scheduler' (default: a local cluster for long flights).")
+@click.option("--cache-dir", default=None, help="Calibration cache, and Prefect's home unless PREFECT_HOME is set "
+                   "(default: $MSCAL_CACHE_DIR or ~/.cache/mscal).")
+@click.option("--work-dir", default=None, help="Where remote (s3://) inputs and outputs are staged (default: a temporary folder).")
+@click.option("--catalog-root", default=None,
+              help="Local output root whose STAC catalog (ROOT/catalog.json) is updated after the run (default: OUT).")
+@click.option("--illumination", type=ILLUMINATION_MODES, default="linear", show_default=True,
+              help="Light of each frame between several reflector captures: nearest or linear in time.")
+def run(session: str, out: str, response_method: str, normalise: str, dask_address: str | None,
+        cache_dir: str | None, work_dir: str | None, catalog_root: str | None,
+        illumination: str) -> None:
+    """The whole post-flight flow on Prefect's embedded server: calibrate SESSION (cached by
+    content) and apply it to every SESSION/flights/<name>; SESSION and OUT may be s3:// URLs."""
+    from pipeline.run.runner import check_run_inputs
+
+    check_run_inputs(session, out, normalise=normalise, dask_address=dask_address, catalog_root=catalog_root,
+                     illumination=illumination)
+    if cache_dir:
+        os.environ["MSCAL_CACHE_DIR"] = cache_dir  # before Prefect starts: its home follows
+    record = _flow("post_flight")(session=session, out=out, response_method=response_method, normalise=normalise,
+                                  dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir,
+                                  catalog_root=catalog_root, illumination=illumination)
+    _echo_run(record)
+
+
+@cli.command()
+@click.option("--inbox", "inbox_dir", required=True, type=click.Path(path_type=Path), help="Folder of session folders.")
+@click.option("-o", "--output", "out_root", required=True, type=click.Path(path_type=Path),
+              help="Outputs: OUT_ROOT/<session name>/, and the state file OUT_ROOT/.mscal-serve.json.")
+@click.option("--cron", default="*/15 * * * *", show_default=True, help="When to look at the inbox (cron expression).")
+@click.option("--settle-seconds", default=600.0, show_default=True, type=float,
+              help="A session without a READY file is complete once nothing in it changed for this long.")
+@click.option("--once", is_flag=True, help="Look at the inbox once and exit.")
+@click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True)
+@click.option("--dask-address", default=None, help="tcp://HOST:PORT of a running 'dask scheduler'.")
+def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, once: bool, response_method: str,
+          dask_address: str | None) -> None:
+    """Process every complete session folder of an INBOX once, now and then on a cron schedule.
+
+    Complete: session.yaml and a READY file, or nothing modified for --settle-seconds.
+    Processed sessions are recorded in OUT_ROOT/.mscal-serve.json; a restart does not redo them."""
+    from datetime import datetime
+
+    from pipeline.run.inbox import next_time, pending_sessions
+
+    next_time(cron, datetime.now())  # a bad expression fails before anything runs
+    pending_sessions(inbox_dir, out_root, settle_seconds)  # and so does a missing inbox
+    process_inbox = _flow("process_inbox")
+    while True:
+        done = process_inbox(str(inbox_dir), str(out_root), settle_seconds=settle_seconds,
+                             response_method=response_method, dask_address=dask_address)
+        for name, status in done.items():
+            click.echo(f"{name}: {status} -> {out_root / name}")
+        if once:
+            return
+        wake = next_time(cron, datetime.now())
+        click.echo(f"next look at {inbox_dir}: {wake:%Y-%m-%d %H:%M}", err=True)
+        time.sleep(max(0.0, (wake - datetime.now()).total_seconds()))
+
+
+@cli.command()
+@click.option("--calibration", "calibration", default=None, type=click.Path(path_type=Path),
+              help="Calibration store (.zarr) to report on; calibration.json is written beside the report.")
+@click.option("--flight", "flights", multiple=True, type=click.Path(path_type=Path),
+              help="An 'mscal apply' OUT folder (repeat for several flights).")
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path), help="HTML file to write.")
+@click.option("--title", default=None, help="Page title (default: 'mscal QA report: CAMERA').")
+@click.option("--stats", "stats_table", default=None, type=click.Path(path_type=Path),
+              help="An 'mscal stats' table (.parquet or .csv): adds each field's season plot.")
+def report(calibration: Path | None, flights: tuple[Path, ...], out: Path, title: str | None,
+           stats_table: Path | None) -> None:
+    """Self-contained HTML QA report (plots embedded, opens offline) of a calibration, flights
+    and the season of each field."""
+    from pipeline.products.report import write_report
+
+    t0 = time.perf_counter()
+    write_report(out, calibration=calibration, flights=flights, title=title, stats=stats_table)
+    extra = f" and {out.parent / 'calibration.json'}" if calibration is not None else ""
+    click.echo(f"wrote {out}{extra} ({out.stat().st_size / 1e6:.1f} MB; {time.perf_counter() - t0:.1f} s)")
+
+
+@cli.command()
+@click.option("-o", "--output", "out", default=Path("demo-out"), show_default=True, type=click.Path(path_type=Path))
+@click.option("--size", type=click.Choice(["small", "full"]), default="small", show_default=True,
+              help="'full' is the paper-sized session (40 views, 14-frame sweep).")
+@click.option("--seed", default=0, show_default=True, type=int)
+def demo(out: Path, size: str, seed: int) -> None:
+    """Synthesize a session with known truth (two flights), run the whole post-flight flow on
+    it and compare the calibration with the truth."""
+    from pipeline.run.demo import run_demo
+
+    summary = run_demo(out, size=size, seed=seed, flow=_flow("post_flight"))
+    click.echo(json.dumps(summary, indent=2))
+    click.echo(f"outputs: {summary['outputs']}")
+    click.echo(f"run record: {summary['run_json']}")
+    if summary.get("report"):
+        click.echo(f"report: {summary['report']}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point: MscalError -> one line on stderr, exit 2."""
+    try:
+        cli.main(args=argv, prog_name="mscal", standalone_mode=False)
+    except MscalError as exc:
+        click.echo(f"mscal: error: {exc}", err=True)
+        return exc.exit_code
+    except (click.exceptions.Abort, KeyboardInterrupt):  # Ctrl-C, e.g. of a long mscal serve
+        click.echo("mscal: aborted", err=True)
+        return 130
+    except click.ClickException as exc:
+        exc.show()
+        return exc.exit_code
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    except OSError as exc:
+        hint = _OS_HINTS.get(exc.errno or 0)
+        if hint is None:
+            raise
+        where = f"{exc.filename}: " if exc.filename else ""
+        click.echo(f"mscal: error: {where}{exc.strerror or exc} ({hint})", err=True)
+        return 2
+    return 0
+
+
+#: Errors of the machine rather than of mscal's input, reported in one line like an
+#: MscalError. Outputs are written under temporary names and renamed, so what was complete
+#: stays, and the same command run again resumes.
+_OS_HINTS = {
+    errno.ENOSPC: "the disk is full: free space, or give another -o, and run the same command again; "
+                  "finished outputs are kept and the run resumes",
+    errno.EDQUOT: "the disk quota is used up: free space and run the same command again; the run resumes",
+    errno.EACCES: "no permission: check that you may write to the output folder and read the inputs",
+    errno.EROFS: "the file system is read-only: give an output folder on a writable disk",
+}
+
+
+if __name__ == "__main__":
+    sys.exit(main())

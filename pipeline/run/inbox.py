@@ -1,0 +1,126 @@
+"""The inbox of ``mscal serve``: which session folders are complete and not yet processed.
+
+A session folder ``INBOX/<name>/`` is **complete** when it holds ``session.yaml`` and either
+a ``READY`` file (the uploader writes it last) or no file in it was modified for
+``settle_s`` seconds. Each complete session is processed once: the state file
+``OUTROOT/.mscal-serve.json`` (written atomically) records every session processed, with
+the fingerprint of its listing (names, sizes, modification times) and the sha256 of its
+content. A session is processed again only if its content changed; a restart reads the state
+file and does not reprocess anything. A session whose run failed is recorded as failed and
+retried only once its content changes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from mscal_core.errors import InputError
+
+from pipeline.apply.flight import _write_json_atomic
+from pipeline.storage.store import content_hashes
+
+READY = "READY"
+STATE_FILE = ".mscal-serve.json"
+STATE_FORMAT = "mscal-serve/1"
+
+
+def _files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.rglob("*") if p.is_file())
+
+
+def listing_fingerprint(folder: Path) -> str:
+    """sha256 of the relative names, sizes and modification times of every file (cheap)."""
+    h = hashlib.sha256()
+    for p in _files(folder):
+        st = p.stat()
+        h.update(f"{p.relative_to(folder).as_posix()}\0{st.st_size}\0{st.st_mtime_ns}\n".encode())
+    return h.hexdigest()
+
+
+def content_sha256(folder: Path) -> str:
+    """sha256 over the relative names and content hashes of every file (reads every byte)."""
+    return hashlib.sha256(json.dumps(content_hashes(_files(folder), folder), sort_keys=True).encode()).hexdigest()
+
+
+def is_complete(folder: Path, settle_s: float, now: float | None = None) -> bool:
+    """``session.yaml`` present, and a ``READY`` file or nothing modified for ``settle_s``."""
+    if not (folder / "session.yaml").is_file():
+        return False
+    if (folder / READY).is_file():
+        return True
+    now = time.time() if now is None else now
+    newest = max((p.stat().st_mtime for p in _files(folder)), default=now)
+    return now - newest >= settle_s
+
+
+def load_state(out_root: Path) -> dict[str, Any]:
+    """The state file's ``sessions`` mapping (empty if there is none yet)."""
+    path = out_root / STATE_FILE
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read the serve state ({exc})", path=path,
+                         hint="restore it, or delete it to process every session in the inbox again") from None
+    return dict(data.get("sessions", {}))
+
+
+def record(out_root: Path, name: str, *, listing: str, content: str, status: str, detail: str = "") -> None:
+    """Record a processed session in the state file (read, update, atomic rewrite)."""
+    sessions = load_state(out_root)
+    sessions[name] = {"listing": listing, "content_sha256": content, "status": status, "detail": detail,
+                      "utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    out_root.mkdir(parents=True, exist_ok=True)
+    _write_json_atomic(out_root / STATE_FILE, {"format": STATE_FORMAT, "sessions": sessions})
+
+
+@dataclass(frozen=True)
+class Pending:
+    """A complete session to process now."""
+
+    name: str
+    path: str
+    listing: str
+    content: str
+
+
+def pending_sessions(inbox: str | Path, out_root: str | Path, settle_s: float, now: float | None = None) -> list[Pending]:
+    """Complete sessions of ``inbox`` not processed with their current content, by name.
+
+    A session whose listing changed but whose content did not (copied again, touched) has its
+    listing updated in the state file and is not processed again.
+    """
+    inbox, out_root = Path(inbox), Path(out_root)
+    if not inbox.is_dir():
+        raise InputError("inbox folder not found", path=inbox)
+    state = load_state(out_root)
+    out: list[Pending] = []
+    for folder in sorted(p for p in inbox.iterdir() if p.is_dir()):
+        if not is_complete(folder, settle_s, now):
+            continue
+        done = state.get(folder.name, {})
+        listing = listing_fingerprint(folder)
+        if done.get("listing") == listing:
+            continue
+        content = content_sha256(folder)
+        if done.get("content_sha256") == content:
+            record(out_root, folder.name, listing=listing, content=content, status=done["status"], detail=done.get("detail", ""))
+            continue
+        out.append(Pending(folder.name, str(folder), listing, content))
+    return out
+
+
+def next_time(cron: str, after: datetime) -> datetime:
+    """The next time ``cron`` fires after ``after``; :class:`InputError` if it is not valid."""
+    from croniter import croniter
+
+    if not croniter.is_valid(cron):
+        raise InputError(f"--cron {cron!r} is not a cron expression", hint="e.g. --cron '*/15 * * * *' (every 15 minutes)")
+    return croniter(cron, after).get_next(datetime)

@@ -1,0 +1,500 @@
+"""The post-flight run (``mscal run``, issue 4) apart from its Prefect wiring.
+
+``flows/post_flight.py`` calls these one at a time; everything that is not wiring lives
+here, free of Prefect, so that it can be tested on its own:
+
+- Prefect's environment for an offline, self-contained run (:func:`configure_prefect`);
+- the calibration cache: one content-addressed store per stage under the cache folder,
+  keyed by the content of that stage's inputs, of the stages before it and of the code
+  (:func:`plan_calibration`), so that a changed ``reflector/`` re-fits only illumination;
+- staging of fsspec URLs (``s3://...``): remote inputs are copied into a local work folder,
+  the run is local, the outputs are uploaded with ``run.json`` last (:func:`stage_in`,
+  :func:`upload`);
+- one flight under a Dask client (:func:`apply_one`), the run record ``OUT/run.json``
+  (:func:`run_record`) and its Markdown summary.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.metadata
+import json
+import logging
+import os
+import platform
+import re
+import shutil
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator
+
+import mscal_core
+from mscal_core.errors import InputError, MscalError, SessionError
+
+from pipeline.apply.flight import RUN_JSON, ApplyOptions, _write_json_atomic, apply_flight, scheduler_for
+from pipeline.calibrate.fit import STAGES
+from pipeline.apply.light import INTERPOLATION_MODES
+from pipeline.ingest.catalog import CATALOG_ROOT
+from pipeline.ingest.session import Session, load_session, read_frame_table
+from pipeline.storage.store import content_hashes, file_sha256, open_calibration, write_store
+
+log = logging.getLogger(__name__)
+
+RUN_FORMAT = "mscal-run/1"
+CALIBRATION_STORE = "calibration.zarr"
+#: Inputs of each stage besides the stores of the stages before it (folders of the session).
+STAGE_FOLDERS = {"response": "response", "vignetting": "vignetting", "illumination": "reflector"}
+#: Sources whose change must invalidate cached calibrations (with every catalog YAML).
+_FIT_SOURCES = ("calibrate/fit.py", "ingest/session.py", "ingest/catalog.py", "storage/store.py")
+
+
+# --------------------------------------------------------------------------- environment
+
+
+def default_cache_dir() -> Path:
+    """``$MSCAL_CACHE_DIR``, else ``$XDG_CACHE_HOME/mscal``, else ``~/.cache/mscal``."""
+    if os.environ.get("MSCAL_CACHE_DIR"):
+        return Path(os.environ["MSCAL_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
+    return Path(base) / "mscal"
+
+
+def configure_prefect(home: str | Path | None = None) -> Path:
+    """Set Prefect's environment for an offline run on its embedded server; returns PREFECT_HOME.
+
+    Must run before ``prefect`` is imported (Prefect reads its settings once). Values already
+    in the environment win, so a configured Prefect (``PREFECT_API_URL`` of a real server, a
+    profile) is used as is. ``PREFECT_HOME`` defaults to ``home`` or ``<cache>/prefect``
+    (:func:`default_cache_dir`): the SQLite database of the embedded server lives there.
+    """
+    if "prefect" in sys.modules:  # too late to change what Prefect reads; say what it uses
+        return Path(os.environ.get("PREFECT_HOME", Path.home() / ".prefect"))
+    os.environ.setdefault("PREFECT_HOME", str(home or default_cache_dir() / "prefect"))
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("DO_NOT_TRACK", "1")
+    # The first start creates and migrates the SQLite database (~15-25 s on a busy machine).
+    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "300")
+    Path(os.environ["PREFECT_HOME"]).mkdir(parents=True, exist_ok=True)
+    return Path(os.environ["PREFECT_HOME"])
+
+
+def code_digest() -> str:
+    """sha256 of what the fits' results depend on besides their inputs: the sources of
+    ``mscal_core`` and of the pipeline's calibration modules, and the catalogs."""
+    here = Path(__file__).resolve().parents[1]
+    core = Path(mscal_core.__file__).resolve().parent
+    files = sorted(core.rglob("*.py")) + [here / n for n in _FIT_SOURCES] + sorted(CATALOG_ROOT.rglob("*.yaml"))
+    h = hashlib.sha256()
+    for p in files:
+        h.update(p.name.encode() + b"\0" + p.read_bytes() + b"\0")
+    return h.hexdigest()
+
+
+def versions() -> dict[str, str]:
+    """Software versions recorded in ``run.json``."""
+    out = {"mscal": mscal_core.__version__, "mscal_code": code_digest()[:16], "python": platform.python_version()}
+    for dist in ("prefect", "dask", "distributed", "xarray", "zarr", "numpy", "fsspec"):
+        try:
+            out[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+def is_transient(exc: BaseException | None) -> bool:
+    """Worth a retry: an I/O failure (network, storage), not bad input or a failed fit."""
+    return isinstance(exc, (OSError, TimeoutError)) and not isinstance(exc, (MscalError, FileNotFoundError))
+
+
+# --------------------------------------------------------------------------- calibration cache
+
+
+@dataclass(frozen=True)
+class StagePlan:
+    """One fit: its cache key, its store in the cache, the store it builds on, and whether
+    the store already exists (then the fit is skipped)."""
+
+    name: str
+    key: str
+    store: str
+    partial: str | None
+    cached: bool
+
+
+@dataclass(frozen=True)
+class CalibrationPlan:
+    stages: tuple[StagePlan, ...]
+
+    @property
+    def final_store(self) -> str:
+        """The last stage's store: the complete calibration."""
+        return self.stages[-1].store
+
+    @property
+    def cached(self) -> bool:
+        """True when no stage needs fitting."""
+        return all(s.cached for s in self.stages)
+
+
+def _digest(obj: Any) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True).encode()).hexdigest()
+
+
+def folder_hashes(folder: Path) -> dict[str, str]:
+    """``{relative path: sha256}`` of every file in a calibration folder."""
+    if not folder.is_dir():
+        raise SessionError("calibration folder not found", path=folder,
+                           hint="a session holds response/, vignetting/ and reflector/ (README, Session folder)")
+    return content_hashes((p for p in folder.rglob("*") if p.is_file()), folder)
+
+
+def stage_keys(session: Session, response_method: str) -> dict[str, str]:
+    """Cache key of each stage: its own inputs plus the key of the stage before it, so a
+    changed input changes the keys of exactly the stages that depend on it."""
+    code = code_digest()
+    yaml_sha = file_sha256(session.root / "session.yaml")
+    keys: dict[str, str] = {}
+    before = {"code": code, "method": response_method, "camera": session.camera.name,
+              "camera_catalog": file_sha256(Path(session.camera.source)) if session.camera.source else ""}
+    for stage in STAGES:
+        inputs = {"stage": stage, "before": before,
+                  "files": folder_hashes(session.root / STAGE_FOLDERS[stage])}
+        if stage != "response":  # marker, reflector and intrinsics matter from here on
+            inputs["session_yaml"] = yaml_sha
+        keys[stage] = _digest(inputs)
+        before = {"key": keys[stage]}
+    return keys
+
+
+def plan_calibration(session_dir: str | Path, cache_dir: str | Path, response_method: str = "forward") -> CalibrationPlan:
+    """Which stages of the session's calibration are in the cache and which need fitting."""
+    session = load_session(session_dir)
+    root = Path(cache_dir) / "calibration"
+    stages: list[StagePlan] = []
+    partial: str | None = None
+    for stage, key in stage_keys(session, response_method).items():
+        store = root / f"{stage}-{key[:32]}.zarr"
+        stages.append(StagePlan(stage, key, str(store), partial, (store / "zarr.json").is_file()))
+        partial = str(store)
+    return CalibrationPlan(tuple(stages))
+
+
+def publish_calibration(cached_store: str | Path, out_dir: str | Path) -> Path:
+    """Write the calibration into ``out_dir/calibration.zarr`` (atomically) and return it."""
+    return write_store(open_calibration(cached_store, need="apply"), Path(out_dir) / CALIBRATION_STORE)
+
+
+def flight_dirs(session_dir: str | Path) -> dict[str, str]:
+    """``{flight name: folder}`` of ``SESSION/flights/*``."""
+    return {p.name: str(p) for p in load_session(session_dir).flight_dirs()}
+
+
+# --------------------------------------------------------------------------- Dask and apply
+
+
+DASK_ADDRESS = re.compile(r"^(tcp|tls|inproc|ucx|ws|wss)://[^\s/]+(:\d+)?/?$")
+
+
+@contextmanager
+def dask_client(address: str | None, n_frames: int) -> Iterator[str]:
+    """The Dask scheduler ``apply_flight`` computes on, as the default ``distributed`` client
+    for the duration; yields how the frames are computed.
+
+    With ``address``: that ``dask scheduler`` and its workers (they must see the same paths,
+    e.g. a shared file system). Without: a ``LocalCluster`` of one single-threaded worker
+    process per core when the flight is long enough for apply to want processes
+    (:func:`pipeline.apply.flight.scheduler_for`), else apply's own in-process scheduler.
+    """
+    if address:
+        from distributed import Client
+
+        try:
+            client = Client(address, timeout="15s", set_as_default=True)
+        except OSError as exc:
+            raise InputError(f"cannot reach the Dask scheduler at {address} ({exc})",
+                             hint="start 'dask scheduler' and 'dask worker ADDRESS', or leave --dask-address out") from None
+        with client:
+            yield f"dask scheduler {address}"
+        return
+    if scheduler_for(n_frames)[0] != "processes":
+        yield "in-process"
+        return
+    from distributed import Client, LocalCluster
+
+    n = os.cpu_count() or 1
+    with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster, set_as_default=True):
+        yield f"local cluster of {n} worker processes"
+
+
+def count_frames(flight_dir: str | Path) -> int:
+    """Frames listed or found in a flight folder (bad ones included), without decoding any."""
+    return len(read_frame_table(flight_dir, on_frame_error=lambda name, exc: None))
+
+
+def apply_one(flight_dir: str, calibration: str, out: str, *, normalise: str = "relative",
+              dask_address: str | None = None, illumination: str = "linear") -> dict[str, Any]:
+    """``apply_flight`` under :func:`dask_client`; returns the flight's summary for run.json."""
+    t0 = time.perf_counter()
+    with dask_client(dask_address, count_frames(flight_dir)) as where:
+        res = apply_flight(flight_dir, calibration, out, ApplyOptions(normalise=normalise, illumination=illumination))
+    run = res.run
+    return {
+        "frames_in": run["frames_in"],
+        "frames_out": run["frames_out"],
+        "quarantined": res.quarantined,
+        "saturated_pixels": run["saturated_pixels"]["total"],
+        "calibration_sha256": run["calibration_sha256"],
+        "up_to_date": res.up_to_date,
+        "computed_on": "nothing (up to date)" if res.up_to_date else where,
+        "illumination": {k: v for k, v in run.get("illumination", {}).items() if k != "per_frame"},
+        "seconds": round(time.perf_counter() - t0, 3),
+    }
+
+
+# --------------------------------------------------------------------------- storage
+
+
+def is_remote(url: str | Path) -> bool:
+    """True for an fsspec URL of another file system (``s3://``, ``gs://``, ...)."""
+    m = re.match(r"^([a-zA-Z][a-zA-Z0-9+.-]*)://", str(url))
+    return bool(m) and m.group(1).lower() not in ("file", "local")
+
+
+def _fs(url: str):  # noqa: ANN202 (fsspec file system, path)
+    import fsspec
+
+    return fsspec.core.url_to_fs(url)
+
+
+@dataclass(frozen=True)
+class RunPaths:
+    """Where a run reads and writes locally; ``work`` is set when remote URLs are staged."""
+
+    session: str
+    out: str
+    work: str | None
+    work_is_temporary: bool
+
+
+def run_paths(session: str, out: str, work_dir: str | None = None) -> RunPaths:
+    """Local paths of a run: the URLs themselves when local; under a work folder (given, or a
+    new temporary one) when remote."""
+    if not (is_remote(session) or is_remote(out)):
+        return RunPaths(str(session), str(out), None, False)
+    work = Path(work_dir) if work_dir else Path(tempfile.mkdtemp(prefix="mscal-work-"))
+    work.mkdir(parents=True, exist_ok=True)
+    return RunPaths(
+        str(work / "session") if is_remote(session) else str(session),
+        str(work / "out") if is_remote(out) else str(out),
+        str(work), work_dir is None,
+    )
+
+
+def stage_in(url: str, local: str | Path) -> Path:
+    """Copy the folder at ``url`` into ``local`` (emptied first) and return ``local``."""
+    fs, root = _fs(url)
+    local = Path(local)
+    if local.exists():
+        shutil.rmtree(local)
+    remote = sorted(p for p in fs.find(root) if not p.endswith("/"))
+    if not remote:
+        raise SessionError("no files found", path=url, hint="check the URL and the storage credentials")
+    prefix = root.rstrip("/") + "/"
+    targets = [local / p[len(prefix):] for p in remote]
+    for t in {t.parent for t in targets}:
+        t.mkdir(parents=True, exist_ok=True)
+    fs.get(remote, [str(t) for t in targets])
+    return local
+
+
+def upload(local: str | Path, url: str) -> int:
+    """Copy the folder ``local`` to ``url``: the old ``run.json`` there is removed first and
+    the new one uploaded last, so a partial upload is never taken for a finished run.
+    Returns the number of files uploaded."""
+    fs, root = _fs(url)
+    root = root.rstrip("/")
+    local = Path(local)
+    files = sorted(p for p in local.rglob("*") if p.is_file())
+    last = local / RUN_JSON
+    if fs.exists(f"{root}/{RUN_JSON}"):
+        fs.rm(f"{root}/{RUN_JSON}")
+    first = [p for p in files if p != last]
+    if first:
+        fs.put([str(p) for p in first], [f"{root}/{p.relative_to(local).as_posix()}" for p in first])
+    if last.is_file():
+        fs.put_file(str(last), f"{root}/{RUN_JSON}")
+    return len(files)
+
+
+def remove_work(paths: RunPaths) -> None:
+    """Delete the work folder of a run if the run created it."""
+    if paths.work and paths.work_is_temporary:
+        shutil.rmtree(paths.work, ignore_errors=True)
+
+
+def check_run_inputs(session: str, out: str, *, normalise: str = "relative", dask_address: str | None = None,
+                     catalog_root: str | None = None, illumination: str = "linear") -> None:
+    """Fail fast, before Prefect starts: a session that is not there, an unusable option."""
+    if catalog_root is not None and is_remote(catalog_root):
+        raise InputError(f"--catalog-root {catalog_root!r} must be a local folder",
+                         hint="leave it out to catalogue OUT itself (uploaded with the run)")
+    if is_remote(session):
+        fs, root = _fs(session)
+        if not fs.exists(f"{root.rstrip('/')}/session.yaml"):
+            raise SessionError("session.yaml is missing", path=session, hint="check the URL and the storage credentials")
+    else:
+        load_session(session)
+    if dask_address and not DASK_ADDRESS.match(dask_address):
+        raise InputError(f"--dask-address {dask_address!r} is not a scheduler address", hint="e.g. tcp://10.0.0.5:8786")
+    if not (normalise == "relative" or re.fullmatch(r"band:\S+", normalise)):
+        raise InputError(f"--normalise {normalise!r}: use relative or band:<name or nm>",
+                         hint="panel normalisation needs 'mscal apply --panel' on one flight")
+    if illumination not in INTERPOLATION_MODES:
+        raise InputError(f"--illumination {illumination!r}: use one of {', '.join(INTERPOLATION_MODES)}")
+    if not is_remote(out) and Path(out).exists() and not Path(out).is_dir():
+        raise InputError("output exists and is not a folder", path=out)
+
+
+# --------------------------------------------------------------------------- run record
+
+
+class Timings:
+    """Seconds spent per named step: ``with timings.step("x"): ...``."""
+
+    def __init__(self) -> None:
+        self.t0 = time.perf_counter()
+        self.seconds: dict[str, float] = {}
+
+    @contextmanager
+    def step(self, name: str) -> Iterator[None]:
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = round(self.seconds.get(name, 0.0) + time.perf_counter() - t, 3)
+
+    def total(self) -> dict[str, float]:
+        return {**self.seconds, "total": round(time.perf_counter() - self.t0, 3)}
+
+
+REPORT_HTML = "report.html"
+
+
+def qa_report(out_dir: str | Path, flights: Iterable[str]) -> str:
+    """``OUT/report.html`` (and ``OUT/calibration.json``) of the run's calibration and flights
+    (:mod:`pipeline.products.report`); returns the same warnings and tables as markdown."""
+    from pipeline.products.report import write_report_and_markdown
+
+    out_dir = Path(out_dir)
+    _, markdown = write_report_and_markdown(out_dir / REPORT_HTML, calibration=out_dir / CALIBRATION_STORE,
+                                            flights=[out_dir / "flights" / name for name in flights])
+    return markdown
+
+
+def update_catalog(root: str | Path, out_url: str | None = None) -> dict[str, Any]:
+    """Update the STAC catalog of ``root`` (:func:`pipeline.products.stac.update_catalog`) after a run.
+    ``out_url``: the run's OUT when ``root`` is its staged local copy (names the catalog and
+    its default collection after the URL's last part instead of the staging folder).
+
+    Bad content elsewhere under the root (another flight's broken output, a project file with
+    a typo) must not fail the run whose outputs are already complete: such an
+    :class:`MscalError` is returned as ``{"error": message}`` and logged; I/O errors propagate
+    (the flow retries them)."""
+    from pipeline.products.stac import update_catalog as _update
+
+    name = out_url.rstrip("/").rsplit("/", 1)[-1] if out_url and is_remote(out_url) else None
+    try:
+        return _update(root, root_name=name)
+    except MscalError as exc:
+        log.warning("STAC catalog of %s not updated: %s", root, exc)
+        return {"error": str(exc), "catalog": str(Path(root) / "catalog.json")}
+
+
+def run_record(*, session: str, out: str, plan: CalibrationPlan, flights: dict[str, dict[str, Any]],
+               timings: Timings, dask_address: str | None, flow_run_id: str | None = None) -> dict[str, Any]:
+    """The contents of ``OUT/run.json`` (SPEC.md, Outputs of the post-flight flow)."""
+    return {
+        "report": REPORT_HTML,
+        "format": RUN_FORMAT,
+        "session": str(session),
+        "out": str(out),
+        "calibration": CALIBRATION_STORE,
+        "calibration_cached": plan.cached,
+        "calibration_stages": {s.name: {"key": s.key, "cached": s.cached,
+                                        "seconds": 0.0 if s.cached else timings.seconds.get(f"fit_{s.name}", 0.0)}
+                               for s in plan.stages},
+        "fitted": [s.name for s in plan.stages if not s.cached],
+        "flights": {name: {**summary, "outputs": f"flights/{name}/"} for name, summary in flights.items()},
+        "dask_address": dask_address,
+        "versions": versions(),
+        "timings_s": timings.total(),
+        "prefect_flow_run_id": flow_run_id,
+        "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
+def write_run_json(out_dir: str | Path, record: dict[str, Any]) -> Path:
+    """``OUT/run.json``, atomically (temporary name, then rename)."""
+    path = Path(out_dir) / RUN_JSON
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _write_json_atomic(path, record)
+    return path
+
+
+def flight_table(record: dict[str, Any]) -> list[dict[str, Any]]:
+    """One row per flight, for the run's table artifact."""
+    return [
+        {"flight": name, "frames_in": f["frames_in"], "frames_out": f["frames_out"],
+         "quarantined": len(f["quarantined"]), "saturated_pixels": f["saturated_pixels"],
+         "up_to_date": f["up_to_date"], "seconds": f["seconds"]}
+        for name, f in record["flights"].items()
+    ]
+
+
+def summary_markdown(record: dict[str, Any]) -> str:
+    """A short Markdown summary of a run (Prefect artifact, README-style)."""
+    stages = ", ".join(f"{k} " + ("cached" if v["cached"] else f"fitted in {v['seconds']:.1f} s")
+                       for k, v in record["calibration_stages"].items())
+    lines = [
+        f"# mscal post-flight run: {record['session']}",
+        "",
+        f"- outputs: `{record['out']}` (`run.json`, `{record['calibration']}`, `flights/<name>/`)",
+        f"- calibration: {'reused from the cache' if record['calibration_cached'] else 'fitted'} ({stages})",
+        f"- total {record['timings_s']['total']:.1f} s",
+        "",
+        "| flight | frames out / in | quarantined | saturated px | |",
+        "|---|---|---|---|---|",
+    ]
+    for row in flight_table(record):
+        state = "up to date" if row["up_to_date"] else f"{row['seconds']:.1f} s"
+        lines.append(f"| {row['flight']} | {row['frames_out']} / {row['frames_in']} | {row['quarantined']} "
+                     f"| {row['saturated_pixels']} | {state} |")
+    return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------- progress
+
+
+@contextmanager
+def progress(total: int, label: str) -> Iterator[Callable[[int], None]]:
+    """A progress bar on stderr when it is a terminal; yields ``advance(n)``. Quiet otherwise."""
+    if not sys.stderr.isatty():
+        yield lambda n=1: None
+        return
+    import click
+
+    with click.progressbar(length=total, label=label, file=sys.stderr) as bar:
+        yield bar.update
+
+
+__all__ = [
+    "CalibrationPlan", "RunPaths", "StagePlan", "Timings", "apply_one", "check_run_inputs", "configure_prefect",
+    "default_cache_dir", "flight_dirs", "is_remote", "is_transient", "plan_calibration", "publish_calibration",
+    "remove_work", "run_paths", "run_record", "update_catalog", "stage_in", "summary_markdown", "upload", "write_run_json",
+]

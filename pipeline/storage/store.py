@@ -1,0 +1,136 @@
+"""The calibration store (SPEC.md): a Zarr store that ``xarray.open_zarr`` opens.
+
+Variables: ``inverse_response (band, dn)``, ``vignetting (band, y, x)``,
+``spectral_factor (band)``; coordinates ``band`` (index), ``band_name`` and ``wavelength``
+(nm) on ``band``. A partial store (after ``mscal fit response`` alone) holds only what was
+fitted. Provenance is in the attributes. Stores are written to a temporary name next to the
+target and renamed into place, so a reader never sees half a store and a failed write loses
+nothing that was there before.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import uuid
+import warnings
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+import xarray as xr
+
+from mscal_core.errors import CalibrationStoreError
+
+from pipeline.ingest.catalog import Camera
+
+STORE_FORMAT = "mscal-calibration/1"
+
+
+def file_sha256(path: Path) -> str:
+    with path.open("rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+def content_hashes(paths: Iterable[Path], root: Path) -> dict[str, str]:
+    """``{relative path: sha256}`` of the input files a fit used."""
+    out: dict[str, str] = {}
+    for p in sorted(set(paths)):
+        try:
+            rel = str(p.relative_to(root))
+        except ValueError:
+            rel = str(p)
+        out[rel] = file_sha256(p)
+    return out
+
+
+def new_dataset(camera: Camera) -> xr.Dataset:
+    """An empty calibration dataset with the camera's band coordinates."""
+    ds = xr.Dataset(
+        coords={
+            "band": np.arange(camera.n_bands),
+            "band_name": ("band", np.array(camera.band_names, dtype=object)),
+            "wavelength": ("band", camera.wavelengths, {"units": "nm", "long_name": "centre wavelength"}),
+        }
+    )
+    ds.attrs.update({"format": STORE_FORMAT, "camera": camera.name, "bit_depth": camera.bit_depth})
+    return ds
+
+
+def _to_jsonable(value: Any) -> Any:
+    return json.loads(json.dumps(value, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
+
+
+def write_store(ds: xr.Dataset, path: str | Path) -> Path:
+    """Write ``ds`` to ``path`` atomically (temporary sibling, then rename into place)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
+    ds = ds.copy()
+    ds.attrs = _to_jsonable(dict(ds.attrs))
+    for v in ds.variables.values():
+        v.encoding = {}
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message="Consolidated metadata")
+            ds.to_zarr(tmp, mode="w", consolidated=True, zarr_format=3)
+        if path.exists():
+            old = path.parent / f".{path.name}.old-{uuid.uuid4().hex[:8]}"
+            os.replace(path, old)
+            os.replace(tmp, path)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return path
+
+
+REQUIRED_FOR = {
+    "apply": ("inverse_response", "vignetting", "spectral_factor"),
+    "illumination": ("inverse_response", "vignetting"),
+    "vignetting": ("inverse_response",),
+}
+
+
+def open_calibration(path: str | Path, camera: Camera | None = None, need: str | None = None) -> xr.Dataset:
+    """Open and check a calibration store; loads it into memory (it is small: read straight
+    into numpy, without dask, 0.1 s instead of 0.5 s the first time in a process)."""
+    path = Path(path)
+    if not path.exists():
+        raise CalibrationStoreError("calibration store not found", path=path)
+    try:
+        ds = xr.open_zarr(path, chunks=None).load()
+    except Exception as exc:
+        raise CalibrationStoreError(
+            f"not a readable Zarr calibration store ({type(exc).__name__})",
+            path=path,
+            hint="re-create it with 'mscal calibrate' or 'mscal fit'",
+        ) from None
+    if ds.attrs.get("format") != STORE_FORMAT:
+        raise CalibrationStoreError("not an mscal calibration store (format attribute missing)", path=path)
+    if camera is not None:
+        if ds.attrs.get("camera") != camera.name:
+            raise CalibrationStoreError(
+                f"store is for camera {ds.attrs.get('camera')!r}, not {camera.name!r}",
+                path=path,
+                hint="use a calibration fitted for this camera",
+            )
+        if ds.sizes.get("band") != camera.n_bands:
+            raise CalibrationStoreError(f"store has {ds.sizes.get('band')} bands, camera {camera.n_bands}", path=path)
+        if "inverse_response" in ds and ds.sizes.get("dn") != 2**camera.bit_depth:
+            raise CalibrationStoreError(
+                f"inverse_response covers {ds.sizes.get('dn')} DN, camera has {2**camera.bit_depth}", path=path
+            )
+    if need is not None:
+        missing = [v for v in REQUIRED_FOR[need] if v not in ds]
+        if missing:
+            raise CalibrationStoreError(
+                f"store lacks {', '.join(missing)} needed for {need}",
+                path=path,
+                hint="fit those first ('mscal fit response|vignetting') or run 'mscal calibrate'",
+            )
+    return ds

@@ -1,0 +1,386 @@
+"""mscal apply: Eq. 15 over a flight, all outputs, quarantine, re-runs and kills."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import exifread
+import numpy as np
+import pytest
+import rasterio
+import tifffile
+import xarray as xr
+
+from mscal_core.reflectance import eq15
+from pipeline.run.cli import main
+
+XIMEA_EXPORT = ["b615", "b670", "b700", "b714", "b739", "b790", "b803", "b857"]
+
+
+def _flight_copy(session: Path, dst: Path) -> Path:
+    shutil.copytree(session / "flights" / "field", dst)
+    return dst
+
+
+def _apply(flight: Path, calib: Path, out: Path, *extra: str) -> int:
+    return main(["apply", str(flight), "--calibration", str(calib), "-o", str(out), *extra])
+
+
+@pytest.fixture(scope="module")
+def applied(small, tmp_path_factory) -> tuple[Path, Path, Path]:
+    session, calib = small
+    out = tmp_path_factory.mktemp("apply") / "out"
+    assert _apply(session / "flights" / "field", calib, out) == 0
+    return session, calib, out
+
+
+def _rows(flight: Path) -> list[dict[str, str]]:
+    return list(csv.DictReader((flight / "frames.csv").open()))
+
+
+def test_reflectance_store_contract(applied) -> None:
+    session, _, out = applied
+    ds = xr.open_zarr(out / "reflectance.zarr")
+    rows = _rows(session / "flights" / "field")
+    assert ds["reflectance"].dims == ("frame", "band", "y", "x")
+    assert ds["reflectance"].dtype == np.float32
+    assert ds["reflectance"].shape == (len(rows), 25, 217, 409)
+    assert ds["ndvi"].dims == ("frame", "y", "x") and ds["ndvi"].dtype == np.float32
+    assert list(ds["frame"].values) == [Path(r["file"]).stem for r in rows]
+    np.testing.assert_allclose(ds["exposure_ms"].values, [float(r["exposure_ms"]) for r in rows])
+    np.testing.assert_allclose(ds["lat"].values, [float(r["lat"]) for r in rows])
+    np.testing.assert_allclose(ds["alt_m"].values, [float(r["alt_m"]) for r in rows])
+    assert float(ds["wavelength"].sel(band=24)) == 670.0
+    assert "time" in ds.coords and "lon" in ds.coords
+    r = ds["reflectance"].values
+    assert np.nanmin(r) >= 0 and np.all(np.isfinite(r) | np.isnan(r))
+    nd = ds["ndvi"].values
+    assert np.nanmin(nd) >= -1 and np.nanmax(nd) <= 1
+    # the lazily written store equals Eq. 15 computed eagerly, frame by frame, from raw.zarr
+    raw = xr.open_zarr(out / "raw.zarr")
+    cal = xr.open_zarr(applied[1])
+    for f in range(r.shape[0]):
+        t = float(raw["exposure_ms"][f] * raw["gain"][f])
+        expect = eq15(raw["dn"][f].values, cal["inverse_response"].values, t, cal["vignetting"].values,
+                      cal["spectral_factor"].values)
+        np.testing.assert_allclose(r[f], expect, rtol=2e-6, equal_nan=True)
+    assert ds["vegetation_mask"].dtype == np.uint8
+
+
+def test_calibrated_reflectance_and_ndvi_match_truth(applied) -> None:
+    session, _, out = applied
+    ds = xr.open_zarr(out / "reflectance.zarr")
+    truth = np.load(session / "truth.npz")
+    labels = truth["flight_field_labels"]
+    names = list(truth["flight_field_material_names"])
+    rho = truth["flight_field_panel_reflectance"]
+    white, gray = names.index("panel_0.90"), names.index("panel_0.20")
+    veg = names.index("vegetation")
+    r = ds["reflectance"].values
+    for f in range(r.shape[0]):
+        w = labels[f] == white
+        k = np.nanmedian(rho.max() / np.nanmedian(r[f][:, w], axis=1))
+        g = labels[f] == gray
+        if g.sum() > 10:
+            np.testing.assert_allclose(np.nanmedian(r[f][:, g], axis=1) * k, 0.20, atol=0.015)
+        v = labels[f] == veg
+        assert abs(np.nanmean(ds["ndvi"].values[f][v]) - np.nanmean(truth["flight_field_ndvi"][f][v])) < 0.01
+        mask = ds["vegetation_mask"].values[f]
+        assert (mask[v] == 1).mean() > 0.95 and (mask[labels[f] == names.index("soil")] == 0).mean() > 0.95
+
+
+def test_run_json(applied) -> None:
+    session, calib, out = applied
+    run = json.loads((out / "run.json").read_text())
+    n = len(_rows(session / "flights" / "field"))
+    assert run["frames_in"] == n and run["frames_out"] == n and run["quarantined"] == []
+    assert len(run["calibration_sha256"]) == 64
+    assert set(run["versions"]) >= {"mscal", "numpy", "dask", "xarray", "zarr"}
+    assert run["saturated_pixels"]["total"] == sum(run["saturated_pixels"]["per_frame"].values())
+    assert run["timings_s"]["total"] > 0
+
+
+def test_photogrammetry_tiffs_carry_exif_and_xmp(applied) -> None:
+    session, _, out = applied
+    rows = _rows(session / "flights" / "field")
+    files = sorted((out / "photogrammetry").glob("*.tif"))
+    assert len(files) == len(rows) * len(XIMEA_EXPORT)
+    refl = xr.open_zarr(out / "reflectance.zarr")
+    uuids = {}
+    for row in rows:
+        stem = Path(row["file"]).stem
+        for rig, band in enumerate(XIMEA_EXPORT):
+            p = out / "photogrammetry" / f"{stem}_{band}.tif"
+            with p.open("rb") as fh:
+                tags = exifread.process_file(fh, details=False)
+            lat = tags["GPS GPSLatitude"].values
+            lat = sum(float(v.num) / float(v.den) / 60**i for i, v in enumerate(lat))
+            assert lat == pytest.approx(abs(float(row["lat"])), abs=1e-6)
+            assert str(tags["GPS GPSLatitudeRef"]) == "N"
+            assert "EXIF DateTimeOriginal" in tags
+            xmp = tifffile.TiffFile(p).pages[0].tags[700].value
+            xmp = xmp.decode() if isinstance(xmp, bytes) else xmp
+            assert band in xmp and "CaptureUUID" in xmp and "CentralWavelength" in xmp
+            assert f"{rig}" in xmp.split("RigCameraIndex")[1][:20]
+            uid = xmp.split("CaptureUUID")[1][:60]
+            uuids.setdefault(stem, set()).add(uid)
+            with rasterio.open(p) as src:
+                img = src.read(1)
+                assert img.dtype == np.uint16 and img.shape == (217, 409)
+            b = refl["band_name"].values.tolist().index(band)
+            expect = refl["reflectance"].isel(frame=rows.index(row), band=b).values
+            ok = np.isfinite(expect)
+            np.testing.assert_allclose(img[ok] / 32768.0, expect[ok], atol=1 / 32768 + 1e-6)
+    assert all(len(u) == 1 for u in uuids.values())  # one CaptureUUID per frame, shared by its bands
+    assert len({next(iter(u)) for u in uuids.values()}) == len(rows)
+    assert len(list((out / "ndvi").glob("*.tif"))) == len(rows)
+
+
+def test_rerun_changes_nothing_and_is_quick(applied, capsys) -> None:
+    session, calib, out = applied
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
+    t0 = time.perf_counter()
+    assert _apply(session / "flights" / "field", calib, out) == 0
+    assert time.perf_counter() - t0 < 10
+    assert "up to date" in capsys.readouterr().out
+    after = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
+    assert after == before
+
+
+def test_bad_frames_are_quarantined_and_the_rest_processed(small, tmp_path, capsys) -> None:
+    session, calib = small
+    flight = _flight_copy(session, tmp_path / "flight")
+    rows = _rows(flight)
+    data = (flight / rows[0]["file"]).read_bytes()
+    (flight / rows[0]["file"]).write_bytes(data[: len(data) // 2])  # truncated
+    rows[1]["exposure_ms"] = "0"
+    with (flight / "frames.csv").open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    (flight / "notes.png").write_text("not an image")  # no row, no EXIF, not an image
+    out = tmp_path / "out"
+    assert _apply(flight, calib, out) == 0
+    run = json.loads((out / "run.json").read_text())
+    q = {x["file"]: x["reason"] for x in run["quarantined"]}
+    assert set(q) == {rows[0]["file"], rows[1]["file"], "notes.png"}
+    assert "truncated" in q[rows[0]["file"]] or "unreadable" in q[rows[0]["file"]]
+    assert "exposure" in q[rows[1]["file"]]
+    assert run["frames_out"] == len(rows) - 2
+    err = capsys.readouterr().err
+    assert f"quarantined {rows[0]['file']}" in err
+    assert _apply(flight, calib, tmp_path / "strict", "--strict") != 0
+
+
+def test_saturated_pixels_are_nan_and_counted(small, tmp_path) -> None:
+    session, calib = small
+    flight = _flight_copy(session, tmp_path / "flight")
+    first = flight / _rows(flight)[0]["file"]
+    raw = tifffile.imread(first)
+    raw[500:520, 1000:1050] = 1023  # 20 x 50 sensor pixels at full scale
+    tifffile.imwrite(first, raw)
+    out = tmp_path / "out"
+    assert _apply(flight, calib, out) == 0
+    run = json.loads((out / "run.json").read_text())
+    n_sat = int((raw >= 1023).sum())
+    assert run["saturated_pixels"]["per_frame"][first.stem] == n_sat
+    r = xr.open_zarr(out / "reflectance.zarr")["reflectance"].isel(frame=0).values
+    assert int(np.isnan(r).sum()) == n_sat
+    assert np.isnan(r[:, 100:104, 200:210]).all()
+
+
+def test_normalisation_options(small, tmp_path) -> None:
+    session, calib = small
+    flight = session / "flights" / "field"
+    out = tmp_path / "band"
+    assert _apply(flight, calib, out, "--normalise", "band:803") == 0
+    r = xr.open_zarr(out / "reflectance.zarr")["reflectance"]
+    b = int(np.argmin(np.abs(r["wavelength"].values - 803)))
+    med = np.nanmedian(r.isel(band=b).values.reshape(r.sizes["frame"], -1), axis=1)
+    np.testing.assert_allclose(med, 1.0, rtol=1e-5)
+    truth = np.load(session / "truth.npz")
+    names = list(truth["flight_field_material_names"])
+    lab = truth["flight_field_labels"][1]
+    ys, xs = np.nonzero(lab == names.index("panel_0.50"))
+    box = f"{xs.min() + 1},{ys.min() + 1},{xs.max()},{ys.max()}"
+    frame = str(truth["flight_field_names"][1])
+    out = tmp_path / "panel"
+    assert _apply(flight, calib, out, "--panel", f"{frame}:{box}", "--panel-reflectance", "0.5") == 0
+    r = xr.open_zarr(out / "reflectance.zarr")["reflectance"].isel(frame=1).values
+    region = r[:, ys.min() + 1 : ys.max(), xs.min() + 1 : xs.max()]
+    assert np.nanmedian(region) == pytest.approx(0.5, abs=0.01)
+
+
+def test_bad_apply_input_is_one_line(small, tmp_path, capsys) -> None:
+    session, calib = small
+    flight = session / "flights" / "field"
+    for args, expect in [
+        ([str(tmp_path / "nope"), "--calibration", str(calib)], "flight folder not found"),
+        ([str(flight), "--calibration", str(tmp_path / "none.zarr")], "calibration store not found"),
+        ([str(flight), "--calibration", str(calib), "--normalise", "band:999"], "no band within"),
+        ([str(flight), "--calibration", str(calib), "--panel", "IMG_0000:1,2", "--panel-reflectance", "0.5"], "is not FRAME:x0,y0,x1,y1"),
+        ([str(flight), "--calibration", str(calib), "--export-bands", "b999"], "unknown band(s) b999"),
+    ]:
+        code = main(["apply", *args, "-o", str(tmp_path / "o")])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and len(err.splitlines()) == 1 and expect in err, err
+
+
+def _outputs(out: Path) -> dict[str, bytes | np.ndarray]:
+    res: dict[str, bytes | np.ndarray] = {}
+    for p in sorted((out / "photogrammetry").glob("*.tif")) + sorted((out / "ndvi").glob("*.tif")):
+        res[str(p.relative_to(out))] = p.read_bytes()
+    ds = xr.open_zarr(out / "reflectance.zarr")
+    for v in ("reflectance", "ndvi", "vegetation_mask"):
+        res[v] = ds[v].values
+    return res
+
+
+@pytest.mark.slow
+def test_sigkill_at_any_moment_then_rerun_gives_identical_outputs(small, tmp_path) -> None:
+    session, calib = small
+    flight = session / "flights" / "field"
+    clean = tmp_path / "clean"
+    assert _apply(flight, calib, clean) == 0
+    reference = _outputs(clean)
+    cmd = [sys.executable, "-m", "pipeline.run.cli", "apply", str(flight), "--calibration", str(calib)]
+    for k, delay in enumerate([0.5, 1.5, 2.5, 4.0, 6.0]):
+        out = tmp_path / f"killed{k}"
+        proc = subprocess.Popen([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(delay)
+        if proc.poll() is None:
+            os.kill(proc.pid, signal.SIGKILL)
+        proc.wait()
+        assert _apply(flight, calib, out) == 0
+        _assert_same_outputs(reference, _outputs(out))
+        leftovers = [p for p in out.rglob("*") if ".tmp-" in p.name]
+        assert leftovers == []
+
+
+@pytest.mark.slow
+def test_worker_processes_give_the_same_outputs(small, tmp_path, monkeypatch) -> None:
+    session, calib = small
+    flight = session / "flights" / "field"
+    monkeypatch.setenv("MSCAL_APPLY_SCHEDULER", "threads")
+    assert _apply(flight, calib, tmp_path / "threads") == 0
+    monkeypatch.setenv("MSCAL_APPLY_SCHEDULER", "processes")
+    assert _apply(flight, calib, tmp_path / "processes") == 0
+    _assert_same_outputs(_outputs(tmp_path / "threads"), _outputs(tmp_path / "processes"))
+
+
+def _assert_same_outputs(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for key in a:
+        if isinstance(a[key], bytes):
+            assert a[key] == b[key], key
+        else:
+            np.testing.assert_array_equal(a[key], b[key])
+
+
+def test_single_pass_equals_ingest_then_apply(applied, tmp_path) -> None:
+    """A fresh OUT is ingested and calibrated in one pass over the files; an OUT whose raw.zarr
+    already holds the frames is calibrated from the cube: the same bytes either way."""
+    from pipeline.ingest.catalog import load_camera
+    from pipeline.ingest.raw import ingest_flight
+
+    session, calib, out = applied
+    assert json.loads((out / "run.json").read_text())["single_pass"] is True
+    cubed = tmp_path / "cubed"
+    ingest_flight(session / "flights" / "field", load_camera("ximea-mq022hg-sm5x5-nir"), cubed / "raw.zarr")
+    assert _apply(session / "flights" / "field", calib, cubed) == 0
+    assert json.loads((cubed / "run.json").read_text())["single_pass"] is False
+    _assert_same_outputs(_outputs(out), _outputs(cubed))
+    a, b = (xr.open_zarr(p / "raw.zarr") for p in (out, cubed))
+    np.testing.assert_array_equal(a["dn"].values, b["dn"].values)
+    assert list(a["sha256"].values) == list(b["sha256"].values)
+
+
+def test_duplicate_frame_in_a_fresh_flight(small, tmp_path) -> None:
+    """A duplicate found during the single pass: the frames before it stay, the rest go the
+    general way; outputs equal those of the flight without the duplicate."""
+    session, calib = small
+    flight = _flight_copy(session, tmp_path / "flight")
+    rows = _rows(flight)
+    clean = tmp_path / "clean"
+    assert _apply(flight, calib, clean) == 0
+    dup = dict(rows[0], file="IMG_0000b.tif")
+    shutil.copy(flight / rows[0]["file"], flight / dup["file"])
+    with (flight / "frames.csv").open("a", newline="") as fh:
+        csv.DictWriter(fh, fieldnames=list(rows[0])).writerow(dup)
+    out = tmp_path / "out"
+    assert _apply(flight, calib, out) == 0
+    run = json.loads((out / "run.json").read_text())
+    assert [q["file"] for q in run["quarantined"]] == ["IMG_0000b.tif"]
+    assert "duplicate" in run["quarantined"][0]["reason"] and run["single_pass"] is False
+    assert not list((out / "photogrammetry").glob("IMG_0000b_*")) and not (out / "ndvi" / "IMG_0000b.tif").exists()
+    _assert_same_outputs(_outputs(clean), _outputs(out))
+
+
+def test_lazy_reflectance_of_the_cube_equals_the_pass(applied) -> None:
+    from pipeline.apply.flight import lazy_reflectance
+    from pipeline.ingest.catalog import load_camera
+    from pipeline.storage.store import open_calibration
+
+    _, calib_path, out = applied
+    camera = load_camera("ximea-mq022hg-sm5x5-nir")
+    lazy = lazy_reflectance(xr.open_zarr(out / "raw.zarr"), open_calibration(calib_path, camera), camera)
+    assert lazy.chunks is not None  # dask-backed, nothing computed yet
+    stored = xr.open_zarr(out / "reflectance.zarr")["reflectance"].values
+    np.testing.assert_array_equal(lazy.values, stored)
+
+
+def test_each_frame_reads_ahead_a_later_frame(small, tmp_path, monkeypatch) -> None:
+    """The single pass asks the kernel to read each file READ_AHEAD frames before its task
+    needs it (prefetch_file), and the outputs are those of a pass without read-ahead."""
+    import pipeline.apply.flight as apply_mod
+
+    session, calib = small
+    flight = _flight_copy(session, tmp_path / "flight")
+    files = sorted(flight / r["file"] for r in _rows(flight))  # frames go in file-name order
+    asked: list[Path] = []
+    monkeypatch.setattr(apply_mod, "prefetch_file", lambda p: asked.append(Path(p)))
+    monkeypatch.setattr(apply_mod, "READ_AHEAD", 2)  # the small flight has 3 frames
+    assert _apply(flight, calib, tmp_path / "ahead") == 0
+    assert len(files) == 3 and sorted(asked) == files[2:]
+    monkeypatch.setattr(apply_mod, "READ_AHEAD", len(files))  # nothing to read ahead
+    asked.clear()
+    assert _apply(flight, calib, tmp_path / "plain") == 0
+    assert asked == []
+    _assert_same_outputs(_outputs(tmp_path / "ahead"), _outputs(tmp_path / "plain"))
+
+
+def test_disk_full_is_one_line_and_the_same_command_then_resumes(small, tmp_path, monkeypatch, capsys) -> None:
+    """A full disk mid-run: one line naming the file with what to do, no traceback; once
+    there is space the same command finishes with the outputs of an uninterrupted run."""
+    import errno
+
+    import pipeline.apply.flight as apply_mod
+
+    session, calib = small
+    flight = session / "flights" / "field"
+    assert _apply(flight, calib, tmp_path / "clean") == 0
+    real = apply_mod.write_band_tiff
+    full = tmp_path / "out" / "photogrammetry" / "IMG_0001_b700.tif"
+
+    def disk_full(path, *args, **kwargs):
+        if Path(path).name == full.name:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(apply_mod, "write_band_tiff", disk_full)
+    capsys.readouterr()
+    assert _apply(flight, calib, tmp_path / "out") == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "Traceback" not in err
+    assert err.startswith(f"mscal: error: {full}: No space left on device") and "run the same command again" in err
+    monkeypatch.setattr(apply_mod, "write_band_tiff", real)
+    assert _apply(flight, calib, tmp_path / "out") == 0
+    _assert_same_outputs(_outputs(tmp_path / "clean"), _outputs(tmp_path / "out"))

@@ -1,0 +1,294 @@
+"""``mscal apply CAPTURE_DIR --calibration factory -o OUT`` on MicaSense's real RedEdge
+captures (IMG_0000: panel, IMG_0001: flight): radiance and reflectance from the files' own
+factory metadata, panel found without help, sun-sensor route, photogrammetry tags, re-runs,
+and captures that are incomplete or truncated."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import exifread
+import numpy as np
+import pytest
+import tifffile
+import xarray as xr
+
+from mscal_core.factory import polygon_mask
+from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta
+from pipeline.ingest.catalog import load_target
+from pipeline.run.cli import main
+from pipeline.ingest.session import read_raw
+from tests.micasense_data import BANDS, MARKER_PANEL, PANEL_CORNERS, paint_marker, require_data
+
+PANEL_TARGET = "micasense-rp02-1603036-sc"
+
+
+def _apply(folder: Path, out: Path, *extra: str) -> int:
+    return main(["apply", str(folder), "--calibration", "factory", "-o", str(out), *extra])
+
+
+@pytest.fixture(scope="module")
+def panel_run(tmp_path_factory) -> Path:
+    data = require_data()
+    out = tmp_path_factory.mktemp("factory") / "panel"
+    assert _apply(data, out, "--panel-reflectance", PANEL_TARGET) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def dls_run(tmp_path_factory) -> Path:
+    data = require_data()
+    out = tmp_path_factory.mktemp("factory") / "dls"
+    assert _apply(data, out) == 0
+    return out
+
+
+def test_radiance_is_the_factory_model_and_dls_reflectance_is_pi_l_over_e(dls_run) -> None:
+    data = require_data()
+    ds = xr.open_zarr(dls_run / "reflectance.zarr")
+    run = json.loads((dls_run / "run.json").read_text())
+    assert run["reference"]["route"] == "dls" and run["frames"] == ["IMG_0000", "IMG_0001"]
+    assert list(ds["band_name"].values) == list(BANDS)
+    for f, cap in enumerate(("IMG_0000", "IMG_0001")):
+        for b in range(5):
+            meta = read_capture_meta(data / f"{cap}_{b + 1}.tif")
+            dn = read_raw(meta.path)
+            expect = factory_radiance(meta, dn).astype(np.float32)
+            expect[dn >= 65520] = np.nan
+            got = ds["radiance"].isel(frame=f, band=b).values
+            np.testing.assert_allclose(got, expect, rtol=1e-6, equal_nan=True)
+            refl = ds["reflectance"].isel(frame=f, band=b).values
+            np.testing.assert_allclose(refl, expect * np.float32(math.pi / meta.irradiance), rtol=1e-5, equal_nan=True)
+            assert float(ds["irradiance"].isel(frame=f, band=b)) == pytest.approx(meta.irradiance)
+    raw = xr.open_zarr(dls_run / "raw.zarr")
+    np.testing.assert_array_equal(raw["dn"].isel(frame=1, band=3).values, read_raw(data / "IMG_0001_4.tif"))
+
+
+def test_panel_route_finds_the_panel_and_gives_its_reflectance_back(panel_run) -> None:
+    run = json.loads((panel_run / "run.json").read_text())
+    ref = run["reference"]
+    assert ref["route"] == "panel"
+    (panel,) = ref["panels"]
+    assert panel["capture"] == "IMG_0000" and panel["region_source"] == ["detected"] * 5
+    # the panel is evenly lit in this capture: the Eq. 11-14 split and the plain mean agree
+    for band in BANDS:
+        assert panel["factor_split"][band] == pytest.approx(panel["factor_mean"][band], rel=5e-3)
+    lo, hi = panel["brightness_p10_p90"]
+    assert 0.95 < lo <= 1.0 <= hi < 1.05
+    # reflectance over the published panel corners is the panel's own reflectance
+    ds = xr.open_zarr(panel_run / "reflectance.zarr")
+    rho = load_target(PANEL_TARGET).reflectance.at(ds["wavelength"].values)
+    for b in range(5):
+        img = ds["reflectance"].isel(frame=0, band=b).values
+        inner = polygon_mask(img.shape, np.mean(PANEL_CORNERS[b], axis=0) + 0.7 * (np.array(PANEL_CORNERS[b]) - np.mean(PANEL_CORNERS[b], axis=0)))
+        assert float(np.nanmean(img[inner])) == pytest.approx(rho[b], rel=0.01)
+    # the flight capture: vegetation, a plausible NDVI (the published tutorial's scene)
+    ndvi = ds["ndvi"].isel(frame=1).values
+    assert 0.5 < float(np.nanmedian(ndvi)) < 0.75
+    assert np.isfinite(ds["reflectance"].values).mean() > 0.99
+
+
+def test_panel_and_dls_are_compared_in_run_json(panel_run) -> None:
+    panel = json.loads((panel_run / "run.json").read_text())["reference"]["panels"][0]
+    for band in BANDS:
+        ratio = panel["panel_over_dls"][band]
+        assert ratio == pytest.approx(panel["factor_split"][band] / panel["factor_dls"][band])
+        assert 0.5 < ratio < 2.0  # same light, two references: of the same order, not equal (DLS tilt)
+
+
+def test_report_compares_panel_and_dls(panel_run, dls_run, tmp_path) -> None:
+    from pipeline.products.report import PANEL_DLS_COLOUR_SPREAD_MAX, report_dict, write_report
+
+    sec = report_dict(flights=[panel_run])["sections"][0]
+    table = next(t for t in sec["tables"] if t["title"].startswith("Reflectance reference: panel vs sun sensor"))
+    ratio = json.loads((panel_run / "run.json").read_text())["reference"]["panels"][0]["panel_over_dls"]
+    assert [r[1] for r in table["rows"]] == list(BANDS) and all(r[0] == "IMG_0000" for r in table["rows"])
+    assert [float(r[5]) for r in table["rows"]] == pytest.approx([ratio[b] for b in BANDS], rel=1e-3)
+    # this RedEdge's DLS (no tilt correction) and its panel disagree in colour by tens of per cent
+    spread = max(ratio.values()) / min(ratio.values()) - 1
+    warned = [w for w in sec["warnings"] if w["code"] == "panel_dls_colour"]
+    assert spread > PANEL_DLS_COLOUR_SPREAD_MAX and len(warned) == 1
+    assert warned[0]["value"] == pytest.approx(spread) and "NIR" in warned[0]["message"]
+    dls = report_dict(flights=[dls_run])["sections"][0]
+    assert [t["rows"][0][0] for t in dls["tables"] if t["title"] == "Reflectance reference"] == ["dls"]
+    assert not [w for w in dls["warnings"] if w["code"] == "panel_dls_colour"]
+    html = write_report(tmp_path / "r.html", flights=[panel_run]).read_text()
+    assert "panel vs sun sensor" in html and "panel_dls_colour" in html
+
+
+def test_photogrammetry_tiffs_of_a_capture_share_its_uuid(panel_run) -> None:
+    uuids = set()
+    for rig, band in enumerate(BANDS):
+        p = panel_run / "photogrammetry" / f"IMG_0001_{band}.tif"
+        with p.open("rb") as fh:
+            tags = exifread.process_file(fh, details=False)
+        assert str(tags["GPS GPSLongitudeRef"]) == "W" and str(tags["GPS GPSLatitudeRef"]) == "N"
+        lat = sum(float(v.num) / float(v.den) / 60**i for i, v in enumerate(tags["GPS GPSLatitude"].values))
+        assert lat == pytest.approx(36.576, abs=1e-3)
+        xmp = tifffile.TiffFile(p).pages[0].tags[700].value
+        xmp = xmp.decode() if isinstance(xmp, bytes) else xmp
+        assert band in xmp and f'RigCameraIndex="{rig}"' in xmp
+        uuids.add(xmp.split("CaptureUUID=")[1][:38])
+        assert tifffile.imread(p).shape == (960, 1280)
+    assert len(uuids) == 1
+    assert (panel_run / "ndvi" / "IMG_0001.tif").is_file()
+
+
+def test_rerun_is_up_to_date(panel_run, capsys) -> None:
+    before = (panel_run / "run.json").read_bytes()
+    assert _apply(require_data(), panel_run, "--panel-reflectance", PANEL_TARGET) == 0
+    assert "up to date" in capsys.readouterr().out
+    assert (panel_run / "run.json").read_bytes() == before
+
+
+def test_incomplete_and_truncated_captures_are_quarantined(tmp_path, capsys) -> None:
+    data = require_data()
+    folder = tmp_path / "caps"
+    folder.mkdir()
+    for p in data.glob("IMG_000[01]_*.tif"):
+        shutil.copy(p, folder / p.name)
+        shutil.copy(p, folder / p.name.replace("IMG_0001", "IMG_0002").replace("IMG_0000", "IMG_0003"))
+    (folder / "IMG_0002_5.tif").unlink()  # capture IMG_0002 misses a band
+    blob = (folder / "IMG_0003_3.tif").read_bytes()
+    (folder / "IMG_0003_3.tif").write_bytes(blob[: len(blob) // 2])  # truncated
+    out = tmp_path / "out"
+    assert _apply(folder, out) == 0
+    run = json.loads((out / "run.json").read_text())
+    reasons = {q["file"]: q["reason"] for q in run["quarantined"]}
+    assert run["frames"] == ["IMG_0000", "IMG_0001"] and run["frames_in"] == 4
+    assert any("IMG_0002" in f for f in reasons) and "missing band file(s) 5" in " ".join(reasons.values())
+    assert any("IMG_0003" in f for f in reasons)
+    assert not list((out / "photogrammetry").glob("IMG_0003_*")) and not list(out.rglob("*.tmp*"))
+    assert xr.open_zarr(out / "reflectance.zarr").sizes["frame"] == 2
+    assert _apply(folder, tmp_path / "strict", "--strict") == 3
+
+
+def test_panel_marker_from_session_yaml(panel_run, tmp_path) -> None:
+    """A session.yaml beside the captures says where the panel is from a marker in its plane;
+    the factors agree with the ones from the detected panel (same panel, 0.75-inset regions)."""
+    import yaml
+
+    data = require_data()
+    session = tmp_path / "session"
+    folder = session / "flights" / "f1"
+    folder.mkdir(parents=True)
+    for p in data.glob("IMG_000[01]_*.tif"):
+        shutil.copy(p, folder / p.name)
+    for b in range(1, 6):
+        dn = tifffile.memmap(folder / f"IMG_0000_{b}.tif", mode="r+")
+        paint_marker(dn, b)
+        dn.flush()
+        del dn
+    (session / "session.yaml").write_text(yaml.safe_dump({"panel": MARKER_PANEL}))
+    assert _apply(folder, tmp_path / "out", "--panel-reflectance", PANEL_TARGET) == 0
+    (panel,) = json.loads((tmp_path / "out" / "run.json").read_text())["reference"]["panels"]
+    assert panel["region_source"] == ["marker"] * 5
+    (detected,) = json.loads((panel_run / "run.json").read_text())["reference"]["panels"]
+    for band in BANDS:
+        assert panel["factor_split"][band] == pytest.approx(detected["factor_split"][band], rel=0.01), band
+    # a marker config the images do not show: the detection is used, as without session.yaml
+    (session / "session.yaml").write_text(yaml.safe_dump({"panel": {**MARKER_PANEL,
+                                                                    "marker": {**MARKER_PANEL["marker"], "id": 8}}}))
+    assert _apply(folder, tmp_path / "out8", "--panel-reflectance", PANEL_TARGET) == 0
+    (panel8,) = json.loads((tmp_path / "out8" / "run.json").read_text())["reference"]["panels"]
+    assert panel8["region_source"] == ["detected"] * 5
+
+
+def _field_store(path: Path, capture: str, *, response: str, vignetting: str) -> Path:
+    """A field calibration store for the RedEdge: ``response`` 'factory' (U linear with the
+    capture's black level, arbitrary scale) or 'square'; ``vignetting`` 'factory' (V = 1 /
+    the factory correction) or 'flat'."""
+    from pipeline.ingest.camera_meta import factory_vignetting
+    from pipeline.ingest.catalog import load_camera
+    from pipeline.storage.store import new_dataset, write_store
+
+    data = require_data()
+    metas = [read_capture_meta(data / f"{capture}_{b + 1}.tif") for b in range(5)]
+    k = np.arange(4096, dtype=np.float64)
+    lut = np.stack([3.0 * (k * 16 - m.black_level) if response == "factory" else k**2 for m in metas])
+    vig = np.stack([1 / factory_vignetting(m) if vignetting == "factory" else np.ones(m.shape) for m in metas])
+    ds = new_dataset(load_camera("micasense-rededge"))
+    ds["inverse_response"] = (("band", "dn"), lut)
+    ds["vignetting"] = (("band", "y", "x"), vig)
+    return write_store(ds, path)
+
+
+def test_field_components_replace_the_factory_ones(tmp_path) -> None:
+    data = require_data()
+    folder = tmp_path / "caps"
+    folder.mkdir()
+    for p in data.glob("IMG_0001_*.tif"):
+        shutil.copy(p, folder / p.name)
+    same = _field_store(tmp_path / "same.zarr", "IMG_0001", response="factory", vignetting="factory")
+    flat = _field_store(tmp_path / "flat.zarr", "IMG_0001", response="square", vignetting="flat")
+    outs = {}
+    for name, extra in {
+        "factory": [],
+        "both": ["--field-calibration", str(same)],  # the factory model re-expressed as field fits
+        "vignetting": ["--field-calibration", str(flat), "--field-components", "vignetting"],
+        "response": ["--field-calibration", str(flat), "--field-components", "response"],
+    }.items():
+        assert _apply(folder, tmp_path / name, *extra) == 0, name
+        outs[name] = xr.open_zarr(tmp_path / name / "reflectance.zarr")["radiance"].isel(frame=0).values
+    np.testing.assert_allclose(outs["both"], outs["factory"], rtol=2e-6, equal_nan=True)
+    run = json.loads((tmp_path / "vignetting" / "run.json").read_text())
+    assert run["components"] == {"response": "factory", "vignetting": f"field:{flat.resolve()}"}
+    assert json.loads((tmp_path / "factory" / "run.json").read_text())["components"] == {
+        "response": "factory", "vignetting": "factory"}
+    for b in range(5):
+        meta = read_capture_meta(folder / f"IMG_0001_{b + 1}.tif")
+        from pipeline.ingest.camera_meta import factory_vignetting
+
+        corr = factory_vignetting(meta)
+        # flat field V: the factory radiance without its vignetting correction
+        np.testing.assert_allclose(outs["vignetting"][b], outs["factory"][b] / corr, rtol=2e-6, equal_nan=True)
+        # a squared U: radiance grows with the square of (DN - 0), scaled to the factory at the low end
+        dn = read_raw(meta.path).astype(np.float64)
+        lit = (dn > 8 * meta.black_level) & (dn < 65520)
+        ratio = outs["response"][b][lit] / outs["factory"][b][lit]
+        slope = np.polyfit(dn[lit], ratio, 1)[0]
+        assert slope > 0 and np.corrcoef(dn[lit], ratio)[0, 1] > 0.99, b
+
+
+@pytest.mark.parametrize(
+    ("extra", "expect"),
+    [
+        (["--field-components", "vignetting"], "needs --field-calibration"),
+        (["--field-calibration", "STORE", "--field-components", "spectral_factor"], "not one of response, vignetting"),
+        (["--field-calibration", "NOSTORE"], "calibration store not found"),
+    ],
+)
+def test_bad_field_components_exit_2(tmp_path, capsys, extra, expect) -> None:
+    store = _field_store(tmp_path / "s.zarr", "IMG_0001", response="factory", vignetting="factory")
+    extra = [str(store) if e == "STORE" else str(tmp_path / "none.zarr") if e == "NOSTORE" else e for e in extra]
+    assert _apply(require_data(), tmp_path / "o", *extra) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and expect in err, err
+
+
+@pytest.mark.parametrize(
+    ("extra", "expect"),
+    [
+        (["--reference", "panel"], "needs --panel-reflectance"),
+        (["--panel", "IMG_0042", "--panel-reflectance", "0.5"], "IMG_0042 that are not in the folder"),
+        (["--panel", "IMG_0001", "--panel-reflectance", "0.5"], "panel capture IMG_0001"),
+        (["--normalise", "band:Red"], "use --reference"),
+    ],
+)
+def test_bad_options_exit_2_with_one_line(tmp_path, capsys, extra, expect) -> None:
+    assert _apply(require_data(), tmp_path / "o", *extra) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and expect in err, err
+    assert not (tmp_path / "o" / "reflectance.zarr").exists()
+
+
+def test_folder_without_factory_metadata_is_named(tmp_path, capsys) -> None:
+    folder = tmp_path / "plain"
+    folder.mkdir()
+    tifffile.imwrite(folder / "IMG_0000_1.tif", np.zeros((8, 8), np.uint16))
+    assert _apply(folder, tmp_path / "o") == 2
+    err = capsys.readouterr().err
+    assert "no TIFF with factory radiometric metadata" in err and str(folder) in err

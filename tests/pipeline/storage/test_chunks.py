@@ -1,0 +1,63 @@
+"""pipeline.storage.chunks: whole-frame chunk files, byte-identical to zarr's own and read back by it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import xarray as xr
+import zarr
+import zarr.codecs
+
+from pipeline.storage.chunks import FLAT_CHUNK_KEYS, FrameChunks
+
+CODECS = {
+    "raw": None,
+    "lz4": [zarr.codecs.BloscCodec(cname="lz4", clevel=5, shuffle="shuffle")],
+    "zstd-bit": [zarr.codecs.BloscCodec(cname="zstd", clevel=1, shuffle="bitshuffle", typesize=2)],
+}
+
+
+@pytest.mark.parametrize("separator", ["/", "."])
+@pytest.mark.parametrize("codec", list(CODECS))
+@pytest.mark.parametrize("dtype", ["uint16", "float32", "uint8"])
+def test_chunks_match_zarr_and_read_back(tmp_path, separator, codec, dtype) -> None:
+    keys = {"name": "default", "separator": separator}
+    a = zarr.create_array(str(tmp_path / "a"), shape=(5, 3, 20, 30), chunks=(1, 3, 20, 30), dtype=dtype,
+                          compressors=CODECS[codec], chunk_key_encoding=keys)
+    fc = FrameChunks.open(tmp_path / "a")
+    assert fc is not None and fc.separator == separator
+    rng = np.random.default_rng(1)
+    x = (rng.random((3, 20, 30)) * 200).astype(dtype)
+    fc.write(3, x)
+    np.testing.assert_array_equal(zarr.open_array(str(tmp_path / "a"))[3], x)
+    np.testing.assert_array_equal(fc.read(3), x)
+    a[1] = x  # zarr's own chunk for the same data: the same bytes
+    assert fc.chunk_path(1).read_bytes() == bytes(fc.encode(x))
+    assert not list((tmp_path / "a").rglob("*.partial"))
+
+
+def test_flat_keys_through_xarray(tmp_path) -> None:
+    ds = xr.Dataset({"v": (("frame", "y", "x"), np.zeros((4, 6, 7), np.float32))})
+    ds.to_zarr(tmp_path / "s.zarr", zarr_format=3, consolidated=True, compute=True,
+               encoding={"v": {"chunks": (1, 6, 7), "chunk_key_encoding": FLAT_CHUNK_KEYS, "compressors": None}})
+    fc = FrameChunks.open(tmp_path / "s.zarr" / "v")
+    assert fc is not None and fc.chunk_path(2).name == "c.2.0.0"
+    fc.write(2, np.full((6, 7), 2.5, np.float32))
+    got = xr.open_zarr(tmp_path / "s.zarr")["v"].values
+    assert got[2].tolist() == np.full((6, 7), 2.5).tolist() and not got[[0, 1, 3]].any()
+
+
+def test_other_layouts_are_left_to_zarr(tmp_path) -> None:
+    zarr.create_array(str(tmp_path / "multi"), shape=(4, 10), chunks=(2, 10), dtype="f4")
+    zarr.create_array(str(tmp_path / "split"), shape=(4, 10), chunks=(1, 5), dtype="f4")
+    zarr.create_array(str(tmp_path / "shard"), shape=(4, 10), chunks=(1, 10), shards=(2, 10), dtype="f4")
+    zarr.create_array(str(tmp_path / "gzip"), shape=(4, 10), chunks=(1, 10), dtype="f4",
+                      compressors=[zarr.codecs.GzipCodec()])
+    for name in ("multi", "split", "shard", "gzip", "missing"):
+        assert FrameChunks.open(tmp_path / name) is None, name
+    zarr.create_array(str(tmp_path / "zstd"), shape=(4, 10), chunks=(1, 10), dtype="f4")  # zarr's default codec
+    assert FrameChunks.open(tmp_path / "zstd") is None
+    ok = zarr.create_array(str(tmp_path / "ok"), shape=(4, 10), chunks=(1, 10), dtype="f4", compressors=None)
+    with pytest.raises(ValueError, match="is \\(10,\\)"):
+        FrameChunks.open(tmp_path / "ok").write(0, np.zeros(11, np.float32))
+    assert ok.shape == (4, 10)

@@ -1,0 +1,78 @@
+"""The calibration store: opens with xarray.open_zarr, atomic writes, checked on open."""
+
+import os
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from mscal_core.errors import CalibrationStoreError
+from pipeline.ingest.catalog import load_camera
+from pipeline.storage.store import new_dataset, open_calibration, write_store
+
+
+def _calib(camera_name: str = "ximea-mq022hg-sm5x5-nir") -> xr.Dataset:
+    cam = load_camera(camera_name)
+    ds = new_dataset(cam)
+    ds.coords["dn"] = np.arange(2**cam.bit_depth)
+    ds["inverse_response"] = (("band", "dn"), np.tile(np.arange(2**cam.bit_depth, dtype=float), (cam.n_bands, 1)))
+    ds["vignetting"] = (("band", "y", "x"), np.ones((cam.n_bands, 4, 5), np.float32))
+    ds["spectral_factor"] = ("band", np.linspace(1.5, 2.5, cam.n_bands))
+    ds.attrs["response"] = {"skipped": [{"file": "x.tif", "reason": "test"}], "residuals": {"rms": np.float64(0.5)}}
+    return ds
+
+
+def test_roundtrip_with_open_zarr(tmp_path) -> None:
+    p = write_store(_calib(), tmp_path / "c.zarr")
+    ds = xr.open_zarr(p)
+    assert set(["inverse_response", "vignetting", "spectral_factor"]) <= set(ds.data_vars)
+    assert ds["inverse_response"].dims == ("band", "dn")
+    assert ds["vignetting"].dims == ("band", "y", "x")
+    assert float(ds.wavelength.sel(band=24)) == 670.0
+    assert ds.attrs["response"]["skipped"][0]["file"] == "x.tif"
+    assert ds.attrs["response"]["residuals"]["rms"] == 0.5
+    assert ds.attrs["camera"] == "ximea-mq022hg-sm5x5-nir"
+
+
+def test_overwrite_is_atomic_and_leaves_no_temporaries(tmp_path) -> None:
+    p = tmp_path / "c.zarr"
+    write_store(_calib(), p)
+    ds = _calib()
+    ds["spectral_factor"] = ds["spectral_factor"] * 2
+    write_store(ds, p)
+    assert float(xr.open_zarr(p).spectral_factor[0]) == pytest.approx(3.0)
+    assert sorted(os.listdir(tmp_path)) == ["c.zarr"]
+
+
+def test_failed_write_keeps_the_old_store(tmp_path, monkeypatch) -> None:
+    p = tmp_path / "c.zarr"
+    write_store(_calib(), p)
+    real = xr.Dataset.to_zarr
+
+    def half_then_fail(self, store, **kw):  # writes part of the new store, then the disk fills
+        real(self[["inverse_response"]], store, **kw)
+        raise OSError("No space left on device")
+
+    monkeypatch.setattr(xr.Dataset, "to_zarr", half_then_fail)
+    bad = _calib()
+    bad["spectral_factor"] = bad["spectral_factor"] * 0
+    with pytest.raises(OSError, match="No space left"):
+        write_store(bad, p)
+    assert float(xr.open_zarr(p).spectral_factor[0]) == pytest.approx(1.5)
+    assert sorted(os.listdir(tmp_path)) == ["c.zarr"]
+
+
+def test_open_checks_camera_and_content(tmp_path) -> None:
+    p = write_store(_calib(), tmp_path / "c.zarr")
+    assert open_calibration(p, load_camera("ximea-mq022hg-sm5x5-nir"), need="apply").sizes["band"] == 25
+    with pytest.raises(CalibrationStoreError, match="store is for camera 'ximea-mq022hg-sm5x5-nir', not 'generic-rgb8'"):
+        open_calibration(p, load_camera("generic-rgb8"))
+    partial = _calib().drop_vars(["vignetting", "spectral_factor"])
+    q = write_store(partial, tmp_path / "u.zarr")
+    with pytest.raises(CalibrationStoreError, match="lacks vignetting needed for illumination"):
+        open_calibration(q, need="illumination")
+    with pytest.raises(CalibrationStoreError, match="calibration store not found"):
+        open_calibration(tmp_path / "none.zarr")
+    (tmp_path / "junk.zarr").mkdir()
+    with pytest.raises(CalibrationStoreError, match="junk.zarr"):
+        open_calibration(tmp_path / "junk.zarr")
