@@ -144,12 +144,11 @@ def test_photogrammetry_tiffs_carry_exif_and_xmp(applied) -> None:
     assert len(list((out / "ndvi").glob("*.tif"))) == len(rows)
 
 
-def test_rerun_changes_nothing_and_is_quick(applied, capsys) -> None:
+def test_rerun_changes_nothing(applied, capsys) -> None:
+    """A finished run started again writes nothing (its speed is bench_apply's business)."""
     session, calib, out = applied
     before = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
-    t0 = time.perf_counter()
     assert _apply(session / "flights" / "field", calib, out) == 0
-    assert time.perf_counter() - t0 < 10
     assert "up to date" in capsys.readouterr().out
     after = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
     assert after == before
