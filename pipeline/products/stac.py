@@ -273,8 +273,29 @@ def _rel(target: Path, item_file: Path) -> str:
     return rel + "/" if target.is_dir() else rel
 
 
-def flight_item(flight: Path, project: Project, project_dir: Path, item_file: Path, fingerprint: str) -> Any:
-    """The pystac Item of one flight folder (module docstring); asset hrefs relative to ``item_file``."""
+def _rel_inside(target: str | Path | None, root: Path | None, item_file: Path) -> str | None:
+    """``target`` relative to ``item_file`` when it lies inside the catalog ``root``, else None:
+    a catalog holds no host paths (a copied catalog would point nowhere)."""
+    if not target or root is None:
+        return None
+    t = Path(str(target))
+    if not t.is_absolute() or "://" in str(target):
+        return None
+    try:
+        t.resolve().relative_to(root.resolve())
+    except ValueError:
+        return None
+    return _rel(t, item_file)
+
+
+def flight_item(flight: Path, project: Project, project_dir: Path, item_file: Path, fingerprint: str,
+                root: Path | None = None) -> Any:
+    """The pystac Item of one flight folder (module docstring); asset hrefs relative to ``item_file``.
+
+    Paths in properties (``mscal:calibration``, ``mscal:session``) are relative to the item
+    file when they lie under the catalog ``root``, and left out otherwise (a calibration in a
+    cache elsewhere is identified by ``mscal:calibration_sha256``). The footprint's outer rings
+    run counterclockwise (RFC 7946)."""
     import pystac
     import shapely
     from shapely.geometry import MultiPoint, mapping, shape
@@ -292,6 +313,8 @@ def flight_item(flight: Path, project: Project, project_dir: Path, item_file: Pa
         ok = np.isfinite(lat) & np.isfinite(lon)
         geom = MultiPoint(np.column_stack([lon[ok], lat[ok]])).convex_hull if ok.any() else None
         source = "frame_gps" if geom is not None else "none"
+    if geom is not None:
+        geom = shapely.orient_polygons(geom, exterior_cw=False)
     tt = t[~np.isnat(t)] if t.size else t
     props: dict[str, Any] = {}
     if tt.size:
@@ -309,14 +332,15 @@ def flight_item(flight: Path, project: Project, project_dir: Path, item_file: Pa
         "mscal:camera": camera, "mscal:time_source": time_source, "mscal:footprint_source": source,
         "mscal:frames_in": run.get("frames_in"), "mscal:frames_out": run.get("frames_out"),
         "mscal:frames_quarantined": len(run.get("quarantined") or []),
-        "mscal:calibration": run.get("calibration"), "mscal:calibration_sha256": run.get("calibration_sha256"),
+        "mscal:calibration": _rel_inside(run.get("calibration"), root, item_file),
+        "mscal:calibration_sha256": run.get("calibration_sha256"),
         "mscal:version": (run.get("versions") or {}).get("mscal"), "mscal:fingerprint": fingerprint,
         "mscal:flight_dir": _rel(flight, item_file),
     })
     if srun:
         props["mscal:calibration_cached"] = srun.get("calibration_cached")
         props["mscal:calibration_stages"] = {k: (v or {}).get("key") for k, v in (srun.get("calibration_stages") or {}).items()}
-        props["mscal:session"] = srun.get("session")
+        props["mscal:session"] = _rel_inside(srun.get("session"), root, item_file)
     props = {k: v for k, v in props.items() if v is not None}
     item = pystac.Item(
         id=_item_id(project_dir, flight),
@@ -440,11 +464,17 @@ def _locked(root: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
-def _write_json(path: Path, d: dict[str, Any]) -> None:
+def _write_json(path: Path, d: dict[str, Any]) -> bool:
+    """Write ``d`` atomically unless ``path`` already holds exactly it (an update with nothing
+    changed leaves every file, and its mtime, as it was). True when written."""
     from pipeline.products.writers import atomic_path
 
+    text = json.dumps(d, indent=2, sort_keys=False) + "\n"
+    if path.is_file() and path.read_text(encoding="utf-8") == text:
+        return False
     with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(d, indent=2, sort_keys=False) + "\n", encoding="utf-8")
+        tmp.write_text(text, encoding="utf-8")
+    return True
 
 
 def update_catalog(root: str | Path, *, project_level: int | None = None, validate: bool = True,
@@ -490,7 +520,7 @@ def update_catalog(root: str | Path, *, project_level: int | None = None, valida
                 item.set_self_href(str(item_file))
                 summary["unchanged"] += 1
             else:
-                item = flight_item(flight, project, pdir, item_file, fp)
+                item = flight_item(flight, project, pdir, item_file, fp, root)
                 summary["updated" if old is not None else "added"].append(key)
             if groups.get(project.id, (project,))[0] != project:
                 raise InputError(f"two different projects are both named {project.id!r}", path=flight,
@@ -546,11 +576,8 @@ def _extent(items: list[Any]) -> Any:
     else:
         bbox = [-180.0, -90.0, 180.0, 90.0]
     times = []
-    for i in items:
-        for k in ("start_datetime", "datetime", "end_datetime"):
-            v = i.properties.get(k)
-            if v:
-                times.append(pystac.utils.str_to_datetime(v))
+    for i in items:  # a fresh Item keeps a single datetime as .datetime, outside its properties
+        times += [t for t in (i.datetime, i.common_metadata.start_datetime, i.common_metadata.end_datetime) if t]
     span = [min(times), max(times)] if times else [None, None]
     return pystac.Extent(pystac.SpatialExtent([bbox]), pystac.TemporalExtent([span]))
 
@@ -585,6 +612,8 @@ def catalog_rasters(catalog: str | Path, index_name: str, skipped: list[str] | N
             continue
         props = d.get("properties", {})
         when = props.get("datetime") or props.get("start_datetime")
+        if props.get("mscal:time_source") == "processing":
+            when = None  # the day it was processed is not the day it was flown
         day = datetime.fromisoformat(when.replace("Z", "+00:00")).date() if when else None
         out.append({"path": str((p.parent / pick["href"]).resolve()), "item": d.get("id"),
                     "collection": d.get("collection", ""), "date": day})

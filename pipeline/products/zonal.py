@@ -277,11 +277,26 @@ def mosaics_from_files(paths: Sequence[str | Path]) -> list[Mosaic]:
 def mosaics_from_catalog(catalog: str | Path, index_name: str, skipped: list[str] | None = None) -> list[Mosaic]:
     """Every flight of an ``mscal catalog`` with an index map of ``index_name`` or an
     orthomosaic (the index map is preferred: no evaluation needed); flights with neither are
-    appended to ``skipped`` as ``<collection>/<item>``."""
+    appended to ``skipped`` as ``<collection>/<item>``.
+
+    The date follows the same rule as for files (:func:`_date_of_tif`: the GeoTIFF's tags, then a
+    date in its path), then the item's frame time; an item dated only by its processing time
+    has no date."""
+    import rasterio
+    from rasterio.errors import RasterioIOError
+
     from pipeline.products.stac import catalog_rasters
 
-    return [Mosaic(r["path"], r["item"], r["date"], r["collection"])
-            for r in catalog_rasters(catalog, index_name, skipped)]
+    out = []
+    for r in catalog_rasters(catalog, index_name, skipped):
+        try:
+            with rasterio.open(r["path"]) as src:
+                day = _date_of_tif(src, Path(r["path"]))
+        except RasterioIOError as exc:
+            raise InputError(f"not a raster GDAL can read ({exc})", path=r["path"],
+                             hint="rebuild the catalog with mscal catalog ROOT, or remove the file") from None
+        out.append(Mosaic(r["path"], r["item"], day or r["date"], r["collection"]))
+    return out
 
 
 def _is_index_map(src: Any, index: Index) -> bool:

@@ -152,6 +152,59 @@ def test_incremental_update(root: Path) -> None:
     assert validate_catalog(root / "catalog.json") == 1 + 1 + 2
 
 
+def _signed_area(ring: list[list[float]]) -> float:
+    x, y = np.asarray(ring, float).T
+    return 0.5 * float(np.sum(x[:-1] * y[1:] - x[1:] * y[:-1]))
+
+
+def test_second_update_rewrites_nothing_and_extents_hold_every_item(root: Path) -> None:
+    """Nothing changed: no file is rewritten. A collection's temporal extent covers items with a
+    single datetime too (farm-b's only flight has one instant, its processing time)."""
+    update_catalog(root, project_level=1)
+    files = sorted((root / "stac").rglob("*.json")) + [root / "catalog.json"]
+    before = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in files}
+    update_catalog(root)
+    assert {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in files} == before
+    coll = json.loads((root / "stac" / "farm-b" / "collection.json").read_text())
+    item = json.loads((root / "stac" / "farm-b" / "items" / "2026-06-02__plot7.json").read_text())
+    when = item["properties"]["datetime"]
+    assert when is not None and coll["extent"]["temporal"]["interval"] == [[when, when]]
+    north = json.loads((root / "stac" / "farm-north" / "collection.json").read_text())
+    assert north["extent"]["temporal"]["interval"] == [["2026-06-01T10:00:00Z", "2026-06-08T10:01:30Z"]]
+
+
+def test_footprints_counterclockwise_and_no_host_paths(root: Path) -> None:
+    """RFC 7946: outer rings counterclockwise. Properties hold no host paths: the calibration
+    cache outside the root is left out (its sha256 names it), the session folder is relative."""
+    update_catalog(root, project_level=1)
+    items = sorted((root / "stac").rglob("items/*.json"))
+    rings = 0
+    for p in items:
+        d = json.loads(p.read_text())
+        g = d["geometry"]
+        polys = [] if g is None else [g["coordinates"]] if g["type"] == "Polygon" else g["coordinates"]
+        for poly in polys:
+            assert _signed_area(poly[0]) > 0, p.name  # exterior counterclockwise
+            rings += 1
+        for k, v in d["properties"].items():
+            assert not (isinstance(v, str) and (v.startswith("/") or "://" in v)), (p.name, k, v)
+    assert rings == 2
+    it = json.loads((root / "stac" / "farm-north" / "items" / "2026-06-01__field.json").read_text())
+    assert "mscal:calibration" not in it["properties"]  # /cache/... lies outside the catalog
+    # a session recorded by its absolute path under the root: relative to the item file
+    srun = root / "farm-a" / "2026-06-01" / "run.json"
+    srun.write_text(json.dumps({**json.loads(srun.read_text()), "session": str(root / "farm-a" / "in")}))
+    run = root / "farm-a" / "2026-06-01" / "flights" / "field" / "run.json"
+    run.write_text(json.dumps({**json.loads(run.read_text()),
+                               "calibration": str(root / "farm-a" / "2026-06-01" / "calibration.zarr")}))
+    update_catalog(root)
+    it = json.loads((root / "stac" / "farm-north" / "items" / "2026-06-01__field.json").read_text())
+    items_dir = root / "stac" / "farm-north" / "items"
+    assert (items_dir / it["properties"]["mscal:session"]).resolve() == root / "farm-a" / "in"
+    assert (items_dir / it["properties"]["mscal:calibration"]).resolve() == \
+        root / "farm-a" / "2026-06-01" / "calibration.zarr"
+
+
 def test_broken_item_fails_validation_offline(root: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     update_catalog(root, project_level=1)
     _no_network(monkeypatch)
@@ -205,6 +258,29 @@ def test_stats_over_the_catalog(root: Path, tmp_path: Path) -> None:
     assert row["status"] == "ok" and row["n_valid"] == 40 * 40
     assert row["median"] == pytest.approx(0.4, abs=1e-6) and row["std"] == pytest.approx(0.0, abs=1e-6)
     assert os.path.basename(row["source"]) == "ndvi_map.tif"
+
+
+def test_stats_dates_mosaics_by_their_own_tags_first(root: Path) -> None:
+    """The documented date rule: TIFFTAG_DATETIME, then a date in the path, then the item's
+    frame time; an item dated only by its processing time gives no date."""
+    import rasterio
+
+    from pipeline.products.zonal import mosaics_from_catalog
+
+    flight = root / "farm-a" / "2026-06-08" / "flights" / "field"
+    with rasterio.open(flight / "ndvi_map.tif", "r+", IGNORE_COG_LAYOUT_BREAK="YES") as dst:
+        dst.update_tags(TIFFTAG_DATETIME="2026:06:07 18:30:00")
+    update_catalog(root, project_level=1)
+    assert [m.date for m in mosaics_from_catalog(root, "ndvi")] == [date(2026, 6, 7)]
+    # no tag, no date in the path, and no frame times: no date (not the processing day)
+    moved = root / "farm-c" / "late" / "field"
+    moved.parent.mkdir(parents=True)
+    _flight(moved, lat0=45.1, lon0=15.0, day="2026-06-09", times=False)
+    write_orthomosaic(moved / "odm_orthophoto.tif", np.full((20, 16), 0.4), crs=UTM,
+                      transform=(0.5, 0.0, 500000.0, 0.0, -0.5, 5000100.0))
+    update_catalog(root, project_level=1)
+    got = {m.flight: m.date for m in mosaics_from_catalog(root, "ndvi")}
+    assert got == {"2026-06-08__field": date(2026, 6, 7), "late__field": None}
 
 
 def test_stats_command_over_the_catalog(root: Path, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
