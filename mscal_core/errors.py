@@ -45,5 +45,12 @@ class FitError(MscalError):
     """A calibration fit cannot proceed on the data given (e.g. too few exposures)."""
 
 
+class LockedError(MscalError):
+    """Another process is writing into the same output; nothing was written. Exit status 75
+    (EX_TEMPFAIL: the same command can succeed later)."""
+
+    exit_code = 75
+
+
 class CalibrationStoreError(InputError):
     """A calibration store is missing, incomplete or does not match the camera."""

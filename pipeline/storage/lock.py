@@ -1,0 +1,127 @@
+"""One writer per output folder: an advisory lock that names its holder.
+
+A lock is a file in the folder (``.mscal.lock`` by default) held with ``flock``. The kernel
+drops the lock when its process ends, however it ends (SIGKILL, power loss aside), so a lock
+whose process is gone is simply taken over; what the holder wrote into the file (pid, host,
+start time, command) is only there to name it in the message a second process gets:
+
+    OUT: another mscal run is writing here: pid 4127 on farm-pc, since 2026-06-01T10:02:11Z,
+    `mscal run session -o OUT` (wait for it, or run again with --wait)
+
+``flock`` locks are per open file description: two :class:`FolderLock` of one process on one
+folder exclude each other too. On file systems without ``flock`` (some network mounts) the
+lock is a no-op there and says so in the log.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import logging
+import os
+import shlex
+import socket
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+from types import TracebackType
+
+from mscal_core.errors import LockedError
+
+log = logging.getLogger(__name__)
+
+LOCK_NAME = ".mscal.lock"
+#: How often a waiting process tries again.
+POLL_S = 0.2
+
+
+def holder_info() -> dict[str, object]:
+    """What this process writes into a lock it holds."""
+    return {
+        "pid": os.getpid(),
+        "host": socket.gethostname(),
+        "started": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "command": shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]) if sys.argv else "?",
+    }
+
+
+def describe_holder(text: str) -> str:
+    """One line naming the holder from a lock file's content (whatever state it is in)."""
+    try:
+        h = json.loads(text)
+        return f"pid {h['pid']} on {h['host']}, since {h['started']}, `{h['command']}`"
+    except (ValueError, KeyError, TypeError):
+        return "a process that has not said who it is yet"
+
+
+class FolderLock:
+    """Exclusive lock on ``folder`` (created if missing), as a context manager.
+
+    ``wait``: False refuses at once with :class:`LockedError` naming the holder; True waits
+    as long as it takes; a number waits that many seconds, then refuses. ``what`` names the
+    writer in the message ("mscal run", "the raw datacube").
+    """
+
+    def __init__(self, folder: str | Path, *, name: str = LOCK_NAME, wait: bool | float = False,
+                 what: str = "another mscal process") -> None:
+        self.folder = Path(folder)
+        self.path = self.folder / name
+        self.wait = wait
+        self.what = what
+        self._fd: int | None = None
+
+    def acquire(self) -> "FolderLock":
+        """Take the lock (see the class); returns self."""
+        self.folder.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+        deadline = None if self.wait is True else time.monotonic() + float(self.wait or 0)
+        try:
+            while True:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    break
+                except BlockingIOError:
+                    if deadline is not None and time.monotonic() >= deadline:
+                        raise LockedError(
+                            f"{self.what} is writing here: {describe_holder(os.pread(fd, 4096, 0).decode(errors='replace'))}",
+                            path=self.folder,
+                            hint="wait for it to finish, or run the same command again with --wait") from None
+                    time.sleep(POLL_S)
+                except OSError as exc:
+                    if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                        raise
+                    log.warning("%s: the file system does not lock files (%s); concurrent runs into this folder "
+                                "are not excluded", self.folder, exc.strerror)
+                    break
+            info = json.dumps(holder_info()).encode()
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, info, 0)
+        except BaseException:
+            os.close(fd)
+            raise
+        self._fd = fd
+        return self
+
+    def release(self) -> None:
+        """Let the lock go (the file stays: removing it would race with a waiter)."""
+        if self._fd is None:
+            return
+        fd, self._fd = self._fd, None
+        try:
+            os.ftruncate(fd, 0)
+            fcntl.flock(fd, fcntl.LOCK_UN)
+        finally:
+            os.close(fd)
+
+    @property
+    def held(self) -> bool:
+        """Whether this object holds the lock now."""
+        return self._fd is not None
+
+    def __enter__(self) -> "FolderLock":
+        return self.acquire()
+
+    def __exit__(self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None) -> None:
+        self.release()

@@ -1,0 +1,140 @@
+"""pipeline.storage.lock and .outputs: one writer per folder, named when refused; output
+paths refused before any work, never replacing what the user made."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from mscal_core.errors import InputError, LockedError
+from pipeline.storage.lock import FolderLock, describe_holder
+from pipeline.storage.outputs import check_output
+
+HOLD = """
+import sys, time
+from pipeline.storage.lock import FolderLock
+lock = FolderLock(sys.argv[1]).acquire()
+print("held", flush=True)
+sys.stdin.readline()   # hold until told (or killed)
+lock.release()
+"""
+
+
+def _holder(folder: Path) -> subprocess.Popen:
+    p = subprocess.Popen([sys.executable, "-c", HOLD, str(folder)], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                         text=True, cwd=Path(__file__).resolve().parents[3])
+    assert p.stdout.readline().strip() == "held"
+    return p
+
+
+def test_second_writer_refused_with_the_holder_named(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    p = _holder(out)
+    try:
+        with pytest.raises(LockedError) as e:
+            FolderLock(out, what="another mscal run").acquire()
+        msg = str(e.value)
+        assert f"pid {p.pid}" in msg and "another mscal run is writing here" in msg and str(out) in msg
+        assert "--wait" in msg and "\n" not in msg
+        assert e.value.exit_code == 75
+        with pytest.raises(LockedError):  # waiting a little is not enough while it holds on
+            FolderLock(out, wait=0.3).acquire()
+    finally:
+        p.communicate("\n", timeout=30)
+    assert p.returncode == 0
+    with FolderLock(out) as lock:  # released: free again
+        assert lock.held
+    assert not lock.held
+
+
+def test_lock_of_a_killed_process_is_taken_over(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    p = _holder(out)
+    os.kill(p.pid, signal.SIGKILL)
+    p.wait(timeout=30)
+    assert "pid" in (out / ".mscal.lock").read_text()  # what it wrote is still there
+    with FolderLock(out) as lock:
+        assert lock.held and f'"pid": {os.getpid()}' in (out / ".mscal.lock").read_text()
+
+
+def test_wait_gets_the_lock_when_the_holder_finishes(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    p = _holder(out)
+    import threading
+
+    def finish() -> None:
+        p.stdin.write("\n")
+        p.stdin.flush()
+
+    threading.Timer(0.5, finish).start()
+    with FolderLock(out, wait=True) as lock:
+        assert lock.held
+    p.wait(timeout=30)
+    assert p.returncode == 0
+
+
+def test_two_locks_of_one_process_exclude_each_other(tmp_path: Path) -> None:
+    with FolderLock(tmp_path):
+        with pytest.raises(LockedError):
+            FolderLock(tmp_path).acquire()
+
+
+def test_describe_holder_of_any_content() -> None:
+    assert describe_holder('{"pid": 7, "host": "h", "started": "t", "command": "mscal run s"}') == \
+        "pid 7 on h, since t, `mscal run s`"
+    assert "not said who" in describe_holder("")
+    assert "not said who" in describe_holder("{broken")
+
+
+def test_existing_file_is_refused_and_kept(tmp_path: Path) -> None:
+    f = tmp_path / "notes.txt"
+    f.write_text("mine")
+    for kind in ("folder", "store"):
+        with pytest.raises(InputError, match="existing file") as e:
+            check_output(f, kind=kind)
+        assert str(f) in str(e.value)
+    assert f.read_text() == "mine"
+
+
+def test_path_under_a_file_and_unwritable_places(tmp_path: Path) -> None:
+    f = tmp_path / "notes.txt"
+    f.write_text("mine")
+    with pytest.raises(InputError, match="which is a file, not a folder"):
+        check_output(f / "out")
+    with pytest.raises(InputError, match="cannot write here"):
+        check_output("/proc/mscal-out")  # os.access says yes to root here
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    if os.geteuid() != 0:  # root writes through mode bits
+        ro.chmod(0o555)
+        with pytest.raises(InputError, match="no permission"):
+            check_output(ro / "out")
+    assert not any(p.name.startswith(".mscal-probe") for p in tmp_path.rglob("*"))
+
+
+def test_store_replaced_only_when_mscal_wrote_it(tmp_path: Path) -> None:
+    mine = tmp_path / "photos"
+    mine.mkdir()
+    (mine / "a.jpg").write_bytes(b"x")
+    with pytest.raises(InputError, match="did not write"):
+        check_output(mine, kind="store", owned=lambda p: (p / "zarr.json").is_file())
+    assert (mine / "a.jpg").read_bytes() == b"x"
+    ours = tmp_path / "calib.zarr"
+    ours.mkdir()
+    (ours / "zarr.json").write_text("{}")
+    assert check_output(ours, kind="store", owned=lambda p: (p / "zarr.json").is_file()) == ours
+    assert check_output(tmp_path / "empty", kind="store") == tmp_path / "empty"
+    assert check_output(mine) == mine  # an output folder may be added to
+
+
+def test_free_space_estimate(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="not enough free space") as e:
+        check_output(tmp_path / "out", need_bytes=2**62)
+    assert "MiB needed" in str(e.value)
+    assert check_output(tmp_path / "out", need_bytes=1) == tmp_path / "out"
+    assert not (tmp_path / "out").exists()  # checking creates nothing
