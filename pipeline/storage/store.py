@@ -59,6 +59,44 @@ def new_dataset(camera: Camera) -> xr.Dataset:
     return ds
 
 
+#: CF attributes of every variable a calibration store may hold (units udunits-2: "1" for
+#: dimensionless ratios, "count" for digital numbers). :func:`write_store` adds what a
+#: variable lacks; attributes a fit set itself are kept.
+CF_CONVENTIONS = "CF-1.10"
+CF_VARIABLES: dict[str, dict[str, str]] = {
+    "wavelength": {"units": "nm", "standard_name": "radiation_wavelength", "long_name": "centre wavelength"},
+    "inverse_response": {"units": "count", "long_name": "inverse camera response U(k) (Eq. 5-7), linear DN"},
+    "black_level": {"units": "count", "long_name": "black level of the response fit"},
+    "saturation_dn": {"units": "count", "long_name": "lowest DN treated as saturated"},
+    "response_residual": {"units": "count", "long_name": "rms residual of the response fit per DN bin"},
+    "dn_bin": {"units": "count", "long_name": "centre of a DN bin of the response residual"},
+    "vignetting": {"units": "1", "long_name": "optical attenuation V (Eq. 8-10), max 1 per band"},
+    "vignetting_count": {"units": "1", "long_name": "number of reflector observations of the pixel"},
+    "vignetting_observed": {"long_name": "V observed at the pixel (false: filled smoothly)"},
+    "spectral_factor": {"units": "1", "long_name": "spectral factor S of the illumination (Eq. 11-14)"},
+    "capture_spectral_factor": {"units": "1", "long_name": "spectral factor S of each reflector capture"},
+    "capture_level": {"units": "1", "long_name": "brightness level of each reflector capture"},
+    "capture_irradiance": {"units": "1", "long_name": "sun-sensor reading at each reflector capture "
+                                                      "(the sensor's own unit)"},
+    "reflector_brightness": {"units": "1", "long_name": "brightness B(x) of each reflector image (Eq. 11-14)"},
+    "reflector_dn": {"units": "count", "long_name": "reflector image in the NIR band"},
+    "reflector_exposure_ms": {"units": "ms", "long_name": "exposure time of each reflector image"},
+    "registration_ecc": {"units": "1", "long_name": "gradient correlation after registration"},
+    "registration_inliers": {"units": "1", "long_name": "feature inliers of the registration"},
+}
+
+
+def cf_annotate(ds: xr.Dataset) -> xr.Dataset:
+    """``ds`` with the CF ``Conventions`` attribute and the units and names of
+    :data:`CF_VARIABLES` wherever a variable lacks them (in place; returned for chaining)."""
+    ds.attrs.setdefault("Conventions", CF_CONVENTIONS)
+    for name, attrs in CF_VARIABLES.items():
+        if name in ds.variables:
+            for k, v in attrs.items():
+                ds[name].attrs.setdefault(k, v)
+    return ds
+
+
 def _to_jsonable(value: Any) -> Any:
     return json.loads(json.dumps(value, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
 
@@ -68,7 +106,7 @@ def write_store(ds: xr.Dataset, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
-    ds = ds.copy()
+    ds = cf_annotate(ds.copy())
     ds.attrs = _to_jsonable(dict(ds.attrs))
     for v in ds.variables.values():
         v.encoding = {}

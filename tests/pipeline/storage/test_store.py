@@ -76,3 +76,25 @@ def test_open_checks_camera_and_content(tmp_path) -> None:
     (tmp_path / "junk.zarr").mkdir()
     with pytest.raises(CalibrationStoreError, match="junk.zarr"):
         open_calibration(tmp_path / "junk.zarr")
+
+
+def test_cf_conventions_and_units_on_every_variable(tmp_path) -> None:
+    """CF-1.10: the Conventions attribute and udunits units on every variable the fits write;
+    what a fit set itself is kept."""
+    from pipeline.storage.store import CF_VARIABLES
+
+    ds = _calib()
+    ds["saturation_dn"] = ("band", np.full(ds.sizes["band"], 1000))
+    ds["reflector_exposure_ms"] = ("reflector_image", np.array([2.0, 3.0]))
+    ds["spectral_factor"].attrs["long_name"] = "S as the fit named it"
+    src = dict(ds["spectral_factor"].attrs)
+    out = xr.open_zarr(write_store(ds, tmp_path / "c.zarr"))
+    assert out.attrs["Conventions"] == "CF-1.10"
+    units = {k: out[k].attrs.get("units") for k in ("vignetting", "spectral_factor", "saturation_dn",
+                                                    "reflector_exposure_ms", "inverse_response", "wavelength")}
+    assert units == {"vignetting": "1", "spectral_factor": "1", "saturation_dn": "count",
+                     "reflector_exposure_ms": "ms", "inverse_response": "count", "wavelength": "nm"}
+    assert out["spectral_factor"].attrs["long_name"] == "S as the fit named it"
+    assert out["wavelength"].attrs["standard_name"] == "radiation_wavelength"
+    assert dict(ds["spectral_factor"].attrs) == src  # the caller's dataset is not changed
+    assert all("units" in a or k == "vignetting_observed" for k, a in CF_VARIABLES.items())
