@@ -18,7 +18,7 @@ from typing import Any, Mapping
 import numpy as np
 import yaml
 
-from mscal_core.errors import CatalogError
+from mscal_core.errors import CatalogError, MscalError
 
 CATALOG_ROOT = Path(__file__).resolve().parents[2] / "catalogs"
 LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band")
@@ -33,17 +33,36 @@ def catalog_dirs(kind: str) -> list[Path]:
 # --------------------------------------------------------------------------- validation helpers
 
 
-def _load_yaml(path: Path) -> dict[str, Any]:
+def yaml_problem(exc: yaml.YAMLError) -> str:
+    """One line saying where a YAML file is broken. The parser notices a problem where it can
+    no longer go on (often the line after the mistake: an unclosed bracket is found at the next
+    key), so the line where the construct it was reading began is named first."""
+    problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+    pmark, cmark = getattr(exc, "problem_mark", None), getattr(exc, "context_mark", None)
+    if cmark is not None and pmark is not None and (cmark.line, cmark.column) != (pmark.line, pmark.column):
+        ctx = getattr(exc, "context", None) or "reading"
+        return (f"not valid YAML at line {cmark.line + 1}, column {cmark.column + 1} ({ctx}): {problem} "
+                f"at line {pmark.line + 1}, column {pmark.column + 1}")
+    if pmark is not None:
+        return f"not valid YAML at line {pmark.line + 1}, column {pmark.column + 1}: {problem}"
+    return f"not valid YAML: {problem}"
+
+
+def read_yaml(path: Path, error: type[MscalError] = CatalogError) -> Any:
+    """``yaml.safe_load`` of ``path``; ``error`` naming the file and the line if it cannot be
+    read or parsed (see :func:`yaml_problem`)."""
     try:
         text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise CatalogError(f"cannot read catalog file: {exc.strerror}", path=path) from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise error(f"cannot read: {getattr(exc, 'strerror', None) or exc}", path=path) from None
     try:
-        data = yaml.safe_load(text)
+        return yaml.safe_load(text)
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise CatalogError(f"not valid YAML{where}", path=path, hint="fix the YAML syntax") from None
+        raise error(yaml_problem(exc), path=path, hint="fix the YAML syntax") from None
+
+
+def _load_yaml(path: Path) -> dict[str, Any]:
+    data = read_yaml(path)
     if not isinstance(data, dict):
         raise CatalogError("must be a YAML mapping of keys to values", path=path)
     return data

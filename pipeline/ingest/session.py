@@ -15,13 +15,12 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-import yaml
 
-from mscal_core.errors import FrameError, InputError, MscalError, SessionError
+from mscal_core.errors import CatalogError, FrameError, InputError, MscalError, SessionError
 from mscal_core.geometry import Intrinsics
 from mscal_core.mosaic import demosaic
 
-from pipeline.ingest.catalog import Camera, ReflectanceSpec, check_keys, load_camera, parse_reflectance
+from pipeline.ingest.catalog import Camera, ReflectanceSpec, check_keys, load_camera, parse_reflectance, read_yaml
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
 FRAMES_CSV = "frames.csv"
@@ -200,21 +199,18 @@ def load_session(root: str | Path) -> Session:
     path = root / "session.yaml"
     if not path.is_file():
         raise SessionError("session.yaml is missing", path=path, hint="see SPEC.md for its keys")
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise SessionError(f"not valid YAML{where}", path=path) from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise SessionError(f"cannot read: {exc}", path=path) from None
+    data = read_yaml(path, SessionError)
     if not isinstance(data, dict):
         raise SessionError("must be a YAML mapping (camera, intrinsics, reflector, marker)", path=path)
     try:
         check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes", "panel"}, path, "session.yaml")
     except MscalError as exc:
         raise SessionError(exc.reason, path=path, hint=exc.hint) from None
-    camera = load_camera(str(data["camera"]))
+    try:
+        camera = load_camera(str(data["camera"]))
+    except CatalogError as exc:  # say which file named it
+        raise SessionError(f"camera: {exc.reason}", path=path,
+                           hint=exc.hint or "name a camera of catalogs/cameras/, or add its entry there") from None
     if "intrinsics" not in data:
         raise SessionError(
             "intrinsics are missing",
@@ -268,10 +264,7 @@ def panel_config_near(folder: str | Path) -> tuple[PanelConfig, Path] | None:
     for d in (folder, folder.parent, folder.parent.parent):
         path = d / "session.yaml"
         if path.is_file():
-            try:
-                data = yaml.safe_load(path.read_text())
-            except (OSError, yaml.YAMLError) as exc:
-                raise SessionError(f"session.yaml is unreadable ({type(exc).__name__})", path=path) from None
+            data = read_yaml(path, SessionError)
             if isinstance(data, dict) and data.get("panel") is not None:
                 return parse_panel(data["panel"], path), path
             return None

@@ -66,9 +66,9 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
-import yaml
 
 from mscal_core.errors import InputError
+from pipeline.ingest.catalog import read_yaml
 
 log = logging.getLogger(__name__)
 
@@ -114,10 +114,7 @@ def _clean_id(text: str) -> str:
 def load_project(path: str | Path) -> Project:
     """``mscal-project.yaml`` -> :class:`Project`; :class:`InputError` naming the file if invalid."""
     path = Path(path)
-    try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError) as exc:
-        raise InputError(f"cannot read the project file ({exc})", path=path) from None
+    doc = read_yaml(path, InputError)
     if not isinstance(doc, dict):
         raise InputError("must be a mapping with at least 'id'", path=path, hint="e.g. id: farm-north")
     unknown = sorted(set(map(str, doc)) - _PROJECT_KEYS)
