@@ -1,0 +1,224 @@
+"""Sun sensors: from a tilted sensor's reading to the horizontal irradiance on the ground.
+
+A downwelling light sensor on a drone (MicaSense DLS, Parrot's sunshine sensor, DJI's and
+Sentera's) faces up through a diffuser, tilted with the aircraft. Its reading mixes the
+direct sunlight, seen at the angle ``theta`` between the sun and the sensor's normal, with
+the diffuse skylight. Reflectance needs the irradiance on the horizontal ground instead
+(``rho = pi L / E_h``, or, relative, the change of ``E_h`` between a panel and a frame).
+
+Model (isotropic sky, the convention of MicaSense's DLS documentation and of pvlib's
+``isotropic`` transposition)::
+
+    E_meas = tau(theta) cos(theta)^+ E_dir + tau_d (1 + cos(tilt)) / 2 * E_dif
+    E_h    = E_dir sin(el) + E_dif,          E_dif = r E_dir
+
+``E_dir`` is the direct irradiance on a plane facing the sun, ``E_dif`` the diffuse
+irradiance on a horizontal plane, ``r`` their ratio (about 1/6 under a clear sky; near 1 under
+thin cloud; measured by a DLS 2 as ScatteredIrradiance / DirectIrradiance), ``tau`` the
+diffuser's transmission relative to normal incidence (Fresnel, unpolarised light through air,
+polycarbonate and PTFE layers), ``tau_d`` its cosine-weighted mean over the sky hemisphere.
+Hence ``E_h = E_meas (sin(el) + r) / (tau cos(theta)^+ + r tau_d (1 + cos tilt) / 2)``.
+
+Angles: the sun by elevation ``el`` and azimuth (clockwise from north) in radians, the sensor
+by yaw, pitch, roll (radians, rotation order ZYX from the body frame to North-East-Down, the
+convention of MicaSense's DLS, DJI's gimbal and the aerospace norm); the sensor looks along
+the body's -z (up when level).
+
+References
+----------
+MicaSense, "Reading DLS Irradiance Metadata" and the DLS model of micasense/imageprocessing
+(``dls.py``: sensor normal, diffuse ratio 6:1 for a clear sky). Hecht, *Optics*, Fresnel
+equations. Holmgren, Hansen, Mikofski (2018), pvlib python, the isotropic sky model.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+#: Refractive indices of the layers light crosses into a DLS-style diffuser: air,
+#: polycarbonate dome, PTFE diffuser.
+DIFFUSER_LAYERS = (1.000277, 1.586, 1.35)
+#: Diffuse / direct ratio of a clear sky (MicaSense's DLS 1 assumption, 6:1).
+CLEAR_SKY_DIFFUSE_RATIO = 1.0 / 6.0
+
+FloatArray = NDArray[np.float64]
+
+
+def sun_vector(elevation: ArrayLike, azimuth: ArrayLike) -> FloatArray:
+    """Unit vector towards the sun in North-East-Down coordinates.
+
+    Parameters
+    ----------
+    elevation, azimuth : array_like
+        Solar elevation above the horizon and azimuth clockwise from north, radians.
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+        ``(cos az cos el, sin az cos el, -sin el)``: its down component is negative when the
+        sun is up.
+    """
+    el = np.asarray(elevation, np.float64)
+    az = np.asarray(azimuth, np.float64)
+    return np.stack([np.cos(az) * np.cos(el), np.sin(az) * np.cos(el), -np.sin(el)], axis=-1)
+
+
+def sensor_normal(yaw: ArrayLike, pitch: ArrayLike, roll: ArrayLike) -> FloatArray:
+    """The sensor's viewing direction in North-East-Down coordinates.
+
+    Parameters
+    ----------
+    yaw, pitch, roll : array_like
+        Orientation of the body, radians, rotation order Z (yaw), Y (pitch), X (roll).
+
+    Returns
+    -------
+    ndarray, shape (..., 3)
+        ``R_z(yaw) R_y(pitch) R_x(roll) (0, 0, -1)``: straight up, ``(0, 0, -1)``, when level.
+    """
+    y, p, r = (np.asarray(a, np.float64) for a in (yaw, pitch, roll))
+    cy, sy, cp, sp, cr, sr = np.cos(y), np.sin(y), np.cos(p), np.sin(p), np.cos(r), np.sin(r)
+    return -np.stack([cy * sp * cr + sy * sr, sy * sp * cr - cy * sr, cp * cr], axis=-1)
+
+
+def incidence_angle(sun: ArrayLike, normal: ArrayLike) -> FloatArray:
+    """Angle between the sun and the sensor's normal, radians, in ``[0, pi]``."""
+    c = np.sum(np.asarray(sun, np.float64) * np.asarray(normal, np.float64), axis=-1)
+    return np.arccos(np.clip(c, -1.0, 1.0))
+
+
+def tilt_angle(normal: ArrayLike) -> FloatArray:
+    """Angle between the sensor's normal and straight up, radians."""
+    return np.arccos(np.clip(-np.asarray(normal, np.float64)[..., 2], -1.0, 1.0))
+
+
+def fresnel_transmission(theta: ArrayLike, layers: tuple[float, ...] = DIFFUSER_LAYERS) -> FloatArray:
+    """Fraction of unpolarised light that crosses a stack of plane interfaces.
+
+    Parameters
+    ----------
+    theta : array_like
+        Angle of incidence on the first interface, radians (0 at normal incidence).
+    layers : tuple of float
+        Refractive indices from outside in.
+
+    Returns
+    -------
+    ndarray
+        ``prod_i (1 - (R_s,i + R_p,i) / 2)`` with the Fresnel reflectances of each interface
+        and the angle carried from one layer into the next by Snell's law; 0 at and beyond
+        grazing incidence.
+
+    Notes
+    -----
+    ``R_s = ((n1 cos a - n2 cos b) / (n1 cos a + n2 cos b))^2``,
+    ``R_p = ((n1 cos b - n2 cos a) / (n1 cos b + n2 cos a))^2``, ``n1 sin a = n2 sin b``.
+    """
+    a = np.clip(np.abs(np.asarray(theta, np.float64)), 0.0, np.pi / 2)
+    t = np.ones_like(a)
+    for n1, n2 in zip(layers[:-1], layers[1:]):
+        sb = n1 / n2 * np.sin(a)
+        ok = sb < 1.0
+        b = np.arcsin(np.where(ok, sb, 1.0))
+        ca, cb = np.cos(a), np.cos(b)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rs = ((n1 * ca - n2 * cb) / (n1 * ca + n2 * cb)) ** 2
+            rp = ((n1 * cb - n2 * ca) / (n1 * cb + n2 * ca)) ** 2
+        t = t * np.where(ok & (ca > 0), 1.0 - 0.5 * (rs + rp), 0.0)
+        a = b
+    return np.nan_to_num(t, nan=0.0)
+
+
+def relative_transmission(theta: ArrayLike, layers: tuple[float, ...] = DIFFUSER_LAYERS) -> FloatArray:
+    """``tau(theta) = T(theta) / T(0)``: the diffuser's angular response, 1 at normal incidence."""
+    return fresnel_transmission(theta, layers) / fresnel_transmission(0.0, layers)
+
+
+def diffuse_transmission(layers: tuple[float, ...] = DIFFUSER_LAYERS, n: int = 2048) -> float:
+    """``tau_d``: :func:`relative_transmission` averaged over a hemisphere of isotropic light,
+    weighted by ``cos(theta)`` (``2 int tau cos sin dtheta``, midpoint rule over ``n`` steps)."""
+    h = (np.pi / 2) / n
+    th = (np.arange(n) + 0.5) * h
+    return float(2.0 * np.sum(relative_transmission(th, layers) * np.cos(th) * np.sin(th)) * h)
+
+
+@dataclass(frozen=True)
+class HorizontalIrradiance:
+    """Result of :func:`horizontal_irradiance`; arrays broadcast like the readings.
+
+    ``horizontal`` E_h; ``direct`` E_dir (on a plane facing the sun); ``diffuse`` E_dif
+    (horizontal); ``factor`` E_h / E_meas; ``incidence`` theta and ``tilt`` of the sensor,
+    radians; ``sun_visible`` whether the sun was above the sensor's horizon (cos theta > 0).
+    """
+
+    horizontal: FloatArray
+    direct: FloatArray
+    diffuse: FloatArray
+    factor: FloatArray
+    incidence: FloatArray
+    tilt: FloatArray
+    sun_visible: NDArray[np.bool_]
+
+
+def horizontal_irradiance(reading: ArrayLike, elevation: ArrayLike, azimuth: ArrayLike, yaw: ArrayLike,
+                          pitch: ArrayLike, roll: ArrayLike,
+                          diffuse_ratio: ArrayLike = CLEAR_SKY_DIFFUSE_RATIO,
+                          layers: tuple[float, ...] = DIFFUSER_LAYERS) -> HorizontalIrradiance:
+    """Horizontal irradiance from a tilted sun sensor's reading (module docstring).
+
+    Parameters
+    ----------
+    reading : array_like
+        The sensor's reading ``E_meas`` (any unit; the result has the same).
+    elevation, azimuth : array_like
+        The sun's position, radians (azimuth clockwise from north).
+    yaw, pitch, roll : array_like
+        The sensor's orientation, radians, ZYX to North-East-Down.
+    diffuse_ratio : array_like
+        ``r = E_dif / E_dir``: measured (a DLS 2's Scattered / Direct), or
+        :data:`CLEAR_SKY_DIFFUSE_RATIO`.
+    layers : tuple of float
+        Refractive indices of the diffuser's layers.
+
+    Returns
+    -------
+    HorizontalIrradiance
+
+    Notes
+    -----
+    ``E_h = E_meas (sin el + r) / (tau(theta) max(cos theta, 0) + r tau_d (1 + cos tilt) / 2)``.
+    With the sun behind the sensor only the diffuse light reaches it and ``E_h`` rests on
+    ``r`` alone: such readings are flagged (``sun_visible`` False) for the caller to weigh.
+    """
+    e = np.asarray(reading, np.float64)
+    r = np.asarray(diffuse_ratio, np.float64)
+    el = np.asarray(elevation, np.float64)
+    n = sensor_normal(yaw, pitch, roll)
+    theta = incidence_angle(sun_vector(el, azimuth), n)
+    tilt = tilt_angle(n)
+    cos_t = np.cos(theta)
+    denom = relative_transmission(theta, layers) * np.maximum(cos_t, 0.0) + r * diffuse_transmission(layers) * (1.0 + np.cos(tilt)) / 2.0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        direct = np.where(denom > 0, e / denom, np.nan)
+    diffuse = r * direct
+    horizontal = direct * np.maximum(np.sin(el), 0.0) + diffuse
+    with np.errstate(divide="ignore", invalid="ignore"):
+        factor = np.where(e != 0, horizontal / e, np.nan)
+    return HorizontalIrradiance(horizontal, direct, diffuse, factor, theta, tilt, cos_t > 0)
+
+
+def sensor_reading(direct: ArrayLike, diffuse: ArrayLike, elevation: ArrayLike, azimuth: ArrayLike, yaw: ArrayLike,
+                   pitch: ArrayLike, roll: ArrayLike, layers: tuple[float, ...] = DIFFUSER_LAYERS) -> FloatArray:
+    """The forward model: what a tilted sensor reads under direct light ``direct`` (on a plane
+    facing the sun) and isotropic diffuse light ``diffuse`` (horizontal). The inverse of
+    :func:`horizontal_irradiance` for ``diffuse_ratio = diffuse / direct``; used to simulate
+    sun sensors with known truth."""
+    n = sensor_normal(yaw, pitch, roll)
+    theta = incidence_angle(sun_vector(elevation, azimuth), n)
+    tilt = tilt_angle(n)
+    d, s = np.asarray(direct, np.float64), np.asarray(diffuse, np.float64)
+    return (relative_transmission(theta, layers) * np.maximum(np.cos(theta), 0.0) * d
+            + diffuse_transmission(layers) * (1.0 + np.cos(tilt)) / 2.0 * s)
