@@ -31,6 +31,7 @@ demo: setup
 bench: setup
 	$(BIN)/python bench/bench_calibrate.py --seeds 0 1 2
 	$(BIN)/python bench/bench_apply.py --frames 600 --large 0
+	$(BIN)/python bench/bench_factory.py --captures 1000
 	$(BIN)/python bench/bench_accuracy.py
 	$(BIN)/python bench/bench_scale.py
 
@@ -41,6 +42,7 @@ bench-quick: setup
 	mkdir -p $(BENCH_QUICK)
 	$(BIN)/python bench/bench_calibrate.py --quick --out $(BENCH_QUICK)/benchmarks.md
 	$(BIN)/python bench/bench_apply.py --frames 60 --large 0 --settle 0 --repeat 1 --out $(BENCH_QUICK)/benchmarks.md
+	$(BIN)/python bench/bench_factory.py --quick --out $(BENCH_QUICK)/benchmarks.md
 	$(BIN)/python bench/bench_accuracy.py --quick --out $(BENCH_QUICK)/benchmarks.md --img-dir $(BENCH_QUICK)/img
 	$(BIN)/python bench/bench_scale.py --quick --out $(BENCH_QUICK)/benchmarks.md
 
