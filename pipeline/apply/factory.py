@@ -39,7 +39,6 @@ matching its inputs (file names, sizes and modification times) and options does 
 """
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import math
@@ -59,12 +58,12 @@ from mscal_core.errors import CalibrationStoreError, FrameError, InputError
 from mscal_core.illumination import fit_illumination
 from mscal_core.panel import sample_quad
 
+from pipeline.apply.executor import (
+    OUTPUT_COMPRESSORS, FactoryChain, Job, Plan, Runner, field_parts, process_frame, read_capture,
+)
 from pipeline.apply.flight import (
-    geometry_step,
-    OUTPUT_COMPRESSORS,
     RUN_JSON,
     ApplyResult,
-    Runner,
     _clean_temporaries,
     _index_roles,
     _install,
@@ -73,17 +72,14 @@ from pipeline.apply.flight import (
     _versions,
     _write_json_atomic,
     export_band_indices,
-    otsu_mask,
-    write_frame,
 )
 from pipeline.ingest.camera_meta import Capture, CaptureMeta, FieldParts, factory_radiance, group_captures, read_capture_meta
 from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
-from pipeline.ingest.discover import quarantine_entry
 from pipeline.ingest.raw import raw_codec
-from pipeline.apply.panel import SATURATION_DN, PanelBand, panel_factors
-from pipeline.ingest.session import PanelConfig, decode_raw, panel_config_near
-from pipeline.products.writers import TMP_MARK, BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
+from pipeline.apply.panel import PanelBand, panel_factors
+from pipeline.ingest.session import PanelConfig, panel_config_near
+from pipeline.products.writers import TMP_MARK, BandTags, FrameTags
 
 FACTORY = "factory"
 REFERENCES = ("auto", "panel", "dls")
@@ -156,25 +152,6 @@ def match_camera(folder: Path) -> Camera:
     )
 
 
-def _read_capture(capture: Capture) -> tuple[str, list[np.ndarray]]:
-    """Content hash (over all band files, in band order) and the stored DN of each band file."""
-    h = hashlib.sha256()
-    dns = []
-    for meta in capture.metas:
-        data = meta.path.read_bytes()
-        h.update(data)
-        try:
-            dn = np.asarray(decode_raw(data, meta.path))
-        except FrameError:
-            raise
-        except Exception as exc:  # tifffile raises IndexError/ValueError on truncated files
-            raise FrameError(f"unreadable band file ({type(exc).__name__}: {exc})", path=meta.path) from None
-        if dn.shape != meta.shape:
-            raise FrameError(f"image {dn.shape} does not match its metadata {meta.shape}", path=meta.path)
-        dns.append(dn)
-    return h.hexdigest(), dns
-
-
 def _stat_fingerprint(captures: Sequence[Capture]) -> str:
     h = hashlib.sha256()
     for c in captures:
@@ -244,7 +221,7 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
         refs = []
         for n in named:
             try:
-                refs.append(panel_reference(by_name[n], _read_capture(by_name[n])[1], rho, parts, config))
+                refs.append(panel_reference(by_name[n], read_capture(by_name[n])[1], rho, parts, config))
             except FrameError as exc:
                 raise InputError(f"panel capture {n}: {exc.reason}", path=exc.path, hint=exc.hint) from None
         return refs
@@ -252,7 +229,7 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
     refs = []
     for c in ends:
         try:
-            refs.append(panel_reference(c, _read_capture(c)[1], rho, parts, config))
+            refs.append(panel_reference(c, read_capture(c)[1], rho, parts, config))
         except FrameError:
             continue
     if not refs:
@@ -264,94 +241,6 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
 
 
 # --------------------------------------------------------------------------- the pass
-
-
-@dataclass(frozen=True)
-class CapturePlan:
-    camera: Camera
-    raw_store: Path
-    out_store: Path
-    out: Path
-    shape: tuple[int, int, int]
-    reference: str  # panel | dls
-    panel_factor: tuple[float, ...] | None
-    sat: int
-    indices: tuple[tuple[Index, dict[str, int]], ...]
-    bands: tuple[tuple[int, BandTags], ...]
-    tiff_dtype: str
-    outputs: tuple[str, ...]
-    registration: Path | None = None  # band transforms (issue 9): radiance and reflectance aligned
-    field: tuple[str, tuple[str, ...]] | None = None  # (store, components) replacing factory components
-
-
-@dataclass(frozen=True)
-class CaptureJob:
-    index: int
-    capture: Capture
-    tags: FrameTags
-
-
-@dataclass(frozen=True)
-class CaptureOutcome:
-    name: str
-    sha256: str | None
-    saturated: int
-    quarantine: dict[str, str] | None = None
-
-
-def capture_factors(plan: CapturePlan, capture: Capture) -> np.ndarray:
-    """``k_b`` of one capture: the panel's, or ``pi / E_b`` of its own DLS readings."""
-    if plan.reference == "panel":
-        assert plan.panel_factor is not None
-        return np.asarray(plan.panel_factor, dtype=np.float64)
-    k = []
-    for meta in capture.metas:
-        e = meta.irradiance
-        if e is None or not math.isfinite(e) or e <= 0:
-            raise FrameError(f"no usable DLS irradiance (XMP Irradiance = {e!r})", path=meta.path,
-                             hint="use a panel capture: --panel-reflectance TARGET")
-        k.append(math.pi / e)
-    return np.asarray(k)
-
-
-def process_capture(plan: CapturePlan, job: CaptureJob) -> CaptureOutcome:
-    """One capture, every output: its raw.zarr chunk, radiance, reflectance, indices, mask,
-    photogrammetry and NDVI TIFFs (one whole chunk per variable: no two tasks share a chunk)."""
-    cap = job.capture
-    try:
-        sha, dns = _read_capture(cap)
-        if any(dn.shape != plan.shape[1:] for dn in dns):
-            raise FrameError(f"band images {[d.shape for d in dns]} are not all {plan.shape[1:]}", path=cap.files[0])
-        k = capture_factors(plan, cap)
-        parts = field_parts(plan.field[0], plan.field[1], plan.camera.name) if plan.field else [None] * len(dns)
-        rad = np.empty(plan.shape, np.float32)
-        for b, (meta, dn) in enumerate(zip(cap.metas, dns)):
-            rad[b] = factory_radiance(meta, dn, parts[b])
-    except FrameError as exc:
-        return CaptureOutcome(cap.name, None, 0, quarantine_entry(Path(exc.path or cap.files[0]).name, exc))
-    raw = np.stack(dns)
-    saturated = raw >= plan.sat
-    rad[saturated] = np.nan
-    if plan.registration is not None:  # each band onto the reference band's grid (NaN where uncovered)
-        rad = geometry_step(plan.registration, True, None, cap.name, rad)
-    refl = rad * k.astype(np.float32)[:, None, None]
-    write_frame(plan.raw_store / "dn", job.index, raw)
-    write_frame(plan.out_store / "radiance", job.index, rad)
-    write_frame(plan.out_store / "reflectance", job.index, refl)
-    ndvi = None
-    for ix, roles in plan.indices:
-        val = ix.evaluate({role: refl[b] for role, b in roles.items()})
-        write_frame(plan.out_store / ix.name, job.index, val)
-        if ix.name == "ndvi":
-            ndvi = val
-    if ndvi is not None and "vegetation_mask" in plan.outputs:
-        write_frame(plan.out_store / "vegetation_mask", job.index, otsu_mask(ndvi))
-    for b, btags in plan.bands:
-        write_band_tiff(plan.out / "photogrammetry" / f"{cap.name}_{btags.name}.tif", refl[b], job.tags, btags,
-                        dtype=plan.tiff_dtype)
-    if ndvi is not None:
-        write_ndvi_tiff(plan.out / "ndvi" / f"{cap.name}.tif", ndvi, job.tags)
-    return CaptureOutcome(cap.name, sha, int(np.count_nonzero(saturated)))
 
 
 def _coords(camera: Camera, captures: Sequence[Capture]) -> dict[str, Any]:
@@ -425,19 +314,6 @@ def _registration(options: FactoryOptions, camera: Camera, shape: tuple[int, int
         if name in ds:
             h.update(name.encode() + np.ascontiguousarray(ds[name].values).tobytes())
     return path, h.hexdigest()
-
-
-@functools.lru_cache(maxsize=2)
-def field_parts(store: str, components: tuple[str, ...], camera_name: str) -> tuple[FieldParts, ...]:
-    """Per band, the ``components`` of a field calibration ``store`` (loaded once per process)."""
-    from pipeline.storage.store import open_calibration
-
-    camera = load_camera(camera_name)
-    ds = open_calibration(store, camera)
-    lut = ds["inverse_response"].values.astype(np.float64) if "response" in components else None
-    vig = ds["vignetting"].values.astype(np.float64) if "vignetting" in components else None
-    return tuple(FieldParts(inverse_response=None if lut is None else lut[b], vignetting=None if vig is None else vig[b],
-                            dn_shift=camera.dn_shift) for b in range(camera.n_bands))
 
 
 def _field(options: FactoryOptions, camera: Camera, shape: tuple[int, int, int]
@@ -530,8 +406,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         while True:  # a capture found unusable in the pass is quarantined and the pass redone without it
             ps = _Pass.start(out, camera, captures, shape, indices, roles, export, reference, panel_factor,
                              options, folder, None if field is None else field[:2])
-            outcomes = runner.run(ps.plan, [CaptureJob(f, c, _tags(camera, c)) for f, c in enumerate(captures)],
-                                  fn=process_capture)
+            outcomes = runner.run(ps.plan, [Job(f, c.name, _tags(camera, c), capture=c) for f, c in enumerate(captures)],
+                                  fn=process_frame)
             bad = {o.name: o.quarantine for o in outcomes if o.quarantine is not None}
             if not bad:
                 break
@@ -578,7 +454,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
 class _Pass:
     """One pass's output stores under their temporary names, and its plan."""
 
-    plan: CapturePlan
+    plan: Plan
     tmp_refl: Path
     tmp_raw: Path
 
@@ -617,15 +493,15 @@ class _Pass:
         for sub in ("photogrammetry", "ndvi"):
             (out / sub).mkdir(exist_ok=True)
         first = captures[0].metas
-        plan = CapturePlan(
-            camera=camera, raw_store=tmp_raw, out_store=tmp_refl, out=out, shape=shape, reference=reference,
-            panel_factor=panel_factor, sat=saturation_dn(camera), indices=tuple((ix, roles[ix.name]) for ix in indices),
+        plan = Plan(
+            camera=camera, chain=FactoryChain(saturation_dn(camera), reference, panel_factor, field),
+            raw_dn=tmp_raw / "dn", out_store=tmp_refl, out=out, cube_shape=shape,
+            indices=tuple((ix, roles[ix.name]) for ix in indices),
             bands=tuple((b, BandTags(name=camera.bands[b].name, wavelength_nm=first[b].wavelength_nm,
                                      fwhm_nm=first[b].fwhm_nm, rig_camera_index=i))
                         for i, b in enumerate(export)),
             tiff_dtype=options.tiff_dtype, outputs=tuple(str(v) for v in refl_ds.data_vars),
-            registration=None if options.registration is None else Path(options.registration),
-            field=field,
+            transforms=None if options.registration is None else Path(options.registration),
         )
         return _Pass(plan, tmp_refl, tmp_raw)
 

@@ -340,13 +340,14 @@ def test_lazy_reflectance_of_the_cube_equals_the_pass(applied) -> None:
 def test_each_frame_reads_ahead_a_later_frame(small, tmp_path, monkeypatch) -> None:
     """The single pass asks the kernel to read each file READ_AHEAD frames before its task
     needs it (prefetch_file), and the outputs are those of a pass without read-ahead."""
+    import pipeline.apply.executor as executor
     import pipeline.apply.flight as apply_mod
 
     session, calib = small
     flight = _flight_copy(session, tmp_path / "flight")
     files = sorted(flight / r["file"] for r in _rows(flight))  # frames go in file-name order
     asked: list[Path] = []
-    monkeypatch.setattr(apply_mod, "prefetch_file", lambda p: asked.append(Path(p)))
+    monkeypatch.setattr(executor, "prefetch_file", lambda p: asked.append(Path(p)))
     monkeypatch.setattr(apply_mod, "READ_AHEAD", 2)  # the small flight has 3 frames
     assert _apply(flight, calib, tmp_path / "ahead") == 0
     assert len(files) == 3 and sorted(asked) == files[2:]
@@ -362,7 +363,7 @@ def test_disk_full_is_one_line_and_the_same_command_then_resumes(small, tmp_path
     there is space the same command finishes with the outputs of an uninterrupted run."""
     import errno
 
-    import pipeline.apply.flight as apply_mod
+    import pipeline.apply.executor as apply_mod  # the task writes the TIFFs
 
     session, calib = small
     flight = session / "flights" / "field"
