@@ -42,16 +42,12 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import shutil
 import time
-import uuid
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-import xarray as xr
 
 import mscal_core
 from mscal_core.errors import CalibrationStoreError, FrameError, InputError
@@ -59,27 +55,19 @@ from mscal_core.illumination import fit_illumination
 from mscal_core.panel import sample_quad
 
 from pipeline.apply.executor import (
-    OUTPUT_COMPRESSORS, FactoryChain, Job, Plan, Runner, field_parts, process_frame, read_capture,
+    FactoryChain, field_parts, read_capture,
 )
 from pipeline.apply.flight import (
-    RUN_JSON,
     ApplyResult,
-    _clean_temporaries,
     _index_roles,
-    _install,
-    _remove_frame_tiffs,
     _up_to_date,
-    _versions,
-    _write_json_atomic,
     export_band_indices,
 )
-from pipeline.ingest.camera_meta import Capture, CaptureMeta, FieldParts, factory_radiance, group_captures, read_capture_meta
-from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
-from pipeline.storage.chunks import FLAT_CHUNK_KEYS
-from pipeline.ingest.raw import raw_codec
+from pipeline.apply.captures import CaptureRun, apply_captures, find_captures, stat_fingerprint
+from pipeline.ingest.camera_meta import Capture, CaptureMeta, FieldParts, factory_radiance, read_capture_meta
+from pipeline.ingest.catalog import Camera, load_camera, load_index, reflectance_option
 from pipeline.apply.panel import PanelBand, panel_factors
 from pipeline.ingest.session import PanelConfig, panel_config_near
-from pipeline.products.writers import TMP_MARK, BandTags, FrameTags
 
 FACTORY = "factory"
 REFERENCES = ("auto", "panel", "dls")
@@ -130,7 +118,7 @@ class FactoryOptions:
 def match_camera(folder: Path) -> Camera:
     """The catalog camera whose band files (suffixes and XMP band names) this folder holds."""
     probe: CaptureMeta | None = None
-    names = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".tif", ".tiff"))
+    names = sorted(p for p in folder.rglob("*") if p.suffix.lower() in (".tif", ".tiff") and p.is_file())
     for path in names:
         try:
             probe = read_capture_meta(path)
@@ -150,15 +138,6 @@ def match_camera(folder: Path) -> Camera:
         f"no catalog camera has a band {probe.band_name!r} in files named like {probe.path.name}",
         path=folder, hint=f"add the camera under catalogs/cameras/ (known: {', '.join(FACTORY_CAMERAS)})",
     )
-
-
-def _stat_fingerprint(captures: Sequence[Capture]) -> str:
-    h = hashlib.sha256()
-    for c in captures:
-        for p in c.files:
-            st = p.stat()
-            h.update(f"{p.name}:{st.st_size}:{st.st_mtime_ns};".encode())
-    return h.hexdigest()
 
 
 # --------------------------------------------------------------------------- reference
@@ -243,58 +222,6 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
 # --------------------------------------------------------------------------- the pass
 
 
-def _coords(camera: Camera, captures: Sequence[Capture]) -> dict[str, Any]:
-    def per_frame(get: Any) -> np.ndarray:
-        return np.array([np.nan if get(c.metas[0]) is None else get(c.metas[0]) for c in captures], dtype=np.float64)
-
-    times = [c.metas[0].time for c in captures]
-    return {
-        "frame": np.array([c.name for c in captures], dtype=object),
-        "band": np.arange(camera.n_bands),
-        "wavelength": ("band", np.array([m.wavelength_nm for m in captures[0].metas]), {"units": "nm"}),
-        "band_name": ("band", np.array(camera.band_names, dtype=object)),
-        "exposure_ms": ("frame", np.array([np.median([m.exposure_s * 1e3 for m in c.metas]) for c in captures]),
-                        {"units": "ms", "long_name": "median exposure over the capture's bands"}),
-        "band_exposure_ms": (("frame", "band"), np.array([[m.exposure_s * 1e3 for m in c.metas] for c in captures]),
-                             {"units": "ms"}),
-        "gain": ("frame", per_frame(lambda m: m.gain), {"units": "1"}),
-        "irradiance": (("frame", "band"),
-                       np.array([[np.nan if m.irradiance is None else m.irradiance for m in c.metas] for c in captures]),
-                       {"units": "W m-2 nm-1", "long_name": "downwelling light sensor (XMP Irradiance)"}),
-        "time": ("frame", np.array([np.datetime64(t.rstrip("Z"), "ns") if t else np.datetime64("NaT", "ns")
-                                    for t in times])),
-        "lat": ("frame", per_frame(lambda m: m.lat), {"units": "degrees_north"}),
-        "lon": ("frame", per_frame(lambda m: m.lon), {"units": "degrees_east"}),
-        "alt_m": ("frame", per_frame(lambda m: m.alt_m), {"units": "m"}),
-        "capture_id": ("frame", np.array([c.capture_id for c in captures], dtype=object)),
-    }
-
-
-def _template(coords: dict[str, Any], shape: tuple[int, int, int], variables: dict[str, tuple[tuple[str, ...], Any, dict]],
-              attrs: dict[str, Any]) -> xr.Dataset:
-    import dask.array as da
-
-    ds = xr.Dataset(coords=coords)
-    n = len(coords["frame"])
-    for name, (dims, dtype, vattrs) in variables.items():
-        full = (n, *shape) if len(dims) == 4 else (n, *shape[1:])
-        ds[name] = (dims, da.zeros(full, chunks=(1, *full[1:]), dtype=dtype), vattrs)
-    ds.attrs.update(attrs)
-    return ds
-
-
-def _create(ds: xr.Dataset, path: Path, compressors: Any) -> None:
-    encoding = {v: {"chunks": (1, *ds[v].shape[1:]), "compressors": compressors, "chunk_key_encoding": FLAT_CHUNK_KEYS}
-                for v in ds.data_vars}
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Consolidated metadata")
-        ds.to_zarr(path, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
-
-
-def _tmp(out: Path, name: str) -> Path:
-    return out / f".{name}{TMP_MARK}{uuid.uuid4().hex[:8]}"
-
-
 def _registration(options: FactoryOptions, camera: Camera, shape: tuple[int, int, int]) -> tuple[Path, str] | None:
     """The ``--registration`` store (checked against the camera and image size) and the hash
     of its transforms, or None."""
@@ -344,17 +271,18 @@ def _field(options: FactoryOptions, camera: Camera, shape: tuple[int, int, int]
 
 
 def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOptions = FactoryOptions()) -> ApplyResult:
-    """``mscal apply CAPTURE_DIR --calibration factory -o OUT`` (see the module docstring)."""
+    """``mscal apply CAPTURE_DIR --calibration factory -o OUT`` (see the module docstring):
+    the factory chain through the one executor (:func:`pipeline.apply.captures.apply_captures`)."""
     t_start = time.perf_counter()
     folder, out = Path(capture_dir), Path(out)
     if not folder.is_dir():
         raise InputError("capture folder not found", path=folder)
     camera = match_camera(folder)
-    captures, problems = group_captures(folder, camera)
-    quarantined = [{"file": Path(p["file"]).name, "reason": p["reason"]} for p in problems]
+    found = find_captures(folder, camera)
+    captures = found.captures
     if not captures:
         raise FrameError("no complete capture in the folder (all quarantined)", path=folder,
-                         hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
+                         hint="; ".join(f"{q['file']}: {q['reason']}" for q in found.quarantined[:3]))
     shapes = {m.shape for c in captures for m in c.metas}
     if len(shapes) != 1:
         raise InputError(f"band images of different sizes {sorted(shapes)}", path=folder,
@@ -369,7 +297,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     near = panel_config_near(folder)
     parts = field_parts(field[0], field[1], camera.name) if field else None
     fingerprint = {
-        "inputs": _stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
+        "inputs": stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
         "mscal_version": mscal_core.__version__,
     }
     if registration is not None:
@@ -378,12 +306,9 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         fingerprint["field_sha256"] = field[2]
     if near is not None:
         fingerprint["panel_config"] = {"session_yaml": str(near[1].resolve()), "panel": repr(near[0])}
-    fingerprint = json.loads(json.dumps(fingerprint))
-    out.mkdir(parents=True, exist_ok=True)
-    previous = _up_to_date(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
-    if previous is not None:
+    previous = _up_to_date(Path(out), json.loads(json.dumps(fingerprint)), ("reflectance.zarr", "raw.zarr"))
+    if previous is not None:  # before the panels are searched: an up-to-date run reads no pixels
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
-    _clean_temporaries(out)
 
     reference = options.reference
     if reference == "auto":
@@ -400,130 +325,28 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                               None if near is None else near[0])
         panel_factor = tuple(float(np.mean([p.factor_split[b] for p in panels])) for b in range(camera.n_bands))
 
-
-    t0 = time.perf_counter()
-    with Runner(len(captures)) as runner:
-        while True:  # a capture found unusable in the pass is quarantined and the pass redone without it
-            ps = _Pass.start(out, camera, captures, shape, indices, roles, export, reference, panel_factor,
-                             options, folder, None if field is None else field[:2])
-            outcomes = runner.run(ps.plan, [Job(f, c.name, _tags(camera, c), capture=c) for f, c in enumerate(captures)],
-                                  fn=process_frame)
-            bad = {o.name: o.quarantine for o in outcomes if o.quarantine is not None}
-            if not bad:
-                break
-            ps.discard()
-            for name, q in bad.items():
-                _remove_frame_tiffs(out, [name], camera, export)
-                quarantined.append(q)
-            captures = [c for c in captures if c.name not in bad]
-            if not captures:
-                raise FrameError("no usable capture in the folder (all quarantined)", path=folder,
-                                 hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
-    t_pass = time.perf_counter() - t0
-    _install(out, ps.tmp_raw, "raw.zarr")
-    _install(out, ps.tmp_refl)
-    frames = [o.name for o in outcomes]
-    quarantined.sort(key=lambda q: q["file"])
-    run = {
-        "flight": str(folder),
-        "calibration": FACTORY,
-        "calibration_sha256": None,
-        "components": _components_record(field),
-        "camera": camera.name,
-        "reference": _reference_record(reference, panels, panel_factor, camera),
-        "frames_in": len(frames) + len(quarantined),
-        "frames_out": len(frames),
-        "frames": frames,
-        "frames_sha256": {o.name: o.sha256 for o in outcomes},
-        "quarantined": quarantined,
-        "saturated_pixels": {"total": int(sum(o.saturated for o in outcomes)),
-                             "per_frame": {o.name: o.saturated for o in outcomes}},
-        "outputs": {"reflectance": "reflectance.zarr", "raw": "raw.zarr", "photogrammetry": "photogrammetry/",
-                    "ndvi": "ndvi/"},
-        "export_bands": [camera.bands[b].name for b in export],
-        "versions": _versions(),
-        "scheduler": runner.scheduler,
-        "timings_s": {"apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
-        "fingerprint": fingerprint,
-    }
-    _write_json_atomic(out / RUN_JSON, run)
-    return ApplyResult(out, run, up_to_date=False, quarantined=quarantined)
-
-
-@dataclass
-class _Pass:
-    """One pass's output stores under their temporary names, and its plan."""
-
-    plan: Plan
-    tmp_refl: Path
-    tmp_raw: Path
-
-    @staticmethod
-    def start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[int, int, int],
-              indices: Sequence[Index], roles: dict[str, dict[str, int]], export: Sequence[int], reference: str,
-              panel_factor: tuple[float, ...] | None, options: FactoryOptions, folder: Path,
-              field: tuple[str, tuple[str, ...]] | None = None) -> "_Pass":
-        coords = _coords(camera, captures)
-        attrs = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__,
-                 "calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
-                 "comment": "bands are not co-registered: each band keeps its own pixel grid",
-                 "components": json.dumps(_components_record(None if field is None else (*field, "")))}
-        if options.registration is not None:
-            attrs.update({"co_registered": 1, "registration": str(options.registration),
-                          "comment": "bands aligned to the reference band of the registration store "
-                                     "(mscal register); NaN where a band does not cover the reference grid"})
-        rvars: dict[str, tuple[tuple[str, ...], Any, dict]] = {
-            "reflectance": (("frame", "band", "y", "x"), np.float32,
-                            {"long_name": f"reflectance (factory radiance x {reference} factor)", "units": "1"}),
-            "radiance": (("frame", "band", "y", "x"), np.float32,
-                         {"long_name": "factory radiance", "units": "W m-2 sr-1 nm-1"}),
-        }
-        for ix in indices:
-            rvars[ix.name] = (("frame", "y", "x"), np.float32, {"long_name": ix.description, "expression": ix.expression})
-        if any(ix.name == "ndvi" for ix in indices):
-            rvars["vegetation_mask"] = (("frame", "y", "x"), np.uint8,
-                                        {"long_name": "vegetation (Otsu threshold of NDVI per frame)",
-                                         "flag_values": [0, 1, 255], "flag_meanings": "other vegetation undefined"})
-        tmp_refl, tmp_raw = _tmp(out, "reflectance.zarr"), _tmp(out, "raw.zarr")
-        refl_ds = _template(coords, shape, rvars, attrs)
-        _create(refl_ds, tmp_refl, OUTPUT_COMPRESSORS)
-        raw_ds = _template(coords, shape, {"dn": (("frame", "band", "y", "x"), np.uint16,
-                                                  {"long_name": "stored DN of each band file"})}, attrs)
-        _create(raw_ds, tmp_raw, [raw_codec()])
-        for sub in ("photogrammetry", "ndvi"):
-            (out / sub).mkdir(exist_ok=True)
-        first = captures[0].metas
-        plan = Plan(
-            camera=camera, chain=FactoryChain(saturation_dn(camera), reference, panel_factor, field),
-            raw_dn=tmp_raw / "dn", out_store=tmp_refl, out=out, cube_shape=shape,
-            indices=tuple((ix, roles[ix.name]) for ix in indices),
-            bands=tuple((b, BandTags(name=camera.bands[b].name, wavelength_nm=first[b].wavelength_nm,
-                                     fwhm_nm=first[b].fwhm_nm, rig_camera_index=i))
-                        for i, b in enumerate(export)),
-            tiff_dtype=options.tiff_dtype, outputs=tuple(str(v) for v in refl_ds.data_vars),
-            transforms=None if options.registration is None else Path(options.registration),
-        )
-        return _Pass(plan, tmp_refl, tmp_raw)
-
-    def discard(self) -> None:
-        shutil.rmtree(self.tmp_refl, ignore_errors=True)
-        shutil.rmtree(self.tmp_raw, ignore_errors=True)
+    attrs = {"calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
+             "comment": "bands are not co-registered: each band keeps its own pixel grid",
+             "components": json.dumps(_components_record(None if field is None else (*field[:2], "")))}
+    if options.registration is not None:
+        attrs.update({"co_registered": 1, "registration": str(options.registration),
+                      "comment": "bands aligned to the reference band of the registration store "
+                                 "(mscal register); NaN where a band does not cover the reference grid"})
+    run = CaptureRun(
+        chain=FactoryChain(saturation_dn(camera), reference, panel_factor, None if field is None else field[:2]),
+        calibration=FACTORY, calibration_sha256=None, fingerprint=fingerprint, attrs=attrs,
+        reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
+        transforms=None if options.registration is None else Path(options.registration),
+        record=lambda caps: {"components": _components_record(field),
+                             "reference": _reference_record(reference, panels, panel_factor, camera)},
+    )
+    return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)
 
 
 def saturation_dn(camera: Camera) -> int:
     """Stored value at and above which a pixel is clipped: the sensor's largest DN in the
     container's high bits (65520 for 12-bit data in 16-bit samples)."""
     return ((1 << camera.bit_depth) - 1) << camera.dn_shift
-
-
-def _tags(camera: Camera, capture: Capture) -> FrameTags:
-    m = capture.metas[0]
-    return FrameTags(
-        time=m.time, lat=m.lat, lon=m.lon, alt_m=m.alt_m,
-        capture_uuid=str(uuid.uuid5(uuid.NAMESPACE_URL, f"mscal:{camera.name}:{capture.capture_id}")),
-        exposure_ms=float(np.median([x.exposure_s * 1e3 for x in capture.metas])),
-        camera_make="mscal", camera_model=camera.name,
-    )
 
 
 def _components_record(field: tuple[str, tuple[str, ...], str] | None) -> dict[str, str]:
