@@ -319,3 +319,89 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
         tiff_dtype=run.tiff_dtype, out=out, norm=run.norm, transforms=run.transforms,
     )
     return tmp_refl, tmp_raw, plan
+
+
+def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Camera, options: Any,
+                         t_start: float) -> ApplyResult:
+    """``mscal apply FLIGHT --calibration CALIB.zarr`` for a folder of one-file-per-band
+    captures: Eq. 15 with the store's U, V and S per band file (its own exposure and gain),
+    the light of each capture's time (issue 8; the captures' sun-sensor readings), the
+    store's band transforms, the normalisation of ``options`` (an ApplyOptions)."""
+    from pipeline.apply.executor import capture_reflectance
+    from pipeline.apply.flight import (
+        _fingerprint, _geometry, _index_roles, calibration_hash, export_band_indices, normalisation, saturation_dn,
+    )
+    from pipeline.apply.light import illumination_plan
+    from pipeline.calibrate.registration import check_transforms
+    from pipeline.ingest.camera_meta import capture_irradiance
+    from pipeline.ingest.catalog import load_index
+    from pipeline.storage.store import open_calibration
+
+    from mscal_core.errors import CalibrationStoreError, InputError
+
+    calib = open_calibration(calib_path, camera, need="apply")
+    if "band_name" in calib.coords and [str(n) for n in calib["band_name"].values] != list(camera.band_names):
+        raise CalibrationStoreError(
+            f"store bands {', '.join(map(str, calib['band_name'].values))} are not the bands of {camera.name} "
+            f"({', '.join(camera.band_names)})", path=calib_path, hint="use a calibration of this camera")
+    found = find_captures(folder, camera)
+    captures = found.captures
+    if not captures:
+        raise FrameError(f"no complete capture of {camera.name} (the store's camera) in the folder", path=folder,
+                         hint="; ".join(f"{q['file']}: {q['reason']}" for q in found.quarantined[:3])
+                         or "a capture is one band file per band, e.g. IMG_0000_1.tif ... IMG_0000_5.tif")
+    shapes = {m.shape for c in captures for m in c.metas}
+    v_shape = tuple(calib["vignetting"].shape[1:])
+    if shapes != {v_shape}:
+        raise InputError(f"calibration vignetting is {v_shape[1]}x{v_shape[0]} but band files are "
+                         f"{', '.join(f'{w}x{h}' for h, w in sorted(shapes))}", path=folder,
+                         hint="use a calibration of this camera")
+    shape = (camera.n_bands, *v_shape)
+    chash = calibration_hash(calib)
+    export = export_band_indices(camera, options.export_bands)
+    indices = [load_index(n) for n in options.indices]
+    roles = {ix.name: _index_roles(camera, ix) for ix in indices}
+    align, band_shift, reference = _geometry(calib, camera, options)
+    if align:
+        check_transforms(calib, camera.n_bands, v_shape, calib_path)
+    chain = FieldChain(calib_path, saturation_dn(calib, camera), camera.dn_shift)
+    names = [c.name for c in captures]
+    irr = np.array([np.nan if capture_irradiance(c) is None else capture_irradiance(c) for c in captures])
+    illum = illumination_plan(calib, names, capture_times(captures), folder, options.illumination, irradiance=irr)
+    scales = {} if illum is None else {n: tuple(float(v) for v in illum.scale[f]) for f, n in enumerate(names)}
+    transforms = calib_path if align else None
+
+    def panel_reflectance(f: int) -> np.ndarray:
+        c = captures[f]
+        job = Job(f, c.name, capture_tags(camera, c), capture=c, scale=scales.get(c.name))
+        try:
+            return capture_reflectance(camera, chain, job, transforms, band_shift)
+        except FrameError as exc:
+            raise InputError(f"--panel capture {c.name} cannot be used: {exc.reason}", path=exc.path) from None
+
+    norm = normalisation(options, camera, names, panel_reflectance)
+    fingerprint = {**_fingerprint([stat_fingerprint(captures)], chash, options, illum), "layout": "captures"}
+    attrs = {"calibration_sha256": chash, "source": str(folder), "calibration": str(calib_path)}
+    if align:
+        attrs["aligned_to_band"] = reference
+
+    def extra_coords(caps: Sequence[Capture]) -> dict[str, Any]:
+        if illum is None:
+            return {}
+        rows = [names.index(c.name) for c in caps]
+        return {"illumination_level": ("frame", illum.level[rows].astype(np.float64),
+                                       {"long_name": "brightness level beta of the light at the capture's time"}),
+                "illumination_scale": (("frame", "band"), illum.scale[rows].astype(np.float64),
+                                       {"long_name": "factor on Eq. 15 reflectance: S / S(lambda, time) (issue 8)"})}
+
+    def record(caps: Sequence[Capture]) -> dict[str, Any]:
+        if illum is None:
+            return {"illumination": {"varies_in_time": False, "captures": int(calib.sizes.get("capture", 1))}}
+        return {"illumination": {"varies_in_time": True, **illum.summary([c.name for c in caps])}}
+
+    run = CaptureRun(
+        chain=chain, calibration=str(calib_path), calibration_sha256=chash, fingerprint=fingerprint, attrs=attrs,
+        reflectance_name="reflectance (Eq. 15)", tiff_dtype=options.tiff_dtype, norm=norm, transforms=transforms,
+        scale=lambda name: scales.get(name), extra_coords=extra_coords, record=record,
+    )
+    return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)

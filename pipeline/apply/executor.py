@@ -307,11 +307,11 @@ def capture_dn(plan: Plan, job: Job) -> tuple[np.ndarray, str | None]:
     return dn, sha
 
 
-def radiometry(plan: Plan, job: Job, dn: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, int]:
+def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, int]:
     """The chain on one capture's DN: ``(signal, factor, radiance, saturated pixels)``.
     ``signal`` goes onto the common pixel grid before the per-band ``factor`` (None: 1);
     ``radiance`` (factory chain) is the signal kept as an output. FrameError: unusable."""
-    chain = plan.chain
     if isinstance(chain, FieldChain):
         lut, inv_v = calibration_tables(str(chain.calibration))
         if job.capture is None:
@@ -326,13 +326,25 @@ def radiometry(plan: Plan, job: Job, dn: np.ndarray) -> tuple[np.ndarray, np.nda
     if cap is None:
         raise InputError("the factory chain needs the band files' own metadata (one-file-per-band captures)")
     k = np.asarray(job.scale, dtype=np.float64) if job.scale is not None else capture_factors(chain, cap)
-    parts = field_parts(chain.field[0], chain.field[1], plan.camera.name) if chain.field else [None] * dn.shape[0]
+    parts = field_parts(chain.field[0], chain.field[1], camera.name) if chain.field else [None] * dn.shape[0]
     rad = np.empty(dn.shape, np.float32)
     for b, meta in enumerate(cap.metas):
         rad[b] = factory_radiance(meta, dn[b], parts[b])
     saturated = dn >= chain.sat
     rad[saturated] = np.nan
     return rad, k, rad, int(np.count_nonzero(saturated))
+
+
+def capture_reflectance(camera: Camera, chain: FieldChain | FactoryChain, job: Job, transforms: Path | None = None,
+                        band_shift: Sequence[tuple[float, float]] | None = None) -> np.ndarray:
+    """Reflectance (band, y, x) of one capture read from its band files, on the outputs' pixel
+    grid, before normalisation (a panel's region is measured on it); writes nothing."""
+    assert job.capture is not None
+    dn = np.stack(read_capture(job.capture)[1])
+    signal, factor, _, _ = radiometry(camera, chain, job, dn)
+    if transforms is not None or band_shift is not None:
+        signal = geometry_step(transforms or Path(), transforms is not None, band_shift, job.name, signal)
+    return signal if factor is None else signal * factor.astype(np.float32)[:, None, None]
 
 
 def process_frame(plan: Plan, job: Job) -> Outcome:
@@ -345,7 +357,7 @@ def process_frame(plan: Plan, job: Job) -> Outcome:
         prefetch_file(job.ahead)
     try:
         dn, sha = capture_dn(plan, job)
-        signal, factor, radiance, saturated = radiometry(plan, job, dn)
+        signal, factor, radiance, saturated = radiometry(plan.camera, plan.chain, job, dn)
     except FrameError as exc:
         if job.capture is not None:
             file = Path(exc.path or job.capture.files[0]).name

@@ -558,6 +558,10 @@ def apply_flight(
     calib_path = Path(calibration)
     probe = open_calibration(calib_path, need="apply")
     camera = load_camera(str(probe.attrs.get("camera")))
+    if camera.layout.kind == "file_per_band":  # one file per band: a capture is several files (issue 20)
+        from pipeline.apply.captures import apply_field_captures
+
+        return apply_field_captures(flight_dir, calib_path, out, camera, options, t_start)
     calib = open_calibration(calib_path, camera, need="apply")
     chash = calibration_hash(calib)
     export = export_band_indices(camera, options.export_bands)
