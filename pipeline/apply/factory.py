@@ -51,7 +51,7 @@ import numpy as np
 
 import mscal_core
 from mscal_core.errors import CalibrationStoreError, FrameError, InputError
-from mscal_core.illumination import fit_illumination
+from mscal_core.illumination import INTERPOLATION_MODES, fit_illumination, frame_illumination
 from mscal_core.panel import sample_quad
 
 from pipeline.apply.executor import (
@@ -63,8 +63,8 @@ from pipeline.apply.flight import (
     _up_to_date,
     export_band_indices,
 )
-from pipeline.apply.captures import CaptureRun, apply_captures, find_captures, stat_fingerprint
-from pipeline.ingest.camera_meta import Capture, CaptureMeta, FieldParts, factory_radiance, read_capture_meta
+from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, stat_fingerprint
+from pipeline.ingest.camera_meta import Capture, CaptureMeta, capture_irradiance, FieldParts, factory_radiance, read_capture_meta
 from pipeline.ingest.catalog import Camera, load_camera, load_index, reflectance_option
 from pipeline.apply.panel import PanelBand, panel_factors
 from pipeline.ingest.session import PanelConfig, panel_config_near
@@ -89,6 +89,7 @@ class FactoryOptions:
     indices: tuple[str, ...] = ("ndvi", "ndre")
     strict: bool = False
     registration: str | None = None  # a store from 'mscal register': bands aligned to its reference (issue 9)
+    illumination: str | None = None  # nearest | linear: the light between panel captures (issue 8); None: their mean
     field_calibration: str | None = None  # a store from 'mscal calibrate' / 'mscal fit' of this camera
     field_components: tuple[str, ...] = ()  # of FIELD_COMPONENTS taken from it; () = all it holds
 
@@ -99,12 +100,17 @@ class FactoryOptions:
         if unknown:
             raise InputError(f"--field-components {', '.join(unknown)}: not one of {', '.join(FIELD_COMPONENTS)}",
                              hint="e.g. --field-components vignetting (factory response, field vignetting)")
+        if self.illumination is not None and self.illumination not in INTERPOLATION_MODES:
+            raise InputError(f"--illumination {self.illumination!r}: use one of {', '.join(INTERPOLATION_MODES)}")
+        if self.illumination is not None and self.reference == "dls":
+            raise InputError("--illumination is for the panel route: with --reference dls each capture already has "
+                             "its own sun-sensor light", hint="leave --illumination out, or give --panel-reflectance")
         if self.field_components and self.field_calibration is None:
             raise InputError("--field-components needs --field-calibration CALIB.zarr (the store to take them from)")
 
     def fingerprint(self) -> dict[str, Any]:
         d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items() if k != "strict"}
-        for key in ("registration", "field_calibration"):  # runs before issues 9 / 6-components stay up to date
+        for key in ("registration", "field_calibration", "illumination"):  # earlier runs stay up to date
             if d[key] is None:
                 d.pop(key)
         if not d["field_components"]:
@@ -325,6 +331,14 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                               None if near is None else near[0])
         panel_factor = tuple(float(np.mean([p.factor_split[b] for p in panels])) for b in range(camera.n_bands))
 
+    light = None
+    if options.illumination is not None:
+        if reference != "panel":
+            raise InputError("--illumination is for the panel route: with the sun sensor (DLS) each capture already "
+                             "has its own light", hint="leave --illumination out, or give --panel-reflectance")
+        light = panel_light(captures, panels, options.illumination, folder)
+    scales = {} if light is None else {c.name: tuple(float(v) for v in light[f]) for f, c in enumerate(captures)}
+
     attrs = {"calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
              "comment": "bands are not co-registered: each band keeps its own pixel grid",
              "components": json.dumps(_components_record(None if field is None else (*field[:2], "")))}
@@ -338,7 +352,9 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
         transforms=None if options.registration is None else Path(options.registration),
         record=lambda caps: {"components": _components_record(field),
-                             "reference": _reference_record(reference, panels, panel_factor, camera)},
+                             "reference": _reference_record(reference, panels, panel_factor, camera),
+                             "illumination": _light_record(options.illumination, panels, caps, scales, camera)},
+        scale=lambda name: scales.get(name),
     )
     return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)
 
@@ -378,3 +394,35 @@ def _reference_record(reference: str, panels: Sequence[PanelReference], factor: 
             "region_source": list(p.region_source),
         })
     return rec
+
+
+def panel_light(captures: Sequence[Capture], panels: Sequence[PanelReference], mode: str, folder: Path) -> np.ndarray:
+    """``k_b`` of every capture (n_captures, n_bands) from the light of the panel captures
+    (issue 8 for the factory chain): each panel capture's ``S_c = 1 / k_c`` (Eq. 11-14 split)
+    interpolated to the capture's time (``nearest`` or ``linear``), its level scaled by the
+    captures' sun-sensor readings between the panels when every band has one
+    (:func:`mscal_core.illumination.frame_illumination`)."""
+    by_name = {c.name: c for c in captures}
+    panel_caps = [by_name[p.capture] for p in panels]
+    times = capture_times(captures)
+    t_f = np.where(np.isnat(times), np.nan, times.astype("datetime64[ns]").astype(np.int64) / 1e9)
+    t_c = t_f[[list(by_name).index(c.name) for c in panel_caps]]
+    if len(panels) > 1 and not np.all(np.isfinite(t_f)):
+        missing = [captures[f].name for f in np.flatnonzero(~np.isfinite(t_f))[:3]]
+        raise InputError(f"capture(s) {', '.join(missing)} have no time (EXIF DateTimeOriginal), but the light of "
+                         f"{len(panels)} panel captures is interpolated to each capture's time", path=folder,
+                         hint="leave --illumination out to use the panels' mean factor")
+    s_c = 1.0 / np.array([p.factor_split for p in panels], dtype=np.float64)
+    e_c = np.array([np.nan if capture_irradiance(c) is None else capture_irradiance(c) for c in panel_caps])
+    e_f = np.array([np.nan if capture_irradiance(c) is None else capture_irradiance(c) for c in captures])
+    light = frame_illumination(s_c, t_c, t_f, mode, capture_irradiance=e_c, frame_irradiance=e_f)
+    return 1.0 / light.spectral_factor
+
+
+def _light_record(mode: str | None, panels: Sequence[PanelReference], captures: Sequence[Capture],
+                  scales: dict[str, tuple[float, ...]], camera: Camera) -> dict[str, Any]:
+    if mode is None:
+        return {"varies_in_time": False, "panels": [p.capture for p in panels],
+                "note": "one factor per band for every capture (the panels' mean, or each capture's own DLS)"}
+    return {"varies_in_time": True, "mode": mode, "panels": [p.capture for p in panels],
+            "per_frame": {c.name: dict(zip(camera.band_names, scales[c.name])) for c in captures}}
