@@ -37,8 +37,8 @@ from mscal_core.errors import FrameError
 
 from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner, process_frame
 from pipeline.apply.flight import (
-    RUN_JSON, ApplyResult, _clean_temporaries, _install, _remove_frame_tiffs, _up_to_date, _versions,
-    _write_json_atomic,
+    RUN_JSON, ApplyResult, clean_temporaries, install_store, remove_frame_tiffs, previous_run, software_versions,
+    write_json_atomic,
 )
 from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN, Capture, group_captures
 from pipeline.ingest.catalog import Camera, Index
@@ -229,10 +229,10 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
     quarantined = list(found.quarantined)
     fingerprint = json.loads(json.dumps(run.fingerprint))
     out.mkdir(parents=True, exist_ok=True)
-    previous = _up_to_date(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
+    previous = previous_run(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
     if previous is not None:
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
-    _clean_temporaries(out)
+    clean_temporaries(out)
     t0 = time.perf_counter()
     with Runner(len(captures)) as runner:
         while True:  # a capture found unusable in the pass is quarantined and the pass redone without it
@@ -246,15 +246,15 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
             shutil.rmtree(tmp_refl, ignore_errors=True)
             shutil.rmtree(tmp_raw, ignore_errors=True)
             for name, q in bad.items():
-                _remove_frame_tiffs(out, [name], camera, export)
+                remove_frame_tiffs(out, [name], camera, export)
                 quarantined.append(q)
             captures = [c for c in captures if c.name not in bad]
             if not captures:
                 raise FrameError("no usable capture in the folder (all quarantined)", path=folder,
                                  hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
     t_pass = time.perf_counter() - t0
-    _install(out, tmp_raw, "raw.zarr")
-    _install(out, tmp_refl)
+    install_store(out, tmp_raw, "raw.zarr")
+    install_store(out, tmp_refl)
     frames = [o.name for o in outcomes]
     quarantined.sort(key=lambda q: q["file"])
     record = {
@@ -274,12 +274,12 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
         "outputs": {"reflectance": "reflectance.zarr", "raw": "raw.zarr", "photogrammetry": "photogrammetry/",
                     "ndvi": "ndvi/"},
         "export_bands": [camera.bands[b].name for b in export],
-        "versions": _versions(),
+        "versions": software_versions(),
         "scheduler": runner.scheduler,
         "timings_s": {"apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
         "fingerprint": fingerprint,
     }
-    _write_json_atomic(out / RUN_JSON, record)
+    write_json_atomic(out / RUN_JSON, record)
     return ApplyResult(out, record, up_to_date=False, quarantined=quarantined)
 
 
@@ -329,7 +329,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     store's band transforms, the normalisation of ``options`` (an ApplyOptions)."""
     from pipeline.apply.executor import capture_reflectance
     from pipeline.apply.flight import (
-        _fingerprint, _geometry, _index_roles, calibration_hash, export_band_indices, normalisation, saturation_dn,
+        run_fingerprint, pass_geometry, index_roles, calibration_hash, export_band_indices, normalisation, saturation_dn,
     )
     from pipeline.apply.light import illumination_plan
     from pipeline.calibrate.registration import check_transforms
@@ -360,8 +360,8 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     chash = calibration_hash(calib)
     export = export_band_indices(camera, options.export_bands)
     indices = [load_index(n) for n in options.indices]
-    roles = {ix.name: _index_roles(camera, ix) for ix in indices}
-    align, band_shift, reference = _geometry(calib, camera, options)
+    roles = {ix.name: index_roles(camera, ix) for ix in indices}
+    align, band_shift, reference = pass_geometry(calib, camera, options)
     if align:
         check_transforms(calib, camera.n_bands, v_shape, calib_path)
     chain = FieldChain(calib_path, saturation_dn(calib, camera), camera.dn_shift)
@@ -380,7 +380,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
             raise InputError(f"--panel capture {c.name} cannot be used: {exc.reason}", path=exc.path) from None
 
     norm = normalisation(options, camera, names, panel_reflectance)
-    fingerprint = {**_fingerprint([stat_fingerprint(captures)], chash, options, illum), "layout": "captures"}
+    fingerprint = {**run_fingerprint([stat_fingerprint(captures)], chash, options, illum), "layout": "captures"}
     attrs = {"calibration_sha256": chash, "source": str(folder), "calibration": str(calib_path)}
     if align:
         attrs["aligned_to_band"] = reference

@@ -59,8 +59,8 @@ from pipeline.apply.executor import (
 )
 from pipeline.apply.flight import (
     ApplyResult,
-    _index_roles,
-    _up_to_date,
+    index_roles,
+    previous_run,
     export_band_indices,
 )
 from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, stat_fingerprint
@@ -296,7 +296,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     shape = (camera.n_bands, *shapes.pop())
     export = export_band_indices(camera, options.export_bands)
     indices = [load_index(n) for n in options.indices]
-    roles = {ix.name: _index_roles(camera, ix) for ix in indices}
+    roles = {ix.name: index_roles(camera, ix) for ix in indices}
 
     registration = _registration(options, camera, shape)
     field = _field(options, camera, shape)
@@ -312,7 +312,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         fingerprint["field_sha256"] = field[2]
     if near is not None:
         fingerprint["panel_config"] = {"session_yaml": str(near[1].resolve()), "panel": repr(near[0])}
-    previous = _up_to_date(Path(out), json.loads(json.dumps(fingerprint)), ("reflectance.zarr", "raw.zarr"))
+    previous = previous_run(Path(out), json.loads(json.dumps(fingerprint)), ("reflectance.zarr", "raw.zarr"))
     if previous is not None:  # before the panels are searched: an up-to-date run reads no pixels
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
 

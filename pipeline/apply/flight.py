@@ -95,7 +95,7 @@ class ApplyOptions:
     def fingerprint(self) -> dict[str, Any]:
         d = asdict(self)
         d.pop("strict")
-        d.pop("illumination")  # in the fingerprint only when the light varies (see _fingerprint)
+        d.pop("illumination")  # in the fingerprint only when the light varies (see run_fingerprint)
         for key, default in (("align", True), ("centre_bands", False)):  # runs before issue 9 stay up to date
             if d[key] == default:
                 d.pop(key)
@@ -131,7 +131,7 @@ def calibration_hash(ds: xr.Dataset) -> str:
     return h.hexdigest()
 
 
-def _clean_temporaries(out: Path) -> None:
+def clean_temporaries(out: Path) -> None:
     """Remove what a killed run left under temporary names."""
     if not out.is_dir():
         return
@@ -142,13 +142,16 @@ def _clean_temporaries(out: Path) -> None:
             p.unlink(missing_ok=True)
 
 
-def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
+def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
     tmp = path.with_name(f".{path.name}{TMP_MARK}{uuid.uuid4().hex[:8]}")
     with tmp.open("w") as fh:
         json.dump(data, fh, indent=2, sort_keys=True)
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
+
+
+_write_json_atomic = write_json_atomic  # the name pipeline.run imports
 
 
 def export_band_indices(camera: Camera, names: Sequence[str] | None) -> list[int]:
@@ -172,7 +175,7 @@ def _band_index(camera: Camera, text: str) -> int:
                          hint=f"bands: {', '.join(camera.band_names)}") from None
 
 
-def _index_roles(camera: Camera, index: Index) -> dict[str, int]:
+def index_roles(camera: Camera, index: Index) -> dict[str, int]:
     missing = [r for r in index.inputs if r not in camera.index_bands]
     if missing:
         raise InputError(
@@ -396,7 +399,7 @@ def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path:
     return reflectance
 
 
-def _remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export: Sequence[int]) -> None:
+def remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export: Sequence[int]) -> None:
     for name in names:
         for b in export:
             (out / "photogrammetry" / f"{name}_{camera.bands[b].name}.tif").unlink(missing_ok=True)
@@ -473,7 +476,7 @@ def _illumination_record(ps: _Pass, calib: xr.Dataset, options: ApplyOptions) ->
     return {"varies_in_time": True, **ps.illum.summary([str(f) for f in ps.coords["frame"].values])}
 
 
-def _fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
+def run_fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
                  illum: IlluminationPlan | None = None) -> dict[str, Any]:
     fingerprint = {
         "frames_sha256": hashlib.sha256("".join(map(str, shas)).encode()).hexdigest(),
@@ -486,7 +489,7 @@ def _fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
     return json.loads(json.dumps(fingerprint))  # as it reads back from run.json
 
 
-def _up_to_date(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = ("reflectance.zarr",)
+def previous_run(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = ("reflectance.zarr",)
                 ) -> dict[str, Any] | None:
     """The previous run's record if it made the outputs (``stores`` in ``out``) of exactly these inputs."""
     run_path = out / RUN_JSON
@@ -499,7 +502,7 @@ def _up_to_date(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = 
     return previous if previous.get("fingerprint") == fingerprint else None
 
 
-def _install(out: Path, tmp_store: Path, name: str = "reflectance.zarr") -> None:
+def install_store(out: Path, tmp_store: Path, name: str = "reflectance.zarr") -> None:
     """Rename a store written under a temporary name to ``out/name``, replacing the old one."""
     final = out / name
     if final.exists():
@@ -511,7 +514,7 @@ def _install(out: Path, tmp_store: Path, name: str = "reflectance.zarr") -> None
         os.replace(tmp_store, final)
 
 
-def _versions() -> dict[str, str]:
+def software_versions() -> dict[str, str]:
     versions = {"mscal": mscal_core.__version__, "python": platform.python_version(), "numpy": np.__version__,
                 "dask": dask.__version__, "xarray": xr.__version__, "opencv": cv2.__version__}
     try:
@@ -523,7 +526,7 @@ def _versions() -> dict[str, str]:
     return versions
 
 
-def _geometry(calib: xr.Dataset, camera: Camera, options: ApplyOptions
+def pass_geometry(calib: xr.Dataset, camera: Camera, options: ApplyOptions
               ) -> tuple[bool, tuple[tuple[float, float], ...] | None, str | None]:
     """``(align, band_shift, reference band)`` of the pass (``geometry_step``)."""
     align = bool(options.align and "band_transform" in calib)
@@ -566,11 +569,11 @@ def apply_flight(
     chash = calibration_hash(calib)
     export = export_band_indices(camera, options.export_bands)
     indices = [load_index(n) for n in options.indices]
-    roles = {ix.name: _index_roles(camera, ix) for ix in indices}
+    roles = {ix.name: index_roles(camera, ix) for ix in indices}
     sat = saturation_dn(calib, camera)
-    geometry = _geometry(calib, camera, options)
+    geometry = pass_geometry(calib, camera, options)
     out.mkdir(parents=True, exist_ok=True)
-    _clean_temporaries(out)
+    clean_temporaries(out)
     raw_path = out / "raw.zarr"
 
     def start(coords: xr.Dataset, frame_dn: Callable[[int], np.ndarray]) -> _Pass:
@@ -609,18 +612,18 @@ def apply_flight(
                                  hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
             illum = illumination_plan(calib, [str(f) for f in raw["frame"].values], raw["time"].values,
                                       flight_dir, options.illumination)
-            fingerprint = _fingerprint(shas, chash, options, illum)
-            previous = _up_to_date(out, fingerprint)
+            fingerprint = run_fingerprint(shas, chash, options, illum)
+            previous = previous_run(out, fingerprint)
             if previous is not None:
                 previous["quarantined"] = quarantined
                 return ApplyResult(out, previous, up_to_date=True, quarantined=quarantined)
-            _remove_frame_tiffs(out, [Path(q["file"]).stem for q in quarantined], camera, export)
+            remove_frame_tiffs(out, [Path(q["file"]).stem for q in quarantined], camera, export)
             done = _cube_pass(out, runner, start, calib_path, sat, camera)
         else:
             quarantined = sorted(quarantined, key=lambda q: q["file"])
     ps, outcomes = done
     t_pass = time.perf_counter() - t0
-    _install(out, ps.tmp_store)
+    install_store(out, ps.tmp_store)
     frames = [o.name for o in outcomes]
     sat_counts = [o.saturated for o in outcomes]
     shas = [str(s) for s in ps.coords["sha256"].values]  # the pass's frames, in cube order
@@ -635,12 +638,12 @@ def apply_flight(
         "saturated_pixels": {"total": int(np.sum(sat_counts)), "per_frame": {n: int(c) for n, c in zip(frames, sat_counts)}},
         "outputs": {"reflectance": "reflectance.zarr", "photogrammetry": "photogrammetry/", "ndvi": "ndvi/"},
         "export_bands": [camera.bands[b].name for b in export],
-        "versions": _versions(),
+        "versions": software_versions(),
         "scheduler": runner.scheduler,
         "single_pass": single,
         "timings_s": {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
         "illumination": _illumination_record(ps, calib, options),
-        "fingerprint": _fingerprint(shas, chash, options, ps.illum),
+        "fingerprint": run_fingerprint(shas, chash, options, ps.illum),
     }
-    _write_json_atomic(out / RUN_JSON, run)
+    write_json_atomic(out / RUN_JSON, run)
     return ApplyResult(out, run, up_to_date=False, quarantined=quarantined)

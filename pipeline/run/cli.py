@@ -354,6 +354,10 @@ def _echo_run(record: dict) -> None:
     for name, f in record["flights"].items():
         for q in f["quarantined"]:
             click.echo(f"quarantined {name}/{q['file']}: {q['reason']}", err=True)
+        if f.get("skipped"):
+            click.echo(f"skipped {len(f['skipped'])} file(s) of {name} that are not captures: "
+                       f"{', '.join(s['file'] for s in f['skipped'][:5])}{' ...' if len(f['skipped']) > 5 else ''}",
+                       err=True)
     calib = "reused from the cache" if record["calibration_cached"] else "fitted: " + ", ".join(record["fitted"])
     click.echo(f"wrote {record['out']} (calibration {calib}; {len(record['flights'])} flight(s); "
                f"{record['timings_s']['total']:.1f} s)")

@@ -257,6 +257,7 @@ def apply_one(flight_dir: str, calibration: str, out: str, *, normalise: str = "
         "frames_in": run["frames_in"],
         "frames_out": run["frames_out"],
         "quarantined": res.quarantined,
+        "skipped": run.get("skipped", []),
         "saturated_pixels": run["saturated_pixels"]["total"],
         "calibration_sha256": run["calibration_sha256"],
         "up_to_date": res.up_to_date,
