@@ -64,3 +64,32 @@ def paint_marker(dn, band: int) -> None:
     cx, cy = np.mean(np.asarray(PANEL_CORNERS[band - 1], dtype=float), axis=0)
     x0, y0 = int(round(cx - 190 - img.shape[1] / 2)), int(round(cy - img.shape[0] / 2))
     dn[y0:y0 + img.shape[0], x0:x0 + img.shape[1]] = np.where(img > 127, 40000, 3000).astype(dn.dtype)
+
+
+def factory_store(out, capture: str = "IMG_0000"):  # noqa: ANN001, ANN201
+    """A calibration store for the MicaSense bands built from the factory model of one capture
+    (tests of the field chain on multi-lens flights, issue 20): U linear in the stored DN above
+    the black level, V the inverse of the factory vignetting polynomial scaled to max 1, and
+    S such that Eq. 15 gives the factory radiance without its row-gradient term:
+    ``R = L / R(y)`` with ``R(y)`` of :func:`mscal_core.factory.row_gradient`."""
+    import numpy as np
+
+    from mscal_core.factory import vignetting_map
+    from pipeline.ingest.camera_meta import read_capture_meta
+    from pipeline.ingest.catalog import load_camera
+    from pipeline.storage.store import new_dataset, write_store
+
+    cam = load_camera("micasense-rededge")
+    metas = [read_capture_meta(require_data() / f"{capture}_{b.file_suffix}.tif") for b in cam.bands]
+    ds = new_dataset(cam)
+    k = np.arange(2 ** cam.bit_depth, dtype=np.float64)
+    U = np.stack([np.maximum(k * 2 ** cam.dn_shift - m.black_level, 0.0) for m in metas])
+    V, S = [], []
+    for m in metas:
+        inv = 1.0 / vignetting_map(m.shape, m.vignetting_center, m.vignetting_polynomial)
+        V.append(inv / inv.max())
+        S.append(inv.max() * 2.0 ** m.bits_per_sample / (1e3 * m.radiometric_calibration[0]))
+    ds["inverse_response"] = (("band", "dn"), U)
+    ds["vignetting"] = (("band", "y", "x"), np.stack(V).astype(np.float32))
+    ds["spectral_factor"] = (("band",), np.array(S))
+    return write_store(ds, out)

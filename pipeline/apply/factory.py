@@ -39,51 +39,35 @@ matching its inputs (file names, sizes and modification times) and options does 
 """
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import math
-import shutil
 import time
-import uuid
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-import xarray as xr
 
 import mscal_core
 from mscal_core.errors import CalibrationStoreError, FrameError, InputError
-from mscal_core.illumination import fit_illumination
+from mscal_core.illumination import INTERPOLATION_MODES, fit_illumination, frame_illumination
 from mscal_core.panel import sample_quad
 
-from pipeline.apply.flight import (
-    geometry_step,
-    OUTPUT_COMPRESSORS,
-    RUN_JSON,
-    ApplyResult,
-    Runner,
-    _clean_temporaries,
-    _index_roles,
-    _install,
-    _remove_frame_tiffs,
-    _up_to_date,
-    _versions,
-    _write_json_atomic,
-    export_band_indices,
-    otsu_mask,
-    write_frame,
+from pipeline.apply.executor import (
+    FactoryChain, field_parts, read_capture,
 )
-from pipeline.ingest.camera_meta import Capture, CaptureMeta, FieldParts, factory_radiance, group_captures, read_capture_meta
-from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
-from pipeline.storage.chunks import FLAT_CHUNK_KEYS
-from pipeline.ingest.discover import quarantine_entry
-from pipeline.ingest.raw import raw_codec
-from pipeline.apply.panel import SATURATION_DN, PanelBand, panel_factors
-from pipeline.ingest.session import PanelConfig, decode_raw, panel_config_near
-from pipeline.products.writers import TMP_MARK, BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
+from pipeline.apply.flight import (
+    ApplyResult,
+    index_roles,
+    previous_run,
+    export_band_indices,
+)
+from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, stat_fingerprint
+from pipeline.ingest.camera_meta import Capture, CaptureMeta, capture_irradiance, FieldParts, factory_radiance, read_capture_meta
+from pipeline.ingest.catalog import Camera, load_camera, load_index, reflectance_option
+from pipeline.apply.panel import PanelBand, panel_factors
+from pipeline.ingest.session import PanelConfig, panel_config_near
 
 FACTORY = "factory"
 REFERENCES = ("auto", "panel", "dls")
@@ -105,6 +89,7 @@ class FactoryOptions:
     indices: tuple[str, ...] = ("ndvi", "ndre")
     strict: bool = False
     registration: str | None = None  # a store from 'mscal register': bands aligned to its reference (issue 9)
+    illumination: str | None = None  # nearest | linear: the light between panel captures (issue 8); None: their mean
     field_calibration: str | None = None  # a store from 'mscal calibrate' / 'mscal fit' of this camera
     field_components: tuple[str, ...] = ()  # of FIELD_COMPONENTS taken from it; () = all it holds
 
@@ -115,12 +100,17 @@ class FactoryOptions:
         if unknown:
             raise InputError(f"--field-components {', '.join(unknown)}: not one of {', '.join(FIELD_COMPONENTS)}",
                              hint="e.g. --field-components vignetting (factory response, field vignetting)")
+        if self.illumination is not None and self.illumination not in INTERPOLATION_MODES:
+            raise InputError(f"--illumination {self.illumination!r}: use one of {', '.join(INTERPOLATION_MODES)}")
+        if self.illumination is not None and self.reference == "dls":
+            raise InputError("--illumination is for the panel route: with --reference dls each capture already has "
+                             "its own sun-sensor light", hint="leave --illumination out, or give --panel-reflectance")
         if self.field_components and self.field_calibration is None:
             raise InputError("--field-components needs --field-calibration CALIB.zarr (the store to take them from)")
 
     def fingerprint(self) -> dict[str, Any]:
         d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items() if k != "strict"}
-        for key in ("registration", "field_calibration"):  # runs before issues 9 / 6-components stay up to date
+        for key in ("registration", "field_calibration", "illumination"):  # earlier runs stay up to date
             if d[key] is None:
                 d.pop(key)
         if not d["field_components"]:
@@ -134,7 +124,7 @@ class FactoryOptions:
 def match_camera(folder: Path) -> Camera:
     """The catalog camera whose band files (suffixes and XMP band names) this folder holds."""
     probe: CaptureMeta | None = None
-    names = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".tif", ".tiff"))
+    names = sorted(p for p in folder.rglob("*") if p.suffix.lower() in (".tif", ".tiff") and p.is_file())
     for path in names:
         try:
             probe = read_capture_meta(path)
@@ -154,34 +144,6 @@ def match_camera(folder: Path) -> Camera:
         f"no catalog camera has a band {probe.band_name!r} in files named like {probe.path.name}",
         path=folder, hint=f"add the camera under catalogs/cameras/ (known: {', '.join(FACTORY_CAMERAS)})",
     )
-
-
-def _read_capture(capture: Capture) -> tuple[str, list[np.ndarray]]:
-    """Content hash (over all band files, in band order) and the stored DN of each band file."""
-    h = hashlib.sha256()
-    dns = []
-    for meta in capture.metas:
-        data = meta.path.read_bytes()
-        h.update(data)
-        try:
-            dn = np.asarray(decode_raw(data, meta.path))
-        except FrameError:
-            raise
-        except Exception as exc:  # tifffile raises IndexError/ValueError on truncated files
-            raise FrameError(f"unreadable band file ({type(exc).__name__}: {exc})", path=meta.path) from None
-        if dn.shape != meta.shape:
-            raise FrameError(f"image {dn.shape} does not match its metadata {meta.shape}", path=meta.path)
-        dns.append(dn)
-    return h.hexdigest(), dns
-
-
-def _stat_fingerprint(captures: Sequence[Capture]) -> str:
-    h = hashlib.sha256()
-    for c in captures:
-        for p in c.files:
-            st = p.stat()
-            h.update(f"{p.name}:{st.st_size}:{st.st_mtime_ns};".encode())
-    return h.hexdigest()
 
 
 # --------------------------------------------------------------------------- reference
@@ -244,7 +206,7 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
         refs = []
         for n in named:
             try:
-                refs.append(panel_reference(by_name[n], _read_capture(by_name[n])[1], rho, parts, config))
+                refs.append(panel_reference(by_name[n], read_capture(by_name[n])[1], rho, parts, config))
             except FrameError as exc:
                 raise InputError(f"panel capture {n}: {exc.reason}", path=exc.path, hint=exc.hint) from None
         return refs
@@ -252,7 +214,7 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
     refs = []
     for c in ends:
         try:
-            refs.append(panel_reference(c, _read_capture(c)[1], rho, parts, config))
+            refs.append(panel_reference(c, read_capture(c)[1], rho, parts, config))
         except FrameError:
             continue
     if not refs:
@@ -264,146 +226,6 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
 
 
 # --------------------------------------------------------------------------- the pass
-
-
-@dataclass(frozen=True)
-class CapturePlan:
-    camera: Camera
-    raw_store: Path
-    out_store: Path
-    out: Path
-    shape: tuple[int, int, int]
-    reference: str  # panel | dls
-    panel_factor: tuple[float, ...] | None
-    sat: int
-    indices: tuple[tuple[Index, dict[str, int]], ...]
-    bands: tuple[tuple[int, BandTags], ...]
-    tiff_dtype: str
-    outputs: tuple[str, ...]
-    registration: Path | None = None  # band transforms (issue 9): radiance and reflectance aligned
-    field: tuple[str, tuple[str, ...]] | None = None  # (store, components) replacing factory components
-
-
-@dataclass(frozen=True)
-class CaptureJob:
-    index: int
-    capture: Capture
-    tags: FrameTags
-
-
-@dataclass(frozen=True)
-class CaptureOutcome:
-    name: str
-    sha256: str | None
-    saturated: int
-    quarantine: dict[str, str] | None = None
-
-
-def capture_factors(plan: CapturePlan, capture: Capture) -> np.ndarray:
-    """``k_b`` of one capture: the panel's, or ``pi / E_b`` of its own DLS readings."""
-    if plan.reference == "panel":
-        assert plan.panel_factor is not None
-        return np.asarray(plan.panel_factor, dtype=np.float64)
-    k = []
-    for meta in capture.metas:
-        e = meta.irradiance
-        if e is None or not math.isfinite(e) or e <= 0:
-            raise FrameError(f"no usable DLS irradiance (XMP Irradiance = {e!r})", path=meta.path,
-                             hint="use a panel capture: --panel-reflectance TARGET")
-        k.append(math.pi / e)
-    return np.asarray(k)
-
-
-def process_capture(plan: CapturePlan, job: CaptureJob) -> CaptureOutcome:
-    """One capture, every output: its raw.zarr chunk, radiance, reflectance, indices, mask,
-    photogrammetry and NDVI TIFFs (one whole chunk per variable: no two tasks share a chunk)."""
-    cap = job.capture
-    try:
-        sha, dns = _read_capture(cap)
-        if any(dn.shape != plan.shape[1:] for dn in dns):
-            raise FrameError(f"band images {[d.shape for d in dns]} are not all {plan.shape[1:]}", path=cap.files[0])
-        k = capture_factors(plan, cap)
-        parts = field_parts(plan.field[0], plan.field[1], plan.camera.name) if plan.field else [None] * len(dns)
-        rad = np.empty(plan.shape, np.float32)
-        for b, (meta, dn) in enumerate(zip(cap.metas, dns)):
-            rad[b] = factory_radiance(meta, dn, parts[b])
-    except FrameError as exc:
-        return CaptureOutcome(cap.name, None, 0, quarantine_entry(Path(exc.path or cap.files[0]).name, exc))
-    raw = np.stack(dns)
-    saturated = raw >= plan.sat
-    rad[saturated] = np.nan
-    if plan.registration is not None:  # each band onto the reference band's grid (NaN where uncovered)
-        rad = geometry_step(plan.registration, True, None, cap.name, rad)
-    refl = rad * k.astype(np.float32)[:, None, None]
-    write_frame(plan.raw_store / "dn", job.index, raw)
-    write_frame(plan.out_store / "radiance", job.index, rad)
-    write_frame(plan.out_store / "reflectance", job.index, refl)
-    ndvi = None
-    for ix, roles in plan.indices:
-        val = ix.evaluate({role: refl[b] for role, b in roles.items()})
-        write_frame(plan.out_store / ix.name, job.index, val)
-        if ix.name == "ndvi":
-            ndvi = val
-    if ndvi is not None and "vegetation_mask" in plan.outputs:
-        write_frame(plan.out_store / "vegetation_mask", job.index, otsu_mask(ndvi))
-    for b, btags in plan.bands:
-        write_band_tiff(plan.out / "photogrammetry" / f"{cap.name}_{btags.name}.tif", refl[b], job.tags, btags,
-                        dtype=plan.tiff_dtype)
-    if ndvi is not None:
-        write_ndvi_tiff(plan.out / "ndvi" / f"{cap.name}.tif", ndvi, job.tags)
-    return CaptureOutcome(cap.name, sha, int(np.count_nonzero(saturated)))
-
-
-def _coords(camera: Camera, captures: Sequence[Capture]) -> dict[str, Any]:
-    def per_frame(get: Any) -> np.ndarray:
-        return np.array([np.nan if get(c.metas[0]) is None else get(c.metas[0]) for c in captures], dtype=np.float64)
-
-    times = [c.metas[0].time for c in captures]
-    return {
-        "frame": np.array([c.name for c in captures], dtype=object),
-        "band": np.arange(camera.n_bands),
-        "wavelength": ("band", np.array([m.wavelength_nm for m in captures[0].metas]), {"units": "nm"}),
-        "band_name": ("band", np.array(camera.band_names, dtype=object)),
-        "exposure_ms": ("frame", np.array([np.median([m.exposure_s * 1e3 for m in c.metas]) for c in captures]),
-                        {"units": "ms", "long_name": "median exposure over the capture's bands"}),
-        "band_exposure_ms": (("frame", "band"), np.array([[m.exposure_s * 1e3 for m in c.metas] for c in captures]),
-                             {"units": "ms"}),
-        "gain": ("frame", per_frame(lambda m: m.gain), {"units": "1"}),
-        "irradiance": (("frame", "band"),
-                       np.array([[np.nan if m.irradiance is None else m.irradiance for m in c.metas] for c in captures]),
-                       {"units": "W m-2 nm-1", "long_name": "downwelling light sensor (XMP Irradiance)"}),
-        "time": ("frame", np.array([np.datetime64(t.rstrip("Z"), "ns") if t else np.datetime64("NaT", "ns")
-                                    for t in times])),
-        "lat": ("frame", per_frame(lambda m: m.lat), {"units": "degrees_north"}),
-        "lon": ("frame", per_frame(lambda m: m.lon), {"units": "degrees_east"}),
-        "alt_m": ("frame", per_frame(lambda m: m.alt_m), {"units": "m"}),
-        "capture_id": ("frame", np.array([c.capture_id for c in captures], dtype=object)),
-    }
-
-
-def _template(coords: dict[str, Any], shape: tuple[int, int, int], variables: dict[str, tuple[tuple[str, ...], Any, dict]],
-              attrs: dict[str, Any]) -> xr.Dataset:
-    import dask.array as da
-
-    ds = xr.Dataset(coords=coords)
-    n = len(coords["frame"])
-    for name, (dims, dtype, vattrs) in variables.items():
-        full = (n, *shape) if len(dims) == 4 else (n, *shape[1:])
-        ds[name] = (dims, da.zeros(full, chunks=(1, *full[1:]), dtype=dtype), vattrs)
-    ds.attrs.update(attrs)
-    return ds
-
-
-def _create(ds: xr.Dataset, path: Path, compressors: Any) -> None:
-    encoding = {v: {"chunks": (1, *ds[v].shape[1:]), "compressors": compressors, "chunk_key_encoding": FLAT_CHUNK_KEYS}
-                for v in ds.data_vars}
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Consolidated metadata")
-        ds.to_zarr(path, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
-
-
-def _tmp(out: Path, name: str) -> Path:
-    return out / f".{name}{TMP_MARK}{uuid.uuid4().hex[:8]}"
 
 
 def _registration(options: FactoryOptions, camera: Camera, shape: tuple[int, int, int]) -> tuple[Path, str] | None:
@@ -425,19 +247,6 @@ def _registration(options: FactoryOptions, camera: Camera, shape: tuple[int, int
         if name in ds:
             h.update(name.encode() + np.ascontiguousarray(ds[name].values).tobytes())
     return path, h.hexdigest()
-
-
-@functools.lru_cache(maxsize=2)
-def field_parts(store: str, components: tuple[str, ...], camera_name: str) -> tuple[FieldParts, ...]:
-    """Per band, the ``components`` of a field calibration ``store`` (loaded once per process)."""
-    from pipeline.storage.store import open_calibration
-
-    camera = load_camera(camera_name)
-    ds = open_calibration(store, camera)
-    lut = ds["inverse_response"].values.astype(np.float64) if "response" in components else None
-    vig = ds["vignetting"].values.astype(np.float64) if "vignetting" in components else None
-    return tuple(FieldParts(inverse_response=None if lut is None else lut[b], vignetting=None if vig is None else vig[b],
-                            dn_shift=camera.dn_shift) for b in range(camera.n_bands))
 
 
 def _field(options: FactoryOptions, camera: Camera, shape: tuple[int, int, int]
@@ -468,17 +277,18 @@ def _field(options: FactoryOptions, camera: Camera, shape: tuple[int, int, int]
 
 
 def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOptions = FactoryOptions()) -> ApplyResult:
-    """``mscal apply CAPTURE_DIR --calibration factory -o OUT`` (see the module docstring)."""
+    """``mscal apply CAPTURE_DIR --calibration factory -o OUT`` (see the module docstring):
+    the factory chain through the one executor (:func:`pipeline.apply.captures.apply_captures`)."""
     t_start = time.perf_counter()
     folder, out = Path(capture_dir), Path(out)
     if not folder.is_dir():
         raise InputError("capture folder not found", path=folder)
     camera = match_camera(folder)
-    captures, problems = group_captures(folder, camera)
-    quarantined = [{"file": Path(p["file"]).name, "reason": p["reason"]} for p in problems]
+    found = find_captures(folder, camera)
+    captures = found.captures
     if not captures:
         raise FrameError("no complete capture in the folder (all quarantined)", path=folder,
-                         hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
+                         hint="; ".join(f"{q['file']}: {q['reason']}" for q in found.quarantined[:3]))
     shapes = {m.shape for c in captures for m in c.metas}
     if len(shapes) != 1:
         raise InputError(f"band images of different sizes {sorted(shapes)}", path=folder,
@@ -486,14 +296,14 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     shape = (camera.n_bands, *shapes.pop())
     export = export_band_indices(camera, options.export_bands)
     indices = [load_index(n) for n in options.indices]
-    roles = {ix.name: _index_roles(camera, ix) for ix in indices}
+    roles = {ix.name: index_roles(camera, ix) for ix in indices}
 
     registration = _registration(options, camera, shape)
     field = _field(options, camera, shape)
     near = panel_config_near(folder)
     parts = field_parts(field[0], field[1], camera.name) if field else None
     fingerprint = {
-        "inputs": _stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
+        "inputs": stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
         "mscal_version": mscal_core.__version__,
     }
     if registration is not None:
@@ -502,12 +312,9 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         fingerprint["field_sha256"] = field[2]
     if near is not None:
         fingerprint["panel_config"] = {"session_yaml": str(near[1].resolve()), "panel": repr(near[0])}
-    fingerprint = json.loads(json.dumps(fingerprint))
-    out.mkdir(parents=True, exist_ok=True)
-    previous = _up_to_date(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
-    if previous is not None:
+    previous = previous_run(Path(out), json.loads(json.dumps(fingerprint)), ("reflectance.zarr", "raw.zarr"))
+    if previous is not None:  # before the panels are searched: an up-to-date run reads no pixels
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
-    _clean_temporaries(out)
 
     reference = options.reference
     if reference == "auto":
@@ -524,130 +331,38 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                               None if near is None else near[0])
         panel_factor = tuple(float(np.mean([p.factor_split[b] for p in panels])) for b in range(camera.n_bands))
 
+    light = None
+    if options.illumination is not None:
+        if reference != "panel":
+            raise InputError("--illumination is for the panel route: with the sun sensor (DLS) each capture already "
+                             "has its own light", hint="leave --illumination out, or give --panel-reflectance")
+        light = panel_light(captures, panels, options.illumination, folder)
+    scales = {} if light is None else {c.name: tuple(float(v) for v in light[f]) for f, c in enumerate(captures)}
 
-    t0 = time.perf_counter()
-    with Runner(len(captures)) as runner:
-        while True:  # a capture found unusable in the pass is quarantined and the pass redone without it
-            ps = _Pass.start(out, camera, captures, shape, indices, roles, export, reference, panel_factor,
-                             options, folder, None if field is None else field[:2])
-            outcomes = runner.run(ps.plan, [CaptureJob(f, c, _tags(camera, c)) for f, c in enumerate(captures)],
-                                  fn=process_capture)
-            bad = {o.name: o.quarantine for o in outcomes if o.quarantine is not None}
-            if not bad:
-                break
-            ps.discard()
-            for name, q in bad.items():
-                _remove_frame_tiffs(out, [name], camera, export)
-                quarantined.append(q)
-            captures = [c for c in captures if c.name not in bad]
-            if not captures:
-                raise FrameError("no usable capture in the folder (all quarantined)", path=folder,
-                                 hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
-    t_pass = time.perf_counter() - t0
-    _install(out, ps.tmp_raw, "raw.zarr")
-    _install(out, ps.tmp_refl)
-    frames = [o.name for o in outcomes]
-    quarantined.sort(key=lambda q: q["file"])
-    run = {
-        "flight": str(folder),
-        "calibration": FACTORY,
-        "calibration_sha256": None,
-        "components": _components_record(field),
-        "camera": camera.name,
-        "reference": _reference_record(reference, panels, panel_factor, camera),
-        "frames_in": len(frames) + len(quarantined),
-        "frames_out": len(frames),
-        "frames": frames,
-        "frames_sha256": {o.name: o.sha256 for o in outcomes},
-        "quarantined": quarantined,
-        "saturated_pixels": {"total": int(sum(o.saturated for o in outcomes)),
-                             "per_frame": {o.name: o.saturated for o in outcomes}},
-        "outputs": {"reflectance": "reflectance.zarr", "raw": "raw.zarr", "photogrammetry": "photogrammetry/",
-                    "ndvi": "ndvi/"},
-        "export_bands": [camera.bands[b].name for b in export],
-        "versions": _versions(),
-        "scheduler": runner.scheduler,
-        "timings_s": {"apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
-        "fingerprint": fingerprint,
-    }
-    _write_json_atomic(out / RUN_JSON, run)
-    return ApplyResult(out, run, up_to_date=False, quarantined=quarantined)
-
-
-@dataclass
-class _Pass:
-    """One pass's output stores under their temporary names, and its plan."""
-
-    plan: CapturePlan
-    tmp_refl: Path
-    tmp_raw: Path
-
-    @staticmethod
-    def start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[int, int, int],
-              indices: Sequence[Index], roles: dict[str, dict[str, int]], export: Sequence[int], reference: str,
-              panel_factor: tuple[float, ...] | None, options: FactoryOptions, folder: Path,
-              field: tuple[str, tuple[str, ...]] | None = None) -> "_Pass":
-        coords = _coords(camera, captures)
-        attrs = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__,
-                 "calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
-                 "comment": "bands are not co-registered: each band keeps its own pixel grid",
-                 "components": json.dumps(_components_record(None if field is None else (*field, "")))}
-        if options.registration is not None:
-            attrs.update({"co_registered": 1, "registration": str(options.registration),
-                          "comment": "bands aligned to the reference band of the registration store "
-                                     "(mscal register); NaN where a band does not cover the reference grid"})
-        rvars: dict[str, tuple[tuple[str, ...], Any, dict]] = {
-            "reflectance": (("frame", "band", "y", "x"), np.float32,
-                            {"long_name": f"reflectance (factory radiance x {reference} factor)", "units": "1"}),
-            "radiance": (("frame", "band", "y", "x"), np.float32,
-                         {"long_name": "factory radiance", "units": "W m-2 sr-1 nm-1"}),
-        }
-        for ix in indices:
-            rvars[ix.name] = (("frame", "y", "x"), np.float32, {"long_name": ix.description, "expression": ix.expression})
-        if any(ix.name == "ndvi" for ix in indices):
-            rvars["vegetation_mask"] = (("frame", "y", "x"), np.uint8,
-                                        {"long_name": "vegetation (Otsu threshold of NDVI per frame)",
-                                         "flag_values": [0, 1, 255], "flag_meanings": "other vegetation undefined"})
-        tmp_refl, tmp_raw = _tmp(out, "reflectance.zarr"), _tmp(out, "raw.zarr")
-        refl_ds = _template(coords, shape, rvars, attrs)
-        _create(refl_ds, tmp_refl, OUTPUT_COMPRESSORS)
-        raw_ds = _template(coords, shape, {"dn": (("frame", "band", "y", "x"), np.uint16,
-                                                  {"long_name": "stored DN of each band file"})}, attrs)
-        _create(raw_ds, tmp_raw, [raw_codec()])
-        for sub in ("photogrammetry", "ndvi"):
-            (out / sub).mkdir(exist_ok=True)
-        first = captures[0].metas
-        plan = CapturePlan(
-            camera=camera, raw_store=tmp_raw, out_store=tmp_refl, out=out, shape=shape, reference=reference,
-            panel_factor=panel_factor, sat=saturation_dn(camera), indices=tuple((ix, roles[ix.name]) for ix in indices),
-            bands=tuple((b, BandTags(name=camera.bands[b].name, wavelength_nm=first[b].wavelength_nm,
-                                     fwhm_nm=first[b].fwhm_nm, rig_camera_index=i))
-                        for i, b in enumerate(export)),
-            tiff_dtype=options.tiff_dtype, outputs=tuple(str(v) for v in refl_ds.data_vars),
-            registration=None if options.registration is None else Path(options.registration),
-            field=field,
-        )
-        return _Pass(plan, tmp_refl, tmp_raw)
-
-    def discard(self) -> None:
-        shutil.rmtree(self.tmp_refl, ignore_errors=True)
-        shutil.rmtree(self.tmp_raw, ignore_errors=True)
+    attrs = {"calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
+             "comment": "bands are not co-registered: each band keeps its own pixel grid",
+             "components": json.dumps(_components_record(None if field is None else (*field[:2], "")))}
+    if options.registration is not None:
+        attrs.update({"co_registered": 1, "registration": str(options.registration),
+                      "comment": "bands aligned to the reference band of the registration store "
+                                 "(mscal register); NaN where a band does not cover the reference grid"})
+    run = CaptureRun(
+        chain=FactoryChain(saturation_dn(camera), reference, panel_factor, None if field is None else field[:2]),
+        calibration=FACTORY, calibration_sha256=None, fingerprint=fingerprint, attrs=attrs,
+        reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
+        transforms=None if options.registration is None else Path(options.registration),
+        record=lambda caps: {"components": _components_record(field),
+                             "reference": _reference_record(reference, panels, panel_factor, camera),
+                             "illumination": _light_record(options.illumination, panels, caps, scales, camera)},
+        scale=lambda name: scales.get(name),
+    )
+    return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)
 
 
 def saturation_dn(camera: Camera) -> int:
     """Stored value at and above which a pixel is clipped: the sensor's largest DN in the
     container's high bits (65520 for 12-bit data in 16-bit samples)."""
     return ((1 << camera.bit_depth) - 1) << camera.dn_shift
-
-
-def _tags(camera: Camera, capture: Capture) -> FrameTags:
-    m = capture.metas[0]
-    return FrameTags(
-        time=m.time, lat=m.lat, lon=m.lon, alt_m=m.alt_m,
-        capture_uuid=str(uuid.uuid5(uuid.NAMESPACE_URL, f"mscal:{camera.name}:{capture.capture_id}")),
-        exposure_ms=float(np.median([x.exposure_s * 1e3 for x in capture.metas])),
-        camera_make="mscal", camera_model=camera.name,
-    )
 
 
 def _components_record(field: tuple[str, tuple[str, ...], str] | None) -> dict[str, str]:
@@ -679,3 +394,35 @@ def _reference_record(reference: str, panels: Sequence[PanelReference], factor: 
             "region_source": list(p.region_source),
         })
     return rec
+
+
+def panel_light(captures: Sequence[Capture], panels: Sequence[PanelReference], mode: str, folder: Path) -> np.ndarray:
+    """``k_b`` of every capture (n_captures, n_bands) from the light of the panel captures
+    (issue 8 for the factory chain): each panel capture's ``S_c = 1 / k_c`` (Eq. 11-14 split)
+    interpolated to the capture's time (``nearest`` or ``linear``), its level scaled by the
+    captures' sun-sensor readings between the panels when every band has one
+    (:func:`mscal_core.illumination.frame_illumination`)."""
+    by_name = {c.name: c for c in captures}
+    panel_caps = [by_name[p.capture] for p in panels]
+    times = capture_times(captures)
+    t_f = np.where(np.isnat(times), np.nan, times.astype("datetime64[ns]").astype(np.int64) / 1e9)
+    t_c = t_f[[list(by_name).index(c.name) for c in panel_caps]]
+    if len(panels) > 1 and not np.all(np.isfinite(t_f)):
+        missing = [captures[f].name for f in np.flatnonzero(~np.isfinite(t_f))[:3]]
+        raise InputError(f"capture(s) {', '.join(missing)} have no time (EXIF DateTimeOriginal), but the light of "
+                         f"{len(panels)} panel captures is interpolated to each capture's time", path=folder,
+                         hint="leave --illumination out to use the panels' mean factor")
+    s_c = 1.0 / np.array([p.factor_split for p in panels], dtype=np.float64)
+    e_c = np.array([np.nan if capture_irradiance(c) is None else capture_irradiance(c) for c in panel_caps])
+    e_f = np.array([np.nan if capture_irradiance(c) is None else capture_irradiance(c) for c in captures])
+    light = frame_illumination(s_c, t_c, t_f, mode, capture_irradiance=e_c, frame_irradiance=e_f)
+    return 1.0 / light.spectral_factor
+
+
+def _light_record(mode: str | None, panels: Sequence[PanelReference], captures: Sequence[Capture],
+                  scales: dict[str, tuple[float, ...]], camera: Camera) -> dict[str, Any]:
+    if mode is None:
+        return {"varies_in_time": False, "panels": [p.capture for p in panels],
+                "note": "one factor per band for every capture (the panels' mean, or each capture's own DLS)"}
+    return {"varies_in_time": True, "mode": mode, "panels": [p.capture for p in panels],
+            "per_frame": {c.name: dict(zip(camera.band_names, scales[c.name])) for c in captures}}

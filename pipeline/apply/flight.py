@@ -16,19 +16,14 @@ from __future__ import annotations
 
 import hashlib
 import json
-import multiprocessing
 import os
 import platform
 import re
 import shutil
-import signal
-import sys
 import time
 import uuid
 import warnings
-from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
-from functools import lru_cache
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -43,18 +38,19 @@ import xarray as xr
 import mscal_core
 from mscal_core.errors import FrameError, InputError
 from mscal_core.reflectance import eq15_fast, eq15_tables
-from mscal_core.registration import align_bands, mosaic_centre_offsets, shift_bands
+from mscal_core.registration import align_bands, mosaic_centre_offsets
 
 from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
-from pipeline.storage.chunks import FLAT_CHUNK_KEYS, FrameChunks
-from pipeline.ingest.discover import quarantine_entry
+from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 from pipeline.calibrate.registration import check_transforms, frame_transforms
-from pipeline.ingest.raw import (FRAME_COORDS, Cube, _Writer, frame_coords, frame_row, ingest_flight, open_cube, prefetch_file, read_frame,
-                     shape_problem)
-from pipeline.ingest.session import FrameRecord
+from pipeline.ingest.raw import (FRAME_COORDS, Cube, _Writer, frame_coords, frame_row, ingest_flight, open_cube, read_frame)
 from pipeline.apply.light import DEFAULT_MODE, IlluminationPlan, illumination_plan, varies_in_time
 from pipeline.storage.store import open_calibration
-from pipeline.products.writers import TMP_MARK, BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
+from pipeline.products.writers import TMP_MARK, BandTags, FrameTags
+from pipeline.apply.executor import (  # noqa: F401  (re-exported: the executor's pieces were here before issue 20)
+    OUTPUT_COMPRESSORS, FieldChain, Job, Outcome, Plan, Runner, calibration_tables, capture_uuid, geometry_step, otsu_mask,
+    process_frame, read_frame_chunk, scheduler_for, write_frame,
+)
 
 RUN_JSON = "run.json"
 MAX_EXPORT_BANDS = 8
@@ -99,7 +95,7 @@ class ApplyOptions:
     def fingerprint(self) -> dict[str, Any]:
         d = asdict(self)
         d.pop("strict")
-        d.pop("illumination")  # in the fingerprint only when the light varies (see _fingerprint)
+        d.pop("illumination")  # in the fingerprint only when the light varies (see run_fingerprint)
         for key, default in (("align", True), ("centre_bands", False)):  # runs before issue 9 stay up to date
             if d[key] == default:
                 d.pop(key)
@@ -135,7 +131,7 @@ def calibration_hash(ds: xr.Dataset) -> str:
     return h.hexdigest()
 
 
-def _clean_temporaries(out: Path) -> None:
+def clean_temporaries(out: Path) -> None:
     """Remove what a killed run left under temporary names."""
     if not out.is_dir():
         return
@@ -146,13 +142,16 @@ def _clean_temporaries(out: Path) -> None:
             p.unlink(missing_ok=True)
 
 
-def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
+def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
     tmp = path.with_name(f".{path.name}{TMP_MARK}{uuid.uuid4().hex[:8]}")
     with tmp.open("w") as fh:
         json.dump(data, fh, indent=2, sort_keys=True)
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
+
+
+_write_json_atomic = write_json_atomic  # the name pipeline.run imports
 
 
 def export_band_indices(camera: Camera, names: Sequence[str] | None) -> list[int]:
@@ -176,7 +175,7 @@ def _band_index(camera: Camera, text: str) -> int:
                          hint=f"bands: {', '.join(camera.band_names)}") from None
 
 
-def _index_roles(camera: Camera, index: Index) -> dict[str, int]:
+def index_roles(camera: Camera, index: Index) -> dict[str, int]:
     missing = [r for r in index.inputs if r not in camera.index_bands]
     if missing:
         raise InputError(
@@ -184,24 +183,6 @@ def _index_roles(camera: Camera, index: Index) -> dict[str, int]:
             hint=f"add them under index_bands in {camera.source}",
         )
     return {r: camera.band_for_wavelength(camera.index_bands[r]) for r in index.inputs}
-
-
-def capture_uuid(camera: Camera, sha256: str) -> str:
-    """Deterministic CaptureUUID of a frame (the same on every re-run)."""
-    return str(uuid.uuid5(uuid.NAMESPACE_URL, f"mscal:{camera.name}:{sha256}"))
-
-
-def otsu_mask(ndvi: np.ndarray) -> np.ndarray:
-    """The paper's vegetation segmentation: Otsu threshold of the NDVI of one frame (uint8 0/1,
-    255 where NDVI is not defined)."""
-    ok = np.isfinite(ndvi)
-    out = np.full(ndvi.shape, 255, dtype=np.uint8)
-    if ok.sum() < 2:
-        return out
-    scaled = np.clip((ndvi[ok] + 1.0) * 127.5, 0, 255).astype(np.uint8)
-    thr, _ = cv2.threshold(scaled.reshape(-1, 1), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    out[ok] = (scaled > thr).astype(np.uint8)
-    return out
 
 
 # --------------------------------------------------------------------------- the lazy graph
@@ -300,69 +281,6 @@ def _frame_tags(coords: xr.Dataset, f: int, camera: Camera) -> FrameTags:
     )
 
 
-def scheduler_for(n_frames: int) -> tuple[str, int]:
-    """Dask scheduler of the per-frame pass when no ``distributed`` client is active: one
-    thread per core. The per-frame work is numpy, hashing and file writes, which release the
-    GIL (two threads run a 120-frame flight 1.8x faster than one), and threads start at once
-    where worker processes take 1-2 s. ``MSCAL_APPLY_SCHEDULER=processes`` chooses worker
-    processes instead (a forkserver that imports this module once).
-    """
-    cpus = int(os.environ.get("MSCAL_APPLY_WORKERS", 0)) or os.cpu_count() or 1
-    choice = os.environ.get("MSCAL_APPLY_SCHEDULER", "threads")
-    if choice not in ("threads", "processes"):
-        raise InputError(f"MSCAL_APPLY_SCHEDULER={choice!r}: use threads or processes")
-    return choice, max(1, min(cpus, n_frames))
-
-
-# Output variables are written uncompressed: lz4 gains only 1.24x on float32 reflectance for
-# 5.8 ms of CPU per full-resolution frame, more than writing the bytes it saves costs.
-OUTPUT_COMPRESSORS: tuple = ()
-
-
-def _stamp(path: Path) -> tuple[str, int]:
-    """Cache key of a Zarr node: its path and the time its metadata was written (a store
-    replaced at the same path is not mistaken for the old one)."""
-    return str(path), os.stat(path / "zarr.json").st_mtime_ns
-
-
-@lru_cache(maxsize=16)
-def _zarr_array(key: tuple[str, int]):  # noqa: ANN202
-    import zarr
-
-    return zarr.open_array(key[0], mode="r+").with_config({"write_empty_chunks": True})
-
-
-@lru_cache(maxsize=16)
-def _frame_chunks(key: tuple[str, int]) -> FrameChunks | None:
-    return FrameChunks.open(key[0])
-
-
-def write_frame(array: Path, f: int, data: np.ndarray) -> None:
-    """Frame ``f``'s whole chunk of the Zarr array at ``array`` (direct when the layout allows)."""
-    key = _stamp(array)
-    fc = _frame_chunks(key)
-    if fc is not None:
-        fc.write(f, data)
-    else:
-        _zarr_array(key)[f] = data
-
-
-def read_frame_chunk(array: Path, f: int) -> np.ndarray:
-    key = _stamp(array)
-    fc = _frame_chunks(key)
-    return fc.read(f) if fc is not None else np.asarray(_zarr_array(key)[f])
-
-
-def _tables(calibration: str) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 15 tables of a calibration store, once per process and store."""
-    return _tables_of(_stamp(Path(calibration)))
-
-
-@lru_cache(maxsize=2)
-def _tables_of(key: tuple[str, int]) -> tuple[np.ndarray, np.ndarray]:
-    ds = _store_of(key)  # the process's one in-memory copy of the store (also read for band transforms)
-    return eq15_tables(ds["inverse_response"].values, ds["vignetting"].values, ds["spectral_factor"].values)
-
 
 def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, int], indices: Sequence[Index],
                     options: ApplyOptions, illum: IlluminationPlan | None = None) -> xr.Dataset:
@@ -403,213 +321,6 @@ def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, i
     return ds
 
 
-@dataclass(frozen=True)
-class FramePlan:
-    """What every frame's task needs: paths and small values, no arrays (it is sent to
-    worker processes with each task)."""
-
-    raw_dn: Path
-    cube_shape: tuple[int, int, int]
-    camera: Camera
-    out_store: Path
-    calibration: Path
-    outputs: tuple[str, ...]
-    sat: int
-    norm: tuple[str, float | int | None]
-    indices: tuple[tuple[Index, dict[str, int]], ...]
-    bands: tuple[tuple[int, BandTags], ...]
-    tiff_dtype: str
-    out: Path
-    align: bool = False  # the store has band transforms and they are applied
-    band_shift: tuple[tuple[float, float], ...] | None = None  # --centre-bands: (dx, dy) per band
-
-
-@dataclass(frozen=True)
-class FrameJob:
-    """One frame of the pass. ``rec`` set: a new frame, read from its file, checked, and
-    written into raw.zarr at ``index`` by its task; else the frame is read from raw.zarr."""
-
-    index: int
-    name: str
-    t: float  # effective exposure, exposure_ms x gain
-    tags: FrameTags
-    rec: FrameRecord | None = None
-    scale: tuple[float, ...] | None = None  # per band: S / S(lambda, time) (issue 8); None: 1
-    ahead: Path | None = None  # the file of a frame a few places on, to read ahead (prefetch_file)
-
-
-@dataclass(frozen=True)
-class FrameOutcome:
-    name: str
-    sha256: str | None  # of the file, for a new frame
-    saturated: int
-    quarantine: dict[str, str] | None = None  # a new frame that cannot be used: nothing written
-
-
-def frame_dn(plan: FramePlan, job: FrameJob) -> tuple[np.ndarray, str | None]:
-    """DN (band, y, x) of a job's frame: from its file (checked; FrameError) or from raw.zarr."""
-    if job.rec is None:
-        return read_frame_chunk(plan.raw_dn, job.index), None
-    sha, dn = read_frame(job.rec, plan.camera)
-    assert dn is not None
-    problem = shape_problem(dn.shape, plan.cube_shape)
-    if problem:
-        raise FrameError(problem, path=job.rec.path)
-    return dn, sha
-
-
-@lru_cache(maxsize=2)
-def _store_of(key: tuple[str, int]) -> xr.Dataset:
-    """A calibration store in memory, once per process and store (read straight into numpy:
-    no dask for a small store)."""
-    return xr.open_zarr(key[0], chunks=None).load()
-
-
-def geometry_step(calibration: Path, align: bool, band_shift: Sequence[tuple[float, float]] | None, name: str,
-                  refl: np.ndarray) -> np.ndarray:
-    """Eq. 15 reflectance (band, y, x) of frame ``name`` put on one pixel grid (issue 9): the
-    bands of a multi-lens camera warped onto the reference band (``align``: the capture's own
-    transforms if it was registered, else the session's; ``mscal_core.registration.align_bands``,
-    NaN where a band does not cover), or a snapshot mosaic's bands resampled to the mosaic's
-    centre position (``band_shift``). Unchanged otherwise. Eq. 15 runs before: U, V and S
-    belong to each band's own pixels."""
-    if align:
-        H = frame_transforms(_store_of(_stamp(Path(calibration))), name)
-        if H is not None:
-            refl = align_bands(refl, H)
-    if band_shift is not None:
-        refl = shift_bands(refl, np.asarray(band_shift, dtype=np.float64))
-    return refl
-
-
-def process_frame(plan: FramePlan, job: FrameJob) -> FrameOutcome:
-    """One frame, every output: (for a new frame) its raw.zarr chunk, Eq. 15, normalisation,
-    indices, Otsu mask, its chunk of each reflectance.zarr variable (one whole chunk per
-    variable: no two tasks share a chunk), its photogrammetry and NDVI TIFFs. First it asks
-    for a later frame's file to be read ahead (``job.ahead``)."""
-    if job.ahead is not None:
-        prefetch_file(job.ahead)
-    try:
-        dn, sha = frame_dn(plan, job)
-    except FrameError as exc:
-        assert job.rec is not None  # a chunk of raw.zarr is never unreadable for this reason
-        return FrameOutcome(job.name, None, 0, quarantine_entry(job.rec.path.name, exc))
-    tags = job.tags
-    if sha is not None:
-        write_frame(plan.raw_dn, job.index, dn)
-        tags = replace(tags, capture_uuid=capture_uuid(plan.camera, sha))
-    lut, inv_v = _tables(str(plan.calibration))
-    refl = eq15_fast(dn[None], lut, inv_v, job.t, plan.sat,
-                     None if job.scale is None else np.asarray(job.scale)[None])[0]
-    if plan.align or plan.band_shift is not None:
-        refl = geometry_step(plan.calibration, plan.align, plan.band_shift, job.name, refl)
-    kind, value = plan.norm
-    if kind == "scalar":
-        refl *= np.float32(value)
-    elif kind == "band":
-        med = np.nanmedian(refl[int(value)])
-        refl *= np.float32(1.0 / med) if np.isfinite(med) and med > 0 else np.float32(np.nan)
-    store = plan.out_store
-    write_frame(store / "reflectance", job.index, refl)
-    ndvi = None
-    for ix, roles in plan.indices:
-        val = ix.evaluate({role: refl[b] for role, b in roles.items()})
-        write_frame(store / ix.name, job.index, val)
-        if ix.name == "ndvi":
-            ndvi = val
-    if ndvi is not None and "vegetation_mask" in plan.outputs:
-        write_frame(store / "vegetation_mask", job.index, otsu_mask(ndvi))
-    for b, btags in plan.bands:
-        write_band_tiff(plan.out / "photogrammetry" / f"{job.name}_{btags.name}.tif", refl[b], tags, btags,
-                        dtype=plan.tiff_dtype)
-    if ndvi is not None:
-        write_ndvi_tiff(plan.out / "ndvi" / f"{job.name}.tif", ndvi, tags)
-    return FrameOutcome(job.name, sha, int(np.count_nonzero(dn >= plan.sat)))
-
-
-# --------------------------------------------------------------------------- running the tasks
-
-
-def _worker_init() -> None:
-    """Worker processes: die with the parent (a killed run leaves no writer behind) and keep
-    Blosc single-threaded (the workers already fill the cores)."""
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):  # not Linux
-        pass
-    try:
-        from numcodecs import blosc
-
-        blosc.set_nthreads(1)
-    except ImportError:  # pragma: no cover
-        pass
-
-
-def _distributed_client():  # noqa: ANN202
-    """The active ``distributed`` client (the caller's ``with Client(...)``), if any. A caller
-    with a client has imported ``distributed``; without one it is not imported here (0.2 s of
-    every run's start)."""
-    if "distributed" not in sys.modules:
-        return None
-    try:
-        from distributed import default_client
-    except ImportError:
-        return None
-    try:
-        return default_client()
-    except ValueError:
-        return None
-
-
-class Runner:
-    """Runs the per-frame tasks (dask.delayed) on the caller's ``distributed`` client if one is
-    active, else on worker processes (long flights) or threads; see :func:`scheduler_for`.
-    Worker processes are started when the runner is made, so they start while the main
-    process reads the calibration and the flight."""
-
-    def __init__(self, n_frames: int):
-        self.client = _distributed_client()
-        self.pool: ProcessPoolExecutor | None = None
-        self.scheduler, self.workers = ("distributed", 0) if self.client is not None else scheduler_for(n_frames)
-        if self.scheduler == "processes":
-            ctx = multiprocessing.get_context("forkserver")
-            ctx.set_forkserver_preload(["pipeline.apply.flight"])
-            self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_worker_init)
-            for _ in range(self.workers):  # start them now
-                self.pool.submit(int)
-
-    def run(self, plan: Any, jobs: Sequence[Any], fn: Callable[[Any, Any], Any] | None = None) -> list[Any]:
-        """``fn(plan, job)`` (default :func:`process_frame`) for every job, in job order."""
-        # arguments wrapped whole: dask would otherwise walk every dataclass field of every
-        # argument of every task looking for collections (15 ms a task)
-        token = uuid.uuid4().hex
-        plan_d = dask.delayed(plan, traverse=False, name=f"mscal-plan-{token}")
-        tasks = [
-            dask.delayed(fn or process_frame, pure=False)(plan_d, dask.delayed(job, traverse=False, name=f"mscal-job-{token}-{k}"))
-            for k, job in enumerate(jobs)
-        ]
-        if self.client is not None:
-            return list(dask.compute(*tasks))
-        if self.pool is not None:
-            return list(dask.compute(*tasks, scheduler=dask.multiprocessing.get, pool=self.pool))
-        # the schedulers' functions, not their names: a name makes dask import distributed
-        # (0.2 s) to look for a client, which _distributed_client has done already
-        return list(dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=self.workers))
-
-    def close(self) -> None:
-        if self.pool is not None:
-            self.pool.shutdown(wait=True, cancel_futures=True)
-            self.pool = None
-
-    def __enter__(self) -> "Runner":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
-
 # --------------------------------------------------------------------------- apply
 
 
@@ -618,7 +329,7 @@ class _Pass:
     """One apply pass over the frames: the output store under its temporary name and the plan."""
 
     coords: xr.Dataset
-    plan: FramePlan
+    plan: Plan
     tmp_store: Path
     illum: IlluminationPlan | None = None
 
@@ -652,16 +363,16 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Consolidated metadata")
         ds.to_zarr(tmp_store, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
-    plan = FramePlan(
-        raw_dn=raw_dn, cube_shape=tuple(cube_shape), camera=camera, out_store=tmp_store, calibration=calib_path,
-        outputs=tuple(str(v) for v in ds.data_vars), sat=sat, norm=norm,
+    plan = Plan(
+        camera=camera, chain=FieldChain(calib_path, sat), raw_dn=raw_dn, cube_shape=tuple(cube_shape),
+        out_store=tmp_store, outputs=tuple(str(v) for v in ds.data_vars), norm=norm,
         indices=tuple((ix, roles[ix.name]) for ix in indices),
         bands=tuple(
             (b, BandTags(name=camera.bands[b].name, wavelength_nm=camera.bands[b].wavelength_nm,
                          fwhm_nm=camera.bands[b].fwhm_nm, rig_camera_index=i))
             for i, b in enumerate(export)
         ),
-        tiff_dtype=options.tiff_dtype, out=out, align=align, band_shift=band_shift,
+        tiff_dtype=options.tiff_dtype, out=out, transforms=calib_path if align else None, band_shift=band_shift,
     )
     for sub in ("photogrammetry", "ndvi"):
         (out / sub).mkdir(exist_ok=True)
@@ -678,7 +389,7 @@ def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path:
     """Eq. 15 reflectance of frame ``f`` (with its light, issue 8) on the pixel grid of the
     outputs (``geometry_step``, issue 9)."""
     def reflectance(f: int) -> np.ndarray:
-        lut, inv_v = _tables(str(calib_path))
+        lut, inv_v = calibration_tables(str(calib_path))
         scale = None if illum is None else illum.scale[f][None]
         refl = eq15_fast(plan_dn(f)[None], lut, inv_v, float(t[f]), sat, scale)[0]
         align, band_shift, _ = geometry
@@ -688,7 +399,7 @@ def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path:
     return reflectance
 
 
-def _remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export: Sequence[int]) -> None:
+def remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export: Sequence[int]) -> None:
     for name in names:
         for b in export:
             (out / "photogrammetry" / f"{name}_{camera.bands[b].name}.tif").unlink(missing_ok=True)
@@ -696,7 +407,7 @@ def _remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export:
 
 
 def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_path: Path, sat: int,
-                batch: int) -> tuple[_Pass, list[FrameOutcome]] | None:
+                batch: int) -> tuple[_Pass, list[Outcome]] | None:
     """Ingest and apply in one pass over the files, for a cube that has no frames yet.
 
     Frames are given indices in file-name order before they are read, assuming each can be
@@ -721,11 +432,11 @@ def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_p
     writer = _Writer(cube.path, cube.group, cube.committed, cube.shape, cube.camera, commit_every=len(recs) + 1,
                      pool=None, workers=1)  # type: ignore[arg-type]  (no chunk writes of its own)
     seen: set[str] = set()
-    outcomes: list[FrameOutcome] = []
+    outcomes: list[Outcome] = []
     for b0 in range(0, len(recs), batch):
         first = writer.reserve(min(batch, len(recs) - b0))
-        jobs = [FrameJob(first + k, recs[f].name, float(t[f]), _frame_tags(coords, f, cube.camera), recs[f],
-                         ps.scale(f), recs[f + READ_AHEAD].path if f + READ_AHEAD < len(recs) else None)
+        jobs = [Job(first + k, recs[f].name, _frame_tags(coords, f, cube.camera), float(t[f]), rec=recs[f],
+                    scale=ps.scale(f), ahead=recs[f + READ_AHEAD].path if f + READ_AHEAD < len(recs) else None)
                 for k, f in enumerate(range(b0, min(b0 + batch, len(recs))))]
         results = runner.run(ps.plan, jobs)
         for job, res in zip(jobs, results):
@@ -744,14 +455,14 @@ def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_p
 
 
 def _cube_pass(out: Path, runner: Runner, start: Callable[..., _Pass], calib_path: Path, sat: int, camera: Camera
-               ) -> tuple[_Pass, list[FrameOutcome]]:
+               ) -> tuple[_Pass, list[Outcome]]:
     """A pass over the frames of raw.zarr (every frame already ingested)."""
     raw = xr.open_zarr(out / "raw.zarr")
     coords = xr.Dataset(coords={c: ("frame", raw[c].values, dict(raw[c].attrs)) for c in FRAME_COORDS})
     t = _effective_exposure(coords)
     raw_dn = out / "raw.zarr" / "dn"
     ps = start(coords, lambda f: read_frame_chunk(raw_dn, f))
-    jobs = [FrameJob(f, str(name), float(t[f]), _frame_tags(coords, f, camera), scale=ps.scale(f))
+    jobs = [Job(f, str(name), _frame_tags(coords, f, camera), float(t[f]), scale=ps.scale(f))
             for f, name in enumerate(coords["frame"].values)]
     return ps, runner.run(ps.plan, jobs)
 
@@ -765,7 +476,7 @@ def _illumination_record(ps: _Pass, calib: xr.Dataset, options: ApplyOptions) ->
     return {"varies_in_time": True, **ps.illum.summary([str(f) for f in ps.coords["frame"].values])}
 
 
-def _fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
+def run_fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
                  illum: IlluminationPlan | None = None) -> dict[str, Any]:
     fingerprint = {
         "frames_sha256": hashlib.sha256("".join(map(str, shas)).encode()).hexdigest(),
@@ -778,7 +489,7 @@ def _fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
     return json.loads(json.dumps(fingerprint))  # as it reads back from run.json
 
 
-def _up_to_date(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = ("reflectance.zarr",)
+def previous_run(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = ("reflectance.zarr",)
                 ) -> dict[str, Any] | None:
     """The previous run's record if it made the outputs (``stores`` in ``out``) of exactly these inputs."""
     run_path = out / RUN_JSON
@@ -791,7 +502,7 @@ def _up_to_date(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = 
     return previous if previous.get("fingerprint") == fingerprint else None
 
 
-def _install(out: Path, tmp_store: Path, name: str = "reflectance.zarr") -> None:
+def install_store(out: Path, tmp_store: Path, name: str = "reflectance.zarr") -> None:
     """Rename a store written under a temporary name to ``out/name``, replacing the old one."""
     final = out / name
     if final.exists():
@@ -803,7 +514,7 @@ def _install(out: Path, tmp_store: Path, name: str = "reflectance.zarr") -> None
         os.replace(tmp_store, final)
 
 
-def _versions() -> dict[str, str]:
+def software_versions() -> dict[str, str]:
     versions = {"mscal": mscal_core.__version__, "python": platform.python_version(), "numpy": np.__version__,
                 "dask": dask.__version__, "xarray": xr.__version__, "opencv": cv2.__version__}
     try:
@@ -815,7 +526,7 @@ def _versions() -> dict[str, str]:
     return versions
 
 
-def _geometry(calib: xr.Dataset, camera: Camera, options: ApplyOptions
+def pass_geometry(calib: xr.Dataset, camera: Camera, options: ApplyOptions
               ) -> tuple[bool, tuple[tuple[float, float], ...] | None, str | None]:
     """``(align, band_shift, reference band)`` of the pass (``geometry_step``)."""
     align = bool(options.align and "band_transform" in calib)
@@ -850,15 +561,19 @@ def apply_flight(
     calib_path = Path(calibration)
     probe = open_calibration(calib_path, need="apply")
     camera = load_camera(str(probe.attrs.get("camera")))
+    if camera.layout.kind == "file_per_band":  # one file per band: a capture is several files (issue 20)
+        from pipeline.apply.captures import apply_field_captures
+
+        return apply_field_captures(flight_dir, calib_path, out, camera, options, t_start)
     calib = open_calibration(calib_path, camera, need="apply")
     chash = calibration_hash(calib)
     export = export_band_indices(camera, options.export_bands)
     indices = [load_index(n) for n in options.indices]
-    roles = {ix.name: _index_roles(camera, ix) for ix in indices}
+    roles = {ix.name: index_roles(camera, ix) for ix in indices}
     sat = saturation_dn(calib, camera)
-    geometry = _geometry(calib, camera, options)
+    geometry = pass_geometry(calib, camera, options)
     out.mkdir(parents=True, exist_ok=True)
-    _clean_temporaries(out)
+    clean_temporaries(out)
     raw_path = out / "raw.zarr"
 
     def start(coords: xr.Dataset, frame_dn: Callable[[int], np.ndarray]) -> _Pass:
@@ -879,7 +594,7 @@ def apply_flight(
     n_hint = len(cube.found.frames)
     fresh = cube.group is not None and cube.committed == 0 and n_hint > 0
     quarantined = list(cube.found.quarantined)
-    done: tuple[_Pass, list[FrameOutcome]] | None = None
+    done: tuple[_Pass, list[Outcome]] | None = None
     with Runner(n_hint) as runner:
         if fresh:
             try:
@@ -897,18 +612,18 @@ def apply_flight(
                                  hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
             illum = illumination_plan(calib, [str(f) for f in raw["frame"].values], raw["time"].values,
                                       flight_dir, options.illumination)
-            fingerprint = _fingerprint(shas, chash, options, illum)
-            previous = _up_to_date(out, fingerprint)
+            fingerprint = run_fingerprint(shas, chash, options, illum)
+            previous = previous_run(out, fingerprint)
             if previous is not None:
                 previous["quarantined"] = quarantined
                 return ApplyResult(out, previous, up_to_date=True, quarantined=quarantined)
-            _remove_frame_tiffs(out, [Path(q["file"]).stem for q in quarantined], camera, export)
+            remove_frame_tiffs(out, [Path(q["file"]).stem for q in quarantined], camera, export)
             done = _cube_pass(out, runner, start, calib_path, sat, camera)
         else:
             quarantined = sorted(quarantined, key=lambda q: q["file"])
     ps, outcomes = done
     t_pass = time.perf_counter() - t0
-    _install(out, ps.tmp_store)
+    install_store(out, ps.tmp_store)
     frames = [o.name for o in outcomes]
     sat_counts = [o.saturated for o in outcomes]
     shas = [str(s) for s in ps.coords["sha256"].values]  # the pass's frames, in cube order
@@ -923,12 +638,12 @@ def apply_flight(
         "saturated_pixels": {"total": int(np.sum(sat_counts)), "per_frame": {n: int(c) for n, c in zip(frames, sat_counts)}},
         "outputs": {"reflectance": "reflectance.zarr", "photogrammetry": "photogrammetry/", "ndvi": "ndvi/"},
         "export_bands": [camera.bands[b].name for b in export],
-        "versions": _versions(),
+        "versions": software_versions(),
         "scheduler": runner.scheduler,
         "single_pass": single,
         "timings_s": {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
         "illumination": _illumination_record(ps, calib, options),
-        "fingerprint": _fingerprint(shas, chash, options, ps.illum),
+        "fingerprint": run_fingerprint(shas, chash, options, ps.illum),
     }
-    _write_json_atomic(out / RUN_JSON, run)
+    write_json_atomic(out / RUN_JSON, run)
     return ApplyResult(out, run, up_to_date=False, quarantined=quarantined)

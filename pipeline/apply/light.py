@@ -134,12 +134,14 @@ class IlluminationPlan:
 
 
 def illumination_plan(calib: xr.Dataset, frames: Sequence[str], times: np.ndarray, flight_dir: Path,
-                      mode: str = DEFAULT_MODE) -> IlluminationPlan | None:
+                      mode: str = DEFAULT_MODE, irradiance: np.ndarray | None = None) -> IlluminationPlan | None:
     """Per-frame light of a flight (``frames`` names, ``times`` datetime64), or None when the
     store's light does not vary in time (:func:`varies_in_time`): Eq. 15 as before.
 
     Raises InputError naming the flight's frames.csv when several captures must be
-    interpolated and frames have no time.
+    interpolated and frames have no time. ``irradiance``: the frames' readings when the caller
+    has them (one-file-per-band captures: their bands' XMP Irradiance), else read from the
+    flight (:func:`flight_irradiance`).
     """
     if mode not in INTERPOLATION_MODES:
         raise InputError(f"--illumination {mode!r}: use one of {', '.join(INTERPOLATION_MODES)}")
@@ -148,7 +150,7 @@ def illumination_plan(calib: xr.Dataset, frames: Sequence[str], times: np.ndarra
     caps = calibration_captures(calib)
     t = np.asarray(times).astype("datetime64[ns]")
     t_s = np.where(np.isnat(t), np.nan, t.astype(np.int64) / 1e9)
-    irr = flight_irradiance(flight_dir, frames)
+    irr = flight_irradiance(flight_dir, frames) if irradiance is None else np.asarray(irradiance, dtype=np.float64)
     if caps.spectral_factor.shape[0] > 1 and not np.all(np.isfinite(t_s)):
         missing = [str(frames[f]) for f in np.flatnonzero(~np.isfinite(t_s))[:3]]
         raise InputError(

@@ -53,14 +53,14 @@ def discover_flight(flight_dir: str | Path, camera: Camera) -> Discovery:
 
     Raises :class:`SessionError` if the folder does not exist, holds no frames at all, or its
     ``frames.csv`` is unreadable as a whole; :class:`InputError` for cameras that write one
-    file per band (a frame is then a capture of several files, which flights do not read yet).
+    file per band (a frame is then a capture of several files: :mod:`pipeline.apply.captures`).
     """
     flight_dir = Path(flight_dir)
     if camera.layout.kind == "file_per_band":
         raise InputError(
             f"camera {camera.name} writes one file per band; flight ingest reads one file per frame",
             path=flight_dir,
-            hint="flights of one-file-per-band cameras are not supported yet",
+            hint="its captures are read by 'mscal apply' itself (pipeline.apply.captures.find_captures)",
         )
     found = Discovery()
 

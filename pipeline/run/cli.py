@@ -153,9 +153,11 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
 @click.option("--float32", "float32", is_flag=True, help="Photogrammetry TIFFs as float32 instead of uint16 x 32768.")
 @click.option("--export-bands", default=None, help="Comma-separated band names for the per-frame TIFFs (default: the camera's).")
 @click.option("--strict", is_flag=True, help="Exit non-zero if any frame was quarantined.")
-@click.option("--illumination", type=ILLUMINATION_MODES, default="linear", show_default=True,
-              help="Light of each frame between several reflector captures: the nearest capture in time, or "
-                   "linear in time (irradiance readings, if any, scale the brightness in both).")
+@click.option("--illumination", type=ILLUMINATION_MODES, default=None,
+              help="Light of each frame between several reflector captures (with --calibration factory: "
+                   "panel captures): the nearest capture in time, or linear in time (irradiance readings, if "
+                   "any, scale the brightness in both). Default: linear; with --calibration factory, the "
+                   "panels' mean factor for every capture.")
 @click.option("--no-align", "no_align", is_flag=True,
               help="Keep each band on its own pixel grid even if the calibration has band transforms ('mscal register').")
 @click.option("--registration", default=None, type=click.Path(path_type=Path),
@@ -172,8 +174,9 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
           reference: str, float32: bool, export_bands: str | None, strict: bool,
           illumination: str, no_align: bool, registration: Path | None, centre_bands: bool,
           field_calibration: Path | None, field_components: str | None) -> None:
-    """Reflectance (Eq. 15), indices and photogrammetry TIFFs for a FLIGHT folder; with
-    --calibration factory, for a folder of one-file-per-band captures from their factory metadata."""
+    """Reflectance, indices and photogrammetry TIFFs for a FLIGHT folder of captures (one file
+    per capture, or one file per band: IMG_0000_1.tif ..., SD-card trees included): Eq. 15 with
+    a calibration store, or with --calibration factory the band files' own metadata."""
     from mscal_core.errors import InputError
 
     from pipeline.apply.flight import ApplyOptions, PanelSpec, apply_flight
@@ -184,11 +187,17 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
 
         if normalise != "relative":
             raise InputError("--normalise is for field calibrations; with --calibration factory use --reference")
+        if centre_bands:
+            raise InputError("--centre-bands is for snapshot mosaic cameras; --calibration factory is for "
+                             "one-file-per-band cameras (align their bands with --registration)")
+        if no_align:
+            raise InputError("--no-align is for calibration stores with band transforms; with --calibration factory "
+                             "leave --registration out to keep each band on its own grid")
         fopts = FactoryOptions(
             reference=reference, panel_captures=tuple(p.strip() for p in panel.split(",")) if panel else (),
             panel_reflectance=panel_reflectance, tiff_dtype="float32" if float32 else "uint16",
             export_bands=bands, strict=strict,
-            registration=None if (registration is None or no_align) else str(registration),
+            registration=None if registration is None else str(registration), illumination=illumination,
             field_calibration=None if field_calibration is None else str(field_calibration),
             field_components=tuple(c.strip() for c in field_components.split(",") if c.strip())
             if field_components else (),
@@ -210,12 +219,17 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
         normalise = "panel"
     opts = ApplyOptions(
         normalise=normalise, panel=spec, tiff_dtype="float32" if float32 else "uint16",
-        export_bands=bands, strict=strict, illumination=illumination, align=not no_align, centre_bands=centre_bands,
+        export_bands=bands, strict=strict, illumination=illumination or "linear", align=not no_align,
+        centre_bands=centre_bands,
     )
     _report_apply(apply_flight(flight, calibration, out, opts), out, strict)
 
 
 def _report_apply(res: Any, out: Path, strict: bool) -> None:
+    skipped = res.run.get("skipped") or []
+    if skipped:
+        click.echo(f"skipped {len(skipped)} file(s) that are not captures: "
+                   f"{', '.join(s['file'] for s in skipped[:5])}{' ...' if len(skipped) > 5 else ''}", err=True)
     for q in res.quarantined:
         click.echo(f"quarantined {q['file']}: {q['reason']}", err=True)
     state = "up to date" if res.up_to_date else f"{res.run['timings_s']['total']:.1f} s"
@@ -340,6 +354,10 @@ def _echo_run(record: dict) -> None:
     for name, f in record["flights"].items():
         for q in f["quarantined"]:
             click.echo(f"quarantined {name}/{q['file']}: {q['reason']}", err=True)
+        if f.get("skipped"):
+            click.echo(f"skipped {len(f['skipped'])} file(s) of {name} that are not captures: "
+                       f"{', '.join(s['file'] for s in f['skipped'][:5])}{' ...' if len(f['skipped']) > 5 else ''}",
+                       err=True)
     calib = "reused from the cache" if record["calibration_cached"] else "fitted: " + ", ".join(record["fitted"])
     click.echo(f"wrote {record['out']} (calibration {calib}; {len(record['flights'])} flight(s); "
                f"{record['timings_s']['total']:.1f} s)")

@@ -39,7 +39,8 @@ from mscal_core.errors import InputError, MscalError, SessionError
 from pipeline.apply.flight import RUN_JSON, ApplyOptions, _write_json_atomic, apply_flight, scheduler_for
 from pipeline.calibrate.fit import STAGES
 from pipeline.apply.light import INTERPOLATION_MODES
-from pipeline.ingest.catalog import CATALOG_ROOT
+from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
+from pipeline.ingest.catalog import CATALOG_ROOT, load_camera
 from pipeline.ingest.session import Session, load_session, read_frame_table
 from pipeline.storage.store import content_hashes, file_sha256, open_calibration, write_store
 
@@ -232,8 +233,15 @@ def dask_client(address: str | None, n_frames: int) -> Iterator[str]:
         yield f"local cluster of {n} worker processes"
 
 
-def count_frames(flight_dir: str | Path) -> int:
-    """Frames listed or found in a flight folder (bad ones included), without decoding any."""
+def count_frames(flight_dir: str | Path, camera: str | None = None) -> int:
+    """Frames (captures) listed or found in a flight folder (bad ones included), without
+    decoding any: for a camera that writes one file per band, its band files over its bands."""
+    if camera is not None:
+        cam = load_camera(camera)
+        if cam.layout.kind == "file_per_band":
+            pattern = re.compile(cam.layout.capture_pattern or DEFAULT_CAPTURE_PATTERN)
+            files = sum(1 for p in Path(flight_dir).rglob("*") if pattern.match(p.name))
+            return -(-files // cam.n_bands)
     return len(read_frame_table(flight_dir, on_frame_error=lambda name, exc: None))
 
 
@@ -241,13 +249,15 @@ def apply_one(flight_dir: str, calibration: str, out: str, *, normalise: str = "
               dask_address: str | None = None, illumination: str = "linear") -> dict[str, Any]:
     """``apply_flight`` under :func:`dask_client`; returns the flight's summary for run.json."""
     t0 = time.perf_counter()
-    with dask_client(dask_address, count_frames(flight_dir)) as where:
+    camera = open_calibration(calibration, need="apply").attrs.get("camera")
+    with dask_client(dask_address, count_frames(flight_dir, None if camera is None else str(camera))) as where:
         res = apply_flight(flight_dir, calibration, out, ApplyOptions(normalise=normalise, illumination=illumination))
     run = res.run
     return {
         "frames_in": run["frames_in"],
         "frames_out": run["frames_out"],
         "quarantined": res.quarantined,
+        "skipped": run.get("skipped", []),
         "saturated_pixels": run["saturated_pixels"]["total"],
         "calibration_sha256": run["calibration_sha256"],
         "up_to_date": res.up_to_date,

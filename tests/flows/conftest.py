@@ -74,3 +74,39 @@ def assert_same_flight_outputs(a: Path, b: Path) -> None:
     fa, fb = output_files(a), output_files(b)
     assert len(fa) > 0 and sorted(fa) == sorted(fb)
     assert [k for k in fa if fa[k] != fb[k]] == []
+
+
+MULTILENS_SESSION_YAML = """camera: micasense-rededge
+intrinsics: {fx: 1450, fy: 1450, cx: 640, cy: 480, dist: [0, 0, 0, 0, 0]}
+reflector: {reflectance: 0.5, size_m: [0.3, 0.3]}
+marker: {dictionary: DICT_4X4_50, id: 0, size_m: 0.08}
+"""
+
+
+@pytest.fixture(scope="session")
+def multilens_session(tmp_path_factory) -> tuple[Path, Path]:
+    """A session of the multi-lens MicaSense RedEdge (issue 20): its flight ``field`` holds the
+    real sample captures as an SD card writes them (``0000SET/000/``), and a calibration cache
+    (returned beside the session; tests point MSCAL_CACHE_DIR at it) already holds every stage's
+    store, a store for the MicaSense bands from the factory model
+    (:func:`tests.micasense_data.factory_store`): the run fits nothing (the field fit of
+    multi-lens cameras is another issue's), it applies."""
+    from pipeline.run.runner import plan_calibration
+    from tests.micasense_data import factory_store, require_data
+
+    data = require_data()
+    root = tmp_path_factory.mktemp("multilens")
+    session = root / "session"
+    for d in ("response", "vignetting", "reflector"):
+        (session / d).mkdir(parents=True)
+        (session / d / "frames.csv").write_text("file,exposure_ms\n")
+    flight = session / "flights" / "field" / "0000SET" / "000"
+    flight.mkdir(parents=True)
+    for p in sorted(data.glob("IMG_*.tif")):
+        shutil.copy(p, flight / p.name)
+    (session / "session.yaml").write_text(MULTILENS_SESSION_YAML)
+    cache = root / "cache"
+    store = factory_store(root / "store.zarr")
+    for stage in plan_calibration(session, cache).stages:
+        shutil.copytree(store, stage.store)
+    return session, cache

@@ -89,3 +89,23 @@ def test_cluster_run_computed_its_frames_on_the_cluster_workers(cluster_run: Pat
 
     with Client(cluster, timeout="30s") as client:
         assert client.run_on_scheduler(frame_compute_seconds) > 0
+
+
+def test_cluster_run_of_a_multilens_session(cluster: str, multilens_session, tmp_path, monkeypatch) -> None:
+    """--dask-address takes any camera (issue 20): the one-file-per-band captures of a
+    MicaSense session are computed on the cluster's workers, with the same outputs as a
+    local ``mscal apply`` of the flight."""
+    session, cache = multilens_session
+    monkeypatch.setenv("MSCAL_CACHE_DIR", str(cache))
+    out = tmp_path / "out"
+    assert main(["run", str(session), "-o", str(out), "--dask-address", cluster]) == 0
+    run = json.loads((out / "run.json").read_text())
+    assert run["flights"]["field"]["computed_on"] == f"dask scheduler {cluster}"
+    assert run["flights"]["field"]["frames_out"] == 2
+    flight = json.loads((out / "flights" / "field" / "run.json").read_text())
+    assert flight["scheduler"] == "distributed"
+    alone = tmp_path / "alone"
+    assert main(["apply", str(session / "flights" / "field"), "--calibration", str(out / "calibration.zarr"),
+                 "-o", str(alone)]) == 0
+    assert json.loads((alone / "run.json").read_text())["scheduler"] != "distributed"
+    assert_same_flight_outputs(out / "flights" / "field", alone)

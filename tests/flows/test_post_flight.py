@@ -191,3 +191,32 @@ def test_io_tasks_retry_io_errors_but_not_bad_input() -> None:
     with pytest.raises(InputError, match="bad session"):
         bad()
     assert calls.count("bad") == 1  # not retried
+
+
+def test_run_on_a_multilens_session_applies_its_captures(multilens_session, tmp_path, monkeypatch) -> None:
+    """``mscal run`` on a session naming a one-file-per-band camera (issue 20): the flight's
+    captures go through the one executor with the session's calibration, same layout as
+    every flight, and the run's record and report cover it."""
+    session, cache = multilens_session
+    monkeypatch.setenv("MSCAL_CACHE_DIR", str(cache))
+    out = tmp_path / "out"
+    assert main(["run", str(session), "-o", str(out)]) == 0
+    run = _run_json(out)
+    assert run["calibration_cached"] is True and run["fitted"] == []
+    f = run["flights"]["field"]
+    assert (f["frames_in"], f["frames_out"], f["quarantined"], f["up_to_date"]) == (2, 2, [], False)
+    flight = out / "flights" / "field"
+    ds = xr.open_zarr(flight / "reflectance.zarr")
+    assert list(ds["frame"].values) == ["IMG_0000", "IMG_0001"]
+    assert ds["reflectance"].shape == (2, 5, 960, 1280)
+    assert f["calibration_sha256"] == calibration_hash(open_calibration(out / "calibration.zarr", need="apply"))
+    assert len(list((flight / "photogrammetry").glob("*.tif"))) == 2 * 5
+    assert sorted(p.name for p in (flight / "ndvi").glob("*.tif")) == ["IMG_0000.tif", "IMG_0001.tif"]
+    # the same as mscal apply of the flight with the session's store
+    alone = tmp_path / "alone"
+    assert main(["apply", str(session / "flights" / "field"), "--calibration", str(out / "calibration.zarr"),
+                 "-o", str(alone)]) == 0
+    assert_same_flight_outputs(flight, alone)
+    assert "<h2>Flight: field</h2>" in (out / "report.html").read_text()
+    assert main(["run", str(session), "-o", str(out)]) == 0
+    assert _run_json(out)["flights"]["field"]["up_to_date"] is True

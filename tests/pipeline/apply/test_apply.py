@@ -339,13 +339,14 @@ def test_lazy_reflectance_of_the_cube_equals_the_pass(applied) -> None:
 def test_each_frame_reads_ahead_a_later_frame(small, tmp_path, monkeypatch) -> None:
     """The single pass asks the kernel to read each file READ_AHEAD frames before its task
     needs it (prefetch_file), and the outputs are those of a pass without read-ahead."""
+    import pipeline.apply.executor as executor
     import pipeline.apply.flight as apply_mod
 
     session, calib = small
     flight = _flight_copy(session, tmp_path / "flight")
     files = sorted(flight / r["file"] for r in _rows(flight))  # frames go in file-name order
     asked: list[Path] = []
-    monkeypatch.setattr(apply_mod, "prefetch_file", lambda p: asked.append(Path(p)))
+    monkeypatch.setattr(executor, "prefetch_file", lambda p: asked.append(Path(p)))
     monkeypatch.setattr(apply_mod, "READ_AHEAD", 2)  # the small flight has 3 frames
     assert _apply(flight, calib, tmp_path / "ahead") == 0
     assert len(files) == 3 and sorted(asked) == files[2:]
@@ -361,7 +362,7 @@ def test_disk_full_is_one_line_and_the_same_command_then_resumes(small, tmp_path
     there is space the same command finishes with the outputs of an uninterrupted run."""
     import errno
 
-    import pipeline.apply.flight as apply_mod
+    import pipeline.apply.executor as apply_mod  # the task writes the TIFFs
 
     session, calib = small
     flight = session / "flights" / "field"
@@ -383,3 +384,43 @@ def test_disk_full_is_one_line_and_the_same_command_then_resumes(small, tmp_path
     monkeypatch.setattr(apply_mod, "write_band_tiff", real)
     assert _apply(flight, calib, tmp_path / "out") == 0
     _assert_same_outputs(_outputs(tmp_path / "clean"), _outputs(tmp_path / "out"))
+
+
+def test_snapshot_outputs_are_the_kernel_and_the_writers_bit_for_bit(applied, tmp_path) -> None:
+    """Locks the snapshot path of the one executor (issue 20) to what it computed before the
+    two apply paths were merged: every frame's reflectance is exactly ``eq15_fast`` with the
+    store's tables on raw.zarr's DN, and every photogrammetry TIFF is byte for byte what the
+    writer makes of it with the frame's tags."""
+    import uuid
+
+    from mscal_core.reflectance import eq15_fast, eq15_tables
+    from pipeline.ingest.catalog import load_camera
+    from pipeline.products.writers import BandTags, FrameTags, write_band_tiff
+
+    _, calib, out = applied
+    cal = xr.open_zarr(calib, chunks=None).load()
+    cam = load_camera(cal.attrs["camera"])
+    raw = xr.open_zarr(out / "raw.zarr")
+    ds = xr.open_zarr(out / "reflectance.zarr")
+    assert "illumination_scale" not in ds.coords and "band_transform" not in cal  # the plain Eq. 15 pass
+    lut, inv_v = eq15_tables(cal["inverse_response"].values, cal["vignetting"].values, cal["spectral_factor"].values)
+    sat = int(cal["saturation_dn"].values.min()) if "saturation_dn" in cal else cam.dn_max
+    export = [cam.band_names.index(n) for n in cam.export_bands]
+    compared = 0
+    for f, name in enumerate(raw["frame"].values):
+        t = float(raw["exposure_ms"].values[f] * raw["gain"].values[f])
+        refl = eq15_fast(raw["dn"][f].values[None], lut, inv_v, t, sat)[0]
+        np.testing.assert_array_equal(ds["reflectance"][f].values, refl)
+        tags = FrameTags(
+            time=np.datetime_as_string(raw["time"].values[f], unit="ms") + "Z",
+            lat=float(raw["lat"].values[f]), lon=float(raw["lon"].values[f]), alt_m=float(raw["alt_m"].values[f]),
+            capture_uuid=str(uuid.uuid5(uuid.NAMESPACE_URL, f"mscal:{cam.name}:{raw['sha256'].values[f]}")),
+            exposure_ms=float(raw["exposure_ms"].values[f]), camera_make="mscal", camera_model=cam.name)
+        for i, b in enumerate(export):
+            band = cam.bands[b]
+            mine = write_band_tiff(tmp_path / f"{name}_{band.name}.tif", refl[b], tags,
+                                   BandTags(name=band.name, wavelength_nm=band.wavelength_nm, fwhm_nm=band.fwhm_nm,
+                                            rig_camera_index=i))
+            assert (out / "photogrammetry" / mine.name).read_bytes() == mine.read_bytes(), mine.name
+            compared += 1
+    assert compared == 3 * len(export) == 24

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
+import pipeline.apply.executor as executor
 import pipeline.apply.flight as apply_mod
 from mscal_core.registration import mosaic_centre_offsets, shift_bands
 from pipeline.run.cli import main
@@ -63,6 +64,7 @@ def test_no_transforms_leaves_the_pass_untouched(plain, tmp_path, monkeypatch) -
         raise AssertionError("geometry step called without transforms")
 
     monkeypatch.setattr(apply_mod, "geometry_step", boom)
+    monkeypatch.setattr(executor, "geometry_step", boom)
     again = tmp_path / "again"
     assert _apply(session / "flights" / "field", calib, again) == 0
     monkeypatch.undo()

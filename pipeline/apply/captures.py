@@ -1,0 +1,407 @@
+"""Folders of captures as the camera writes them, and the apply pass over them (issue 20).
+
+A one-file-per-band camera (MicaSense RedEdge and the like) writes one file per band per
+capture (``IMG_0000_1.tif ... IMG_0000_5.tif``), on an SD card in a tree of sets and
+sub-folders (``0000SET/000/IMG_0000_1.tif``). :func:`find_captures` finds every capture in
+such a tree (grouped by name and XMP CaptureId,
+:func:`pipeline.ingest.camera_meta.group_captures`), quarantines incomplete or duplicated
+ones, and names the other files it skips (logs, ``diag.dat``, the camera's ``.bin`` files).
+
+:func:`apply_captures` is the driver of the one executor (:mod:`pipeline.apply.executor`)
+for such a folder, whatever the radiometric chain: the factory's
+(:mod:`pipeline.apply.factory`) or a field calibration store's
+(:func:`pipeline.apply.flight.apply_flight`). It writes the outputs every apply writes
+(``reflectance.zarr``, ``raw.zarr``, photogrammetry and NDVI TIFFs, ``run.json``): stores
+under temporary names, renamed into place; a capture found unusable during the pass is
+quarantined and the pass redone without it; a run whose fingerprint matches ``run.json``
+does nothing.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import shutil
+import time
+import uuid
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+import xarray as xr
+
+import mscal_core
+from mscal_core.errors import FrameError
+
+from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner, process_frame
+from pipeline.apply.flight import (
+    RUN_JSON, ApplyResult, clean_temporaries, install_store, remove_frame_tiffs, previous_run, software_versions,
+    write_json_atomic,
+)
+from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN, Capture, group_captures
+from pipeline.ingest.catalog import Camera, Index
+from pipeline.ingest.raw import raw_codec
+from pipeline.products.writers import TMP_MARK, BandTags, FrameTags
+from pipeline.storage.chunks import FLAT_CHUNK_KEYS
+
+__all__ = ["CaptureFolder", "CaptureRun", "apply_captures", "capture_tags", "find_captures", "is_capture_folder"]
+
+# Files a camera writes beside its captures that are not band files; named in run.json's
+# ``skipped`` like any other file that is not a capture.
+_IGNORED_NAMES = {".ds_store", "thumbs.db"}
+
+
+@dataclass
+class CaptureFolder:
+    """The captures of a folder tree (sorted by name), the captures quarantined, and the files
+    that are not band files (skipped)."""
+
+    captures: list[Capture]
+    quarantined: list[dict[str, str]]
+    skipped: list[dict[str, str]]
+
+
+def _pattern(camera: Camera):  # noqa: ANN202 (re.Pattern)
+    import re
+
+    return re.compile(camera.layout.capture_pattern or DEFAULT_CAPTURE_PATTERN)
+
+
+def is_capture_folder(folder: Path, camera: Camera) -> bool:
+    """Whether ``folder`` (or a folder below it) holds band files of ``camera``."""
+    pattern = _pattern(camera)
+    return any(pattern.match(p.name) for p in Path(folder).rglob("*") if p.is_file())
+
+
+def find_captures(folder: str | Path, camera: Camera) -> CaptureFolder:
+    """Every capture of ``camera`` in ``folder`` and the folders below it (an SD card's
+    ``0000SET/000/``). Capture names are the file names without the band suffix; when two
+    folders of the tree hold captures of the same name (a new set restarts the numbering),
+    every capture below ``folder`` is named by its path, ``0000SET_000_IMG_0000``. Two
+    captures with the same XMP CaptureId anywhere in the tree: the later one is a copy and
+    quarantined."""
+    folder = Path(folder)
+    pattern = _pattern(camera)
+    dirs: list[Path] = []
+    skipped: list[dict[str, str]] = []
+    for p in sorted(folder.rglob("*")):
+        if p.is_dir() or any(part.startswith(".") for part in p.relative_to(folder).parts):
+            continue
+        if pattern.match(p.name):
+            if p.parent not in dirs:
+                dirs.append(p.parent)
+        elif p.name.lower() not in _IGNORED_NAMES and p.name not in (RUN_JSON,):
+            skipped.append({"file": str(p.relative_to(folder)),
+                            "reason": f"not a band file of {camera.name} (names like IMG_0000_1.tif)"})
+    found: list[tuple[Path, Capture]] = []
+    quarantined: list[dict[str, str]] = []
+    for d in sorted(dirs):
+        caps, problems = group_captures(d, camera)
+        found += [(d, c) for c in caps]
+        quarantined += [{"file": str(Path(q["file"]).relative_to(folder)) if Path(q["file"]).is_absolute()
+                         else q["file"], "reason": q["reason"]} for q in problems]
+    names = [c.name for _, c in found]
+    if len(set(names)) != len(names):
+        found = [(d, dataclasses.replace(c, name="_".join((*d.relative_to(folder).parts, c.name)))) for d, c in found]
+    owner: dict[str, str] = {}
+    captures: list[Capture] = []
+    for d, c in sorted(found, key=lambda dc: dc[1].name):
+        if c.capture_id in owner:
+            quarantined.append({"file": str(c.files[0].relative_to(folder)),
+                                "reason": f"capture {c.name}: same XMP CaptureId as {owner[c.capture_id]} "
+                                          "(a copy of that capture?)"})
+            continue
+        owner[c.capture_id] = c.name
+        captures.append(c)
+    quarantined = [{"file": Path(q["file"]).name if Path(q["file"]).parent == Path(".") else q["file"],
+                    "reason": q["reason"]} for q in quarantined]
+    return CaptureFolder(captures, sorted(quarantined, key=lambda q: q["file"]), skipped)
+
+
+def stat_fingerprint(captures: Sequence[Capture]) -> str:
+    """sha256 of the band files' names, sizes and modification times (a re-run's check)."""
+    h = hashlib.sha256()
+    for c in captures:
+        for p in c.files:
+            st = p.stat()
+            h.update(f"{c.name}/{p.name}:{st.st_size}:{st.st_mtime_ns};".encode())
+    return h.hexdigest()
+
+
+def capture_tags(camera: Camera, capture: Capture) -> FrameTags:
+    """Photogrammetry tags of a capture: its first band file's time and position, the median
+    exposure, a CaptureUUID from its XMP CaptureId (shared by its bands)."""
+    m = capture.metas[0]
+    return FrameTags(
+        time=m.time, lat=m.lat, lon=m.lon, alt_m=m.alt_m,
+        capture_uuid=str(uuid.uuid5(uuid.NAMESPACE_URL, f"mscal:{camera.name}:{capture.capture_id}")),
+        exposure_ms=float(np.median([x.exposure_s * 1e3 for x in capture.metas])),
+        camera_make="mscal", camera_model=camera.name,
+    )
+
+
+def capture_times(captures: Sequence[Capture]) -> np.ndarray:
+    """datetime64[ns] of each capture (NaT: none)."""
+    return np.array([np.datetime64(c.metas[0].time.rstrip("Z"), "ns") if c.metas[0].time else np.datetime64("NaT", "ns")
+                     for c in captures])
+
+
+def capture_coords(camera: Camera, captures: Sequence[Capture]) -> dict[str, Any]:
+    def per_frame(get: Any) -> np.ndarray:
+        return np.array([np.nan if get(c.metas[0]) is None else get(c.metas[0]) for c in captures], dtype=np.float64)
+
+    return {
+        "frame": np.array([c.name for c in captures], dtype=object),
+        "band": np.arange(camera.n_bands),
+        "wavelength": ("band", np.array([m.wavelength_nm for m in captures[0].metas]), {"units": "nm"}),
+        "band_name": ("band", np.array(camera.band_names, dtype=object)),
+        "exposure_ms": ("frame", np.array([np.median([m.exposure_s * 1e3 for m in c.metas]) for c in captures]),
+                        {"units": "ms", "long_name": "median exposure over the capture's bands"}),
+        "band_exposure_ms": (("frame", "band"), np.array([[m.exposure_s * 1e3 for m in c.metas] for c in captures]),
+                             {"units": "ms"}),
+        "gain": ("frame", per_frame(lambda m: m.gain), {"units": "1"}),
+        "irradiance": (("frame", "band"),
+                       np.array([[np.nan if m.irradiance is None else m.irradiance for m in c.metas] for c in captures]),
+                       {"units": "W m-2 nm-1", "long_name": "downwelling light sensor (XMP Irradiance)"}),
+        "time": ("frame", capture_times(captures)),
+        "lat": ("frame", per_frame(lambda m: m.lat), {"units": "degrees_north"}),
+        "lon": ("frame", per_frame(lambda m: m.lon), {"units": "degrees_east"}),
+        "alt_m": ("frame", per_frame(lambda m: m.alt_m), {"units": "m"}),
+        "capture_id": ("frame", np.array([c.capture_id for c in captures], dtype=object)),
+    }
+
+
+def _template(coords: dict[str, Any], shape: tuple[int, int, int], variables: dict[str, tuple[tuple[str, ...], Any, dict]],
+              attrs: dict[str, Any]) -> xr.Dataset:
+    import dask.array as da
+
+    ds = xr.Dataset(coords=coords)
+    n = len(coords["frame"])
+    for name, (dims, dtype, vattrs) in variables.items():
+        full = (n, *shape) if len(dims) == 4 else (n, *shape[1:])
+        ds[name] = (dims, da.zeros(full, chunks=(1, *full[1:]), dtype=dtype), vattrs)
+    ds.attrs.update(attrs)
+    return ds
+
+
+def _create(ds: xr.Dataset, path: Path, compressors: Any) -> None:
+    encoding = {v: {"chunks": (1, *ds[v].shape[1:]), "compressors": compressors, "chunk_key_encoding": FLAT_CHUNK_KEYS}
+                for v in ds.data_vars}
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Consolidated metadata")
+        ds.to_zarr(path, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
+
+
+def _tmp(out: Path, name: str) -> Path:
+    return out / f".{name}{TMP_MARK}{uuid.uuid4().hex[:8]}"
+
+
+@dataclass
+class CaptureRun:
+    """What a driver decides before the pass: the chain, and what the outputs record.
+
+    ``scale(capture_name)``: per band factors of a capture (``Job.scale``) or None;
+    ``extra_coords(captures)``: more per-frame coordinates of reflectance.zarr (the light of
+    each capture, issue 8); ``record(captures)``: keys of run.json beside the common ones."""
+
+    chain: FieldChain | FactoryChain
+    calibration: str  # run.json "calibration": a store's path or "factory"
+    calibration_sha256: str | None
+    fingerprint: dict[str, Any]
+    attrs: dict[str, Any]
+    reflectance_name: str
+    tiff_dtype: str = "uint16"
+    norm: tuple[str, float | int | None] = ("none", None)
+    transforms: Path | None = None
+    scale: Callable[[str], tuple[float, ...] | None] = lambda name: None
+    extra_coords: Callable[[Sequence[Capture]], dict[str, Any]] = lambda captures: {}
+    record: Callable[[Sequence[Capture]], dict[str, Any]] = lambda captures: {}
+
+
+def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder, shape: tuple[int, int, int],
+                   run: CaptureRun, indices: Sequence[Index], roles: dict[str, dict[str, int]], export: Sequence[int],
+                   t_start: float) -> ApplyResult:
+    """The pass of the one executor over a folder's captures with ``run.chain``, every output
+    (see the module docstring)."""
+    captures = list(found.captures)
+    quarantined = list(found.quarantined)
+    fingerprint = json.loads(json.dumps(run.fingerprint))
+    out.mkdir(parents=True, exist_ok=True)
+    previous = previous_run(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
+    if previous is not None:
+        return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
+    clean_temporaries(out)
+    t0 = time.perf_counter()
+    with Runner(len(captures)) as runner:
+        while True:  # a capture found unusable in the pass is quarantined and the pass redone without it
+            tmp_refl, tmp_raw, plan = _start(out, camera, captures, shape, indices, roles, export, run)
+            jobs = [Job(f, c.name, capture_tags(camera, c), capture=c, scale=run.scale(c.name))
+                    for f, c in enumerate(captures)]
+            outcomes = runner.run(plan, jobs, fn=process_frame)
+            bad = {o.name: o.quarantine for o in outcomes if o.quarantine is not None}
+            if not bad:
+                break
+            shutil.rmtree(tmp_refl, ignore_errors=True)
+            shutil.rmtree(tmp_raw, ignore_errors=True)
+            for name, q in bad.items():
+                remove_frame_tiffs(out, [name], camera, export)
+                quarantined.append(q)
+            captures = [c for c in captures if c.name not in bad]
+            if not captures:
+                raise FrameError("no usable capture in the folder (all quarantined)", path=folder,
+                                 hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
+    t_pass = time.perf_counter() - t0
+    install_store(out, tmp_raw, "raw.zarr")
+    install_store(out, tmp_refl)
+    frames = [o.name for o in outcomes]
+    quarantined.sort(key=lambda q: q["file"])
+    record = {
+        "flight": str(folder),
+        "calibration": run.calibration,
+        "calibration_sha256": run.calibration_sha256,
+        "camera": camera.name,
+        **run.record(captures),
+        "frames_in": len(frames) + len(quarantined),
+        "frames_out": len(frames),
+        "frames": frames,
+        "frames_sha256": {o.name: o.sha256 for o in outcomes},
+        "quarantined": quarantined,
+        "skipped": found.skipped,
+        "saturated_pixels": {"total": int(sum(o.saturated for o in outcomes)),
+                             "per_frame": {o.name: o.saturated for o in outcomes}},
+        "outputs": {"reflectance": "reflectance.zarr", "raw": "raw.zarr", "photogrammetry": "photogrammetry/",
+                    "ndvi": "ndvi/"},
+        "export_bands": [camera.bands[b].name for b in export],
+        "versions": software_versions(),
+        "scheduler": runner.scheduler,
+        "timings_s": {"apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
+        "fingerprint": fingerprint,
+    }
+    write_json_atomic(out / RUN_JSON, record)
+    return ApplyResult(out, record, up_to_date=False, quarantined=quarantined)
+
+
+def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[int, int, int], indices: Sequence[Index],
+           roles: dict[str, dict[str, int]], export: Sequence[int], run: CaptureRun) -> tuple[Path, Path, Plan]:
+    """The pass's output stores under temporary names, and its plan."""
+    coords = {**capture_coords(camera, captures), **run.extra_coords(captures)}
+    factory = isinstance(run.chain, FactoryChain)
+    rvars: dict[str, tuple[tuple[str, ...], Any, dict]] = {
+        "reflectance": (("frame", "band", "y", "x"), np.float32, {"long_name": run.reflectance_name, "units": "1"}),
+    }
+    if factory:
+        rvars["radiance"] = (("frame", "band", "y", "x"), np.float32,
+                             {"long_name": "factory radiance", "units": "W m-2 sr-1 nm-1"})
+    for ix in indices:
+        rvars[ix.name] = (("frame", "y", "x"), np.float32, {"long_name": ix.description, "expression": ix.expression})
+    if any(ix.name == "ndvi" for ix in indices):
+        rvars["vegetation_mask"] = (("frame", "y", "x"), np.uint8,
+                                    {"long_name": "vegetation (Otsu threshold of NDVI per frame)",
+                                     "flag_values": [0, 1, 255], "flag_meanings": "other vegetation undefined"})
+    attrs = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__, **run.attrs}
+    tmp_refl, tmp_raw = _tmp(out, "reflectance.zarr"), _tmp(out, "raw.zarr")
+    refl_ds = _template(coords, shape, rvars, attrs)
+    _create(refl_ds, tmp_refl, OUTPUT_COMPRESSORS)
+    raw_ds = _template(coords, shape, {"dn": (("frame", "band", "y", "x"), np.uint16,
+                                              {"long_name": "stored DN of each band file"})}, attrs)
+    _create(raw_ds, tmp_raw, [raw_codec()])
+    for sub in ("photogrammetry", "ndvi"):
+        (out / sub).mkdir(exist_ok=True)
+    first = captures[0].metas
+    plan = Plan(
+        camera=camera, chain=run.chain, raw_dn=tmp_raw / "dn", cube_shape=shape, out_store=tmp_refl,
+        outputs=tuple(str(v) for v in refl_ds.data_vars), indices=tuple((ix, roles[ix.name]) for ix in indices),
+        bands=tuple((b, BandTags(name=camera.bands[b].name, wavelength_nm=first[b].wavelength_nm,
+                                 fwhm_nm=first[b].fwhm_nm, rig_camera_index=i))
+                    for i, b in enumerate(export)),
+        tiff_dtype=run.tiff_dtype, out=out, norm=run.norm, transforms=run.transforms,
+    )
+    return tmp_refl, tmp_raw, plan
+
+
+def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Camera, options: Any,
+                         t_start: float) -> ApplyResult:
+    """``mscal apply FLIGHT --calibration CALIB.zarr`` for a folder of one-file-per-band
+    captures: Eq. 15 with the store's U, V and S per band file (its own exposure and gain),
+    the light of each capture's time (issue 8; the captures' sun-sensor readings), the
+    store's band transforms, the normalisation of ``options`` (an ApplyOptions)."""
+    from pipeline.apply.executor import capture_reflectance
+    from pipeline.apply.flight import (
+        run_fingerprint, pass_geometry, index_roles, calibration_hash, export_band_indices, normalisation, saturation_dn,
+    )
+    from pipeline.apply.light import illumination_plan
+    from pipeline.calibrate.registration import check_transforms
+    from pipeline.ingest.camera_meta import capture_irradiance
+    from pipeline.ingest.catalog import load_index
+    from pipeline.storage.store import open_calibration
+
+    from mscal_core.errors import CalibrationStoreError, InputError
+
+    calib = open_calibration(calib_path, camera, need="apply")
+    if "band_name" in calib.coords and [str(n) for n in calib["band_name"].values] != list(camera.band_names):
+        raise CalibrationStoreError(
+            f"store bands {', '.join(map(str, calib['band_name'].values))} are not the bands of {camera.name} "
+            f"({', '.join(camera.band_names)})", path=calib_path, hint="use a calibration of this camera")
+    found = find_captures(folder, camera)
+    captures = found.captures
+    if not captures:
+        raise FrameError(f"no complete capture of {camera.name} (the store's camera) in the folder", path=folder,
+                         hint="; ".join(f"{q['file']}: {q['reason']}" for q in found.quarantined[:3])
+                         or "a capture is one band file per band, e.g. IMG_0000_1.tif ... IMG_0000_5.tif")
+    shapes = {m.shape for c in captures for m in c.metas}
+    v_shape = tuple(calib["vignetting"].shape[1:])
+    if shapes != {v_shape}:
+        raise InputError(f"calibration vignetting is {v_shape[1]}x{v_shape[0]} but band files are "
+                         f"{', '.join(f'{w}x{h}' for h, w in sorted(shapes))}", path=folder,
+                         hint="use a calibration of this camera")
+    shape = (camera.n_bands, *v_shape)
+    chash = calibration_hash(calib)
+    export = export_band_indices(camera, options.export_bands)
+    indices = [load_index(n) for n in options.indices]
+    roles = {ix.name: index_roles(camera, ix) for ix in indices}
+    align, band_shift, reference = pass_geometry(calib, camera, options)
+    if align:
+        check_transforms(calib, camera.n_bands, v_shape, calib_path)
+    chain = FieldChain(calib_path, saturation_dn(calib, camera), camera.dn_shift)
+    names = [c.name for c in captures]
+    irr = np.array([np.nan if capture_irradiance(c) is None else capture_irradiance(c) for c in captures])
+    illum = illumination_plan(calib, names, capture_times(captures), folder, options.illumination, irradiance=irr)
+    scales = {} if illum is None else {n: tuple(float(v) for v in illum.scale[f]) for f, n in enumerate(names)}
+    transforms = calib_path if align else None
+
+    def panel_reflectance(f: int) -> np.ndarray:
+        c = captures[f]
+        job = Job(f, c.name, capture_tags(camera, c), capture=c, scale=scales.get(c.name))
+        try:
+            return capture_reflectance(camera, chain, job, transforms, band_shift)
+        except FrameError as exc:
+            raise InputError(f"--panel capture {c.name} cannot be used: {exc.reason}", path=exc.path) from None
+
+    norm = normalisation(options, camera, names, panel_reflectance)
+    fingerprint = {**run_fingerprint([stat_fingerprint(captures)], chash, options, illum), "layout": "captures"}
+    attrs = {"calibration_sha256": chash, "source": str(folder), "calibration": str(calib_path)}
+    if align:
+        attrs["aligned_to_band"] = reference
+
+    def extra_coords(caps: Sequence[Capture]) -> dict[str, Any]:
+        if illum is None:
+            return {}
+        rows = [names.index(c.name) for c in caps]
+        return {"illumination_level": ("frame", illum.level[rows].astype(np.float64),
+                                       {"long_name": "brightness level beta of the light at the capture's time"}),
+                "illumination_scale": (("frame", "band"), illum.scale[rows].astype(np.float64),
+                                       {"long_name": "factor on Eq. 15 reflectance: S / S(lambda, time) (issue 8)"})}
+
+    def record(caps: Sequence[Capture]) -> dict[str, Any]:
+        if illum is None:
+            return {"illumination": {"varies_in_time": False, "captures": int(calib.sizes.get("capture", 1))}}
+        return {"illumination": {"varies_in_time": True, **illum.summary([c.name for c in caps])}}
+
+    run = CaptureRun(
+        chain=chain, calibration=str(calib_path), calibration_sha256=chash, fingerprint=fingerprint, attrs=attrs,
+        reflectance_name="reflectance (Eq. 15)", tiff_dtype=options.tiff_dtype, norm=norm, transforms=transforms,
+        scale=lambda name: scales.get(name), extra_coords=extra_coords, record=record,
+    )
+    return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)

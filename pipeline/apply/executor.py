@@ -1,0 +1,487 @@
+"""The one apply executor (issue 20): one capture in, every output of it written.
+
+A *capture* is one exposure of all bands: one file (a snapshot mosaic or a multichannel
+image; ``Job.rec``, or its chunk of ``raw.zarr`` when it was ingested before) or one file per
+band (``Job.capture``, grouped by :func:`pipeline.ingest.camera_meta.group_captures`). The
+radiometric model is one per-band chain chosen per run (``Plan.chain``):
+
+- :class:`FieldChain`: Eq. 15, ``R = U(I) / (t V S)``, with U, V, S of a calibration store
+  (``mscal calibrate``), the light of the capture's time folded in (``Job.scale``, issue 8);
+- :class:`FactoryChain`: the camera's own metadata per band file (radiance, W m-2 sr-1 nm-1;
+  optionally with field U and/or V in place of the factory's), times one factor per band
+  (a panel's, or ``pi / E_b`` of the capture's sun sensor; ``Job.scale`` overrides it).
+
+:func:`process_frame` reads the capture (hashing and checking it; a new one is written into
+``raw.zarr``), runs the chain, puts the bands on one pixel grid (band transforms or
+``--centre-bands``, :func:`geometry_step`), normalises, and writes its whole chunk of every
+``reflectance.zarr`` variable, its photogrammetry TIFFs and its NDVI TIFF. :class:`Runner`
+runs the tasks on the caller's ``distributed`` client, else on local threads or processes.
+The drivers (:mod:`pipeline.apply.flight` for frames ingested into raw.zarr,
+:mod:`pipeline.apply.captures` for folders of captures) only plan the jobs and the stores.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+import multiprocessing
+import os
+import signal
+import sys
+import uuid
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import cv2
+import dask
+import dask.multiprocessing
+import dask.threaded
+import numpy as np
+import xarray as xr
+
+from mscal_core.errors import FrameError, InputError
+from mscal_core.reflectance import eq15_fast, eq15_tables
+from mscal_core.registration import align_bands, shift_bands
+
+from pipeline.calibrate.registration import frame_transforms
+from pipeline.ingest.camera_meta import Capture, FieldParts, factory_radiance
+from pipeline.ingest.catalog import Camera, Index, load_camera
+from pipeline.ingest.discover import quarantine_entry
+from pipeline.ingest.raw import prefetch_file, read_frame, shape_problem
+from pipeline.ingest.session import FrameRecord, decode_raw
+from pipeline.products.writers import BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
+from pipeline.storage.chunks import FrameChunks
+
+# --------------------------------------------------------------------------- helpers
+
+
+def capture_uuid(camera: Camera, sha256: str) -> str:
+    """Deterministic CaptureUUID of a frame (the same on every re-run)."""
+    return str(uuid.uuid5(uuid.NAMESPACE_URL, f"mscal:{camera.name}:{sha256}"))
+
+
+def otsu_mask(ndvi: np.ndarray) -> np.ndarray:
+    """The paper's vegetation segmentation: Otsu threshold of the NDVI of one frame (uint8 0/1,
+    255 where NDVI is not defined)."""
+    ok = np.isfinite(ndvi)
+    out = np.full(ndvi.shape, 255, dtype=np.uint8)
+    if ok.sum() < 2:
+        return out
+    scaled = np.clip((ndvi[ok] + 1.0) * 127.5, 0, 255).astype(np.uint8)
+    thr, _ = cv2.threshold(scaled.reshape(-1, 1), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    out[ok] = (scaled > thr).astype(np.uint8)
+    return out
+
+
+def scheduler_for(n_frames: int) -> tuple[str, int]:
+    """Dask scheduler of the per-frame pass when no ``distributed`` client is active: one
+    thread per core. The per-frame work is numpy, hashing and file writes, which release the
+    GIL (two threads run a 120-frame flight 1.8x faster than one), and threads start at once
+    where worker processes take 1-2 s. ``MSCAL_APPLY_SCHEDULER=processes`` chooses worker
+    processes instead (a forkserver that imports this module once).
+    """
+    cpus = int(os.environ.get("MSCAL_APPLY_WORKERS", 0)) or os.cpu_count() or 1
+    choice = os.environ.get("MSCAL_APPLY_SCHEDULER", "threads")
+    if choice not in ("threads", "processes"):
+        raise InputError(f"MSCAL_APPLY_SCHEDULER={choice!r}: use threads or processes")
+    return choice, max(1, min(cpus, n_frames))
+
+
+# Output variables are written uncompressed: lz4 gains only 1.24x on float32 reflectance for
+# 5.8 ms of CPU per full-resolution frame, more than writing the bytes it saves costs.
+OUTPUT_COMPRESSORS: tuple = ()
+
+
+def _stamp(path: Path) -> tuple[str, int]:
+    """Cache key of a Zarr node: its path and the time its metadata was written (a store
+    replaced at the same path is not mistaken for the old one)."""
+    return str(path), os.stat(path / "zarr.json").st_mtime_ns
+
+
+@lru_cache(maxsize=16)
+def _zarr_array(key: tuple[str, int]):  # noqa: ANN202
+    import zarr
+
+    return zarr.open_array(key[0], mode="r+").with_config({"write_empty_chunks": True})
+
+
+@lru_cache(maxsize=16)
+def _frame_chunks(key: tuple[str, int]) -> FrameChunks | None:
+    return FrameChunks.open(key[0])
+
+
+def write_frame(array: Path, f: int, data: np.ndarray) -> None:
+    """Frame ``f``'s whole chunk of the Zarr array at ``array`` (direct when the layout allows)."""
+    key = _stamp(array)
+    fc = _frame_chunks(key)
+    if fc is not None:
+        fc.write(f, data)
+    else:
+        _zarr_array(key)[f] = data
+
+
+def read_frame_chunk(array: Path, f: int) -> np.ndarray:
+    key = _stamp(array)
+    fc = _frame_chunks(key)
+    return fc.read(f) if fc is not None else np.asarray(_zarr_array(key)[f])
+
+
+def calibration_tables(calibration: str) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 15 tables of a calibration store, once per process and store."""
+    return _tables_of(_stamp(Path(calibration)))
+
+
+@lru_cache(maxsize=2)
+def _tables_of(key: tuple[str, int]) -> tuple[np.ndarray, np.ndarray]:
+    ds = _store_of(key)  # the process's one in-memory copy of the store (also read for band transforms)
+    return eq15_tables(ds["inverse_response"].values, ds["vignetting"].values, ds["spectral_factor"].values)
+
+
+@lru_cache(maxsize=2)
+def _store_of(key: tuple[str, int]) -> xr.Dataset:
+    """A calibration store in memory, once per process and store (read straight into numpy:
+    no dask for a small store)."""
+    return xr.open_zarr(key[0], chunks=None).load()
+
+
+def geometry_step(calibration: Path, align: bool, band_shift: Sequence[tuple[float, float]] | None, name: str,
+                  refl: np.ndarray) -> np.ndarray:
+    """Eq. 15 reflectance (band, y, x) of frame ``name`` put on one pixel grid (issue 9): the
+    bands of a multi-lens camera warped onto the reference band (``align``: the capture's own
+    transforms if it was registered, else the session's; ``mscal_core.registration.align_bands``,
+    NaN where a band does not cover), or a snapshot mosaic's bands resampled to the mosaic's
+    centre position (``band_shift``). Unchanged otherwise. Eq. 15 runs before: U, V and S
+    belong to each band's own pixels."""
+    if align:
+        H = frame_transforms(_store_of(_stamp(Path(calibration))), name)
+        if H is not None:
+            refl = align_bands(refl, H)
+    if band_shift is not None:
+        refl = shift_bands(refl, np.asarray(band_shift, dtype=np.float64))
+    return refl
+
+
+# --------------------------------------------------------------------------- radiometric chains
+
+
+@dataclass(frozen=True)
+class FieldChain:
+    """Eq. 15 with every component from a calibration store (U, V, S; issue 20 ``field``)."""
+
+    calibration: Path
+    sat: int  # DN (the calibration's) from which a pixel is saturated
+    dn_shift: int = 0  # band files hold sensor DN << dn_shift (MicaSense: 4); snapshot DN are sensor DN already
+
+    kind = "field"
+
+
+@dataclass(frozen=True)
+class FactoryChain:
+    """The camera's own radiometric metadata per band file (``field``: components of a store
+    that replace the factory's), times ``k_b`` (the panel's, else the capture's DLS)."""
+
+    sat: int  # stored DN from which a pixel is clipped
+    reference: str = "dls"  # panel | dls
+    panel_factor: tuple[float, ...] | None = None
+    field: tuple[str, tuple[str, ...]] | None = None  # (store, components) replacing the factory's
+
+    kind = "factory"
+
+
+@lru_cache(maxsize=2)
+def field_parts(store: str, components: tuple[str, ...], camera_name: str) -> tuple[FieldParts, ...]:
+    """Per band, the ``components`` of a field calibration ``store`` (loaded once per process)."""
+    from pipeline.storage.store import open_calibration
+
+    camera = load_camera(camera_name)
+    ds = open_calibration(store, camera)
+    lut = ds["inverse_response"].values.astype(np.float64) if "response" in components else None
+    vig = ds["vignetting"].values.astype(np.float64) if "vignetting" in components else None
+    return tuple(FieldParts(inverse_response=None if lut is None else lut[b], vignetting=None if vig is None else vig[b],
+                            dn_shift=camera.dn_shift) for b in range(camera.n_bands))
+
+
+def capture_factors(chain: FactoryChain, capture: Capture) -> np.ndarray:
+    """``k_b`` of one capture: the panel's, or ``pi / E_b`` of its own DLS readings."""
+    if chain.reference == "panel":
+        assert chain.panel_factor is not None
+        return np.asarray(chain.panel_factor, dtype=np.float64)
+    k = []
+    for meta in capture.metas:
+        e = meta.irradiance
+        if e is None or not math.isfinite(e) or e <= 0:
+            raise FrameError(f"no usable DLS irradiance (XMP Irradiance = {e!r})", path=meta.path,
+                             hint="use a panel capture: --panel-reflectance TARGET")
+        k.append(math.pi / e)
+    return np.asarray(k)
+
+
+def read_capture(capture: Capture) -> tuple[str, list[np.ndarray]]:
+    """Content hash (over all band files, in band order) and the stored DN of each band file."""
+    h = hashlib.sha256()
+    dns = []
+    for meta in capture.metas:
+        data = meta.path.read_bytes()
+        h.update(data)
+        try:
+            dn = np.asarray(decode_raw(data, meta.path))
+        except FrameError:
+            raise
+        except Exception as exc:  # tifffile raises IndexError/ValueError on truncated files
+            raise FrameError(f"unreadable band file ({type(exc).__name__}: {exc})", path=meta.path) from None
+        if dn.shape != meta.shape:
+            raise FrameError(f"image {dn.shape} does not match its metadata {meta.shape}", path=meta.path)
+        dns.append(dn)
+    return h.hexdigest(), dns
+
+
+def band_exposures(capture: Capture) -> np.ndarray:
+    """Effective exposure ``t`` (ms x gain) of each band file of a capture (Eq. 15's t)."""
+    return np.array([m.exposure_s * 1e3 * m.gain for m in capture.metas], dtype=np.float64)
+
+
+# --------------------------------------------------------------------------- the task
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What every capture's task needs: paths and small values, no arrays (it is sent to
+    worker processes with each task)."""
+
+    camera: Camera
+    chain: FieldChain | FactoryChain
+    raw_dn: Path  # raw.zarr's dn array: a stored capture is read from it, a new one written into it
+    cube_shape: tuple[int, int, int]
+    out_store: Path
+    outputs: tuple[str, ...]
+    indices: tuple[tuple[Index, dict[str, int]], ...]
+    bands: tuple[tuple[int, BandTags], ...]
+    tiff_dtype: str
+    out: Path
+    norm: tuple[str, float | int | None] = ("none", None)
+    transforms: Path | None = None  # a store whose band transforms put the bands on the reference band's grid
+    band_shift: tuple[tuple[float, float], ...] | None = None  # --centre-bands: (dx, dy) per band
+
+
+@dataclass(frozen=True)
+class Job:
+    """One capture of the pass. ``rec``: a new single-file capture, read from its file,
+    checked and written into raw.zarr at ``index``; ``capture``: a one-file-per-band capture
+    (always read from its files); neither: read from raw.zarr."""
+
+    index: int
+    name: str
+    tags: FrameTags
+    t: float = 1.0  # effective exposure of a single-file capture (exposure_ms x gain); band files carry their own
+    rec: FrameRecord | None = None
+    capture: Capture | None = None
+    scale: tuple[float, ...] | None = None  # per band: field S / S(lambda, time) (issue 8); factory k_b
+    ahead: Path | None = None  # the file of a capture a few places on, to read ahead (prefetch_file)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    name: str
+    sha256: str | None  # of the file(s), for a capture read from its files
+    saturated: int
+    quarantine: dict[str, str] | None = None  # a capture that cannot be used: nothing written
+
+
+def capture_dn(plan: Plan, job: Job) -> tuple[np.ndarray, str | None]:
+    """DN (band, y, x) of a job's capture: from its file(s) (checked; FrameError) or from raw.zarr."""
+    if job.capture is not None:
+        sha, dns = read_capture(job.capture)
+        if any(dn.shape != plan.cube_shape[1:] for dn in dns):
+            raise FrameError(f"band images {[d.shape for d in dns]} are not all {plan.cube_shape[1:]}",
+                             path=job.capture.files[0])
+        return np.stack(dns), sha
+    if job.rec is None:
+        return read_frame_chunk(plan.raw_dn, job.index), None
+    sha, dn = read_frame(job.rec, plan.camera)
+    assert dn is not None
+    problem = shape_problem(dn.shape, plan.cube_shape)
+    if problem:
+        raise FrameError(problem, path=job.rec.path)
+    return dn, sha
+
+
+def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, int]:
+    """The chain on one capture's DN: ``(signal, factor, radiance, saturated pixels)``.
+    ``signal`` goes onto the common pixel grid before the per-band ``factor`` (None: 1);
+    ``radiance`` (factory chain) is the signal kept as an output. FrameError: unusable."""
+    if isinstance(chain, FieldChain):
+        lut, inv_v = calibration_tables(str(chain.calibration))
+        if job.capture is None:
+            refl = eq15_fast(dn[None], lut, inv_v, job.t, chain.sat,
+                             None if job.scale is None else np.asarray(job.scale)[None])[0]
+            return refl, None, None, int(np.count_nonzero(dn >= chain.sat))
+        d = np.right_shift(dn, chain.dn_shift) if chain.dn_shift else dn
+        k = (np.ones(dn.shape[0]) if job.scale is None else np.asarray(job.scale, dtype=np.float64))
+        refl = eq15_fast(d[None], lut, inv_v, 1.0, chain.sat, (k / band_exposures(job.capture))[None])[0]
+        return refl, None, None, int(np.count_nonzero(d >= chain.sat))
+    cap = job.capture
+    if cap is None:
+        raise InputError("the factory chain needs the band files' own metadata (one-file-per-band captures)")
+    k = np.asarray(job.scale, dtype=np.float64) if job.scale is not None else capture_factors(chain, cap)
+    parts = field_parts(chain.field[0], chain.field[1], camera.name) if chain.field else [None] * dn.shape[0]
+    rad = np.empty(dn.shape, np.float32)
+    for b, meta in enumerate(cap.metas):
+        rad[b] = factory_radiance(meta, dn[b], parts[b])
+    saturated = dn >= chain.sat
+    rad[saturated] = np.nan
+    return rad, k, rad, int(np.count_nonzero(saturated))
+
+
+def capture_reflectance(camera: Camera, chain: FieldChain | FactoryChain, job: Job, transforms: Path | None = None,
+                        band_shift: Sequence[tuple[float, float]] | None = None) -> np.ndarray:
+    """Reflectance (band, y, x) of one capture read from its band files, on the outputs' pixel
+    grid, before normalisation (a panel's region is measured on it); writes nothing."""
+    assert job.capture is not None
+    dn = np.stack(read_capture(job.capture)[1])
+    signal, factor, _, _ = radiometry(camera, chain, job, dn)
+    if transforms is not None or band_shift is not None:
+        signal = geometry_step(transforms or Path(), transforms is not None, band_shift, job.name, signal)
+    return signal if factor is None else signal * factor.astype(np.float32)[:, None, None]
+
+
+def process_frame(plan: Plan, job: Job) -> Outcome:
+    """One capture, every output: (for a capture read from its files) its raw.zarr chunk, the
+    radiometric chain, the common pixel grid, normalisation, indices, Otsu mask, its chunk of
+    each reflectance.zarr variable (one whole chunk per variable: no two tasks share a chunk),
+    its photogrammetry and NDVI TIFFs. First it asks for a later capture's file to be read
+    ahead (``job.ahead``)."""
+    if job.ahead is not None:
+        prefetch_file(job.ahead)
+    try:
+        dn, sha = capture_dn(plan, job)
+        signal, factor, radiance, saturated = radiometry(plan.camera, plan.chain, job, dn)
+    except FrameError as exc:
+        if job.capture is not None:
+            file = Path(exc.path or job.capture.files[0]).name
+        else:
+            assert job.rec is not None  # a chunk of raw.zarr is never unusable for this reason
+            file = job.rec.path.name
+        return Outcome(job.name, None, 0, quarantine_entry(file, exc))
+    tags = job.tags
+    if sha is not None:
+        write_frame(plan.raw_dn, job.index, dn)
+        if job.rec is not None:
+            tags = replace(tags, capture_uuid=capture_uuid(plan.camera, sha))
+    if plan.transforms is not None or plan.band_shift is not None:
+        signal = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift, job.name,
+                               signal)
+        if radiance is not None:
+            radiance = signal
+    refl = signal if factor is None else signal * factor.astype(np.float32)[:, None, None]
+    kind, value = plan.norm
+    if kind == "scalar":
+        refl *= np.float32(value)
+    elif kind == "band":
+        med = np.nanmedian(refl[int(value)])
+        refl *= np.float32(1.0 / med) if np.isfinite(med) and med > 0 else np.float32(np.nan)
+    store = plan.out_store
+    if radiance is not None:
+        write_frame(store / "radiance", job.index, radiance)
+    write_frame(store / "reflectance", job.index, refl)
+    ndvi = None
+    for ix, roles in plan.indices:
+        val = ix.evaluate({role: refl[b] for role, b in roles.items()})
+        write_frame(store / ix.name, job.index, val)
+        if ix.name == "ndvi":
+            ndvi = val
+    if ndvi is not None and "vegetation_mask" in plan.outputs:
+        write_frame(store / "vegetation_mask", job.index, otsu_mask(ndvi))
+    for b, btags in plan.bands:
+        write_band_tiff(plan.out / "photogrammetry" / f"{job.name}_{btags.name}.tif", refl[b], tags, btags,
+                        dtype=plan.tiff_dtype)
+    if ndvi is not None:
+        write_ndvi_tiff(plan.out / "ndvi" / f"{job.name}.tif", ndvi, tags)
+    return Outcome(job.name, sha, saturated)
+
+
+# --------------------------------------------------------------------------- running the tasks
+
+
+def _worker_init() -> None:
+    """Worker processes: die with the parent (a killed run leaves no writer behind) and keep
+    Blosc single-threaded (the workers already fill the cores)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):  # not Linux
+        pass
+    try:
+        from numcodecs import blosc
+
+        blosc.set_nthreads(1)
+    except ImportError:  # pragma: no cover
+        pass
+
+
+def _distributed_client():  # noqa: ANN202
+    """The active ``distributed`` client (the caller's ``with Client(...)``), if any. A caller
+    with a client has imported ``distributed``; without one it is not imported here (0.2 s of
+    every run's start)."""
+    if "distributed" not in sys.modules:
+        return None
+    try:
+        from distributed import default_client
+    except ImportError:
+        return None
+    try:
+        return default_client()
+    except ValueError:
+        return None
+
+
+class Runner:
+    """Runs the per-frame tasks (dask.delayed) on the caller's ``distributed`` client if one is
+    active, else on worker processes (long flights) or threads; see :func:`scheduler_for`.
+    Worker processes are started when the runner is made, so they start while the main
+    process reads the calibration and the flight."""
+
+    def __init__(self, n_frames: int):
+        self.client = _distributed_client()
+        self.pool: ProcessPoolExecutor | None = None
+        self.scheduler, self.workers = ("distributed", 0) if self.client is not None else scheduler_for(n_frames)
+        if self.scheduler == "processes":
+            ctx = multiprocessing.get_context("forkserver")
+            ctx.set_forkserver_preload(["pipeline.apply.executor"])
+            self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_worker_init)
+            for _ in range(self.workers):  # start them now
+                self.pool.submit(int)
+
+    def run(self, plan: Any, jobs: Sequence[Any], fn: Callable[[Any, Any], Any] | None = None) -> list[Any]:
+        """``fn(plan, job)`` (default :func:`process_frame`) for every job, in job order."""
+        # arguments wrapped whole: dask would otherwise walk every dataclass field of every
+        # argument of every task looking for collections (15 ms a task)
+        token = uuid.uuid4().hex
+        plan_d = dask.delayed(plan, traverse=False, name=f"mscal-plan-{token}")
+        tasks = [
+            dask.delayed(fn or process_frame, pure=False)(plan_d, dask.delayed(job, traverse=False, name=f"mscal-job-{token}-{k}"))
+            for k, job in enumerate(jobs)
+        ]
+        if self.client is not None:
+            return list(dask.compute(*tasks))
+        if self.pool is not None:
+            return list(dask.compute(*tasks, scheduler=dask.multiprocessing.get, pool=self.pool))
+        # the schedulers' functions, not their names: a name makes dask import distributed
+        # (0.2 s) to look for a client, which _distributed_client has done already
+        return list(dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=self.workers))
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.shutdown(wait=True, cancel_futures=True)
+            self.pool = None
+
+    def __enter__(self) -> "Runner":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+

@@ -1,0 +1,162 @@
+"""One pipeline for every camera (issue 20): multi-lens (one-file-per-band) flights through the
+one executor with a field calibration store or the factory model, on the real MicaSense
+RedEdge captures; capture folders as the camera writes them; options refused where they do
+not apply."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+import pipeline.apply.executor as executor
+from mscal_core.factory import row_gradient
+from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta
+from pipeline.ingest.session import read_raw
+from pipeline.run.cli import main
+from tests.micasense_data import BANDS, factory_store, require_data
+
+
+@pytest.fixture(scope="module")
+def store(tmp_path_factory) -> Path:
+    require_data()
+    return factory_store(tmp_path_factory.mktemp("ms-store") / "calib.zarr")
+
+
+@pytest.fixture(scope="module")
+def field_run(store, tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("ms-field") / "out"
+    assert main(["apply", str(require_data()), "--calibration", str(store), "-o", str(out)]) == 0
+    return out
+
+
+def test_field_store_on_a_multilens_flight_is_eq15_per_band_file(field_run) -> None:
+    """The store is the factory model (U linear, V the vignetting polynomial, S the factory
+    scale): Eq. 15 per band file, with that file's own exposure and gain, must give the
+    factory radiance without its row-gradient term, to float32 rounding, on a capture the
+    store was not built from."""
+    ds = xr.open_zarr(field_run / "reflectance.zarr")
+    assert list(ds["frame"].values) == ["IMG_0000", "IMG_0001"]
+    assert ds["reflectance"].shape == (2, 5, 960, 1280)
+    assert list(ds["band_name"].values) == list(BANDS)
+    refl = ds["reflectance"].values
+    for b in range(5):
+        meta = read_capture_meta(require_data() / f"IMG_0001_{b + 1}.tif")
+        dn = read_raw(meta.path)
+        expect = factory_radiance(meta, dn) / row_gradient(dn.shape[0], meta.exposure_s, *meta.radiometric_calibration[1:])
+        ok = (dn < 65520) & (expect > 1e-3)
+        assert ok.mean() > 0.9
+        np.testing.assert_allclose(refl[1, b][ok], expect[ok], rtol=2e-5)
+        assert np.all(np.isnan(refl[1, b][dn >= 65520]))  # saturated: NaN and counted
+    run = json.loads((field_run / "run.json").read_text())
+    assert run["saturated_pixels"]["total"] == sum(
+        int(np.count_nonzero(read_raw(require_data() / f"IMG_000{c}_{b}.tif") >= 65520)) for c in (0, 1) for b in range(1, 6))
+    # one layout for all cameras: the same outputs as a snapshot flight
+    assert {"reflectance", "ndvi", "ndre", "vegetation_mask"} <= set(ds.data_vars)
+    assert sorted(p.name for p in (field_run / "photogrammetry").glob("IMG_0001_*.tif")) == sorted(
+        f"IMG_0001_{b}.tif" for b in BANDS)
+    assert sorted(p.name for p in (field_run / "ndvi").glob("*.tif")) == ["IMG_0000.tif", "IMG_0001.tif"]
+    assert run["calibration_sha256"] and run["frames_out"] == 2 and run["quarantined"] == []
+    assert [s["file"] for s in run["skipped"]] == ["LICENSE", "README.md"]
+    raw = xr.open_zarr(field_run / "raw.zarr")["dn"].values
+    np.testing.assert_array_equal(raw[0, 3], read_raw(require_data() / "IMG_0000_4.tif"))
+
+
+def test_factory_and_field_chains_run_in_the_same_executor(store, tmp_path, monkeypatch) -> None:
+    """Both chains are one task function (executor.process_frame -> executor.radiometry)."""
+    seen: list[tuple[str, str]] = []
+    real = executor.radiometry
+
+    def spy(camera, chain, job, dn):  # noqa: ANN001, ANN202
+        seen.append((chain.kind, job.name))
+        return real(camera, chain, job, dn)
+
+    monkeypatch.setattr(executor, "radiometry", spy)
+    monkeypatch.setenv("MSCAL_APPLY_SCHEDULER", "threads")
+    assert main(["apply", str(require_data()), "--calibration", str(store), "-o", str(tmp_path / "field")]) == 0
+    assert main(["apply", str(require_data()), "--calibration", "factory", "-o", str(tmp_path / "factory")]) == 0
+    assert sorted(seen) == [("factory", "IMG_0000"), ("factory", "IMG_0001"), ("field", "IMG_0000"), ("field", "IMG_0001")]
+    a = xr.open_zarr(tmp_path / "field" / "reflectance.zarr")
+    f = xr.open_zarr(tmp_path / "factory" / "reflectance.zarr")
+    assert set(a.data_vars) | {"radiance"} == set(f.data_vars)
+    assert a["reflectance"].shape == f["reflectance"].shape
+
+
+def test_rerun_is_up_to_date(field_run, store, capsys) -> None:
+    assert main(["apply", str(require_data()), "--calibration", str(store), "-o", str(field_run)]) == 0
+    assert "up to date" in capsys.readouterr().out
+
+
+def test_sd_card_tree_with_other_files(store, tmp_path, capsys) -> None:
+    """Captures in 0000SET/000/ and a second set restarting the numbering: names get their
+    path; a copy of a capture (same CaptureId) is quarantined; other files are skipped, said."""
+    card = tmp_path / "card"
+    (card / "0000SET" / "000").mkdir(parents=True)
+    (card / "0001SET" / "000").mkdir(parents=True)
+    for p in require_data().glob("IMG_*.tif"):
+        shutil.copy(p, card / "0000SET" / "000" / p.name)
+    for b in range(1, 6):
+        shutil.copy(require_data() / f"IMG_0001_{b}.tif", card / "0001SET" / "000" / f"IMG_0000_{b}.tif")
+    (card / "0000SET" / "diag0.dat").write_bytes(b"\0" * 10)
+    (card / "paramlog.txt").write_text("log")
+    assert main(["apply", str(card), "--calibration", str(store), "-o", str(tmp_path / "out")]) == 0
+    err = capsys.readouterr().err
+    assert "skipped 2 file(s) that are not captures: 0000SET/diag0.dat, paramlog.txt" in err
+    assert "quarantined 0001SET/000/IMG_0000_1.tif: capture 0001SET_000_IMG_0000: same XMP CaptureId as " \
+           "0000SET_000_IMG_0001" in err
+    ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
+    assert list(ds["frame"].values) == ["0000SET_000_IMG_0000", "0000SET_000_IMG_0001"]
+
+
+def test_store_of_other_bands_is_refused(store, tmp_path, capsys) -> None:
+    ds = xr.open_zarr(store, chunks=None).load()
+    ds = ds.assign_coords(band_name=("band", np.array(["B1", "B2", "B3", "B4", "B5"], dtype=object)))
+    from pipeline.storage.store import write_store
+
+    bad = write_store(ds, tmp_path / "bad.zarr")
+    assert main(["apply", str(require_data()), "--calibration", str(bad), "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "store bands B1, B2, B3, B4, B5 are not the bands of micasense-rededge" in err and "\n" not in err
+
+
+@pytest.mark.parametrize("extra, expect", [
+    (["--illumination", "linear"], "--illumination is for the panel route"),
+    (["--centre-bands"], "--centre-bands is for snapshot mosaic cameras"),
+    (["--no-align"], "--no-align is for calibration stores"),
+    (["--normalise", "band:NIR"], "--normalise is for field calibrations"),
+])
+def test_factory_refuses_options_it_would_ignore(tmp_path, capsys, extra, expect) -> None:
+    require_data()
+    assert main(["apply", str(require_data()), "--calibration", "factory", "-o", str(tmp_path / "o"), *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert expect in err and "\n" not in err
+    assert not (tmp_path / "o" / "run.json").exists()
+
+
+def test_factory_panel_light_follows_the_sun_sensor(tmp_path) -> None:
+    """--illumination with one panel capture: each capture's factor is the panel's scaled by
+    the sun sensor, E(panel) / E(capture) (mean over the bands); without it, the panel's
+    factor for every capture, as before."""
+    args = ["apply", str(require_data()), "--calibration", "factory", "--panel-reflectance",
+            "micasense-rp02-1603036-sc", "--panel", "IMG_0000"]
+    assert main([*args, "-o", str(tmp_path / "lit"), "--illumination", "linear"]) == 0
+    assert main([*args, "-o", str(tmp_path / "flat")]) == 0
+    lit = json.loads((tmp_path / "lit" / "run.json").read_text())
+    flat = json.loads((tmp_path / "flat" / "run.json").read_text())
+    k = flat["reference"]["factor"]
+    assert flat["illumination"]["varies_in_time"] is False
+    e = {c: np.mean([read_capture_meta(require_data() / f"{c}_{b}.tif").irradiance for b in range(1, 6)])
+         for c in ("IMG_0000", "IMG_0001")}
+    per = lit["illumination"]["per_frame"]
+    for band in BANDS:
+        assert per["IMG_0000"][band] == pytest.approx(k[band], rel=1e-9)
+        assert per["IMG_0001"][band] == pytest.approx(k[band] * e["IMG_0000"] / e["IMG_0001"], rel=1e-9)
+    a = xr.open_zarr(tmp_path / "lit" / "reflectance.zarr")
+    ratio = np.nanmedian(a["reflectance"].values[1, 3] / a["radiance"].values[1, 3])
+    assert ratio == pytest.approx(per["IMG_0001"]["NIR"], rel=1e-5)
+    b = xr.open_zarr(tmp_path / "flat" / "reflectance.zarr")
+    np.testing.assert_array_equal(a["reflectance"].values[0], b["reflectance"].values[0])
