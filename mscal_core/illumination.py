@@ -83,6 +83,52 @@ def fit_illumination(
     Raises InputError on bad shapes / reflectances and FitError when a band has no valid
     reflector pixel (it cannot be calibrated from these images).
     """
+    rad, refl, idx = _checked_inputs(radiance, reflectance, image_index)
+    valid = np.isfinite(rad)
+    bad_bands = np.flatnonzero(~valid.any(axis=1))
+    if bad_bands.size:
+        raise FitError(
+            f"band(s) {bad_bands.tolist()} have no valid reflector pixel (all saturated or masked)",
+            hint="use reflector images with a shorter exposure",
+        )
+    lv = np.where(valid, rad, 0.0)
+    m = valid.astype(np.float64)
+    r = refl[:, None]
+    s, b, pix_ok, iterations, converged = _alternate(lv, m, r, int(max_iter), tol)
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise FitError(
+            "the spectral factors came out non-positive: the reflector radiance is inconsistent",
+            hint="check the reflector pixels (mask, saturation) and the vignetting",
+        )
+
+    # gauge: median brightness 1
+    brightness = np.where(pix_ok, b, np.nan)
+    med = float(np.nanmedian(brightness))
+    if not np.isfinite(med) or med <= 0:
+        raise FitError("the reflector brightness came out non-positive: the data are inconsistent")
+    brightness = brightness / med
+    s = s * med
+
+    pred = s[:, None] * brightness[None, :] * r
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = rad / pred - 1.0
+    rel = rel[valid & np.isfinite(rel)]
+    residual_rms = float(np.sqrt(np.mean(rel * rel))) if rel.size else float("nan")
+    return IlluminationFit(
+        spectral_factor=s,
+        brightness=brightness,
+        image_brightness=None if idx is None else _image_brightness(brightness, idx),
+        residual_rms=residual_rms,
+        iterations=iterations,
+        converged=converged,
+    )
+
+
+def _checked_inputs(
+    radiance: np.ndarray, reflectance: np.ndarray | float, image_index: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Check the inputs of :func:`fit_illumination`; return ``(radiance float64, R_s per
+    band, image index or None)``."""
     rad = np.asarray(radiance, dtype=np.float64)
     if rad.ndim != 2 or rad.shape[0] < 1 or rad.shape[1] < 1:
         raise InputError(f"radiance must be (n_bands, n_pix), got shape {rad.shape}")
@@ -105,18 +151,16 @@ def fit_illumination(
                 f"image_index must be {n_pix} non-negative integers (one per pixel), got "
                 f"shape {idx.shape}, dtype {idx.dtype}"
             )
+    return rad, refl, idx
 
-    valid = np.isfinite(rad)
-    bad_bands = np.flatnonzero(~valid.any(axis=1))
-    if bad_bands.size:
-        raise FitError(
-            f"band(s) {bad_bands.tolist()} have no valid reflector pixel (all saturated or masked)",
-            hint="use reflector images with a shorter exposure",
-        )
-    lv = np.where(valid, rad, 0.0)
-    m = valid.astype(np.float64)
-    r = refl[:, None]
 
+def _alternate(
+    lv: np.ndarray, m: np.ndarray, r: np.ndarray, max_iter: int, tol: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, bool]:
+    """Alternate Eq. 13 and Eq. 14 from ``B = mean over lambda of L`` on the valid entries
+    (``lv`` the radiance with 0 where invalid, ``m`` 1 where valid, ``r`` R_s as a column).
+    Returns ``(S, B, pixels with a B, iterations, converged)``."""
+    n_bands = lv.shape[0]
     with np.errstate(invalid="ignore", divide="ignore"):
         b = np.sum(lv, axis=0) / np.sum(m, axis=0)  # paper: B = mean over lambda of L
     pix_ok = np.isfinite(b)
@@ -124,7 +168,7 @@ def fit_illumination(
     s = np.ones(n_bands)
     iterations = 0
     converged = False
-    for iterations in range(1, int(max_iter) + 1):
+    for iterations in range(1, max_iter + 1):
         # Eq. 13: S = sum_x L B R / sum_x (B R)^2  (valid entries only)
         br = b[None, :] * r
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -139,42 +183,18 @@ def fit_illumination(
         if change < tol:
             converged = True
             break
-    if not np.all(np.isfinite(s)) or np.any(s <= 0):
-        raise FitError(
-            "the spectral factors came out non-positive: the reflector radiance is inconsistent",
-            hint="check the reflector pixels (mask, saturation) and the vignetting",
-        )
+    return s, b, pix_ok, iterations, converged
 
-    # gauge: median brightness 1
-    brightness = np.where(pix_ok, b, np.nan)
-    med = float(np.nanmedian(brightness))
-    if not np.isfinite(med) or med <= 0:
-        raise FitError("the reflector brightness came out non-positive: the data are inconsistent")
-    brightness = brightness / med
-    s = s * med
 
-    pred = s[:, None] * brightness[None, :] * r
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rel = rad / pred - 1.0
-    rel = rel[valid & np.isfinite(rel)]
-    residual_rms = float(np.sqrt(np.mean(rel * rel))) if rel.size else float("nan")
-
-    image_brightness = None
-    if idx is not None:
-        n_img = int(idx.max()) + 1 if idx.size else 0
-        image_brightness = np.full(n_img, np.nan)
-        for k in range(n_img):
-            sel = brightness[idx == k]
-            if np.isfinite(sel).any():
-                image_brightness[k] = float(np.nanmedian(sel))
-    return IlluminationFit(
-        spectral_factor=s,
-        brightness=brightness,
-        image_brightness=image_brightness,
-        residual_rms=residual_rms,
-        iterations=iterations,
-        converged=converged,
-    )
+def _image_brightness(brightness: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Median brightness of every reflector image (NaN for an image without a finite B)."""
+    n_img = int(idx.max()) + 1 if idx.size else 0
+    image_brightness = np.full(n_img, np.nan)
+    for k in range(n_img):
+        sel = brightness[idx == k]
+        if np.isfinite(sel).any():
+            image_brightness[k] = float(np.nanmedian(sel))
+    return image_brightness
 
 
 def eq16_reflectance(

@@ -363,6 +363,61 @@ def fit_vignetting(
     h, w = int(shape[0]), int(shape[1])
     n_pix = h * w
     n_cells = int(n_cells)
+    pix, cell, y, wt = _checked_observations(
+        pixel_index, cell_index, values, shape, n_cells, weights, min_count
+    )
+    # 1. informative observations, 2. log-domain start, 3. Eq. 10' / Eq. 9' alternation
+    use = _informative(pix, cell, n_pix, n_cells)
+    fp, fc, fy, fw = pix[use], cell[use], y[use], wt[use]
+    # compact indices of the active unknowns
+    act_p = np.unique(fp)
+    act_c = np.unique(fc)
+    cp = np.searchsorted(act_p, fp)
+    cc = np.searchsorted(act_c, fc)
+    v, lum = _log_init(cp, cc, fy, act_p.size, act_c.size, int(init_iter))
+    v, lum, iterations, converged = _alternate(cp, cc, fy, fw, v, act_c.size, int(max_iter), tol)
+    resid = fy / (v[cp] * lum[cc]) - 1.0
+    residual_rms = float(np.sqrt(np.mean(resid * resid)))
+
+    count = np.bincount(fp, minlength=n_pix).astype(np.int64).reshape(h, w)
+    observed = count >= int(min_count)
+    if not observed.any():
+        raise FitError(
+            f"no pixel has {min_count} or more informative reflector observations",
+            hint="take more reflector images, or lower min_count",
+        )
+    v_full = np.full(n_pix, np.nan)
+    v_full[act_p] = v
+    # 4. gauge, 5./6. optional smoothing of the residual, fill
+    scale, v_img, model, resid_img = _gauge(v_full.reshape(h, w), count, observed)
+    lum = lum * scale
+    out = _smooth_and_fill(v_img, model, resid_img, count, observed, smooth_sigma)
+    radiance = _cell_radiance(out, pix, cell, y, wt, n_cells)
+    radiance[act_c] = lum
+
+    out.flags.writeable = False
+    count.flags.writeable = False
+    observed.flags.writeable = False
+    radiance.flags.writeable = False
+    return VignettingFit(
+        vignetting=out,
+        count=count,
+        observed=observed,
+        radiance=radiance,
+        residual_rms=residual_rms,
+        iterations=iterations,
+        converged=converged,
+    )
+
+
+def _checked_observations(
+    pixel_index: np.ndarray, cell_index: np.ndarray, values: np.ndarray, shape: tuple[int, int],
+    n_cells: int, weights: np.ndarray | None, min_count: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Check the inputs of :func:`fit_vignetting`; return ``(pixel, cell, y, weight)`` of the
+    usable observations (finite, positive value and weight), indices as int64."""
+    h, w = int(shape[0]), int(shape[1])
+    n_pix = h * w
     pix = np.asarray(pixel_index).ravel()
     cell = np.asarray(cell_index).ravel()
     y = np.asarray(values, dtype=np.float64).ravel()
@@ -396,13 +451,16 @@ def fit_vignetting(
             )
     if int(min_count) < 1:
         raise InputError(f"min_count must be at least 1, got {min_count}")
-
     with np.errstate(invalid="ignore"):
         good = np.isfinite(y) & (y > 0) & np.isfinite(wt) & (wt > 0)
-    pix, cell, y, wt = pix[good], cell[good], y[good], wt[good]
+    return pix[good], cell[good], y[good], wt[good]
 
-    # 1. informative observations: cells seen by >= 2 different pixels (exact integer test
-    # n * sum(p^2) - (sum p)^2 > 0 in float64: all terms are integers below 2**53 here).
+
+def _informative(pix: np.ndarray, cell: np.ndarray, n_pix: int, n_cells: int) -> np.ndarray:
+    """Step 1 of :func:`fit_vignetting`: mask of the observations in cells seen by >= 2
+    different pixels, within the largest connected part of the pixel/cell graph."""
+    # exact integer test n * sum(p^2) - (sum p)^2 > 0 in float64: all terms are integers
+    # below 2**53 here
     nc = np.bincount(cell, minlength=n_cells).astype(np.float64)
     s1 = np.bincount(cell, weights=pix.astype(np.float64), minlength=n_cells)
     s2 = np.bincount(cell, weights=pix.astype(np.float64) ** 2, minlength=n_cells)
@@ -424,23 +482,20 @@ def fit_vignetting(
     if n_comp > 1:
         sizes = np.bincount(labels[up], minlength=n_comp)
         use[np.flatnonzero(use)[labels[up] != int(np.argmax(sizes))]] = False
-    fp, fc, fy, fw = pix[use], cell[use], y[use], wt[use]
+    return use
 
-    # compact indices of the active unknowns
-    act_p = np.unique(fp)
-    act_c = np.unique(fc)
-    cp = np.searchsorted(act_p, fp)
-    cc = np.searchsorted(act_c, fc)
-    npa, nca = act_p.size, act_c.size
 
-    # 2. log-domain initialisation
-    v, lum = _log_init(cp, cc, fy, npa, nca, int(init_iter))
-
-    # 3. Eq. 10' / Eq. 9' alternation
+def _alternate(
+    cp: np.ndarray, cc: np.ndarray, fy: np.ndarray, fw: np.ndarray, v: np.ndarray, nca: int,
+    max_iter: int, tol: float,
+) -> tuple[np.ndarray, np.ndarray, int, bool]:
+    """Step 3 of :func:`fit_vignetting`: alternate Eq. 10' (L from V) and Eq. 9' (V from L)
+    from ``v``; returns ``(V, L consistent with V, sweeps, converged)``."""
+    npa = v.size
     wy = fw * fy
     iterations = 0
     converged = False
-    for iterations in range(1, int(max_iter) + 1):
+    for iterations in range(1, max_iter + 1):
         vp = v[cp]
         lum = np.bincount(cc, weights=wy * vp, minlength=nca) / np.bincount(
             cc, weights=fw * vp * vp, minlength=nca
@@ -459,23 +514,16 @@ def fit_vignetting(
     lum = np.bincount(cc, weights=wy * vp, minlength=nca) / np.bincount(
         cc, weights=fw * vp * vp, minlength=nca
     )
-    resid = fy / (v[cp] * lum[cc]) - 1.0
-    residual_rms = float(np.sqrt(np.mean(resid * resid)))
+    return v, lum, iterations, converged
 
-    count_flat = np.bincount(fp, minlength=n_pix).astype(np.int64)
-    count = count_flat.reshape(h, w)
-    observed = count >= int(min_count)
-    if not observed.any():
-        raise FitError(
-            f"no pixel has {min_count} or more informative reflector observations",
-            hint="take more reflector images, or lower min_count",
-        )
-    v_full = np.full(n_pix, np.nan)
-    v_full[act_p] = v
-    v_img = v_full.reshape(h, w)
 
-    # 4. gauge, on a denoised V (radial model + residual smoothed over _GAUGE_SIGMA px) so
-    # per-pixel noise does not push the percentile up
+def _gauge(
+    v_img: np.ndarray, count: np.ndarray, observed: np.ndarray
+) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Step 4 of :func:`fit_vignetting`: the scale that sets the ``ROBUST_MAX_PERCENTILE``
+    of a denoised V (radial model + residual smoothed over ``_GAUGE_SIGMA`` px, so per-pixel
+    noise does not push the percentile up) to 1. Returns ``(scale, V, model, V - model)``,
+    the last three divided by the scale (the residual 0 where not observed)."""
     cert = observed.astype(np.float64)
     model = _radial_model(v_img, count.astype(np.float64), observed)
     resid_img = np.where(observed, v_img - model, 0.0)
@@ -485,12 +533,16 @@ def fit_vignetting(
     scale = float(np.percentile(denoised[observed], ROBUST_MAX_PERCENTILE))
     if not np.isfinite(scale) or scale <= 0:
         raise FitError("the fitted vignetting is not positive: the reflector data are inconsistent")
-    v_img = v_img / scale
-    lum = lum * scale
-    model = model / scale
-    resid_img = resid_img / scale
+    return scale, v_img / scale, model / scale, resid_img / scale
 
-    # 5./6. optional smoothing of the residual, fill
+
+def _smooth_and_fill(
+    v_img: np.ndarray, model: np.ndarray, resid_img: np.ndarray, count: np.ndarray,
+    observed: np.ndarray, smooth_sigma: float,
+) -> np.ndarray:
+    """Steps 5 and 6 of :func:`fit_vignetting`: the optional smoothing of the residual over
+    the observed pixels, and the fill (radial model plus nearby residual) of the others."""
+    cert = observed.astype(np.float64)
     out = v_img.copy()
     if smooth_sigma and float(smooth_sigma) > 0:
         num, den = _normalised_blur(resid_img, cert * count, float(smooth_sigma))
@@ -502,30 +554,21 @@ def fit_vignetting(
     # filled values stay within (half the smallest observed V, 1]: a radial polynomial
     # extrapolated far into a never-seen corner must not go to 0 or negative
     low = 0.5 * float(np.min(out[observed]))
-    out = np.where(observed, np.minimum(out, 1.0), np.clip(fill, low, 1.0))
+    return np.where(observed, np.minimum(out, 1.0), np.clip(fill, low, 1.0))
 
-    # radiance of every observed cell (also cells seen by one pixel only), same gauge
-    vv = out.ravel()[pix]
+
+def _cell_radiance(
+    v: np.ndarray, pix: np.ndarray, cell: np.ndarray, y: np.ndarray, wt: np.ndarray, n_cells: int
+) -> np.ndarray:
+    """Eq. 10' radiance of every observed cell (also cells seen by one pixel only) for the
+    final V; NaN for cells never seen."""
+    vv = v.ravel()[pix]
     num_l = np.bincount(cell, weights=wt * y * vv, minlength=n_cells)
     den_l = np.bincount(cell, weights=wt * vv * vv, minlength=n_cells)
     radiance = np.full(n_cells, np.nan)
     seen = den_l > 0
     radiance[seen] = num_l[seen] / den_l[seen]
-    radiance[act_c] = lum
-
-    out.flags.writeable = False
-    count.flags.writeable = False
-    observed.flags.writeable = False
-    radiance.flags.writeable = False
-    return VignettingFit(
-        vignetting=out,
-        count=count,
-        observed=observed,
-        radiance=radiance,
-        residual_rms=residual_rms,
-        iterations=iterations,
-        converged=converged,
-    )
+    return radiance
 
 
 def view_inconsistency(
