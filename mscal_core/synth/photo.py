@@ -269,6 +269,61 @@ def _with_moving(
 _CCM = np.array([[1.55, -0.40, -0.15], [-0.22, 1.45, -0.23], [-0.05, -0.45, 1.50]], np.float32)
 
 
+def _handheld(scene: np.ndarray, rng: np.random.Generator, shift_px: float,
+              rotation_deg: float) -> np.ndarray:
+    """A handheld camera: a small random shift and rotation about the centre, then the
+    lens blur."""
+    h, w = scene.shape[:2]
+    ang = rng.uniform(0, 2 * np.pi)
+    mag = rng.uniform(shift_px / 3, 2 * shift_px) if shift_px > 0 else 0.0
+    rot = rng.normal(0.0, rotation_deg) if rotation_deg > 0 else 0.0
+    A = cv2.getRotationMatrix2D((w / 2, h / 2), rot, 1.0)
+    A[:, 2] += (mag * np.cos(ang), mag * np.sin(ang))
+    if mag > 0 or rot != 0:
+        scene = cv2.warpAffine(scene, A, (w, h), flags=cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_REFLECT)
+    return cv2.GaussianBlur(scene, (0, 0), 0.7)
+
+
+def _bayer_raw(scene: np.ndarray, sens: np.ndarray, k: np.float32, rng: np.random.Generator,
+               full_well_e: float, read_noise_e: float) -> np.ndarray:
+    """The sensor: RGGB Bayer mosaic of ``scene * sens * k``, shot + read noise, raw clip,
+    12-bit ADC (uint16)."""
+    h, w = scene.shape[:2]
+    mosaic_c = np.zeros((h, w), np.intp)
+    mosaic_c[0::2, 1::2] = 1
+    mosaic_c[1::2, 0::2] = 1
+    mosaic_c[1::2, 1::2] = 2
+    yy, xx = np.mgrid[0:h, 0:w]
+    e_raw = scene[yy, xx, mosaic_c] * sens[mosaic_c] * k
+    e_raw = np.maximum(e_raw, 0.0)
+    sd = np.sqrt(e_raw / full_well_e + (read_noise_e / full_well_e) ** 2)
+    noisy = e_raw + sd * rng.standard_normal((h, w)).astype(np.float32)
+    return np.clip(np.rint(noisy * 4095.0), 0, 4095).astype(np.uint16)
+
+
+def _develop(rgb: np.ndarray, gains: np.ndarray, tone: ToneCurve, sharpen: float) -> np.ndarray:
+    """Demosaiced raw RGB to 8-bit: white balance ``gains``, colour matrix, tone curve,
+    unsharp mask."""
+    # highlights clipped where the first channel clips in raw (neutral blown sky), then the
+    # colour matrix (rows sum to 1: neutral stays neutral; saturated colours clip at 0)
+    lin = np.minimum(rgb * gains, gains.min())
+    lin = np.maximum(lin @ _CCM.T, 0.0)
+    v = tone(lin)
+    if sharpen > 0:
+        v = v + np.float32(sharpen) * (v - cv2.GaussianBlur(v, (0, 0), 1.0))
+    return np.clip(np.rint(v * 255.0), 0, 255).astype(np.uint8)
+
+
+def _jpeg_round_trip(dn: np.ndarray, quality: int) -> tuple[np.ndarray, bytes]:
+    """Encode an RGB uint8 frame as JPEG (BGR, as cv2.imencode) and decode it back."""
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(dn[..., ::-1]),
+                           [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise InputError("JPEG encoding failed")
+    return cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1], buf.tobytes()
+
+
 def make_photo_set(
     seed: int,
     *,
@@ -320,11 +375,6 @@ def make_photo_set(
     raw_white = 0.6  # raw level (1 = raw clip) that maps to linear 1 in the green channel
     mid = np.percentile(rad[..., 1], 60)
     k_scene = 0.18 * raw_white / (mid * t_true[(n_frames - 1) // 2]) * 2.0**exposure_bias_stops
-    mosaic_c = np.zeros((h, w), np.intp)
-    mosaic_c[0::2, 1::2] = 1
-    mosaic_c[1::2, 0::2] = 1
-    mosaic_c[1::2, 1::2] = 2
-    yy, xx = np.mgrid[0:h, 0:w]
     code = cv2.COLOR_BayerRGGB2RGB_EA if demosaic == "ea" else cv2.COLOR_BayerRGGB2RGB
     frames = np.empty((n_frames, h, w, 3), np.uint8)
     encoded: list[bytes] = []
@@ -334,40 +384,15 @@ def make_photo_set(
         if moving:
             scene_i, mmask = _with_moving(rad, mv, i, rng)
             moving_any |= mmask
-        # handheld camera: small affine about the centre
-        ang = rng.uniform(0, 2 * np.pi)
-        mag = rng.uniform(shift_px / 3, 2 * shift_px) if shift_px > 0 else 0.0
-        rot = rng.normal(0.0, rotation_deg) if rotation_deg > 0 else 0.0
-        A = cv2.getRotationMatrix2D((w / 2, h / 2), rot, 1.0)
-        A[:, 2] += (mag * np.cos(ang), mag * np.sin(ang))
-        if mag > 0 or rot != 0:
-            scene_i = cv2.warpAffine(scene_i, A, (w, h), flags=cv2.INTER_LINEAR,
-                                     borderMode=cv2.BORDER_REFLECT)
-        scene_i = cv2.GaussianBlur(scene_i, (0, 0), 0.7)
-        # sensor: Bayer mosaic, shot + read noise, raw clip, 12-bit ADC
-        e_raw = scene_i[yy, xx, mosaic_c] * sens[mosaic_c] * np.float32(k_scene * t_true[i])
-        e_raw = np.maximum(e_raw, 0.0)
-        sd = np.sqrt(e_raw / full_well_e + (read_noise_e / full_well_e) ** 2)
-        noisy = e_raw + sd * rng.standard_normal((h, w)).astype(np.float32)
-        raw = np.clip(np.rint(noisy * 4095.0), 0, 4095).astype(np.uint16)
+        scene_i = _handheld(scene_i, rng, shift_px, rotation_deg)
+        raw = _bayer_raw(scene_i, sens, np.float32(k_scene * t_true[i]), rng, full_well_e, read_noise_e)
         rgb = cv2.cvtColor(raw, code).astype(np.float32) / 4095.0
         # white balance (optionally drifting per frame), colour matrix, tone curve
         gains = wb / raw_white * np.exp(awb_jitter * rng.standard_normal(3)).astype(np.float32)
-        # highlights clipped where the first channel clips in raw (neutral blown sky), then the
-        # colour matrix (rows sum to 1: neutral stays neutral; saturated colours clip at 0)
-        lin = np.minimum(rgb * gains, gains.min())
-        lin = np.maximum(lin @ _CCM.T, 0.0)
-        v = tone(lin)
-        if sharpen > 0:
-            v = v + np.float32(sharpen) * (v - cv2.GaussianBlur(v, (0, 0), 1.0))
-        dn = np.clip(np.rint(v * 255.0), 0, 255).astype(np.uint8)
+        dn = _develop(rgb, gains, tone, sharpen)
         if jpeg_quality is not None:
-            ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(dn[..., ::-1]),
-                                   [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
-            if not ok:
-                raise InputError("JPEG encoding failed")
-            dn = cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1]
-            encoded.append(buf.tobytes())
+            dn, buf = _jpeg_round_trip(dn, int(jpeg_quality))
+            encoded.append(buf)
         frames[i] = dn
     params = dict(seed=seed, shape=shape, n_frames=n_frames, step_thirds=step_thirds,
                   jpeg_quality=jpeg_quality, shift_px=shift_px, rotation_deg=rotation_deg,

@@ -1042,6 +1042,94 @@ def _facing(pose: Pose, max_view_deg: float) -> bool:
     return C[2] > 0 and C[2] / np.linalg.norm(C) >= math.cos(math.radians(max_view_deg))
 
 
+#: Coarse cells (rows, columns) of the image in which :func:`vignetting_views` looks for the
+#: least covered part.
+_COVERAGE_CELLS = (14, 26)
+
+
+def _aim_at_border(rng, h: int, w: int) -> np.ndarray:
+    """Image point near a random border, where a view with its marker out of frame aims the
+    reflector."""
+    side = int(rng.integers(4))
+    t_px = np.array([rng.uniform(0, w - 1), rng.uniform(0, h - 1)])
+    if side == 0:
+        t_px[0] = rng.uniform(0, 25)
+    elif side == 1:
+        t_px[0] = rng.uniform(w - 26, w - 1)
+    elif side == 2:
+        t_px[1] = rng.uniform(0, 15)
+    else:
+        t_px[1] = rng.uniform(h - 16, h - 1)
+    return t_px
+
+
+def _aim_least_covered(rng, coverage: np.ndarray) -> np.ndarray:
+    """Random image point in the coarse cell whose least covered pixel is least covered
+    (ties broken at random)."""
+    h, w = coverage.shape
+    ch, cw = _COVERAGE_CELLS
+    row_starts = np.linspace(0, h, ch + 1).astype(int)[:-1]
+    col_starts = np.linspace(0, w, cw + 1).astype(int)[:-1]
+    cov = np.minimum.reduceat(np.minimum.reduceat(coverage, row_starts, axis=0),
+                              col_starts, axis=1).astype(np.float64)
+    cov += rng.uniform(0, 0.5, cov.shape)
+    cy_, cx_ = np.unravel_index(np.argmin(cov), cov.shape)
+    return np.array([(cx_ + rng.uniform()) * w / cw, (cy_ + rng.uniform()) * h / ch])
+
+
+def _random_view_pose(rng, cam: SnapshotCamera, t_px: np.ndarray, half_in: float,
+                      half_out: np.ndarray, max_tilt_deg: float,
+                      distance_m: tuple[float, float]) -> Pose:
+    """A pose that puts a random point of the gray part of the reflector (outside the marker
+    and its paper) at pixel ``t_px``, with a random tilt, roll and marker distance."""
+    while True:
+        q = rng.uniform(-half_out, half_out)
+        if np.max(np.abs(q)) >= half_in:
+            break
+    yaw = _rot([0, 0, 1], rng.uniform(0, 2 * np.pi))
+    R = _random_tilt(rng, max_tilt_deg) @ _FRONTAL @ yaw
+    depth = rng.uniform(*distance_m)
+    return _pose_through(cam, R, t_px, q, depth)
+
+
+def _view_geometry_ok(cam: SnapshotCamera, pose: Pose, mk: MarkerSpec, missing: bool) -> bool:
+    """The camera faces the reflector and the marker is fully in frame (or, for a view meant
+    to miss it, clearly out of frame and not behind the camera)."""
+    if not _facing(pose, 60.0):
+        return False
+    ok, px = _frame_marker_ok(cam, pose, mk, margin_px=4.0, min_side_px=16.0)
+    if missing:
+        centre = px.mean(axis=0)
+        h, w = cam.grid_shape
+        out_by = max(-centre[0], centre[0] - (w - 1), -centre[1], centre[1] - (h - 1))
+        behind = pose.to_camera(np.zeros((1, 3)))[0, 2] <= 0.05
+        return not (behind or out_by < 0.6 * np.ptp(px[:, 0]) + 3)
+    return bool(ok)
+
+
+def _shoot_view(truth: SyntheticTruth, scene: ReflectorScene, pose: Pose, rng, missing: bool,
+                supersample: int, detect_bands: list[int]):
+    """Render and expose one planned view; ``(gray mask, exposure, DN)``, or None when too
+    little of the gray reflector is in view or ArUco does not behave as planned (found in
+    every detection band, or, for a view meant to miss it, in none)."""
+    cam = truth.camera
+    h, w = cam.grid_shape
+    rend = render(cam, pose, scene, supersample=supersample)
+    gray = rend.pure(ReflectorScene.GRAY)
+    if gray.sum() < (0.03 if missing else 0.05) * h * w:
+        return None
+    energy = (truth.vignetting * truth.spectral_factor[:, None, None]
+              * rend.light_times_reflectance(scene.reflectance)).astype(np.float32)
+    t = _exposure_for(truth, float(energy[:, gray].max()), rng.uniform(0.70, 0.85))
+    dn = _expose(truth, energy, t, rng)
+    found = [detect_marker_corners(dn[b], truth.marker) is not None for b in detect_bands]
+    if missing and any(found):
+        return None
+    if not missing and not all(found):
+        return None
+    return gray, t, dn
+
+
 def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
                      n_missing: int = 1, max_tilt_deg: float = 35.0,
                      distance_m: tuple[float, float] = (0.8, 1.6), supersample: int = 4,
@@ -1082,68 +1170,20 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
         np.linspace(0, n_views - 1, n_missing + 2)[1:-1].round().astype(int).tolist()
     ) if n_missing else set()
     coverage = np.zeros((h, w), dtype=np.int32)
-    ch, cw = 14, 26  # coarse coverage cells
-    row_starts = np.linspace(0, h, ch + 1).astype(int)[:-1]
-    col_starts = np.linspace(0, w, cw + 1).astype(int)[:-1]
     out_dn, exposures, rvecs, tvecs, in_frame, masks = [], [], [], [], [], []
     pose_err, default_ok = [], []
     detect_bands = sorted({0, cam.n_bands // 2, cam.n_bands - 1})
     for k in range(n_views):
         missing = k in missing_at
         for _attempt in range(max_attempts):
-            if missing:
-                # aim the reflector at an image border; marker centre outside the frame
-                side = int(rng.integers(4))
-                t_px = np.array([rng.uniform(0, w - 1), rng.uniform(0, h - 1)])
-                if side == 0:
-                    t_px[0] = rng.uniform(0, 25)
-                elif side == 1:
-                    t_px[0] = rng.uniform(w - 26, w - 1)
-                elif side == 2:
-                    t_px[1] = rng.uniform(0, 15)
-                else:
-                    t_px[1] = rng.uniform(h - 16, h - 1)
-            else:
-                # least covered pixel of each coarse cell, ties broken at random
-                cov = np.minimum.reduceat(np.minimum.reduceat(coverage, row_starts, axis=0),
-                                          col_starts, axis=1).astype(np.float64)
-                cov += rng.uniform(0, 0.5, cov.shape)
-                cy_, cx_ = np.unravel_index(np.argmin(cov), cov.shape)
-                t_px = np.array([(cx_ + rng.uniform()) * w / cw, (cy_ + rng.uniform()) * h / ch])
-            # a plane point on the gray part of the reflector
-            while True:
-                q = rng.uniform(-half_out, half_out)
-                if np.max(np.abs(q)) >= half_in:
-                    break
-            yaw = _rot([0, 0, 1], rng.uniform(0, 2 * np.pi))
-            R = _random_tilt(rng, max_tilt_deg) @ _FRONTAL @ yaw
-            depth = rng.uniform(*distance_m)
-            pose = _pose_through(cam, R, t_px, q, depth)
-            if not _facing(pose, 60.0):
+            t_px = _aim_at_border(rng, h, w) if missing else _aim_least_covered(rng, coverage)
+            pose = _random_view_pose(rng, cam, t_px, half_in, half_out, max_tilt_deg, distance_m)
+            if not _view_geometry_ok(cam, pose, mk, missing):
                 continue
-            ok, px = _frame_marker_ok(cam, pose, mk, margin_px=4.0, min_side_px=16.0)
-            if missing:
-                centre = px.mean(axis=0)
-                out_by = max(-centre[0], centre[0] - (w - 1), -centre[1], centre[1] - (h - 1))
-                behind = pose.to_camera(np.zeros((1, 3)))[0, 2] <= 0.05
-                if behind or out_by < 0.6 * np.ptp(px[:, 0]) + 3:
-                    continue
-            elif not ok:
-                continue
-            rend = render(cam, pose, scene, supersample=supersample)
-            gray = rend.pure(ReflectorScene.GRAY)
-            if gray.sum() < (0.03 if missing else 0.05) * h * w:
-                continue
-            energy = (truth.vignetting * truth.spectral_factor[:, None, None]
-                      * rend.light_times_reflectance(scene.reflectance)).astype(np.float32)
-            t = _exposure_for(truth, float(energy[:, gray].max()), rng.uniform(0.70, 0.85))
-            dn = _expose(truth, energy, t, rng)
-            found = [detect_marker_corners(dn[b], mk) is not None for b in detect_bands]
-            if missing and any(found):
-                continue
-            if not missing and not all(found):
-                continue
-            break
+            view = _shoot_view(truth, scene, pose, rng, missing, supersample, detect_bands)
+            if view is not None:
+                gray, t, dn = view
+                break
         else:  # pragma: no cover - planning is seeded; this would be a bug in the planner
             raise RuntimeError(f"could not plan vignetting view {k} in {max_attempts} attempts")
         if not missing:
@@ -1282,6 +1322,37 @@ DEFAULT_PANELS = (
 )
 
 
+def _survey_pose(rng, along_m: float, altitude_m: float) -> tuple[Pose, float, float, float]:
+    """Pose of a survey frame about ``along_m`` north of the field centre: height, across-track
+    offset and along-track jitter at random, small roll / pitch (<= 3 deg) and yaw. Returns
+    ``(pose, across_m, along_m, height_m)``."""
+    height = altitude_m + rng.normal(0.0, 0.3)
+    cu = rng.uniform(-1.5, 1.5)
+    cv_ = along_m + rng.normal(0, 0.2)
+    R = (_rot([1, 0, 0], np.deg2rad(np.clip(rng.normal(0, 1.2), -3, 3)))
+         @ _rot([0, 1, 0], np.deg2rad(np.clip(rng.normal(0, 1.2), -3, 3)))
+         @ _FRONTAL @ _rot([0, 0, 1], np.deg2rad(rng.normal(0, 3.0))))
+    return Pose.from_matrix(R, -R @ np.array([cu, cv_, height])), cu, cv_, height
+
+
+def _material_labels(cam: SnapshotCamera, scene: FieldScene, rend: Render, n_panels: int) -> np.ndarray:
+    """(H, W) int8 material index of every pixel that is pure in every band (0 soil, 1
+    vegetation, 2 + p panel p), -1 where mixed."""
+    h, w = cam.grid_shape
+    labels = np.full((h, w), -1, dtype=np.int8)
+    # vegetation / soil purity: cover 1 / 0 everywhere within the PSF's reach
+    cover = scene.vegetation_cover(rend.sensor_u, rend.sensor_v)
+    disk = _disk(rend.reach_px)
+    veg_pure = np.all(cam.split_bands(cv2.erode(cover, disk) >= 1.0), axis=0)
+    soil_pure = np.all(cam.split_bands(cv2.dilate(cover, disk) <= 0.0), axis=0)
+    ground_pure = rend.pure(0)
+    labels[ground_pure & soil_pure] = 0
+    labels[ground_pure & veg_pure] = 1
+    for p in range(n_panels):
+        labels[rend.pure(1 + p)] = 2 + p
+    return labels
+
+
 def flight_frames(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 8,
                   name: str = "field", altitude_m: float = 25.0, spacing_m: float = 1.8,
                   panels: Sequence[Panel] = DEFAULT_PANELS, supersample: int = 3,
@@ -1309,7 +1380,6 @@ def flight_frames(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 8,
     ``panel_reflectance`` (P,); ``panel_centre_m`` (P, 2); ``height_m`` (n,).
     """
     cam = truth.camera
-    h, w = cam.grid_shape
     tag = zlib.crc32(name.encode()) & 0x7FFFFFFF
     rng = np.random.default_rng([seed, 5, tag])
     lat0, lon0 = FIELD_LAT_LON
@@ -1327,30 +1397,14 @@ def flight_frames(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 8,
             S = truth.spectral_factor * drift.colour(tau, cam.wavelengths)
         scene = FieldScene(cam.wavelengths, panels, sun, field_seed=seed)
         scene0 = scene0 or scene
-        height = altitude_m + rng.normal(0.0, 0.3)
-        cu = rng.uniform(-1.5, 1.5)
-        cv_ = (k - 0.5 * (n_frames - 1)) * spacing_m + rng.normal(0, 0.2)
-        R = (_rot([1, 0, 0], np.deg2rad(np.clip(rng.normal(0, 1.2), -3, 3)))
-             @ _rot([0, 1, 0], np.deg2rad(np.clip(rng.normal(0, 1.2), -3, 3)))
-             @ _FRONTAL @ _rot([0, 0, 1], np.deg2rad(rng.normal(0, 3.0))))
-        pose = Pose.from_matrix(R, -R @ np.array([cu, cv_, height]))
+        pose, cu, cv_, height = _survey_pose(rng, (k - 0.5 * (n_frames - 1)) * spacing_m, altitude_m)
         rend = render(cam, pose, scene, supersample=supersample)
         br = rend.light_times_reflectance(scene.reflectance)
         energy = (truth.vignetting * S[:, None, None] * br).astype(np.float32)
         t = _exposure_for(truth, float(energy.max()), rng.uniform(0.72, 0.82))
         dn = _expose(truth, energy, t, rng)
         refl = br / sun
-        labels = np.full((h, w), -1, dtype=np.int8)
-        # vegetation / soil purity: cover 1 / 0 everywhere within the PSF's reach
-        cover = scene.vegetation_cover(rend.sensor_u, rend.sensor_v)
-        disk = _disk(rend.reach_px)
-        veg_pure = np.all(cam.split_bands(cv2.erode(cover, disk) >= 1.0), axis=0)
-        soil_pure = np.all(cam.split_bands(cv2.dilate(cover, disk) <= 0.0), axis=0)
-        ground_pure = rend.pure(0)
-        labels[ground_pure & soil_pure] = 0
-        labels[ground_pure & veg_pure] = 1
-        for p in range(len(panels)):
-            labels[rend.pure(1 + p)] = 2 + p
+        labels = _material_labels(cam, scene, rend, len(panels))
         with np.errstate(divide="ignore", invalid="ignore"):
             ndvi = ((refl[nir] - refl[red]) / (refl[nir] + refl[red])).astype(np.float32)
         out["dn"].append(dn)
