@@ -159,18 +159,23 @@ def normalise_to_panel(
     for f in range(n_frames):
         if not mask[f].any():
             raise InputError(f"the panel mask of frame {f} is empty", hint="check the panel region")
-        panel = r[f][:, mask[f]]  # (n_bands, n_panel)
-        finite = np.isfinite(panel)
-        med = np.full(n_bands, np.nan)
-        has = finite.any(axis=1)
-        if has.any():
-            med[has] = np.nanmedian(np.where(finite, panel, np.nan)[has], axis=1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            factor = np.where(med > 0, ref / med, np.nan)
-        out[f] = r[f] * factor[:, None, None]
+        out[f] = r[f] * _panel_factor(r[f][:, mask[f]], ref)[:, None, None]
     if squeeze:
         out = out[0]
     return out.astype(np.float32)
+
+
+def _panel_factor(panel: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Per band ``ref / median`` of the finite panel pixels ``panel`` (n_bands, n_panel);
+    NaN for a band without a finite, positive median."""
+    n_bands = panel.shape[0]
+    finite = np.isfinite(panel)
+    med = np.full(n_bands, np.nan)
+    has = finite.any(axis=1)
+    if has.any():
+        med[has] = np.nanmedian(np.where(finite, panel, np.nan)[has], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(med > 0, ref / med, np.nan)
 
 
 def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:

@@ -94,33 +94,19 @@ def forward_fit(
             w = w_obs = mf * rob / var
             sm = smoothness
             if prior == "adaptive":
-                # the noise factor only once the curve has been fitted (a first curve far off
-                # inflates the noise, whose prior would then freeze it), and bounded
-                sigma_rel = SIGMA_REF
-                if it > ADAPT_FROM:
-                    span = max(hi - curve.c[0], 1.0)
-                    sigma_rel = min(float(np.sqrt(var[m & (rob > 0)].mean())) / span, SIGMA_MAX)
-                sm = (smoothness * (sigma_rel / SIGMA_REF) ** SIGMA_POW
-                      * (period / PERIOD_REF) ** PERIOD_POW)
+                sm = _adaptive_smoothness(smoothness, it, var, m & (rob > 0), hi - curve.c[0], period)
             quad = prior_quadratic(curve.xk, w.sum() / n_seg, w.sum(), sm,
-                          None if prior == "linear" else curve.slopes)
+                                   None if prior == "linear" else curve.slopes)
         noise = (a_var, b_var, c_var * g2)
         if cen is not None and it >= 2:  # refreshed every iteration (a Newton step on them)
             dw, wc = censored_terms(d, cen, t, e, curve, noise, sat)
             w = w_obs + wc * rob
-        theta_new, e_new = joint_step(dw, w, t, e, curve, quad, s_min)
-        curve, e, gain = line_search(dw, w, t, e, curve, quad, theta_new, e_new)
-        if gain == 0.0:  # Gauss-Newton stalled on a kink: an exact block step on C instead
-            theta_new, e_new = joint_step(dw, w, t, e, curve, quad, s_min, joint=False)
-            curve, e, gain = line_search(dw, w, t, e, curve, quad, theta_new, e_new)
+        curve, e, gain = _step(dw, w, t, e, curve, quad, s_min)
         e = fit_energy(dw, w, t, e, curve, steps=1)
         if it <= 3 or it in (5, settle):
             a_var, b_var, c_var = noise_update(d, m, w, t, e, curve, robust, g2)
-            noise = (a_var, b_var, c_var * g2)
             if robust and it >= 3:
-                rob = outlier_weights(d, m, w, t, e, curve, a_var, b_var, noise[2])
-                if cen is not None:  # a censored sample deep on the wrong side is an outlier
-                    rob = np.maximum(rob, censored_outlier_weights(cen, t, e, curve, noise, sat))
+                rob = _robust_weights(d, m, w, t, e, curve, (a_var, b_var, c_var * g2), sat, cen)
         u = relative_u(curve, grid)
         change = float(np.max(np.abs(u - prev_u)))
         prev_u = u
@@ -136,3 +122,47 @@ def forward_fit(
     mu, _ = curve(t[:, None] * e[None, :])
     rms = float(np.sqrt(np.mean((d - mu)[m] ** 2)))
     return ResponseFit(U, black, sat, observed, rms, "forward", it, int(m.sum()), residual_profile(d, mu, m, bits))
+
+
+def _adaptive_smoothness(
+    smoothness: float, it: int, var: np.ndarray, kept: np.ndarray, span: float, period: float
+) -> float:
+    """Weight of the ``"adaptive"`` prior at iteration ``it``: ``smoothness`` times the noise
+    factor ``(sigma / SIGMA_REF)^SIGMA_POW`` (``sigma`` the rms noise of the ``kept`` samples
+    over the DN ``span``, at most ``SIGMA_MAX``) and the exposure-step factor
+    ``(period / PERIOD_REF)^PERIOD_POW``."""
+    # the noise factor only once the curve has been fitted (a first curve far off inflates
+    # the noise, whose prior would then freeze it), and bounded
+    sigma_rel = SIGMA_REF
+    if it > ADAPT_FROM:
+        span = max(span, 1.0)
+        sigma_rel = min(float(np.sqrt(var[kept].mean())) / span, SIGMA_MAX)
+    return (smoothness * (sigma_rel / SIGMA_REF) ** SIGMA_POW
+            * (period / PERIOD_REF) ** PERIOD_POW)
+
+
+def _step(
+    dw: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
+    quad: tuple[np.ndarray, np.ndarray], s_min: float,
+) -> tuple[Curve, np.ndarray, float]:
+    """One joint Gauss-Newton step on (C, E) with backtracking; where it stalls (on a kink of
+    C), an exact block step on C for fixed E instead. Returns ``(C, E, cost decrease)``."""
+    theta_new, e_new = joint_step(dw, w, t, e, curve, quad, s_min)
+    curve, e, gain = line_search(dw, w, t, e, curve, quad, theta_new, e_new)
+    if gain == 0.0:
+        theta_new, e_new = joint_step(dw, w, t, e, curve, quad, s_min, joint=False)
+        curve, e, gain = line_search(dw, w, t, e, curve, quad, theta_new, e_new)
+    return curve, e, gain
+
+
+def _robust_weights(
+    d: np.ndarray, m: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
+    noise: tuple[float, float, np.ndarray], sat: int, cen: tuple[np.ndarray, np.ndarray] | None,
+) -> np.ndarray:
+    """Outlier weights of the observed samples and, with ``cen``, of the censored ones (a
+    censored sample deep on the wrong side of its bound is an outlier too)."""
+    a_var, b_var, extra = noise
+    rob = outlier_weights(d, m, w, t, e, curve, a_var, b_var, extra)
+    if cen is not None:
+        rob = np.maximum(rob, censored_outlier_weights(cen, t, e, curve, noise, sat))
+    return rob

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from .scene import PeriodicNoise, soil_reflectance, vegetation_reflectance
