@@ -94,7 +94,7 @@ def vignetting_map(
     poly_2d: Sequence[float] | None = None,
     exponents_2d: Sequence[float] | None = None,
 ) -> np.ndarray:
-    """Factory vignetting correction of one band: the radial form if given, else the 2-D form.
+    """Return the factory vignetting correction of one band: the radial form if given, else the 2-D form.
 
     Note the convention differs from mscal's field ``V`` (max 1, divides the energy): the
     factory map is >= 1 off-centre and multiplies the DN; ``1 / map`` scaled to max 1 is the
@@ -124,7 +124,7 @@ def radiance(
     bits_per_sample: int = 16,
     signal: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Factory radiance ``L = V a1/g (p - p_BL) / (t_e + a2 y - a3 t_e y)``, W m-2 sr-1 nm-1.
+    """Compute the factory radiance ``L = V a1/g (p - p_BL) / (t_e + a2 y - a3 t_e y)``, W m-2 sr-1 nm-1.
 
     ``dn`` is one band ``(H, W)`` as stored; ``black_level`` in DN; ``calibration`` is
     ``[a1, a2, a3]``; ``vignetting`` the correction map (:func:`vignetting_map`, or ``1/V``
@@ -171,8 +171,10 @@ def field_response_scale(
 
 
 def field_response_signal(dn: np.ndarray, inverse_response: np.ndarray, *, dn_shift: int, scale: float) -> np.ndarray:
-    """``c U(DN >> dn_shift)`` per pixel: the field response in the factory's units (see
-    :func:`field_response_scale` for ``c``)."""
+    """``c U(DN >> dn_shift)`` per pixel.
+
+    The field response in the factory's units (see :func:`field_response_scale` for ``c``).
+    """
     k = np.right_shift(np.asarray(dn).astype(np.int64), dn_shift)
     k = np.clip(k, 0, inverse_response.size - 1)
     return scale * np.asarray(inverse_response, dtype=np.float64)[k]

@@ -60,6 +60,7 @@ class Intrinsics:
     dist: tuple[float, float, float, float, float] = field(default=(0.0, 0.0, 0.0, 0.0, 0.0))
 
     def __post_init__(self) -> None:
+        """Validate the focal lengths, principal point and distortion."""
         values = []
         for name in ("fx", "fy", "cx", "cy"):
             try:
@@ -123,6 +124,7 @@ class Pose:
     tvec: np.ndarray
 
     def __post_init__(self) -> None:
+        """Validate ``rvec`` and ``tvec`` (3 finite numbers each)."""
         for name in ("rvec", "tvec"):
             value = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1)
             if value.shape != (3,) or not np.all(np.isfinite(value)):
@@ -256,7 +258,7 @@ def estimate_pose(corners: np.ndarray, marker_size_m: float, intrinsics: Intrins
 
 
 def undistorted_rays(points_xy: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
-    """Viewing rays ``d = (x', y', 1)`` of image points, as normalised coordinates (N, 2).
+    """Return the viewing rays ``d = (x', y', 1)`` of image points, as normalised coordinates (N, 2).
 
     ``(x', y')`` inverts the pinhole + OpenCV distortion model (``cv2.undistortPoints``,
     iterated to convergence; OpenCV's default 5 iterations are not exact). The rays depend only
@@ -310,7 +312,7 @@ def image_points_to_plane(points_xy: np.ndarray, pose: Pose, intrinsics: Intrins
 def pixel_rays(
     intrinsics: Intrinsics, shape: tuple[int, int], offset: tuple[float, float] = (0.0, 0.0)
 ) -> np.ndarray:
-    """Viewing rays of every pixel centre, (H, W, 2) normalised coordinates.
+    """Return the viewing rays of every pixel centre, (H, W, 2) normalised coordinates.
 
     Pixel (i, j) looks through image point ``(x, y) = (j + dx, i + dy)`` with
     ``offset = (dx, dy)`` the band's offset on the band grid.
@@ -344,7 +346,7 @@ def pixels_to_plane(
 
 
 def project_to_pixels(points_uv: np.ndarray, pose: Pose, intrinsics: Intrinsics) -> np.ndarray:
-    """The paper's ``pi_i``: plane points (N, 2) (u, v) metres -> image points (N, 2) pixels.
+    """Project plane points to pixels, the paper's ``pi_i``: (N, 2) (u, v) metres -> image points (N, 2) pixels.
 
     ``cv2.projectPoints`` of ``(u, v, 0)`` with the pose and the intrinsics (distortion
     included). Points behind the camera give meaningless pixels: check with the pose first.
@@ -358,7 +360,7 @@ def project_to_pixels(points_uv: np.ndarray, pose: Pose, intrinsics: Intrinsics)
 
 
 def size_wh(size_m: float | Sequence[float]) -> tuple[float, float]:
-    """A reflector size given as one side or ``[width, height]`` (metres), validated."""
+    """Validate a reflector size given as one side or ``[width, height]`` (metres), validated."""
     arr = np.asarray(size_m, dtype=np.float64).ravel()
     if arr.size == 1:
         arr = np.repeat(arr, 2)

@@ -127,8 +127,10 @@ def fit_illumination(
 def _checked_inputs(
     radiance: np.ndarray, reflectance: np.ndarray | float, image_index: np.ndarray | None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Check the inputs of :func:`fit_illumination`; return ``(radiance float64, R_s per
-    band, image index or None)``."""
+    """Check the inputs of :func:`fit_illumination`.
+
+    Return ``(radiance float64, R_s per band, image index or None)``.
+    """
     rad = np.asarray(radiance, dtype=np.float64)
     if rad.ndim != 2 or rad.shape[0] < 1 or rad.shape[1] < 1:
         raise InputError(f"radiance must be (n_bands, n_pix), got shape {rad.shape}")
@@ -157,9 +159,12 @@ def _checked_inputs(
 def _alternate(
     lv: np.ndarray, m: np.ndarray, r: np.ndarray, max_iter: int, tol: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, bool]:
-    """Alternate Eq. 13 and Eq. 14 from ``B = mean over lambda of L`` on the valid entries
-    (``lv`` the radiance with 0 where invalid, ``m`` 1 where valid, ``r`` R_s as a column).
-    Returns ``(S, B, pixels with a B, iterations, converged)``."""
+    """Alternate Eq. 13 and Eq. 14 on the valid reflector entries.
+
+    Alternate Eq. 13 and Eq. 14 from ``B = mean over lambda of L`` on the valid entries (``lv``
+    the radiance with 0 where invalid, ``m`` 1 where valid, ``r`` R_s as a column). Returns
+    ``(S, B, pixels with a B, iterations, converged)``.
+    """
     n_bands = lv.shape[0]
     with np.errstate(invalid="ignore", divide="ignore"):
         b = np.sum(lv, axis=0) / np.sum(m, axis=0)  # paper: B = mean over lambda of L
@@ -329,8 +334,10 @@ def frame_illumination(
     capture_irradiance: np.ndarray | None = None,
     frame_irradiance: np.ndarray | None = None,
 ) -> FrameIllumination:
-    """The light of each frame from the reflector captures (Eq. 11-14 per capture) and,
-    optionally, an irradiance sensor.
+    """Estimate the light of every frame.
+
+    The light of each frame from the reflector captures (Eq. 11-14 per capture) and, optionally,
+    an irradiance sensor.
 
     Per capture ``c`` (``capture_spectral_factor`` (n_captures, n_bands), its S from
     Eq. 11-14 with median reflector B = 1): ``S_c(lambda) = beta_c s_c(lambda)``
@@ -372,9 +379,11 @@ def frame_illumination(
 
 
 def colour_change(capture_spectral_factor: np.ndarray) -> np.ndarray:
-    """Largest relative change of the light's colour between consecutive captures:
+    """Largest relative change of the light's colour between consecutive captures.
+
     ``max_lambda |s_{c+1}(lambda) / s_c(lambda) - 1|`` (n_captures - 1,), with ``s`` the colour
-    of :func:`split_level` (the level removed, so a passing cloud does not count)."""
+    of :func:`split_level` (the level removed, so a passing cloud does not count).
+    """
     _, colour = split_level(np.atleast_2d(np.asarray(capture_spectral_factor, dtype=np.float64)))
     if colour.shape[0] < 2:
         return np.zeros(0)

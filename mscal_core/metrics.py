@@ -10,8 +10,10 @@ import numpy as np
 
 
 def response_error(u_est: np.ndarray, u_true: np.ndarray, lo_frac: float = 0.05, hi_frac: float = 0.95) -> float:
-    """Max ``|s U_est(k) - U_true(k)|`` over ``k`` in ``[lo, hi]`` of the DN range, divided by
-    ``U_true(hi)``; ``s`` is the least-squares scale aligning the two over that range."""
+    """Max ``|s U_est(k) - U_true(k)|`` over ``k`` in ``[lo, hi]`` of the DN range, divided by ``U_true(hi)``.
+
+    ``s`` is the least-squares scale aligning the two over that range.
+    """
     n = u_true.shape[-1]
     dn_max = n - 1
     k = np.arange(int(np.ceil(lo_frac * dn_max)), int(np.floor(hi_frac * dn_max)) + 1)

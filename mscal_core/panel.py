@@ -51,8 +51,11 @@ DEFAULT_INSET = 0.75
 
 @dataclass(frozen=True)
 class PanelDetection:
-    """A detected panel: ``outline`` (4, 2) float64 (x, y) corners of the bright surface in
-    :func:`order_corners` order, its interior coefficient of variation and area in pixels."""
+    """A detected panel.
+
+    ``outline`` (4, 2) float64 (x, y) corners of the bright surface in :func:`order_corners`
+    order, its interior coefficient of variation and area in pixels.
+    """
 
     outline: np.ndarray
     cv: float
@@ -60,9 +63,12 @@ class PanelDetection:
 
 
 def order_corners(corners: Sequence[Sequence[float]]) -> np.ndarray:
-    """Four (x, y) corners ordered clockwise on screen (bottom-right, bottom-left, top-left,
+    """Order four corners clockwise on screen, as MicaSense lists them.
+
+    Four (x, y) corners ordered clockwise on screen (bottom-right, bottom-left, top-left,
     top-right) from the one with the largest x + y -- the order MicaSense lists its panel
-    corners in."""
+    corners in.
+    """
     pts = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
     if pts.shape != (4, 2):
         raise ValueError(f"expected 4 corners, got {pts.shape[0]}")
@@ -75,7 +81,7 @@ def order_corners(corners: Sequence[Sequence[float]]) -> np.ndarray:
 
 
 def shrink_polygon(corners: Sequence[Sequence[float]], factor: float) -> np.ndarray:
-    """The polygon scaled by ``factor`` (linear, 0 < factor <= 1) about its vertex centroid."""
+    """Scale the polygon by ``factor`` (linear, 0 < factor <= 1) about its vertex centroid."""
     if not 0 < factor <= 1:
         raise ValueError(f"shrink factor must be in (0, 1], got {factor!r}")
     pts = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
@@ -108,7 +114,7 @@ def _interior(shape: tuple[int, int], quad: np.ndarray) -> np.ndarray:
 
 
 def _quad(contour: np.ndarray, min_area: float, max_aspect: float) -> np.ndarray | None:
-    """The contour's 4-corner convex approximation if it looks like a panel, else None."""
+    """Return the contour's 4-corner convex approximation if it looks like a panel, else None."""
     area = cv2.contourArea(contour)
     if area < min_area:
         return None
@@ -166,7 +172,7 @@ def detect_panel(
     max_aspect: float = 2.0,
     levels: int = 8,
 ) -> PanelDetection | None:
-    """The largest bright, uniform, convex quadrilateral in one band ``(H, W)``, or None.
+    """Find the largest bright, uniform, convex quadrilateral in one band ``(H, W)``, or None.
 
     ``min_area_frac`` the smallest panel as a fraction of the frame; ``max_cv`` the largest
     std/mean of the panel's interior (a panel is uniform to a few %, its QR sticker is not);
@@ -198,7 +204,9 @@ def detect_panel(
 
 
 def sample_quad(image: np.ndarray, corners: Sequence[Sequence[float]], n: int = 32) -> np.ndarray:
-    """``image`` resampled on an ``n x n`` grid spanning a quadrilateral (bilinear, via the
+    """Resample an image on an ``n x n`` grid spanning a quadrilateral.
+
+    ``image`` resampled on an ``n x n`` grid spanning a quadrilateral (bilinear, via the
     homography from the unit square to ``corners`` in :func:`order_corners` order).
 
     Maps the same physical points of a panel in bands that are not co-registered: grid cell

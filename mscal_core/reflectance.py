@@ -166,8 +166,10 @@ def normalise_to_panel(
 
 
 def _panel_factor(panel: np.ndarray, ref: np.ndarray) -> np.ndarray:
-    """Per band ``ref / median`` of the finite panel pixels ``panel`` (n_bands, n_panel);
-    NaN for a band without a finite, positive median."""
+    """Per band ``ref / median`` of the finite panel pixels ``panel`` (n_bands, n_panel).
+
+    NaN for a band without a finite, positive median.
+    """
     n_bands = panel.shape[0]
     finite = np.isfinite(panel)
     med = np.full(n_bands, np.nan)

@@ -113,7 +113,7 @@ def cell_grid(
     cells_per_m: float | None = None,
     grid: tuple[int, int] | None = None,
 ) -> tuple[int, int]:
-    """Number of plane cells ``(nu, nv)`` across the reflector ``size_m = [w, h]``.
+    """Return the number of plane cells ``(nu, nv)`` across the reflector ``size_m = [w, h]``.
 
     ``grid`` wins if given; else ``cells_per_m`` (``nu = ceil(w * cells_per_m)``, same for
     ``nv``); else square cells with :data:`DEFAULT_CELLS_ALONG` along the longer side.
@@ -202,7 +202,7 @@ def view_observations(
 def _log_init(
     pix: np.ndarray, cell: np.ndarray, y: np.ndarray, n_pix: int, n_cell: int, max_iter: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Initial V, L from ``log y = log V(x) + log L(p)`` by sparse linear least squares.
+    """Start V, L from ``log y = log V(x) + log L(p)`` by sparse linear least squares.
 
     Solved by Jacobi-preconditioned conjugate gradients on the normal equations (CGLS, the
     method behind ``scipy.sparse.linalg.lsqr``), with the matrix never formed: a product is
@@ -414,8 +414,11 @@ def _checked_observations(
     pixel_index: np.ndarray, cell_index: np.ndarray, values: np.ndarray, shape: tuple[int, int],
     n_cells: int, weights: np.ndarray | None, min_count: int,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Check the inputs of :func:`fit_vignetting`; return ``(pixel, cell, y, weight)`` of the
-    usable observations (finite, positive value and weight), indices as int64."""
+    """Check the inputs of :func:`fit_vignetting`.
+
+    Return ``(pixel, cell, y, weight)`` of the usable observations (finite, positive value and
+    weight), indices as int64.
+    """
     h, w = int(shape[0]), int(shape[1])
     n_pix = h * w
     pix = np.asarray(pixel_index).ravel()
@@ -457,8 +460,11 @@ def _checked_observations(
 
 
 def _informative(pix: np.ndarray, cell: np.ndarray, n_pix: int, n_cells: int) -> np.ndarray:
-    """Step 1 of :func:`fit_vignetting`: mask of the observations in cells seen by >= 2
-    different pixels, within the largest connected part of the pixel/cell graph."""
+    """Step 1 of :func:`fit_vignetting`.
+
+    Mask of the observations in cells seen by >= 2 different pixels, within the largest
+    connected part of the pixel/cell graph.
+    """
     # exact integer test n * sum(p^2) - (sum p)^2 > 0 in float64: all terms are integers
     # below 2**53 here
     nc = np.bincount(cell, minlength=n_cells).astype(np.float64)
@@ -489,8 +495,11 @@ def _alternate(
     cp: np.ndarray, cc: np.ndarray, fy: np.ndarray, fw: np.ndarray, v: np.ndarray, nca: int,
     max_iter: int, tol: float,
 ) -> tuple[np.ndarray, np.ndarray, int, bool]:
-    """Step 3 of :func:`fit_vignetting`: alternate Eq. 10' (L from V) and Eq. 9' (V from L)
-    from ``v``; returns ``(V, L consistent with V, sweeps, converged)``."""
+    """Step 3 of :func:`fit_vignetting`.
+
+    Alternate Eq. 10' (L from V) and Eq. 9' (V from L) from ``v``; returns
+    ``(V, L consistent with V, sweeps, converged)``.
+    """
     npa = v.size
     wy = fw * fy
     iterations = 0
@@ -520,10 +529,13 @@ def _alternate(
 def _gauge(
     v_img: np.ndarray, count: np.ndarray, observed: np.ndarray
 ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-    """Step 4 of :func:`fit_vignetting`: the scale that sets the ``ROBUST_MAX_PERCENTILE``
-    of a denoised V (radial model + residual smoothed over ``_GAUGE_SIGMA`` px, so per-pixel
-    noise does not push the percentile up) to 1. Returns ``(scale, V, model, V - model)``,
-    the last three divided by the scale (the residual 0 where not observed)."""
+    """Step 4 of :func:`fit_vignetting`.
+
+    The scale that sets the ``ROBUST_MAX_PERCENTILE`` of a denoised V (radial model + residual
+    smoothed over ``_GAUGE_SIGMA`` px, so per-pixel noise does not push the percentile up) to 1.
+    Returns ``(scale, V, model, V - model)``, the last three divided by the scale (the residual
+    0 where not observed).
+    """
     cert = observed.astype(np.float64)
     model = _radial_model(v_img, count.astype(np.float64), observed)
     resid_img = np.where(observed, v_img - model, 0.0)
@@ -540,8 +552,11 @@ def _smooth_and_fill(
     v_img: np.ndarray, model: np.ndarray, resid_img: np.ndarray, count: np.ndarray,
     observed: np.ndarray, smooth_sigma: float,
 ) -> np.ndarray:
-    """Steps 5 and 6 of :func:`fit_vignetting`: the optional smoothing of the residual over
-    the observed pixels, and the fill (radial model plus nearby residual) of the others."""
+    """Smooth and fill V: steps 5 and 6 of :func:`fit_vignetting`.
+
+    The optional smoothing of the residual over the observed pixels, and the fill (radial model
+    plus nearby residual) of the others.
+    """
     cert = observed.astype(np.float64)
     out = v_img.copy()
     if smooth_sigma and float(smooth_sigma) > 0:
@@ -560,8 +575,10 @@ def _smooth_and_fill(
 def _cell_radiance(
     v: np.ndarray, pix: np.ndarray, cell: np.ndarray, y: np.ndarray, wt: np.ndarray, n_cells: int
 ) -> np.ndarray:
-    """Eq. 10' radiance of every observed cell (also cells seen by one pixel only) for the
-    final V; NaN for cells never seen."""
+    """Eq. 10' radiance of every observed cell (also cells seen by one pixel only) for the final V.
+
+    NaN for cells never seen.
+    """
     vv = v.ravel()[pix]
     num_l = np.bincount(cell, weights=wt * y * vv, minlength=n_cells)
     den_l = np.bincount(cell, weights=wt * vv * vv, minlength=n_cells)
@@ -574,8 +591,10 @@ def _cell_radiance(
 def view_inconsistency(
     fit: VignettingFit, pixel_index: np.ndarray, cell_index: np.ndarray, values: np.ndarray, tol: float = 0.1
 ) -> float:
-    """Fraction of one view's observations that the fitted model (Eq. 8: ``y = V(x) L(p)``)
-    misses by more than ``tol`` (relative).
+    """Return the fraction of one view's observations the fitted model misses.
+
+    Fraction of one view's observations that the fitted model (Eq. 8: ``y = V(x) L(p)``) misses
+    by more than ``tol`` (relative).
 
     A good view scatters by its noise only (about 1 %); a view whose marker pose is wrong
     (e.g. the wrong one of the two planar-pose solutions) maps lawn or the marker's paper onto
@@ -592,8 +611,10 @@ def view_inconsistency(
 
 
 def inconsistent_views(fractions: np.ndarray, floor: float = 0.05, factor: float = 5.0) -> np.ndarray:
-    """Indices of views whose :func:`view_inconsistency` is above ``max(floor, factor x the
-    median over views)``: the views to drop before the per-band fits."""
+    """Find the views whose :func:`view_inconsistency` is above ``max(floor, factor x the median over views)``.
+
+    The views to drop before the per-band fits.
+    """
     f = np.asarray(fractions, dtype=np.float64)
     finite = f[np.isfinite(f)]
     if finite.size == 0:

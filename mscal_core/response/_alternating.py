@@ -61,8 +61,11 @@ def alternating_fit(
 
 
 def _zero_crossing(k: np.ndarray, u: np.ndarray) -> float:
-    """DN where a monotone U sampled at ``k`` reaches 0 (linear extrapolation of the lowest
-    tenth of the samples when U is positive everywhere)."""
+    """Return the DN where a monotone U reaches 0.
+
+    DN where a monotone U sampled at ``k`` reaches 0 (linear extrapolation of the lowest tenth
+    of the samples when U is positive everywhere).
+    """
     if u[0] <= 0:
         j = int(np.flatnonzero(u <= 0)[-1])
         if j + 1 < u.size and u[j + 1] > u[j]:

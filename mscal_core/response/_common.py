@@ -51,7 +51,8 @@ def validate_samples(dn: np.ndarray, exposure: np.ndarray, bits: int) -> tuple[n
     """Check shapes and values; return ``(dn (n_frames, n_pixels), t float64)``.
 
     Integer ``dn`` is returned as given (no copy: the pipeline passes every pixel of a band,
-    e.g. 9 frames x 24 Mpx); integer-valued floats are converted to int32."""
+    e.g. 9 frames x 24 Mpx); integer-valued floats are converted to int32.
+    """
     if not isinstance(bits, (int, np.integer)) or not 1 <= bits <= 16:
         raise InputError(f"bit depth must be an integer 1..16, got {bits!r}")
     dn = np.asarray(dn)
@@ -83,13 +84,16 @@ def validate_samples(dn: np.ndarray, exposure: np.ndarray, bits: int) -> tuple[n
 
 
 def _usable(dn: np.ndarray, saturation_dn: int, dn_max: int) -> np.ndarray:
-    """Samples that carry information: below saturation and not a clipped value (0, dn_max)."""
+    """Mask the samples that carry information: below saturation and not a clipped value (0, dn_max)."""
     return (dn < saturation_dn) & (dn < dn_max) & (dn > 0)
 
 
 def usable_sweep(dn: np.ndarray, t: np.ndarray, saturation_dn: int, dn_max: int) -> np.ndarray:
-    """:func:`_usable`, also dropping a pixel's samples at exposures >= the shortest one at
-    which it has reached its ceiling (see :func:`sweep_masks`)."""
+    """Mask the usable samples of a sweep, stopping each pixel at its ceiling.
+
+    :func:`_usable`, also dropping a pixel's samples at exposures >= the shortest one at which
+    it has reached its ceiling (see :func:`sweep_masks`).
+    """
     return sweep_masks(dn, t, saturation_dn, dn_max)[0]
 
 
@@ -159,9 +163,10 @@ def pava(y: np.ndarray, w: np.ndarray) -> np.ndarray:
 def select_pixels(
     dn: np.ndarray, el: np.ndarray, max_pixels: int, rng: np.random.Generator
 ) -> np.ndarray:
-    """At most ``max_pixels`` of the eligible pixels ``el`` (indices into ``dn``) spanning
-    the brightness range: half evenly spaced in summed DN (a monotone proxy of E), the rest
-    drawn at random."""
+    """At most ``max_pixels`` of the eligible pixels ``el`` (indices into ``dn``) spanning the brightness range.
+
+    Half evenly spaced in summed DN (a monotone proxy of E), the rest drawn at random.
+    """
     if el.size <= max_pixels:
         return el
     proxy = dn[:, el].sum(axis=0, dtype=np.int64).astype(np.float64)
@@ -175,11 +180,14 @@ def select_pixels(
 
 
 def neighbour_gradient2(dn: np.ndarray, cols: np.ndarray) -> np.ndarray:
-    """Squared local DN gradient ``((I(p+1) - I(p-1)) / 2)^2`` of every sample of the pixels
-    ``cols``, from their neighbours in the flattened band: horizontal neighbours of a
-    row-major image (a row boundary pairs a row's end with the next row's start). A camera
-    moved by ``s`` pixels between frames changes a sample by about ``s`` times the gradient
-    (:func:`_gradient_noise`)."""
+    """Return the squared local DN gradient of every selected sample.
+
+    Squared local DN gradient ``((I(p+1) - I(p-1)) / 2)^2`` of every sample of the pixels
+    ``cols``, from their neighbours in the flattened band: horizontal neighbours of a row-major
+    image (a row boundary pairs a row's end with the next row's start). A camera moved by ``s``
+    pixels between frames changes a sample by about ``s`` times the gradient
+    (:func:`_gradient_noise`).
+    """
     n_pix = dn.shape[1]
     left = dn[:, np.maximum(cols - 1, 0)].astype(np.float64)
     right = dn[:, np.minimum(cols + 1, n_pix - 1)].astype(np.float64)
@@ -189,8 +197,10 @@ def neighbour_gradient2(dn: np.ndarray, cols: np.ndarray) -> np.ndarray:
 def linear_init(
     d: np.ndarray, m: np.ndarray, t: np.ndarray, lo: int, hi: int
 ) -> tuple[float, np.ndarray]:
-    """Least-squares start ``I = b + t E`` with a common intercept b (black level guess) on
-    the samples in the lower 75 % of the observed DN range (away from the shoulder).
+    """Start the fit from a line ``I = b + t E`` with a common intercept.
+
+    Least-squares start ``I = b + t E`` with a common intercept b (black level guess) on the
+    samples in the lower 75 % of the observed DN range (away from the shoulder).
 
     For each pixel the slope is profiled out: ``b = sum_x 1'(1-P_x) d_x / sum_x 1'(1-P_x) 1``
     with ``P_x`` the projection on the pixel's exposures; then ``E_x = sum t (d - b) / sum t^2``
@@ -214,9 +224,12 @@ def linear_init(
 
 
 def finalise(u_raw: np.ndarray, black: float, hi: int, bits: int) -> np.ndarray:
-    """U on every DN: 0 at/below black, ``u_raw`` up to the highest observed DN ``hi``,
-    linear extrapolation above it (slope of the top 5 % of the observed range), monotone,
-    scaled to the gauge ``U[k_ref] = k_ref - black``."""
+    """U on every DN.
+
+    0 at/below black, ``u_raw`` up to the highest observed DN ``hi``, linear extrapolation above
+    it (slope of the top 5 % of the observed range), monotone, scaled to the gauge
+    ``U[k_ref] = k_ref - black``.
+    """
     dn_max = 2**bits - 1
     k_ref = dn_max // 2
     if not black < k_ref:
@@ -238,7 +251,7 @@ def finalise(u_raw: np.ndarray, black: float, hi: int, bits: int) -> np.ndarray:
 
 
 def predict_dn(inverse_response: np.ndarray, energy: np.ndarray) -> np.ndarray:
-    """Expected DN for an exposure energy ``x = t E`` in U's units: ``C(x) = U^{-1}(x)``.
+    """Predict the DN for an exposure energy ``x = t E`` in U's units: ``C(x) = U^{-1}(x)``.
 
     Monotone linear interpolation of the pairs ``(U[k], k)`` (plateaus of U map to their mean
     DN). When U has a zero plateau (U = 0 at/below black), zero energy maps to the black level

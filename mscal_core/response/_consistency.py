@@ -13,7 +13,7 @@ _MEDIAN_PIXELS = 1 << 18
 
 
 def check_exposure_consistency(dn: np.ndarray, exposure: np.ndarray, bits: int) -> list[int]:
-    """Indices of frames whose brightness contradicts their exposure.
+    """Find the frames whose brightness contradicts their exposure.
 
     For every pair of frames with exposures ``t_a >= 1.25 t_b`` the longer frame must not be
     darker: its median DN may not fall below the shorter one's by more than
@@ -46,8 +46,11 @@ def check_exposure_consistency(dn: np.ndarray, exposure: np.ndarray, bits: int) 
 
 
 def _frame_medians(dn: np.ndarray) -> np.ndarray:
-    """Median DN of every frame; on an evenly strided subsample of at most about
-    ``_MEDIAN_PIXELS`` pixels for large frames (no sorted copy of a whole band)."""
+    """Median DN of every frame.
+
+    On an evenly strided subsample of at most about ``_MEDIAN_PIXELS`` pixels for large frames
+    (no sorted copy of a whole band).
+    """
     step = max(1, -(-dn.shape[1] // _MEDIAN_PIXELS))
     return np.median(dn[:, ::step], axis=1).astype(np.float64)
 

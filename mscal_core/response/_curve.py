@@ -14,8 +14,11 @@ from ..errors import FitError
 
 @dataclass(frozen=True)
 class Curve:
-    """Monotone piecewise-linear ``C(x)``: values ``c`` at knots ``xk`` (``xk[0] = 0``),
-    extended linearly beyond the last knot with the last slope."""
+    """Monotone piecewise-linear ``C(x)``.
+
+    Values ``c`` at knots ``xk`` (``xk[0] = 0``), extended linearly beyond the last knot with
+    the last slope.
+    """
 
     xk: np.ndarray
     c: np.ndarray
@@ -26,8 +29,11 @@ class Curve:
 
     @cached_property
     def _lut(self) -> tuple[np.ndarray, np.ndarray, float]:
-        """Segment of the start of each of 4096 even bins over [0, x_K], and the knots with
-        the last one at +inf (the last segment is unbounded)."""
+        """Build the segment lookup table of :meth:`segment`.
+
+        Segment of the start of each of 4096 even bins over [0, x_K], and the knots with the
+        last one at +inf (the last segment is unbounded).
+        """
         n = 4096
         starts = np.arange(n) * (self.xk[-1] / n)
         lut = np.clip(np.searchsorted(self.xk, starts, side="right") - 1, 0, self.xk.size - 2)
@@ -36,8 +42,10 @@ class Curve:
         return lut, ext, n / self.xk[-1]
 
     def segment(self, x: np.ndarray) -> np.ndarray:
-        """Index k of the segment ``x_k <= x < x_{k+1}`` (0 below, K-1 above): a lookup
-        table then forward steps over the knots that share a bin."""
+        """Index k of the segment ``x_k <= x < x_{k+1}`` (0 below, K-1 above).
+
+        A lookup table then forward steps over the knots that share a bin.
+        """
         lut, ext, inv = self._lut
         seg = lut[np.clip((x * inv).astype(np.intp), 0, lut.size - 1)]
         need = np.flatnonzero(x >= ext[seg + 1])
@@ -68,12 +76,15 @@ def _ramp_stats(
     x: np.ndarray, seg: np.ndarray, a: np.ndarray, xk: np.ndarray,
     rows: np.ndarray | None = None, n_rows: int = 0,
 ) -> np.ndarray:
-    """``sum a * phi(x)`` where ``phi(x) = [1, ramp_0(x), ..., ramp_{K-1}(x)]`` is the basis of
-    the piecewise-linear C (``ramp_k = min(max(x - x_k, 0), Δ_k)``, the last ramp unbounded).
+    """Sum a weight times the ramp basis of the piecewise-linear C.
+
+    ``sum a * phi(x)`` where ``phi(x) = [1, ramp_0(x), ..., ramp_{K-1}(x)]`` is the basis of the
+    piecewise-linear C (``ramp_k = min(max(x - x_k, 0), Δ_k)``, the last ramp unbounded).
 
     Without ``rows``: a vector (K+1,). With ``rows`` (group index of every sample, e.g. the
     pixel): a matrix (n_rows, K+1) of per-group sums. O(n + n_rows K). ``seg`` is the
-    segment of every x (:meth:`Curve.segment`)."""
+    segment of every x (:meth:`Curve.segment`).
+    """
     K = xk.size - 1
     dx = np.diff(xk)
     u = x - xk[seg]
@@ -114,8 +125,10 @@ def _normal_matrix(x: np.ndarray, seg: np.ndarray, w: np.ndarray, xk: np.ndarray
 
 
 def prior_quadratic(xk: np.ndarray, seg_weight: float, total_weight: float, smoothness: float,
-           slopes: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Quadratic prior ``theta' P theta - 2 p' theta`` on ``theta = [C(0), s_0 .. s_{K-1}]``:
+                    slopes: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Return the quadratic prior ``(P, p)`` on the parameters of C.
+
+    The prior is ``theta' P theta - 2 p' theta`` on ``theta = [C(0), s_0 .. s_{K-1}]``:
 
     - light smoothness ``lam sum_k ((s_{k+1} - s_k) (Δ_k + Δ_{k+1}) / 2)^2`` with
       ``lam = smoothness * mean segment weight``: a change of slope, in DN over the local knot
@@ -162,8 +175,10 @@ def prior_quadratic(xk: np.ndarray, seg_weight: float, total_weight: float, smoo
 
 
 def _solve_bounded(M: np.ndarray, b: np.ndarray, lb: np.ndarray) -> np.ndarray:
-    """``argmin theta' M theta - 2 b' theta`` subject to ``theta >= lb`` (M positive
-    definite): the unconstrained solution if feasible, else BVLS on the Cholesky factor."""
+    """``argmin theta' M theta - 2 b' theta`` subject to ``theta >= lb`` (M positive definite).
+
+    The unconstrained solution if feasible, else BVLS on the Cholesky factor.
+    """
     n = M.shape[0]
     scale = max(float(np.trace(M)) / n, 1e-300)
     for ridge in (1e-12, 1e-8, 1e-4):
@@ -193,7 +208,9 @@ def joint_step(
     d: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
     prior: tuple[np.ndarray, np.ndarray], s_min: float, joint: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """One Gauss-Newton step on (C, E) jointly, E eliminated by its Schur complement
+    """Take one Gauss-Newton step on (C, E) jointly.
+
+    One Gauss-Newton step on (C, E) jointly, E eliminated by its Schur complement
     (``joint=False``: the exact C-step for fixed E, E unchanged).
 
     C is linear in ``theta`` (``C(x) = phi(x)' theta``); E enters through ``J = t C'(t E)``.
@@ -201,7 +218,8 @@ def joint_step(
     ``dE_x = sum_i w J (I - phi' theta) / h_x``, ``h_x = sum_i w J^2``, which leaves the
     reduced problem ``theta' (M - sum_x g_x g_x' / h_x + P) theta - 2 theta' (b - sum_x g_x
     q_x / h_x)`` with ``g_x = sum_i w J phi``, ``q_x = sum_i w J I``: solved with slopes
-    ``>= s_min``. Returns the proposed ``(theta, E)``."""
+    ``>= s_min``. Returns the proposed ``(theta, E)``.
+    """
     xk = curve.xk
     n_f, n_p = d.shape
     x = t[:, None] * e[None, :]
@@ -239,8 +257,10 @@ def line_search(
     d: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
     prior: tuple[np.ndarray, np.ndarray], theta_new: np.ndarray, e_new: np.ndarray,
 ) -> tuple[Curve, np.ndarray, float]:
-    """Backtrack along the step until the cost decreases (step 1, 1/2, ... 1/16); returns the
-    accepted (or unchanged) curve and E and the cost decrease (0 if none)."""
+    """Backtrack along the step until the cost decreases (step 1, 1/2, ... 1/16).
+
+    Returns the accepted (or unchanged) curve and E and the cost decrease (0 if none).
+    """
     cost0 = _cost(d, w, t, e, curve, prior)
     th0 = _theta_of(curve)
     for frac in (1.0, 0.5, 0.25, 0.125, 0.0625):
@@ -266,8 +286,11 @@ def _knots_for(curve: Curve, hi_dn: float, n_seg: int) -> np.ndarray:
 def reknot(
     curve: Curve, e: np.ndarray, t: np.ndarray, m: np.ndarray, hi: int, n_seg: int
 ) -> tuple[Curve, np.ndarray]:
-    """Move the knots to even DN steps of the current curve (C projected onto them), then
-    rescale x so that C rises by x_K over the knots (scale gauge: mean slope 1)."""
+    """Move the knots to even DN steps of the current curve.
+
+    Move the knots to even DN steps of the current curve (C projected onto them), then rescale x
+    so that C rises by x_K over the knots (scale gauge: mean slope 1).
+    """
     x = t[:, None] * e[None, :]
     xk = _knots_for(curve, hi, n_seg)
     xk[-1] = max(xk[-1], float(x[m].max()) * (1 + 1e-9))
@@ -279,9 +302,12 @@ def reknot(
 def fit_energy(
     d: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve, steps: int
 ) -> np.ndarray:
-    """E-step (errors-in-DN analogue of Eq. 7): per pixel, Gauss-Newton on
-    ``sum_i w_i (I_i - C(t_i E))^2``:  ``E += sum w J r / sum w J^2``, ``J = t_i C'(t_i E)``,
-    halving a pixel's step while it does not reduce its cost. ``w`` is 0 on unusable samples."""
+    """E-step (errors-in-DN analogue of Eq. 7).
+
+    Per pixel, Gauss-Newton on ``sum_i w_i (I_i - C(t_i E))^2``:
+    ``E += sum w J r / sum w J^2``, ``J = t_i C'(t_i E)``, halving a pixel's step while it does
+    not reduce its cost. ``w`` is 0 on unusable samples.
+    """
     def pix_cost(ee: np.ndarray) -> np.ndarray:
         c, _ = curve(t[:, None] * ee[None, :])
         return (w * (d - c) ** 2).sum(0)

@@ -136,7 +136,7 @@ def fit_response_alternating(
     max_pixels: int = 4000,
     seed: int = 0,
 ) -> ResponseFit:
-    """The paper's plain alternation of Eq. 6 and Eq. 7 (``method="alternating"``).
+    """Fit U by the paper's plain alternation of Eq. 6 and Eq. 7 (``method="alternating"``).
 
     ``U(k) = mean over Omega_k of t_i E(x)`` (Eq. 6) and ``E(x) = sum_i t_i U(I_i(x)) /
     sum_i t_i^2`` (Eq. 7) over usable samples, from the linear start ``U(k) = k - b`` (b from

@@ -30,11 +30,14 @@ PERIOD_POW = 2.0
 
 
 def exposure_period(exposure: np.ndarray, tol: float = 0.2) -> float:
-    """The exposure step of a sweep, ``log`` of the ratio: the largest ``g`` such that every
-    step between consecutive distinct exposures is (within ``tol`` of) a whole multiple of
-    ``g``. Brackets are geometric (1/1000, 1/500, ... or third stops), so every exposure
-    ratio is a power of the step; U is then determined by the data only up to a factor that
-    is periodic in ``log x`` with this period, which the prior must resolve."""
+    """Return the exposure step of a sweep, ``log`` of the ratio.
+
+    The largest ``g`` such that every step between consecutive distinct exposures is (within
+    ``tol`` of) a whole multiple of ``g``. Brackets are geometric (1/1000, 1/500, ... or third
+    stops), so every exposure ratio is a power of the step; U is then determined by the data
+    only up to a factor that is periodic in ``log x`` with this period, which the prior must
+    resolve.
+    """
     lt = np.unique(np.log(np.asarray(exposure, dtype=np.float64)))
     steps = np.diff(lt)
     steps = steps[steps > 0.05]
@@ -65,8 +68,11 @@ def forward_fit(
     g2: np.ndarray | None = None,
     cen: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> ResponseFit:
-    """The errors-in-DN fit of :func:`fit_response` on the selected samples ``d[m]``
-    (and the censored samples ``cen = (low, high)``, see :func:`censored_terms`)."""
+    """Run the errors-in-DN fit of :func:`fit_response` on selected samples.
+
+    The errors-in-DN fit of :func:`fit_response` on the selected samples ``d[m]`` (and the
+    censored samples ``cen = (low, high)``, see :func:`censored_terms`).
+    """
     dn_max = 2**bits - 1
     lo, hi = observed
     n_seg = int(np.clip((hi - lo) // 4, 4, 64))
@@ -127,10 +133,12 @@ def forward_fit(
 def _adaptive_smoothness(
     smoothness: float, it: int, var: np.ndarray, kept: np.ndarray, span: float, period: float
 ) -> float:
-    """Weight of the ``"adaptive"`` prior at iteration ``it``: ``smoothness`` times the noise
-    factor ``(sigma / SIGMA_REF)^SIGMA_POW`` (``sigma`` the rms noise of the ``kept`` samples
-    over the DN ``span``, at most ``SIGMA_MAX``) and the exposure-step factor
-    ``(period / PERIOD_REF)^PERIOD_POW``."""
+    """Weight of the ``"adaptive"`` prior at iteration ``it``.
+
+    ``smoothness`` times the noise factor ``(sigma / SIGMA_REF)^SIGMA_POW`` (``sigma`` the rms
+    noise of the ``kept`` samples over the DN ``span``, at most ``SIGMA_MAX``) and the
+    exposure-step factor ``(period / PERIOD_REF)^PERIOD_POW``.
+    """
     # the noise factor only once the curve has been fitted (a first curve far off inflates
     # the noise, whose prior would then freeze it), and bounded
     sigma_rel = SIGMA_REF
@@ -145,8 +153,11 @@ def _step(
     dw: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
     quad: tuple[np.ndarray, np.ndarray], s_min: float,
 ) -> tuple[Curve, np.ndarray, float]:
-    """One joint Gauss-Newton step on (C, E) with backtracking; where it stalls (on a kink of
-    C), an exact block step on C for fixed E instead. Returns ``(C, E, cost decrease)``."""
+    """One joint Gauss-Newton step on (C, E) with backtracking.
+
+    Where it stalls (on a kink of C), an exact block step on C for fixed E instead. Returns
+    ``(C, E, cost decrease)``.
+    """
     theta_new, e_new = joint_step(dw, w, t, e, curve, quad, s_min)
     curve, e, gain = line_search(dw, w, t, e, curve, quad, theta_new, e_new)
     if gain == 0.0:
@@ -159,8 +170,11 @@ def _robust_weights(
     d: np.ndarray, m: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
     noise: tuple[float, float, np.ndarray], sat: int, cen: tuple[np.ndarray, np.ndarray] | None,
 ) -> np.ndarray:
-    """Outlier weights of the observed samples and, with ``cen``, of the censored ones (a
-    censored sample deep on the wrong side of its bound is an outlier too)."""
+    """Return the outlier weights of observed and censored samples.
+
+    Outlier weights of the observed samples and, with ``cen``, of the censored ones (a censored
+    sample deep on the wrong side of its bound is an outlier too).
+    """
     a_var, b_var, extra = noise
     rob = outlier_weights(d, m, w, t, e, curve, a_var, b_var, extra)
     if cen is not None:

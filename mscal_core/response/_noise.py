@@ -11,11 +11,14 @@ from ._curve import Curve
 
 def _noise_model(r: np.ndarray, mu: np.ndarray, leverage: np.ndarray, floor: float,
                  robust: bool = False, offset: np.ndarray | None = None) -> tuple[float, float]:
-    """Fit ``var(I) = a + b * mu`` (read + shot noise, ``mu = C - black``) to the squared
-    residuals, each divided by ``1 - leverage`` (the share of the sample's noise absorbed by
-    its pixel's fitted E), less a known ``offset`` (the gradient term), averaged in 16
-    quantile bins of mu (``robust``: median / 0.4549, so outliers do not inflate it); two
-    weighted passes, ``a >= floor``."""
+    """Fit the read + shot noise model ``var(I) = a + b mu`` to residuals.
+
+    Fit ``var(I) = a + b * mu`` (read + shot noise, ``mu = C - black``) to the squared
+    residuals, each divided by ``1 - leverage`` (the share of the sample's noise absorbed by its
+    pixel's fitted E), less a known ``offset`` (the gradient term), averaged in 16 quantile bins
+    of mu (``robust``: median / 0.4549, so outliers do not inflate it); two weighted passes,
+    ``a >= floor``.
+    """
     keep = leverage < 0.9
     r2 = r[keep] ** 2 / (1.0 - leverage[keep])
     if offset is not None:  # a known part of the variance (gradient term)
@@ -58,8 +61,11 @@ def noise_update(
     d: np.ndarray, m: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
     robust: bool = False, g2: np.ndarray | None = None,
 ) -> tuple[float, float, float]:
-    """Re-estimate the DN noise model ``var = a + b mu + c g2`` from the residuals (see
-    :func:`_noise_model`; ``c = 0`` without ``g2``)."""
+    """Re-estimate the DN noise model ``var = a + b mu + c g2``.
+
+    Re-estimate the DN noise model ``var = a + b mu + c g2`` from the residuals (see
+    :func:`_noise_model`; ``c = 0`` without ``g2``).
+    """
     mu, s = curve(t[:, None] * e[None, :])
     lev = _leverage(w, t, s)
     r, above = (d - mu)[m], np.maximum(mu - curve.c[0], 0.0)[m]
@@ -74,10 +80,13 @@ def noise_update(
 
 
 def _gradient_noise(r: np.ndarray, leverage: np.ndarray, base: np.ndarray, g2: np.ndarray) -> float:
-    """``c >= 0`` in ``var = base + c g2``: the squared residuals in 8 quantile bins of the
-    squared local DN gradient ``g2``, robust (median / 0.4549) minus the mean ``base`` of
-    the bin, regressed on the bin's mean ``g2`` (weights: counts / variance^2). ``c`` is
-    the mean squared shift (pixels^2) of a scene between frames: 0 on a tripod."""
+    """``c >= 0`` in ``var = base + c g2``.
+
+    The squared residuals in 8 quantile bins of the squared local DN gradient ``g2``, robust
+    (median / 0.4549) minus the mean ``base`` of the bin, regressed on the bin's mean ``g2``
+    (weights: counts / variance^2). ``c`` is the mean squared shift (pixels^2) of a scene
+    between frames: 0 on a tripod.
+    """
     keep = leverage < 0.9
     r2 = r[keep] ** 2 / (1.0 - leverage[keep])
     g2, base = g2[keep], base[keep]
@@ -112,16 +121,18 @@ def outlier_weights(
     d: np.ndarray, m: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
     a_var: float, b_var: float, extra: np.ndarray | float = 0.0,
 ) -> np.ndarray:
-    """Robust weights of the standardised residuals ``z = (I - C(t E)) / sqrt(var (1 -
-    leverage))``: 1 for ``|z| <= z0``, ``(1 - ((|z| - z0) / (z1 - z0))^2)^2`` up to ``z1``,
-    0 beyond (``OUTLIER_Z``). Samples a moving object, a shifted edge or a compression
-    artefact put far off the curve stop pulling on it, while Gaussian noise keeps full
-    weight (efficiency on clean sweeps is that of plain least squares).
+    """Robust weights of the standardised residuals ``z = (I - C(t E)) / sqrt(var (1 - leverage))``.
+
+    1 for ``|z| <= z0``, ``(1 - ((|z| - z0) / (z1 - z0))^2)^2`` up to ``z1``, 0 beyond
+    (``OUTLIER_Z``). Samples a moving object, a shifted edge or a compression artefact put far
+    off the curve stop pulling on it, while Gaussian noise keeps full weight (efficiency on
+    clean sweeps is that of plain least squares).
 
     ``var`` is the larger of the noise model ``a + b mu`` and a local robust variance (median
     of the squared residuals in 16 quantile bins of the expected DN, / 0.4549): where the
     current curve is still off in some DN range, its samples are not all rejected at once
-    (which would leave that range to the prior)."""
+    (which would leave that range to the prior).
+    """
     z0, z1 = OUTLIER_Z
     mu, s = curve(t[:, None] * e[None, :])
     lev = np.minimum(_leverage(w, t, s), 0.9)
@@ -148,14 +159,16 @@ def censored_terms(
     d: np.ndarray, cen: tuple[np.ndarray, np.ndarray], t: np.ndarray, e: np.ndarray,
     curve: Curve, noise: tuple[float, float, np.ndarray], sat: int,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Censored (Tobit) samples as weighted pseudo-observations: a sample censored low (DN
-    0: the signal was below ``0.5``) or high (first saturated exposure: above ``sat - 0.5``)
-    adds ``-2 log Phi(z)``, ``z = s (mu - bound) / sd`` (``s = -1`` low, ``+1`` high,
-    ``mu = C(t E)``), to the cost. Its Newton quadratic at the current ``mu`` is
-    ``w (y - mu)^2`` with ``w = lam (z + lam) / sd^2`` and ``y = mu + s sd / (z + lam)``,
-    ``lam = phi(z) / Phi(z)``: a sample far inside its allowed side weighs nothing, one on
-    the wrong side acts like an observation at the bound. Returns ``(samples, weights)`` with
-    ``d`` elsewhere and weight 0 there."""
+    """Censored (Tobit) samples as weighted pseudo-observations.
+
+    A sample censored low (DN 0: the signal was below ``0.5``) or high (first saturated
+    exposure: above ``sat - 0.5``) adds ``-2 log Phi(z)``, ``z = s (mu - bound) / sd``
+    (``s = -1`` low, ``+1`` high, ``mu = C(t E)``), to the cost. Its Newton quadratic at the
+    current ``mu`` is ``w (y - mu)^2`` with ``w = lam (z + lam) / sd^2`` and
+    ``y = mu + s sd / (z + lam)``, ``lam = phi(z) / Phi(z)``: a sample far inside its allowed
+    side weighs nothing, one on the wrong side acts like an observation at the bound. Returns
+    ``(samples, weights)`` with ``d`` elsewhere and weight 0 there.
+    """
     low, high = cen
     a_var, b_var, extra = noise
     mu, _ = curve(t[:, None] * e[None, :])
@@ -177,8 +190,11 @@ def censored_outlier_weights(
     cen: tuple[np.ndarray, np.ndarray], t: np.ndarray, e: np.ndarray, curve: Curve,
     noise: tuple[float, float, np.ndarray], sat: int,
 ) -> np.ndarray:
-    """Robust weights (``OUTLIER_Z`` taper) of the censored samples from how far the curve
-    puts them on the wrong side of their bound, in noise standard deviations; 0 elsewhere."""
+    """Return robust weights of the censored samples.
+
+    Robust weights (``OUTLIER_Z`` taper) of the censored samples from how far the curve puts
+    them on the wrong side of their bound, in noise standard deviations; 0 elsewhere.
+    """
     low, high = cen
     z0, z1 = OUTLIER_Z
     a_var, b_var, extra = noise
@@ -207,9 +223,11 @@ def hidden_saturation_top(
     u_raw: np.ndarray, d: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
     noise: tuple[float, float, np.ndarray], sat: int, lo: int, hi: int,
 ) -> np.ndarray:
-    """Raise the top of ``u_raw = C^{-1}`` to the paper's Eq. 6, in the log domain,
-    ``log U(k) = mean_{(i,x) in Omega_k} log(t_i E(x))``, at the DN ``k`` where saturated
-    pixels hide below the clip.
+    """Raise the top of U where saturated pixels hide below the clip.
+
+    Raise the top of ``u_raw = C^{-1}`` to the paper's Eq. 6, in the log domain,
+    ``log U(k) = mean_{(i,x) in Omega_k} log(t_i E(x))``, at the DN ``k`` where saturated pixels
+    hide below the clip.
 
     In JPEG photographs a blown highlight is not all 255: ringing of the compression (and
     sharpening) spreads 245-254 into it. The curve fit rightly treats those samples as
@@ -218,7 +236,8 @@ def hidden_saturation_top(
     and U used to predict or to linearise such a pixel should say so. Where at least
     ``HIDDEN_FRACTION`` of the samples at ``k`` (in the upper part of the range) come from
     pixels with ``C(t E) > sat - 0.5 + 3 sd``, U(k) becomes the larger of the two (then
-    monotone). Clean sweeps (no hidden saturation) are unchanged."""
+    monotone). Clean sweeps (no hidden saturation) are unchanged.
+    """
     k0 = int(np.ceil(lo + HIDDEN_FROM * (hi - lo)))
     sel = (d >= k0) & (d <= hi)
     if not sel.any():

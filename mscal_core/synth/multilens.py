@@ -1,5 +1,7 @@
-"""Seeded synthetic captures of a multi-lens camera (one lens per band) with known band
-transforms, for band co-registration (issue 9). Pure arrays, no I/O.
+"""Seeded synthetic captures of a multi-lens camera with known band transforms.
+
+Seeded synthetic captures of a multi-lens camera (one lens per band) with known band transforms,
+for band co-registration (issue 9). Pure arrays, no I/O.
 
 Scene: a ground plane of soil and crop rows (with gaps, weeds and brightness texture, as
 :class:`~mscal_core.synth.scene.FieldScene`), a few bushes that stand above the ground, and
@@ -30,11 +32,14 @@ REDEDGE_WAVELENGTHS_NM = (475.0, 560.0, 668.0, 840.0, 717.0)
 
 @dataclass(frozen=True)
 class MultiLensCapture:
-    """``dn`` (band, H, W) uint16 (12-bit values); ``homographies`` (band, 3, 3) the true
-    reference -> band transforms of the ground plane (identity for ``reference``);
-    ``reflectance`` (band, H, W) float32 the true ground reflectance on the reference grid
-    (what an aligned band shows, before vignetting and noise); ``height`` (H, W) float32 the
-    bushes' relative height (0-1, parallax ``parallax_px * height``) on the reference grid; ``wavelengths_nm`` (band,)."""
+    """``dn`` (band, H, W) uint16 (12-bit values).
+
+    ``homographies`` (band, 3, 3) the true reference -> band transforms of the ground plane
+    (identity for ``reference``); ``reflectance`` (band, H, W) float32 the true ground
+    reflectance on the reference grid (what an aligned band shows, before vignetting and noise);
+    ``height`` (H, W) float32 the bushes' relative height (0-1, parallax
+    ``parallax_px * height``) on the reference grid; ``wavelengths_nm`` (band,).
+    """
 
     dn: np.ndarray
     homographies: np.ndarray
@@ -47,8 +52,11 @@ class MultiLensCapture:
 def random_homographies(rng: np.random.Generator, n_bands: int, reference: int, shape: tuple[int, int], *,
                         max_shift_px: float = 20.0, max_rotation_deg: float = 1.0, max_scale: float = 0.01,
                         max_perspective: float = 2e-6) -> np.ndarray:
-    """Reference -> band homographies: rotation and scale about the image centre, a shift and
-    a perspective term, each drawn uniformly up to its maximum; identity for ``reference``."""
+    """Draw reference -> band homographies.
+
+    Rotation and scale about the image centre, a shift and a perspective term, each drawn
+    uniformly up to its maximum; identity for ``reference``.
+    """
     h, w = shape
     c = np.array([[1.0, 0.0, (w - 1) / 2], [0.0, 1.0, (h - 1) / 2], [0.0, 0.0, 1.0]])
     out = np.tile(np.eye(3), (n_bands, 1, 1))
@@ -105,7 +113,8 @@ def multilens_capture(seed: int = 0, *, shape: tuple[int, int] = (240, 320), ref
     brightness texture of soil and leaves (0 for a low-texture scene: only the crop rows'
     edges remain); ``homographies`` fixes the band transforms (else drawn with
     :func:`random_homographies`); ``full_well_dn`` the mean DN of a white ground (sets the
-    shot noise); every draw from ``numpy.random.default_rng(seed)``."""
+    shot noise); every draw from ``numpy.random.default_rng(seed)``.
+    """
     rng = np.random.default_rng([seed, 9])
     n = len(wavelengths_nm)
     h, w = shape

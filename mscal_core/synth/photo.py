@@ -73,6 +73,7 @@ class ToneCurve:
     toe: float = 0.02
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
+        """Apply the tone curve to linear values ``x`` (sRGB-like, with knee and toe)."""
         x = np.maximum(np.asarray(x, dtype=np.float32), 0.0)
         lin = x <= 0.0031308
         power = 1.055 * np.power(np.maximum(x, 0.0031308), 1.0 / self.gamma) - 0.055
@@ -92,7 +93,7 @@ class ToneCurve:
         return np.where(v <= 12.92 * 0.0031308, v / 12.92, ((v + 0.055) / 1.055) ** self.gamma)
 
     def inverse_response(self) -> np.ndarray:
-        """True ``U[k]``, k = 0..255, scaled to ``U[127] = 127`` (black level 0)."""
+        """Return the true ``U[k]``, k = 0..255, scaled to ``U[127] = 127`` (black level 0)."""
         u = self.inverse(np.arange(256) / 255.0)
         return u * (127.0 / u[127])
 
@@ -113,8 +114,10 @@ class PhotoSet:
     jpeg: tuple[bytes, ...] = ()  # the encoded files (BGR JPEG, as cv2.imencode), if JPEG
 
     def file_bytes(self, i: int) -> bytes:
-        """Frame ``i`` as a JPEG file's bytes (decodes exactly to ``frames[i]``); raises
-        InputError when the set was made without JPEG."""
+        """Frame ``i`` as a JPEG file's bytes (decodes exactly to ``frames[i]``).
+
+        Raises InputError when the set was made without JPEG.
+        """
         if not self.jpeg:
             raise InputError("this photo set was made with jpeg_quality=None: no JPEG bytes")
         return self.jpeg[i]
@@ -129,8 +132,10 @@ class PhotoSet:
 
 
 def bracket(n_frames: int, step_thirds: int, centre_k: int = -21) -> tuple[np.ndarray, np.ndarray]:
-    """Third-stop indices of a bracket centred on ``centre_k`` (default 1/125 s): returns
-    ``(true seconds 2**(k/3), nominal seconds)``."""
+    """Third-stop indices of a bracket centred on ``centre_k`` (default 1/125 s).
+
+    Returns ``(true seconds 2**(k/3), nominal seconds)``.
+    """
     if n_frames < 2 or step_thirds < 1:
         raise InputError("a bracket needs >= 2 frames and a step of >= 1 third stop")
     k = centre_k + step_thirds * (np.arange(n_frames) - (n_frames - 1) // 2)
@@ -167,7 +172,7 @@ def _polygon(rng: np.random.Generator, cx: float, cy: float, r: float, n: int) -
 
 
 def _scene(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, dict]:
-    """Static linear radiance (h, w, 3) float32 and the ingredients of the moving parts."""
+    """Draw the static linear radiance (h, w, 3) float32 and the ingredients of the moving parts."""
     s = min(h, w) / 480.0  # feature scale relative to a 480-pixel-high frame
     yy = np.arange(h, dtype=np.float32)[:, None]
     horizon = int(h * rng.uniform(0.25, 0.42))
@@ -271,8 +276,10 @@ _CCM = np.array([[1.55, -0.40, -0.15], [-0.22, 1.45, -0.23], [-0.05, -0.45, 1.50
 
 def _handheld(scene: np.ndarray, rng: np.random.Generator, shift_px: float,
               rotation_deg: float) -> np.ndarray:
-    """A handheld camera: a small random shift and rotation about the centre, then the
-    lens blur."""
+    """Move the scene as a handheld camera would.
+
+    A small random shift and rotation about the centre, then the lens blur.
+    """
     h, w = scene.shape[:2]
     ang = rng.uniform(0, 2 * np.pi)
     mag = rng.uniform(shift_px / 3, 2 * shift_px) if shift_px > 0 else 0.0
@@ -287,8 +294,10 @@ def _handheld(scene: np.ndarray, rng: np.random.Generator, shift_px: float,
 
 def _bayer_raw(scene: np.ndarray, sens: np.ndarray, k: np.float32, rng: np.random.Generator,
                full_well_e: float, read_noise_e: float) -> np.ndarray:
-    """The sensor: RGGB Bayer mosaic of ``scene * sens * k``, shot + read noise, raw clip,
-    12-bit ADC (uint16)."""
+    """Expose the scene on the raw sensor.
+
+    RGGB Bayer mosaic of ``scene * sens * k``, shot + read noise, raw clip, 12-bit ADC (uint16).
+    """
     h, w = scene.shape[:2]
     mosaic_c = np.zeros((h, w), np.intp)
     mosaic_c[0::2, 1::2] = 1
@@ -303,8 +312,10 @@ def _bayer_raw(scene: np.ndarray, sens: np.ndarray, k: np.float32, rng: np.rando
 
 
 def _develop(rgb: np.ndarray, gains: np.ndarray, tone: ToneCurve, sharpen: float) -> np.ndarray:
-    """Demosaiced raw RGB to 8-bit: white balance ``gains``, colour matrix, tone curve,
-    unsharp mask."""
+    """Demosaiced raw RGB to 8-bit.
+
+    White balance ``gains``, colour matrix, tone curve, unsharp mask.
+    """
     # highlights clipped where the first channel clips in raw (neutral blown sky), then the
     # colour matrix (rows sum to 1: neutral stays neutral; saturated colours clip at 0)
     lin = np.minimum(rgb * gains, gains.min())
@@ -344,7 +355,7 @@ def make_photo_set(
     tone: ToneCurve | None = None,
     exposure_bias_stops: float = 0.0,
 ) -> PhotoSet:
-    """A seeded bracket of ``n_frames`` photographs ``step_thirds`` third stops apart.
+    """Make a seeded bracket of ``n_frames`` photographs ``step_thirds`` third stops apart.
 
     ``shift_px`` is the typical handheld shift between frames (each frame's shift is drawn
     uniformly in ``[shift_px/3, 2 shift_px]`` in a random direction; 0 = tripod),

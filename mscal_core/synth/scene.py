@@ -182,18 +182,22 @@ class SnapshotCamera:
 
     @property
     def n_bands(self) -> int:
+        """Number of bands (the cells of the mosaic pattern)."""
         return self.pattern_shape[0] * self.pattern_shape[1]
 
     @property
     def matrix(self) -> np.ndarray:
+        """Camera matrix ``K`` (3, 3)."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @property
     def dist_coeffs(self) -> np.ndarray:
+        """OpenCV distortion coefficients (5,)."""
         return np.asarray(self.dist, dtype=np.float64)
 
     @property
     def wavelengths(self) -> np.ndarray:
+        """Band centre wavelengths (nm) as float64."""
         return np.asarray(self.wavelengths_nm, dtype=np.float64)
 
     @property
@@ -202,9 +206,11 @@ class SnapshotCamera:
         return band_offsets(self.pattern_shape)
 
     def band_index(self, wavelength_nm: float) -> int:
+        """Return the index of the band nearest to ``wavelength_nm``."""
         return int(np.argmin(np.abs(self.wavelengths - wavelength_nm)))
 
     def intrinsics_dict(self) -> dict:
+        """Return the intrinsics as plain numbers (fx, fy, cx, cy, dist, ...)."""
         return {
             "fx": float(self.fx), "fy": float(self.fy), "cx": float(self.cx),
             "cy": float(self.cy), "dist": [float(d) for d in self.dist],
@@ -226,7 +232,7 @@ class SnapshotCamera:
         return np.stack([x, y], axis=1)
 
     def sensor_rays(self):
-        """Cached ``(xn, yn, derivatives)`` for every sensor pixel of the band grid."""
+        """Return the cached ``(xn, yn, derivatives)`` for every sensor pixel of the band grid."""
         return _sensor_rays(
             float(self.fx), float(self.fy), float(self.cx), float(self.cy),
             tuple(float(d) for d in self.dist), tuple(self.grid_shape), tuple(self.pattern_shape),
@@ -255,11 +261,13 @@ class Pose:
 
     @staticmethod
     def from_matrix(R: np.ndarray, t: np.ndarray) -> Pose:
+        """Build a pose from a rotation matrix and a translation."""
         rvec, _ = cv2.Rodrigues(np.asarray(R, dtype=np.float64))
         return Pose(rvec.reshape(3), np.asarray(t, dtype=np.float64).reshape(3))
 
     @property
     def R(self) -> np.ndarray:
+        """Rotation matrix (plane -> camera)."""
         R, _ = cv2.Rodrigues(np.asarray(self.rvec, dtype=np.float64).reshape(3, 1))
         return R
 
@@ -269,6 +277,7 @@ class Pose:
         return -self.R.T @ np.asarray(self.tvec, dtype=np.float64)
 
     def to_camera(self, points_plane: np.ndarray) -> np.ndarray:
+        """Map plane points (N, 3) into camera coordinates."""
         p = np.asarray(points_plane, dtype=np.float64).reshape(-1, 3)
         return p @ self.R.T + np.asarray(self.tvec, dtype=np.float64)
 
@@ -288,7 +297,8 @@ _FRONTAL = np.diag([1.0, -1.0, -1.0])
 def _intersect(pose: Pose, xn: np.ndarray, yn: np.ndarray):
     """Rays (xn, yn, 1) in the camera frame -> plane points (u, v); ``ok`` where hit in front.
 
-    Computed in the dtype of ``xn`` (float32 for the renderer: ~1e-6 m at 100 m)."""
+    Computed in the dtype of ``xn`` (float32 for the renderer: ~1e-6 m at 100 m).
+    """
     R = [[float(a) for a in row] for row in pose.R]
     C = [float(a) for a in pose.camera_centre]
     dx = R[0][0] * xn + R[1][0] * yn + R[2][0]
@@ -329,6 +339,7 @@ class PeriodicNoise:
         return a
 
     def __call__(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """Evaluate the periodic noise at plane points ``(u, v)``."""
         mx, my = self._coords(u), self._coords(v)
         shape = mx.shape
         if mx.ndim == 2 and max(shape) < 32000:
@@ -370,10 +381,11 @@ class UniformLight:
     brightness: float
 
     def __call__(self, u, v) -> np.ndarray:
+        """Return the constant brightness at plane points ``(u, v)``."""
         return np.full(np.shape(u), self.brightness, dtype=np.float32)
 
     def params(self) -> np.ndarray:
-        """Same layout as :meth:`GradientShadowLight.params` (no gradient, no shadow)."""
+        """Return the parameters in the layout of :meth:`GradientShadowLight.params` (no gradient, no shadow)."""
         return np.array([self.brightness, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 1.0])
 
 
@@ -400,6 +412,7 @@ class GradientShadowLight:
     shadow_softness_m: float = 0.02
 
     def gradient(self, u, v) -> np.ndarray:
+        """Return the linear brightness gradient factor at plane points ``(u, v)``."""
         u, v = np.asarray(u), np.asarray(v)
         c, s = math.cos(self.gradient_dir), math.sin(self.gradient_dir)
         half = 0.5 * self.extent_m[0] * abs(c) + 0.5 * self.extent_m[1] * abs(s)
@@ -408,6 +421,7 @@ class GradientShadowLight:
         return 1.0 + a * p
 
     def shadow(self, u, v) -> np.ndarray:
+        """Return the soft shadow factor at plane points ``(u, v)`` (1 without a shadow)."""
         u, v = np.asarray(u), np.asarray(v)
         if self.shadow_depth == 0.0:
             return np.ones(np.broadcast(u, v).shape, dtype=np.result_type(u, v))
@@ -420,8 +434,11 @@ class GradientShadowLight:
         return (self.brightness * self.gradient(u, v) * self.shadow(u, v)).astype(np.float32)
 
     def params(self) -> np.ndarray:
-        """(brightness, gradient_dir, gradient_ratio, extent_w, extent_h, shadow_depth,
-        shadow_dir, shadow_offset_m, shadow_softness_m); see :meth:`from_params`."""
+        """Return the light's nine parameters.
+
+        (brightness, gradient_dir, gradient_ratio, extent_w, extent_h, shadow_depth, shadow_dir,
+        shadow_offset_m, shadow_softness_m); see :meth:`from_params`.
+        """
         return np.array([
             self.brightness, self.gradient_dir, self.gradient_ratio, self.extent_m[0],
             self.extent_m[1], self.shadow_depth, self.shadow_dir, self.shadow_offset_m,
@@ -430,6 +447,7 @@ class GradientShadowLight:
 
     @staticmethod
     def from_params(p) -> GradientShadowLight:
+        """Rebuild a light from its :meth:`params`."""
         p = [float(x) for x in p]
         return GradientShadowLight(p[0], p[1], p[2], (p[3], p[4]), p[5], p[6], p[7], p[8])
 
@@ -456,9 +474,11 @@ class LightDrift:
         return (float(tau) - self.t0_s) / (self.t1_s - self.t0_s)
 
     def level(self, tau: float) -> float:
+        """Return the factor on the sun's brightness at time ``tau``."""
         return 1.0 + (self.level_end - 1.0) * self._f(tau)
 
     def colour(self, tau: float, wavelengths: np.ndarray) -> np.ndarray:
+        """Return the factor on the light's colour ``S`` per wavelength at time ``tau``."""
         wl = np.asarray(wavelengths, dtype=np.float64)
         x = 2.0 * (wl - wl.min()) / max(float(wl.max() - wl.min()), 1e-9) - 1.0
         return 1.0 + self.colour_tilt_end * self._f(tau) * x
@@ -489,7 +509,9 @@ class MarkerSpec:
 
 
 class ReflectorScene:
-    """Gray reflector (``size_m``, reflectance ``rho``) with the marker on white paper at its
+    """Gray reflector with the ArUco marker, lying on a lawn.
+
+    Gray reflector (``size_m``, reflectance ``rho``) with the marker on white paper at its
     centre, lying on a lawn (grass/soil mix) in the plane z = 0, lit by ``light``.
 
     Hard labels (for edge supersampling and pure-pixel masks): 0 ground, 1 gray reflector,
@@ -518,8 +540,11 @@ class ReflectorScene:
         self._tex_s = PeriodicNoise(rng, 0.01, 2.0)
 
     def evaluate(self, u: np.ndarray, v: np.ndarray):
-        """(u, v) plane points (N,) -> weights (K, N) float32 (``B`` x area of each material,
-        ground texture included) and hard labels (N,) uint8."""
+        """Return material weights and labels of plane points.
+
+        (u, v) plane points (N,) -> weights (K, N) float32 (``B`` x area of each material,
+        ground texture included) and hard labels (N,) uint8.
+        """
         u = np.asarray(u, dtype=np.float32)
         v = np.asarray(v, dtype=np.float32)
         B = self.light(u, v)
@@ -550,6 +575,8 @@ class ReflectorScene:
 
 @dataclass(frozen=True)
 class Panel:
+    """A square gray panel of the field: centre and side (metres) and flat reflectance."""
+
     centre_m: tuple[float, float]
     size_m: float
     reflectance: float
@@ -585,6 +612,7 @@ class FieldScene:
         self.soft_m = 0.01
 
     def vegetation_cover(self, u, v) -> np.ndarray:
+        """Return the vegetation cover (0..1) at plane points ``(u, v)``."""
         sp = np.float32(self.row_spacing_m)
         u = np.asarray(u, dtype=np.float32)
         v = np.asarray(v, dtype=np.float32)
@@ -597,6 +625,7 @@ class FieldScene:
         return np.maximum(rows, weeds)
 
     def evaluate(self, u: np.ndarray, v: np.ndarray):
+        """Return the material weights and labels at plane points ``(u, v)``."""
         u = np.asarray(u, dtype=np.float32)
         v = np.asarray(v, dtype=np.float32)
         B = self.light(u, v)
@@ -735,9 +764,12 @@ def detect_marker_corners(image: np.ndarray, marker: MarkerSpec,
 
 def marker_pose_from_image(image: np.ndarray, band: int, camera: SnapshotCamera,
                            marker: MarkerSpec) -> Pose | None:
-    """Pose of the marker seen in one band image: ArUco corners (+ the band's offset) and
-    ``cv2.solvePnP(SOLVEPNP_IPPE_SQUARE)`` with corners TL, TR, BR, BL = (-s/2, +s/2),
-    (+s/2, +s/2), (+s/2, -s/2), (-s/2, -s/2). None if the marker is not found."""
+    """Pose of the marker seen in one band image.
+
+    ArUco corners (+ the band's offset) and ``cv2.solvePnP(SOLVEPNP_IPPE_SQUARE)`` with corners
+    TL, TR, BR, BL = (-s/2, +s/2), (+s/2, +s/2), (+s/2, -s/2), (-s/2, -s/2). None if the marker
+    is not found.
+    """
     c = detect_marker_corners(image, marker)
     if c is None:
         return None
@@ -835,15 +867,18 @@ class SyntheticTruth:
 
     @property
     def inverse_response(self) -> np.ndarray:
+        """True inverse response ``U`` of every band (n_bands, 2**bits)."""
         U = np.asarray(self.sensor.inverse_response(), dtype=np.float64)
         return np.tile(U, (self.camera.n_bands, 1))
 
     @property
     def black_level(self) -> float:
+        """The sensor's black level (DN)."""
         return float(self.sensor.black_level)
 
     @property
     def dn_max(self) -> int:
+        """The largest DN of the camera's bit depth."""
         return 2 ** int(self.camera.bits) - 1
 
 
@@ -898,6 +933,7 @@ class FrameSet:
     black_level: int = 0
 
     def __len__(self) -> int:
+        """Return the number of frames."""
         return len(self.dn)
 
     def raw(self, k: int) -> np.ndarray:
@@ -915,7 +951,7 @@ def _round_ms(t: float) -> float:
 
 
 def _gauge(truth: SyntheticTruth) -> float:
-    """``a`` with ``U_true(C(x)) = a x``: the sensor's energy x in the U gauge (~1)."""
+    """Return ``a`` with ``U_true(C(x)) = a x``: the sensor's energy x in the U gauge (~1)."""
     s = truth.sensor
     k = int(s.k_ref) if hasattr(s, "k_ref") else truth.dn_max // 2
     return float(np.asarray(s.inverse_response())[k] / float(s.x_for_dn(k)))
@@ -1029,8 +1065,11 @@ def _frame_marker_ok(cam: SnapshotCamera, pose: Pose, marker: MarkerSpec, margin
 
 def _pose_through(cam: SnapshotCamera, R: np.ndarray, pixel: np.ndarray, q: np.ndarray,
                   depth: float) -> Pose:
-    """Pose with rotation R such that image point ``pixel`` sees plane point ``q`` and the
-    marker centre is at camera depth ~``depth``."""
+    """Return the pose that makes a pixel see a plane point at a depth.
+
+    Pose with rotation R such that image point ``pixel`` sees plane point ``q`` and the marker
+    centre is at camera depth ~``depth``.
+    """
     r = np.append(cam.rays(pixel.reshape(1, 2))[0], 1.0)
     Rq = R @ np.array([q[0], q[1], 0.0])
     lam = depth + Rq[2]
@@ -1048,8 +1087,7 @@ _COVERAGE_CELLS = (14, 26)
 
 
 def _aim_at_border(rng, h: int, w: int) -> np.ndarray:
-    """Image point near a random border, where a view with its marker out of frame aims the
-    reflector."""
+    """Image point near a random border, where a view with its marker out of frame aims the reflector."""
     side = int(rng.integers(4))
     t_px = np.array([rng.uniform(0, w - 1), rng.uniform(0, h - 1)])
     if side == 0:
@@ -1064,8 +1102,7 @@ def _aim_at_border(rng, h: int, w: int) -> np.ndarray:
 
 
 def _aim_least_covered(rng, coverage: np.ndarray) -> np.ndarray:
-    """Random image point in the coarse cell whose least covered pixel is least covered
-    (ties broken at random)."""
+    """Random image point in the coarse cell whose least covered pixel is least covered (ties broken at random)."""
     h, w = coverage.shape
     ch, cw = _COVERAGE_CELLS
     row_starts = np.linspace(0, h, ch + 1).astype(int)[:-1]
@@ -1080,8 +1117,11 @@ def _aim_least_covered(rng, coverage: np.ndarray) -> np.ndarray:
 def _random_view_pose(rng, cam: SnapshotCamera, t_px: np.ndarray, half_in: float,
                       half_out: np.ndarray, max_tilt_deg: float,
                       distance_m: tuple[float, float]) -> Pose:
-    """A pose that puts a random point of the gray part of the reflector (outside the marker
-    and its paper) at pixel ``t_px``, with a random tilt, roll and marker distance."""
+    """Draw a random view pose aimed at a pixel.
+
+    A pose that puts a random point of the gray part of the reflector (outside the marker and
+    its paper) at pixel ``t_px``, with a random tilt, roll and marker distance.
+    """
     while True:
         q = rng.uniform(-half_out, half_out)
         if np.max(np.abs(q)) >= half_in:
@@ -1093,8 +1133,11 @@ def _random_view_pose(rng, cam: SnapshotCamera, t_px: np.ndarray, half_in: float
 
 
 def _view_geometry_ok(cam: SnapshotCamera, pose: Pose, mk: MarkerSpec, missing: bool) -> bool:
-    """The camera faces the reflector and the marker is fully in frame (or, for a view meant
-    to miss it, clearly out of frame and not behind the camera)."""
+    """Check that a planned view sees the marker as intended.
+
+    The camera faces the reflector and the marker is fully in frame (or, for a view meant to
+    miss it, clearly out of frame and not behind the camera).
+    """
     if not _facing(pose, 60.0):
         return False
     ok, px = _frame_marker_ok(cam, pose, mk, margin_px=4.0, min_side_px=16.0)
@@ -1109,9 +1152,12 @@ def _view_geometry_ok(cam: SnapshotCamera, pose: Pose, mk: MarkerSpec, missing: 
 
 def _shoot_view(truth: SyntheticTruth, scene: ReflectorScene, pose: Pose, rng, missing: bool,
                 supersample: int, detect_bands: list[int]):
-    """Render and expose one planned view; ``(gray mask, exposure, DN)``, or None when too
-    little of the gray reflector is in view or ArUco does not behave as planned (found in
-    every detection band, or, for a view meant to miss it, in none)."""
+    """Render and expose one planned view.
+
+    ``(gray mask, exposure, DN)``, or None when too little of the gray reflector is in view or
+    ArUco does not behave as planned (found in every detection band, or, for a view meant to
+    miss it, in none).
+    """
     cam = truth.camera
     h, w = cam.grid_shape
     rend = render(cam, pose, scene, supersample=supersample)
@@ -1323,9 +1369,11 @@ DEFAULT_PANELS = (
 
 
 def _survey_pose(rng, along_m: float, altitude_m: float) -> tuple[Pose, float, float, float]:
-    """Pose of a survey frame about ``along_m`` north of the field centre: height, across-track
-    offset and along-track jitter at random, small roll / pitch (<= 3 deg) and yaw. Returns
-    ``(pose, across_m, along_m, height_m)``."""
+    """Pose of a survey frame about ``along_m`` north of the field centre.
+
+    Height, across-track offset and along-track jitter at random, small roll / pitch (<= 3 deg)
+    and yaw. Returns ``(pose, across_m, along_m, height_m)``.
+    """
     height = altitude_m + rng.normal(0.0, 0.3)
     cu = rng.uniform(-1.5, 1.5)
     cv_ = along_m + rng.normal(0, 0.2)
@@ -1336,8 +1384,11 @@ def _survey_pose(rng, along_m: float, altitude_m: float) -> tuple[Pose, float, f
 
 
 def _material_labels(cam: SnapshotCamera, scene: FieldScene, rend: Render, n_panels: int) -> np.ndarray:
-    """(H, W) int8 material index of every pixel that is pure in every band (0 soil, 1
-    vegetation, 2 + p panel p), -1 where mixed."""
+    """Label every pure pixel with its material.
+
+    (H, W) int8 material index of every pixel that is pure in every band (0 soil, 1 vegetation,
+    2 + p panel p), -1 where mixed.
+    """
     h, w = cam.grid_shape
     labels = np.full((h, w), -1, dtype=np.int8)
     # vegetation / soil purity: cover 1 / 0 everywhere within the PSF's reach

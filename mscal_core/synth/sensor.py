@@ -52,6 +52,7 @@ class SensorModel:
     gamma: float = 1.0  # y = R (f / R)^(1/gamma); 1 = linear raw sensor
 
     def __post_init__(self) -> None:
+        """Validate the bit depth, black level and shoulder."""
         if not 2 <= self.bits <= 16:
             raise InputError(f"sensor bits must be 2..16, got {self.bits}")
         if not 0 <= self.black_level < self.shoulder_start * self.dn_max:
@@ -137,18 +138,24 @@ class SensorModel:
         return np.minimum(self.analogue_dn(x), float(self.dn_max))
 
     def analogue_dn(self, x: np.ndarray) -> np.ndarray:
-        """``mu(x) = black + s(y(x))``: the mean signal before the ADC clip (exceeds
-        ``dn_max`` beyond saturation, up to ``dn_max + (R - y_s) / 2``)."""
+        """``mu(x) = black + s(y(x))``.
+
+        The mean signal before the ADC clip (exceeds ``dn_max`` beyond saturation, up to
+        ``dn_max + (R - y_s) / 2``).
+        """
         return self.black_level + self._above_black(x)
 
     def x_for_dn(self, dn: np.ndarray | float) -> np.ndarray:
-        """Energy ``x = C^{-1}(dn)`` giving an expected DN; 0 at/below black, the saturation
-        energy at/above ``dn_max``. For planning scene exposures."""
+        """Energy ``x = C^{-1}(dn)`` giving an expected DN.
+
+        0 at/below black, the saturation energy at/above ``dn_max``. For planning scene
+        exposures.
+        """
         d = np.asarray(dn, dtype=np.float64)
         return self._x_of_above_black(d - self.black_level)
 
     def inverse_response(self) -> np.ndarray:
-        """True ``U[k]`` for every DN ``k = 0 .. dn_max`` in the gauge of docs/architecture.md.
+        """Return the true ``U[k]`` for every DN ``k = 0 .. dn_max`` in the gauge of docs/architecture.md.
 
         ``U[k] = a * C^{-1}(k)`` with ``U[k] = 0`` for ``k <= black`` and the scale ``a`` set
         by ``U[k_ref] = k_ref - black``, ``k_ref = dn_max // 2``. float64, length ``2**bits``.
