@@ -77,6 +77,14 @@ Layout of the package (a newcomer reads them in this order):
 - ``_forward``: the default errors-in-DN fit and :func:`exposure_period`, built on
   ``_curve`` (the forward response C and its least-squares steps) and ``_noise`` (noise
   model, outlier weights, censored and hidden-saturated samples).
+
+References
+----------
+.. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+       for Multispectral Cameras", IEEE International Conference on Robotics and
+       Automation (ICRA), 2017.
+.. [2] P. E. Debevec and J. Malik, "Recovering High Dynamic Range Radiance Maps from
+       Photographs", Proc. SIGGRAPH 1997.
 """
 
 from ._common import CANDIDATES_PER_PIXEL, RESIDUAL_BINS, ResponseFit, predict_dn, predict_heldout_rms, residual_profile

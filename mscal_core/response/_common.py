@@ -15,7 +15,30 @@ CANDIDATES_PER_PIXEL = 25
 
 @dataclass(frozen=True)
 class ResponseFit:
-    """Result of one band's response fit (Eq. 5-7)."""
+    """Result of one band's response fit (Eq. 5-7).
+
+    Attributes
+    ----------
+    inverse_response : numpy.ndarray
+        U(k), ``(2**bits,)`` float64, monotone, in the gauge of the package (``U = 0`` at/below
+        black, ``U[k_ref] = k_ref - black``).
+    black_level : float
+        DN where U = 0.
+    saturation_dn : int
+        Samples ``>=`` this are saturated.
+    observed_dn : tuple of int
+        Lowest and highest unsaturated DN used.
+    residual_rms_dn : float
+        RMS of ``I - C(t E)`` over the samples used (DN).
+    method : str
+        ``"forward"`` or ``"alternating"``.
+    iterations : int
+        Iterations run.
+    n_samples : int
+        Unsaturated samples used.
+    residual_by_dn : numpy.ndarray or None
+        RMS of ``I - C(t E)`` per DN bin (see :func:`residual_profile`).
+    """
 
     inverse_response: np.ndarray  # U(k), (2**bits,) float64, monotone, gauge of the module
     black_level: float  # DN where U = 0
@@ -33,10 +56,26 @@ RESIDUAL_BINS = 32  # DN bins of ResponseFit.residual_by_dn over 0 .. 2**bits
 
 def residual_profile(dn: np.ndarray, predicted: np.ndarray, used: np.ndarray, bits: int,
                      n_bins: int = RESIDUAL_BINS) -> np.ndarray:
-    """RMS of the fit residual ``I - C(t E)`` (Eq. 5) per bin of observed DN.
+    """Return the RMS of the fit residual ``I - C(t E)`` (Eq. 5) per bin of observed DN.
 
-    ``n_bins`` equal bins over ``0 .. 2**bits``; NaN for a bin without used samples. Its
-    sample-weighted mean square is the square of ``ResponseFit.residual_rms_dn``.
+    Parameters
+    ----------
+    dn : numpy.ndarray
+        Observed DN of the samples.
+    predicted : numpy.ndarray
+        ``C(t E)`` of the same samples.
+    used : numpy.ndarray
+        Boolean mask of the samples the fit used.
+    bits : int
+        Bit depth of the camera.
+    n_bins : int
+        Equal bins over ``0 .. 2**bits``.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n_bins,)`` RMS per bin; NaN for a bin without used samples. Its sample-weighted mean
+        square is the square of ``ResponseFit.residual_rms_dn``.
     """
     d = np.asarray(dn, dtype=np.float64)[used]
     r2 = (d - np.asarray(predicted, dtype=np.float64)[used]) ** 2
@@ -253,9 +292,23 @@ def finalise(u_raw: np.ndarray, black: float, hi: int, bits: int) -> np.ndarray:
 def predict_dn(inverse_response: np.ndarray, energy: np.ndarray) -> np.ndarray:
     """Predict the DN for an exposure energy ``x = t E`` in U's units: ``C(x) = U^{-1}(x)``.
 
-    Monotone linear interpolation of the pairs ``(U[k], k)`` (plateaus of U map to their mean
-    DN). When U has a zero plateau (U = 0 at/below black), zero energy maps to the black level
-    extrapolated from the first two positive values. Clipped to ``[first DN, dn_max]``.
+    Parameters
+    ----------
+    inverse_response : numpy.ndarray
+        Monotone U on every DN, ``(2**bits,)``.
+    energy : numpy.ndarray
+        Exposure energies ``x = t E`` in U's units (any shape).
+
+    Returns
+    -------
+    numpy.ndarray
+        Expected DN (float64, same shape as ``energy``), clipped to ``[first DN, dn_max]``.
+
+    Notes
+    -----
+    Inverts Eq. 4, ``U(I) = t E``: monotone linear interpolation of the pairs ``(U[k], k)``
+    (plateaus of U map to their mean DN). When U has a zero plateau (U = 0 at/below black),
+    zero energy maps to the black level extrapolated from the first two positive values.
     """
     U = np.asarray(inverse_response, dtype=np.float64)
     k = np.arange(U.size, dtype=np.float64)
@@ -277,11 +330,41 @@ def predict_heldout_rms(
     *,
     saturation_dn: int | None = None,
 ) -> float:
-    """RMS DN error predicting a held-out frame from a reference frame through U.
+    """Return the RMS DN error predicting a held-out frame from a reference frame through U.
 
-    ``predicted = C(U(I_ref) / t_ref * t_heldout)`` (Eq. 4 both ways), compared with the
-    held-out DN on pixels unsaturated and unclipped in both frames. Works with any monotone
-    U whose scale is arbitrary (e.g. OpenCV's Debevec response column).
+    Parameters
+    ----------
+    inverse_response : numpy.ndarray
+        Any monotone U, ``(2**bits,)``, whose scale is arbitrary (e.g. OpenCV's Debevec
+        response column [2]_).
+    dn_ref, dn_heldout : numpy.ndarray
+        DN of the reference and the held-out frame (same pixels).
+    t_ref, t_heldout : float
+        Their exposures.
+    saturation_dn : int, optional
+        Samples ``>=`` this are saturated (default ``dn_max``).
+
+    Returns
+    -------
+    float
+        RMS of ``predicted - dn_heldout`` (DN) on pixels unsaturated and unclipped in both frames.
+
+    Raises
+    ------
+    FitError
+        When no pixel is unsaturated in both frames.
+
+    Notes
+    -----
+    ``predicted = C(U(I_ref) / t_ref * t_heldout)``: Eq. 4, ``U(I) = t E``, both ways [1]_.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
+    .. [2] P. E. Debevec and J. Malik, "Recovering High Dynamic Range Radiance Maps from
+           Photographs", Proc. SIGGRAPH 1997.
     """
     U = np.asarray(inverse_response, dtype=np.float64)
     dn_max = U.size - 1

@@ -15,11 +15,39 @@ _MEDIAN_PIXELS = 1 << 18
 def check_exposure_consistency(dn: np.ndarray, exposure: np.ndarray, bits: int) -> list[int]:
     """Find the frames whose brightness contradicts their exposure.
 
+    Parameters
+    ----------
+    dn : numpy.ndarray
+        ``(n_frames, n_pixels)`` integer samples of a static scene.
+    exposure : numpy.ndarray
+        ``(n_frames,)`` effective exposures, positive.
+    bits : int
+        Bit depth of the camera.
+
+    Returns
+    -------
+    list of int
+        Indices of the removed frames, sorted (empty for a consistent sweep).
+
+    Raises
+    ------
+    InputError
+        On bad shapes, non-positive exposures or DN outside the bit depth.
+
+    Notes
+    -----
     For every pair of frames with exposures ``t_a >= 1.25 t_b`` the longer frame must not be
     darker: its median DN may not fall below the shorter one's by more than
     ``max(1, 0.5 % of dn_max)``. Offending frames are removed greedily (the frame in most
     contradictions first; ties go to the frame farthest from a monotone fit of median DN on
-    exposure) until none is left; the removed indices are returned, sorted.
+    exposure) until none is left. The response fit (Eq. 5-7 of [1]_) assumes a static scene
+    under constant light; a frame that breaks this would bend U.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     dn, t = validate_samples(dn, exposure, bits)
     dn_max = 2**bits - 1

@@ -32,11 +32,24 @@ PERIOD_POW = 2.0
 def exposure_period(exposure: np.ndarray, tol: float = 0.2) -> float:
     """Return the exposure step of a sweep, ``log`` of the ratio.
 
-    The largest ``g`` such that every step between consecutive distinct exposures is (within
-    ``tol`` of) a whole multiple of ``g``. Brackets are geometric (1/1000, 1/500, ... or third
-    stops), so every exposure ratio is a power of the step; U is then determined by the data
-    only up to a factor that is periodic in ``log x`` with this period, which the prior must
-    resolve.
+    Parameters
+    ----------
+    exposure : numpy.ndarray
+        Exposures of the sweep (any order; repeats allowed).
+    tol : float
+        Allowed deviation of a step from a whole multiple of the period, in periods.
+
+    Returns
+    -------
+    float
+        The largest ``g`` such that every step between consecutive distinct exposures is (within
+        ``tol`` of) a whole multiple of ``g``; ``log 2`` without a step above 0.05.
+
+    Notes
+    -----
+    Brackets are geometric (1/1000, 1/500, ... or third stops), so every exposure ratio is a
+    power of the step; U is then determined by the data only up to a factor that is periodic in
+    ``log x`` with this period, which the prior must resolve.
     """
     lt = np.unique(np.log(np.asarray(exposure, dtype=np.float64)))
     steps = np.diff(lt)
