@@ -44,14 +44,22 @@ __all__ = [
 class IlluminationFit:
     """Result of :func:`fit_illumination`.
 
-    - ``spectral_factor`` (n_bands,) S(lambda).
-    - ``brightness`` (n_pix,) B(x) per reflector pixel (NaN where a pixel had no valid band).
-      Gauge (``S B`` is known up to a scale): ``median(B) = 1`` over all pixels given, so S
-      is the spectral factor of the median-lit reflector pixel.
-    - ``image_brightness`` (n_images,) median B of each image when ``image_index`` was given,
-      else None.
-    - ``residual_rms`` relative rms of ``L / (S B R_s) - 1`` over the valid entries.
-    - ``iterations``; ``converged`` whether ``tol`` was reached.
+    Attributes
+    ----------
+    spectral_factor : numpy.ndarray
+        (n_bands,) S(lambda).
+    brightness : numpy.ndarray
+        (n_pix,) B(x) per reflector pixel (NaN where a pixel had no valid band). Gauge (``S B``
+        is known up to a scale): ``median(B) = 1`` over all pixels given, so S is the spectral
+        factor of the median-lit reflector pixel.
+    image_brightness : numpy.ndarray or None
+        (n_images,) median B of each image when ``image_index`` was given, else None.
+    residual_rms : float
+        Relative rms of ``L / (S B R_s) - 1`` over the valid entries.
+    iterations : int
+        Alternations done.
+    converged : bool
+        Whether ``tol`` was reached.
     """
 
     spectral_factor: np.ndarray
@@ -72,16 +80,46 @@ def fit_illumination(
 ) -> IlluminationFit:
     """Fit ``L_lambda(x) = S(lambda) B(x) R_s(lambda)`` on reflector pixels (Eq. 12-14).
 
-    ``radiance`` (n_bands, n_pix) = ``U(I)/(t V)`` at reflector pixels; NaN / inf entries
-    (saturated, masked) are left out of every sum. Several reflector images: concatenate
-    their pixels along the second axis (B is per pixel per image, S shared) and pass
-    ``image_index`` (n_pix,) int to get each image's median brightness.
-    ``reflectance`` R_s per band (n_bands,) or one scalar (a gray reflector).
+    Parameters
+    ----------
+    radiance : numpy.ndarray
+        (n_bands, n_pix) ``U(I)/(t V)`` at reflector pixels; NaN / inf entries (saturated,
+        masked) are left out of every sum. Several reflector images: concatenate their pixels
+        along the second axis (B is per pixel per image, S shared).
+    reflectance : numpy.ndarray or float
+        R_s per band (n_bands,) or one scalar (a gray reflector).
+    max_iter : int
+        Alternations at most.
+    tol : float
+        Stop when the largest relative change of S is below this.
+    image_index : numpy.ndarray, optional
+        (n_pix,) int, the image of every pixel, to get each image's median brightness.
 
-    Alternates Eq. 13 and Eq. 14 from ``B = mean over lambda of L`` (nanmean) until the
-    largest relative change of S is below ``tol`` (or ``max_iter``). Gauge: ``median(B) = 1``.
-    Raises InputError on bad shapes / reflectances and FitError when a band has no valid
-    reflector pixel (it cannot be calibrated from these images).
+    Returns
+    -------
+    IlluminationFit
+        S, B (gauge ``median(B) = 1``), the per-image brightness and the residual.
+
+    Raises
+    ------
+    InputError
+        On bad shapes, reflectances or image indices.
+    FitError
+        When a band has no valid reflector pixel (it cannot be calibrated from these images),
+        or S or B come out non-positive.
+
+    Notes
+    -----
+    Eq. 12, ``M(S, B) = sum_lambda sum_x (L_lambda(x) - S(lambda) B(x) R_s)^2``, is minimised
+    by alternating Eq. 13, ``S(lambda) = sum_x L_lambda(x) B(x) R_s / sum_x (B(x) R_s)^2``, and
+    Eq. 14, ``B(x) = sum_lambda L_lambda(x) S(lambda) R_s / sum_lambda (S(lambda) R_s)^2``, from
+    ``B = mean over lambda of L`` (nanmean) [1]_.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     rad, refl, idx = _checked_inputs(radiance, reflectance, image_index)
     valid = np.isfinite(rad)
@@ -207,18 +245,42 @@ def eq16_reflectance(
     reflector_dn: np.ndarray | float,
     reflector_reflectance: np.ndarray | float,
 ) -> np.ndarray:
-    """Baseline Eq. 16: ``R = I_target / I_reflector * R_s`` per band (float64).
+    """Return the baseline reflectance of Eq. 16: ``R = I_target / I_reflector * R_s`` per band.
 
-    ``target_dn`` has the band axis first: (n_bands, ...) e.g. (n_bands, H, W).
-    ``reflector_dn`` is either one value per band (n_bands,) (e.g. the mean reflector DN) or
-    an array broadcastable to ``target_dn`` (e.g. a reflector image (n_bands, H, W): a
-    per-pixel ratio that also cancels vignetting). ``reflector_reflectance`` R_s is a scalar
-    or (n_bands,). Raw DN: the same exposure for target and reflector and a negligible black
-    level are assumed, as in the paper's baseline.
+    Parameters
+    ----------
+    target_dn : numpy.ndarray
+        Band axis first: (n_bands, ...) e.g. (n_bands, H, W).
+    reflector_dn : numpy.ndarray or float
+        One value per band (n_bands,) (e.g. the mean reflector DN) or an array broadcastable to
+        ``target_dn`` (e.g. a reflector image (n_bands, H, W): a per-pixel ratio that also
+        cancels vignetting).
+    reflector_reflectance : numpy.ndarray or float
+        R_s, a scalar or (n_bands,).
 
-    Exact only if the reflector image was uniformly lit: any brightness gradient or shadow
-    on the reflector is imprinted, inverted, on the target reflectance. Non-positive
-    reflector DN gives NaN.
+    Returns
+    -------
+    numpy.ndarray
+        float64 reflectance, the shape of ``target_dn``; NaN where the reflector DN is not
+        positive.
+
+    Raises
+    ------
+    InputError
+        On shapes that do not fit.
+
+    Notes
+    -----
+    Raw DN: the same exposure for target and reflector and a negligible black level are
+    assumed, as in the paper's baseline [1]_. Exact only if the reflector image was uniformly
+    lit: any brightness gradient or shadow on the reflector is imprinted, inverted, on the
+    target reflectance.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     tgt = np.asarray(target_dn, dtype=np.float64)
     if tgt.ndim < 1:

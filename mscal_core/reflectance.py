@@ -42,25 +42,53 @@ def eq15(
     *,
     saturation_dn: int | None = None,
 ) -> np.ndarray:
-    """Eq. 15: ``R = U(I) / (t V S B)``, float32, vectorised over bands and frames.
+    """Return the reflectance of Eq. 15, ``R = U(I) / (t V S B)``, vectorised over bands and frames.
 
-    Shapes (band axis = the third from last):
+    Parameters
+    ----------
+    dn : numpy.ndarray
+        Integer DN, (n_bands, H, W) or (n_frames, n_bands, H, W) (band axis = the third from
+        last).
+    inverse_response : numpy.ndarray
+        U: (2**bits,) shared by all bands or (n_bands, 2**bits), one per band ("every band is
+        its own camera"). Negative values are treated as 0.
+    exposure : numpy.ndarray or float
+        t (> 0): scalar, (n_frames,) for a frame stack, or an array broadcasting to ``dn`` (e.g.
+        (n_bands, 1, 1) for per-band exposures).
+    vignetting : numpy.ndarray
+        V: (n_bands, H, W) (or broadcastable, e.g. (H, W) for one band).
+    spectral_factor : numpy.ndarray
+        S: (n_bands,).
+    brightness : numpy.ndarray or float
+        B: scalar (default 1, i.e. relative reflectance), (n_frames,), or an array broadcasting
+        to ``dn`` (e.g. a brightness map (H, W)).
+    saturation_dn : int, optional
+        DN at or above it are saturated and give NaN; None means ``len(U) - 1`` (``dn_max``,
+        saturated by the project's convention); pass ``len(U)`` to keep every DN.
 
-    - ``dn`` integer DN, (n_bands, H, W) or (n_frames, n_bands, H, W).
-    - ``inverse_response`` U: (2**bits,) shared by all bands or (n_bands, 2**bits), one per
-      band ("every band is its own camera"). Negative values are treated as 0.
-    - ``exposure`` t (> 0): scalar, (n_frames,) for a frame stack, or an array broadcasting
-      to ``dn`` (e.g. (n_bands, 1, 1) for per-band exposures).
-    - ``vignetting`` V: (n_bands, H, W) (or broadcastable, e.g. (H, W) for one band).
-    - ``spectral_factor`` S: (n_bands,).
-    - ``brightness`` B: scalar (default 1, i.e. relative reflectance), (n_frames,), or an
-      array broadcasting to ``dn`` (e.g. a brightness map (H, W)).
+    Returns
+    -------
+    numpy.ndarray
+        float32 reflectance, the shape of ``dn``. Never negative or inf: U = 0 gives 0; V, S or
+        B that are not positive and finite give NaN.
 
-    ``saturation_dn``: DN at or above it are saturated and give NaN; None means
-    ``len(U) - 1`` (``dn_max``, saturated by the project's convention); pass ``len(U)`` to
-    keep every DN. Never negative or inf: U = 0 gives 0; V, S or B that are not positive
-    and finite give NaN. Raises InputError for DN outside the response table, non-integer
-    DN, non-positive exposure or mismatched shapes.
+    Raises
+    ------
+    InputError
+        For DN outside the response table, non-integer DN, non-positive exposure or mismatched
+        shapes.
+
+    Notes
+    -----
+    Eq. 15 of [1]_, ``R_lambda(x) = U_lambda(I_lambda(x)) / (t V_lambda(x) S(lambda) B(x))``.
+    B of the target scene is unknown, so R is relative: one scalar per frame
+    (:func:`normalise_to_panel`).
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     d = np.asarray(dn)
     if d.ndim not in (3, 4):
@@ -225,17 +253,46 @@ def eq15_fast(
     dn: np.ndarray, lut: np.ndarray, inv_v: np.ndarray, exposure: np.ndarray | float, saturation_dn: int,
     band_scale: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Eq. 15 for a stack of frames with the tables of :func:`eq15_tables` (float32 throughout).
+    """Return Eq. 15 for a stack of frames with the tables of :func:`eq15_tables` (float32 throughout).
 
-    ``dn`` (n_frames, n_bands, H, W) unsigned integers, ``exposure`` t (n_frames,) or scalar.
-    ``R = lut[b][I] * inv_v[b] / t``; NaN where ``I >= saturation_dn``. Agrees with
-    :func:`eq15` to float32 rounding; about 6x faster (a table lookup per band, no float64).
+    Parameters
+    ----------
+    dn : numpy.ndarray
+        (n_frames, n_bands, H, W) unsigned integers.
+    lut, inv_v : numpy.ndarray
+        The tables of :func:`eq15_tables`.
+    exposure : numpy.ndarray or float
+        t (n_frames,) or scalar, positive.
+    saturation_dn : int
+        NaN where ``I >= saturation_dn``.
+    band_scale : numpy.ndarray, optional
+        (n_frames, n_bands) or (n_bands,): a per-frame, per-band factor folded into each frame's
+        table at no extra cost per pixel, ``R = lut[b][I] k_b / t * inv_v[b]``. None (default)
+        computes exactly what it did without the argument.
 
-    ``band_scale`` (n_frames, n_bands) or (n_bands,), optional: a per-frame, per-band factor
-    folded into each frame's table at no extra cost per pixel, ``R = lut[b][I] k_b / t * inv_v[b]``.
-    The light of a frame that differs from the calibration's S (issue 8) enters as
-    ``k_b = S(lambda_b) / S(lambda_b, tau)``: Eq. 15 with ``S(lambda, tau)`` in place of S.
-    None (default) computes exactly what it did without the argument.
+    Returns
+    -------
+    numpy.ndarray
+        float32 ``R = lut[b][I] * inv_v[b] / t``, the shape of ``dn``.
+
+    Raises
+    ------
+    InputError
+        For DN that are not unsigned integers of 4 dimensions, non-positive or non-finite
+        exposures, a ``band_scale`` that does not fit or is not positive, or tables that do
+        not fit.
+
+    Notes
+    -----
+    Agrees with :func:`eq15` to float32 rounding; about 6x faster (a table lookup per band, no
+    float64). The light of a frame that differs from the calibration's S (issue 8) enters as
+    ``k_b = S(lambda_b) / S(lambda_b, tau)``: Eq. 15 with ``S(lambda, tau)`` in place of S [1]_.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     d = np.asarray(dn)
     if d.ndim != 4 or not np.issubdtype(d.dtype, np.unsignedinteger):

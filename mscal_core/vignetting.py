@@ -83,16 +83,25 @@ _GAUGE_SIGMA = 2.0
 class VignettingFit:
     """Result of :func:`fit_vignetting` for one band.
 
-    - ``vignetting`` (H, W) float64, V(x), ``max V = 1`` (gauge: the 99.9th percentile of the
-      denoised well-observed V is 1, the few values above are clipped to 1); filled where
-      not observed.
-    - ``count`` (H, W) int64: informative observations per pixel (in cells seen by at least
-      two different pixels, in the main connected part of the pixel/cell graph).
-    - ``observed`` (H, W) bool: ``count >= min_count``; False pixels are filled smoothly.
-    - ``radiance`` (n_cells,) float64: L(p) per plane cell in the same gauge (``V L = y``);
-      NaN for cells never observed.
-    - ``residual_rms`` relative rms of ``y / (V L) - 1`` over the informative observations.
-    - ``iterations`` Eq. 9/10 alternations done; ``converged`` whether ``tol`` was reached.
+    Attributes
+    ----------
+    vignetting : numpy.ndarray
+        (H, W) float64, V(x), ``max V = 1`` (gauge: the 99.9th percentile of the denoised
+        well-observed V is 1, the few values above are clipped to 1); filled where not observed.
+    count : numpy.ndarray
+        (H, W) int64: informative observations per pixel (in cells seen by at least two
+        different pixels, in the main connected part of the pixel/cell graph).
+    observed : numpy.ndarray
+        (H, W) bool: ``count >= min_count``; False pixels are filled smoothly.
+    radiance : numpy.ndarray
+        (n_cells,) float64: L(p) per plane cell in the same gauge (``V L = y``); NaN for cells
+        never observed.
+    residual_rms : float
+        Relative rms of ``y / (V L) - 1`` over the informative observations.
+    iterations : int
+        Eq. 9/10 alternations done.
+    converged : bool
+        Whether ``tol`` was reached.
     """
 
     vignetting: np.ndarray
@@ -113,11 +122,27 @@ def cell_grid(
     cells_per_m: float | None = None,
     grid: tuple[int, int] | None = None,
 ) -> tuple[int, int]:
-    """Return the number of plane cells ``(nu, nv)`` across the reflector ``size_m = [w, h]``.
+    """Return the number of plane cells ``(nu, nv)`` across the reflector.
 
-    ``grid`` wins if given; else ``cells_per_m`` (``nu = ceil(w * cells_per_m)``, same for
-    ``nv``); else square cells with :data:`DEFAULT_CELLS_ALONG` along the longer side.
-    ``n_cells = nu * nv``.
+    Parameters
+    ----------
+    size_m : float or sequence of float
+        Reflector size ``[w, h]`` in metres (one value: a square).
+    cells_per_m : float, optional
+        Cell density: ``nu = ceil(w * cells_per_m)``, same for ``nv``.
+    grid : tuple of int, optional
+        ``(nu, nv)`` given directly; wins over ``cells_per_m``.
+
+    Returns
+    -------
+    tuple of int
+        ``(nu, nv)``; ``n_cells = nu * nv``. Without ``grid`` or ``cells_per_m``: square cells
+        with :data:`DEFAULT_CELLS_ALONG` along the longer side.
+
+    Raises
+    ------
+    InputError
+        On a grid that is not two positive integers or a non-positive density.
     """
     w, h = size_wh(size_m)
     if grid is not None:
@@ -140,10 +165,21 @@ def cell_grid(
 
 
 def cell_centres(size_m: float | Sequence[float], grid: tuple[int, int]) -> np.ndarray:
-    """Plane points (u, v) of the cell centres, (nu * nv, 2), in cell-index order.
+    """Return the plane points (u, v) of the cell centres in cell-index order.
 
-    Cell ``iv * nu + iu`` spans ``u in [-w/2 + iu w/nu, -w/2 + (iu+1) w/nu)`` and likewise in
-    ``v`` (``v`` up, as in the marker frame).
+    Parameters
+    ----------
+    size_m : float or sequence of float
+        Reflector size ``[w, h]`` in metres.
+    grid : tuple of int
+        ``(nu, nv)`` from :func:`cell_grid`.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(nu * nv, 2)`` metres. Cell ``iv * nu + iu`` spans
+        ``u in [-w/2 + iu w/nu, -w/2 + (iu+1) w/nu)`` and likewise in ``v`` (``v`` up, as in the
+        marker frame).
     """
     w, h = size_wh(size_m)
     nu, nv = cell_grid(size_m, grid=grid)
@@ -162,16 +198,48 @@ def view_observations(
     cells_per_m: float | None = None,
     grid: tuple[int, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Observations of ONE band in ONE view of the reflector, for :func:`fit_vignetting`.
+    """Collect the observations of ONE band in ONE view of the reflector for :func:`fit_vignetting`.
 
-    ``energy`` (H, W) = ``U(I)/t`` (saturated pixels passed as NaN), ``uv`` (H, W, 2) from
-    :func:`mscal_core.geometry.pixels_to_plane`, ``mask`` (H, W) from
-    :func:`mscal_core.geometry.reflector_mask`. Every pixel with ``mask`` True, finite
-    positive energy and its plane point inside the reflector gives one observation: its flat
-    pixel index ``i * W + j``, the flat index of the cell containing its plane point (see
-    :func:`cell_centres`; grid from :func:`cell_grid`) and its energy. This is the inverse of
-    the paper's ``pi_i(p) = x``. Returns ``(pixel_index int64, cell_index int64,
-    values float64)``, all of the same length.
+    Every pixel with ``mask`` True, finite positive energy and its plane point inside the
+    reflector gives one observation: its flat pixel index ``i * W + j``, the flat index of the
+    cell containing its plane point (see :func:`cell_centres`; grid from :func:`cell_grid`) and
+    its energy.
+
+    Parameters
+    ----------
+    energy : numpy.ndarray
+        (H, W) ``U(I)/t`` (saturated pixels passed as NaN).
+    uv : numpy.ndarray
+        (H, W, 2) plane points from :func:`mscal_core.geometry.pixels_to_plane`.
+    mask : numpy.ndarray
+        (H, W) bool from :func:`mscal_core.geometry.reflector_mask`.
+    size_m : float or sequence of float
+        Reflector size ``[w, h]`` in metres.
+    cells_per_m, grid
+        The cell grid, as :func:`cell_grid`.
+
+    Returns
+    -------
+    pixel_index, cell_index : numpy.ndarray
+        int64, of the same length.
+    values : numpy.ndarray
+        float64 energies ``y = U(I)/t``.
+
+    Raises
+    ------
+    InputError
+        When the shapes of ``energy``, ``uv`` and ``mask`` do not match.
+
+    Notes
+    -----
+    This is the inverse of the paper's ``pi_i(p) = x`` [1]_: each pixel is mapped once to the
+    plane instead of each plane point projected into the image.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     e = np.asarray(energy, dtype=np.float64)
     pts = np.asarray(uv, dtype=np.float64)
@@ -322,30 +390,71 @@ def fit_vignetting(
 ) -> VignettingFit:
     """Fit V(x) and L(p) of one band from all its reflector observations (Eq. 8-10).
 
-    Inputs are the concatenated outputs of :func:`view_observations` over all views:
-    ``pixel_index`` (flat index into ``shape = (H, W)``), ``cell_index`` (flat plane cell,
-    ``< n_cells``) and ``values`` ``y = U(I)/t``; non-finite or non-positive values are
-    ignored. ``weights`` (optional, per observation) enter Eq. 9'/10' (module docstring);
-    ``w = t^2`` is the paper's literal weighting.
+    Parameters
+    ----------
+    pixel_index : numpy.ndarray
+        Flat index into ``shape = (H, W)`` of every observation (the concatenated outputs of
+        :func:`view_observations` over all views).
+    cell_index : numpy.ndarray
+        Flat plane cell of every observation, ``< n_cells``.
+    values : numpy.ndarray
+        ``y = U(I)/t``; non-finite or non-positive values are ignored.
+    shape : tuple of int
+        ``(H, W)`` of the band grid.
+    n_cells : int
+        Number of plane cells.
+    weights : numpy.ndarray, optional
+        Per observation weights of Eq. 9'/10' (module docstring); ``w = t^2`` is the paper's
+        literal weighting; default 1.
+    max_iter : int
+        Eq. 9'/10' sweeps at most.
+    tol : float
+        Stop when the largest relative change of V is below this.
+    min_count : int
+        Pixels with fewer informative observations are filled (``observed = False``).
+    smooth_sigma : float
+        Pixels; > 0 smooths the residual ``V - model`` of the well-observed V (default 0: off).
+    init_iter : int
+        Iterations of the log-domain initialisation at most (0: start from V = 1).
 
-    Method:
+    Returns
+    -------
+    VignettingFit
+        V (``max V = 1``), the counts and the observed mask, L per cell, the residual and the
+        iterations.
+
+    Raises
+    ------
+    InputError
+        On inconsistent inputs.
+    FitError
+        When no informative observation is left (e.g. every view saw the reflector at the same
+        place), no pixel has ``min_count`` of them, or the fitted V is not positive.
+
+    Notes
+    -----
+    The paper fits Eq. 8, ``M(L, V) = sum_{i,p} (t_i V(pi_i(p)) L(p) - U(I_i(pi_i(p))))^2``, by
+    alternating Eq. 9, ``V(x) = sum t_i L(p) U(I_i(x)) / sum (t_i L(p))^2``, and Eq. 10,
+    ``L(p) = sum_i t_i V(pi_i(p)) U(I_i(pi_i(p))) / sum_i (t_i V(pi_i(p)))^2`` [1]_. With
+    ``y = U(I)/t`` they read ``V(x) = sum w L(p) y / sum w L(p)^2`` (9') and
+    ``L(p) = sum w V(x) y / sum w V(x)^2`` (10'). Steps:
 
     1. Only informative observations are used: those in cells seen by at least two different
-       pixels (a cell seen by one pixel only fixes its own L and says nothing about V), in
-       the largest connected part of the pixel/cell graph (a separate part would have its
-       own unknown scale).
+       pixels (a cell seen by one pixel only fixes its own L and says nothing about V), in the
+       largest connected part of the pixel/cell graph (a separate part would have its own
+       unknown scale).
     2. Initialisation: log-domain sparse least squares ``log y = log V(x) + log L(p)``
-       (preconditioned CGLS, the method of ``scipy.sparse.linalg.lsqr``, matrix-free; at
-       most ``init_iter`` iterations, 0 = start from V = 1). It solves the slow, smooth
-       modes that the plain alternation takes many sweeps to move.
+       (preconditioned CGLS, the method of ``scipy.sparse.linalg.lsqr``, matrix-free; at most
+       ``init_iter`` iterations, 0 = start from V = 1). It solves the slow, smooth modes that
+       the plain alternation takes many sweeps to move.
     3. Alternate Eq. 10' (L from V) and Eq. 9' (V from L), vectorised with ``np.bincount``,
        until the largest relative change of V is below ``tol`` or ``max_iter`` sweeps.
     4. Gauge (V is known up to scale, paper: max V = 1): the 99.9th percentile over the
-       well-observed pixels (``count >= min_count``) of a denoised V (the radial model of
-       step 5 plus the residual smoothed over 2 px) is set to 1 and L scaled inversely. A
-       single noisy pixel does not set the scale, and the per-pixel noise does not push the
-       percentile up (with 1 % noise a plain percentile puts the gauge ~0.5 % too high).
-       The few V above 1 are clipped to 1.
+       well-observed pixels (``count >= min_count``) of a denoised V (the radial model of step
+       5 plus the residual smoothed over 2 px) is set to 1 and L scaled inversely. A single
+       noisy pixel does not set the scale, and the per-pixel noise does not push the
+       percentile up (with 1 % noise a plain percentile puts the gauge ~0.5 % too high). The
+       few V above 1 are clipped to 1.
     5. Pixels with ``count < min_count`` are filled with a smooth radial model
        ``a0 + a1 r^2 + a2 r^4 + a3 r^6`` around a fitted centre (the paper finds radially
        symmetric vignetting) plus the local residual of nearby observed pixels (normalised
@@ -353,12 +462,15 @@ def fit_vignetting(
        ``observed = False``.
     6. ``smooth_sigma > 0`` (pixels, default 0 = off) smooths the well-observed V to beat
        per-pixel noise: only the residual ``V - model`` is smoothed (normalised convolution
-       over the observed pixels) and added back to the model, so the falloff itself, which
-       the model carries, is not flattened. Off by default because per-pixel gain
-       differences (PRNU, dust) are real parts of V.
+       over the observed pixels) and added back to the model, so the falloff itself, which the
+       model carries, is not flattened. Off by default because per-pixel gain differences
+       (PRNU, dust) are real parts of V.
 
-    Raises InputError on inconsistent inputs and FitError when no informative observation
-    is left (e.g. every view saw the reflector at the same place).
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     h, w = int(shape[0]), int(shape[1])
     n_pix = h * w
@@ -593,13 +705,27 @@ def view_inconsistency(
 ) -> float:
     """Return the fraction of one view's observations the fitted model misses.
 
-    Fraction of one view's observations that the fitted model (Eq. 8: ``y = V(x) L(p)``) misses
-    by more than ``tol`` (relative).
+    Parameters
+    ----------
+    fit : VignettingFit
+        The band's fit.
+    pixel_index, cell_index, values : numpy.ndarray
+        One view's observations (:func:`view_observations`).
+    tol : float
+        Relative miss counted as inconsistent.
 
-    A good view scatters by its noise only (about 1 %); a view whose marker pose is wrong
-    (e.g. the wrong one of the two planar-pose solutions) maps lawn or the marker's paper onto
-    reflector cells and misses by tens of percent on a large part of its pixels. Observations
-    in cells the fit never saw are ignored. Returns NaN when nothing is comparable.
+    Returns
+    -------
+    float
+        Fraction of the comparable observations with ``|y / (V(x) L(p)) - 1| > tol`` (Eq. 8
+        model ``y = V(x) L(p)``); NaN when nothing is comparable. Observations in cells the fit
+        never saw are ignored.
+
+    Notes
+    -----
+    A good view scatters by its noise only (about 1 %); a view whose marker pose is wrong (e.g.
+    the wrong one of the two planar-pose solutions) maps lawn or the marker's paper onto
+    reflector cells and misses by tens of percent on a large part of its pixels.
     """
     v = fit.vignetting.ravel()[pixel_index]
     lp = fit.radiance[cell_index]
@@ -611,9 +737,22 @@ def view_inconsistency(
 
 
 def inconsistent_views(fractions: np.ndarray, floor: float = 0.05, factor: float = 5.0) -> np.ndarray:
-    """Find the views whose :func:`view_inconsistency` is above ``max(floor, factor x the median over views)``.
+    """Find the views to drop before the per-band fits.
 
-    The views to drop before the per-band fits.
+    Parameters
+    ----------
+    fractions : numpy.ndarray
+        :func:`view_inconsistency` of every view (NaN allowed).
+    floor : float
+        Fractions up to this are always kept.
+    factor : float
+        Multiple of the median fraction over views above which a view is dropped.
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 indices of the views whose fraction is above ``max(floor, factor x the median
+        over views)``.
     """
     f = np.asarray(fractions, dtype=np.float64)
     finite = f[np.isfinite(f)]
