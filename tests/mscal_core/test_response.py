@@ -346,9 +346,9 @@ def test_forward_fit_speed_per_band() -> None:
     sensor, n, step = SETTINGS["14x1.66"]
     dn, t = make_sweep(sensor, n, step, 4000, 9)
     fit_response(dn, t, 10)
-    t0 = time.perf_counter()
+    t0 = time.process_time()  # CPU time: other jobs on a shared machine do not count
     fit_response(dn, t, 10)
-    assert time.perf_counter() - t0 < 1.0  # target 0.5 s; slack for a shared machine
+    assert time.process_time() - t0 < 1.0  # target 0.5 s
 
 
 # ------------------------------------------------------------------ harder conditions
