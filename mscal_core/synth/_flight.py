@@ -76,26 +76,60 @@ def flight_frames(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 8,
                   panels: Sequence[Panel] = DEFAULT_PANELS, supersample: int = 3,
                   time_offset_s: float = 1200.0, frame_interval_s: float = 2.0,
                   drift: LightDrift | None = None, clouds: bool = True, irradiance: bool = False) -> FrameSet:
-    """Nadir-ish survey frames of a crop field with gray panels (target of Eq. 15).
+    """Render nadir-ish survey frames of a crop field with gray panels (target of Eq. 15).
 
     Frames are taken along a north-going line at ~``altitude_m`` (GSD ~5.7 cm per band-grid
     pixel at 25 m), ``spacing_m`` apart, with small roll/pitch/yaw, so the panel row (v = 0) is
     seen in several frames at different image rows. Light is uniform within a frame,
-    ``B = sun_k`` with ``sun_k`` (clouds) unknown to the fit; its colour ``S`` is the one of
-    the reflector images. Exposure per frame (auto exposure): brightest pixel at 72-82 %.
-    Reflectance: soil and a green crop (rows 0.75 m apart, gaps, weeds; brightness textures
-    that scale all bands alike), panels spectrally flat.
+    ``B = sun_k`` with ``sun_k`` (clouds) unknown to the fit; its colour ``S`` is the one of the
+    reflector images. Exposure per frame (auto exposure): brightest pixel at 72-82 %.
+    Reflectance: soil and a green crop (rows 0.75 m apart, gaps, weeds; brightness textures that
+    scale all bands alike), panels spectrally flat.
 
-    truth: ``rvec``, ``tvec`` (n, 3); ``sun`` (n,); ``reflectance`` (n, n_bands, H, W)
-    float16: the true reflectance of each pixel's footprint (= U(I) / (t V S sun));
-    ``labels`` (n, H, W) int8: material index (into ``material_names``) where the pixel is pure
-    in every band, -1 where mixed; ``material_names`` (M,); ``material_reflectance``
-    (issue 8: frame ``k`` is taken at ``time_offset_s + frame_interval_s k``; with ``drift``
-    the sun is also multiplied by ``drift.level(time)`` and ``S`` by ``drift.colour(time)``;
-    ``clouds=False`` drops the random per-frame factor 0.75-1.15; ``irradiance`` writes the
-    frame's sun brightness into its ``meta`` as a sun-sensor reading)
-    (M, n_bands); ``ndvi`` (n, H, W) float32 from the 670 / 803 nm bands of ``reflectance``;
-    ``panel_reflectance`` (P,); ``panel_centre_m`` (P, 2); ``height_m`` (n,).
+    Parameters
+    ----------
+    truth : SyntheticTruth
+        The camera truth (:func:`make_truth`).
+    seed : int
+        Seed of the dataset (with the truth's, it fixes every random draw).
+    n_frames : int
+        Number of frames.
+    name : str
+        Name of the flight (also seeds it).
+    altitude_m : float
+        Flying height above the ground.
+    spacing_m : float
+        Distance between frames.
+    panels : sequence of Panel
+        The gray panels in the field.
+    supersample : int
+        Supersampling of edge pixels (:func:`render`).
+    time_offset_s, frame_interval_s : float
+        Frame ``k`` is taken at ``time_offset_s + frame_interval_s k`` (issue 8).
+    drift : LightDrift, optional
+        The sun is also multiplied by ``drift.level(time)`` and ``S`` by
+        ``drift.colour(time)``.
+    clouds : bool
+        False drops the random per-frame factor 0.75-1.15.
+    irradiance : bool
+        Write the frame's sun brightness into its ``meta`` as a sun-sensor reading.
+
+    Returns
+    -------
+    FrameSet
+        ``kind="flight"``; truth: ``rvec``, ``tvec`` (n, 3); ``sun`` (n,); ``reflectance``
+        (n, n_bands, H, W) float16: the true reflectance of each pixel's footprint
+        (= U(I) / (t V S sun)); ``labels`` (n, H, W) int8: material index (into
+        ``material_names``) where the pixel is pure in every band, -1 where mixed;
+        ``material_names`` (M,); ``material_reflectance`` (M, n_bands); ``ndvi`` (n, H, W)
+        float32 from the 670 / 803 nm bands of ``reflectance``; ``panel_reflectance`` (P,);
+        ``panel_centre_m`` (P, 2); ``height_m`` (n,); ``ndvi_bands`` (2,).
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     cam = truth.camera
     tag = zlib.crc32(name.encode()) & 0x7FFFFFFF

@@ -187,7 +187,7 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
                      n_missing: int = 1, max_tilt_deg: float = 35.0,
                      distance_m: tuple[float, float] = (0.8, 1.6), supersample: int = 4,
                      max_attempts: int = 400, light_nonuniformity: float = 1.0) -> FrameSet:
-    """Gray reflector + marker from many viewpoints under fixed non-uniform light (Eq. 8-10).
+    """Render the gray reflector + marker from many viewpoints under fixed non-uniform light (Eq. 8-10).
 
     The light ``B(p)`` (2:1 gradient + soft shadow) is fixed on the plane, so the radiance
     ``L_b(p) = S_b B(p) R_s`` is the same from every viewpoint (Lambertian). Views are planned
@@ -197,17 +197,52 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
     fully inside the frame and is detected by ArUco in bands 0, 12 and 24. ``n_missing`` views
     (spread over the sequence) have the marker out of frame while the reflector is partly in
     view: the pipeline must skip them. Exposure: brightest gray-reflector pixel at 70-85 %.
-    ``light_nonuniformity`` scales how uneven the light is (0 uniform, 1 default, 2 a 4:1
-    gradient and a deeper shadow; see :func:`random_light`).
 
-    truth: ``rvec``, ``tvec`` (n, 3); ``marker_in_frame`` (n,) bool; ``pose_error_deg``,
-    ``pose_error_rel`` (n,) error of the pose from ArUco + IPPE on band 0 (NaN if missing);
-    ``found_default_detector`` (n,) the marker is also found with OpenCV's default
-    ``minMarkerDistanceRate`` (see :func:`detect_marker_corners`); ``gray_mask`` (n, H, W)
-    pixels on the gray reflector in every band (no edge, marker or paper); ``coverage`` (H, W)
-    number of views with the pixel on the gray reflector; ``light`` (9,) light parameters
-    (``GradientShadowLight.from_params`` rebuilds it); ``plane_u`` (Nu,), ``plane_v`` (Nv,),
-    ``B_plane`` (Nv, Nu) the brightness on a 2.5 mm grid of the reflector (L = S B R_s).
+    Parameters
+    ----------
+    truth : SyntheticTruth
+        The camera truth (:func:`make_truth`).
+    seed : int
+        Seed of the dataset (with the truth's, it fixes every random draw).
+    n_views : int
+        Views in the dataset, ``n_missing`` of them without the marker.
+    n_missing : int
+        Views with the marker out of frame.
+    max_tilt_deg : float
+        Largest tilt of the camera from the reflector's normal.
+    distance_m : tuple of float
+        Range of the marker's distance.
+    supersample : int
+        Supersampling of edge pixels (:func:`render`).
+    max_attempts : int
+        Planning attempts per view before giving up.
+    light_nonuniformity : float
+        How uneven the light is (0 uniform, 1 default, 2 a 4:1 gradient and a deeper shadow;
+        see :func:`random_light`).
+
+    Returns
+    -------
+    FrameSet
+        ``kind="vignetting"``; truth: ``rvec``, ``tvec`` (n, 3); ``marker_in_frame`` (n,) bool;
+        ``pose_error_deg``, ``pose_error_rel`` (n,) error of the pose from ArUco + IPPE on band
+        0 (NaN if missing); ``found_default_detector`` (n,) the marker is also found with
+        OpenCV's default ``minMarkerDistanceRate`` (see :func:`detect_marker_corners`);
+        ``gray_mask`` (n, H, W) pixels on the gray reflector in every band (no edge, marker or
+        paper); ``coverage`` (H, W) number of views with the pixel on the gray reflector;
+        ``light`` (9,) light parameters (``GradientShadowLight.from_params`` rebuilds it);
+        ``plane_u`` (Nu,), ``plane_v`` (Nv,), ``B_plane`` (Nv, Nu) the brightness on a 2.5 mm
+        grid of the reflector (L = S B R_s).
+
+    Raises
+    ------
+    RuntimeError
+        If a view cannot be planned in ``max_attempts`` (a bug of the seeded planner).
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     cam = truth.camera
     h, w = cam.grid_shape
@@ -280,25 +315,60 @@ def reflector_images(truth: SyntheticTruth, *, seed: int = 0, n_images: int = 3,
                      times_s: Sequence[float] | None = None, drift: LightDrift | None = None,
                      irradiance: bool = False, name_prefix: str = "reflector_",
                      gradient_ratio: float = 2.0, light_nonuniformity: float = 1.0) -> FrameSet:
-    """Gray reflector under the illumination of the flight (input of Eq. 11-14).
+    """Render the gray reflector under the illumination of the flight (input of Eq. 11-14).
 
     Near-nadir views from 0.55-0.75 m, the reflector filling much of the frame. Each image has
     its own light: sun brightness (x 0.9-1.1) with a 2:1 linear gradient across the reflector
     in a random direction and a soft shadow over 20-35 % of it; the light colour S is the
     flight's. Exposure: brightest gray-reflector pixel at 70-85 %.
-    ``light_nonuniformity`` as in :func:`vignetting_views`.
 
-    Light that changes over the flight (issue 8): image ``k`` is taken at ``times_s[k]``
-    (seconds after ``SESSION_START``; default 900 + 20 k). With ``drift`` its brightness is
-    the sun's times ``drift.level(time)`` (no random factor), its colour ``S`` times
-    ``drift.colour(time)``, and the light has a ``gradient_ratio`` gradient but no shadow (the
-    reflector fully in the sun, as a capture for the light's level should be). ``irradiance`` writes a
-    sun-sensor reading (the brightness, in arbitrary units) into each frame's ``meta``.
+    Parameters
+    ----------
+    truth : SyntheticTruth
+        The camera truth (:func:`make_truth`).
+    seed : int
+        Seed of the dataset (with the truth's, it fixes every random draw).
+    n_images : int
+        Number of images.
+    distance_m : tuple of float
+        Range of the camera's distance.
+    max_tilt_deg : float
+        Largest tilt of the camera.
+    supersample : int
+        Supersampling of edge pixels (:func:`render`).
+    max_attempts : int
+        Planning attempts per image.
+    times_s : sequence of float, optional
+        Time of each image in seconds after ``SESSION_START`` (default 900 + 20 k).
+    drift : LightDrift, optional
+        Light that changes over the flight (issue 8): the brightness is the sun's times
+        ``drift.level(time)`` (no random factor), the colour ``S`` times ``drift.colour(time)``,
+        and the light has a ``gradient_ratio`` gradient but no shadow (the reflector fully in
+        the sun, as a capture for the light's level should be).
+    irradiance : bool
+        Write a sun-sensor reading (the brightness, in arbitrary units) into each frame's
+        ``meta``.
+    name_prefix : str
+        Prefix of the frame names.
+    gradient_ratio : float
+        Gradient of the light with ``drift``.
+    light_nonuniformity : float
+        As in :func:`vignetting_views`.
 
-    truth: ``rvec``, ``tvec`` (n, 3); ``B`` (n, H, W) float32 brightness at the band-grid pixel
-    centres (band 0 sample positions; NaN where the ray misses the plane); ``gray_mask``
-    (n, H, W); ``light`` (n, 9) (``GradientShadowLight.from_params``); ``plane_u``,
-    ``plane_v``, ``B_plane`` (n, Nv, Nu).
+    Returns
+    -------
+    FrameSet
+        ``kind="reflector"``; truth: ``rvec``, ``tvec`` (n, 3); ``B`` (n, H, W) float32
+        brightness at the band-grid pixel centres (band 0 sample positions; NaN where the ray
+        misses the plane); ``gray_mask`` (n, H, W); ``light`` (n, 9)
+        (``GradientShadowLight.from_params``); ``plane_u``, ``plane_v``, ``B_plane`` (n, Nv,
+        Nu).
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     cam = truth.camera
     h, w = cam.grid_shape

@@ -22,7 +22,20 @@ SIZES = {
 
 @dataclass
 class SyntheticSession:
-    """All four datasets of a session plus the camera truth."""
+    """All four datasets of a session plus the camera truth.
+
+    Attributes
+    ----------
+    truth : SyntheticTruth
+        The camera truth.
+    response, vignetting, reflector : FrameSet
+        The sweep (Eq. 5-7), the reflector views (Eq. 8-10) and the reflector images
+        (Eq. 11-14).
+    flights : dict of str to FrameSet
+        Survey flights by name (Eq. 15).
+    size : str
+        ``"full"`` or ``"small"`` (``SIZES``).
+    """
 
     truth: SyntheticTruth
     response: FrameSet
@@ -73,7 +86,26 @@ class SyntheticSession:
 def synthesize_session(seed: int = 0, *, size: str = "full", n_flight_frames: int | None = None,
                        flights: Sequence[str] = ("field",),
                        reflector_reflectance: float | Sequence[float] = 0.5) -> SyntheticSession:
-    """Render all datasets of a session (``size`` "full" or "small", see ``SIZES``)."""
+    """Render all datasets of a session.
+
+    Parameters
+    ----------
+    seed : int
+        Seed of the session.
+    size : {"full", "small"}
+        Dataset sizes (``SIZES``).
+    n_flight_frames : int, optional
+        Frames per flight (default from ``SIZES``).
+    flights : sequence of str
+        Names of the flights.
+    reflector_reflectance : float or sequence of float
+        R_s of the reflector.
+
+    Returns
+    -------
+    SyntheticSession
+        The truth and its datasets.
+    """
     if size not in SIZES:
         raise ValueError(f"size must be one of {sorted(SIZES)}, got {size!r}")
     cfg = SIZES[size]

@@ -10,14 +10,37 @@ from ._truth import FrameSet, SyntheticTruth, expose_frame, exposure_for, round_
 
 def response_sweep(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 14,
                    step: float = 1.66, decades: float = 2.5) -> FrameSet:
-    """Exposure sweep of a static scene with a fixed camera (input of Eq. 5-7).
+    """Render an exposure sweep of a static scene with a fixed camera (input of Eq. 5-7).
 
     The scene is a smooth random texture whose radiance spans ``decades`` decades (log-uniform
     histogram), with a smooth per-band colour variation; ``E_b(x) = V_b(x) S_b L_b(x)``. The
     shortest exposure puts the brightest pixel at 30-40 % of range; exposures grow by ``step``
     (``t_i = t_0 step^i``, rounded to 0.1 us), so the longest saturates most pixels.
 
-    truth: ``energy`` (n_bands, H, W) float32 energy rate E (linear DN / ms).
+    Parameters
+    ----------
+    truth : SyntheticTruth
+        The camera truth (:func:`make_truth`).
+    seed : int
+        Seed of the dataset (with the truth's, it fixes every random draw).
+    n_frames : int
+        Number of exposures.
+    step : float
+        Ratio of consecutive exposures.
+    decades : float
+        Span of the scene's radiance in decades.
+
+    Returns
+    -------
+    FrameSet
+        ``kind="response"``; truth: ``energy`` (n_bands, H, W) float32 energy rate E (linear
+        DN / ms).
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     cam = truth.camera
     h, w = cam.grid_shape

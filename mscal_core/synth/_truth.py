@@ -69,9 +69,28 @@ def _spectral_factor(wl: np.ndarray, rng: np.random.Generator) -> np.ndarray:
 class SyntheticTruth:
     """Everything the fits should recover, plus the camera and sensor used to render.
 
-    ``vignetting`` (n_bands, H, W) V_true, max 1 per band, evaluated at each band's own sample
-    positions; ``spectral_factor`` (n_bands,) S_true; ``inverse_response`` (n_bands, 2**bits)
-    true U (the same sensor for every band); ``reflector_reflectance`` (n_bands,) R_s.
+    Attributes
+    ----------
+    seed : int
+        Seed of the truth.
+    camera : SnapshotCamera
+        The camera.
+    sensor : SensorModel
+        The sensor (true U, noise).
+    vignetting : numpy.ndarray
+        (n_bands, H, W) V_true, max 1 per band, evaluated at each band's own sample positions.
+    vignetting_centre : numpy.ndarray
+        Centre of the vignetting falloff.
+    spectral_factor : numpy.ndarray
+        (n_bands,) S_true.
+    reflector_reflectance : numpy.ndarray
+        (n_bands,) R_s.
+    reflector_size_m : tuple of float
+        ``(w, h)`` of the reflector.
+    marker : MarkerSpec
+        The ArUco marker on the reflector.
+    sun_brightness : float
+        Brightness of the sun in the energy units of the module docstring.
     """
 
     seed: int
@@ -111,7 +130,28 @@ def make_truth(
     reflector_size_m: tuple[float, float] = (0.5, 0.5),
     marker: MarkerSpec | None = None,
 ) -> SyntheticTruth:
-    """Seeded camera truth: V_true (off-centre, per band), S_true, sensor (U_true)."""
+    """Draw a seeded camera truth: V_true (off-centre, per band), S_true, sensor (U_true).
+
+    Parameters
+    ----------
+    seed : int
+        Seed of the truth.
+    camera : SnapshotCamera, optional
+        Default: the Ximea 5 x 5 snapshot camera of the paper.
+    sensor : SensorModel, optional
+        Default: the project's sensor model at the camera's bit depth.
+    reflector_reflectance : float or sequence of float
+        R_s, one value (gray) or one per band.
+    reflector_size_m : tuple of float
+        ``(w, h)`` of the reflector.
+    marker : MarkerSpec, optional
+        Default marker on the reflector.
+
+    Returns
+    -------
+    SyntheticTruth
+        The truth.
+    """
     camera = camera or SnapshotCamera()
     marker = marker or MarkerSpec()
     sensor = sensor if sensor is not None else _make_sensor(camera.bits)
@@ -132,10 +172,24 @@ def make_truth(
 class FrameSet:
     """Frames of one dataset: band stacks of DN, exposures, per-frame metadata and truth.
 
-    ``dn`` list of (n_bands, H, W) uint16 band stacks (``raw(k)`` gives the sensor mosaic);
-    ``exposure_ms`` (n,); ``names`` file stems; ``meta`` per-frame dicts with ``time`` (ISO
-    8601) and, for flights, ``lat``, ``lon``, ``alt_m``; ``truth`` arrays (see the dataset
-    functions).
+    Attributes
+    ----------
+    kind : str
+        ``"response"``, ``"vignetting"``, ``"reflector"`` or ``"flight"``.
+    dn : list of numpy.ndarray
+        (n_bands, H, W) uint16 band stacks (``raw(k)`` gives the sensor mosaic).
+    exposure_ms : numpy.ndarray
+        (n,) exposures.
+    names : list of str
+        File stems.
+    meta : list of dict
+        Per-frame dicts with ``time`` (ISO 8601) and, for flights, ``lat``, ``lon``, ``alt_m``.
+    truth : dict
+        Truth arrays (see the dataset functions).
+    camera : SnapshotCamera
+        The camera.
+    black_level : int
+        Black level of the sensor (DN).
     """
 
     kind: str
