@@ -58,16 +58,22 @@ MAX_FEATURES = 3000  # keypoints per image: plenty for a homography, bounded cos
 class Thresholds:
     """Reject thresholds of one band's transform (:func:`accept`).
 
-    Defaults: ``min_ecc`` 0.3 -- the gradient correlation of aligned bands of the real RedEdge
-    captures is 0.43-0.97 (NIR against red over vegetation the lowest) while a wrong or
-    unrelated alignment leaves 0.04-0.2 (docs/registration.md); ``min_inliers`` 12 -- a
-    homography has 8 degrees of freedom, 12 matches that agree within 2 px leave a margin
-    against chance agreements; ``max_residual_px`` 1.0 -- above the 0.3-0.7 px that agreeing
-    SIFT matches on gradient images show on correctly aligned bands (synthetic and real),
-    below the 2 px of :data:`INLIER_PX`.
-    A transform passes if its ECC correlation passes and, where feature matches were
-    found at all, the inlier count and residual pass too (low texture gives few features but
-    may still give a good ECC correlation).
+    A transform passes if its ECC correlation passes and, where feature matches were found at
+    all, the inlier count and residual pass too (low texture gives few features but may still
+    give a good ECC correlation).
+
+    Attributes
+    ----------
+    min_ecc : float
+        0.3 by default: the gradient correlation of aligned bands of the real RedEdge captures
+        is 0.43-0.97 (NIR against red over vegetation the lowest) while a wrong or unrelated
+        alignment leaves 0.04-0.2 (docs/registration.md).
+    min_inliers : int
+        12 by default: a homography has 8 degrees of freedom, 12 matches that agree within
+        2 px leave a margin against chance agreements.
+    max_residual_px : float
+        1.0 by default: above the 0.3-0.7 px that agreeing SIFT matches on gradient images show
+        on correctly aligned bands (synthetic and real), below the 2 px of :data:`INLIER_PX`.
     """
 
     min_ecc: float = 0.3
@@ -79,12 +85,24 @@ class Thresholds:
 class BandRegistration:
     """Transform of one band to the reference band and its quality figures.
 
-    ``homography`` (3, 3) float64 maps reference pixels to band pixels; ``method`` is
-    ``"identity"`` (the reference itself), ``"ecc"`` or ``"features"``; ``ecc`` the gradient
-    correlation after warping (nan if not computable); ``n_matches`` feature matches found,
-    ``n_inliers`` those within :data:`INLIER_PX` of the transform, ``inlier_ratio``
-    = n_inliers / n_matches (nan without matches), ``residual_px`` rms reprojection error of
-    the inliers (nan without inliers).
+    Attributes
+    ----------
+    homography : numpy.ndarray
+        (3, 3) float64, maps reference pixels to band pixels.
+    method : str
+        ``"identity"`` (the reference itself), ``"ecc"`` or ``"features"``.
+    ecc : float
+        The gradient correlation after warping (nan if not computable).
+    n_matches : int
+        Feature matches found.
+    n_inliers : int
+        Those within :data:`INLIER_PX` of the transform.
+    inlier_ratio : float
+        ``n_inliers / n_matches`` (nan without matches).
+    residual_px : float
+        RMS reprojection error of the inliers (nan without inliers).
+    path : tuple of int
+        Bands the transform was composed along (:func:`register_stack`).
     """
 
     homography: np.ndarray
@@ -305,14 +323,33 @@ def phase_shift(ref: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, float]:
 def ecc_homography(ref_grad: np.ndarray, band_grad: np.ndarray, init: np.ndarray | None = None, *,
                    levels: int | None = None, iterations: int = 100, eps: float = 1e-6,
                    fine_iterations: int = FINE_ITERATIONS, min_cc: float | None = None) -> np.ndarray | None:
-    """Pyramid ECC (``cv2.findTransformECC``, ``MOTION_HOMOGRAPHY``) of two gradient images.
+    """Estimate a homography by pyramid ECC (``cv2.findTransformECC``, ``MOTION_HOMOGRAPHY``) of two gradient images.
 
-    The homography mapping reference pixels to band pixels, or None if ECC fails to converge at
-    the finest level. ``init`` (full-resolution homography) defaults to a phase-correlation
-    shift at the coarsest level (:func:`phase_shift`). ``min_cc``: give up (None) as soon as a
-    coarser level converges below it -- the correlation of smoothed coarse gradient images is
-    higher than at full resolution, so such a pair would fail the threshold anyway, and the
-    full-resolution iterations are the costly ones.
+    Parameters
+    ----------
+    ref_grad, band_grad : numpy.ndarray
+        Gradient images (:func:`gradient_image`) of the reference and the band.
+    init : numpy.ndarray, optional
+        Full-resolution starting homography; defaults to a phase-correlation shift at the
+        coarsest level (:func:`phase_shift`).
+    levels : int, optional
+        Pyramid levels (default :func:`pyramid_levels`).
+    iterations : int
+        ECC's iterations per coarser level at most.
+    eps : float
+        ECC's convergence threshold.
+    fine_iterations : int
+        Iterations at full resolution.
+    min_cc : float, optional
+        Give up (None) as soon as a coarser level converges below it -- the correlation of
+        smoothed coarse gradient images is higher than at full resolution, so such a pair would
+        fail the threshold anyway, and the full-resolution iterations are the costly ones.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        The homography mapping reference pixels to band pixels, or None if ECC fails to
+        converge at the finest level.
     """
     if levels is None:
         levels = pyramid_levels(ref_grad.shape)
@@ -443,11 +480,34 @@ def _score(reg: BandRegistration) -> tuple[float, float]:
 def register_band(ref_grad: np.ndarray, band_grad: np.ndarray, *, init: np.ndarray | None = None,
                   thresholds: Thresholds = Thresholds(), ref_features: Features | None = None,
                   band_features: Features | None = None) -> BandRegistration:
-    """Transform of one band to the reference from their gradient images (:func:`gradient_image`).
+    """Register one band to the reference from their gradient images (:func:`gradient_image`).
 
+    Parameters
+    ----------
+    ref_grad, band_grad : numpy.ndarray
+        Gradient images of the same size.
+    init : numpy.ndarray, optional
+        Starting homography of ECC.
+    thresholds : Thresholds
+        Reject thresholds (:func:`accept`).
+    ref_features, band_features : Features, optional
+        Keypoints already detected (:func:`detect_features`).
+
+    Returns
+    -------
+    BandRegistration
+        The transform with its quality figures, returned even when it fails the thresholds
+        (see :func:`accept`).
+
+    Raises
+    ------
+    InputError
+        When the two images differ in size.
+
+    Notes
+    -----
     Pyramid ECC; if ECC fails or does not pass ``thresholds``, features + RANSAC, keeping the
-    estimate with the higher gradient correlation. The result is returned even when it fails the
-    thresholds (see :func:`accept`).
+    estimate with the higher gradient correlation.
     """
     if ref_grad.shape != band_grad.shape:
         raise InputError(f"bands of one capture differ in size: {ref_grad.shape} vs {band_grad.shape}",
@@ -505,17 +565,45 @@ def _compose(edges: Sequence[BandRegistration], path: tuple[int, ...]) -> BandRe
 def register_stack(stack: np.ndarray, reference: int, *, wavelengths: Sequence[float] | None = None,
                    neighbours: int = 3, sigma: float = 1.0,
                    thresholds: Thresholds = Thresholds()) -> list[BandRegistration]:
-    """Every band of one capture ``(band, H, W)`` registered to band ``reference``.
+    """Register every band of one capture to band ``reference``.
 
+    Parameters
+    ----------
+    stack : numpy.ndarray
+        ``(band, H, W)`` capture.
+    reference : int
+        The reference band.
+    wavelengths : sequence of float, optional
+        Band wavelengths; None registers every pair.
+    neighbours : int
+        Each band is registered with its ``neighbours`` nearest bands in wavelength and with
+        the reference.
+    sigma : float
+        Gaussian of :func:`gradient_image`.
+    thresholds : Thresholds
+        Reject thresholds (:func:`accept`).
+
+    Returns
+    -------
+    list of BandRegistration
+        One per band; the reference band's own entry is the identity.
+
+    Raises
+    ------
+    InputError
+        Unless ``stack`` is ``(band, H, W)`` and ``reference`` one of its bands.
+    FitError
+        When the bands cannot be linked by any registration.
+
+    Notes
+    -----
     Distant bands can look too different to register directly (blue against NIR over
-    vegetation: gradient correlation ~0.1 on the real RedEdge flight capture, where blue
-    against green is 0.84 and green against NIR 0.77). So pairs of bands are registered
-    (:func:`register_band`: each band with its ``neighbours`` nearest bands in wavelength and
-    with the reference; every pair when ``wavelengths`` is None), and each band's transform
-    is composed along the maximum spanning tree of the pairs' gradient correlations (Prim's
-    algorithm, pairs that fail ``thresholds`` only when nothing else connects a band). A
-    composed transform carries the weakest quality figures of its edges and its ``path``.
-    The reference band's own entry is the identity.
+    vegetation: gradient correlation ~0.1 on the real RedEdge flight capture, where blue against
+    green is 0.84 and green against NIR 0.77). So pairs of bands are registered
+    (:func:`register_band`), and each band's transform is composed along the maximum spanning
+    tree of the pairs' gradient correlations (Prim's algorithm, pairs that fail ``thresholds``
+    only when nothing else connects a band). A composed transform carries the weakest quality
+    figures of its edges and its ``path``.
     """
     if stack.ndim != 3:
         raise InputError(f"a capture must be a (band, H, W) stack, got shape {stack.shape}")
@@ -551,9 +639,19 @@ def register_stack(stack: np.ndarray, reference: int, *, wavelengths: Sequence[f
 def centre_reference(homographies: np.ndarray, shape: tuple[int, int]) -> int:
     """Choose the reference band whose warps to the others are smallest.
 
-    The band whose transforms to all other bands move the grid least (sum over bands of the
-    median grid displacement), i.e. the lens in the middle of the rig: aligning to it keeps the
-    warps and the lost border smallest. ``homographies`` (band, 3, 3) to any one band.
+    Parameters
+    ----------
+    homographies : numpy.ndarray
+        (band, 3, 3) transforms to any one band.
+    shape : tuple of int
+        ``(H, W)`` of the bands.
+
+    Returns
+    -------
+    int
+        The band whose transforms to all other bands move the grid least (sum over bands of the
+        median grid displacement), i.e. the lens in the middle of the rig: aligning to it keeps
+        the warps and the lost border smallest.
     """
     n = len(homographies)
     pts = grid_points(shape)
@@ -569,8 +667,18 @@ def centre_reference(homographies: np.ndarray, shape: tuple[int, int]) -> int:
 def rebase(homographies: np.ndarray, reference: int) -> np.ndarray:
     """Re-express the transforms relative to another reference band.
 
-    ``H'_b = H_b H_ref^-1`` (band ``reference``'s pixels -> old reference pixels -> band b
-    pixels); ``H'_reference`` is the identity.
+    Parameters
+    ----------
+    homographies : numpy.ndarray
+        (band, 3, 3) transforms to the old reference.
+    reference : int
+        The new reference band.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``H'_b = H_b H_ref^-1`` (band ``reference``'s pixels -> old reference pixels -> band b
+        pixels); ``H'_reference`` is the identity.
     """
     inv = np.linalg.inv(homographies[reference])
     return np.stack([_normalised(h @ inv) for h in homographies])
@@ -581,12 +689,30 @@ def rebase(homographies: np.ndarray, reference: int) -> np.ndarray:
 
 def align_bands(stack: np.ndarray, transforms: np.ndarray, *, interpolation: int = cv2.INTER_LINEAR,
                 fill: float = float("nan")) -> np.ndarray:
-    """Band stack ``(band, H, W)`` resampled onto the reference band's grid.
+    """Resample a band stack ``(band, H, W)`` onto the reference band's grid.
 
-    ``aligned_b(x) = stack_b(H_b x)`` (bilinear by default); pixels that no band b sample covers
-    are ``fill``. ``transforms`` (band, 3, 3) as stored by the registration. Returns float32
-    (float64 for a float64 stack). A NaN pixel makes NaN the aligned pixels it contributes to
-    (weight above 1e-3); an aligned pixel needing any sample outside the band is ``fill``.
+    Parameters
+    ----------
+    stack : numpy.ndarray
+        ``(band, H, W)``.
+    transforms : numpy.ndarray
+        (band, 3, 3) as stored by the registration.
+    interpolation : int
+        OpenCV interpolation flag (bilinear by default).
+    fill : float
+        Value of the pixels that no band b sample covers.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``aligned_b(x) = stack_b(H_b x)``, float32 (float64 for a float64 stack). A NaN pixel
+        makes NaN the aligned pixels it contributes to (weight above 1e-3); an aligned pixel
+        needing any sample outside the band is ``fill``.
+
+    Raises
+    ------
+    InputError
+        When the number of transforms does not match the stack.
     """
     transforms = np.asarray(transforms, dtype=np.float64)
     if transforms.shape != (stack.shape[0], 3, 3):
@@ -619,12 +745,20 @@ def align_bands(stack: np.ndarray, transforms: np.ndarray, *, interpolation: int
 
 
 def mosaic_centre_offsets(pattern_shape: tuple[int, int]) -> np.ndarray:
-    """Offsets ``(dx, dy)`` (band-grid pixels) of each band's samples from the mosaic's centre position.
+    """Return the offsets ``(dx, dy)`` (band-grid pixels) of each band's samples from the mosaic's centre position.
 
-    Band (r, c) pixel (i, j) samples band-grid point ``(j + c/C, i + r/R)``
-    (docs/architecture.md), the centre band ``((R-1)/2, (C-1)/2)`` samples
-    ``(j + ((C-1)/2)/C, ...)``; the difference is ``((c - (C-1)/2)/C, (r - (R-1)/2)/R)``, i.e.
-    ``((c-2)/5, (r-2)/5)`` for a 5 x 5 mosaic. (R*C, 2) float64.
+    Parameters
+    ----------
+    pattern_shape : tuple of int
+        ``(R, C)`` of the filter pattern.
+
+    Returns
+    -------
+    numpy.ndarray
+        (R*C, 2) float64 ``((c - (C-1)/2)/C, (r - (R-1)/2)/R)``, i.e. ``((c-2)/5, (r-2)/5)`` for
+        a 5 x 5 mosaic: band (r, c) pixel (i, j) samples band-grid point ``(j + c/C, i + r/R)``
+        (docs/architecture.md), the centre band ``((R-1)/2, (C-1)/2)`` samples
+        ``(j + ((C-1)/2)/C, ...)``.
     """
     rows, cols = pattern_shape
     rr, cc = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
@@ -675,11 +809,27 @@ def _shift_axis(band: np.ndarray, shift: float, axis: int, fill: float) -> np.nd
 def shift_bands(stack: np.ndarray, offsets: np.ndarray, *, fill: float = float("nan")) -> np.ndarray:
     """Resample each band of ``stack`` (band, H, W) to the common centre position.
 
-    Band b's samples sit ``offsets[b] = (dx, dy)`` px from it (:func:`mosaic_centre_offsets`),
-    so the value at the centre position of pixel (i, j) is band b at ``(j - dx, i - dy)`` of its
-    own grid: separable cubic convolution (:func:`cubic_weights`), exact for quadratic images.
-    Pixels that need a sample outside the band are ``fill``. float32 (float64 for a float64
-    stack).
+    Parameters
+    ----------
+    stack : numpy.ndarray
+        ``(band, H, W)``.
+    offsets : numpy.ndarray
+        (band, 2): band b's samples sit ``offsets[b] = (dx, dy)`` px from the centre position
+        (:func:`mosaic_centre_offsets`).
+    fill : float
+        Value of the pixels that need a sample outside the band.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 (float64 for a float64 stack): the value at the centre position of pixel (i, j)
+        is band b at ``(j - dx, i - dy)`` of its own grid, by separable cubic convolution
+        (:func:`cubic_weights`), exact for quadratic images.
+
+    Raises
+    ------
+    InputError
+        When the number of offsets does not match the stack.
     """
     offsets = np.asarray(offsets, dtype=np.float64)
     if offsets.shape != (stack.shape[0], 2):
