@@ -317,11 +317,18 @@ INTERPOLATION_MODES = ("nearest", "linear")
 class FrameIllumination:
     """The light of each flight frame, from :func:`frame_illumination`.
 
-    - ``spectral_factor`` (n_frames, n_bands) ``S(lambda, tau) = level(tau) colour(lambda, tau)``.
-    - ``level`` (n_frames,) the overall brightness level ``beta(tau)``.
-    - ``colour`` (n_frames, n_bands) ``s(lambda, tau)``, geometric mean 1 over the bands.
-    - ``weights`` (n_frames, n_captures) the capture weights used (rows sum to 1).
-    - ``irradiance_used`` (n_frames,) bool: the frame's level came from its irradiance reading.
+    Attributes
+    ----------
+    spectral_factor : numpy.ndarray
+        (n_frames, n_bands) ``S(lambda, tau) = level(tau) colour(lambda, tau)``.
+    level : numpy.ndarray
+        (n_frames,) the overall brightness level ``beta(tau)``.
+    colour : numpy.ndarray
+        (n_frames, n_bands) ``s(lambda, tau)``, geometric mean 1 over the bands.
+    weights : numpy.ndarray
+        (n_frames, n_captures) the capture weights used (rows sum to 1).
+    irradiance_used : numpy.ndarray
+        (n_frames,) bool: the frame's level came from its irradiance reading.
     """
 
     spectral_factor: np.ndarray
@@ -334,10 +341,23 @@ class FrameIllumination:
 def split_level(spectral_factor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Split spectral factors into brightness level and colour: ``S(lambda) = beta s(lambda)``.
 
-    ``beta = exp(mean_lambda log S(lambda))`` (the geometric mean over the bands) and
-    ``s(lambda) = S(lambda) / beta`` (geometric mean 1). ``spectral_factor`` (n_bands,) or
-    (n_captures, n_bands); returns ``(beta, s)`` of shapes () / (n_captures,) and the input's.
-    Raises InputError unless every S is positive and finite.
+    Parameters
+    ----------
+    spectral_factor : numpy.ndarray
+        (n_bands,) or (n_captures, n_bands).
+
+    Returns
+    -------
+    beta : numpy.ndarray
+        ``exp(mean_lambda log S(lambda))`` (the geometric mean over the bands), shape () or
+        (n_captures,).
+    s : numpy.ndarray
+        ``S(lambda) / beta`` (geometric mean 1), the input's shape.
+
+    Raises
+    ------
+    InputError
+        Unless every S is positive and finite.
     """
     s = np.asarray(spectral_factor, dtype=np.float64)
     if s.ndim not in (1, 2) or s.shape[-1] < 1 or not np.all(np.isfinite(s) & (s > 0)):
@@ -347,14 +367,27 @@ def split_level(spectral_factor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def capture_weights(capture_times: np.ndarray, frame_times: np.ndarray, mode: str = "linear") -> np.ndarray:
-    """Weights ``w[f, c]`` of the reflector captures for each frame time (rows sum to 1).
+    """Return the weights ``w[f, c]`` of the reflector captures for each frame time (rows sum to 1).
 
-    Times in seconds on one clock. ``nearest``: weight 1 on the capture closest in time (the
-    earlier one on a tie). ``linear``: between the two captures ``a < b`` that bracket the
-    frame, ``w_b = (tau - tau_a) / (tau_b - tau_a)``, ``w_a = 1 - w_b``; before the first and
-    after the last capture the light is held at that capture's (no extrapolation). One capture:
-    all weights 1. Raises InputError for an unknown mode, NaN times, or two captures at the
-    same time.
+    Parameters
+    ----------
+    capture_times, frame_times : numpy.ndarray
+        Times in seconds on one clock.
+    mode : {"linear", "nearest"}
+        ``nearest``: weight 1 on the capture closest in time (the earlier one on a tie).
+        ``linear``: between the two captures ``a < b`` that bracket the frame,
+        ``w_b = (tau - tau_a) / (tau_b - tau_a)``, ``w_a = 1 - w_b``; before the first and after
+        the last capture the light is held at that capture's (no extrapolation).
+
+    Returns
+    -------
+    numpy.ndarray
+        (n_frames, n_captures); with one capture all weights are 1.
+
+    Raises
+    ------
+    InputError
+        For an unknown mode, no capture, NaN times, or two captures at the same time.
     """
     if mode not in INTERPOLATION_MODES:
         raise InputError(f"illumination interpolation {mode!r}: use one of {', '.join(INTERPOLATION_MODES)}")
@@ -396,25 +429,51 @@ def frame_illumination(
     capture_irradiance: np.ndarray | None = None,
     frame_irradiance: np.ndarray | None = None,
 ) -> FrameIllumination:
-    """Estimate the light of every frame.
+    """Estimate the light of every frame from the reflector captures and, optionally, an irradiance sensor.
 
-    The light of each frame from the reflector captures (Eq. 11-14 per capture) and, optionally,
-    an irradiance sensor.
+    Parameters
+    ----------
+    capture_spectral_factor : numpy.ndarray
+        (n_captures, n_bands): each capture's S from Eq. 11-14 with median reflector B = 1.
+    capture_times, frame_times : numpy.ndarray
+        Times in seconds (see :func:`capture_weights`).
+    mode : {"linear", "nearest"}
+        Interpolation between captures (:func:`capture_weights`).
+    capture_irradiance : numpy.ndarray, optional
+        (n_captures,) irradiance readings ``E_c`` (any unit, the same sensor as the frames').
+    frame_irradiance : numpy.ndarray, optional
+        (n_frames,) irradiance readings ``E(tau)``.
 
-    Per capture ``c`` (``capture_spectral_factor`` (n_captures, n_bands), its S from
-    Eq. 11-14 with median reflector B = 1): ``S_c(lambda) = beta_c s_c(lambda)``
-    (:func:`split_level`). With the weights ``w`` of :func:`capture_weights`:
+    Returns
+    -------
+    FrameIllumination
+        ``S(lambda, tau) = beta(tau) s(lambda, tau)`` with its level, colour and weights.
+
+    Raises
+    ------
+    InputError
+        On spectral factors, times or a mode that :func:`split_level` and
+        :func:`capture_weights` reject, or irradiance readings not one per capture and frame.
+
+    Notes
+    -----
+    Per capture ``c``: ``S_c(lambda) = beta_c s_c(lambda)`` (:func:`split_level`). With the
+    weights ``w`` of :func:`capture_weights`:
 
     - colour: ``s(lambda, tau) = sum_c w_c(tau) s_c(lambda)``;
     - level without irradiance: ``beta(tau) = sum_c w_c(tau) beta_c``;
-    - level with irradiance readings ``E`` (any unit, the same sensor for captures and frames;
-      ``capture_irradiance`` (n_captures,), ``frame_irradiance`` (n_frames,)): the captures
-      anchor the scale, ``beta(tau) = E(tau) sum_c w_c(tau) beta_c / E_c``: the sensor's ratio
-      carries the level between (and beyond) the captures. A frame without a reading (NaN),
-      or any capture without one, falls back to the interpolated level.
+    - level with irradiance readings: the captures anchor the scale,
+      ``beta(tau) = E(tau) sum_c w_c(tau) beta_c / E_c``: the sensor's ratio carries the level
+      between (and beyond) the captures. A frame without a reading (NaN), or any capture
+      without one, falls back to the interpolated level.
 
-    ``S(lambda, tau) = beta(tau) s(lambda, tau)``. Times in seconds (see
-    :func:`capture_weights`).
+    The decomposition is Eq. 11 of [1]_, ``J_lambda(x) = B(x) S(lambda)``, applied per capture.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     s_c = np.asarray(capture_spectral_factor, dtype=np.float64)
     if s_c.ndim == 1:
@@ -441,10 +500,18 @@ def frame_illumination(
 
 
 def colour_change(capture_spectral_factor: np.ndarray) -> np.ndarray:
-    """Largest relative change of the light's colour between consecutive captures.
+    """Return the largest relative change of the light's colour between consecutive captures.
 
-    ``max_lambda |s_{c+1}(lambda) / s_c(lambda) - 1|`` (n_captures - 1,), with ``s`` the colour
-    of :func:`split_level` (the level removed, so a passing cloud does not count).
+    Parameters
+    ----------
+    capture_spectral_factor : numpy.ndarray
+        (n_captures, n_bands) spectral factors.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n_captures - 1,) ``max_lambda |s_{c+1}(lambda) / s_c(lambda) - 1|``, with ``s`` the
+        colour of :func:`split_level` (the level removed, so a passing cloud does not count).
     """
     _, colour = split_level(np.atleast_2d(np.asarray(capture_spectral_factor, dtype=np.float64)))
     if colour.shape[0] < 2:
@@ -453,15 +520,31 @@ def colour_change(capture_spectral_factor: np.ndarray) -> np.ndarray:
 
 
 def centre_brightness(uv: np.ndarray, brightness: np.ndarray, *, reject: float = 0.1, iterations: int = 3) -> float:
-    """Brightness at the reflector's centre from a plane fit ``B(u, v) = a + b u + c v``: ``a``.
+    """Return the brightness at the reflector's centre from a plane fit ``B(u, v) = a + b u + c v``: ``a``.
 
-    ``uv`` (n, 2) reflector-plane coordinates (metres, origin at the reflector's centre) of
-    the pixels, ``brightness`` (n,) their B (Eq. 14). Least squares, then ``iterations``
-    refits without the pixels more than ``reject`` (relative) off the plane, i.e. a shadow or
-    a glint. The median-B gauge of :func:`fit_illumination` depends on which part of a
-    non-uniformly lit reflector the camera sees (pose, crop); for a light that is linear over
-    the reflector, ``a`` does not, so captures under different light compare by it (issue 8).
-    NaN when fewer than 3 finite pixels remain.
+    Parameters
+    ----------
+    uv : numpy.ndarray
+        (n, 2) reflector-plane coordinates (metres, origin at the reflector's centre) of the
+        pixels.
+    brightness : numpy.ndarray
+        (n,) their B (Eq. 14).
+    reject : float
+        Pixels more than this (relative) off the plane are left out of the refits: a shadow or
+        a glint.
+    iterations : int
+        Refits after the first least squares.
+
+    Returns
+    -------
+    float
+        ``a``; NaN when fewer than 3 finite pixels remain.
+
+    Notes
+    -----
+    The median-B gauge of :func:`fit_illumination` depends on which part of a non-uniformly lit
+    reflector the camera sees (pose, crop); for a light that is linear over the reflector, ``a``
+    does not, so captures under different light compare by it (issue 8).
     """
     p = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     b = np.asarray(brightness, dtype=np.float64).ravel()
@@ -485,26 +568,44 @@ def centre_brightness(uv: np.ndarray, brightness: np.ndarray, *, reject: float =
 def shared_reflector_pixels(masks, owner, min_pixels: int = 1) -> tuple[list[np.ndarray], bool]:
     """Restrict each reflector image's pixels to sensor pixels shared by the captures (issue 8).
 
-    ``masks`` (one (H, W) bool per reflector image: its reflector pixels), ``owner`` the
-    capture index of each image. Returns ``(masks, shared)``, the first of these that leaves
-    every capture at least ``min_pixels`` pixels:
+    Parameters
+    ----------
+    masks : sequence of numpy.ndarray
+        One (H, W) bool per reflector image: its reflector pixels.
+    owner : sequence of int
+        The capture index of each image.
+    min_pixels : int
+        Pixels every capture must keep.
 
-    1. ``mask_k & C`` with ``C`` the pixels every image saw the reflector at (``shared=True``);
-    2. ``C`` the pixels every capture saw it at in some image: the intersection over the
-       captures of the union of their images' masks (``shared=True``);
-    3. the masks unchanged (``shared=False``: the captures barely overlap on the sensor).
+    Returns
+    -------
+    masks : list of numpy.ndarray
+        The first of these that leaves every capture at least ``min_pixels`` pixels:
+        1. ``mask_k & C`` with ``C`` the pixels every image saw the reflector at;
+        2. ``C`` the pixels every capture saw it at in some image: the intersection over the
+        captures of the union of their images' masks;
+        3. the masks unchanged (the captures barely overlap on the sensor).
+    shared : bool
+        True for 1. and 2., False for 3.
 
-    Why: with the radiance ``L = U(I) / (t V_hat)`` of Eq. 11 and a vignetting estimate
+    Raises
+    ------
+    InputError
+        When the number of masks and of capture indices differ.
+
+    Notes
+    -----
+    With the radiance ``L = U(I) / (t V_hat)`` of Eq. 11 and a vignetting estimate
     ``V_hat = V (1 + e(lambda, x))``, Eq. 13 gives ``S(lambda)`` times a ``B^2``-weighted mean of
-    ``1 / (1 + e(lambda, x))`` over the pixels the capture used, and Eq. 14's ``B(x)`` absorbs the
-    band-common part of ``e`` (so does the level read from it, :func:`centre_brightness`).
-    Captures that see the reflector at different pixels thus get different biases, which
-    become an error of ``S(lambda, tau)`` between them; on the same pixels they share the bias,
-    and its band-dependent part cancels in ``S_c / S_0`` (to first order, up to the different
-    ``B`` weights; exactly the same pixels in every image, 1., also the same weight per pixel).
-    The band-common part enters the level read at the reflector centre (a gradient of ``e``
-    across the image looks like a light gradient in one image): it cancels as far as the
-    captures have the reflector centre near the same pixel.
+    ``1 / (1 + e(lambda, x))`` over the pixels the capture used, and Eq. 14's ``B(x)`` absorbs
+    the band-common part of ``e`` (so does the level read from it, :func:`centre_brightness`).
+    Captures that see the reflector at different pixels thus get different biases, which become
+    an error of ``S(lambda, tau)`` between them; on the same pixels they share the bias, and its
+    band-dependent part cancels in ``S_c / S_0`` (to first order, up to the different ``B``
+    weights; exactly the same pixels in every image, 1., also the same weight per pixel). The
+    band-common part enters the level read at the reflector centre (a gradient of ``e`` across
+    the image looks like a light gradient in one image): it cancels as far as the captures have
+    the reflector centre near the same pixel.
     """
     ms = [np.asarray(m, dtype=bool) for m in masks]
     own = np.asarray(owner, dtype=np.int64).ravel()

@@ -155,12 +155,37 @@ def normalise_to_panel(
 ) -> np.ndarray:
     """Scale relative reflectance so a panel of known reflectance reads its true value.
 
-    ``reflectance`` (n_bands, H, W) or (n_frames, n_bands, H, W); ``panel_mask`` (H, W) bool
-    or (n_frames, H, W) for a panel that moves; ``panel_reflectance`` scalar or (n_bands,).
+    Parameters
+    ----------
+    reflectance : numpy.ndarray
+        (n_bands, H, W) or (n_frames, n_bands, H, W), e.g. from :func:`eq15`.
+    panel_mask : numpy.ndarray
+        (H, W) bool, or (n_frames, H, W) for a panel that moves.
+    panel_reflectance : numpy.ndarray or float
+        Scalar or (n_bands,).
+
+    Returns
+    -------
+    numpy.ndarray
+        float32, the shape of ``reflectance``. A band whose panel pixels are all NaN gives NaN
+        for that band.
+
+    Raises
+    ------
+    InputError
+        On shapes that do not fit, a non-positive panel reflectance or an empty panel mask.
+
+    Notes
+    -----
     For each frame and band the factor is ``panel_reflectance / median(R over the panel)``
-    (median: robust to a few bad pixels; NaN pixels ignored). This removes the unknown
-    per-frame brightness B of Eq. 15 (and, per band, any residual spectral error).
-    A band whose panel pixels are all NaN gives NaN for that band. Returns float32.
+    (median: robust to a few bad pixels; NaN pixels ignored). This removes the unknown per-frame
+    brightness B of Eq. 15 [1]_ (and, per band, any residual spectral error).
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     r = np.asarray(reflectance, dtype=np.float64)
     if r.ndim not in (3, 4):
@@ -209,11 +234,29 @@ def _panel_factor(panel: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
-    """NDVI ``(nir - red) / (nir + red)``, NaN-safe, in [-1, 1].
+    """Return the NDVI ``(nir - red) / (nir + red)``, NaN-safe, in [-1, 1].
 
-    NaN where either input is NaN / inf or ``nir + red <= 0``; values are clipped to
-    [-1, 1] (a slightly negative reflectance from noise could otherwise leave the range).
-    float32 if both inputs are float32, else float64.
+    Parameters
+    ----------
+    red, nir : numpy.ndarray
+        Reflectance (or any linear signal) of the red and near-infrared bands.
+
+    Returns
+    -------
+    numpy.ndarray
+        NaN where either input is NaN / inf or ``nir + red <= 0``; values are clipped to
+        [-1, 1] (a slightly negative reflectance from noise could otherwise leave the range).
+        float32 if both inputs are float32, else float64.
+
+    Notes
+    -----
+    A ratio: the unknown brightness B of Eq. 15 cancels, so NDVI needs no panel [1]_.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     a = np.asarray(red)
     b = np.asarray(nir)
@@ -230,11 +273,32 @@ def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
 def eq15_tables(
     inverse_response: np.ndarray, vignetting: np.ndarray, spectral_factor: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Precomputed factors of Eq. 15 for :func:`eq15_fast`: ``R = (U(I) / S) * (1 / V) / t``.
+    """Precompute the factors of Eq. 15 for :func:`eq15_fast`: ``R = (U(I) / S) * (1 / V) / t``.
 
-    Returns ``lut`` (n_bands, 2**bits) float32 = ``max(U, 0) / S`` (NaN where S is not
-    positive) and ``inv_v`` (n_bands, H, W) float32 = ``1 / V`` (NaN where V is not positive
-    and finite). Computed once per calibration, reused for every frame.
+    Parameters
+    ----------
+    inverse_response : numpy.ndarray
+        (n_bands, 2**bits) U.
+    vignetting : numpy.ndarray
+        (n_bands, H, W) V.
+    spectral_factor : numpy.ndarray
+        (n_bands,) S.
+
+    Returns
+    -------
+    lut : numpy.ndarray
+        (n_bands, 2**bits) float32 ``max(U, 0) / S`` (NaN where S is not positive).
+    inv_v : numpy.ndarray
+        (n_bands, H, W) float32 ``1 / V`` (NaN where V is not positive and finite).
+
+    Raises
+    ------
+    InputError
+        When the shapes do not fit.
+
+    Notes
+    -----
+    Computed once per calibration, reused for every frame.
     """
     u = np.asarray(inverse_response, dtype=np.float64)
     s = np.asarray(spectral_factor, dtype=np.float64).reshape(-1, 1)
