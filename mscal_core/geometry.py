@@ -14,6 +14,12 @@ Marker frame (see ``docs/architecture.md``): marker centre at the origin, plane 
 ``(-s/2, -s/2)``. Pixel ``(i, j)`` of a band has its centre at image point
 ``(x, y) = (j + dx, i + dy)`` (OpenCV convention: integer coordinates are pixel centres),
 ``(dx, dy)`` being the band's offset on the band grid (:func:`mscal_core.mosaic.band_offsets`).
+
+References
+----------
+.. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+       for Multispectral Cameras", IEEE International Conference on Robotics and
+       Automation (ICRA), 2017.
 """
 
 from __future__ import annotations

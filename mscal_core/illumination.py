@@ -15,6 +15,12 @@ alternated from ``B(x) = mean over lambda of L_lambda(x)``: a rank-one fit of th
 
 Baseline (Eq. 16): ``R = I_target / I_reflector * R_s`` per band, exact only if the
 reflector was uniformly lit (:func:`eq16_reflectance`).
+
+References
+----------
+.. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+       for Multispectral Cameras", IEEE International Conference on Robotics and
+       Automation (ICRA), 2017.
 """
 
 from __future__ import annotations

@@ -6,6 +6,12 @@
 reflector images), so R from Eq. 15 is relative: one unknown scalar per frame. Normalise it
 with a region of known reflectance (:func:`normalise_to_panel`) or use ratios / indices
 (:func:`ndvi`) that need no normalisation.
+
+References
+----------
+.. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+       for Multispectral Cameras", IEEE International Conference on Robotics and
+       Automation (ICRA), 2017.
 """
 
 from __future__ import annotations

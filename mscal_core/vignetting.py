@@ -29,6 +29,12 @@ with per-observation weights ``w``: ``w = 1`` (default) weights every observatio
 which is right for a relative (multiplicative) noise of the same size in every view;
 ``w = t_i^2`` reproduces the paper's Eq. 9 / 10 literally (``t L U = t^2 L y``,
 ``(t L)^2 = t^2 L^2``).
+
+References
+----------
+.. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+       for Multispectral Cameras", IEEE International Conference on Robotics and
+       Automation (ICRA), 2017.
 """
 
 from __future__ import annotations

@@ -16,13 +16,24 @@ from ._targets import MarkerSpec
 class Render:
     """Result of :func:`render` for one pose, per band on the band grid.
 
-    ``channels`` (K, n_bands, H, W) float32: footprint integral of ``B x area`` of each material
-    (ground texture included); radiance per band is ``S * sum_k channels_k * R_k``.
-    ``labels`` (n_bands, H, W) uint8 hard label at each sample centre (255 where the ray misses
-    the plane); ``edge`` (n_bands, H, W) bool: the sample's footprint (or a neighbour's)
-    straddles a hard edge or lies within the lens PSF's reach (3 sigma) of one, so it is not a
-    pure sample of its label. ``sensor_u``, ``sensor_v`` (Hs, Ws) plane point of every sensor
-    pixel centre (see :meth:`plane_uv`); ``reach_px`` that PSF reach in sensor pixels.
+    Attributes
+    ----------
+    channels : numpy.ndarray
+        (K, n_bands, H, W) float32: footprint integral of ``B x area`` of each material (ground
+        texture included); radiance per band is ``S * sum_k channels_k * R_k``.
+    labels : numpy.ndarray
+        (n_bands, H, W) uint8 hard label at each sample centre (255 where the ray misses the
+        plane).
+    edge : numpy.ndarray
+        (n_bands, H, W) bool: the sample's footprint (or a neighbour's) straddles a hard edge or
+        lies within the lens PSF's reach (3 sigma) of one, so it is not a pure sample of its
+        label.
+    sensor_u, sensor_v : numpy.ndarray
+        (Hs, Ws) plane point of every sensor pixel centre (see :meth:`plane_uv`).
+    pattern_shape : tuple of int
+        The camera's mosaic pattern.
+    reach_px : int
+        The PSF reach in sensor pixels.
     """
 
     channels: np.ndarray
@@ -52,12 +63,31 @@ def render(camera: SnapshotCamera, pose: Pose, scene, *, supersample: int = 4,
            psf_sigma_px: float = 1.2) -> Render:
     """Render a planar ``scene`` seen from ``pose`` through the distorted pinhole.
 
+    Parameters
+    ----------
+    camera : SnapshotCamera
+        The camera.
+    pose : Pose
+        Pose of the scene plane in the camera frame.
+    scene : ReflectorScene or FieldScene
+        Anything with ``evaluate(u, v)`` returning material weights and labels.
+    supersample : int
+        Edge pixels are re-evaluated on a ``supersample x supersample`` grid over the sensor
+        pixel (100 % fill factor) and averaged.
+    psf_sigma_px : float
+        Gaussian lens PSF in sensor pixels (0.24 band-grid pixels by default).
+
+    Returns
+    -------
+    Render
+        Material channels, labels and edge flags per band.
+
+    Notes
+    -----
     Every sensor pixel centre (band-grid point ``(xs/5, ys/5)``) is back-projected and
     intersected with the plane; pixels whose 3 x 3 neighbourhood crosses a hard label edge are
-    re-evaluated on a ``supersample x supersample`` grid over the sensor pixel (100 % fill
-    factor) and averaged; a Gaussian lens PSF of ``psf_sigma_px`` sensor pixels (0.24 band-grid
-    pixels by default) is applied to the material channels (radiance is linear in them), then
-    the sensor grid is split into bands.
+    supersampled; the PSF is applied to the material channels (radiance is linear in them),
+    then the sensor grid is split into bands.
     """
     xn, yn, (dxx, dxy, dyx, dyy) = camera.sensor_rays()
     u, v, ok = intersect_plane(pose, xn, yn)
@@ -92,17 +122,34 @@ def render(camera: SnapshotCamera, pose: Pose, scene, *, supersample: int = 4,
 
 
 def disk_kernel(radius: int) -> np.ndarray:
+    """Return a filled disk structuring element of ``radius`` pixels (uint8)."""
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
 def detect_marker_corners(image: np.ndarray, marker: MarkerSpec,
                           min_marker_distance_rate: float = 0.05) -> np.ndarray | None:
-    """ArUco corners (4, 2) of ``marker`` in a band image (any dtype), or None. For checks.
+    """Find the ArUco corners of ``marker`` in a band image (any dtype), for checks.
 
-    0.5-99.5 percentile stretch to 8 bits, ``CORNER_REFINE_SUBPIX`` (window 3). OpenCV's
-    default ``minMarkerDistanceRate`` (0.125) merges the marker with the outline of its white
-    paper when the paper border is narrower than ~0.35 marker sides, and then keeps the paper
-    outline (which does not decode): the marker is lost in some views. 0.05 avoids that.
+    Parameters
+    ----------
+    image : numpy.ndarray
+        One band.
+    marker : MarkerSpec
+        The marker.
+    min_marker_distance_rate : float
+        OpenCV's ``minMarkerDistanceRate``.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        (4, 2) corners, or None.
+
+    Notes
+    -----
+    0.5-99.5 percentile stretch to 8 bits, ``CORNER_REFINE_SUBPIX`` (window 3). OpenCV's default
+    ``minMarkerDistanceRate`` (0.125) merges the marker with the outline of its white paper when
+    the paper border is narrower than ~0.35 marker sides, and then keeps the paper outline
+    (which does not decode): the marker is lost in some views. 0.05 avoids that.
     """
     img = np.asarray(image, dtype=np.float64)
     lo, hi = np.percentile(img, [0.5, 99.5])
@@ -126,11 +173,25 @@ def detect_marker_corners(image: np.ndarray, marker: MarkerSpec,
 
 def marker_pose_from_image(image: np.ndarray, band: int, camera: SnapshotCamera,
                            marker: MarkerSpec) -> Pose | None:
-    """Pose of the marker seen in one band image.
+    """Estimate the pose of the marker seen in one band image.
 
-    ArUco corners (+ the band's offset) and ``cv2.solvePnP(SOLVEPNP_IPPE_SQUARE)`` with corners
-    TL, TR, BR, BL = (-s/2, +s/2), (+s/2, +s/2), (+s/2, -s/2), (-s/2, -s/2). None if the marker
-    is not found.
+    Parameters
+    ----------
+    image : numpy.ndarray
+        One band.
+    band : int
+        Its index (for the band's offset on the band grid).
+    camera : SnapshotCamera
+        The camera.
+    marker : MarkerSpec
+        The marker.
+
+    Returns
+    -------
+    Pose or None
+        ArUco corners (+ the band's offset) and ``cv2.solvePnP(SOLVEPNP_IPPE_SQUARE)`` with
+        corners TL, TR, BR, BL = (-s/2, +s/2), (+s/2, +s/2), (+s/2, -s/2), (-s/2, -s/2). None if
+        the marker is not found.
     """
     c = detect_marker_corners(image, marker)
     if c is None:
@@ -146,7 +207,18 @@ def marker_pose_from_image(image: np.ndarray, band: int, camera: SnapshotCamera,
 
 
 def pose_error(estimate: Pose, truth: Pose) -> tuple[float, float]:
-    """(rotation error in degrees, relative translation error) of ``estimate``."""
+    """Return the rotation error in degrees and the relative translation error of ``estimate``.
+
+    Parameters
+    ----------
+    estimate, truth : Pose
+        The estimated and the true pose.
+
+    Returns
+    -------
+    tuple of float
+        ``(rotation error in degrees, |t_est - t_true| / |t_true|)``.
+    """
     dR = truth.R.T @ estimate.R
     ang = math.degrees(math.acos(float(np.clip((np.trace(dR) - 1.0) / 2.0, -1.0, 1.0))))
     rel = float(np.linalg.norm(estimate.tvec - truth.tvec) / np.linalg.norm(truth.tvec))

@@ -103,7 +103,25 @@ class ToneCurve:
 
 @dataclass(frozen=True)
 class PhotoSet:
-    """A bracketed set of 8-bit RGB photographs and its truth."""
+    """A bracketed set of 8-bit RGB photographs and its truth.
+
+    Attributes
+    ----------
+    frames : numpy.ndarray
+        (n, H, W, 3) uint8, RGB, after JPEG (or before, if ``jpeg_quality=None``).
+    exposure_ms : numpy.ndarray
+        (n,) as a file reports it (nominal marking by default).
+    exposure_true_ms : numpy.ndarray
+        (n,) what the sensor integrated.
+    tone : ToneCurve
+        The camera's tone curve (the truth of U).
+    moving : numpy.ndarray
+        (H, W) bool: pixels where something moves between frames.
+    params : dict
+        The arguments of :func:`make_photo_set` and the white balance.
+    jpeg : tuple of bytes
+        The encoded files (BGR JPEG, as cv2.imencode), if JPEG.
+    """
 
     frames: np.ndarray  # (n, H, W, 3) uint8, RGB, after JPEG (or before, if jpeg_quality=None)
     exposure_ms: np.ndarray  # (n,) as a file reports it (nominal marking by default)
@@ -132,9 +150,26 @@ class PhotoSet:
 
 
 def bracket(n_frames: int, step_thirds: int, centre_k: int = -21) -> tuple[np.ndarray, np.ndarray]:
-    """Third-stop indices of a bracket centred on ``centre_k`` (default 1/125 s).
+    """Return the exposures of a bracket centred on third-stop index ``centre_k`` (default 1/125 s).
 
-    Returns ``(true seconds 2**(k/3), nominal seconds)``.
+    Parameters
+    ----------
+    n_frames : int
+        Frames, >= 2.
+    step_thirds : int
+        Step in third stops, >= 1.
+    centre_k : int
+        Third-stop index of the middle frame (``2**(k/3)`` seconds).
+
+    Returns
+    -------
+    true_s, nominal_s : numpy.ndarray
+        True seconds ``2**(k/3)`` and the nominal marking (1/60 for 1/64 s).
+
+    Raises
+    ------
+    InputError
+        For fewer than 2 frames, a step below 1, or a bracket outside 1/8000 .. 4 s.
     """
     if n_frames < 2 or step_thirds < 1:
         raise InputError("a bracket needs >= 2 frames and a step of >= 1 third stop")
@@ -357,15 +392,49 @@ def make_photo_set(
 ) -> PhotoSet:
     """Make a seeded bracket of ``n_frames`` photographs ``step_thirds`` third stops apart.
 
-    ``shift_px`` is the typical handheld shift between frames (each frame's shift is drawn
-    uniformly in ``[shift_px/3, 2 shift_px]`` in a random direction; 0 = tripod),
-    ``rotation_deg`` the rms rotation; ``moving`` adds foliage and a walking figure;
-    ``jpeg_quality`` None skips JPEG; ``sharpen`` is the unsharp-mask amount (0 = none);
-    ``demosaic`` "bilinear" or "ea" (edge aware); ``awb_jitter`` the rms per-frame,
-    per-channel drift of the white balance gains; ``nominal_exposure`` reports EXIF-style
-    markings (1/60 for 1/64 s) instead of the true times; ``exposure_jitter`` the rms relative
-    error of the real shutter; ``tone`` defaults to a seeded :class:`ToneCurve`;
-    ``exposure_bias_stops`` shifts the whole bracket (positive = brighter).
+    Parameters
+    ----------
+    seed : int
+        Seed of every draw.
+    shape : tuple of int
+        ``(H, W)``, at least 64 x 64.
+    n_frames, step_thirds : int
+        The bracket (:func:`bracket`).
+    jpeg_quality : int or None
+        None skips JPEG.
+    shift_px : float
+        The typical handheld shift between frames (each frame's shift is drawn uniformly in
+        ``[shift_px/3, 2 shift_px]`` in a random direction; 0 = tripod).
+    rotation_deg : float
+        The rms rotation.
+    moving : bool
+        Adds foliage and a walking figure.
+    sharpen : float
+        The unsharp-mask amount (0 = none).
+    demosaic : {"bilinear", "ea"}
+        Bilinear or edge aware.
+    awb_jitter : float
+        The rms per-frame, per-channel drift of the white balance gains.
+    nominal_exposure : bool
+        Report EXIF-style markings (1/60 for 1/64 s) instead of the true times.
+    exposure_jitter : float
+        The rms relative error of the real shutter.
+    full_well_e, read_noise_e : float
+        The sensor's full well and read noise in electrons.
+    tone : ToneCurve, optional
+        Defaults to a seeded :class:`ToneCurve`.
+    exposure_bias_stops : float
+        Shifts the whole bracket (positive = brighter).
+
+    Returns
+    -------
+    PhotoSet
+        The frames and their truth.
+
+    Raises
+    ------
+    InputError
+        For a shape below 64 x 64, an unknown demosaic, a bad bracket or a failed JPEG encoding.
     """
     rng = np.random.default_rng(seed)
     h, w = shape

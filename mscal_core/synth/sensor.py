@@ -39,8 +39,30 @@ SHOULDER_HEADROOM = 1.5
 class SensorModel:
     """A monochrome pixel: soft-shouldered, mildly non-linear response plus shot/read noise.
 
-    ``gamma`` (an addition to the basic sensor, default 1 = raw CMOS) bends the response like
-    an 8-bit display-referred camera (e.g. ``bits=8, gamma=2.2, black_level=0``).
+    Attributes
+    ----------
+    bits : int
+        Bit depth, 2..16.
+    black_level : float
+        DN.
+    read_noise_dn : float
+        DN rms.
+    shot_noise_dn_at_full : float
+        Shot-noise rms (DN) at full scale; variance proportional to the signal.
+    shoulder_start : float
+        Fraction of the DN range where a soft shoulder begins.
+    curvature : float
+        ``c`` in ``f(x) = x (1 - c x / (x + R))``: slope 1 at 0, ``1 - 3c/4`` at R.
+    gamma : float
+        ``y = R (f / R)^(1/gamma)``; 1 = linear raw sensor (default). An addition to the basic
+        sensor that bends the response like an 8-bit display-referred camera (e.g.
+        ``bits=8, gamma=2.2, black_level=0``).
+
+    Raises
+    ------
+    InputError
+        On a bit depth outside 2..16, a black level outside the linear range, a shoulder
+        or curvature out of range, a non-positive gamma or negative noise.
     """
 
     bits: int = 10
