@@ -46,8 +46,10 @@ class FitError(MscalError):
 
 
 class LockedError(MscalError):
-    """Another process is writing into the same output; nothing was written. Exit status 75
-    (EX_TEMPFAIL: the same command can succeed later)."""
+    """Another process is writing into the same output; nothing was written.
+
+    Exit status 75 (EX_TEMPFAIL: the same command can succeed later).
+    """
 
     exit_code = 75
 

@@ -25,6 +25,15 @@ Components from the field fits may replace the factory's (issue 6), one at a tim
   only the *shape* (black level, shoulder) comes from the field.
 
 Pure numpy (OpenCV for the polygon mask): the metadata is read by ``pipeline.ingest.camera_meta``.
+
+References
+----------
+.. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py`` and
+       ``micasense/metadata.py``: the RedEdge / Altum radiometric calibration model and its
+       XMP tags.
+.. [2] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+       for Multispectral Cameras", IEEE International Conference on Robotics and
+       Automation (ICRA), 2017.
 """
 
 from __future__ import annotations
@@ -38,7 +47,17 @@ import numpy as np
 
 @dataclass(frozen=True)
 class PanelStats:
-    """Statistics of an image over a panel region."""
+    """Statistics of an image over a panel region.
+
+    Attributes
+    ----------
+    mean, std : float
+        Mean and standard deviation over the region.
+    count : int
+        Pixels in the region.
+    saturated : int
+        Of those, pixels above the saturation level.
+    """
 
     mean: float
     std: float
@@ -47,12 +66,29 @@ class PanelStats:
 
 
 def radial_vignetting(shape: tuple[int, int], center: Sequence[float], poly: Sequence[float]) -> np.ndarray:
-    """Radial vignetting correction ``V = 1 / (1 + k1 r + k2 r^2 + ... + kn r^n)``.
+    """Return the radial vignetting correction ``V = 1 / (1 + k1 r + k2 r^2 + ... + kn r^n)``.
 
-    ``r`` is the distance in pixels of the pixel centre grid point ``(x, y)`` (x = column,
-    y = row, integer coordinates) from ``center = (cx, cy)``; ``poly = [k1, ..., kn]`` in the
-    order MicaSense's XMP ``VignettingPolynomial`` lists them (lowest power first, no
-    constant term). Returns ``(H, W)`` float64, 1 at the centre.
+    Parameters
+    ----------
+    shape : tuple of int
+        ``(H, W)`` of the band.
+    center : sequence of float
+        ``(cx, cy)`` in pixels.
+    poly : sequence of float
+        ``[k1, ..., kn]`` in the order MicaSense's XMP ``VignettingPolynomial`` lists them
+        (lowest power first, no constant term) [1]_.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` float64, 1 at the centre. ``r`` is the distance in pixels of the pixel centre
+        grid point ``(x, y)`` (x = column, y = row, integer coordinates) from the centre.
+
+    References
+    ----------
+    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py`` and
+           ``micasense/metadata.py``: the RedEdge / Altum radiometric calibration model and its
+           XMP tags.
     """
     h, w = shape
     cx, cy = float(center[0]), float(center[1])
@@ -67,10 +103,33 @@ def radial_vignetting(shape: tuple[int, int], center: Sequence[float], poly: Seq
 def vignetting_2d(
     shape: tuple[int, int], coefficients: Sequence[float], exponents: Sequence[float]
 ) -> np.ndarray:
-    """2-D polynomial vignetting correction ``V = 1 / sum_i c_i u^ex_i v^ey_i``.
+    """Return the 2-D polynomial vignetting correction ``V = 1 / sum_i c_i u^ex_i v^ey_i``.
 
-    ``u = x / W`` and ``v = y / H`` are the normalised column and row; ``exponents`` is the
-    flat ``[ex_0, ey_0, ex_1, ey_1, ...]`` list of XMP ``VignettingPolynomial2DName``.
+    Parameters
+    ----------
+    shape : tuple of int
+        ``(H, W)`` of the band.
+    coefficients : sequence of float
+        ``c_i``.
+    exponents : sequence of float
+        The flat ``[ex_0, ey_0, ex_1, ey_1, ...]`` list of XMP ``VignettingPolynomial2DName``
+        [1]_.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` float64; ``u = x / W`` and ``v = y / H`` are the normalised column and row.
+
+    Raises
+    ------
+    ValueError
+        When the exponents are not two per coefficient.
+
+    References
+    ----------
+    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py`` and
+           ``micasense/metadata.py``: the RedEdge / Altum radiometric calibration model and its
+           XMP tags.
     """
     if len(exponents) != 2 * len(coefficients):
         raise ValueError(
@@ -94,11 +153,32 @@ def vignetting_map(
     poly_2d: Sequence[float] | None = None,
     exponents_2d: Sequence[float] | None = None,
 ) -> np.ndarray:
-    """Factory vignetting correction of one band: the radial form if given, else the 2-D form.
+    """Return the factory vignetting correction of one band: the radial form if given, else the 2-D form.
 
-    Note the convention differs from mscal's field ``V`` (max 1, divides the energy): the
-    factory map is >= 1 off-centre and multiplies the DN; ``1 / map`` scaled to max 1 is the
-    field-style vignetting.
+    Parameters
+    ----------
+    shape : tuple of int
+        ``(H, W)`` of the band.
+    center, poly : sequence of float, optional
+        The radial form (:func:`radial_vignetting`).
+    poly_2d, exponents_2d : sequence of float, optional
+        The 2-D form (:func:`vignetting_2d`).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` float64 correction map.
+
+    Raises
+    ------
+    ValueError
+        When neither form is given.
+
+    Notes
+    -----
+    The convention differs from mscal's field ``V`` (max 1, divides the energy): the factory map
+    is >= 1 off-centre and multiplies the DN; ``1 / map`` scaled to max 1 is the field-style
+    vignetting.
     """
     if center is not None and poly is not None and len(poly) > 0:
         return radial_vignetting(shape, center, poly)
@@ -108,7 +188,28 @@ def vignetting_map(
 
 
 def row_gradient(height: int, exposure_s: float, a2: float, a3: float) -> np.ndarray:
-    """Row-gradient factor ``R(y) = t_e / (t_e + a2 y - a3 t_e y)`` per row, shape ``(H, 1)``."""
+    """Return the row-gradient factor ``R(y) = t_e / (t_e + a2 y - a3 t_e y)`` per row.
+
+    Parameters
+    ----------
+    height : int
+        Rows of the band.
+    exposure_s : float
+        ``t_e`` in seconds.
+    a2, a3 : float
+        The row-gradient (rolling shutter) terms of the calibration [1]_.
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape ``(H, 1)``.
+
+    References
+    ----------
+    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py`` and
+           ``micasense/metadata.py``: the RedEdge / Altum radiometric calibration model and its
+           XMP tags.
+    """
     y = np.arange(height, dtype=np.float64)[:, None]
     return exposure_s / (exposure_s + a2 * y - a3 * exposure_s * y)
 
@@ -124,13 +225,43 @@ def radiance(
     bits_per_sample: int = 16,
     signal: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Factory radiance ``L = V a1/g (p - p_BL) / (t_e + a2 y - a3 t_e y)``, W m-2 sr-1 nm-1.
+    """Compute the factory radiance ``L = V a1/g (p - p_BL) / (t_e + a2 y - a3 t_e y)``, W m-2 sr-1 nm-1.
 
-    ``dn`` is one band ``(H, W)`` as stored; ``black_level`` in DN; ``calibration`` is
-    ``[a1, a2, a3]``; ``vignetting`` the correction map (:func:`vignetting_map`, or ``1/V``
-    of a field fit); ``bits_per_sample`` the container depth the DN are normalised by.
-    ``signal``, if given, replaces ``p - p_BL`` (a field response, see
-    :func:`field_response_signal`). Negative values are floored at 0.
+    Parameters
+    ----------
+    dn : numpy.ndarray
+        One band ``(H, W)`` as stored.
+    exposure_s : float
+        ``t_e`` in seconds.
+    gain : float
+        ``g = ISO / 100``.
+    black_level : float
+        In DN.
+    calibration : sequence of float
+        ``[a1, a2, a3]``.
+    vignetting : numpy.ndarray
+        The correction map (:func:`vignetting_map`, or ``1/V`` of a field fit).
+    bits_per_sample : int
+        The container depth the DN are normalised by.
+    signal : numpy.ndarray, optional
+        Replaces ``p - p_BL`` (a field response, see :func:`field_response_signal`).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` float64 radiance; negative values are floored at 0.
+
+    Raises
+    ------
+    ValueError
+        On a non-positive exposure or gain, or a vignetting map or signal that does not match
+        the image.
+
+    References
+    ----------
+    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py`` and
+           ``micasense/metadata.py``: the RedEdge / Altum radiometric calibration model and its
+           XMP tags.
     """
     if exposure_s <= 0 or gain <= 0:
         raise ValueError(f"exposure ({exposure_s}) and gain ({gain}) must be positive")
@@ -151,13 +282,30 @@ def radiance(
 def field_response_scale(
     inverse_response: np.ndarray, *, dn_shift: int, black_level: float, bits_per_sample: int = 16
 ) -> float:
-    """Scale ``c`` that puts a field inverse response on the factory's linear scale.
+    """Return the scale ``c`` that puts a field inverse response on the factory's linear scale.
 
-    ``inverse_response`` is ``U(k)`` for every sensor DN ``k`` (Eq. 5-7, relative units);
-    a stored value is ``k * 2**dn_shift``. ``c`` minimises
-    ``sum_k (c U(k) - (k 2**dn_shift - p_BL) / 2**bits_per_sample)**2`` over the DN from the
-    black level to half of full scale, where the factory model (linear) holds:
-    ``c = sum U f / sum U**2`` with ``f`` the factory's ``p - p_BL``.
+    Parameters
+    ----------
+    inverse_response : numpy.ndarray
+        ``U(k)`` for every sensor DN ``k`` (Eq. 5-7, relative units).
+    dn_shift : int
+        A stored value is ``k * 2**dn_shift``.
+    black_level : float
+        ``p_BL`` in stored DN.
+    bits_per_sample : int
+        The container depth.
+
+    Returns
+    -------
+    float
+        ``c = sum U f / sum U**2`` with ``f`` the factory's ``p - p_BL``: it minimises
+        ``sum_k (c U(k) - (k 2**dn_shift - p_BL) / 2**bits_per_sample)**2`` over the DN from the
+        black level to half of full scale, where the factory model (linear) holds.
+
+    Raises
+    ------
+    ValueError
+        When U is zero over the lower half of the DN range.
     """
     u = np.asarray(inverse_response, dtype=np.float64)
     k = np.arange(u.size, dtype=np.float64)
@@ -171,17 +319,50 @@ def field_response_scale(
 
 
 def field_response_signal(dn: np.ndarray, inverse_response: np.ndarray, *, dn_shift: int, scale: float) -> np.ndarray:
-    """``c U(DN >> dn_shift)`` per pixel: the field response in the factory's units (see
-    :func:`field_response_scale` for ``c``)."""
+    """Return ``c U(DN >> dn_shift)`` per pixel: the field response in the factory's units.
+
+    Parameters
+    ----------
+    dn : numpy.ndarray
+        One band as stored.
+    inverse_response : numpy.ndarray
+        ``U(k)`` for every sensor DN.
+    dn_shift : int
+        Stored DN are ``k * 2**dn_shift``.
+    scale : float
+        ``c`` from :func:`field_response_scale`.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, the shape of ``dn``.
+    """
     k = np.right_shift(np.asarray(dn).astype(np.int64), dn_shift)
     k = np.clip(k, 0, inverse_response.size - 1)
     return scale * np.asarray(inverse_response, dtype=np.float64)[k]
 
 
 def panel_stats(image: np.ndarray, mask: np.ndarray, saturation: float | None = None) -> PanelStats:
-    """Mean, standard deviation, pixel count and saturated count of ``image`` over ``mask``.
+    """Return the mean, standard deviation, pixel count and saturated count of ``image`` over ``mask``.
 
-    ``saturated`` counts pixels above ``saturation`` (0 when it is None).
+    Parameters
+    ----------
+    image : numpy.ndarray
+        One band.
+    mask : numpy.ndarray
+        Bool, the shape of ``image``.
+    saturation : float, optional
+        Pixels above it count as saturated (0 saturated when None).
+
+    Returns
+    -------
+    PanelStats
+        The statistics.
+
+    Raises
+    ------
+    ValueError
+        When the mask does not match the image.
     """
     mask = np.asarray(mask, dtype=bool)
     if mask.shape != image.shape:
@@ -194,9 +375,19 @@ def panel_stats(image: np.ndarray, mask: np.ndarray, saturation: float | None = 
 
 
 def polygon_mask(shape: tuple[int, int], corners: Sequence[Sequence[float]]) -> np.ndarray:
-    """Boolean ``(H, W)`` mask of the pixels inside (and on the edges of) a polygon.
+    """Return the boolean ``(H, W)`` mask of the pixels inside (and on the edges of) a polygon.
 
-    ``corners`` are ``(x, y)`` pixel coordinates (x = column), e.g. a panel's four corners.
+    Parameters
+    ----------
+    shape : tuple of int
+        ``(H, W)``.
+    corners : sequence of (x, y)
+        Pixel coordinates (x = column), e.g. a panel's four corners.
+
+    Returns
+    -------
+    numpy.ndarray
+        Bool ``(H, W)``.
     """
     pts = np.round(np.asarray(corners, dtype=np.float64)).astype(np.int32).reshape(-1, 1, 2)
     mask = np.zeros(shape, dtype=np.uint8)

@@ -14,6 +14,12 @@ Marker frame (see ``docs/architecture.md``): marker centre at the origin, plane 
 ``(-s/2, -s/2)``. Pixel ``(i, j)`` of a band has its centre at image point
 ``(x, y) = (j + dx, i + dy)`` (OpenCV convention: integer coordinates are pixel centres),
 ``(dx, dy)`` being the band's offset on the band grid (:func:`mscal_core.mosaic.band_offsets`).
+
+References
+----------
+.. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+       for Multispectral Cameras", IEEE International Conference on Robotics and
+       Automation (ICRA), 2017.
 """
 
 from __future__ import annotations
@@ -49,8 +55,17 @@ _PARALLEL_EPS = 1e-9
 class Intrinsics:
     """Pinhole + OpenCV distortion intrinsics of the band grid.
 
-    ``fx, fy, cx, cy`` in band-grid pixels; ``dist = (k1, k2, p1, p2, k3)`` (OpenCV order).
-    A shorter ``dist`` is padded with zeros; anything but finite numbers raises InputError.
+    Attributes
+    ----------
+    fx, fy, cx, cy : float
+        Focal lengths and principal point in band-grid pixels.
+    dist : tuple of float
+        ``(k1, k2, p1, p2, k3)`` (OpenCV order). A shorter ``dist`` is padded with zeros.
+
+    Raises
+    ------
+    InputError
+        On anything but finite numbers.
     """
 
     fx: float
@@ -60,6 +75,7 @@ class Intrinsics:
     dist: tuple[float, float, float, float, float] = field(default=(0.0, 0.0, 0.0, 0.0, 0.0))
 
     def __post_init__(self) -> None:
+        """Validate the focal lengths, principal point and distortion."""
         values = []
         for name in ("fx", "fy", "cx", "cy"):
             try:
@@ -116,13 +132,24 @@ class Intrinsics:
 class Pose:
     """Pose of the marker frame in the camera frame: ``X_cam = R(rvec) @ X_marker + tvec``.
 
-    ``rvec`` (3,) Rodrigues rotation vector, ``tvec`` (3,) metres (float64 copies).
+    Attributes
+    ----------
+    rvec : numpy.ndarray
+        (3,) Rodrigues rotation vector (float64 copy).
+    tvec : numpy.ndarray
+        (3,) translation in metres (float64 copy).
+
+    Raises
+    ------
+    InputError
+        Unless both are 3 finite numbers.
     """
 
     rvec: np.ndarray
     tvec: np.ndarray
 
     def __post_init__(self) -> None:
+        """Validate ``rvec`` and ``tvec`` (3 finite numbers each)."""
         for name in ("rvec", "tvec"):
             value = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1)
             if value.shape != (3,) or not np.all(np.isfinite(value)):
@@ -138,10 +165,18 @@ class Pose:
 
 
 def marker_object_points(marker_size_m: float) -> np.ndarray:
-    """Marker corners in the marker frame, (4, 3) float64, order TL, TR, BR, BL.
+    """Return the marker corners in the marker frame, order TL, TR, BR, BL.
 
-    ``(-s/2, +s/2, 0), (+s/2, +s/2, 0), (+s/2, -s/2, 0), (-s/2, -s/2, 0)``: the order
-    ``SOLVEPNP_IPPE_SQUARE`` requires and ArUco detection returns.
+    Parameters
+    ----------
+    marker_size_m : float
+        Side ``s`` of the marker in metres.
+
+    Returns
+    -------
+    numpy.ndarray
+        (4, 3) float64 ``(-s/2, +s/2, 0), (+s/2, +s/2, 0), (+s/2, -s/2, 0), (-s/2, -s/2, 0)``: the
+        order ``SOLVEPNP_IPPE_SQUARE`` requires and ArUco detection returns.
     """
     h = 0.5 * float(marker_size_m)
     return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]], dtype=np.float64)
@@ -187,14 +222,40 @@ def _aruco_dictionary(dictionary: str) -> cv2.aruco.Dictionary:
 
 
 def detect_marker(image: np.ndarray, dictionary: str, marker_id: int) -> np.ndarray | None:
-    """Find ArUco marker ``marker_id`` of ``dictionary`` (e.g. ``"DICT_4X4_50"``) in an image.
+    """Find ArUco marker ``marker_id`` of ``dictionary`` in an image.
 
-    The image (any dtype, e.g. 10-bit DN) is stretched to 8 bits (0.5-99.5 percentiles),
-    detected with ``cv2.aruco.ArucoDetector`` and the corners refined to sub-pixel accuracy
-    (``CORNER_REFINE_SUBPIX``). Returns the corners (4, 2) float64 ``(x, y)`` pixels in the
-    order top-left, top-right, bottom-right, bottom-left of the printed marker, or None if the
-    id is not found. If the id is found more than once the largest one wins.
-    Raises InputError for an unknown dictionary name or a non-2-D image.
+    Parameters
+    ----------
+    image : numpy.ndarray
+        2-D image of any dtype (e.g. 10-bit DN); stretched to 8 bits (0.5-99.5 percentiles).
+    dictionary : str
+        OpenCV ArUco dictionary name, e.g. ``"DICT_4X4_50"``.
+    marker_id : int
+        The marker's id.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        The corners (4, 2) float64 ``(x, y)`` pixels in the order top-left, top-right,
+        bottom-right, bottom-left of the printed marker, or None if the id is not found. If the
+        id is found more than once the largest one wins.
+
+    Raises
+    ------
+    InputError
+        For an unknown dictionary name or a non-2-D image.
+
+    Notes
+    -----
+    Detected with ``cv2.aruco.ArucoDetector`` and the corners refined to sub-pixel accuracy
+    (``CORNER_REFINE_SUBPIX``). The paper takes the pose of each reflector image from this
+    marker [1]_.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     detector_dict = _aruco_dictionary(dictionary)
     gray = _to_uint8(image)
@@ -223,11 +284,29 @@ def detect_marker(image: np.ndarray, dictionary: str, marker_id: int) -> np.ndar
 
 
 def estimate_pose(corners: np.ndarray, marker_size_m: float, intrinsics: Intrinsics) -> Pose:
-    """Marker pose from its 4 image corners (``cv2.solvePnP`` with ``SOLVEPNP_IPPE_SQUARE``).
+    """Estimate the marker pose from its 4 image corners.
 
-    ``corners`` (4, 2) pixels TL, TR, BR, BL (as :func:`detect_marker` returns), matched to
-    :func:`marker_object_points`. Raises InputError on bad arguments and FitError if no pose
-    is found or the marker plane would lie (partly) behind the camera.
+    Parameters
+    ----------
+    corners : numpy.ndarray
+        (4, 2) pixels TL, TR, BR, BL (as :func:`detect_marker` returns), matched to
+        :func:`marker_object_points`.
+    marker_size_m : float
+        Side of the marker in metres.
+    intrinsics : Intrinsics
+        The band grid's intrinsics.
+
+    Returns
+    -------
+    Pose
+        ``cv2.solvePnP`` with ``SOLVEPNP_IPPE_SQUARE``.
+
+    Raises
+    ------
+    InputError
+        On bad arguments.
+    FitError
+        If no pose is found or the marker plane would lie (partly) behind the camera.
     """
     pts = np.asarray(corners, dtype=np.float64)
     if pts.shape != (4, 2) or not np.all(np.isfinite(pts)):
@@ -256,12 +335,26 @@ def estimate_pose(corners: np.ndarray, marker_size_m: float, intrinsics: Intrins
 
 
 def undistorted_rays(points_xy: np.ndarray, intrinsics: Intrinsics) -> np.ndarray:
-    """Viewing rays ``d = (x', y', 1)`` of image points, as normalised coordinates (N, 2).
+    """Return the viewing rays ``d = (x', y', 1)`` of image points, as normalised coordinates.
 
-    ``(x', y')`` inverts the pinhole + OpenCV distortion model (``cv2.undistortPoints``,
-    iterated to convergence; OpenCV's default 5 iterations are not exact). The rays depend only
-    on the intrinsics and the pixel positions, not on the pose: compute them once per band and
-    reuse them for every view (:func:`rays_to_plane`).
+    Parameters
+    ----------
+    points_xy : numpy.ndarray
+        (N, 2) image points in pixels.
+    intrinsics : Intrinsics
+        The band grid's intrinsics.
+
+    Returns
+    -------
+    numpy.ndarray
+        (N, 2) ``(x', y')``.
+
+    Notes
+    -----
+    ``(x', y')`` inverts the pinhole + OpenCV distortion model (``cv2.undistortPoints``, iterated
+    to convergence; OpenCV's default 5 iterations are not exact). The rays depend only on the
+    intrinsics and the pixel positions, not on the pose: compute them once per band and reuse
+    them for every view (:func:`rays_to_plane`).
     """
     pts = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
     if pts.shape[0] == 0:
@@ -273,11 +366,25 @@ def undistorted_rays(points_xy: np.ndarray, intrinsics: Intrinsics) -> np.ndarra
 
 
 def rays_to_plane(rays: np.ndarray, pose: Pose) -> np.ndarray:
-    """Where rays ``d = (x', y', 1)`` (N, 2) meet the marker plane: plane points (N, 2) (u, v).
+    """Return where rays ``d = (x', y', 1)`` meet the marker plane.
 
-    The plane is ``n . X = n . t`` (``n`` = third column of R); the ray meets it at
-    ``X = s d``, ``s = (n . t) / (n . d)``, and ``(u, v, 0) = R^T (X - t)``. NaN where the ray
-    is parallel to the plane or meets it behind the camera (``s <= 0``).
+    Parameters
+    ----------
+    rays : numpy.ndarray
+        (N, 2) normalised coordinates.
+    pose : Pose
+        Pose of the marker.
+
+    Returns
+    -------
+    numpy.ndarray
+        (N, 2) plane points (u, v); NaN where the ray is parallel to the plane or meets it
+        behind the camera (``s <= 0``).
+
+    Notes
+    -----
+    The plane is ``n . X = n . t`` (``n`` = third column of R); the ray meets it at ``X = s d``,
+    ``s = (n . t) / (n . d)``, and ``(u, v, 0) = R^T (X - t)``.
     """
     norm = np.asarray(rays, dtype=np.float64).reshape(-1, 2)
     out = np.full(norm.shape, np.nan)
@@ -300,9 +407,22 @@ def rays_to_plane(rays: np.ndarray, pose: Pose) -> np.ndarray:
 
 
 def image_points_to_plane(points_xy: np.ndarray, pose: Pose, intrinsics: Intrinsics) -> np.ndarray:
-    """Inverse of :func:`project_to_pixels`: image points (N, 2) -> plane points (N, 2) (u, v).
+    """Map image points to plane points, the inverse of :func:`project_to_pixels`.
 
-    :func:`undistorted_rays` then :func:`rays_to_plane`; NaN where the ray misses the plane.
+    Parameters
+    ----------
+    points_xy : numpy.ndarray
+        (N, 2) image points in pixels.
+    pose : Pose
+        Pose of the marker.
+    intrinsics : Intrinsics
+        The band grid's intrinsics.
+
+    Returns
+    -------
+    numpy.ndarray
+        (N, 2) plane points (u, v): :func:`undistorted_rays` then :func:`rays_to_plane`; NaN
+        where the ray misses the plane.
     """
     return rays_to_plane(undistorted_rays(points_xy, intrinsics), pose)
 
@@ -310,10 +430,22 @@ def image_points_to_plane(points_xy: np.ndarray, pose: Pose, intrinsics: Intrins
 def pixel_rays(
     intrinsics: Intrinsics, shape: tuple[int, int], offset: tuple[float, float] = (0.0, 0.0)
 ) -> np.ndarray:
-    """Viewing rays of every pixel centre, (H, W, 2) normalised coordinates.
+    """Return the viewing rays of every pixel centre as normalised coordinates.
 
-    Pixel (i, j) looks through image point ``(x, y) = (j + dx, i + dy)`` with
-    ``offset = (dx, dy)`` the band's offset on the band grid.
+    Parameters
+    ----------
+    intrinsics : Intrinsics
+        The band grid's intrinsics.
+    shape : tuple of int
+        ``(H, W)`` of the band.
+    offset : tuple of float
+        ``(dx, dy)``, the band's offset on the band grid: pixel (i, j) looks through image
+        point ``(x, y) = (j + dx, i + dy)``.
+
+    Returns
+    -------
+    numpy.ndarray
+        (H, W, 2) normalised coordinates.
     """
     h, w = (int(shape[0]), int(shape[1]))
     if h <= 0 or w <= 0:
@@ -331,11 +463,36 @@ def pixels_to_plane(
     offset: tuple[float, float] = (0.0, 0.0),
     rays: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Plane point (u, v) in metres seen by the centre of every pixel: (H, W, 2) float64.
+    """Return the plane point (u, v) in metres seen by the centre of every pixel.
 
-    This is the inverse of the paper's ``pi_i(p) = x`` on the pixel grid: :func:`pixel_rays`
-    (pass ``rays`` precomputed for the same intrinsics, shape and offset to skip it) then
-    :func:`rays_to_plane`; NaN where the ray misses the plane (parallel or behind the camera).
+    Parameters
+    ----------
+    pose : Pose
+        Pose of the marker.
+    intrinsics : Intrinsics
+        The band grid's intrinsics.
+    shape : tuple of int
+        ``(H, W)`` of the band.
+    offset : tuple of float
+        The band's offset on the band grid (:func:`pixel_rays`).
+    rays : numpy.ndarray, optional
+        :func:`pixel_rays` precomputed for the same intrinsics, shape and offset (skips it).
+
+    Returns
+    -------
+    numpy.ndarray
+        (H, W, 2) float64; NaN where the ray misses the plane (parallel or behind the camera).
+
+    Notes
+    -----
+    This is the inverse of the paper's ``pi_i(p) = x`` [1]_ on the pixel grid:
+    :func:`pixel_rays` then :func:`rays_to_plane`.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     if rays is None:
         rays = pixel_rays(intrinsics, shape, offset)
@@ -344,10 +501,33 @@ def pixels_to_plane(
 
 
 def project_to_pixels(points_uv: np.ndarray, pose: Pose, intrinsics: Intrinsics) -> np.ndarray:
-    """The paper's ``pi_i``: plane points (N, 2) (u, v) metres -> image points (N, 2) pixels.
+    """Project plane points to pixels, the paper's ``pi_i``.
 
-    ``cv2.projectPoints`` of ``(u, v, 0)`` with the pose and the intrinsics (distortion
-    included). Points behind the camera give meaningless pixels: check with the pose first.
+    Parameters
+    ----------
+    points_uv : numpy.ndarray
+        (N, 2) plane points (u, v) in metres.
+    pose : Pose
+        Pose of the marker.
+    intrinsics : Intrinsics
+        The band grid's intrinsics.
+
+    Returns
+    -------
+    numpy.ndarray
+        (N, 2) image points in pixels: ``cv2.projectPoints`` of ``(u, v, 0)`` with the pose and
+        the intrinsics (distortion included). Points behind the camera give meaningless pixels:
+        check with the pose first.
+
+    Notes
+    -----
+    ``pi_i: p -> x`` of Eq. 8-10 [1]_.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     uv = np.asarray(points_uv, dtype=np.float64).reshape(-1, 2)
     if uv.shape[0] == 0:
@@ -358,7 +538,23 @@ def project_to_pixels(points_uv: np.ndarray, pose: Pose, intrinsics: Intrinsics)
 
 
 def size_wh(size_m: float | Sequence[float]) -> tuple[float, float]:
-    """A reflector size given as one side or ``[width, height]`` (metres), validated."""
+    """Validate a reflector size given as one side or ``[width, height]`` (metres).
+
+    Parameters
+    ----------
+    size_m : float or sequence of float
+        One side (a square) or ``[width, height]``.
+
+    Returns
+    -------
+    tuple of float
+        ``(width, height)``.
+
+    Raises
+    ------
+    InputError
+        Unless the size is one or two positive finite numbers.
+    """
     arr = np.asarray(size_m, dtype=np.float64).ravel()
     if arr.size == 1:
         arr = np.repeat(arr, 2)
@@ -376,12 +572,26 @@ def reflector_mask(
     exclude_half_m: float,
     edge_margin_m: float,
 ) -> np.ndarray:
-    """Pixels that see usable gray reflector: bool array of ``uv.shape[:-1]``.
+    """Mask the pixels that see usable gray reflector.
 
-    True where ``|u| <= w/2 - edge_margin_m`` and ``|v| <= h/2 - edge_margin_m`` (inside the
-    reflector ``size_m = [w, h]`` centred on the marker, away from its edge) and NOT
-    ``|u| <= exclude_half_m and |v| <= exclude_half_m`` (the marker, its white paper border
-    and a safety margin). NaN plane points are False.
+    Parameters
+    ----------
+    uv : numpy.ndarray
+        (..., 2) plane points of the pixels (:func:`pixels_to_plane`).
+    size_m : float or sequence of float
+        Reflector size ``[w, h]`` centred on the marker.
+    exclude_half_m : float
+        Half width of the excluded centre: the marker, its white paper border and a safety
+        margin.
+    edge_margin_m : float
+        Margin kept from the reflector's edge.
+
+    Returns
+    -------
+    numpy.ndarray
+        Bool array of ``uv.shape[:-1]``: True where ``|u| <= w/2 - edge_margin_m`` and
+        ``|v| <= h/2 - edge_margin_m`` and NOT ``|u| <= exclude_half_m and |v| <=
+        exclude_half_m``. NaN plane points are False.
     """
     w, h = size_wh(size_m)
     excl = float(exclude_half_m)

@@ -15,6 +15,12 @@ alternated from ``B(x) = mean over lambda of L_lambda(x)``: a rank-one fit of th
 
 Baseline (Eq. 16): ``R = I_target / I_reflector * R_s`` per band, exact only if the
 reflector was uniformly lit (:func:`eq16_reflectance`).
+
+References
+----------
+.. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+       for Multispectral Cameras", IEEE International Conference on Robotics and
+       Automation (ICRA), 2017.
 """
 
 from __future__ import annotations
@@ -44,14 +50,22 @@ __all__ = [
 class IlluminationFit:
     """Result of :func:`fit_illumination`.
 
-    - ``spectral_factor`` (n_bands,) S(lambda).
-    - ``brightness`` (n_pix,) B(x) per reflector pixel (NaN where a pixel had no valid band).
-      Gauge (``S B`` is known up to a scale): ``median(B) = 1`` over all pixels given, so S
-      is the spectral factor of the median-lit reflector pixel.
-    - ``image_brightness`` (n_images,) median B of each image when ``image_index`` was given,
-      else None.
-    - ``residual_rms`` relative rms of ``L / (S B R_s) - 1`` over the valid entries.
-    - ``iterations``; ``converged`` whether ``tol`` was reached.
+    Attributes
+    ----------
+    spectral_factor : numpy.ndarray
+        (n_bands,) S(lambda).
+    brightness : numpy.ndarray
+        (n_pix,) B(x) per reflector pixel (NaN where a pixel had no valid band). Gauge (``S B``
+        is known up to a scale): ``median(B) = 1`` over all pixels given, so S is the spectral
+        factor of the median-lit reflector pixel.
+    image_brightness : numpy.ndarray or None
+        (n_images,) median B of each image when ``image_index`` was given, else None.
+    residual_rms : float
+        Relative rms of ``L / (S B R_s) - 1`` over the valid entries.
+    iterations : int
+        Alternations done.
+    converged : bool
+        Whether ``tol`` was reached.
     """
 
     spectral_factor: np.ndarray
@@ -72,16 +86,94 @@ def fit_illumination(
 ) -> IlluminationFit:
     """Fit ``L_lambda(x) = S(lambda) B(x) R_s(lambda)`` on reflector pixels (Eq. 12-14).
 
-    ``radiance`` (n_bands, n_pix) = ``U(I)/(t V)`` at reflector pixels; NaN / inf entries
-    (saturated, masked) are left out of every sum. Several reflector images: concatenate
-    their pixels along the second axis (B is per pixel per image, S shared) and pass
-    ``image_index`` (n_pix,) int to get each image's median brightness.
-    ``reflectance`` R_s per band (n_bands,) or one scalar (a gray reflector).
+    Parameters
+    ----------
+    radiance : numpy.ndarray
+        (n_bands, n_pix) ``U(I)/(t V)`` at reflector pixels; NaN / inf entries (saturated,
+        masked) are left out of every sum. Several reflector images: concatenate their pixels
+        along the second axis (B is per pixel per image, S shared).
+    reflectance : numpy.ndarray or float
+        R_s per band (n_bands,) or one scalar (a gray reflector).
+    max_iter : int
+        Alternations at most.
+    tol : float
+        Stop when the largest relative change of S is below this.
+    image_index : numpy.ndarray, optional
+        (n_pix,) int, the image of every pixel, to get each image's median brightness.
 
-    Alternates Eq. 13 and Eq. 14 from ``B = mean over lambda of L`` (nanmean) until the
-    largest relative change of S is below ``tol`` (or ``max_iter``). Gauge: ``median(B) = 1``.
-    Raises InputError on bad shapes / reflectances and FitError when a band has no valid
-    reflector pixel (it cannot be calibrated from these images).
+    Returns
+    -------
+    IlluminationFit
+        S, B (gauge ``median(B) = 1``), the per-image brightness and the residual.
+
+    Raises
+    ------
+    InputError
+        On bad shapes, reflectances or image indices.
+    FitError
+        When a band has no valid reflector pixel (it cannot be calibrated from these images),
+        or S or B come out non-positive.
+
+    Notes
+    -----
+    Eq. 12, ``M(S, B) = sum_lambda sum_x (L_lambda(x) - S(lambda) B(x) R_s)^2``, is minimised
+    by alternating Eq. 13, ``S(lambda) = sum_x L_lambda(x) B(x) R_s / sum_x (B(x) R_s)^2``, and
+    Eq. 14, ``B(x) = sum_lambda L_lambda(x) S(lambda) R_s / sum_lambda (S(lambda) R_s)^2``, from
+    ``B = mean over lambda of L`` (nanmean) [1]_.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
+    """
+    rad, refl, idx = _checked_inputs(radiance, reflectance, image_index)
+    valid = np.isfinite(rad)
+    bad_bands = np.flatnonzero(~valid.any(axis=1))
+    if bad_bands.size:
+        raise FitError(
+            f"band(s) {bad_bands.tolist()} have no valid reflector pixel (all saturated or masked)",
+            hint="use reflector images with a shorter exposure",
+        )
+    lv = np.where(valid, rad, 0.0)
+    m = valid.astype(np.float64)
+    r = refl[:, None]
+    s, b, pix_ok, iterations, converged = _alternate(lv, m, r, int(max_iter), tol)
+    if not np.all(np.isfinite(s)) or np.any(s <= 0):
+        raise FitError(
+            "the spectral factors came out non-positive: the reflector radiance is inconsistent",
+            hint="check the reflector pixels (mask, saturation) and the vignetting",
+        )
+
+    # gauge: median brightness 1
+    brightness = np.where(pix_ok, b, np.nan)
+    med = float(np.nanmedian(brightness))
+    if not np.isfinite(med) or med <= 0:
+        raise FitError("the reflector brightness came out non-positive: the data are inconsistent")
+    brightness = brightness / med
+    s = s * med
+
+    pred = s[:, None] * brightness[None, :] * r
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = rad / pred - 1.0
+    rel = rel[valid & np.isfinite(rel)]
+    residual_rms = float(np.sqrt(np.mean(rel * rel))) if rel.size else float("nan")
+    return IlluminationFit(
+        spectral_factor=s,
+        brightness=brightness,
+        image_brightness=None if idx is None else _image_brightness(brightness, idx),
+        residual_rms=residual_rms,
+        iterations=iterations,
+        converged=converged,
+    )
+
+
+def _checked_inputs(
+    radiance: np.ndarray, reflectance: np.ndarray | float, image_index: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Check the inputs of :func:`fit_illumination`.
+
+    Return ``(radiance float64, R_s per band, image index or None)``.
     """
     rad = np.asarray(radiance, dtype=np.float64)
     if rad.ndim != 2 or rad.shape[0] < 1 or rad.shape[1] < 1:
@@ -105,18 +197,19 @@ def fit_illumination(
                 f"image_index must be {n_pix} non-negative integers (one per pixel), got "
                 f"shape {idx.shape}, dtype {idx.dtype}"
             )
+    return rad, refl, idx
 
-    valid = np.isfinite(rad)
-    bad_bands = np.flatnonzero(~valid.any(axis=1))
-    if bad_bands.size:
-        raise FitError(
-            f"band(s) {bad_bands.tolist()} have no valid reflector pixel (all saturated or masked)",
-            hint="use reflector images with a shorter exposure",
-        )
-    lv = np.where(valid, rad, 0.0)
-    m = valid.astype(np.float64)
-    r = refl[:, None]
 
+def _alternate(
+    lv: np.ndarray, m: np.ndarray, r: np.ndarray, max_iter: int, tol: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, bool]:
+    """Alternate Eq. 13 and Eq. 14 on the valid reflector entries.
+
+    Alternate Eq. 13 and Eq. 14 from ``B = mean over lambda of L`` on the valid entries (``lv``
+    the radiance with 0 where invalid, ``m`` 1 where valid, ``r`` R_s as a column). Returns
+    ``(S, B, pixels with a B, iterations, converged)``.
+    """
+    n_bands = lv.shape[0]
     with np.errstate(invalid="ignore", divide="ignore"):
         b = np.sum(lv, axis=0) / np.sum(m, axis=0)  # paper: B = mean over lambda of L
     pix_ok = np.isfinite(b)
@@ -124,7 +217,7 @@ def fit_illumination(
     s = np.ones(n_bands)
     iterations = 0
     converged = False
-    for iterations in range(1, int(max_iter) + 1):
+    for iterations in range(1, max_iter + 1):
         # Eq. 13: S = sum_x L B R / sum_x (B R)^2  (valid entries only)
         br = b[None, :] * r
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -139,42 +232,18 @@ def fit_illumination(
         if change < tol:
             converged = True
             break
-    if not np.all(np.isfinite(s)) or np.any(s <= 0):
-        raise FitError(
-            "the spectral factors came out non-positive: the reflector radiance is inconsistent",
-            hint="check the reflector pixels (mask, saturation) and the vignetting",
-        )
+    return s, b, pix_ok, iterations, converged
 
-    # gauge: median brightness 1
-    brightness = np.where(pix_ok, b, np.nan)
-    med = float(np.nanmedian(brightness))
-    if not np.isfinite(med) or med <= 0:
-        raise FitError("the reflector brightness came out non-positive: the data are inconsistent")
-    brightness = brightness / med
-    s = s * med
 
-    pred = s[:, None] * brightness[None, :] * r
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rel = rad / pred - 1.0
-    rel = rel[valid & np.isfinite(rel)]
-    residual_rms = float(np.sqrt(np.mean(rel * rel))) if rel.size else float("nan")
-
-    image_brightness = None
-    if idx is not None:
-        n_img = int(idx.max()) + 1 if idx.size else 0
-        image_brightness = np.full(n_img, np.nan)
-        for k in range(n_img):
-            sel = brightness[idx == k]
-            if np.isfinite(sel).any():
-                image_brightness[k] = float(np.nanmedian(sel))
-    return IlluminationFit(
-        spectral_factor=s,
-        brightness=brightness,
-        image_brightness=image_brightness,
-        residual_rms=residual_rms,
-        iterations=iterations,
-        converged=converged,
-    )
+def _image_brightness(brightness: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Median brightness of every reflector image (NaN for an image without a finite B)."""
+    n_img = int(idx.max()) + 1 if idx.size else 0
+    image_brightness = np.full(n_img, np.nan)
+    for k in range(n_img):
+        sel = brightness[idx == k]
+        if np.isfinite(sel).any():
+            image_brightness[k] = float(np.nanmedian(sel))
+    return image_brightness
 
 
 def eq16_reflectance(
@@ -182,18 +251,42 @@ def eq16_reflectance(
     reflector_dn: np.ndarray | float,
     reflector_reflectance: np.ndarray | float,
 ) -> np.ndarray:
-    """Baseline Eq. 16: ``R = I_target / I_reflector * R_s`` per band (float64).
+    """Return the baseline reflectance of Eq. 16: ``R = I_target / I_reflector * R_s`` per band.
 
-    ``target_dn`` has the band axis first: (n_bands, ...) e.g. (n_bands, H, W).
-    ``reflector_dn`` is either one value per band (n_bands,) (e.g. the mean reflector DN) or
-    an array broadcastable to ``target_dn`` (e.g. a reflector image (n_bands, H, W): a
-    per-pixel ratio that also cancels vignetting). ``reflector_reflectance`` R_s is a scalar
-    or (n_bands,). Raw DN: the same exposure for target and reflector and a negligible black
-    level are assumed, as in the paper's baseline.
+    Parameters
+    ----------
+    target_dn : numpy.ndarray
+        Band axis first: (n_bands, ...) e.g. (n_bands, H, W).
+    reflector_dn : numpy.ndarray or float
+        One value per band (n_bands,) (e.g. the mean reflector DN) or an array broadcastable to
+        ``target_dn`` (e.g. a reflector image (n_bands, H, W): a per-pixel ratio that also
+        cancels vignetting).
+    reflector_reflectance : numpy.ndarray or float
+        R_s, a scalar or (n_bands,).
 
-    Exact only if the reflector image was uniformly lit: any brightness gradient or shadow
-    on the reflector is imprinted, inverted, on the target reflectance. Non-positive
-    reflector DN gives NaN.
+    Returns
+    -------
+    numpy.ndarray
+        float64 reflectance, the shape of ``target_dn``; NaN where the reflector DN is not
+        positive.
+
+    Raises
+    ------
+    InputError
+        On shapes that do not fit.
+
+    Notes
+    -----
+    Raw DN: the same exposure for target and reflector and a negligible black level are
+    assumed, as in the paper's baseline [1]_. Exact only if the reflector image was uniformly
+    lit: any brightness gradient or shadow on the reflector is imprinted, inverted, on the
+    target reflectance.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     tgt = np.asarray(target_dn, dtype=np.float64)
     if tgt.ndim < 1:
@@ -230,11 +323,18 @@ INTERPOLATION_MODES = ("nearest", "linear")
 class FrameIllumination:
     """The light of each flight frame, from :func:`frame_illumination`.
 
-    - ``spectral_factor`` (n_frames, n_bands) ``S(lambda, tau) = level(tau) colour(lambda, tau)``.
-    - ``level`` (n_frames,) the overall brightness level ``beta(tau)``.
-    - ``colour`` (n_frames, n_bands) ``s(lambda, tau)``, geometric mean 1 over the bands.
-    - ``weights`` (n_frames, n_captures) the capture weights used (rows sum to 1).
-    - ``irradiance_used`` (n_frames,) bool: the frame's level came from its irradiance reading.
+    Attributes
+    ----------
+    spectral_factor : numpy.ndarray
+        (n_frames, n_bands) ``S(lambda, tau) = level(tau) colour(lambda, tau)``.
+    level : numpy.ndarray
+        (n_frames,) the overall brightness level ``beta(tau)``.
+    colour : numpy.ndarray
+        (n_frames, n_bands) ``s(lambda, tau)``, geometric mean 1 over the bands.
+    weights : numpy.ndarray
+        (n_frames, n_captures) the capture weights used (rows sum to 1).
+    irradiance_used : numpy.ndarray
+        (n_frames,) bool: the frame's level came from its irradiance reading.
     """
 
     spectral_factor: np.ndarray
@@ -247,10 +347,23 @@ class FrameIllumination:
 def split_level(spectral_factor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Split spectral factors into brightness level and colour: ``S(lambda) = beta s(lambda)``.
 
-    ``beta = exp(mean_lambda log S(lambda))`` (the geometric mean over the bands) and
-    ``s(lambda) = S(lambda) / beta`` (geometric mean 1). ``spectral_factor`` (n_bands,) or
-    (n_captures, n_bands); returns ``(beta, s)`` of shapes () / (n_captures,) and the input's.
-    Raises InputError unless every S is positive and finite.
+    Parameters
+    ----------
+    spectral_factor : numpy.ndarray
+        (n_bands,) or (n_captures, n_bands).
+
+    Returns
+    -------
+    beta : numpy.ndarray
+        ``exp(mean_lambda log S(lambda))`` (the geometric mean over the bands), shape () or
+        (n_captures,).
+    s : numpy.ndarray
+        ``S(lambda) / beta`` (geometric mean 1), the input's shape.
+
+    Raises
+    ------
+    InputError
+        Unless every S is positive and finite.
     """
     s = np.asarray(spectral_factor, dtype=np.float64)
     if s.ndim not in (1, 2) or s.shape[-1] < 1 or not np.all(np.isfinite(s) & (s > 0)):
@@ -260,14 +373,27 @@ def split_level(spectral_factor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def capture_weights(capture_times: np.ndarray, frame_times: np.ndarray, mode: str = "linear") -> np.ndarray:
-    """Weights ``w[f, c]`` of the reflector captures for each frame time (rows sum to 1).
+    """Return the weights ``w[f, c]`` of the reflector captures for each frame time (rows sum to 1).
 
-    Times in seconds on one clock. ``nearest``: weight 1 on the capture closest in time (the
-    earlier one on a tie). ``linear``: between the two captures ``a < b`` that bracket the
-    frame, ``w_b = (tau - tau_a) / (tau_b - tau_a)``, ``w_a = 1 - w_b``; before the first and
-    after the last capture the light is held at that capture's (no extrapolation). One capture:
-    all weights 1. Raises InputError for an unknown mode, NaN times, or two captures at the
-    same time.
+    Parameters
+    ----------
+    capture_times, frame_times : numpy.ndarray
+        Times in seconds on one clock.
+    mode : {"linear", "nearest"}
+        ``nearest``: weight 1 on the capture closest in time (the earlier one on a tie).
+        ``linear``: between the two captures ``a < b`` that bracket the frame,
+        ``w_b = (tau - tau_a) / (tau_b - tau_a)``, ``w_a = 1 - w_b``; before the first and after
+        the last capture the light is held at that capture's (no extrapolation).
+
+    Returns
+    -------
+    numpy.ndarray
+        (n_frames, n_captures); with one capture all weights are 1.
+
+    Raises
+    ------
+    InputError
+        For an unknown mode, no capture, NaN times, or two captures at the same time.
     """
     if mode not in INTERPOLATION_MODES:
         raise InputError(f"illumination interpolation {mode!r}: use one of {', '.join(INTERPOLATION_MODES)}")
@@ -309,23 +435,51 @@ def frame_illumination(
     capture_irradiance: np.ndarray | None = None,
     frame_irradiance: np.ndarray | None = None,
 ) -> FrameIllumination:
-    """The light of each frame from the reflector captures (Eq. 11-14 per capture) and,
-    optionally, an irradiance sensor.
+    """Estimate the light of every frame from the reflector captures and, optionally, an irradiance sensor.
 
-    Per capture ``c`` (``capture_spectral_factor`` (n_captures, n_bands), its S from
-    Eq. 11-14 with median reflector B = 1): ``S_c(lambda) = beta_c s_c(lambda)``
-    (:func:`split_level`). With the weights ``w`` of :func:`capture_weights`:
+    Parameters
+    ----------
+    capture_spectral_factor : numpy.ndarray
+        (n_captures, n_bands): each capture's S from Eq. 11-14 with median reflector B = 1.
+    capture_times, frame_times : numpy.ndarray
+        Times in seconds (see :func:`capture_weights`).
+    mode : {"linear", "nearest"}
+        Interpolation between captures (:func:`capture_weights`).
+    capture_irradiance : numpy.ndarray, optional
+        (n_captures,) irradiance readings ``E_c`` (any unit, the same sensor as the frames').
+    frame_irradiance : numpy.ndarray, optional
+        (n_frames,) irradiance readings ``E(tau)``.
+
+    Returns
+    -------
+    FrameIllumination
+        ``S(lambda, tau) = beta(tau) s(lambda, tau)`` with its level, colour and weights.
+
+    Raises
+    ------
+    InputError
+        On spectral factors, times or a mode that :func:`split_level` and
+        :func:`capture_weights` reject, or irradiance readings not one per capture and frame.
+
+    Notes
+    -----
+    Per capture ``c``: ``S_c(lambda) = beta_c s_c(lambda)`` (:func:`split_level`). With the
+    weights ``w`` of :func:`capture_weights`:
 
     - colour: ``s(lambda, tau) = sum_c w_c(tau) s_c(lambda)``;
     - level without irradiance: ``beta(tau) = sum_c w_c(tau) beta_c``;
-    - level with irradiance readings ``E`` (any unit, the same sensor for captures and frames;
-      ``capture_irradiance`` (n_captures,), ``frame_irradiance`` (n_frames,)): the captures
-      anchor the scale, ``beta(tau) = E(tau) sum_c w_c(tau) beta_c / E_c``: the sensor's ratio
-      carries the level between (and beyond) the captures. A frame without a reading (NaN),
-      or any capture without one, falls back to the interpolated level.
+    - level with irradiance readings: the captures anchor the scale,
+      ``beta(tau) = E(tau) sum_c w_c(tau) beta_c / E_c``: the sensor's ratio carries the level
+      between (and beyond) the captures. A frame without a reading (NaN), or any capture
+      without one, falls back to the interpolated level.
 
-    ``S(lambda, tau) = beta(tau) s(lambda, tau)``. Times in seconds (see
-    :func:`capture_weights`).
+    The decomposition is Eq. 11 of [1]_, ``J_lambda(x) = B(x) S(lambda)``, applied per capture.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     s_c = np.asarray(capture_spectral_factor, dtype=np.float64)
     if s_c.ndim == 1:
@@ -352,9 +506,19 @@ def frame_illumination(
 
 
 def colour_change(capture_spectral_factor: np.ndarray) -> np.ndarray:
-    """Largest relative change of the light's colour between consecutive captures:
-    ``max_lambda |s_{c+1}(lambda) / s_c(lambda) - 1|`` (n_captures - 1,), with ``s`` the colour
-    of :func:`split_level` (the level removed, so a passing cloud does not count)."""
+    """Return the largest relative change of the light's colour between consecutive captures.
+
+    Parameters
+    ----------
+    capture_spectral_factor : numpy.ndarray
+        (n_captures, n_bands) spectral factors.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n_captures - 1,) ``max_lambda |s_{c+1}(lambda) / s_c(lambda) - 1|``, with ``s`` the
+        colour of :func:`split_level` (the level removed, so a passing cloud does not count).
+    """
     _, colour = split_level(np.atleast_2d(np.asarray(capture_spectral_factor, dtype=np.float64)))
     if colour.shape[0] < 2:
         return np.zeros(0)
@@ -362,15 +526,31 @@ def colour_change(capture_spectral_factor: np.ndarray) -> np.ndarray:
 
 
 def centre_brightness(uv: np.ndarray, brightness: np.ndarray, *, reject: float = 0.1, iterations: int = 3) -> float:
-    """Brightness at the reflector's centre from a plane fit ``B(u, v) = a + b u + c v``: ``a``.
+    """Return the brightness at the reflector's centre from a plane fit ``B(u, v) = a + b u + c v``: ``a``.
 
-    ``uv`` (n, 2) reflector-plane coordinates (metres, origin at the reflector's centre) of
-    the pixels, ``brightness`` (n,) their B (Eq. 14). Least squares, then ``iterations``
-    refits without the pixels more than ``reject`` (relative) off the plane, i.e. a shadow or
-    a glint. The median-B gauge of :func:`fit_illumination` depends on which part of a
-    non-uniformly lit reflector the camera sees (pose, crop); for a light that is linear over
-    the reflector, ``a`` does not, so captures under different light compare by it (issue 8).
-    NaN when fewer than 3 finite pixels remain.
+    Parameters
+    ----------
+    uv : numpy.ndarray
+        (n, 2) reflector-plane coordinates (metres, origin at the reflector's centre) of the
+        pixels.
+    brightness : numpy.ndarray
+        (n,) their B (Eq. 14).
+    reject : float
+        Pixels more than this (relative) off the plane are left out of the refits: a shadow or
+        a glint.
+    iterations : int
+        Refits after the first least squares.
+
+    Returns
+    -------
+    float
+        ``a``; NaN when fewer than 3 finite pixels remain.
+
+    Notes
+    -----
+    The median-B gauge of :func:`fit_illumination` depends on which part of a non-uniformly lit
+    reflector the camera sees (pose, crop); for a light that is linear over the reflector, ``a``
+    does not, so captures under different light compare by it (issue 8).
     """
     p = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     b = np.asarray(brightness, dtype=np.float64).ravel()
@@ -394,26 +574,44 @@ def centre_brightness(uv: np.ndarray, brightness: np.ndarray, *, reject: float =
 def shared_reflector_pixels(masks, owner, min_pixels: int = 1) -> tuple[list[np.ndarray], bool]:
     """Restrict each reflector image's pixels to sensor pixels shared by the captures (issue 8).
 
-    ``masks`` (one (H, W) bool per reflector image: its reflector pixels), ``owner`` the
-    capture index of each image. Returns ``(masks, shared)``, the first of these that leaves
-    every capture at least ``min_pixels`` pixels:
+    Parameters
+    ----------
+    masks : sequence of numpy.ndarray
+        One (H, W) bool per reflector image: its reflector pixels.
+    owner : sequence of int
+        The capture index of each image.
+    min_pixels : int
+        Pixels every capture must keep.
 
-    1. ``mask_k & C`` with ``C`` the pixels every image saw the reflector at (``shared=True``);
-    2. ``C`` the pixels every capture saw it at in some image: the intersection over the
-       captures of the union of their images' masks (``shared=True``);
-    3. the masks unchanged (``shared=False``: the captures barely overlap on the sensor).
+    Returns
+    -------
+    masks : list of numpy.ndarray
+        The first of these that leaves every capture at least ``min_pixels`` pixels:
+        1. ``mask_k & C`` with ``C`` the pixels every image saw the reflector at;
+        2. ``C`` the pixels every capture saw it at in some image: the intersection over the
+        captures of the union of their images' masks;
+        3. the masks unchanged (the captures barely overlap on the sensor).
+    shared : bool
+        True for 1. and 2., False for 3.
 
-    Why: with the radiance ``L = U(I) / (t V_hat)`` of Eq. 11 and a vignetting estimate
+    Raises
+    ------
+    InputError
+        When the number of masks and of capture indices differ.
+
+    Notes
+    -----
+    With the radiance ``L = U(I) / (t V_hat)`` of Eq. 11 and a vignetting estimate
     ``V_hat = V (1 + e(lambda, x))``, Eq. 13 gives ``S(lambda)`` times a ``B^2``-weighted mean of
-    ``1 / (1 + e(lambda, x))`` over the pixels the capture used, and Eq. 14's ``B(x)`` absorbs the
-    band-common part of ``e`` (so does the level read from it, :func:`centre_brightness`).
-    Captures that see the reflector at different pixels thus get different biases, which
-    become an error of ``S(lambda, tau)`` between them; on the same pixels they share the bias,
-    and its band-dependent part cancels in ``S_c / S_0`` (to first order, up to the different
-    ``B`` weights; exactly the same pixels in every image, 1., also the same weight per pixel).
-    The band-common part enters the level read at the reflector centre (a gradient of ``e``
-    across the image looks like a light gradient in one image): it cancels as far as the
-    captures have the reflector centre near the same pixel.
+    ``1 / (1 + e(lambda, x))`` over the pixels the capture used, and Eq. 14's ``B(x)`` absorbs
+    the band-common part of ``e`` (so does the level read from it, :func:`centre_brightness`).
+    Captures that see the reflector at different pixels thus get different biases, which become
+    an error of ``S(lambda, tau)`` between them; on the same pixels they share the bias, and its
+    band-dependent part cancels in ``S_c / S_0`` (to first order, up to the different ``B``
+    weights; exactly the same pixels in every image, 1., also the same weight per pixel). The
+    band-common part enters the level read at the reflector centre (a gradient of ``e`` across
+    the image looks like a light gradient in one image): it cancels as far as the captures have
+    the reflector centre near the same pixel.
     """
     ms = [np.asarray(m, dtype=bool) for m in masks]
     own = np.asarray(owner, dtype=np.int64).ravel()

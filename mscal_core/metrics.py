@@ -10,8 +10,22 @@ import numpy as np
 
 
 def response_error(u_est: np.ndarray, u_true: np.ndarray, lo_frac: float = 0.05, hi_frac: float = 0.95) -> float:
-    """Max ``|s U_est(k) - U_true(k)|`` over ``k`` in ``[lo, hi]`` of the DN range, divided by
-    ``U_true(hi)``; ``s`` is the least-squares scale aligning the two over that range."""
+    """Return the worst error of an estimated U against the truth, relative to ``U_true(hi)``.
+
+    Parameters
+    ----------
+    u_est, u_true : numpy.ndarray
+        U on every DN, same length.
+    lo_frac, hi_frac : float
+        The DN range ``[lo, hi]`` compared, as fractions of ``dn_max``.
+
+    Returns
+    -------
+    float
+        Max ``|s U_est(k) - U_true(k)|`` over ``k`` in ``[lo, hi]``, divided by ``U_true(hi)``;
+        ``s`` is the least-squares scale aligning the two over that range (U is known up to a
+        scale: Eq. 5 is invariant to it).
+    """
     n = u_true.shape[-1]
     dn_max = n - 1
     k = np.arange(int(np.ceil(lo_frac * dn_max)), int(np.floor(hi_frac * dn_max)) + 1)
@@ -21,7 +35,20 @@ def response_error(u_est: np.ndarray, u_true: np.ndarray, lo_frac: float = 0.05,
 
 
 def vignetting_rms(v_est: np.ndarray, v_true: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """RMS of ``V_est / V_true - 1`` over ``mask`` (both max-1 normalised, no extra alignment)."""
+    """Return the RMS of ``V_est / V_true - 1`` over ``mask``.
+
+    Parameters
+    ----------
+    v_est, v_true : numpy.ndarray
+        V of one band, both max-1 normalised (no extra alignment).
+    mask : numpy.ndarray, optional
+        Pixels compared (default all).
+
+    Returns
+    -------
+    float
+        The relative RMS error.
+    """
     r = np.asarray(v_est, float) / np.asarray(v_true, float) - 1.0
     if mask is not None:
         r = r[mask]
@@ -30,14 +57,36 @@ def vignetting_rms(v_est: np.ndarray, v_true: np.ndarray, mask: np.ndarray | Non
 
 
 def spectral_factor_error(s_est: np.ndarray, s_true: np.ndarray) -> float:
-    """Max relative error of ``S`` after the least-squares scale alignment (S is relative)."""
+    """Return the max relative error of ``S`` after the least-squares scale alignment.
+
+    Parameters
+    ----------
+    s_est, s_true : numpy.ndarray
+        (n_bands,) spectral factors; S is relative (Eq. 12 is invariant to a common scale).
+
+    Returns
+    -------
+    float
+        Max over bands of ``|a S_est / S_true - 1|``, ``a`` the least-squares scale.
+    """
     a, b = np.asarray(s_est, float), np.asarray(s_true, float)
     s = float(a @ b / (a @ a))
     return float(np.max(np.abs(s * a / b - 1.0)))
 
 
 def coefficient_of_variation(values: np.ndarray) -> float:
-    """``std / mean`` of finite values (population std)."""
+    """Return ``std / mean`` of the finite values (population std).
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        Any shape; non-finite entries are ignored.
+
+    Returns
+    -------
+    float
+        The coefficient of variation.
+    """
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]
     return float(np.std(v) / np.mean(v))

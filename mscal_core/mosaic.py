@@ -20,9 +20,28 @@ def demosaic(
 ) -> np.ndarray:
     """Split a raw mosaic ``(H_sensor, W_sensor)`` into a band stack ``(R*C, H, W)``.
 
-    Band ``r*C + c`` is ``raw[r0 + r :: R, c0 + c :: C]`` cropped to ``grid_shape`` (the
-    largest grid every band fills when ``grid_shape`` is None). No interpolation: each band
-    keeps its own sampling positions (see :func:`band_offsets`).
+    Parameters
+    ----------
+    raw : numpy.ndarray
+        The raw sensor frame.
+    pattern_shape : tuple of int
+        ``(R, C)`` of the filter pattern.
+    origin : tuple of int
+        ``(r0, c0)``, the sensor pixel where the pattern starts.
+    grid_shape : tuple of int, optional
+        ``(H, W)`` of every band (default: the largest grid every band fills).
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(R*C, H, W)``: band ``r*C + c`` is ``raw[r0 + r :: R, c0 + c :: C]`` cropped to
+        ``grid_shape``. No interpolation: each band keeps its own sampling positions (see
+        :func:`band_offsets`).
+
+    Raises
+    ------
+    InputError
+        On a frame that is not single-channel or smaller than the mosaic needs.
     """
     if raw.ndim != 2:
         raise InputError(
@@ -52,7 +71,31 @@ def remosaic(
     bands: np.ndarray, pattern_shape: tuple[int, int], sensor_shape: tuple[int, int],
     origin: tuple[int, int] = (0, 0), fill: int = 0,
 ) -> np.ndarray:
-    """Inverse of :func:`demosaic`: interleave a band stack into a raw sensor frame."""
+    """Interleave a band stack into a raw sensor frame, the inverse of :func:`demosaic`.
+
+    Parameters
+    ----------
+    bands : numpy.ndarray
+        ``(R*C, H, W)`` band stack.
+    pattern_shape : tuple of int
+        ``(R, C)`` of the filter pattern.
+    sensor_shape : tuple of int
+        ``(H_sensor, W_sensor)`` of the frame.
+    origin : tuple of int
+        ``(r0, c0)``, the sensor pixel where the pattern starts.
+    fill : int
+        Value of the sensor pixels no band covers.
+
+    Returns
+    -------
+    numpy.ndarray
+        The raw frame, dtype of ``bands``.
+
+    Raises
+    ------
+    InputError
+        When the number of bands does not fill the pattern.
+    """
     rows, cols = pattern_shape
     r0, c0 = origin
     n, h, w = bands.shape
@@ -68,10 +111,18 @@ def remosaic(
 
 
 def band_offsets(pattern_shape: tuple[int, int]) -> np.ndarray:
-    """Sub-pixel offsets ``(dx, dy)`` of each band's samples on the band grid.
+    """Return the sub-pixel offsets ``(dx, dy)`` of each band's samples on the band grid.
 
-    Band (r, c) pixel (i, j) lies at band-grid point ``(j + c/C, i + r/R)``; the offsets are
-    ``(c/C, r/R)`` in band-index order. Returns ``(R*C, 2)`` float64.
+    Parameters
+    ----------
+    pattern_shape : tuple of int
+        ``(R, C)`` of the filter pattern.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(R*C, 2)`` float64 ``(c/C, r/R)`` in band-index order: band (r, c) pixel (i, j) lies at
+        band-grid point ``(j + c/C, i + r/R)``.
     """
     rows, cols = pattern_shape
     rr, cc = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")

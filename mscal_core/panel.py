@@ -51,8 +51,17 @@ DEFAULT_INSET = 0.75
 
 @dataclass(frozen=True)
 class PanelDetection:
-    """A detected panel: ``outline`` (4, 2) float64 (x, y) corners of the bright surface in
-    :func:`order_corners` order, its interior coefficient of variation and area in pixels."""
+    """A detected panel.
+
+    Attributes
+    ----------
+    outline : numpy.ndarray
+        (4, 2) float64 (x, y) corners of the bright surface in :func:`order_corners` order.
+    cv : float
+        Coefficient of variation (std / mean) of its interior.
+    area : float
+        Its area in pixels.
+    """
 
     outline: np.ndarray
     cv: float
@@ -60,9 +69,25 @@ class PanelDetection:
 
 
 def order_corners(corners: Sequence[Sequence[float]]) -> np.ndarray:
-    """Four (x, y) corners ordered clockwise on screen (bottom-right, bottom-left, top-left,
-    top-right) from the one with the largest x + y -- the order MicaSense lists its panel
-    corners in."""
+    """Order four corners clockwise on screen, as MicaSense lists them.
+
+    Parameters
+    ----------
+    corners : sequence of (x, y)
+        Four corners in any order.
+
+    Returns
+    -------
+    numpy.ndarray
+        (4, 2) float64 ordered clockwise on screen (bottom-right, bottom-left, top-left,
+        top-right) from the one with the largest x + y -- the order MicaSense lists its panel
+        corners in.
+
+    Raises
+    ------
+    ValueError
+        Unless there are four corners.
+    """
     pts = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
     if pts.shape != (4, 2):
         raise ValueError(f"expected 4 corners, got {pts.shape[0]}")
@@ -75,7 +100,25 @@ def order_corners(corners: Sequence[Sequence[float]]) -> np.ndarray:
 
 
 def shrink_polygon(corners: Sequence[Sequence[float]], factor: float) -> np.ndarray:
-    """The polygon scaled by ``factor`` (linear, 0 < factor <= 1) about its vertex centroid."""
+    """Scale the polygon by ``factor`` about its vertex centroid.
+
+    Parameters
+    ----------
+    corners : sequence of (x, y)
+        The polygon's vertices.
+    factor : float
+        Linear scale, ``0 < factor <= 1``.
+
+    Returns
+    -------
+    numpy.ndarray
+        The scaled vertices, float64, in the same order.
+
+    Raises
+    ------
+    ValueError
+        For a factor outside ``(0, 1]``.
+    """
     if not 0 < factor <= 1:
         raise ValueError(f"shrink factor must be in (0, 1], got {factor!r}")
     pts = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
@@ -84,7 +127,20 @@ def shrink_polygon(corners: Sequence[Sequence[float]], factor: float) -> np.ndar
 
 
 def polygon_iou(shape: tuple[int, int], a: Sequence[Sequence[float]], b: Sequence[Sequence[float]]) -> float:
-    """Intersection over union of two polygons rasterised on a ``shape`` pixel grid."""
+    """Return the intersection over union of two polygons rasterised on a pixel grid.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        ``(H, W)`` of the grid.
+    a, b : sequence of (x, y)
+        The polygons' vertices in pixels.
+
+    Returns
+    -------
+    float
+        Intersection over union of the two rasterised polygons.
+    """
     ma, mb = polygon_mask(shape, a), polygon_mask(shape, b)
     union = np.count_nonzero(ma | mb)
     return float(np.count_nonzero(ma & mb) / union) if union else 0.0
@@ -108,7 +164,7 @@ def _interior(shape: tuple[int, int], quad: np.ndarray) -> np.ndarray:
 
 
 def _quad(contour: np.ndarray, min_area: float, max_aspect: float) -> np.ndarray | None:
-    """The contour's 4-corner convex approximation if it looks like a panel, else None."""
+    """Return the contour's 4-corner convex approximation if it looks like a panel, else None."""
     area = cv2.contourArea(contour)
     if area < min_area:
         return None
@@ -166,12 +222,35 @@ def detect_panel(
     max_aspect: float = 2.0,
     levels: int = 8,
 ) -> PanelDetection | None:
-    """The largest bright, uniform, convex quadrilateral in one band ``(H, W)``, or None.
+    """Find the largest bright, uniform, convex quadrilateral in one band.
 
-    ``min_area_frac`` the smallest panel as a fraction of the frame; ``max_cv`` the largest
-    std/mean of the panel's interior (a panel is uniform to a few %, its QR sticker is not);
-    ``max_aspect`` the largest side ratio of its minimum-area rectangle (a square panel seen
-    at an angle); ``levels`` the number of thresholds from Otsu's to near white.
+    Parameters
+    ----------
+    image : numpy.ndarray
+        One band ``(H, W)``.
+    min_area_frac : float
+        The smallest panel as a fraction of the frame.
+    max_cv : float
+        The largest std/mean of the panel's interior (a panel is uniform to a few %, its QR
+        sticker is not).
+    max_aspect : float
+        The largest side ratio of its minimum-area rectangle (a square panel seen at an angle).
+    levels : int
+        The number of thresholds from Otsu's to near white.
+
+    Returns
+    -------
+    PanelDetection or None
+        The panel, or None when nothing qualifies.
+
+    Raises
+    ------
+    ValueError
+        Unless ``image`` is 2-D.
+
+    Notes
+    -----
+    The steps are in the module docstring.
     """
     img = np.asarray(image, dtype=np.float64)
     if img.ndim != 2:
@@ -198,12 +277,25 @@ def detect_panel(
 
 
 def sample_quad(image: np.ndarray, corners: Sequence[Sequence[float]], n: int = 32) -> np.ndarray:
-    """``image`` resampled on an ``n x n`` grid spanning a quadrilateral (bilinear, via the
-    homography from the unit square to ``corners`` in :func:`order_corners` order).
+    """Resample an image on an ``n x n`` grid spanning a quadrilateral.
 
-    Maps the same physical points of a panel in bands that are not co-registered: grid cell
-    (i, j) of every band's panel quadrilateral is the same spot on the panel. Returns
-    ``(n, n)`` float64, row 0 along the top edge (top-left to top-right).
+    Bilinear, via the homography from the unit square to ``corners`` in :func:`order_corners`
+    order. Maps the same physical points of a panel in bands that are not co-registered: grid
+    cell (i, j) of every band's panel quadrilateral is the same spot on the panel.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        One band ``(H, W)``.
+    corners : sequence of (x, y)
+        The quadrilateral's corners.
+    n : int
+        Samples along each side.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n, n)`` float64, row 0 along the top edge (top-left to top-right).
     """
     quad = order_corners(corners)  # BR, BL, TL, TR
     dst = np.array([[n - 1, n - 1], [0, n - 1], [0, 0], [n - 1, 0]], dtype=np.float32)
@@ -219,16 +311,37 @@ def panel_from_marker(
     panel_size_m: tuple[float, float],
     panel_offset_m: tuple[float, float],
 ) -> np.ndarray:
-    """Image corners of a rectangular panel lying in the plane of an ArUco/AprilTag marker.
+    """Return the image corners of a rectangular panel lying in the plane of an ArUco/AprilTag marker.
 
+    Parameters
+    ----------
+    marker_corners : sequence of (x, y)
+        TL, TR, BR, BL in image pixels as :func:`mscal_core.geometry.detect_marker` returns
+        them.
+    marker_size_m : float
+        Side of the marker in metres.
+    panel_size_m : tuple of float
+        ``(w, h)`` of the panel in metres.
+    panel_offset_m : tuple of float
+        ``(du, dv)``, the panel's centre in the marker frame.
+
+    Returns
+    -------
+    numpy.ndarray
+        (4, 2) float64 panel corners in :func:`order_corners` order.
+
+    Raises
+    ------
+    ValueError
+        When the marker corners do not define a plane-to-image map.
+
+    Notes
+    -----
     The marker frame is that of :mod:`mscal_core.geometry` (centre at the origin, ``u`` right,
-    ``v`` up as printed; ``marker_corners`` TL, TR, BR, BL in image pixels as
-    :func:`mscal_core.geometry.detect_marker` returns them). The panel is the rectangle of
-    ``panel_size_m = (w, h)`` centred at ``panel_offset_m = (du, dv)``. The plane-to-image map
-    of a pinhole camera is the homography ``H`` with ``H (u_k, v_k, 1) ~ (x_k, y_k, 1)`` for
-    the four marker corners ``k`` (solved exactly from the 4 correspondences); the panel corners are
-    ``H`` applied to theirs, returned in :func:`order_corners` order. Lens distortion is not
-    modelled: keep the panel near the marker.
+    ``v`` up as printed). The plane-to-image map of a pinhole camera is the homography ``H``
+    with ``H (u_k, v_k, 1) ~ (x_k, y_k, 1)`` for the four marker corners ``k`` (solved exactly
+    from the 4 correspondences); the panel corners are ``H`` applied to theirs. Lens distortion
+    is not modelled: keep the panel near the marker.
     """
     h = 0.5 * float(marker_size_m)
     src = np.array([[-h, h], [h, h], [h, -h], [-h, -h]], dtype=np.float64)

@@ -6,6 +6,12 @@
 reflector images), so R from Eq. 15 is relative: one unknown scalar per frame. Normalise it
 with a region of known reflectance (:func:`normalise_to_panel`) or use ratios / indices
 (:func:`ndvi`) that need no normalisation.
+
+References
+----------
+.. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+       for Multispectral Cameras", IEEE International Conference on Robotics and
+       Automation (ICRA), 2017.
 """
 
 from __future__ import annotations
@@ -42,25 +48,53 @@ def eq15(
     *,
     saturation_dn: int | None = None,
 ) -> np.ndarray:
-    """Eq. 15: ``R = U(I) / (t V S B)``, float32, vectorised over bands and frames.
+    """Return the reflectance of Eq. 15, ``R = U(I) / (t V S B)``, vectorised over bands and frames.
 
-    Shapes (band axis = the third from last):
+    Parameters
+    ----------
+    dn : numpy.ndarray
+        Integer DN, (n_bands, H, W) or (n_frames, n_bands, H, W) (band axis = the third from
+        last).
+    inverse_response : numpy.ndarray
+        U: (2**bits,) shared by all bands or (n_bands, 2**bits), one per band ("every band is
+        its own camera"). Negative values are treated as 0.
+    exposure : numpy.ndarray or float
+        t (> 0): scalar, (n_frames,) for a frame stack, or an array broadcasting to ``dn`` (e.g.
+        (n_bands, 1, 1) for per-band exposures).
+    vignetting : numpy.ndarray
+        V: (n_bands, H, W) (or broadcastable, e.g. (H, W) for one band).
+    spectral_factor : numpy.ndarray
+        S: (n_bands,).
+    brightness : numpy.ndarray or float
+        B: scalar (default 1, i.e. relative reflectance), (n_frames,), or an array broadcasting
+        to ``dn`` (e.g. a brightness map (H, W)).
+    saturation_dn : int, optional
+        DN at or above it are saturated and give NaN; None means ``len(U) - 1`` (``dn_max``,
+        saturated by the project's convention); pass ``len(U)`` to keep every DN.
 
-    - ``dn`` integer DN, (n_bands, H, W) or (n_frames, n_bands, H, W).
-    - ``inverse_response`` U: (2**bits,) shared by all bands or (n_bands, 2**bits), one per
-      band ("every band is its own camera"). Negative values are treated as 0.
-    - ``exposure`` t (> 0): scalar, (n_frames,) for a frame stack, or an array broadcasting
-      to ``dn`` (e.g. (n_bands, 1, 1) for per-band exposures).
-    - ``vignetting`` V: (n_bands, H, W) (or broadcastable, e.g. (H, W) for one band).
-    - ``spectral_factor`` S: (n_bands,).
-    - ``brightness`` B: scalar (default 1, i.e. relative reflectance), (n_frames,), or an
-      array broadcasting to ``dn`` (e.g. a brightness map (H, W)).
+    Returns
+    -------
+    numpy.ndarray
+        float32 reflectance, the shape of ``dn``. Never negative or inf: U = 0 gives 0; V, S or
+        B that are not positive and finite give NaN.
 
-    ``saturation_dn``: DN at or above it are saturated and give NaN; None means
-    ``len(U) - 1`` (``dn_max``, saturated by the project's convention); pass ``len(U)`` to
-    keep every DN. Never negative or inf: U = 0 gives 0; V, S or B that are not positive
-    and finite give NaN. Raises InputError for DN outside the response table, non-integer
-    DN, non-positive exposure or mismatched shapes.
+    Raises
+    ------
+    InputError
+        For DN outside the response table, non-integer DN, non-positive exposure or mismatched
+        shapes.
+
+    Notes
+    -----
+    Eq. 15 of [1]_, ``R_lambda(x) = U_lambda(I_lambda(x)) / (t V_lambda(x) S(lambda) B(x))``.
+    B of the target scene is unknown, so R is relative: one scalar per frame
+    (:func:`normalise_to_panel`).
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     d = np.asarray(dn)
     if d.ndim not in (3, 4):
@@ -127,12 +161,37 @@ def normalise_to_panel(
 ) -> np.ndarray:
     """Scale relative reflectance so a panel of known reflectance reads its true value.
 
-    ``reflectance`` (n_bands, H, W) or (n_frames, n_bands, H, W); ``panel_mask`` (H, W) bool
-    or (n_frames, H, W) for a panel that moves; ``panel_reflectance`` scalar or (n_bands,).
+    Parameters
+    ----------
+    reflectance : numpy.ndarray
+        (n_bands, H, W) or (n_frames, n_bands, H, W), e.g. from :func:`eq15`.
+    panel_mask : numpy.ndarray
+        (H, W) bool, or (n_frames, H, W) for a panel that moves.
+    panel_reflectance : numpy.ndarray or float
+        Scalar or (n_bands,).
+
+    Returns
+    -------
+    numpy.ndarray
+        float32, the shape of ``reflectance``. A band whose panel pixels are all NaN gives NaN
+        for that band.
+
+    Raises
+    ------
+    InputError
+        On shapes that do not fit, a non-positive panel reflectance or an empty panel mask.
+
+    Notes
+    -----
     For each frame and band the factor is ``panel_reflectance / median(R over the panel)``
-    (median: robust to a few bad pixels; NaN pixels ignored). This removes the unknown
-    per-frame brightness B of Eq. 15 (and, per band, any residual spectral error).
-    A band whose panel pixels are all NaN gives NaN for that band. Returns float32.
+    (median: robust to a few bad pixels; NaN pixels ignored). This removes the unknown per-frame
+    brightness B of Eq. 15 [1]_ (and, per band, any residual spectral error).
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     r = np.asarray(reflectance, dtype=np.float64)
     if r.ndim not in (3, 4):
@@ -159,26 +218,51 @@ def normalise_to_panel(
     for f in range(n_frames):
         if not mask[f].any():
             raise InputError(f"the panel mask of frame {f} is empty", hint="check the panel region")
-        panel = r[f][:, mask[f]]  # (n_bands, n_panel)
-        finite = np.isfinite(panel)
-        med = np.full(n_bands, np.nan)
-        has = finite.any(axis=1)
-        if has.any():
-            med[has] = np.nanmedian(np.where(finite, panel, np.nan)[has], axis=1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            factor = np.where(med > 0, ref / med, np.nan)
-        out[f] = r[f] * factor[:, None, None]
+        out[f] = r[f] * _panel_factor(r[f][:, mask[f]], ref)[:, None, None]
     if squeeze:
         out = out[0]
     return out.astype(np.float32)
 
 
-def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
-    """NDVI ``(nir - red) / (nir + red)``, NaN-safe, in [-1, 1].
+def _panel_factor(panel: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Per band ``ref / median`` of the finite panel pixels ``panel`` (n_bands, n_panel).
 
-    NaN where either input is NaN / inf or ``nir + red <= 0``; values are clipped to
-    [-1, 1] (a slightly negative reflectance from noise could otherwise leave the range).
-    float32 if both inputs are float32, else float64.
+    NaN for a band without a finite, positive median.
+    """
+    n_bands = panel.shape[0]
+    finite = np.isfinite(panel)
+    med = np.full(n_bands, np.nan)
+    has = finite.any(axis=1)
+    if has.any():
+        med[has] = np.nanmedian(np.where(finite, panel, np.nan)[has], axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(med > 0, ref / med, np.nan)
+
+
+def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
+    """Return the NDVI ``(nir - red) / (nir + red)``, NaN-safe, in [-1, 1].
+
+    Parameters
+    ----------
+    red, nir : numpy.ndarray
+        Reflectance (or any linear signal) of the red and near-infrared bands.
+
+    Returns
+    -------
+    numpy.ndarray
+        NaN where either input is NaN / inf or ``nir + red <= 0``; values are clipped to
+        [-1, 1] (a slightly negative reflectance from noise could otherwise leave the range).
+        float32 if both inputs are float32, else float64.
+
+    Notes
+    -----
+    A ratio: the unknown brightness B of Eq. 15 cancels, so NDVI needs no panel [1]_.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     a = np.asarray(red)
     b = np.asarray(nir)
@@ -195,11 +279,32 @@ def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
 def eq15_tables(
     inverse_response: np.ndarray, vignetting: np.ndarray, spectral_factor: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Precomputed factors of Eq. 15 for :func:`eq15_fast`: ``R = (U(I) / S) * (1 / V) / t``.
+    """Precompute the factors of Eq. 15 for :func:`eq15_fast`: ``R = (U(I) / S) * (1 / V) / t``.
 
-    Returns ``lut`` (n_bands, 2**bits) float32 = ``max(U, 0) / S`` (NaN where S is not
-    positive) and ``inv_v`` (n_bands, H, W) float32 = ``1 / V`` (NaN where V is not positive
-    and finite). Computed once per calibration, reused for every frame.
+    Parameters
+    ----------
+    inverse_response : numpy.ndarray
+        (n_bands, 2**bits) U.
+    vignetting : numpy.ndarray
+        (n_bands, H, W) V.
+    spectral_factor : numpy.ndarray
+        (n_bands,) S.
+
+    Returns
+    -------
+    lut : numpy.ndarray
+        (n_bands, 2**bits) float32 ``max(U, 0) / S`` (NaN where S is not positive).
+    inv_v : numpy.ndarray
+        (n_bands, H, W) float32 ``1 / V`` (NaN where V is not positive and finite).
+
+    Raises
+    ------
+    InputError
+        When the shapes do not fit.
+
+    Notes
+    -----
+    Computed once per calibration, reused for every frame.
     """
     u = np.asarray(inverse_response, dtype=np.float64)
     s = np.asarray(spectral_factor, dtype=np.float64).reshape(-1, 1)
@@ -218,17 +323,46 @@ def eq15_fast(
     dn: np.ndarray, lut: np.ndarray, inv_v: np.ndarray, exposure: np.ndarray | float, saturation_dn: int,
     band_scale: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Eq. 15 for a stack of frames with the tables of :func:`eq15_tables` (float32 throughout).
+    """Return Eq. 15 for a stack of frames with the tables of :func:`eq15_tables` (float32 throughout).
 
-    ``dn`` (n_frames, n_bands, H, W) unsigned integers, ``exposure`` t (n_frames,) or scalar.
-    ``R = lut[b][I] * inv_v[b] / t``; NaN where ``I >= saturation_dn``. Agrees with
-    :func:`eq15` to float32 rounding; about 6x faster (a table lookup per band, no float64).
+    Parameters
+    ----------
+    dn : numpy.ndarray
+        (n_frames, n_bands, H, W) unsigned integers.
+    lut, inv_v : numpy.ndarray
+        The tables of :func:`eq15_tables`.
+    exposure : numpy.ndarray or float
+        t (n_frames,) or scalar, positive.
+    saturation_dn : int
+        NaN where ``I >= saturation_dn``.
+    band_scale : numpy.ndarray, optional
+        (n_frames, n_bands) or (n_bands,): a per-frame, per-band factor folded into each frame's
+        table at no extra cost per pixel, ``R = lut[b][I] k_b / t * inv_v[b]``. None (default)
+        computes exactly what it did without the argument.
 
-    ``band_scale`` (n_frames, n_bands) or (n_bands,), optional: a per-frame, per-band factor
-    folded into each frame's table at no extra cost per pixel, ``R = lut[b][I] k_b / t * inv_v[b]``.
-    The light of a frame that differs from the calibration's S (issue 8) enters as
-    ``k_b = S(lambda_b) / S(lambda_b, tau)``: Eq. 15 with ``S(lambda, tau)`` in place of S.
-    None (default) computes exactly what it did without the argument.
+    Returns
+    -------
+    numpy.ndarray
+        float32 ``R = lut[b][I] * inv_v[b] / t``, the shape of ``dn``.
+
+    Raises
+    ------
+    InputError
+        For DN that are not unsigned integers of 4 dimensions, non-positive or non-finite
+        exposures, a ``band_scale`` that does not fit or is not positive, or tables that do
+        not fit.
+
+    Notes
+    -----
+    Agrees with :func:`eq15` to float32 rounding; about 6x faster (a table lookup per band, no
+    float64). The light of a frame that differs from the calibration's S (issue 8) enters as
+    ``k_b = S(lambda_b) / S(lambda_b, tau)``: Eq. 15 with ``S(lambda, tau)`` in place of S [1]_.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     d = np.asarray(dn)
     if d.ndim != 4 or not np.issubdtype(d.dtype, np.unsignedinteger):

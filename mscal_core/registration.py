@@ -58,16 +58,23 @@ MAX_FEATURES = 3000  # keypoints per image: plenty for a homography, bounded cos
 class Thresholds:
     """Reject thresholds of one band's transform (:func:`accept`).
 
-    Defaults: ``min_ecc`` 0.3 -- the gradient correlation of aligned bands of the real RedEdge
-    captures is 0.43-0.97 (NIR against red over vegetation the lowest) while a wrong or
-    unrelated alignment leaves 0.04-0.2 (docs/registration.md); ``min_inliers`` 12 -- a
-    homography has 8 degrees of freedom, 12 matches that agree within 2 px leave a margin
-    against chance agreements; ``max_residual_px`` 1.0 -- above the 0.3-0.7 px that agreeing
-    SIFT matches on gradient images show on correctly aligned bands (synthetic and real),
-    below the 2 px of :data:`INLIER_PX`.
-    A transform passes if its ECC correlation passes and, where feature matches were
-    found at all, the inlier count and residual pass too (low texture gives few features but
-    may still give a good ECC correlation)."""
+    A transform passes if its ECC correlation passes and, where feature matches were found at
+    all, the inlier count and residual pass too (low texture gives few features but may still
+    give a good ECC correlation).
+
+    Attributes
+    ----------
+    min_ecc : float
+        0.3 by default: the gradient correlation of aligned bands of the real RedEdge captures
+        is 0.43-0.97 (NIR against red over vegetation the lowest) while a wrong or unrelated
+        alignment leaves 0.04-0.2 (docs/registration.md).
+    min_inliers : int
+        12 by default: a homography has 8 degrees of freedom, 12 matches that agree within
+        2 px leave a margin against chance agreements.
+    max_residual_px : float
+        1.0 by default: above the 0.3-0.7 px that agreeing SIFT matches on gradient images show
+        on correctly aligned bands (synthetic and real), below the 2 px of :data:`INLIER_PX`.
+    """
 
     min_ecc: float = 0.3
     min_inliers: int = 12
@@ -78,12 +85,25 @@ class Thresholds:
 class BandRegistration:
     """Transform of one band to the reference band and its quality figures.
 
-    ``homography`` (3, 3) float64 maps reference pixels to band pixels; ``method`` is
-    ``"identity"`` (the reference itself), ``"ecc"`` or ``"features"``; ``ecc`` the gradient
-    correlation after warping (nan if not computable); ``n_matches`` feature matches found,
-    ``n_inliers`` those within :data:`INLIER_PX` of the transform, ``inlier_ratio``
-    = n_inliers / n_matches (nan without matches), ``residual_px`` rms reprojection error of
-    the inliers (nan without inliers)."""
+    Attributes
+    ----------
+    homography : numpy.ndarray
+        (3, 3) float64, maps reference pixels to band pixels.
+    method : str
+        ``"identity"`` (the reference itself), ``"ecc"`` or ``"features"``.
+    ecc : float
+        The gradient correlation after warping (nan if not computable).
+    n_matches : int
+        Feature matches found.
+    n_inliers : int
+        Those within :data:`INLIER_PX` of the transform.
+    inlier_ratio : float
+        ``n_inliers / n_matches`` (nan without matches).
+    residual_px : float
+        RMS reprojection error of the inliers (nan without inliers).
+    path : tuple of int
+        Bands the transform was composed along (:func:`register_stack`).
+    """
 
     homography: np.ndarray
     method: str
@@ -99,9 +119,11 @@ class BandRegistration:
 
 
 def normalise(image: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
-    """Image scaled to about [0, 1] by its 1st and 99th percentiles (float32): DN of any bit
-    depth and exposure look alike to the next steps. ``mask`` (bool) selects the pixels used
-    for the percentiles."""
+    """Image scaled to about [0, 1] by its 1st and 99th percentiles (float32).
+
+    DN of any bit depth and exposure look alike to the next steps. ``mask`` (bool) selects the
+    pixels used for the percentiles.
+    """
     a = np.asarray(image, dtype=np.float32)
     vals = a[mask] if mask is not None else a
     vals = vals[np.isfinite(vals)]
@@ -114,11 +136,14 @@ def normalise(image: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
 
 
 def gradient_image(image: np.ndarray, sigma: float = 1.0) -> np.ndarray:
-    """Gradient magnitude ``|grad(G_sigma * I)|`` (3x3 Sobel after a Gaussian of ``sigma`` px)
-    of the percentile-normalised image (:func:`normalise`), float32.
+    """Return the gradient magnitude of the normalised image.
+
+    Gradient magnitude ``|grad(G_sigma * I)|`` (3x3 Sobel after a Gaussian of ``sigma`` px) of
+    the percentile-normalised image (:func:`normalise`), float32.
 
     The magnitude is blind to the sign of an edge, so vegetation that is dark in red and
-    bright in NIR gives the same edges in both bands."""
+    bright in NIR gives the same edges in both bands.
+    """
     a = normalise(image)
     if sigma > 0:
         a = cv2.GaussianBlur(a, (0, 0), sigma)
@@ -128,9 +153,11 @@ def gradient_image(image: np.ndarray, sigma: float = 1.0) -> np.ndarray:
 
 
 def correlation(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """Pearson correlation coefficient of two images over ``mask`` (and finite pixels);
-    nan with fewer than 100 pixels or a constant image. This is ECC's criterion (the
-    zero-mean normalised correlation) evaluated once."""
+    """Pearson correlation coefficient of two images over ``mask`` (and finite pixels).
+
+    Nan with fewer than 100 pixels or a constant image. This is ECC's criterion (the zero-mean
+    normalised correlation) evaluated once.
+    """
     ok = np.isfinite(a) & np.isfinite(b)
     if mask is not None:
         ok &= mask
@@ -146,15 +173,20 @@ def correlation(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) ->
 
 def gradient_correlation(ref: np.ndarray, band: np.ndarray, mask: np.ndarray | None = None,
                          sigma: float = 1.0) -> float:
-    """Correlation of the gradient magnitudes of two images of the same grid (the figure used
-    to judge band-to-band alignment: high where edges coincide)."""
+    """Correlate the gradient magnitudes of two images.
+
+    Correlation of the gradient magnitudes of two images of the same grid (the figure used to
+    judge band-to-band alignment: high where edges coincide).
+    """
     return correlation(gradient_image(ref, sigma), gradient_image(band, sigma), mask)
 
 
 def warp_to_reference(band: np.ndarray, homography: np.ndarray, shape: tuple[int, int],
                       interpolation: int = cv2.INTER_LINEAR, fill: float = float("nan")) -> np.ndarray:
-    """``aligned(x) = band(H x)`` on a reference grid of ``shape`` (H, W); pixels whose source
-    lies outside the band are ``fill``. float32 unless ``band`` is float64."""
+    """``aligned(x) = band(H x)`` on a reference grid of ``shape`` (H, W).
+
+    Pixels whose source lies outside the band are ``fill``. float32 unless ``band`` is float64.
+    """
     src = band if band.dtype in (np.float32, np.float64) else band.astype(np.float32)
     return cv2.warpPerspective(src, np.asarray(homography, dtype=np.float64), (shape[1], shape[0]),
                                flags=interpolation | cv2.WARP_INVERSE_MAP,
@@ -163,7 +195,7 @@ def warp_to_reference(band: np.ndarray, homography: np.ndarray, shape: tuple[int
 
 def valid_mask(homography: np.ndarray, band_shape: tuple[int, int], shape: tuple[int, int],
                margin: float = 1.0) -> np.ndarray:
-    """Reference pixels ``x`` whose band pixel ``H x`` lies at least ``margin`` px inside the band."""
+    """Mask the reference pixels ``x`` whose band pixel ``H x`` lies at least ``margin`` px inside the band."""
     h, w = shape
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
     p = map_points(homography, np.stack([xs.ravel(), ys.ravel()], axis=1))
@@ -183,10 +215,12 @@ def map_points(homography: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def local_motion(homography: np.ndarray, point: tuple[float, float]) -> tuple[float, float, float, float]:
-    """What ``H`` does near ``point`` (x, y) of the reference image, for people to read:
-    the shift ``H x - x`` (dx, dy, px), the rotation (degrees, counter-clockwise in image
-    coordinates) and the scale of its Jacobian ``J = d(H x)/dx`` there, with
-    rotation = atan2(J10 - J01, J00 + J11) and scale = sqrt(|det J|)."""
+    """Describe what ``H`` does near ``point`` (x, y) of the reference image, for people to read.
+
+    The shift ``H x - x`` (dx, dy, px), the rotation (degrees, counter-clockwise in image
+    coordinates) and the scale of its Jacobian ``J = d(H x)/dx`` there, with rotation =
+    atan2(J10 - J01, J00 + J11) and scale = sqrt(|det J|).
+    """
     h = _normalised(homography)
     x, y = float(point[0]), float(point[1])
     w = h[2, 0] * x + h[2, 1] * y + 1.0
@@ -199,8 +233,11 @@ def local_motion(homography: np.ndarray, point: tuple[float, float]) -> tuple[fl
 
 
 def grid_points(shape: tuple[int, int], n: tuple[int, int] = (9, 12), margin: float = 0.05) -> np.ndarray:
-    """An ``n = (rows, cols)`` grid of points (x, y) over an image of ``shape`` (H, W), inset
-    by ``margin`` of the size on each side; (rows * cols, 2) float64."""
+    """Return an evenly spaced grid of points over an image.
+
+    An ``n = (rows, cols)`` grid of points (x, y) over an image of ``shape`` (H, W), inset by
+    ``margin`` of the size on each side; (rows * cols, 2) float64.
+    """
     h, w = shape
     ys = np.linspace(margin * (h - 1), (1 - margin) * (h - 1), n[0])
     xs = np.linspace(margin * (w - 1), (1 - margin) * (w - 1), n[1])
@@ -210,15 +247,19 @@ def grid_points(shape: tuple[int, int], n: tuple[int, int] = (9, 12), margin: fl
 
 def transform_distance(h_a: np.ndarray, h_b: np.ndarray, shape: tuple[int, int],
                        n: tuple[int, int] = (9, 12)) -> np.ndarray:
-    """Distances (px) between ``H_a x`` and ``H_b x`` over :func:`grid_points` of ``shape``:
-    the misalignment one transform leaves against the other. (N,) float64."""
+    """Distances (px) between ``H_a x`` and ``H_b x`` over :func:`grid_points` of ``shape``.
+
+    The misalignment one transform leaves against the other. (N,) float64.
+    """
     pts = grid_points(shape, n)
     return np.linalg.norm(map_points(h_a, pts) - map_points(h_b, pts), axis=1)
 
 
 def scale_homography(homography: np.ndarray, factor: float) -> np.ndarray:
-    """The same mapping on images scaled by ``factor`` (coordinates ``x' = factor x``):
-    ``S H S^-1`` with ``S = diag(f, f, 1)``."""
+    """Return the same mapping on images scaled by ``factor`` (coordinates ``x' = factor x``).
+
+    ``S H S^-1`` with ``S = diag(f, f, 1)``.
+    """
     s = np.diag([factor, factor, 1.0])
     return s @ np.asarray(homography, dtype=np.float64) @ np.diag([1.0 / factor, 1.0 / factor, 1.0])
 
@@ -230,11 +271,14 @@ def _normalised(h: np.ndarray) -> np.ndarray:
 
 def combine_homographies(homographies: Sequence[np.ndarray], shape: tuple[int, int],
                          n: tuple[int, int] = (9, 12)) -> tuple[np.ndarray, float]:
-    """Robust combination of several estimates of one transform: every estimate maps the
-    :func:`grid_points` of ``shape``; the coordinate-wise median of the mapped points is fitted
-    by a least-squares homography (``cv2.findHomography``, method 0). Half of the estimates
-    may be arbitrarily wrong (breakdown point of the median). Returns the homography and the
-    spread: the median over grid points of the median distance of the estimates to it (px)."""
+    """Robust combination of several estimates of one transform.
+
+    Every estimate maps the :func:`grid_points` of ``shape``; the coordinate-wise median of the
+    mapped points is fitted by a least-squares homography (``cv2.findHomography``, method 0).
+    Half of the estimates may be arbitrarily wrong (breakdown point of the median). Returns the
+    homography and the spread: the median over grid points of the median distance of the
+    estimates to it (px).
+    """
     hs = [np.asarray(h, dtype=np.float64) for h in homographies]
     if not hs:
         raise FitError("no transform estimates to combine", hint="register at least one capture")
@@ -261,13 +305,16 @@ def _pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
 
 
 def pyramid_levels(shape: tuple[int, int], coarsest_px: int = COARSEST_PX) -> int:
-    """Number of halvings until the shorter side is about ``coarsest_px``."""
+    """Count the halvings until the shorter side is about ``coarsest_px``."""
     return max(0, int(math.floor(math.log2(max(1.0, min(shape) / coarsest_px)))))
 
 
 def phase_shift(ref: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, float]:
-    """Translation ``d`` with ``band(x + d) ~ ref(x)`` by phase correlation (Hanning window)
-    and its peak response (0-1). Returns the homography ``[[1, 0, dx], [0, 1, dy], [0, 0, 1]]``."""
+    """Estimate a translation by phase correlation.
+
+    Translation ``d`` with ``band(x + d) ~ ref(x)`` by phase correlation (Hanning window) and
+    its peak response (0-1). Returns the homography ``[[1, 0, dx], [0, 1, dy], [0, 0, 1]]``.
+    """
     win = cv2.createHanningWindow((ref.shape[1], ref.shape[0]), cv2.CV_32F)
     (dx, dy), response = cv2.phaseCorrelate(ref.astype(np.float32), band.astype(np.float32), win)
     return np.array([[1.0, 0.0, dx], [0.0, 1.0, dy], [0.0, 0.0, 1.0]]), float(response)
@@ -276,13 +323,34 @@ def phase_shift(ref: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, float]:
 def ecc_homography(ref_grad: np.ndarray, band_grad: np.ndarray, init: np.ndarray | None = None, *,
                    levels: int | None = None, iterations: int = 100, eps: float = 1e-6,
                    fine_iterations: int = FINE_ITERATIONS, min_cc: float | None = None) -> np.ndarray | None:
-    """Pyramid ECC (``cv2.findTransformECC``, ``MOTION_HOMOGRAPHY``) of two gradient images:
-    the homography mapping reference pixels to band pixels, or None if ECC fails to converge
-    at the finest level. ``init`` (full-resolution homography) defaults to a phase-correlation
-    shift at the coarsest level (:func:`phase_shift`). ``min_cc``: give up (None) as soon as
-    a coarser level converges below it -- the correlation of smoothed coarse gradient images
-    is higher than at full resolution, so such a pair would fail the threshold anyway, and
-    the full-resolution iterations are the costly ones."""
+    """Estimate a homography by pyramid ECC (``cv2.findTransformECC``, ``MOTION_HOMOGRAPHY``) of two gradient images.
+
+    Parameters
+    ----------
+    ref_grad, band_grad : numpy.ndarray
+        Gradient images (:func:`gradient_image`) of the reference and the band.
+    init : numpy.ndarray, optional
+        Full-resolution starting homography; defaults to a phase-correlation shift at the
+        coarsest level (:func:`phase_shift`).
+    levels : int, optional
+        Pyramid levels (default :func:`pyramid_levels`).
+    iterations : int
+        ECC's iterations per coarser level at most.
+    eps : float
+        ECC's convergence threshold.
+    fine_iterations : int
+        Iterations at full resolution.
+    min_cc : float, optional
+        Give up (None) as soon as a coarser level converges below it -- the correlation of
+        smoothed coarse gradient images is higher than at full resolution, so such a pair would
+        fail the threshold anyway, and the full-resolution iterations are the costly ones.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        The homography mapping reference pixels to band pixels, or None if ECC fails to
+        converge at the finest level.
+    """
     if levels is None:
         levels = pyramid_levels(ref_grad.shape)
     ref_p = _pyramid(ref_grad, levels)
@@ -320,8 +388,10 @@ class Features:
 
 
 def detect_features(grad: np.ndarray) -> Features:
-    """Keypoints of a gradient image (scaled to 8 bits at its 99.5th percentile): SIFT
-    (OpenCV 5's main modules have no AKAZE), ORB when SIFT finds fewer than 50."""
+    """Keypoints of a gradient image (scaled to 8 bits at its 99.5th percentile).
+
+    SIFT (OpenCV 5's main modules have no AKAZE), ORB when SIFT finds fewer than 50.
+    """
     hi = float(np.percentile(grad, 99.5)) or 1.0
     image8 = np.clip(grad * (255.0 / hi), 0, 255).astype(np.uint8)
     kp, des = cv2.SIFT_create(nfeatures=MAX_FEATURES).detectAndCompute(image8, None)
@@ -334,8 +404,10 @@ def detect_features(grad: np.ndarray) -> Features:
 
 
 def feature_matches(ref: Features, band: Features, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
-    """Matched keypoints ``(ref_xy, band_xy)`` (N, 2) of two images' :func:`detect_features`:
-    Lowe's ratio test ``ratio`` and mutual best matches only."""
+    """Match keypoints ``(ref_xy, band_xy)`` (N, 2) of two images' :func:`detect_features`.
+
+    Lowe's ratio test ``ratio`` and mutual best matches only.
+    """
     empty = (np.zeros((0, 2)), np.zeros((0, 2)))
     if (ref.descriptors is None or band.descriptors is None or len(ref.points) < 2 or len(band.points) < 2
             or ref.norm != band.norm):
@@ -351,9 +423,12 @@ def feature_matches(ref: Features, band: Features, ratio: float = 0.8) -> tuple[
 
 
 def feature_homography(ref_xy: np.ndarray, band_xy: np.ndarray) -> np.ndarray | None:
-    """RANSAC homography (``cv2.findHomography``, reprojection threshold :data:`INLIER_PX`)
-    of matched points, refined on its inliers (Levenberg-Marquardt inside OpenCV); None with
-    fewer than 8 matches or no consensus."""
+    """Fit a RANSAC homography to matched points.
+
+    RANSAC homography (``cv2.findHomography``, reprojection threshold :data:`INLIER_PX`) of
+    matched points, refined on its inliers (Levenberg-Marquardt inside OpenCV); None with fewer
+    than 8 matches or no consensus.
+    """
     if len(ref_xy) < 8:
         return None
     h, _ = cv2.findHomography(ref_xy, band_xy, cv2.RANSAC, INLIER_PX, maxIters=5000, confidence=0.999)
@@ -361,8 +436,11 @@ def feature_homography(ref_xy: np.ndarray, band_xy: np.ndarray) -> np.ndarray | 
 
 
 def match_quality(homography: np.ndarray, ref_xy: np.ndarray, band_xy: np.ndarray) -> tuple[int, float, float]:
-    """``(n_inliers, inlier_ratio, residual_px)`` of matches against a homography: matches
-    with ``|H x_ref - x_band| <= INLIER_PX`` are inliers; the residual is their rms distance."""
+    """``(n_inliers, inlier_ratio, residual_px)`` of matches against a homography.
+
+    Matches with ``|H x_ref - x_band| <= INLIER_PX`` are inliers; the residual is their rms
+    distance.
+    """
     if len(ref_xy) == 0:
         return 0, float("nan"), float("nan")
     d = np.linalg.norm(map_points(homography, ref_xy) - band_xy, axis=1)
@@ -402,10 +480,35 @@ def _score(reg: BandRegistration) -> tuple[float, float]:
 def register_band(ref_grad: np.ndarray, band_grad: np.ndarray, *, init: np.ndarray | None = None,
                   thresholds: Thresholds = Thresholds(), ref_features: Features | None = None,
                   band_features: Features | None = None) -> BandRegistration:
-    """Transform of one band to the reference from their gradient images
-    (:func:`gradient_image`): pyramid ECC; if ECC fails or does not pass ``thresholds``,
-    features + RANSAC, keeping the estimate with the higher gradient correlation. The result
-    is returned even when it fails the thresholds (see :func:`accept`)."""
+    """Register one band to the reference from their gradient images (:func:`gradient_image`).
+
+    Parameters
+    ----------
+    ref_grad, band_grad : numpy.ndarray
+        Gradient images of the same size.
+    init : numpy.ndarray, optional
+        Starting homography of ECC.
+    thresholds : Thresholds
+        Reject thresholds (:func:`accept`).
+    ref_features, band_features : Features, optional
+        Keypoints already detected (:func:`detect_features`).
+
+    Returns
+    -------
+    BandRegistration
+        The transform with its quality figures, returned even when it fails the thresholds
+        (see :func:`accept`).
+
+    Raises
+    ------
+    InputError
+        When the two images differ in size.
+
+    Notes
+    -----
+    Pyramid ECC; if ECC fails or does not pass ``thresholds``, features + RANSAC, keeping the
+    estimate with the higher gradient correlation.
+    """
     if ref_grad.shape != band_grad.shape:
         raise InputError(f"bands of one capture differ in size: {ref_grad.shape} vs {band_grad.shape}",
                          hint="every band of a multi-lens capture must have the same pixel grid")
@@ -443,8 +546,10 @@ def _pairs(n: int, reference: int, wavelengths: Sequence[float] | None, neighbou
 
 
 def _compose(edges: Sequence[BandRegistration], path: tuple[int, ...]) -> BandRegistration:
-    """A transform along a path of pairwise registrations; its quality is the weakest edge's
-    (NaN, i.e. failing, if any edge's figure is NaN)."""
+    """Compose a transform along a path of pairwise registrations.
+
+    Its quality is the weakest edge's (NaN, i.e. failing, if any edge's figure is NaN).
+    """
     h = np.eye(3)
     for e in edges:
         h = e.homography @ h
@@ -460,17 +565,46 @@ def _compose(edges: Sequence[BandRegistration], path: tuple[int, ...]) -> BandRe
 def register_stack(stack: np.ndarray, reference: int, *, wavelengths: Sequence[float] | None = None,
                    neighbours: int = 3, sigma: float = 1.0,
                    thresholds: Thresholds = Thresholds()) -> list[BandRegistration]:
-    """Every band of one capture ``(band, H, W)`` registered to band ``reference``.
+    """Register every band of one capture to band ``reference``.
 
+    Parameters
+    ----------
+    stack : numpy.ndarray
+        ``(band, H, W)`` capture.
+    reference : int
+        The reference band.
+    wavelengths : sequence of float, optional
+        Band wavelengths; None registers every pair.
+    neighbours : int
+        Each band is registered with its ``neighbours`` nearest bands in wavelength and with
+        the reference.
+    sigma : float
+        Gaussian of :func:`gradient_image`.
+    thresholds : Thresholds
+        Reject thresholds (:func:`accept`).
+
+    Returns
+    -------
+    list of BandRegistration
+        One per band; the reference band's own entry is the identity.
+
+    Raises
+    ------
+    InputError
+        Unless ``stack`` is ``(band, H, W)`` and ``reference`` one of its bands.
+    FitError
+        When the bands cannot be linked by any registration.
+
+    Notes
+    -----
     Distant bands can look too different to register directly (blue against NIR over
-    vegetation: gradient correlation ~0.1 on the real RedEdge flight capture, where blue
-    against green is 0.84 and green against NIR 0.77). So pairs of bands are registered
-    (:func:`register_band`: each band with its ``neighbours`` nearest bands in wavelength and
-    with the reference; every pair when ``wavelengths`` is None), and each band's transform
-    is composed along the maximum spanning tree of the pairs' gradient correlations (Prim's
-    algorithm, pairs that fail ``thresholds`` only when nothing else connects a band). A
-    composed transform carries the weakest quality figures of its edges and its ``path``.
-    The reference band's own entry is the identity."""
+    vegetation: gradient correlation ~0.1 on the real RedEdge flight capture, where blue against
+    green is 0.84 and green against NIR 0.77). So pairs of bands are registered
+    (:func:`register_band`), and each band's transform is composed along the maximum spanning
+    tree of the pairs' gradient correlations (Prim's algorithm, pairs that fail ``thresholds``
+    only when nothing else connects a band). A composed transform carries the weakest quality
+    figures of its edges and its ``path``.
+    """
     if stack.ndim != 3:
         raise InputError(f"a capture must be a (band, H, W) stack, got shape {stack.shape}")
     n = stack.shape[0]
@@ -503,9 +637,22 @@ def register_stack(stack: np.ndarray, reference: int, *, wavelengths: Sequence[f
 
 
 def centre_reference(homographies: np.ndarray, shape: tuple[int, int]) -> int:
-    """The band whose transforms to all other bands move the grid least (sum over bands of the
-    median grid displacement), i.e. the lens in the middle of the rig: aligning to it keeps
-    the warps and the lost border smallest. ``homographies`` (band, 3, 3) to any one band."""
+    """Choose the reference band whose warps to the others are smallest.
+
+    Parameters
+    ----------
+    homographies : numpy.ndarray
+        (band, 3, 3) transforms to any one band.
+    shape : tuple of int
+        ``(H, W)`` of the bands.
+
+    Returns
+    -------
+    int
+        The band whose transforms to all other bands move the grid least (sum over bands of the
+        median grid displacement), i.e. the lens in the middle of the rig: aligning to it keeps
+        the warps and the lost border smallest.
+    """
     n = len(homographies)
     pts = grid_points(shape)
     cost = np.zeros(n)
@@ -518,8 +665,21 @@ def centre_reference(homographies: np.ndarray, shape: tuple[int, int]) -> int:
 
 
 def rebase(homographies: np.ndarray, reference: int) -> np.ndarray:
-    """Transforms to another reference band: ``H'_b = H_b H_ref^-1`` (band ``reference``'s
-    pixels -> old reference pixels -> band b pixels); ``H'_reference`` is the identity."""
+    """Re-express the transforms relative to another reference band.
+
+    Parameters
+    ----------
+    homographies : numpy.ndarray
+        (band, 3, 3) transforms to the old reference.
+    reference : int
+        The new reference band.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``H'_b = H_b H_ref^-1`` (band ``reference``'s pixels -> old reference pixels -> band b
+        pixels); ``H'_reference`` is the identity.
+    """
     inv = np.linalg.inv(homographies[reference])
     return np.stack([_normalised(h @ inv) for h in homographies])
 
@@ -529,12 +689,31 @@ def rebase(homographies: np.ndarray, reference: int) -> np.ndarray:
 
 def align_bands(stack: np.ndarray, transforms: np.ndarray, *, interpolation: int = cv2.INTER_LINEAR,
                 fill: float = float("nan")) -> np.ndarray:
-    """Band stack ``(band, H, W)`` resampled onto the reference band's grid:
-    ``aligned_b(x) = stack_b(H_b x)`` (bilinear by default); pixels that no band b sample
-    covers are ``fill``. ``transforms`` (band, 3, 3) as stored by the registration. Returns
-    float32 (float64 for a float64 stack). A NaN pixel makes NaN the aligned pixels it
-    contributes to (weight above 1e-3); an aligned pixel needing any sample outside the band
-    is ``fill``."""
+    """Resample a band stack ``(band, H, W)`` onto the reference band's grid.
+
+    Parameters
+    ----------
+    stack : numpy.ndarray
+        ``(band, H, W)``.
+    transforms : numpy.ndarray
+        (band, 3, 3) as stored by the registration.
+    interpolation : int
+        OpenCV interpolation flag (bilinear by default).
+    fill : float
+        Value of the pixels that no band b sample covers.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``aligned_b(x) = stack_b(H_b x)``, float32 (float64 for a float64 stack). A NaN pixel
+        makes NaN the aligned pixels it contributes to (weight above 1e-3); an aligned pixel
+        needing any sample outside the band is ``fill``.
+
+    Raises
+    ------
+    InputError
+        When the number of transforms does not match the stack.
+    """
     transforms = np.asarray(transforms, dtype=np.float64)
     if transforms.shape != (stack.shape[0], 3, 3):
         raise InputError(f"{transforms.shape[0]} band transforms for a {stack.shape[0]}-band stack",
@@ -566,28 +745,44 @@ def align_bands(stack: np.ndarray, transforms: np.ndarray, *, interpolation: int
 
 
 def mosaic_centre_offsets(pattern_shape: tuple[int, int]) -> np.ndarray:
-    """Offsets ``(dx, dy)`` (band-grid pixels) of each band's samples from the mosaic's centre
-    position: band (r, c) pixel (i, j) samples band-grid point ``(j + c/C, i + r/R)``
-    (docs/architecture.md), the centre band ``((R-1)/2, (C-1)/2)`` samples
-    ``(j + ((C-1)/2)/C, ...)``; the difference is ``((c - (C-1)/2)/C, (r - (R-1)/2)/R)``,
-    i.e. ``((c-2)/5, (r-2)/5)`` for a 5 x 5 mosaic. (R*C, 2) float64."""
+    """Return the offsets ``(dx, dy)`` (band-grid pixels) of each band's samples from the mosaic's centre position.
+
+    Parameters
+    ----------
+    pattern_shape : tuple of int
+        ``(R, C)`` of the filter pattern.
+
+    Returns
+    -------
+    numpy.ndarray
+        (R*C, 2) float64 ``((c - (C-1)/2)/C, (r - (R-1)/2)/R)``, i.e. ``((c-2)/5, (r-2)/5)`` for
+        a 5 x 5 mosaic: band (r, c) pixel (i, j) samples band-grid point ``(j + c/C, i + r/R)``
+        (docs/architecture.md), the centre band ``((R-1)/2, (C-1)/2)`` samples
+        ``(j + ((C-1)/2)/C, ...)``.
+    """
     rows, cols = pattern_shape
     rr, cc = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
     return np.stack([(cc.ravel() - (cols - 1) / 2) / cols, (rr.ravel() - (rows - 1) / 2) / rows], axis=1)
 
 
 def cubic_weights(t: float, a: float = -0.5) -> np.ndarray:
-    """Keys' cubic convolution weights (a = -0.5: exact for quadratics) of the samples at
-    offsets -1, 0, 1, 2 for a point a fraction ``t`` in [0, 1) past sample 0."""
+    """Return Keys' cubic convolution weights of four neighbouring samples.
+
+    Keys' cubic convolution weights (a = -0.5: exact for quadratics) of the samples at offsets
+    -1, 0, 1, 2 for a point a fraction ``t`` in [0, 1) past sample 0.
+    """
     d = np.abs(np.array([-1.0, 0.0, 1.0, 2.0]) - t)
     return np.where(d <= 1, (a + 2) * d**3 - (a + 3) * d**2 + 1,
                     np.where(d < 2, a * d**3 - 5 * a * d**2 + 8 * a * d - 4 * a, 0.0))
 
 
 def _shift_axis(band: np.ndarray, shift: float, axis: int, fill: float) -> np.ndarray:
-    """``out[..., j] = band(j - shift)`` along ``axis`` by cubic convolution (four shifted
-    copies and scalar weights: no fixed-point rounding of the position as in cv2.remap);
-    ``fill`` where a needed sample is outside."""
+    """Shift bands along an axis by cubic convolution.
+
+    ``out[..., j] = band(j - shift)`` along ``axis`` by cubic convolution (four shifted copies
+    and scalar weights: no fixed-point rounding of the position as in cv2.remap); ``fill`` where
+    a needed sample is outside.
+    """
     if shift == 0:
         return band
     pos0 = -shift
@@ -612,12 +807,30 @@ def _shift_axis(band: np.ndarray, shift: float, axis: int, fill: float) -> np.nd
 
 
 def shift_bands(stack: np.ndarray, offsets: np.ndarray, *, fill: float = float("nan")) -> np.ndarray:
-    """Resample each band of ``stack`` (band, H, W) to the common centre position: band b's
-    samples sit ``offsets[b] = (dx, dy)`` px from it (:func:`mosaic_centre_offsets`), so the
-    value at the centre position of pixel (i, j) is band b at ``(j - dx, i - dy)`` of its own
-    grid: separable cubic convolution (:func:`cubic_weights`), exact for quadratic images.
-    Pixels that need a sample outside the band are ``fill``. float32 (float64 for a float64
-    stack)."""
+    """Resample each band of ``stack`` (band, H, W) to the common centre position.
+
+    Parameters
+    ----------
+    stack : numpy.ndarray
+        ``(band, H, W)``.
+    offsets : numpy.ndarray
+        (band, 2): band b's samples sit ``offsets[b] = (dx, dy)`` px from the centre position
+        (:func:`mosaic_centre_offsets`).
+    fill : float
+        Value of the pixels that need a sample outside the band.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 (float64 for a float64 stack): the value at the centre position of pixel (i, j)
+        is band b at ``(j - dx, i - dy)`` of its own grid, by separable cubic convolution
+        (:func:`cubic_weights`), exact for quadratic images.
+
+    Raises
+    ------
+    InputError
+        When the number of offsets does not match the stack.
+    """
     offsets = np.asarray(offsets, dtype=np.float64)
     if offsets.shape != (stack.shape[0], 2):
         raise InputError(f"{len(offsets)} offsets for a {stack.shape[0]}-band stack")

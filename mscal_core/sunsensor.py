@@ -48,7 +48,7 @@ FloatArray = NDArray[np.float64]
 
 
 def sun_vector(elevation: ArrayLike, azimuth: ArrayLike) -> FloatArray:
-    """Unit vector towards the sun in North-East-Down coordinates.
+    """Return the unit vector towards the sun in North-East-Down coordinates.
 
     Parameters
     ----------
@@ -67,7 +67,7 @@ def sun_vector(elevation: ArrayLike, azimuth: ArrayLike) -> FloatArray:
 
 
 def sensor_normal(yaw: ArrayLike, pitch: ArrayLike, roll: ArrayLike) -> FloatArray:
-    """The sensor's viewing direction in North-East-Down coordinates.
+    """Return the sensor's viewing direction in North-East-Down coordinates.
 
     Parameters
     ----------
@@ -85,18 +85,18 @@ def sensor_normal(yaw: ArrayLike, pitch: ArrayLike, roll: ArrayLike) -> FloatArr
 
 
 def incidence_angle(sun: ArrayLike, normal: ArrayLike) -> FloatArray:
-    """Angle between the sun and the sensor's normal, radians, in ``[0, pi]``."""
+    """Return the angle between the sun and the sensor's normal, radians, in ``[0, pi]``."""
     c = np.sum(np.asarray(sun, np.float64) * np.asarray(normal, np.float64), axis=-1)
     return np.arccos(np.clip(c, -1.0, 1.0))
 
 
 def tilt_angle(normal: ArrayLike) -> FloatArray:
-    """Angle between the sensor's normal and straight up, radians."""
+    """Return the angle between the sensor's normal and straight up, radians."""
     return np.arccos(np.clip(-np.asarray(normal, np.float64)[..., 2], -1.0, 1.0))
 
 
 def fresnel_transmission(theta: ArrayLike, layers: tuple[float, ...] = DIFFUSER_LAYERS) -> FloatArray:
-    """Fraction of unpolarised light that crosses a stack of plane interfaces.
+    """Return the fraction of unpolarised light that crosses a stack of plane interfaces.
 
     Parameters
     ----------
@@ -133,13 +133,16 @@ def fresnel_transmission(theta: ArrayLike, layers: tuple[float, ...] = DIFFUSER_
 
 
 def relative_transmission(theta: ArrayLike, layers: tuple[float, ...] = DIFFUSER_LAYERS) -> FloatArray:
-    """``tau(theta) = T(theta) / T(0)``: the diffuser's angular response, 1 at normal incidence."""
+    """Return ``tau(theta) = T(theta) / T(0)``, the diffuser's angular response (1 at normal incidence)."""
     return fresnel_transmission(theta, layers) / fresnel_transmission(0.0, layers)
 
 
 def diffuse_transmission(layers: tuple[float, ...] = DIFFUSER_LAYERS, n: int = 2048) -> float:
-    """``tau_d``: :func:`relative_transmission` averaged over a hemisphere of isotropic light,
-    weighted by ``cos(theta)`` (``2 int tau cos sin dtheta``, midpoint rule over ``n`` steps)."""
+    """Return ``tau_d``, the diffuser's response to isotropic light.
+
+    :func:`relative_transmission` averaged over the hemisphere, weighted by ``cos(theta)``
+    (``2 int tau cos sin dtheta``, midpoint rule over ``n`` steps).
+    """
     h = (np.pi / 2) / n
     th = (np.arange(n) + 0.5) * h
     return float(2.0 * np.sum(relative_transmission(th, layers) * np.cos(th) * np.sin(th)) * h)
@@ -149,7 +152,7 @@ def diffuse_transmission(layers: tuple[float, ...] = DIFFUSER_LAYERS, n: int = 2
 class HorizontalIrradiance:
     """Result of :func:`horizontal_irradiance`; arrays broadcast like the readings.
 
-    ``horizontal`` E_h; ``direct`` E_dir (on a plane facing the sun); ``diffuse`` E_dif
+    Attributes: ``horizontal`` E_h; ``direct`` E_dir (on a plane facing the sun); ``diffuse`` E_dif
     (horizontal); ``factor`` E_h / E_meas; ``incidence`` theta and ``tilt`` of the sensor,
     radians; ``sun_visible`` whether the sun was above the sensor's horizon (cos theta > 0).
     """
@@ -167,7 +170,7 @@ def horizontal_irradiance(reading: ArrayLike, elevation: ArrayLike, azimuth: Arr
                           pitch: ArrayLike, roll: ArrayLike,
                           diffuse_ratio: ArrayLike = CLEAR_SKY_DIFFUSE_RATIO,
                           layers: tuple[float, ...] = DIFFUSER_LAYERS) -> HorizontalIrradiance:
-    """Horizontal irradiance from a tilted sun sensor's reading (module docstring).
+    """Return the horizontal irradiance from a tilted sun sensor's reading (module docstring).
 
     Parameters
     ----------
@@ -212,10 +215,12 @@ def horizontal_irradiance(reading: ArrayLike, elevation: ArrayLike, azimuth: Arr
 
 def sensor_reading(direct: ArrayLike, diffuse: ArrayLike, elevation: ArrayLike, azimuth: ArrayLike, yaw: ArrayLike,
                    pitch: ArrayLike, roll: ArrayLike, layers: tuple[float, ...] = DIFFUSER_LAYERS) -> FloatArray:
-    """The forward model: what a tilted sensor reads under direct light ``direct`` (on a plane
-    facing the sun) and isotropic diffuse light ``diffuse`` (horizontal). The inverse of
-    :func:`horizontal_irradiance` for ``diffuse_ratio = diffuse / direct``; used to simulate
-    sun sensors with known truth."""
+    """Return what a tilted sensor reads: the forward model of :func:`horizontal_irradiance`.
+
+    Under direct light ``direct`` (on a plane facing the sun) and isotropic diffuse light
+    ``diffuse`` (horizontal); :func:`horizontal_irradiance` with ``diffuse_ratio = diffuse /
+    direct`` inverts it. Used to simulate sun sensors with known truth.
+    """
     n = sensor_normal(yaw, pitch, roll)
     theta = incidence_angle(sun_vector(elevation, azimuth), n)
     tilt = tilt_angle(n)

@@ -29,6 +29,12 @@ with per-observation weights ``w``: ``w = 1`` (default) weights every observatio
 which is right for a relative (multiplicative) noise of the same size in every view;
 ``w = t_i^2`` reproduces the paper's Eq. 9 / 10 literally (``t L U = t^2 L y``,
 ``(t L)^2 = t^2 L^2``).
+
+References
+----------
+.. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+       for Multispectral Cameras", IEEE International Conference on Robotics and
+       Automation (ICRA), 2017.
 """
 
 from __future__ import annotations
@@ -83,16 +89,25 @@ _GAUGE_SIGMA = 2.0
 class VignettingFit:
     """Result of :func:`fit_vignetting` for one band.
 
-    - ``vignetting`` (H, W) float64, V(x), ``max V = 1`` (gauge: the 99.9th percentile of the
-      denoised well-observed V is 1, the few values above are clipped to 1); filled where
-      not observed.
-    - ``count`` (H, W) int64: informative observations per pixel (in cells seen by at least
-      two different pixels, in the main connected part of the pixel/cell graph).
-    - ``observed`` (H, W) bool: ``count >= min_count``; False pixels are filled smoothly.
-    - ``radiance`` (n_cells,) float64: L(p) per plane cell in the same gauge (``V L = y``);
-      NaN for cells never observed.
-    - ``residual_rms`` relative rms of ``y / (V L) - 1`` over the informative observations.
-    - ``iterations`` Eq. 9/10 alternations done; ``converged`` whether ``tol`` was reached.
+    Attributes
+    ----------
+    vignetting : numpy.ndarray
+        (H, W) float64, V(x), ``max V = 1`` (gauge: the 99.9th percentile of the denoised
+        well-observed V is 1, the few values above are clipped to 1); filled where not observed.
+    count : numpy.ndarray
+        (H, W) int64: informative observations per pixel (in cells seen by at least two
+        different pixels, in the main connected part of the pixel/cell graph).
+    observed : numpy.ndarray
+        (H, W) bool: ``count >= min_count``; False pixels are filled smoothly.
+    radiance : numpy.ndarray
+        (n_cells,) float64: L(p) per plane cell in the same gauge (``V L = y``); NaN for cells
+        never observed.
+    residual_rms : float
+        Relative rms of ``y / (V L) - 1`` over the informative observations.
+    iterations : int
+        Eq. 9/10 alternations done.
+    converged : bool
+        Whether ``tol`` was reached.
     """
 
     vignetting: np.ndarray
@@ -113,11 +128,27 @@ def cell_grid(
     cells_per_m: float | None = None,
     grid: tuple[int, int] | None = None,
 ) -> tuple[int, int]:
-    """Number of plane cells ``(nu, nv)`` across the reflector ``size_m = [w, h]``.
+    """Return the number of plane cells ``(nu, nv)`` across the reflector.
 
-    ``grid`` wins if given; else ``cells_per_m`` (``nu = ceil(w * cells_per_m)``, same for
-    ``nv``); else square cells with :data:`DEFAULT_CELLS_ALONG` along the longer side.
-    ``n_cells = nu * nv``.
+    Parameters
+    ----------
+    size_m : float or sequence of float
+        Reflector size ``[w, h]`` in metres (one value: a square).
+    cells_per_m : float, optional
+        Cell density: ``nu = ceil(w * cells_per_m)``, same for ``nv``.
+    grid : tuple of int, optional
+        ``(nu, nv)`` given directly; wins over ``cells_per_m``.
+
+    Returns
+    -------
+    tuple of int
+        ``(nu, nv)``; ``n_cells = nu * nv``. Without ``grid`` or ``cells_per_m``: square cells
+        with :data:`DEFAULT_CELLS_ALONG` along the longer side.
+
+    Raises
+    ------
+    InputError
+        On a grid that is not two positive integers or a non-positive density.
     """
     w, h = size_wh(size_m)
     if grid is not None:
@@ -140,10 +171,21 @@ def cell_grid(
 
 
 def cell_centres(size_m: float | Sequence[float], grid: tuple[int, int]) -> np.ndarray:
-    """Plane points (u, v) of the cell centres, (nu * nv, 2), in cell-index order.
+    """Return the plane points (u, v) of the cell centres in cell-index order.
 
-    Cell ``iv * nu + iu`` spans ``u in [-w/2 + iu w/nu, -w/2 + (iu+1) w/nu)`` and likewise in
-    ``v`` (``v`` up, as in the marker frame).
+    Parameters
+    ----------
+    size_m : float or sequence of float
+        Reflector size ``[w, h]`` in metres.
+    grid : tuple of int
+        ``(nu, nv)`` from :func:`cell_grid`.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(nu * nv, 2)`` metres. Cell ``iv * nu + iu`` spans
+        ``u in [-w/2 + iu w/nu, -w/2 + (iu+1) w/nu)`` and likewise in ``v`` (``v`` up, as in the
+        marker frame).
     """
     w, h = size_wh(size_m)
     nu, nv = cell_grid(size_m, grid=grid)
@@ -162,16 +204,48 @@ def view_observations(
     cells_per_m: float | None = None,
     grid: tuple[int, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Observations of ONE band in ONE view of the reflector, for :func:`fit_vignetting`.
+    """Collect the observations of ONE band in ONE view of the reflector for :func:`fit_vignetting`.
 
-    ``energy`` (H, W) = ``U(I)/t`` (saturated pixels passed as NaN), ``uv`` (H, W, 2) from
-    :func:`mscal_core.geometry.pixels_to_plane`, ``mask`` (H, W) from
-    :func:`mscal_core.geometry.reflector_mask`. Every pixel with ``mask`` True, finite
-    positive energy and its plane point inside the reflector gives one observation: its flat
-    pixel index ``i * W + j``, the flat index of the cell containing its plane point (see
-    :func:`cell_centres`; grid from :func:`cell_grid`) and its energy. This is the inverse of
-    the paper's ``pi_i(p) = x``. Returns ``(pixel_index int64, cell_index int64,
-    values float64)``, all of the same length.
+    Every pixel with ``mask`` True, finite positive energy and its plane point inside the
+    reflector gives one observation: its flat pixel index ``i * W + j``, the flat index of the
+    cell containing its plane point (see :func:`cell_centres`; grid from :func:`cell_grid`) and
+    its energy.
+
+    Parameters
+    ----------
+    energy : numpy.ndarray
+        (H, W) ``U(I)/t`` (saturated pixels passed as NaN).
+    uv : numpy.ndarray
+        (H, W, 2) plane points from :func:`mscal_core.geometry.pixels_to_plane`.
+    mask : numpy.ndarray
+        (H, W) bool from :func:`mscal_core.geometry.reflector_mask`.
+    size_m : float or sequence of float
+        Reflector size ``[w, h]`` in metres.
+    cells_per_m, grid
+        The cell grid, as :func:`cell_grid`.
+
+    Returns
+    -------
+    pixel_index, cell_index : numpy.ndarray
+        int64, of the same length.
+    values : numpy.ndarray
+        float64 energies ``y = U(I)/t``.
+
+    Raises
+    ------
+    InputError
+        When the shapes of ``energy``, ``uv`` and ``mask`` do not match.
+
+    Notes
+    -----
+    This is the inverse of the paper's ``pi_i(p) = x`` [1]_: each pixel is mapped once to the
+    plane instead of each plane point projected into the image.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     e = np.asarray(energy, dtype=np.float64)
     pts = np.asarray(uv, dtype=np.float64)
@@ -202,7 +276,7 @@ def view_observations(
 def _log_init(
     pix: np.ndarray, cell: np.ndarray, y: np.ndarray, n_pix: int, n_cell: int, max_iter: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Initial V, L from ``log y = log V(x) + log L(p)`` by sparse linear least squares.
+    """Start V, L from ``log y = log V(x) + log L(p)`` by sparse linear least squares.
 
     Solved by Jacobi-preconditioned conjugate gradients on the normal equations (CGLS, the
     method behind ``scipy.sparse.linalg.lsqr``), with the matrix never formed: a product is
@@ -322,30 +396,71 @@ def fit_vignetting(
 ) -> VignettingFit:
     """Fit V(x) and L(p) of one band from all its reflector observations (Eq. 8-10).
 
-    Inputs are the concatenated outputs of :func:`view_observations` over all views:
-    ``pixel_index`` (flat index into ``shape = (H, W)``), ``cell_index`` (flat plane cell,
-    ``< n_cells``) and ``values`` ``y = U(I)/t``; non-finite or non-positive values are
-    ignored. ``weights`` (optional, per observation) enter Eq. 9'/10' (module docstring);
-    ``w = t^2`` is the paper's literal weighting.
+    Parameters
+    ----------
+    pixel_index : numpy.ndarray
+        Flat index into ``shape = (H, W)`` of every observation (the concatenated outputs of
+        :func:`view_observations` over all views).
+    cell_index : numpy.ndarray
+        Flat plane cell of every observation, ``< n_cells``.
+    values : numpy.ndarray
+        ``y = U(I)/t``; non-finite or non-positive values are ignored.
+    shape : tuple of int
+        ``(H, W)`` of the band grid.
+    n_cells : int
+        Number of plane cells.
+    weights : numpy.ndarray, optional
+        Per observation weights of Eq. 9'/10' (module docstring); ``w = t^2`` is the paper's
+        literal weighting; default 1.
+    max_iter : int
+        Eq. 9'/10' sweeps at most.
+    tol : float
+        Stop when the largest relative change of V is below this.
+    min_count : int
+        Pixels with fewer informative observations are filled (``observed = False``).
+    smooth_sigma : float
+        Pixels; > 0 smooths the residual ``V - model`` of the well-observed V (default 0: off).
+    init_iter : int
+        Iterations of the log-domain initialisation at most (0: start from V = 1).
 
-    Method:
+    Returns
+    -------
+    VignettingFit
+        V (``max V = 1``), the counts and the observed mask, L per cell, the residual and the
+        iterations.
+
+    Raises
+    ------
+    InputError
+        On inconsistent inputs.
+    FitError
+        When no informative observation is left (e.g. every view saw the reflector at the same
+        place), no pixel has ``min_count`` of them, or the fitted V is not positive.
+
+    Notes
+    -----
+    The paper fits Eq. 8, ``M(L, V) = sum_{i,p} (t_i V(pi_i(p)) L(p) - U(I_i(pi_i(p))))^2``, by
+    alternating Eq. 9, ``V(x) = sum t_i L(p) U(I_i(x)) / sum (t_i L(p))^2``, and Eq. 10,
+    ``L(p) = sum_i t_i V(pi_i(p)) U(I_i(pi_i(p))) / sum_i (t_i V(pi_i(p)))^2`` [1]_. With
+    ``y = U(I)/t`` they read ``V(x) = sum w L(p) y / sum w L(p)^2`` (9') and
+    ``L(p) = sum w V(x) y / sum w V(x)^2`` (10'). Steps:
 
     1. Only informative observations are used: those in cells seen by at least two different
-       pixels (a cell seen by one pixel only fixes its own L and says nothing about V), in
-       the largest connected part of the pixel/cell graph (a separate part would have its
-       own unknown scale).
+       pixels (a cell seen by one pixel only fixes its own L and says nothing about V), in the
+       largest connected part of the pixel/cell graph (a separate part would have its own
+       unknown scale).
     2. Initialisation: log-domain sparse least squares ``log y = log V(x) + log L(p)``
-       (preconditioned CGLS, the method of ``scipy.sparse.linalg.lsqr``, matrix-free; at
-       most ``init_iter`` iterations, 0 = start from V = 1). It solves the slow, smooth
-       modes that the plain alternation takes many sweeps to move.
+       (preconditioned CGLS, the method of ``scipy.sparse.linalg.lsqr``, matrix-free; at most
+       ``init_iter`` iterations, 0 = start from V = 1). It solves the slow, smooth modes that
+       the plain alternation takes many sweeps to move.
     3. Alternate Eq. 10' (L from V) and Eq. 9' (V from L), vectorised with ``np.bincount``,
        until the largest relative change of V is below ``tol`` or ``max_iter`` sweeps.
     4. Gauge (V is known up to scale, paper: max V = 1): the 99.9th percentile over the
-       well-observed pixels (``count >= min_count``) of a denoised V (the radial model of
-       step 5 plus the residual smoothed over 2 px) is set to 1 and L scaled inversely. A
-       single noisy pixel does not set the scale, and the per-pixel noise does not push the
-       percentile up (with 1 % noise a plain percentile puts the gauge ~0.5 % too high).
-       The few V above 1 are clipped to 1.
+       well-observed pixels (``count >= min_count``) of a denoised V (the radial model of step
+       5 plus the residual smoothed over 2 px) is set to 1 and L scaled inversely. A single
+       noisy pixel does not set the scale, and the per-pixel noise does not push the
+       percentile up (with 1 % noise a plain percentile puts the gauge ~0.5 % too high). The
+       few V above 1 are clipped to 1.
     5. Pixels with ``count < min_count`` are filled with a smooth radial model
        ``a0 + a1 r^2 + a2 r^4 + a3 r^6`` around a fitted centre (the paper finds radially
        symmetric vignetting) plus the local residual of nearby observed pixels (normalised
@@ -353,16 +468,77 @@ def fit_vignetting(
        ``observed = False``.
     6. ``smooth_sigma > 0`` (pixels, default 0 = off) smooths the well-observed V to beat
        per-pixel noise: only the residual ``V - model`` is smoothed (normalised convolution
-       over the observed pixels) and added back to the model, so the falloff itself, which
-       the model carries, is not flattened. Off by default because per-pixel gain
-       differences (PRNU, dust) are real parts of V.
+       over the observed pixels) and added back to the model, so the falloff itself, which the
+       model carries, is not flattened. Off by default because per-pixel gain differences
+       (PRNU, dust) are real parts of V.
 
-    Raises InputError on inconsistent inputs and FitError when no informative observation
-    is left (e.g. every view saw the reflector at the same place).
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     h, w = int(shape[0]), int(shape[1])
     n_pix = h * w
     n_cells = int(n_cells)
+    pix, cell, y, wt = _checked_observations(
+        pixel_index, cell_index, values, shape, n_cells, weights, min_count
+    )
+    # 1. informative observations, 2. log-domain start, 3. Eq. 10' / Eq. 9' alternation
+    use = _informative(pix, cell, n_pix, n_cells)
+    fp, fc, fy, fw = pix[use], cell[use], y[use], wt[use]
+    # compact indices of the active unknowns
+    act_p = np.unique(fp)
+    act_c = np.unique(fc)
+    cp = np.searchsorted(act_p, fp)
+    cc = np.searchsorted(act_c, fc)
+    v, lum = _log_init(cp, cc, fy, act_p.size, act_c.size, int(init_iter))
+    v, lum, iterations, converged = _alternate(cp, cc, fy, fw, v, act_c.size, int(max_iter), tol)
+    resid = fy / (v[cp] * lum[cc]) - 1.0
+    residual_rms = float(np.sqrt(np.mean(resid * resid)))
+
+    count = np.bincount(fp, minlength=n_pix).astype(np.int64).reshape(h, w)
+    observed = count >= int(min_count)
+    if not observed.any():
+        raise FitError(
+            f"no pixel has {min_count} or more informative reflector observations",
+            hint="take more reflector images, or lower min_count",
+        )
+    v_full = np.full(n_pix, np.nan)
+    v_full[act_p] = v
+    # 4. gauge, 5./6. optional smoothing of the residual, fill
+    scale, v_img, model, resid_img = _gauge(v_full.reshape(h, w), count, observed)
+    lum = lum * scale
+    out = _smooth_and_fill(v_img, model, resid_img, count, observed, smooth_sigma)
+    radiance = _cell_radiance(out, pix, cell, y, wt, n_cells)
+    radiance[act_c] = lum
+
+    out.flags.writeable = False
+    count.flags.writeable = False
+    observed.flags.writeable = False
+    radiance.flags.writeable = False
+    return VignettingFit(
+        vignetting=out,
+        count=count,
+        observed=observed,
+        radiance=radiance,
+        residual_rms=residual_rms,
+        iterations=iterations,
+        converged=converged,
+    )
+
+
+def _checked_observations(
+    pixel_index: np.ndarray, cell_index: np.ndarray, values: np.ndarray, shape: tuple[int, int],
+    n_cells: int, weights: np.ndarray | None, min_count: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Check the inputs of :func:`fit_vignetting`.
+
+    Return ``(pixel, cell, y, weight)`` of the usable observations (finite, positive value and
+    weight), indices as int64.
+    """
+    h, w = int(shape[0]), int(shape[1])
+    n_pix = h * w
     pix = np.asarray(pixel_index).ravel()
     cell = np.asarray(cell_index).ravel()
     y = np.asarray(values, dtype=np.float64).ravel()
@@ -396,13 +572,19 @@ def fit_vignetting(
             )
     if int(min_count) < 1:
         raise InputError(f"min_count must be at least 1, got {min_count}")
-
     with np.errstate(invalid="ignore"):
         good = np.isfinite(y) & (y > 0) & np.isfinite(wt) & (wt > 0)
-    pix, cell, y, wt = pix[good], cell[good], y[good], wt[good]
+    return pix[good], cell[good], y[good], wt[good]
 
-    # 1. informative observations: cells seen by >= 2 different pixels (exact integer test
-    # n * sum(p^2) - (sum p)^2 > 0 in float64: all terms are integers below 2**53 here).
+
+def _informative(pix: np.ndarray, cell: np.ndarray, n_pix: int, n_cells: int) -> np.ndarray:
+    """Step 1 of :func:`fit_vignetting`.
+
+    Mask of the observations in cells seen by >= 2 different pixels, within the largest
+    connected part of the pixel/cell graph.
+    """
+    # exact integer test n * sum(p^2) - (sum p)^2 > 0 in float64: all terms are integers
+    # below 2**53 here
     nc = np.bincount(cell, minlength=n_cells).astype(np.float64)
     s1 = np.bincount(cell, weights=pix.astype(np.float64), minlength=n_cells)
     s2 = np.bincount(cell, weights=pix.astype(np.float64) ** 2, minlength=n_cells)
@@ -424,23 +606,23 @@ def fit_vignetting(
     if n_comp > 1:
         sizes = np.bincount(labels[up], minlength=n_comp)
         use[np.flatnonzero(use)[labels[up] != int(np.argmax(sizes))]] = False
-    fp, fc, fy, fw = pix[use], cell[use], y[use], wt[use]
+    return use
 
-    # compact indices of the active unknowns
-    act_p = np.unique(fp)
-    act_c = np.unique(fc)
-    cp = np.searchsorted(act_p, fp)
-    cc = np.searchsorted(act_c, fc)
-    npa, nca = act_p.size, act_c.size
 
-    # 2. log-domain initialisation
-    v, lum = _log_init(cp, cc, fy, npa, nca, int(init_iter))
+def _alternate(
+    cp: np.ndarray, cc: np.ndarray, fy: np.ndarray, fw: np.ndarray, v: np.ndarray, nca: int,
+    max_iter: int, tol: float,
+) -> tuple[np.ndarray, np.ndarray, int, bool]:
+    """Step 3 of :func:`fit_vignetting`.
 
-    # 3. Eq. 10' / Eq. 9' alternation
+    Alternate Eq. 10' (L from V) and Eq. 9' (V from L) from ``v``; returns
+    ``(V, L consistent with V, sweeps, converged)``.
+    """
+    npa = v.size
     wy = fw * fy
     iterations = 0
     converged = False
-    for iterations in range(1, int(max_iter) + 1):
+    for iterations in range(1, max_iter + 1):
         vp = v[cp]
         lum = np.bincount(cc, weights=wy * vp, minlength=nca) / np.bincount(
             cc, weights=fw * vp * vp, minlength=nca
@@ -459,23 +641,19 @@ def fit_vignetting(
     lum = np.bincount(cc, weights=wy * vp, minlength=nca) / np.bincount(
         cc, weights=fw * vp * vp, minlength=nca
     )
-    resid = fy / (v[cp] * lum[cc]) - 1.0
-    residual_rms = float(np.sqrt(np.mean(resid * resid)))
+    return v, lum, iterations, converged
 
-    count_flat = np.bincount(fp, minlength=n_pix).astype(np.int64)
-    count = count_flat.reshape(h, w)
-    observed = count >= int(min_count)
-    if not observed.any():
-        raise FitError(
-            f"no pixel has {min_count} or more informative reflector observations",
-            hint="take more reflector images, or lower min_count",
-        )
-    v_full = np.full(n_pix, np.nan)
-    v_full[act_p] = v
-    v_img = v_full.reshape(h, w)
 
-    # 4. gauge, on a denoised V (radial model + residual smoothed over _GAUGE_SIGMA px) so
-    # per-pixel noise does not push the percentile up
+def _gauge(
+    v_img: np.ndarray, count: np.ndarray, observed: np.ndarray
+) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Step 4 of :func:`fit_vignetting`.
+
+    The scale that sets the ``ROBUST_MAX_PERCENTILE`` of a denoised V (radial model + residual
+    smoothed over ``_GAUGE_SIGMA`` px, so per-pixel noise does not push the percentile up) to 1.
+    Returns ``(scale, V, model, V - model)``, the last three divided by the scale (the residual
+    0 where not observed).
+    """
     cert = observed.astype(np.float64)
     model = _radial_model(v_img, count.astype(np.float64), observed)
     resid_img = np.where(observed, v_img - model, 0.0)
@@ -485,12 +663,19 @@ def fit_vignetting(
     scale = float(np.percentile(denoised[observed], ROBUST_MAX_PERCENTILE))
     if not np.isfinite(scale) or scale <= 0:
         raise FitError("the fitted vignetting is not positive: the reflector data are inconsistent")
-    v_img = v_img / scale
-    lum = lum * scale
-    model = model / scale
-    resid_img = resid_img / scale
+    return scale, v_img / scale, model / scale, resid_img / scale
 
-    # 5./6. optional smoothing of the residual, fill
+
+def _smooth_and_fill(
+    v_img: np.ndarray, model: np.ndarray, resid_img: np.ndarray, count: np.ndarray,
+    observed: np.ndarray, smooth_sigma: float,
+) -> np.ndarray:
+    """Smooth and fill V: steps 5 and 6 of :func:`fit_vignetting`.
+
+    The optional smoothing of the residual over the observed pixels, and the fill (radial model
+    plus nearby residual) of the others.
+    """
+    cert = observed.astype(np.float64)
     out = v_img.copy()
     if smooth_sigma and float(smooth_sigma) > 0:
         num, den = _normalised_blur(resid_img, cert * count, float(smooth_sigma))
@@ -502,42 +687,51 @@ def fit_vignetting(
     # filled values stay within (half the smallest observed V, 1]: a radial polynomial
     # extrapolated far into a never-seen corner must not go to 0 or negative
     low = 0.5 * float(np.min(out[observed]))
-    out = np.where(observed, np.minimum(out, 1.0), np.clip(fill, low, 1.0))
+    return np.where(observed, np.minimum(out, 1.0), np.clip(fill, low, 1.0))
 
-    # radiance of every observed cell (also cells seen by one pixel only), same gauge
-    vv = out.ravel()[pix]
+
+def _cell_radiance(
+    v: np.ndarray, pix: np.ndarray, cell: np.ndarray, y: np.ndarray, wt: np.ndarray, n_cells: int
+) -> np.ndarray:
+    """Eq. 10' radiance of every observed cell (also cells seen by one pixel only) for the final V.
+
+    NaN for cells never seen.
+    """
+    vv = v.ravel()[pix]
     num_l = np.bincount(cell, weights=wt * y * vv, minlength=n_cells)
     den_l = np.bincount(cell, weights=wt * vv * vv, minlength=n_cells)
     radiance = np.full(n_cells, np.nan)
     seen = den_l > 0
     radiance[seen] = num_l[seen] / den_l[seen]
-    radiance[act_c] = lum
-
-    out.flags.writeable = False
-    count.flags.writeable = False
-    observed.flags.writeable = False
-    radiance.flags.writeable = False
-    return VignettingFit(
-        vignetting=out,
-        count=count,
-        observed=observed,
-        radiance=radiance,
-        residual_rms=residual_rms,
-        iterations=iterations,
-        converged=converged,
-    )
+    return radiance
 
 
 def view_inconsistency(
     fit: VignettingFit, pixel_index: np.ndarray, cell_index: np.ndarray, values: np.ndarray, tol: float = 0.1
 ) -> float:
-    """Fraction of one view's observations that the fitted model (Eq. 8: ``y = V(x) L(p)``)
-    misses by more than ``tol`` (relative).
+    """Return the fraction of one view's observations the fitted model misses.
 
-    A good view scatters by its noise only (about 1 %); a view whose marker pose is wrong
-    (e.g. the wrong one of the two planar-pose solutions) maps lawn or the marker's paper onto
-    reflector cells and misses by tens of percent on a large part of its pixels. Observations
-    in cells the fit never saw are ignored. Returns NaN when nothing is comparable.
+    Parameters
+    ----------
+    fit : VignettingFit
+        The band's fit.
+    pixel_index, cell_index, values : numpy.ndarray
+        One view's observations (:func:`view_observations`).
+    tol : float
+        Relative miss counted as inconsistent.
+
+    Returns
+    -------
+    float
+        Fraction of the comparable observations with ``|y / (V(x) L(p)) - 1| > tol`` (Eq. 8
+        model ``y = V(x) L(p)``); NaN when nothing is comparable. Observations in cells the fit
+        never saw are ignored.
+
+    Notes
+    -----
+    A good view scatters by its noise only (about 1 %); a view whose marker pose is wrong (e.g.
+    the wrong one of the two planar-pose solutions) maps lawn or the marker's paper onto
+    reflector cells and misses by tens of percent on a large part of its pixels.
     """
     v = fit.vignetting.ravel()[pixel_index]
     lp = fit.radiance[cell_index]
@@ -549,8 +743,23 @@ def view_inconsistency(
 
 
 def inconsistent_views(fractions: np.ndarray, floor: float = 0.05, factor: float = 5.0) -> np.ndarray:
-    """Indices of views whose :func:`view_inconsistency` is above ``max(floor, factor x the
-    median over views)``: the views to drop before the per-band fits."""
+    """Find the views to drop before the per-band fits.
+
+    Parameters
+    ----------
+    fractions : numpy.ndarray
+        :func:`view_inconsistency` of every view (NaN allowed).
+    floor : float
+        Fractions up to this are always kept.
+    factor : float
+        Multiple of the median fraction over views above which a view is dropped.
+
+    Returns
+    -------
+    numpy.ndarray
+        int64 indices of the views whose fraction is above ``max(floor, factor x the median
+        over views)``.
+    """
     f = np.asarray(fractions, dtype=np.float64)
     finite = f[np.isfinite(f)]
     if finite.size == 0:

@@ -31,7 +31,20 @@ QUANTILES: tuple[float, float] = (0.10, 0.90)
 
 @dataclass(frozen=True)
 class ZonalStats:
-    """Statistics of one field on one index map (NaN where no pixel is valid)."""
+    """Statistics of one field on one index map (NaN where no pixel is valid).
+
+    Attributes
+    ----------
+    n_pixels : int
+        Pixel centres of the mosaic inside the field.
+    n_valid : int
+        Of those, pixels with a finite index value.
+    valid_fraction : float
+        ``n_valid / n_pixels`` (NaN when ``n_pixels == 0``).
+    mean, median, std, p10, p90 : float
+        Mean, population std (ddof 0) and the type-7 quantiles 0.5, 0.1, 0.9 of the valid
+        values (module docstring).
+    """
 
     n_pixels: int
     n_valid: int
@@ -44,12 +57,25 @@ class ZonalStats:
 
 
 def zonal_statistics(values: np.ndarray, n_pixels: int) -> ZonalStats:
-    """Statistics of the finite entries of ``values`` (any shape), ``n_pixels`` pixels in the field.
+    """Compute the statistics of the finite entries of ``values``, ``n_pixels`` pixels in the field.
 
-    ``valid_fraction = n_valid / n_pixels`` (NaN when ``n_pixels == 0``); mean, population
-    std (ddof 0), and the type-7 quantiles 0.5, 0.1, 0.9 (module docstring), in float64.
-    Non-finite entries of ``values`` are not valid. ``n_pixels`` must be >= the number of
-    finite values.
+    Parameters
+    ----------
+    values : numpy.ndarray
+        Index values of the field's pixels (any shape); non-finite entries are not valid.
+    n_pixels : int
+        Pixels in the field; must be >= the number of finite values.
+
+    Returns
+    -------
+    ZonalStats
+        ``valid_fraction = n_valid / n_pixels`` (NaN when ``n_pixels == 0``); mean, population
+        std (ddof 0), and the type-7 quantiles 0.5, 0.1, 0.9 (module docstring), in float64.
+
+    Raises
+    ------
+    ValueError
+        When ``n_pixels`` is smaller than the number of finite values.
     """
     v = np.asarray(values, dtype=np.float64).ravel()
     v = v[np.isfinite(v)]

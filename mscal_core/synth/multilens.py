@@ -1,5 +1,7 @@
-"""Seeded synthetic captures of a multi-lens camera (one lens per band) with known band
-transforms, for band co-registration (issue 9). Pure arrays, no I/O.
+"""Seeded synthetic captures of a multi-lens camera with known band transforms.
+
+Seeded synthetic captures of a multi-lens camera (one lens per band) with known band transforms,
+for band co-registration (issue 9). Pure arrays, no I/O.
 
 Scene: a ground plane of soil and crop rows (with gaps, weeds and brightness texture, as
 :class:`~mscal_core.synth.scene.FieldScene`), a few bushes that stand above the ground, and
@@ -20,7 +22,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from .scene import PeriodicNoise, soil_reflectance, vegetation_reflectance
@@ -31,11 +32,26 @@ REDEDGE_WAVELENGTHS_NM = (475.0, 560.0, 668.0, 840.0, 717.0)
 
 @dataclass(frozen=True)
 class MultiLensCapture:
-    """``dn`` (band, H, W) uint16 (12-bit values); ``homographies`` (band, 3, 3) the true
-    reference -> band transforms of the ground plane (identity for ``reference``);
-    ``reflectance`` (band, H, W) float32 the true ground reflectance on the reference grid
-    (what an aligned band shows, before vignetting and noise); ``height`` (H, W) float32 the
-    bushes' relative height (0-1, parallax ``parallax_px * height``) on the reference grid; ``wavelengths_nm`` (band,)."""
+    """One synthetic capture of a multi-lens camera and its truth.
+
+    Attributes
+    ----------
+    dn : numpy.ndarray
+        (band, H, W) uint16 (12-bit values).
+    homographies : numpy.ndarray
+        (band, 3, 3) the true reference -> band transforms of the ground plane (identity for
+        ``reference``).
+    reflectance : numpy.ndarray
+        (band, H, W) float32 the true ground reflectance on the reference grid (what an aligned
+        band shows, before vignetting and noise).
+    height : numpy.ndarray
+        (H, W) float32 the bushes' relative height (0-1, parallax ``parallax_px * height``) on
+        the reference grid.
+    reference : int
+        The reference band.
+    wavelengths_nm : tuple of float
+        (band,).
+    """
 
     dn: np.ndarray
     homographies: np.ndarray
@@ -48,8 +64,25 @@ class MultiLensCapture:
 def random_homographies(rng: np.random.Generator, n_bands: int, reference: int, shape: tuple[int, int], *,
                         max_shift_px: float = 20.0, max_rotation_deg: float = 1.0, max_scale: float = 0.01,
                         max_perspective: float = 2e-6) -> np.ndarray:
-    """Reference -> band homographies: rotation and scale about the image centre, a shift and
-    a perspective term, each drawn uniformly up to its maximum; identity for ``reference``."""
+    """Draw reference -> band homographies.
+
+    Parameters
+    ----------
+    rng : numpy.random.Generator
+        The random stream.
+    n_bands, reference : int
+        Number of bands and the reference band (identity).
+    shape : tuple of int
+        ``(H, W)`` of the bands.
+    max_shift_px, max_rotation_deg, max_scale, max_perspective : float
+        Each term is drawn uniformly up to its maximum.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n_bands, 3, 3): rotation and scale about the image centre, a shift and a perspective
+        term.
+    """
     h, w = shape
     c = np.array([[1.0, 0.0, (w - 1) / 2], [0.0, 1.0, (h - 1) / 2], [0.0, 0.0, 1.0]])
     out = np.tile(np.eye(3), (n_bands, 1, 1))
@@ -100,13 +133,39 @@ def multilens_capture(seed: int = 0, *, shape: tuple[int, int] = (240, 320), ref
                       max_shift_px: float = 20.0, max_rotation_deg: float = 1.0, parallax_px: float = 0.5,
                       texture: float = 0.12, homographies: np.ndarray | None = None,
                       full_well_dn: float = 2500.0, read_noise_dn: float = 3.0) -> MultiLensCapture:
-    """One capture of a multi-lens camera over the synthetic field (see the module docstring).
+    """Render one capture of a multi-lens camera over the synthetic field (see the module docstring).
 
-    ``gsd_m`` ground sample distance of the reference band; ``texture`` the relative
-    brightness texture of soil and leaves (0 for a low-texture scene: only the crop rows'
-    edges remain); ``homographies`` fixes the band transforms (else drawn with
-    :func:`random_homographies`); ``full_well_dn`` the mean DN of a white ground (sets the
-    shot noise); every draw from ``numpy.random.default_rng(seed)``."""
+    Parameters
+    ----------
+    seed : int
+        Every draw from ``numpy.random.default_rng(seed)``.
+    shape : tuple of int
+        ``(H, W)`` of the bands.
+    reference : int
+        The reference band.
+    wavelengths_nm : tuple of float
+        Band wavelengths.
+    gsd_m : float
+        Ground sample distance of the reference band.
+    max_shift_px, max_rotation_deg : float
+        Ranges of the drawn band transforms (:func:`random_homographies`).
+    parallax_px : float
+        Parallax of the bushes' tops.
+    texture : float
+        The relative brightness texture of soil and leaves (0 for a low-texture scene: only
+        the crop rows' edges remain).
+    homographies : numpy.ndarray, optional
+        Fixes the band transforms (else drawn).
+    full_well_dn : float
+        The mean DN of a white ground (sets the shot noise).
+    read_noise_dn : float
+        Read noise in DN.
+
+    Returns
+    -------
+    MultiLensCapture
+        The DN and their truth.
+    """
     rng = np.random.default_rng([seed, 9])
     n = len(wavelengths_nm)
     h, w = shape

@@ -73,6 +73,7 @@ class ToneCurve:
     toe: float = 0.02
 
     def __call__(self, x: np.ndarray) -> np.ndarray:
+        """Apply the tone curve to linear values ``x`` (sRGB-like, with knee and toe)."""
         x = np.maximum(np.asarray(x, dtype=np.float32), 0.0)
         lin = x <= 0.0031308
         power = 1.055 * np.power(np.maximum(x, 0.0031308), 1.0 / self.gamma) - 0.055
@@ -92,7 +93,7 @@ class ToneCurve:
         return np.where(v <= 12.92 * 0.0031308, v / 12.92, ((v + 0.055) / 1.055) ** self.gamma)
 
     def inverse_response(self) -> np.ndarray:
-        """True ``U[k]``, k = 0..255, scaled to ``U[127] = 127`` (black level 0)."""
+        """Return the true ``U[k]``, k = 0..255, scaled to ``U[127] = 127`` (black level 0)."""
         u = self.inverse(np.arange(256) / 255.0)
         return u * (127.0 / u[127])
 
@@ -102,7 +103,25 @@ class ToneCurve:
 
 @dataclass(frozen=True)
 class PhotoSet:
-    """A bracketed set of 8-bit RGB photographs and its truth."""
+    """A bracketed set of 8-bit RGB photographs and its truth.
+
+    Attributes
+    ----------
+    frames : numpy.ndarray
+        (n, H, W, 3) uint8, RGB, after JPEG (or before, if ``jpeg_quality=None``).
+    exposure_ms : numpy.ndarray
+        (n,) as a file reports it (nominal marking by default).
+    exposure_true_ms : numpy.ndarray
+        (n,) what the sensor integrated.
+    tone : ToneCurve
+        The camera's tone curve (the truth of U).
+    moving : numpy.ndarray
+        (H, W) bool: pixels where something moves between frames.
+    params : dict
+        The arguments of :func:`make_photo_set` and the white balance.
+    jpeg : tuple of bytes
+        The encoded files (BGR JPEG, as cv2.imencode), if JPEG.
+    """
 
     frames: np.ndarray  # (n, H, W, 3) uint8, RGB, after JPEG (or before, if jpeg_quality=None)
     exposure_ms: np.ndarray  # (n,) as a file reports it (nominal marking by default)
@@ -113,8 +132,10 @@ class PhotoSet:
     jpeg: tuple[bytes, ...] = ()  # the encoded files (BGR JPEG, as cv2.imencode), if JPEG
 
     def file_bytes(self, i: int) -> bytes:
-        """Frame ``i`` as a JPEG file's bytes (decodes exactly to ``frames[i]``); raises
-        InputError when the set was made without JPEG."""
+        """Frame ``i`` as a JPEG file's bytes (decodes exactly to ``frames[i]``).
+
+        Raises InputError when the set was made without JPEG.
+        """
         if not self.jpeg:
             raise InputError("this photo set was made with jpeg_quality=None: no JPEG bytes")
         return self.jpeg[i]
@@ -129,8 +150,27 @@ class PhotoSet:
 
 
 def bracket(n_frames: int, step_thirds: int, centre_k: int = -21) -> tuple[np.ndarray, np.ndarray]:
-    """Third-stop indices of a bracket centred on ``centre_k`` (default 1/125 s): returns
-    ``(true seconds 2**(k/3), nominal seconds)``."""
+    """Return the exposures of a bracket centred on third-stop index ``centre_k`` (default 1/125 s).
+
+    Parameters
+    ----------
+    n_frames : int
+        Frames, >= 2.
+    step_thirds : int
+        Step in third stops, >= 1.
+    centre_k : int
+        Third-stop index of the middle frame (``2**(k/3)`` seconds).
+
+    Returns
+    -------
+    true_s, nominal_s : numpy.ndarray
+        True seconds ``2**(k/3)`` and the nominal marking (1/60 for 1/64 s).
+
+    Raises
+    ------
+    InputError
+        For fewer than 2 frames, a step below 1, or a bracket outside 1/8000 .. 4 s.
+    """
     if n_frames < 2 or step_thirds < 1:
         raise InputError("a bracket needs >= 2 frames and a step of >= 1 third stop")
     k = centre_k + step_thirds * (np.arange(n_frames) - (n_frames - 1) // 2)
@@ -167,7 +207,7 @@ def _polygon(rng: np.random.Generator, cx: float, cy: float, r: float, n: int) -
 
 
 def _scene(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, dict]:
-    """Static linear radiance (h, w, 3) float32 and the ingredients of the moving parts."""
+    """Draw the static linear radiance (h, w, 3) float32 and the ingredients of the moving parts."""
     s = min(h, w) / 480.0  # feature scale relative to a 480-pixel-high frame
     yy = np.arange(h, dtype=np.float32)[:, None]
     horizon = int(h * rng.uniform(0.25, 0.42))
@@ -269,6 +309,67 @@ def _with_moving(
 _CCM = np.array([[1.55, -0.40, -0.15], [-0.22, 1.45, -0.23], [-0.05, -0.45, 1.50]], np.float32)
 
 
+def _handheld(scene: np.ndarray, rng: np.random.Generator, shift_px: float,
+              rotation_deg: float) -> np.ndarray:
+    """Move the scene as a handheld camera would.
+
+    A small random shift and rotation about the centre, then the lens blur.
+    """
+    h, w = scene.shape[:2]
+    ang = rng.uniform(0, 2 * np.pi)
+    mag = rng.uniform(shift_px / 3, 2 * shift_px) if shift_px > 0 else 0.0
+    rot = rng.normal(0.0, rotation_deg) if rotation_deg > 0 else 0.0
+    A = cv2.getRotationMatrix2D((w / 2, h / 2), rot, 1.0)
+    A[:, 2] += (mag * np.cos(ang), mag * np.sin(ang))
+    if mag > 0 or rot != 0:
+        scene = cv2.warpAffine(scene, A, (w, h), flags=cv2.INTER_LINEAR,
+                               borderMode=cv2.BORDER_REFLECT)
+    return cv2.GaussianBlur(scene, (0, 0), 0.7)
+
+
+def _bayer_raw(scene: np.ndarray, sens: np.ndarray, k: np.float32, rng: np.random.Generator,
+               full_well_e: float, read_noise_e: float) -> np.ndarray:
+    """Expose the scene on the raw sensor.
+
+    RGGB Bayer mosaic of ``scene * sens * k``, shot + read noise, raw clip, 12-bit ADC (uint16).
+    """
+    h, w = scene.shape[:2]
+    mosaic_c = np.zeros((h, w), np.intp)
+    mosaic_c[0::2, 1::2] = 1
+    mosaic_c[1::2, 0::2] = 1
+    mosaic_c[1::2, 1::2] = 2
+    yy, xx = np.mgrid[0:h, 0:w]
+    e_raw = scene[yy, xx, mosaic_c] * sens[mosaic_c] * k
+    e_raw = np.maximum(e_raw, 0.0)
+    sd = np.sqrt(e_raw / full_well_e + (read_noise_e / full_well_e) ** 2)
+    noisy = e_raw + sd * rng.standard_normal((h, w)).astype(np.float32)
+    return np.clip(np.rint(noisy * 4095.0), 0, 4095).astype(np.uint16)
+
+
+def _develop(rgb: np.ndarray, gains: np.ndarray, tone: ToneCurve, sharpen: float) -> np.ndarray:
+    """Demosaiced raw RGB to 8-bit.
+
+    White balance ``gains``, colour matrix, tone curve, unsharp mask.
+    """
+    # highlights clipped where the first channel clips in raw (neutral blown sky), then the
+    # colour matrix (rows sum to 1: neutral stays neutral; saturated colours clip at 0)
+    lin = np.minimum(rgb * gains, gains.min())
+    lin = np.maximum(lin @ _CCM.T, 0.0)
+    v = tone(lin)
+    if sharpen > 0:
+        v = v + np.float32(sharpen) * (v - cv2.GaussianBlur(v, (0, 0), 1.0))
+    return np.clip(np.rint(v * 255.0), 0, 255).astype(np.uint8)
+
+
+def _jpeg_round_trip(dn: np.ndarray, quality: int) -> tuple[np.ndarray, bytes]:
+    """Encode an RGB uint8 frame as JPEG (BGR, as cv2.imencode) and decode it back."""
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(dn[..., ::-1]),
+                           [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise InputError("JPEG encoding failed")
+    return cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1], buf.tobytes()
+
+
 def make_photo_set(
     seed: int,
     *,
@@ -289,17 +390,51 @@ def make_photo_set(
     tone: ToneCurve | None = None,
     exposure_bias_stops: float = 0.0,
 ) -> PhotoSet:
-    """A seeded bracket of ``n_frames`` photographs ``step_thirds`` third stops apart.
+    """Make a seeded bracket of ``n_frames`` photographs ``step_thirds`` third stops apart.
 
-    ``shift_px`` is the typical handheld shift between frames (each frame's shift is drawn
-    uniformly in ``[shift_px/3, 2 shift_px]`` in a random direction; 0 = tripod),
-    ``rotation_deg`` the rms rotation; ``moving`` adds foliage and a walking figure;
-    ``jpeg_quality`` None skips JPEG; ``sharpen`` is the unsharp-mask amount (0 = none);
-    ``demosaic`` "bilinear" or "ea" (edge aware); ``awb_jitter`` the rms per-frame,
-    per-channel drift of the white balance gains; ``nominal_exposure`` reports EXIF-style
-    markings (1/60 for 1/64 s) instead of the true times; ``exposure_jitter`` the rms relative
-    error of the real shutter; ``tone`` defaults to a seeded :class:`ToneCurve`;
-    ``exposure_bias_stops`` shifts the whole bracket (positive = brighter).
+    Parameters
+    ----------
+    seed : int
+        Seed of every draw.
+    shape : tuple of int
+        ``(H, W)``, at least 64 x 64.
+    n_frames, step_thirds : int
+        The bracket (:func:`bracket`).
+    jpeg_quality : int or None
+        None skips JPEG.
+    shift_px : float
+        The typical handheld shift between frames (each frame's shift is drawn uniformly in
+        ``[shift_px/3, 2 shift_px]`` in a random direction; 0 = tripod).
+    rotation_deg : float
+        The rms rotation.
+    moving : bool
+        Adds foliage and a walking figure.
+    sharpen : float
+        The unsharp-mask amount (0 = none).
+    demosaic : {"bilinear", "ea"}
+        Bilinear or edge aware.
+    awb_jitter : float
+        The rms per-frame, per-channel drift of the white balance gains.
+    nominal_exposure : bool
+        Report EXIF-style markings (1/60 for 1/64 s) instead of the true times.
+    exposure_jitter : float
+        The rms relative error of the real shutter.
+    full_well_e, read_noise_e : float
+        The sensor's full well and read noise in electrons.
+    tone : ToneCurve, optional
+        Defaults to a seeded :class:`ToneCurve`.
+    exposure_bias_stops : float
+        Shifts the whole bracket (positive = brighter).
+
+    Returns
+    -------
+    PhotoSet
+        The frames and their truth.
+
+    Raises
+    ------
+    InputError
+        For a shape below 64 x 64, an unknown demosaic, a bad bracket or a failed JPEG encoding.
     """
     rng = np.random.default_rng(seed)
     h, w = shape
@@ -320,11 +455,6 @@ def make_photo_set(
     raw_white = 0.6  # raw level (1 = raw clip) that maps to linear 1 in the green channel
     mid = np.percentile(rad[..., 1], 60)
     k_scene = 0.18 * raw_white / (mid * t_true[(n_frames - 1) // 2]) * 2.0**exposure_bias_stops
-    mosaic_c = np.zeros((h, w), np.intp)
-    mosaic_c[0::2, 1::2] = 1
-    mosaic_c[1::2, 0::2] = 1
-    mosaic_c[1::2, 1::2] = 2
-    yy, xx = np.mgrid[0:h, 0:w]
     code = cv2.COLOR_BayerRGGB2RGB_EA if demosaic == "ea" else cv2.COLOR_BayerRGGB2RGB
     frames = np.empty((n_frames, h, w, 3), np.uint8)
     encoded: list[bytes] = []
@@ -334,40 +464,15 @@ def make_photo_set(
         if moving:
             scene_i, mmask = _with_moving(rad, mv, i, rng)
             moving_any |= mmask
-        # handheld camera: small affine about the centre
-        ang = rng.uniform(0, 2 * np.pi)
-        mag = rng.uniform(shift_px / 3, 2 * shift_px) if shift_px > 0 else 0.0
-        rot = rng.normal(0.0, rotation_deg) if rotation_deg > 0 else 0.0
-        A = cv2.getRotationMatrix2D((w / 2, h / 2), rot, 1.0)
-        A[:, 2] += (mag * np.cos(ang), mag * np.sin(ang))
-        if mag > 0 or rot != 0:
-            scene_i = cv2.warpAffine(scene_i, A, (w, h), flags=cv2.INTER_LINEAR,
-                                     borderMode=cv2.BORDER_REFLECT)
-        scene_i = cv2.GaussianBlur(scene_i, (0, 0), 0.7)
-        # sensor: Bayer mosaic, shot + read noise, raw clip, 12-bit ADC
-        e_raw = scene_i[yy, xx, mosaic_c] * sens[mosaic_c] * np.float32(k_scene * t_true[i])
-        e_raw = np.maximum(e_raw, 0.0)
-        sd = np.sqrt(e_raw / full_well_e + (read_noise_e / full_well_e) ** 2)
-        noisy = e_raw + sd * rng.standard_normal((h, w)).astype(np.float32)
-        raw = np.clip(np.rint(noisy * 4095.0), 0, 4095).astype(np.uint16)
+        scene_i = _handheld(scene_i, rng, shift_px, rotation_deg)
+        raw = _bayer_raw(scene_i, sens, np.float32(k_scene * t_true[i]), rng, full_well_e, read_noise_e)
         rgb = cv2.cvtColor(raw, code).astype(np.float32) / 4095.0
         # white balance (optionally drifting per frame), colour matrix, tone curve
         gains = wb / raw_white * np.exp(awb_jitter * rng.standard_normal(3)).astype(np.float32)
-        # highlights clipped where the first channel clips in raw (neutral blown sky), then the
-        # colour matrix (rows sum to 1: neutral stays neutral; saturated colours clip at 0)
-        lin = np.minimum(rgb * gains, gains.min())
-        lin = np.maximum(lin @ _CCM.T, 0.0)
-        v = tone(lin)
-        if sharpen > 0:
-            v = v + np.float32(sharpen) * (v - cv2.GaussianBlur(v, (0, 0), 1.0))
-        dn = np.clip(np.rint(v * 255.0), 0, 255).astype(np.uint8)
+        dn = _develop(rgb, gains, tone, sharpen)
         if jpeg_quality is not None:
-            ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(dn[..., ::-1]),
-                                   [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)])
-            if not ok:
-                raise InputError("JPEG encoding failed")
-            dn = cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1]
-            encoded.append(buf.tobytes())
+            dn, buf = _jpeg_round_trip(dn, int(jpeg_quality))
+            encoded.append(buf)
         frames[i] = dn
     params = dict(seed=seed, shape=shape, n_frames=n_frames, step_thirds=step_thirds,
                   jpeg_quality=jpeg_quality, shift_px=shift_px, rotation_deg=rotation_deg,

@@ -39,8 +39,30 @@ SHOULDER_HEADROOM = 1.5
 class SensorModel:
     """A monochrome pixel: soft-shouldered, mildly non-linear response plus shot/read noise.
 
-    ``gamma`` (an addition to the basic sensor, default 1 = raw CMOS) bends the response like
-    an 8-bit display-referred camera (e.g. ``bits=8, gamma=2.2, black_level=0``).
+    Attributes
+    ----------
+    bits : int
+        Bit depth, 2..16.
+    black_level : float
+        DN.
+    read_noise_dn : float
+        DN rms.
+    shot_noise_dn_at_full : float
+        Shot-noise rms (DN) at full scale; variance proportional to the signal.
+    shoulder_start : float
+        Fraction of the DN range where a soft shoulder begins.
+    curvature : float
+        ``c`` in ``f(x) = x (1 - c x / (x + R))``: slope 1 at 0, ``1 - 3c/4`` at R.
+    gamma : float
+        ``y = R (f / R)^(1/gamma)``; 1 = linear raw sensor (default). An addition to the basic
+        sensor that bends the response like an 8-bit display-referred camera (e.g.
+        ``bits=8, gamma=2.2, black_level=0``).
+
+    Raises
+    ------
+    InputError
+        On a bit depth outside 2..16, a black level outside the linear range, a shoulder
+        or curvature out of range, a non-positive gamma or negative noise.
     """
 
     bits: int = 10
@@ -52,6 +74,7 @@ class SensorModel:
     gamma: float = 1.0  # y = R (f / R)^(1/gamma); 1 = linear raw sensor
 
     def __post_init__(self) -> None:
+        """Validate the bit depth, black level and shoulder."""
         if not 2 <= self.bits <= 16:
             raise InputError(f"sensor bits must be 2..16, got {self.bits}")
         if not 0 <= self.black_level < self.shoulder_start * self.dn_max:
@@ -137,18 +160,24 @@ class SensorModel:
         return np.minimum(self.analogue_dn(x), float(self.dn_max))
 
     def analogue_dn(self, x: np.ndarray) -> np.ndarray:
-        """``mu(x) = black + s(y(x))``: the mean signal before the ADC clip (exceeds
-        ``dn_max`` beyond saturation, up to ``dn_max + (R - y_s) / 2``)."""
+        """``mu(x) = black + s(y(x))``.
+
+        The mean signal before the ADC clip (exceeds ``dn_max`` beyond saturation, up to
+        ``dn_max + (R - y_s) / 2``).
+        """
         return self.black_level + self._above_black(x)
 
     def x_for_dn(self, dn: np.ndarray | float) -> np.ndarray:
-        """Energy ``x = C^{-1}(dn)`` giving an expected DN; 0 at/below black, the saturation
-        energy at/above ``dn_max``. For planning scene exposures."""
+        """Energy ``x = C^{-1}(dn)`` giving an expected DN.
+
+        0 at/below black, the saturation energy at/above ``dn_max``. For planning scene
+        exposures.
+        """
         d = np.asarray(dn, dtype=np.float64)
         return self._x_of_above_black(d - self.black_level)
 
     def inverse_response(self) -> np.ndarray:
-        """True ``U[k]`` for every DN ``k = 0 .. dn_max`` in the gauge of docs/architecture.md.
+        """Return the true ``U[k]`` for every DN ``k = 0 .. dn_max`` in the gauge of docs/architecture.md.
 
         ``U[k] = a * C^{-1}(k)`` with ``U[k] = 0`` for ``k <= black`` and the scale ``a`` set
         by ``U[k_ref] = k_ref - black``, ``k_ref = dn_max // 2``. float64, length ``2**bits``.

@@ -52,11 +52,11 @@ def _close_views(truth, n, seed):
     poses = []
     while len(poses) < n:
         ax = rng.uniform(0, 2 * np.pi)
-        R = (S._rot([np.cos(ax), np.sin(ax), 0], np.radians(rng.uniform(20, 35))) @ S._FRONTAL
-             @ S._rot([0, 0, 1], rng.uniform(0, 2 * np.pi)))
+        R = (S.rot([np.cos(ax), np.sin(ax), 0], np.radians(rng.uniform(20, 35))) @ S.FRONTAL
+             @ S.rot([0, 0, 1], rng.uniform(0, 2 * np.pi)))
         px = np.array([rng.uniform(130, 280), rng.uniform(70, 150)])
-        pose = S._pose_through(cam, R, px, np.zeros(2), rng.uniform(0.55, 0.75))
-        ok, _ = S._frame_marker_ok(cam, pose, truth.marker, 8.0, 20.0)
+        pose = S.pose_through(cam, R, px, np.zeros(2), rng.uniform(0.55, 0.75))
+        ok, _ = S.frame_marker_ok(cam, pose, truth.marker, 8.0, 20.0)
         if ok:
             poses.append(pose)
     return poses
@@ -85,14 +85,14 @@ def test_marker_detected_and_pose_recovered_with_opencv_convention(truth):
     offset), within 2 deg / 1.5 % from a single band (0.2-0.3 px corner noise)."""
     cam = truth.camera
     rng = np.random.default_rng(1)
-    light = S._random_light(rng, 250.0, truth.reflector_size_m)
+    light = S.random_light(rng, 250.0, truth.reflector_size_m)
     scene = S.ReflectorScene(cam.wavelengths, 0.5, truth.reflector_size_m, truth.marker, light, 0)
     obj = _object_corners(truth.marker.size_m)
     for pose in _close_views(truth, 3, seed=2):
         rend = S.render(cam, pose, scene)
         energy = _energy(truth, rend, scene)
-        t = S._exposure_for(truth, float(energy[:, rend.pure(1)].max()), 0.8)
-        dn = S._expose(truth, energy, t, rng)
+        t = S.exposure_for(truth, float(energy[:, rend.pure(1)].max()), 0.8)
+        dn = S.expose_frame(truth, energy, t, rng)
         true_px = cam.project(pose.to_camera(obj))
         all_corners = []
         for b in range(cam.n_bands):
@@ -117,7 +117,7 @@ def test_rendered_marker_edge_is_where_the_projection_puts_it(truth):
     cam = truth.camera
     light = S.GradientShadowLight(brightness=300.0, gradient_ratio=1.0)
     scene = S.ReflectorScene(cam.wavelengths, 0.5, (0.5, 0.5), truth.marker, light, 0)
-    pose = S.Pose.from_matrix(S._rot([1, 0.3, 0], 0.3) @ S._FRONTAL @ S._rot([0, 0, 1], 0.2),
+    pose = S.Pose.from_matrix(S.rot([1, 0.3, 0], 0.3) @ S.FRONTAL @ S.rot([0, 0, 1], 0.2),
                               np.array([0.02, 0.01, 0.9]))
     rend = S.render(cam, pose, scene)
     br = rend.light_times_reflectance(scene.reflectance)
@@ -330,11 +330,11 @@ def test_light_nonuniformity_scales_gradient_and_shadow_with_the_same_draws():
     uu, vv = np.meshgrid(np.linspace(-0.24, 0.24, 97), np.linspace(-0.24, 0.24, 97))
 
     def light(a):
-        return S._random_light(np.random.default_rng(3), 300.0, size, nonuniformity=a)
+        return S.random_light(np.random.default_rng(3), 300.0, size, nonuniformity=a)
 
     default, flat, strong = light(1.0), light(0.0), light(2.0)
     # a = 1 is the default light, draw for draw
-    assert default.params().tolist() == S._random_light(np.random.default_rng(3), 300.0, size).params().tolist()
+    assert default.params().tolist() == S.random_light(np.random.default_rng(3), 300.0, size).params().tolist()
     assert default.gradient_ratio == 2.0
     # a = 0: uniform; a = 2: 4:1 gradient and shadow transmission squared
     np.testing.assert_allclose(flat(uu, vv), 300.0, rtol=1e-6)

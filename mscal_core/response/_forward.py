@@ -1,0 +1,195 @@
+"""The default errors-in-DN fit of the forward response C (``method="forward"``)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ._common import ResponseFit, finalise, linear_init, residual_profile
+from ._curve import Curve, fit_energy, joint_step, line_search, prior_quadratic, reknot, relative_u
+from ._noise import censored_outlier_weights, censored_terms, hidden_saturation_top, noise_update, outlier_weights
+
+#: Adaptive prior weight (see :func:`fit_response`): ``smoothness * (sigma / SIGMA_REF)^SIGMA_POW
+#: * (period / PERIOD_REF)^PERIOD_POW`` with ``sigma`` the robust DN noise relative to the DN
+#: range and ``period`` the exposure step (:func:`exposure_period`, natural log).
+SIGMA_REF = 0.005
+
+
+SIGMA_POW = 3.0
+
+
+SIGMA_MAX = 0.08  # noise factor at most (0.08 / 0.005)^3 = 4096
+
+
+ADAPT_FROM = 3  # iterations with the base weight (times the period factor) first
+
+
+PERIOD_REF = float(np.log(2.0))
+
+
+PERIOD_POW = 2.0
+
+
+def exposure_period(exposure: np.ndarray, tol: float = 0.2) -> float:
+    """Return the exposure step of a sweep, ``log`` of the ratio.
+
+    Parameters
+    ----------
+    exposure : numpy.ndarray
+        Exposures of the sweep (any order; repeats allowed).
+    tol : float
+        Allowed deviation of a step from a whole multiple of the period, in periods.
+
+    Returns
+    -------
+    float
+        The largest ``g`` such that every step between consecutive distinct exposures is (within
+        ``tol`` of) a whole multiple of ``g``; ``log 2`` without a step above 0.05.
+
+    Notes
+    -----
+    Brackets are geometric (1/1000, 1/500, ... or third stops), so every exposure ratio is a
+    power of the step; U is then determined by the data only up to a factor that is periodic in
+    ``log x`` with this period, which the prior must resolve.
+    """
+    lt = np.unique(np.log(np.asarray(exposure, dtype=np.float64)))
+    steps = np.diff(lt)
+    steps = steps[steps > 0.05]
+    if steps.size == 0:
+        return PERIOD_REF
+    best = float(steps.min())
+    for g in sorted({float(d / k) for d in steps for k in (1, 2, 3, 4)}, reverse=True):
+        if g < best:
+            break
+        ratio = steps / g
+        if np.all(np.abs(ratio - np.round(ratio)) <= tol) and np.all(np.round(ratio) >= 1):
+            return g
+    return best
+
+
+def forward_fit(
+    d: np.ndarray,
+    m: np.ndarray,
+    t: np.ndarray,
+    bits: int,
+    sat: int,
+    observed: tuple[int, int],
+    smoothness: float,
+    max_iter: int,
+    tol: float,
+    robust: bool = True,
+    prior: str = "adaptive",
+    g2: np.ndarray | None = None,
+    cen: tuple[np.ndarray, np.ndarray] | None = None,
+) -> ResponseFit:
+    """Run the errors-in-DN fit of :func:`fit_response` on selected samples.
+
+    The errors-in-DN fit of :func:`fit_response` on the selected samples ``d[m]`` (and the
+    censored samples ``cen = (low, high)``, see :func:`censored_terms`).
+    """
+    dn_max = 2**bits - 1
+    lo, hi = observed
+    n_seg = int(np.clip((hi - lo) // 4, 4, 64))
+    b0, e = linear_init(d, m, t, lo, hi)
+    xk = np.linspace(0.0, max(hi - b0, 1.0), n_seg + 1)
+    curve = Curve(xk=xk, c=b0 + xk)
+    mf = m.astype(np.float64)
+    rob = np.ones_like(mf)
+    period = exposure_period(t)
+    a_var, b_var, c_var = 1.0, 0.0, 0.0
+    g2 = np.zeros_like(mf) if g2 is None else g2
+    s_min = 1e-4
+    grid = np.linspace(lo, lo + 0.95 * (hi - lo), 129)  # convergence: U relative to mid-range
+    prev_u = relative_u(curve, grid)
+    reknot_at = (1, 3, 6)
+    settle = 7  # last re-knot / noise-model update; weights frozen afterwards
+    it = 0
+    dw = d  # working samples: observed, and censored ones as pseudo-observations
+    for it in range(1, max_iter + 1):
+        if it in reknot_at:
+            curve, e = reknot(curve, e, t, m, hi, n_seg)
+        if it <= settle:
+            mu, _ = curve(t[:, None] * e[None, :])
+            var = a_var + b_var * np.maximum(mu - curve.c[0], 0.0) + c_var * g2
+            w = w_obs = mf * rob / var
+            sm = smoothness
+            if prior == "adaptive":
+                sm = _adaptive_smoothness(smoothness, it, var, m & (rob > 0), hi - curve.c[0], period)
+            quad = prior_quadratic(curve.xk, w.sum() / n_seg, w.sum(), sm,
+                                   None if prior == "linear" else curve.slopes)
+        noise = (a_var, b_var, c_var * g2)
+        if cen is not None and it >= 2:  # refreshed every iteration (a Newton step on them)
+            dw, wc = censored_terms(d, cen, t, e, curve, noise, sat)
+            w = w_obs + wc * rob
+        curve, e, gain = _step(dw, w, t, e, curve, quad, s_min)
+        e = fit_energy(dw, w, t, e, curve, steps=1)
+        if it <= 3 or it in (5, settle):
+            a_var, b_var, c_var = noise_update(d, m, w, t, e, curve, robust, g2)
+            if robust and it >= 3:
+                rob = _robust_weights(d, m, w, t, e, curve, (a_var, b_var, c_var * g2), sat, cen)
+        u = relative_u(curve, grid)
+        change = float(np.max(np.abs(u - prev_u)))
+        prev_u = u
+        # stop on a small change of U, or once the cost decrease is far below the noise
+        if it > settle and (change < tol or gain < 2e-5 * float(mf.sum())):
+            break
+    black = float(curve.c[0])
+    u_raw = curve.inverse(np.arange(dn_max + 1, dtype=np.float64))
+    if robust:
+        noise = (a_var, b_var, c_var * g2)
+        u_raw = hidden_saturation_top(u_raw, d, t, e, curve, noise, sat, lo, hi)
+    U = finalise(u_raw, black, hi, bits)
+    mu, _ = curve(t[:, None] * e[None, :])
+    rms = float(np.sqrt(np.mean((d - mu)[m] ** 2)))
+    return ResponseFit(U, black, sat, observed, rms, "forward", it, int(m.sum()), residual_profile(d, mu, m, bits))
+
+
+def _adaptive_smoothness(
+    smoothness: float, it: int, var: np.ndarray, kept: np.ndarray, span: float, period: float
+) -> float:
+    """Weight of the ``"adaptive"`` prior at iteration ``it``.
+
+    ``smoothness`` times the noise factor ``(sigma / SIGMA_REF)^SIGMA_POW`` (``sigma`` the rms
+    noise of the ``kept`` samples over the DN ``span``, at most ``SIGMA_MAX``) and the
+    exposure-step factor ``(period / PERIOD_REF)^PERIOD_POW``.
+    """
+    # the noise factor only once the curve has been fitted (a first curve far off inflates
+    # the noise, whose prior would then freeze it), and bounded
+    sigma_rel = SIGMA_REF
+    if it > ADAPT_FROM:
+        span = max(span, 1.0)
+        sigma_rel = min(float(np.sqrt(var[kept].mean())) / span, SIGMA_MAX)
+    return (smoothness * (sigma_rel / SIGMA_REF) ** SIGMA_POW
+            * (period / PERIOD_REF) ** PERIOD_POW)
+
+
+def _step(
+    dw: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
+    quad: tuple[np.ndarray, np.ndarray], s_min: float,
+) -> tuple[Curve, np.ndarray, float]:
+    """One joint Gauss-Newton step on (C, E) with backtracking.
+
+    Where it stalls (on a kink of C), an exact block step on C for fixed E instead. Returns
+    ``(C, E, cost decrease)``.
+    """
+    theta_new, e_new = joint_step(dw, w, t, e, curve, quad, s_min)
+    curve, e, gain = line_search(dw, w, t, e, curve, quad, theta_new, e_new)
+    if gain == 0.0:
+        theta_new, e_new = joint_step(dw, w, t, e, curve, quad, s_min, joint=False)
+        curve, e, gain = line_search(dw, w, t, e, curve, quad, theta_new, e_new)
+    return curve, e, gain
+
+
+def _robust_weights(
+    d: np.ndarray, m: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
+    noise: tuple[float, float, np.ndarray], sat: int, cen: tuple[np.ndarray, np.ndarray] | None,
+) -> np.ndarray:
+    """Return the outlier weights of observed and censored samples.
+
+    Outlier weights of the observed samples and, with ``cen``, of the censored ones (a censored
+    sample deep on the wrong side of its bound is an outlier too).
+    """
+    a_var, b_var, extra = noise
+    rob = outlier_weights(d, m, w, t, e, curve, a_var, b_var, extra)
+    if cen is not None:
+        rob = np.maximum(rob, censored_outlier_weights(cen, t, e, curve, noise, sat))
+    return rob
