@@ -1469,3 +1469,13 @@ def synthesize_session(seed: int = 0, *, size: str = "full", n_flight_frames: in
     }
     return SyntheticSession(truth=truth, response=resp, vignetting=vig, reflector=refl,
                             flights=fl, size=size)
+
+
+# Public names of the planning pieces other synthetic cameras reuse (mscal_core.synth.rig):
+# one copy of each, no private imports across modules.
+FRONTAL = _FRONTAL
+rotation = _rot
+random_tilt = _random_tilt
+random_light = _random_light
+pose_through = _pose_through
+__all__ += ["FRONTAL", "rotation", "random_tilt", "random_light", "pose_through"]
