@@ -378,5 +378,61 @@ def panel_captures(truth: RigTruth, *, seed: int = 0, n_frames: int = 3, height_
                       "panel_reflectance": np.array([p.reflectance for p in panels])})
 
 
-__all__ = ["CHECK_PANELS", "Lens", "REDEDGE_BANDS", "RigFrames", "RigTruth", "make_rig_truth", "marker_views",
+def board_views(truth: RigTruth, board_image: np.ndarray, board_size_m: tuple[float, float], *, seed: int = 0,
+                n_views: int = 16, distance_m: tuple[float, float] = (0.35, 0.6), max_tilt_deg: float = 40.0,
+                blur_px: float = 0.7) -> RigFrames:
+    """Images of a printed calibration board (``board_image``: uint8, white 255, spanning
+    ``board_size_m`` = (w, h) metres, its object frame x right and y down from the top-left
+    corner, as OpenCV's boards) held before the rig at random tilts and positions, under
+    uniform light. Every lens renders it through its own distorted pinhole
+    (:meth:`SnapshotCamera.sensor_rays`, 2 x 2 samples per pixel, a Gaussian PSF), with its own
+    vignetting, response and noise, exposed on its own. truth: ``rvec``, ``tvec`` (view,
+    band, 3) the board pose in each lens (object frame -> lens)."""
+    import cv2
+
+    rng = np.random.default_rng([seed, 36])
+    tex = np.asarray(board_image, dtype=np.float32) / 255.0
+    th, tw = tex.shape
+    ppm = np.array([tw / board_size_m[0], th / board_size_m[1]])
+    ref_lens = truth.lenses[truth.reference]
+    h, w = truth.shape
+    dns, exps, rvecs, tvecs = [], [], [], []
+    for k in range(n_views):
+        R = random_tilt(rng, max_tilt_deg) @ rotation([0, 0, 1], rng.normal(0, 0.2))
+        t_px = np.array([rng.uniform(0.2, 0.8) * w, rng.uniform(0.2, 0.8) * h])
+        ref = pose_through(ref_lens.camera, R, t_px, np.array(board_size_m) / 2, rng.uniform(*distance_m))
+        dn, ts, rv, tv = [], [], [], []
+        for ln in truth.lenses:
+            pose = ln.pose(ref)
+            xn, yn, (dxx, dxy, dyx, dyy) = ln.camera.sensor_rays()
+            Rm, C = pose.R, pose.camera_centre
+            acc = np.zeros((h, w), dtype=np.float32)
+            for ox, oy in ((-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25), (0.25, 0.25)):
+                x = xn + dxx * ox + dxy * oy
+                y = yn + dyx * ox + dyy * oy
+                d = [Rm[0, j] * x + Rm[1, j] * y + Rm[2, j] for j in range(3)]  # ray in the board frame
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    sc = -C[2] / d[2]
+                u = (C[0] + sc * d[0]) * ppm[0] - 0.5
+                v = (C[1] + sc * d[1]) * ppm[1] - 0.5
+                bad = ~(np.isfinite(sc) & (sc > 0))
+                u[bad], v[bad] = -1e6, -1e6
+                acc += cv2.remap(tex, u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0.3)
+            refl = 0.04 + 0.8 * cv2.GaussianBlur(acc / 4.0, (0, 0), blur_px)
+            energy = ln.vignetting * ln.spectral_factor * truth.sun_brightness * refl
+            t = ln.exposure_for(float(energy.max()), 0.7)
+            dn.append(ln.expose(energy, t, rng))
+            ts.append(t)
+            rv.append(pose.rvec)
+            tv.append(pose.tvec)
+        dns.append(np.stack(dn))
+        exps.append(ts)
+        rvecs.append(rv)
+        tvecs.append(tv)
+    return RigFrames("board", dns, np.array(exps), [f"IMG_4{i:03d}" for i in range(n_views)],
+                     [100.0 + 5.0 * i for i in range(n_views)], {"rvec": np.array(rvecs), "tvec": np.array(tvecs)})
+
+
+__all__ = ["board_views", "CHECK_PANELS", "Lens", "REDEDGE_BANDS", "RigFrames", "RigTruth", "make_rig_truth", "marker_views",
            "panel_captures", "response_sweep"]

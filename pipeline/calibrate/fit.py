@@ -27,7 +27,8 @@ from mscal_core.mosaic import band_offsets
 from pipeline.ingest.captures import is_multilens, read_frames
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.camera_meta import xmp_irradiance
-from pipeline.ingest.intrinsics import INTRINSICS_PARAMS, band_intrinsics_from_files, intrinsics_array, intrinsics_from_array
+from pipeline.calibrate.intrinsics import store_intrinsics
+from pipeline.ingest.intrinsics import band_intrinsics_from_files, intrinsics_from_array
 from pipeline.ingest.raw import NAT, _time_ns
 from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES, FrameRecord, Session, load_session, read_bands, read_frame_table
 from pipeline.storage.store import content_hashes, new_dataset, open_calibration, write_store
@@ -220,12 +221,7 @@ def add_intrinsics(ds: xr.Dataset, session: Session, source: str) -> xr.Dataset:
     intr = [session.intrinsics_for(b) for b in range(session.camera.n_bands)]
     if any(i is None for i in intr):
         return ds
-    ds = ds.copy()
-    ds.coords["intrinsics_param"] = np.array(INTRINSICS_PARAMS, dtype=object)
-    ds["intrinsics"] = (("band", "intrinsics_param"), intrinsics_array(intr),
-                        {"long_name": "pinhole + OpenCV distortion per band (fx, fy, cx, cy in the band's pixels)",
-                         "source": source})
-    return ds
+    return store_intrinsics(ds, intr, source)  # type: ignore[arg-type]
 
 
 def _energy(dn: np.ndarray, inverse_response: np.ndarray, t: float, saturation_dn: int) -> np.ndarray:

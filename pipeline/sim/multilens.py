@@ -108,13 +108,36 @@ def write_frames(folder: Path, frames: RigFrames, truth: RigTruth, *, frames_csv
                     w.writerow([f"{name}_{REDEDGE_BANDS[b][3]}.tif", repr(float(frames.exposure_ms[k, b])), "1", t])
 
 
+#: The ChArUco board of the synthetic ``intrinsics/`` folder (board.yaml of ``mscal fit intrinsics``).
+BOARD = {"kind": "charuco", "squares": [7, 5], "square_m": 0.06, "marker_m": 0.045, "dictionary": "DICT_4X4_50"}
+
+
+def write_board_images(folder: str | Path, truth: RigTruth, *, seed: int = 0, n_views: int = 12) -> Path:
+    """``folder/`` with ChArUco board captures of the rig (:func:`mscal_core.synth.rig.board_views`)
+    and its ``board.yaml``."""
+    from mscal_core.intrinsics import Board
+    from mscal_core.synth.rig import board_views
+
+    folder = Path(folder)
+    board = Board(BOARD["kind"], tuple(BOARD["squares"]), BOARD["square_m"], BOARD["marker_m"], BOARD["dictionary"])
+    px = 120  # texture pixels per square
+    img = board.charuco().generateImage((board.squares[0] * px, board.squares[1] * px), marginSize=0)
+    size = (board.squares[0] * board.square_m, board.squares[1] * board.square_m)
+    fs = board_views(truth, img, size, seed=seed, n_views=n_views)
+    write_frames(folder, fs, truth)
+    with open(folder / "board.yaml", "w") as fh:
+        yaml.safe_dump(BOARD, fh, sort_keys=False)
+    return folder
+
+
 def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "small",
                             shape: tuple[int, int] = (240, 320), frames_csv: bool = False,
-                            intrinsics_in_yaml: bool = False) -> Path:
+                            intrinsics_in_yaml: bool = False, board_views: int = 0) -> Path:
     """Render and write a multi-lens session (module docstring); returns its path.
     ``size``: ``small`` (8-frame sweep x2.2, 14 views, 2 reflector and 2 check captures) or
     ``full`` (12 x1.7, 28, 3, 3). ``shape`` (H, W) of every band image (RedEdge: 960 x 1280).
-    ``intrinsics_in_yaml`` writes the true intrinsics per band into session.yaml."""
+    ``intrinsics_in_yaml`` writes the true intrinsics per band into session.yaml;
+    ``board_views`` > 0 writes that many ChArUco board captures into ``intrinsics/``."""
     if size not in SIZES:
         raise ValueError(f"size must be one of {sorted(SIZES)}, got {size!r}")
     cfg = SIZES[size]
@@ -151,6 +174,10 @@ def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "sma
         write_frames(root / name, fs, truth, frames_csv=frames_csv)
         arrays[f"{name}_exposure_ms"] = fs.exposure_ms
         arrays.update({f"{name}_{k}": v for k, v in fs.truth.items()})
+    if board_views:
+        if (root / "intrinsics").exists():
+            shutil.rmtree(root / "intrinsics")
+        write_board_images(root / "intrinsics", truth, seed=seed, n_views=board_views)
     # the names evaluate_calibration (pipeline.sim.evaluate) reads
     for key in ("inverse_response", "vignetting", "spectral_factor"):
         arrays[key] = arrays[f"camera_{key}"]
@@ -158,4 +185,49 @@ def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "sma
     return root
 
 
-__all__ = ["write_band_file", "write_multilens_session"]
+def evaluate_multilens(session_dir: str | Path, calibration) -> dict:
+    """Errors of a multi-lens calibration against the session's truth: those of
+    :func:`pipeline.sim.evaluate.evaluate_calibration` (U, V, S per lens) plus the Eq. 15
+    check on ``check/``: per capture and band ``R = U(I) / (t V S)`` on each gray panel's pure
+    pixels (median), one scalar per capture from the white panel (median over bands), and
+    ``panel_abs_error`` the largest ``|R - rho|`` over panels, bands and captures;
+    ``panel_abs_error_uncalibrated`` the same with raw DN above black / t instead of Eq. 15."""
+    import xarray as xr
+
+    from pipeline.calibrate.fit import read_stack
+    from pipeline.ingest.captures import read_capture_table
+    from pipeline.ingest.catalog import load_camera
+    from pipeline.sim.evaluate import evaluate_calibration
+
+    root = Path(session_dir)
+    ds = calibration if isinstance(calibration, xr.Dataset) else xr.open_zarr(calibration).load()
+    out = evaluate_calibration(root, ds)
+    truth = np.load(root / "truth.npz")
+    cam = load_camera(CAMERA)
+    recs = read_capture_table(root / "check", cam)
+    dn = read_stack(recs, cam)
+    labels, rho = truth["check_labels"], truth["check_panel_reflectance"]
+    U, V, S = ds["inverse_response"].values, ds["vignetting"].values, ds["spectral_factor"].values
+    black = truth["camera_black_level"]
+    white = int(np.argmax(rho))
+
+    def score(calibrated: bool) -> float:
+        worst = 0.0
+        for f, rec in enumerate(recs):
+            vals = np.full((len(rho), cam.n_bands), np.nan)
+            for b in range(cam.n_bands):
+                t = rec.band_exposure(b)
+                r = U[b][dn[f, b]] / (t * V[b] * S[b]) if calibrated else (dn[f, b] - black[b]) / t
+                for p in range(len(rho)):
+                    m = labels[f, b] == p
+                    if m.sum() >= 20:
+                        vals[p, b] = np.median(r[m])
+            k = np.nanmedian(rho[white] / vals[white])
+            worst = max(worst, float(np.nanmax(np.abs(k * vals - rho[:, None]))))
+        return worst
+
+    out["check"] = {"captures": len(recs), "panel_abs_error": score(True), "panel_abs_error_uncalibrated": score(False)}
+    return out
+
+
+__all__ = ["BOARD", "write_board_images", "evaluate_multilens", "write_band_file", "write_multilens_session"]
