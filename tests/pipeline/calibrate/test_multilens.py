@@ -205,3 +205,25 @@ def test_full_size_multilens_session_meets_the_targets(tmp_path) -> None:
     assert err["vignetting_rms_error"] <= 0.015
     assert err["spectral_factor_max_error"] <= 0.01
     assert err["check"]["panel_abs_error"] <= 0.01
+
+
+def test_sd_card_subfolders_are_captures_too(small_ml, tmp_path) -> None:
+    session, _ = small_ml
+    folder = tmp_path / "r"
+    for k, f in enumerate(sorted((session / "response").glob("*.tif"))):
+        sub = folder / "SET" / ("000" if f.name < "IMG_0004" else "001")
+        sub.mkdir(parents=True, exist_ok=True)
+        shutil.copy(f, sub / f.name)
+    recs = read_capture_table(folder, load_camera("micasense-rededge"))
+    assert [r.name for r in recs][:1] == ["SET/000/IMG_0000"] and [r.name for r in recs][-1] == "SET/001/IMG_0007"
+    assert len(recs) == 8
+
+
+def test_the_rededge_sample_reads_as_captures_with_per_band_exposure() -> None:
+    if not (MICASENSE / "IMG_0000_1.tif").is_file():
+        pytest.skip(f"MicaSense sample files not found in {MICASENSE}")
+    recs = read_capture_table(MICASENSE, load_camera("micasense-rededge"))
+    assert [r.name for r in recs][:2] == ["IMG_0000", "IMG_0001"]
+    # EXIF ExposureTime 472500/1e9 s of IMG_0000_1.tif, ISOSpeed 100; each lens its own exposure
+    assert recs[0].band_exposure(0) == pytest.approx(0.4725) and recs[0].band_exposure(3) == pytest.approx(1.8)
+    assert recs[0].time.startswith("2017-10-19T20:40:39")
