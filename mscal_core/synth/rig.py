@@ -378,6 +378,37 @@ def panel_captures(truth: RigTruth, *, seed: int = 0, n_frames: int = 3, height_
                       "panel_reflectance": np.array([p.reflectance for p in panels])})
 
 
+def _board_reflectance(camera: SnapshotCamera, pose: Pose, tex: np.ndarray, ppm: np.ndarray,
+                       blur_px: float) -> np.ndarray:
+    """Reflectance (0.04 ink .. 0.84 paper) of a board texture seen through ``camera`` from
+    ``pose``, on its sensor grid (2 x 2 samples per pixel, Gaussian PSF)."""
+    import cv2
+
+    xn, yn, (dxx, dxy, dyx, dyy) = camera.sensor_rays()
+    Rm, C = pose.R, pose.camera_centre
+    acc = np.zeros(xn.shape, dtype=np.float32)
+    for ox, oy in ((-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25), (0.25, 0.25)):
+        x = xn + dxx * ox + dxy * oy
+        y = yn + dyx * ox + dyy * oy
+        d = [Rm[0, j] * x + Rm[1, j] * y + Rm[2, j] for j in range(3)]  # ray in the board frame
+        with np.errstate(divide="ignore", invalid="ignore"):
+            sc = -C[2] / d[2]
+        u = (C[0] + sc * d[0]) * ppm[0] - 0.5
+        v = (C[1] + sc * d[1]) * ppm[1] - 0.5
+        bad = ~(np.isfinite(sc) & (sc > 0))
+        u[bad], v[bad] = -1e6, -1e6
+        acc += cv2.remap(tex, u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_CONSTANT, borderValue=0.3)
+    return 0.04 + 0.8 * cv2.GaussianBlur(acc / 4.0, (0, 0), blur_px)
+
+
+def _board_pose(rng: np.random.Generator, camera: SnapshotCamera, board_size_m, distance_m, max_tilt_deg) -> Pose:
+    h, w = camera.grid_shape
+    R = random_tilt(rng, max_tilt_deg) @ rotation([0, 0, 1], rng.normal(0, 0.2))
+    t_px = np.array([rng.uniform(0.2, 0.8) * w, rng.uniform(0.2, 0.8) * h])
+    return pose_through(camera, R, t_px, np.array(board_size_m) / 2, rng.uniform(*distance_m))
+
+
 def board_views(truth: RigTruth, board_image: np.ndarray, board_size_m: tuple[float, float], *, seed: int = 0,
                 n_views: int = 16, distance_m: tuple[float, float] = (0.35, 0.6), max_tilt_deg: float = 40.0,
                 blur_px: float = 0.7) -> RigFrames:
@@ -388,38 +419,17 @@ def board_views(truth: RigTruth, board_image: np.ndarray, board_size_m: tuple[fl
     (:meth:`SnapshotCamera.sensor_rays`, 2 x 2 samples per pixel, a Gaussian PSF), with its own
     vignetting, response and noise, exposed on its own. truth: ``rvec``, ``tvec`` (view,
     band, 3) the board pose in each lens (object frame -> lens)."""
-    import cv2
-
     rng = np.random.default_rng([seed, 36])
     tex = np.asarray(board_image, dtype=np.float32) / 255.0
-    th, tw = tex.shape
-    ppm = np.array([tw / board_size_m[0], th / board_size_m[1]])
+    ppm = np.array([tex.shape[1] / board_size_m[0], tex.shape[0] / board_size_m[1]])
     ref_lens = truth.lenses[truth.reference]
-    h, w = truth.shape
     dns, exps, rvecs, tvecs = [], [], [], []
-    for k in range(n_views):
-        R = random_tilt(rng, max_tilt_deg) @ rotation([0, 0, 1], rng.normal(0, 0.2))
-        t_px = np.array([rng.uniform(0.2, 0.8) * w, rng.uniform(0.2, 0.8) * h])
-        ref = pose_through(ref_lens.camera, R, t_px, np.array(board_size_m) / 2, rng.uniform(*distance_m))
+    for _ in range(n_views):
+        ref = _board_pose(rng, ref_lens.camera, board_size_m, distance_m, max_tilt_deg)
         dn, ts, rv, tv = [], [], [], []
         for ln in truth.lenses:
             pose = ln.pose(ref)
-            xn, yn, (dxx, dxy, dyx, dyy) = ln.camera.sensor_rays()
-            Rm, C = pose.R, pose.camera_centre
-            acc = np.zeros((h, w), dtype=np.float32)
-            for ox, oy in ((-0.25, -0.25), (0.25, -0.25), (-0.25, 0.25), (0.25, 0.25)):
-                x = xn + dxx * ox + dxy * oy
-                y = yn + dyx * ox + dyy * oy
-                d = [Rm[0, j] * x + Rm[1, j] * y + Rm[2, j] for j in range(3)]  # ray in the board frame
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    sc = -C[2] / d[2]
-                u = (C[0] + sc * d[0]) * ppm[0] - 0.5
-                v = (C[1] + sc * d[1]) * ppm[1] - 0.5
-                bad = ~(np.isfinite(sc) & (sc > 0))
-                u[bad], v[bad] = -1e6, -1e6
-                acc += cv2.remap(tex, u.astype(np.float32), v.astype(np.float32), cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0.3)
-            refl = 0.04 + 0.8 * cv2.GaussianBlur(acc / 4.0, (0, 0), blur_px)
+            refl = _board_reflectance(ln.camera, pose, tex, ppm, blur_px)
             energy = ln.vignetting * ln.spectral_factor * truth.sun_brightness * refl
             t = ln.exposure_for(float(energy.max()), 0.7)
             dn.append(ln.expose(energy, t, rng))
@@ -434,5 +444,30 @@ def board_views(truth: RigTruth, board_image: np.ndarray, board_size_m: tuple[fl
                      [100.0 + 5.0 * i for i in range(n_views)], {"rvec": np.array(rvecs), "tvec": np.array(tvecs)})
 
 
-__all__ = ["board_views", "CHECK_PANELS", "Lens", "REDEDGE_BANDS", "RigFrames", "RigTruth", "make_rig_truth", "marker_views",
+def snapshot_board_views(truth, board_image: np.ndarray, board_size_m: tuple[float, float], *, seed: int = 0,
+                         n_views: int = 10, distance_m: tuple[float, float] = (0.35, 0.6),
+                         max_tilt_deg: float = 40.0, blur_px: float = 1.2) -> list[np.ndarray]:
+    """The board of :func:`board_views` seen by the snapshot camera of a
+    :class:`~mscal_core.synth.scene.SyntheticTruth` (one lens, the 5 x 5 mosaic): raw sensor
+    frames (uint16, DN in the low bits), rendered on the sensor grid, with the truth's
+    vignetting, S, response and noise per band."""
+    rng = np.random.default_rng([seed, 37])
+    cam = truth.camera
+    tex = np.asarray(board_image, dtype=np.float32) / 255.0
+    ppm = np.array([tex.shape[1] / board_size_m[0], tex.shape[0] / board_size_m[1]])
+    sensor = truth.sensor
+    gauge = float(sensor.inverse_response()[sensor.k_ref] / float(sensor.x_for_dn(sensor.k_ref)))
+    frames = []
+    for _ in range(n_views):
+        pose = _board_pose(rng, cam, board_size_m, distance_m, max_tilt_deg)
+        refl = cam.split_bands(_board_reflectance(cam, pose, tex, ppm, blur_px))
+        energy = truth.vignetting * truth.spectral_factor[:, None, None] * truth.sun_brightness * refl
+        x = float(sensor.x_for_dn(0.7 * sensor.dn_max)) * gauge
+        t = float(round(x / float(energy.max()), 4))
+        dn = sensor.expose(energy / gauge, t, rng)
+        frames.append(cam.mosaic(dn, fill=int(round(sensor.black_level))))
+    return frames
+
+
+__all__ = ["board_views", "snapshot_board_views", "CHECK_PANELS", "Lens", "REDEDGE_BANDS", "RigFrames", "RigTruth", "make_rig_truth", "marker_views",
            "panel_captures", "response_sweep"]

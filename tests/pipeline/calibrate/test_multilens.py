@@ -227,3 +227,32 @@ def test_the_rededge_sample_reads_as_captures_with_per_band_exposure() -> None:
     # EXIF ExposureTime 472500/1e9 s of IMG_0000_1.tif, ISOSpeed 100; each lens its own exposure
     assert recs[0].band_exposure(0) == pytest.approx(0.4725) and recs[0].band_exposure(3) == pytest.approx(1.8)
     assert recs[0].time.startswith("2017-10-19T20:40:39")
+
+
+def test_fit_intrinsics_of_the_snapshot_band_grid(tmp_path, capsys) -> None:
+    """The snapshot camera: one lens, every band image of a ChArUco frame detected and moved to
+    the band grid by its band's offset, one calibration from all (10 frames x 25 bands)."""
+    import tifffile
+
+    from mscal_core.intrinsics import Board
+    from mscal_core.synth.rig import snapshot_board_views
+    from mscal_core.synth.scene import make_truth
+
+    truth = make_truth(0)
+    board = Board("charuco", (7, 5), 0.06, 0.045)
+    img = board.charuco().generateImage((7 * 120, 5 * 120), marginSize=0)
+    folder = tmp_path / "board"
+    folder.mkdir()
+    for k, frame in enumerate(snapshot_board_views(truth, img, (0.42, 0.30), n_views=10, distance_m=(0.45, 0.7))):
+        tifffile.imwrite(folder / f"board_{k:02d}.tif", frame)
+    out = tmp_path / "intr.zarr"
+    assert main(["fit", "intrinsics", str(folder), "--camera", "ximea-mq022hg-sm5x5-nir", "--board", "charuco",
+                 "--squares", "7x5", "--square-m", "0.06", "--marker-m", "0.045", "-o", str(out)]) == 0
+    ds = xr.open_zarr(out).load()
+    values = ds["intrinsics"].values
+    assert values.shape == (25, 9) and np.all(values == values[0])  # one lens for every band
+    cam = truth.camera
+    fitted = Intrinsics(*values[0, :4], dist=tuple(values[0, 4:]))
+    assert abs(fitted.fx / cam.fx - 1) < 0.003 and abs(fitted.cx - cam.cx) < 1.0 and abs(fitted.cy - cam.cy) < 1.0
+    assert _pixel_error(Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy, cam.dist), fitted, cam.grid_shape) < 0.5
+    assert min(ds.attrs["intrinsics"]["views"]) >= 8
