@@ -8,6 +8,7 @@ into the store's provenance.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -27,7 +28,7 @@ from mscal_core.mosaic import band_offsets
 from pipeline.ingest.captures import is_multilens, read_frames
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.camera_meta import xmp_irradiance
-from pipeline.calibrate.intrinsics import store_intrinsics
+from pipeline.calibrate.intrinsics import fit_intrinsics_folder, parse_board, store_intrinsics
 from pipeline.ingest.intrinsics import band_intrinsics_from_files, intrinsics_from_array
 from pipeline.ingest.raw import NAT, _time_ns
 from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES, FrameRecord, Session, load_session, read_bands, read_frame_table
@@ -184,8 +185,10 @@ def with_intrinsics(session: Session, store: xr.Dataset | None = None,
                     records: Sequence[FrameRecord] | None = None) -> tuple[Session, str]:
     """The session with its intrinsics per band resolved, and where they came from:
     session.yaml (one for all bands, or per band) first, else the store's ``intrinsics``
-    (``mscal fit intrinsics``), else the band files' own metadata (MicaSense XMP; the first
-    capture of ``records``, else of ``vignetting/``). :class:`SessionError` if none gives them."""
+    (``mscal fit intrinsics``), else board images in ``SESSION/intrinsics/`` (with its
+    ``board.yaml``, fitted as ``mscal fit intrinsics`` does), else the band files' own
+    metadata (MicaSense XMP; the first capture of ``records``, else of ``vignetting/``).
+    :class:`SessionError` if none gives them."""
     if session.intrinsics is not None or session.band_intrinsics is not None:
         return session, "session.yaml"
     camera = session.camera
@@ -195,6 +198,9 @@ def with_intrinsics(session: Session, store: xr.Dataset | None = None,
             raise SessionError(f"the store's intrinsics have {len(intr)} bands, camera {camera.name} {camera.n_bands}",
                                path=session.root / "session.yaml")
         return _set_intrinsics(session, intr), "calibration store"
+    board_dir = session.root / "intrinsics"
+    if (board_dir / "board.yaml").is_file():
+        return _set_intrinsics(session, board_intrinsics(board_dir, camera)), "board images in intrinsics/"
     if is_multilens(camera):
         if records is None:
             records = read_frames(session.vignetting_dir, camera) if session.vignetting_dir.is_dir() else []
@@ -208,6 +214,23 @@ def with_intrinsics(session: Session, store: xr.Dataset | None = None,
         hint="add intrinsics: {fx, fy, cx, cy, dist} (or one such mapping per band name), or pass "
              "--calibration with a store from 'mscal fit intrinsics'",
     )
+
+
+def board_intrinsics(folder: Path, camera: Camera) -> tuple[geometry.Intrinsics, ...]:
+    """:func:`pipeline.calibrate.intrinsics.fit_intrinsics_folder` of a session's board folder,
+    fitted once per content (every stage of a calibration asks)."""
+    stamp = tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(folder.rglob("*")) if p.is_file())
+    return _board_intrinsics(str(folder), camera.name, stamp)
+
+
+@functools.lru_cache(maxsize=8)
+def _board_intrinsics(folder: str, camera_name: str, stamp: tuple) -> tuple[geometry.Intrinsics, ...]:
+    import yaml
+
+    path = Path(folder) / "board.yaml"
+    board = parse_board(yaml.safe_load(path.read_text()), path)
+    intr, _ = fit_intrinsics_folder(folder, load_camera(camera_name), board)
+    return tuple(intr)
 
 
 def _set_intrinsics(session: Session, intr: Sequence[geometry.Intrinsics]) -> Session:

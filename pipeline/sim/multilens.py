@@ -9,6 +9,7 @@
       vignetting/ IMG_1000_1.tif ...                 reflector + marker, many viewpoints
       reflector/ IMG_2000_1.tif ...                  reflector under non-uniform light
       check/     IMG_3000_1.tif ...                  gray panels 0.05/0.2/0.5/0.9 (Eq. 15 check)
+      intrinsics/ IMG_4000_1.tif ... + board.yaml    ChArUco board captures (optional)
       truth.npz             per lens U, V, S, intrinsics, rig pose; per dataset its truth
 
 Band files as a RedEdge writes them: 12-bit DN in the high bits of 16-bit samples, XMP
@@ -132,12 +133,14 @@ def write_board_images(folder: str | Path, truth: RigTruth, *, seed: int = 0, n_
 
 def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "small",
                             shape: tuple[int, int] = (240, 320), frames_csv: bool = False,
-                            intrinsics_in_yaml: bool = False, board_views: int = 0) -> Path:
+                            intrinsics_in_yaml: bool = False, board_views: int = 0,
+                            board_folder: str = "intrinsics") -> Path:
     """Render and write a multi-lens session (module docstring); returns its path.
     ``size``: ``small`` (8-frame sweep x2.2, 14 views, 2 reflector and 2 check captures) or
     ``full`` (12 x1.7, 28, 3, 3). ``shape`` (H, W) of every band image (RedEdge: 960 x 1280).
     ``intrinsics_in_yaml`` writes the true intrinsics per band into session.yaml;
-    ``board_views`` > 0 writes that many ChArUco board captures into ``intrinsics/``."""
+    ``board_views`` > 0 writes that many ChArUco board captures into ``board_folder``
+    (``intrinsics/``: the calibration then takes the intrinsics from them)."""
     if size not in SIZES:
         raise ValueError(f"size must be one of {sorted(SIZES)}, got {size!r}")
     cfg = SIZES[size]
@@ -175,9 +178,9 @@ def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "sma
         arrays[f"{name}_exposure_ms"] = fs.exposure_ms
         arrays.update({f"{name}_{k}": v for k, v in fs.truth.items()})
     if board_views:
-        if (root / "intrinsics").exists():
-            shutil.rmtree(root / "intrinsics")
-        write_board_images(root / "intrinsics", truth, seed=seed, n_views=board_views)
+        if (root / board_folder).exists():
+            shutil.rmtree(root / board_folder)
+        write_board_images(root / board_folder, truth, seed=seed, n_views=board_views)
     # the names evaluate_calibration (pipeline.sim.evaluate) reads
     for key in ("inverse_response", "vignetting", "spectral_factor"):
         arrays[key] = arrays[f"camera_{key}"]

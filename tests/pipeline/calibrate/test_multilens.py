@@ -44,7 +44,7 @@ def small_ml(tmp_path_factory) -> tuple[Path, Path]:
     """A small multi-lens session (5 lenses of 240 x 320, 8-frame sweep, 14 views, 2 reflector
     and 2 panel captures, ChArUco board captures) and its calibration by `mscal calibrate`."""
     root = tmp_path_factory.mktemp("multilens")
-    session = write_multilens_session(root / "session", seed=0, size="small", board_views=16)
+    session = write_multilens_session(root / "session", seed=0, size="small", board_views=16, board_folder="board")
     calib = root / "calib.zarr"
     assert main(["calibrate", str(session), "-o", str(calib)]) == 0
     return session, calib
@@ -114,7 +114,7 @@ def test_a_missing_band_file_is_named(small_ml, tmp_path) -> None:
 def test_fit_intrinsics_from_charuco_captures_per_lens(small_ml, tmp_path, capsys) -> None:
     session, _ = small_ml
     out = tmp_path / "intr.zarr"
-    assert main(["fit", "intrinsics", str(session / "intrinsics"), "--fix-k3", "-o", str(out)]) == 0
+    assert main(["fit", "intrinsics", str(session / "board"), "--fix-k3", "-o", str(out)]) == 0
     assert "views per band" in capsys.readouterr().out
     ds = xr.open_zarr(out).load()
     truth = np.load(session / "truth.npz")
@@ -136,7 +136,7 @@ def test_fit_intrinsics_from_charuco_captures_per_lens(small_ml, tmp_path, capsy
 def test_fit_intrinsics_needs_a_board(small_ml, tmp_path, capsys) -> None:
     session, _ = small_ml
     folder = tmp_path / "b"
-    shutil.copytree(session / "intrinsics", folder)
+    shutil.copytree(session / "board", folder)
     (folder / "board.yaml").unlink()
     assert main(["fit", "intrinsics", str(folder), "--camera", "micasense-rededge", "-o", str(tmp_path / "x.zarr")]) == 2
     assert "no board given" in capsys.readouterr().err
@@ -182,7 +182,7 @@ def test_multilens_calibration_with_board_intrinsics(small_ml, tmp_path) -> None
     band files' metadata: the same targets."""
     session, _ = small_ml
     intr, calib = tmp_path / "intr.zarr", tmp_path / "calib.zarr"
-    assert main(["fit", "intrinsics", str(session / "intrinsics"), "--fix-k3", "-o", str(intr)]) == 0
+    assert main(["fit", "intrinsics", str(session / "board"), "--fix-k3", "-o", str(intr)]) == 0
     assert main(["calibrate", str(session), "--calibration", str(intr), "-o", str(calib)]) == 0
     ds = xr.open_zarr(calib).load()
     assert ds["intrinsics"].attrs["source"] == "calibration store"
@@ -256,3 +256,18 @@ def test_fit_intrinsics_of_the_snapshot_band_grid(tmp_path, capsys) -> None:
     assert abs(fitted.fx / cam.fx - 1) < 0.003 and abs(fitted.cx - cam.cx) < 1.0 and abs(fitted.cy - cam.cy) < 1.0
     assert _pixel_error(Intrinsics(cam.fx, cam.fy, cam.cx, cam.cy, cam.dist), fitted, cam.grid_shape) < 0.5
     assert min(ds.attrs["intrinsics"]["views"]) >= 8
+
+
+def test_a_session_board_folder_gives_the_intrinsics(small_ml, tmp_path) -> None:
+    """SESSION/intrinsics/ with a board.yaml: fitted from the board images when session.yaml
+    and the store give none (before the band files' metadata)."""
+    session, _ = small_ml
+    root = tmp_path / "s"
+    root.mkdir()
+    shutil.copy(session / "session.yaml", root)
+    shutil.copytree(session / "board", root / "intrinsics")
+    resolved, source = with_intrinsics(load_session(root))
+    assert source == "board images in intrinsics/"
+    truth = np.load(session / "truth.npz")
+    fx = [resolved.intrinsics_for(b).fx for b in range(5)]
+    np.testing.assert_allclose(fx, truth["camera_intrinsics"][:, 0], rtol=0.01)
