@@ -32,7 +32,8 @@ from mscal_core.errors import InputError, MscalError, SessionError
 from mscal_core.geometry import Intrinsics
 from mscal_core.mosaic import band_offsets
 
-from pipeline.ingest.captures import DEFAULT_CAPTURE_PATTERN, is_multilens
+from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
+from pipeline.ingest.captures import is_multilens
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.intrinsics import INTRINSICS_PARAMS, intrinsics_array
 from pipeline.ingest.session import IMAGE_SUFFIXES, read_raw, to_bands

@@ -21,11 +21,12 @@ from pathlib import Path
 from mscal_core.errors import FrameError, SessionError
 
 from pipeline.ingest.catalog import Camera
-from pipeline.ingest.intrinsics import tiff_tags
+from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
+from pipeline.ingest.intrinsics import EXIF_CODES, rational, tiff_tags
 from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES, FrameRecord, read_frame_table
 
-DEFAULT_CAPTURE_PATTERN = r"^(?P<capture>.+)_(?P<band>[0-9]+)\.tif$"
-EXPOSURE_TIME, ISO_SPEED_RATINGS, ISO_SPEED, DATE_TIME_ORIGINAL, SUBSEC_ORIGINAL = 33434, 34855, 34867, 36867, 37521
+EXPOSURE_TIME, ISO_SPEED_RATINGS, ISO_SPEED, DATE_TIME_ORIGINAL, SUBSEC_ORIGINAL = (
+    EXIF_CODES[k] for k in ("ExposureTime", "ISOSpeedRatings", "ISOSpeed", "DateTimeOriginal", "SubsecTimeOriginal"))
 
 
 def is_multilens(camera: Camera) -> bool:
@@ -40,14 +41,6 @@ def read_frames(folder: str | Path, camera: Camera, *, recursive: bool = True) -
     return read_frame_table(folder)
 
 
-def _rational(v) -> float:
-    if isinstance(v, tuple):
-        if len(v) == 2 and all(isinstance(x, int) for x in v):
-            return v[0] / v[1] if v[1] else float("nan")
-        return _rational(v[0]) if v else float("nan")
-    return float(v)
-
-
 def band_file_record(path: Path) -> FrameRecord:
     """Exposure, gain and time of one band file from its EXIF (:class:`FrameError` if it has
     no exposure)."""
@@ -55,7 +48,7 @@ def band_file_record(path: Path) -> FrameRecord:
     if EXPOSURE_TIME not in tags:
         raise FrameError("no exposure time: no frames.csv row and no EXIF ExposureTime", path=path,
                          hint="add a frames.csv with file,exposure_ms (file: the capture name, e.g. IMG_0000)")
-    exposure_ms = _rational(tags[EXPOSURE_TIME]) * 1000.0
+    exposure_ms = rational(tags[EXPOSURE_TIME]) * 1000.0
     iso = tags.get(ISO_SPEED) or tags.get(ISO_SPEED_RATINGS)
     if isinstance(iso, tuple):
         iso = iso[0] if iso else None

@@ -49,11 +49,12 @@ EXIF_CODES = {
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}  # mm per unit: inch, cm, mm, um
 
 
-def _rational(value: Any) -> float:
+def rational(value: Any) -> float:
+    """A TIFF RATIONAL as tifffile gives it ((num, den), or a tuple of them) or a number, as float."""
     if isinstance(value, tuple):
         if len(value) == 2 and all(isinstance(v, int) for v in value):
             return value[0] / value[1] if value[1] else float("nan")
-        return _rational(value[0]) if value else float("nan")
+        return rational(value[0]) if value else float("nan")
     return float(value)
 
 
@@ -91,8 +92,8 @@ def intrinsics_from_tags(tags: dict[int, Any], path: Path) -> Intrinsics | None:
         return None
     unit_mm = _UNIT_MM.get(int(tags.get(FOCAL_PLANE_UNIT, 4) or 4), 1.0)
     try:
-        rx = _rational(tags[FOCAL_PLANE_X_RES]) / unit_mm
-        ry = _rational(tags.get(FOCAL_PLANE_Y_RES, tags[FOCAL_PLANE_X_RES])) / unit_mm
+        rx = rational(tags[FOCAL_PLANE_X_RES]) / unit_mm
+        ry = rational(tags.get(FOCAL_PLANE_Y_RES, tags[FOCAL_PLANE_X_RES])) / unit_mm
     except KeyError:
         raise FrameError("XMP PrincipalPoint is in mm but EXIF FocalPlaneXResolution is missing", path=path,
                          hint="give the intrinsics in session.yaml, or fit them with 'mscal fit intrinsics'") from None
@@ -183,7 +184,9 @@ def intrinsics_from_array(values: np.ndarray) -> tuple[Intrinsics, ...]:
 
 
 __all__ = [
+    "EXIF_CODES",
     "INTRINSICS_PARAMS",
+    "rational",
     "band_intrinsics_from_files",
     "intrinsics_array",
     "intrinsics_from_array",
