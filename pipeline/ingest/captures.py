@@ -57,7 +57,7 @@ def band_file_record(path: Path) -> FrameRecord:
     dto = str(tags.get(DATE_TIME_ORIGINAL) or "").strip()
     m = re.match(r"(\d{4}):(\d{2}):(\d{2}) (\d{2}:\d{2}:\d{2})", dto)
     if m:
-        sub = str(tags.get(SUBSEC_ORIGINAL) or "").strip()
+        sub = str(tags.get(SUBSEC_ORIGINAL) or tags.get(EXIF_CODES["SubsecTime"]) or "").strip()  # RedEdge: SubsecTime
         time = f"{m[1]}-{m[2]}-{m[3]}T{m[4]}" + (f".{sub}" if sub.isdigit() else "")
     if not (exposure_ms > 0 and gain > 0):
         raise FrameError(f"EXIF exposure {exposure_ms:g} ms / gain {gain:g} must be positive", path=path)

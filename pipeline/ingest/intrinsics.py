@@ -43,7 +43,7 @@ FOCAL_PLANE_UNIT = 41488
 #: The EXIF tags read here, by the names tifffile gives the EXIF IFD's entries.
 EXIF_CODES = {
     "ExposureTime": 33434, "ISOSpeedRatings": 34855, "ISOSpeed": 34867, "DateTimeOriginal": 36867,
-    "SubsecTimeOriginal": 37521, "FocalPlaneXResolution": FOCAL_PLANE_X_RES,
+    "SubsecTimeOriginal": 37521, "SubsecTime": 37520, "FocalPlaneXResolution": FOCAL_PLANE_X_RES,
     "FocalPlaneYResolution": FOCAL_PLANE_Y_RES, "FocalPlaneResolutionUnit": FOCAL_PLANE_UNIT,
 }
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}  # mm per unit: inch, cm, mm, um

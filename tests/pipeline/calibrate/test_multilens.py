@@ -226,7 +226,7 @@ def test_the_rededge_sample_reads_as_captures_with_per_band_exposure() -> None:
     assert [r.name for r in recs][:2] == ["IMG_0000", "IMG_0001"]
     # EXIF ExposureTime 472500/1e9 s of IMG_0000_1.tif, ISOSpeed 100; each lens its own exposure
     assert recs[0].band_exposure(0) == pytest.approx(0.4725) and recs[0].band_exposure(3) == pytest.approx(1.8)
-    assert recs[0].time.startswith("2017-10-19T20:40:39")
+    assert recs[0].time == "2017-10-19T20:40:39.200173789"  # DateTimeOriginal + SubsecTime
 
 
 def test_fit_intrinsics_of_the_snapshot_band_grid(tmp_path, capsys) -> None:
