@@ -14,7 +14,7 @@ from ._targets import MarkerSpec, ReflectorScene
 from ._truth import FrameSet, SyntheticTruth, expose_frame, exposure_for, session_time
 
 
-def _random_tilt(rng, max_tilt_deg: float) -> np.ndarray:
+def random_tilt(rng, max_tilt_deg: float) -> np.ndarray:
     phi = rng.uniform(0, 2 * np.pi)
     # more small tilts than large ones, like a hand-held camera, up to max_tilt_deg
     theta = np.deg2rad(max_tilt_deg) * math.sqrt(rng.uniform(0, 1))
@@ -134,7 +134,7 @@ def _random_view_pose(rng, cam: SnapshotCamera, t_px: np.ndarray, half_in: float
         if np.max(np.abs(q)) >= half_in:
             break
     yaw = rot([0, 0, 1], rng.uniform(0, 2 * np.pi))
-    R = _random_tilt(rng, max_tilt_deg) @ FRONTAL @ yaw
+    R = random_tilt(rng, max_tilt_deg) @ FRONTAL @ yaw
     depth = rng.uniform(*distance_m)
     return pose_through(cam, R, t_px, q, depth)
 
@@ -392,7 +392,7 @@ def reflector_images(truth: SyntheticTruth, *, seed: int = 0, n_images: int = 3,
         scene = ReflectorScene(cam.wavelengths, truth.reflector_reflectance,
                                truth.reflector_size_m, mk, light, ground_seed=seed + 17 * k)
         for _attempt in range(max_attempts):
-            R = _random_tilt(rng, max_tilt_deg) @ FRONTAL @ rot([0, 0, 1], rng.normal(0, 0.15))
+            R = random_tilt(rng, max_tilt_deg) @ FRONTAL @ rot([0, 0, 1], rng.normal(0, 0.15))
             t_px = np.array([cam.cx + rng.normal(0, 15), cam.cy + rng.normal(0, 8)])
             pose = pose_through(cam, R, t_px, np.zeros(2), rng.uniform(*distance_m))
             ok, _ = frame_marker_ok(cam, pose, mk, margin_px=6.0, min_side_px=20.0)

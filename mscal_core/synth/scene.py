@@ -53,7 +53,7 @@ References
 from ._camera import CAMERA_NAME, FRONTAL, XIMEA_WAVELENGTHS_NM, Pose, SnapshotCamera, rot
 from ._flight import DEFAULT_PANELS, FIELD_GROUND_ALT_M, FIELD_LAT_LON, NDVI_NIR_NM, NDVI_RED_NM, flight_frames
 from ._light import GradientShadowLight, LightDrift, UniformLight
-from ._reflector import frame_marker_ok, pose_through, random_light, reflector_images, vignetting_views
+from ._reflector import frame_marker_ok, pose_through, random_light, random_tilt, reflector_images, vignetting_views
 from ._render import Render, detect_marker_corners, marker_pose_from_image, pose_error, render
 from ._session import SIZES, SyntheticSession, synthesize_session
 from ._sweep import response_sweep
@@ -71,6 +71,8 @@ from ._truth import SESSION_START, FrameSet, SyntheticTruth, expose_frame, expos
 #: Helpers of the datasets that tests/mscal_core/test_synth_scene.py checks directly; not part
 #: of ``__all__``.
 TESTED_HELPERS = (FRONTAL, rot, expose_frame, exposure_for, frame_marker_ok, pose_through, random_light)
+#: Helpers the multi-lens rig (``rig.py``) builds its views with; not part of ``__all__``.
+RIG_HELPERS = (random_tilt,)
 
 __all__ = [
     "CAMERA_NAME",

@@ -7,6 +7,8 @@ into the store's provenance.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -23,8 +25,11 @@ from mscal_core import geometry, illumination, response, vignetting
 from mscal_core.errors import FitError, SessionError
 from mscal_core.mosaic import band_offsets
 
+from pipeline.calibrate.intrinsics import fit_intrinsics_folder, parse_board, store_intrinsics
+from pipeline.ingest.captures import is_multilens, read_frames
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.camera_meta import xmp_irradiance
+from pipeline.ingest.intrinsics import band_intrinsics_from_files, intrinsics_from_array
 from pipeline.ingest.raw import NAT, _time_ns
 from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES, FrameRecord, Session, load_session, read_bands, read_frame_table
 from pipeline.storage.store import content_hashes, new_dataset, open_calibration, write_store
@@ -94,7 +99,7 @@ def fit_response_frames(
     """Eq. 5-7 per band from an exposure sweep folder (frames.csv + frames)."""
     t0 = time.perf_counter()
     report = StageReport("response")
-    recs = read_frame_table(folder)
+    recs = read_frames(folder, camera)
     exposures = np.array([r.effective_exposure for r in recs])
     if np.unique(exposures).size < 2:
         raise FitError(
@@ -103,11 +108,12 @@ def fit_response_frames(
             hint="capture the static scene at several exposure times",
         )
     stack = read_stack(recs, camera)
-    report.inputs = content_hashes([r.path for r in recs], root or folder)
+    report.inputs = content_hashes(record_files(recs), root or folder)
     n, nb = stack.shape[:2]
 
     def one(b: int) -> response.ResponseFit:
         dn = stack[:, b].reshape(n, -1)
+        exposures = np.array([r.band_exposure(b) for r in recs])  # a multi-lens camera exposes each lens
         bad = response.check_exposure_consistency(dn, exposures, camera.bit_depth)
         if bad:
             names = ", ".join(f"{recs[i].path.name} ({exposures[i]:g} ms)" for i in bad[:3])
@@ -155,8 +161,90 @@ def response_dataset(camera: Camera, fits: Sequence[response.ResponseFit], repor
 
 @dataclass(frozen=True)
 class View:
+    """A frame whose marker was found: its pose (of the band grid; of a multi-lens camera:
+    the first band that found it) and, for a multi-lens camera, each lens's own pose (None
+    where that band did not find the marker)."""
+
     record: FrameRecord
     pose: geometry.Pose
+    band_poses: tuple[geometry.Pose | None, ...] | None = None
+
+    def pose_for(self, band: int) -> geometry.Pose | None:
+        return self.pose if self.band_poses is None else self.band_poses[band]
+
+
+def record_files(records: Sequence[FrameRecord]) -> list[Path]:
+    """Every file of the frames (a multi-lens capture has one per band)."""
+    return [f for r in records for f in r.files]
+
+
+# --------------------------------------------------------------------------- intrinsics
+
+
+def with_intrinsics(session: Session, store: xr.Dataset | None = None,
+                    records: Sequence[FrameRecord] | None = None) -> tuple[Session, str]:
+    """The session with its intrinsics per band resolved, and where they came from:
+    session.yaml (one for all bands, or per band) first, else the store's ``intrinsics``
+    (``mscal fit intrinsics``), else board images in ``SESSION/intrinsics/`` (with its
+    ``board.yaml``, fitted as ``mscal fit intrinsics`` does), else the band files' own
+    metadata (MicaSense XMP; the first capture of ``records``, else of ``vignetting/``).
+    :class:`SessionError` if none gives them."""
+    if session.intrinsics is not None or session.band_intrinsics is not None:
+        return session, "session.yaml"
+    camera = session.camera
+    if store is not None and "intrinsics" in store:
+        intr = intrinsics_from_array(store["intrinsics"].values)
+        if len(intr) != camera.n_bands:
+            raise SessionError(f"the store's intrinsics have {len(intr)} bands, camera {camera.name} {camera.n_bands}",
+                               path=session.root / "session.yaml")
+        return _set_intrinsics(session, intr), "calibration store"
+    board_dir = session.root / "intrinsics"
+    if (board_dir / "board.yaml").is_file():
+        return _set_intrinsics(session, board_intrinsics(board_dir, camera)), "board images in intrinsics/"
+    if is_multilens(camera):
+        if records is None:
+            records = read_frames(session.vignetting_dir, camera) if session.vignetting_dir.is_dir() else []
+        for rec in list(records)[:1]:
+            intr = band_intrinsics_from_files(rec.files)
+            if intr is not None:
+                return _set_intrinsics(session, intr), f"metadata of {rec.name}"
+    raise SessionError(
+        "intrinsics are missing",
+        path=session.root / "session.yaml",
+        hint="add intrinsics: {fx, fy, cx, cy, dist} (or one such mapping per band name), or pass "
+             "--calibration with a store from 'mscal fit intrinsics'",
+    )
+
+
+def board_intrinsics(folder: Path, camera: Camera) -> tuple[geometry.Intrinsics, ...]:
+    """:func:`pipeline.calibrate.intrinsics.fit_intrinsics_folder` of a session's board folder,
+    fitted once per content (every stage of a calibration asks)."""
+    stamp = tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(folder.rglob("*")) if p.is_file())
+    return _board_intrinsics(str(folder), camera.name, stamp)
+
+
+@functools.lru_cache(maxsize=8)
+def _board_intrinsics(folder: str, camera_name: str, stamp: tuple) -> tuple[geometry.Intrinsics, ...]:
+    import yaml
+
+    path = Path(folder) / "board.yaml"
+    board = parse_board(yaml.safe_load(path.read_text()), path)
+    intr, _ = fit_intrinsics_folder(folder, load_camera(camera_name), board)
+    return tuple(intr)
+
+
+def _set_intrinsics(session: Session, intr: Sequence[geometry.Intrinsics]) -> Session:
+    if is_multilens(session.camera):
+        return dataclasses.replace(session, band_intrinsics=tuple(intr))
+    return dataclasses.replace(session, intrinsics=intr[0])  # the band grid's, one for all bands
+
+
+def add_intrinsics(ds: xr.Dataset, session: Session, source: str) -> xr.Dataset:
+    """The intrinsics the fits used, per band: ``intrinsics (band, intrinsics_param)``."""
+    intr = [session.intrinsics_for(b) for b in range(session.camera.n_bands)]
+    if any(i is None for i in intr):
+        return ds
+    return store_intrinsics(ds, intr, source)  # type: ignore[arg-type]
 
 
 def _energy(dn: np.ndarray, inverse_response: np.ndarray, t: float, saturation_dn: int) -> np.ndarray:
@@ -185,6 +273,8 @@ def find_views(
 ) -> list[tuple[int, View]]:
     """Marker pose for each frame; frames where the marker is not found are skipped and reported."""
     views: list[tuple[int, View]] = []
+    if is_multilens(session.camera):
+        return _find_views_per_lens(records, stack, session, inverse_response, report)
     # The detection image averages all bands; its pixel (i, j) sits at the mean band offset.
     centre = _offsets(session.camera).mean(axis=0)
 
@@ -206,14 +296,51 @@ def find_views(
     return views
 
 
+def _find_views_per_lens(
+    records: Sequence[FrameRecord], stack: np.ndarray, session: Session, inverse_response: np.ndarray,
+    report: StageReport,
+) -> list[tuple[int, View]]:
+    """A multi-lens camera: the marker is found, and its pose estimated, in each band image
+    with that lens's intrinsics (each lens is its own camera)."""
+    camera, mk = session.camera, session.marker
+
+    def one(i: int) -> tuple[geometry.Pose | None, ...]:
+        poses: list[geometry.Pose | None] = []
+        for b in range(camera.n_bands):
+            img = detection_image(stack[i, b:b + 1], inverse_response[b:b + 1])
+            corners = geometry.detect_marker(img, mk.dictionary, mk.id)
+            pose = None
+            if corners is not None:
+                try:
+                    pose = geometry.estimate_pose(corners, mk.size_m, session.intrinsics_for(b))
+                except FitError:
+                    pose = None
+            poses.append(pose)
+        return tuple(poses)
+
+    views: list[tuple[int, View]] = []
+    for i, poses in enumerate(_map(one, len(records))):
+        found = [p for p in poses if p is not None]
+        name = records[i].name
+        if not found:
+            report.skipped.append({"file": name, "reason": f"marker {mk.dictionary} id {mk.id} not found in any band"})
+            continue
+        lost = [camera.bands[b].name for b, p in enumerate(poses) if p is None]
+        if lost:
+            report.skipped.append({"file": name, "reason": f"marker not found in band(s) {', '.join(lost)}: "
+                                                           "the capture is used for the other bands only"})
+        views.append((i, View(records[i], found[0], poses)))
+    return views
+
+
 def load_marker_frames(
     session: Session, folder: Path, inverse_response: np.ndarray, report: StageReport
 ) -> tuple[list[FrameRecord], np.ndarray, list[tuple[int, View]]]:
     """Frames of a marker folder (vignetting/ or reflector/), their band stacks and the views
     whose marker was found; :class:`FitError` naming the folder if it was found in none."""
-    recs = read_frame_table(folder)
+    recs = read_frames(folder, session.camera)
     stack = read_stack(recs, session.camera)
-    report.inputs = content_hashes([r.path for r in recs], session.root)
+    report.inputs = content_hashes(record_files(recs), session.root)
     views = find_views(recs, stack, session, inverse_response, report)
     if not views:
         raise FitError(
@@ -249,6 +376,7 @@ def fit_vignetting_frames(
     t0 = time.perf_counter()
     camera = session.camera
     report = StageReport("vignetting")
+    session, _ = with_intrinsics(session)
     recs, stack, views = load_marker_frames(session, session.vignetting_dir, inverse_response, report)
     shape = stack.shape[2:]
     offsets = _offsets(camera)
@@ -259,13 +387,14 @@ def fit_vignetting_frames(
     saturated: dict[int, float] = {}  # band -> saturated fraction of its reflector pixels (QA report)
 
     def observations(b: int, use: Sequence[tuple[int, View]]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        rays = geometry.pixel_rays(session.intrinsics, shape, tuple(offsets[b]))
+        intr = session.intrinsics_for(b)
+        rays = geometry.pixel_rays(intr, shape, tuple(offsets[b]))
         obs = []
         n_sat = n_pix = 0
         for i, view in use:
-            t = view.record.effective_exposure
+            t = view.record.band_exposure(b)
             energy = _energy(stack[i, b], inverse_response[b], t, int(saturation_dn[b]))
-            uv = geometry.pixels_to_plane(view.pose, session.intrinsics, shape, rays=rays)
+            uv = geometry.pixels_to_plane(view.pose_for(b), intr, shape, rays=rays)
             mask = geometry.reflector_mask(uv, session.reflector.size_m, exclude, edge)
             n_sat += int(np.count_nonzero(stack[i, b][mask] >= saturation_dn[b]))
             n_pix += int(np.count_nonzero(mask))
@@ -277,6 +406,19 @@ def fit_vignetting_frames(
         return vignetting.fit_vignetting(
             *(np.concatenate([o[k] for o in obs]) for k in range(3)), shape, n_cells
         )
+
+    if is_multilens(camera):
+        fits = _map(lambda b: _fit_lens_vignetting(b, views, observations, fit, camera, report), camera.n_bands)
+        report.residuals = {
+            **report.residuals,
+            "views_used": [sum(v.pose_for(b) is not None for _, v in views) for b in range(camera.n_bands)],
+            "views_total": len(recs),
+            "residual_rms": [round(float(f.residual_rms), 5) for f in fits],
+            "observed_fraction": [round(float(f.observed.mean()), 4) for f in fits],
+            "saturated_fraction": [round(saturated.get(b, 0.0), 6) for b in range(camera.n_bands)],
+        }
+        report.seconds = time.perf_counter() - t0
+        return fits, report
 
     # Screen the views on one band first: a view whose marker pose is wrong (planar-pose
     # ambiguity, a mis-detected corner) disagrees with all the others and is dropped.
@@ -320,6 +462,30 @@ def fit_vignetting_frames(
     }
     report.seconds = time.perf_counter() - t0
     return fits, report
+
+
+def _fit_lens_vignetting(b: int, views: Sequence[tuple[int, View]], observations, fit, camera: Camera,
+                         report: StageReport) -> vignetting.VignettingFit:
+    """Eq. 8-10 of one lens of a multi-lens camera, on the views whose marker that lens found
+    (its own poses): screened on its own fit like the band-grid camera's reference band."""
+    use = [v for v in views if v[1].pose_for(b) is not None]
+    if not use:
+        raise FitError(f"band {camera.bands[b].name}: the marker was found in none of its vignetting views",
+                       hint="check that the marker is in view of every lens and sharp")
+    obs = observations(b, use)
+    result = fit(obs)
+    frac = np.array([vignetting.view_inconsistency(result, *o) for o in obs])
+    bad = set(vignetting.inconsistent_views(frac).tolist())
+    if bad and len(use) - len(bad) >= MIN_VIEWS_TO_SCREEN:
+        med = float(np.nanmedian(frac))
+        for k in sorted(bad):
+            report.skipped.append({
+                "file": use[k][1].record.name,
+                "reason": f"band {camera.bands[b].name}: inconsistent with the other views ({frac[k]:.0%} of its "
+                          f"reflector pixels off by >10 %, median view {med:.1%}): marker pose likely wrong",
+            })
+        result = fit([o for k, o in enumerate(obs) if k not in bad])
+    return result
 
 
 def add_vignetting(ds: xr.Dataset, fits: Sequence[vignetting.VignettingFit], report: StageReport) -> xr.Dataset:
@@ -380,7 +546,7 @@ def frame_irradiance(rec: FrameRecord) -> float | None:
     return rec.irradiance if rec.irradiance is not None else xmp_irradiance(rec.path)
 
 
-def reflector_captures(folder: Path) -> tuple[list[FrameRecord], list[ReflectorCapture]]:
+def reflector_captures(folder: Path, camera: Camera | None = None) -> tuple[list[FrameRecord], list[ReflectorCapture]]:
     """The frames of ``reflector/`` and how they split into captures (issue 8).
 
     Subfolders of ``folder`` that hold frames are one capture each (named after the
@@ -394,10 +560,14 @@ def reflector_captures(folder: Path) -> tuple[list[FrameRecord], list[ReflectorC
     groups: list[tuple[str, Path, list[FrameRecord]]] = []
     has_top = any(p.is_file() and (p.suffix.lower() in IMAGE_SUFFIXES or p.name == FRAMES_CSV)
                   for p in folder.iterdir()) if folder.is_dir() else False
+    def read(where: Path, recursive: bool) -> list[FrameRecord]:
+        # a multi-lens camera's captures (band files) are the frames; else one file, one frame
+        return read_frames(where, camera, recursive=recursive) if camera is not None else read_frame_table(where)
+
     if not subs or has_top:
-        groups.append(("reflector", folder, read_frame_table(folder)))
+        groups.append(("reflector", folder, read(folder, not subs)))
     for sub in subs:
-        groups.append((sub.name, sub, read_frame_table(sub)))
+        groups.append((sub.name, sub, read(sub, True)))
     records: list[FrameRecord] = []
     captures: list[ReflectorCapture] = []
 
@@ -498,12 +668,13 @@ def fit_illumination_frames(
     t0 = time.perf_counter()
     camera = session.camera
     report = StageReport("illumination")
+    session, _ = with_intrinsics(session)
     folder = session.reflector_dir
     if not folder.is_dir():
         raise SessionError("frame folder not found", path=folder)
-    recs, captures = reflector_captures(folder)
+    recs, captures = reflector_captures(folder, camera)
     stack = read_stack(recs, camera)
-    report.inputs = content_hashes([r.path for r in recs], session.root)
+    report.inputs = content_hashes(record_files(recs), session.root)
     views = find_views(recs, stack, session, inverse_response, report)
     if not views:
         raise FitError(
@@ -514,13 +685,19 @@ def fit_illumination_frames(
         )
     rho = session.reflector.reflectance.at(camera.wavelengths)
     shape = stack.shape[2:]
-    centre = tuple(_offsets(camera).mean(axis=0))
-    rays = geometry.pixel_rays(session.intrinsics, shape, centre)
     columns, plane = [], []
     n_sat = np.zeros(camera.n_bands, dtype=np.int64)
-    uvs = [geometry.pixels_to_plane(view.pose, session.intrinsics, shape, rays=rays) for _, view in views]
-    masks = [geometry.reflector_mask(uv, session.reflector.size_m, _exclude_half(session), _edge_margin(session))
-             for uv in uvs]
+    lens_rad: list[np.ndarray] = []
+    if is_multilens(camera):
+        views, uvs, masks, lens_rad = _lens_radiance(session, stack, views, inverse_response, saturation_dn,
+                                                     vignetting_maps, qa_band(camera), report, n_sat)
+        lens_masks = list(masks)
+    else:
+        centre = tuple(_offsets(camera).mean(axis=0))
+        rays = geometry.pixel_rays(session.intrinsics, shape, centre)
+        uvs = [geometry.pixels_to_plane(view.pose, session.intrinsics, shape, rays=rays) for _, view in views]
+        masks = [geometry.reflector_mask(uv, session.reflector.size_m, _exclude_half(session), _edge_margin(session))
+                 for uv in uvs]
     shared_fraction = None
     if len(captures) > 1 and shared_pixels:
         # compare the captures' light on the same sensor pixels: a vignetting error there is
@@ -531,9 +708,13 @@ def fit_illumination_frames(
         shared_fraction = sum(int(m.sum()) for m in masks) / max(before, 1) if shared else 0.0
     for k, (i, view) in enumerate(views):
         uv, mask = uvs[k], masks[k]
-        t = view.record.effective_exposure
+        if lens_rad:  # sampled per lens on the reference band's pixels; keep those still in the mask
+            columns.append(lens_rad[k][:, mask[lens_masks[k]]])
+            plane.append(uv[mask] if len(captures) > 1 else None)
+            continue
         rad = np.empty((camera.n_bands, int(mask.sum())), dtype=np.float64)
         for b in range(camera.n_bands):
+            t = view.record.band_exposure(b)
             dn = stack[i, b][mask]
             n_sat[b] += int(np.count_nonzero(dn >= saturation_dn[b]))
             e = _energy(dn, inverse_response[b], t, int(saturation_dn[b]))
@@ -604,9 +785,78 @@ def fit_illumination_frames(
     return IlluminationResult(
         fits[0].fit, report, views, brightness_maps=maps, qa_band=qb,
         qa_dn=np.stack([stack[i, qb] for i, _ in views]),
-        exposures=np.array([v.record.effective_exposure for _, v in views]),
+        exposures=np.array([v.record.band_exposure(qb) for _, v in views]),
         captures=fits,
     )
+
+
+def _lens_radiance(session: Session, stack: np.ndarray, views: list[tuple[int, View]], inverse_response: np.ndarray,
+                   saturation_dn: np.ndarray, vignetting_maps: np.ndarray, ref: int, report: StageReport,
+                   n_sat: np.ndarray) -> tuple[list[tuple[int, View]], list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """Eq. 11-14 of a multi-lens camera needs every band's radiance at the same reflector
+    point, but each lens sees the reflector at its own pixels. The reflector points are those
+    seen by band ``ref``'s pixels (its own marker pose); each is projected into every other
+    band with that lens's pose and intrinsics (``pi_i`` of Eq. 8), where ``U(I) / (t V)`` is
+    sampled bilinearly. A point counts only where every band saw reflector there (inside its
+    own reflector mask, not saturated). Views without a pose in every band are skipped.
+
+    Returns the views used, per view the plane points (H, W, 2) and the mask on ``ref``'s
+    grid, and the radiance (band, mask pixels) in the mask's row-major order."""
+    import cv2
+
+    camera = session.camera
+    shape = stack.shape[2:]
+    size, excl, edge = session.reflector.size_m, _exclude_half(session), _edge_margin(session)
+    rays = [geometry.pixel_rays(session.intrinsics_for(b), shape) for b in range(camera.n_bands)]
+    kept, uvs, masks, rads = [], [], [], []
+    for i, view in views:
+        if any(view.pose_for(b) is None for b in range(camera.n_bands)):
+            report.skipped.append({"file": view.record.name,
+                                   "reason": "marker not found in every band: not usable for Eq. 11-14"})
+            continue
+        uv = geometry.pixels_to_plane(view.pose_for(ref), session.intrinsics_for(ref), shape, rays=rays[ref])
+        mask = geometry.reflector_mask(uv, size, excl, edge)
+        pts = uv[mask]
+        rad = np.empty((camera.n_bands, pts.shape[0]), dtype=np.float64)
+        ok = np.ones(pts.shape[0], dtype=bool)
+        for b in range(camera.n_bands):
+            t = view.record.band_exposure(b)
+            dn = stack[i, b]
+            energy = _energy(dn, inverse_response[b], t, int(saturation_dn[b]))
+            own = geometry.reflector_mask(geometry.pixels_to_plane(view.pose_for(b), session.intrinsics_for(b), shape,
+                                                                   rays=rays[b]), size, excl, edge)
+            n_sat[b] += int(np.count_nonzero(dn[own] >= saturation_dn[b]))
+            valid = (own & np.isfinite(energy)).astype(np.float32)
+            if b == ref:
+                xy = np.argwhere(mask)[:, ::-1].astype(np.float32)
+            else:
+                xy = geometry.project_to_pixels(pts, view.pose_for(b), session.intrinsics_for(b)).astype(np.float32)
+            n = xy.shape[0]
+            width = 1024  # remap's maps must stay below 32767 on each side
+            pad = (-n) % width
+            mx = np.pad(xy[:, 0], (0, pad), constant_values=-1e6).reshape(-1, width)
+            my = np.pad(xy[:, 1], (0, pad), constant_values=-1e6).reshape(-1, width)
+
+            def sample(img: np.ndarray) -> np.ndarray:
+                return cv2.remap(np.ascontiguousarray(img, dtype=np.float32), mx, my, cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0.0).ravel()[:n]
+
+            ok &= sample(valid) > 0.999
+            e = sample(np.nan_to_num(energy, nan=0.0))
+            v = sample(vignetting_maps[b])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rad[b] = e / v
+        ok &= np.all(np.isfinite(rad), axis=0)
+        m2 = mask.copy()
+        m2[mask] = ok
+        kept.append((i, view))
+        uvs.append(uv)
+        masks.append(m2)
+        rads.append(rad[:, ok])
+    if not kept:
+        raise FitError("no reflector image has the marker in every band", path=session.reflector_dir,
+                       hint="frame the marker so that every lens sees it")
+    return kept, uvs, masks, rads
 
 
 def add_illumination(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
@@ -695,10 +945,15 @@ def provenance(ds: xr.Dataset, session_root: Path | None) -> xr.Dataset:
     return ds
 
 
-def calibrate_session(session_dir: str | Path, out: str | Path, *, response_method: str = "forward") -> xr.Dataset:
-    """``mscal calibrate``: the three fits from a session folder, written to ``out``."""
+def calibrate_session(session_dir: str | Path, out: str | Path, *, response_method: str = "forward",
+                      calibration: str | Path | None = None) -> xr.Dataset:
+    """``mscal calibrate``: the three fits from a session folder, written to ``out``.
+    ``calibration``: a store whose ``intrinsics`` (``mscal fit intrinsics``) are used when
+    session.yaml gives none (nothing else is taken from it)."""
     session = load_session(session_dir)
     camera = session.camera
+    partial = open_calibration(calibration, camera) if calibration is not None else None
+    session, source = with_intrinsics(session, partial)
     log.info("response: fitting %d bands from %s", camera.n_bands, session.response_dir)
     rfits, rrep = fit_response_frames(session.response_dir, camera, response_method, session.root)
     ds = response_dataset(camera, rfits, rrep)
@@ -710,6 +965,7 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
     log.info("illumination: fitting from %s", session.reflector_dir)
     ires = fit_illumination_frames(session, U, sat, ds["vignetting"].values)
     ds = add_illumination(ds, ires)
+    ds = add_intrinsics(ds, session, source)
     ds = provenance(ds, session.root)
     write_store(ds, out)
     return ds
@@ -748,8 +1004,10 @@ def fit_stage_cli(stage: str, session_dir: str | Path, out: str | Path, partial:
     ``--calibration PARTIAL.zarr`` when given, otherwise they are fitted too."""
     session = load_session(session_dir)
     camera = session.camera
+    source = "session.yaml"
     if partial is not None:
         ds = open_calibration(partial, camera, need=stage)
+        session, source = with_intrinsics(session, ds)
         keep = ["inverse_response", "black_level", "saturation_dn"] + (["vignetting", "vignetting_count", "vignetting_observed"] if stage == "illumination" else [])
         ds = ds[[v for v in keep if v in ds]]
     else:
@@ -762,6 +1020,8 @@ def fit_stage_cli(stage: str, session_dir: str | Path, out: str | Path, partial:
         ds = add_vignetting(ds, vfits, vrep)
     if stage == "illumination":
         ds = add_illumination(ds, fit_illumination_frames(session, U, sat, ds["vignetting"].values))
+    session, source = with_intrinsics(session) if source == "session.yaml" else (session, source)
+    ds = add_intrinsics(ds, session, source)
     ds = provenance(ds, session.root)
     write_store(ds, out)
     return ds

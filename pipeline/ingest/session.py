@@ -47,11 +47,18 @@ class ReflectorSpec:
 class Session:
     root: Path
     camera: Camera
-    intrinsics: Intrinsics
+    intrinsics: Intrinsics | None  # None: not in session.yaml (band_intrinsics, the store or metadata give them)
     reflector: ReflectorSpec
     marker: MarkerSpec
     panel_polygon: tuple[tuple[float, float], ...] | None = None  # session.yaml panel.polygon
     panel_marker: "PanelMarker | None" = None  # session.yaml panel.marker (+ size_m, offset_m)
+    band_intrinsics: tuple[Intrinsics, ...] | None = None  # session.yaml intrinsics per band
+
+    def intrinsics_for(self, band: int) -> Intrinsics | None:
+        """session.yaml's intrinsics of band ``band`` (per band, else the one for all), or None."""
+        if self.band_intrinsics is not None:
+            return self.band_intrinsics[band]
+        return self.intrinsics
 
     @property
     def response_dir(self) -> Path:
@@ -211,13 +218,16 @@ def load_session(root: str | Path) -> Session:
     except CatalogError as exc:  # say which file named it
         raise SessionError(f"camera: {exc.reason}", path=path,
                            hint=exc.hint or "name a camera of catalogs/cameras/, or add its entry there") from None
-    if "intrinsics" not in data:
-        raise SessionError(
-            "intrinsics are missing",
-            path=path,
-            hint="add intrinsics: {fx, fy, cx, cy, dist} for the band grid",
-        )
-    intr = parse_intrinsics(data["intrinsics"], path)
+    intr: Intrinsics | None = None
+    band_intr: tuple[Intrinsics, ...] | None = None
+    raw_intr = data.get("intrinsics")
+    if isinstance(raw_intr, dict) and raw_intr and not {"fx", "fy", "cx", "cy"} & set(raw_intr):
+        from pipeline.ingest.intrinsics import parse_band_intrinsics
+
+        keys = [[b.name] + ([str(b.file_suffix)] if b.file_suffix is not None else []) for b in camera.bands]
+        band_intr = parse_band_intrinsics(raw_intr, keys, path, parse_intrinsics)
+    elif raw_intr is not None:
+        intr = parse_intrinsics(raw_intr, path)
 
     refl = data["reflector"]
     if not isinstance(refl, dict):
@@ -252,7 +262,7 @@ def load_session(root: str | Path) -> Session:
     panel = parse_panel(data["panel"], path) if data.get("panel") is not None else PanelConfig()
     return Session(
         root=root, camera=camera, intrinsics=intr, reflector=reflector, marker=marker, panel_polygon=panel.polygon,
-        panel_marker=panel.marker,
+        panel_marker=panel.marker, band_intrinsics=band_intr,
     )
 
 
@@ -286,15 +296,33 @@ class FrameRecord:
     lon: float | None = None
     alt_m: float | None = None
     irradiance: float | None = None  # sun-sensor reading (frames.csv column), any unit, > 0
+    # A capture of a one-file-per-band camera (pipeline.ingest.captures): its band files in
+    # the camera's band order (``path`` is the first), its name, and each band's own
+    # exposure x gain (ms) when the bands were exposed differently (MicaSense: per lens).
+    band_files: tuple[Path, ...] | None = None
+    capture: str | None = None
+    band_effective_exposure: tuple[float, ...] | None = None
 
     @property
     def effective_exposure(self) -> float:
         """Exposure time x linear gain (ms); the ``t`` of the paper's equations."""
         return self.exposure_ms * self.gain
 
+    def band_exposure(self, band: int) -> float:
+        """The ``t`` of band ``band``: its own exposure x gain for a capture whose bands were
+        exposed separately, else :attr:`effective_exposure`."""
+        if self.band_effective_exposure is not None:
+            return self.band_effective_exposure[band]
+        return self.effective_exposure
+
+    @property
+    def files(self) -> tuple[Path, ...]:
+        """Every file of the frame (a capture's band files)."""
+        return self.band_files if self.band_files is not None else (self.path,)
+
     @property
     def name(self) -> str:
-        return self.path.stem
+        return self.capture if self.capture is not None else self.path.stem
 
 
 def _parse_float(text: str, csv_path: Path, line: int, column: str) -> float | None:
@@ -607,7 +635,15 @@ def to_bands(img: np.ndarray, camera: Camera, path: Path | str = "") -> np.ndarr
 
 
 def read_bands(rec: FrameRecord | Path, camera: Camera) -> np.ndarray:
-    """Read one frame and split it into bands (:class:`FrameError` naming the file)."""
+    """Read one frame and split it into bands (:class:`FrameError` naming the file); a
+    capture of a one-file-per-band camera is read band file by band file."""
+    if isinstance(rec, FrameRecord) and rec.band_files is not None:
+        bands = [to_bands(read_raw(f), camera, f)[0] for f in rec.band_files]
+        for f, b in zip(rec.band_files[1:], bands[1:]):
+            if b.shape != bands[0].shape:
+                raise FrameError(f"band image is {b.shape[1]}x{b.shape[0]}, the capture's first band "
+                                 f"{bands[0].shape[1]}x{bands[0].shape[0]}", path=f)
+        return np.stack(bands)
     path = rec.path if isinstance(rec, FrameRecord) else Path(rec)
     return to_bands(read_raw(path), camera, path)
 

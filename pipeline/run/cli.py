@@ -51,12 +51,14 @@ def cli(verbose: bool) -> None:
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path), help="Calibration store (.zarr) to write.")
 @click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True,
               help="'forward' fits the response with the noise on DN; 'alternating' is the paper's Eq. 6/7.")
-def calibrate(session: Path, out: Path, response_method: str) -> None:
+@click.option("--calibration", "partial", default=None, type=click.Path(path_type=Path),
+              help="A store with intrinsics per band ('mscal fit intrinsics'), used when session.yaml gives none.")
+def calibrate(session: Path, out: Path, response_method: str, partial: Path | None) -> None:
     """All three fits of a SESSION folder: response, vignetting, illumination."""
     from pipeline.calibrate.fit import calibrate_session
 
     t0 = time.perf_counter()
-    ds = calibrate_session(session, out, response_method=response_method)
+    ds = calibrate_session(session, out, response_method=response_method, calibration=partial)
     _report_skips(ds)
     click.echo(f"wrote {out} ({_summary(ds)}; {time.perf_counter() - t0:.1f} s)")
 
@@ -101,6 +103,35 @@ def _stage_command(stage: str):  # noqa: ANN202
 
 _stage_command("vignetting")
 _stage_command("illumination")
+
+
+@fit.command("intrinsics")
+@click.argument("frames", type=click.Path(path_type=Path))
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
+@click.option("--camera", default=None, help="Camera catalog name (default: session.yaml beside FRAMES).")
+@click.option("--board", "kind", type=click.Choice(["charuco", "checkerboard"]), default=None,
+              help="Board kind (default: FRAMES/board.yaml).")
+@click.option("--squares", default=None, help="Squares of the board, COLUMNSxROWS, e.g. 7x5.")
+@click.option("--square-m", type=float, default=None, help="Square side (m).")
+@click.option("--marker-m", type=float, default=None, help="ChArUco marker side (m).")
+@click.option("--dictionary", default="DICT_4X4_50", show_default=True, help="ChArUco marker dictionary.")
+@click.option("--fix-k3", is_flag=True, help="Keep k3 = 0 (few or small board images: k2 and k3 trade off).")
+def fit_intrinsics(frames: Path, out: Path, camera: str | None, kind: str | None, squares: str | None,
+                   square_m: float | None, marker_m: float | None, dictionary: str, fix_k3: bool) -> None:
+    """Camera intrinsics per band from FRAMES, images of a ChArUco board or a checkerboard
+    (OpenCV); a multi-lens camera's lenses one by one."""
+    from pipeline.calibrate.intrinsics import fit_intrinsics_cli
+
+    board = None
+    if kind is not None:
+        board = {"kind": kind, "squares": squares, "square_m": square_m, "marker_m": marker_m,
+                 "dictionary": dictionary}
+    ds = fit_intrinsics_cli(frames, out, camera_name=camera, board=board, fix_k3=fix_k3)
+    rep = ds.attrs["intrinsics"]
+    for s in rep["skipped"]:
+        click.echo(f"skipped {s['file']}: {s['reason']}", err=True)
+    click.echo(f"wrote {out} (camera {ds.attrs['camera']}, {rep['images']} images, views per band {rep['views']}, "
+               f"reprojection rms {', '.join(f'{v:.2f}' for v in rep['rms_px'])} px)")
 
 
 @cli.command()

@@ -54,7 +54,6 @@ def test_reflectance_table(tmp_path) -> None:
         (SESSION_YAML.replace("fx: 436.0", "fx: -1"), SessionError, "intrinsics.fx must be positive"),
         (SESSION_YAML.replace("reflectance: 0.5", "reflectance: 5"), CatalogError, "reflector.reflectance must be in (0, 1]"),
         (SESSION_YAML.replace("id: 3", "id: three"), SessionError, "marker.id must be a non-negative integer"),
-        ("\n".join(line for line in SESSION_YAML.splitlines() if "intrinsics" not in line), SessionError, "intrinsics are missing"),
     ],
 )
 def test_bad_session_yaml(tmp_path, text, error, message) -> None:
@@ -64,6 +63,15 @@ def test_bad_session_yaml(tmp_path, text, error, message) -> None:
         load_session(tmp_path)
     assert message in str(err.value)
     assert "session.yaml" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_intrinsics_may_come_later(tmp_path) -> None:
+    """Without intrinsics in session.yaml the session loads; the fits take them from a store or
+    the band files' metadata, and say so naming session.yaml when none gives them
+    (tests/pipeline/calibrate/test_multilens.py)."""
+    text = "\n".join(line for line in SESSION_YAML.splitlines() if "intrinsics" not in line)
+    s = load_session(_session(tmp_path, text))
+    assert s.intrinsics is None and s.band_intrinsics is None and s.intrinsics_for(0) is None
 
 
 def _frames(folder: Path, rows: str, files=("a.tif", "b.tif")) -> Path:

@@ -1,0 +1,197 @@
+"""Camera intrinsics per band: from session.yaml, from a band file's own metadata, or as
+the calibration store keeps them.
+
+A multi-lens camera (one lens per band: MicaSense, DJI multispectral, Sequoia) is several
+cameras, each with its own focal length, principal point and distortion; the snapshot
+camera's bands share one lens on the band grid. Every route here gives one
+:class:`~mscal_core.geometry.Intrinsics` per band (band order of the camera's catalog entry).
+
+Metadata (MicaSense RedEdge/Altum, see /tmp/research/cameras.md 1.5 and MicaSense's
+"Image Processing" tutorial, ``micasense/imageprocessing`` ``metadata.py``):
+
+- XMP ``Camera:PerspectiveFocalLength`` in mm when ``Camera:PerspectiveFocalLengthUnits`` is
+  ``mm``, else in pixels (RedEdge 3 writes pixels and no unit);
+- XMP ``Camera:PrincipalPoint`` "x,y" in mm;
+- EXIF ``FocalPlaneXResolution`` / ``FocalPlaneYResolution`` (pixels per
+  ``FocalPlaneResolutionUnit``: 2 inch, 3 cm, 4 mm);
+- XMP ``Camera:PerspectiveDistortion`` ``[k1, k2, k3, p1, p2]``, reordered to OpenCV's
+  ``[k1, k2, p1, p2, k3]``.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from mscal_core.errors import FrameError, SessionError
+from mscal_core.geometry import Intrinsics
+
+from pipeline.ingest.camera_meta import xmp_properties
+
+#: Parameter order of the store's ``intrinsics (band, intrinsics_param)`` variable.
+INTRINSICS_PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+
+# TIFF/EXIF tag codes (EXIF 2.32)
+EXIF_IFD = 34665
+XMP_TAG = 700
+FOCAL_PLANE_X_RES = 41486
+FOCAL_PLANE_Y_RES = 41487
+FOCAL_PLANE_UNIT = 41488
+#: The EXIF tags read here, by the names tifffile gives the EXIF IFD's entries.
+EXIF_CODES = {
+    "ExposureTime": 33434, "ISOSpeedRatings": 34855, "ISOSpeed": 34867, "DateTimeOriginal": 36867,
+    "SubsecTimeOriginal": 37521, "SubsecTime": 37520, "FocalPlaneXResolution": FOCAL_PLANE_X_RES,
+    "FocalPlaneYResolution": FOCAL_PLANE_Y_RES, "FocalPlaneResolutionUnit": FOCAL_PLANE_UNIT,
+}
+_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}  # mm per unit: inch, cm, mm, um
+
+
+def rational(value: Any) -> float:
+    """A TIFF RATIONAL as tifffile gives it ((num, den), or a tuple of them) or a number, as float."""
+    if isinstance(value, tuple):
+        if len(value) == 2 and all(isinstance(v, int) for v in value):
+            return value[0] / value[1] if value[1] else float("nan")
+        return rational(value[0]) if value else float("nan")
+    return float(value)
+
+
+def tiff_tags(path: Path) -> dict[int, Any]:
+    """IFD0 tags of a TIFF by code, with the EXIF IFD's tags merged in (EXIF wins); tags a
+    writer put into IFD0 instead of the EXIF IFD are found too."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            page = tif.pages[0]
+            tags = {t.code: t.value for t in page.tags.values()}
+    except (tifffile.TiffFileError, ValueError, OSError, IndexError) as exc:
+        raise FrameError(f"not a readable TIFF ({type(exc).__name__}: {exc})", path=path) from None
+    exif = tags.get(EXIF_IFD)
+    if isinstance(exif, dict):  # tifffile gives the EXIF IFD as {name: value}
+        for name, value in exif.items():
+            code = EXIF_CODES.get(name) if isinstance(name, str) else name
+            if isinstance(code, int):
+                tags[code] = value
+    return tags
+
+
+def intrinsics_from_tags(tags: dict[int, Any], path: Path) -> Intrinsics | None:
+    """Intrinsics from a band file's tags (see the module docstring); None when the file
+    does not carry them (no XMP, or no PerspectiveFocalLength / PrincipalPoint)."""
+    packet = tags.get(XMP_TAG)
+    if packet is None:
+        return None
+    try:
+        props = xmp_properties(packet, path)
+    except FrameError:
+        return None
+    if "PerspectiveFocalLength" not in props or "PrincipalPoint" not in props:
+        return None
+    unit_mm = _UNIT_MM.get(int(tags.get(FOCAL_PLANE_UNIT, 4) or 4), 1.0)
+    try:
+        rx = rational(tags[FOCAL_PLANE_X_RES]) / unit_mm
+        ry = rational(tags.get(FOCAL_PLANE_Y_RES, tags[FOCAL_PLANE_X_RES])) / unit_mm
+    except KeyError:
+        raise FrameError("XMP PrincipalPoint is in mm but EXIF FocalPlaneXResolution is missing", path=path,
+                         hint="give the intrinsics in session.yaml, or fit them with 'mscal fit intrinsics'") from None
+    try:
+        f = float(props["PerspectiveFocalLength"] if not isinstance(props["PerspectiveFocalLength"], list)
+                  else props["PerspectiveFocalLength"][0])
+        units = str(props.get("PerspectiveFocalLengthUnits", "px")).strip().lower()
+        pp = [float(v) for v in str(props["PrincipalPoint"]).replace(" ", "").split(",")]
+        dist = props.get("PerspectiveDistortion", [])
+        dist = [float(v) for v in (dist if isinstance(dist, list) else str(dist).replace(",", " ").split())]
+    except (TypeError, ValueError):
+        raise FrameError("XMP PerspectiveFocalLength / PrincipalPoint / PerspectiveDistortion are not numbers",
+                         path=path, hint="give the intrinsics in session.yaml instead") from None
+    if len(pp) != 2 or not all(math.isfinite(v) for v in (f, rx, ry, *pp)) or rx <= 0 or ry <= 0:
+        raise FrameError(f"XMP PrincipalPoint {props['PrincipalPoint']!r} or the focal plane resolution is unusable",
+                         path=path, hint="give the intrinsics in session.yaml instead")
+    fx, fy = (f * rx, f * ry) if units == "mm" else (f, f * ry / rx)
+    k = (dist + [0.0] * 5)[:5]
+    opencv = (k[0], k[1], k[3], k[4], k[2])  # [k1, k2, k3, p1, p2] -> [k1, k2, p1, p2, k3]
+    try:
+        return Intrinsics(fx=fx, fy=fy, cx=pp[0] * rx, cy=pp[1] * ry, dist=opencv)
+    except Exception as exc:
+        raise FrameError(f"intrinsics from metadata are unusable: {exc}", path=path) from None
+
+
+def intrinsics_from_file(path: str | Path) -> Intrinsics | None:
+    """Intrinsics written into one band file, or None (:func:`intrinsics_from_tags`)."""
+    path = Path(path)
+    if path.suffix.lower() not in (".tif", ".tiff"):
+        return None
+    return intrinsics_from_tags(tiff_tags(path), path)
+
+
+def band_intrinsics_from_files(files: Sequence[Path]) -> tuple[Intrinsics, ...] | None:
+    """Per band the intrinsics of ``files`` (one band file per band, camera band order), or
+    None if any band file carries none."""
+    out = []
+    for f in files:
+        intr = intrinsics_from_file(f)
+        if intr is None:
+            return None
+        out.append(intr)
+    return tuple(out)
+
+
+# --------------------------------------------------------------------------- session.yaml
+
+
+def parse_band_intrinsics(data: Any, band_keys: Sequence[Sequence[str]], path: Path,
+                          parse_one) -> tuple[Intrinsics, ...]:
+    """session.yaml ``intrinsics`` given per band: a mapping from each band's name (or file
+    suffix, ``band_keys[b]`` lists the accepted keys of band ``b``) to ``{fx, fy, cx, cy,
+    dist}``; every band must be given exactly once. ``parse_one(mapping, path)`` parses one
+    band's entry."""
+    if not isinstance(data, dict):
+        raise SessionError("intrinsics must be a mapping", path=path)
+    out = []
+    used: set[str] = set()
+    for keys in band_keys:
+        hits = [k for k in keys if k in data]
+        if len(hits) != 1:
+            raise SessionError(
+                f"intrinsics: band {keys[0]!r} is {'missing' if not hits else 'given twice'}",
+                path=path,
+                hint="give intrinsics per band: {BAND_NAME: {fx, fy, cx, cy, dist}, ...} for every band, "
+                     "or one {fx, fy, cx, cy, dist} for all",
+            )
+        used.add(hits[0])
+        out.append(parse_one(data[hits[0]], path))
+    extra = sorted(str(k) for k in data if str(k) not in used and k not in used)
+    if extra:
+        raise SessionError(f"intrinsics: unknown band(s) {', '.join(extra)}", path=path)
+    return tuple(out)
+
+
+# --------------------------------------------------------------------------- store
+
+
+def intrinsics_array(intrinsics: Sequence[Intrinsics]) -> np.ndarray:
+    """(band, 9) float64 in :data:`INTRINSICS_PARAMS` order."""
+    return np.array([[i.fx, i.fy, i.cx, i.cy, *i.dist] for i in intrinsics], dtype=np.float64)
+
+
+def intrinsics_from_array(values: np.ndarray) -> tuple[Intrinsics, ...]:
+    """Inverse of :func:`intrinsics_array`."""
+    a = np.asarray(values, dtype=np.float64)
+    return tuple(Intrinsics(fx=r[0], fy=r[1], cx=r[2], cy=r[3], dist=tuple(r[4:9])) for r in a)
+
+
+__all__ = [
+    "EXIF_CODES",
+    "INTRINSICS_PARAMS",
+    "rational",
+    "band_intrinsics_from_files",
+    "intrinsics_array",
+    "intrinsics_from_array",
+    "intrinsics_from_file",
+    "intrinsics_from_tags",
+    "parse_band_intrinsics",
+    "tiff_tags",
+]
