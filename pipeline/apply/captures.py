@@ -115,8 +115,6 @@ def find_captures(folder: str | Path, camera: Camera) -> CaptureFolder:
             continue
         owner[c.capture_id] = c.name
         captures.append(c)
-    quarantined = [{"file": Path(q["file"]).name if Path(q["file"]).parent == Path(".") else q["file"],
-                    "reason": q["reason"]} for q in quarantined]
     return CaptureFolder(captures, sorted(quarantined, key=lambda q: q["file"]), skipped)
 
 

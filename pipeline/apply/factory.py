@@ -1,7 +1,9 @@
 """``mscal apply CAPTURE_DIR --calibration factory -o OUT``: cameras that write one file per
 band per capture and carry factory radiometric metadata (MicaSense RedEdge and the like).
 
-A frame is one capture (all its band files, grouped by file name, one XMP CaptureId per capture; :func:`pipeline.ingest.camera_meta.group_captures`). Per band file:
+A frame is one capture (all its band files, grouped by file name, one XMP CaptureId per capture,
+in the folder or an SD-card tree below it; :func:`pipeline.apply.captures.find_captures`). The factory
+chain runs in the one apply executor (:mod:`pipeline.apply.executor`). Per band file:
 
 - radiance ``L_b`` with the file's own factory model (black level, ``a1/gain/exposure`` with
   the row-gradient terms, radial vignetting polynomial; :func:`pipeline.ingest.camera_meta.factory_radiance`);
@@ -19,6 +21,10 @@ A frame is one capture (all its band files, grouped by file name, one XMP Captur
     W m-2 nm-1, no tilt correction).
 
   ``auto`` (default) takes the panel when ``--panel-reflectance`` is given, else the DLS.
+
+  With ``--illumination nearest|linear`` (panel route only) each capture gets the light of its
+  time instead of the panels' mean: the panel captures' ``S_c = 1 / k_c`` interpolated in time
+  and scaled by the captures' DLS readings between them (:func:`panel_light`, issue 8).
 
 Outputs as for every apply (SPEC "Outputs of apply"): ``reflectance.zarr`` with
 ``reflectance`` and ``radiance`` (frame, band, y, x) float32 and the indices, ``raw.zarr``

@@ -109,3 +109,20 @@ def test_cluster_run_of_a_multilens_session(cluster: str, multilens_session, tmp
                  "-o", str(alone)]) == 0
     assert json.loads((alone / "run.json").read_text())["scheduler"] != "distributed"
     assert_same_flight_outputs(out / "flights" / "field", alone)
+
+
+def test_factory_apply_runs_on_the_cluster(cluster: str, tmp_path) -> None:
+    """The factory chain goes through the same executor, so under a distributed client its
+    captures are computed on the cluster, with the outputs of a local run."""
+    from distributed import Client
+
+    from pipeline.apply.factory import FactoryOptions, apply_factory
+    from tests.micasense_data import require_data
+
+    opts = FactoryOptions(panel_reflectance="micasense-rp02-1603036-sc")
+    with Client(cluster, timeout="30s"):
+        remote = apply_factory(require_data(), tmp_path / "remote", opts)
+    local = apply_factory(require_data(), tmp_path / "local", opts)
+    assert remote.run["scheduler"] == "distributed" and local.run["scheduler"] != "distributed"
+    assert remote.run["frames_out"] == local.run["frames_out"] == 2
+    assert_same_flight_outputs(tmp_path / "remote", tmp_path / "local")

@@ -160,3 +160,32 @@ def test_factory_panel_light_follows_the_sun_sensor(tmp_path) -> None:
     assert ratio == pytest.approx(per["IMG_0001"]["NIR"], rel=1e-5)
     b = xr.open_zarr(tmp_path / "flat" / "reflectance.zarr")
     np.testing.assert_array_equal(a["reflectance"].values[0], b["reflectance"].values[0])
+
+
+def test_field_store_light_follows_the_captures_sun_sensor(store, field_run, tmp_path) -> None:
+    """A store whose reflector capture has a sun-sensor reading (issue 8): each multi-lens
+    capture's light is scaled by its own DLS reading (the mean of its bands' XMP Irradiance),
+    so reflectance is Eq. 15 x E(reflector capture) / E(capture)."""
+    from pipeline.storage.store import write_store
+
+    e = {c: float(np.mean([read_capture_meta(require_data() / f"{c}_{b}.tif").irradiance for b in range(1, 6)]))
+         for c in ("IMG_0000", "IMG_0001")}
+    ds = xr.open_zarr(store, chunks=None).load()
+    s = ds["spectral_factor"].values
+    ds["capture_spectral_factor"] = (("capture", "band"), s[None])
+    ds["capture_level"] = (("capture",), [float(np.exp(np.mean(np.log(s))))])
+    ds["capture_irradiance"] = (("capture",), [e["IMG_0000"]])
+    ds = ds.assign_coords(capture_name=("capture", np.array(["before"], dtype=object)),
+                          capture_time=("capture", np.array(["2017-10-19T20:40:39"], dtype="datetime64[ns]")))
+    lit_store = write_store(ds, tmp_path / "lit.zarr")
+    out = tmp_path / "out"
+    assert main(["apply", str(require_data()), "--calibration", str(lit_store), "-o", str(out)]) == 0
+    lit = xr.open_zarr(out / "reflectance.zarr")["reflectance"].values
+    plain = xr.open_zarr(field_run / "reflectance.zarr")["reflectance"].values
+    for f, c in enumerate(("IMG_0000", "IMG_0001")):
+        ratio = np.nanmedian(lit[f] / plain[f], axis=(1, 2))
+        np.testing.assert_allclose(ratio, e["IMG_0000"] / e[c], rtol=1e-5)
+    run = json.loads((out / "run.json").read_text())
+    assert run["illumination"]["varies_in_time"] is True
+    assert run["illumination"]["frames_with_irradiance"] == 2
+    assert e["IMG_0000"] / e["IMG_0001"] != pytest.approx(1.0, abs=0.05)  # the readings differ enough to tell
