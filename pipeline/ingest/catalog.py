@@ -19,6 +19,7 @@ import numpy as np
 import yaml
 
 from mscal_core.errors import CatalogError
+from mscal_core.reflectance import keep_valid
 
 CATALOG_ROOT = Path(__file__).resolve().parents[2] / "catalogs"
 LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band")
@@ -440,16 +441,12 @@ class Index:
     valid_range: tuple[float, float] | None = None
 
     def evaluate(self, bands: Mapping[str, np.ndarray]) -> np.ndarray:
-        """Evaluate on arrays keyed by role; division by zero gives NaN, never inf."""
+        """Evaluate on arrays keyed by role; NaN where the value is not finite (division by zero)
+        or outside ``valid_range`` (:func:`mscal_core.reflectance.keep_valid`)."""
         code = compile(ast.parse(self.expression, mode="eval"), "<index>", "eval")
         with np.errstate(divide="ignore", invalid="ignore"):
             out = eval(code, {"__builtins__": {}}, {k: bands[k] for k in self.inputs})  # noqa: S307 (validated AST)
-        out = np.asarray(out, dtype=np.float32)
-        out[~np.isfinite(out)] = np.nan
-        if self.valid_range is not None:
-            lo, hi = self.valid_range
-            out = np.where((out < lo) | (out > hi), np.nan, out).astype(np.float32)
-        return out
+        return keep_valid(np.asarray(out, dtype=np.float32), self.valid_range)
 
 
 def parse_index(data: Mapping[str, Any], path: Path) -> Index:

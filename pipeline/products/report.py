@@ -37,7 +37,7 @@ from matplotlib.ticker import MaxNLocator
 
 from mscal_core.errors import InputError
 from mscal_core.illumination import colour_change, split_level
-from mscal_core.reflectance import eq15, ndvi
+from mscal_core.reflectance import eq15, ndvi, otsu_ndvi_threshold, vegetation_mask
 from mscal_core.registration import local_motion
 
 from pipeline.ingest.catalog import Camera, load_camera
@@ -698,21 +698,6 @@ def flight_warnings(flight: FlightResults, calibration: xr.Dataset | None = None
 # --------------------------------------------------------------------------- flight plots
 
 
-def otsu_threshold(values: np.ndarray, bins: int = 256) -> float:
-    """Otsu's threshold of the finite ``values`` (maximum between-class variance)."""
-    v = values[np.isfinite(values)]
-    if v.size == 0 or v.min() == v.max():
-        return float("nan")
-    hist, edges = np.histogram(v, bins=bins)
-    centres = (edges[:-1] + edges[1:]) / 2
-    w0 = np.cumsum(hist)
-    w1 = w0[-1] - w0
-    m0 = np.cumsum(hist * centres)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        between = w0 * w1 * (m0 / w0 - (m0[-1] - m0) / w1) ** 2
-    return float(centres[int(np.nanargmax(between))])
-
-
 def ndvi_pairs(flight: FlightResults) -> list[dict[str, Any]]:
     """Raw-DN NDVI and calibrated NDVI of up to :data:`NDVI_MAX_FRAMES` frames."""
     roles = _role_bands(flight)
@@ -749,10 +734,10 @@ def plot_ndvi(flight: FlightResults) -> Figure:
             ax.imshow(p[key], cmap="RdYlGn", vmin=-1, vmax=1, interpolation="nearest")
             ax.set_title(f"{p['frame']}: NDVI {kind}", fontsize=7)
             _image_axes(ax)
-            thr = otsu_threshold(p[key])
+            thr = otsu_ndvi_threshold(p[key])  # the stored vegetation_mask's segmentation
             ax = fig.add_subplot(len(pairs), 4, 4 * i + j + 3)
-            ax.imshow(p[key] > thr, cmap="Greens", vmin=0, vmax=1, interpolation="nearest")
-            ax.set_title(f"Otsu on {kind} (NDVI > {thr:.2f})", fontsize=7)
+            ax.imshow(vegetation_mask(p[key]) == 1, cmap="Greens", vmin=0, vmax=1, interpolation="nearest")
+            ax.set_title(f"Otsu on {kind} (NDVI >= {thr:.2f})", fontsize=7)
             _image_axes(ax)
     fig.suptitle("NDVI quick-looks: raw DN vs calibrated (paper Fig. 1e/f)", fontsize=9)
     return fig
