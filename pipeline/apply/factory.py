@@ -58,6 +58,7 @@ import mscal_core
 from mscal_core.errors import CalibrationStoreError, FrameError, InputError
 from mscal_core.illumination import fit_illumination
 from mscal_core.panel import sample_quad
+from mscal_core.reflectance import vegetation_mask
 
 from pipeline.apply.flight import (
     geometry_step,
@@ -65,15 +66,11 @@ from pipeline.apply.flight import (
     RUN_JSON,
     ApplyResult,
     Runner,
-    _clean_temporaries,
-    _index_roles,
-    _install,
-    _remove_frame_tiffs,
-    _up_to_date,
-    _versions,
-    _write_json_atomic,
+    index_roles,
+    remove_frame_tiffs,
+    run_versions,
+    up_to_date,
     export_band_indices,
-    otsu_mask,
     write_frame,
 )
 from pipeline.ingest.camera_meta import Capture, CaptureMeta, FieldParts, factory_radiance, group_captures, read_capture_meta
@@ -83,7 +80,8 @@ from pipeline.ingest.discover import quarantine_entry
 from pipeline.ingest.raw import raw_codec
 from pipeline.apply.panel import SATURATION_DN, PanelBand, panel_factors
 from pipeline.ingest.session import PanelConfig, decode_raw, panel_config_near
-from pipeline.products.writers import TMP_MARK, BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
+from pipeline.products.writers import BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
+from pipeline.storage.atomic import install_folder, remove_temporaries, temporary_folder_name, write_json_atomic
 
 FACTORY = "factory"
 REFERENCES = ("auto", "panel", "dls")
@@ -345,7 +343,7 @@ def process_capture(plan: CapturePlan, job: CaptureJob) -> CaptureOutcome:
         if ix.name == "ndvi":
             ndvi = val
     if ndvi is not None and "vegetation_mask" in plan.outputs:
-        write_frame(plan.out_store / "vegetation_mask", job.index, otsu_mask(ndvi))
+        write_frame(plan.out_store / "vegetation_mask", job.index, vegetation_mask(ndvi))
     for b, btags in plan.bands:
         write_band_tiff(plan.out / "photogrammetry" / f"{cap.name}_{btags.name}.tif", refl[b], job.tags, btags,
                         dtype=plan.tiff_dtype)
@@ -403,7 +401,7 @@ def _create(ds: xr.Dataset, path: Path, compressors: Any) -> None:
 
 
 def _tmp(out: Path, name: str) -> Path:
-    return out / f".{name}{TMP_MARK}{uuid.uuid4().hex[:8]}"
+    return temporary_folder_name(out / name)
 
 
 def _registration(options: FactoryOptions, camera: Camera, shape: tuple[int, int, int]) -> tuple[Path, str] | None:
@@ -486,7 +484,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     shape = (camera.n_bands, *shapes.pop())
     export = export_band_indices(camera, options.export_bands)
     indices = [load_index(n) for n in options.indices]
-    roles = {ix.name: _index_roles(camera, ix) for ix in indices}
+    roles = {ix.name: index_roles(camera, ix) for ix in indices}
 
     registration = _registration(options, camera, shape)
     field = _field(options, camera, shape)
@@ -504,10 +502,10 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         fingerprint["panel_config"] = {"session_yaml": str(near[1].resolve()), "panel": repr(near[0])}
     fingerprint = json.loads(json.dumps(fingerprint))
     out.mkdir(parents=True, exist_ok=True)
-    previous = _up_to_date(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
+    previous = up_to_date(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
     if previous is not None:
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
-    _clean_temporaries(out)
+    remove_temporaries(out)
 
     reference = options.reference
     if reference == "auto":
@@ -537,15 +535,15 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                 break
             ps.discard()
             for name, q in bad.items():
-                _remove_frame_tiffs(out, [name], camera, export)
+                remove_frame_tiffs(out, [name], camera, export)
                 quarantined.append(q)
             captures = [c for c in captures if c.name not in bad]
             if not captures:
                 raise FrameError("no usable capture in the folder (all quarantined)", path=folder,
                                  hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
     t_pass = time.perf_counter() - t0
-    _install(out, ps.tmp_raw, "raw.zarr")
-    _install(out, ps.tmp_refl)
+    install_folder(ps.tmp_raw, out / "raw.zarr")
+    install_folder(ps.tmp_refl, out / "reflectance.zarr")
     frames = [o.name for o in outcomes]
     quarantined.sort(key=lambda q: q["file"])
     run = {
@@ -565,12 +563,12 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         "outputs": {"reflectance": "reflectance.zarr", "raw": "raw.zarr", "photogrammetry": "photogrammetry/",
                     "ndvi": "ndvi/"},
         "export_bands": [camera.bands[b].name for b in export],
-        "versions": _versions(),
+        "versions": run_versions(),
         "scheduler": runner.scheduler,
         "timings_s": {"apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
         "fingerprint": fingerprint,
     }
-    _write_json_atomic(out / RUN_JSON, run)
+    write_json_atomic(out / RUN_JSON, run)
     return ApplyResult(out, run, up_to_date=False, quarantined=quarantined)
 
 

@@ -42,19 +42,20 @@ import xarray as xr
 
 import mscal_core
 from mscal_core.errors import FrameError, InputError
-from mscal_core.reflectance import eq15_fast, eq15_tables
+from mscal_core.reflectance import eq15_fast, eq15_tables, vegetation_mask
 from mscal_core.registration import align_bands, mosaic_centre_offsets, shift_bands
 
 from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS, FrameChunks
 from pipeline.ingest.discover import quarantine_entry
 from pipeline.calibrate.registration import check_transforms, frame_transforms
-from pipeline.ingest.raw import (FRAME_COORDS, Cube, _Writer, frame_coords, frame_row, ingest_flight, open_cube, prefetch_file, read_frame,
+from pipeline.ingest.raw import (FRAME_COORDS, Cube, CubeWriter, frame_coords, frame_row, ingest_flight, open_cube, prefetch_file, read_frame,
                      shape_problem)
 from pipeline.ingest.session import FrameRecord
 from pipeline.apply.light import DEFAULT_MODE, IlluminationPlan, illumination_plan, varies_in_time
 from pipeline.storage.store import open_calibration
-from pipeline.products.writers import TMP_MARK, BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
+from pipeline.products.writers import BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
+from pipeline.storage.atomic import install_folder, remove_temporaries, temporary_folder_name, write_json_atomic
 
 RUN_JSON = "run.json"
 MAX_EXPORT_BANDS = 8
@@ -135,26 +136,6 @@ def calibration_hash(ds: xr.Dataset) -> str:
     return h.hexdigest()
 
 
-def _clean_temporaries(out: Path) -> None:
-    """Remove what a killed run left under temporary names."""
-    if not out.is_dir():
-        return
-    for p in list(out.rglob(f"*{TMP_MARK}*")):
-        if p.is_dir():
-            shutil.rmtree(p, ignore_errors=True)
-        elif p.exists():
-            p.unlink(missing_ok=True)
-
-
-def _write_json_atomic(path: Path, data: dict[str, Any]) -> None:
-    tmp = path.with_name(f".{path.name}{TMP_MARK}{uuid.uuid4().hex[:8]}")
-    with tmp.open("w") as fh:
-        json.dump(data, fh, indent=2, sort_keys=True)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-
-
 def export_band_indices(camera: Camera, names: Sequence[str] | None) -> list[int]:
     names = list(names) if names else list(camera.export_bands) or camera.band_names[:MAX_EXPORT_BANDS]
     unknown = [n for n in names if n not in camera.band_names]
@@ -176,7 +157,7 @@ def _band_index(camera: Camera, text: str) -> int:
                          hint=f"bands: {', '.join(camera.band_names)}") from None
 
 
-def _index_roles(camera: Camera, index: Index) -> dict[str, int]:
+def index_roles(camera: Camera, index: Index) -> dict[str, int]:
     missing = [r for r in index.inputs if r not in camera.index_bands]
     if missing:
         raise InputError(
@@ -189,19 +170,6 @@ def _index_roles(camera: Camera, index: Index) -> dict[str, int]:
 def capture_uuid(camera: Camera, sha256: str) -> str:
     """Deterministic CaptureUUID of a frame (the same on every re-run)."""
     return str(uuid.uuid5(uuid.NAMESPACE_URL, f"mscal:{camera.name}:{sha256}"))
-
-
-def otsu_mask(ndvi: np.ndarray) -> np.ndarray:
-    """The paper's vegetation segmentation: Otsu threshold of the NDVI of one frame (uint8 0/1,
-    255 where NDVI is not defined)."""
-    ok = np.isfinite(ndvi)
-    out = np.full(ndvi.shape, 255, dtype=np.uint8)
-    if ok.sum() < 2:
-        return out
-    scaled = np.clip((ndvi[ok] + 1.0) * 127.5, 0, 255).astype(np.uint8)
-    thr, _ = cv2.threshold(scaled.reshape(-1, 1), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    out[ok] = (scaled > thr).astype(np.uint8)
-    return out
 
 
 # --------------------------------------------------------------------------- the lazy graph
@@ -518,7 +486,7 @@ def process_frame(plan: FramePlan, job: FrameJob) -> FrameOutcome:
         if ix.name == "ndvi":
             ndvi = val
     if ndvi is not None and "vegetation_mask" in plan.outputs:
-        write_frame(store / "vegetation_mask", job.index, otsu_mask(ndvi))
+        write_frame(store / "vegetation_mask", job.index, vegetation_mask(ndvi))
     for b, btags in plan.bands:
         write_band_tiff(plan.out / "photogrammetry" / f"{job.name}_{btags.name}.tif", refl[b], tags, btags,
                         dtype=plan.tiff_dtype)
@@ -646,7 +614,7 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
         ds["reflectance"].attrs["aligned_to_band"] = reference
     if band_shift is not None:
         ds["reflectance"].attrs["band_positions"] = "resampled to the mosaic's centre position (--centre-bands)"
-    tmp_store = out / f".reflectance.zarr{TMP_MARK}{uuid.uuid4().hex[:8]}"
+    tmp_store = temporary_folder_name(out / "reflectance.zarr")
     encoding = {v: {"chunks": (1, *ds[v].shape[1:]), "compressors": OUTPUT_COMPRESSORS,
                     "chunk_key_encoding": FLAT_CHUNK_KEYS} for v in ds.data_vars}
     with warnings.catch_warnings():
@@ -688,7 +656,7 @@ def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path:
     return reflectance
 
 
-def _remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export: Sequence[int]) -> None:
+def remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export: Sequence[int]) -> None:
     for name in names:
         for b in export:
             (out / "photogrammetry" / f"{name}_{camera.bands[b].name}.tif").unlink(missing_ok=True)
@@ -718,7 +686,7 @@ def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_p
         return dn
 
     ps = start(coords, file_dn)
-    writer = _Writer(cube.path, cube.group, cube.committed, cube.shape, cube.camera, commit_every=len(recs) + 1,
+    writer = CubeWriter(cube.path, cube.group, cube.committed, cube.shape, cube.camera, commit_every=len(recs) + 1,
                      pool=None, workers=1)  # type: ignore[arg-type]  (no chunk writes of its own)
     seen: set[str] = set()
     outcomes: list[FrameOutcome] = []
@@ -778,7 +746,7 @@ def _fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
     return json.loads(json.dumps(fingerprint))  # as it reads back from run.json
 
 
-def _up_to_date(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = ("reflectance.zarr",)
+def up_to_date(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = ("reflectance.zarr",)
                 ) -> dict[str, Any] | None:
     """The previous run's record if it made the outputs (``stores`` in ``out``) of exactly these inputs."""
     run_path = out / RUN_JSON
@@ -791,19 +759,7 @@ def _up_to_date(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = 
     return previous if previous.get("fingerprint") == fingerprint else None
 
 
-def _install(out: Path, tmp_store: Path, name: str = "reflectance.zarr") -> None:
-    """Rename a store written under a temporary name to ``out/name``, replacing the old one."""
-    final = out / name
-    if final.exists():
-        old = out / f".{name}.old{TMP_MARK}{uuid.uuid4().hex[:8]}"
-        os.replace(final, old)
-        os.replace(tmp_store, final)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp_store, final)
-
-
-def _versions() -> dict[str, str]:
+def run_versions() -> dict[str, str]:
     versions = {"mscal": mscal_core.__version__, "python": platform.python_version(), "numpy": np.__version__,
                 "dask": dask.__version__, "xarray": xr.__version__, "opencv": cv2.__version__}
     try:
@@ -854,11 +810,11 @@ def apply_flight(
     chash = calibration_hash(calib)
     export = export_band_indices(camera, options.export_bands)
     indices = [load_index(n) for n in options.indices]
-    roles = {ix.name: _index_roles(camera, ix) for ix in indices}
+    roles = {ix.name: index_roles(camera, ix) for ix in indices}
     sat = saturation_dn(calib, camera)
     geometry = _geometry(calib, camera, options)
     out.mkdir(parents=True, exist_ok=True)
-    _clean_temporaries(out)
+    remove_temporaries(out)
     raw_path = out / "raw.zarr"
 
     def start(coords: xr.Dataset, frame_dn: Callable[[int], np.ndarray]) -> _Pass:
@@ -898,17 +854,17 @@ def apply_flight(
             illum = illumination_plan(calib, [str(f) for f in raw["frame"].values], raw["time"].values,
                                       flight_dir, options.illumination)
             fingerprint = _fingerprint(shas, chash, options, illum)
-            previous = _up_to_date(out, fingerprint)
+            previous = up_to_date(out, fingerprint)
             if previous is not None:
                 previous["quarantined"] = quarantined
                 return ApplyResult(out, previous, up_to_date=True, quarantined=quarantined)
-            _remove_frame_tiffs(out, [Path(q["file"]).stem for q in quarantined], camera, export)
+            remove_frame_tiffs(out, [Path(q["file"]).stem for q in quarantined], camera, export)
             done = _cube_pass(out, runner, start, calib_path, sat, camera)
         else:
             quarantined = sorted(quarantined, key=lambda q: q["file"])
     ps, outcomes = done
     t_pass = time.perf_counter() - t0
-    _install(out, ps.tmp_store)
+    install_folder(ps.tmp_store, out / "reflectance.zarr")
     frames = [o.name for o in outcomes]
     sat_counts = [o.saturated for o in outcomes]
     shas = [str(s) for s in ps.coords["sha256"].values]  # the pass's frames, in cube order
@@ -923,12 +879,12 @@ def apply_flight(
         "saturated_pixels": {"total": int(np.sum(sat_counts)), "per_frame": {n: int(c) for n, c in zip(frames, sat_counts)}},
         "outputs": {"reflectance": "reflectance.zarr", "photogrammetry": "photogrammetry/", "ndvi": "ndvi/"},
         "export_bands": [camera.bands[b].name for b in export],
-        "versions": _versions(),
+        "versions": run_versions(),
         "scheduler": runner.scheduler,
         "single_pass": single,
         "timings_s": {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
         "illumination": _illumination_record(ps, calib, options),
         "fingerprint": _fingerprint(shas, chash, options, ps.illum),
     }
-    _write_json_atomic(out / RUN_JSON, run)
+    write_json_atomic(out / RUN_JSON, run)
     return ApplyResult(out, run, up_to_date=False, quarantined=quarantined)

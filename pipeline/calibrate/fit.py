@@ -25,7 +25,7 @@ from mscal_core.mosaic import band_offsets
 
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.camera_meta import xmp_irradiance
-from pipeline.ingest.raw import NAT, _time_ns
+from pipeline.ingest.exif import NAT, time_ns
 from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES, FrameRecord, Session, load_session, read_bands, read_frame_table
 from pipeline.storage.store import content_hashes, new_dataset, open_calibration, write_store
 
@@ -371,7 +371,7 @@ class ReflectorCapture:
 
 
 def _time_s(rec: FrameRecord) -> float:
-    ns = _time_ns(rec.time)
+    ns = time_ns(rec.time)
     return float("nan") if ns == NAT else ns / 1e9
 
 

@@ -48,12 +48,10 @@ import os
 import shutil
 import signal
 import time as _time
-import uuid
 import warnings
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable
 
@@ -64,6 +62,8 @@ import mscal_core
 from mscal_core.errors import FrameError, InputError
 
 from pipeline.ingest.catalog import Camera, load_camera
+from pipeline.ingest.exif import time_ns
+from pipeline.storage.atomic import TMP_MARK, atomic_folder
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 from pipeline.ingest.discover import Discovery, discover_flight, quarantine_entry
 from pipeline.ingest.session import FrameRecord, decode_raw, to_bands
@@ -79,8 +79,6 @@ FRAME_VARS = ("dn", *FRAME_COORDS)
 STRING_COORDS = ("frame", "source_file", "sha256")
 COORD_CHUNK = 4096  # frames per chunk of a frame coordinate (rewritten whole at each commit)
 TIME_UNITS = "nanoseconds since 1970-01-01"
-NAT = np.iinfo(np.int64).min  # how xarray encodes NaT in an int64 time variable
-TMP_MARK = ".tmp-"
 KILL_ENV = "MSCAL_TEST_KILL_AT"  # test hook: "frame:N", "coords:K", "consolidated:K", ...
 
 
@@ -105,16 +103,6 @@ def _test_kill(point: str, count: int | None = None) -> None:
     spec = os.environ.get(KILL_ENV)
     if spec and (spec == point or (count is not None and spec == f"{point}:{count}")):
         os.kill(os.getpid(), signal.SIGKILL)
-
-
-def _time_ns(text: str | None) -> int:
-    """ISO 8601 text -> int64 ns since the epoch (UTC when it has an offset); NaT if None."""
-    if not text:
-        return NAT
-    dt = datetime.fromisoformat(text.replace("Z", "+00:00"))
-    if dt.tzinfo is not None:
-        dt = dt.astimezone(timezone.utc).replace(tzinfo=None)
-    return int(np.datetime64(dt, "ns").astype(np.int64))
 
 
 def _nan(v: float | None) -> float:
@@ -201,12 +189,12 @@ def shape_problem(bands_shape: tuple[int, ...], cube_shape: tuple[int, ...] | No
 
 
 def frame_row(rec: FrameRecord, sha: str) -> dict:
-    """One frame's values of the cube's frame coordinates (as :meth:`_Writer.commit` stores them)."""
+    """One frame's values of the cube's frame coordinates (as :meth:`CubeWriter.commit` stores them)."""
     return {
         "frame": rec.name,
         "exposure_ms": float(rec.exposure_ms),
         "gain": float(rec.gain),
-        "time": _time_ns(rec.time),
+        "time": time_ns(rec.time),
         "lat": _nan(rec.lat),
         "lon": _nan(rec.lon),
         "alt_m": _nan(rec.alt_m),
@@ -334,18 +322,13 @@ def _encoding(shape: tuple[int, int, int], compress: bool = True) -> dict:
 
 def _create(out: Path, camera: Camera, shape: tuple[int, int, int], compress: bool = True) -> None:
     """Create the empty cube under a temporary name and rename it into place."""
-    tmp = out.parent / f".{out.name}{TMP_MARK}{uuid.uuid4().hex[:8]}"
-    try:
+    with atomic_folder(out) as tmp:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Consolidated metadata")
             _template(camera, shape).to_zarr(
                 tmp, mode="w", encoding=_encoding(shape, compress), consolidated=True, zarr_format=3
             )
         _test_kill("create")
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _root_meta(out: Path) -> dict:
@@ -513,7 +496,7 @@ def ingest_flight(
             # Each frame in file-name order: hash it; decode it only if it is new. Tasks run
             # ahead in the pool (bounded); results are taken in order, so frame indices and
             # quarantine decisions do not depend on timing.
-            writer = _Writer(out, group, committed, shape, camera, commit_every, pool, workers, compress)
+            writer = CubeWriter(out, group, committed, shape, camera, commit_every, pool, workers, compress)
             window: deque[tuple[FrameRecord, Future]] = deque()
             todo = iter(found.frames)
             lookahead = 2 * max(1, workers)
@@ -580,7 +563,7 @@ def ingest_flight(
     return result
 
 
-class _Writer:
+class CubeWriter:
     """Appends frames to the cube: whole chunks first, coordinates next, commit counter last.
 
     Chunks are written by the pool's threads, each a whole chunk of its own frame index

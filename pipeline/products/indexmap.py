@@ -42,7 +42,8 @@ import numpy as np
 from mscal_core.errors import InputError
 
 from pipeline.ingest.catalog import Index, load_index
-from pipeline.products.writers import REFLECTANCE_SCALE, atomic_path
+from pipeline.products.writers import REFLECTANCE_SCALE
+from pipeline.storage.atomic import atomic_path
 
 __all__ = ["ROLE_ALIASES", "ROLE_WAVELENGTHS", "index_map", "parse_bands_option", "resolve_bands"]
 

@@ -22,8 +22,6 @@ import html
 import io
 import json
 import math
-import os
-import uuid
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
@@ -42,7 +40,7 @@ from mscal_core.registration import local_motion
 
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.storage.store import open_calibration
-from pipeline.products.writers import TMP_MARK
+from pipeline.storage.atomic import write_text_atomic
 
 # --------------------------------------------------------------------------- thresholds
 
@@ -1149,7 +1147,7 @@ def season_sections(stats: Any) -> list[Section]:
 def write_season_report(stats: Any, out_html: str | Path, title: str | None = None) -> Path:
     """A self-contained page of the season plots of an ``mscal stats`` table, atomically."""
     out_html = Path(out_html)
-    _write_atomic(out_html, sections_html(season_sections(stats), title or "mscal season report"))
+    write_text_atomic(out_html, sections_html(season_sections(stats), title or "mscal season report"))
     return out_html
 
 
@@ -1301,18 +1299,6 @@ def sections_html(sections: Sequence[Section], title: str) -> str:
     return "\n".join(parts)
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to a hidden temporary sibling (named with ``TMP_MARK``), then rename."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}{TMP_MARK}{uuid.uuid4().hex[:8]}")
-    try:
-        tmp.write_text(text, encoding="utf-8")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
 def write_report(out_html: str | Path, *, calibration: str | Path | xr.Dataset | None = None,
                  flights: Iterable[str | Path | FlightResults] = (), title: str | None = None,
                  stats: Any = None) -> Path:
@@ -1334,6 +1320,6 @@ def write_report_and_markdown(out_html: str | Path, *, calibration: str | Path |
     title = title or "mscal QA report" + (f": {ds.attrs.get('camera')}" if ds is not None else "")
     page = sections_html(sections, title)
     if ds is not None:
-        _write_atomic(out_html.parent / "calibration.json", json.dumps(calibration_summary(ds), indent=2))
-    _write_atomic(out_html, page)
+        write_text_atomic(out_html.parent / "calibration.json", json.dumps(calibration_summary(ds), indent=2))
+    write_text_atomic(out_html, page)
     return out_html, sections_markdown(sections, title)

@@ -70,6 +70,8 @@ import yaml
 
 from mscal_core.errors import InputError
 
+from pipeline.ingest.exif import parse_iso
+
 log = logging.getLogger(__name__)
 
 __all__ = [
@@ -441,7 +443,7 @@ def _locked(root: Path) -> Iterator[None]:
 
 
 def _write_json(path: Path, d: dict[str, Any]) -> None:
-    from pipeline.products.writers import atomic_path
+    from pipeline.storage.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(d, indent=2, sort_keys=False) + "\n", encoding="utf-8")
@@ -585,7 +587,7 @@ def catalog_rasters(catalog: str | Path, index_name: str, skipped: list[str] | N
             continue
         props = d.get("properties", {})
         when = props.get("datetime") or props.get("start_datetime")
-        day = datetime.fromisoformat(when.replace("Z", "+00:00")).date() if when else None
+        day = parse_iso(when).date() if when else None
         out.append({"path": str((p.parent / pick["href"]).resolve()), "item": d.get("id"),
                     "collection": d.get("collection", ""), "date": day})
     return out

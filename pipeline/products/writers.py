@@ -36,26 +36,25 @@ is with NaN (``GDAL_NODATA = nan``). NDVI TIFFs are float32 with NaN.
 
 The TIFF is written here with ``struct`` (baseline, little-endian, uncompressed strips): it is
 a small, well-defined format and neither GDAL nor tifffile writes EXIF/GPS sub-IFDs. Every file
-is written to a temporary sibling name, fsynced, and renamed (:func:`atomic_path`).
+is written to a temporary sibling name and renamed
+(:func:`pipeline.storage.atomic.atomic_path`).
 """
 
 from __future__ import annotations
 
 import math
-import os
 import struct
-import uuid
-from contextlib import contextmanager
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import datetime
 from fractions import Fraction
 from pathlib import Path
-from typing import Iterator
 from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
 
 from mscal_core.errors import CatalogError
+from pipeline.ingest.exif import U32, degrees_to_dms, parse_iso, to_rational, utc_naive
+from pipeline.storage.atomic import atomic_path
 from pipeline.storage.directio import write_file
 
 __all__ = [
@@ -64,7 +63,6 @@ __all__ = [
     "NODATA_UINT16",
     "REFLECTANCE_SCALE",
     "XMP_CAMERA_NS",
-    "atomic_path",
     "build_xmp",
     "encode_reflectance_uint16",
     "write_band_tiff",
@@ -103,75 +101,6 @@ class BandTags:
     rig_camera_index: int
 
 
-# --------------------------------------------------------------------------- atomic files
-
-
-#: Marks temporary names; a restarted run removes whatever carries it (``apply``).
-TMP_MARK = ".tmp-"
-
-
-@contextmanager
-def atomic_path(path: str | Path, *, durable: bool = False) -> Iterator[Path]:
-    """Yield a temporary sibling of ``path``; on success rename it onto ``path``.
-
-    A killed process leaves either the old file or the complete new one, never a partial one.
-    ``durable`` also fsyncs the file and its folder (survives power loss); per-frame outputs
-    skip it because thousands of fsyncs cost more than the rest of the write, and a run cut
-    by power loss is redone anyway (run.json is written last).
-    The temporary name is hidden (``.<stem>.tmp-<random><suffix>``) and does not exist when
-    yielded: the caller creates it (so the file gets the usual permissions). On any exception
-    the temporary file and any sidecar GDAL left next to it (``<tmp>.aux.xml``, ``<tmp>.ovr``)
-    are removed and the exception propagates; ``path`` is untouched. The parent folder is
-    created if missing.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}{TMP_MARK}{uuid.uuid4().hex[:12]}{path.suffix}")
-    try:
-        yield tmp
-        if not tmp.is_file():
-            raise FileNotFoundError(f"{tmp}: nothing was written to the temporary file for {path}")
-        if durable:
-            fd = os.open(tmp, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-        os.replace(tmp, path)
-        if durable:
-            _fsync_dir(path.parent)
-    except BaseException:
-        _remove_tmp(tmp)
-        raise
-    finally:
-        # GDAL may leave PAM sidecars (.aux.xml) next to a temporary raster: never leave them.
-        for ext in _SIDECARS:
-            _remove_tmp(tmp.with_name(tmp.name + ext))
-
-
-_SIDECARS = (".aux.xml", ".ovr", ".msk")
-
-
-def _remove_tmp(tmp: Path) -> None:
-    try:
-        tmp.unlink(missing_ok=True)
-    except OSError:
-        pass
-
-
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 # --------------------------------------------------------------------------- pixel encoding
 
 
@@ -194,7 +123,6 @@ def encode_reflectance_uint16(reflectance: np.ndarray) -> np.ndarray:
 
 _BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _UNDEFINED = 1, 2, 3, 4, 5, 7
 _TYPE_SIZE = {_BYTE: 1, _ASCII: 1, _SHORT: 2, _LONG: 4, _RATIONAL: 8, _UNDEFINED: 1}
-_U32 = 0xFFFFFFFF
 
 
 def _align(n: int, a: int = 4) -> int:
@@ -223,7 +151,7 @@ class _IFD:
             data = struct.pack(f"<{len(vals)}I", *vals)
             count = len(vals)
         elif typ == _RATIONAL:
-            vals = [_rational(v) for v in values]
+            vals = [to_rational(v) for v in values]
             data = b"".join(struct.pack("<II", n, d) for n, d in vals)
             count = len(vals)
         else:  # pragma: no cover - programming error
@@ -255,38 +183,16 @@ def _ascii(text: str) -> bytes:
     return str(text).encode("ascii", errors="replace") + b"\0"
 
 
-def _rational(v) -> tuple[int, int]:
-    if isinstance(v, tuple):
-        n, d = v
-    else:
-        f = Fraction(v)
-        if f.denominator > _U32 or f.numerator > _U32:
-            bound = min(_U32, int(_U32 / max(float(f), 1.0)))
-            f = f.limit_denominator(max(bound, 1))
-        n, d = f.numerator, f.denominator
-    if not (0 <= n <= _U32 and 0 < d <= _U32):
-        raise ValueError(f"value {v!r} does not fit an unsigned TIFF RATIONAL")
-    return int(n), int(d)
-
-
 def _exposure_rational(exposure_ms: float) -> tuple[int, int]:
     """Exposure time in seconds as a reduced fraction (2.5 ms -> 1/400)."""
     secs = exposure_ms / 1000.0
     denom = 1_000_000_000
-    while denom > 1 and secs * denom > _U32:
+    while denom > 1 and secs * denom > U32:
         denom //= 10
     f = Fraction(round(secs * denom), denom)
     if f == 0:
-        f = Fraction(1, _U32)  # shorter than a nanosecond: the smallest positive value
+        f = Fraction(1, U32)  # shorter than a nanosecond: the smallest positive value
     return f.numerator, f.denominator
-
-
-def _dms(deg: float) -> list[tuple[int, int]]:
-    """|deg| as (degrees/1, minutes/1, seconds/1e6) with exact integer carry."""
-    micro = round(abs(deg) * 3600 * 1_000_000)
-    d, rem = divmod(micro, 3600 * 1_000_000)
-    m, s = divmod(rem, 60 * 1_000_000)
-    return [(int(d), 1), (int(m), 1), (int(s), 1_000_000)]
 
 
 def _finite(v: float | None) -> float | None:
@@ -300,14 +206,11 @@ def _parse_time(text: str | None) -> tuple[datetime, bool] | None:
     """(datetime, zone_known): aware times converted to UTC; None if no time."""
     if text is None or str(text).strip() in ("", "NaT", "nan", "None"):
         return None
-    s = str(text).strip()
     try:
-        t = datetime.fromisoformat(s)
+        t = parse_iso(str(text))
     except ValueError:
         raise ValueError(f"frame time {text!r} is not ISO 8601") from None
-    if t.tzinfo is not None:
-        return t.astimezone(timezone.utc).replace(tzinfo=None), True
-    return t, False
+    return utc_naive(t)
 
 
 def _check_band_name(name: str) -> None:
@@ -424,9 +327,9 @@ def _write_tiff(
         gps = _IFD()
         gps.add(0, _BYTE, [2, 3, 0, 0])  # GPSVersionID
         gps.add(1, _ASCII, "N" if lat >= 0 else "S")
-        gps.add(2, _RATIONAL, _dms(lat))
+        gps.add(2, _RATIONAL, degrees_to_dms(lat))
         gps.add(3, _ASCII, "E" if lon >= 0 else "W")
-        gps.add(4, _RATIONAL, _dms(lon))
+        gps.add(4, _RATIONAL, degrees_to_dms(lon))
         if alt is not None:
             gps.add(5, _BYTE, [0 if alt >= 0 else 1])  # GPSAltitudeRef: above / below sea level
             gps.add(6, _RATIONAL, [(round(abs(alt) * 1000), 1000)])
@@ -478,7 +381,7 @@ def _write_tiff(
     for c in strip_counts:
         offsets.append(p)
         p += c
-    if p > _U32:
+    if p > U32:
         raise ValueError(f"image of {w}x{h} is too large for a classic TIFF")
     ifd0.add(273, _LONG, offsets)
     ifd0.add(34665, _LONG, [exif_pos])

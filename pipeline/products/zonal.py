@@ -62,7 +62,7 @@ from mscal_core.zonal import zonal_statistics
 
 from pipeline.ingest.catalog import Index, load_index
 from pipeline.products.indexmap import _alpha_bands, _band_scales, _evaluate_window, resolve_bands
-from pipeline.products.writers import atomic_path
+from pipeline.storage.atomic import atomic_path
 
 log = logging.getLogger(__name__)
 

@@ -36,11 +36,12 @@ from typing import Any, Callable, Iterable, Iterator
 import mscal_core
 from mscal_core.errors import InputError, MscalError, SessionError
 
-from pipeline.apply.flight import RUN_JSON, ApplyOptions, _write_json_atomic, apply_flight, scheduler_for
+from pipeline.apply.flight import RUN_JSON, ApplyOptions, apply_flight, scheduler_for
 from pipeline.calibrate.fit import STAGES
 from pipeline.apply.light import INTERPOLATION_MODES
 from pipeline.ingest.catalog import CATALOG_ROOT
 from pipeline.ingest.session import Session, load_session, read_frame_table
+from pipeline.storage.atomic import write_json_atomic
 from pipeline.storage.store import content_hashes, file_sha256, open_calibration, write_store
 
 log = logging.getLogger(__name__)
@@ -443,7 +444,7 @@ def write_run_json(out_dir: str | Path, record: dict[str, Any]) -> Path:
     """``OUT/run.json``, atomically (temporary name, then rename)."""
     path = Path(out_dir) / RUN_JSON
     path.parent.mkdir(parents=True, exist_ok=True)
-    _write_json_atomic(path, record)
+    write_json_atomic(path, record)
     return path
 
 

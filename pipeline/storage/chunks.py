@@ -27,13 +27,12 @@ allows (:mod:`pipeline.storage.directio`). Tests read every chunk back through `
 from __future__ import annotations
 
 import json
-import os
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from pipeline.storage.atomic import atomic_path
 from pipeline.storage.directio import write_file
 
 __all__ = ["FLAT_CHUNK_KEYS", "FrameChunks"]
@@ -114,17 +113,12 @@ class FrameChunks:
             raise IndexError(f"frame {frame} of {self.path.name}")
         payload = self.encode(data)
         target = self.chunk_path(frame)
-        tmp = target.with_name(f"{target.name}.{uuid.uuid4().hex[:12]}.partial")
-        try:
+        with atomic_path(target, make_parent=False, sidecars=()) as tmp:
             try:
                 write_file(tmp, [payload])
             except FileNotFoundError:  # the chunk's folders ("/" separator) do not exist yet
                 target.parent.mkdir(parents=True, exist_ok=True)
                 write_file(tmp, [payload])
-            os.replace(tmp, target)
-        finally:
-            if tmp.exists():
-                tmp.unlink(missing_ok=True)
 
     def read(self, frame: int) -> np.ndarray:
         """Frame ``frame``'s data (the chunk must exist: frames of this package are written whole)."""

@@ -30,7 +30,7 @@ from pipeline.ingest.catalog import load_camera
 from pipeline.run.cli import main
 from pipeline.storage.store import new_dataset, open_calibration, write_store
 from pipeline.sim.synth import write_frameset
-from pipeline.products.writers import TMP_MARK
+from pipeline.storage.atomic import TMP_MARK
 
 CAMERA = "ximea-mq022hg-sm5x5-nir"
 N_BANDS = 25
@@ -374,14 +374,14 @@ def test_report_is_written_atomically(calib_ds, tmp_path, monkeypatch) -> None:
         seen.append((Path(src), Path(dst)))
         raise OSError("disk full")
 
-    monkeypatch.setattr(report.os, "replace", failing_replace)
+    monkeypatch.setattr(os, "replace", failing_replace)
     with pytest.raises(OSError):
         report.write_report(out, calibration=calib_ds)
     # the temporary file sits beside the target, carries TMP_MARK, and is gone after the failure
     assert seen and seen[0][0].parent == tmp_path and TMP_MARK in seen[0][0].name
     assert out.read_text() == "old report"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["report.html"]
-    monkeypatch.setattr(report.os, "replace", real_replace)
+    monkeypatch.setattr(os, "replace", real_replace)
     report.write_report(out, calibration=calib_ds)
     assert out.read_text().startswith("<!DOCTYPE html>")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.json", "report.html"]
