@@ -233,9 +233,9 @@ def _raster_info(path: Path) -> dict[str, Any] | None:
             if src.crs is None or src.transform.is_identity:
                 log.warning("%s: no CRS or geotransform; not catalogued as a raster", path)
                 return None
-            from pipeline.products.indexmap import _alpha_bands
+            from pipeline.products.indexmap import alpha_bands
 
-            alpha = _alpha_bands(src)
+            alpha = alpha_bands(src)
             data = [b for b in range(1, src.count + 1) if b not in alpha]
             names = {n.lower() for n in list_entries("indices")}
             tag = str(src.tags().get("INDEX", "")).strip().lower()
