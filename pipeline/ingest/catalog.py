@@ -2,13 +2,18 @@
 
 Each file is read with ``yaml.safe_load`` and validated into frozen dataclasses; unknown keys
 are rejected with a message naming the file and the keys that are allowed. The catalog folder
-is ``catalogs/`` at the top of the project, or the folders listed in ``MSCAL_CATALOG_PATH``
-(``os.pathsep``-separated) searched first.
+is the ``catalogs`` package (``catalogs/`` at the top of the project, installed with mscal as
+package data and found with ``importlib.resources``), after the folders listed in
+``MSCAL_CATALOG_PATH`` (``os.pathsep``-separated), which are searched first.
+
+Parsed entries are cached on the file's path, modification time and size: a long-running
+process (``mscal serve``) sees an edited or added catalog file at its next use.
 """
 
 from __future__ import annotations
 
 import ast
+import importlib.resources
 import os
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -21,7 +26,8 @@ import yaml
 from mscal_core.errors import CatalogError
 from mscal_core.reflectance import keep_valid
 
-CATALOG_ROOT = Path(__file__).resolve().parents[2] / "catalogs"
+#: The catalogs shipped with mscal (the ``catalogs`` package's folder).
+CATALOG_ROOT = Path(str(importlib.resources.files("catalogs")))
 LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band")
 
 
@@ -336,11 +342,31 @@ def list_entries(kind: str) -> list[str]:
     return sorted(names)
 
 
-@lru_cache(maxsize=None)
 def load_camera(name: str) -> Camera:
     """The camera catalog entry ``name``; :class:`CatalogError` if unknown or invalid."""
-    path = _find("cameras", name)
-    return parse_camera(_load_yaml(path), path)
+    return _load("cameras", name)
+
+
+def _load(kind: str, name: str) -> Any:
+    """The parsed entry ``name`` of ``kind``, from the cache while its file is unchanged."""
+    path = _find(kind, name)
+    try:
+        st = path.stat()
+    except OSError as exc:
+        raise CatalogError(f"cannot read catalog file: {exc.strerror}", path=path) from None
+    return _parsed(kind, str(path), st.st_mtime_ns, st.st_size)
+
+
+@lru_cache(maxsize=256)
+def _parsed(kind: str, path: str, mtime_ns: int, size: int) -> Any:
+    """Parse one catalog file; cached on (path, mtime, size), so an edit is a new key."""
+    p = Path(path)
+    return _PARSERS[kind](_load_yaml(p), p)
+
+
+def clear_cache() -> None:
+    """Forget every parsed catalog entry (tests; edits are picked up without it)."""
+    _parsed.cache_clear()
 
 
 # --------------------------------------------------------------------------- reflectance targets
@@ -410,11 +436,12 @@ class Target:
     reflectance: ReflectanceSpec
 
 
-@lru_cache(maxsize=None)
 def load_target(name: str) -> Target:
     """A reflectance target from ``catalogs/targets/<name>.yaml``."""
-    path = _find("targets", name)
-    data = _load_yaml(path)
+    return _load("targets", name)
+
+
+def parse_target(data: Mapping[str, Any], path: Path) -> Target:
     check_keys(data, {"name", "description", "reflectance"}, set(), path, "target")
     if isinstance(data["reflectance"], str):
         raise CatalogError("a target's reflectance must be a number or a table", path=path)
@@ -475,8 +502,9 @@ def parse_index(data: Mapping[str, Any], path: Path) -> Index:
     return Index(str(data["name"]), str(data["description"]), expr, inputs, valid)
 
 
-@lru_cache(maxsize=None)
 def load_index(name: str) -> Index:
     """A spectral index from ``catalogs/indices/<name>.yaml``."""
-    path = _find("indices", name)
-    return parse_index(_load_yaml(path), path)
+    return _load("indices", name)
+
+
+_PARSERS = {"cameras": parse_camera, "targets": parse_target, "indices": parse_index}
