@@ -371,9 +371,12 @@ def _open(out: Path, camera: Camera) -> tuple[zarr.Group, int]:
     if changed:
         _test_kill("recover")
     stale = changed or not _consolidated_matches(root, arrays)
-    # temporaries of writes that were killed (harmless to readers, but not left behind)
-    for p in out.rglob("*.partial") if stale else [*out.glob("*.partial"), *out.glob("*/*.partial")]:
-        p.unlink(missing_ok=True)
+    # temporaries of writes that were killed (harmless to readers, but not left behind): zarr's
+    # (.partial) and those of pipeline.storage.atomic (TMP_MARK)
+    for pattern in ("*.partial", f"*{TMP_MARK}*"):
+        for p in out.rglob(pattern) if stale else [*out.glob(pattern), *out.glob(f"*/{pattern}")]:
+            if p.is_file():
+                p.unlink(missing_ok=True)
     if stale:
         _consolidate(out)
         _set_committed(out, n)

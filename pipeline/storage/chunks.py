@@ -16,10 +16,11 @@ itself, as the Zarr v3 specification lays it out, for the arrays this package cr
   the same library zarr-python calls).
 
 Anything else (sharding, other codecs, other encodings) is refused by :meth:`FrameChunks.open`
-with ``None``, and the caller falls back to zarr. Every chunk is written to a temporary
-sibling name and renamed, as zarr-python's local store does, so a killed writer leaves the
-old chunk or the new one, never a torn one (temporaries end in ``.partial``, which
-:mod:`pipeline.ingest.raw` cleans up); the bytes go past the page cache where the file system
+with ``None``, and the caller falls back to zarr. Every chunk is written through
+:func:`pipeline.storage.atomic.atomic_path` (a temporary sibling carrying ``TMP_MARK``, then
+renamed), as zarr-python's local store does with its ``.partial`` names, so a killed writer
+leaves the old chunk or the new one, never a torn one (:mod:`pipeline.ingest.raw` and apply
+clean both kinds of temporaries up); the bytes go past the page cache where the file system
 allows (:mod:`pipeline.storage.directio`). Tests read every chunk back through ``zarr`` and
 ``xarray``.
 """
