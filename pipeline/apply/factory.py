@@ -78,6 +78,7 @@ from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, refl
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 from pipeline.ingest.discover import quarantine_entry
 from pipeline.ingest.raw import raw_codec
+from pipeline.apply.execution import Execution
 from pipeline.apply.panel import SATURATION_DN, PanelBand, panel_factors
 from pipeline.ingest.session import PanelConfig, decode_raw, panel_config_near
 from pipeline.products.writers import BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
@@ -105,6 +106,7 @@ class FactoryOptions:
     registration: str | None = None  # a store from 'mscal register': bands aligned to its reference (issue 9)
     field_calibration: str | None = None  # a store from 'mscal calibrate' / 'mscal fit' of this camera
     field_components: tuple[str, ...] = ()  # of FIELD_COMPONENTS taken from it; () = all it holds
+    execution: Execution = Execution()  # how the pass runs (not what it computes: not fingerprinted)
 
     def __post_init__(self) -> None:
         if self.reference not in REFERENCES:
@@ -117,7 +119,7 @@ class FactoryOptions:
             raise InputError("--field-components needs --field-calibration CALIB.zarr (the store to take them from)")
 
     def fingerprint(self) -> dict[str, Any]:
-        d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items() if k != "strict"}
+        d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items() if k not in ("strict", "execution")}
         for key in ("registration", "field_calibration"):  # runs before issues 9 / 6-components stay up to date
             if d[key] is None:
                 d.pop(key)
@@ -524,7 +526,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
 
 
     t0 = time.perf_counter()
-    with Runner(len(captures)) as runner:
+    with Runner(len(captures), options.execution) as runner:
         while True:  # a capture found unusable in the pass is quarantined and the pass redone without it
             ps = _Pass.start(out, camera, captures, shape, indices, roles, export, reference, panel_factor,
                              options, folder, None if field is None else field[:2])
@@ -565,6 +567,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         "export_bands": [camera.bands[b].name for b in export],
         "versions": run_versions(),
         "scheduler": runner.scheduler,
+        "execution": runner.execution,
         "timings_s": {"apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
         "fingerprint": fingerprint,
     }

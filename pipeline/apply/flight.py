@@ -52,6 +52,7 @@ from pipeline.calibrate.registration import check_transforms, frame_transforms
 from pipeline.ingest.raw import (FRAME_COORDS, Cube, CubeWriter, frame_coords, frame_row, ingest_flight, open_cube, prefetch_file, read_frame,
                      shape_problem)
 from pipeline.ingest.session import FrameRecord
+from pipeline.apply.execution import Execution, scheduler_for
 from pipeline.apply.light import DEFAULT_MODE, IlluminationPlan, illumination_plan, varies_in_time
 from pipeline.storage.store import open_calibration
 from pipeline.products.writers import BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
@@ -96,10 +97,12 @@ class ApplyOptions:
     illumination: str = DEFAULT_MODE  # nearest | linear: light between reflector captures (issue 8)
     align: bool = True  # align bands with the store's band_transform, if it has one (issue 9)
     centre_bands: bool = False  # snapshot mosaics: resample every band to the mosaic's centre position
+    execution: Execution = Execution()  # how the pass runs (not what it computes: not fingerprinted)
 
     def fingerprint(self) -> dict[str, Any]:
         d = asdict(self)
         d.pop("strict")
+        d.pop("execution")
         d.pop("illumination")  # in the fingerprint only when the light varies (see _fingerprint)
         for key, default in (("align", True), ("centre_bands", False)):  # runs before issue 9 stay up to date
             if d[key] == default:
@@ -266,20 +269,6 @@ def _frame_tags(coords: xr.Dataset, f: int, camera: Camera) -> FrameTags:
         exposure_ms=float(coords["exposure_ms"].values[f]),
         camera_make="mscal", camera_model=camera.name,
     )
-
-
-def scheduler_for(n_frames: int) -> tuple[str, int]:
-    """Dask scheduler of the per-frame pass when no ``distributed`` client is active: one
-    thread per core. The per-frame work is numpy, hashing and file writes, which release the
-    GIL (two threads run a 120-frame flight 1.8x faster than one), and threads start at once
-    where worker processes take 1-2 s. ``MSCAL_APPLY_SCHEDULER=processes`` chooses worker
-    processes instead (a forkserver that imports this module once).
-    """
-    cpus = int(os.environ.get("MSCAL_APPLY_WORKERS", 0)) or os.cpu_count() or 1
-    choice = os.environ.get("MSCAL_APPLY_SCHEDULER", "threads")
-    if choice not in ("threads", "processes"):
-        raise InputError(f"MSCAL_APPLY_SCHEDULER={choice!r}: use threads or processes")
-    return choice, max(1, min(cpus, n_frames))
 
 
 # Output variables are written uncompressed: lz4 gains only 1.24x on float32 reflectance for
@@ -537,10 +526,12 @@ class Runner:
     Worker processes are started when the runner is made, so they start while the main
     process reads the calibration and the flight."""
 
-    def __init__(self, n_frames: int):
+    def __init__(self, n_frames: int, execution: Execution = Execution()):
+        execution.install()
         self.client = _distributed_client()
         self.pool: ProcessPoolExecutor | None = None
-        self.scheduler, self.workers = ("distributed", 0) if self.client is not None else scheduler_for(n_frames)
+        self.scheduler, self.workers = ("distributed", 0) if self.client is not None else scheduler_for(n_frames, execution)
+        self.execution = execution.record(self.scheduler, self.workers)
         if self.scheduler == "processes":
             ctx = multiprocessing.get_context("forkserver")
             ctx.set_forkserver_preload(["pipeline.apply.flight"])
@@ -836,7 +827,7 @@ def apply_flight(
     fresh = cube.group is not None and cube.committed == 0 and n_hint > 0
     quarantined = list(cube.found.quarantined)
     done: tuple[_Pass, list[FrameOutcome]] | None = None
-    with Runner(n_hint) as runner:
+    with Runner(n_hint, options.execution) as runner:
         if fresh:
             try:
                 done = _fresh_pass(cube, runner, start, calib_path, sat, batch=FRESH_BATCH)
@@ -881,6 +872,7 @@ def apply_flight(
         "export_bands": [camera.bands[b].name for b in export],
         "versions": run_versions(),
         "scheduler": runner.scheduler,
+        "execution": runner.execution,
         "single_pass": single,
         "timings_s": {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
         "illumination": _illumination_record(ps, calib, options),
