@@ -33,10 +33,8 @@ bounded look-ahead (hash, read + demosaic; then the write of the frame's whole c
 indices and commits every ``commit_every`` frames. No dask is involved in writing, and no two
 writers ever touch one chunk (zarr v3 has no chunk locking: partial writes would race).
 
-Test hook: ``MSCAL_TEST_KILL_AT=<point>[:<count>]`` makes the process SIGKILL itself at
-``create`` (cube built under its temporary name), ``frame:N`` (N-th new chunk of this run
-written), ``coords:K`` / ``consolidated:K`` / ``commit:K`` (phases of the K-th commit) or
-``recover`` (uncommitted frames cut off, not yet re-consolidated).
+The tests SIGKILL an ingest between each of these steps (tests/pipeline/ingest/kill_points.py
+wraps the functions that do them) and check that a re-run gives the same cube.
 """
 
 from __future__ import annotations
@@ -46,7 +44,6 @@ import json
 import logging
 import os
 import shutil
-import signal
 import time as _time
 import warnings
 from collections import deque
@@ -79,7 +76,6 @@ FRAME_VARS = ("dn", *FRAME_COORDS)
 STRING_COORDS = ("frame", "source_file", "sha256")
 COORD_CHUNK = 4096  # frames per chunk of a frame coordinate (rewritten whole at each commit)
 TIME_UNITS = "nanoseconds since 1970-01-01"
-KILL_ENV = "MSCAL_TEST_KILL_AT"  # test hook: "frame:N", "coords:K", "consolidated:K", ...
 
 
 @dataclass
@@ -96,13 +92,6 @@ class IngestResult:
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def _test_kill(point: str, count: int | None = None) -> None:
-    """Test hook: SIGKILL this process at a named point (``MSCAL_TEST_KILL_AT``)."""
-    spec = os.environ.get(KILL_ENV)
-    if spec and (spec == point or (count is not None and spec == f"{point}:{count}")):
-        os.kill(os.getpid(), signal.SIGKILL)
 
 
 def _nan(v: float | None) -> float:
@@ -328,7 +317,6 @@ def _create(out: Path, camera: Camera, shape: tuple[int, int, int], compress: bo
             _template(camera, shape).to_zarr(
                 tmp, mode="w", encoding=_encoding(shape, compress), consolidated=True, zarr_format=3
             )
-        _test_kill("create")
 
 
 def _root_meta(out: Path) -> dict:
@@ -368,8 +356,6 @@ def _open(out: Path, camera: Camera) -> tuple[zarr.Group, int]:
         if arr.shape[0] > n:  # a killed run: drop its uncommitted frames
             arr.resize((n, *arr.shape[1:]))
             changed = True
-    if changed:
-        _test_kill("recover")
     stale = changed or not _consolidated_matches(root, arrays)
     # temporaries of writes that were killed (harmless to readers, but not left behind): zarr's
     # (.partial) and those of pipeline.storage.atomic (TMP_MARK)
@@ -609,8 +595,7 @@ class CubeWriter:
         dn = self._dn()
         if not self.pending:  # a new batch: room for it beyond the committed frames
             dn.resize((self.committed + self.commit_every, *self.shape))
-        ordinal = len(self.added) + len(self.pending) + 1
-        self.writes.append(self.pool.submit(_write_chunk, dn, self.n, bands, ordinal))
+        self.writes.append(self.pool.submit(_write_chunk, dn, self.n, bands))
         self.n += 1
         self.pending.append(frame_row(rec, sha))
         self._drain(self.max_writes)
@@ -650,16 +635,12 @@ class CubeWriter:
         dn = self._dn()
         if dn.shape[0] != n:
             dn.resize((n, *dn.shape[1:]))
-        _test_kill("coords", self.n_commits)
         _consolidate(self.out)
-        _test_kill("consolidated", self.n_commits)
         _set_committed(self.out, n)
-        _test_kill("commit", self.n_commits)
         self.added.extend(row["frame"] for row in self.pending)
         self.pending.clear()
         self.committed = n
 
 
-def _write_chunk(dn: zarr.Array, index: int, bands: np.ndarray, ordinal: int) -> None:
+def _write_chunk(dn: zarr.Array, index: int, bands: np.ndarray) -> None:
     dn[index] = bands  # exactly one whole chunk
-    _test_kill("frame", ordinal)
