@@ -114,7 +114,7 @@ def post_flight(
     ``catalog_root``: the local output root whose STAC catalog is updated after the run
     (default: OUT itself; ``process_inbox`` gives its OUT_ROOT).
     ``illumination``: how the light of several reflector captures is interpolated to each
-    frame's time (``nearest`` or ``linear``; issue 8).
+    frame's time (``nearest`` or ``linear``).
     ``scheduler``, ``workers``, ``direct_io``: how apply runs without ``dask_address``
     (:class:`pipeline.apply.execution.Execution`; recorded per flight in run.json).
     """

@@ -349,9 +349,9 @@ def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, i
     if illum is not None:
         ds = ds.assign_coords(
             illumination_level=("frame", illum.level.astype(np.float64),
-                                {"long_name": "brightness level beta of the light at the frame's time (issue 8)"}),
+                                {"long_name": "brightness level beta of the light at the frame's time"}),
             illumination_scale=(("frame", "band"), illum.scale.astype(np.float64),
-                                {"long_name": "factor on Eq. 15 reflectance: S / S(lambda, time) (issue 8)"}),
+                                {"long_name": "factor on Eq. 15 reflectance: S / S(lambda, time)"}),
             irradiance=("frame", illum.irradiance.astype(np.float64),
                         {"long_name": "sun-sensor irradiance of the frame (NaN: none)"}),
         )
