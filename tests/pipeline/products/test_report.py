@@ -316,7 +316,7 @@ def test_flight_plots(flights) -> None:
 def test_histograms_stay_bounded_on_long_flights() -> None:
     idx = report.sample_indices(5000, report.HIST_MAX_FRAMES)
     assert len(idx) == report.HIST_MAX_FRAMES and idx[0] == 0 and idx[-1] == 4999
-    assert report._stride((5000, 25, 217, 409), report.HIST_MAX_PIXELS) == 3
+    assert report.flight._stride((5000, 25, 217, 409), report.HIST_MAX_PIXELS) == 3
 
 
 # --------------------------------------------------------------------------- the page
@@ -364,7 +364,7 @@ def test_markdown_and_dict_carry_the_same_warnings(calib_ds, flights) -> None:
 
 
 def test_report_is_written_atomically(calib_ds, tmp_path, monkeypatch) -> None:
-    monkeypatch.setattr(report, "_html_figure", lambda caption, build: f"<p>{caption}</p>")  # no rendering: fast
+    monkeypatch.setattr(report.page, "_html_figure", lambda caption, build: f"<p>{caption}</p>")  # no rendering: fast
     out = tmp_path / "report.html"
     out.write_text("old report")
     seen = []
