@@ -71,6 +71,7 @@ import yaml
 from mscal_core.errors import InputError
 
 from pipeline.ingest.exif import parse_iso
+from pipeline.storage.atomic import write_text_atomic
 
 log = logging.getLogger(__name__)
 
@@ -443,10 +444,7 @@ def _locked(root: Path) -> Iterator[None]:
 
 
 def _write_json(path: Path, d: dict[str, Any]) -> None:
-    from pipeline.storage.atomic import atomic_path
-
-    with atomic_path(path) as tmp:
-        tmp.write_text(json.dumps(d, indent=2, sort_keys=False) + "\n", encoding="utf-8")
+    write_text_atomic(path, json.dumps(d, indent=2, sort_keys=False) + "\n")
 
 
 def update_catalog(root: str | Path, *, project_level: int | None = None, validate: bool = True,
