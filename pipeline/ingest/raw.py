@@ -50,7 +50,7 @@ from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import zarr
@@ -482,46 +482,20 @@ def ingest_flight(
         present = 0
 
         with ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="mscal-ingest") as pool:
-            # Each frame in file-name order: hash it; decode it only if it is new. Tasks run
-            # ahead in the pool (bounded); results are taken in order, so frame indices and
-            # quarantine decisions do not depend on timing.
             writer = CubeWriter(out, group, committed, shape, camera, commit_every, pool, workers, compress)
-            window: deque[tuple[FrameRecord, Future]] = deque()
-            todo = iter(found.frames)
-            lookahead = 2 * max(1, workers)
-
-            def refill() -> None:
-                while len(window) < lookahead:
-                    rec = next(todo, None)
-                    if rec is None:
-                        return
-                    window.append((rec, pool.submit(_examine, rec, camera, in_cube, cube_by_sha)))
-
-            refill()
-            while window:
-                rec, fut = window.popleft()
-                refill()
+            for rec, fut in _examined_in_order(found.frames, pool, 2 * max(1, workers), camera, in_cube, cube_by_sha):
                 fname = rec.path.name
                 try:
                     sha, bands = fut.result()
                 except FrameError as exc:
                     quarantined.append(quarantine_entry(fname, exc))
                     continue
-                if rec.name in in_cube:
-                    if in_cube[rec.name] == sha:
-                        present += 1
-                    else:
-                        quarantined.append(quarantine_entry(fname, FrameError(
-                            "changed since ingest: its content differs from the frame of that name in the datacube",
-                            path=rec.path,
-                            hint="the datacube keeps the frame as first ingested; give a new frame a new name",
-                        )))
+                seen = _already_seen(rec, sha, in_cube, cube_by_sha, new_by_sha)
+                if seen == "present":
+                    present += 1
                     continue
-                twin = cube_by_sha.get(sha) or new_by_sha.get(sha)
-                if twin is not None:
-                    quarantined.append(quarantine_entry(fname, FrameError(
-                        f"same content as frame {twin} (a duplicate)", path=rec.path,
-                    )))
+                if seen is not None:
+                    quarantined.append(quarantine_entry(fname, seen))
                     continue
                 assert bands is not None
                 problem = writer.add(rec, sha, bands)
@@ -550,6 +524,47 @@ def ingest_flight(
     log.info("ingest %s: %d added, %d already present, %d quarantined, %d frames in %.1f s",
              flight_dir, result.frames_added, present, len(quarantined), result.n_frames, result.seconds)
     return result
+
+
+def _examined_in_order(frames: list[FrameRecord], pool: ThreadPoolExecutor, lookahead: int, camera: Camera,
+                       in_cube: dict[str, str], cube_by_sha: dict[str, str]) -> Iterator[tuple[FrameRecord, Future]]:
+    """Each frame in file-name order with the future of :func:`_examine` (hash it; decode it
+    only if it is new). Tasks run up to ``lookahead`` frames ahead in the pool; results are
+    taken in order, so frame indices and quarantine decisions do not depend on timing."""
+    window: deque[tuple[FrameRecord, Future]] = deque()
+    todo = iter(frames)
+
+    def refill() -> None:
+        while len(window) < lookahead:
+            rec = next(todo, None)
+            if rec is None:
+                return
+            window.append((rec, pool.submit(_examine, rec, camera, in_cube, cube_by_sha)))
+
+    refill()
+    while window:
+        rec, fut = window.popleft()
+        refill()
+        yield rec, fut
+
+
+def _already_seen(rec: FrameRecord, sha: str, in_cube: dict[str, str], cube_by_sha: dict[str, str],
+                  new_by_sha: dict[str, str]) -> str | FrameError | None:
+    """``"present"`` if the cube holds this frame, the :class:`FrameError` to quarantine it
+    with if its name is in the cube with other content or its content is there under another
+    name (or was added in this run), None for a new frame."""
+    if rec.name in in_cube:
+        if in_cube[rec.name] == sha:
+            return "present"
+        return FrameError(
+            "changed since ingest: its content differs from the frame of that name in the datacube",
+            path=rec.path,
+            hint="the datacube keeps the frame as first ingested; give a new frame a new name",
+        )
+    twin = cube_by_sha.get(sha) or new_by_sha.get(sha)
+    if twin is not None:
+        return FrameError(f"same content as frame {twin} (a duplicate)", path=rec.path)
+    return None
 
 
 class CubeWriter:
