@@ -163,23 +163,11 @@ class Synth:
 
 def write_synthetic(session, root: Path) -> Path:  # noqa: ANN001
     """A session folder as ``pipeline.sim.synth.write_session`` writes it, from a built session."""
-    import numpy as np
-    import yaml
-
-    from pipeline.sim.synth import session_yaml, write_frameset
+    from pipeline.sim.synth import write_synthesized
 
     if root.exists():
         shutil.rmtree(root)
-    root.mkdir(parents=True)
-    with open(root / "session.yaml", "w") as fh:
-        yaml.safe_dump(session_yaml(session), fh, sort_keys=False)
-    write_frameset(root / "response", session.response)
-    write_frameset(root / "vignetting", session.vignetting)
-    write_frameset(root / "reflector", session.reflector)
-    for name, fs in session.flights.items():
-        write_frameset(root / "flights" / name, fs)
-    np.savez_compressed(root / "truth.npz", **session.truth_arrays())
-    return root
+    return write_synthesized(session, root)
 
 
 # --------------------------------------------------------------------------- fits
@@ -415,7 +403,7 @@ def render(results: dict[tuple, dict[str, Any]], quick: bool, command: str, info
            started: str, loads: dict[str, str], wall_s: float, img_rel: dict[str, str]) -> str:
     title = "Accuracy vs difficulty" + (" (quick smoke run)" if quick else "")
     parts = [
-        f'<a id="bench-accuracy"></a>',
+        '<a id="bench-accuracy"></a>',
         "",
         f"## {title}",
         "",

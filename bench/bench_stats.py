@@ -31,7 +31,6 @@ import shlex
 import sys
 import tempfile
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 from typing import Sequence
 

@@ -64,9 +64,10 @@ def list_flights(session: str) -> dict[str, str]:
 
 @task(**IO, task_run_name="apply-{name}")
 def apply_flight(name: str, flight_dir: str, calibration: str, out: str, normalise: str,
-                 dask_address: str | None, illumination: str = "linear") -> dict[str, Any]:
+                 dask_address: str | None, illumination: str = "linear", scheduler: str = "threads",
+                 workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
     return runner.apply_one(flight_dir, calibration, out, normalise=normalise, dask_address=dask_address,
-                            illumination=illumination)
+                            illumination=illumination, scheduler=scheduler, workers=workers, direct_io=direct_io)
 
 
 @task(cache_policy=NO_CACHE)
@@ -100,6 +101,9 @@ def post_flight(
     work_dir: str | None = None,
     catalog_root: str | None = None,
     illumination: Literal["nearest", "linear"] = "linear",
+    scheduler: Literal["threads", "processes"] = "threads",
+    workers: int = 0,
+    direct_io: bool | None = None,
 ) -> dict[str, Any]:
     """Calibrate SESSION once and apply it to each of its flights; outputs in OUT.
 
@@ -110,7 +114,9 @@ def post_flight(
     ``catalog_root``: the local output root whose STAC catalog is updated after the run
     (default: OUT itself; ``process_inbox`` gives its OUT_ROOT).
     ``illumination``: how the light of several reflector captures is interpolated to each
-    frame's time (``nearest`` or ``linear``; issue 8).
+    frame's time (``nearest`` or ``linear``).
+    ``scheduler``, ``workers``, ``direct_io``: how apply runs without ``dask_address``
+    (:class:`pipeline.apply.execution.Execution`; recorded per flight in run.json).
     """
     log = get_run_logger()
     timings = runner.Timings()
@@ -134,7 +140,7 @@ def post_flight(
             with timings.step(f"apply_{name}"):
                 # apply reads the content-addressed cached store: its path changes when its content does
                 summaries[name] = apply_flight(name, flight_dir, plan.final_store, str(Path(paths.out) / "flights" / name),
-                                               normalise, dask_address, illumination)
+                                               normalise, dask_address, illumination, scheduler, workers, direct_io)
             advance(1)
     with timings.step("report"):
         qa_markdown = write_report(paths.out, list(summaries))

@@ -5,7 +5,7 @@
 ``B`` of the target scene is unknown (the light during the flight is not that of the
 reflector images), so R from Eq. 15 is relative: one unknown scalar per frame. Normalise it
 with a region of known reflectance (:func:`normalise_to_panel`) or use ratios / indices
-(:func:`ndvi`) that need no normalisation.
+(:func:`ndvi`, segmented by :func:`vegetation_mask`) that need no normalisation.
 
 References
 ----------
@@ -16,11 +16,17 @@ References
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from .errors import InputError
 
-__all__ = ["eq15", "ndvi", "normalise_to_panel"]
+__all__ = [
+    "NDVI_RANGE", "eq15", "keep_valid", "ndvi", "normalise_to_panel", "otsu_ndvi_threshold", "vegetation_mask",
+]
+
+#: NDVI outside this range is NaN (``catalogs/indices/ndvi.yaml``: ``valid_range``).
+NDVI_RANGE = (-1.0, 1.0)
 
 
 def _per_frame(value: np.ndarray | float, dn_shape: tuple[int, ...], name: str) -> np.ndarray:
@@ -239,6 +245,20 @@ def _panel_factor(panel: np.ndarray, ref: np.ndarray) -> np.ndarray:
         return np.where(med > 0, ref / med, np.nan)
 
 
+def keep_valid(values: np.ndarray, valid_range: tuple[float, float] | None = None) -> np.ndarray:
+    """Return ``values`` (same dtype) with NaN where not finite or outside ``valid_range``.
+
+    The edge rule of every spectral index: the catalog's ``valid_range``
+    (``catalogs/indices/*.yaml``, inclusive) and :func:`ndvi`.
+    """
+    out = np.asarray(values)
+    bad = ~np.isfinite(out)
+    if valid_range is not None:
+        lo, hi = valid_range
+        bad |= (out < lo) | (out > hi)
+    return np.where(bad, np.nan, out).astype(out.dtype, copy=False)
+
+
 def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
     """Return the NDVI ``(nir - red) / (nir + red)``, NaN-safe, in [-1, 1].
 
@@ -250,9 +270,11 @@ def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
     Returns
     -------
     numpy.ndarray
-        NaN where either input is NaN / inf or ``nir + red <= 0``; values are clipped to
-        [-1, 1] (a slightly negative reflectance from noise could otherwise leave the range).
-        float32 if both inputs are float32, else float64.
+        NaN where either input is NaN / inf, where ``nir + red == 0``, and where the value
+        falls outside [-1, 1] (only possible when a reflectance is negative: noise or a bad
+        calibration), the rule of ``catalogs/indices/ndvi.yaml`` (``valid_range: [-1, 1]``)
+        that the stored ``ndvi``, the NDVI TIFFs and the index maps follow
+        (:func:`keep_valid`). float32 if both inputs are float32, else float64.
 
     Notes
     -----
@@ -269,11 +291,46 @@ def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
     dtype = np.float32 if (a.dtype == np.float32 and b.dtype == np.float32) else np.float64
     r = a.astype(np.float64)
     n = b.astype(np.float64)
-    total = n + r
     with np.errstate(invalid="ignore", divide="ignore"):
-        out = (n - r) / total
-        ok = np.isfinite(r) & np.isfinite(n) & (total > 0)
-    return np.where(ok, np.clip(out, -1.0, 1.0), np.nan).astype(dtype)
+        out = (n - r) / (n + r)
+    return keep_valid(out, NDVI_RANGE).astype(dtype)
+
+
+def vegetation_mask(ndvi: np.ndarray) -> np.ndarray:
+    """Return the paper's vegetation segmentation: Otsu's threshold of the NDVI of one frame.
+
+    uint8: 1 vegetation, 0 not, 255 where NDVI is not defined. NDVI is quantised to 256
+    levels (``uint8((ndvi + 1) * 127.5)``) and OpenCV's Otsu picks the level; a pixel is
+    vegetation above it, i.e. from :func:`otsu_ndvi_threshold` up.
+    """
+    ok = np.isfinite(ndvi)
+    out = np.full(ndvi.shape, 255, dtype=np.uint8)
+    if ok.sum() < 2:
+        return out
+    scaled = _ndvi_levels(ndvi[ok])
+    out[ok] = (scaled > _otsu_level(scaled)).astype(np.uint8)
+    return out
+
+
+def otsu_ndvi_threshold(ndvi: np.ndarray) -> float:
+    """Return the NDVI from which :func:`vegetation_mask` calls a pixel vegetation.
+
+    ``ndvi >= t`` on the 256 levels; NaN when fewer than two pixels are defined.
+    """
+    v = np.asarray(ndvi)
+    v = v[np.isfinite(v)]
+    if v.size < 2:
+        return float("nan")
+    return (_otsu_level(_ndvi_levels(v)) + 1.0) / 127.5 - 1.0
+
+
+def _ndvi_levels(values: np.ndarray) -> np.ndarray:
+    return np.clip((values + 1.0) * 127.5, 0, 255).astype(np.uint8)
+
+
+def _otsu_level(levels: np.ndarray) -> float:
+    thr, _ = cv2.threshold(levels.reshape(-1, 1), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
+    return float(thr)
 
 
 def eq15_tables(

@@ -35,15 +35,14 @@ import xarray as xr
 import mscal_core
 from mscal_core.errors import FrameError
 
+from pipeline.apply.execution import Execution
 from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner, process_frame
-from pipeline.apply.flight import (
-    RUN_JSON, ApplyResult, clean_temporaries, install_store, remove_frame_tiffs, previous_run, software_versions,
-    write_json_atomic,
-)
+from pipeline.apply.flight import RUN_JSON, ApplyResult, previous_run, remove_frame_tiffs, software_versions
 from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN, Capture, group_captures
 from pipeline.ingest.catalog import Camera, Index
 from pipeline.ingest.raw import raw_codec
-from pipeline.products.writers import TMP_MARK, BandTags, FrameTags
+from pipeline.products.writers import BandTags, FrameTags
+from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries, write_json_atomic
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 
 __all__ = ["CaptureFolder", "CaptureRun", "apply_captures", "capture_tags", "find_captures", "is_capture_folder"]
@@ -216,6 +215,7 @@ class CaptureRun:
     scale: Callable[[str], tuple[float, ...] | None] = lambda name: None
     extra_coords: Callable[[Sequence[Capture]], dict[str, Any]] = lambda captures: {}
     record: Callable[[Sequence[Capture]], dict[str, Any]] = lambda captures: {}
+    execution: Execution = Execution()  # how the tasks run (never part of the fingerprint)
 
 
 def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder, shape: tuple[int, int, int],
@@ -230,9 +230,9 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
     previous = previous_run(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
     if previous is not None:
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
-    clean_temporaries(out)
+    remove_temporaries(out)
     t0 = time.perf_counter()
-    with Runner(len(captures)) as runner:
+    with Runner(len(captures), run.execution) as runner:
         while True:  # a capture found unusable in the pass is quarantined and the pass redone without it
             tmp_refl, tmp_raw, plan = _start(out, camera, captures, shape, indices, roles, export, run)
             jobs = [Job(f, c.name, capture_tags(camera, c), capture=c, scale=run.scale(c.name))
@@ -251,8 +251,8 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
                 raise FrameError("no usable capture in the folder (all quarantined)", path=folder,
                                  hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
     t_pass = time.perf_counter() - t0
-    install_store(out, tmp_raw, "raw.zarr")
-    install_store(out, tmp_refl)
+    install_folder(tmp_raw, out / "raw.zarr")
+    install_folder(tmp_refl, out / "reflectance.zarr")
     frames = [o.name for o in outcomes]
     quarantined.sort(key=lambda q: q["file"])
     record = {
@@ -274,6 +274,7 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
         "export_bands": [camera.bands[b].name for b in export],
         "versions": software_versions(),
         "scheduler": runner.scheduler,
+        "execution": runner.execution,
         "timings_s": {"apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
         "fingerprint": fingerprint,
     }
@@ -400,6 +401,6 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     run = CaptureRun(
         chain=chain, calibration=str(calib_path), calibration_sha256=chash, fingerprint=fingerprint, attrs=attrs,
         reflectance_name="reflectance (Eq. 15)", tiff_dtype=options.tiff_dtype, norm=norm, transforms=transforms,
-        scale=lambda name: scales.get(name), extra_coords=extra_coords, record=record,
+        scale=lambda name: scales.get(name), extra_coords=extra_coords, record=record, execution=options.execution,
     )
     return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)

@@ -34,7 +34,6 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-import cv2
 import dask
 import dask.multiprocessing
 import dask.threaded
@@ -42,9 +41,10 @@ import numpy as np
 import xarray as xr
 
 from mscal_core.errors import FrameError, InputError
-from mscal_core.reflectance import eq15_fast, eq15_tables
+from mscal_core.reflectance import eq15_fast, eq15_tables, vegetation_mask
 from mscal_core.registration import align_bands, shift_bands
 
+from pipeline.apply.execution import Execution, scheduler_for
 from pipeline.calibrate.registration import frame_transforms
 from pipeline.ingest.camera_meta import Capture, FieldParts, factory_radiance
 from pipeline.ingest.catalog import Camera, Index, load_camera
@@ -60,33 +60,6 @@ from pipeline.storage.chunks import FrameChunks
 def capture_uuid(camera: Camera, sha256: str) -> str:
     """Deterministic CaptureUUID of a frame (the same on every re-run)."""
     return str(uuid.uuid5(uuid.NAMESPACE_URL, f"mscal:{camera.name}:{sha256}"))
-
-
-def otsu_mask(ndvi: np.ndarray) -> np.ndarray:
-    """The paper's vegetation segmentation: Otsu threshold of the NDVI of one frame (uint8 0/1,
-    255 where NDVI is not defined)."""
-    ok = np.isfinite(ndvi)
-    out = np.full(ndvi.shape, 255, dtype=np.uint8)
-    if ok.sum() < 2:
-        return out
-    scaled = np.clip((ndvi[ok] + 1.0) * 127.5, 0, 255).astype(np.uint8)
-    thr, _ = cv2.threshold(scaled.reshape(-1, 1), 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    out[ok] = (scaled > thr).astype(np.uint8)
-    return out
-
-
-def scheduler_for(n_frames: int) -> tuple[str, int]:
-    """Dask scheduler of the per-frame pass when no ``distributed`` client is active: one
-    thread per core. The per-frame work is numpy, hashing and file writes, which release the
-    GIL (two threads run a 120-frame flight 1.8x faster than one), and threads start at once
-    where worker processes take 1-2 s. ``MSCAL_APPLY_SCHEDULER=processes`` chooses worker
-    processes instead (a forkserver that imports this module once).
-    """
-    cpus = int(os.environ.get("MSCAL_APPLY_WORKERS", 0)) or os.cpu_count() or 1
-    choice = os.environ.get("MSCAL_APPLY_SCHEDULER", "threads")
-    if choice not in ("threads", "processes"):
-        raise InputError(f"MSCAL_APPLY_SCHEDULER={choice!r}: use threads or processes")
-    return choice, max(1, min(cpus, n_frames))
 
 
 # Output variables are written uncompressed: lz4 gains only 1.24x on float32 reflectance for
@@ -393,7 +366,7 @@ def process_frame(plan: Plan, job: Job) -> Outcome:
         if ix.name == "ndvi":
             ndvi = val
     if ndvi is not None and "vegetation_mask" in plan.outputs:
-        write_frame(store / "vegetation_mask", job.index, otsu_mask(ndvi))
+        write_frame(store / "vegetation_mask", job.index, vegetation_mask(ndvi))
     for b, btags in plan.bands:
         write_band_tiff(plan.out / "photogrammetry" / f"{job.name}_{btags.name}.tif", refl[b], tags, btags,
                         dtype=plan.tiff_dtype)
@@ -444,10 +417,12 @@ class Runner:
     Worker processes are started when the runner is made, so they start while the main
     process reads the calibration and the flight."""
 
-    def __init__(self, n_frames: int):
+    def __init__(self, n_frames: int, execution: Execution = Execution()):
+        execution.install()
         self.client = _distributed_client()
         self.pool: ProcessPoolExecutor | None = None
-        self.scheduler, self.workers = ("distributed", 0) if self.client is not None else scheduler_for(n_frames)
+        self.scheduler, self.workers = ("distributed", 0) if self.client is not None else scheduler_for(n_frames, execution)
+        self.execution = execution.record(self.scheduler, self.workers)
         if self.scheduler == "processes":
             ctx = multiprocessing.get_context("forkserver")
             ctx.set_forkserver_preload(["pipeline.apply.executor"])

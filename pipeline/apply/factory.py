@@ -60,6 +60,8 @@ from mscal_core.errors import CalibrationStoreError, FrameError, InputError
 from mscal_core.illumination import INTERPOLATION_MODES, fit_illumination, frame_illumination
 from mscal_core.panel import sample_quad
 
+
+from pipeline.apply.execution import Execution
 from pipeline.apply.executor import (
     FactoryChain, field_parts, read_capture,
 )
@@ -98,6 +100,7 @@ class FactoryOptions:
     illumination: str | None = None  # nearest | linear: the light between panel captures (issue 8); None: their mean
     field_calibration: str | None = None  # a store from 'mscal calibrate' / 'mscal fit' of this camera
     field_components: tuple[str, ...] = ()  # of FIELD_COMPONENTS taken from it; () = all it holds
+    execution: Execution = Execution()  # how the pass runs (not what it computes: not fingerprinted)
 
     def __post_init__(self) -> None:
         if self.reference not in REFERENCES:
@@ -115,7 +118,7 @@ class FactoryOptions:
             raise InputError("--field-components needs --field-calibration CALIB.zarr (the store to take them from)")
 
     def fingerprint(self) -> dict[str, Any]:
-        d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items() if k != "strict"}
+        d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items() if k not in ("strict", "execution")}
         for key in ("registration", "field_calibration", "illumination"):  # earlier runs stay up to date
             if d[key] is None:
                 d.pop(key)
@@ -356,6 +359,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         chain=FactoryChain(saturation_dn(camera), reference, panel_factor, None if field is None else field[:2]),
         calibration=FACTORY, calibration_sha256=None, fingerprint=fingerprint, attrs=attrs,
         reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
+        execution=options.execution,
         transforms=None if options.registration is None else Path(options.registration),
         record=lambda caps: {"components": _components_record(field),
                              "reference": _reference_record(reference, panels, panel_factor, camera),

@@ -16,12 +16,10 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import platform
 import re
 import shutil
 import time
-import uuid
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -30,8 +28,6 @@ from typing import Any, Callable, Sequence
 import cv2
 import dask
 import dask.array as da
-import dask.multiprocessing
-import dask.threaded
 import numpy as np
 import xarray as xr
 
@@ -43,13 +39,16 @@ from mscal_core.registration import align_bands, mosaic_centre_offsets
 from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 from pipeline.calibrate.registration import check_transforms, frame_transforms
-from pipeline.ingest.raw import (FRAME_COORDS, Cube, _Writer, frame_coords, frame_row, ingest_flight, open_cube, read_frame)
+from pipeline.ingest.raw import (FRAME_COORDS, Cube, CubeWriter, frame_coords, frame_row, ingest_flight, open_cube,
+                                 read_frame)
+from pipeline.apply.execution import Execution
 from pipeline.apply.light import DEFAULT_MODE, IlluminationPlan, illumination_plan, varies_in_time
 from pipeline.storage.store import open_calibration
-from pipeline.products.writers import TMP_MARK, BandTags, FrameTags
-from pipeline.apply.executor import (  # noqa: F401  (re-exported: the executor's pieces were here before issue 20)
-    OUTPUT_COMPRESSORS, FieldChain, Job, Outcome, Plan, Runner, calibration_tables, capture_uuid, geometry_step, otsu_mask,
-    process_frame, read_frame_chunk, scheduler_for, write_frame,
+from pipeline.products.writers import BandTags, FrameTags
+from pipeline.storage.atomic import install_folder, remove_temporaries, temporary_folder_name, write_json_atomic
+from pipeline.apply.executor import (  # noqa: F401  (re-exported: the executor's pieces were here before)
+    OUTPUT_COMPRESSORS, FieldChain, Job, Outcome, Plan, Runner, calibration_tables, capture_uuid, geometry_step,
+    process_frame, read_frame_chunk, write_frame,
 )
 
 RUN_JSON = "run.json"
@@ -91,10 +90,12 @@ class ApplyOptions:
     illumination: str = DEFAULT_MODE  # nearest | linear: light between reflector captures (issue 8)
     align: bool = True  # align bands with the store's band_transform, if it has one (issue 9)
     centre_bands: bool = False  # snapshot mosaics: resample every band to the mosaic's centre position
+    execution: Execution = Execution()  # how the pass runs (not what it computes: not fingerprinted)
 
     def fingerprint(self) -> dict[str, Any]:
         d = asdict(self)
         d.pop("strict")
+        d.pop("execution")
         d.pop("illumination")  # in the fingerprint only when the light varies (see run_fingerprint)
         for key, default in (("align", True), ("centre_bands", False)):  # runs before issue 9 stay up to date
             if d[key] == default:
@@ -129,29 +130,6 @@ def calibration_hash(ds: xr.Dataset) -> str:
         h.update(str(arr.dtype).encode() + str(arr.shape).encode())
         h.update(arr.tobytes())
     return h.hexdigest()
-
-
-def clean_temporaries(out: Path) -> None:
-    """Remove what a killed run left under temporary names."""
-    if not out.is_dir():
-        return
-    for p in list(out.rglob(f"*{TMP_MARK}*")):
-        if p.is_dir():
-            shutil.rmtree(p, ignore_errors=True)
-        elif p.exists():
-            p.unlink(missing_ok=True)
-
-
-def write_json_atomic(path: Path, data: dict[str, Any]) -> None:
-    tmp = path.with_name(f".{path.name}{TMP_MARK}{uuid.uuid4().hex[:8]}")
-    with tmp.open("w") as fh:
-        json.dump(data, fh, indent=2, sort_keys=True)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-
-
-_write_json_atomic = write_json_atomic  # the name pipeline.run imports
 
 
 def export_band_indices(camera: Camera, names: Sequence[str] | None) -> list[int]:
@@ -310,9 +288,9 @@ def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, i
     if illum is not None:
         ds = ds.assign_coords(
             illumination_level=("frame", illum.level.astype(np.float64),
-                                {"long_name": "brightness level beta of the light at the frame's time (issue 8)"}),
+                                {"long_name": "brightness level beta of the light at the frame's time"}),
             illumination_scale=(("frame", "band"), illum.scale.astype(np.float64),
-                                {"long_name": "factor on Eq. 15 reflectance: S / S(lambda, time) (issue 8)"}),
+                                {"long_name": "factor on Eq. 15 reflectance: S / S(lambda, time)"}),
             irradiance=("frame", illum.irradiance.astype(np.float64),
                         {"long_name": "sun-sensor irradiance of the frame (NaN: none)"}),
         )
@@ -357,7 +335,7 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
         ds["reflectance"].attrs["aligned_to_band"] = reference
     if band_shift is not None:
         ds["reflectance"].attrs["band_positions"] = "resampled to the mosaic's centre position (--centre-bands)"
-    tmp_store = out / f".reflectance.zarr{TMP_MARK}{uuid.uuid4().hex[:8]}"
+    tmp_store = temporary_folder_name(out / "reflectance.zarr")
     encoding = {v: {"chunks": (1, *ds[v].shape[1:]), "compressors": OUTPUT_COMPRESSORS,
                     "chunk_key_encoding": FLAT_CHUNK_KEYS} for v in ds.data_vars}
     with warnings.catch_warnings():
@@ -429,7 +407,7 @@ def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_p
         return dn
 
     ps = start(coords, file_dn)
-    writer = _Writer(cube.path, cube.group, cube.committed, cube.shape, cube.camera, commit_every=len(recs) + 1,
+    writer = CubeWriter(cube.path, cube.group, cube.committed, cube.shape, cube.camera, commit_every=len(recs) + 1,
                      pool=None, workers=1)  # type: ignore[arg-type]  (no chunk writes of its own)
     seen: set[str] = set()
     outcomes: list[Outcome] = []
@@ -502,18 +480,6 @@ def previous_run(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] =
     return previous if previous.get("fingerprint") == fingerprint else None
 
 
-def install_store(out: Path, tmp_store: Path, name: str = "reflectance.zarr") -> None:
-    """Rename a store written under a temporary name to ``out/name``, replacing the old one."""
-    final = out / name
-    if final.exists():
-        old = out / f".{name}.old{TMP_MARK}{uuid.uuid4().hex[:8]}"
-        os.replace(final, old)
-        os.replace(tmp_store, final)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp_store, final)
-
-
 def software_versions() -> dict[str, str]:
     versions = {"mscal": mscal_core.__version__, "python": platform.python_version(), "numpy": np.__version__,
                 "dask": dask.__version__, "xarray": xr.__version__, "opencv": cv2.__version__}
@@ -573,7 +539,7 @@ def apply_flight(
     sat = saturation_dn(calib, camera)
     geometry = pass_geometry(calib, camera, options)
     out.mkdir(parents=True, exist_ok=True)
-    clean_temporaries(out)
+    remove_temporaries(out)
     raw_path = out / "raw.zarr"
 
     def start(coords: xr.Dataset, frame_dn: Callable[[int], np.ndarray]) -> _Pass:
@@ -595,7 +561,7 @@ def apply_flight(
     fresh = cube.group is not None and cube.committed == 0 and n_hint > 0
     quarantined = list(cube.found.quarantined)
     done: tuple[_Pass, list[Outcome]] | None = None
-    with Runner(n_hint) as runner:
+    with Runner(n_hint, options.execution) as runner:
         if fresh:
             try:
                 done = _fresh_pass(cube, runner, start, calib_path, sat, batch=FRESH_BATCH)
@@ -623,7 +589,7 @@ def apply_flight(
             quarantined = sorted(quarantined, key=lambda q: q["file"])
     ps, outcomes = done
     t_pass = time.perf_counter() - t0
-    install_store(out, ps.tmp_store)
+    install_folder(ps.tmp_store, out / "reflectance.zarr")
     frames = [o.name for o in outcomes]
     sat_counts = [o.saturated for o in outcomes]
     shas = [str(s) for s in ps.coords["sha256"].values]  # the pass's frames, in cube order
@@ -640,6 +606,7 @@ def apply_flight(
         "export_bands": [camera.bands[b].name for b in export],
         "versions": software_versions(),
         "scheduler": runner.scheduler,
+        "execution": runner.execution,
         "single_pass": single,
         "timings_s": {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
         "illumination": _illumination_record(ps, calib, options),

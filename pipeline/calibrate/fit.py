@@ -29,8 +29,8 @@ from pipeline.calibrate.intrinsics import fit_intrinsics_folder, parse_board, st
 from pipeline.ingest.captures import is_multilens, read_frames
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.camera_meta import xmp_irradiance
+from pipeline.ingest.exif import NAT, time_ns
 from pipeline.ingest.intrinsics import band_intrinsics_from_files, intrinsics_from_array
-from pipeline.ingest.raw import NAT, _time_ns
 from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES, FrameRecord, Session, load_session, read_bands, read_frame_table
 from pipeline.storage.store import content_hashes, new_dataset, open_calibration, write_store
 
@@ -537,7 +537,7 @@ class ReflectorCapture:
 
 
 def _time_s(rec: FrameRecord) -> float:
-    ns = _time_ns(rec.time)
+    ns = time_ns(rec.time)
     return float("nan") if ns == NAT else ns / 1e9
 
 

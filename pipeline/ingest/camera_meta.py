@@ -25,7 +25,7 @@ import numpy as np
 from mscal_core.errors import FrameError
 from mscal_core.factory import field_response_scale, field_response_signal, radiance, vignetting_map
 
-from pipeline.ingest.session import signed_gps
+from pipeline.ingest.exif import dms_to_degrees, exif_datetime_iso, rational, signed_gps
 
 if TYPE_CHECKING:
     from pipeline.ingest.catalog import Camera
@@ -158,43 +158,20 @@ def _optional_floats(props: dict[str, Any], tag: str, path: Path) -> tuple[float
 # --------------------------------------------------------------------------- EXIF
 
 
-def _rational(value: Any) -> float:
-    """A TIFF RATIONAL (tifffile gives ``(num, den)``) or number as float."""
-    if isinstance(value, tuple) and len(value) == 2:
-        num, den = value
-        return float(num) / float(den) if den else math.nan
-    return float(value)
-
-
-def _dms(value: tuple) -> float:
-    """Degrees from a GPS (deg, min, sec) triple of rationals, flat ``(n, d, n, d, n, d)``."""
-    parts = [_rational((value[i], value[i + 1])) for i in range(0, len(value), 2)]
-    return sum(p / 60**k for k, p in enumerate(parts))
-
-
 def _gps(gps: dict[str, Any]) -> tuple[float | None, float | None, float | None]:
     has_pos = "GPSLatitude" in gps and "GPSLongitude" in gps
     return signed_gps(
-        _dms(gps["GPSLatitude"]) if has_pos else None, gps.get("GPSLatitudeRef"),
-        _dms(gps["GPSLongitude"]) if has_pos else None, gps.get("GPSLongitudeRef"),
-        _rational(gps["GPSAltitude"]) if "GPSAltitude" in gps else None,
+        dms_to_degrees(gps["GPSLatitude"]) if has_pos else None, gps.get("GPSLatitudeRef"),
+        dms_to_degrees(gps["GPSLongitude"]) if has_pos else None, gps.get("GPSLongitudeRef"),
+        rational(gps["GPSAltitude"]) if "GPSAltitude" in gps else None,
         gps.get("GPSAltitudeRef") in (1, b"\x01"),
     )
-
-
-def _time(exif: dict[str, Any]) -> str | None:
-    dto = str(exif.get("DateTimeOriginal") or "").strip()
-    if len(dto) < 19:
-        return None
-    iso = f"{dto[0:4]}-{dto[5:7]}-{dto[8:10]}T{dto[11:19]}"
-    sub = str(exif.get("SubsecTimeOriginal") or exif.get("SubsecTime") or "").strip()
-    return f"{iso}.{sub}" if sub.isdigit() else iso
 
 
 def _exposure_and_gain(exif: dict[str, Any], path: Path) -> tuple[float, float]:
     if "ExposureTime" not in exif:
         raise FrameError("no EXIF ExposureTime tag", path=path, hint=FIRMWARE_HINT)
-    exposure = _rational(exif["ExposureTime"])
+    exposure = rational(exif["ExposureTime"])
     if not (math.isfinite(exposure) and 0 < exposure <= MAX_EXPOSURE_S):
         raise FrameError(
             f"EXIF ExposureTime {exposure!r} s is outside (0, {MAX_EXPOSURE_S:g}] s",
@@ -303,7 +280,7 @@ def meta_from_tags(path: Path, tags: dict[int, Any], shape: tuple[int, int], bit
         lat=lat,
         lon=lon,
         alt_m=alt,
-        time=_time(exif),
+        time=exif_datetime_iso(exif.get("DateTimeOriginal"), exif.get("SubsecTimeOriginal") or exif.get("SubsecTime")),
     )
 
 

@@ -2,14 +2,20 @@
 
 Each file is read with ``yaml.safe_load`` and validated into frozen dataclasses; unknown keys
 are rejected with a message naming the file and the keys that are allowed. The catalog folder
-is ``catalogs/`` at the top of the project, or the folders listed in ``MSCAL_CATALOG_PATH``
-(``os.pathsep``-separated) searched first.
+is the ``catalogs`` package (``catalogs/`` at the top of the project, installed with mscal as
+package data and found with ``importlib.resources``), after the folders listed in
+``MSCAL_CATALOG_PATH`` (``os.pathsep``-separated), which are searched first.
+
+Parsed entries are cached on the file's path, modification time and size: a long-running
+process (``mscal serve``) sees an edited or added catalog file at its next use.
 """
 
 from __future__ import annotations
 
 import ast
+import importlib.resources
 import os
+import re
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -19,8 +25,10 @@ import numpy as np
 import yaml
 
 from mscal_core.errors import CatalogError, MscalError
+from mscal_core.reflectance import keep_valid
 
-CATALOG_ROOT = Path(__file__).resolve().parents[2] / "catalogs"
+#: The catalogs shipped with mscal (the ``catalogs`` package's folder).
+CATALOG_ROOT = Path(str(importlib.resources.files("catalogs")))
 LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band")
 
 
@@ -188,8 +196,39 @@ _LAYOUT_KEYS = {
 
 
 def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
-    """Validate a camera mapping into a :class:`Camera`."""
+    """Validate a camera mapping into a :class:`Camera` (checks in this order: keys, bit
+    depths, layout, bands, bands against the layout, sensor, index and export bands)."""
     check_keys(data, _CAMERA_REQUIRED, _CAMERA_OPTIONAL, path, "camera")
+    bits, container = _parse_bit_depths(data, path)
+    layout = _parse_layout(data["layout"], path)
+    bands = _parse_bands(data["bands"], path)
+    _check_bands_fit_layout(bands, layout, path)
+    sensor = _parse_sensor(data.get("sensor"), layout, path)
+    index_bands, export = _parse_index_and_export_bands(data, [b.name for b in bands], path)
+    camera = Camera(
+        name=str(data["name"]),
+        description=str(data["description"]),
+        bit_depth=bits,
+        layout=layout,
+        bands=tuple(bands),
+        sensor=sensor,
+        index_bands=index_bands,
+        export_bands=export,
+        source=str(path),
+        container_bits=container,
+    )
+    for role, wl in camera.index_bands.items():
+        try:
+            camera.band_for_wavelength(wl)
+        except CatalogError as exc:
+            raise CatalogError(f"index_bands.{role}: {exc.reason}", path=path) from None
+    if camera.name != path.stem:
+        raise CatalogError(f"name {camera.name!r} must match the file name {path.stem!r}", path=path)
+    return camera
+
+
+def _parse_bit_depths(data: Mapping[str, Any], path: Path) -> tuple[int, int | None]:
+    """``bit_depth`` (1..16) and ``container_bits`` (bit_depth..16, or None)."""
     bits = data["bit_depth"]
     if not isinstance(bits, int) or isinstance(bits, bool) or not 1 <= bits <= 16:
         raise CatalogError(f"bit_depth must be an integer 1..16, got {bits!r}", path=path)
@@ -202,8 +241,11 @@ def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
             path=path,
             hint="container_bits is the stored sample size when the DN sit in its high bits",
         )
+    return bits, container
 
-    lay = data["layout"]
+
+def _parse_layout(lay: Any, path: Path) -> Layout:
+    """The ``layout`` mapping: a mosaic, a multichannel image or one file per band."""
     if not isinstance(lay, dict) or lay.get("kind") not in LAYOUT_KINDS:
         raise CatalogError(
             f"layout.kind must be one of {', '.join(LAYOUT_KINDS)}",
@@ -212,31 +254,30 @@ def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
     req, opt = _LAYOUT_KEYS[lay["kind"]]
     check_keys(lay, req, opt, path, f"layout ({lay['kind']})")
     if lay["kind"] == "mosaic":
-        layout = Layout(
+        return Layout(
             kind="mosaic",
             pattern=_int_pair(lay["pattern"], path, "layout.pattern"),
             origin=_int_pair(lay.get("origin", [0, 0]), path, "layout.origin"),
             grid=_int_pair(lay["grid"], path, "layout.grid"),
         )
-    elif lay["kind"] == "multichannel":
+    if lay["kind"] == "multichannel":
         ch = lay["channels"]
         if not isinstance(ch, int) or ch < 1:
             raise CatalogError(f"layout.channels must be a positive integer, got {ch!r}", path=path)
-        layout = Layout(kind="multichannel", channels=ch)
-    else:
-        import re
+        return Layout(kind="multichannel", channels=ch)
+    try:
+        rx = re.compile(str(lay["capture_pattern"]))
+    except re.error as exc:
+        raise CatalogError(f"layout.capture_pattern is not a valid regex: {exc}", path=path) from None
+    if not {"capture", "band"} <= set(rx.groupindex):
+        raise CatalogError(
+            "layout.capture_pattern needs named groups (?P<capture>...) and (?P<band>...)", path=path
+        )
+    return Layout(kind="file_per_band", capture_pattern=rx.pattern)
 
-        try:
-            rx = re.compile(str(lay["capture_pattern"]))
-        except re.error as exc:
-            raise CatalogError(f"layout.capture_pattern is not a valid regex: {exc}", path=path) from None
-        if not {"capture", "band"} <= set(rx.groupindex):
-            raise CatalogError(
-                "layout.capture_pattern needs named groups (?P<capture>...) and (?P<band>...)", path=path
-            )
-        layout = Layout(kind="file_per_band", capture_pattern=rx.pattern)
 
-    raw_bands = data["bands"]
+def _parse_bands(raw_bands: Any, path: Path) -> list[Band]:
+    """The ``bands`` list, each band's keys checked; names unique."""
     if not isinstance(raw_bands, list) or not raw_bands:
         raise CatalogError("bands must be a non-empty list", path=path)
     bands: list[Band] = []
@@ -257,7 +298,11 @@ def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
     names = [b.name for b in bands]
     if len(set(names)) != len(names):
         raise CatalogError("band names must be unique", path=path)
+    return bands
 
+
+def _check_bands_fit_layout(bands: list[Band], layout: Layout, path: Path) -> None:
+    """Every mosaic position, channel or file suffix is given once, in the layout's order."""
     if layout.kind == "mosaic":
         assert layout.pattern is not None
         rows, cols = layout.pattern
@@ -281,26 +326,33 @@ def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
         if any(s is None for s in sufs) or len(set(sufs)) != len(sufs):
             raise CatalogError("one-file-per-band cameras need a unique 'file_suffix' per band", path=path)
 
-    sensor = None
-    if data.get("sensor") is not None:
-        s = data["sensor"]
-        if not isinstance(s, dict):
-            raise CatalogError("sensor must be a mapping {width, height}", path=path)
-        check_keys(s, {"width", "height"}, set(), path, "sensor")
-        sensor = (
-            int(_positive_number(s["height"], path, "sensor.height")),
-            int(_positive_number(s["width"], path, "sensor.width")),
-        )
-        if layout.kind == "mosaic":
-            assert layout.pattern and layout.grid
-            need = (layout.origin[0] + layout.pattern[0] * layout.grid[0],
-                    layout.origin[1] + layout.pattern[1] * layout.grid[1])
-            if need[0] > sensor[0] or need[1] > sensor[1]:
-                raise CatalogError(
-                    f"layout.grid {list(layout.grid)} does not fit the {sensor[1]}x{sensor[0]} sensor",
-                    path=path,
-                )
 
+def _parse_sensor(s: Any, layout: Layout, path: Path) -> tuple[int, int] | None:
+    """``sensor: {width, height}`` as ``(height, width)``; a mosaic's grid must fit it."""
+    if s is None:
+        return None
+    if not isinstance(s, dict):
+        raise CatalogError("sensor must be a mapping {width, height}", path=path)
+    check_keys(s, {"width", "height"}, set(), path, "sensor")
+    sensor = (
+        int(_positive_number(s["height"], path, "sensor.height")),
+        int(_positive_number(s["width"], path, "sensor.width")),
+    )
+    if layout.kind == "mosaic":
+        assert layout.pattern and layout.grid
+        need = (layout.origin[0] + layout.pattern[0] * layout.grid[0],
+                layout.origin[1] + layout.pattern[1] * layout.grid[1])
+        if need[0] > sensor[0] or need[1] > sensor[1]:
+            raise CatalogError(
+                f"layout.grid {list(layout.grid)} does not fit the {sensor[1]}x{sensor[0]} sensor",
+                path=path,
+            )
+    return sensor
+
+
+def _parse_index_and_export_bands(data: Mapping[str, Any], names: list[str], path: Path
+                                  ) -> tuple[dict[str, float], tuple[str, ...]]:
+    """``index_bands`` (role -> wavelength) and ``export_bands`` (names of known bands)."""
     index_bands = data.get("index_bands") or {}
     if not isinstance(index_bands, dict):
         raise CatalogError("index_bands must map a role (red, nir, ...) to a wavelength", path=path)
@@ -310,27 +362,7 @@ def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
     unknown_export = [x for x in export if x not in names]
     if unknown_export:
         raise CatalogError(f"export_bands names unknown band(s) {', '.join(unknown_export)}", path=path)
-
-    camera = Camera(
-        name=str(data["name"]),
-        description=str(data["description"]),
-        bit_depth=bits,
-        layout=layout,
-        bands=tuple(bands),
-        sensor=sensor,
-        index_bands={str(k): float(v) for k, v in index_bands.items()},
-        export_bands=export,
-        source=str(path),
-        container_bits=container,
-    )
-    for role, wl in camera.index_bands.items():
-        try:
-            camera.band_for_wavelength(wl)
-        except CatalogError as exc:
-            raise CatalogError(f"index_bands.{role}: {exc.reason}", path=path) from None
-    if camera.name != path.stem:
-        raise CatalogError(f"name {camera.name!r} must match the file name {path.stem!r}", path=path)
-    return camera
+    return {str(k): float(v) for k, v in index_bands.items()}, export
 
 
 def _find(kind: str, name: str) -> Path:
@@ -354,11 +386,31 @@ def list_entries(kind: str) -> list[str]:
     return sorted(names)
 
 
-@lru_cache(maxsize=None)
 def load_camera(name: str) -> Camera:
     """The camera catalog entry ``name``; :class:`CatalogError` if unknown or invalid."""
-    path = _find("cameras", name)
-    return parse_camera(_load_yaml(path), path)
+    return _load("cameras", name)
+
+
+def _load(kind: str, name: str) -> Any:
+    """The parsed entry ``name`` of ``kind``, from the cache while its file is unchanged."""
+    path = _find(kind, name)
+    try:
+        st = path.stat()
+    except OSError as exc:
+        raise CatalogError(f"cannot read catalog file: {exc.strerror}", path=path) from None
+    return _parsed(kind, str(path), st.st_mtime_ns, st.st_size)
+
+
+@lru_cache(maxsize=256)
+def _parsed(kind: str, path: str, mtime_ns: int, size: int) -> Any:
+    """Parse one catalog file; cached on (path, mtime, size), so an edit is a new key."""
+    p = Path(path)
+    return _PARSERS[kind](_load_yaml(p), p)
+
+
+def clear_cache() -> None:
+    """Forget every parsed catalog entry (tests; edits are picked up without it)."""
+    _parsed.cache_clear()
 
 
 # --------------------------------------------------------------------------- reflectance targets
@@ -428,11 +480,12 @@ class Target:
     reflectance: ReflectanceSpec
 
 
-@lru_cache(maxsize=None)
 def load_target(name: str) -> Target:
     """A reflectance target from ``catalogs/targets/<name>.yaml``."""
-    path = _find("targets", name)
-    data = _load_yaml(path)
+    return _load("targets", name)
+
+
+def parse_target(data: Mapping[str, Any], path: Path) -> Target:
     check_keys(data, {"name", "description", "reflectance"}, set(), path, "target")
     if isinstance(data["reflectance"], str):
         raise CatalogError("a target's reflectance must be a number or a table", path=path)
@@ -459,16 +512,12 @@ class Index:
     valid_range: tuple[float, float] | None = None
 
     def evaluate(self, bands: Mapping[str, np.ndarray]) -> np.ndarray:
-        """Evaluate on arrays keyed by role; division by zero gives NaN, never inf."""
+        """Evaluate on arrays keyed by role; NaN where the value is not finite (division by zero)
+        or outside ``valid_range`` (:func:`mscal_core.reflectance.keep_valid`)."""
         code = compile(ast.parse(self.expression, mode="eval"), "<index>", "eval")
         with np.errstate(divide="ignore", invalid="ignore"):
             out = eval(code, {"__builtins__": {}}, {k: bands[k] for k in self.inputs})  # noqa: S307 (validated AST)
-        out = np.asarray(out, dtype=np.float32)
-        out[~np.isfinite(out)] = np.nan
-        if self.valid_range is not None:
-            lo, hi = self.valid_range
-            out = np.where((out < lo) | (out > hi), np.nan, out).astype(np.float32)
-        return out
+        return keep_valid(np.asarray(out, dtype=np.float32), self.valid_range)
 
 
 def parse_index(data: Mapping[str, Any], path: Path) -> Index:
@@ -497,8 +546,9 @@ def parse_index(data: Mapping[str, Any], path: Path) -> Index:
     return Index(str(data["name"]), str(data["description"]), expr, inputs, valid)
 
 
-@lru_cache(maxsize=None)
 def load_index(name: str) -> Index:
     """A spectral index from ``catalogs/indices/<name>.yaml``."""
-    path = _find("indices", name)
-    return parse_index(_load_yaml(path), path)
+    return _load("indices", name)
+
+
+_PARSERS = {"cameras": parse_camera, "targets": parse_target, "indices": parse_index}

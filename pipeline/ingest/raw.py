@@ -33,10 +33,8 @@ bounded look-ahead (hash, read + demosaic; then the write of the frame's whole c
 indices and commits every ``commit_every`` frames. No dask is involved in writing, and no two
 writers ever touch one chunk (zarr v3 has no chunk locking: partial writes would race).
 
-Test hook: ``MSCAL_TEST_KILL_AT=<point>[:<count>]`` makes the process SIGKILL itself at
-``create`` (cube built under its temporary name), ``frame:N`` (N-th new chunk of this run
-written), ``coords:K`` / ``consolidated:K`` / ``commit:K`` (phases of the K-th commit) or
-``recover`` (uncommitted frames cut off, not yet re-consolidated).
+The tests SIGKILL an ingest between each of these steps (tests/pipeline/ingest/kill_points.py
+wraps the functions that do them) and check that a re-run gives the same cube.
 """
 
 from __future__ import annotations
@@ -46,16 +44,13 @@ import json
 import logging
 import os
 import shutil
-import signal
 import time as _time
-import uuid
 import warnings
 from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 import numpy as np
 import zarr
@@ -64,6 +59,8 @@ import mscal_core
 from mscal_core.errors import FrameError, InputError
 
 from pipeline.ingest.catalog import Camera, load_camera
+from pipeline.ingest.exif import time_ns
+from pipeline.storage.atomic import TMP_MARK, atomic_folder
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 from pipeline.ingest.discover import Discovery, discover_flight, quarantine_entry
 from pipeline.ingest.session import FrameRecord, decode_raw, to_bands
@@ -79,9 +76,6 @@ FRAME_VARS = ("dn", *FRAME_COORDS)
 STRING_COORDS = ("frame", "source_file", "sha256")
 COORD_CHUNK = 4096  # frames per chunk of a frame coordinate (rewritten whole at each commit)
 TIME_UNITS = "nanoseconds since 1970-01-01"
-NAT = np.iinfo(np.int64).min  # how xarray encodes NaT in an int64 time variable
-TMP_MARK = ".tmp-"
-KILL_ENV = "MSCAL_TEST_KILL_AT"  # test hook: "frame:N", "coords:K", "consolidated:K", ...
 
 
 @dataclass
@@ -98,23 +92,6 @@ class IngestResult:
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def _test_kill(point: str, count: int | None = None) -> None:
-    """Test hook: SIGKILL this process at a named point (``MSCAL_TEST_KILL_AT``)."""
-    spec = os.environ.get(KILL_ENV)
-    if spec and (spec == point or (count is not None and spec == f"{point}:{count}")):
-        os.kill(os.getpid(), signal.SIGKILL)
-
-
-def _time_ns(text: str | None) -> int:
-    """ISO 8601 text -> int64 ns since the epoch (UTC when it has an offset); NaT if None."""
-    if not text:
-        return NAT
-    dt = datetime.fromisoformat(text.replace("Z", "+00:00"))
-    if dt.tzinfo is not None:
-        dt = dt.astimezone(timezone.utc).replace(tzinfo=None)
-    return int(np.datetime64(dt, "ns").astype(np.int64))
 
 
 def _nan(v: float | None) -> float:
@@ -201,12 +178,12 @@ def shape_problem(bands_shape: tuple[int, ...], cube_shape: tuple[int, ...] | No
 
 
 def frame_row(rec: FrameRecord, sha: str) -> dict:
-    """One frame's values of the cube's frame coordinates (as :meth:`_Writer.commit` stores them)."""
+    """One frame's values of the cube's frame coordinates (as :meth:`CubeWriter.commit` stores them)."""
     return {
         "frame": rec.name,
         "exposure_ms": float(rec.exposure_ms),
         "gain": float(rec.gain),
-        "time": _time_ns(rec.time),
+        "time": time_ns(rec.time),
         "lat": _nan(rec.lat),
         "lon": _nan(rec.lon),
         "alt_m": _nan(rec.alt_m),
@@ -334,18 +311,12 @@ def _encoding(shape: tuple[int, int, int], compress: bool = True) -> dict:
 
 def _create(out: Path, camera: Camera, shape: tuple[int, int, int], compress: bool = True) -> None:
     """Create the empty cube under a temporary name and rename it into place."""
-    tmp = out.parent / f".{out.name}{TMP_MARK}{uuid.uuid4().hex[:8]}"
-    try:
+    with atomic_folder(out) as tmp:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message="Consolidated metadata")
             _template(camera, shape).to_zarr(
                 tmp, mode="w", encoding=_encoding(shape, compress), consolidated=True, zarr_format=3
             )
-        _test_kill("create")
-        os.replace(tmp, out)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _root_meta(out: Path) -> dict:
@@ -385,12 +356,13 @@ def _open(out: Path, camera: Camera) -> tuple[zarr.Group, int]:
         if arr.shape[0] > n:  # a killed run: drop its uncommitted frames
             arr.resize((n, *arr.shape[1:]))
             changed = True
-    if changed:
-        _test_kill("recover")
     stale = changed or not _consolidated_matches(root, arrays)
-    # temporaries of writes that were killed (harmless to readers, but not left behind)
-    for p in out.rglob("*.partial") if stale else [*out.glob("*.partial"), *out.glob("*/*.partial")]:
-        p.unlink(missing_ok=True)
+    # temporaries of writes that were killed (harmless to readers, but not left behind): zarr's
+    # (.partial) and those of pipeline.storage.atomic (TMP_MARK)
+    for pattern in ("*.partial", f"*{TMP_MARK}*"):
+        for p in out.rglob(pattern) if stale else [*out.glob(pattern), *out.glob(f"*/{pattern}")]:
+            if p.is_file():
+                p.unlink(missing_ok=True)
     if stale:
         _consolidate(out)
         _set_committed(out, n)
@@ -510,46 +482,20 @@ def ingest_flight(
         present = 0
 
         with ThreadPoolExecutor(max_workers=max(1, workers), thread_name_prefix="mscal-ingest") as pool:
-            # Each frame in file-name order: hash it; decode it only if it is new. Tasks run
-            # ahead in the pool (bounded); results are taken in order, so frame indices and
-            # quarantine decisions do not depend on timing.
-            writer = _Writer(out, group, committed, shape, camera, commit_every, pool, workers, compress)
-            window: deque[tuple[FrameRecord, Future]] = deque()
-            todo = iter(found.frames)
-            lookahead = 2 * max(1, workers)
-
-            def refill() -> None:
-                while len(window) < lookahead:
-                    rec = next(todo, None)
-                    if rec is None:
-                        return
-                    window.append((rec, pool.submit(_examine, rec, camera, in_cube, cube_by_sha)))
-
-            refill()
-            while window:
-                rec, fut = window.popleft()
-                refill()
+            writer = CubeWriter(out, group, committed, shape, camera, commit_every, pool, workers, compress)
+            for rec, fut in _examined_in_order(found.frames, pool, 2 * max(1, workers), camera, in_cube, cube_by_sha):
                 fname = rec.path.name
                 try:
                     sha, bands = fut.result()
                 except FrameError as exc:
                     quarantined.append(quarantine_entry(fname, exc))
                     continue
-                if rec.name in in_cube:
-                    if in_cube[rec.name] == sha:
-                        present += 1
-                    else:
-                        quarantined.append(quarantine_entry(fname, FrameError(
-                            "changed since ingest: its content differs from the frame of that name in the datacube",
-                            path=rec.path,
-                            hint="the datacube keeps the frame as first ingested; give a new frame a new name",
-                        )))
+                seen = _already_seen(rec, sha, in_cube, cube_by_sha, new_by_sha)
+                if seen == "present":
+                    present += 1
                     continue
-                twin = cube_by_sha.get(sha) or new_by_sha.get(sha)
-                if twin is not None:
-                    quarantined.append(quarantine_entry(fname, FrameError(
-                        f"same content as frame {twin} (a duplicate)", path=rec.path,
-                    )))
+                if seen is not None:
+                    quarantined.append(quarantine_entry(fname, seen))
                     continue
                 assert bands is not None
                 problem = writer.add(rec, sha, bands)
@@ -580,7 +526,48 @@ def ingest_flight(
     return result
 
 
-class _Writer:
+def _examined_in_order(frames: list[FrameRecord], pool: ThreadPoolExecutor, lookahead: int, camera: Camera,
+                       in_cube: dict[str, str], cube_by_sha: dict[str, str]) -> Iterator[tuple[FrameRecord, Future]]:
+    """Each frame in file-name order with the future of :func:`_examine` (hash it; decode it
+    only if it is new). Tasks run up to ``lookahead`` frames ahead in the pool; results are
+    taken in order, so frame indices and quarantine decisions do not depend on timing."""
+    window: deque[tuple[FrameRecord, Future]] = deque()
+    todo = iter(frames)
+
+    def refill() -> None:
+        while len(window) < lookahead:
+            rec = next(todo, None)
+            if rec is None:
+                return
+            window.append((rec, pool.submit(_examine, rec, camera, in_cube, cube_by_sha)))
+
+    refill()
+    while window:
+        rec, fut = window.popleft()
+        refill()
+        yield rec, fut
+
+
+def _already_seen(rec: FrameRecord, sha: str, in_cube: dict[str, str], cube_by_sha: dict[str, str],
+                  new_by_sha: dict[str, str]) -> str | FrameError | None:
+    """``"present"`` if the cube holds this frame, the :class:`FrameError` to quarantine it
+    with if its name is in the cube with other content or its content is there under another
+    name (or was added in this run), None for a new frame."""
+    if rec.name in in_cube:
+        if in_cube[rec.name] == sha:
+            return "present"
+        return FrameError(
+            "changed since ingest: its content differs from the frame of that name in the datacube",
+            path=rec.path,
+            hint="the datacube keeps the frame as first ingested; give a new frame a new name",
+        )
+    twin = cube_by_sha.get(sha) or new_by_sha.get(sha)
+    if twin is not None:
+        return FrameError(f"same content as frame {twin} (a duplicate)", path=rec.path)
+    return None
+
+
+class CubeWriter:
     """Appends frames to the cube: whole chunks first, coordinates next, commit counter last.
 
     Chunks are written by the pool's threads, each a whole chunk of its own frame index
@@ -623,8 +610,7 @@ class _Writer:
         dn = self._dn()
         if not self.pending:  # a new batch: room for it beyond the committed frames
             dn.resize((self.committed + self.commit_every, *self.shape))
-        ordinal = len(self.added) + len(self.pending) + 1
-        self.writes.append(self.pool.submit(_write_chunk, dn, self.n, bands, ordinal))
+        self.writes.append(self.pool.submit(_write_chunk, dn, self.n, bands))
         self.n += 1
         self.pending.append(frame_row(rec, sha))
         self._drain(self.max_writes)
@@ -664,16 +650,12 @@ class _Writer:
         dn = self._dn()
         if dn.shape[0] != n:
             dn.resize((n, *dn.shape[1:]))
-        _test_kill("coords", self.n_commits)
         _consolidate(self.out)
-        _test_kill("consolidated", self.n_commits)
         _set_committed(self.out, n)
-        _test_kill("commit", self.n_commits)
         self.added.extend(row["frame"] for row in self.pending)
         self.pending.clear()
         self.committed = n
 
 
-def _write_chunk(dn: zarr.Array, index: int, bands: np.ndarray, ordinal: int) -> None:
+def _write_chunk(dn: zarr.Array, index: int, bands: np.ndarray) -> None:
     dn[index] = bands  # exactly one whole chunk
-    _test_kill("frame", ordinal)

@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import csv
 import math
-import re
-from dataclasses import dataclass, replace
-from datetime import datetime
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
 
@@ -20,6 +18,7 @@ from mscal_core.errors import CatalogError, FrameError, InputError, MscalError, 
 from mscal_core.geometry import Intrinsics
 from mscal_core.mosaic import demosaic
 
+from pipeline.ingest.exif import dms_to_degrees, exif_datetime_iso, parse_iso, rational, signed_gps
 from pipeline.ingest.catalog import Camera, ReflectanceSpec, check_keys, load_camera, parse_reflectance, read_yaml
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
@@ -475,32 +474,10 @@ def _parse_time(text: str, csv_path: Path, line: int) -> str | None:
     if not text:
         return None
     try:
-        datetime.fromisoformat(text.replace("Z", "+00:00"))
+        parse_iso(text)
     except ValueError:
         raise FrameError(f"line {line}: time {text!r} is not ISO 8601", path=csv_path) from None
     return text
-
-
-def _ratio(tag: Any) -> float:
-    v = tag.values[0] if hasattr(tag, "values") else tag
-    return float(v.num) / float(v.den) if hasattr(v, "num") else float(v)
-
-
-def _dms(tag: Any) -> float:
-    vals = tag.values
-    return sum(float(v.num) / float(v.den) / 60**k for k, v in enumerate(vals))
-
-
-def signed_gps(lat: float | None, lat_ref: Any, lon: float | None, lon_ref: Any, alt: float | None,
-               below_sea_level: bool) -> tuple[float | None, float | None, float | None]:
-    """EXIF GPS degrees and altitude with their signs from the reference tags (S, W, below)."""
-    if lat is not None and str(lat_ref or "N").strip().upper().startswith("S"):
-        lat = -lat
-    if lon is not None and str(lon_ref or "E").strip().upper().startswith("W"):
-        lon = -lon
-    if alt is not None and below_sea_level:
-        alt = -alt
-    return lat, lon, alt
 
 
 def exif_record(path: Path) -> FrameRecord:
@@ -526,18 +503,13 @@ def exif_record(path: Path) -> FrameRecord:
     has_pos = "GPS GPSLatitude" in tags and "GPS GPSLongitude" in tags
     ref = tags.get("GPS GPSAltitudeRef")
     lat, lon, alt = signed_gps(
-        _dms(tags["GPS GPSLatitude"]) if has_pos else None, tags.get("GPS GPSLatitudeRef"),
-        _dms(tags["GPS GPSLongitude"]) if has_pos else None, tags.get("GPS GPSLongitudeRef"),
-        _ratio(tags["GPS GPSAltitude"]) if "GPS GPSAltitude" in tags else None,
+        dms_to_degrees(tags["GPS GPSLatitude"]) if has_pos else None, tags.get("GPS GPSLatitudeRef"),
+        dms_to_degrees(tags["GPS GPSLongitude"]) if has_pos else None, tags.get("GPS GPSLongitudeRef"),
+        rational(tags["GPS GPSAltitude"]) if "GPS GPSAltitude" in tags else None,
         ref is not None and bool(ref.values) and ref.values[0] == 1,
     )
-    time = None
-    dto = tags.get("EXIF DateTimeOriginal")
-    if dto is not None:
-        m = re.match(r"(\d{4}):(\d{2}):(\d{2}) (\d{2}:\d{2}:\d{2})", str(dto))
-        if m:
-            time = f"{m[1]}-{m[2]}-{m[3]}T{m[4]}"
-    rec = FrameRecord(path=path, exposure_ms=_ratio(exp) * 1000.0, gain=gain, time=time, lat=lat, lon=lon, alt_m=alt)
+    time = exif_datetime_iso(tags.get("EXIF DateTimeOriginal"))
+    rec = FrameRecord(path=path, exposure_ms=rational(exp) * 1000.0, gain=gain, time=time, lat=lat, lon=lon, alt_m=alt)
     _check_exposure(rec, path)
     return rec
 

@@ -42,9 +42,13 @@ import numpy as np
 from mscal_core.errors import InputError
 
 from pipeline.ingest.catalog import Index, load_index
-from pipeline.products.writers import REFLECTANCE_SCALE, atomic_path
+from pipeline.products.writers import REFLECTANCE_SCALE
+from pipeline.storage.atomic import atomic_path
 
-__all__ = ["ROLE_ALIASES", "ROLE_WAVELENGTHS", "index_map", "parse_bands_option", "resolve_bands"]
+__all__ = [
+    "ROLE_ALIASES", "ROLE_WAVELENGTHS", "alpha_bands", "band_scales", "evaluate_window", "index_map", "parse_bands_option",
+    "resolve_bands",
+]
 
 # role -> (window low nm, window high nm, nominal nm); windows do not overlap.
 ROLE_WAVELENGTHS: dict[str, tuple[float, float, float]] = {
@@ -122,7 +126,8 @@ def _band_wavelength(ds, b: int) -> float | None:
     return None
 
 
-def _alpha_bands(ds) -> list[int]:
+def alpha_bands(ds) -> list[int]:
+    """1-based numbers of the alpha (mask) bands of the open rasterio dataset ``ds``."""
     from rasterio.enums import ColorInterp
 
     return [i + 1 for i, ci in enumerate(ds.colorinterp) if ci == ColorInterp.alpha]
@@ -134,7 +139,7 @@ def _describe_bands(ds) -> str:
         desc = ds.descriptions[b - 1]
         wl = _band_wavelength(ds, b)
         extra = f" ({wl:g} nm)" if wl is not None and not (desc and re.search(r"\d", desc)) else ""
-        alpha = " (alpha)" if b in _alpha_bands(ds) else ""
+        alpha = " (alpha)" if b in alpha_bands(ds) else ""
         parts.append(f"{b}={desc!r}{extra}{alpha}" if desc else f"{b}=(none){extra}{alpha}")
     return ", ".join(parts)
 
@@ -150,7 +155,7 @@ def resolve_bands(ds, roles: tuple[str, ...] | list[str], bands: Mapping[str, in
             f"--bands names {', '.join(unknown)}, which the index does not use",
             path=path, hint=f"the index uses {', '.join(roles)}",
         )
-    alpha = set(_alpha_bands(ds))
+    alpha = set(alpha_bands(ds))
     candidates = [b for b in range(1, ds.count + 1) if b not in alpha]
     out: dict[str, int] = {}
     for role in roles:
@@ -205,7 +210,9 @@ def resolve_bands(ds, roles: tuple[str, ...] | list[str], bands: Mapping[str, in
     return out
 
 
-def _band_scales(ds, numbers: list[int], scale: float | None) -> dict[int, tuple[float, float]]:
+def band_scales(ds, numbers: list[int], scale: float | None) -> dict[int, tuple[float, float]]:
+    """``{band: (scale, offset)}`` that turn stored values of ``numbers`` into reflectance
+    (``scale`` given: that scale, offset 0)."""
     out = {}
     for b in numbers:
         if scale is not None:
@@ -260,8 +267,8 @@ def index_map(
         roles = tuple(index.inputs)
         mapping = resolve_bands(src, roles, bands, path=ortho_path)
         numbers = sorted(set(mapping.values()))
-        scales = _band_scales(src, numbers, scale)
-        alpha = _alpha_bands(src)
+        scales = band_scales(src, numbers, scale)
+        alpha = alpha_bands(src)
         h, w = src.height, src.width
         block = _BLOCK_BIG if max(h, w) >= 4096 else _BLOCK_SMALL
         profile = {
@@ -289,7 +296,7 @@ def index_map(
                     dst.set_band_description(1, index.name)
                     dst.update_tags(**tags)
                     for win in _windows(h, w, block):
-                        dst.write(_evaluate_window(src, index, mapping, numbers, scales, alpha, win), 1, window=win)
+                        dst.write(evaluate_window(src, index, mapping, numbers, scales, alpha, win), 1, window=win)
                 rasterio.shutil.copy(
                     stage, tmp_cog, driver="COG", BLOCKSIZE=block, COMPRESS="DEFLATE", PREDICTOR="YES",
                     OVERVIEWS="AUTO", RESAMPLING="AVERAGE", BIGTIFF="IF_SAFER",
@@ -300,8 +307,10 @@ def index_map(
     return out_path
 
 
-def _evaluate_window(src, index: Index, mapping: dict[str, int], numbers: list[int],
+def evaluate_window(src, index: Index, mapping: dict[str, int], numbers: list[int],
                      scales: dict[int, tuple[float, float]], alpha: list[int], win) -> np.ndarray:
+    """The index over one window of ``src`` (float32), NaN where a band is masked or an
+    alpha band is 0 (what ``mscal index`` writes and ``mscal stats`` reads)."""
     data = src.read(numbers, window=win, out_dtype="float32", masked=False)
     valid = np.ones(data.shape[1:], dtype=bool)
     arrays: dict[int, np.ndarray] = {}

@@ -70,6 +70,9 @@ import numpy as np
 from mscal_core.errors import InputError
 from pipeline.ingest.catalog import read_yaml
 
+from pipeline.ingest.exif import parse_iso
+from pipeline.storage.atomic import write_text_atomic
+
 log = logging.getLogger(__name__)
 
 __all__ = [
@@ -228,9 +231,9 @@ def _raster_info(path: Path) -> dict[str, Any] | None:
             if src.crs is None or src.transform.is_identity:
                 log.warning("%s: no CRS or geotransform; not catalogued as a raster", path)
                 return None
-            from pipeline.products.indexmap import _alpha_bands
+            from pipeline.products.indexmap import alpha_bands
 
-            alpha = _alpha_bands(src)
+            alpha = alpha_bands(src)
             data = [b for b in range(1, src.count + 1) if b not in alpha]
             names = {n.lower() for n in list_entries("indices")}
             tag = str(src.tags().get("INDEX", "")).strip().lower()
@@ -464,13 +467,10 @@ def _locked(root: Path) -> Iterator[None]:
 def _write_json(path: Path, d: dict[str, Any]) -> bool:
     """Write ``d`` atomically unless ``path`` already holds exactly it (an update with nothing
     changed leaves every file, and its mtime, as it was). True when written."""
-    from pipeline.products.writers import atomic_path
-
     text = json.dumps(d, indent=2, sort_keys=False) + "\n"
     if path.is_file() and path.read_text(encoding="utf-8") == text:
         return False
-    with atomic_path(path) as tmp:
-        tmp.write_text(text, encoding="utf-8")
+    write_text_atomic(path, text)
     return True
 
 
@@ -611,7 +611,7 @@ def catalog_rasters(catalog: str | Path, index_name: str, skipped: list[str] | N
         when = props.get("datetime") or props.get("start_datetime")
         if props.get("mscal:time_source") == "processing":
             when = None  # the day it was processed is not the day it was flown
-        day = datetime.fromisoformat(when.replace("Z", "+00:00")).date() if when else None
+        day = parse_iso(when).date() if when else None
         out.append({"path": str((p.parent / pick["href"]).resolve()), "item": d.get("id"),
                     "collection": d.get("collection", ""), "date": day})
     return out

@@ -36,26 +36,25 @@ is with NaN (``GDAL_NODATA = nan``). NDVI TIFFs are float32 with NaN.
 
 The TIFF is written here with ``struct`` (baseline, little-endian, uncompressed strips): it is
 a small, well-defined format and neither GDAL nor tifffile writes EXIF/GPS sub-IFDs. Every file
-is written to a temporary sibling name, fsynced, and renamed (:func:`atomic_path`).
+is written to a temporary sibling name and renamed
+(:func:`pipeline.storage.atomic.atomic_path`).
 """
 
 from __future__ import annotations
 
 import math
-import os
 import struct
-import uuid
-from contextlib import contextmanager
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import datetime
 from fractions import Fraction
 from pathlib import Path
-from typing import Iterator
 from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
 
 from mscal_core.errors import CatalogError
+from pipeline.ingest.exif import U32, degrees_to_dms, parse_iso, to_rational, utc_naive
+from pipeline.storage.atomic import atomic_path
 from pipeline.storage.directio import write_file
 
 __all__ = [
@@ -64,7 +63,6 @@ __all__ = [
     "NODATA_UINT16",
     "REFLECTANCE_SCALE",
     "XMP_CAMERA_NS",
-    "atomic_path",
     "build_xmp",
     "encode_reflectance_uint16",
     "write_band_tiff",
@@ -103,75 +101,6 @@ class BandTags:
     rig_camera_index: int
 
 
-# --------------------------------------------------------------------------- atomic files
-
-
-#: Marks temporary names; a restarted run removes whatever carries it (``apply``).
-TMP_MARK = ".tmp-"
-
-
-@contextmanager
-def atomic_path(path: str | Path, *, durable: bool = False) -> Iterator[Path]:
-    """Yield a temporary sibling of ``path``; on success rename it onto ``path``.
-
-    A killed process leaves either the old file or the complete new one, never a partial one.
-    ``durable`` also fsyncs the file and its folder (survives power loss); per-frame outputs
-    skip it because thousands of fsyncs cost more than the rest of the write, and a run cut
-    by power loss is redone anyway (run.json is written last).
-    The temporary name is hidden (``.<stem>.tmp-<random><suffix>``) and does not exist when
-    yielded: the caller creates it (so the file gets the usual permissions). On any exception
-    the temporary file and any sidecar GDAL left next to it (``<tmp>.aux.xml``, ``<tmp>.ovr``)
-    are removed and the exception propagates; ``path`` is untouched. The parent folder is
-    created if missing.
-    """
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}{TMP_MARK}{uuid.uuid4().hex[:12]}{path.suffix}")
-    try:
-        yield tmp
-        if not tmp.is_file():
-            raise FileNotFoundError(f"{tmp}: nothing was written to the temporary file for {path}")
-        if durable:
-            fd = os.open(tmp, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-        os.replace(tmp, path)
-        if durable:
-            _fsync_dir(path.parent)
-    except BaseException:
-        _remove_tmp(tmp)
-        raise
-    finally:
-        # GDAL may leave PAM sidecars (.aux.xml) next to a temporary raster: never leave them.
-        for ext in _SIDECARS:
-            _remove_tmp(tmp.with_name(tmp.name + ext))
-
-
-_SIDECARS = (".aux.xml", ".ovr", ".msk")
-
-
-def _remove_tmp(tmp: Path) -> None:
-    try:
-        tmp.unlink(missing_ok=True)
-    except OSError:
-        pass
-
-
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 # --------------------------------------------------------------------------- pixel encoding
 
 
@@ -194,7 +123,6 @@ def encode_reflectance_uint16(reflectance: np.ndarray) -> np.ndarray:
 
 _BYTE, _ASCII, _SHORT, _LONG, _RATIONAL, _UNDEFINED = 1, 2, 3, 4, 5, 7
 _TYPE_SIZE = {_BYTE: 1, _ASCII: 1, _SHORT: 2, _LONG: 4, _RATIONAL: 8, _UNDEFINED: 1}
-_U32 = 0xFFFFFFFF
 
 
 def _align(n: int, a: int = 4) -> int:
@@ -223,7 +151,7 @@ class _IFD:
             data = struct.pack(f"<{len(vals)}I", *vals)
             count = len(vals)
         elif typ == _RATIONAL:
-            vals = [_rational(v) for v in values]
+            vals = [to_rational(v) for v in values]
             data = b"".join(struct.pack("<II", n, d) for n, d in vals)
             count = len(vals)
         else:  # pragma: no cover - programming error
@@ -255,38 +183,16 @@ def _ascii(text: str) -> bytes:
     return str(text).encode("ascii", errors="replace") + b"\0"
 
 
-def _rational(v) -> tuple[int, int]:
-    if isinstance(v, tuple):
-        n, d = v
-    else:
-        f = Fraction(v)
-        if f.denominator > _U32 or f.numerator > _U32:
-            bound = min(_U32, int(_U32 / max(float(f), 1.0)))
-            f = f.limit_denominator(max(bound, 1))
-        n, d = f.numerator, f.denominator
-    if not (0 <= n <= _U32 and 0 < d <= _U32):
-        raise ValueError(f"value {v!r} does not fit an unsigned TIFF RATIONAL")
-    return int(n), int(d)
-
-
 def _exposure_rational(exposure_ms: float) -> tuple[int, int]:
     """Exposure time in seconds as a reduced fraction (2.5 ms -> 1/400)."""
     secs = exposure_ms / 1000.0
     denom = 1_000_000_000
-    while denom > 1 and secs * denom > _U32:
+    while denom > 1 and secs * denom > U32:
         denom //= 10
     f = Fraction(round(secs * denom), denom)
     if f == 0:
-        f = Fraction(1, _U32)  # shorter than a nanosecond: the smallest positive value
+        f = Fraction(1, U32)  # shorter than a nanosecond: the smallest positive value
     return f.numerator, f.denominator
-
-
-def _dms(deg: float) -> list[tuple[int, int]]:
-    """|deg| as (degrees/1, minutes/1, seconds/1e6) with exact integer carry."""
-    micro = round(abs(deg) * 3600 * 1_000_000)
-    d, rem = divmod(micro, 3600 * 1_000_000)
-    m, s = divmod(rem, 60 * 1_000_000)
-    return [(int(d), 1), (int(m), 1), (int(s), 1_000_000)]
 
 
 def _finite(v: float | None) -> float | None:
@@ -300,14 +206,11 @@ def _parse_time(text: str | None) -> tuple[datetime, bool] | None:
     """(datetime, zone_known): aware times converted to UTC; None if no time."""
     if text is None or str(text).strip() in ("", "NaT", "nan", "None"):
         return None
-    s = str(text).strip()
     try:
-        t = datetime.fromisoformat(s)
+        t = parse_iso(str(text))
     except ValueError:
         raise ValueError(f"frame time {text!r} is not ISO 8601") from None
-    if t.tzinfo is not None:
-        return t.astimezone(timezone.utc).replace(tzinfo=None), True
-    return t, False
+    return utc_naive(t)
 
 
 def _check_band_name(name: str) -> None:
@@ -374,7 +277,39 @@ def _gdal_metadata(description: str, *, scale: float | None, wavelength_nm: floa
 def _write_tiff(
     path: Path, data: np.ndarray, frame: FrameTags, *, xmp: bytes, gdal_metadata: str, nodata: str,
 ) -> None:
-    """Baseline little-endian TIFF of one (H, W) uint16/float32 image with EXIF, GPS and XMP."""
+    """Baseline little-endian TIFF of one (H, W) uint16/float32 image with EXIF, GPS and XMP.
+
+    Layout: header | IFD0 (+ its values) | EXIF IFD | GPS IFD | pixel strips."""
+    strips = _strips(data)
+    tparsed = _parse_time(frame.time)
+    exif, date_text = _exif_ifd(frame, strips, tparsed)
+    gps = _gps_ifd(frame, tparsed)
+    ifd0 = _ifd0(frame, strips, date_text, xmp=xmp, gdal_metadata=gdal_metadata, nodata=nodata,
+                 has_gps=gps is not None)
+    head = _tiff_head(ifd0, exif, gps, strips)
+    write_file(path, [head, np.ascontiguousarray(strips.pixels)])
+
+
+@dataclass(frozen=True)
+class _Strips:
+    """The pixels as stored (little endian) and how they are cut into strips of <= 256 kB."""
+
+    pixels: np.ndarray
+    bits: int
+    sample_format: int  # 1 unsigned integer, 3 IEEE float
+    rows_per_strip: int
+    counts: list[int]  # bytes of each strip
+
+    @property
+    def height(self) -> int:
+        return int(self.pixels.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.pixels.shape[1])
+
+
+def _strips(data: np.ndarray) -> _Strips:
     if data.ndim != 2 or data.shape[0] < 1 or data.shape[1] < 1:
         raise ValueError(f"expected a non-empty (H, W) image, got shape {data.shape}")
     h, w = data.shape
@@ -387,17 +322,16 @@ def _write_tiff(
     row_bytes = w * bits // 8
     rows_per_strip = max(1, min(h, (256 * 1024) // row_bytes))
     n_strips = -(-h // rows_per_strip)
-    strip_counts = [min(rows_per_strip, h - i * rows_per_strip) * row_bytes for i in range(n_strips)]
+    counts = [min(rows_per_strip, h - i * rows_per_strip) * row_bytes for i in range(n_strips)]
+    return _Strips(pixels, bits, sample_format, rows_per_strip, counts)
 
-    tparsed = _parse_time(frame.time)
-    lat, lon, alt = _finite(frame.lat), _finite(frame.lon), _finite(frame.alt_m)
-    has_gps = lat is not None and lon is not None
 
-    # EXIF IFD
+def _exif_ifd(frame: FrameTags, strips: _Strips, tparsed: tuple[datetime, bool] | None) -> tuple[_IFD, str | None]:
+    """The EXIF IFD, and the capture time as EXIF text (also IFD0's DateTime), if known."""
     exif = _IFD()
     exif.add(36864, _UNDEFINED, b"0232")  # ExifVersion 2.32
-    exif.add(40962, _LONG, [w])  # PixelXDimension
-    exif.add(40963, _LONG, [h])  # PixelYDimension
+    exif.add(40962, _LONG, [strips.width])  # PixelXDimension
+    exif.add(40963, _LONG, [strips.height])  # PixelYDimension
     exposure = _finite(frame.exposure_ms)
     if exposure is not None and exposure > 0:
         exif.add(33434, _RATIONAL, [_exposure_rational(exposure)])  # ExposureTime (s)
@@ -415,44 +349,52 @@ def _write_tiff(
         if zoned:
             exif.add(36881, _ASCII, "+00:00")  # OffsetTimeOriginal
             exif.add(36880, _ASCII, "+00:00")  # OffsetTime
+    return exif, date_text
 
-    gps = None
-    if has_gps:
-        assert lat is not None and lon is not None
-        if not (-90 <= lat <= 90 and -180 <= lon <= 180):
-            raise ValueError(f"GPS position ({lat}, {lon}) is not WGS84 degrees")
-        gps = _IFD()
-        gps.add(0, _BYTE, [2, 3, 0, 0])  # GPSVersionID
-        gps.add(1, _ASCII, "N" if lat >= 0 else "S")
-        gps.add(2, _RATIONAL, _dms(lat))
-        gps.add(3, _ASCII, "E" if lon >= 0 else "W")
-        gps.add(4, _RATIONAL, _dms(lon))
-        if alt is not None:
-            gps.add(5, _BYTE, [0 if alt >= 0 else 1])  # GPSAltitudeRef: above / below sea level
-            gps.add(6, _RATIONAL, [(round(abs(alt) * 1000), 1000)])
-        if tparsed is not None and tparsed[1]:
-            t = tparsed[0]
-            secs_micro = t.second * 1_000_000 + t.microsecond
-            gps.add(7, _RATIONAL, [(t.hour, 1), (t.minute, 1), (secs_micro, 1_000_000)])  # GPSTimeStamp (UTC)
-        gps.add(18, _ASCII, "WGS-84")  # GPSMapDatum
-        if tparsed is not None and tparsed[1]:
-            gps.add(29, _ASCII, tparsed[0].strftime("%Y:%m:%d"))  # GPSDateStamp (UTC)
 
-    # IFD0
+def _gps_ifd(frame: FrameTags, tparsed: tuple[datetime, bool] | None) -> _IFD | None:
+    """The GPS IFD of a frame with a position (None without one)."""
+    lat, lon, alt = _finite(frame.lat), _finite(frame.lon), _finite(frame.alt_m)
+    if lat is None or lon is None:
+        return None
+    if not (-90 <= lat <= 90 and -180 <= lon <= 180):
+        raise ValueError(f"GPS position ({lat}, {lon}) is not WGS84 degrees")
+    gps = _IFD()
+    gps.add(0, _BYTE, [2, 3, 0, 0])  # GPSVersionID
+    gps.add(1, _ASCII, "N" if lat >= 0 else "S")
+    gps.add(2, _RATIONAL, degrees_to_dms(lat))
+    gps.add(3, _ASCII, "E" if lon >= 0 else "W")
+    gps.add(4, _RATIONAL, degrees_to_dms(lon))
+    if alt is not None:
+        gps.add(5, _BYTE, [0 if alt >= 0 else 1])  # GPSAltitudeRef: above / below sea level
+        gps.add(6, _RATIONAL, [(round(abs(alt) * 1000), 1000)])
+    if tparsed is not None and tparsed[1]:
+        t = tparsed[0]
+        secs_micro = t.second * 1_000_000 + t.microsecond
+        gps.add(7, _RATIONAL, [(t.hour, 1), (t.minute, 1), (secs_micro, 1_000_000)])  # GPSTimeStamp (UTC)
+    gps.add(18, _ASCII, "WGS-84")  # GPSMapDatum
+    if tparsed is not None and tparsed[1]:
+        gps.add(29, _ASCII, tparsed[0].strftime("%Y:%m:%d"))  # GPSDateStamp (UTC)
+    return gps
+
+
+def _ifd0(frame: FrameTags, strips: _Strips, date_text: str | None, *, xmp: bytes, gdal_metadata: str,
+          nodata: str, has_gps: bool) -> _IFD:
+    """IFD0 with placeholders for the strip, EXIF and GPS offsets (:func:`_tiff_head` sets them)."""
     ifd0 = _IFD()
     ifd0.add(254, _LONG, [0])  # NewSubfileType
-    ifd0.add(256, _LONG, [w])
-    ifd0.add(257, _LONG, [h])
-    ifd0.add(258, _SHORT, [bits])
+    ifd0.add(256, _LONG, [strips.width])
+    ifd0.add(257, _LONG, [strips.height])
+    ifd0.add(258, _SHORT, [strips.bits])
     ifd0.add(259, _SHORT, [1])  # no compression
     ifd0.add(262, _SHORT, [1])  # BlackIsZero
     ifd0.add(271, _ASCII, frame.camera_make or "unknown")
     ifd0.add(272, _ASCII, frame.camera_model or "unknown")
-    ifd0.add(273, _LONG, [0] * n_strips)  # StripOffsets, patched below
+    ifd0.add(273, _LONG, [0] * len(strips.counts))  # StripOffsets, patched below
     ifd0.add(274, _SHORT, [1])  # Orientation: top-left
     ifd0.add(277, _SHORT, [1])
-    ifd0.add(278, _LONG, [rows_per_strip])
-    ifd0.add(279, _LONG, strip_counts)
+    ifd0.add(278, _LONG, [strips.rows_per_strip])
+    ifd0.add(279, _LONG, strips.counts)
     ifd0.add(282, _RATIONAL, [(72, 1)])
     ifd0.add(283, _RATIONAL, [(72, 1)])
     ifd0.add(284, _SHORT, [1])  # chunky
@@ -460,26 +402,30 @@ def _write_tiff(
     ifd0.add(305, _ASCII, SOFTWARE)
     if date_text is not None:
         ifd0.add(306, _ASCII, date_text)  # DateTime: the capture time, so outputs are reproducible
-    ifd0.add(339, _SHORT, [sample_format])
+    ifd0.add(339, _SHORT, [strips.sample_format])
     ifd0.add(700, _BYTE, xmp)
     ifd0.add(34665, _LONG, [0])  # ExifIFD, patched below
-    if gps is not None:
+    if has_gps:
         ifd0.add(34853, _LONG, [0])  # GPSInfo, patched below
     ifd0.add(42112, _ASCII, gdal_metadata)
     ifd0.add(42113, _ASCII, nodata)
+    return ifd0
 
-    # layout: header | IFD0 (+values) | EXIF IFD | GPS IFD | pixel strips
+
+def _tiff_head(ifd0: _IFD, exif: _IFD, gps: _IFD | None, strips: _Strips) -> bytearray:
+    """Header and IFDs, up to where the pixel strips start (16-byte aligned); sets the
+    offsets in IFD0 (offset sizes do not depend on their values)."""
     pos0 = 8
     exif_pos = pos0 + len(ifd0.serialize(pos0))
     gps_pos = exif_pos + len(exif.serialize(exif_pos))
     end = gps_pos + (len(gps.serialize(gps_pos)) if gps is not None else 0)
     data_pos = _align(end, 16)
     offsets, p = [], data_pos
-    for c in strip_counts:
+    for c in strips.counts:
         offsets.append(p)
         p += c
-    if p > _U32:
-        raise ValueError(f"image of {w}x{h} is too large for a classic TIFF")
+    if p > U32:
+        raise ValueError(f"image of {strips.width}x{strips.height} is too large for a classic TIFF")
     ifd0.add(273, _LONG, offsets)
     ifd0.add(34665, _LONG, [exif_pos])
     if gps is not None:
@@ -493,7 +439,7 @@ def _write_tiff(
         assert len(head) == gps_pos
         head += gps.serialize(gps_pos)
     head += b"\0" * (data_pos - len(head))
-    write_file(path, [head, np.ascontiguousarray(pixels)])
+    return head
 
 
 # --------------------------------------------------------------------------- public writers

@@ -61,8 +61,8 @@ from mscal_core.errors import InputError
 from mscal_core.zonal import zonal_statistics
 
 from pipeline.ingest.catalog import Index, load_index
-from pipeline.products.indexmap import _alpha_bands, _band_scales, _evaluate_window, resolve_bands
-from pipeline.products.writers import atomic_path
+from pipeline.products.indexmap import alpha_bands, band_scales, evaluate_window, resolve_bands
+from pipeline.storage.atomic import atomic_path
 
 log = logging.getLogger(__name__)
 
@@ -300,7 +300,7 @@ def mosaics_from_catalog(catalog: str | Path, index_name: str, skipped: list[str
 
 
 def _is_index_map(src: Any, index: Index) -> bool:
-    alpha = _alpha_bands(src)
+    alpha = alpha_bands(src)
     data = [b for b in range(1, src.count + 1) if b not in alpha]
     if len(data) != 1:
         return False
@@ -350,14 +350,14 @@ class _IndexTiles:
             self.th = int(bh) * max(1, DEFAULT_TILE // int(bh))
         self.direct = _is_index_map(src, index)
         if self.direct:
-            alpha = _alpha_bands(src)
+            alpha = alpha_bands(src)
             self.band = next(b for b in range(1, src.count + 1) if b not in alpha)
             self.alpha = alpha
         else:
             self.mapping = resolve_bands(src, tuple(index.inputs), bands, path=src.name)
             self.numbers = sorted(set(self.mapping.values()))
-            self.scales = _band_scales(src, self.numbers, None)
-            self.alpha = _alpha_bands(src)
+            self.scales = band_scales(src, self.numbers, None)
+            self.alpha = alpha_bands(src)
 
     def tile(self, ti: int, tj: int) -> np.ndarray:
         """The index over tile (ti, tj) clipped to the mosaic."""
@@ -376,7 +376,7 @@ class _IndexTiles:
                 bad |= self.src.read(a, window=win) == 0
             arr[bad] = np.nan
         else:
-            arr = _evaluate_window(self.src, self.index, self.mapping, self.numbers, self.scales, self.alpha, win)
+            arr = evaluate_window(self.src, self.index, self.mapping, self.numbers, self.scales, self.alpha, win)
         arr[~np.isfinite(arr)] = np.nan  # 0/0 or x/0 of an index is not a value
         self.reads += 1
         self.cache[key] = arr

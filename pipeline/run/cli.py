@@ -21,6 +21,21 @@ from mscal_core.errors import MscalError
 
 RESPONSE_METHODS = click.Choice(["forward", "alternating"])
 ILLUMINATION_MODES = click.Choice(["nearest", "linear"])  # mscal_core.illumination.INTERPOLATION_MODES
+SCHEDULERS = click.Choice(["threads", "processes"])  # pipeline.apply.execution.SCHEDULERS
+
+
+def execution_options(command: Any) -> Any:
+    """``--scheduler``, ``--workers``, ``--direct-io/--no-direct-io`` of apply and run: how the
+    per-frame pass runs (never what it computes), each defaulting to its environment variable."""
+    command = click.option(
+        "--direct-io/--no-direct-io", "direct_io", default=True, show_default=True, envvar="MSCAL_DIRECT_IO",
+        show_envvar=True, help="Write outputs past the page cache (O_DIRECT) where the file system allows it.")(command)
+    command = click.option(
+        "--workers", type=click.IntRange(min=0), default=0, show_default=True, envvar="MSCAL_APPLY_WORKERS",
+        show_envvar=True, help="Frames processed at once (0: one per core).")(command)
+    return click.option(
+        "--scheduler", type=SCHEDULERS, default="threads", show_default=True, envvar="MSCAL_APPLY_SCHEDULER",
+        show_envvar=True, help="Threads, or worker processes (they take 1-2 s to start).")(command)
 
 
 def _summary(ds) -> str:  # noqa: ANN001 (xarray Dataset)
@@ -201,17 +216,21 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
 @click.option("--field-components", default=None,
               help="With --field-calibration: response and/or vignetting, comma-separated (default: those the "
                    "store holds). E.g. 'vignetting': field V (Eq. 8-10) with the factory response.")
+@execution_options
 def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str | None, panel_reflectance: str | None,
           reference: str, float32: bool, export_bands: str | None, strict: bool,
           illumination: str, no_align: bool, registration: Path | None, centre_bands: bool,
-          field_calibration: Path | None, field_components: str | None) -> None:
+          field_calibration: Path | None, field_components: str | None, scheduler: str, workers: int,
+          direct_io: bool) -> None:
     """Reflectance, indices and photogrammetry TIFFs for a FLIGHT folder of captures (one file
     per capture, or one file per band: IMG_0000_1.tif ..., SD-card trees included): Eq. 15 with
     a calibration store, or with --calibration factory the band files' own metadata."""
     from mscal_core.errors import InputError
 
+    from pipeline.apply.execution import Execution
     from pipeline.apply.flight import ApplyOptions, PanelSpec, apply_flight
 
+    execution = Execution(scheduler=scheduler, workers=workers, direct_io=direct_io)
     bands = tuple(b.strip() for b in export_bands.split(",")) if export_bands else None
     if calibration == "factory":
         from pipeline.apply.factory import FactoryOptions, apply_factory
@@ -232,6 +251,7 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
             field_calibration=None if field_calibration is None else str(field_calibration),
             field_components=tuple(c.strip() for c in field_components.split(",") if c.strip())
             if field_components else (),
+            execution=execution,
         )
         _report_apply(apply_factory(flight, out, fopts), out, strict)
         return
@@ -251,7 +271,7 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
     opts = ApplyOptions(
         normalise=normalise, panel=spec, tiff_dtype="float32" if float32 else "uint16",
         export_bands=bands, strict=strict, illumination=illumination or "linear", align=not no_align,
-        centre_bands=centre_bands,
+        centre_bands=centre_bands, execution=execution,
     )
     _report_apply(apply_flight(flight, calibration, out, opts), out, strict)
 
@@ -408,9 +428,10 @@ def _echo_run(record: dict) -> None:
               help="Local output root whose STAC catalog (ROOT/catalog.json) is updated after the run (default: OUT).")
 @click.option("--illumination", type=ILLUMINATION_MODES, default="linear", show_default=True,
               help="Light of each frame between several reflector captures: nearest or linear in time.")
+@execution_options
 def run(session: str, out: str, response_method: str, normalise: str, dask_address: str | None,
         cache_dir: str | None, work_dir: str | None, catalog_root: str | None,
-        illumination: str) -> None:
+        illumination: str, scheduler: str, workers: int, direct_io: bool) -> None:
     """The whole post-flight flow on Prefect's embedded server: calibrate SESSION (cached by
     content) and apply it to every SESSION/flights/<name>; SESSION and OUT may be s3:// URLs."""
     from pipeline.run.runner import check_run_inputs
@@ -421,7 +442,8 @@ def run(session: str, out: str, response_method: str, normalise: str, dask_addre
         os.environ["MSCAL_CACHE_DIR"] = cache_dir  # before Prefect starts: its home follows
     record = _flow("post_flight")(session=session, out=out, response_method=response_method, normalise=normalise,
                                   dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir,
-                                  catalog_root=catalog_root, illumination=illumination)
+                                  catalog_root=catalog_root, illumination=illumination, scheduler=scheduler,
+                                  workers=workers, direct_io=direct_io)
     _echo_run(record)
 
 

@@ -22,7 +22,7 @@ from typing import Any
 
 from mscal_core.errors import InputError
 
-from pipeline.apply.flight import _write_json_atomic
+from pipeline.storage.atomic import write_json_atomic
 from pipeline.storage.store import content_hashes
 
 READY = "READY"
@@ -78,7 +78,7 @@ def record(out_root: Path, name: str, *, listing: str, content: str, status: str
     sessions[name] = {"listing": listing, "content_sha256": content, "status": status, "detail": detail,
                       "utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     out_root.mkdir(parents=True, exist_ok=True)
-    _write_json_atomic(out_root / STATE_FILE, {"format": STATE_FORMAT, "sessions": sessions})
+    write_json_atomic(out_root / STATE_FILE, {"format": STATE_FORMAT, "sessions": sessions})
 
 
 @dataclass(frozen=True)

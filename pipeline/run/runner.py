@@ -36,12 +36,14 @@ from typing import Any, Callable, Iterable, Iterator
 import mscal_core
 from mscal_core.errors import InputError, MscalError, SessionError
 
-from pipeline.apply.flight import RUN_JSON, ApplyOptions, _write_json_atomic, apply_flight, scheduler_for
+from pipeline.apply.execution import Execution, scheduler_for
+from pipeline.apply.flight import RUN_JSON, ApplyOptions, apply_flight
 from pipeline.calibrate.fit import STAGES
 from pipeline.apply.light import INTERPOLATION_MODES
 from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
 from pipeline.ingest.catalog import CATALOG_ROOT, load_camera
 from pipeline.ingest.session import Session, load_session, read_frame_table
+from pipeline.storage.atomic import write_json_atomic
 from pipeline.storage.store import content_hashes, file_sha256, open_calibration, write_store
 
 log = logging.getLogger(__name__)
@@ -202,14 +204,14 @@ DASK_ADDRESS = re.compile(r"^(tcp|tls|inproc|ucx|ws|wss)://[^\s/]+(:\d+)?/?$")
 
 
 @contextmanager
-def dask_client(address: str | None, n_frames: int) -> Iterator[str]:
+def dask_client(address: str | None, n_frames: int, execution: Execution = Execution()) -> Iterator[str]:
     """The Dask scheduler ``apply_flight`` computes on, as the default ``distributed`` client
     for the duration; yields how the frames are computed.
 
     With ``address``: that ``dask scheduler`` and its workers (they must see the same paths,
     e.g. a shared file system). Without: a ``LocalCluster`` of one single-threaded worker
-    process per core when the flight is long enough for apply to want processes
-    (:func:`pipeline.apply.flight.scheduler_for`), else apply's own in-process scheduler.
+    process per core (or ``execution.workers``) when apply is to use processes
+    (:func:`pipeline.apply.execution.scheduler_for`), else apply's own in-process scheduler.
     """
     if address:
         from distributed import Client
@@ -222,12 +224,12 @@ def dask_client(address: str | None, n_frames: int) -> Iterator[str]:
         with client:
             yield f"dask scheduler {address}"
         return
-    if scheduler_for(n_frames)[0] != "processes":
+    if scheduler_for(n_frames, execution)[0] != "processes":
         yield "in-process"
         return
     from distributed import Client, LocalCluster
 
-    n = os.cpu_count() or 1
+    n = execution.workers or os.cpu_count() or 1
     with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
             Client(cluster, set_as_default=True):
         yield f"local cluster of {n} worker processes"
@@ -246,12 +248,17 @@ def count_frames(flight_dir: str | Path, camera: str | None = None) -> int:
 
 
 def apply_one(flight_dir: str, calibration: str, out: str, *, normalise: str = "relative",
-              dask_address: str | None = None, illumination: str = "linear") -> dict[str, Any]:
-    """``apply_flight`` under :func:`dask_client`; returns the flight's summary for run.json."""
+              dask_address: str | None = None, illumination: str = "linear", scheduler: str = "threads",
+              workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
+    """``apply_flight`` under :func:`dask_client`; returns the flight's summary for run.json.
+    ``scheduler``, ``workers``, ``direct_io``: :class:`pipeline.apply.execution.Execution`."""
     t0 = time.perf_counter()
     camera = open_calibration(calibration, need="apply").attrs.get("camera")
-    with dask_client(dask_address, count_frames(flight_dir, None if camera is None else str(camera))) as where:
-        res = apply_flight(flight_dir, calibration, out, ApplyOptions(normalise=normalise, illumination=illumination))
+    execution = Execution(scheduler=scheduler, workers=workers, direct_io=direct_io)
+    execution.install()  # before a local cluster starts its worker processes
+    with dask_client(dask_address, count_frames(flight_dir, None if camera is None else str(camera)), execution) as where:
+        res = apply_flight(flight_dir, calibration, out,
+                           ApplyOptions(normalise=normalise, illumination=illumination, execution=execution))
     run = res.run
     return {
         "frames_in": run["frames_in"],
@@ -262,6 +269,7 @@ def apply_one(flight_dir: str, calibration: str, out: str, *, normalise: str = "
         "calibration_sha256": run["calibration_sha256"],
         "up_to_date": res.up_to_date,
         "computed_on": "nothing (up to date)" if res.up_to_date else where,
+        "execution": run.get("execution"),
         "illumination": {k: v for k, v in run.get("illumination", {}).items() if k != "per_frame"},
         "seconds": round(time.perf_counter() - t0, 3),
     }
@@ -453,7 +461,7 @@ def write_run_json(out_dir: str | Path, record: dict[str, Any]) -> Path:
     """``OUT/run.json``, atomically (temporary name, then rename)."""
     path = Path(out_dir) / RUN_JSON
     path.parent.mkdir(parents=True, exist_ok=True)
-    _write_json_atomic(path, record)
+    write_json_atomic(path, record)
     return path
 
 

@@ -140,6 +140,12 @@ def write_session(
     session = synthesize_session(seed, size=size, n_flight_frames=n_flight_frames,
                                  flights=tuple(flights),
                                  reflector_reflectance=reflector_reflectance)
+    return write_synthesized(session, root)
+
+
+def write_synthesized(session: SyntheticSession, root: Path) -> Path:
+    """Write an already synthesized session into the folder ``root`` (its dataset folders
+    replaced): ``session.yaml``, the frame sets with their ``frames.csv``, ``truth.npz``."""
     root.mkdir(parents=True, exist_ok=True)
     for sub in ("response", "vignetting", "reflector", "flights"):
         if (root / sub).exists():

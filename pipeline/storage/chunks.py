@@ -16,10 +16,11 @@ itself, as the Zarr v3 specification lays it out, for the arrays this package cr
   the same library zarr-python calls).
 
 Anything else (sharding, other codecs, other encodings) is refused by :meth:`FrameChunks.open`
-with ``None``, and the caller falls back to zarr. Every chunk is written to a temporary
-sibling name and renamed, as zarr-python's local store does, so a killed writer leaves the
-old chunk or the new one, never a torn one (temporaries end in ``.partial``, which
-:mod:`pipeline.ingest.raw` cleans up); the bytes go past the page cache where the file system
+with ``None``, and the caller falls back to zarr. Every chunk is written through
+:func:`pipeline.storage.atomic.atomic_path` (a temporary sibling carrying ``TMP_MARK``, then
+renamed), as zarr-python's local store does with its ``.partial`` names, so a killed writer
+leaves the old chunk or the new one, never a torn one (:mod:`pipeline.ingest.raw` and apply
+clean both kinds of temporaries up); the bytes go past the page cache where the file system
 allows (:mod:`pipeline.storage.directio`). Tests read every chunk back through ``zarr`` and
 ``xarray``.
 """
@@ -27,13 +28,12 @@ allows (:mod:`pipeline.storage.directio`). Tests read every chunk back through `
 from __future__ import annotations
 
 import json
-import os
-import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from pipeline.storage.atomic import atomic_path
 from pipeline.storage.directio import write_file
 
 __all__ = ["FLAT_CHUNK_KEYS", "FrameChunks"]
@@ -114,17 +114,12 @@ class FrameChunks:
             raise IndexError(f"frame {frame} of {self.path.name}")
         payload = self.encode(data)
         target = self.chunk_path(frame)
-        tmp = target.with_name(f"{target.name}.{uuid.uuid4().hex[:12]}.partial")
-        try:
+        with atomic_path(target, make_parent=False, sidecars=()) as tmp:
             try:
                 write_file(tmp, [payload])
             except FileNotFoundError:  # the chunk's folders ("/" separator) do not exist yet
                 target.parent.mkdir(parents=True, exist_ok=True)
                 write_file(tmp, [payload])
-            os.replace(tmp, target)
-        finally:
-            if tmp.exists():
-                tmp.unlink(missing_ok=True)
 
     def read(self, frame: int) -> np.ndarray:
         """Frame ``frame``'s data (the chunk must exist: frames of this package are written whole)."""

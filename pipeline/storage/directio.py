@@ -18,10 +18,10 @@ the page cache. (Padding that block and truncating the file afterwards made ext4
 block back from the device to zero its end: one synchronous read per file, which waited
 behind the writes and was most of apply's idle time.) Files too small to gain (under
 :data:`MIN_BYTES`), file systems that refuse ``O_DIRECT`` (tmpfs, some network file
-systems: ``EINVAL``), platforms without it, and ``MSCAL_DIRECT_IO=0`` in the environment all
-take the ordinary buffered write. Either way the file holds exactly the bytes given.
+systems: ``EINVAL``), platforms without it, and ``--no-direct-io`` (:func:`set_direct_io`) all take the
+ordinary buffered write. Either way the file holds exactly the bytes given.
 
-Durability is unchanged: neither path fsyncs (see :func:`pipeline.products.writers.atomic_path`).
+Durability is unchanged: neither path fsyncs (see :func:`pipeline.storage.atomic.atomic_path`).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ try:
 except ImportError:  # pragma: no cover - not POSIX: no O_DIRECT either
     fcntl = None  # type: ignore[assignment]
 
-__all__ = ["MIN_BYTES", "direct_io_enabled", "write_file"]
+__all__ = ["DIRECT_IO_ENV", "MIN_BYTES", "direct_io_enabled", "set_direct_io", "write_file"]
 
 #: Files smaller than this are written buffered (the copy into the aligned buffer and the
 #: extra system calls are not worth it).
@@ -51,11 +51,21 @@ _local = threading.local()
 _refused: set[int] = set()  # st_dev of file systems that refused O_DIRECT in this process
 
 
+#: The process's switch, in the environment so that worker processes inherit it; set by
+#: :func:`set_direct_io` (``mscal apply --direct-io/--no-direct-io``, whose default it is).
+DIRECT_IO_ENV = "MSCAL_DIRECT_IO"
+
+
 def direct_io_enabled() -> bool:
-    """``O_DIRECT`` writes are on unless ``MSCAL_DIRECT_IO`` is ``0``/``false``/``no``/``off``
-    or the platform has no ``O_DIRECT``."""
-    flag = os.environ.get("MSCAL_DIRECT_IO", "1").strip().lower()
+    """``O_DIRECT`` writes are on unless switched off (:func:`set_direct_io`, or
+    ``MSCAL_DIRECT_IO`` = ``0``/``false``/``no``/``off``) or the platform has no ``O_DIRECT``."""
+    flag = os.environ.get(DIRECT_IO_ENV, "1").strip().lower()
     return hasattr(os, "O_DIRECT") and fcntl is not None and flag not in ("0", "false", "no", "off")
+
+
+def set_direct_io(enabled: bool) -> None:
+    """Switch ``O_DIRECT`` writes on or off for this process and the processes it starts."""
+    os.environ[DIRECT_IO_ENV] = "1" if enabled else "0"
 
 
 def _buffer(size: int) -> mmap.mmap:

@@ -12,19 +12,19 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
-import shutil
-import uuid
 import warnings
 from pathlib import Path
-from typing import Any, Iterable
+from typing import TYPE_CHECKING, Any, Iterable
 
 import numpy as np
 import xarray as xr
 
 from mscal_core.errors import CalibrationStoreError
 
-from pipeline.ingest.catalog import Camera
+from pipeline.storage.atomic import atomic_folder
+
+if TYPE_CHECKING:  # only for annotations: storage imports nothing of ingest at run time
+    from pipeline.ingest.catalog import Camera
 
 STORE_FORMAT = "mscal-calibration/1"
 
@@ -104,26 +104,13 @@ def _to_jsonable(value: Any) -> Any:
 def write_store(ds: xr.Dataset, path: str | Path) -> Path:
     """Write ``ds`` to ``path`` atomically (temporary sibling, then rename into place)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
     ds = cf_annotate(ds.copy())
     ds.attrs = _to_jsonable(dict(ds.attrs))
     for v in ds.variables.values():
         v.encoding = {}
-    try:
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message="Consolidated metadata")
-            ds.to_zarr(tmp, mode="w", consolidated=True, zarr_format=3)
-        if path.exists():
-            old = path.parent / f".{path.name}.old-{uuid.uuid4().hex[:8]}"
-            os.replace(path, old)
-            os.replace(tmp, path)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
+    with atomic_folder(path) as tmp, warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="Consolidated metadata")
+        ds.to_zarr(tmp, mode="w", consolidated=True, zarr_format=3)
     return path
 
 

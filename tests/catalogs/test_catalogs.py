@@ -128,12 +128,12 @@ def test_bad_camera_rejected_naming_file(tmp_path, monkeypatch, mutate, message)
     mutate(data)
     p = _write_camera(tmp_path, data)
     monkeypatch.setenv("MSCAL_CATALOG_PATH", str(tmp_path))
-    catalog.load_camera.cache_clear()
+    catalog.clear_cache()
     try:
         with pytest.raises(CatalogError) as err:
             catalog.load_camera("cam-x")
     finally:
-        catalog.load_camera.cache_clear()
+        catalog.clear_cache()
     assert message in str(err.value)
     assert str(p) in str(err.value)
 
@@ -149,9 +149,41 @@ def test_index_expression_is_sandboxed(tmp_path, monkeypatch) -> None:
         "name: evil\ndescription: x\nexpression: __import__('os').system('true')\n"
     )
     monkeypatch.setenv("MSCAL_CATALOG_PATH", str(tmp_path))
-    catalog.load_index.cache_clear()
+    catalog.clear_cache()
     try:
         with pytest.raises(CatalogError, match="uses Attribute, Call"):
             catalog.load_index("evil")
     finally:
-        catalog.load_index.cache_clear()
+        catalog.clear_cache()
+
+
+def test_cache_sees_an_edited_and_a_new_file(tmp_path, monkeypatch) -> None:
+    """A long-running process (mscal serve) sees catalog edits: the cache is keyed on the
+    file's path, mtime and size."""
+    import os
+
+    monkeypatch.setenv("MSCAL_CATALOG_PATH", str(tmp_path))
+    (tmp_path / "indices").mkdir()
+    f = tmp_path / "indices" / "ratio.yaml"
+    f.write_text("name: ratio\ndescription: first\nexpression: nir / red\n")
+    first = catalog.load_index("ratio")
+    assert first.description == "first" and catalog.load_index("ratio") is first  # cached
+    f.write_text("name: ratio\ndescription: second\nexpression: nir / red + 1\n")
+    st = f.stat()
+    os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))  # a later mtime even on coarse clocks
+    second = catalog.load_index("ratio")
+    assert second.description == "second" and second.expression == "nir / red + 1"
+    # a file added under the extra path shadows the shipped one at the next call
+    shipped = catalog.load_index("ndvi")
+    assert shipped.description.startswith("Normalised difference")
+    (tmp_path / "indices" / "ndvi.yaml").write_text("name: ndvi\ndescription: local\nexpression: nir - red\n")
+    assert catalog.load_index("ndvi").description == "local"
+    monkeypatch.delenv("MSCAL_CATALOG_PATH")
+    assert catalog.load_index("ndvi") is shipped
+
+
+def test_catalog_root_is_the_catalogs_package() -> None:
+    import catalogs
+
+    assert ROOT == Path(catalogs.__file__).parent
+    assert {"cameras", "targets", "indices"} <= {p.name for p in ROOT.iterdir() if p.is_dir()}

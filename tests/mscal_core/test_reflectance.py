@@ -162,10 +162,44 @@ def test_ndvi():
     assert out.dtype == np.float32
     np.testing.assert_allclose(out[:3], [0.4 / 0.6, -0.4 / 0.6, 1.0], rtol=1e-6)
     assert np.isnan(out[3:6]).all()
-    assert out[6] == 1.0 and out[7] == -1.0  # noise below 0 stays inside [-1, 1]
+    # a negative reflectance pushes the value out of [-1, 1]: NaN, as the catalog's valid_range
+    assert np.isnan(out[6]) and np.isnan(out[7])
     finite = out[np.isfinite(out)]
     assert (finite >= -1).all() and (finite <= 1).all()
     assert ndvi(np.array([0.1]), np.array([0.3])).dtype == np.float64
+
+
+def test_ndvi_matches_the_catalog_index() -> None:
+    from pipeline.ingest.catalog import load_index
+
+    rng = np.random.default_rng(3)
+    red = rng.uniform(-0.05, 0.6, (40, 50)).astype(np.float32)
+    nir = rng.uniform(-0.05, 0.8, (40, 50)).astype(np.float32)
+    red[0, :5] = [0, np.nan, np.inf, 0.2, -0.2]
+    nir[0, :5] = [0, 0.3, 0.3, -0.2, 0.1]
+    ours = ndvi(red, nir)
+    stored = load_index("ndvi").evaluate({"red": red, "nir": nir})
+    np.testing.assert_array_equal(np.isnan(ours), np.isnan(stored))
+    assert np.isnan(ours).sum() > 5  # the edge cases above and negative reflectances
+    np.testing.assert_allclose(ours, stored, rtol=1e-6, equal_nan=True)
+
+
+def test_vegetation_mask_and_its_threshold() -> None:
+    from mscal_core.reflectance import otsu_ndvi_threshold, vegetation_mask
+
+    rng = np.random.default_rng(5)
+    nd = np.concatenate([rng.normal(0.1, 0.05, 500), rng.normal(0.7, 0.05, 500)]).astype(np.float32)
+    nd[:3] = np.nan
+    mask = vegetation_mask(nd)
+    assert mask.dtype == np.uint8 and (mask[:3] == 255).all()
+    assert set(np.unique(mask[3:])) == {0, 1}
+    assert (mask[500:] == 1).mean() > 0.99 and (mask[3:500] == 0).mean() > 0.99
+    t = otsu_ndvi_threshold(nd)
+    assert 0.2 < t < 0.6
+    ok = np.isfinite(nd)
+    np.testing.assert_array_equal(mask[ok] == 1, nd[ok] >= t)  # the threshold the report shows
+    assert (vegetation_mask(np.array([np.nan, 0.3])) == 255).all()
+    assert np.isnan(otsu_ndvi_threshold(np.array([0.3])))
 
 
 def test_eq15_fast_agrees_with_eq15() -> None:

@@ -265,13 +265,12 @@ def test_sigkill_at_any_moment_then_rerun_gives_identical_outputs(small, tmp_pat
 
 
 @pytest.mark.slow
-def test_worker_processes_give_the_same_outputs(small, tmp_path, monkeypatch) -> None:
+def test_worker_processes_give_the_same_outputs(small, tmp_path) -> None:
     session, calib = small
     flight = session / "flights" / "field"
-    monkeypatch.setenv("MSCAL_APPLY_SCHEDULER", "threads")
-    assert _apply(flight, calib, tmp_path / "threads") == 0
-    monkeypatch.setenv("MSCAL_APPLY_SCHEDULER", "processes")
-    assert _apply(flight, calib, tmp_path / "processes") == 0
+    assert _apply(flight, calib, tmp_path / "threads", "--scheduler", "threads") == 0
+    assert _apply(flight, calib, tmp_path / "processes", "--scheduler", "processes") == 0
+    assert json.loads((tmp_path / "processes" / "run.json").read_text())["execution"]["scheduler"] == "processes"
     _assert_same_outputs(_outputs(tmp_path / "threads"), _outputs(tmp_path / "processes"))
 
 

@@ -36,6 +36,7 @@ from pipeline.ingest.catalog import load_camera
 from pipeline.ingest.discover import discover_flight
 from pipeline.ingest.raw import ingest_flight
 from pipeline.ingest.session import decode_raw, exif_record, read_bands
+from tests.pipeline.ingest.kill_points import KILL_CODE, arm
 
 ROOT = Path(__file__).resolve().parents[3]
 MICASENSE = ROOT.parent / "shared" / "data" / "micasense-rededge"
@@ -455,7 +456,7 @@ def test_exif_fallback_with_gps_on_a_real_file(tmp_path, catalog) -> None:
 # --------------------------------------------------------------------------- SIGKILL
 
 
-KILL_CODE = (
+INGEST_CODE = (
     "import sys\nfrom pipeline.ingest.raw import ingest_flight\n"
     "ingest_flight(sys.argv[1], sys.argv[2], sys.argv[3], commit_every=int(sys.argv[4]))\n"
 )
@@ -463,7 +464,7 @@ COMMIT_EVERY = 3
 
 
 def _child(flight: str, camera: str, out: str, point: str) -> None:
-    os.environ[ingest_mod.KILL_ENV] = point
+    arm(point)  # this forked process only
     ingest_flight(flight, camera, out, commit_every=COMMIT_EVERY)
 
 
@@ -474,9 +475,8 @@ def _killed_run(flight: Path, out: Path, point: str, camera: str = TINY, *, fres
     its event loop after a fork; the child uses no dask).
     """
     if fresh:
-        env = {**os.environ, ingest_mod.KILL_ENV: point}
-        p = subprocess.run([sys.executable, "-c", KILL_CODE, str(flight), camera, str(out), str(COMMIT_EVERY)],
-                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+        p = subprocess.run([sys.executable, "-c", KILL_CODE, str(flight), camera, str(out), str(COMMIT_EVERY), point],
+                           cwd=ROOT, capture_output=True, text=True, timeout=300)
         rc, err = p.returncode, p.stderr[-800:]
     else:
         import multiprocessing
@@ -570,7 +570,7 @@ def test_sigkill_at_random_times_full_size(tmp_path) -> None:
     rng = np.random.default_rng(0)
     mid_run = []
     for _ in range(10):
-        code = KILL_CODE.replace("ingest_flight(sys.argv[1]", "print('ready', flush=True)\ningest_flight(sys.argv[1]")
+        code = INGEST_CODE.replace("ingest_flight(sys.argv[1]", "print('ready', flush=True)\ningest_flight(sys.argv[1]")
         p = subprocess.Popen([sys.executable, "-c", code, str(d), XIMEA, str(out), str(COMMIT_EVERY)], cwd=ROOT,
                              stdout=subprocess.PIPE, text=True)
         assert p.stdout.readline().strip() == "ready"  # imports done: the ingest starts now

@@ -30,7 +30,7 @@ from pipeline.ingest.catalog import load_camera
 from pipeline.run.cli import main
 from pipeline.storage.store import new_dataset, open_calibration, write_store
 from pipeline.sim.synth import write_frameset
-from pipeline.products.writers import TMP_MARK
+from pipeline.storage.atomic import TMP_MARK
 
 CAMERA = "ximea-mq022hg-sm5x5-nir"
 N_BANDS = 25
@@ -316,7 +316,7 @@ def test_flight_plots(flights) -> None:
 def test_histograms_stay_bounded_on_long_flights() -> None:
     idx = report.sample_indices(5000, report.HIST_MAX_FRAMES)
     assert len(idx) == report.HIST_MAX_FRAMES and idx[0] == 0 and idx[-1] == 4999
-    assert report._stride((5000, 25, 217, 409), report.HIST_MAX_PIXELS) == 3
+    assert report.flight._stride((5000, 25, 217, 409), report.HIST_MAX_PIXELS) == 3
 
 
 # --------------------------------------------------------------------------- the page
@@ -364,7 +364,7 @@ def test_markdown_and_dict_carry_the_same_warnings(calib_ds, flights) -> None:
 
 
 def test_report_is_written_atomically(calib_ds, tmp_path, monkeypatch) -> None:
-    monkeypatch.setattr(report, "_html_figure", lambda caption, build: f"<p>{caption}</p>")  # no rendering: fast
+    monkeypatch.setattr(report.page, "_html_figure", lambda caption, build: f"<p>{caption}</p>")  # no rendering: fast
     out = tmp_path / "report.html"
     out.write_text("old report")
     seen = []
@@ -374,14 +374,14 @@ def test_report_is_written_atomically(calib_ds, tmp_path, monkeypatch) -> None:
         seen.append((Path(src), Path(dst)))
         raise OSError("disk full")
 
-    monkeypatch.setattr(report.os, "replace", failing_replace)
+    monkeypatch.setattr(os, "replace", failing_replace)
     with pytest.raises(OSError):
         report.write_report(out, calibration=calib_ds)
     # the temporary file sits beside the target, carries TMP_MARK, and is gone after the failure
     assert seen and seen[0][0].parent == tmp_path and TMP_MARK in seen[0][0].name
     assert out.read_text() == "old report"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["report.html"]
-    monkeypatch.setattr(report.os, "replace", real_replace)
+    monkeypatch.setattr(os, "replace", real_replace)
     report.write_report(out, calibration=calib_ds)
     assert out.read_text().startswith("<!DOCTYPE html>")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["calibration.json", "report.html"]

@@ -31,7 +31,6 @@ from pipeline.products.writers import (
     XMP_CAMERA_NS,
     BandTags,
     FrameTags,
-    atomic_path,
     encode_reflectance_uint16,
     write_band_tiff,
     write_ndvi_tiff,
@@ -359,18 +358,3 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path, monkeypatch) -> None:
         write_band_tiff(target, _refl(), FRAME, BAND)
     assert sorted(os.listdir(tmp_path)) == ["f.tif"]
     assert target.read_bytes() == b"old"
-
-
-def test_atomic_path_replaces_and_cleans(tmp_path) -> None:
-    target = tmp_path / "sub" / "x.tif"
-    with atomic_path(target) as tmp:
-        assert tmp.parent == target.parent and tmp.name.startswith(".x.") and not tmp.exists()
-        tmp.write_bytes(b"new")
-        tmp.with_name(tmp.name + ".aux.xml").write_text("<PAMDataset/>")
-    assert target.read_bytes() == b"new"
-    assert sorted(os.listdir(target.parent)) == ["x.tif"]
-    with pytest.raises(RuntimeError):
-        with atomic_path(target) as tmp:
-            tmp.write_bytes(b"half")
-            raise RuntimeError("boom")
-    assert target.read_bytes() == b"new" and sorted(os.listdir(target.parent)) == ["x.tif"]

@@ -1,0 +1,153 @@
+"""EXIF values and ISO 8601 times: the one copy of each codec that readers and writers share.
+
+* TIFF RATIONALs (EXIF 2.32, CIPA DC-008-2019, section 4.6.2: two LONGs, numerator then
+  denominator) as read by tifffile (``(num, den)`` tuples, or GPS triples flattened to
+  ``(n, d, n, d, n, d)``) or by exifread (``Ratio`` objects with ``.num`` / ``.den``), and
+  written back (:func:`to_rational`).
+* GPS positions as degrees, minutes, seconds (``GPSLatitude``, ``GPSLongitude``: three
+  RATIONALs, section 4.6.6) to and from decimal degrees, with the signs from the reference
+  tags (``S``, ``W``, ``GPSAltitudeRef`` 1 = below sea level).
+* ``DateTimeOriginal`` (``YYYY:MM:DD HH:MM:SS``, local time without a zone) plus
+  ``SubSecTimeOriginal`` as ISO 8601 text.
+* ISO 8601 text (frames.csv ``time``, STAC ``datetime``) to :class:`datetime`, to naive UTC,
+  and to int64 nanoseconds for the datacube's ``time`` coordinate.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from datetime import datetime, timezone
+from fractions import Fraction
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "NAT",
+    "U32",
+    "degrees_to_dms",
+    "dms_to_degrees",
+    "exif_datetime_iso",
+    "parse_iso",
+    "rational",
+    "signed_gps",
+    "time_ns",
+    "to_rational",
+    "utc_naive",
+]
+
+#: How xarray encodes NaT in an int64 time variable.
+NAT = np.iinfo(np.int64).min
+#: The largest numerator or denominator of an unsigned TIFF RATIONAL.
+U32 = 2**32 - 1
+
+
+# --------------------------------------------------------------------------- RATIONAL
+
+
+def rational(value: Any) -> float:
+    """A RATIONAL as float: a ``(num, den)`` tuple (tifffile), an object with ``num`` and
+    ``den`` (exifread), a one-item sequence of either, or a plain number. A zero denominator
+    gives NaN (some firmware writes ``0/0`` for unknown)."""
+    if isinstance(value, (list, tuple)) and len(value) == 1:
+        value = value[0]
+    if hasattr(value, "values") and not isinstance(value, (list, tuple)):  # an exifread tag
+        return rational(value.values[0])
+    if isinstance(value, tuple) and len(value) == 2:
+        num, den = value
+    elif hasattr(value, "num") and hasattr(value, "den"):
+        num, den = value.num, value.den
+    else:
+        return float(value)
+    return float(num) / float(den) if den else math.nan
+
+
+def to_rational(v: Any) -> tuple[int, int]:
+    """An unsigned RATIONAL ``(num, den)`` for ``v`` (a ``(num, den)`` tuple is checked and
+    kept; a number becomes the nearest fraction whose terms fit 32 bits)."""
+    if isinstance(v, tuple):
+        n, d = v
+    else:
+        f = Fraction(v)
+        if f.denominator > U32 or f.numerator > U32:
+            bound = min(U32, int(U32 / max(float(f), 1.0)))
+            f = f.limit_denominator(max(bound, 1))
+        n, d = f.numerator, f.denominator
+    if not (0 <= n <= U32 and 0 < d <= U32):
+        raise ValueError(f"value {v!r} does not fit an unsigned TIFF RATIONAL")
+    return int(n), int(d)
+
+
+# --------------------------------------------------------------------------- GPS
+
+
+def dms_to_degrees(value: Any) -> float:
+    """Decimal degrees (unsigned) from a GPS (degrees, minutes, seconds) triple: flat
+    ``(n, d, n, d, n, d)`` integers (tifffile), three ``(n, d)`` tuples, or an exifread tag
+    or list of ``Ratio``."""
+    vals = value.values if hasattr(value, "values") else value
+    vals = list(vals)
+    if vals and all(isinstance(v, (int, np.integer)) for v in vals):
+        parts = [rational((vals[i], vals[i + 1])) for i in range(0, len(vals), 2)]
+    else:
+        parts = [rational(v) for v in vals]
+    return sum(p / 60**k for k, p in enumerate(parts))
+
+
+def degrees_to_dms(deg: float) -> list[tuple[int, int]]:
+    """|deg| as (degrees/1, minutes/1, seconds/1e6) RATIONALs with exact integer carry."""
+    micro = round(abs(deg) * 3600 * 1_000_000)
+    d, rem = divmod(micro, 3600 * 1_000_000)
+    m, s = divmod(rem, 60 * 1_000_000)
+    return [(int(d), 1), (int(m), 1), (int(s), 1_000_000)]
+
+
+def signed_gps(lat: float | None, lat_ref: Any, lon: float | None, lon_ref: Any, alt: float | None,
+               below_sea_level: bool) -> tuple[float | None, float | None, float | None]:
+    """EXIF GPS degrees and altitude with their signs from the reference tags (S, W, below)."""
+    if lat is not None and str(lat_ref or "N").strip().upper().startswith("S"):
+        lat = -lat
+    if lon is not None and str(lon_ref or "E").strip().upper().startswith("W"):
+        lon = -lon
+    if alt is not None and below_sea_level:
+        alt = -alt
+    return lat, lon, alt
+
+
+# --------------------------------------------------------------------------- times
+
+_EXIF_DATETIME = re.compile(r"(\d{4}):(\d{2}):(\d{2}) (\d{2}:\d{2}:\d{2})")
+
+
+def exif_datetime_iso(date_time: Any, subsec: Any = None) -> str | None:
+    """``DateTimeOriginal`` (``2024:06:01 10:30:00``) as ISO 8601 (``2024-06-01T10:30:00``),
+    with ``.<subsec>`` appended when ``subsec`` is all digits; None when the tag is missing or
+    blank (cameras without a clock write spaces)."""
+    m = _EXIF_DATETIME.match(str(date_time or "").strip())
+    if not m:
+        return None
+    iso = f"{m[1]}-{m[2]}-{m[3]}T{m[4]}"
+    sub = str(subsec or "").strip()
+    return f"{iso}.{sub}" if sub.isdigit() else iso
+
+
+def parse_iso(text: str) -> datetime:
+    """ISO 8601 text as a :class:`datetime` (aware when it has ``Z`` or an offset); raises
+    ``ValueError`` when it is not ISO 8601."""
+    return datetime.fromisoformat(str(text).strip().replace("Z", "+00:00"))
+
+
+def utc_naive(dt: datetime) -> tuple[datetime, bool]:
+    """``(naive datetime, zone_known)``: an aware time converted to UTC, a naive one as is."""
+    if dt.tzinfo is not None:
+        return dt.astimezone(timezone.utc).replace(tzinfo=None), True
+    return dt, False
+
+
+def time_ns(text: str | None) -> int:
+    """ISO 8601 text -> int64 ns since the epoch (UTC when it has an offset); :data:`NAT` if empty."""
+    if not text:
+        return NAT
+    dt, _ = utc_naive(parse_iso(text))
+    return int(np.datetime64(dt, "ns").astype(np.int64))

@@ -1,0 +1,164 @@
+"""Atomic writes: a file or a folder appears whole under its name or not at all.
+
+Every output of mscal is first written under a hidden temporary sibling name that carries
+:data:`TMP_MARK` and then renamed into place (``os.replace`` is atomic on one file system). A
+process killed at any moment leaves the old output or the complete new one, plus at most some
+temporaries, which :func:`remove_temporaries` deletes when the run restarts.
+
+* :func:`atomic_path`: a temporary file the caller fills (TIFFs, Parquet, JSON, HTML, chunks).
+* :func:`write_text_atomic`, :func:`write_json_atomic`: the common cases of it.
+* :func:`atomic_folder`: a temporary folder the caller fills (Zarr stores); an existing folder
+  of that name is replaced by :func:`install_folder`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Iterator
+
+__all__ = [
+    "GDAL_SIDECARS",
+    "TMP_MARK",
+    "atomic_folder",
+    "atomic_path",
+    "install_folder",
+    "remove_temporaries",
+    "temporary_folder_name",
+    "write_json_atomic",
+    "write_text_atomic",
+]
+
+#: Marks temporary names; a restarted run removes whatever carries it (:func:`remove_temporaries`).
+TMP_MARK = ".tmp-"
+
+#: Files GDAL may leave next to a raster it wrote (PAM metadata, overviews, masks).
+GDAL_SIDECARS = (".aux.xml", ".ovr", ".msk")
+
+
+@contextmanager
+def atomic_path(path: str | Path, *, durable: bool = False, make_parent: bool = True,
+                sidecars: tuple[str, ...] = GDAL_SIDECARS) -> Iterator[Path]:
+    """Yield a temporary sibling of ``path``; on success rename it onto ``path``.
+
+    A killed process leaves either the old file or the complete new one, never a partial one.
+    ``durable`` also fsyncs the file and its folder (survives power loss); per-frame outputs
+    skip it because thousands of fsyncs cost more than the rest of the write, and a run cut
+    by power loss is redone anyway (run.json is written last).
+    The temporary name is hidden (``.<stem>.tmp-<random><suffix>``) and does not exist when
+    yielded: the caller creates it (so the file gets the usual permissions). On any exception
+    the temporary file and any of ``sidecars`` left next to it (by default GDAL's
+    ``<tmp>.aux.xml``, ``<tmp>.ovr``, ``<tmp>.msk``) are removed and the exception propagates;
+    ``path`` is untouched. The parent folder is created if missing, unless ``make_parent`` is
+    false (then the caller creates it, e.g. only after a write failed for lack of it).
+    """
+    path = Path(path)
+    if make_parent:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}{TMP_MARK}{uuid.uuid4().hex[:12]}{path.suffix}")
+    try:
+        yield tmp
+        if not tmp.is_file():
+            raise FileNotFoundError(f"{tmp}: nothing was written to the temporary file for {path}")
+        if durable:
+            fd = os.open(tmp, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+        os.replace(tmp, path)
+        if durable:
+            _fsync_dir(path.parent)
+    except BaseException:
+        _remove_file(tmp)
+        raise
+    finally:
+        for ext in sidecars:
+            _remove_file(tmp.with_name(tmp.name + ext))
+
+
+def write_text_atomic(path: str | Path, text: str, *, durable: bool = False) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` through :func:`atomic_path`; returns ``path``."""
+    path = Path(path)
+    with atomic_path(path, durable=durable) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return path
+
+
+def write_json_atomic(path: str | Path, data: Any, *, sort_keys: bool = True, durable: bool = True) -> Path:
+    """Write ``data`` as JSON (2-space indent, keys sorted unless ``sort_keys`` is false, no
+    trailing newline) to ``path`` atomically; durable by default (records such as run.json
+    are written last and mark a run complete)."""
+    return write_text_atomic(path, json.dumps(data, indent=2, sort_keys=sort_keys), durable=durable)
+
+
+def temporary_folder_name(path: str | Path) -> Path:
+    """A hidden, unique sibling name for a folder that will become ``path``."""
+    path = Path(path)
+    return path.parent / f".{path.name}{TMP_MARK}{uuid.uuid4().hex[:8]}"
+
+
+@contextmanager
+def atomic_folder(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary sibling folder name of ``path`` (not yet created); when the block
+    ends without an exception, :func:`install_folder` moves it onto ``path``. The temporary
+    folder never survives the block."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = temporary_folder_name(path)
+    try:
+        yield tmp
+        install_folder(tmp, path)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def install_folder(tmp: str | Path, final: str | Path) -> None:
+    """Rename the folder ``tmp`` to ``final``, replacing an existing ``final`` (which is first
+    moved aside under a temporary name, then deleted)."""
+    tmp, final = Path(tmp), Path(final)
+    if final.exists():
+        old = final.parent / f".{final.name}.old{TMP_MARK}{uuid.uuid4().hex[:8]}"
+        os.replace(final, old)
+        os.replace(tmp, final)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, final)
+
+
+def remove_temporaries(folder: str | Path) -> None:
+    """Delete every file and folder under ``folder`` whose name carries :data:`TMP_MARK`
+    (what a killed run left)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return
+    for p in list(folder.rglob(f"*{TMP_MARK}*")):
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        elif p.exists():
+            p.unlink(missing_ok=True)
+
+
+def _remove_file(p: Path) -> None:
+    try:
+        p.unlink(missing_ok=True)
+    except OSError:
+        pass
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)

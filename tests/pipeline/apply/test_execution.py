@@ -1,0 +1,74 @@
+"""How apply runs (``--scheduler``, ``--workers``, ``--direct-io``): command-line options that
+default to their environment variables, recorded in run.json, never in the outputs or in the
+fingerprint that decides whether a run is up to date."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from mscal_core.errors import InputError
+from pipeline.apply.execution import Execution, scheduler_for
+from pipeline.apply.factory import FactoryOptions
+from pipeline.apply.flight import ApplyOptions
+from pipeline.run.cli import main
+from pipeline.run.runner import apply_one
+from pipeline.storage.directio import direct_io_enabled
+from tests.micasense_data import require_data
+
+
+def test_scheduler_for_and_validation(monkeypatch) -> None:
+    monkeypatch.setattr("os.cpu_count", lambda: 8)
+    assert scheduler_for(100) == ("threads", 8)
+    assert scheduler_for(3) == ("threads", 3)  # never more workers than frames
+    assert scheduler_for(100, Execution("processes", 2)) == ("processes", 2)
+    monkeypatch.setenv("MSCAL_APPLY_WORKERS", "1")  # read by the command line only
+    assert scheduler_for(100) == ("threads", 8)
+    with pytest.raises(InputError, match="--scheduler 'fork'"):
+        Execution("fork")
+    with pytest.raises(InputError, match="--workers -1"):
+        Execution(workers=-1)
+
+
+def test_execution_is_not_in_the_fingerprint() -> None:
+    other = Execution("processes", 3, False)
+    assert ApplyOptions(execution=other).fingerprint() == ApplyOptions().fingerprint()
+    assert "execution" not in ApplyOptions().fingerprint()
+    assert FactoryOptions(execution=other).fingerprint() == FactoryOptions().fingerprint()
+
+
+def _run(out: Path) -> dict:
+    return json.loads((out / "run.json").read_text())
+
+
+def test_options_default_to_the_environment_and_are_recorded(tmp_path, monkeypatch, capsys) -> None:
+    data = require_data()
+    monkeypatch.setenv("MSCAL_APPLY_WORKERS", "1")
+    monkeypatch.setenv("MSCAL_DIRECT_IO", "off")  # also restores the process's switch afterwards
+    a = tmp_path / "a"
+    assert main(["apply", str(data), "--calibration", "factory", "-o", str(a)]) == 0
+    assert _run(a)["execution"] == {"scheduler": "threads", "workers": 1, "direct_io": False}
+    # the options win over the environment; outputs are the same bytes, and a run with other
+    # execution options over the same outputs is up to date
+    b = tmp_path / "b"
+    assert main(["apply", str(data), "--calibration", "factory", "-o", str(b), "--workers", "2", "--direct-io"]) == 0
+    assert _run(b)["execution"] == {"scheduler": "threads", "workers": 2, "direct_io": direct_io_enabled()}
+    files = sorted(p.relative_to(a) for p in (a / "photogrammetry").rglob("*.tif"))
+    assert len(files) == 10
+    assert all((a / f).read_bytes() == (b / f).read_bytes() for f in files)
+    capsys.readouterr()
+    assert main(["apply", str(data), "--calibration", "factory", "-o", str(a), "--scheduler", "processes"]) == 0
+    assert "up to date" in capsys.readouterr().out
+    assert main(["apply", str(data), "--calibration", "factory", "-o", str(a), "--workers", "-2"]) == 2
+
+
+def test_run_records_execution_per_flight(small, tmp_path, monkeypatch) -> None:
+    """What ``mscal run`` passes through the post-flight flow to each flight (no Prefect here)."""
+    session, calib = small
+    monkeypatch.setenv("MSCAL_DIRECT_IO", "1")  # restored afterwards
+    summary = apply_one(str(session / "flights" / "field"), str(calib), str(tmp_path / "o"), workers=1,
+                        direct_io=False)
+    assert summary["execution"] == {"scheduler": "threads", "workers": 1, "direct_io": False}
+    assert summary["frames_out"] == 3

@@ -1,0 +1,82 @@
+"""pipeline.storage.atomic: files and folders appear whole or not at all; temporaries carry
+TMP_MARK and are removed on failure and on restart."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+from pipeline.storage.atomic import (
+    TMP_MARK,
+    atomic_folder,
+    atomic_path,
+    install_folder,
+    remove_temporaries,
+    write_json_atomic,
+    write_text_atomic,
+)
+
+
+def test_atomic_path_replaces_and_cleans(tmp_path) -> None:
+    target = tmp_path / "sub" / "x.tif"
+    with atomic_path(target) as tmp:
+        assert tmp.parent == target.parent and tmp.name.startswith(".x.") and not tmp.exists()
+        assert TMP_MARK in tmp.name
+        tmp.write_bytes(b"new")
+        tmp.with_name(tmp.name + ".aux.xml").write_text("<PAMDataset/>")
+    assert target.read_bytes() == b"new"
+    assert sorted(os.listdir(target.parent)) == ["x.tif"]
+    with pytest.raises(RuntimeError):
+        with atomic_path(target) as tmp:
+            tmp.write_bytes(b"half")
+            raise RuntimeError("boom")
+    assert target.read_bytes() == b"new" and sorted(os.listdir(target.parent)) == ["x.tif"]
+
+
+def test_atomic_path_without_parent_creation(tmp_path) -> None:
+    target = tmp_path / "missing" / "c.0"
+    with pytest.raises(FileNotFoundError):
+        with atomic_path(target, make_parent=False) as tmp:
+            tmp.write_bytes(b"x")
+    assert not (tmp_path / "missing").exists()
+
+
+def test_json_is_indented_sorted_and_without_newline(tmp_path) -> None:
+    p = write_json_atomic(tmp_path / "run.json", {"b": 1, "a": [1, 2]})
+    assert p.read_text() == '{\n  "a": [\n    1,\n    2\n  ],\n  "b": 1\n}'
+    write_json_atomic(p, {"b": 1, "a": 2}, sort_keys=False)
+    assert list(json.loads(p.read_text())) == ["b", "a"]
+    write_text_atomic(p, "é")
+    assert p.read_bytes() == "é".encode() and os.listdir(tmp_path) == ["run.json"]
+
+
+def test_atomic_folder_replaces_the_old_folder(tmp_path) -> None:
+    final = tmp_path / "s.zarr"
+    final.mkdir()
+    (final / "old").write_text("old")
+    with atomic_folder(final) as tmp:
+        assert TMP_MARK in tmp.name and not tmp.exists()
+        tmp.mkdir()
+        (tmp / "new").write_text("new")
+    assert sorted(os.listdir(final)) == ["new"] and os.listdir(tmp_path) == ["s.zarr"]
+    with pytest.raises(RuntimeError):
+        with atomic_folder(final) as tmp:
+            tmp.mkdir()
+            raise RuntimeError("boom")
+    assert sorted(os.listdir(final)) == ["new"] and os.listdir(tmp_path) == ["s.zarr"]
+    other = tmp_path / "other"
+    other.mkdir()
+    install_folder(other, tmp_path / "fresh")
+    assert sorted(os.listdir(tmp_path)) == ["fresh", "s.zarr"]
+
+
+def test_remove_temporaries_removes_only_marked_names(tmp_path) -> None:
+    (tmp_path / f".a.zarr{TMP_MARK}1234").mkdir()
+    (tmp_path / "keep").mkdir()
+    (tmp_path / "keep" / f".x{TMP_MARK}5.tif").write_text("x")
+    (tmp_path / "keep" / "y.tif").write_text("y")
+    remove_temporaries(tmp_path)
+    assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["keep", "keep/y.tif"]
+    remove_temporaries(tmp_path / "absent")  # no folder: nothing to do
