@@ -139,11 +139,15 @@ def post_flight(
         for name, flight_dir in flights.items():
             with timings.step(f"apply_{name}"):
                 # apply reads the content-addressed cached store: its path changes when its content does
-                summaries[name] = apply_flight(name, flight_dir, plan.final_store, str(Path(paths.out) / "flights" / name),
-                                               normalise, dask_address, illumination, scheduler, workers, direct_io)
+                state = apply_flight(name, flight_dir, plan.final_store, str(Path(paths.out) / "flights" / name),
+                                     normalise, dask_address, illumination, scheduler, workers, direct_io,
+                                     return_state=True)
+            # one bad flight (empty, every frame quarantined, unreadable) does not cost the others theirs
+            summaries[name] = state.result() if state.is_completed() else \
+                runner.failed_flight(flight_dir, state.result(raise_on_failure=False))
             advance(1)
     with timings.step("report"):
-        qa_markdown = write_report(paths.out, list(summaries))
+        qa_markdown = write_report(paths.out, [n for n, f in summaries.items() if f.get("status") != "failed"])
     record = runner.run_record(session=session, out=out, plan=plan, flights=summaries, timings=timings,
                                dask_address=dask_address, flow_run_id=flow_run.id)
     write_run_json(paths.out, record)
@@ -155,6 +159,8 @@ def post_flight(
                              description=f"mscal run {session}")
     create_table_artifact(runner.flight_table(record), key="mscal-flights", description="flights of the run")
     create_markdown_artifact(qa_markdown, key="mscal-qa-report", description="QA report: fits, warnings, flights")
+    for name, reason in runner.failed_flights(record).items():
+        log.warning("flight %s was not processed: %s", name, reason)
     log.info("calibration %s; %d flight(s); outputs in %s",
              "reused from the cache (nothing re-fitted)" if plan.cached else f"fitted: {', '.join(record['fitted'])}",
              len(summaries), out)
@@ -177,6 +183,10 @@ def process_inbox(inbox_dir: str, out_root: str, settle_seconds: float = 600.0,
                             return_state=True)
         status = "done" if state.is_completed() else "failed"
         detail = "" if status == "done" else str(state.message or "")
+        if status == "done":  # processed, but some flights could not be: said in the state file
+            failed = runner.failed_flights(state.result())
+            if failed:
+                status, detail = "partial", "; ".join(f"{n}: {r}" for n, r in failed.items())
         inbox.record(Path(out_root), p.name, listing=p.listing, content=p.content, status=status, detail=detail)
         done[p.name] = status
     return done

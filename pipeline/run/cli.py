@@ -409,9 +409,17 @@ def _echo_run(record: dict) -> None:
             click.echo(f"skipped {len(f['skipped'])} file(s) of {name} that are not captures: "
                        f"{', '.join(s['file'] for s in f['skipped'][:5])}{' ...' if len(f['skipped']) > 5 else ''}",
                        err=True)
+    from pipeline.run.runner import failed_flights
+
+    failed = failed_flights(record)
+    for name, reason in failed.items():
+        click.echo(f"flight {name} was not processed: {reason}", err=True)
     calib = "reused from the cache" if record["calibration_cached"] else "fitted: " + ", ".join(record["fitted"])
-    click.echo(f"wrote {record['out']} (calibration {calib}; {len(record['flights'])} flight(s); "
-               f"{record['timings_s']['total']:.1f} s)")
+    done = len(record["flights"]) - len(failed)
+    click.echo(f"wrote {record['out']} (calibration {calib}; {done} flight(s)"
+               f"{f', {len(failed)} not processed' if failed else ''}; {record['timings_s']['total']:.1f} s)")
+    if failed:  # as --strict does for frames: a script sees that something was skipped
+        raise SystemExit(3)
 
 
 @cli.command()

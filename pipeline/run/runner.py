@@ -261,6 +261,7 @@ def apply_one(flight_dir: str, calibration: str, out: str, *, normalise: str = "
                            ApplyOptions(normalise=normalise, illumination=illumination, execution=execution))
     run = res.run
     return {
+        "status": "done",
         "frames_in": run["frames_in"],
         "frames_out": run["frames_out"],
         "quarantined": res.quarantined,
@@ -273,6 +274,22 @@ def apply_one(flight_dir: str, calibration: str, out: str, *, normalise: str = "
         "illumination": {k: v for k, v in run.get("illumination", {}).items() if k != "per_frame"},
         "seconds": round(time.perf_counter() - t0, 3),
     }
+
+
+def failed_flight(flight_dir: str, error: BaseException | None) -> dict[str, Any]:
+    """The run.json summary of a flight that could not be applied (empty, every frame
+    quarantined, unreadable): the other flights of the session are processed all the same."""
+    reason = str(error) if error is not None else "failed"
+    if error is not None and not isinstance(error, MscalError):
+        reason = f"{type(error).__name__}: {reason}"
+    return {"status": "failed", "reason": reason.splitlines()[0] if reason else "failed", "flight": str(flight_dir),
+            "frames_in": 0, "frames_out": 0, "quarantined": [], "skipped": [], "saturated_pixels": 0,
+            "calibration_sha256": None, "up_to_date": False, "computed_on": "nothing (failed)", "seconds": 0.0}
+
+
+def failed_flights(record: dict[str, Any]) -> dict[str, str]:
+    """``{flight: reason}`` of the flights of a run record that failed."""
+    return {n: f.get("reason", "failed") for n, f in record.get("flights", {}).items() if f.get("status") == "failed"}
 
 
 # --------------------------------------------------------------------------- storage
@@ -448,7 +465,9 @@ def run_record(*, session: str, out: str, plan: CalibrationPlan, flights: dict[s
                                         "seconds": 0.0 if s.cached else timings.seconds.get(f"fit_{s.name}", 0.0)}
                                for s in plan.stages},
         "fitted": [s.name for s in plan.stages if not s.cached],
-        "flights": {name: {**summary, "outputs": f"flights/{name}/"} for name, summary in flights.items()},
+        "flights": {name: {**summary, "outputs": None if summary.get("status") == "failed" else f"flights/{name}/"}
+                    for name, summary in flights.items()},
+        "status": "partial" if any(f.get("status") == "failed" for f in flights.values()) else "done",
         "dask_address": dask_address,
         "versions": versions(),
         "timings_s": timings.total(),
@@ -468,7 +487,7 @@ def write_run_json(out_dir: str | Path, record: dict[str, Any]) -> Path:
 def flight_table(record: dict[str, Any]) -> list[dict[str, Any]]:
     """One row per flight, for the run's table artifact."""
     return [
-        {"flight": name, "frames_in": f["frames_in"], "frames_out": f["frames_out"],
+        {"flight": name, "status": f.get("status", "done"), "frames_in": f["frames_in"], "frames_out": f["frames_out"],
          "quarantined": len(f["quarantined"]), "saturated_pixels": f["saturated_pixels"],
          "up_to_date": f["up_to_date"], "seconds": f["seconds"]}
         for name, f in record["flights"].items()

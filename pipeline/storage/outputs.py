@@ -12,10 +12,14 @@ import errno
 import os
 import shutil
 import tempfile
+import contextlib
+import json
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 from mscal_core.errors import InputError
+
+from pipeline.storage.lock import LOCK_NAME, FolderLock
 
 #: Errors of a probe write that mean "you cannot write there", with what to do.
 _WHY = {
@@ -55,8 +59,9 @@ def check_output(path: str | Path, *, kind: str = "folder", owned: Callable[[Pat
     """Check ``path`` before any work; return it as a Path.
 
     ``kind``: ``"folder"`` (an output folder mscal creates or adds to: an existing folder is
-    fine) or ``"store"`` (a store mscal replaces as a whole: an existing folder is replaced
-    only if ``owned(path)`` says mscal wrote it). Refused, with :class:`InputError` naming
+    fine), ``"store"`` (a store mscal replaces as a whole: an existing folder is replaced
+    only if ``owned(path)`` says mscal wrote it) or ``"file"`` (one file, e.g. report.html:
+    an existing file is replaced, a folder is refused). Refused, with :class:`InputError` naming
     the path: an existing file where a folder goes; an existing folder mscal did not write
     (``store``); a path under a file; a place where no file can be created (read-only, no
     permission, /proc); less free space than ``need_bytes``. Nothing is created except the
@@ -65,13 +70,17 @@ def check_output(path: str | Path, *, kind: str = "folder", owned: Callable[[Pat
     p = Path(path)
     if p.is_symlink() and not p.exists():
         raise InputError(f"the {what} path is a broken symbolic link", path=p, hint="remove it or give another -o")
-    if p.exists() and not p.is_dir():
+    if kind == "file":
+        if p.is_dir():
+            raise InputError(f"the {what} path is an existing folder; mscal writes a file here", path=p,
+                             hint="give -o a file name")
+    elif p.exists() and not p.is_dir():
         raise InputError(f"the {what} path is an existing file; mscal writes a folder here and never replaces a "
                          "file it did not write", path=p, hint="give -o a new or empty folder, or remove the file")
     if kind == "store" and p.is_dir() and any(p.iterdir()) and not (owned and owned(p)):
         raise InputError(f"the {what} path is an existing folder that mscal did not write; it would be replaced",
                          path=p, hint="give -o a new name, or remove the folder yourself")
-    base = _nearest_existing(p.parent if not p.exists() else p)
+    base = _nearest_existing(p.parent if not p.exists() or kind == "file" else p)
     if not base.is_dir():
         raise InputError(f"the {what} path lies under {base}, which is a file, not a folder", path=p,
                          hint="give -o a path in a folder")
@@ -83,3 +92,47 @@ def check_output(path: str | Path, *, kind: str = "folder", owned: Callable[[Pat
                              f"{free / 2**20:.0f} MiB free on {base}", path=p,
                              hint="free space or give -o a folder on another disk")
     return p
+
+
+def is_mscal_store(path: Path) -> bool:
+    """Whether ``path`` is a Zarr store mscal wrote (its root ``zarr.json`` carries a
+    ``format`` attribute of mscal's): only such a folder may be replaced by a new store."""
+    try:
+        meta = json.loads((Path(path) / "zarr.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return str((meta.get("attributes") or {}).get("format", "")).startswith("mscal-")
+
+
+@contextlib.contextmanager
+def guarded_output(path: str | Path, *, kind: str = "folder", wait: bool | float = False,
+                   what: str = "output", need_bytes: int = 0) -> Iterator[Path]:
+    """Check ``path`` (:func:`check_output`) and hold the lock of the output for the block.
+
+    A folder output is locked by a file inside it; a store or a file output by a lock file
+    beside it (``.NAME.lock``: the store itself is replaced whole). A second process refuses
+    at once (:class:`~mscal_core.errors.LockedError`, naming the holder) or, with ``wait``,
+    waits for the first to finish.
+    """
+    p = check_output(path, kind=kind, owned=is_mscal_store if kind == "store" else None, need_bytes=need_bytes,
+                     what=what)
+    folder, name = (p, LOCK_NAME) if kind == "folder" else (p.parent, f".{p.name}.lock")
+    created = [d for d in (folder, *folder.parents) if not d.exists()]
+    try:
+        with FolderLock(folder, name=name, wait=wait, what="another mscal process"):
+            yield p
+    finally:
+        _remove_if_unused(folder / name, created)
+
+
+def _remove_if_unused(lock: Path, created: list[Path]) -> None:
+    """A command that failed before writing anything leaves no trace: the folders the lock
+    made (and its file) are removed again when nothing else was put in them."""
+    if not created or not created[0].is_dir() or any(q != lock for q in created[0].iterdir()):
+        return
+    lock.unlink(missing_ok=True)
+    for d in created:  # innermost first
+        try:
+            d.rmdir()
+        except OSError:
+            break

@@ -138,3 +138,47 @@ def test_free_space_estimate(tmp_path: Path) -> None:
     assert "MiB needed" in str(e.value)
     assert check_output(tmp_path / "out", need_bytes=1) == tmp_path / "out"
     assert not (tmp_path / "out").exists()  # checking creates nothing
+
+
+def test_guarded_output_locks_beside_a_store_and_inside_a_folder(tmp_path: Path) -> None:
+    from pipeline.storage.outputs import guarded_output, is_mscal_store
+
+    store = tmp_path / "calib.zarr"
+    with guarded_output(store, kind="store") as p:
+        assert p == store and (tmp_path / ".calib.zarr.lock").is_file()
+        with pytest.raises(LockedError):
+            with guarded_output(store, kind="store"):
+                pass
+    store.mkdir()
+    (store / "zarr.json").write_text('{"attributes": {"format": "mscal-calibration/1"}}')
+    assert is_mscal_store(store)
+    with guarded_output(store, kind="store"):
+        pass
+    (store / "zarr.json").write_text('{"attributes": {"format": "someone-else"}}')
+    assert not is_mscal_store(store)
+    with pytest.raises(InputError, match="did not write"):
+        with guarded_output(store, kind="store"):
+            pass
+    with guarded_output(tmp_path / "out") as p:
+        assert (p / ".mscal.lock").is_file()
+        (p / "run.json").write_text("{}")
+    with pytest.raises(InputError, match="existing folder; mscal writes a file"):
+        with guarded_output(tmp_path / "out", kind="file"):
+            pass
+    report = tmp_path / "report.html"
+    report.write_text("old")
+    with guarded_output(report, kind="file"):  # a file output is replaced
+        pass
+
+
+def test_a_command_that_fails_at_once_leaves_no_folder(tmp_path: Path) -> None:
+    from pipeline.storage.outputs import guarded_output
+
+    out = tmp_path / "a" / "b" / "out"
+    with pytest.raises(ValueError):
+        with guarded_output(out):
+            raise ValueError("bad input found after the lock was taken")
+    assert not (tmp_path / "a").exists()
+    with guarded_output(out) as p:  # a command that wrote something keeps it
+        (p / "run.json").write_text("{}")
+    assert (out / "run.json").is_file()
