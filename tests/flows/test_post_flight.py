@@ -220,3 +220,23 @@ def test_run_on_a_multilens_session_applies_its_captures(multilens_session, tmp_
     assert "<h2>Flight: field</h2>" in (out / "report.html").read_text()
     assert main(["run", str(session), "-o", str(out)]) == 0
     assert _run_json(out)["flights"]["field"]["up_to_date"] is True
+
+
+def test_one_bad_flight_does_not_cost_the_others(flow_session: Path, first_run: Path, tmp_path: Path,
+                                                 capsys) -> None:
+    """An empty flight folder beside good ones: the good flights get their outputs, the bad
+    one is named in run.json and on stderr, and the exit status is 3."""
+    session = tmp_path / "session"
+    shutil.copytree(flow_session, session)
+    (session / "flights" / "empty").mkdir()
+    out = tmp_path / "out"
+    assert main(["run", str(session), "-o", str(out)]) == 3
+    err = capsys.readouterr().err
+    assert "flight empty was not processed:" in err
+    run = _run_json(out)
+    assert run["status"] == "partial" and run["calibration_cached"] is True
+    assert run["flights"]["empty"]["status"] == "failed" and run["flights"]["empty"]["outputs"] is None
+    assert "empty" in run["flights"]["empty"]["reason"] and "\n" not in run["flights"]["empty"]["reason"]
+    for name in FLIGHTS:
+        assert run["flights"][name]["status"] == "done"
+        assert_same_flight_outputs(first_run / "flights" / name, out / "flights" / name)
