@@ -1,0 +1,152 @@
+"""Which catalog camera wrote a folder of captures, from the files' own metadata.
+
+The camera is recognised from EXIF Make/Model and the XMP camera tags of a whole capture --
+``Camera:RigName``, the band names and how many band files share one capture id
+(``MicaSense:CaptureId``, ``Camera:CaptureUUID``, ``drone-dji:CaptureUUID``) -- never from one
+file's name or band name: a RedEdge-MX Dual capture is ten files with one CaptureId, a RedEdge
+capture five. Each catalog camera with a ``factory_model`` says how it is recognised
+(``identify`` in ``catalogs/cameras/<name>.yaml``). ``--camera NAME`` skips all this.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mscal_core.errors import FrameError, InputError
+
+from pipeline.ingest.camera_meta import CaptureMeta, read_file_metas
+from pipeline.ingest.catalog import Camera, list_entries, load_camera
+
+IMAGE_SUFFIXES = (".tif", ".tiff", ".jpg", ".jpeg")
+PROBE_FILES = 24  # band files read to recognise a camera (metadata only)
+
+
+@dataclass
+class Probe:
+    """What the first band files of a folder say about their camera."""
+
+    folder: Path
+    metas: list[CaptureMeta] = field(default_factory=list)
+    unreadable: list[tuple[Path, str]] = field(default_factory=list)
+
+    def best_capture(self) -> list[CaptureMeta]:
+        """The metas of the capture id with the most band files (a file without an id is a
+        capture of its own)."""
+        groups: dict[str, list[CaptureMeta]] = {}
+        for m in self.metas:
+            groups.setdefault(m.capture_id or str(m.path), []).append(m)
+        if not groups:
+            return []
+        return max(groups.values(), key=len)
+
+    def describe(self) -> dict[str, object]:
+        cap = self.best_capture()
+        first = cap[0] if cap else None
+        return {
+            "make": first.make if first else None,
+            "model": first.model if first else None,
+            "rig_name": first.rig_name if first else None,
+            "serial": first.serial if first else None,
+            "firmware": first.software if first else None,
+            "bands_per_capture": len(cap),
+            "band_names": [m.band_name for m in sorted(cap, key=_band_order)],
+        }
+
+
+def _band_order(m: CaptureMeta) -> tuple[int, str]:
+    return (m.rig_camera_index if m.rig_camera_index is not None else 10**6, m.path.name)
+
+
+def probe_folder(folder: str | Path, limit: int = PROBE_FILES) -> Probe:
+    """Read the metadata of the folder's first ``limit`` image files."""
+    folder = Path(folder)
+    probe = Probe(folder)
+    files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    for path in files[:limit]:
+        try:
+            probe.metas.extend(read_file_metas(path))
+        except FrameError as exc:
+            probe.unreadable.append((path, exc.reason))
+    return probe
+
+
+def factory_cameras() -> list[Camera]:
+    """The catalog cameras whose files carry a factory radiometric model."""
+    out = []
+    for name in list_entries("cameras"):
+        cam = load_camera(name)
+        if cam.factory_model is not None and cam.identify is not None:
+            out.append(cam)
+    return out
+
+
+def _matches(pattern: str, value: str | None) -> bool:
+    return value is not None and fnmatch.fnmatchcase(value.casefold(), pattern.casefold())
+
+
+def score(camera: Camera, probe: Probe) -> int | None:
+    """How well a camera fits the probe (higher is better), None if it cannot be it."""
+    ident = camera.identify
+    cap = probe.best_capture()
+    if ident is None or not cap:
+        return None
+    first = cap[0]
+    if (first.make or "").casefold() != ident.make.casefold():
+        return None
+    points = 1
+    if ident.models:
+        if not any(_matches(m, first.model) for m in ident.models):
+            return None
+        points += 4
+    if ident.rig_names:
+        if not any(_matches(r, first.rig_name) for r in ident.rig_names):
+            return None
+        points += 2
+    if ident.bands_per_capture is not None:
+        if len(cap) != ident.bands_per_capture:  # every band file of one capture id, skipped bands included
+            return None
+        points += 2
+    names = Counter(m.band_name.casefold() for m in cap)
+    if not all(names[b.name.casefold()] for b in camera.bands):
+        return None
+    return points + 1
+
+
+@dataclass(frozen=True)
+class Identification:
+    camera: Camera
+    evidence: str  # what in the files named it
+    probe: dict[str, object]
+    overridden: bool = False
+
+
+def identify_camera(folder: str | Path, name: str | None = None) -> Identification:
+    """The catalog camera of a capture folder (``name``: given with ``--camera``, not guessed)."""
+    folder = Path(folder)
+    probe = probe_folder(folder)
+    if name is not None:
+        return Identification(load_camera(name), f"--camera {name}", probe.describe(), overridden=True)
+    desc = probe.describe()
+    if not probe.metas:
+        why = "; ".join(f"{p.name}: {r}" for p, r in probe.unreadable[:2])
+        raise InputError("no image file with factory radiometric metadata in the folder" + (f" ({why})" if why else ""),
+                         path=folder, hint="give the folder of the camera's band files, or name it with --camera NAME")
+    scored = [(s, c) for c in factory_cameras() if (s := score(c, probe)) is not None]
+    if not scored:
+        known = ", ".join(c.name for c in factory_cameras())
+        raise InputError(
+            f"no catalog camera matches Make {desc['make']!r}, Model {desc['model']!r}, rig {desc['rig_name']!r}, "
+            f"{desc['bands_per_capture']} band(s) per capture {desc['band_names']}",
+            path=folder, hint=f"name it with --camera NAME (known: {known}) or add catalogs/cameras/NAME.yaml")
+    scored.sort(key=lambda sc: -sc[0])
+    if len(scored) > 1 and scored[0][0] == scored[1][0]:
+        raise InputError(f"the files fit cameras {scored[0][1].name} and {scored[1][1].name} equally",
+                         path=folder, hint="name it with --camera NAME")
+    cam = scored[0][1]
+    evidence = (f"EXIF Make {desc['make']!r}, Model {desc['model']!r}"
+                + (f", XMP RigName {desc['rig_name']!r}" if desc["rig_name"] else "")
+                + f", {desc['bands_per_capture']} band(s) per capture id: {', '.join(map(str, desc['band_names']))}")
+    return Identification(cam, evidence, desc)
