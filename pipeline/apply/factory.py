@@ -76,7 +76,9 @@ from pipeline.apply.flight import (
     otsu_mask,
     write_frame,
 )
-from pipeline.ingest.camera_meta import Capture, CaptureMeta, FieldParts, factory_radiance, group_captures, read_capture_meta
+from pipeline.ingest.camera_meta import (Capture, FieldParts, factory_radiance, group_captures, read_capture_pixels,
+                                         reflectance_factor, sun_sensor_absolute, upright_meta)
+from pipeline.ingest.identify import Identification, identify_camera
 from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 from pipeline.ingest.discover import quarantine_entry
@@ -86,10 +88,9 @@ from pipeline.ingest.session import PanelConfig, decode_raw, panel_config_near
 from pipeline.products.writers import TMP_MARK, BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
 
 FACTORY = "factory"
-REFERENCES = ("auto", "panel", "dls")
+REFERENCES = ("auto", "panel", "dls")  # + "none" (radiance only) when auto finds no usable sun sensor
 PANEL_SEARCH = 3  # captures at each end of the folder searched for a panel when none is named
 PANEL_GRID = 32  # cells per side of the panel grid for the S/B split (Eq. 11-14)
-FACTORY_CAMERAS = ("micasense-rededge", "micasense-rededge-mx-dual")
 FIELD_COMPONENTS = ("response", "vignetting")  # store variables: inverse_response, vignetting
 
 
@@ -107,6 +108,7 @@ class FactoryOptions:
     registration: str | None = None  # a store from 'mscal register': bands aligned to its reference (issue 9)
     field_calibration: str | None = None  # a store from 'mscal calibrate' / 'mscal fit' of this camera
     field_components: tuple[str, ...] = ()  # of FIELD_COMPONENTS taken from it; () = all it holds
+    camera: str | None = None  # --camera NAME: the catalog camera, instead of recognising it from the files
 
     def __post_init__(self) -> None:
         if self.reference not in REFERENCES:
@@ -125,54 +127,23 @@ class FactoryOptions:
                 d.pop(key)
         if not d["field_components"]:
             d.pop("field_components")
+        if d["camera"] is None:
+            d.pop("camera")
         return d
 
 
 # --------------------------------------------------------------------------- camera and captures
 
 
-def match_camera(folder: Path) -> Camera:
-    """The catalog camera whose band files (suffixes and XMP band names) this folder holds."""
-    probe: CaptureMeta | None = None
-    names = sorted(p for p in folder.iterdir() if p.suffix.lower() in (".tif", ".tiff"))
-    for path in names:
-        try:
-            probe = read_capture_meta(path)
-            break
-        except FrameError:
-            continue
-    if probe is None:
-        raise InputError("no TIFF with factory radiometric metadata in the folder", path=folder,
-                         hint="give the folder of the camera's band files (e.g. IMG_0000_1.tif ...)")
-    for name in FACTORY_CAMERAS:
-        cam = load_camera(name)
-        suffix = probe.path.stem.rsplit("_", 1)[-1]
-        for band in cam.bands:
-            if str(band.file_suffix) == suffix and band.name == probe.band_name:
-                return cam
-    raise InputError(
-        f"no catalog camera has a band {probe.band_name!r} in files named like {probe.path.name}",
-        path=folder, hint=f"add the camera under catalogs/cameras/ (known: {', '.join(FACTORY_CAMERAS)})",
-    )
+def match_camera(folder: Path, name: str | None = None) -> Camera:
+    """The catalog camera of the folder's captures (:func:`pipeline.ingest.identify.identify_camera`)."""
+    return identify_camera(folder, name).camera
 
 
 def _read_capture(capture: Capture) -> tuple[str, list[np.ndarray]]:
-    """Content hash (over all band files, in band order) and the stored DN of each band file."""
-    h = hashlib.sha256()
-    dns = []
-    for meta in capture.metas:
-        data = meta.path.read_bytes()
-        h.update(data)
-        try:
-            dn = np.asarray(decode_raw(data, meta.path))
-        except FrameError:
-            raise
-        except Exception as exc:  # tifffile raises IndexError/ValueError on truncated files
-            raise FrameError(f"unreadable band file ({type(exc).__name__}: {exc})", path=meta.path) from None
-        if dn.shape != meta.shape:
-            raise FrameError(f"image {dn.shape} does not match its metadata {meta.shape}", path=meta.path)
-        dns.append(dn)
-    return h.hexdigest(), dns
+    """Content hash (over all band files, in band order) and the stored DN of each band."""
+    sha, dns, _ = read_capture_pixels(capture)
+    return sha, dns
 
 
 def _stat_fingerprint(captures: Sequence[Capture]) -> str:
@@ -224,7 +195,7 @@ def panel_reference(capture: Capture, dns: Sequence[np.ndarray], rho: Sequence[f
         split = tuple(b.factor for b in bands)
         spread, resid = (float("nan"), float("nan")), float("nan")
     dls = tuple(
-        (math.pi / m.irradiance) if m.irradiance is not None and m.irradiance > 0 else None for m in capture.metas
+        reflectance_factor(m) for m in capture.metas
     )
     return PanelReference(
         capture=capture.name, factor_split=split, factor_mean=tuple(b.factor for b in bands), factor_dls=dls,
@@ -304,13 +275,15 @@ def capture_factors(plan: CapturePlan, capture: Capture) -> np.ndarray:
     if plan.reference == "panel":
         assert plan.panel_factor is not None
         return np.asarray(plan.panel_factor, dtype=np.float64)
+    if plan.reference == "none":
+        return np.full(len(capture.metas), np.nan)
     k = []
     for meta in capture.metas:
-        e = meta.irradiance
-        if e is None or not math.isfinite(e) or e <= 0:
-            raise FrameError(f"no usable DLS irradiance (XMP Irradiance = {e!r})", path=meta.path,
+        kb = reflectance_factor(meta)
+        if kb is None:
+            raise FrameError(f"no usable sun sensor reading (irradiance = {meta.irradiance!r})", path=meta.path,
                              hint="use a panel capture: --panel-reflectance TARGET")
-        k.append(math.pi / e)
+        k.append(kb)
     return np.asarray(k)
 
 
@@ -319,14 +292,15 @@ def process_capture(plan: CapturePlan, job: CaptureJob) -> CaptureOutcome:
     photogrammetry and NDVI TIFFs (one whole chunk per variable: no two tasks share a chunk)."""
     cap = job.capture
     try:
-        sha, dns = _read_capture(cap)
+        sha, dns, stacks = read_capture_pixels(cap)
         if any(dn.shape != plan.shape[1:] for dn in dns):
             raise FrameError(f"band images {[d.shape for d in dns]} are not all {plan.shape[1:]}", path=cap.files[0])
         k = capture_factors(plan, cap)
         parts = field_parts(plan.field[0], plan.field[1], plan.camera.name) if plan.field else [None] * len(dns)
         rad = np.empty(plan.shape, np.float32)
-        for b, (meta, dn) in enumerate(zip(cap.metas, dns)):
-            rad[b] = factory_radiance(meta, dn, parts[b])
+        for b, (meta, dn) in enumerate(zip(cap.metas, dns)):  # in the stored orientation, then upright
+            rad[b] = upright_meta(meta, factory_radiance(meta, dn, parts[b], stacks.get(meta.path)))
+        dns = [upright_meta(meta, dn) for meta, dn in zip(cap.metas, dns)]
     except FrameError as exc:
         return CaptureOutcome(cap.name, None, 0, quarantine_entry(Path(exc.path or cap.files[0]).name, exc))
     raw = np.stack(dns)
@@ -371,7 +345,8 @@ def _coords(camera: Camera, captures: Sequence[Capture]) -> dict[str, Any]:
         "gain": ("frame", per_frame(lambda m: m.gain), {"units": "1"}),
         "irradiance": (("frame", "band"),
                        np.array([[np.nan if m.irradiance is None else m.irradiance for m in c.metas] for c in captures]),
-                       {"units": "W m-2 nm-1", "long_name": "downwelling light sensor (XMP Irradiance)"}),
+                       {"units": captures[0].metas[0].irradiance_unit,
+                        "long_name": "downwelling light sensor (XMP Irradiance or the camera's sun sensor)"}),
         "time": ("frame", np.array([np.datetime64(t.rstrip("Z"), "ns") if t else np.datetime64("NaT", "ns")
                                     for t in times])),
         "lat": ("frame", per_frame(lambda m: m.lat), {"units": "degrees_north"}),
@@ -473,7 +448,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     folder, out = Path(capture_dir), Path(out)
     if not folder.is_dir():
         raise InputError("capture folder not found", path=folder)
-    camera = match_camera(folder)
+    ident = identify_camera(folder, options.camera)
+    camera = ident.camera
     captures, problems = group_captures(folder, camera)
     quarantined = [{"file": Path(p["file"]).name, "reason": p["reason"]} for p in problems]
     if not captures:
@@ -486,6 +462,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     shape = (camera.n_bands, *shapes.pop())
     export = export_band_indices(camera, options.export_bands)
     indices = [load_index(n) for n in options.indices]
+    if options.indices == FactoryOptions.indices:  # the defaults: only the indices this camera's bands allow
+        indices = [ix for ix in indices if all(r in camera.index_bands for r in ix.inputs)]
     roles = {ix.name: _index_roles(camera, ix) for ix in indices}
 
     registration = _registration(options, camera, shape)
@@ -512,6 +490,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     reference = options.reference
     if reference == "auto":
         reference = "panel" if options.panel_reflectance is not None else "dls"
+        if reference == "dls" and not all(reflectance_factor(m) is not None for m in captures[0].metas):
+            reference = "none"  # radiance only: the camera's sun sensor gives no usable reflectance
     panels: list[PanelReference] = []
     panel_factor = None
     if reference == "panel":
@@ -554,7 +534,12 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         "calibration_sha256": None,
         "components": _components_record(field),
         "camera": camera.name,
-        "reference": _reference_record(reference, panels, panel_factor, camera),
+        "reference": _reference_record(reference, panels, panel_factor, camera, captures[0]),
+        "camera_identification": {"evidence": ident.evidence, "overridden": ident.overridden, **ident.probe},
+        "radiance_unit": captures[0].metas[0].radiance_unit,
+        "orientation": _orientation_record(captures[0]),
+        "skipped_bands": [s for c in captures for s in c.skipped],
+        "metadata_problems": [p.as_dict() for c in captures for p in c.problems],
         "frames_in": len(frames) + len(quarantined),
         "frames_out": len(frames),
         "frames": frames,
@@ -600,7 +585,7 @@ class _Pass:
             "reflectance": (("frame", "band", "y", "x"), np.float32,
                             {"long_name": f"reflectance (factory radiance x {reference} factor)", "units": "1"}),
             "radiance": (("frame", "band", "y", "x"), np.float32,
-                         {"long_name": "factory radiance", "units": "W m-2 sr-1 nm-1"}),
+                         {"long_name": "factory radiance", "units": captures[0].metas[0].radiance_unit}),
         }
         for ix in indices:
             rvars[ix.name] = (("frame", "y", "x"), np.float32, {"long_name": ix.description, "expression": ix.expression})
@@ -655,13 +640,28 @@ def _components_record(field: tuple[str, tuple[str, ...], str] | None) -> dict[s
     return {c: (f"field:{field[0]}" if field is not None and c in field[1] else FACTORY) for c in FIELD_COMPONENTS}
 
 
+def _orientation_record(capture: Capture) -> str:
+    o = capture.metas[0].orientation
+    return "as stored" if o in (0, 1) else f"EXIF Orientation {o}: outputs turned upright (raw.zarr too)"
+
+
 def _reference_record(reference: str, panels: Sequence[PanelReference], factor: tuple[float, ...] | None,
-                      camera: Camera) -> dict[str, Any]:
+                      camera: Camera, first: Capture | None = None) -> dict[str, Any]:
     """What run.json says of the reference: the route, and for the panel route every panel
     capture's factors beside the DLS's on the same capture (their ratio compares the two)."""
     rec: dict[str, Any] = {"route": reference}
+    meta = first.metas[0] if first is not None else None
+    if reference == "none":
+        rec["formula"] = "no reflectance (NaN): no panel given and the sun sensor gives no usable reflectance"
+        rec["hint"] = "give a panel capture: --panel-reflectance TARGET"
+        return rec
     if reference == "dls":
-        rec["formula"] = "R_b = pi L_b / E_b, E_b the capture's XMP Irradiance (no tilt correction)"
+        if meta is None or sun_sensor_absolute(meta):
+            rec["formula"] = "R_b = pi L_b / E_b, E_b the capture's XMP Irradiance (no tilt correction)"
+        else:
+            rec["formula"] = (f"R_b = L_b / E_b, E_b the capture's sun sensor ({meta.irradiance_unit}): reflectance "
+                              "up to one unknown constant (indices are right; absolute values need a panel)")
+            rec["scale"] = "relative"
         return rec
     rec["formula"] = "R_b = L_b / S_b, S_b from the panel's Eq. 11-14 split (median-lit panel)"
     rec["factor"] = dict(zip(camera.band_names, factor or ()))

@@ -135,11 +135,13 @@ class CaptureMeta:
         bad = {p.feature for p in self.problems}
         return {
             "radiance": "radiance" not in bad,
-            "sun_sensor": self.irradiance is not None and self.irradiance > 0 and "sun_sensor" not in bad,
+            "sun_sensor_reading": self.irradiance is not None and self.irradiance > 0 and "sun_sensor" not in bad,
+            "sun_sensor_reflectance": reflectance_factor(self) is not None and "sun_sensor" not in bad,
+            "sun_sensor_absolute": sun_sensor_absolute(self) and reflectance_factor(self) is not None,
             "panel_area": self.reflect_area is not None and "panel_area" not in bad,
             "position": self.lat is not None and self.lon is not None,
             "rig_index": self.rig_camera_index is not None,
-            "band_alignment": self.dji_hmatrix is not None,
+            "factory_band_alignment": self.dji_hmatrix is not None,
         }
 
 

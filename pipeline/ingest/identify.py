@@ -150,3 +150,57 @@ def identify_camera(folder: str | Path, name: str | None = None) -> Identificati
                 + (f", XMP RigName {desc['rig_name']!r}" if desc["rig_name"] else "")
                 + f", {desc['bands_per_capture']} band(s) per capture id: {', '.join(map(str, desc['band_names']))}")
     return Identification(cam, evidence, desc)
+
+
+def describe_folders(folder: str | Path, camera: str | None = None) -> list[str]:
+    """Lines for ``mscal cameras FOLDER``: per folder holding image files (FOLDER and its
+    subfolders), the camera and why, the captures, bands, features, and problems."""
+    from pipeline.ingest.camera_meta import group_captures
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError("folder not found", path=folder)
+    dirs = [folder] + sorted(p for p in folder.rglob("*") if p.is_dir())
+    lines: list[str] = []
+    for d in dirs:
+        if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in d.iterdir() if p.is_file()):
+            continue
+        lines.append(f"{d}:")
+        try:
+            ident = identify_camera(d, camera)
+        except (InputError, FrameError) as exc:
+            lines.append(f"  camera: not recognised: {exc}")
+            continue
+        cam = ident.camera
+        caps, problems = group_captures(d, cam)
+        lines.append(f"  camera: {cam.name} ({cam.description}); {ident.evidence}")
+        lines.append(f"  captures: {len(caps)} complete, {len(problems)} quarantined")
+        for q in problems[:5]:
+            lines.append(f"    quarantined {Path(q['file']).name}: {q['reason']}")
+        if caps:
+            first = caps[0]
+            bands = ", ".join(f"{m.band_name} {m.wavelength_nm:g} nm" for m in first.metas)
+            lines.append(f"  bands: {bands}")
+            for s in first.skipped:
+                lines.append(f"  skipped band {s['band']} ({Path(s['file']).name}): {s['reason']}")
+            feats: dict[str, bool] = {}
+            for c in caps:
+                for m in c.metas:
+                    for k, v in m.features().items():
+                        feats[k] = feats.get(k, True) and v
+            m0 = first.metas[0]
+            lines.append(f"  radiance model: {m0.radiometry} ({m0.radiance_unit})")
+            if m0.orientation not in (0, 1):
+                lines.append(f"  stored with EXIF Orientation {m0.orientation}: turned upright by apply")
+            lines.append("  features: " + ", ".join(f"{k} {'yes' if v else 'no'}" for k, v in feats.items()))
+            seen = set()
+            for c in caps:
+                for p in c.problems:
+                    key = (p.tag, p.reason, p.feature)
+                    if key in seen:
+                        continue
+                    seen.add(key)
+                    lines.append(f"  tag problem: {Path(p.file).name}: {p.message()}")
+    if not lines:
+        raise InputError("no image files (TIFF or JPEG) in the folder or below it", path=folder)
+    return lines
