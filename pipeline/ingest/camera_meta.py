@@ -325,14 +325,19 @@ def _dispatch(ctx: _Ctx) -> list[CaptureMeta]:
     x = ctx.xmp
     band = x.text("BandName") or x.text("BandName", ("drone-dji",))
     if band is not None and band.upper() == "LWIR":
-        return [_thermal(ctx, band)]
+        return [_minimal(ctx, band, "thermal")]
+    if band is not None and band.casefold().startswith("panchro"):
+        try:
+            return [_micasense(ctx, panchro=True)]
+        except FrameError:  # a band kept out of reflectance need not carry a full radiometric model
+            return [_minimal(ctx, band, "panchro")]
     if x.has("SensorGain", ("drone-dji",)) or x.has("VignettingData", ("drone-dji",)):
         return [_dji(ctx)]
     if x.has("SensorModel", ("Camera",)) or (ctx.make or "").lower() == "parrot":
         return [_sequoia(ctx)]
     if x.has("ColorTransform", ("Camera",)) or (ctx.make or "").lower() == "sentera":
         return _sentera(ctx)
-    return [_micasense(ctx, panchro=band is not None and band.lower().startswith("panchro"))]
+    return [_micasense(ctx)]
 
 
 def _band(ctx: _Ctx) -> tuple[str, float, float | None]:
@@ -467,8 +472,9 @@ def _radiance_tag(ctx: _Ctx, tag: str, count: int | None = None) -> tuple[float,
         raise FrameError(f"XMP {exc.reason}", path=ctx.path, hint=FIRMWARE_HINT) from None
 
 
-def _thermal(ctx: _Ctx, band: str) -> CaptureMeta:
-    """A LWIR band (Altum, Altum-PT): centi-kelvin DN; never part of reflectance."""
+def _minimal(ctx: _Ctx, band: str, radiometry: str) -> CaptureMeta:
+    """A band read for what it is but never part of reflectance: LWIR (Altum, Altum-PT;
+    centi-kelvin DN) or a panchromatic band without a full radiometric model."""
     x = ctx.xmp
     wl = ctx.optional(None, lambda: x.number("CentralWavelength")) or 11000.0
     exposure = _rational(ctx.exif["ExposureTime"]) if "ExposureTime" in ctx.exif else 0.0
@@ -476,7 +482,7 @@ def _thermal(ctx: _Ctx, band: str) -> CaptureMeta:
         path=ctx.path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=band, wavelength_nm=wl, fwhm_nm=None,
         exposure_s=exposure, gain=1.0, black_levels=(), dark_row_values=None, radiometric_calibration=None,
         vignetting_center=None, vignetting_polynomial=None, vignetting_polynomial_2d=None,
-        vignetting_polynomial_2d_exponents=None, irradiance=None, radiometry="thermal",
+        vignetting_polynomial_2d_exponents=None, irradiance=None, radiometry=radiometry,
         problems=tuple(ctx.problems), **_common(ctx),
     )
 
@@ -505,7 +511,7 @@ def _sequoia(ctx: _Ctx) -> CaptureMeta:
         radiometric_calibration=None, vignetting_center=None, vignetting_polynomial=None,
         vignetting_polynomial_2d=poly2d, vignetting_polynomial_2d_exponents=exps2d, irradiance=irr,
         radiometry="sequoia", f_number=f_number, iso=iso, sensor_model=(model[0], model[1], model[2]),
-        irradiance_unit="1 (sunshine counts / (gain x ms), relative)", problems=tuple(ctx.problems), **_common(ctx),
+        irradiance_unit="1 (sunshine CH0 / (gain x ms x golden sensitivity), relative)", problems=tuple(ctx.problems), **_common(ctx),
     )
 
 
@@ -515,7 +521,11 @@ SUNSHINE_RECORD = struct.Struct("<QHHHHfff")  # timestamp us, CH0, CH1, gain ind
 def _sequoia_sunshine(x: Xmp, path: Path) -> float | None:
     """Relative irradiance of the band's sunshine sensor from ``Camera:IrradianceList``
     (base64 of 28-byte records) and ``IrradianceCalibrationMeasurement`` (gain index,
-    exposure ms, CH0, CH1 rows); :func:`mscal_core.factory.sunshine_irradiance`."""
+    exposure ms, CH0, CH1 rows); :func:`mscal_core.factory.sunshine_irradiance`, divided by
+    the band's CH0 sensitivity ``IrradianceSensitivitiesGolden[0]`` so that the four bands'
+    readings share one scale. That division is inferred from the tag's name (no Parrot text
+    found): on the real capture in ../shared/data it turns an implausible spectrum (red edge
+    4x the others) into a vegetation-like one (NIR > red edge > green > red)."""
     raw = x.text("IrradianceList", ("Camera",))
     if raw is None:
         return None
@@ -534,9 +544,15 @@ def _sequoia_sunshine(x: Xmp, path: Path) -> float | None:
     cal = {int(table[i]): table[i + 2] / table[i + 1] for i in range(0, len(table), 4)
            if table[i + 1] > 0 and table[i + 2] < 65535}
     try:
-        return sunshine_irradiance([r[1] for r in recs], [r[3] for r in recs], [r[4] for r in recs], cal)
+        counts = sunshine_irradiance([r[1] for r in recs], [r[3] for r in recs], [r[4] for r in recs], cal)
     except ValueError as exc:
         raise TagError("XMP IrradianceList", raw, str(exc), path) from None
+    sens = x.numbers("IrradianceSensitivitiesGolden", ("Camera",))
+    if sens is None or not sens[0] > 0:
+        raise TagError("XMP IrradianceSensitivitiesGolden", x.raw("IrradianceSensitivitiesGolden", ("Camera",)),
+                       "expected the CH0 and CH1 sensitivities (positive): the bands' sunshine readings cannot be "
+                       "compared without them", path)
+    return counts / sens[0]
 
 
 def _dji(ctx: _Ctx) -> CaptureMeta:
@@ -908,6 +924,7 @@ def group_captures(
     skip = {s.name.casefold(): s for s in (camera.skip_bands if camera is not None else ())}
     by_name: dict[str, dict[str, CaptureMeta]] = {}
     unusable: dict[str, list[tuple[Path, str]]] = {}
+    skipped: dict[str, list[dict[str, str]]] = {}
     for path in sorted(folder.iterdir()):
         m = pattern.match(path.name)
         if m is None or not path.is_file():
@@ -916,14 +933,18 @@ def group_captures(
         try:
             metas = read_file_metas(path)
         except FrameError as exc:
-            unusable.setdefault(m["capture"], []).append((path, exc.reason))
+            s = next((s for s in skip.values() if not per_file and s.file_suffix == m["band"]), None)
+            if s is not None:  # the file of a band kept out of reflectance anyway: named, not fatal
+                skipped.setdefault(m["capture"], []).append(
+                    {"file": str(path), "band": s.name, "reason": f"{s.reason}; unreadable: {exc.reason}"})
+            else:
+                unusable.setdefault(m["capture"], []).append((path, exc.reason))
             continue
         if per_file:
             for meta in metas:
                 bands[str(meta.channel)] = meta
         else:
             bands[m["band"]] = metas[0]
-    skipped: dict[str, list[dict[str, str]]] = {}
     for name, bands in by_name.items():  # bands kept out of reflectance, recognised by their XMP BandName
         for key in [k for k, meta in bands.items() if meta.band_name.casefold() in skip]:
             s = skip[bands[key].band_name.casefold()]

@@ -33,14 +33,19 @@ class Probe:
     unreadable: list[tuple[Path, str]] = field(default_factory=list)
 
     def best_capture(self) -> list[CaptureMeta]:
-        """The metas of the capture id with the most band files (a file without an id is a
-        capture of its own)."""
-        groups: dict[str, list[CaptureMeta]] = {}
+        """The band files of one typical capture: files grouped by capture id (and by name
+        without its last ``_part``, so that a copied capture stays apart; a file without an
+        id is a capture of its own), then a group of the most common size (an incomplete
+        capture does not decide), the largest of those."""
+        groups: dict[tuple[str, str], list[CaptureMeta]] = {}
         for m in self.metas:
-            groups.setdefault(m.capture_id or str(m.path), []).append(m)
+            key = (m.capture_id or str(m.path), m.path.stem.rsplit("_", 1)[0] if m.capture_id else "")
+            if m not in groups.setdefault(key, []):
+                groups[key].append(m)
         if not groups:
             return []
-        return max(groups.values(), key=len)
+        sizes = Counter(len(g) for g in groups.values())
+        return max(groups.values(), key=lambda g: (sizes[len(g)], len(g)))
 
     def describe(self) -> dict[str, object]:
         cap = self.best_capture()
@@ -132,7 +137,7 @@ def identify_camera(folder: str | Path, name: str | None = None) -> Identificati
     desc = probe.describe()
     if not probe.metas:
         why = "; ".join(f"{p.name}: {r}" for p, r in probe.unreadable[:2])
-        raise InputError("no image file with factory radiometric metadata in the folder" + (f" ({why})" if why else ""),
+        raise InputError("no TIFF with factory radiometric metadata (nor a JPEG) in the folder" + (f" ({why})" if why else ""),
                          path=folder, hint="give the folder of the camera's band files, or name it with --camera NAME")
     scored = [(s, c) for c in factory_cameras() if (s := score(c, probe)) is not None]
     if not scored:
