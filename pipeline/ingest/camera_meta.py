@@ -394,6 +394,12 @@ def _common(ctx: _Ctx) -> dict[str, Any]:
     )
 
 
+def _finish(ctx: _Ctx) -> dict[str, Any]:
+    """:func:`_common` and then every problem recorded while reading (both as fields)."""
+    common = _common(ctx)
+    return {**common, "problems": tuple(ctx.problems)}
+
+
 def _black_levels(ctx: _Ctx) -> tuple[float, ...]:
     black = ctx.black_tag
     if isinstance(black, (tuple, list)):
@@ -447,7 +453,7 @@ def _micasense(ctx: _Ctx, panchro: bool = False) -> CaptureMeta:
         vignetting_center=(center[0], center[1]) if center else None, vignetting_polynomial=poly,
         vignetting_polynomial_2d=poly2d, vignetting_polynomial_2d_exponents=exps2d, irradiance=irr,
         radiometry="panchro" if panchro else "micasense", iso=gain * 100.0,
-        problems=tuple(ctx.problems), **_common(ctx),
+        **_finish(ctx),
     )
 
 
@@ -483,7 +489,7 @@ def _minimal(ctx: _Ctx, band: str, radiometry: str) -> CaptureMeta:
         exposure_s=exposure, gain=1.0, black_levels=(), dark_row_values=None, radiometric_calibration=None,
         vignetting_center=None, vignetting_polynomial=None, vignetting_polynomial_2d=None,
         vignetting_polynomial_2d_exponents=None, irradiance=None, radiometry=radiometry,
-        problems=tuple(ctx.problems), **_common(ctx),
+        **_finish(ctx),
     )
 
 
@@ -511,7 +517,7 @@ def _sequoia(ctx: _Ctx) -> CaptureMeta:
         radiometric_calibration=None, vignetting_center=None, vignetting_polynomial=None,
         vignetting_polynomial_2d=poly2d, vignetting_polynomial_2d_exponents=exps2d, irradiance=irr,
         radiometry="sequoia", f_number=f_number, iso=iso, sensor_model=(model[0], model[1], model[2]),
-        irradiance_unit="1 (sunshine CH0 / (gain x ms x golden sensitivity), relative)", problems=tuple(ctx.problems), **_common(ctx),
+        irradiance_unit="1 (sunshine CH0 / (gain x ms x golden sensitivity), relative)", **_finish(ctx),
     )
 
 
@@ -585,7 +591,7 @@ def _dji(ctx: _Ctx) -> CaptureMeta:
         vignetting_center=None, vignetting_polynomial=None, vignetting_polynomial_2d=None,
         vignetting_polynomial_2d_exponents=None, irradiance=irr, radiometry="dji", gain_adjustment=adj,
         dji_vignetting=k, dji_center=(cx, cy), dji_dewarp=dewarp, dji_hmatrix=hmat,
-        irradiance_unit="1 (DJI calibrated sunlight sensor value)", problems=tuple(ctx.problems), **_common(ctx),
+        irradiance_unit="1 (DJI calibrated sunlight sensor value)", **_finish(ctx),
     )
 
 
@@ -676,7 +682,7 @@ def _sentera(ctx: _Ctx) -> list[CaptureMeta]:
             raise FrameError(f"XMP Camera:ColorTransform has {len(matrix)} values, expected {len(names)}x{len(names)} "
                              "(one row per band)", path=path)
     sun = ctx.optional("sun_sensor", lambda: x.numbers("SunSensor", ("Camera",), len(names)))
-    common = _common(ctx)
+    common = _finish(ctx)
     out = []
     for i, (name, wl) in enumerate(zip(names, wls)):
         if wl <= 0 or name.lower() == "garbage":  # a channel Sentera writes for crosstalk only
@@ -690,7 +696,7 @@ def _sentera(ctx: _Ctx) -> list[CaptureMeta]:
             vignetting_polynomial_2d_exponents=None,
             irradiance=sun[i] if sun is not None and sun[i] > 0 else None, radiometry="sentera",
             channel=i if len(names) > 1 else None, channel_mix=matrix, iso=gain * 100.0,
-            irradiance_unit="1 (Sentera ILS counts)", problems=tuple(ctx.problems), **common,
+            irradiance_unit="1 (Sentera ILS counts)", **common,
         ))
     if not out:
         raise FrameError("no usable band (every CentralWavelength is 0)", path=path)
@@ -758,9 +764,15 @@ def factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None
             if channels is None:
                 raise FrameError("the colour transform needs every channel of the file", path=meta.path)
             mixed = color_transform(channels, meta.channel_mix, [meta.channel])[0]
+            n = channels.shape[2]
+            used = [j for j in range(n) if meta.channel_mix[n * meta.channel + j] != 0]
+            clipped = np.any(channels[:, :, used] >= 2**meta.bits_per_sample - 1, axis=2)
         else:
             mixed = np.asarray(dn, dtype=np.float64)
-        return np.maximum((mixed - meta.black_level) / (meta.gain * meta.exposure_s), 0.0)
+            clipped = np.asarray(dn) >= 2**meta.bits_per_sample - 1
+        out = np.maximum((mixed - meta.black_level) / (meta.gain * meta.exposure_s), 0.0)
+        out[clipped] = np.nan  # a clipped channel in the mix: the band is unknown there (Sentera excludes them)
+        return out
     vignetting = factory_vignetting(meta)
     signal = None
     if parts is not None and parts.vignetting is not None:
