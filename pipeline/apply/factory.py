@@ -298,16 +298,21 @@ def process_capture(plan: CapturePlan, job: CaptureJob) -> CaptureOutcome:
         k = capture_factors(plan, cap)
         parts = field_parts(plan.field[0], plan.field[1], plan.camera.name) if plan.field else [None] * len(dns)
         rad = np.empty(plan.shape, np.float32)
-        for b, (meta, dn) in enumerate(zip(cap.metas, dns)):  # in the stored orientation, then upright
-            rad[b] = upright_meta(meta, factory_radiance(meta, dn, parts[b], stacks.get(meta.path)))
-        dns = [upright_meta(meta, dn) for meta, dn in zip(cap.metas, dns)]
+        for b, (meta, dn) in enumerate(zip(cap.metas, dns)):
+            rad[b] = factory_radiance(meta, dn, parts[b], stacks.get(meta.path))
     except FrameError as exc:
         return CaptureOutcome(cap.name, None, 0, quarantine_entry(Path(exc.path or cap.files[0]).name, exc))
     raw = np.stack(dns)
     saturated = raw >= plan.sat
     rad[saturated] = np.nan
     if plan.registration is not None:  # each band onto the reference band's grid (NaN where uncovered)
-        rad = geometry_step(plan.registration, True, None, cap.name, rad)
+        rad = geometry_step(plan.registration, True, None, cap.name, rad)  # transforms of the stored frames
+    try:  # then as meant to be seen (EXIF Orientation; Sequoia stores its frames rotated 180 degrees)
+        rad, raw = upright_meta(cap.metas[0], rad), upright_meta(cap.metas[0], raw)
+    except FrameError as exc:
+        return CaptureOutcome(cap.name, None, 0, quarantine_entry(Path(exc.path or cap.files[0]).name, exc))
+    rad, raw = np.ascontiguousarray(rad), np.ascontiguousarray(raw)
+    saturated = raw >= plan.sat
     refl = rad * k.astype(np.float32)[:, None, None]
     write_frame(plan.raw_store / "dn", job.index, raw)
     write_frame(plan.out_store / "radiance", job.index, rad)
