@@ -135,11 +135,6 @@ class FactoryOptions:
 # --------------------------------------------------------------------------- camera and captures
 
 
-def match_camera(folder: Path, name: str | None = None) -> Camera:
-    """The catalog camera of the folder's captures (:func:`pipeline.ingest.identify.identify_camera`)."""
-    return identify_camera(folder, name).camera
-
-
 def _read_capture(capture: Capture) -> tuple[str, list[np.ndarray]]:
     """Content hash (over all band files, in band order) and the stored DN of each band."""
     sha, dns, _ = read_capture_pixels(capture)
@@ -268,6 +263,7 @@ class CaptureOutcome:
     sha256: str | None
     saturated: int
     quarantine: dict[str, str] | None = None
+    no_reflectance: tuple[dict[str, str], ...] = ()  # bands written as radiance only, and why
 
 
 def capture_factors(plan: CapturePlan, capture: Capture) -> np.ndarray:
@@ -280,11 +276,22 @@ def capture_factors(plan: CapturePlan, capture: Capture) -> np.ndarray:
     k = []
     for meta in capture.metas:
         kb = reflectance_factor(meta)
-        if kb is None:
-            raise FrameError(f"no usable sun sensor reading (irradiance = {meta.irradiance!r})", path=meta.path,
-                             hint="use a panel capture: --panel-reflectance TARGET")
-        k.append(kb)
+        k.append(np.nan if kb is None else kb)  # radiance only for that band (see missing_reflectance)
     return np.asarray(k)
+
+
+def missing_reflectance(plan: CapturePlan, capture: Capture) -> tuple[dict[str, str], ...]:
+    """The bands of a capture whose sun-sensor factor is missing: their radiance is written,
+    their reflectance is NaN; the capture is not quarantined (it has radiance)."""
+    if plan.reference != "dls":
+        return ()
+    out = []
+    for meta in capture.metas:
+        if reflectance_factor(meta) is None:
+            why = [p.message() for p in meta.problems if p.feature == "sun_sensor"]
+            out.append({"capture": capture.name, "file": meta.path.name, "band": meta.band_name,
+                        "reason": why[0] if why else f"no sun sensor reading (irradiance = {meta.irradiance!r})"})
+    return tuple(out)
 
 
 def process_capture(plan: CapturePlan, job: CaptureJob) -> CaptureOutcome:
@@ -330,7 +337,7 @@ def process_capture(plan: CapturePlan, job: CaptureJob) -> CaptureOutcome:
                         dtype=plan.tiff_dtype)
     if ndvi is not None:
         write_ndvi_tiff(plan.out / "ndvi" / f"{cap.name}.tif", ndvi, job.tags)
-    return CaptureOutcome(cap.name, sha, int(np.count_nonzero(saturated)))
+    return CaptureOutcome(cap.name, sha, int(np.count_nonzero(saturated)), no_reflectance=missing_reflectance(plan, cap))
 
 
 def _coords(camera: Camera, captures: Sequence[Capture]) -> dict[str, Any]:
@@ -495,7 +502,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     reference = options.reference
     if reference == "auto":
         reference = "panel" if options.panel_reflectance is not None else "dls"
-        if reference == "dls" and not all(reflectance_factor(m) is not None for m in captures[0].metas):
+        if reference == "dls" and not any(reflectance_factor(m) is not None for c in captures for m in c.metas):
             reference = "none"  # radiance only: the camera's sun sensor gives no usable reflectance
     panels: list[PanelReference] = []
     panel_factor = None
@@ -545,6 +552,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         "orientation": _orientation_record(captures[0]),
         "skipped_bands": [s for c in captures for s in c.skipped],
         "metadata_problems": [p.as_dict() for c in captures for p in c.problems],
+        "reflectance_missing": [m for o in outcomes for m in o.no_reflectance],
         "frames_in": len(frames) + len(quarantined),
         "frames_out": len(frames),
         "frames": frames,

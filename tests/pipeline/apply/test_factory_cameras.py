@@ -193,6 +193,27 @@ def test_unreadable_reflect_area_disables_only_the_panel_area(tmp_path, capsys) 
     assert "tag problem: IMG_0000_1.tif: ReflectArea = '622,371,574,abc'" in out and "panel_area disabled" in out
 
 
+def test_unreadable_sun_sensor_reading_keeps_the_radiance(tmp_path) -> None:
+    """A capture whose Irradiance is unreadable still has radiance: processed, that band's
+    reflectance NaN and named, the other bands' reflectance as before."""
+    require_data()
+    folder = tmp_path / "irr"
+    folder.mkdir()
+    for cap in cf.CAPTURES:
+        for b in range(1, 6):
+            edit = (lambda x: cf.set_element(x, "Camera:Irradiance", "n/a")) if (cap, b) == ("0001", 3) else None
+            cf.rewrite(cf.band_file(cap, b), folder / f"IMG_{cap}_{b}.tif", edit)
+    run = _apply(folder, tmp_path / "out")
+    assert run["frames"] == ["IMG_0000", "IMG_0001"] and run["quarantined"] == [] and run["reference"]["route"] == "dls"
+    (missing,) = run["reflectance_missing"]
+    assert (missing["capture"], missing["file"], missing["band"]) == ("IMG_0001", "IMG_0001_3.tif", "Red")
+    assert "Irradiance = 'n/a'" in missing["reason"] and "sun_sensor disabled" in missing["reason"]
+    ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
+    refl = ds["reflectance"].isel(frame=1).values
+    assert np.isnan(refl[2]).all() and np.isfinite(refl[0]).mean() > 0.99
+    assert np.isfinite(ds["radiance"].isel(frame=1, band=2).values).mean() > 0.99
+
+
 def test_camera_override_everywhere(tmp_path) -> None:
     """--camera names the camera; a wrong one is reported per capture, not guessed around."""
     require_data()

@@ -110,6 +110,26 @@ def test_thermal_and_pan_bands_are_read_not_used(tmp_path) -> None:
     assert thermal_kelvin(np.array([27315]))[0] == pytest.approx(273.15)
 
 
+def test_dls2_horizontal_irradiance_and_its_scale() -> None:
+    """DLS 2 firmware: HorizontalIrradiance x IrradianceScaleToSIUnits (0.01 when the scale tag
+    is missing, as micasense/imageprocessing metadata.py assumes)."""
+    from pipeline.ingest.camera_meta import meta_from_tags
+
+    require_data()
+    path = cf.band_file("0000", 2)
+    tags = {}
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        tags = {t.code: t.value for t in tif.pages[0].tags.values()}
+    x = tags[700].decode()
+    x = cf.drop_element(x, "Camera:Irradiance")
+    tags[700] = cf.add_camera_element(x, "<Camera:HorizontalIrradiance>123.0</Camera:HorizontalIrradiance>").encode()
+    assert meta_from_tags(path, tags, (960, 1280), 16).irradiance == pytest.approx(1.23)
+    tags[700] = cf.add_camera_element(tags[700].decode(), "<Camera:IrradianceScaleToSIUnits>0.001</Camera:IrradianceScaleToSIUnits>").encode()
+    assert meta_from_tags(path, tags, (960, 1280), 16).irradiance == pytest.approx(0.123)
+
+
 # --------------------------------------------------------------------------- identification
 
 
