@@ -1,5 +1,7 @@
-"""``mscal apply CAPTURE_DIR --calibration factory -o OUT``: cameras that write one file per
-band per capture and carry factory radiometric metadata (MicaSense RedEdge and the like).
+"""``mscal apply CAPTURE_DIR --calibration factory -o OUT``: cameras that carry factory
+radiometric metadata (MicaSense, Parrot Sequoia, DJI P4 Multispectral / Mavic 3M, Sentera
+Double 4K; the camera is recognised by :func:`pipeline.ingest.identify.identify_camera`, each
+vendor's model is in :mod:`pipeline.ingest.camera_meta` and :mod:`mscal_core.factory`).
 
 A frame is one capture (all its band files, grouped by file name, one XMP CaptureId per capture; :func:`pipeline.ingest.camera_meta.group_captures`). Per band file:
 
@@ -42,7 +44,6 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
-import math
 import shutil
 import time
 import uuid
@@ -78,13 +79,13 @@ from pipeline.apply.flight import (
 )
 from pipeline.ingest.camera_meta import (Capture, FieldParts, factory_radiance, group_captures, read_capture_pixels,
                                          reflectance_factor, sun_sensor_absolute, upright_meta)
-from pipeline.ingest.identify import Identification, identify_camera
+from pipeline.ingest.identify import identify_camera
 from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 from pipeline.ingest.discover import quarantine_entry
 from pipeline.ingest.raw import raw_codec
-from pipeline.apply.panel import SATURATION_DN, PanelBand, panel_factors
-from pipeline.ingest.session import PanelConfig, decode_raw, panel_config_near
+from pipeline.apply.panel import PanelBand, panel_factors
+from pipeline.ingest.session import PanelConfig, panel_config_near
 from pipeline.products.writers import TMP_MARK, BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
 
 FACTORY = "factory"
@@ -462,6 +463,9 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         raise InputError("capture folder not found", path=folder)
     ident = identify_camera(folder, options.camera)
     camera = ident.camera
+    if options.field_calibration is not None and camera.factory_model not in (None, "micasense"):
+        raise InputError(f"--field-calibration replaces parts of MicaSense's radiance model; camera {camera.name} "
+                         f"has the {camera.factory_model} model", path=folder, hint="leave out --field-calibration")
     captures, problems = group_captures(folder, camera)
     quarantined = [{"file": Path(p["file"]).name, "reason": p["reason"]} for p in problems]
     if not captures:

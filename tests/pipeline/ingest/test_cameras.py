@@ -3,16 +3,15 @@ their files (pipeline.ingest.identify), the camera catalog entries, and ``mscal 
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from mscal_core.errors import CatalogError, FrameError, InputError
+from mscal_core.errors import CatalogError, InputError
 from mscal_core.factory import sunshine_irradiance, thermal_kelvin, upright
 from pipeline.ingest import catalog
-from pipeline.ingest.camera_meta import CaptureMeta, factory_radiance, read_capture_meta, read_file_metas
+from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta, read_file_metas
 from pipeline.ingest.identify import identify_camera
 from pipeline.ingest.xmp import TagError, Xmp, jpeg_xmp_packet, parse_numbers
 from pipeline.run.cli import main
@@ -44,7 +43,7 @@ def test_every_serialisation_form_reads_the_same_numbers() -> None:
 @pytest.mark.parametrize("uri", ["http://pix4d.com/camera/1.0", "http://pix4d.com/camera/1.0/", "http://pix4d.com/1.0",
                                  "http://pix4d.com/1.0/"])
 def test_namespace_by_uri_not_prefix(uri: str) -> None:
-    packet = _packet(f'Pix:BandName="NIR" Other:BandName="no">', f'xmlns:Pix="{uri}" xmlns:Other="http://example.com/x/"')
+    packet = _packet('Pix:BandName="NIR" Other:BandName="no">', f'xmlns:Pix="{uri}" xmlns:Other="http://example.com/x/"')
     assert Xmp.parse(packet, "f.tif").text("BandName") == "NIR"
     wrong = _packet('Camera:BandName="NIR">', 'xmlns:Camera="http://example.com/camera/1.0/"')
     assert Xmp.parse(wrong, "f.tif").text("BandName") is None  # the prefix alone means nothing
