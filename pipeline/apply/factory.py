@@ -44,6 +44,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import json
+import math
 import shutil
 import time
 import uuid
@@ -248,6 +249,7 @@ class CapturePlan:
     tiff_dtype: str
     outputs: tuple[str, ...]
     registration: Path | None = None  # band transforms (issue 9): radiance and reflectance aligned
+    relative_scale: float = 1.0  # one constant for every band of a relative sun-sensor route (see relative_scale)
     field: tuple[str, tuple[str, ...]] | None = None  # (store, components) replacing factory components
 
 
@@ -278,7 +280,36 @@ def capture_factors(plan: CapturePlan, capture: Capture) -> np.ndarray:
     for meta in capture.metas:
         kb = reflectance_factor(meta)
         k.append(np.nan if kb is None else kb)  # radiance only for that band (see missing_reflectance)
-    return np.asarray(k)
+    return np.asarray(k) * plan.relative_scale
+
+
+RELATIVE_LEVEL = 0.5  # a relative sun-sensor route puts the first capture's brightest band median here
+
+
+def relative_scale(captures: Sequence[Capture], reference: str) -> float:
+    """The constant of a *relative* sun-sensor route (DJI, Sequoia: reflectance known up to one
+    factor shared by the bands): chosen so that the brightest band's median over the first
+    capture is :data:`RELATIVE_LEVEL`, which keeps the values in the range of the uint16
+    photogrammetry TIFFs (0..2). 1 for absolute routes. Indices do not depend on it; values of
+    two runs are comparable only through a panel."""
+    if reference != "dls" or not captures or sun_sensor_absolute(captures[0].metas[0]):
+        return 1.0
+    cap = captures[0]
+    try:
+        _, dns, stacks = read_capture_pixels(cap)
+    except FrameError:
+        return 1.0
+    medians = []
+    for meta, dn in zip(cap.metas, dns):
+        k = reflectance_factor(meta)
+        if k is None:
+            continue
+        rad = factory_radiance(meta, dn, None, stacks.get(meta.path))
+        rad = rad[np.asarray(dn) < (1 << 16) - 1]
+        if rad.size and np.isfinite(rad).any():
+            medians.append(float(np.nanmedian(rad)) * k)
+    best = max(medians, default=0.0)
+    return RELATIVE_LEVEL / best if best > 0 and math.isfinite(best) else 1.0
 
 
 def missing_reflectance(plan: CapturePlan, capture: Capture) -> tuple[dict[str, str], ...]:
@@ -521,11 +552,12 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         panel_factor = tuple(float(np.mean([p.factor_split[b] for p in panels])) for b in range(camera.n_bands))
 
 
+    scale = relative_scale(captures, reference)
     t0 = time.perf_counter()
     with Runner(len(captures)) as runner:
         while True:  # a capture found unusable in the pass is quarantined and the pass redone without it
             ps = _Pass.start(out, camera, captures, shape, indices, roles, export, reference, panel_factor,
-                             options, folder, None if field is None else field[:2])
+                             options, folder, None if field is None else field[:2], scale)
             outcomes = runner.run(ps.plan, [CaptureJob(f, c, _tags(camera, c)) for f, c in enumerate(captures)],
                                   fn=process_capture)
             bad = {o.name: o.quarantine for o in outcomes if o.quarantine is not None}
@@ -550,7 +582,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         "calibration_sha256": None,
         "components": _components_record(field),
         "camera": camera.name,
-        "reference": _reference_record(reference, panels, panel_factor, camera, captures[0]),
+        "reference": {**_reference_record(reference, panels, panel_factor, camera, captures[0]),
+                      **({"relative_scale": scale} if scale != 1.0 else {})},
         "camera_identification": {"evidence": ident.evidence, "overridden": ident.overridden, **ident.probe},
         "radiance_unit": captures[0].metas[0].radiance_unit,
         "orientation": _orientation_record(captures[0]),
@@ -588,7 +621,7 @@ class _Pass:
     def start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[int, int, int],
               indices: Sequence[Index], roles: dict[str, dict[str, int]], export: Sequence[int], reference: str,
               panel_factor: tuple[float, ...] | None, options: FactoryOptions, folder: Path,
-              field: tuple[str, tuple[str, ...]] | None = None) -> "_Pass":
+              field: tuple[str, tuple[str, ...]] | None = None, scale: float = 1.0) -> "_Pass":
         coords = _coords(camera, captures)
         attrs = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__,
                  "calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
@@ -627,7 +660,7 @@ class _Pass:
                         for i, b in enumerate(export)),
             tiff_dtype=options.tiff_dtype, outputs=tuple(str(v) for v in refl_ds.data_vars),
             registration=None if options.registration is None else Path(options.registration),
-            field=field,
+            field=field, relative_scale=scale,
         )
         return _Pass(plan, tmp_refl, tmp_raw)
 

@@ -250,7 +250,8 @@ def test_dji_p4_multispectral(tmp_path) -> None:
             _check_radiance(ds, f, b, path, dji_expected)
             x, y = 3, 5
             refl = float(ds["reflectance"].isel(frame=f, band=b).values[y, x])
-            assert refl == pytest.approx(dji_expected(path, x, y) / cf.DJI["irradiance"][b], rel=TOL)
+            scale = run["reference"]["relative_scale"]  # one constant for every band and capture
+            assert refl == pytest.approx(scale * dji_expected(path, x, y) / cf.DJI["irradiance"][b], rel=TOL)
     # the panel, as every other pixel, follows the guide's model
     path = folder / "DJI_0013.TIF"
     yy, xx = np.mgrid[0:960, 0:1280].astype(np.float64)
@@ -314,6 +315,7 @@ def test_parrot_sequoia_real_capture(tmp_path) -> None:
     # vegetation in the morning light: NIR above red in the median
     refl = np.nanmedian(ds["reflectance"].values, axis=(0, 2, 3))
     assert refl[3] > refl[1] and np.isfinite(ds["ndvi"].values).mean() > 0.9
+    assert refl.max() == pytest.approx(0.5, rel=0.01)  # the relative route's constant: brightest median 0.5
 
 
 def test_sentera_d4k_real_captures(tmp_path) -> None:
