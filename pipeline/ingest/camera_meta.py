@@ -645,6 +645,7 @@ def _read_jpeg(path: Path) -> list[CaptureMeta]:
             value = value[0]
         if isinstance(value, str):
             value = value.strip()
+        name = name.replace("SubSecTime", "SubsecTime")  # exifread's spelling -> tifffile's
         (gps if group == "GPS" else exif)[name] = value
     width = int(exif.get("ExifImageWidth") or 0)
     height = int(exif.get("ExifImageLength") or 0)

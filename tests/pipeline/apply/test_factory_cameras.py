@@ -161,6 +161,8 @@ def test_altum_pt_thermal_never_in_reflectance(tmp_path) -> None:
     assert ds.sizes["band"] == 5 and 11000 not in list(ds["wavelength"].values)
     path = folder / "IMG_0001_3.tif"
     _check_radiance(ds, 1, 2, path, micasense_expected)
+    path = folder / "IMG_0000_4.tif"
+    _check_radiance(ds, 0, 3, path, micasense_expected, PANEL_CORNERS[3], micasense_map(path))
 
 
 def test_reflect_area_as_one_li_and_other_prefix(tmp_path) -> None:

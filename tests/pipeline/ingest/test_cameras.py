@@ -95,6 +95,7 @@ def test_sentera_reader_one_meta_per_kept_channel() -> None:
     m = metas[0]
     assert m.radiometry == "sentera" and m.gain == pytest.approx(3.47) and m.exposure_s == pytest.approx(1 / 609)
     assert m.irradiance == pytest.approx(3124.34) and m.lat == pytest.approx(35 + 49 / 60 + 16083 / 400 / 3600)
+    assert m.time == "2020-09-15T04:37:17.991974"
     assert m.features()["sun_sensor_reading"] and not m.features()["sun_sensor_reflectance"]
 
 
