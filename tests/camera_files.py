@@ -199,3 +199,13 @@ def dji_p4m(folder: Path) -> Path:
             rewrite(band_file(cap, b), folder / f"DJI_00{c}{b}.TIF", lambda _x, p=packet: p, make="DJI",
                     model="FC6360", black=(int(DJI["black"]),))
     return folder
+
+
+def altum(folder: Path) -> Path:
+    """Altum: five bands (radial vignetting) and a LWIR band (_6, 160 x 120, centi-kelvin)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for cap in CAPTURES:
+        for b in range(1, 6):
+            rewrite(band_file(cap, b), folder / f"IMG_{cap}_{b}.tif", model="Altum")
+        extra_band(folder / f"IMG_{cap}_6.tif", (120, 160), "LWIR", 11000, cap, "Altum", 29815)
+    return folder

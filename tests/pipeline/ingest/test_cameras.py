@@ -159,6 +159,18 @@ def test_dual_is_not_taken_for_a_rededge_from_one_file(tmp_path) -> None:
     assert identify_camera(five, "micasense-rededge").camera.name == "micasense-rededge"  # --camera overrides
 
 
+def test_altum_family_by_model_and_band_count(tmp_path) -> None:
+    require_data()
+    from pipeline.ingest.camera_meta import group_captures
+
+    ident = identify_camera(cf.altum(tmp_path / "altum"))
+    assert ident.camera.name == "micasense-altum" and "6 band(s) per capture" in ident.evidence
+    caps, problems = group_captures(tmp_path / "altum", ident.camera)
+    assert problems == [] and [s["band"] for s in caps[0].skipped] == ["LWIR"] and len(caps[0].metas) == 5
+    assert identify_camera(cf.rededge_p(tmp_path / "apt", altum_pt=True)).camera.name == "micasense-altum-pt"
+    assert identify_camera(cf.rededge_p(tmp_path / "p")).camera.name == "micasense-rededge-p"
+
+
 def test_unknown_camera_is_named(tmp_path) -> None:
     require_data()
     cf.rewrite(cf.band_file("0000", 1), tmp_path / "IMG_0000_1.tif", make="Acme", model="Spectro 9")
