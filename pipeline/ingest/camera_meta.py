@@ -54,7 +54,6 @@ if TYPE_CHECKING:
 FIRMWARE_HINT = "the camera firmware may be too old to write factory calibration; update it, or use a field calibration"
 MAX_EXPOSURE_S = 1.0  # multispectral exposures are at most a few tens of ms
 WAVELENGTH_RANGE_NM = (300.0, 1100.0)  # silicon sensors: anything else is a unit error
-RADIOMETRY = ("micasense", "sequoia", "dji", "sentera", "thermal", "panchro")
 RADIANCE_UNITS = {
     "micasense": "W m-2 sr-1 nm-1",
     "sequoia": "1 (Parrot SEQ AN 01 irradiance on the sensor, SI-homogeneous with an arbitrary scale)",
@@ -63,8 +62,6 @@ RADIANCE_UNITS = {
     "thermal": "K",
     "panchro": "W m-2 sr-1 nm-1",
 }
-# features of a band file, and the tags each needs
-FEATURES = ("radiance", "sun_sensor", "panel_area", "position", "rig_index")
 
 
 @dataclass(frozen=True)
@@ -94,7 +91,7 @@ class CaptureMeta:
     lon: float | None
     alt_m: float | None
     time: str | None  # ISO 8601, with fraction of a second when SubsecTime is present
-    radiometry: str = "micasense"  # one of RADIOMETRY
+    radiometry: str = "micasense"  # a key of RADIANCE_UNITS
     make: str | None = None
     model: str | None = None
     rig_name: str | None = None
@@ -131,10 +128,11 @@ class CaptureMeta:
         return self.radiometry not in ("thermal", "panchro")
 
     def features(self) -> dict[str, bool]:
-        """Which features this band file's metadata allows."""
+        """Which features this band file's metadata allows (radiance: always, or there would
+        be no meta: the reader raises instead)."""
         bad = {p.feature for p in self.problems}
         return {
-            "radiance": "radiance" not in bad,
+            "radiance": True,
             "sun_sensor_reading": self.irradiance is not None and self.irradiance > 0 and "sun_sensor" not in bad,
             "sun_sensor_reflectance": reflectance_factor(self) is not None and "sun_sensor" not in bad,
             "sun_sensor_absolute": sun_sensor_absolute(self) and reflectance_factor(self) is not None,
