@@ -209,3 +209,35 @@ def altum(folder: Path) -> Path:
             rewrite(band_file(cap, b), folder / f"IMG_{cap}_{b}.tif", model="Altum")
         extra_band(folder / f"IMG_{cap}_6.tif", (120, 160), "LWIR", 11000, cap, "Altum", 29815)
     return folder
+
+
+def jpeg_segments(data: bytes) -> list[bytes]:
+    """The APPn segments (marker included) of a JPEG, in order."""
+    out, i = [], 2
+    while data[i] == 0xFF and 0xE0 <= data[i + 1] <= 0xEF:
+        n = int.from_bytes(data[i + 2 : i + 4], "big")
+        out.append(data[i : i + 2 + n])
+        i += 2 + n
+    return out
+
+
+def sentera_with_panel(src_folder: Path, folder: Path, value: int = 200) -> Path:
+    """The real Sentera captures, the first with a uniform gray panel painted in (all channels
+    ``value``), re-encoded losslessly enough (quality 100) with the original EXIF and XMP."""
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    files = sorted(src_folder.glob("*.jpg"))
+    for k, path in enumerate(files):
+        data = path.read_bytes()
+        if k > 0:
+            (folder / path.name).write_bytes(data)
+            continue
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        img[1200:1700, 1700:2200] = value
+        ok, enc = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 100])
+        assert ok
+        enc = enc.tobytes()
+        app1 = [s for s in jpeg_segments(data) if s[1] == 0xE1]  # EXIF and XMP
+        (folder / path.name).write_bytes(enc[:2] + b"".join(app1) + enc[2:])
+    return folder

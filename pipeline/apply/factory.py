@@ -137,12 +137,6 @@ class FactoryOptions:
 # --------------------------------------------------------------------------- camera and captures
 
 
-def _read_capture(capture: Capture) -> tuple[str, list[np.ndarray]]:
-    """Content hash (over all band files, in band order) and the stored DN of each band."""
-    sha, dns, _ = read_capture_pixels(capture)
-    return sha, dns
-
-
 def _stat_fingerprint(captures: Sequence[Capture]) -> str:
     h = hashlib.sha256()
     for c in captures:
@@ -170,16 +164,17 @@ class PanelReference:
 
 
 def panel_reference(capture: Capture, dns: Sequence[np.ndarray], rho: Sequence[float],
-                    parts: Sequence[FieldParts | None] | None = None, config: PanelConfig | None = None
-                    ) -> PanelReference:
+                    parts: Sequence[FieldParts | None] | None = None, config: PanelConfig | None = None,
+                    channels: dict[Path, np.ndarray] | None = None) -> PanelReference:
     """Factors of one panel capture (FrameError naming the file if no panel is found in a band);
     ``parts``: field components per band in place of the factory's; ``config``: session.yaml's
-    ``panel`` (marker, polygon)."""
+    ``panel`` (marker, polygon); ``channels``: whole images of multi-channel files (Sentera)."""
     parts = list(parts) if parts is not None else [None] * len(capture.metas)
-    bands: list[PanelBand] = panel_factors(capture.metas, dns, rho, parts=parts, config=config)
+    chans = [(channels or {}).get(m.path) for m in capture.metas]
+    bands: list[PanelBand] = panel_factors(capture.metas, dns, rho, parts=parts, config=config, channels=chans)
     rows = []
-    for meta, dn, band, part in zip(capture.metas, dns, bands, parts):
-        rad = factory_radiance(meta, dn, part)
+    for meta, dn, band, part, ch in zip(capture.metas, dns, bands, parts, chans):
+        rad = factory_radiance(meta, dn, part, ch)
         if len(band.region.corners) == 4:
             rows.append(sample_quad(rad, band.region.corners, PANEL_GRID).ravel())
     if len(rows) == len(bands):
@@ -212,7 +207,8 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
         refs = []
         for n in named:
             try:
-                refs.append(panel_reference(by_name[n], _read_capture(by_name[n])[1], rho, parts, config))
+                _, dns, stacks = read_capture_pixels(by_name[n])
+                refs.append(panel_reference(by_name[n], dns, rho, parts, config, stacks))
             except FrameError as exc:
                 raise InputError(f"panel capture {n}: {exc.reason}", path=exc.path, hint=exc.hint) from None
         return refs
@@ -220,7 +216,8 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
     refs = []
     for c in ends:
         try:
-            refs.append(panel_reference(c, _read_capture(c)[1], rho, parts, config))
+            _, dns, stacks = read_capture_pixels(c)
+            refs.append(panel_reference(c, dns, rho, parts, config, stacks))
         except FrameError:
             continue
     if not refs:

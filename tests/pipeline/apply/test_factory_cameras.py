@@ -352,3 +352,22 @@ def test_sentera_d4k_real_captures(tmp_path) -> None:
                     checked += 1
             assert checked >= 2 * len(rows)
         assert np.isnan(ds["reflectance"].values).all()
+
+
+def test_sentera_panel_route(tmp_path) -> None:
+    """A Sentera capture with a gray panel (painted into the real NDRE JPEG): reflectance from
+    the panel through the colour transform; the panel reads its own reflectance back."""
+    root = DATA_ROOT / "sentera-d4k" / "NDRE"
+    if not root.is_dir():
+        pytest.skip("no Sentera sample")
+    folder = cf.sentera_with_panel(root, tmp_path / "ndre")
+    run = _apply(folder, tmp_path / "out", "--panel-reflectance", "0.5", "--panel", "IMG_00006")
+    assert run["camera"] == "sentera-d4k-ndre" and run["reference"]["route"] == "panel"
+    assert run["reference"]["panels"][0]["region_source"] == ["detected", "detected"]
+    ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
+    refl = ds["reflectance"].isel(frame=0).values[:, 1300:1600, 1800:2100]
+    # RedEdge = 2.7 R - 2.581 B is 0.12 x 200 on the gray panel: JPEG's +-1 DN in R and B is
+    # +-20 % per pixel there, so its median is held to 3 %, NIR (5.6 x 200) to 1 %
+    med = np.nanmedian(refl, axis=(1, 2))
+    assert med[0] == pytest.approx(0.5, rel=0.03) and med[1] == pytest.approx(0.5, rel=0.01)
+    assert np.isfinite(ds["reflectance"].isel(frame=1).values).mean() > 0.9
