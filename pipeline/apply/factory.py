@@ -91,7 +91,7 @@ from pipeline.ingest.camera_meta import (
     sun_sensor_absolute,
 )
 from pipeline.ingest.catalog import Camera, load_index, reflectance_option
-from pipeline.ingest.identify import identify_camera
+from pipeline.ingest.identify import Identification, identify_camera
 from pipeline.apply.panel import PanelBand, panel_factors
 from pipeline.ingest.session import PanelConfig, panel_config_near
 
@@ -284,11 +284,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     folder, out = Path(capture_dir), Path(out)
     if not folder.is_dir():
         raise InputError("capture folder not found", path=folder)
-    ident = identify_camera(folder, options.camera)
+    ident = _identify(folder, options)
     camera = ident.camera
-    if options.field_calibration is not None and camera.factory_model not in (None, "micasense"):
-        raise InputError(f"--field-calibration replaces parts of MicaSense's radiance model; camera {camera.name} "
-                         f"has the {camera.factory_model} model", path=folder, hint="leave out --field-calibration")
     found = find_captures(folder, camera)
     captures = found.captures
     if not captures:
@@ -323,11 +320,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     if previous is not None:  # before the panels are searched: an up-to-date run reads no pixels
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
 
-    reference = options.reference
-    if reference == "auto":
-        reference = "panel" if options.panel_reflectance is not None else "dls"
-        if reference == "dls" and not any(reflectance_factor(m) is not None for c in captures for m in c.metas):
-            reference = "none"  # radiance only: the camera's sun sensor gives no usable reflectance
+    reference = _route(options, captures)
     panels: list[PanelReference] = []
     panel_factor = None
     if reference == "panel":
@@ -374,6 +367,30 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         scale=lambda name: scales.get(name),
     )
     return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)
+
+
+def _identify(folder: Path, options: FactoryOptions) -> Identification:
+    """The folder's camera (``--camera``, else recognised from the files); ``--field-calibration``
+    refused up front for a camera without MicaSense's radiance model (its parts are MicaSense's)."""
+    ident = identify_camera(folder, options.camera)
+    camera = ident.camera
+    if options.field_calibration is not None and camera.factory_model not in (None, "micasense"):
+        raise InputError(f"--field-calibration replaces parts of MicaSense's radiance model; camera {camera.name} "
+                         f"has the {camera.factory_model} model", path=folder, hint="leave out --field-calibration")
+    return ident
+
+
+def _route(options: FactoryOptions, captures: Sequence[Capture]) -> str:
+    """The reference route: as asked, or for ``auto`` the panel when a reflectance is given,
+    else the sun sensor, else ``none`` (radiance only) when no band of any capture has a
+    usable sun-sensor reflectance (Sentera)."""
+    if options.reference != "auto":
+        return options.reference
+    if options.panel_reflectance is not None:
+        return "panel"
+    if not any(reflectance_factor(m) is not None for c in captures for m in c.metas):
+        return "none"
+    return "dls"
 
 
 def saturation_dn(camera: Camera) -> int:
