@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import base64
 import math
+import numbers
 import re
 import struct
 from dataclasses import dataclass, field
@@ -155,11 +156,13 @@ def xmp_properties(packet: bytes | str, path: Path | str) -> dict[str, Any]:
 # --------------------------------------------------------------------------- EXIF
 
 
-def _rational(value: Any) -> float:
-    """A TIFF RATIONAL (tifffile gives ``(num, den)``), an exifread Ratio, or a number."""
-    if isinstance(value, tuple) and len(value) == 2:
-        num, den = value
-        return float(num) / float(den) if den else math.nan
+def rational(value: Any) -> float:
+    """A TIFF RATIONAL as tifffile gives it (``(num, den)``, or a tuple of them: the first), an
+    exifread Ratio, or a number, as float (NaN for a zero denominator)."""
+    if isinstance(value, tuple):
+        if len(value) == 2 and all(isinstance(v, numbers.Integral) for v in value):
+            return float(value[0]) / float(value[1]) if value[1] else math.nan
+        return rational(value[0]) if value else math.nan
     if hasattr(value, "num") and hasattr(value, "den"):
         return float(value.num) / float(value.den) if value.den else math.nan
     return float(value)
@@ -168,9 +171,9 @@ def _rational(value: Any) -> float:
 def _dms(value: Any) -> float:
     """Degrees from a GPS (deg, min, sec): tifffile's flat ``(n, d, n, d, n, d)`` or three values."""
     if isinstance(value, tuple) and len(value) == 6:
-        parts = [_rational((value[i], value[i + 1])) for i in range(0, 6, 2)]
+        parts = [rational((value[i], value[i + 1])) for i in range(0, 6, 2)]
     else:
-        parts = [_rational(v) for v in value]
+        parts = [rational(v) for v in value]
     return sum(p / 60**k for k, p in enumerate(parts))
 
 
@@ -179,7 +182,7 @@ def _gps(gps: dict[str, Any]) -> tuple[float | None, float | None, float | None]
     return signed_gps(
         _dms(gps["GPSLatitude"]) if has_pos else None, gps.get("GPSLatitudeRef"),
         _dms(gps["GPSLongitude"]) if has_pos else None, gps.get("GPSLongitudeRef"),
-        _rational(gps["GPSAltitude"]) if "GPSAltitude" in gps else None,
+        rational(gps["GPSAltitude"]) if "GPSAltitude" in gps else None,
         gps.get("GPSAltitudeRef") in (1, b"\x01", "1"),
     )
 
@@ -196,7 +199,7 @@ def _time(exif: dict[str, Any]) -> str | None:
 def _exposure(exif: dict[str, Any], path: Path) -> float:
     if "ExposureTime" not in exif:
         raise FrameError("no EXIF ExposureTime tag", path=path, hint=FIRMWARE_HINT)
-    exposure = _rational(exif["ExposureTime"])
+    exposure = rational(exif["ExposureTime"])
     _check_exposure(exposure, "EXIF ExposureTime", path)
     return exposure
 
@@ -481,7 +484,7 @@ def _minimal(ctx: _Ctx, band: str, radiometry: str) -> CaptureMeta:
     centi-kelvin DN) or a panchromatic band without a full radiometric model."""
     x = ctx.xmp
     wl = ctx.optional(None, lambda: x.number("CentralWavelength")) or 11000.0
-    exposure = _rational(ctx.exif["ExposureTime"]) if "ExposureTime" in ctx.exif else 0.0
+    exposure = rational(ctx.exif["ExposureTime"]) if "ExposureTime" in ctx.exif else 0.0
     return CaptureMeta(
         path=ctx.path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=band, wavelength_nm=wl, fwhm_nm=None,
         exposure_s=exposure, gain=1.0, black_levels=(), dark_row_values=None, radiometric_calibration=None,
@@ -500,7 +503,7 @@ def _sequoia(ctx: _Ctx) -> CaptureMeta:
     model = ctx.required("SensorModel", ("Camera",), 3)
     if "FNumber" not in ctx.exif:
         raise FrameError("no EXIF FNumber tag (Parrot's sensor model needs it)", path=path, hint=FIRMWARE_HINT)
-    f_number = _rational(ctx.exif["FNumber"])
+    f_number = rational(ctx.exif["FNumber"])
     if not (math.isfinite(f_number) and 0.5 < f_number < 64):
         raise FrameError(f"EXIF FNumber {f_number!r} is not an f-number", path=path)
     poly2d = _radiance_tag(ctx, "VignettingPolynomial2D")
