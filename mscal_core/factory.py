@@ -393,3 +393,145 @@ def polygon_mask(shape: tuple[int, int], corners: Sequence[Sequence[float]]) -> 
     mask = np.zeros(shape, dtype=np.uint8)
     cv2.fillPoly(mask, [pts], 1)
     return mask.astype(bool)
+
+
+# --------------------------------------------------------------------------- other manufacturers (issue 21)
+
+
+def sequoia_irradiance(
+    dn: np.ndarray,
+    *,
+    f_number: float,
+    exposure_s: float,
+    iso: float,
+    sensor_model: Sequence[float],
+    vignetting: np.ndarray,
+) -> np.ndarray:
+    """Parrot Sequoia: irradiance on the sensor ``I = f^2 (p - B) / (A e g + C)``.
+
+    Parrot application note SEQ AN 01 ("Sequoia: pixel value to irradiance", as quoted by
+    Parrot staff on the Parrot developer forum, thread "Details of Irradiance List tag for
+    Sunshine sensor", posts 83-85): ``p`` the stored pixel value corrected for vignetting
+    (``p / V``, ``V`` the 2-D polynomial of :func:`vignetting_polynomial_2d`), ``f`` the
+    f-number (EXIF FNumber), ``e`` the exposure in seconds (EXIF ExposureTime), ``g`` the ISO
+    value itself (EXIF ISOSpeedRatings, not ISO/100), ``A, B, C`` = XMP ``Camera:SensorModel``
+    of the band (firmware >= 1.2.1). Units: "homogeneous to SI units but with an arbitrary
+    scaling factor" (Parrot): a relative radiance. ``vignetting`` is the correction that
+    multiplies ``p`` (``1 / V``). Negative values are floored at 0.
+    """
+    a, b, c = (float(x) for x in sensor_model)
+    if exposure_s <= 0 or iso <= 0 or f_number <= 0:
+        raise ValueError(f"exposure ({exposure_s}), ISO ({iso}) and f-number ({f_number}) must be positive")
+    p = np.asarray(dn, dtype=np.float64) * vignetting
+    out = f_number**2 * (p - b) / (a * exposure_s * iso + c)
+    return np.maximum(out, 0.0)
+
+
+def vignetting_polynomial_2d(
+    shape: tuple[int, int], coefficients: Sequence[float], exponents: Sequence[float]
+) -> np.ndarray:
+    """The 2-D polynomial ``P(x, y) = sum_i c_i (x/W)^ex_i (y/H)^ey_i`` itself (the relative
+    illumination, Parrot's ``V``); :func:`vignetting_2d` is its reciprocal, the correction."""
+    return 1.0 / vignetting_2d(shape, coefficients, exponents)
+
+
+def dji_vignetting_correction(shape: tuple[int, int], center: Sequence[float], k: Sequence[float]) -> np.ndarray:
+    """DJI P4 Multispectral / Mavic 3M vignetting correction, which *multiplies* the image:
+    ``1 + k0 r + k1 r^2 + k2 r^3 + k3 r^4 + k4 r^5 + k5 r^6``.
+
+    DJI "P4 Multispectral Image Processing Guide" v1.0 (2020.07) Eq. 8-9 and "Mavic 3M Image
+    Processing Guide" v1.0 (2023.08): ``k`` = XMP ``drone-dji:VignettingData`` (k[0]..k[5]),
+    ``r`` the distance in pixels of pixel (x, y) from ``center`` = ``drone-dji:CalibratedOpticalCenterX/Y``.
+    """
+    h, w = shape
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    r = np.hypot(x - float(center[0]), y - float(center[1]))
+    out = np.ones_like(r)
+    for power, kk in enumerate(k, start=1):
+        out += float(kk) * r**power
+    return out
+
+
+def dji_camera_value(
+    dn: np.ndarray,
+    *,
+    black_level: float,
+    sensor_gain: float,
+    exposure_us: float,
+    vignetting: np.ndarray,
+    gain_adjustment: float = 1.0,
+    full_scale: float = 65535.0,
+) -> np.ndarray:
+    """DJI multispectral camera value ``X = pCam (p - p_BL) V / (g t)``.
+
+    DJI P4 Multispectral Image Processing Guide Eq. 6-9 (Mavic 3M guide Eq. 4-9): ``p = DN /
+    65535`` and ``p_BL = BlackLevel / 65535`` ("divide the original number by 65535"), ``V``
+    the vignetting correction (:func:`dji_vignetting_correction`), ``g`` =
+    ``drone-dji:SensorGain``, ``t`` = ``drone-dji:ExposureTime`` in microseconds (converted
+    to seconds), ``pCam`` = ``drone-dji:SensorGainAdjustment`` ("individual difference
+    correction"). Reflectance is ``X / E`` with ``E`` = ``drone-dji:Irradiance`` up to one
+    constant common to all bands (the guide's NDVI uses only ratios). Floored at 0.
+    """
+    if exposure_us <= 0 or sensor_gain <= 0:
+        raise ValueError(f"exposure ({exposure_us} us) and gain ({sensor_gain}) must be positive")
+    p = (np.asarray(dn, dtype=np.float64) - float(black_level)) / full_scale
+    out = gain_adjustment * p * vignetting / (sensor_gain * exposure_us * 1e-6)
+    return np.maximum(out, 0.0)
+
+
+def color_transform(channels: np.ndarray, matrix: Sequence[float], rows: Sequence[int]) -> np.ndarray:
+    """Sentera crosstalk removal: band ``i`` = ``sum_j M[i, j] DN_j`` over the image channels.
+
+    ``channels`` is ``(H, W, C)`` as stored (R, G, B for a JPEG); ``matrix`` the ``C x C``
+    row-major XMP ``Camera:ColorTransform`` (rows = output bands in ``Camera:BandName`` order,
+    columns = channels; checked against Sentera's published Double 4K NDVI/NDRE equations,
+    support.senterasensors.com "Double 4K multispectral NDVI and NDRE calculations");
+    ``rows`` the output bands wanted. Returns ``(len(rows), H, W)`` float64.
+    """
+    ch = np.asarray(channels, dtype=np.float64)
+    c = ch.shape[2]
+    m = np.asarray(matrix, dtype=np.float64).reshape(c, c)
+    return np.einsum("kc,hwc->khw", m[list(rows)], ch)
+
+
+def thermal_kelvin(dn: np.ndarray) -> np.ndarray:
+    """MicaSense Altum / Altum-PT LWIR band: the stored DN are centi-kelvin, ``T = DN / 100`` K
+    (micasense/imageprocessing ``image.py``: ``(DN - 27315) * 0.01`` in degrees C)."""
+    return np.asarray(dn, dtype=np.float64) / 100.0
+
+
+def upright(image: np.ndarray, orientation: int) -> np.ndarray:
+    """An image stored with EXIF ``orientation`` turned to how it is meant to be seen (1: as
+    stored, 3: rotated 180 degrees, as Parrot Sequoia writes; 2, 4: mirrored). Orientations
+    5-8 swap the axes and are refused (ValueError)."""
+    if orientation in (0, 1):
+        return image
+    if orientation == 3:
+        return image[..., ::-1, ::-1]
+    if orientation == 2:
+        return image[..., :, ::-1]
+    if orientation == 4:
+        return image[..., ::-1, :]
+    raise ValueError(f"EXIF orientation {orientation} (a 90 degree turn) is not supported")
+
+
+def sunshine_irradiance(ch0: Sequence[float], gain_index: Sequence[int], integration_ms: Sequence[float],
+                        calibration: dict[int, float]) -> float:
+    """Parrot Sequoia sunshine sensor: relative irradiance ``mean(CH0 / (g(i) t))``.
+
+    The sensor is linear with no black level, ``count ~ gain(i) t E`` (Parrot, developer
+    forum thread "Details of Irradiance List tag...", post 2); the effective gain ``g(i)`` of
+    gain index ``i`` is the ratio of ``IrradianceCalibrationMeasurement`` counts taken under
+    one light, ``calibration = {i: CH0_i / t_i}``, relative to gain index 1. Readings at a
+    gain index the table does not hold, or saturated (65535), are left out.
+    """
+    ref = calibration.get(1)
+    values = []
+    for c, i, t in zip(ch0, gain_index, integration_ms):
+        g = calibration.get(int(i))
+        if g is None or ref is None or not t > 0 or c >= 65535 or not g > 0:
+            continue
+        values.append(float(c) / ((g / ref) * float(t)))
+    if not values:
+        raise ValueError("no usable sunshine reading (unknown gain index or saturated)")
+    return float(np.mean(values))

@@ -1,18 +1,23 @@
 """Folders of captures as the camera writes them, and the apply pass over them (issue 20).
 
-A one-file-per-band camera (MicaSense RedEdge and the like) writes one file per band per
-capture (``IMG_0000_1.tif ... IMG_0000_5.tif``), on an SD card in a tree of sets and
-sub-folders (``0000SET/000/IMG_0000_1.tif``). :func:`find_captures` finds every capture in
-such a tree (grouped by name and XMP CaptureId,
-:func:`pipeline.ingest.camera_meta.group_captures`), quarantines incomplete or duplicated
-ones, and names the other files it skips (logs, ``diag.dat``, the camera's ``.bin`` files).
+A one-file-per-band camera (MicaSense RedEdge, Parrot Sequoia, DJI P4 Multispectral and the
+like) writes one file per band per capture (``IMG_0000_1.tif ... IMG_0000_5.tif``), on an SD
+card in a tree of sets and sub-folders (``0000SET/000/IMG_0000_1.tif``); a Sentera Double 4K
+one multi-channel JPEG per capture. :func:`find_captures` finds every capture in such a tree
+(grouped by name and XMP capture id in each folder by
+:func:`pipeline.ingest.camera_meta.group_captures`, the one grouping of captures), quarantines
+incomplete or duplicated ones, and names the other files it skips (logs, ``diag.dat``, the
+camera's ``.bin`` files).
 
 :func:`apply_captures` is the driver of the one executor (:mod:`pipeline.apply.executor`)
 for such a folder, whatever the radiometric chain: the factory's
 (:mod:`pipeline.apply.factory`) or a field calibration store's
 (:func:`pipeline.apply.flight.apply_flight`). It writes the outputs every apply writes
-(``reflectance.zarr``, ``raw.zarr``, photogrammetry and NDVI TIFFs, ``run.json``): stores
-under temporary names, renamed into place; a capture found unusable during the pass is
+(``reflectance.zarr``, ``raw.zarr``, photogrammetry and NDVI TIFFs, ``run.json`` with the
+bands the camera wrote but reflectance leaves out (``skipped_bands``), the tag problems that
+disabled a feature (``metadata_problems``), the orientation of the outputs and, for the
+factory chain, the bands without reflectance (``reflectance_missing``)): stores under
+temporary names, renamed into place; a capture found unusable during the pass is
 quarantined and the pass redone without it; a run whose fingerprint matches ``run.json``
 does nothing.
 """
@@ -38,7 +43,7 @@ from mscal_core.errors import FrameError
 from pipeline.apply.execution import Execution
 from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner, process_frame
 from pipeline.apply.flight import RUN_JSON, ApplyResult, previous_run, remove_frame_tiffs, software_versions
-from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN, Capture, group_captures
+from pipeline.ingest.camera_meta import Capture, capture_pattern, group_captures
 from pipeline.ingest.catalog import Camera, Index
 from pipeline.ingest.raw import raw_codec
 from pipeline.products.writers import BandTags, FrameTags
@@ -62,15 +67,9 @@ class CaptureFolder:
     skipped: list[dict[str, str]]
 
 
-def _pattern(camera: Camera):  # noqa: ANN202 (re.Pattern)
-    import re
-
-    return re.compile(camera.layout.capture_pattern or DEFAULT_CAPTURE_PATTERN)
-
-
 def is_capture_folder(folder: Path, camera: Camera) -> bool:
     """Whether ``folder`` (or a folder below it) holds band files of ``camera``."""
-    pattern = _pattern(camera)
+    pattern = capture_pattern(camera)
     return any(pattern.match(p.name) for p in Path(folder).rglob("*") if p.is_file())
 
 
@@ -82,7 +81,7 @@ def find_captures(folder: str | Path, camera: Camera) -> CaptureFolder:
     captures with the same XMP CaptureId anywhere in the tree: the later one is a copy and
     quarantined."""
     folder = Path(folder)
-    pattern = _pattern(camera)
+    pattern = capture_pattern(camera)
     dirs: list[Path] = []
     skipped: list[dict[str, str]] = []
     for p in sorted(folder.rglob("*")):
@@ -93,7 +92,7 @@ def find_captures(folder: str | Path, camera: Camera) -> CaptureFolder:
                 dirs.append(p.parent)
         elif p.name.lower() not in _IGNORED_NAMES and p.name not in (RUN_JSON,):
             skipped.append({"file": str(p.relative_to(folder)),
-                            "reason": f"not a band file of {camera.name} (names like IMG_0000_1.tif)"})
+                            "reason": f"not a capture file of {camera.name} (names matching {pattern.pattern})"})
     found: list[tuple[Path, Capture]] = []
     quarantined: list[dict[str, str]] = []
     for d in sorted(dirs):
@@ -145,7 +144,7 @@ def capture_times(captures: Sequence[Capture]) -> np.ndarray:
                      for c in captures])
 
 
-def capture_coords(camera: Camera, captures: Sequence[Capture]) -> dict[str, Any]:
+def capture_coords(camera: Camera, captures: Sequence[Capture], irradiance_unit: str = "W m-2 nm-1") -> dict[str, Any]:
     def per_frame(get: Any) -> np.ndarray:
         return np.array([np.nan if get(c.metas[0]) is None else get(c.metas[0]) for c in captures], dtype=np.float64)
 
@@ -161,7 +160,8 @@ def capture_coords(camera: Camera, captures: Sequence[Capture]) -> dict[str, Any
         "gain": ("frame", per_frame(lambda m: m.gain), {"units": "1"}),
         "irradiance": (("frame", "band"),
                        np.array([[np.nan if m.irradiance is None else m.irradiance for m in c.metas] for c in captures]),
-                       {"units": "W m-2 nm-1", "long_name": "downwelling light sensor (XMP Irradiance)"}),
+                       {"units": irradiance_unit,
+                        "long_name": "downwelling light sensor (XMP Irradiance or the camera's sun sensor)"}),
         "time": ("frame", capture_times(captures)),
         "lat": ("frame", per_frame(lambda m: m.lat), {"units": "degrees_north"}),
         "lon": ("frame", per_frame(lambda m: m.lon), {"units": "degrees_east"}),
@@ -212,6 +212,8 @@ class CaptureRun:
     tiff_dtype: str = "uint16"
     norm: tuple[str, float | int | None] = ("none", None)
     transforms: Path | None = None
+    radiance_unit: str = "W m-2 sr-1 nm-1"  # of the factory chain's radiance (the vendor's model)
+    irradiance_unit: str = "W m-2 nm-1"  # of the captures' sun-sensor readings
     scale: Callable[[str], tuple[float, ...] | None] = lambda name: None
     extra_coords: Callable[[Sequence[Capture]], dict[str, Any]] = lambda captures: {}
     record: Callable[[Sequence[Capture]], dict[str, Any]] = lambda captures: {}
@@ -267,6 +269,9 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
         "frames_sha256": {o.name: o.sha256 for o in outcomes},
         "quarantined": quarantined,
         "skipped": found.skipped,
+        "skipped_bands": [{**s, "file": _relative(s["file"], folder)} for c in captures for s in c.skipped],
+        "metadata_problems": [p.as_dict() for c in captures for p in c.problems],
+        "orientation": _orientation_record(captures[0]),
         "saturated_pixels": {"total": int(sum(o.saturated for o in outcomes)),
                              "per_frame": {o.name: o.saturated for o in outcomes}},
         "outputs": {"reflectance": "reflectance.zarr", "raw": "raw.zarr", "photogrammetry": "photogrammetry/",
@@ -278,21 +283,35 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
         "timings_s": {"apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
         "fingerprint": fingerprint,
     }
+    if isinstance(run.chain, FactoryChain):
+        record["reflectance_missing"] = [m for o in outcomes for m in o.no_reflectance]
     write_json_atomic(out / RUN_JSON, record)
     return ApplyResult(out, record, up_to_date=False, quarantined=quarantined)
+
+
+def _relative(file: str, folder: Path) -> str:
+    try:
+        return str(Path(file).relative_to(folder))
+    except ValueError:
+        return file
+
+
+def _orientation_record(capture: Capture) -> str:
+    o = capture.metas[0].orientation
+    return "as stored" if o in (0, 1) else f"EXIF Orientation {o}: outputs turned upright (raw.zarr too)"
 
 
 def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[int, int, int], indices: Sequence[Index],
            roles: dict[str, dict[str, int]], export: Sequence[int], run: CaptureRun) -> tuple[Path, Path, Plan]:
     """The pass's output stores under temporary names, and its plan."""
-    coords = {**capture_coords(camera, captures), **run.extra_coords(captures)}
+    coords = {**capture_coords(camera, captures, run.irradiance_unit), **run.extra_coords(captures)}
     factory = isinstance(run.chain, FactoryChain)
     rvars: dict[str, tuple[tuple[str, ...], Any, dict]] = {
         "reflectance": (("frame", "band", "y", "x"), np.float32, {"long_name": run.reflectance_name, "units": "1"}),
     }
     if factory:
         rvars["radiance"] = (("frame", "band", "y", "x"), np.float32,
-                             {"long_name": "factory radiance", "units": "W m-2 sr-1 nm-1"})
+                             {"long_name": "factory radiance", "units": run.radiance_unit})
     for ix in indices:
         rvars[ix.name] = (("frame", "y", "x"), np.float32, {"long_name": ix.description, "expression": ix.expression})
     if any(ix.name == "ndvi" for ix in indices):

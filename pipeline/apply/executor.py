@@ -7,22 +7,24 @@ radiometric model is one per-band chain chosen per run (``Plan.chain``):
 
 - :class:`FieldChain`: Eq. 15, ``R = U(I) / (t V S)``, with U, V, S of a calibration store
   (``mscal calibrate``), the light of the capture's time folded in (``Job.scale``, issue 8);
-- :class:`FactoryChain`: the camera's own metadata per band file (radiance, W m-2 sr-1 nm-1;
-  optionally with field U and/or V in place of the factory's), times one factor per band
-  (a panel's, or ``pi / E_b`` of the capture's sun sensor; ``Job.scale`` overrides it).
+- :class:`FactoryChain`: the camera's own metadata per band file (each vendor's radiance
+  model, :func:`pipeline.ingest.camera_meta.factory_radiance`; MicaSense's optionally with
+  field U and/or V in place of the factory's), times one factor per band (a panel's, the
+  capture's sun sensor's -- NaN for a band without a usable reading, its radiance is kept --,
+  or NaN for a radiance-only run; ``Job.scale`` overrides it).
 
 :func:`process_frame` reads the capture (hashing and checking it; a new one is written into
 ``raw.zarr``), runs the chain, puts the bands on one pixel grid (band transforms or
-``--centre-bands``, :func:`geometry_step`), normalises, and writes its whole chunk of every
-``reflectance.zarr`` variable, its photogrammetry TIFFs and its NDVI TIFF. :class:`Runner`
+``--centre-bands``, :func:`geometry_step`), turns a capture read from its files upright (EXIF
+Orientation: Parrot Sequoia stores its frames rotated 180 degrees; the band transforms belong
+to the stored frames, so they come first; raw.zarr is turned too), normalises, and writes its
+whole chunk of every ``reflectance.zarr`` variable, its photogrammetry TIFFs and its NDVI TIFF. :class:`Runner`
 runs the tasks on the caller's ``distributed`` client, else on local threads or processes.
 The drivers (:mod:`pipeline.apply.flight` for frames ingested into raw.zarr,
 :mod:`pipeline.apply.captures` for folders of captures) only plan the jobs and the stores.
 """
 from __future__ import annotations
 
-import hashlib
-import math
 import multiprocessing
 import os
 import signal
@@ -46,11 +48,12 @@ from mscal_core.registration import align_bands, shift_bands
 
 from pipeline.apply.execution import Execution, scheduler_for
 from pipeline.calibrate.registration import frame_transforms
-from pipeline.ingest.camera_meta import Capture, FieldParts, factory_radiance
+from pipeline.ingest.camera_meta import (Capture, FieldParts, factory_radiance, read_capture_pixels, reflectance_factor,
+                                         upright_meta)
 from pipeline.ingest.catalog import Camera, Index, load_camera
 from pipeline.ingest.discover import quarantine_entry
 from pipeline.ingest.raw import prefetch_file, read_frame, shape_problem
-from pipeline.ingest.session import FrameRecord, decode_raw
+from pipeline.ingest.session import FrameRecord
 from pipeline.products.writers import BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
 from pipeline.storage.chunks import FrameChunks
 
@@ -153,12 +156,14 @@ class FieldChain:
 @dataclass(frozen=True)
 class FactoryChain:
     """The camera's own radiometric metadata per band file (``field``: components of a store
-    that replace the factory's), times ``k_b`` (the panel's, else the capture's DLS)."""
+    that replace the factory's), times ``k_b`` (the panel's, else the capture's sun sensor's,
+    else NaN: radiance only)."""
 
     sat: int  # stored DN from which a pixel is clipped
-    reference: str = "dls"  # panel | dls
+    reference: str = "dls"  # panel | dls | none (radiance only)
     panel_factor: tuple[float, ...] | None = None
     field: tuple[str, tuple[str, ...]] | None = None  # (store, components) replacing the factory's
+    relative_scale: float = 1.0  # one constant on every band of a relative sun-sensor route (DJI, Sequoia)
 
     kind = "factory"
 
@@ -177,37 +182,33 @@ def field_parts(store: str, components: tuple[str, ...], camera_name: str) -> tu
 
 
 def capture_factors(chain: FactoryChain, capture: Capture) -> np.ndarray:
-    """``k_b`` of one capture: the panel's, or ``pi / E_b`` of its own DLS readings."""
+    """``k_b`` of one capture: the panel's; or its own sun sensor's
+    (:func:`pipeline.ingest.camera_meta.reflectance_factor`: ``pi / E_b`` for MicaSense,
+    ``1 / E_b`` times ``chain.relative_scale`` for the relative routes), NaN for a band without
+    a usable reading (:func:`missing_reflectance` names it); NaN for every band when the run
+    has no reference (radiance only)."""
     if chain.reference == "panel":
         assert chain.panel_factor is not None
         return np.asarray(chain.panel_factor, dtype=np.float64)
-    k = []
-    for meta in capture.metas:
-        e = meta.irradiance
-        if e is None or not math.isfinite(e) or e <= 0:
-            raise FrameError(f"no usable DLS irradiance (XMP Irradiance = {e!r})", path=meta.path,
-                             hint="use a panel capture: --panel-reflectance TARGET")
-        k.append(math.pi / e)
-    return np.asarray(k)
+    if chain.reference == "none":
+        return np.full(len(capture.metas), np.nan)
+    k = [reflectance_factor(meta) for meta in capture.metas]
+    return np.array([np.nan if kb is None else kb for kb in k], dtype=np.float64) * chain.relative_scale
 
 
-def read_capture(capture: Capture) -> tuple[str, list[np.ndarray]]:
-    """Content hash (over all band files, in band order) and the stored DN of each band file."""
-    h = hashlib.sha256()
-    dns = []
+def missing_reflectance(chain: FieldChain | FactoryChain, capture: Capture) -> tuple[dict[str, str], ...]:
+    """The bands of a capture on the sun-sensor route without a usable reading: their radiance
+    is written, their reflectance is NaN, the capture is not quarantined (run.json
+    ``reflectance_missing``)."""
+    if not isinstance(chain, FactoryChain) or chain.reference != "dls":
+        return ()
+    out = []
     for meta in capture.metas:
-        data = meta.path.read_bytes()
-        h.update(data)
-        try:
-            dn = np.asarray(decode_raw(data, meta.path))
-        except FrameError:
-            raise
-        except Exception as exc:  # tifffile raises IndexError/ValueError on truncated files
-            raise FrameError(f"unreadable band file ({type(exc).__name__}: {exc})", path=meta.path) from None
-        if dn.shape != meta.shape:
-            raise FrameError(f"image {dn.shape} does not match its metadata {meta.shape}", path=meta.path)
-        dns.append(dn)
-    return h.hexdigest(), dns
+        if reflectance_factor(meta) is None:
+            why = [p.message() for p in meta.problems if p.feature == "sun_sensor"]
+            out.append({"capture": capture.name, "file": meta.path.name, "band": meta.band_name,
+                        "reason": why[0] if why else f"no sun sensor reading (irradiance = {meta.irradiance!r})"})
+    return tuple(out)
 
 
 def band_exposures(capture: Capture) -> np.ndarray:
@@ -260,31 +261,40 @@ class Outcome:
     sha256: str | None  # of the file(s), for a capture read from its files
     saturated: int
     quarantine: dict[str, str] | None = None  # a capture that cannot be used: nothing written
+    no_reflectance: tuple[dict[str, str], ...] = ()  # bands written as radiance only, and why (missing_reflectance)
 
 
-def capture_dn(plan: Plan, job: Job) -> tuple[np.ndarray, str | None]:
-    """DN (band, y, x) of a job's capture: from its file(s) (checked; FrameError) or from raw.zarr."""
+def capture_dn(plan: Plan, job: Job) -> tuple[np.ndarray, str | None, dict[Path, np.ndarray]]:
+    """DN (band, y, x) of a job's capture, as stored: from its file(s) (checked; FrameError) or
+    from raw.zarr; its content hash (None from raw.zarr); the whole ``(H, W, C)`` image of each
+    multi-channel file (Sentera's colour transform needs every channel;
+    :func:`pipeline.ingest.camera_meta.read_capture_pixels`)."""
     if job.capture is not None:
-        sha, dns = read_capture(job.capture)
-        if any(dn.shape != plan.cube_shape[1:] for dn in dns):
-            raise FrameError(f"band images {[d.shape for d in dns]} are not all {plan.cube_shape[1:]}",
-                             path=job.capture.files[0])
-        return np.stack(dns), sha
+        return _capture_files(job.capture, plan.cube_shape)
     if job.rec is None:
-        return read_frame_chunk(plan.raw_dn, job.index), None
+        return read_frame_chunk(plan.raw_dn, job.index), None, {}
     sha, dn = read_frame(job.rec, plan.camera)
     assert dn is not None
     problem = shape_problem(dn.shape, plan.cube_shape)
     if problem:
         raise FrameError(problem, path=job.rec.path)
-    return dn, sha
+    return dn, sha, {}
 
 
-def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: np.ndarray
+def _capture_files(capture: Capture, shape: tuple[int, int, int]) -> tuple[np.ndarray, str, dict[Path, np.ndarray]]:
+    sha, dns, channels = read_capture_pixels(capture)
+    if any(dn.shape != shape[1:] for dn in dns):
+        raise FrameError(f"band images {[d.shape for d in dns]} are not all {shape[1:]}", path=capture.files[0])
+    return np.stack(dns), sha, channels
+
+
+def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: np.ndarray,
+               channels: dict[Path, np.ndarray] | None = None
                ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, int]:
     """The chain on one capture's DN: ``(signal, factor, radiance, saturated pixels)``.
     ``signal`` goes onto the common pixel grid before the per-band ``factor`` (None: 1);
-    ``radiance`` (factory chain) is the signal kept as an output. FrameError: unusable."""
+    ``radiance`` (factory chain) is the signal kept as an output; ``channels``: the whole image
+    of each multi-channel band file (:func:`capture_dn`). FrameError: unusable."""
     if isinstance(chain, FieldChain):
         lut, inv_v = calibration_tables(str(chain.calibration))
         if job.capture is None:
@@ -302,7 +312,7 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
     parts = field_parts(chain.field[0], chain.field[1], camera.name) if chain.field else [None] * dn.shape[0]
     rad = np.empty(dn.shape, np.float32)
     for b, meta in enumerate(cap.metas):
-        rad[b] = factory_radiance(meta, dn[b], parts[b])
+        rad[b] = factory_radiance(meta, dn[b], parts[b], (channels or {}).get(meta.path))
     saturated = dn >= chain.sat
     rad[saturated] = np.nan
     return rad, k, rad, int(np.count_nonzero(saturated))
@@ -313,10 +323,11 @@ def capture_reflectance(camera: Camera, chain: FieldChain | FactoryChain, job: J
     """Reflectance (band, y, x) of one capture read from its band files, on the outputs' pixel
     grid, before normalisation (a panel's region is measured on it); writes nothing."""
     assert job.capture is not None
-    dn = np.stack(read_capture(job.capture)[1])
-    signal, factor, _, _ = radiometry(camera, chain, job, dn)
+    sha, dns, channels = read_capture_pixels(job.capture)
+    signal, factor, _, _ = radiometry(camera, chain, job, np.stack(dns), channels)
     if transforms is not None or band_shift is not None:
         signal = geometry_step(transforms or Path(), transforms is not None, band_shift, job.name, signal)
+    signal = upright_meta(job.capture.metas[0], signal)
     return signal if factor is None else signal * factor.astype(np.float32)[:, None, None]
 
 
@@ -329,25 +340,25 @@ def process_frame(plan: Plan, job: Job) -> Outcome:
     if job.ahead is not None:
         prefetch_file(job.ahead)
     try:
-        dn, sha = capture_dn(plan, job)
-        signal, factor, radiance, saturated = radiometry(plan.camera, plan.chain, job, dn)
+        dn, sha, channels = capture_dn(plan, job)
+        signal, factor, radiance, saturated = radiometry(plan.camera, plan.chain, job, dn, channels)
     except FrameError as exc:
-        if job.capture is not None:
-            file = Path(exc.path or job.capture.files[0]).name
-        else:
-            assert job.rec is not None  # a chunk of raw.zarr is never unusable for this reason
-            file = job.rec.path.name
-        return Outcome(job.name, None, 0, quarantine_entry(file, exc))
+        return _quarantined(job, exc)
+    if plan.transforms is not None or plan.band_shift is not None:
+        signal = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift, job.name,
+                               signal)
+    if job.capture is not None:  # as meant to be seen, after the transforms (they belong to the stored frames)
+        try:
+            signal, dn = (np.ascontiguousarray(upright_meta(job.capture.metas[0], a)) for a in (signal, dn))
+        except FrameError as exc:
+            return _quarantined(job, exc)
+    if radiance is not None:
+        radiance = signal
     tags = job.tags
     if sha is not None:
         write_frame(plan.raw_dn, job.index, dn)
         if job.rec is not None:
             tags = replace(tags, capture_uuid=capture_uuid(plan.camera, sha))
-    if plan.transforms is not None or plan.band_shift is not None:
-        signal = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift, job.name,
-                               signal)
-        if radiance is not None:
-            radiance = signal
     refl = signal if factor is None else signal * factor.astype(np.float32)[:, None, None]
     kind, value = plan.norm
     if kind == "scalar":
@@ -372,7 +383,18 @@ def process_frame(plan: Plan, job: Job) -> Outcome:
                         dtype=plan.tiff_dtype)
     if ndvi is not None:
         write_ndvi_tiff(plan.out / "ndvi" / f"{job.name}.tif", ndvi, tags)
-    return Outcome(job.name, sha, saturated)
+    missing = () if job.capture is None else missing_reflectance(plan.chain, job.capture)
+    return Outcome(job.name, sha, saturated, no_reflectance=missing)
+
+
+def _quarantined(job: Job, exc: FrameError) -> Outcome:
+    """The outcome of a capture that cannot be used: nothing written, the file named."""
+    if job.capture is not None:
+        file = Path(exc.path or job.capture.files[0]).name
+    else:
+        assert job.rec is not None  # a chunk of raw.zarr is never unusable for these reasons
+        file = job.rec.path.name
+    return Outcome(job.name, None, 0, quarantine_entry(file, exc))
 
 
 # --------------------------------------------------------------------------- running the tasks

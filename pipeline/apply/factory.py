@@ -1,12 +1,19 @@
-"""``mscal apply CAPTURE_DIR --calibration factory -o OUT``: cameras that write one file per
-band per capture and carry factory radiometric metadata (MicaSense RedEdge and the like).
+"""``mscal apply CAPTURE_DIR --calibration factory -o OUT``: cameras that carry factory
+radiometric metadata (MicaSense, Parrot Sequoia, DJI P4 Multispectral / Mavic 3M, Sentera
+Double 4K; the camera is recognised by :func:`pipeline.ingest.identify.identify_camera`, or
+named with ``--camera``; each vendor's model is in :mod:`pipeline.ingest.camera_meta` and
+:mod:`mscal_core.factory`).
 
-A frame is one capture (all its band files, grouped by file name, one XMP CaptureId per capture,
-in the folder or an SD-card tree below it; :func:`pipeline.apply.captures.find_captures`). The factory
-chain runs in the one apply executor (:mod:`pipeline.apply.executor`). Per band file:
+A frame is one capture (all its band files, grouped by file name, one XMP capture id per
+capture, or one multi-channel file; in the folder or an SD-card tree below it;
+:func:`pipeline.apply.captures.find_captures`). Bands the camera writes but reflectance does
+not use (panchromatic, thermal) are read, left out and named in run.json ``skipped_bands``.
+The factory chain runs in the one apply executor (:mod:`pipeline.apply.executor`). Per band:
 
-- radiance ``L_b`` with the file's own factory model (black level, ``a1/gain/exposure`` with
-  the row-gradient terms, radial vignetting polynomial; :func:`pipeline.ingest.camera_meta.factory_radiance`);
+- radiance ``L_b`` with the file's own factory model (MicaSense: black level,
+  ``a1/gain/exposure`` with the row-gradient terms, vignetting polynomial; the other vendors'
+  models in :func:`pipeline.ingest.camera_meta.factory_radiance`; the unit, in run.json
+  ``radiance_unit``, is the vendor's);
 - reflectance ``R_b = k_b L_b`` with one factor per band from the *reference*:
 
   - ``panel``: a capture of a reflectance panel of known reflectance ``rho_b`` in the same
@@ -18,9 +25,20 @@ chain runs in the one apply executor (:mod:`pipeline.apply.executor`). Per band 
     pixel polygon (the last two from ``panel`` of a session.yaml in the folder or up to two
     levels above it; :func:`pipeline.ingest.session.parse_panel`);
   - ``dls``: the capture's own downwelling light sensor, ``k_b = pi / E_b`` (XMP Irradiance,
-    W m-2 nm-1, no tilt correction).
+    W m-2 nm-1, no tilt correction). For DJI and Sequoia the sun sensor gives reflectance up
+    to one constant shared by the bands: ``k_b = c / E_b`` with one run constant ``c``
+    (:func:`relative_scale`, run.json ``reference.relative_scale``). A band without a usable
+    reading keeps its radiance; its reflectance is NaN and named in run.json
+    ``reflectance_missing`` (the capture is not quarantined);
+  - ``none``: radiance only (reflectance NaN), when no panel is given and no band of any
+    capture has a usable sun-sensor reflectance (Sentera: its sun sensor has no published
+    conversion).
 
-  ``auto`` (default) takes the panel when ``--panel-reflectance`` is given, else the DLS.
+  ``auto`` (default) takes the panel when ``--panel-reflectance`` is given, else the DLS,
+  else none.
+
+Frames stored turned (EXIF Orientation; Sequoia: 180 degrees) are turned upright in every
+output, raw.zarr included, after the band registration (run.json ``orientation``).
 
   With ``--illumination nearest|linear`` (panel route only) each capture gets the light of its
   time instead of the panels' mean: the panel captures' ``S_c = 1 / k_c`` interpolated in time
@@ -60,11 +78,8 @@ from mscal_core.errors import CalibrationStoreError, FrameError, InputError
 from mscal_core.illumination import INTERPOLATION_MODES, fit_illumination, frame_illumination
 from mscal_core.panel import sample_quad
 
-
 from pipeline.apply.execution import Execution
-from pipeline.apply.executor import (
-    FactoryChain, field_parts, read_capture,
-)
+from pipeline.apply.executor import FactoryChain, field_parts
 from pipeline.apply.flight import (
     ApplyResult,
     index_roles,
@@ -72,16 +87,19 @@ from pipeline.apply.flight import (
     export_band_indices,
 )
 from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, stat_fingerprint
-from pipeline.ingest.camera_meta import Capture, CaptureMeta, capture_irradiance, FieldParts, factory_radiance, read_capture_meta
-from pipeline.ingest.catalog import Camera, load_camera, load_index, reflectance_option
+from pipeline.ingest.camera_meta import (
+    Capture, FieldParts, capture_irradiance, factory_radiance, read_capture_pixels, reflectance_factor,
+    sun_sensor_absolute,
+)
+from pipeline.ingest.catalog import Camera, load_index, reflectance_option
+from pipeline.ingest.identify import Identification, identify_camera
 from pipeline.apply.panel import PanelBand, panel_factors
 from pipeline.ingest.session import PanelConfig, panel_config_near
 
 FACTORY = "factory"
-REFERENCES = ("auto", "panel", "dls")
+REFERENCES = ("auto", "panel", "dls")  # + "none" (radiance only) when auto finds no usable sun sensor
 PANEL_SEARCH = 3  # captures at each end of the folder searched for a panel when none is named
 PANEL_GRID = 32  # cells per side of the panel grid for the S/B split (Eq. 11-14)
-FACTORY_CAMERAS = ("micasense-rededge", "micasense-rededge-mx-dual")
 FIELD_COMPONENTS = ("response", "vignetting")  # store variables: inverse_response, vignetting
 
 
@@ -101,6 +119,7 @@ class FactoryOptions:
     field_calibration: str | None = None  # a store from 'mscal calibrate' / 'mscal fit' of this camera
     field_components: tuple[str, ...] = ()  # of FIELD_COMPONENTS taken from it; () = all it holds
     execution: Execution = Execution()  # how the pass runs (not what it computes: not fingerprinted)
+    camera: str | None = None  # --camera NAME: the catalog camera, instead of recognising it from the files
 
     def __post_init__(self) -> None:
         if self.reference not in REFERENCES:
@@ -124,35 +143,9 @@ class FactoryOptions:
                 d.pop(key)
         if not d["field_components"]:
             d.pop("field_components")
+        if d["camera"] is None:
+            d.pop("camera")
         return d
-
-
-# --------------------------------------------------------------------------- camera and captures
-
-
-def match_camera(folder: Path) -> Camera:
-    """The catalog camera whose band files (suffixes and XMP band names) this folder holds."""
-    probe: CaptureMeta | None = None
-    names = sorted(p for p in folder.rglob("*") if p.suffix.lower() in (".tif", ".tiff") and p.is_file())
-    for path in names:
-        try:
-            probe = read_capture_meta(path)
-            break
-        except FrameError:
-            continue
-    if probe is None:
-        raise InputError("no TIFF with factory radiometric metadata in the folder", path=folder,
-                         hint="give the folder of the camera's band files (e.g. IMG_0000_1.tif ...)")
-    for name in FACTORY_CAMERAS:
-        cam = load_camera(name)
-        suffix = probe.path.stem.rsplit("_", 1)[-1]
-        for band in cam.bands:
-            if str(band.file_suffix) == suffix and band.name == probe.band_name:
-                return cam
-    raise InputError(
-        f"no catalog camera has a band {probe.band_name!r} in files named like {probe.path.name}",
-        path=folder, hint=f"add the camera under catalogs/cameras/ (known: {', '.join(FACTORY_CAMERAS)})",
-    )
 
 
 # --------------------------------------------------------------------------- reference
@@ -173,16 +166,17 @@ class PanelReference:
 
 
 def panel_reference(capture: Capture, dns: Sequence[np.ndarray], rho: Sequence[float],
-                    parts: Sequence[FieldParts | None] | None = None, config: PanelConfig | None = None
-                    ) -> PanelReference:
+                    parts: Sequence[FieldParts | None] | None = None, config: PanelConfig | None = None,
+                    channels: dict[Path, np.ndarray] | None = None) -> PanelReference:
     """Factors of one panel capture (FrameError naming the file if no panel is found in a band);
     ``parts``: field components per band in place of the factory's; ``config``: session.yaml's
-    ``panel`` (marker, polygon)."""
+    ``panel`` (marker, polygon); ``channels``: whole images of multi-channel files (Sentera)."""
     parts = list(parts) if parts is not None else [None] * len(capture.metas)
-    bands: list[PanelBand] = panel_factors(capture.metas, dns, rho, parts=parts, config=config)
+    chans = [(channels or {}).get(m.path) for m in capture.metas]
+    bands: list[PanelBand] = panel_factors(capture.metas, dns, rho, parts=parts, config=config, channels=chans)
     rows = []
-    for meta, dn, band, part in zip(capture.metas, dns, bands, parts):
-        rad = factory_radiance(meta, dn, part)
+    for meta, dn, band, part, ch in zip(capture.metas, dns, bands, parts, chans):
+        rad = factory_radiance(meta, dn, part, ch)
         if len(band.region.corners) == 4:
             rows.append(sample_quad(rad, band.region.corners, PANEL_GRID).ravel())
     if len(rows) == len(bands):
@@ -194,9 +188,7 @@ def panel_reference(capture: Capture, dns: Sequence[np.ndarray], rho: Sequence[f
     else:  # a polygon from the session that is not a quadrilateral: the mean is all there is
         split = tuple(b.factor for b in bands)
         spread, resid = (float("nan"), float("nan")), float("nan")
-    dls = tuple(
-        (math.pi / m.irradiance) if m.irradiance is not None and m.irradiance > 0 else None for m in capture.metas
-    )
+    dls = tuple(reflectance_factor(m) for m in capture.metas)
     return PanelReference(
         capture=capture.name, factor_split=split, factor_mean=tuple(b.factor for b in bands), factor_dls=dls,
         brightness_p10_p90=spread, split_residual_rms=resid, region_source=tuple(b.region.source for b in bands),
@@ -215,7 +207,8 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
         refs = []
         for n in named:
             try:
-                refs.append(panel_reference(by_name[n], read_capture(by_name[n])[1], rho, parts, config))
+                _, dns, channels = read_capture_pixels(by_name[n])
+                refs.append(panel_reference(by_name[n], dns, rho, parts, config, channels))
             except FrameError as exc:
                 raise InputError(f"panel capture {n}: {exc.reason}", path=exc.path, hint=exc.hint) from None
         return refs
@@ -223,7 +216,8 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
     refs = []
     for c in ends:
         try:
-            refs.append(panel_reference(c, read_capture(c)[1], rho, parts, config))
+            _, dns, channels = read_capture_pixels(c)
+            refs.append(panel_reference(c, dns, rho, parts, config, channels))
         except FrameError:
             continue
     if not refs:
@@ -292,7 +286,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     folder, out = Path(capture_dir), Path(out)
     if not folder.is_dir():
         raise InputError("capture folder not found", path=folder)
-    camera = match_camera(folder)
+    ident = _identify(folder, options)
+    camera = ident.camera
     found = find_captures(folder, camera)
     captures = found.captures
     if not captures:
@@ -305,6 +300,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     shape = (camera.n_bands, *shapes.pop())
     export = export_band_indices(camera, options.export_bands)
     indices = [load_index(n) for n in options.indices]
+    if options.indices == FactoryOptions.indices:  # the defaults: only the indices this camera's bands allow
+        indices = [ix for ix in indices if all(r in camera.index_bands for r in ix.inputs)]
     roles = {ix.name: index_roles(camera, ix) for ix in indices}
 
     registration = _registration(options, camera, shape)
@@ -325,9 +322,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     if previous is not None:  # before the panels are searched: an up-to-date run reads no pixels
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
 
-    reference = options.reference
-    if reference == "auto":
-        reference = "panel" if options.panel_reflectance is not None else "dls"
+    reference = _route(options, captures)
     panels: list[PanelReference] = []
     panel_factor = None
     if reference == "panel":
@@ -347,6 +342,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                              "has its own light", hint="leave --illumination out, or give --panel-reflectance")
         light = panel_light(captures, panels, options.illumination, folder)
     scales = {} if light is None else {c.name: tuple(float(v) for v in light[f]) for f, c in enumerate(captures)}
+    relative = relative_scale(captures, reference, saturation_dn(camera))
 
     attrs = {"calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
              "comment": "bands are not co-registered: each band keeps its own pixel grid",
@@ -355,18 +351,49 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         attrs.update({"co_registered": 1, "registration": str(options.registration),
                       "comment": "bands aligned to the reference band of the registration store "
                                  "(mscal register); NaN where a band does not cover the reference grid"})
+    first = captures[0].metas[0]
     run = CaptureRun(
-        chain=FactoryChain(saturation_dn(camera), reference, panel_factor, None if field is None else field[:2]),
+        chain=FactoryChain(saturation_dn(camera), reference, panel_factor, None if field is None else field[:2],
+                           relative),
         calibration=FACTORY, calibration_sha256=None, fingerprint=fingerprint, attrs=attrs,
         reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
         execution=options.execution,
         transforms=None if options.registration is None else Path(options.registration),
+        radiance_unit=first.radiance_unit, irradiance_unit=first.irradiance_unit,
         record=lambda caps: {"components": _components_record(field),
-                             "reference": _reference_record(reference, panels, panel_factor, camera),
+                             "reference": {**_reference_record(reference, panels, panel_factor, camera, caps[0]),
+                                           **({"relative_scale": relative} if relative != 1.0 else {})},
+                             "camera_identification": {"evidence": ident.evidence, "overridden": ident.overridden,
+                                                       **ident.probe},
+                             "radiance_unit": caps[0].metas[0].radiance_unit,
                              "illumination": _light_record(options.illumination, panels, caps, scales, camera)},
         scale=lambda name: scales.get(name),
     )
     return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)
+
+
+def _identify(folder: Path, options: FactoryOptions) -> Identification:
+    """The folder's camera (``--camera``, else recognised from the files); ``--field-calibration``
+    refused up front for a camera without MicaSense's radiance model (its parts are MicaSense's)."""
+    ident = identify_camera(folder, options.camera)
+    camera = ident.camera
+    if options.field_calibration is not None and camera.factory_model not in (None, "micasense"):
+        raise InputError(f"--field-calibration replaces parts of MicaSense's radiance model; camera {camera.name} "
+                         f"has the {camera.factory_model} model", path=folder, hint="leave out --field-calibration")
+    return ident
+
+
+def _route(options: FactoryOptions, captures: Sequence[Capture]) -> str:
+    """The reference route: as asked, or for ``auto`` the panel when a reflectance is given,
+    else the sun sensor, else ``none`` (radiance only) when no band of any capture has a
+    usable sun-sensor reflectance (Sentera)."""
+    if options.reference != "auto":
+        return options.reference
+    if options.panel_reflectance is not None:
+        return "panel"
+    if not any(reflectance_factor(m) is not None for c in captures for m in c.metas):
+        return "none"
+    return "dls"
 
 
 def saturation_dn(camera: Camera) -> int:
@@ -380,13 +407,53 @@ def _components_record(field: tuple[str, tuple[str, ...], str] | None) -> dict[s
     return {c: (f"field:{field[0]}" if field is not None and c in field[1] else FACTORY) for c in FIELD_COMPONENTS}
 
 
+RELATIVE_LEVEL = 0.5  # a relative sun-sensor route puts the first capture's brightest band median here
+
+
+def relative_scale(captures: Sequence[Capture], reference: str, sat: int = (1 << 16) - 1) -> float:
+    """The constant of a *relative* sun-sensor route (DJI, Sequoia: reflectance known up to one
+    factor shared by the bands): chosen so that the brightest band's median over the first
+    capture is :data:`RELATIVE_LEVEL`, which keeps the values in the range of the uint16
+    photogrammetry TIFFs (0..2). 1 for absolute routes. Indices do not depend on it; values of
+    two runs are comparable only through a panel. ``sat``: stored DN from which a pixel is
+    clipped (left out of the medians)."""
+    if reference != "dls" or not captures or sun_sensor_absolute(captures[0].metas[0]):
+        return 1.0
+    cap = captures[0]
+    try:
+        _, dns, channels = read_capture_pixels(cap)
+    except FrameError:
+        return 1.0
+    medians = []
+    for meta, dn in zip(cap.metas, dns):
+        k = reflectance_factor(meta)
+        if k is None:
+            continue
+        rad = factory_radiance(meta, dn, None, channels.get(meta.path))
+        rad = rad[np.asarray(dn) < sat]
+        if rad.size and np.isfinite(rad).any():
+            medians.append(float(np.nanmedian(rad)) * k)
+    best = max(medians, default=0.0)
+    return RELATIVE_LEVEL / best if best > 0 and math.isfinite(best) else 1.0
+
+
 def _reference_record(reference: str, panels: Sequence[PanelReference], factor: tuple[float, ...] | None,
-                      camera: Camera) -> dict[str, Any]:
+                      camera: Camera, first: Capture | None = None) -> dict[str, Any]:
     """What run.json says of the reference: the route, and for the panel route every panel
     capture's factors beside the DLS's on the same capture (their ratio compares the two)."""
     rec: dict[str, Any] = {"route": reference}
+    meta = first.metas[0] if first is not None else None
+    if reference == "none":
+        rec["formula"] = "no reflectance (NaN): no panel given and the sun sensor gives no usable reflectance"
+        rec["hint"] = "give a panel capture: --panel-reflectance TARGET"
+        return rec
     if reference == "dls":
-        rec["formula"] = "R_b = pi L_b / E_b, E_b the capture's XMP Irradiance (no tilt correction)"
+        if meta is None or sun_sensor_absolute(meta):
+            rec["formula"] = "R_b = pi L_b / E_b, E_b the capture's XMP Irradiance (no tilt correction)"
+        else:
+            rec["formula"] = (f"R_b = L_b / E_b, E_b the capture's sun sensor ({meta.irradiance_unit}): reflectance "
+                              "up to one unknown constant (indices are right; absolute values need a panel)")
+            rec["scale"] = "relative"
         return rec
     rec["formula"] = "R_b = L_b / S_b, S_b from the panel's Eq. 11-14 split (median-lit panel)"
     rec["factor"] = dict(zip(camera.band_names, factor or ()))

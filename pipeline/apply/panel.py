@@ -140,9 +140,11 @@ def panel_factors(
     session_polygon: Sequence[Sequence[float]] | None = None,
     parts: Sequence[FieldParts | None] | None = None,
     config: PanelConfig | None = None,
+    channels: Sequence[np.ndarray | None] | None = None,
 ) -> list[PanelBand]:
     """Per band of a panel capture: ``k_b = rho_b / mean factory radiance on the panel``
-    (``parts``: field components per band in place of the factory's, see :func:`factory_radiance`).
+    (``parts``: field components per band in place of the factory's, see :func:`factory_radiance`;
+    ``channels``: per band, the whole image of a multi-channel file, for Sentera's colour transform).
 
     Saturated panel pixels make the factor meaningless: FrameError naming the file.
     """
@@ -150,17 +152,19 @@ def panel_factors(
         raise ValueError(f"{len(metas)} band files, {len(dns)} images and {len(rho)} reflectances differ")
     out = []
     parts = list(parts) if parts is not None else [None] * len(metas)
-    for meta, dn, rho_b, part in zip(metas, dns, rho, parts):
+    chans = list(channels) if channels is not None else [None] * len(metas)
+    for meta, dn, rho_b, part, ch in zip(metas, dns, rho, parts, chans):
         region = panel_region(meta, dn, session_polygon=session_polygon, config=config)
         mask = polygon_mask(dn.shape, region.corners)
-        raw = panel_stats(dn, mask, saturation=SATURATION_DN)
+        sat = SATURATION_DN if meta.bits_per_sample >= 16 else 2**meta.bits_per_sample - 2  # JPEG: 255 is clipped
+        raw = panel_stats(dn, mask, saturation=sat)
         if raw.saturated:
             raise FrameError(
                 f"{raw.saturated} of {raw.count} panel pixels are saturated",
                 path=meta.path,
                 hint="take the panel capture with a shorter exposure",
             )
-        rad = panel_stats(factory_radiance(meta, dn, part), mask)
+        rad = panel_stats(factory_radiance(meta, dn, part, ch), mask)
         out.append(
             PanelBand(region, rad.mean, rad.std, float(rho_b), float(rho_b) / rad.mean, meta.irradiance)
         )

@@ -1,69 +1,89 @@
-"""Factory radiometric metadata of one band file (MicaSense RedEdge/Altum style), pure Python.
+"""Factory radiometric metadata of one band file, pure Python (no exiftool), for every vendor
+mscal knows: MicaSense (RedEdge, RedEdge-M/-MX, MX Dual, RedEdge-P, Altum, Altum-PT), Parrot
+Sequoia, DJI Phantom 4 Multispectral / Mavic 3M, Sentera Double 4K / 6X.
 
-Reads a TIFF's EXIF (ExposureTime, ISO, BlackLevel, GPS, DateTimeOriginal + SubsecTime) and
-its XMP packet (TIFF tag 700) with tifffile and ``xml.etree.ElementTree`` -- no exiftool
-binary. XMP properties are matched by namespace URI and local name, whether written as
-attributes of ``rdf:Description`` or as child elements (plain text or ``rdf:Seq``/``rdf:Bag``
-lists). MicaSense writes the band tags in Pix4D's ``Camera:`` namespace (two URIs are in use)
-and the calibration tags in ``MicaSense:``; a tag is looked up in both.
+A TIFF's EXIF (Make, Model, ExposureTime, ISO, FNumber, BlackLevel, Orientation, GPS,
+DateTimeOriginal + SubsecTime) is read with tifffile, a JPEG's with exifread; the XMP packet
+with :mod:`pipeline.ingest.xmp` (attributes, elements, rdf:Seq/Bag/Alt, numbers in one
+``rdf:li``, namespaces by URI). Which radiometric model a file gets (``CaptureMeta.radiometry``)
+follows from its tags: ``drone-dji:`` calibration tags -> ``dji``; ``Camera:SensorModel`` ->
+``sequoia``; ``Camera:ColorTransform`` -> ``sentera``; ``MicaSense:RadiometricCalibration`` ->
+``micasense``; a ``LWIR`` band -> ``thermal``; a ``Panchro`` band is read but marked.
 
-Missing or invalid calibration tags (old firmware) raise :class:`FrameError` naming the file
-and the tag: mscal never silently falls back to raw DN.
+A tag the *radiance* needs that is missing or unusable raises :class:`FrameError` naming the
+file and the tag (mscal never silently falls back to raw DN). A tag only one feature needs
+(ReflectArea: the panel's area; Irradiance: the sun sensor; GPS; RigCameraIndex) that is
+present but unreadable is recorded in ``CaptureMeta.problems`` (file, tag, value, feature)
+and disables that feature only.
 """
 
 from __future__ import annotations
 
+import base64
 import math
-import xml.etree.ElementTree as ET
 import re
-from dataclasses import dataclass
+import struct
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
 from mscal_core.errors import FrameError
-from mscal_core.factory import field_response_scale, field_response_signal, radiance, vignetting_map
+from mscal_core.factory import (
+    color_transform,
+    dji_camera_value,
+    dji_vignetting_correction,
+    field_response_scale,
+    field_response_signal,
+    radiance,
+    sequoia_irradiance,
+    sunshine_irradiance,
+    thermal_kelvin,
+    upright,
+    vignetting_2d,
+    vignetting_map,
+)
 
 from pipeline.ingest.exif import dms_to_degrees, exif_datetime_iso, rational, signed_gps
+from pipeline.ingest.xmp import TagError, TagProblem, Xmp, jpeg_xmp_packet, legacy_properties
 
 if TYPE_CHECKING:
     from pipeline.ingest.catalog import Camera
 
-RDF_NS = "http://www.w3.org/1999/02/22-rdf-syntax-ns#"
-XMP_NAMESPACES = (
-    "http://pix4d.com/camera/1.0/",  # Pix4D's documented Camera namespace (pipeline.products.writers)
-    "http://pix4d.com/camera/1.0",
-    "http://pix4d.com/1.0",  # what RedEdge firmware 2.x writes
-    "http://pix4d.com/1.0/",
-    "http://micasense.com/MicaSense/1.0/",
-    "http://micasense.com/MicaSense/1.0",
-)
 FIRMWARE_HINT = "the camera firmware may be too old to write factory calibration; update it, or use a field calibration"
-MAX_EXPOSURE_S = 1.0  # RedEdge/Altum exposures are at most a few tens of ms
+MAX_EXPOSURE_S = 1.0  # multispectral exposures are at most a few tens of ms
 WAVELENGTH_RANGE_NM = (300.0, 1100.0)  # silicon sensors: anything else is a unit error
+RADIANCE_UNITS = {
+    "micasense": "W m-2 sr-1 nm-1",
+    "sequoia": "1 (Parrot SEQ AN 01 irradiance on the sensor, SI-homogeneous with an arbitrary scale)",
+    "dji": "1 (DJI camera value pCam (p - p_BL) V / (g t), relative)",
+    "sentera": "1 (crosstalk-corrected DN / (ISO/100 * exposure s), relative)",
+    "thermal": "K",
+    "panchro": "W m-2 sr-1 nm-1",
+}
 
 
 @dataclass(frozen=True)
 class CaptureMeta:
-    """Factory metadata of one band file of a capture (units: s, nm, DN, degrees, metres)."""
+    """Factory metadata of one band of a capture (units: s, nm, DN, degrees, metres)."""
 
     path: Path
-    shape: tuple[int, int]  # (height, width)
-    bits_per_sample: int  # TIFF container depth (16 for RedEdge's 12-bit data)
+    shape: tuple[int, int]  # (height, width) as stored
+    bits_per_sample: int  # container depth (16 for RedEdge's 12-bit data, 8 for JPEG)
     band_name: str
     wavelength_nm: float
     fwhm_nm: float | None
     exposure_s: float
-    gain: float  # ISO / 100
-    black_levels: tuple[float, ...]  # EXIF BlackLevel (per CFA position)
+    gain: float  # ISO / 100 (MicaSense, Sentera); drone-dji:SensorGain (DJI)
+    black_levels: tuple[float, ...]  # EXIF BlackLevel (per CFA position), drone-dji:BlackLevel
     dark_row_values: tuple[float, ...] | None
-    radiometric_calibration: tuple[float, float, float]  # a1, a2, a3
+    radiometric_calibration: tuple[float, float, float] | None  # MicaSense a1, a2, a3
     vignetting_center: tuple[float, float] | None  # (x, y) pixels
     vignetting_polynomial: tuple[float, ...] | None  # k1..kn, lowest power first
     vignetting_polynomial_2d: tuple[float, ...] | None
     vignetting_polynomial_2d_exponents: tuple[float, ...] | None
-    irradiance: float | None  # downwelling light sensor, W m-2 nm-1
+    irradiance: float | None  # sun sensor reading (unit: irradiance_unit)
     capture_id: str | None
     rig_camera_index: int | None
     reflect_area: tuple[float, ...] | None  # panel region written by the camera, if any
@@ -71,88 +91,65 @@ class CaptureMeta:
     lon: float | None
     alt_m: float | None
     time: str | None  # ISO 8601, with fraction of a second when SubsecTime is present
+    radiometry: str = "micasense"  # a key of RADIANCE_UNITS
+    make: str | None = None
+    model: str | None = None
+    rig_name: str | None = None
+    serial: str | None = None
+    software: str | None = None
+    orientation: int = 1  # EXIF Orientation (3: stored rotated 180 degrees)
+    f_number: float | None = None
+    iso: float | None = None
+    sensor_model: tuple[float, float, float] | None = None  # Parrot A, B, C
+    gain_adjustment: float | None = None  # drone-dji:SensorGainAdjustment
+    dji_vignetting: tuple[float, ...] | None = None  # drone-dji:VignettingData k0..k5
+    dji_center: tuple[float, float] | None = None  # drone-dji:CalibratedOpticalCenterX/Y
+    dji_dewarp: tuple[float, ...] | None = None  # fx, fy, cx, cy, k1, k2, p1, p2, k3
+    dji_hmatrix: tuple[float, ...] | None = None  # CalibratedHMatrix, 9 row-major values
+    channel: int | None = None  # channel of a multi-channel file (Sentera JPEG)
+    channel_mix: tuple[float, ...] | None = None  # Camera:ColorTransform, whole matrix
+    irradiance_unit: str = "W m-2 nm-1"
+    problems: tuple[TagProblem, ...] = ()
 
     @property
     def black_level(self) -> float:
-        """Black level in DN: the mean of EXIF BlackLevel, else of DarkRowValue."""
+        """Black level in DN: the mean of EXIF BlackLevel, else of DarkRowValue (0 if none:
+        JPEG cameras)."""
         levels = self.black_levels or self.dark_row_values or ()
-        return float(sum(levels) / len(levels))
+        return float(sum(levels) / len(levels)) if levels else 0.0
+
+    @property
+    def radiance_unit(self) -> str:
+        return RADIANCE_UNITS[self.radiometry]
+
+    @property
+    def reflectance_band(self) -> bool:
+        """True for a band that goes into reflectance (not thermal, not panchromatic)."""
+        return self.radiometry not in ("thermal", "panchro")
+
+    def features(self) -> dict[str, bool]:
+        """Which features this band file's metadata allows (radiance: always, or there would
+        be no meta: the reader raises instead)."""
+        bad = {p.feature for p in self.problems}
+        return {
+            "radiance": True,
+            "sun_sensor_reading": self.irradiance is not None and self.irradiance > 0 and "sun_sensor" not in bad,
+            "sun_sensor_reflectance": reflectance_factor(self) is not None and "sun_sensor" not in bad,
+            "sun_sensor_absolute": sun_sensor_absolute(self) and reflectance_factor(self) is not None,
+            "panel_area": self.reflect_area is not None and "panel_area" not in bad,
+            "position": self.lat is not None and self.lon is not None,
+            "rig_index": self.rig_camera_index is not None,
+            "factory_band_alignment": self.dji_hmatrix is not None,
+        }
 
 
 # --------------------------------------------------------------------------- XMP
 
 
 def xmp_properties(packet: bytes | str, path: Path | str) -> dict[str, Any]:
-    """Properties of an XMP packet in the known namespaces, by local name.
-
-    A value is a string (element text or attribute) or a list of strings (``rdf:Seq``,
-    ``rdf:Bag`` or ``rdf:Alt`` items).
-    """
-    text = packet.decode("utf-8", errors="replace") if isinstance(packet, bytes) else packet
-    start, end = text.find("<x:xmpmeta"), text.rfind("</x:xmpmeta>")
-    if start < 0 or end < 0:
-        raise FrameError("the XMP packet has no x:xmpmeta element", path=path, hint=FIRMWARE_HINT)
-    try:
-        root = ET.fromstring(text[start : end + len("</x:xmpmeta>")])
-    except ET.ParseError as exc:
-        raise FrameError(f"the XMP packet is not valid XML ({exc})", path=path) from None
-    props: dict[str, Any] = {}
-    for desc in root.iter(f"{{{RDF_NS}}}Description"):
-        for key, value in desc.attrib.items():
-            local = _known_local(key)
-            if local is not None:
-                props[local] = value
-        for child in desc:
-            local = _known_local(child.tag)
-            if local is not None:
-                props[local] = _element_value(child)
-    return props
-
-
-def _known_local(qname: str) -> str | None:
-    """Local name of ``{ns}local`` if ``ns`` is one of :data:`XMP_NAMESPACES`."""
-    if not qname.startswith("{"):
-        return None
-    ns, _, local = qname[1:].partition("}")
-    return local if ns in XMP_NAMESPACES else None
-
-
-def _element_value(elem: ET.Element) -> str | list[str]:
-    for kind in ("Seq", "Bag", "Alt"):
-        container = elem.find(f"{{{RDF_NS}}}{kind}")
-        if container is not None:
-            return [(li.text or "").strip() for li in container.findall(f"{{{RDF_NS}}}li")]
-    return (elem.text or "").strip()
-
-
-def _floats(value: Any, path: Path, tag: str, count: int | None = None) -> tuple[float, ...]:
-    """A list value (or a comma/space separated string) as finite floats; FrameError if not."""
-    items = value if isinstance(value, list) else str(value).replace(",", " ").split()
-    try:
-        out = tuple(float(v) for v in items)
-    except ValueError:
-        out = ()
-    if not out or not all(math.isfinite(v) for v in out) or (count is not None and len(out) != count):
-        want = f"{count} numbers" if count is not None else "numbers"
-        raise FrameError(f"XMP {tag} is {value!r}, expected {want}", path=path, hint=FIRMWARE_HINT)
-    return out
-
-
-def _text(value: Any) -> str | None:
-    """A text property; a one-item list (``rdf:Seq`` of one ``rdf:li``) counts as its item."""
-    if isinstance(value, list):
-        value = value[0] if len(value) == 1 else None
-    return None if value is None or str(value).strip() == "" else str(value).strip()
-
-
-def _required(props: dict[str, Any], tag: str, path: Path) -> Any:
-    if tag not in props or props[tag] in ("", []):
-        raise FrameError(f"no XMP {tag} tag", path=path, hint=FIRMWARE_HINT)
-    return props[tag]
-
-
-def _optional_floats(props: dict[str, Any], tag: str, path: Path) -> tuple[float, ...] | None:
-    return _floats(props[tag], path, tag) if props.get(tag) not in (None, "", []) else None
+    """Properties of an XMP packet in the Camera and MicaSense namespaces, by local name
+    (kept for its callers; new code uses :class:`pipeline.ingest.xmp.Xmp`)."""
+    return legacy_properties(packet, path)
 
 
 # --------------------------------------------------------------------------- EXIF
@@ -164,38 +161,101 @@ def _gps(gps: dict[str, Any]) -> tuple[float | None, float | None, float | None]
         dms_to_degrees(gps["GPSLatitude"]) if has_pos else None, gps.get("GPSLatitudeRef"),
         dms_to_degrees(gps["GPSLongitude"]) if has_pos else None, gps.get("GPSLongitudeRef"),
         rational(gps["GPSAltitude"]) if "GPSAltitude" in gps else None,
-        gps.get("GPSAltitudeRef") in (1, b"\x01"),
+        gps.get("GPSAltitudeRef") in (1, b"\x01", "1"),
     )
 
 
-def _exposure_and_gain(exif: dict[str, Any], path: Path) -> tuple[float, float]:
+def _time(exif: dict[str, Any]) -> str | None:
+    return exif_datetime_iso(exif.get("DateTimeOriginal"), exif.get("SubsecTimeOriginal") or exif.get("SubsecTime"))
+
+
+def _exposure(exif: dict[str, Any], path: Path) -> float:
     if "ExposureTime" not in exif:
         raise FrameError("no EXIF ExposureTime tag", path=path, hint=FIRMWARE_HINT)
     exposure = rational(exif["ExposureTime"])
+    _check_exposure(exposure, "EXIF ExposureTime", path)
+    return exposure
+
+
+def _check_exposure(exposure: float, what: str, path: Path) -> None:
     if not (math.isfinite(exposure) and 0 < exposure <= MAX_EXPOSURE_S):
         raise FrameError(
-            f"EXIF ExposureTime {exposure!r} s is outside (0, {MAX_EXPOSURE_S:g}] s",
+            f"{what} {exposure!r} s is outside (0, {MAX_EXPOSURE_S:g}] s",
             path=path,
             hint="exposure must be in seconds; a value in ms or us means the file was rewritten with wrong units",
         )
-    iso = exif.get("ISOSpeed") or exif.get("ISOSpeedRatings")
-    if isinstance(iso, tuple):
+
+
+def _iso(exif: dict[str, Any], path: Path) -> float:
+    iso = exif.get("ISOSpeed") or exif.get("ISOSpeedRatings") or exif.get("PhotographicSensitivity")
+    if isinstance(iso, (tuple, list)):
         iso = iso[0] if iso else None
     if not iso:
         raise FrameError("no EXIF ISOSpeed/ISOSpeedRatings tag (the gain)", path=path, hint=FIRMWARE_HINT)
-    return exposure, float(iso) / 100.0
+    return float(iso)
+
+
+def _exposure_and_gain(exif: dict[str, Any], path: Path) -> tuple[float, float]:
+    return _exposure(exif, path), _iso(exif, path) / 100.0
 
 
 # --------------------------------------------------------------------------- the reader
 
 
-def read_capture_meta(path: str | Path) -> CaptureMeta:
-    """Factory metadata of one band file; :class:`FrameError` naming the file and tag if unusable."""
-    import tifffile
+@dataclass
+class _Ctx:
+    """What a vendor reader gets: the file's tags and a list to record feature problems in."""
 
+    path: Path
+    xmp: Xmp
+    exif: dict[str, Any]
+    gps: dict[str, Any]
+    shape: tuple[int, int]
+    bits: int
+    make: str | None
+    model: str | None
+    software: str | None
+    serial: str | None
+    orientation: int
+    black_tag: Any
+    problems: list[TagProblem] = field(default_factory=list)
+
+    def optional(self, feature: str, read: Callable[[], Any]) -> Any:
+        """``read()``, or None with a problem recorded when its tag is present but unusable."""
+        try:
+            return read()
+        except TagError as exc:
+            self.problems.append(exc.problem(feature))
+            return None
+
+    def required(self, tag: str, ns: Sequence[str] = ("Camera", "MicaSense"), count: int | None = None
+                 ) -> tuple[float, ...]:
+        try:
+            v = self.xmp.numbers(tag, ns, count)
+        except TagError as exc:
+            raise FrameError(f"XMP {exc.reason}", path=self.path, hint=FIRMWARE_HINT) from None
+        if v is None:
+            raise FrameError(f"no XMP {tag} tag", path=self.path, hint=FIRMWARE_HINT)
+        return v
+
+
+def read_capture_meta(path: str | Path) -> CaptureMeta:
+    """Factory metadata of one single-band file; :class:`FrameError` naming the file and tag
+    if its radiance cannot be computed. (Multi-channel files: :func:`read_file_metas`.)"""
+    metas = read_file_metas(path)
+    return metas[0]
+
+
+def read_file_metas(path: str | Path) -> list[CaptureMeta]:
+    """Factory metadata of every band a file holds (one for TIFF band files, one per kept
+    channel of a Sentera JPEG)."""
     path = Path(path)
     if not path.is_file():
         raise FrameError("file does not exist", path=path)
+    if path.suffix.lower() in (".jpg", ".jpeg"):
+        return _read_jpeg(path)
+    import tifffile
+
     try:
         with tifffile.TiffFile(path) as tif:
             if len(tif.pages) == 0:  # header read, but the first IFD lies past the end of the file
@@ -210,78 +270,412 @@ def read_capture_meta(path: str | Path) -> CaptureMeta:
                          hint="copy the file again from the camera's card") from None
     if 700 not in tags:
         raise FrameError("no XMP packet (TIFF tag 700)", path=path, hint=FIRMWARE_HINT)
-    return meta_from_tags(path, tags, shape, bits)
+    return [meta_from_tags(path, tags, shape, bits)]
 
 
 def meta_from_tags(path: Path, tags: dict[int, Any], shape: tuple[int, int], bits: int) -> CaptureMeta:
     """Build and check a :class:`CaptureMeta` from a TIFF's tag values keyed by tag code."""
-    props = xmp_properties(tags[700], path)
-    exif = tags.get(34665) or {}
-    exposure, gain = _exposure_and_gain(exif, path)
-
-    wavelength = _floats(_required(props, "CentralWavelength", path), path, "CentralWavelength", 1)[0]
-    lo, hi = WAVELENGTH_RANGE_NM
-    if not lo <= wavelength <= hi:
-        raise FrameError(
-            f"XMP CentralWavelength {wavelength:g} is outside {lo:g}-{hi:g} nm",
-            path=path,
-            hint="the wavelength must be in nanometres",
-        )
-    fwhm = _optional_floats(props, "WavelengthFWHM", path)
-
-    black = tags.get(50714)
-    black_levels = tuple(float(v) for v in black) if isinstance(black, tuple) else (
-        (float(black),) if black is not None else ()
+    xmp = Xmp.parse(tags[700], path)
+    exif = dict(tags.get(34665) or {})
+    ctx = _Ctx(
+        path=path, xmp=xmp, exif=exif, gps=dict(tags.get(34853) or {}), shape=shape, bits=bits,
+        make=_clean(tags.get(271)), model=_clean(tags.get(272)), software=_clean(tags.get(305)),
+        serial=_clean(exif.get("BodySerialNumber") or tags.get(50735)), orientation=int(tags.get(274) or 1),
+        black_tag=tags.get(50714),
     )
-    dark_rows = _optional_floats(props, "DarkRowValue", path)
-    if not black_levels and not dark_rows:
-        raise FrameError("no EXIF BlackLevel and no XMP DarkRowValue tag", path=path, hint=FIRMWARE_HINT)
+    metas = _dispatch(ctx)
+    return metas[0]
 
-    cal = _floats(_required(props, "RadiometricCalibration", path), path, "RadiometricCalibration", 3)
+
+def _clean(value: Any) -> str | None:
+    if value is None:
+        return None
+    text = value.decode("latin-1", errors="replace") if isinstance(value, bytes) else str(value)
+    text = text.strip().strip("\x00").strip()
+    return text or None
+
+
+def _dispatch(ctx: _Ctx) -> list[CaptureMeta]:
+    x = ctx.xmp
+    band = x.text("BandName") or x.text("BandName", ("drone-dji",))
+    if band is not None and band.upper() == "LWIR":
+        return [_minimal(ctx, band, "thermal")]
+    if band is not None and band.casefold().startswith("panchro"):
+        try:
+            return [_micasense(ctx, panchro=True)]
+        except FrameError:  # a band kept out of reflectance need not carry a full radiometric model
+            return [_minimal(ctx, band, "panchro")]
+    if x.has("SensorGain", ("drone-dji",)) or x.has("VignettingData", ("drone-dji",)):
+        return [_dji(ctx)]
+    if x.has("SensorModel", ("Camera",)) or (ctx.make or "").lower() == "parrot":
+        return [_sequoia(ctx)]
+    if x.has("ColorTransform", ("Camera",)) or (ctx.make or "").lower() == "sentera":
+        return _sentera(ctx)
+    return [_micasense(ctx)]
+
+
+def _band(ctx: _Ctx) -> tuple[str, float, float | None]:
+    """Band name, centre wavelength and FWHM (nm) of a single-band file, units checked."""
+    x = ctx.xmp
+    name = x.text("BandName") or x.text("BandName", ("drone-dji",))
+    if name is None:
+        if x.has("BandName"):
+            raise FrameError(f"XMP BandName is {x.raw('BandName')!r}, expected one name", path=ctx.path,
+                             hint=FIRMWARE_HINT)
+        raise FrameError("no XMP BandName tag", path=ctx.path, hint=FIRMWARE_HINT)
+    wl = ctx.required("CentralWavelength", count=1)[0]
+    _check_wavelength(wl, ctx.path)
+    fwhm = ctx.optional("bandwidth", lambda: x.numbers("WavelengthFWHM", count=1))
+    return name, wl, fwhm[0] if fwhm else None
+
+
+def _check_wavelength(wl: float, path: Path) -> None:
+    lo, hi = WAVELENGTH_RANGE_NM
+    if not lo <= wl <= hi:
+        raise FrameError(f"XMP CentralWavelength {wl:g} is outside {lo:g}-{hi:g} nm", path=path,
+                         hint="the wavelength must be in nanometres")
+
+
+def _common(ctx: _Ctx) -> dict[str, Any]:
+    """Fields every reader fills the same way: position, time, ids, feature problems."""
+    x = ctx.xmp
+    lat = lon = alt = None
+    try:
+        lat, lon, alt = _gps(ctx.gps)
+    except (TypeError, ValueError, ZeroDivisionError, IndexError) as exc:
+        ctx.problems.append(TagProblem(str(ctx.path), "EXIF GPS", str(ctx.gps)[:160], str(exc), "position"))
+    rig = ctx.optional("rig_index", lambda: x.number("RigCameraIndex"))
+    area = ctx.optional("panel_area", lambda: x.numbers("ReflectArea", allowed=(4, 8)))
+    if area is not None:
+        h, w = ctx.shape
+        pts = np.asarray(area).reshape(-1, 2) if len(area) == 8 else np.asarray(
+            [[area[0], area[1]], [area[0] + area[2], area[1] + area[3]]])
+        if len(area) == 4 and (area[2] <= 0 or area[3] <= 0):
+            ctx.problems.append(TagProblem(str(ctx.path), "XMP ReflectArea", str(area), "non-positive width or height",
+                                           "panel_area"))
+            area = None
+        elif pts.min() < 0 or pts[:, 0].max() > w - 1 or pts[:, 1].max() > h - 1:
+            ctx.problems.append(TagProblem(str(ctx.path), "XMP ReflectArea", str(area),
+                                           f"lies outside the {w} x {h} image", "panel_area"))
+            area = None
+    capture_id = (x.text("CaptureId", ("MicaSense",)) or x.text("CaptureUUID", ("drone-dji",))
+                  or x.text("CaptureUUID", ("Camera",)) or x.text("ImageUniqueID", ("Camera",)))
+    return dict(
+        capture_id=capture_id, rig_camera_index=None if rig is None else int(rig), reflect_area=area,
+        lat=lat, lon=lon, alt_m=alt, time=_time(ctx.exif), make=ctx.make, model=ctx.model,
+        rig_name=x.text("RigName", ("Camera",)), serial=ctx.serial, software=ctx.software,
+        orientation=ctx.orientation,
+    )
+
+
+def _finish(ctx: _Ctx) -> dict[str, Any]:
+    """:func:`_common` and then every problem recorded while reading (both as fields)."""
+    common = _common(ctx)
+    return {**common, "problems": tuple(ctx.problems)}
+
+
+def _black_levels(ctx: _Ctx) -> tuple[float, ...]:
+    black = ctx.black_tag
+    if isinstance(black, (tuple, list)):
+        return tuple(float(v) for v in black)
+    return (float(black),) if black is not None else ()
+
+
+def _positive_irradiance(ctx: _Ctx, tag: str, ns: Sequence[str]) -> float | None:
+    def read() -> float | None:
+        v = ctx.xmp.numbers(tag, ns)
+        if v is None:
+            return None
+        if not v[0] > 0:
+            raise TagError(f"XMP {tag}", ctx.xmp.raw(tag, ns), "not a positive number", ctx.path)
+        return v[0]
+
+    return ctx.optional("sun_sensor", read)
+
+
+def _micasense(ctx: _Ctx, panchro: bool = False) -> CaptureMeta:
+    """MicaSense: micasense/imageprocessing ``image.py`` ``radiance()`` (cameras.md §1.3)."""
+    x, path = ctx.xmp, ctx.path
+    exposure, gain = _exposure_and_gain(ctx.exif, path)
+    name, wl, fwhm = _band(ctx)
+    black = _black_levels(ctx)
+    dark = ctx.optional(None, lambda: x.numbers("DarkRowValue"))
+    if not black and not dark:
+        raise FrameError("no EXIF BlackLevel and no XMP DarkRowValue tag", path=path, hint=FIRMWARE_HINT)
+    cal = ctx.required("RadiometricCalibration", count=3)
     if cal[0] <= 0:
         raise FrameError(f"XMP RadiometricCalibration a1 = {cal[0]!r} must be positive", path=path, hint=FIRMWARE_HINT)
-    center = _optional_floats(props, "VignettingCenter", path)
-    poly = _optional_floats(props, "VignettingPolynomial", path)
-    poly2d = _optional_floats(props, "VignettingPolynomial2D", path)
-    exps2d = _optional_floats(props, "VignettingPolynomial2DName", path)
-    if not ((center and len(center) == 2 and poly) or (poly2d and exps2d)):
+    center = _radiance_tag(ctx, "VignettingCenter", 2)
+    poly = _radiance_tag(ctx, "VignettingPolynomial")
+    poly2d = _radiance_tag(ctx, "VignettingPolynomial2D")
+    exps2d = _radiance_tag(ctx, "VignettingPolynomial2DName")
+    if poly2d and exps2d and len(exps2d) != 2 * len(poly2d):
+        raise FrameError(f"XMP VignettingPolynomial2DName has {len(exps2d)} exponents for {len(poly2d)} "
+                         "coefficients of VignettingPolynomial2D (two per coefficient)", path=path, hint=FIRMWARE_HINT)
+    if not ((center and poly) or (poly2d and exps2d)):
         raise FrameError(
             "no vignetting model: needs XMP VignettingCenter + VignettingPolynomial "
             "or VignettingPolynomial2D + VignettingPolynomial2DName",
             path=path,
             hint=FIRMWARE_HINT,
         )
-    irr = _optional_floats(props, "Irradiance", path)
-    rig = _text(props.get("RigCameraIndex"))
-    band_name = _text(_required(props, "BandName", path))
-    if band_name is None:
-        raise FrameError(f"XMP BandName is {props['BandName']!r}, expected one name", path=path, hint=FIRMWARE_HINT)
-    lat, lon, alt = _gps(tags.get(34853) or {})
+    irr = _micasense_irradiance(ctx)
     return CaptureMeta(
-        path=path,
-        shape=shape,
-        bits_per_sample=bits,
-        band_name=band_name,
-        wavelength_nm=wavelength,
-        fwhm_nm=fwhm[0] if fwhm else None,
-        exposure_s=exposure,
-        gain=gain,
-        black_levels=black_levels,
-        dark_row_values=dark_rows,
+        path=path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=name, wavelength_nm=wl, fwhm_nm=fwhm,
+        exposure_s=exposure, gain=gain, black_levels=black, dark_row_values=dark,
         radiometric_calibration=(cal[0], cal[1], cal[2]),
-        vignetting_center=(center[0], center[1]) if center and len(center) == 2 else None,
-        vignetting_polynomial=poly,
-        vignetting_polynomial_2d=poly2d,
-        vignetting_polynomial_2d_exponents=exps2d,
-        irradiance=irr[0] if irr else None,
-        capture_id=_text(props.get("CaptureId")) or _text(props.get("CaptureUUID")),
-        rig_camera_index=int(rig) if rig is not None and rig.isdigit() else None,
-        reflect_area=_optional_floats(props, "ReflectArea", path),
-        lat=lat,
-        lon=lon,
-        alt_m=alt,
-        time=exif_datetime_iso(exif.get("DateTimeOriginal"), exif.get("SubsecTimeOriginal") or exif.get("SubsecTime")),
+        vignetting_center=(center[0], center[1]) if center else None, vignetting_polynomial=poly,
+        vignetting_polynomial_2d=poly2d, vignetting_polynomial_2d_exponents=exps2d, irradiance=irr,
+        radiometry="panchro" if panchro else "micasense", iso=gain * 100.0,
+        **_finish(ctx),
     )
+
+
+def _micasense_irradiance(ctx: _Ctx) -> float | None:
+    """Spectral irradiance on the DLS, W m-2 nm-1: ``Camera:Irradiance`` (DLS 1), else DLS 2's
+    ``HorizontalIrradiance`` x ``IrradianceScaleToSIUnits`` (0.01 when that tag is missing,
+    as micasense/imageprocessing ``metadata.py`` assumes)."""
+    irr = _positive_irradiance(ctx, "Irradiance", ("Camera", "MicaSense"))
+    if irr is not None:
+        return irr
+    horiz = _positive_irradiance(ctx, "HorizontalIrradiance", ("Camera", "MicaSense", "DLS"))
+    if horiz is None:
+        return None
+    scale = ctx.optional("sun_sensor", lambda: ctx.xmp.number("IrradianceScaleToSIUnits", ("Camera", "MicaSense", "DLS")))
+    return horiz * (0.01 if scale is None else scale)
+
+
+def _radiance_tag(ctx: _Ctx, tag: str, count: int | None = None) -> tuple[float, ...] | None:
+    try:
+        return ctx.xmp.numbers(tag, count=count)
+    except TagError as exc:
+        raise FrameError(f"XMP {exc.reason}", path=ctx.path, hint=FIRMWARE_HINT) from None
+
+
+def _minimal(ctx: _Ctx, band: str, radiometry: str) -> CaptureMeta:
+    """A band read for what it is but never part of reflectance: LWIR (Altum, Altum-PT;
+    centi-kelvin DN) or a panchromatic band without a full radiometric model."""
+    x = ctx.xmp
+    wl = ctx.optional(None, lambda: x.number("CentralWavelength")) or 11000.0
+    exposure = rational(ctx.exif["ExposureTime"]) if "ExposureTime" in ctx.exif else 0.0
+    return CaptureMeta(
+        path=ctx.path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=band, wavelength_nm=wl, fwhm_nm=None,
+        exposure_s=exposure, gain=1.0, black_levels=(), dark_row_values=None, radiometric_calibration=None,
+        vignetting_center=None, vignetting_polynomial=None, vignetting_polynomial_2d=None,
+        vignetting_polynomial_2d_exponents=None, irradiance=None, radiometry=radiometry,
+        **_finish(ctx),
+    )
+
+
+def _sequoia(ctx: _Ctx) -> CaptureMeta:
+    """Parrot Sequoia: SensorModel (A, B, C), VignettingPolynomial2D, IrradianceList."""
+    x, path = ctx.xmp, ctx.path
+    exposure = _exposure(ctx.exif, path)
+    iso = _iso(ctx.exif, path)
+    name, wl, fwhm = _band(ctx)
+    model = ctx.required("SensorModel", ("Camera",), 3)
+    if "FNumber" not in ctx.exif:
+        raise FrameError("no EXIF FNumber tag (Parrot's sensor model needs it)", path=path, hint=FIRMWARE_HINT)
+    f_number = rational(ctx.exif["FNumber"])
+    if not (math.isfinite(f_number) and 0.5 < f_number < 64):
+        raise FrameError(f"EXIF FNumber {f_number!r} is not an f-number", path=path)
+    poly2d = _radiance_tag(ctx, "VignettingPolynomial2D")
+    exps2d = _radiance_tag(ctx, "VignettingPolynomial2DName")
+    if not (poly2d and exps2d) or len(exps2d) != 2 * len(poly2d):
+        raise FrameError("no usable vignetting model: needs XMP VignettingPolynomial2D and "
+                         "VignettingPolynomial2DName (two exponents per coefficient)", path=path, hint=FIRMWARE_HINT)
+    irr = ctx.optional("sun_sensor", lambda: _sequoia_sunshine(x, path))
+    return CaptureMeta(
+        path=path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=name, wavelength_nm=wl, fwhm_nm=fwhm,
+        exposure_s=exposure, gain=iso / 100.0, black_levels=_black_levels(ctx), dark_row_values=None,
+        radiometric_calibration=None, vignetting_center=None, vignetting_polynomial=None,
+        vignetting_polynomial_2d=poly2d, vignetting_polynomial_2d_exponents=exps2d, irradiance=irr,
+        radiometry="sequoia", f_number=f_number, iso=iso, sensor_model=(model[0], model[1], model[2]),
+        irradiance_unit="1 (sunshine CH0 / (gain x ms x golden sensitivity), relative)", **_finish(ctx),
+    )
+
+
+SUNSHINE_RECORD = struct.Struct("<QHHHHfff")  # timestamp us, CH0, CH1, gain index, integration ms, yaw, pitch, roll
+
+
+def _sequoia_sunshine(x: Xmp, path: Path) -> float | None:
+    """Relative irradiance of the band's sunshine sensor from ``Camera:IrradianceList``
+    (base64 of 28-byte records) and ``IrradianceCalibrationMeasurement`` (gain index,
+    exposure ms, CH0, CH1 rows); :func:`mscal_core.factory.sunshine_irradiance`, divided by
+    the band's CH0 sensitivity ``IrradianceSensitivitiesGolden[0]`` so that the four bands'
+    readings share one scale. That division is inferred from the tag's name (no Parrot text
+    found): on the real capture in ../shared/data it turns an implausible spectrum (red edge
+    4x the others) into a vegetation-like one (NIR > red edge > green > red)."""
+    raw = x.text("IrradianceList", ("Camera",))
+    if raw is None:
+        return None
+    try:
+        blob = base64.b64decode("".join(raw.split()), validate=True)
+    except (ValueError, TypeError):
+        raise TagError("XMP IrradianceList", raw, "not base64", path) from None
+    if len(blob) == 0 or len(blob) % SUNSHINE_RECORD.size:
+        raise TagError("XMP IrradianceList", raw, f"{len(blob)} bytes is not a whole number of "
+                       f"{SUNSHINE_RECORD.size}-byte records (firmware before 1.1.0?)", path)
+    recs = list(SUNSHINE_RECORD.iter_unpack(blob))
+    table = x.numbers("IrradianceCalibrationMeasurement", ("Camera",))
+    if table is None or len(table) % 4:
+        raise TagError("XMP IrradianceCalibrationMeasurement", x.raw("IrradianceCalibrationMeasurement", ("Camera",)),
+                       "expected rows of (gain index, exposure ms, CH0, CH1)", path)
+    cal = {int(table[i]): table[i + 2] / table[i + 1] for i in range(0, len(table), 4)
+           if table[i + 1] > 0 and table[i + 2] < 65535}
+    try:
+        counts = sunshine_irradiance([r[1] for r in recs], [r[3] for r in recs], [r[4] for r in recs], cal)
+    except ValueError as exc:
+        raise TagError("XMP IrradianceList", raw, str(exc), path) from None
+    sens = x.numbers("IrradianceSensitivitiesGolden", ("Camera",))
+    if sens is None or not sens[0] > 0:
+        raise TagError("XMP IrradianceSensitivitiesGolden", x.raw("IrradianceSensitivitiesGolden", ("Camera",)),
+                       "expected the CH0 and CH1 sensitivities (positive): the bands' sunshine readings cannot be "
+                       "compared without them", path)
+    return counts / sens[0]
+
+
+def _dji(ctx: _Ctx) -> CaptureMeta:
+    """DJI P4 Multispectral / Mavic 3M (drone-dji namespace, attributes)."""
+    x, path = ctx.xmp, ctx.path
+    dj = ("drone-dji",)
+    name, wl, fwhm = _dji_band(ctx)
+    black = _black_levels(ctx) or ctx.required("BlackLevel", dj, 1)
+    gain = ctx.required("SensorGain", dj, 1)[0]
+    if not gain > 0:
+        raise FrameError(f"XMP drone-dji:SensorGain {gain!r} must be positive", path=path)
+    exposure_us = ctx.required("ExposureTime", dj, 1)[0]
+    exposure = exposure_us * 1e-6
+    _check_exposure(exposure, f"XMP drone-dji:ExposureTime {exposure_us:g} us =", path)
+    adj = ctx.required("SensorGainAdjustment", dj, 1)[0]
+    k = ctx.required("VignettingData", dj, 6)
+    cx = ctx.required("CalibratedOpticalCenterX", dj, 1)[0]
+    cy = ctx.required("CalibratedOpticalCenterY", dj, 1)[0]
+    h, w = ctx.shape
+    if not (0 <= cx <= w and 0 <= cy <= h):
+        raise FrameError(f"XMP drone-dji:CalibratedOpticalCenterX/Y ({cx:g}, {cy:g}) lies outside the {w} x {h} "
+                         "image (it must be in pixels)", path=path)
+    irr = _positive_irradiance(ctx, "Irradiance", dj)
+    dewarp = ctx.optional("dewarp", lambda: _dji_dewarp(x, path))
+    hmat = ctx.optional("band_alignment", lambda: x.numbers("CalibratedHMatrix", dj, 9) or x.numbers(
+        "DewarpHMatrix", dj, 9))
+    return CaptureMeta(
+        path=path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=name, wavelength_nm=wl, fwhm_nm=fwhm,
+        exposure_s=exposure, gain=gain, black_levels=tuple(black), dark_row_values=None, radiometric_calibration=None,
+        vignetting_center=None, vignetting_polynomial=None, vignetting_polynomial_2d=None,
+        vignetting_polynomial_2d_exponents=None, irradiance=irr, radiometry="dji", gain_adjustment=adj,
+        dji_vignetting=k, dji_center=(cx, cy), dji_dewarp=dewarp, dji_hmatrix=hmat,
+        irradiance_unit="1 (DJI calibrated sunlight sensor value)", **_finish(ctx),
+    )
+
+
+def _dji_band(ctx: _Ctx) -> tuple[str, float, float | None]:
+    """Band of a DJI file: Camera:BandName/CentralWavelength if written, else drone-dji:BandName
+    and BandFreq ``840(+/-26)nm``."""
+    x = ctx.xmp
+    if x.has("CentralWavelength"):
+        return _band(ctx)
+    name = x.text("BandName", ("drone-dji",)) or x.text("BandName")
+    freq = x.text("BandFreq", ("drone-dji",))
+    m = re.match(r"^\s*([0-9.]+)\s*(?:\(\s*\+/-\s*([0-9.]+)\s*\))?\s*nm\s*$", freq or "")
+    if name is None or m is None:
+        raise FrameError("no band name and centre wavelength (XMP Camera:CentralWavelength or drone-dji:BandFreq "
+                         f"like 840(+/-26)nm; got {freq!r})", path=ctx.path, hint=FIRMWARE_HINT)
+    wl = float(m[1])
+    _check_wavelength(wl, ctx.path)
+    return name, wl, (2 * float(m[2])) if m[2] else None
+
+
+def _dji_dewarp(x: Xmp, path: Path) -> tuple[float, ...] | None:
+    raw = x.text("DewarpData", ("drone-dji",))
+    if raw is None:
+        return None
+    values = raw.split(";", 1)[-1]
+    nums = [float(v) for v in values.replace(",", " ").split()] if values else []
+    if len(nums) != 9:
+        raise TagError("XMP drone-dji:DewarpData", raw, "expected 'date;fx,fy,cx,cy,k1,k2,p1,p2,k3'", path)
+    return tuple(nums)
+
+
+def _read_jpeg(path: Path) -> list[CaptureMeta]:
+    """A JPEG of a multi-channel camera (Sentera Double 4K): EXIF with exifread, XMP from APP1."""
+    import exifread
+
+    data = path.read_bytes()
+    if data[:2] != b"\xff\xd8":
+        raise FrameError("not a JPEG file", path=path)
+    packet = jpeg_xmp_packet(data)
+    if packet is None:
+        raise FrameError("no XMP packet (JPEG APP1 http://ns.adobe.com/xap/1.0/)", path=path, hint=FIRMWARE_HINT)
+    import io
+
+    tags = exifread.process_file(io.BytesIO(data), details=False)
+    exif: dict[str, Any] = {}
+    gps: dict[str, Any] = {}
+    for key, tag in tags.items():
+        group, _, name = key.partition(" ")
+        value = tag.values
+        if isinstance(value, list) and len(value) == 1 and name not in ("GPSLatitude", "GPSLongitude"):
+            value = value[0]
+        if isinstance(value, str):
+            value = value.strip()
+        name = name.replace("SubSecTime", "SubsecTime")  # exifread's spelling -> tifffile's
+        (gps if group == "GPS" else exif)[name] = value
+    width = int(exif.get("ExifImageWidth") or 0)
+    height = int(exif.get("ExifImageLength") or 0)
+    if not (width and height):
+        import cv2
+
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            raise FrameError("JPEG could not be decoded", path=path)
+        height, width = img.shape[:2]
+    ctx = _Ctx(
+        path=path, xmp=Xmp.parse(packet, path), exif=exif, gps=gps, shape=(height, width), bits=8,
+        make=_clean(exif.get("Make")), model=_clean(exif.get("Model")), software=_clean(exif.get("Software")),
+        serial=_clean(exif.get("BodySerialNumber")), orientation=int(exif.get("Orientation") or 1), black_tag=None,
+    )
+    return _dispatch(ctx)
+
+
+def _sentera(ctx: _Ctx) -> list[CaptureMeta]:
+    """Sentera Double 4K (JPEG, three channels, Camera:ColorTransform) and 6X (one TIFF per
+    band). Radiance is relative: crosstalk-corrected DN / (ISO/100 x exposure), Sentera's
+    "autoexposure" normalisation (SenteraLLC py-radiometric-corrections); the ILS
+    (``Camera:SunSensor``) is kept as the band's sun-sensor reading, in counts."""
+    x, path = ctx.xmp, ctx.path
+    exposure, gain = _exposure_and_gain(ctx.exif, path)
+    names = x.texts("BandName") or []
+    wls = ctx.required("CentralWavelength")
+    fwhms = ctx.optional(None, lambda: x.numbers("WavelengthFWHM")) or ()
+    if len(names) != len(wls):
+        raise FrameError(f"XMP BandName has {len(names)} names, CentralWavelength {len(wls)} values", path=path)
+    matrix = None
+    if x.has("ColorTransform", ("Camera",)):
+        matrix = ctx.required("ColorTransform", ("Camera",))
+        if len(matrix) != len(names) ** 2:
+            raise FrameError(f"XMP Camera:ColorTransform has {len(matrix)} values, expected {len(names)}x{len(names)} "
+                             "(one row per band)", path=path)
+    sun = ctx.optional("sun_sensor", lambda: x.numbers("SunSensor", ("Camera",), len(names)))
+    common = _finish(ctx)
+    out = []
+    for i, (name, wl) in enumerate(zip(names, wls)):
+        if wl <= 0 or name.lower() == "garbage":  # a channel Sentera writes for crosstalk only
+            continue
+        _check_wavelength(wl, path)
+        out.append(CaptureMeta(
+            path=path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=name, wavelength_nm=wl,
+            fwhm_nm=fwhms[i] if i < len(fwhms) and fwhms[i] > 0 else None, exposure_s=exposure, gain=gain,
+            black_levels=_black_levels(ctx), dark_row_values=None, radiometric_calibration=None,
+            vignetting_center=None, vignetting_polynomial=None, vignetting_polynomial_2d=None,
+            vignetting_polynomial_2d_exponents=None,
+            irradiance=sun[i] if sun is not None and sun[i] > 0 else None, radiometry="sentera",
+            channel=i if len(names) > 1 else None, channel_mix=matrix, iso=gain * 100.0,
+            irradiance_unit="1 (Sentera ILS counts)", **common,
+        ))
+    if not out:
+        raise FrameError("no usable band (every CentralWavelength is 0)", path=path)
+    return out
 
 
 # --------------------------------------------------------------------------- factory model
@@ -289,6 +683,14 @@ def meta_from_tags(path: Path, tags: dict[int, Any], shape: tuple[int, int], bit
 
 def factory_vignetting(meta: CaptureMeta) -> np.ndarray:
     """The factory vignetting correction ``(H, W)`` of one band file (>= 1, multiplies DN)."""
+    if meta.radiometry == "dji":
+        assert meta.dji_center is not None and meta.dji_vignetting is not None
+        return dji_vignetting_correction(meta.shape, meta.dji_center, meta.dji_vignetting)
+    if meta.radiometry in ("sentera", "thermal"):
+        return np.ones(meta.shape)
+    if meta.radiometry == "sequoia":
+        assert meta.vignetting_polynomial_2d is not None and meta.vignetting_polynomial_2d_exponents is not None
+        return vignetting_2d(meta.shape, meta.vignetting_polynomial_2d, meta.vignetting_polynomial_2d_exponents)
     return vignetting_map(
         meta.shape,
         meta.vignetting_center,
@@ -309,11 +711,43 @@ class FieldParts:
     dn_shift: int = 0  # stored DN = sensor DN << dn_shift (4 for 12-bit data in 16-bit TIFFs)
 
 
-def factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None = None) -> np.ndarray:
-    """Radiance (W m-2 sr-1 nm-1) of one band file's DN with its own factory calibration,
-    or with the field-fitted ``parts`` in place of the factory's response and/or vignetting."""
+def factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None = None,
+                     channels: np.ndarray | None = None) -> np.ndarray:
+    """Radiance of one band's DN with its own factory model (unit: ``meta.radiance_unit``;
+    kelvin for a thermal band), or with the field-fitted ``parts`` in place of the factory's
+    response and/or vignetting (MicaSense model only). ``channels``: the whole ``(H, W, C)``
+    image of a multi-channel file (Sentera), which the colour transform needs. The result is
+    in the stored orientation (see :func:`upright_meta`)."""
     if dn.shape != meta.shape:
         raise FrameError(f"image {dn.shape} does not match its metadata {meta.shape}", path=meta.path)
+    if parts is not None and (parts.vignetting is not None or parts.inverse_response is not None) and \
+            meta.radiometry != "micasense":
+        raise FrameError(f"field components replace parts of MicaSense's model only, not {meta.radiometry}'s",
+                         path=meta.path, hint="leave out --field-calibration for this camera")
+    if meta.radiometry == "thermal":
+        return thermal_kelvin(dn)
+    if meta.radiometry == "dji":
+        return dji_camera_value(dn, black_level=meta.black_level, sensor_gain=meta.gain,
+                                exposure_us=meta.exposure_s * 1e6, vignetting=factory_vignetting(meta),
+                                gain_adjustment=meta.gain_adjustment or 1.0)
+    if meta.radiometry == "sequoia":
+        assert meta.sensor_model is not None and meta.f_number is not None and meta.iso is not None
+        return sequoia_irradiance(dn, f_number=meta.f_number, exposure_s=meta.exposure_s, iso=meta.iso,
+                                  sensor_model=meta.sensor_model, vignetting=factory_vignetting(meta))
+    if meta.radiometry == "sentera":
+        if meta.channel_mix is not None and meta.channel is not None:
+            if channels is None:
+                raise FrameError("the colour transform needs every channel of the file", path=meta.path)
+            mixed = color_transform(channels, meta.channel_mix, [meta.channel])[0]
+            n = channels.shape[2]
+            used = [j for j in range(n) if meta.channel_mix[n * meta.channel + j] != 0]
+            clipped = np.any(channels[:, :, used] >= 2**meta.bits_per_sample - 1, axis=2)
+        else:
+            mixed = np.asarray(dn, dtype=np.float64)
+            clipped = np.asarray(dn) >= 2**meta.bits_per_sample - 1
+        out = np.maximum((mixed - meta.black_level) / (meta.gain * meta.exposure_s), 0.0)
+        out[clipped] = np.nan  # a clipped channel in the mix: the band is unknown there (Sentera excludes them)
+        return out
     vignetting = factory_vignetting(meta)
     signal = None
     if parts is not None and parts.vignetting is not None:
@@ -326,6 +760,7 @@ def factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None
         c = field_response_scale(parts.inverse_response, dn_shift=parts.dn_shift, black_level=meta.black_level,
                                  bits_per_sample=meta.bits_per_sample)
         signal = field_response_signal(dn, parts.inverse_response, dn_shift=parts.dn_shift, scale=c)
+    assert meta.radiometric_calibration is not None
     return radiance(
         dn,
         exposure_s=meta.exposure_s,
@@ -336,6 +771,32 @@ def factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None
         bits_per_sample=meta.bits_per_sample,
         signal=signal,
     )
+
+
+def upright_meta(meta: CaptureMeta, image: np.ndarray) -> np.ndarray:
+    """``image`` (stored orientation, last two axes) as meant to be seen (EXIF Orientation;
+    Parrot Sequoia stores its frames rotated 180 degrees)."""
+    try:
+        return upright(image, meta.orientation)
+    except ValueError as exc:
+        raise FrameError(str(exc), path=meta.path) from None
+
+
+def reflectance_factor(meta: CaptureMeta) -> float | None:
+    """``k`` with reflectance ``R = k L`` from the band's own sun sensor, or None when it has
+    no usable reading. MicaSense: ``pi / E`` (E in W m-2 nm-1). DJI: ``1 / E`` (the guide's
+    ``X pCam / Irradiance``; reflectance up to one constant shared by the bands). Sequoia:
+    ``1 / E`` (the sunshine sensor's relative irradiance; Parrot: the ratio is reflectance up
+    to a constant). Sentera: None (ILS counts have no published conversion: use a panel)."""
+    e = meta.irradiance
+    if e is None or not math.isfinite(e) or e <= 0 or meta.radiometry in ("sentera", "thermal", "panchro"):
+        return None
+    return math.pi / e if meta.radiometry == "micasense" else 1.0 / e
+
+
+def sun_sensor_absolute(meta: CaptureMeta) -> bool:
+    """Whether the sun-sensor route gives absolute reflectance (MicaSense) or relative."""
+    return meta.radiometry == "micasense"
 
 
 # --------------------------------------------------------------------------- irradiance (issue 8)
@@ -363,10 +824,14 @@ def xmp_irradiance(path: str | Path) -> float | None:
     if packet is None:
         return None
     try:
-        props = xmp_properties(packet, path)
+        x = Xmp.parse(packet, path)
     except FrameError:
         return None
-    values = _optional_floats(props, "Irradiance", path)
+    try:
+        values = x.numbers("Irradiance")
+    except TagError as exc:
+        raise FrameError(f"XMP {exc.reason}", path=path,
+                         hint="the sun sensor reading is unusable; remove the frame or give an irradiance column in frames.csv") from None
     if not values:
         return None
     if not (math.isfinite(values[0]) and values[0] > 0):
@@ -392,58 +857,100 @@ DEFAULT_CAPTURE_PATTERN = r"^(?P<capture>.+)_(?P<band>[0-9]+)\.tif$"
 
 @dataclass(frozen=True)
 class Capture:
-    """One capture of a one-file-per-band camera: its band files in band order."""
+    """One capture: its bands' metadata in band (catalog) order, and the files of bands that
+    are read but not part of reflectance (``skipped``: ``{file, band, reason}``)."""
 
     name: str  # file name stem without the band suffix, e.g. IMG_0000
     capture_id: str
     metas: tuple[CaptureMeta, ...]  # ordered by band (catalog order, else by suffix)
+    skipped: tuple[dict[str, str], ...] = ()
 
     @property
     def files(self) -> tuple[Path, ...]:
-        return tuple(m.path for m in self.metas)
+        out: list[Path] = []
+        for m in self.metas:
+            if m.path not in out:
+                out.append(m.path)
+        return tuple(out)
+
+    @property
+    def problems(self) -> list[TagProblem]:
+        seen: list[TagProblem] = []
+        for m in self.metas:
+            for p in m.problems:
+                if p not in seen:
+                    seen.append(p)
+        return seen
+
+
+def capture_pattern(camera: Camera | None) -> re.Pattern[str]:
+    """The file-name pattern of a camera's captures (named groups ``capture`` and ``band``)."""
+    text = (camera.layout.capture_pattern if camera is not None else None) or DEFAULT_CAPTURE_PATTERN
+    return re.compile(text)
 
 
 def group_captures(
     folder: str | Path, camera: Camera | None = None
 ) -> tuple[list[Capture], list[dict[str, str]]]:
-    """Group ``IMG_XXXX_<band>.tif`` files into captures by their name and check them.
+    """Group a folder's band files into captures by their name and check them.
 
     With ``camera`` its ``capture_pattern`` and band list are used: every band's file must be
-    present and its XMP BandName must be the catalog's. Without it, the band suffixes seen in
-    the folder are expected in every capture. The band files of one capture must carry one
-    XMP CaptureId, and no two captures may share one (the later name is a copy).
+    present and its XMP BandName must be the catalog's (case aside); files of the camera's
+    ``skip_bands`` (a panchromatic or thermal band) are named in ``Capture.skipped``. Without
+    it, the band suffixes seen in the folder are expected in every capture. The band files of
+    one capture must carry one XMP capture id, and no two captures may share one (the later
+    name is a copy). One file holding several bands (a Sentera JPEG) is one capture.
 
     Returns the complete captures (sorted by name) and one problem per incomplete or unusable
     capture as ``[{file, reason}]`` (``file`` the offending band file, else the capture's first
     file), for the run's quarantine list.
     """
     folder = Path(folder)
-    pattern = re.compile(camera.layout.capture_pattern or DEFAULT_CAPTURE_PATTERN) if camera else re.compile(
-        DEFAULT_CAPTURE_PATTERN
-    )
+    pattern = capture_pattern(camera)
+    per_file = camera is not None and camera.layout.kind == "file_per_capture"
+    skip = {s.name.casefold(): s for s in (camera.skip_bands if camera is not None else ())}
     by_name: dict[str, dict[str, CaptureMeta]] = {}
     unusable: dict[str, list[tuple[Path, str]]] = {}
+    skipped: dict[str, list[dict[str, str]]] = {}
     for path in sorted(folder.iterdir()):
         m = pattern.match(path.name)
         if m is None or not path.is_file():
             continue
         bands = by_name.setdefault(m["capture"], {})
         try:
-            bands[m["band"]] = read_capture_meta(path)
+            metas = read_file_metas(path)
         except FrameError as exc:
-            unusable.setdefault(m["capture"], []).append((path, exc.reason))
-    expected = _expected_suffixes(camera, by_name)
+            s = next((s for s in skip.values() if not per_file and s.file_suffix == m["band"]), None)
+            if s is not None:  # the file of a band kept out of reflectance anyway: named, not fatal
+                skipped.setdefault(m["capture"], []).append(
+                    {"file": str(path), "band": s.name, "reason": f"{s.reason}; unreadable: {exc.reason}"})
+            else:
+                unusable.setdefault(m["capture"], []).append((path, exc.reason))
+            continue
+        if per_file:
+            for meta in metas:
+                bands[str(meta.channel)] = meta
+        else:
+            bands[m["band"]] = metas[0]
+    for name, bands in by_name.items():  # bands kept out of reflectance, recognised by their XMP BandName
+        for key in [k for k, meta in bands.items() if meta.band_name.casefold() in skip]:
+            s = skip[bands[key].band_name.casefold()]
+            skipped.setdefault(name, []).append({"file": str(bands[key].path), "band": s.name, "reason": s.reason})
+            del bands[key]
     problems: list[dict[str, str]] = []
     captures: list[Capture] = []
-    owner: dict[str, str] = {}  # CaptureId -> the first capture name that carries it
+    owner: dict[str, str] = {}  # capture id -> the first capture name that carries it
     for name in sorted(by_name):
         bands = by_name[name]
-        first = min([m.path for m in bands.values()] + [p for p, _ in unusable.get(name, [])])
+        files = [m.path for m in bands.values()] + [p for p, _ in unusable.get(name, [])]
+        files += [Path(s["file"]) for s in skipped.get(name, [])]
+        first = min(files)
         if name in unusable:
             (path, why), more = unusable[name][0], len(unusable[name]) - 1
             problems.append({"file": str(path), "reason": f"capture {name}: band file {path.name}: {why}"
                              + (f" (and {more} more unusable band file(s))" if more else "")})
             continue
+        expected = _by_band_name(bands, camera) or _expected_suffixes(camera, by_name)
         reason = _capture_problem(bands, expected, name, camera)
         ids = sorted({m.capture_id for m in bands.values() if m.capture_id})
         if reason is None and len(ids) > 1:
@@ -455,12 +962,33 @@ def group_captures(
             problems.append({"file": str(first), "reason": reason})
             continue
         owner[cid] = name
-        captures.append(Capture(name=name, capture_id=cid, metas=tuple(bands[s] for s in expected)))
+        captures.append(Capture(name=name, capture_id=cid, metas=tuple(bands[s] for s in expected),
+                                skipped=tuple(skipped.get(name, []))))
     return captures, problems
+
+
+def _by_band_name(bands: dict[str, CaptureMeta], camera: Camera | None) -> list[str] | None:
+    """The file keys in catalog band order when every catalog band is found, once, by its XMP
+    BandName (case aside) and no other band is left: the manufacturer's file numbering then
+    does not matter. None otherwise (the suffix check names what is wrong)."""
+    if camera is None or len(bands) != camera.n_bands:
+        return None
+    by = {}
+    for key, meta in bands.items():
+        by.setdefault(meta.band_name.casefold(), []).append(key)
+    keys = []
+    for b in camera.bands:
+        found = by.get(b.name.casefold(), [])
+        if len(found) != 1:
+            return None
+        keys.append(found[0])
+    return keys
 
 
 def _expected_suffixes(camera: Camera | None, by_id: dict[str, dict[str, CaptureMeta]]) -> list[str]:
     if camera is not None:
+        if camera.layout.kind == "file_per_capture":
+            return [str(b.channel) for b in camera.bands]
         return [str(b.file_suffix) for b in camera.bands]
     seen = {s for bands in by_id.values() for s in bands}
     return sorted(seen, key=lambda s: (len(s), s))
@@ -472,6 +1000,8 @@ def _capture_problem(
     """Why a capture's files do not make one complete capture, or None."""
     missing = [s for s in expected if s not in bands]
     extra = sorted(set(bands) - set(expected))
+    if camera is not None and camera.layout.kind == "file_per_capture":
+        extra = []  # channels the catalog does not use (e.g. Sentera's Garbage) are not an error
     if missing or extra:
         parts = ([f"missing band file(s) {', '.join(missing)}"] if missing else []) + (
             [f"unexpected band file(s) {', '.join(extra)}"] if extra else []
@@ -479,10 +1009,48 @@ def _capture_problem(
         return f"capture {name}: {'; '.join(parts)}"
     if camera is not None:
         wrong = [
-            f"_{b.file_suffix} is {bands[str(b.file_suffix)].band_name!r}, catalog says {b.name!r}"
-            for b in camera.bands
-            if bands[str(b.file_suffix)].band_name != b.name
+            f"_{k} is {bands[k].band_name!r}, catalog says {b.name!r}"
+            for k, b in zip(expected, camera.bands)
+            if bands[k].band_name.casefold() != b.name.casefold()
         ]
         if wrong:
             return f"capture {name}: band names differ from camera {camera.name}: {'; '.join(wrong)}"
     return None
+
+
+# --------------------------------------------------------------------------- pixels
+
+
+def read_capture_pixels(capture: Capture) -> tuple[str, list[np.ndarray], dict[Path, np.ndarray]]:
+    """Content hash (over the capture's files, in band order), the stored DN of each band
+    (its channel, for a multi-channel file) and the whole ``(H, W, C)`` image of every
+    multi-channel file (for :func:`factory_radiance`'s colour transform)."""
+    from hashlib import sha256
+
+    from pipeline.ingest.session import decode_raw
+
+    h = sha256()
+    decoded: dict[Path, np.ndarray] = {}
+    for path in capture.files:
+        data = path.read_bytes()
+        h.update(data)
+        try:
+            decoded[path] = np.asarray(decode_raw(data, path))
+        except FrameError:
+            raise
+        except Exception as exc:  # tifffile raises IndexError/ValueError on truncated files
+            raise FrameError(f"unreadable band file ({type(exc).__name__}: {exc})", path=path) from None
+    dns = []
+    stacks: dict[Path, np.ndarray] = {}
+    for meta in capture.metas:
+        img = decoded[meta.path]
+        if meta.channel is not None:
+            if img.ndim != 3 or img.shape[2] <= meta.channel:
+                raise FrameError(f"image {img.shape} has no channel {meta.channel} (band {meta.band_name})",
+                                 path=meta.path)
+            stacks[meta.path] = img
+            img = img[:, :, meta.channel]
+        if img.shape != meta.shape:
+            raise FrameError(f"image {img.shape} does not match its metadata {meta.shape}", path=meta.path)
+        dns.append(np.asarray(img).astype(np.uint16, copy=False))
+    return h.hexdigest(), dns, stacks

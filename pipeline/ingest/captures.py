@@ -22,7 +22,8 @@ from mscal_core.errors import FrameError, SessionError
 
 from pipeline.ingest.catalog import Camera
 from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
-from pipeline.ingest.intrinsics import EXIF_CODES, rational, tiff_tags
+from pipeline.ingest.exif import rational
+from pipeline.ingest.intrinsics import EXIF_CODES, tiff_tags
 from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES, FrameRecord, read_frame_table
 
 EXPOSURE_TIME, ISO_SPEED_RATINGS, ISO_SPEED, DATE_TIME_ORIGINAL, SUBSEC_ORIGINAL = (

@@ -29,7 +29,8 @@ from mscal_core.reflectance import keep_valid
 
 #: The catalogs shipped with mscal (the ``catalogs`` package's folder).
 CATALOG_ROOT = Path(str(importlib.resources.files("catalogs")))
-LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band")
+LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band", "file_per_capture")
+FACTORY_MODELS = ("micasense", "sequoia", "dji", "sentera")
 
 
 def catalog_dirs(kind: str) -> list[Path]:
@@ -137,6 +138,27 @@ class Layout:
 
 
 @dataclass(frozen=True)
+class SkipBand:
+    """A band a camera writes that is read but kept out of reflectance (a panchromatic band at
+    another resolution, a thermal band), and why."""
+
+    name: str
+    file_suffix: str
+    reason: str
+
+
+@dataclass(frozen=True)
+class Identify:
+    """How a camera is recognised from its files (EXIF Make/Model, XMP Camera:RigName, the
+    number of bands one capture holds). ``models``/``rig_names`` empty: any."""
+
+    make: str
+    models: tuple[str, ...] = ()
+    rig_names: tuple[str, ...] = ()
+    bands_per_capture: int | None = None  # every band file of one capture id, skipped ones included
+
+
+@dataclass(frozen=True)
 class Camera:
     """A camera catalog entry (``catalogs/cameras/<name>.yaml``)."""
 
@@ -150,6 +172,10 @@ class Camera:
     export_bands: tuple[str, ...] = ()
     source: str = ""
     container_bits: int | None = None  # bits per stored sample when the data sit in its high bits
+    identify: Identify | None = None
+    factory_model: str | None = None  # radiometric model of the files' own metadata (FACTORY_MODELS)
+    skip_bands: tuple[SkipBand, ...] = ()
+    sources: tuple[str, ...] = ()  # the manufacturer's documents the entry is taken from
 
     @property
     def dn_max(self) -> int:
@@ -185,13 +211,15 @@ class Camera:
 
 
 _CAMERA_REQUIRED = {"name", "description", "bit_depth", "layout", "bands"}
-_CAMERA_OPTIONAL = {"sensor", "index_bands", "export_bands", "container_bits"}
+_CAMERA_OPTIONAL = {"sensor", "index_bands", "export_bands", "container_bits", "identify", "factory_model",
+                    "skip_bands", "sources"}
 _BAND_REQUIRED = {"name", "wavelength_nm"}
 _BAND_OPTIONAL = {"fwhm_nm", "mosaic", "channel", "file_suffix"}
 _LAYOUT_KEYS = {
     "mosaic": ({"kind", "pattern", "grid"}, {"origin"}),
     "multichannel": ({"kind", "channels"}, set()),
     "file_per_band": ({"kind", "capture_pattern"}, set()),
+    "file_per_capture": ({"kind", "capture_pattern"}, set()),
 }
 
 
@@ -205,6 +233,7 @@ def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
     _check_bands_fit_layout(bands, layout, path)
     sensor = _parse_sensor(data.get("sensor"), layout, path)
     index_bands, export = _parse_index_and_export_bands(data, [b.name for b in bands], path)
+    identify, model, skip, sources = _parse_factory(data, [b.name for b in bands], path)
     camera = Camera(
         name=str(data["name"]),
         description=str(data["description"]),
@@ -216,6 +245,10 @@ def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
         export_bands=export,
         source=str(path),
         container_bits=container,
+        identify=identify,
+        factory_model=model,
+        skip_bands=skip,
+        sources=sources,
     )
     for role, wl in camera.index_bands.items():
         try:
@@ -245,7 +278,7 @@ def _parse_bit_depths(data: Mapping[str, Any], path: Path) -> tuple[int, int | N
 
 
 def _parse_layout(lay: Any, path: Path) -> Layout:
-    """The ``layout`` mapping: a mosaic, a multichannel image or one file per band."""
+    """The ``layout`` mapping: a mosaic, a multichannel image, one file per band or per capture."""
     if not isinstance(lay, dict) or lay.get("kind") not in LAYOUT_KINDS:
         raise CatalogError(
             f"layout.kind must be one of {', '.join(LAYOUT_KINDS)}",
@@ -269,11 +302,13 @@ def _parse_layout(lay: Any, path: Path) -> Layout:
         rx = re.compile(str(lay["capture_pattern"]))
     except re.error as exc:
         raise CatalogError(f"layout.capture_pattern is not a valid regex: {exc}", path=path) from None
-    if not {"capture", "band"} <= set(rx.groupindex):
+    need = {"capture", "band"} if lay["kind"] == "file_per_band" else {"capture"}
+    if not need <= set(rx.groupindex):
         raise CatalogError(
-            "layout.capture_pattern needs named groups (?P<capture>...) and (?P<band>...)", path=path
+            f"layout.capture_pattern needs named groups {', '.join(f'(?P<{g}>...)' for g in sorted(need))}",
+            path=path,
         )
-    return Layout(kind="file_per_band", capture_pattern=rx.pattern)
+    return Layout(kind=lay["kind"], capture_pattern=rx.pattern)
 
 
 def _parse_bands(raw_bands: Any, path: Path) -> list[Band]:
@@ -321,6 +356,10 @@ def _check_bands_fit_layout(bands: list[Band], layout: Layout, path: Path) -> No
                 f"a {layout.channels}-channel camera needs one band per channel with 'channel: 0..{len(bands) - 1}'",
                 path=path,
             )
+    elif layout.kind == "file_per_capture":
+        chans = [b.channel for b in bands]
+        if any(not isinstance(c, int) or c < 0 for c in chans) or len(set(chans)) != len(chans):
+            raise CatalogError("one-file-per-capture cameras need a unique 'channel' (0, 1, ...) per band", path=path)
     else:
         sufs = [b.file_suffix for b in bands]
         if any(s is None for s in sufs) or len(set(sufs)) != len(sufs):
@@ -363,6 +402,60 @@ def _parse_index_and_export_bands(data: Mapping[str, Any], names: list[str], pat
     if unknown_export:
         raise CatalogError(f"export_bands names unknown band(s) {', '.join(unknown_export)}", path=path)
     return {str(k): float(v) for k, v in index_bands.items()}, export
+
+
+def _parse_factory(data: Mapping[str, Any], names: list[str], path: Path
+                   ) -> tuple["Identify | None", str | None, tuple["SkipBand", ...], tuple[str, ...]]:
+    """``identify``, ``factory_model`` (cited in ``sources``), ``skip_bands`` and ``sources``."""
+    identify = _parse_identify(data.get("identify"), path)
+    model = data.get("factory_model")
+    if model is not None and model not in FACTORY_MODELS:
+        raise CatalogError(f"factory_model must be one of {', '.join(FACTORY_MODELS)}, got {model!r}", path=path)
+    skip = _parse_skip_bands(data.get("skip_bands"), path, names)
+    sources = data.get("sources") or []
+    if not isinstance(sources, list) or not all(isinstance(x, str) and x.strip() for x in sources):
+        raise CatalogError("sources must be a list of citations (text)", path=path)
+    if model is not None and not sources:
+        raise CatalogError("a camera with a factory_model must cite the manufacturer's documents in 'sources'",
+                           path=path)
+    return identify, model, skip, tuple(sources)
+
+
+def _parse_identify(value: Any, path: Path) -> Identify | None:
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise CatalogError("identify must be a mapping {make, models, rig_names, bands_per_capture}",
+                           path=path)
+    check_keys(value, {"make"}, {"models", "rig_names", "bands_per_capture"}, path, "identify")
+
+    def texts(key: str) -> tuple[str, ...]:
+        v = value.get(key) or []
+        if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+            raise CatalogError(f"identify.{key} must be a list of strings", path=path)
+        return tuple(v)
+
+    n = value.get("bands_per_capture")
+    if n is not None and (not isinstance(n, int) or isinstance(n, bool) or n < 1):
+        raise CatalogError(f"identify.bands_per_capture must be a positive integer, got {n!r}", path=path)
+    return Identify(make=str(value["make"]), models=texts("models"), rig_names=texts("rig_names"),
+                    bands_per_capture=n)
+
+
+def _parse_skip_bands(value: Any, path: Path, names: list[str]) -> tuple[SkipBand, ...]:
+    if value is None:
+        return ()
+    if not isinstance(value, list):
+        raise CatalogError("skip_bands must be a list of {name, file_suffix, reason}", path=path)
+    out = []
+    for k, v in enumerate(value):
+        if not isinstance(v, dict):
+            raise CatalogError(f"skip_bands[{k}] must be a mapping", path=path)
+        check_keys(v, {"name", "file_suffix", "reason"}, set(), path, f"skip_bands[{k}]")
+        if str(v["name"]) in names:
+            raise CatalogError(f"skip_bands[{k}] {v['name']!r} is also in bands", path=path)
+        out.append(SkipBand(str(v["name"]), str(v["file_suffix"]), str(v["reason"])))
+    return tuple(out)
 
 
 def _find(kind: str, name: str) -> Path:

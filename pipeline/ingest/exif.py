@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 import re
 from datetime import datetime, timezone
 from fractions import Fraction
@@ -48,12 +49,14 @@ U32 = 2**32 - 1
 
 def rational(value: Any) -> float:
     """A RATIONAL as float: a ``(num, den)`` tuple (tifffile), an object with ``num`` and
-    ``den`` (exifread), a one-item sequence of either, or a plain number. A zero denominator
-    gives NaN (some firmware writes ``0/0`` for unknown)."""
+    ``den`` (exifread), a sequence of either (the first), or a plain number. A zero
+    denominator gives NaN (some firmware writes ``0/0`` for unknown)."""
     if isinstance(value, (list, tuple)) and len(value) == 1:
         value = value[0]
     if hasattr(value, "values") and not isinstance(value, (list, tuple)):  # an exifread tag
         return rational(value.values[0])
+    if isinstance(value, (list, tuple)) and not (len(value) == 2 and all(isinstance(v, numbers.Integral) for v in value)):
+        return rational(value[0]) if value else math.nan  # several RATIONALs (e.g. per CFA cell): the first
     if isinstance(value, tuple) and len(value) == 2:
         num, den = value
     elif hasattr(value, "num") and hasattr(value, "den"):

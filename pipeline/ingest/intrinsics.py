@@ -30,6 +30,7 @@ from mscal_core.errors import FrameError, SessionError
 from mscal_core.geometry import Intrinsics
 
 from pipeline.ingest.camera_meta import xmp_properties
+from pipeline.ingest.exif import rational
 
 #: Parameter order of the store's ``intrinsics (band, intrinsics_param)`` variable.
 INTRINSICS_PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
@@ -47,15 +48,6 @@ EXIF_CODES = {
     "FocalPlaneYResolution": FOCAL_PLANE_Y_RES, "FocalPlaneResolutionUnit": FOCAL_PLANE_UNIT,
 }
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}  # mm per unit: inch, cm, mm, um
-
-
-def rational(value: Any) -> float:
-    """A TIFF RATIONAL as tifffile gives it ((num, den), or a tuple of them) or a number, as float."""
-    if isinstance(value, tuple):
-        if len(value) == 2 and all(isinstance(v, int) for v in value):
-            return value[0] / value[1] if value[1] else float("nan")
-        return rational(value[0]) if value else float("nan")
-    return float(value)
 
 
 def tiff_tags(path: Path) -> dict[int, Any]:
@@ -186,7 +178,6 @@ def intrinsics_from_array(values: np.ndarray) -> tuple[Intrinsics, ...]:
 __all__ = [
     "EXIF_CODES",
     "INTRINSICS_PARAMS",
-    "rational",
     "band_intrinsics_from_files",
     "intrinsics_array",
     "intrinsics_from_array",

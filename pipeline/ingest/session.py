@@ -581,14 +581,14 @@ def to_bands(img: np.ndarray, camera: Camera, path: Path | str = "") -> np.ndarr
             )
         assert lay.pattern is not None
         bands = demosaic(img, lay.pattern, lay.origin, lay.grid)
-    elif lay.kind == "multichannel":
-        if img.ndim != 3 or img.shape[2] < camera.n_bands:
+    elif lay.kind in ("multichannel", "file_per_capture"):  # the second: bands are some channels (Sentera)
+        order = [int(b.channel) for b in camera.bands]  # type: ignore[arg-type]
+        if img.ndim != 3 or img.shape[2] <= max(order):
             raise FrameError(
-                f"expected {camera.n_bands} channels, got shape {img.shape}",
+                f"expected {max(order) + 1} channels, got shape {img.shape}",
                 path=path,
                 hint=f"camera {camera.name} stores one band per channel",
             )
-        order = [b.channel for b in camera.bands]
         bands = np.moveaxis(img[:, :, order], 2, 0)
     else:
         if img.ndim != 2:

@@ -196,6 +196,8 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
 @click.option("--reference", default="auto", show_default=True, type=click.Choice(["auto", "panel", "dls"]),
               help="--calibration factory only: reflectance from a panel capture or from the sun sensor (DLS); "
                    "auto takes the panel when --panel-reflectance is given.")
+@click.option("--camera", default=None, help="--calibration factory: the catalog camera (default: recognised from "
+              "the files' Make/Model and XMP; see 'mscal cameras FOLDER').")
 @click.option("--float32", "float32", is_flag=True, help="Photogrammetry TIFFs as float32 instead of uint16 x 32768.")
 @click.option("--export-bands", default=None, help="Comma-separated band names for the per-frame TIFFs (default: the camera's).")
 @click.option("--strict", is_flag=True, help="Exit non-zero if any frame was quarantined.")
@@ -218,7 +220,7 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
                    "store holds). E.g. 'vignetting': field V (Eq. 8-10) with the factory response.")
 @execution_options
 def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str | None, panel_reflectance: str | None,
-          reference: str, float32: bool, export_bands: str | None, strict: bool,
+          reference: str, camera: str | None, float32: bool, export_bands: str | None, strict: bool,
           illumination: str, no_align: bool, registration: Path | None, centre_bands: bool,
           field_calibration: Path | None, field_components: str | None, scheduler: str, workers: int,
           direct_io: bool) -> None:
@@ -252,11 +254,14 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
             field_components=tuple(c.strip() for c in field_components.split(",") if c.strip())
             if field_components else (),
             execution=execution,
+            camera=camera,
         )
         _report_apply(apply_factory(flight, out, fopts), out, strict)
         return
     if reference != "auto":
         raise InputError("--reference is for --calibration factory")
+    if camera is not None:
+        raise InputError("--camera is for --calibration factory; a calibration store names its camera")
     if field_calibration is not None or field_components is not None:
         raise InputError("--field-calibration/--field-components are for --calibration factory; "
                          "--calibration CALIB.zarr already uses every field fit")
@@ -274,6 +279,19 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
         centre_bands=centre_bands, execution=execution,
     )
     _report_apply(apply_flight(flight, calibration, out, opts), out, strict)
+
+
+@cli.command()
+@click.argument("folder", type=click.Path(path_type=Path))
+@click.option("--camera", default=None, help="Catalog camera to read the folder as, instead of recognising it.")
+def cameras(folder: Path, camera: str | None) -> None:
+    """What camera wrote the captures in FOLDER (and its subfolders), how many captures and
+    bands it holds, and which features (factory radiance, sun sensor, panel area, ...) its
+    metadata allows."""
+    from pipeline.ingest.identify import describe_folders
+
+    for line in describe_folders(folder, camera):
+        click.echo(line)
 
 
 def _report_apply(res: Any, out: Path, strict: bool) -> None:

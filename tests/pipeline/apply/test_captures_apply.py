@@ -71,9 +71,9 @@ def test_factory_and_field_chains_run_in_the_same_executor(store, tmp_path, monk
     seen: list[tuple[str, str]] = []
     real = executor.radiometry
 
-    def spy(camera, chain, job, dn):  # noqa: ANN001, ANN202
+    def spy(camera, chain, job, dn, channels=None):  # noqa: ANN001, ANN202
         seen.append((chain.kind, job.name))
-        return real(camera, chain, job, dn)
+        return real(camera, chain, job, dn, channels)
 
     monkeypatch.setattr(executor, "radiometry", spy)
     monkeypatch.setenv("MSCAL_APPLY_SCHEDULER", "threads")

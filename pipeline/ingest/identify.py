@@ -1,0 +1,214 @@
+"""Which catalog camera wrote a folder of captures, from the files' own metadata.
+
+The camera is recognised from EXIF Make/Model and the XMP camera tags of a whole capture --
+``Camera:RigName``, the band names and how many band files share one capture id
+(``MicaSense:CaptureId``, ``Camera:CaptureUUID``, ``drone-dji:CaptureUUID``) -- never from one
+file's name or band name: a RedEdge-MX Dual capture is ten files with one CaptureId, a RedEdge
+capture five. Each catalog camera with a ``factory_model`` says how it is recognised
+(``identify`` in ``catalogs/cameras/<name>.yaml``). ``--camera NAME`` skips all this.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mscal_core.errors import FrameError, InputError
+
+from pipeline.ingest.camera_meta import CaptureMeta, read_file_metas
+from pipeline.ingest.catalog import Camera, list_entries, load_camera
+
+IMAGE_SUFFIXES = (".tif", ".tiff", ".jpg", ".jpeg")
+PROBE_FILES = 24  # band files read to recognise a camera (metadata only)
+
+
+@dataclass
+class Probe:
+    """What the first band files of a folder say about their camera."""
+
+    folder: Path
+    metas: list[CaptureMeta] = field(default_factory=list)
+    unreadable: list[tuple[Path, str]] = field(default_factory=list)
+
+    def best_capture(self) -> list[CaptureMeta]:
+        """The band files of one typical capture: files grouped by capture id (and by name
+        without its last ``_part``, so that a copied capture stays apart; a file without an
+        id is a capture of its own), then a group of the most common size (an incomplete
+        capture does not decide), the largest of those."""
+        groups: dict[tuple[str, str], list[CaptureMeta]] = {}
+        for m in self.metas:
+            key = (m.capture_id or str(m.path), m.path.stem.rsplit("_", 1)[0] if m.capture_id else "")
+            if m not in groups.setdefault(key, []):
+                groups[key].append(m)
+        if not groups:
+            return []
+        sizes = Counter(len(g) for g in groups.values())
+        return max(groups.values(), key=lambda g: (sizes[len(g)], len(g)))
+
+    def describe(self) -> dict[str, object]:
+        cap = self.best_capture()
+        first = cap[0] if cap else None
+        return {
+            "make": first.make if first else None,
+            "model": first.model if first else None,
+            "rig_name": first.rig_name if first else None,
+            "serial": first.serial if first else None,
+            "firmware": first.software if first else None,
+            "bands_per_capture": len(cap),
+            "band_names": [m.band_name for m in sorted(cap, key=_band_order)],
+        }
+
+
+def _band_order(m: CaptureMeta) -> tuple[int, str]:
+    return (m.rig_camera_index if m.rig_camera_index is not None else 10**6, m.path.name)
+
+
+def probe_folder(folder: str | Path, limit: int = PROBE_FILES) -> Probe:
+    """Read the metadata of the folder's first ``limit`` image files: its own, then (an SD
+    card's ``0000SET/000/``) those of the folders below it, by path (hidden folders left out)."""
+    folder = Path(folder)
+    probe = Probe(folder)
+    files = sorted((p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
+                    and not any(part.startswith(".") for part in p.relative_to(folder).parts)),
+                   key=lambda p: (len(p.relative_to(folder).parts), p))
+    for path in files[:limit]:
+        try:
+            probe.metas.extend(read_file_metas(path))
+        except FrameError as exc:
+            probe.unreadable.append((path, exc.reason))
+    return probe
+
+
+def factory_cameras() -> list[Camera]:
+    """The catalog cameras whose files carry a factory radiometric model."""
+    out = []
+    for name in list_entries("cameras"):
+        cam = load_camera(name)
+        if cam.factory_model is not None and cam.identify is not None:
+            out.append(cam)
+    return out
+
+
+def _matches(pattern: str, value: str | None) -> bool:
+    return value is not None and fnmatch.fnmatchcase(value.casefold(), pattern.casefold())
+
+
+def score(camera: Camera, probe: Probe) -> int | None:
+    """How well a camera fits the probe (higher is better), None if it cannot be it."""
+    ident = camera.identify
+    cap = probe.best_capture()
+    if ident is None or not cap:
+        return None
+    first = cap[0]
+    if (first.make or "").casefold() != ident.make.casefold():
+        return None
+    points = 1
+    if ident.models:
+        if not any(_matches(m, first.model) for m in ident.models):
+            return None
+        points += 4
+    if ident.rig_names:
+        if not any(_matches(r, first.rig_name) for r in ident.rig_names):
+            return None
+        points += 2
+    if ident.bands_per_capture is not None:
+        if len(cap) != ident.bands_per_capture:  # every band file of one capture id, skipped bands included
+            return None
+        points += 2
+    names = Counter(m.band_name.casefold() for m in cap)
+    if not all(names[b.name.casefold()] for b in camera.bands):
+        return None
+    return points + 1
+
+
+@dataclass(frozen=True)
+class Identification:
+    camera: Camera
+    evidence: str  # what in the files named it
+    probe: dict[str, object]
+    overridden: bool = False
+
+
+def identify_camera(folder: str | Path, name: str | None = None) -> Identification:
+    """The catalog camera of a capture folder (``name``: given with ``--camera``, not guessed)."""
+    folder = Path(folder)
+    probe = probe_folder(folder)
+    if name is not None:
+        return Identification(load_camera(name), f"--camera {name}", probe.describe(), overridden=True)
+    desc = probe.describe()
+    if not probe.metas:
+        why = "; ".join(f"{p.name}: {r}" for p, r in probe.unreadable[:2])
+        raise InputError("no TIFF with factory radiometric metadata (nor a JPEG) in the folder" + (f" ({why})" if why else ""),
+                         path=folder, hint="give the folder of the camera's band files, or name it with --camera NAME")
+    scored = [(s, c) for c in factory_cameras() if (s := score(c, probe)) is not None]
+    if not scored:
+        known = ", ".join(c.name for c in factory_cameras())
+        raise InputError(
+            f"no catalog camera matches Make {desc['make']!r}, Model {desc['model']!r}, rig {desc['rig_name']!r}, "
+            f"{desc['bands_per_capture']} band(s) per capture {desc['band_names']}",
+            path=folder, hint=f"name it with --camera NAME (known: {known}) or add catalogs/cameras/NAME.yaml")
+    scored.sort(key=lambda sc: -sc[0])
+    if len(scored) > 1 and scored[0][0] == scored[1][0]:
+        raise InputError(f"the files fit cameras {scored[0][1].name} and {scored[1][1].name} equally",
+                         path=folder, hint="name it with --camera NAME")
+    cam = scored[0][1]
+    evidence = (f"EXIF Make {desc['make']!r}, Model {desc['model']!r}"
+                + (f", XMP RigName {desc['rig_name']!r}" if desc["rig_name"] else "")
+                + f", {desc['bands_per_capture']} band(s) per capture id: {', '.join(map(str, desc['band_names']))}")
+    return Identification(cam, evidence, desc)
+
+
+def describe_folders(folder: str | Path, camera: str | None = None) -> list[str]:
+    """Lines for ``mscal cameras FOLDER``: per folder holding image files (FOLDER and its
+    subfolders), the camera and why, the captures, bands, features, and problems."""
+    from pipeline.ingest.camera_meta import group_captures
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError("folder not found", path=folder)
+    dirs = [folder] + sorted(p for p in folder.rglob("*") if p.is_dir())
+    lines: list[str] = []
+    for d in dirs:
+        if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in d.iterdir() if p.is_file()):
+            continue
+        lines.append(f"{d}:")
+        try:
+            ident = identify_camera(d, camera)
+        except (InputError, FrameError) as exc:
+            lines.append(f"  camera: not recognised: {exc}")
+            continue
+        cam = ident.camera
+        caps, problems = group_captures(d, cam)
+        lines.append(f"  camera: {cam.name} ({cam.description}); {ident.evidence}")
+        lines.append(f"  captures: {len(caps)} complete, {len(problems)} quarantined")
+        for q in problems[:5]:
+            lines.append(f"    quarantined {Path(q['file']).name}: {q['reason']}")
+        if caps:
+            first = caps[0]
+            bands = ", ".join(f"{m.band_name} {m.wavelength_nm:g} nm" for m in first.metas)
+            lines.append(f"  bands: {bands}")
+            for s in first.skipped:
+                lines.append(f"  skipped band {s['band']} ({Path(s['file']).name}): {s['reason']}")
+            feats: dict[str, bool] = {}
+            for c in caps:
+                for m in c.metas:
+                    for k, v in m.features().items():
+                        feats[k] = feats.get(k, True) and v
+            m0 = first.metas[0]
+            lines.append(f"  radiance model: {m0.radiometry} ({m0.radiance_unit})")
+            if m0.orientation not in (0, 1):
+                lines.append(f"  stored with EXIF Orientation {m0.orientation}: turned upright by apply")
+            lines.append("  features: " + ", ".join(f"{k} {'yes' if v else 'no'}" for k, v in feats.items()))
+            seen = set()
+            for c in caps:
+                for p in c.problems:
+                    key = (p.tag, p.reason, p.feature)
+                    if key in seen:
+                        continue
+                    seen.add(key)
+                    lines.append(f"  tag problem: {Path(p.file).name}: {p.message()}")
+    if not lines:
+        raise InputError("no image files (TIFF or JPEG) in the folder or below it", path=folder)
+    return lines

@@ -1,0 +1,243 @@
+"""Band files of cameras that have no real files in ../shared/data, built from the real
+MicaSense RedEdge files: the pixels (and EXIF) are kept, the tags a camera writes are
+rewritten in place with tifffile (the XMP packet, Make, Model, BlackLevel), following each
+manufacturer's documented tag set (cameras.md; catalogs/cameras/*.yaml cite the documents).
+
+Each builder returns the folder; the parameters it wrote are in ``PARAMS`` so that tests can
+compute the expected values from the published formulas on their own.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import tifffile
+
+from tests.micasense_data import DATA
+
+CAPTURES = ("0000", "0001")
+DUAL_BANDS = (("Blue-444", 444), ("Green-531", 531), ("Red-650", 650), ("Red edge-705", 705), ("Red edge-740", 740))
+# 2-D vignetting (RedEdge-P / Altum-PT, MicaSense image.py vignette()): P = sum c u^ex v^ey, V = 1/P
+POLY2D = (0.62, 0.75, 0.58, -0.74, -0.57, 0.12)
+POLY2D_EXPONENTS = (0, 0, 1, 0, 0, 1, 2, 0, 0, 2, 1, 1)
+# DJI P4 Multispectral tags (P4M Image Processing Guide table; values of its examples)
+DJI = {
+    "black": 4096.0, "gain": 1.0, "exposure_us": 472.5, "adjust": 1.002, "center": (640.0, 480.0),
+    "k": (1.0e-4, 3.0e-7, -2.0e-10, 1.0e-13, -2.0e-17, 1.0e-21),
+    "irradiance": (1210.5, 1530.25, 1402.0, 1105.75, 980.5),
+    "dewarp": "2020-02-04;1949.45,1939.77,28,-17,-0.4082,0.3418,0.00068,0.00068,-0.3540",
+    "hmatrix": "1.001,0.0002,2.5,-0.0003,0.999,-1.5,0,0,1",
+}
+DJI_BANDS = (("Blue", 450, 32), ("Green", 560, 32), ("Red", 650, 32), ("RedEdge", 730, 32), ("NIR", 840, 52))
+
+
+def band_file(capture: str, band: int) -> Path:
+    return DATA / f"IMG_{capture}_{band}.tif"
+
+
+def rewrite(src: Path, dst: Path, edit: Callable[[str], str] | None = None, *, make: str | None = None,
+            model: str | None = None, black: tuple[int, ...] | None = None) -> Path:
+    """Copy ``src`` to ``dst`` with its XMP packet passed through ``edit`` and the given tags
+    overwritten (pixels and the other tags unchanged)."""
+    shutil.copyfile(src, dst)
+    dst.chmod(0o644)
+    with tifffile.TiffFile(dst, mode="r+b") as tif:
+        tags = tif.pages[0].tags
+        if edit is not None:
+            tags[700].overwrite(edit(tags[700].value.decode("utf-8")).encode("utf-8"))
+        if make is not None:
+            tags[271].overwrite(make)
+        if model is not None:
+            tags[272].overwrite(model)
+        if black is not None:
+            tags[50714].overwrite(black)
+    return dst
+
+
+def set_element(xmp: str, qname: str, value: str) -> str:
+    """Replace the content of ``<qname>...</qname>`` (text or an rdf list)."""
+    new, n = re.subn(rf"<{qname}>.*?</{qname}>", f"<{qname}>{value}</{qname}>", xmp, flags=re.S)
+    assert n == 1, qname
+    return new
+
+
+def drop_element(xmp: str, qname: str) -> str:
+    new, n = re.subn(rf"<{qname}>.*?</{qname}>", "", xmp, flags=re.S)
+    assert n == 1, qname
+    return new
+
+
+def add_camera_element(xmp: str, element: str) -> str:
+    """Insert ``element`` into the rdf:Description that declares the Camera namespace."""
+    start = xmp.index("xmlns:Camera=")
+    end = xmp.index("</rdf:Description>", start)
+    return xmp[:end] + element + xmp[end:]
+
+
+def seq(*items: object) -> str:
+    return "<rdf:Seq>" + "".join(f"<rdf:li>{i}</rdf:li>" for i in items) + "</rdf:Seq>"
+
+
+def poly2d(xmp: str) -> str:
+    """The radial vignetting replaced by the 2-D polynomial (RedEdge-P / Altum-PT)."""
+    xmp = drop_element(xmp, "Camera:VignettingCenter")
+    xmp = drop_element(xmp, "Camera:VignettingPolynomial")
+    return add_camera_element(
+        xmp, f"<Camera:VignettingPolynomial2DName>{seq(*POLY2D_EXPONENTS)}</Camera:VignettingPolynomial2DName>"
+             f"<Camera:VignettingPolynomial2D>{seq(*POLY2D)}</Camera:VignettingPolynomial2D>")
+
+
+def capture_id(capture: str) -> str:
+    with tifffile.TiffFile(band_file(capture, 1)) as tif:
+        x = tif.pages[0].tags[700].value.decode()
+    return re.search(r"<MicaSense:CaptureId>(.*?)</MicaSense:CaptureId>", x)[1]
+
+
+def extra_band(path: Path, shape: tuple[int, int], band: str, wavelength: float, capture: str, model: str,
+               value: int) -> Path:
+    """A band file of another resolution (panchromatic, thermal) written from scratch: Make,
+    Model and an XMP packet with BandName, CentralWavelength and the capture's CaptureId."""
+    packet = (
+        '<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+        '<rdf:Description xmlns:MicaSense="http://micasense.com/MicaSense/1.0/" xmlns:Camera="http://pix4d.com/camera/1.0">'
+        f"<MicaSense:CaptureId>{capture_id(capture)}</MicaSense:CaptureId><Camera:BandName>{band}</Camera:BandName>"
+        f"<Camera:CentralWavelength>{wavelength}</Camera:CentralWavelength></rdf:Description></rdf:RDF></x:xmpmeta>"
+    ).encode()
+    tifffile.imwrite(path, np.full(shape, value, np.uint16), photometric="minisblack",
+                     extratags=[(271, "s", 0, "MicaSense", True), (272, "s", 0, model, True),
+                                (700, 1, len(packet), packet, True)])
+    return path
+
+
+def rededge_mx_dual(folder: Path) -> Path:
+    """Two five-lens rigs sharing one CaptureId per capture: IMG_XXXX_1..10.tif."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for cap in CAPTURES:
+        for b in range(1, 6):
+            rewrite(band_file(cap, b), folder / f"IMG_{cap}_{b}.tif", model="RedEdge-MX")
+            name, wl = DUAL_BANDS[b - 1]
+
+            def edit(x: str, name: str = name, wl: int = wl, b: int = b) -> str:
+                x = set_element(x, "Camera:BandName", name)
+                x = set_element(x, "Camera:CentralWavelength", str(wl))
+                return set_element(x, "Camera:RigCameraIndex", str(b + 4))
+
+            rewrite(band_file(cap, b), folder / f"IMG_{cap}_{b + 5}.tif", edit, model="RedEdge-MX")
+    return folder
+
+
+def rededge_p(folder: Path, *, altum_pt: bool = False) -> Path:
+    """RedEdge-P (5 bands + Panchro at another resolution, 2-D vignetting); with
+    ``altum_pt`` an Altum-PT (+ a LWIR band in centi-kelvin)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    model = "Altum-PT" if altum_pt else "RedEdge-P"
+    for cap in CAPTURES:
+        for b in range(1, 6):
+            rewrite(band_file(cap, b), folder / f"IMG_{cap}_{b}.tif", poly2d, model=model)
+        extra_band(folder / f"IMG_{cap}_6.tif", (1200, 1600), "Panchro", 634.5, cap, model, 20000)
+        if altum_pt:
+            extra_band(folder / f"IMG_{cap}_7.tif", (120, 160), "LWIR", 11000, cap, model, 29315)
+    return folder
+
+
+def reflect_area_one_li(folder: Path, corners: tuple[tuple[tuple[int, int], ...], ...], *,
+                        bad: str | None = None) -> Path:
+    """The real captures as a firmware that writes ReflectArea as one rdf:li of comma-separated
+    numbers (``bad``: that text instead, in band 1), with the Camera namespace under another
+    prefix and URI form in band 2."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for cap in CAPTURES:
+        for b in range(1, 6):
+            def edit(x: str, b: int = b, cap: str = cap) -> str:
+                if cap == "0000":
+                    text = ",".join(f"{px},{py}" for px, py in corners[b - 1])
+                    if bad is not None and b == 1:
+                        text = bad
+                    x = add_camera_element(x, f"<Camera:ReflectArea>{seq(text)}</Camera:ReflectArea>")
+                if b == 2:  # prefix "Cam", URI with the trailing slash: the same namespace
+                    x = x.replace('xmlns:Camera="http://pix4d.com/1.0"', 'xmlns:Cam="http://pix4d.com/camera/1.0/"')
+                    x = x.replace("<Camera:", "<Cam:").replace("</Camera:", "</Cam:")
+                return x
+
+            rewrite(band_file(cap, b), folder / f"IMG_{cap}_{b}.tif", edit)
+    return folder
+
+
+def dji_xmp(band: int, cap_uuid: str, *, band_freq: bool = False) -> str:
+    name, wl, fwhm = DJI_BANDS[band - 1]
+    attrs = {
+        "drone-dji:SensorGain": f"{DJI['gain']:.3f}", "drone-dji:ExposureTime": f"{DJI['exposure_us']}",
+        "drone-dji:SensorGainAdjustment": f"{DJI['adjust']}", "drone-dji:Irradiance": f"{DJI['irradiance'][band - 1]}",
+        "drone-dji:CalibratedOpticalCenterX": f"{DJI['center'][0]}", "drone-dji:CalibratedOpticalCenterY": f"{DJI['center'][1]}",
+        "drone-dji:VignettingData": ", ".join(f"{k:.6e}" for k in DJI["k"]), "drone-dji:DewarpData": DJI["dewarp"],
+        "drone-dji:CalibratedHMatrix": DJI["hmatrix"], "drone-dji:CaptureUUID": cap_uuid, "drone-dji:SensorIndex": str(band),
+        "drone-dji:BandName": name,
+    }
+    elements = ""
+    if band_freq:
+        attrs["drone-dji:BandFreq"] = f"{wl}(+/-{fwhm // 2})nm"
+    else:
+        elements = (f"<Camera:BandName>{name}</Camera:BandName><Camera:CentralWavelength>{wl}</Camera:CentralWavelength>"
+                    f"<Camera:WavelengthFWHM>{fwhm}</Camera:WavelengthFWHM>")
+    attr_text = " ".join(f'{k}="{v}"' for k, v in attrs.items())
+    return ('<?xpacket begin="" id="W5M0MpCehiHzreSzNTczkc9d"?><x:xmpmeta xmlns:x="adobe:ns:meta/">'
+            '<rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#"><rdf:Description rdf:about="" '
+            'xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" xmlns:Camera="http://pix4d.com/camera/1.0/" '
+            f'{attr_text}>{elements}</rdf:Description></rdf:RDF></x:xmpmeta><?xpacket end="w"?>')
+
+
+def dji_p4m(folder: Path) -> Path:
+    """P4 Multispectral captures DJI_0011..0015.TIF and DJI_0021..0025.TIF (band = last digit)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for c, cap in enumerate(CAPTURES, start=1):
+        for b in range(1, 6):
+            packet = dji_xmp(b, f"dji-capture-{cap}", band_freq=b == 5)
+            rewrite(band_file(cap, b), folder / f"DJI_00{c}{b}.TIF", lambda _x, p=packet: p, make="DJI",
+                    model="FC6360", black=(int(DJI["black"]),))
+    return folder
+
+
+def altum(folder: Path) -> Path:
+    """Altum: five bands (radial vignetting) and a LWIR band (_6, 160 x 120, centi-kelvin)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for cap in CAPTURES:
+        for b in range(1, 6):
+            rewrite(band_file(cap, b), folder / f"IMG_{cap}_{b}.tif", model="Altum")
+        extra_band(folder / f"IMG_{cap}_6.tif", (120, 160), "LWIR", 11000, cap, "Altum", 29815)
+    return folder
+
+
+def jpeg_segments(data: bytes) -> list[bytes]:
+    """The APPn segments (marker included) of a JPEG, in order."""
+    out, i = [], 2
+    while data[i] == 0xFF and 0xE0 <= data[i + 1] <= 0xEF:
+        n = int.from_bytes(data[i + 2 : i + 4], "big")
+        out.append(data[i : i + 2 + n])
+        i += 2 + n
+    return out
+
+
+def sentera_with_panel(src_folder: Path, folder: Path, value: int = 200) -> Path:
+    """The real Sentera captures, the first with a uniform gray panel painted in (all channels
+    ``value``), re-encoded losslessly enough (quality 100) with the original EXIF and XMP."""
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    files = sorted(src_folder.glob("*.jpg"))
+    for k, path in enumerate(files):
+        data = path.read_bytes()
+        if k > 0:
+            (folder / path.name).write_bytes(data)
+            continue
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        img[1200:1700, 1700:2200] = value
+        ok, enc = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 100])
+        assert ok
+        enc = enc.tobytes()
+        app1 = [s for s in jpeg_segments(data) if s[1] == 0xE1]  # EXIF and XMP
+        (folder / path.name).write_bytes(enc[:2] + b"".join(app1) + enc[2:])
+    return folder

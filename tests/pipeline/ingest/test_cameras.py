@@ -1,0 +1,235 @@
+"""Issue 21: XMP read the way cameras write it (pipeline.ingest.xmp), cameras recognised from
+their files (pipeline.ingest.identify), the camera catalog entries, and ``mscal cameras``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mscal_core.errors import CatalogError, InputError
+from mscal_core.factory import sunshine_irradiance, thermal_kelvin, upright
+from pipeline.ingest import catalog
+from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta, read_file_metas
+from pipeline.ingest.identify import identify_camera
+from pipeline.ingest.xmp import TagError, Xmp, jpeg_xmp_packet, parse_numbers
+from pipeline.run.cli import main
+from tests import camera_files as cf
+from tests.micasense_data import require_data
+
+DATA_ROOT = Path(__file__).parents[3].parent / "shared" / "data"
+RDF = 'xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#"'
+
+
+def _packet(body: str, ns: str = 'xmlns:C="http://pix4d.com/camera/1.0"') -> str:
+    return f'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF {RDF}><rdf:Description {ns} {body}</rdf:Description></rdf:RDF></x:xmpmeta>'
+
+
+def test_every_serialisation_form_reads_the_same_numbers() -> None:
+    forms = {
+        "attribute": _packet('C:ReflectArea="622,371,574,368">'),
+        "element": _packet("><C:ReflectArea>622, 371, 574, 368</C:ReflectArea>"),
+        "seq": _packet("><C:ReflectArea><rdf:Seq><rdf:li>622</rdf:li><rdf:li>371</rdf:li><rdf:li>574</rdf:li>"
+                       "<rdf:li>368</rdf:li></rdf:Seq></C:ReflectArea>"),
+        "bag": _packet("><C:ReflectArea><rdf:Bag><rdf:li>622 371</rdf:li><rdf:li>574 368</rdf:li></rdf:Bag></C:ReflectArea>"),
+        "one li": _packet("><C:ReflectArea><rdf:Seq><rdf:li>622,371,574,368</rdf:li></rdf:Seq></C:ReflectArea>"),
+        "alt": _packet("><C:ReflectArea><rdf:Alt><rdf:li>622;371;574;368</rdf:li></rdf:Alt></C:ReflectArea>"),
+    }
+    for form, packet in forms.items():
+        assert Xmp.parse(packet, "f.tif").numbers("ReflectArea", allowed=(4, 8)) == (622, 371, 574, 368), form
+
+
+@pytest.mark.parametrize("uri", ["http://pix4d.com/camera/1.0", "http://pix4d.com/camera/1.0/", "http://pix4d.com/1.0",
+                                 "http://pix4d.com/1.0/"])
+def test_namespace_by_uri_not_prefix(uri: str) -> None:
+    packet = _packet('Pix:BandName="NIR" Other:BandName="no">', f'xmlns:Pix="{uri}" xmlns:Other="http://example.com/x/"')
+    assert Xmp.parse(packet, "f.tif").text("BandName") == "NIR"
+    wrong = _packet('Camera:BandName="NIR">', 'xmlns:Camera="http://example.com/camera/1.0/"')
+    assert Xmp.parse(wrong, "f.tif").text("BandName") is None  # the prefix alone means nothing
+
+
+def test_unreadable_value_names_tag_value_and_file() -> None:
+    x = Xmp.parse(_packet("><C:VignettingCenter><rdf:Seq><rdf:li>676.7</rdf:li><rdf:li>nan</rdf:li></rdf:Seq>"
+                          "</C:VignettingCenter>"), "/d/IMG_1.tif")
+    with pytest.raises(TagError) as err:
+        x.numbers("VignettingCenter", count=2)
+    assert "/d/IMG_1.tif" in str(err.value) and "VignettingCenter" in str(err.value) and "676.7, nan" in str(err.value)
+    assert parse_numbers("1e-4, 2.5 3") == (1e-4, 2.5, 3.0) and parse_numbers("1,x") is None
+
+
+def test_jpeg_xmp_segment() -> None:
+    path = DATA_ROOT / "sentera-d4k" / "NDRE" / "IMG_00006.jpg"
+    if not path.is_file():
+        pytest.skip("no Sentera sample")
+    x = Xmp.parse(jpeg_xmp_packet(path.read_bytes()), path)
+    assert x.texts("BandName") == ["RedEdge", "Garbage", "NIR"] and x.text("RigName") == "21022-01"
+    assert x.numbers("ColorTransform", count=9)[:3] == (2.7, 0.0, -2.581)
+    assert x.number("Clear", ("ILS",)) == 5644
+
+
+# --------------------------------------------------------------------------- readers of real files
+
+
+def test_sequoia_reader() -> None:
+    path = DATA_ROOT / "parrot-sequoia" / "IMG_180413_080658_0000_NIR.TIF"
+    if not path.is_file():
+        pytest.skip("no Sequoia sample")
+    m = read_capture_meta(path)
+    assert (m.make, m.model, m.radiometry, m.band_name, m.wavelength_nm) == ("Parrot", "Sequoia", "sequoia", "NIR", 790)
+    assert m.sensor_model == (271665.8, 5008.3, 2581.1)  # one rdf:li of three comma-separated numbers
+    assert m.iso == 621 and m.exposure_s == pytest.approx(0.003, rel=1e-6) and m.f_number == pytest.approx(2.2, rel=1e-6)
+    assert m.orientation == 3 and m.rig_camera_index == 3 and m.capture_id == "BE5AB0ABA969E1CB424A394AA2FD3208"
+    assert len(m.vignetting_polynomial_2d) == 15 and len(m.vignetting_polynomial_2d_exponents) == 30
+    # sunshine: 10 records CH0 = 14 at gain index 1, 100 ms; golden CH0 sensitivity 656.1082
+    assert m.irradiance == pytest.approx(14 / 100 / 656.1082, rel=1e-9)
+    assert m.lat is None and m.features()["position"] is False
+
+
+def test_sentera_reader_one_meta_per_kept_channel() -> None:
+    path = DATA_ROOT / "sentera-d4k" / "NDRE" / "IMG_00006.jpg"
+    if not path.is_file():
+        pytest.skip("no Sentera sample")
+    metas = read_file_metas(path)
+    assert [(m.band_name, m.channel, m.wavelength_nm) for m in metas] == [("RedEdge", 0, 720), ("NIR", 2, 840)]
+    m = metas[0]
+    assert m.radiometry == "sentera" and m.gain == pytest.approx(3.47) and m.exposure_s == pytest.approx(1 / 609)
+    assert m.irradiance == pytest.approx(3124.34) and m.lat == pytest.approx(35 + 49 / 60 + 16083 / 400 / 3600)
+    assert m.time == "2020-09-15T04:37:17.991974"
+    assert m.features()["sun_sensor_reading"] and not m.features()["sun_sensor_reflectance"]
+
+
+def test_thermal_and_pan_bands_are_read_not_used(tmp_path) -> None:
+    require_data()
+    folder = cf.rededge_p(tmp_path / "apt", altum_pt=True)
+    lwir = read_capture_meta(folder / "IMG_0000_7.tif")
+    pan = read_capture_meta(folder / "IMG_0000_6.tif")
+    assert (lwir.radiometry, lwir.shape, lwir.reflectance_band) == ("thermal", (120, 160), False)
+    assert (pan.radiometry, pan.shape, pan.reflectance_band) == ("panchro", (1200, 1600), False)
+    assert factory_radiance(lwir, np.full((120, 160), 29315, np.uint16))[0, 0] == pytest.approx(293.15)
+    assert thermal_kelvin(np.array([27315]))[0] == pytest.approx(273.15)
+
+
+def test_dls2_horizontal_irradiance_and_its_scale() -> None:
+    """DLS 2 firmware: HorizontalIrradiance x IrradianceScaleToSIUnits (0.01 when the scale tag
+    is missing, as micasense/imageprocessing metadata.py assumes)."""
+    from pipeline.ingest.camera_meta import meta_from_tags
+
+    require_data()
+    path = cf.band_file("0000", 2)
+    tags = {}
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        tags = {t.code: t.value for t in tif.pages[0].tags.values()}
+    x = tags[700].decode()
+    x = cf.drop_element(x, "Camera:Irradiance")
+    tags[700] = cf.add_camera_element(x, "<Camera:HorizontalIrradiance>123.0</Camera:HorizontalIrradiance>").encode()
+    assert meta_from_tags(path, tags, (960, 1280), 16).irradiance == pytest.approx(1.23)
+    tags[700] = cf.add_camera_element(tags[700].decode(), "<Camera:IrradianceScaleToSIUnits>0.001</Camera:IrradianceScaleToSIUnits>").encode()
+    assert meta_from_tags(path, tags, (960, 1280), 16).irradiance == pytest.approx(0.123)
+
+
+# --------------------------------------------------------------------------- identification
+
+
+def test_identify_real_folders() -> None:
+    cases = {"micasense-rededge": "micasense-rededge", "parrot-sequoia": "parrot-sequoia",
+             "sentera-d4k/NDRE": "sentera-d4k-ndre", "sentera-d4k/nRGB": "sentera-d4k-nrgb"}
+    for folder, name in cases.items():
+        if not (DATA_ROOT / folder).is_dir():
+            pytest.skip(f"no {folder} sample")
+        ident = identify_camera(DATA_ROOT / folder)
+        assert ident.camera.name == name, folder
+    ident = identify_camera(DATA_ROOT / "micasense-rededge")
+    assert "Model 'RedEdge'" in ident.evidence and "5 band(s) per capture" in ident.evidence
+
+
+def test_dual_is_not_taken_for_a_rededge_from_one_file(tmp_path) -> None:
+    """The first file of a Dual capture (IMG_0000_1.tif, Blue) is exactly a RedEdge-MX's; the
+    ten band files under one CaptureId decide."""
+    require_data()
+    folder = cf.rededge_mx_dual(tmp_path / "dual")
+    assert identify_camera(folder).camera.name == "micasense-rededge-mx-dual"
+    five = tmp_path / "five"
+    five.mkdir()
+    for p in folder.glob("IMG_*_[1-5].tif"):
+        (five / p.name).write_bytes(p.read_bytes())
+    assert identify_camera(five).camera.name == "micasense-rededge-mx"  # Model RedEdge-MX, 5 bands
+    assert identify_camera(five, "micasense-rededge").camera.name == "micasense-rededge"  # --camera overrides
+
+
+def test_altum_family_by_model_and_band_count(tmp_path) -> None:
+    require_data()
+    from pipeline.ingest.camera_meta import group_captures
+
+    ident = identify_camera(cf.altum(tmp_path / "altum"))
+    assert ident.camera.name == "micasense-altum" and "6 band(s) per capture" in ident.evidence
+    caps, problems = group_captures(tmp_path / "altum", ident.camera)
+    assert problems == [] and [s["band"] for s in caps[0].skipped] == ["LWIR"] and len(caps[0].metas) == 5
+    assert identify_camera(cf.rededge_p(tmp_path / "apt", altum_pt=True)).camera.name == "micasense-altum-pt"
+    assert identify_camera(cf.rededge_p(tmp_path / "p")).camera.name == "micasense-rededge-p"
+
+
+def test_unknown_camera_is_named(tmp_path) -> None:
+    require_data()
+    cf.rewrite(cf.band_file("0000", 1), tmp_path / "IMG_0000_1.tif", make="Acme", model="Spectro 9")
+    with pytest.raises(InputError, match="no catalog camera matches Make 'Acme', Model 'Spectro 9'"):
+        identify_camera(tmp_path)
+
+
+# --------------------------------------------------------------------------- catalog and CLI
+
+
+def test_every_factory_camera_cites_its_sources_and_validates() -> None:
+    names = catalog.list_entries("cameras")
+    factory = [catalog.load_camera(n) for n in names if catalog.load_camera(n).factory_model]
+    assert {c.name for c in factory} >= {
+        "micasense-rededge", "micasense-rededge-m", "micasense-rededge-mx", "micasense-rededge-mx-dual",
+        "micasense-rededge-p", "micasense-altum", "micasense-altum-pt", "parrot-sequoia", "dji-p4-multispectral",
+        "dji-mavic-3m", "sentera-d4k-ndre", "sentera-d4k-nrgb"}
+    for cam in factory:
+        assert cam.sources and cam.identify is not None
+    dual = catalog.load_camera("micasense-rededge-mx-dual")
+    assert dual.n_bands == 10 and dual.identify.bands_per_capture == 10
+    assert [s.name for s in catalog.load_camera("micasense-altum-pt").skip_bands] == ["Panchro", "LWIR"]
+
+
+def test_catalog_refuses_a_factory_camera_without_sources(tmp_path) -> None:
+    data = {"name": "x", "description": "x", "bit_depth": 12, "layout": {"kind": "file_per_band",
+            "capture_pattern": r"^(?P<capture>.+)_(?P<band>[0-9]+)\.tif$"},
+            "bands": [{"name": "NIR", "wavelength_nm": 840, "file_suffix": "1"}], "factory_model": "micasense",
+            "identify": {"make": "X"}}
+    with pytest.raises(CatalogError, match="must cite the manufacturer's documents"):
+        catalog.parse_camera(data, tmp_path / "x.yaml")
+    data["factory_model"] = "acme"
+    with pytest.raises(CatalogError, match="factory_model must be one of"):
+        catalog.parse_camera(data, tmp_path / "x.yaml")
+
+
+def test_mscal_cameras_on_the_shared_data(capsys) -> None:
+    if not DATA_ROOT.is_dir():
+        pytest.skip("no shared data")
+    assert main(["cameras", str(DATA_ROOT)]) == 0
+    out = capsys.readouterr().out
+    for name in ("micasense-rededge", "parrot-sequoia", "sentera-d4k-ndre", "sentera-d4k-nrgb"):
+        assert f"camera: {name} " in out
+    assert "captures: 2 complete, 0 quarantined" in out and "captures: 1 complete, 0 quarantined" in out
+    assert "stored with EXIF Orientation 3" in out and "sun_sensor_absolute yes" in out
+
+
+def test_upright() -> None:
+    a = np.arange(6).reshape(2, 3)
+    assert upright(a, 3).tolist() == [[5, 4, 3], [2, 1, 0]] and upright(a, 1) is a
+    with pytest.raises(ValueError, match="90 degree"):
+        upright(a, 6)
+
+
+def test_sunshine_gain_from_calibration_table() -> None:
+    # table: gain index 1 reads 737 counts in 600 ms, index 2 reads 12340 (16.7x the gain)
+    cal = {1: 737 / 600, 2: 12340 / 600}
+    e1 = sunshine_irradiance([100], [1], [100], cal)
+    e2 = sunshine_irradiance([100 * 12340 / 737], [2], [100], cal)
+    assert e1 == pytest.approx(1.0) and e2 == pytest.approx(1.0)
+    with pytest.raises(ValueError):
+        sunshine_irradiance([65535], [1], [100], cal)
