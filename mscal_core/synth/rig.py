@@ -274,6 +274,7 @@ def marker_views(truth: RigTruth, *, seed: int = 0, kind: str = "vignetting", n_
     truth: ``rvec``, ``tvec`` (view, band, 3) each lens's pose; ``gray_mask`` (view, band, H, W);
     ``light`` (view, 9) (:meth:`GradientShadowLight.from_params`)."""
     rng = np.random.default_rng([seed, 33 if kind == "vignetting" else 34])
+    ref_lens = truth.lenses[truth.reference]
     h, w = truth.shape
     mk = truth.marker
     light = random_light(rng, 0.8 * truth.sun_brightness, truth.reflector_size_m)
@@ -419,6 +420,7 @@ def board_views(truth: RigTruth, board_image: np.ndarray, board_size_m: tuple[fl
     rng = np.random.default_rng([seed, 36])
     tex = np.asarray(board_image, dtype=np.float32) / 255.0
     ppm = np.array([tex.shape[1] / board_size_m[0], tex.shape[0] / board_size_m[1]])
+    ref_lens = truth.lenses[truth.reference]
     dns, exps, rvecs, tvecs = [], [], [], []
     for _ in range(n_views):
         ref = _board_pose(rng, ref_lens.camera, board_size_m, distance_m, max_tilt_deg)
