@@ -54,6 +54,33 @@ def _report_skips(ds) -> None:  # noqa: ANN001
             click.echo(f"skipped {stage} frame {s['file']}: {s['reason']}", err=True)
 
 
+
+def _writes(kind: str, what: str):  # noqa: ANN202 (a decorator)
+    """Check the command's ``-o`` before any work and lock it while the command runs.
+
+    Writable, never a file or folder mscal did not write (``pipeline.storage.outputs``);
+    ``--wait`` waits for another process writing the same output instead of refusing (exit
+    status 75). Remote (``s3://``) outputs are staged locally and uploaded: not checked here.
+    """
+    import functools
+
+    def deco(f):  # noqa: ANN001, ANN202
+        @functools.wraps(f)
+        def wrapper(*args: Any, wait: bool = False, **kwargs: Any) -> Any:
+            out = kwargs.get("out")
+            if out is None or "://" in str(out):
+                return f(*args, **kwargs)
+            from pipeline.storage.outputs import guarded_output
+
+            with guarded_output(out, kind=kind, wait=wait, what=what):
+                return f(*args, **kwargs)
+
+        return click.option("--wait", is_flag=True, help="If another mscal process is writing the same output, "
+                            "wait for it to finish instead of refusing.")(wrapper)
+
+    return deco
+
+
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.option("-v", "--verbose", is_flag=True, help="Log progress of each stage.")
 def cli(verbose: bool) -> None:
@@ -62,6 +89,7 @@ def cli(verbose: bool) -> None:
 
 
 @cli.command()
+@_writes("store", "calibration store")
 @click.argument("session", type=click.Path(path_type=Path))
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path), help="Calibration store (.zarr) to write.")
 @click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True,
@@ -84,6 +112,7 @@ def fit() -> None:
 
 
 @fit.command("response")
+@_writes("store", "calibration store")
 @click.argument("directory", type=click.Path(path_type=Path))
 @click.option("--camera", "camera", default=None, help="Camera catalog name (required for a plain frame folder).")
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
@@ -113,7 +142,7 @@ def _stage_command(stage: str):  # noqa: ANN202
         "vignetting": "Per-pixel, per-band vignetting V (Eq. 8-10) from SESSION/vignetting.",
         "illumination": "Spectral factor S and reflector brightness B (Eq. 11-14) from SESSION/reflector.",
     }[stage]
-    return fit.command(stage)(command)
+    return fit.command(stage)(_writes("store", "calibration store")(command))
 
 
 _stage_command("vignetting")
@@ -121,6 +150,7 @@ _stage_command("illumination")
 
 
 @fit.command("intrinsics")
+@_writes("store", "calibration store")
 @click.argument("frames", type=click.Path(path_type=Path))
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
 @click.option("--camera", default=None, help="Camera catalog name (default: session.yaml beside FRAMES).")
@@ -150,6 +180,7 @@ def fit_intrinsics(frames: Path, out: Path, camera: str | None, kind: str | None
 
 
 @cli.command()
+@_writes("store", "calibration store")
 @click.argument("captures", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
               help="Calibration store (.zarr): the registration is added to it, or a new store is created.")
@@ -182,6 +213,7 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
 
 
 @cli.command()
+@_writes("folder", "output folder")
 @click.argument("flight", type=click.Path(path_type=Path))
 @click.option("--calibration", "calibration", required=True,
               help="Calibration store (.zarr) from 'mscal calibrate', or 'factory' for cameras with factory metadata.")
@@ -308,6 +340,7 @@ def _report_apply(res: Any, out: Path, strict: bool) -> None:
 
 
 @cli.command()
+@_writes("file", "index map")
 @click.argument("ortho", type=click.Path(path_type=Path))
 @click.option("--index", "index_name", default="ndvi", show_default=True, help="Index name from catalogs/indices.")
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
@@ -441,6 +474,7 @@ def _echo_run(record: dict) -> None:
 
 
 @cli.command()
+@_writes("folder", "output folder")
 @click.argument("session")
 @click.option("-o", "--output", "out", required=True, help="Output folder or fsspec URL (s3://bucket/prefix).")
 @click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True)
@@ -509,6 +543,7 @@ def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, onc
 
 
 @cli.command()
+@_writes("file", "report")
 @click.option("--calibration", "calibration", default=None, type=click.Path(path_type=Path),
               help="Calibration store (.zarr) to report on; calibration.json is written beside the report.")
 @click.option("--flight", "flights", multiple=True, type=click.Path(path_type=Path),
@@ -530,6 +565,7 @@ def report(calibration: Path | None, flights: tuple[Path, ...], out: Path, title
 
 
 @cli.command()
+@_writes("folder", "demo folder")
 @click.option("-o", "--output", "out", default=Path("demo-out"), show_default=True, type=click.Path(path_type=Path))
 @click.option("--size", type=click.Choice(["small", "full"]), default="small", show_default=True,
               help="'full' is the paper-sized session (40 views, 14-frame sweep).")

@@ -1,9 +1,10 @@
 """One writer per output folder: an advisory lock that names its holder.
 
-A lock is a file in the folder (``.mscal.lock`` by default) held with ``flock``. The kernel
-drops the lock when its process ends, however it ends (SIGKILL, power loss aside), so a lock
-whose process is gone is simply taken over; what the holder wrote into the file (pid, host,
-start time, command) is only there to name it in the message a second process gets:
+A lock is a file in the folder (``.mscal.lock`` by default) held with ``flock``, removed by its
+holder when it finishes. The kernel drops the lock when its process ends, however it ends
+(SIGKILL, power loss aside), so a lock whose process is gone is simply taken over (its file
+stays until then); what the holder wrote into the file (pid, host, start time, command) is
+only there to name it in the message a second process gets:
 
     OUT: another mscal run is writing here: pid 4127 on farm-pc, since 2026-06-01T10:02:11Z,
     `mscal run session -o OUT` (wait for it, or run again with --wait)
@@ -75,42 +76,59 @@ class FolderLock:
     def acquire(self) -> "FolderLock":
         """Take the lock (see the class); returns self."""
         self.folder.mkdir(parents=True, exist_ok=True)
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
         deadline = None if self.wait is True else time.monotonic() + float(self.wait or 0)
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                if self._lock(fd, deadline) and not self._same_file(fd):
+                    os.close(fd)  # the holder removed the file as it finished: lock the new one
+                    continue
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, json.dumps(holder_info()).encode(), 0)
+            except BaseException:
+                os.close(fd)
+                raise
+            self._fd = fd
+            return self
+
+    def _lock(self, fd: int, deadline: float | None) -> bool:
+        """flock ``fd``, waiting until ``deadline``; False where the file system has no locks."""
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                return True
+            except BlockingIOError:
+                if deadline is not None and time.monotonic() >= deadline:
+                    holder = describe_holder(os.pread(fd, 4096, 0).decode(errors="replace"))
+                    raise LockedError(f"{self.what} is writing here: {holder}", path=self.folder,
+                                      hint="wait for it to finish, or run the same command again with --wait") from None
+                time.sleep(POLL_S)
+            except OSError as exc:
+                if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                    raise
+                log.warning("%s: the file system does not lock files (%s); concurrent runs into this folder "
+                            "are not excluded", self.folder, exc.strerror)
+                return False
+
+    def _same_file(self, fd: int) -> bool:
+        """Whether the locked descriptor is still the file at :attr:`path` (a holder that
+        finished removed it: a waiter must not hold a lock on a file nobody else will open)."""
         try:
-            while True:
-                try:
-                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    break
-                except BlockingIOError:
-                    if deadline is not None and time.monotonic() >= deadline:
-                        raise LockedError(
-                            f"{self.what} is writing here: {describe_holder(os.pread(fd, 4096, 0).decode(errors='replace'))}",
-                            path=self.folder,
-                            hint="wait for it to finish, or run the same command again with --wait") from None
-                    time.sleep(POLL_S)
-                except OSError as exc:
-                    if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
-                        raise
-                    log.warning("%s: the file system does not lock files (%s); concurrent runs into this folder "
-                                "are not excluded", self.folder, exc.strerror)
-                    break
-            info = json.dumps(holder_info()).encode()
-            os.ftruncate(fd, 0)
-            os.pwrite(fd, info, 0)
-        except BaseException:
-            os.close(fd)
-            raise
-        self._fd = fd
-        return self
+            st = os.stat(self.path)
+        except FileNotFoundError:
+            return False
+        me = os.fstat(fd)
+        return (st.st_dev, st.st_ino) == (me.st_dev, me.st_ino)
 
     def release(self) -> None:
-        """Let the lock go (the file stays: removing it would race with a waiter)."""
+        """Let the lock go, removing the lock file first (while still holding it: a process
+        waiting on the old file sees it gone and locks a new one, see :meth:`acquire`)."""
         if self._fd is None:
             return
         fd, self._fd = self._fd, None
         try:
-            os.ftruncate(fd, 0)
+            if self._same_file(fd):
+                os.unlink(self.path)
             fcntl.flock(fd, fcntl.LOCK_UN)
         finally:
             os.close(fd)

@@ -127,12 +127,9 @@ def guarded_output(path: str | Path, *, kind: str = "folder", wait: bool | float
 
 def _remove_if_unused(lock: Path, created: list[Path]) -> None:
     """A command that failed before writing anything leaves no trace: the folders the lock
-    made (and its file) are removed again when nothing else was put in them."""
-    if not created or not created[0].is_dir() or any(q != lock for q in created[0].iterdir()):
-        return
-    lock.unlink(missing_ok=True)
+    made are removed again when nothing was put in them (the lock removed its own file)."""
     for d in created:  # innermost first
         try:
             d.rmdir()
-        except OSError:
+        except OSError:  # not empty (or gone): it holds outputs
             break

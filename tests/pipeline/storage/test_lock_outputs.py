@@ -60,6 +60,7 @@ def test_lock_of_a_killed_process_is_taken_over(tmp_path: Path) -> None:
     assert "pid" in (out / ".mscal.lock").read_text()  # what it wrote is still there
     with FolderLock(out) as lock:
         assert lock.held and f'"pid": {os.getpid()}' in (out / ".mscal.lock").read_text()
+    assert not (out / ".mscal.lock").exists()  # the holder removes its file as it finishes
 
 
 def test_wait_gets_the_lock_when_the_holder_finishes(tmp_path: Path) -> None:
@@ -149,6 +150,7 @@ def test_guarded_output_locks_beside_a_store_and_inside_a_folder(tmp_path: Path)
         with pytest.raises(LockedError):
             with guarded_output(store, kind="store"):
                 pass
+    assert not (tmp_path / ".calib.zarr.lock").exists()
     store.mkdir()
     (store / "zarr.json").write_text('{"attributes": {"format": "mscal-calibration/1"}}')
     assert is_mscal_store(store)
@@ -162,6 +164,7 @@ def test_guarded_output_locks_beside_a_store_and_inside_a_folder(tmp_path: Path)
     with guarded_output(tmp_path / "out") as p:
         assert (p / ".mscal.lock").is_file()
         (p / "run.json").write_text("{}")
+    assert sorted(q.name for q in (tmp_path / "out").iterdir()) == ["run.json"]
     with pytest.raises(InputError, match="existing folder; mscal writes a file"):
         with guarded_output(tmp_path / "out", kind="file"):
             pass
@@ -182,3 +185,27 @@ def test_a_command_that_fails_at_once_leaves_no_folder(tmp_path: Path) -> None:
     with guarded_output(out) as p:  # a command that wrote something keeps it
         (p / "run.json").write_text("{}")
     assert (out / "run.json").is_file()
+
+
+def test_waiters_in_turn_each_lock_the_live_file(tmp_path: Path) -> None:
+    """Three processes, the lock file removed by each holder as it finishes: the waiters never
+    hold the lock at the same time (each appends start/end marks; no interleaving)."""
+    code = """
+import sys, time
+from pipeline.storage.lock import FolderLock
+folder, mark = sys.argv[1], sys.argv[2]
+with FolderLock(folder, wait=True):
+    with open(folder + "/log", "a") as fh:
+        fh.write(mark + "<")
+        fh.flush()
+        time.sleep(0.3)
+        fh.write(">" + mark + ";")
+"""
+    folder = tmp_path / "out"
+    folder.mkdir()
+    procs = [subprocess.Popen([sys.executable, "-c", code, str(folder), str(k)], cwd=Path(__file__).resolve().parents[3])
+             for k in range(3)]
+    assert [p.wait(timeout=60) for p in procs] == [0, 0, 0]
+    log = (folder / "log").read_text().rstrip(";").split(";")
+    assert sorted(log) == [f"{k}<>{k}" for k in range(3)]  # each holder's marks together
+    assert not (folder / ".mscal.lock").exists()
