@@ -4,7 +4,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup test test-fast demo bench bench-quick clean
+.PHONY: setup test test-long test-fast demo bench bench-quick clean
 
 setup: $(STAMP)
 
@@ -16,11 +16,17 @@ $(STAMP): pyproject.toml
 
 # The README's test command; CI runs exactly this. loadgroup keeps the flow tests on one
 # worker: one embedded Prefect server and one calibration cache instead of two.
+# ruff first (lint and import order: pyproject.toml, pipeline/ruff.toml), then the tests;
+# the long versions of a few tests (many trials, full-size rigs) run with make test-long.
 test: setup
-	$(BIN)/python -m pytest -n 2 --dist loadgroup -q --durations=15
+	$(BIN)/ruff check .
+	$(BIN)/python -m pytest -n 2 --dist loadgroup -q --durations=15 -m "not long"
+
+test-long: setup
+	$(BIN)/python -m pytest -n 2 --dist loadgroup -q --durations=15 -m long
 
 test-fast: setup
-	$(BIN)/python -m pytest -n 2 --dist loadgroup -q -m "not slow"
+	$(BIN)/python -m pytest -n 2 --dist loadgroup -q -m "not slow and not long"
 
 demo: setup
 	$(BIN)/mscal demo

@@ -143,8 +143,13 @@ class Synth:
         return self._get(("truth", noise), lambda: make_truth(self.seed, sensor=sensor))
 
     def session(self, p: dict[str, float]):  # noqa: ANN201
-        from mscal_core.synth.scene import (SyntheticSession, flight_frames, reflector_images, response_sweep,
-                                            vignetting_views)
+        from mscal_core.synth.scene import (
+            SyntheticSession,
+            flight_frames,
+            reflector_images,
+            response_sweep,
+            vignetting_views,
+        )
 
         t = self.truth(p["noise"])
         n = int(p["exposures"])
@@ -175,8 +180,15 @@ def write_synthetic(session, root: Path) -> Path:  # noqa: ANN001
 
 def calibrate(session_dir: Path, out: Path, method: str, response_cache: dict) -> None:
     """``pipeline.calibrate.fit.calibrate_session`` with the response stage cached by sweep."""
-    from pipeline.calibrate.fit import (add_illumination, add_vignetting, fit_illumination_frames,
-                                    fit_response_frames, fit_vignetting_frames, provenance, response_dataset)
+    from pipeline.calibrate.fit import (
+        add_illumination,
+        add_vignetting,
+        fit_illumination_frames,
+        fit_response_frames,
+        fit_vignetting_frames,
+        provenance,
+        response_dataset,
+    )
     from pipeline.ingest.session import load_session
     from pipeline.storage.store import write_store
 

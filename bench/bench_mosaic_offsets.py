@@ -41,7 +41,14 @@ sys.path.insert(0, str(ROOT))
 from mscal_core.reflectance import eq15  # noqa: E402
 from mscal_core.registration import mosaic_centre_offsets, shift_bands  # noqa: E402
 from mscal_core.synth.scene import (  # noqa: E402
-    DEFAULT_PANELS, NDVI_NIR_NM, NDVI_RED_NM, FieldScene, Pose, flight_frames, make_truth, render,
+    DEFAULT_PANELS,
+    NDVI_NIR_NM,
+    NDVI_RED_NM,
+    FieldScene,
+    Pose,
+    flight_frames,
+    make_truth,
+    render,
 )
 
 

@@ -22,8 +22,7 @@ from prefect.runtime import flow_run
 from prefect.tasks import exponential_backoff
 
 from pipeline.calibrate import fit as calibrate
-from pipeline.run import inbox
-from pipeline.run import runner
+from pipeline.run import inbox, runner
 
 
 def _transient(task_: Any, task_run: Any, state: Any) -> bool:

@@ -430,14 +430,18 @@ def sequoia_irradiance(
 def vignetting_polynomial_2d(
     shape: tuple[int, int], coefficients: Sequence[float], exponents: Sequence[float]
 ) -> np.ndarray:
-    """The 2-D polynomial ``P(x, y) = sum_i c_i (x/W)^ex_i (y/H)^ey_i`` itself (the relative
-    illumination, Parrot's ``V``); :func:`vignetting_2d` is its reciprocal, the correction."""
+    """Return the 2-D polynomial ``P(x, y) = sum_i c_i (x/W)^ex_i (y/H)^ey_i`` itself.
+
+    The relative illumination, Parrot's ``V``; :func:`vignetting_2d` is its reciprocal, the
+    correction.
+    """
     return 1.0 / vignetting_2d(shape, coefficients, exponents)
 
 
 def dji_vignetting_correction(shape: tuple[int, int], center: Sequence[float], k: Sequence[float]) -> np.ndarray:
-    """DJI P4 Multispectral / Mavic 3M vignetting correction, which *multiplies* the image:
-    ``1 + k0 r + k1 r^2 + k2 r^3 + k3 r^4 + k4 r^5 + k5 r^6``.
+    """Return the DJI P4 Multispectral / Mavic 3M vignetting correction.
+
+    It *multiplies* the image: ``1 + k0 r + k1 r^2 + k2 r^3 + k3 r^4 + k4 r^5 + k5 r^6``.
 
     DJI "P4 Multispectral Image Processing Guide" v1.0 (2020.07) Eq. 8-9 and "Mavic 3M Image
     Processing Guide" v1.0 (2023.08): ``k`` = XMP ``drone-dji:VignettingData`` (k[0]..k[5]),
@@ -495,15 +499,20 @@ def color_transform(channels: np.ndarray, matrix: Sequence[float], rows: Sequenc
 
 
 def thermal_kelvin(dn: np.ndarray) -> np.ndarray:
-    """MicaSense Altum / Altum-PT LWIR band: the stored DN are centi-kelvin, ``T = DN / 100`` K
-    (micasense/imageprocessing ``image.py``: ``(DN - 27315) * 0.01`` in degrees C)."""
+    """Convert a MicaSense Altum / Altum-PT LWIR band to kelvin.
+
+    The stored DN are centi-kelvin, ``T = DN / 100`` K (micasense/imageprocessing
+    ``image.py``: ``(DN - 27315) * 0.01`` in degrees C).
+    """
     return np.asarray(dn, dtype=np.float64) / 100.0
 
 
 def upright(image: np.ndarray, orientation: int) -> np.ndarray:
-    """An image stored with EXIF ``orientation`` turned to how it is meant to be seen (1: as
-    stored, 3: rotated 180 degrees, as Parrot Sequoia writes; 2, 4: mirrored). Orientations
-    5-8 swap the axes and are refused (ValueError)."""
+    """Turn an image stored with EXIF ``orientation`` to how it is meant to be seen.
+
+    1: as stored, 3: rotated 180 degrees, as Parrot Sequoia writes; 2, 4: mirrored.
+    Orientations 5-8 swap the axes and are refused (ValueError).
+    """
     if orientation in (0, 1):
         return image
     if orientation == 3:

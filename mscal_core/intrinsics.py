@@ -24,8 +24,11 @@ MIN_CORNERS = 8
 
 @dataclass(frozen=True)
 class Board:
-    """``kind`` "charuco" or "checkerboard"; ``squares`` (columns, rows) of squares;
-    ``square_m`` square side; ChArUco: ``marker_m`` marker side and ``dictionary``."""
+    """A calibration board.
+
+    ``kind`` "charuco" or "checkerboard"; ``squares`` (columns, rows) of squares; ``square_m``
+    square side; ChArUco: ``marker_m`` marker side and ``dictionary``.
+    """
 
     kind: str
     squares: tuple[int, int]
@@ -34,6 +37,7 @@ class Board:
     dictionary: str = "DICT_4X4_50"
 
     def __post_init__(self) -> None:
+        """Check the board (:class:`InputError` on an unknown kind, size or dictionary)."""
         if self.kind not in ("charuco", "checkerboard"):
             raise InputError(f"board kind must be charuco or checkerboard, got {self.kind!r}")
         if min(self.squares) < 2 or self.square_m <= 0:
@@ -45,6 +49,7 @@ class Board:
                 raise InputError(f"unknown ArUco dictionary {self.dictionary!r}")
 
     def charuco(self) -> cv2.aruco.CharucoBoard:
+        """Build the OpenCV ``CharucoBoard`` of this board."""
         d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
         return cv2.aruco.CharucoBoard(tuple(self.squares), float(self.square_m), float(self.marker_m), d)
 
@@ -56,8 +61,11 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
 
 
 def detect_board(image: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarray] | None:
-    """Board corners in one image: ``(object points (N, 3) metres, image points (N, 2) px)``,
-    or None when fewer than :data:`MIN_CORNERS` are found. Any dtype (stretched to 8 bits)."""
+    """Find the board corners in one image.
+
+    Returns ``(object points (N, 3) metres, image points (N, 2) px)``, or None when fewer than
+    :data:`MIN_CORNERS` are found. Any dtype (stretched to 8 bits).
+    """
     if np.ndim(image) != 2:
         raise InputError(f"expected a single-band image, got shape {np.shape(image)}")
     gray = _to_uint8(image)
@@ -79,6 +87,8 @@ def detect_board(image: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarra
 
 @dataclass(frozen=True)
 class IntrinsicsFit:
+    """Result of :func:`calibrate`: the intrinsics, the reprojection rms (px) and the views used."""
+
     intrinsics: Intrinsics
     rms_px: float  # reprojection error rms (cv2.calibrateCamera)
     views: int
@@ -86,10 +96,13 @@ class IntrinsicsFit:
 
 def calibrate(views: Sequence[tuple[np.ndarray, np.ndarray]], shape: tuple[int, int],
               guess: Intrinsics | None = None, fix_k3: bool = False) -> IntrinsicsFit:
-    """``cv2.calibrateCamera`` on board views ``[(object (N, 3), image (N, 2)), ...]`` of an
-    image ``shape`` (H, W). ``fix_k3`` keeps ``k3 = 0`` (few or small views: ``k2`` and ``k3``
-    trade off and extrapolate badly to the image corners). :class:`FitError` with fewer than 3 views (the principal point and
-    distortion are not constrained by fewer)."""
+    """Fit the intrinsics with ``cv2.calibrateCamera`` on board views.
+
+    Views ``[(object (N, 3), image (N, 2)), ...]`` of an image ``shape`` (H, W). ``fix_k3``
+    keeps ``k3 = 0`` (few or small views: ``k2`` and ``k3`` trade off and extrapolate badly to
+    the image corners). :class:`FitError` with fewer than 3 views (the principal point and
+    distortion are not constrained by fewer).
+    """
     views = [(o, i) for o, i in views if len(o) >= MIN_CORNERS]
     if len(views) < 3:
         raise FitError(f"only {len(views)} image(s) with the board found; intrinsics need at least 3",

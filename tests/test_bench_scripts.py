@@ -144,9 +144,8 @@ def test_every_readme_figure_link_resolves_to_an_anchor_of_benchmarks_md() -> No
 def test_factory_baseline_loop_reproduces_micasense_panel_radiance() -> None:
     """The hand loop that factory apply is measured against is MicaSense's model: on the real
     panel capture it gives the panel radiance MicaSense's own tests assert (rel 1e-3)."""
-    from tests.micasense_data import PANEL_CORNERS, PANEL_RADIANCE, band_file
-
     from mscal_core.factory import polygon_mask
+    from tests.micasense_data import PANEL_CORNERS, PANEL_RADIANCE, band_file
 
     fac = _load("bench_factory")
     cache: dict = {}

@@ -1,6 +1,7 @@
-"""Seeded synthetic calibration session of a multi-lens camera (one lens and sensor per band,
-MicaSense RedEdge-like), with known truth. Pure arrays, no I/O (``pipeline/sim/multilens.py``
-writes the band files).
+"""Seeded synthetic calibration session of a multi-lens camera, with known truth.
+
+One lens and sensor per band, MicaSense RedEdge-like. Pure arrays, no I/O
+(``pipeline/sim/multilens.py`` writes the band files).
 
 Each lens is its own camera (the paper fits "each band as its own camera"):
 
@@ -63,9 +64,11 @@ CHECK_PANELS = (Panel((-1.35, 0.0), 0.6, 0.05), Panel((-0.45, 0.0), 0.6, 0.20),
 
 @dataclass(frozen=True)
 class Lens:
-    """One lens of the rig: ``camera`` a one-band pinhole (``pattern_shape`` (1, 1)), its
-    sensor, its pose in the rig (``X_lens = rig_R X_ref + rig_t``), vignetting ``(H, W)`` max 1
-    and spectral factor."""
+    """One lens of the rig.
+
+    ``camera`` a one-band pinhole (``pattern_shape`` (1, 1)), its sensor, its pose in the rig
+    (``X_lens = rig_R X_ref + rig_t``), vignetting ``(H, W)`` max 1 and spectral factor.
+    """
 
     name: str
     camera: SnapshotCamera
@@ -77,7 +80,7 @@ class Lens:
     spectral_factor: float
 
     def pose(self, ref: Pose) -> Pose:
-        """This lens's marker pose when the reference lens sees the marker at ``ref``."""
+        """Return this lens's marker pose when the reference lens sees the marker at ``ref``."""
         return Pose.from_matrix(self.rig_R @ ref.R, self.rig_R @ np.asarray(ref.tvec) + self.rig_t)
 
     @property
@@ -87,6 +90,7 @@ class Lens:
         return float(self.sensor.inverse_response()[k] / float(self.sensor.x_for_dn(k)))
 
     def expose(self, energy: np.ndarray, t_ms: float, rng: np.random.Generator) -> np.ndarray:
+        """Return one noisy uint16 frame of energy rate ``energy`` (this lens's U gauge) exposed ``t_ms`` ms."""
         return self.sensor.expose(np.asarray(energy) / self.gauge, t_ms, rng)
 
     def exposure_for(self, e_max: float, fraction: float) -> float:
@@ -97,6 +101,8 @@ class Lens:
 
 @dataclass(frozen=True)
 class RigTruth:
+    """Known truth of a synthetic rig: its lenses, the reference lens, reflector, marker and sun."""
+
     seed: int
     lenses: tuple[Lens, ...]
     reference: int  # the lens whose frame is the rig's (the middle of the rig)
@@ -107,30 +113,37 @@ class RigTruth:
 
     @property
     def n_bands(self) -> int:
+        """Number of bands (one per lens)."""
         return len(self.lenses)
 
     @property
     def wavelengths(self) -> np.ndarray:
+        """Centre wavelength (nm) of each lens's band."""
         return np.array([ln.camera.wavelengths_nm[0] for ln in self.lenses])
 
     @property
     def shape(self) -> tuple[int, int]:
+        """Image shape (H, W) of every band (the first lens's grid)."""
         return tuple(self.lenses[0].camera.grid_shape)  # type: ignore[return-value]
 
     @property
     def inverse_response(self) -> np.ndarray:
+        """Stack each lens's true inverse response ``U[k]`` (band, 2**bits)."""
         return np.stack([ln.sensor.inverse_response() for ln in self.lenses])
 
     @property
     def vignetting(self) -> np.ndarray:
+        """Stack each lens's vignetting (band, H, W)."""
         return np.stack([ln.vignetting for ln in self.lenses])
 
     @property
     def spectral_factor(self) -> np.ndarray:
+        """Spectral factor ``S`` of each lens (band,)."""
         return np.array([ln.spectral_factor for ln in self.lenses])
 
     @property
     def black_level(self) -> np.ndarray:
+        """Sensor black level (DN) of each lens (band,)."""
         return np.array([ln.sensor.black_level for ln in self.lenses])
 
     def arrays(self) -> dict[str, np.ndarray]:
@@ -206,9 +219,11 @@ def make_rig_truth(seed: int = 0, *, shape: tuple[int, int] = REDEDGE_SHAPE, ban
 
 @dataclass
 class RigFrames:
-    """Captures of one dataset: ``dn`` list of (band, H, W) uint16 (12-bit values),
-    ``exposure_ms`` (capture, band), ``names``, ``times_s`` (seconds after the session
-    start), ``truth`` arrays."""
+    """Captures of one dataset.
+
+    ``dn`` list of (band, H, W) uint16 (12-bit values), ``exposure_ms`` (capture, band),
+    ``names``, ``times_s`` (seconds after the session start), ``truth`` arrays.
+    """
 
     kind: str
     dn: list[np.ndarray]
@@ -231,8 +246,11 @@ def _marker_in_frame(lens: Lens, pose: Pose, marker: MarkerSpec, margin_px: floa
 
 def response_sweep(truth: RigTruth, *, seed: int = 0, n_frames: int = 12, step: float = 1.7,
                    decades: float = 2.5) -> RigFrames:
-    """Exposure sweep of a static textured scene, the same exposures for every lens (manual
-    exposure); each lens sees its own part of it. truth: ``energy`` (band, H, W)."""
+    """Simulate an exposure sweep of a static textured scene.
+
+    The same exposures for every lens (manual exposure); each lens sees its own part of it.
+    truth: ``energy`` (band, H, W).
+    """
     rng = np.random.default_rng([seed, 32])
     h, w = truth.shape
     gy, gx = np.meshgrid(np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), indexing="ij")
@@ -262,17 +280,70 @@ def _render_lenses(truth: RigTruth, ref: Pose, scene, reflectance: np.ndarray, s
     return out
 
 
+def _least_covered(coverage: np.ndarray, cells: tuple[int, int]) -> np.ndarray:
+    """Return the minimum of ``coverage`` (H, W) in each of ``cells`` (rows, columns) blocks."""
+    h, w = coverage.shape
+    if h % cells[0] == 0 and w % cells[1] == 0:
+        return coverage.reshape(cells[0], h // cells[0], cells[1], w // cells[1]).min(axis=(1, 3))
+    return np.array([[coverage[i * h // cells[0]:(i + 1) * h // cells[0], j * w // cells[1]:(j + 1) * w // cells[1]].min()
+                      for j in range(cells[1])] for i in range(cells[0])])
+
+
+def _vignetting_ref_pose(rng: np.random.Generator, ref_lens: Lens, coverage: np.ndarray, cells: tuple[int, int],
+                         half_in: float, half_out: np.ndarray, max_tilt_deg: float,
+                         distance_m: tuple[float, float]) -> Pose:
+    """Draw a reference-lens reflector pose aimed at the least covered cell of ``coverage``.
+
+    The reflector point ``q`` lies outside the marker (``half_in``) and inside the reflector
+    (``half_out``).
+    """
+    h, w = coverage.shape
+    cov = _least_covered(coverage, cells)
+    cov = cov + rng.uniform(0, 0.5, cov.shape)
+    ci, cj = np.unravel_index(np.argmin(cov), cov.shape)
+    t_px = np.array([(cj + rng.uniform()) * w / cells[1], (ci + rng.uniform()) * h / cells[0]])
+    while True:
+        q = rng.uniform(-half_out, half_out)
+        if np.max(np.abs(q)) >= half_in:
+            break
+    R = random_tilt(rng, max_tilt_deg) @ FRONTAL @ rot([0, 0, 1], rng.uniform(0, 2 * np.pi))
+    return pose_through(ref_lens.camera, R, t_px, q, rng.uniform(*distance_m))
+
+
+def _reflector_ref_pose(rng: np.random.Generator, ref_lens: Lens, shape: tuple[int, int]) -> Pose:
+    """Draw a near-nadir close reference-lens pose (tilt up to 12 deg, 0.6-0.8 m, near the centre)."""
+    h, w = shape
+    R = random_tilt(rng, 12.0) @ FRONTAL @ rot([0, 0, 1], rng.normal(0, 0.15))
+    t_px = np.array([ref_lens.camera.cx + rng.normal(0, 0.03 * w), ref_lens.camera.cy + rng.normal(0, 0.03 * h)])
+    return pose_through(ref_lens.camera, R, t_px, np.zeros(2), rng.uniform(0.6, 0.8))
+
+
+def _expose_gray(truth: RigTruth, rendered, gray, rng: np.random.Generator) -> tuple[list, list]:
+    """Expose every lens on its own, its brightest gray pixel at 70-85 % of range: ``(dn, t)``."""
+    frac = rng.uniform(0.70, 0.85)
+    dn, ts = [], []
+    for b, (ln, (_, _, br)) in enumerate(zip(truth.lenses, rendered)):
+        energy = ln.vignetting * ln.spectral_factor * br
+        t = ln.exposure_for(float(energy[gray[b]].max()), frac)
+        dn.append(ln.expose(energy, t, rng))
+        ts.append(t)
+    return dn, ts
+
+
 def marker_views(truth: RigTruth, *, seed: int = 0, kind: str = "vignetting", n_views: int = 24,
                  max_tilt_deg: float = 30.0, distance_m: tuple[float, float] = (0.8, 1.4), supersample: int = 3,
                  max_attempts: int = 300, fixed_light: bool = True, time0_s: float = 300.0) -> RigFrames:
-    """The gray reflector with its marker seen by the rig: ``kind="vignetting"`` from many
-    viewpoints under one fixed non-uniform light (Eq. 8-10; the reflector aimed at the least
-    covered part of the reference lens's image); ``kind="reflector"`` near-nadir close views,
-    each under its own non-uniform light (Eq. 11-14). Every lens exposes on its own (brightest
-    gray pixel at 70-85 % of range) and must see and detect the marker.
+    """Render the gray reflector with its marker as seen by the rig.
+
+    ``kind="vignetting"``: from many viewpoints under one fixed non-uniform light (Eq. 8-10;
+    the reflector aimed at the least covered part of the reference lens's image);
+    ``kind="reflector"``: near-nadir close views, each under its own non-uniform light
+    (Eq. 11-14). Every lens exposes on its own (brightest gray pixel at 70-85 % of range) and
+    must see and detect the marker.
 
     truth: ``rvec``, ``tvec`` (view, band, 3) each lens's pose; ``gray_mask`` (view, band, H, W);
-    ``light`` (view, 9) (:meth:`GradientShadowLight.from_params`)."""
+    ``light`` (view, 9) (:meth:`GradientShadowLight.from_params`).
+    """
     rng = np.random.default_rng([seed, 33 if kind == "vignetting" else 34])
     ref_lens = truth.lenses[truth.reference]
     h, w = truth.shape
@@ -290,36 +361,16 @@ def marker_views(truth: RigTruth, *, seed: int = 0, kind: str = "vignetting", n_
                                ground_seed=seed + 17 * k)
         for _ in range(max_attempts):
             if kind == "vignetting":
-                cov = coverage.reshape(cells[0], h // cells[0], cells[1], w // cells[1]).min(axis=(1, 3)) \
-                    if h % cells[0] == 0 and w % cells[1] == 0 else \
-                    np.array([[coverage[i * h // cells[0]:(i + 1) * h // cells[0], j * w // cells[1]:(j + 1) * w // cells[1]].min()
-                               for j in range(cells[1])] for i in range(cells[0])])
-                cov = cov + rng.uniform(0, 0.5, cov.shape)
-                ci, cj = np.unravel_index(np.argmin(cov), cov.shape)
-                t_px = np.array([(cj + rng.uniform()) * w / cells[1], (ci + rng.uniform()) * h / cells[0]])
-                while True:
-                    q = rng.uniform(-half_out, half_out)
-                    if np.max(np.abs(q)) >= half_in:
-                        break
-                R = random_tilt(rng, max_tilt_deg) @ FRONTAL @ rot([0, 0, 1], rng.uniform(0, 2 * np.pi))
-                ref = pose_through(ref_lens.camera, R, t_px, q, rng.uniform(*distance_m))
+                ref = _vignetting_ref_pose(rng, ref_lens, coverage, cells, half_in, half_out, max_tilt_deg, distance_m)
             else:
-                R = random_tilt(rng, 12.0) @ FRONTAL @ rot([0, 0, 1], rng.normal(0, 0.15))
-                t_px = np.array([ref_lens.camera.cx + rng.normal(0, 0.03 * w), ref_lens.camera.cy + rng.normal(0, 0.03 * h)])
-                ref = pose_through(ref_lens.camera, R, t_px, np.zeros(2), rng.uniform(0.6, 0.8))
+                ref = _reflector_ref_pose(rng, ref_lens, (h, w))
             if not all(_marker_in_frame(ln, ln.pose(ref), mk, 6.0, 0.035 * w) for ln in truth.lenses):
                 continue
             rendered = _render_lenses(truth, ref, scene, scene.reflectance, supersample)
             gray = [r.pure(ReflectorScene.GRAY) for _, r, _ in rendered]
             if min(g.sum() for g in gray) < 0.05 * h * w:
                 continue
-            frac = rng.uniform(0.70, 0.85)
-            dn, ts = [], []
-            for b, (ln, (_, _, br)) in enumerate(zip(truth.lenses, rendered)):
-                energy = ln.vignetting * ln.spectral_factor * br
-                t = ln.exposure_for(float(energy[gray[b]].max()), frac)
-                dn.append(ln.expose(energy, t, rng))
-                ts.append(t)
+            dn, ts = _expose_gray(truth, rendered, gray, rng)
             if not all(detect_marker_corners(d, mk) is not None for d in dn):
                 continue
             break
@@ -342,10 +393,12 @@ def marker_views(truth: RigTruth, *, seed: int = 0, kind: str = "vignetting", n_
 
 def panel_captures(truth: RigTruth, *, seed: int = 0, n_frames: int = 3, height_m: float = 5.0,
                    panels=CHECK_PANELS, supersample: int = 3, time0_s: float = 1200.0) -> RigFrames:
-    """Near-nadir captures of gray panels on a crop field under uniform sun (a different level
-    per capture), for the Eq. 15 check. truth: ``sun`` (n,), ``labels`` (n, band, H, W) int8
-    panel index where a band's pixel lies well inside a panel, -1 elsewhere;
-    ``panel_reflectance`` (P,)."""
+    """Simulate near-nadir captures of gray panels on a crop field, for the Eq. 15 check.
+
+    Under uniform sun (a different level per capture). truth: ``sun`` (n,), ``labels``
+    (n, band, H, W) int8 panel index where a band's pixel lies well inside a panel, -1
+    elsewhere; ``panel_reflectance`` (P,).
+    """
     rng = np.random.default_rng([seed, 35])
     dns, exps, labels, suns = [], [], [], []
     for k in range(n_frames):
@@ -378,8 +431,10 @@ def panel_captures(truth: RigTruth, *, seed: int = 0, n_frames: int = 3, height_
 
 def _board_reflectance(camera: SnapshotCamera, pose: Pose, tex: np.ndarray, ppm: np.ndarray,
                        blur_px: float) -> np.ndarray:
-    """Reflectance (0.04 ink .. 0.84 paper) of a board texture seen through ``camera`` from
-    ``pose``, on its sensor grid (2 x 2 samples per pixel, Gaussian PSF)."""
+    """Return the reflectance (0.04 ink .. 0.84 paper) of a board texture seen through ``camera``.
+
+    Seen from ``pose``, on its sensor grid (2 x 2 samples per pixel, Gaussian PSF).
+    """
     import cv2
 
     xn, yn, (dxx, dxy, dyx, dyy) = camera.sensor_rays()
@@ -410,13 +465,15 @@ def _board_pose(rng: np.random.Generator, camera: SnapshotCamera, board_size_m, 
 def board_views(truth: RigTruth, board_image: np.ndarray, board_size_m: tuple[float, float], *, seed: int = 0,
                 n_views: int = 16, distance_m: tuple[float, float] = (0.35, 0.6), max_tilt_deg: float = 40.0,
                 blur_px: float = 0.7) -> RigFrames:
-    """Images of a printed calibration board (``board_image``: uint8, white 255, spanning
-    ``board_size_m`` = (w, h) metres, its object frame x right and y down from the top-left
-    corner, as OpenCV's boards) held before the rig at random tilts and positions, under
-    uniform light. Every lens renders it through its own distorted pinhole
-    (:meth:`SnapshotCamera.sensor_rays`, 2 x 2 samples per pixel, a Gaussian PSF), with its own
-    vignetting, response and noise, exposed on its own. truth: ``rvec``, ``tvec`` (view,
-    band, 3) the board pose in each lens (object frame -> lens)."""
+    """Simulate images of a printed calibration board held before the rig.
+
+    ``board_image``: uint8, white 255, spanning ``board_size_m`` = (w, h) metres, its object
+    frame x right and y down from the top-left corner, as OpenCV's boards; held at random
+    tilts and positions, under uniform light. Every lens renders it through its own distorted
+    pinhole (:meth:`SnapshotCamera.sensor_rays`, 2 x 2 samples per pixel, a Gaussian PSF),
+    with its own vignetting, response and noise, exposed on its own. truth: ``rvec``, ``tvec``
+    (view, band, 3) the board pose in each lens (object frame -> lens).
+    """
     rng = np.random.default_rng([seed, 36])
     tex = np.asarray(board_image, dtype=np.float32) / 255.0
     ppm = np.array([tex.shape[1] / board_size_m[0], tex.shape[0] / board_size_m[1]])
@@ -445,10 +502,12 @@ def board_views(truth: RigTruth, board_image: np.ndarray, board_size_m: tuple[fl
 def snapshot_board_views(truth, board_image: np.ndarray, board_size_m: tuple[float, float], *, seed: int = 0,
                          n_views: int = 10, distance_m: tuple[float, float] = (0.35, 0.6),
                          max_tilt_deg: float = 40.0, blur_px: float = 1.2) -> list[np.ndarray]:
-    """The board of :func:`board_views` seen by the snapshot camera of a
-    :class:`~mscal_core.synth.scene.SyntheticTruth` (one lens, the 5 x 5 mosaic): raw sensor
-    frames (uint16, DN in the low bits), rendered on the sensor grid, with the truth's
-    vignetting, S, response and noise per band."""
+    """Simulate the board of :func:`board_views` seen by a snapshot camera.
+
+    The camera of a :class:`~mscal_core.synth.scene.SyntheticTruth` (one lens, the 5 x 5
+    mosaic): raw sensor frames (uint16, DN in the low bits), rendered on the sensor grid, with
+    the truth's vignetting, S, response and noise per band.
+    """
     rng = np.random.default_rng([seed, 37])
     cam = truth.camera
     tex = np.asarray(board_image, dtype=np.float32) / 255.0

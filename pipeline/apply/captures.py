@@ -34,10 +34,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+import mscal_core
 import numpy as np
 import xarray as xr
-
-import mscal_core
 from mscal_core.errors import FrameError
 
 from pipeline.apply.execution import Execution
@@ -345,17 +344,23 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     captures: Eq. 15 with the store's U, V and S per band file (its own exposure and gain),
     the light of each capture's time (issue 8; the captures' sun-sensor readings), the
     store's band transforms, the normalisation of ``options`` (an ApplyOptions)."""
+    from mscal_core.errors import CalibrationStoreError, InputError
+
     from pipeline.apply.executor import capture_reflectance
     from pipeline.apply.flight import (
-        run_fingerprint, pass_geometry, index_roles, calibration_hash, export_band_indices, normalisation, saturation_dn,
+        calibration_hash,
+        export_band_indices,
+        index_roles,
+        normalisation,
+        pass_geometry,
+        run_fingerprint,
+        saturation_dn,
     )
     from pipeline.apply.light import illumination_plan
     from pipeline.calibrate.registration import check_transforms
     from pipeline.ingest.camera_meta import capture_irradiance
     from pipeline.ingest.catalog import load_index
     from pipeline.storage.store import open_calibration
-
-    from mscal_core.errors import CalibrationStoreError, InputError
 
     calib = open_calibration(calib_path, camera, need="apply")
     if "band_name" in calib.coords and [str(n) for n in calib["band_name"].values] != list(camera.band_names):

@@ -41,15 +41,20 @@ import dask.multiprocessing
 import dask.threaded
 import numpy as np
 import xarray as xr
-
 from mscal_core.errors import FrameError, InputError
 from mscal_core.reflectance import eq15_fast, eq15_tables, vegetation_mask
 from mscal_core.registration import align_bands, shift_bands
 
 from pipeline.apply.execution import Execution, scheduler_for
 from pipeline.calibrate.registration import frame_transforms
-from pipeline.ingest.camera_meta import (Capture, FieldParts, factory_radiance, read_capture_pixels, reflectance_factor,
-                                         upright_meta)
+from pipeline.ingest.camera_meta import (
+    Capture,
+    FieldParts,
+    factory_radiance,
+    read_capture_pixels,
+    reflectance_factor,
+    upright_meta,
+)
 from pipeline.ingest.catalog import Camera, Index, load_camera
 from pipeline.ingest.discover import quarantine_entry
 from pipeline.ingest.raw import prefetch_file, read_frame, shape_problem

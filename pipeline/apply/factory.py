@@ -71,29 +71,33 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
-import numpy as np
-
 import mscal_core
+import numpy as np
 from mscal_core.errors import CalibrationStoreError, FrameError, InputError
 from mscal_core.illumination import INTERPOLATION_MODES, fit_illumination, frame_illumination
 from mscal_core.panel import sample_quad
 
+from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, stat_fingerprint
 from pipeline.apply.execution import Execution
 from pipeline.apply.executor import FactoryChain, field_parts
 from pipeline.apply.flight import (
     ApplyResult,
+    export_band_indices,
     index_roles,
     previous_run,
-    export_band_indices,
 )
-from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, stat_fingerprint
+from pipeline.apply.panel import PanelBand, panel_factors
 from pipeline.ingest.camera_meta import (
-    Capture, FieldParts, capture_irradiance, factory_radiance, read_capture_pixels, reflectance_factor,
+    Capture,
+    FieldParts,
+    capture_irradiance,
+    factory_radiance,
+    read_capture_pixels,
+    reflectance_factor,
     sun_sensor_absolute,
 )
 from pipeline.ingest.catalog import Camera, load_index, reflectance_option
 from pipeline.ingest.identify import Identification, identify_camera
-from pipeline.apply.panel import PanelBand, panel_factors
 from pipeline.ingest.session import PanelConfig, panel_config_near
 
 FACTORY = "factory"

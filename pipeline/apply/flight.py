@@ -28,28 +28,45 @@ from typing import Any, Callable, Sequence
 import cv2
 import dask
 import dask.array as da
+import mscal_core
 import numpy as np
 import xarray as xr
-
-import mscal_core
 from mscal_core.errors import FrameError, InputError
 from mscal_core.reflectance import eq15_fast, eq15_tables
 from mscal_core.registration import align_bands, mosaic_centre_offsets
 
-from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
-from pipeline.storage.chunks import FLAT_CHUNK_KEYS
-from pipeline.calibrate.registration import check_transforms, frame_transforms
-from pipeline.ingest.raw import (FRAME_COORDS, Cube, CubeWriter, frame_coords, frame_row, ingest_flight, open_cube,
-                                 read_frame)
 from pipeline.apply.execution import Execution
+from pipeline.apply.executor import (  # noqa: F401  (re-exported: the executor's pieces were here before)
+    OUTPUT_COMPRESSORS,
+    FieldChain,
+    Job,
+    Outcome,
+    Plan,
+    Runner,
+    calibration_tables,
+    capture_uuid,
+    geometry_step,
+    process_frame,
+    read_frame_chunk,
+    write_frame,
+)
 from pipeline.apply.light import DEFAULT_MODE, IlluminationPlan, illumination_plan, varies_in_time
-from pipeline.storage.store import open_calibration
+from pipeline.calibrate.registration import check_transforms, frame_transforms
+from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
+from pipeline.ingest.raw import (
+    FRAME_COORDS,
+    Cube,
+    CubeWriter,
+    frame_coords,
+    frame_row,
+    ingest_flight,
+    open_cube,
+    read_frame,
+)
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import install_folder, remove_temporaries, temporary_folder_name, write_json_atomic
-from pipeline.apply.executor import (  # noqa: F401  (re-exported: the executor's pieces were here before)
-    OUTPUT_COMPRESSORS, FieldChain, Job, Outcome, Plan, Runner, calibration_tables, capture_uuid, geometry_step,
-    process_frame, read_frame_chunk, write_frame,
-)
+from pipeline.storage.chunks import FLAT_CHUNK_KEYS
+from pipeline.storage.store import open_calibration
 
 RUN_JSON = "run.json"
 MAX_EXPORT_BANDS = 8

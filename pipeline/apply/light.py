@@ -25,7 +25,6 @@ from typing import Any, Sequence
 
 import numpy as np
 import xarray as xr
-
 from mscal_core.errors import FrameError, InputError
 from mscal_core.illumination import INTERPOLATION_MODES, frame_illumination
 

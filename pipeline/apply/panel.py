@@ -32,11 +32,10 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-
 from mscal_core.errors import FrameError
 from mscal_core.factory import panel_stats, polygon_mask
-from mscal_core.illumination import IlluminationFit, fit_illumination
 from mscal_core.geometry import detect_marker
+from mscal_core.illumination import IlluminationFit, fit_illumination
 from mscal_core.panel import DEFAULT_INSET, detect_panel, panel_from_marker, sample_quad, shrink_polygon
 from mscal_core.reflectance import ndvi
 

@@ -17,21 +17,28 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+import mscal_core
 import numpy as np
 import xarray as xr
-
-import mscal_core
 from mscal_core import geometry, illumination, response, vignetting
 from mscal_core.errors import FitError, SessionError
 from mscal_core.mosaic import band_offsets
 
 from pipeline.calibrate.intrinsics import fit_intrinsics_folder, parse_board, store_intrinsics
+from pipeline.ingest.camera_meta import xmp_irradiance
 from pipeline.ingest.captures import is_multilens, read_frames
 from pipeline.ingest.catalog import Camera, load_camera
-from pipeline.ingest.camera_meta import xmp_irradiance
 from pipeline.ingest.exif import NAT, time_ns
 from pipeline.ingest.intrinsics import band_intrinsics_from_files, intrinsics_from_array
-from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES, FrameRecord, Session, load_session, read_bands, read_frame_table
+from pipeline.ingest.session import (
+    FRAMES_CSV,
+    IMAGE_SUFFIXES,
+    FrameRecord,
+    Session,
+    load_session,
+    read_bands,
+    read_frame_table,
+)
 from pipeline.storage.store import content_hashes, new_dataset, open_calibration, write_store
 
 log = logging.getLogger("mscal.calibrate")

@@ -26,7 +26,6 @@ from typing import Any, Sequence
 import numpy as np
 import xarray as xr
 import yaml
-
 from mscal_core import intrinsics as board_fit
 from mscal_core.errors import InputError, MscalError, SessionError
 from mscal_core.geometry import Intrinsics

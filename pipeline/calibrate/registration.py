@@ -32,7 +32,6 @@ from typing import Sequence
 
 import numpy as np
 import xarray as xr
-
 from mscal_core.errors import CalibrationStoreError, FitError, InputError
 from mscal_core.registration import (
     BandRegistration,
@@ -40,8 +39,8 @@ from mscal_core.registration import (
     accept,
     centre_reference,
     combine_homographies,
-    register_stack,
     rebase,
+    register_stack,
     transform_distance,
 )
 
@@ -233,7 +232,7 @@ def frame_transforms(ds: xr.Dataset, name: str) -> np.ndarray | None:
     return np.asarray(ds["band_transform"].values, dtype=np.float64)
 
 
-def _collect(paths: Sequence[Path], camera: Camera) -> tuple[list[Capture], list[dict[str, str]]]:
+def collect_captures(paths: Sequence[Path], camera: Camera) -> tuple[list[Capture], list[dict[str, str]]]:
     """Captures named by folders (every capture in it) or band files (their captures)."""
     captures: dict[str, Capture] = {}
     problems: list[dict[str, str]] = []
@@ -280,7 +279,7 @@ def register_cli(paths: Sequence[Path], out: Path, camera_name: str | None, refe
             raise InputError(f"--reference {reference!r} is not a band of {camera.name}",
                              hint=f"bands: {', '.join(camera.band_names)}")
         ref_index = camera.band_names.index(reference)
-    captures, problems = _collect(paths, camera)
+    captures, problems = collect_captures(paths, camera)
     if not captures:
         why = "; ".join(f"{p['file']}: {p['reason']}" for p in problems[:3])
         raise InputError("no complete captures found" + (f" ({why})" if why else ""), path=paths[0] if paths else None,

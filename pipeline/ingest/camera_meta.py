@@ -28,7 +28,6 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
-
 from mscal_core.errors import FrameError
 from mscal_core.factory import (
     color_transform,

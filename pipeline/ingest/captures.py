@@ -20,8 +20,8 @@ from pathlib import Path
 
 from mscal_core.errors import FrameError, SessionError
 
-from pipeline.ingest.catalog import Camera
 from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
+from pipeline.ingest.catalog import Camera
 from pipeline.ingest.exif import rational
 from pipeline.ingest.intrinsics import EXIF_CODES, tiff_tags
 from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES, FrameRecord, read_frame_table

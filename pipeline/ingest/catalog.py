@@ -23,7 +23,6 @@ from typing import Any, Mapping
 
 import numpy as np
 import yaml
-
 from mscal_core.errors import CatalogError, MscalError
 from mscal_core.reflectance import keep_valid
 

@@ -25,7 +25,6 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-
 from mscal_core.errors import FrameError, SessionError
 from mscal_core.geometry import Intrinsics
 

@@ -52,18 +52,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator
 
+import mscal_core
 import numpy as np
 import zarr
-
-import mscal_core
 from mscal_core.errors import FrameError, InputError
 
 from pipeline.ingest.catalog import Camera, load_camera
+from pipeline.ingest.discover import Discovery, discover_flight, quarantine_entry
 from pipeline.ingest.exif import time_ns
+from pipeline.ingest.session import FrameRecord, decode_raw, to_bands
 from pipeline.storage.atomic import TMP_MARK, atomic_folder
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
-from pipeline.ingest.discover import Discovery, discover_flight, quarantine_entry
-from pipeline.ingest.session import FrameRecord, decode_raw, to_bands
 from pipeline.storage.store import file_sha256
 
 __all__ = ["Cube", "IngestResult", "ingest_flight", "open_cube", "RAW_FORMAT", "FRAME_COORDS"]

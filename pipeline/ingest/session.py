@@ -13,13 +13,12 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-
 from mscal_core.errors import CatalogError, FrameError, InputError, MscalError, SessionError
 from mscal_core.geometry import Intrinsics
 from mscal_core.mosaic import demosaic
 
-from pipeline.ingest.exif import dms_to_degrees, exif_datetime_iso, parse_iso, rational, signed_gps
 from pipeline.ingest.catalog import Camera, ReflectanceSpec, check_keys, load_camera, parse_reflectance, read_yaml
+from pipeline.ingest.exif import dms_to_degrees, exif_datetime_iso, parse_iso, rational, signed_gps
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
 FRAMES_CSV = "frames.csv"

@@ -11,9 +11,8 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
-
 from mscal_core.errors import InputError
+from numpy.typing import ArrayLike, NDArray
 
 
 def solar_position(times: ArrayLike, lat: ArrayLike, lon: ArrayLike,

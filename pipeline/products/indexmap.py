@@ -38,7 +38,6 @@ from pathlib import Path
 from typing import Mapping
 
 import numpy as np
-
 from mscal_core.errors import InputError
 
 from pipeline.ingest.catalog import Index, load_index

@@ -66,10 +66,9 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
-
 from mscal_core.errors import InputError
-from pipeline.ingest.catalog import read_yaml
 
+from pipeline.ingest.catalog import read_yaml
 from pipeline.ingest.exif import parse_iso
 from pipeline.storage.atomic import write_text_atomic
 

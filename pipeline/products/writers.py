@@ -51,8 +51,8 @@ from pathlib import Path
 from xml.sax.saxutils import escape, quoteattr
 
 import numpy as np
-
 from mscal_core.errors import CatalogError
+
 from pipeline.ingest.exif import U32, degrees_to_dms, parse_iso, to_rational, utc_naive
 from pipeline.storage.atomic import atomic_path
 from pipeline.storage.directio import write_file

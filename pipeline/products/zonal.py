@@ -56,7 +56,6 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
-
 from mscal_core.errors import InputError
 from mscal_core.zonal import zonal_statistics
 

@@ -12,11 +12,10 @@ import logging
 import os
 import sys
 import time
-from typing import Any
 from pathlib import Path
+from typing import Any
 
 import click
-
 from mscal_core.errors import MscalError
 
 RESPONSE_METHODS = click.Choice(["forward", "alternating"])

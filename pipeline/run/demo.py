@@ -8,10 +8,10 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from pipeline.sim.evaluate import evaluate_calibration
 from pipeline.run.runner import CALIBRATION_STORE
-from pipeline.storage.store import open_calibration
+from pipeline.sim.evaluate import evaluate_calibration
 from pipeline.sim.synth import write_session
+from pipeline.storage.store import open_calibration
 
 #: The demo session's flights (SPEC: a small but complete session has two).
 DEMO_FLIGHTS = ("field", "orchard")

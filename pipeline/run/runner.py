@@ -38,8 +38,8 @@ from mscal_core.errors import InputError, MscalError, SessionError
 
 from pipeline.apply.execution import Execution, scheduler_for
 from pipeline.apply.flight import RUN_JSON, ApplyOptions, apply_flight
-from pipeline.calibrate.fit import STAGES
 from pipeline.apply.light import INTERPOLATION_MODES
+from pipeline.calibrate.fit import STAGES
 from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
 from pipeline.ingest.catalog import CATALOG_ROOT, load_camera
 from pipeline.ingest.session import Session, load_session, read_frame_table

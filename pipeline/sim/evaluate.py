@@ -12,7 +12,6 @@ from typing import Any
 
 import numpy as np
 import xarray as xr
-
 from mscal_core import metrics
 from mscal_core.illumination import eq16_reflectance
 from mscal_core.reflectance import eq15

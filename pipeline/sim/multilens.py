@@ -31,7 +31,6 @@ from pathlib import Path
 import numpy as np
 import tifffile
 import yaml
-
 from mscal_core.synth.rig import (
     REDEDGE_BANDS,
     REDEDGE_PX_PER_MM,

@@ -32,7 +32,6 @@ from pathlib import Path
 import numpy as np
 import tifffile
 import yaml
-
 from mscal_core.synth.scene import (
     FrameSet,
     LightDrift,

@@ -8,12 +8,12 @@ the check creates a file where the output will go and removes it.
 
 from __future__ import annotations
 
+import contextlib
 import errno
+import json
 import os
 import shutil
 import tempfile
-import contextlib
-import json
 from pathlib import Path
 from typing import Callable, Iterator
 

@@ -18,7 +18,6 @@ from typing import TYPE_CHECKING, Any, Iterable
 
 import numpy as np
 import xarray as xr
-
 from mscal_core.errors import CalibrationStoreError
 
 from pipeline.storage.atomic import atomic_folder

@@ -22,36 +22,6 @@ plots and warnings), ``sections`` (the report model), ``season`` (``mscal stats`
 
 from __future__ import annotations
 
-from pipeline.products.report.thresholds import (
-    CAPTURE_COLOUR_CHANGE_MAX,
-    FLIGHT_DN_OUTSIDE_SWEEP_MAX,
-    FRAME_LEVEL_RATIO_MAX,
-    HIST_MAX_FRAMES,
-    HIST_MAX_PIXELS,
-    ILLUMINATION_RESIDUAL_RMS_MAX,
-    LEVEL_MAX_FRAMES,
-    MARKER_MISSING_FRACTION_MAX,
-    MIN_REFLECTOR_PIXELS,
-    NDVI_MAX_FRAMES,
-    PANEL_DLS_COLOUR_SPREAD_MAX,
-    PNG_DPI,
-    QAWarning,
-    REFLECTOR_BRIGHTNESS_RATIO_MAX,
-    REGISTRATION_SPREAD_MAX_PX,
-    RESPONSE_RESIDUAL_RMS_DN_MAX,
-    SATURATED_FRACTION_MAX,
-    SWEEP_COVERAGE_MIN,
-    TABLE_MAX_ROWS,
-    VIGNETTING_OBSERVED_MIN,
-    VIGNETTING_RESIDUAL_RMS_MAX,
-)
-from pipeline.products.report.inputs import (
-    FlightResults,
-    open_flight,
-)
-from pipeline.products.report.figures import (
-    figure_png,
-)
 from pipeline.products.report.calibration import (
     calibration_warnings,
     plot_brightness,
@@ -64,6 +34,9 @@ from pipeline.products.report.calibration import (
     reflector_corrections,
     sweep_coverage,
 )
+from pipeline.products.report.figures import (
+    figure_png,
+)
 from pipeline.products.report.flight import (
     dn_outside_sweep,
     flight_warnings,
@@ -75,23 +48,9 @@ from pipeline.products.report.flight import (
     plot_track,
     sample_indices,
 )
-from pipeline.products.report.sections import (
-    Section,
-    Table,
-    band_table,
-    calibration_section,
-    flight_section,
-    reference_table,
-    reference_warnings,
-    registration_fallback_table,
-    registration_table,
-    registration_warnings,
-    skipped_table,
-)
-from pipeline.products.report.season import (
-    plot_season,
-    season_sections,
-    season_series,
+from pipeline.products.report.inputs import (
+    FlightResults,
+    open_flight,
 )
 from pipeline.products.report.page import (
     BROKEN_IMAGES_SCRIPT,
@@ -106,6 +65,47 @@ from pipeline.products.report.page import (
     write_report,
     write_report_and_markdown,
     write_season_report,
+)
+from pipeline.products.report.season import (
+    plot_season,
+    season_sections,
+    season_series,
+)
+from pipeline.products.report.sections import (
+    Section,
+    Table,
+    band_table,
+    calibration_section,
+    flight_section,
+    reference_table,
+    reference_warnings,
+    registration_fallback_table,
+    registration_table,
+    registration_warnings,
+    skipped_table,
+)
+from pipeline.products.report.thresholds import (
+    CAPTURE_COLOUR_CHANGE_MAX,
+    FLIGHT_DN_OUTSIDE_SWEEP_MAX,
+    FRAME_LEVEL_RATIO_MAX,
+    HIST_MAX_FRAMES,
+    HIST_MAX_PIXELS,
+    ILLUMINATION_RESIDUAL_RMS_MAX,
+    LEVEL_MAX_FRAMES,
+    MARKER_MISSING_FRACTION_MAX,
+    MIN_REFLECTOR_PIXELS,
+    NDVI_MAX_FRAMES,
+    PANEL_DLS_COLOUR_SPREAD_MAX,
+    PNG_DPI,
+    REFLECTOR_BRIGHTNESS_RATIO_MAX,
+    REGISTRATION_SPREAD_MAX_PX,
+    RESPONSE_RESIDUAL_RMS_DN_MAX,
+    SATURATED_FRACTION_MAX,
+    SWEEP_COVERAGE_MIN,
+    TABLE_MAX_ROWS,
+    VIGNETTING_OBSERVED_MIN,
+    VIGNETTING_RESIDUAL_RMS_MAX,
+    QAWarning,
 )
 
 __all__ = [

@@ -10,7 +10,6 @@ import matplotlib
 import numpy as np
 import xarray as xr
 from matplotlib.figure import Figure
-
 from mscal_core.illumination import colour_change, split_level
 from mscal_core.reflectance import eq15
 

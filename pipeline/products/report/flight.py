@@ -11,7 +11,6 @@ from typing import Any, Sequence
 import numpy as np
 import xarray as xr
 from matplotlib.figure import Figure
-
 from mscal_core.reflectance import ndvi, otsu_ndvi_threshold, vegetation_mask
 
 from pipeline.products.report.calibration import band_name_of, stage_residuals

@@ -10,7 +10,6 @@ from pathlib import Path
 from typing import Any
 
 import xarray as xr
-
 from mscal_core.errors import InputError
 
 from pipeline.ingest.catalog import Camera, load_camera

@@ -15,7 +15,6 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 import xarray as xr
 from matplotlib.figure import Figure
-
 from mscal_core.errors import InputError
 from mscal_core.illumination import colour_change
 

@@ -11,7 +11,6 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import xarray as xr
 from matplotlib.figure import Figure
-
 from mscal_core.registration import local_motion
 
 from pipeline.products.report.calibration import (

@@ -57,6 +57,6 @@ def test_two_applies_on_one_out_the_second_waits(small, tmp_path: Path) -> None:
     _trials(small, tmp_path, 2, wait=True)
 
 
-@pytest.mark.slow
+@pytest.mark.long  # ~3 min: make test-long
 def test_twenty_trials_of_two_applies(small, tmp_path: Path) -> None:
     _trials(small, tmp_path, 20, wait=False)

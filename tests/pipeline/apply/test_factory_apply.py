@@ -19,8 +19,8 @@ import xarray as xr
 from mscal_core.factory import polygon_mask
 from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta
 from pipeline.ingest.catalog import load_target
-from pipeline.run.cli import main
 from pipeline.ingest.session import read_raw
+from pipeline.run.cli import main
 from tests.micasense_data import BANDS, MARKER_PANEL, PANEL_CORNERS, paint_marker, require_data
 
 PANEL_TARGET = "micasense-rp02-1603036-sc"

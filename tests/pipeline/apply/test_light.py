@@ -22,7 +22,6 @@ from mscal_core.errors import InputError, SessionError
 from mscal_core.synth.scene import LightDrift
 from pipeline.run.cli import main
 from pipeline.sim.synth import write_light_drift
-
 from tests.micasense_data import require_data
 
 #: 25 % less light and a 3 % colour tilt between 1200 s and 3000 s (a cloud bank building up
@@ -268,9 +267,9 @@ def test_micasense_sun_sensor_readings() -> None:
     """Real check: the DLS irradiance the RedEdge writes into each band file's XMP is read for
     a capture and for frames, and scales the level between a capture and a later frame."""
     from mscal_core.illumination import frame_illumination
+    from pipeline.apply.light import flight_irradiance
     from pipeline.ingest.camera_meta import capture_irradiance, group_captures, read_capture_meta, xmp_irradiance
     from pipeline.ingest.catalog import load_camera
-    from pipeline.apply.light import flight_irradiance
 
     data = require_data()
     captures, problems = group_captures(data, load_camera("micasense-rededge"))

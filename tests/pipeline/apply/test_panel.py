@@ -13,8 +13,6 @@ import pytest
 from mscal_core.errors import FrameError, InputError
 from mscal_core.factory import panel_stats, polygon_mask
 from mscal_core.panel import polygon_iou
-from pipeline.ingest.camera_meta import read_capture_meta
-from pipeline.ingest.catalog import load_target
 from pipeline.apply.panel import (
     capture_ndvi,
     dls_reflectance,
@@ -24,6 +22,8 @@ from pipeline.apply.panel import (
     panel_region,
     reflect_area_polygon,
 )
+from pipeline.ingest.camera_meta import read_capture_meta
+from pipeline.ingest.catalog import load_target
 from pipeline.ingest.session import parse_panel, parse_panel_polygon, read_raw
 from tests.micasense_data import MARKER_PANEL, PANEL_CORNERS, PANEL_RAW_DN, band_file, paint_marker
 

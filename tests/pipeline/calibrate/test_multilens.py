@@ -193,7 +193,7 @@ def test_multilens_calibration_with_board_intrinsics(small_ml, tmp_path) -> None
     assert err["check"]["panel_abs_error"] < 0.015
 
 
-@pytest.mark.slow
+@pytest.mark.long  # ~10 min on 2 cores (writing the session alone ~4 min): make test-long
 def test_full_size_multilens_session_meets_the_targets(tmp_path) -> None:
     """RedEdge-size lenses (960 x 1280), 12-frame sweep, 28 views, 3 reflector and 3 panel
     captures: the snapshot camera's full-session targets."""

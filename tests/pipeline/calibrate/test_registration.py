@@ -12,9 +12,9 @@ import tifffile
 from mscal_core import registration as reg
 from mscal_core.errors import InputError
 from mscal_core.synth.multilens import multilens_capture
+from pipeline.calibrate.registration import frame_transforms, register_session, with_registration
 from pipeline.ingest.catalog import load_camera
 from pipeline.run.cli import main
-from pipeline.calibrate.registration import frame_transforms, register_session, with_registration
 from pipeline.storage.store import new_dataset, open_calibration, write_store
 from tests.micasense_data import band_file
 
@@ -133,22 +133,27 @@ def test_collect_needs_a_camera_for_a_new_store(tmp_path) -> None:
 
 
 def test_captures_named_by_folder_or_band_file() -> None:
-    from pipeline.calibrate.registration import _collect
+    from pipeline.calibrate.registration import collect_captures
 
     camera = load_camera(CAMERA)
     one = band_file("0001", 3)
-    caps, problems = _collect([one], camera)
+    caps, problems = collect_captures([one], camera)
     assert [c.name for c in caps] == ["IMG_0001"] and problems == []
     assert [m.band_name for m in caps[0].metas] == list(camera.band_names)
-    caps, _ = _collect([one.parent], camera)
+    caps, _ = collect_captures([one.parent], camera)
     assert [c.name for c in caps] == ["IMG_0000", "IMG_0001"]
     with pytest.raises(InputError, match="not found"):
-        _collect([one.parent / "nope"], camera)
+        collect_captures([one.parent / "nope"], camera)
 
 
 def test_report_shows_the_session_transform_passes_and_fallbacks(session_reg, tmp_path) -> None:
-    from pipeline.products.report import (REGISTRATION_SPREAD_MAX_PX, registration_fallback_table, registration_table,
-                                 registration_warnings, report_dict)
+    from pipeline.products.report import (
+        REGISTRATION_SPREAD_MAX_PX,
+        registration_fallback_table,
+        registration_table,
+        registration_warnings,
+        report_dict,
+    )
 
     camera, truth, r = session_reg
     ds = with_registration(new_dataset(camera), r, camera)

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import rasterio
 import tifffile
-from rasterio.enums import ColorInterp
 from affine import Affine
+from rasterio.enums import ColorInterp
 
 from mscal_core.errors import InputError
 from pipeline.products import indexmap

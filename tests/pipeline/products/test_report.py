@@ -25,12 +25,12 @@ import pytest
 import xarray as xr
 
 from mscal_core.synth.scene import flight_frames, make_truth
-from pipeline.products import report
 from pipeline.ingest.catalog import load_camera
+from pipeline.products import report
 from pipeline.run.cli import main
-from pipeline.storage.store import new_dataset, open_calibration, write_store
 from pipeline.sim.synth import write_frameset
 from pipeline.storage.atomic import TMP_MARK
+from pipeline.storage.store import new_dataset, open_calibration, write_store
 
 CAMERA = "ximea-mq022hg-sm5x5-nir"
 N_BANDS = 25

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from mscal_core.errors import InputError
-from pipeline.run.cli import main
 from pipeline.products.stac import find_flights, update_catalog, validate_catalog
+from pipeline.run.cli import main
 from pipeline.sim.synth import write_orthomosaic
 
 UTM = "EPSG:32633"

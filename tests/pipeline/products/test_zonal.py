@@ -19,10 +19,18 @@ import pytest
 from matplotlib.path import Path as MplPath
 
 from mscal_core.errors import InputError
+from pipeline.products.zonal import (
+    COLUMNS,
+    Mosaic,
+    mosaic_stats,
+    mosaics_from_files,
+    read_fields,
+    read_table,
+    write_table,
+    zonal_table,
+)
 from pipeline.run.cli import main
 from pipeline.sim.synth import write_orthomosaic
-from pipeline.products.zonal import (COLUMNS, Mosaic, mosaic_stats, mosaics_from_files, read_fields, read_table, write_table,
-                            zonal_table)
 
 UTM = "EPSG:32633"
 MERC = "EPSG:3857"

@@ -11,9 +11,8 @@ import fsspec
 import pytest
 
 from mscal_core.errors import FitError, InputError, SessionError
-from pipeline.run import inbox
-from pipeline.run import runner
 from pipeline.ingest.session import load_session
+from pipeline.run import inbox, runner
 
 SESSION_YAML = """\
 camera: ximea-mq022hg-sm5x5-nir
