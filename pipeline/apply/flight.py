@@ -607,10 +607,21 @@ def apply_flight(
     ps, outcomes = done
     t_pass = time.perf_counter() - t0
     install_folder(ps.tmp_store, out / "reflectance.zarr")
+    run = _run_record(flight_dir, calib_path, chash, calib, camera, export, options, ps, outcomes, quarantined, runner,
+                      single, {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)})
+    write_json_atomic(out / RUN_JSON, run)  # last: a run.json names a finished pass
+    return ApplyResult(out, run, up_to_date=False, quarantined=quarantined)
+
+
+def _run_record(flight_dir: Path, calib_path: Path, chash: str, calib: xr.Dataset, camera: Camera,
+                export: Sequence[int], options: ApplyOptions, ps: "_Pass", outcomes: Sequence[Outcome],
+                quarantined: list[dict[str, str]], runner: Runner, single: bool,
+                timings: dict[str, float]) -> dict[str, Any]:
+    """The flight's ``run.json`` after a pass (SPEC.md, Outputs of apply)."""
     frames = [o.name for o in outcomes]
     sat_counts = [o.saturated for o in outcomes]
     shas = [str(s) for s in ps.coords["sha256"].values]  # the pass's frames, in cube order
-    run = {
+    return {
         "flight": str(flight_dir),
         "calibration": str(calib_path),
         "calibration_sha256": chash,
@@ -625,9 +636,7 @@ def apply_flight(
         "scheduler": runner.scheduler,
         "execution": runner.execution,
         "single_pass": single,
-        "timings_s": {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
+        "timings_s": timings,
         "illumination": _illumination_record(ps, calib, options),
         "fingerprint": run_fingerprint(shas, chash, options, ps.illum),
     }
-    write_json_atomic(out / RUN_JSON, run)
-    return ApplyResult(out, run, up_to_date=False, quarantined=quarantined)

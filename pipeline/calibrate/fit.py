@@ -732,45 +732,24 @@ def fit_illumination_frames(
     n_pixels = sum(c.shape[1] for c in columns)
     maps = np.full((len(views), *shape), np.nan, dtype=np.float32)
     image_brightness = np.full(len(views), np.nan)
-    fits: list[CaptureFit] = []
-    for cap in captures:
-        mine = [k for k, (i, _) in enumerate(views) if i in set(cap.frames)]
-        where = folder if len(captures) == 1 else cap.folder
-        label = "" if len(captures) == 1 else f"capture {cap.name}: "
-        if not mine:
-            raise FitError(
-                f"{label}marker {session.marker.dictionary} id {session.marker.id} was not found in any of its "
-                f"{len(cap.frames)} frames",
-                path=where,
-                hint="check that the marker is in view and sharp, or remove the capture",
-            )
-        radiance = np.concatenate([columns[k] for k in mine], axis=1)
-        if radiance.shape[1] < MIN_REFLECTOR_PIXELS:
-            raise FitError(
-                f"{label}only {radiance.shape[1]} reflector pixels found",
-                path=where,
-                hint="take the reflector image closer, or check reflector.size_m in session.yaml",
-            )
-        image_index = np.concatenate([np.full(columns[k].shape[1], j) for j, k in enumerate(mine)])
-        fit = illumination.fit_illumination(radiance, rho, image_index=image_index)
-        start = 0
-        for j, k in enumerate(mine):
-            n = int(masks[k].sum())
-            maps[k][masks[k]] = fit.brightness[start:start + n]
-            start += n
-            if fit.image_brightness is not None:
-                image_brightness[k] = fit.image_brightness[j]
-        centre = float("nan")
-        if len(captures) > 1:  # the light's level at the reflector centre, for comparing captures
-            start = 0
-            per_image = []
-            for k in mine:
-                n = int(masks[k].sum())
-                per_image.append(illumination.centre_brightness(plane[k], fit.brightness[start:start + n]))
-                start += n
-            centre = float(np.nanmedian(per_image)) if np.isfinite(per_image).any() else 1.0
-        fits.append(CaptureFit(cap, fit, tuple(mine), centre))
-    report.residuals = {
+    fits = [_fit_capture(cap, captures, views, columns, masks, plane, rho, folder, session, maps, image_brightness)
+            for cap in captures]
+    report.residuals = _illumination_residuals(views, masks, fits, image_brightness, n_sat, n_pixels, shared_fraction)
+    report.seconds = time.perf_counter() - t0
+    qb = qa_band(camera)
+    return IlluminationResult(
+        fits[0].fit, report, views, brightness_maps=maps, qa_band=qb,
+        qa_dn=np.stack([stack[i, qb] for i, _ in views]),
+        exposures=np.array([v.record.band_exposure(qb) for _, v in views]),
+        captures=fits,
+    )
+
+
+def _illumination_residuals(views: list[tuple[int, View]], masks: list[np.ndarray], fits: list["CaptureFit"],
+                            image_brightness: np.ndarray, n_sat: np.ndarray, n_pixels: int,
+                            shared_fraction: float | None) -> dict[str, Any]:
+    """The illumination stage's fit numbers for the store and the QA report."""
+    out = {
         "images_used": len(views),
         "reflector_pixels": int(n_pixels),
         "reflector_pixels_per_image": [int(m.sum()) for m in masks],
@@ -780,21 +759,58 @@ def fit_illumination_frames(
     }
     if shared_fraction is not None:
         # 0.0: the captures barely overlap on the sensor, each was fitted on all its pixels
-        report.residuals["shared_pixel_fraction"] = round(float(shared_fraction), 4)
+        out["shared_pixel_fraction"] = round(float(shared_fraction), 4)
     if len(fits) > 1:
-        report.residuals["captures"] = [
+        out["captures"] = [
             {"name": f.capture.name, "images": len(f.views), "residual_rms": round(float(f.fit.residual_rms), 5),
              "irradiance": f.capture.irradiance, "centre_brightness": round(f.centre_brightness, 5)}
             for f in fits
         ]
-    report.seconds = time.perf_counter() - t0
-    qb = qa_band(camera)
-    return IlluminationResult(
-        fits[0].fit, report, views, brightness_maps=maps, qa_band=qb,
-        qa_dn=np.stack([stack[i, qb] for i, _ in views]),
-        exposures=np.array([v.record.band_exposure(qb) for _, v in views]),
-        captures=fits,
-    )
+    return out
+
+
+def _fit_capture(cap: Any, captures: Sequence[Any], views: list[tuple[int, View]], columns: list[np.ndarray],
+                 masks: list[np.ndarray], plane: list[np.ndarray | None], rho: np.ndarray, folder: Path,
+                 session: Session, maps: np.ndarray, image_brightness: np.ndarray) -> "CaptureFit":
+    """Eq. 11-14 on one reflector capture's images: its S and B; B written into ``maps`` and
+    each image's brightness into ``image_brightness`` (the images' rows of both); with several
+    captures, the light's level at the reflector centre for comparing them."""
+    mine = [k for k, (i, _) in enumerate(views) if i in set(cap.frames)]
+    where = folder if len(captures) == 1 else cap.folder
+    label = "" if len(captures) == 1 else f"capture {cap.name}: "
+    if not mine:
+        raise FitError(
+            f"{label}marker {session.marker.dictionary} id {session.marker.id} was not found in any of its "
+            f"{len(cap.frames)} frames",
+            path=where,
+            hint="check that the marker is in view and sharp, or remove the capture",
+        )
+    radiance = np.concatenate([columns[k] for k in mine], axis=1)
+    if radiance.shape[1] < MIN_REFLECTOR_PIXELS:
+        raise FitError(
+            f"{label}only {radiance.shape[1]} reflector pixels found",
+            path=where,
+            hint="take the reflector image closer, or check reflector.size_m in session.yaml",
+        )
+    image_index = np.concatenate([np.full(columns[k].shape[1], j) for j, k in enumerate(mine)])
+    fit = illumination.fit_illumination(radiance, rho, image_index=image_index)
+    start = 0
+    for j, k in enumerate(mine):
+        n = int(masks[k].sum())
+        maps[k][masks[k]] = fit.brightness[start:start + n]
+        start += n
+        if fit.image_brightness is not None:
+            image_brightness[k] = fit.image_brightness[j]
+    centre = float("nan")
+    if len(captures) > 1:  # the light's level at the reflector centre, for comparing captures
+        start = 0
+        per_image = []
+        for k in mine:
+            n = int(masks[k].sum())
+            per_image.append(illumination.centre_brightness(plane[k], fit.brightness[start:start + n]))
+            start += n
+        centre = float(np.nanmedian(per_image)) if np.isfinite(per_image).any() else 1.0
+    return CaptureFit(cap, fit, tuple(mine), centre)
 
 
 def _lens_radiance(session: Session, stack: np.ndarray, views: list[tuple[int, View]], inverse_response: np.ndarray,
