@@ -558,7 +558,7 @@ def test_stale_consolidated_metadata_is_repaired_without_new_frames(tmp_path, ki
 # --------------------------------------------------------------------------- full size (slow)
 
 
-@pytest.mark.slow
+@pytest.mark.long  # the small-frame SIGKILL tests run in make test; this one at full size: make test-long
 def test_sigkill_at_random_times_full_size(tmp_path) -> None:
     d = _flight(tmp_path / "f", 24, shape=(1088, 2048))
     ref = tmp_path / "ref.zarr"

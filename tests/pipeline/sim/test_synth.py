@@ -101,7 +101,7 @@ def test_session_loads_with_the_pipeline_reader(session):
     assert len(recs) == 8
 
 
-@pytest.mark.slow
+@pytest.mark.long  # ~50 s (two more full sessions written); make test-long
 @pytest.mark.xdist_group("full_session")
 def test_full_session_reproducible_and_seed_dependent(full_session, tmp_path):
     a = full_session  # seed 11
