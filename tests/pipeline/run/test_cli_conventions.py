@@ -319,3 +319,30 @@ def test_index_says_once_that_the_input_is_not_georeferenced(tmp_path: Path, geo
         with rasterio.open(tmp_path / "ndvi.tif") as ds:
             assert ds.read(1)[0, 0] == pytest.approx((0.5 - 0.1) / (0.5 + 0.1), abs=1e-6)
             assert (ds.crs is not None) is geo
+
+
+def test_demo_prints_plain_lines_or_one_json_document(tmp_path: Path, monkeypatch) -> None:
+    """The demo's printing (its flow is tested in tests/flows): plain lines without JSON, or
+    with --json one document and nothing else."""
+    from pipeline.run import cli as cli_mod
+    from pipeline.run import demo
+
+    out = tmp_path / "demo"
+
+    def fake(o, *, flow, size, seed):  # noqa: ANN001, ANN202
+        out.mkdir(exist_ok=True)
+        (out / "run.json").write_text(json.dumps({"flights": {"field": {}}}))
+        return {"session": str(out / "session"), "outputs": str(out), "run_json": str(out / "run.json"),
+                "report": None, "calibration_cached": False, "flights": {"field": f"{out}/flights/field (3 frames)"},
+                "errors_vs_truth": {"response_max_error": 0.0031, "flight_field": {"ndvi": 0.01}}}
+
+    monkeypatch.setattr(demo, "run_demo", fake)
+    monkeypatch.setattr(cli_mod, "_flow", lambda name: None)
+    code, text, _ = _run(["demo", "-o", out])
+    lines = text.splitlines()
+    assert code == 0 and lines[0] == f"wrote {out} (demo session, 1 flight(s); calibration fitted)"
+    assert f"  run record: {out / 'run.json'}" in lines and "  error vs truth: response_max_error: 0.0031" in lines
+    assert not any(ln.lstrip().startswith(("{", "}", '"')) for ln in lines)
+    code, text, _ = _run(["demo", "-o", out, "--json"])
+    doc = json.loads(text)
+    assert code == 0 and doc["demo"]["errors_vs_truth"]["flight_field"] == {"ndvi": 0.01}
