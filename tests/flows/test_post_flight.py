@@ -13,6 +13,7 @@ import pytest
 import xarray as xr
 
 from pipeline.apply.flight import calibration_hash
+from pipeline.products.report import report_dict
 from pipeline.run.cli import main
 from pipeline.sim.evaluate import evaluate_calibration
 from pipeline.storage.store import open_calibration
@@ -151,10 +152,16 @@ def test_bad_dask_address_and_normalise_are_rejected(flow_session: Path, tmp_pat
 def test_demo_runs_the_whole_flow_and_says_where_the_outputs_are(first_run: Path, tmp_path: Path, capsys) -> None:
     """The demo's session is the flows' test session (seed 0, small, two flights): its
     calibration comes from the cache, so this checks the demo's wiring, not the fits again."""
-    assert main(["demo", "-o", str(tmp_path / "demo")]) == 0
-    lines = capsys.readouterr().out.splitlines()
-    assert f"outputs: {tmp_path / 'demo'}" in lines
-    assert f"run record: {tmp_path / 'demo' / 'run.json'}" in lines
+    assert main(["demo", "-o", str(tmp_path / "demo"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)  # one JSON document, nothing else (issue 24)
+    assert doc["command"] == "demo" and doc["outputs"]["outputs"] == str(tmp_path / "demo")
+    assert doc["outputs"]["run record"] == str(tmp_path / "demo" / "run.json")
+    assert doc["demo"]["errors_vs_truth"]["response_max_error"] < 0.02
+    # the report's warnings on the demo calibration (7 of 8 views used: vignetting coverage)
+    assert [w["code"] for w in doc["warnings"]] == [
+        w["code"] for s in report_dict(tmp_path / "demo" / "calibration.zarr",
+                                       [tmp_path / "demo" / "flights" / n for n in FLIGHTS])["sections"]
+        for w in s["warnings"]]
     summary = json.loads((tmp_path / "demo" / "evaluation.json").read_text())
     assert summary["calibration_cached"] is True
     assert sorted(summary["flights"]) == sorted(FLIGHTS)
