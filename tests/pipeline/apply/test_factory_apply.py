@@ -20,6 +20,7 @@ from mscal_core.factory import polygon_mask
 from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta
 from pipeline.ingest.catalog import load_target
 from pipeline.ingest.session import read_raw
+from pipeline.products.writers import file_band_name
 from pipeline.run.cli import main
 from tests.micasense_data import BANDS, MARKER_PANEL, PANEL_CORNERS, paint_marker, require_data
 
@@ -122,7 +123,7 @@ def test_report_compares_panel_and_dls(panel_run, dls_run, tmp_path) -> None:
 def test_photogrammetry_tiffs_of_a_capture_share_its_uuid(panel_run) -> None:
     uuids = set()
     for rig, band in enumerate(BANDS):
-        p = panel_run / "photogrammetry" / f"IMG_0001_{band}.tif"
+        p = panel_run / "photogrammetry" / f"IMG_0001_{file_band_name(band)}.tif"
         with p.open("rb") as fh:
             tags = exifread.process_file(fh, details=False)
         assert str(tags["GPS GPSLongitudeRef"]) == "W" and str(tags["GPS GPSLatitudeRef"]) == "N"
