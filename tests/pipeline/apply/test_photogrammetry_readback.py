@@ -290,3 +290,28 @@ def test_exiftool_reads_camera_band_capture_and_marker(kind, request) -> None:
     ids = [s.get(k) for k in ("XMP-MicaSense:CaptureId", "XMP-Camera:CaptureUUID") if s.get(k)]
     if ids:
         assert ids[0] in (got.get("XMP-MicaSense:CaptureId"), got["XMP-Camera:CaptureUUID"])
+
+
+def _numeric(v: xr.Variable) -> bool:
+    return v.dtype.kind in "biuf"
+
+
+def test_stores_carry_units_everywhere_and_one_cf_set_on_both_apply_paths(micasense, snapshot) -> None:
+    """Every numeric variable of the calibration store, raw.zarr and reflectance.zarr (field
+    and factory path) has units; lat, lon and time carry the same CF attributes on both."""
+    _, calib, field = snapshot
+    stores = {"calibration": calib, "field reflectance": field / "reflectance.zarr", "field raw": field / "raw.zarr",
+              "factory reflectance": micasense / "reflectance.zarr", "factory raw": micasense / "raw.zarr"}
+    missing = {}
+    for what, path in stores.items():
+        ds = xr.open_zarr(path)
+        assert ds.attrs["Conventions"] == "CF-1.10", what
+        missing[what] = sorted(n for n, v in ds.variables.items() if _numeric(v) and "units" not in v.attrs)
+    assert missing == {what: [] for what in stores}
+    f, g = xr.open_zarr(field / "reflectance.zarr"), xr.open_zarr(micasense / "reflectance.zarr")
+    for name in ("lat", "lon", "time", "alt_m", "exposure_ms", "band", "wavelength"):
+        assert f[name].attrs == g[name].attrs, name
+    assert (f["lat"].attrs["standard_name"], f["lon"].attrs["units"], g["time"].attrs["standard_name"]) == (
+        "latitude", "degrees_east", "time")
+    assert g["reflectance"].attrs["units"] == "1" and g["radiance"].attrs["units"] == "W m-2 sr-1 nm-1"
+    assert f["ndvi"].attrs["units"] == g["ndvi"].attrs["units"] == "1"
