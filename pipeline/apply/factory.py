@@ -391,6 +391,20 @@ def _reference_band(registration: str | None, camera: Camera) -> int | None:
     return camera.band_names.index(name) if name in camera.band_names else None
 
 
+DETECT_WIDTH = 1280  # band images wider than this are shrunk for panel detection (Sentera: 4000 px)
+
+
+def _detection_size(dn: np.ndarray) -> np.ndarray:
+    """``dn`` shrunk by a whole factor to at most :data:`DETECT_WIDTH` columns (area average):
+    a panel is still a bright quadrilateral there, found in a tenth of the time."""
+    import cv2
+
+    k = -(-dn.shape[1] // DETECT_WIDTH)
+    if k <= 1:
+        return dn
+    return cv2.resize(dn, (dn.shape[1] // k, dn.shape[0] // k), interpolation=cv2.INTER_AREA)
+
+
 def detected_panels(captures: Sequence[Capture]) -> dict[str, str]:
     """Captures among the first and last :data:`PANEL_SEARCH` that show a reflectance panel in
     every band (:func:`mscal_core.panel.detect_panel`; the first band is looked at first, so a
@@ -407,7 +421,7 @@ def detected_panels(captures: Sequence[Capture]) -> dict[str, str]:
             _, dns, _ = read_capture_pixels(c)
         except FrameError:
             continue
-        if all(detect_panel(dn) is not None for dn in dns):
+        if all(detect_panel(_detection_size(dn)) is not None for dn in dns):
             out[c.name] = "a reflectance panel is detected in every band (not used: no --panel-reflectance)"
     return out
 
