@@ -358,6 +358,9 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                       "comment": "bands aligned to the reference band of the registration store "
                                  "(mscal register); NaN where a band does not cover the reference grid"})
     first = captures[0].metas[0]
+    panel_names = {p.capture: "reflectance panel of the panel route (--panel-reflectance)" for p in panels}
+    if reference != "panel":
+        panel_names.update(detected_panels(captures))
     run = CaptureRun(
         chain=FactoryChain(saturation_dn(camera), reference, panel_factor, None if field is None else field[:2],
                            relative),
@@ -375,8 +378,55 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                              "radiance_unit": caps[0].metas[0].radiance_unit,
                              "illumination": _light_record(options.illumination, panels, caps, scales, camera)},
         scale=lambda name: scales.get(name),
+        panels=panel_names, reference_band=_reference_band(options.registration, camera),
     )
     return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)
+
+
+def _reference_band(registration: str | None, camera: Camera) -> int | None:
+    """The band a ``--registration`` store warps the others onto (its ``registration``
+    attribute's ``reference_band``), or None."""
+    if registration is None:
+        return None
+    from pipeline.storage.store import open_calibration
+
+    name = (open_calibration(registration, camera).attrs.get("registration") or {}).get("reference_band")
+    return camera.band_names.index(name) if name in camera.band_names else None
+
+
+DETECT_WIDTH = 1280  # band images wider than this are shrunk for panel detection (Sentera: 4000 px)
+
+
+def _detection_size(dn: np.ndarray) -> np.ndarray:
+    """``dn`` shrunk by a whole factor to at most :data:`DETECT_WIDTH` columns (area average):
+    a panel is still a bright quadrilateral there, found in a tenth of the time."""
+    import cv2
+
+    k = -(-dn.shape[1] // DETECT_WIDTH)
+    if k <= 1:
+        return dn
+    return cv2.resize(dn, (dn.shape[1] // k, dn.shape[0] // k), interpolation=cv2.INTER_AREA)
+
+
+def detected_panels(captures: Sequence[Capture]) -> dict[str, str]:
+    """Captures among the first and last :data:`PANEL_SEARCH` that show a reflectance panel in
+    every band (:func:`mscal_core.panel.detect_panel`; the first band is looked at first, so a
+    survey capture costs one detection), when no panel route uses them: they are kept out of
+    the photogrammetry TIFFs all the same (``OUT/panels/``)."""
+    from mscal_core.panel import detect_panel
+
+    ends = list(captures[:PANEL_SEARCH]) + [c for c in captures[-PANEL_SEARCH:] if c not in captures[:PANEL_SEARCH]]
+    if len(captures) < 2:
+        return {}
+    out = {}
+    for c in ends:
+        try:
+            _, dns, _ = read_capture_pixels(c)
+        except FrameError:
+            continue
+        if all(detect_panel(_detection_size(dn)) is not None for dn in dns):
+            out[c.name] = "a reflectance panel is detected in every band (not used: no --panel-reflectance)"
+    return out
 
 
 def _identify(folder: Path, options: FactoryOptions) -> Identification:

@@ -64,6 +64,12 @@ def test_first_run_fits_everything_and_writes_every_output(flow_session: Path, f
     item = json.loads(next((first_run / "stac").glob("*/items/field.json")).read_text())
     assert item["properties"]["mscal:calibration_sha256"] == run["flights"]["field"]["calibration_sha256"]
     assert item["properties"]["mscal:calibration_cached"] is False and item["geometry"]["type"] in ("Polygon", "LineString")
+    # each flight names the calibration it applied by its place among the outputs, not the cache
+    flight_run = json.loads((first_run / "flights" / "field" / "run.json").read_text())
+    assert flight_run["calibration"] == str((first_run / "calibration.zarr").resolve())
+    item_file = next((first_run / "stac").glob("*/items/field.json"))
+    assert (item_file.parent / item["properties"]["mscal:calibration"]).resolve() == (
+        first_run / "calibration.zarr").resolve()  # the STAC item points at it too (relative)
 
 
 def test_second_run_refits_nothing_and_says_so(flow_session: Path, first_run: Path, capsys) -> None:
