@@ -347,7 +347,10 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                              "has its own light", hint="leave --illumination out, or give --panel-reflectance")
         light = panel_light(captures, panels, options.illumination, folder)
     scales = {} if light is None else {c.name: tuple(float(v) for v in light[f]) for f, c in enumerate(captures)}
-    seen = panels_seen(captures, options.panel_captures) if reference != "panel" and options.reference == "auto" else []
+    # One search for panel captures the run does not use: they go to OUT/panels/, and with
+    # --reference auto the summary and report say how to use them.
+    unused = panels_seen(captures, options.panel_captures) if reference != "panel" else []
+    seen = unused if options.reference == "auto" else []
     relative = relative_scale(captures, reference, saturation_dn(camera))
 
     attrs = {"calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
@@ -359,8 +362,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                                  "(mscal register); NaN where a band does not cover the reference grid"})
     first = captures[0].metas[0]
     panel_names = {p.capture: "reflectance panel of the panel route (--panel-reflectance)" for p in panels}
-    if reference != "panel":
-        panel_names.update(detected_panels(captures))
+    panel_names.update({name: "a reflectance panel (camera's panel flag, --panel, or detected); not used: "
+                              "no --panel-reflectance" for name in unused})
     run = CaptureRun(
         chain=FactoryChain(saturation_dn(camera), reference, panel_factor, None if field is None else field[:2],
                            relative),
@@ -394,41 +397,6 @@ def _reference_band(registration: str | None, camera: Camera) -> int | None:
     return camera.band_names.index(name) if name in camera.band_names else None
 
 
-DETECT_WIDTH = 1280  # band images wider than this are shrunk for panel detection (Sentera: 4000 px)
-
-
-def _detection_size(dn: np.ndarray) -> np.ndarray:
-    """``dn`` shrunk by a whole factor to at most :data:`DETECT_WIDTH` columns (area average):
-    a panel is still a bright quadrilateral there, found in a tenth of the time."""
-    import cv2
-
-    k = -(-dn.shape[1] // DETECT_WIDTH)
-    if k <= 1:
-        return dn
-    return cv2.resize(dn, (dn.shape[1] // k, dn.shape[0] // k), interpolation=cv2.INTER_AREA)
-
-
-def detected_panels(captures: Sequence[Capture]) -> dict[str, str]:
-    """Captures among the first and last :data:`PANEL_SEARCH` that show a reflectance panel in
-    every band (:func:`mscal_core.panel.detect_panel`; the first band is looked at first, so a
-    survey capture costs one detection), when no panel route uses them: they are kept out of
-    the photogrammetry TIFFs all the same (``OUT/panels/``)."""
-    from mscal_core.panel import detect_panel
-
-    ends = list(captures[:PANEL_SEARCH]) + [c for c in captures[-PANEL_SEARCH:] if c not in captures[:PANEL_SEARCH]]
-    if len(captures) < 2:
-        return {}
-    out = {}
-    for c in ends:
-        try:
-            _, dns, _ = read_capture_pixels(c)
-        except FrameError:
-            continue
-        if all(detect_panel(_detection_size(dn)) is not None for dn in dns):
-            out[c.name] = "a reflectance panel is detected in every band (not used: no --panel-reflectance)"
-    return out
-
-
 def _identify(folder: Path, options: FactoryOptions) -> Identification:
     """The folder's camera (``--camera``, else recognised from the files); ``--field-calibration``
     refused up front for a camera without MicaSense's radiance model (its parts are MicaSense's)."""
@@ -441,7 +409,8 @@ def _identify(folder: Path, options: FactoryOptions) -> Identification:
 
 
 def panels_seen(captures: Sequence[Capture], named: Sequence[str] = ()) -> list[str]:
-    """Captures that show a reflectance panel, for a run that does not use one (issue 24):
+    """Captures that show a reflectance panel, for a run that does not use one (exported to
+    ``OUT/panels/``, and named in the summary's hint):
     those named with ``--panel``, else among the folder's first and last
     :data:`PANEL_SEARCH` captures those with an XMP ReflectArea, or where a panel is detected
     (:func:`mscal_core.panel.detect_panel`) in both the first and the last band (one band

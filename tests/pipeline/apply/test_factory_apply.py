@@ -300,7 +300,8 @@ def test_a_panel_capture_on_the_sun_sensor_route_is_kept_out_of_photogrammetry(d
     capture of reflectance.zarr, but its TIFFs go to OUT/panels/, not among the survey frames."""
     run = json.loads((dls_run / "run.json").read_text())
     assert run["panels"] == [{"capture": "IMG_0000",
-                              "reason": "a reflectance panel is detected in every band (not used: no --panel-reflectance)"}]
+                              "reason": "a reflectance panel (camera's panel flag, --panel, or detected); not used: "
+                                        "no --panel-reflectance"}]
     assert sorted(p.name for p in (dls_run / "panels").iterdir()) == sorted(
         f"IMG_0000_{file_band_name(b)}.tif" for b in BANDS)
     assert sorted(p.name for p in (dls_run / "photogrammetry").iterdir()) == sorted(
