@@ -241,3 +241,81 @@ def sentera_with_panel(src_folder: Path, folder: Path, value: int = 200) -> Path
         app1 = [s for s in jpeg_segments(data) if s[1] == 0xE1]  # EXIF and XMP
         (folder / path.name).write_bytes(enc[:2] + b"".join(app1) + enc[2:])
     return folder
+
+
+# --------------------------------------------------------------------------- Sentera 6X
+
+SENTERA_D4K = DATA.parent / "sentera-d4k"
+SENTERA_6X_SHAPE = (1428, 1904)  # documented ImageLength x ImageWidth
+# band -> (folder, D4K sensor, channel of its RGB-ordered JPEG, wavelength, FWHM); folders listed
+# out of the catalog's band order on purpose: the band is the file's XMP BandName
+SENTERA_6X_BANDS = {
+    "NIR": ("nir_840", "NDRE", 2, 840, 20), "Blue": ("blue_475", "nRGB", 2, 475, 30),
+    "RedEdge": ("rededge_715", "NDRE", 0, 715, 10), "Green": ("green_550", "nRGB", 1, 550, 20),
+    "Red": ("red_670", "nRGB", 0, 670, 30),
+}
+SENTERA_6X_SESSION = "2020-09-15_04-37-17"
+SENTERA_6X_PANEL = (slice(500, 800), slice(700, 1100), 3600)  # rows, columns, 12-bit DN in every band
+
+
+def _d4k_exif(path: Path) -> dict[str, object]:
+    import exifread
+
+    with open(path, "rb") as f:
+        t = exifread.process_file(f, details=False)
+    e = t["EXIF ExposureTime"].values[0]
+    return {"iso": int(t["EXIF ISOSpeedRatings"].values[0]), "exposure": (int(e.num), int(e.den)),
+            "time": str(t["EXIF DateTimeOriginal"].values), "subsec": str(t["EXIF SubSecTimeOriginal"].values)}
+
+
+def _d4k_packet_one_band(packet: str, band: str, wl: int, fwhm: int, sun: float) -> str:
+    """The real Double 4K XMP packet (Camera + ILS namespaces) for one band of a 6X file: the
+    band lists cut to that band, no ColorTransform (one imager per band), no perspective tags
+    (the 6X's are not published) and no rig tags (not in its tag table)."""
+    for tag, value in (("BandName", band), ("CentralWavelength", wl), ("WavelengthFWHM", fwhm), ("SunSensor", sun)):
+        packet = set_element(packet, f"Camera:{tag}", seq(value))
+    packet = drop_element(packet, "Camera:ColorTransform")
+    return re.sub(r'\s+Camera:(ModelType|PrincipalPoint|PerspectiveFocalLength|PerspectiveDistortion|IsNormalized|RigName|RigCameraIndex)="[^"]*"',
+                  "", packet)
+
+
+def sentera_6x(folder: Path, *, panel: bool = False) -> Path:
+    """A 6X session folder ``folder/2020-09-15_04-37-17/<band folder>/IMG_0000N.tif`` for the two
+    real Double 4K captures: each band is one channel of a D4K JPEG (NDRE: RedEdge, NIR; nRGB:
+    Blue, Green, Red) resized to the 6X's 1904 x 1428 and put on 12 bits (x 16); IFD0 holds the
+    documented tags (Make, Model, Software, ImageUniqueID, LensModel) and the EXIF ones the
+    documents list under "EXIF (IFD0)" (ExposureTime, ISOSpeedRatings, DateTimeOriginal; the
+    D4K capture's values); XMP from the D4K packet (:func:`_d4k_packet_one_band`). ``panel``: a
+    uniform gray square (:data:`SENTERA_6X_PANEL`) in every band of the first capture.
+    Returns the session folder; ``PARAMS`` has each file's ISO and exposure."""
+    import cv2
+
+    from pipeline.ingest.xmp import jpeg_xmp_packet
+
+    session = folder / SENTERA_6X_SESSION
+    for n, cap in enumerate(("IMG_00006", "IMG_00007"), start=1):
+        decoded = {}
+        for sensor in ("NDRE", "nRGB"):
+            data = (SENTERA_D4K / sensor / f"{cap}.jpg").read_bytes()
+            rgb = cv2.cvtColor(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+            decoded[sensor] = (cv2.resize(rgb, SENTERA_6X_SHAPE[::-1], interpolation=cv2.INTER_AREA),
+                               jpeg_xmp_packet(data).decode("utf-8"), _d4k_exif(SENTERA_D4K / sensor / f"{cap}.jpg"))
+        for k, (band, (sub, sensor, ch, wl, fwhm)) in enumerate(SENTERA_6X_BANDS.items()):
+            img, packet, ex = decoded[sensor]
+            dn = img[:, :, ch].astype(np.uint16) * 16
+            if panel and n == 1:
+                rows, cols, value = SENTERA_6X_PANEL
+                dn[rows, cols] = value
+            xmp = _d4k_packet_one_band(packet, band, wl, fwhm, 3000.0 + 100 * k).encode("utf-8")
+            path = session / sub / f"{cap}.tif"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tifffile.imwrite(path, dn, photometric="minisblack", software="2.0.0-21214", metadata=None, extratags=[
+                (271, "s", 0, "Sentera", True), (272, "s", 0, "21214-00_3.2MP-GS-0001", True), (42016, "s", 0, f"{SENTERA_6X_SESSION}_{n}", True),
+                (42036, "s", 0, "8.0mm-0001-0001", True), (33434, "2I", 1, ex["exposure"], True),
+                (34855, "H", 1, ex["iso"], True), (36867, "s", 0, ex["time"], True),
+                (37521, "s", 0, ex["subsec"], True), (700, 1, len(xmp), xmp, True)])
+            PARAMS[str(path)] = {"iso": ex["iso"], "exposure": ex["exposure"]}
+    return session
+
+
+PARAMS: dict[str, dict[str, object]] = {}

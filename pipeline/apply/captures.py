@@ -42,7 +42,7 @@ from mscal_core.errors import FrameError
 from pipeline.apply.execution import Execution
 from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner, process_frame
 from pipeline.apply.flight import RUN_JSON, ApplyResult, previous_run, remove_frame_tiffs, software_versions
-from pipeline.ingest.camera_meta import Capture, capture_pattern, group_captures
+from pipeline.ingest.camera_meta import Capture, capture_folder_of, capture_pattern, group_captures
 from pipeline.ingest.catalog import Camera, Index
 from pipeline.ingest.raw import raw_codec
 from pipeline.products.writers import BandTags, FrameTags
@@ -87,8 +87,9 @@ def find_captures(folder: str | Path, camera: Camera) -> CaptureFolder:
         if p.is_dir() or any(part.startswith(".") for part in p.relative_to(folder).parts):
             continue
         if pattern.match(p.name):
-            if p.parent not in dirs:
-                dirs.append(p.parent)
+            d = capture_folder_of(p, camera)  # a folder_per_band camera's session folder
+            if d not in dirs:
+                dirs.append(d)
         elif p.name.lower() not in _IGNORED_NAMES and p.name not in (RUN_JSON,):
             skipped.append({"file": str(p.relative_to(folder)),
                             "reason": f"not a capture file of {camera.name} (names matching {pattern.pattern})"})

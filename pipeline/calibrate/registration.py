@@ -44,7 +44,7 @@ from mscal_core.registration import (
     transform_distance,
 )
 
-from pipeline.ingest.camera_meta import Capture, group_captures
+from pipeline.ingest.camera_meta import Capture, capture_folder_of, group_captures
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.session import read_raw
 from pipeline.storage.store import new_dataset, open_calibration, write_store
@@ -242,7 +242,7 @@ def collect_captures(paths: Sequence[Path], camera: Camera) -> tuple[list[Captur
         if p.is_dir():
             by_folder[p] = None
         elif p.is_file():
-            wanted = by_folder.setdefault(p.parent, set())
+            wanted = by_folder.setdefault(capture_folder_of(p, camera), set())
             if wanted is not None:
                 wanted.add(p.name)
         else:

@@ -29,7 +29,7 @@ from mscal_core.errors import FrameError, SessionError
 from mscal_core.geometry import Intrinsics
 
 from pipeline.ingest.camera_meta import xmp_properties
-from pipeline.ingest.exif import rational
+from pipeline.ingest.exif import EXIF_CODES, rational
 
 #: Parameter order of the store's ``intrinsics (band, intrinsics_param)`` variable.
 INTRINSICS_PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
@@ -40,12 +40,6 @@ XMP_TAG = 700
 FOCAL_PLANE_X_RES = 41486
 FOCAL_PLANE_Y_RES = 41487
 FOCAL_PLANE_UNIT = 41488
-#: The EXIF tags read here, by the names tifffile gives the EXIF IFD's entries.
-EXIF_CODES = {
-    "ExposureTime": 33434, "ISOSpeedRatings": 34855, "ISOSpeed": 34867, "DateTimeOriginal": 36867,
-    "SubsecTimeOriginal": 37521, "SubsecTime": 37520, "FocalPlaneXResolution": FOCAL_PLANE_X_RES,
-    "FocalPlaneYResolution": FOCAL_PLANE_Y_RES, "FocalPlaneResolutionUnit": FOCAL_PLANE_UNIT,
-}
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}  # mm per unit: inch, cm, mm, um
 
 

@@ -391,3 +391,40 @@ def test_sentera_panel_route(tmp_path) -> None:
     med = np.nanmedian(refl, axis=(1, 2))
     assert med[0] == pytest.approx(0.5, rel=0.03) and med[1] == pytest.approx(0.5, rel=0.01)
     assert np.isfinite(ds["reflectance"].isel(frame=1).values).mean() > 0.9
+
+
+def test_sentera_6x_session_built_from_d4k_files(tmp_path, capsys) -> None:
+    """Sentera 6X (built: tests/camera_files.sentera_6x): one folder per band in a session
+    folder, EXIF tags in IFD0, the capture id from ImageUniqueID. Recognised by ``mscal
+    cameras``; ``apply --calibration factory``: radiance DN / (ISO/100 x exposure) pixel by
+    pixel, no sun-sensor reflectance (route none), and a panel that reads 0.5 back."""
+    if not cf.SENTERA_D4K.is_dir():
+        pytest.skip("no Sentera sample")
+    session = cf.sentera_6x(tmp_path / "flight", panel=True)
+    assert main(["cameras", str(tmp_path / "flight")]) == 0
+    out = capsys.readouterr().out
+    assert f"{session}:" in out and "camera: sentera-6x" in out and "captures: 2 complete, 0 quarantined" in out
+    assert "bands: Blue 475 nm, Green 550 nm, Red 670 nm, RedEdge 715 nm, NIR 840 nm" in out
+    assert "blue_475:" not in out  # the band folders are part of the session, not folders of their own
+    run = _apply(tmp_path / "flight", tmp_path / "radiance")
+    assert run["camera"] == "sentera-6x" and run["frames"] == ["IMG_00006", "IMG_00007"] and run["quarantined"] == []
+    assert run["reference"]["route"] == "none"
+    ds = xr.open_zarr(tmp_path / "radiance" / "reflectance.zarr")
+    assert list(ds["band_name"].values) == ["Blue", "Green", "Red", "RedEdge", "NIR"]
+    checked = 0
+    for f, cap in enumerate(("IMG_00006", "IMG_00007")):
+        for b, band in enumerate(ds["band_name"].values):
+            path = session / cf.SENTERA_6X_BANDS[str(band)][0] / f"{cap}.tif"
+            p = cf.PARAMS[str(path)]
+            dn = tifffile.imread(path).astype(np.float64)
+            rad = ds["radiance"].isel(frame=f, band=b).values
+            for x, y in ((0, 0), (1903, 0), (0, 1427), (1903, 1427), (952, 714), (3, 5)):
+                expected = dn[y, x] / (p["iso"] / 100 * p["exposure"][0] / p["exposure"][1])
+                assert rad[y, x] == pytest.approx(expected, rel=TOL, abs=1e-6)
+                checked += 1
+    assert checked == 60
+    (tmp_path / "flight" / "session.yaml").write_text("panel:\n  polygon: [[720, 520], [1080, 520], [1080, 780], [720, 780]]\n")
+    run = _apply(tmp_path / "flight", tmp_path / "panel", "--panel-reflectance", "0.5", "--panel", "IMG_00006")
+    assert run["reference"]["route"] == "panel" and run["frames"] == ["IMG_00006", "IMG_00007"]
+    refl = xr.open_zarr(tmp_path / "panel" / "reflectance.zarr")["reflectance"].isel(frame=0).values
+    np.testing.assert_allclose(np.nanmedian(refl[:, 550:750, 750:1050], axis=(1, 2)), 0.5, rtol=0.03)
