@@ -167,14 +167,15 @@ def reflect_area_one_li(folder: Path, corners: tuple[tuple[tuple[int, int], ...]
     return folder
 
 
-def dji_xmp(band: int, cap_uuid: str, *, band_freq: bool = False) -> str:
+def dji_xmp(band: int, cap_uuid: str, *, band_freq: bool = False, dewarp: str | None = None,
+            hmatrix: str | None = None) -> str:
     name, wl, fwhm = DJI_BANDS[band - 1]
     attrs = {
         "drone-dji:SensorGain": f"{DJI['gain']:.3f}", "drone-dji:ExposureTime": f"{DJI['exposure_us']}",
         "drone-dji:SensorGainAdjustment": f"{DJI['adjust']}", "drone-dji:Irradiance": f"{DJI['irradiance'][band - 1]}",
         "drone-dji:CalibratedOpticalCenterX": f"{DJI['center'][0]}", "drone-dji:CalibratedOpticalCenterY": f"{DJI['center'][1]}",
-        "drone-dji:VignettingData": ", ".join(f"{k:.6e}" for k in DJI["k"]), "drone-dji:DewarpData": DJI["dewarp"],
-        "drone-dji:CalibratedHMatrix": DJI["hmatrix"], "drone-dji:CaptureUUID": cap_uuid, "drone-dji:SensorIndex": str(band),
+        "drone-dji:VignettingData": ", ".join(f"{k:.6e}" for k in DJI["k"]),
+        "drone-dji:DewarpData": dewarp or DJI["dewarp"], "drone-dji:CalibratedHMatrix": hmatrix or DJI["hmatrix"], "drone-dji:CaptureUUID": cap_uuid, "drone-dji:SensorIndex": str(band),
         "drone-dji:BandName": name,
     }
     elements = ""
@@ -319,3 +320,57 @@ def sentera_6x(folder: Path, *, panel: bool = False) -> Path:
 
 
 PARAMS: dict[str, dict[str, object]] = {}
+
+
+# --------------------------------------------------------------------------- DJI band registration
+
+# Per band: (tx, ty) px, rotation deg, scale of the physical image plane against the designed
+# one (about the image centre), and the DewarpData's fx, cx, cy, k1 (the rest: DJI's example)
+DJI_WARPS = {1: (3.2, -2.7, 0.25, 1.003, 1949.45, 28.0, -17.0, -0.4082), 2: (-1.5, 4.1, -0.2, 0.998, 1935.0, -12.0, 9.0, -0.39),
+             3: (2.0, 2.0, 0.1, 1.0, 1960.0, 5.0, 20.0, -0.41), 4: (5.4, 1.3, -0.15, 1.001, 1942.0, 15.0, -6.0, -0.40),
+             5: (0.0, 0.0, 0.0, 1.0, 1951.0, 0.0, 0.0, -0.4082)}
+
+
+def dji_warp(band: int, shape: tuple[int, int] = (960, 1280)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The built band's CalibratedHMatrix H (physical -> designed plane), camera matrix K and
+    distortion (k1, k2, p1, p2, k3) of :data:`DJI_WARPS`."""
+    tx, ty, deg, sc, f, cx, cy, k1 = DJI_WARPS[band]
+    h, w = shape
+    c, s = np.cos(np.radians(deg)) * sc, np.sin(np.radians(deg)) * sc
+    ox, oy = (w - 1) / 2, (h - 1) / 2
+    hm = np.array([[c, -s, ox - c * ox + s * oy + tx], [s, c, oy - s * ox - c * oy + ty], [0, 0, 1]])
+    k = np.array([[f, 0, DJI["center"][0] + cx], [0, f * 0.995, DJI["center"][1] + cy], [0, 0, 1]])
+    return hm, k, np.array([k1, 0.3418, 0.00068, 0.00068, -0.3540])
+
+
+def dji_p4m_warped(folder: Path) -> Path:
+    """P4 Multispectral captures whose bands show one scene (the real RedEdge NIR frame of the
+    capture, DN as stored) through each band's own lens distortion and plane: stored band
+    ``I_b(q) = scene(H_b u)``, ``u`` the undistorted point of ``q`` (OpenCV's iterative
+    ``undistortPoints`` to 1e-12, camera matrix K_b kept). The tags say so (DewarpData, per-band
+    CalibratedHMatrix), so the guide's steps 2-3 put every band back onto the scene's grid."""
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    h, w = 960, 1280
+    qy, qx = np.mgrid[0:h, 0:w].astype(np.float64)
+    pts = np.stack([qx.ravel(), qy.ravel()], axis=1).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    for c, cap in enumerate(CAPTURES, start=1):
+        scene = tifffile.imread(band_file(cap, 4)).astype(np.float32)
+        for b in range(1, 6):
+            hm, k, dist = dji_warp(b)
+            u = cv2.undistortPoints(pts, k, dist, R=None, P=k, criteria=crit).reshape(-1, 2)
+            x = (hm @ np.stack([u[:, 0], u[:, 1], np.ones(len(u))]))
+            mx, my = (x[0] / x[2]).reshape(h, w).astype(np.float32), (x[1] / x[2]).reshape(h, w).astype(np.float32)
+            dn = cv2.remap(scene, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+            dn = np.clip(np.rint(dn), 0, 65535).astype(np.uint16)
+            dewarp = "2020-02-04;" + ",".join(f"{v:.10g}" for v in (k[0, 0], k[1, 1], k[0, 2] - DJI["center"][0],
+                                                                     k[1, 2] - DJI["center"][1], dist[0], dist[1],
+                                                                     dist[2], dist[3], dist[4]))
+            packet = dji_xmp(b, f"dji-capture-{cap}", dewarp=dewarp,
+                             hmatrix=",".join(f"{v:.12g}" for v in hm.ravel())).encode("utf-8")
+            tifffile.imwrite(folder / f"DJI_00{c}{b}.TIF", dn, photometric="minisblack", metadata=None, extratags=[
+                (271, "s", 0, "DJI", True), (272, "s", 0, "FC6360", True), (50714, "H", 1, int(DJI["black"]), True),
+                (700, 1, len(packet), packet, True)])
+    return folder

@@ -212,6 +212,7 @@ class CaptureRun:
     tiff_dtype: str = "uint16"
     norm: tuple[str, float | int | None] = ("none", None)
     transforms: Path | None = None
+    factory_alignment: bool = False  # bands on the camera's common plane by each file's own registration (DJI)
     radiance_unit: str = "W m-2 sr-1 nm-1"  # of the factory chain's radiance (the vendor's model)
     irradiance_unit: str = "W m-2 nm-1"  # of the captures' sun-sensor readings
     scale: Callable[[str], tuple[float, ...] | None] = lambda name: None
@@ -335,6 +336,7 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
                                  fwhm_nm=first[b].fwhm_nm, rig_camera_index=i))
                     for i, b in enumerate(export)),
         tiff_dtype=run.tiff_dtype, out=out, norm=run.norm, transforms=run.transforms,
+        factory_alignment=run.factory_alignment,
     )
     return tmp_refl, tmp_raw, plan
 

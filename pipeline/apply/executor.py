@@ -14,8 +14,9 @@ radiometric model is one per-band chain chosen per run (``Plan.chain``):
   or NaN for a radiance-only run; ``Job.scale`` overrides it).
 
 :func:`process_frame` reads the capture (hashing and checking it; a new one is written into
-``raw.zarr``), runs the chain, puts the bands on one pixel grid (band transforms or
-``--centre-bands``, :func:`geometry_step`), turns a capture read from its files upright (EXIF
+``raw.zarr``), runs the chain, puts the bands on one pixel grid (the band files' own
+registration, DJI's DewarpData and CalibratedHMatrix: ``Plan.factory_alignment``; band
+transforms or ``--centre-bands``, :func:`geometry_step`), turns a capture read from its files upright (EXIF
 Orientation: Parrot Sequoia stores its frames rotated 180 degrees; the band transforms belong
 to the stored frames, so they come first; raw.zarr is turned too), normalises, and writes its
 whole chunk of every ``reflectance.zarr`` variable, its photogrammetry TIFFs and its NDVI TIFF. :class:`Runner`
@@ -50,6 +51,7 @@ from pipeline.calibrate.registration import frame_transforms
 from pipeline.ingest.camera_meta import (
     Capture,
     FieldParts,
+    factory_align,
     factory_radiance,
     read_capture_pixels,
     reflectance_factor,
@@ -242,6 +244,7 @@ class Plan:
     norm: tuple[str, float | int | None] = ("none", None)
     transforms: Path | None = None  # a store whose band transforms put the bands on the reference band's grid
     band_shift: tuple[tuple[float, float], ...] | None = None  # --centre-bands: (dx, dy) per band
+    factory_alignment: bool = False  # each band file's own registration (DJI), camera_meta.factory_align
 
 
 @dataclass(frozen=True)
@@ -336,6 +339,18 @@ def capture_reflectance(camera: Camera, chain: FieldChain | FactoryChain, job: J
     return signal if factor is None else signal * factor.astype(np.float32)[:, None, None]
 
 
+def one_grid(plan: Plan, job: Job, signal: np.ndarray) -> np.ndarray:
+    """A capture's bands (stored orientation) on one pixel grid: each band file's own
+    registration (``plan.factory_alignment``, DJI), then the plan's band transforms or
+    ``--centre-bands`` (:func:`geometry_step`); unchanged when the plan has none."""
+    if plan.factory_alignment and job.capture is not None:
+        signal = factory_align(job.capture.metas, signal)
+    if plan.transforms is not None or plan.band_shift is not None:
+        signal = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift, job.name,
+                               signal)
+    return signal
+
+
 def process_frame(plan: Plan, job: Job) -> Outcome:
     """One capture, every output: (for a capture read from its files) its raw.zarr chunk, the
     radiometric chain, the common pixel grid, normalisation, indices, Otsu mask, its chunk of
@@ -347,11 +362,9 @@ def process_frame(plan: Plan, job: Job) -> Outcome:
     try:
         dn, sha, channels = capture_dn(plan, job)
         signal, factor, radiance, saturated = radiometry(plan.camera, plan.chain, job, dn, channels)
+        signal = one_grid(plan, job, signal)
     except FrameError as exc:
         return _quarantined(job, exc)
-    if plan.transforms is not None or plan.band_shift is not None:
-        signal = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift, job.name,
-                               signal)
     if job.capture is not None:  # as meant to be seen, after the transforms (they belong to the stored frames)
         try:
             signal, dn = (np.ascontiguousarray(upright_meta(job.capture.metas[0], a)) for a in (signal, dn))

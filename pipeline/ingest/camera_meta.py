@@ -24,6 +24,7 @@ import math
 import re
 import struct
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
@@ -31,11 +32,13 @@ import numpy as np
 from mscal_core.errors import FrameError
 from mscal_core.factory import (
     color_transform,
+    dji_alignment_map,
     dji_camera_value,
     dji_vignetting_correction,
     field_response_scale,
     field_response_signal,
     radiance,
+    remap_band,
     sequoia_irradiance,
     sunshine_irradiance,
     thermal_kelvin,
@@ -702,6 +705,37 @@ def factory_vignetting(meta: CaptureMeta) -> np.ndarray:
         poly_2d=meta.vignetting_polynomial_2d,
         exponents_2d=meta.vignetting_polynomial_2d_exponents,
     )
+
+
+FACTORY_ALIGNMENT_NOTE = ("each band's drone-dji:DewarpData (distortion, camera matrix about CalibratedOpticalCenterX/Y) "
+                          "and CalibratedHMatrix (onto the designed ideal image plane): DJI Image Processing Guide "
+                          "steps 2-3; NaN where a band does not cover")
+
+
+def has_factory_alignment(meta: CaptureMeta) -> bool:
+    """Whether the band file carries its own registration to the camera's common image plane
+    (DJI: ``CalibratedHMatrix``, with ``DewarpData`` when written)."""
+    return meta.radiometry == "dji" and meta.dji_hmatrix is not None and meta.dji_center is not None
+
+
+@lru_cache(maxsize=32)
+def _alignment_map(shape: tuple[int, int], center: tuple[float, float], dewarp: tuple[float, ...] | None,
+                   hmatrix: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    return dji_alignment_map(shape, center, dewarp, hmatrix)  # the same for every capture of a flight
+
+
+def factory_align(metas: Sequence[CaptureMeta], stack: np.ndarray) -> np.ndarray:
+    """Bands ``(band, H, W)`` of one capture (stored orientation) on the camera's common image
+    plane with each band file's own registration (:func:`has_factory_alignment`;
+    :func:`mscal_core.factory.dji_alignment_map`); FrameError naming a band file without it."""
+    out = np.empty(stack.shape, np.float32)
+    for b, meta in enumerate(metas):
+        if not has_factory_alignment(meta):
+            raise FrameError("no band registration in the file's metadata (drone-dji:CalibratedHMatrix)", path=meta.path,
+                             hint="align the bands with 'mscal register' and --registration, or apply with --no-align")
+        assert meta.dji_center is not None and meta.dji_hmatrix is not None
+        out[b] = remap_band(stack[b], _alignment_map(meta.shape, meta.dji_center, meta.dji_dewarp, meta.dji_hmatrix))
+    return out
 
 
 @dataclass(frozen=True, eq=False)

@@ -238,7 +238,8 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
                    "any, scale the brightness in both). Default: linear; with --calibration factory, the "
                    "panels' mean factor for every capture.")
 @click.option("--no-align", "no_align", is_flag=True,
-              help="Keep each band on its own pixel grid even if the calibration has band transforms ('mscal register').")
+              help="Keep each band on its own pixel grid even if the calibration has band transforms ('mscal register'), "
+                   "or (--calibration factory) the band files their own registration (DJI DewarpData, CalibratedHMatrix).")
 @click.option("--registration", default=None, type=click.Path(path_type=Path),
               help="--calibration factory: align the bands with the transforms of this store ('mscal register').")
 @click.option("--centre-bands", "centre_bands", is_flag=True,
@@ -273,9 +274,8 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
         if centre_bands:
             raise InputError("--centre-bands is for snapshot mosaic cameras; --calibration factory is for "
                              "one-file-per-band cameras (align their bands with --registration)")
-        if no_align:
-            raise InputError("--no-align is for calibration stores with band transforms; with --calibration factory "
-                             "leave --registration out to keep each band on its own grid")
+        if no_align and registration is not None:
+            raise InputError("--no-align and --registration contradict each other", hint="give one of them")
         fopts = FactoryOptions(
             reference=reference, panel_captures=tuple(p.strip() for p in panel.split(",")) if panel else (),
             panel_reflectance=panel_reflectance, tiff_dtype="float32" if float32 else "uint16",
@@ -285,7 +285,7 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
             field_components=tuple(c.strip() for c in field_components.split(",") if c.strip())
             if field_components else (),
             execution=execution,
-            camera=camera,
+            camera=camera, align=not no_align,
         )
         _report_apply(apply_factory(flight, out, fopts), out, strict)
         return
