@@ -32,7 +32,7 @@ from typing import Sequence
 
 import numpy as np
 import xarray as xr
-from mscal_core.errors import CalibrationStoreError, FitError, InputError
+from mscal_core.errors import CalibrationStoreError, FitError, FrameError, InputError
 from mscal_core.registration import (
     BandRegistration,
     Thresholds,
@@ -44,9 +44,8 @@ from mscal_core.registration import (
     transform_distance,
 )
 
-from pipeline.ingest.camera_meta import Capture, capture_folder_of, group_captures
+from pipeline.ingest.camera_meta import Capture, capture_folder_of, group_captures, read_capture_pixels
 from pipeline.ingest.catalog import Camera, load_camera
-from pipeline.ingest.session import read_raw
 from pipeline.storage.store import new_dataset, open_calibration, write_store
 
 log = logging.getLogger(__name__)
@@ -88,8 +87,13 @@ class SessionRegistration:
 
 def read_capture(capture: Capture) -> np.ndarray:
     """Band stack ``(band, H, W)`` float32 of one capture's files, as stored (the scale does not
-    matter to registration)."""
-    bands = [read_raw(m.path) for m in capture.metas]
+    matter to registration), read as apply reads them
+    (:func:`pipeline.ingest.camera_meta.read_capture_pixels`: TIFF band files, or each band's
+    channel of a multi-channel JPEG)."""
+    try:
+        _, bands, _ = read_capture_pixels(capture)
+    except FrameError as exc:
+        raise InputError(f"capture {capture.name}: {exc.reason}", path=exc.path, hint=exc.hint) from None
     shapes = {b.shape for b in bands}
     if len(shapes) != 1 or bands[0].ndim != 2:
         raise InputError(f"capture {capture.name}: band files differ in size or are not single-band "
@@ -265,8 +269,13 @@ def register_cli(paths: Sequence[Path], out: Path, camera_name: str | None, refe
     if Path(out).exists():
         existing = open_calibration(out)
         camera_name = camera_name or str(existing.attrs.get("camera"))
-    if not camera_name:
-        raise InputError("--camera is needed to create a new store", hint="e.g. --camera micasense-rededge")
+    if not camera_name:  # recognised from the files, as apply does
+        from pipeline.ingest.identify import identify_camera
+
+        first = Path(paths[0]) if paths else None
+        if first is None or not first.exists():
+            raise InputError("capture folder or band file not found", path=first)
+        camera_name = identify_camera(first if first.is_dir() else first.parent).camera.name
     camera = load_camera(camera_name)
     if existing is not None:
         existing = open_calibration(out, camera)

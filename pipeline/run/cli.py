@@ -183,7 +183,8 @@ def fit_intrinsics(frames: Path, out: Path, camera: str | None, kind: str | None
 @click.argument("captures", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
               help="Calibration store (.zarr): the registration is added to it, or a new store is created.")
-@click.option("--camera", default=None, help="Camera catalog name (default: the existing store's camera).")
+@click.option("--camera", default=None, help="Camera catalog name (default: the existing store's camera, else recognised "
+              "from the files as apply does).")
 @click.option("--reference", default=None, help="Band to align to (default: the lens in the middle of the rig).")
 @click.option("--min-ecc", default=0.3, show_default=True, type=float,
               help="Reject a band's transform whose gradient correlation after alignment is lower.")
