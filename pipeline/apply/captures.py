@@ -286,6 +286,12 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
     }
     if isinstance(run.chain, FactoryChain):
         record["reflectance_missing"] = [m for o in outcomes for m in o.no_reflectance]
+    thermal = [{"capture": o.name, **t} for o in outcomes for t in o.thermal]
+    if thermal:
+        record["thermal"] = {"unit": "K", "formula": "the camera's own conversion of its thermal band (MicaSense "
+                                                     "LWIR: K = DN / 100); never mixed into reflectance",
+                             "files": thermal}
+        record["outputs"]["thermal"] = "thermal/"
     write_json_atomic(out / RUN_JSON, record)
     return ApplyResult(out, record, up_to_date=False, quarantined=quarantined)
 

@@ -53,6 +53,7 @@ from pipeline.ingest.camera_meta import (
     FieldParts,
     factory_align,
     factory_radiance,
+    read_capture_meta,
     read_capture_pixels,
     reflectance_factor,
     upright_meta,
@@ -60,7 +61,7 @@ from pipeline.ingest.camera_meta import (
 from pipeline.ingest.catalog import Camera, Index, load_camera
 from pipeline.ingest.discover import quarantine_entry
 from pipeline.ingest.raw import prefetch_file, read_frame, shape_problem
-from pipeline.ingest.session import FrameRecord
+from pipeline.ingest.session import FrameRecord, decode_raw
 from pipeline.products.writers import BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
 from pipeline.storage.chunks import FrameChunks
 
@@ -270,6 +271,7 @@ class Outcome:
     saturated: int
     quarantine: dict[str, str] | None = None  # a capture that cannot be used: nothing written
     no_reflectance: tuple[dict[str, str], ...] = ()  # bands written as radiance only, and why (missing_reflectance)
+    thermal: tuple[dict[str, str], ...] = ()  # thermal bands written in kelvin (write_thermal), or why not
 
 
 def capture_dn(plan: Plan, job: Job) -> tuple[np.ndarray, str | None, dict[Path, np.ndarray]]:
@@ -402,7 +404,36 @@ def process_frame(plan: Plan, job: Job) -> Outcome:
     if ndvi is not None:
         write_ndvi_tiff(plan.out / "ndvi" / f"{job.name}.tif", ndvi, tags)
     missing = () if job.capture is None else missing_reflectance(plan.chain, job.capture)
-    return Outcome(job.name, sha, saturated, no_reflectance=missing)
+    return Outcome(job.name, sha, saturated, no_reflectance=missing, thermal=write_thermal(plan, job, tags))
+
+
+def write_thermal(plan: Plan, job: Job, tags: FrameTags) -> tuple[dict[str, str], ...]:
+    """The thermal bands of a capture (band files kept out of reflectance whose reader says
+    ``thermal``: MicaSense Altum / Altum-PT LWIR) as temperature in kelvin with the camera's own
+    conversion (:func:`pipeline.ingest.camera_meta.factory_radiance`), each in its own float32
+    TIFF ``thermal/<capture>_<band>.tif``, upright, on the thermal band's own grid; never part
+    of reflectance. One ``{file, band, written | reason}`` per thermal band file."""
+    out: list[dict[str, str]] = []
+    for s in job.capture.skipped if job.capture is not None else ():
+        path = Path(s["file"])
+        try:
+            meta = read_capture_meta(path)
+            if meta.radiometry != "thermal":
+                continue
+            kelvin = upright_meta(meta, factory_radiance(meta, np.asarray(decode_raw(path.read_bytes(), path))))
+        except FrameError as exc:
+            out.append({"file": path.name, "band": s["band"], "reason": f"not written: {exc.reason}"})
+            continue
+        except Exception as exc:  # a truncated file: tifffile raises what it raises
+            out.append({"file": path.name, "band": s["band"], "reason": f"not written: unreadable ({type(exc).__name__})"})
+            continue
+        name = f"{job.name}_{meta.band_name}.tif"
+        (plan.out / "thermal").mkdir(exist_ok=True)
+        write_band_tiff(plan.out / "thermal" / name, kelvin.astype(np.float32), tags,
+                        BandTags(name=meta.band_name, wavelength_nm=meta.wavelength_nm, fwhm_nm=meta.fwhm_nm,
+                                 rig_camera_index=meta.rig_camera_index or 0), dtype="float32")
+        out.append({"file": path.name, "band": meta.band_name, "written": f"thermal/{name}"})
+    return tuple(out)
 
 
 def _quarantined(job: Job, exc: FrameError) -> Outcome:

@@ -7,7 +7,10 @@ named with ``--camera``; each vendor's model is in :mod:`pipeline.ingest.camera_
 A frame is one capture (all its band files, grouped by file name, one XMP capture id per
 capture, or one multi-channel file; in the folder or an SD-card tree below it;
 :func:`pipeline.apply.captures.find_captures`). Bands the camera writes but reflectance does
-not use (panchromatic, thermal) are read, left out and named in run.json ``skipped_bands``.
+not use (panchromatic, thermal) are read, left out and named in run.json ``skipped_bands``; a
+thermal band's temperature in kelvin (the camera's own conversion) is written to its own
+float32 TIFFs ``thermal/<capture>_<band>.tif`` (run.json ``thermal``;
+:func:`pipeline.apply.executor.write_thermal`).
 The factory chain runs in the one apply executor (:mod:`pipeline.apply.executor`). Per band:
 
 - radiance ``L_b`` with the file's own factory model (MicaSense: black level,

@@ -469,3 +469,28 @@ def test_sentera_6x_session_built_from_d4k_files(tmp_path, capsys) -> None:
     assert run["reference"]["route"] == "panel" and run["frames"] == ["IMG_00006", "IMG_00007"]
     refl = xr.open_zarr(tmp_path / "panel" / "reflectance.zarr")["reflectance"].isel(frame=0).values
     np.testing.assert_allclose(np.nanmedian(refl[:, 550:750, 750:1050], axis=(1, 2)), 0.5, rtol=0.03)
+
+
+def test_altum_thermal_in_kelvin_in_its_own_files(tmp_path) -> None:
+    """Altum (built): the LWIR band (centi-kelvin DN) is written as temperature in kelvin with
+    the camera's own conversion, K = DN / 100, to thermal/<capture>_LWIR.tif on its own 160 x
+    120 grid, and named in run.json; reflectance keeps the five reflectance bands only."""
+    require_data()
+    folder = cf.altum(tmp_path / "altum")
+    grad = (27315 + 1000 + np.arange(120)[:, None] * 10 + np.arange(160)[None, :]).astype(np.uint16)  # 283.15 K +
+    cf.extra_band(folder / "IMG_0001_6.tif", (120, 160), "LWIR", 11000, "0001", "Altum", grad)
+    run = _apply(folder, tmp_path / "out", "--reference", "dls")
+    assert run["camera"] == "micasense-altum" and run["frames"] == ["IMG_0000", "IMG_0001"]
+    assert [s["band"] for s in run["skipped_bands"]] == ["LWIR", "LWIR"]
+    assert run["thermal"]["unit"] == "K" and run["outputs"]["thermal"] == "thermal/"
+    assert [(t["capture"], t["written"]) for t in run["thermal"]["files"]] == [
+        ("IMG_0000", "thermal/IMG_0000_LWIR.tif"), ("IMG_0001", "thermal/IMG_0001_LWIR.tif")]
+    k0 = tifffile.imread(tmp_path / "out" / "thermal" / "IMG_0000_LWIR.tif")
+    assert k0.dtype == np.float32 and k0.shape == (120, 160)
+    np.testing.assert_allclose(k0, 298.15, rtol=1e-7)  # the builder's 29815 centi-kelvin
+    k1 = tifffile.imread(tmp_path / "out" / "thermal" / "IMG_0001_LWIR.tif")
+    np.testing.assert_allclose(k1, grad / 100.0, rtol=1e-7)
+    assert k1[0, 0] == pytest.approx(283.15) and k1[119, 159] == pytest.approx(283.15 + 11.9 + 1.59)
+    ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
+    assert ds.sizes["band"] == 5 and 11000 not in list(ds["wavelength"].values)
+    assert float(np.nanmax(ds["reflectance"].values)) < 5  # no kelvin in reflectance
