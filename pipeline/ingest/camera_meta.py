@@ -961,7 +961,7 @@ def group_captures(
         try:
             metas = read_file_metas(path)
         except FrameError as exc:
-            s = next((s for s in skip.values() if not per_file and s.file_suffix == m["band"]), None)
+            s = next((s for s in skip.values() if not (per_file or per_folder) and s.file_suffix == m["band"]), None)
             if s is not None:  # the file of a band kept out of reflectance anyway: named, not fatal
                 skipped.setdefault(m["capture"], []).append(
                     {"file": str(path), "band": s.name, "reason": f"{s.reason}; unreadable: {exc.reason}"})
