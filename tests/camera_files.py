@@ -356,14 +356,17 @@ def dji_p4m_warped(folder: Path) -> Path:
     qy, qx = np.mgrid[0:h, 0:w].astype(np.float64)
     pts = np.stack([qx.ravel(), qy.ravel()], axis=1).reshape(-1, 1, 2)
     crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    maps = {}
+    for b in range(1, 6):  # stored pixel -> scene pixel, the same for every capture
+        hm, k, dist = dji_warp(b)
+        u = cv2.undistortPoints(pts, k, dist, R=None, P=k, criteria=crit).reshape(-1, 2)
+        x = (hm @ np.stack([u[:, 0], u[:, 1], np.ones(len(u))]))
+        maps[b] = (x[0] / x[2]).reshape(h, w).astype(np.float32), (x[1] / x[2]).reshape(h, w).astype(np.float32)
     for c, cap in enumerate(CAPTURES, start=1):
         scene = tifffile.imread(band_file(cap, 4)).astype(np.float32)
         for b in range(1, 6):
             hm, k, dist = dji_warp(b)
-            u = cv2.undistortPoints(pts, k, dist, R=None, P=k, criteria=crit).reshape(-1, 2)
-            x = (hm @ np.stack([u[:, 0], u[:, 1], np.ones(len(u))]))
-            mx, my = (x[0] / x[2]).reshape(h, w).astype(np.float32), (x[1] / x[2]).reshape(h, w).astype(np.float32)
-            dn = cv2.remap(scene, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+            dn = cv2.remap(scene, *maps[b], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
             dn = np.clip(np.rint(dn), 0, 65535).astype(np.uint16)
             dewarp = "2020-02-04;" + ",".join(f"{v:.10g}" for v in (k[0, 0], k[1, 1], k[0, 2] - DJI["center"][0],
                                                                      k[1, 2] - DJI["center"][1], dist[0], dist[1],
