@@ -483,6 +483,77 @@ def dji_camera_value(
     return np.maximum(out, 0.0)
 
 
+def dji_alignment_map(shape: tuple[int, int], center: Sequence[float], dewarp: Sequence[float] | None,
+                      hmatrix: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+    """Return the map that puts one DJI multispectral band on the designed ideal image plane.
+
+    DJI "Mavic 3M Image Processing Guide" v1.0 (2023.08), section II steps 2-3 (the "P4
+    Multispectral Image Processing Guide" v1.0 has the same two steps):
+
+    - step 2, distortion correction: ``cv2.undistort`` with the camera matrix
+      ``[[fx, 0, CenterX + cx], [0, fy, CenterY + cy], [0, 0, 1]]`` (``fx, fy, cx, cy, k1, k2,
+      p1, p2, k3`` = ``drone-dji:DewarpData`` after its date, ``cx, cy`` offsets from
+      ``CenterX, CenterY`` = ``drone-dji:CalibratedOpticalCenterX/Y``), the same matrix as the
+      new camera matrix ("changing the camera matrix ... should be avoided");
+    - step 3, ``cv2.warpPerspective`` with ``H`` = ``drone-dji:CalibratedHMatrix`` (row-major
+      3 x 3, "from the individual physical image plane to the designed ideal image plane").
+
+    Together the aligned band is ``A(x) = I(D(H^-1 x))`` with ``D`` OpenCV's distortion model
+    (radial ``k1, k2, k3``, tangential ``p1, p2``) in that camera matrix. Step 4 (residual
+    alignment of bands exposed at different times, by features) is left to ``mscal register``.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        ``(height, width)`` of the band image (the output has the same size).
+    center : sequence of float
+        ``(CenterX, CenterY)`` in pixels.
+    dewarp : sequence of float or None
+        ``fx, fy, cx, cy, k1, k2, p1, p2, k3``; None: no distortion correction (step 3 only).
+    hmatrix : sequence of float
+        The nine values of ``CalibratedHMatrix``, row-major.
+
+    Returns
+    -------
+    map_x, map_y : numpy.ndarray
+        float32 ``(height, width)`` source coordinates for ``cv2.remap``.
+    """
+    h, w = shape
+    hm = np.asarray(hmatrix, dtype=np.float64).reshape(3, 3)
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    src = np.linalg.solve(hm, np.stack([x.ravel(), y.ravel(), np.ones(x.size)]))
+    u, v = src[0] / src[2], src[1] / src[2]
+    if dewarp is not None:
+        fx, fy, cx, cy, k1, k2, p1, p2, k3 = (float(d) for d in dewarp)
+        ox, oy = float(center[0]) + cx, float(center[1]) + cy
+        xn, yn = (u - ox) / fx, (v - oy) / fy
+        r2 = xn * xn + yn * yn
+        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2 + 2.0 * xn * xn)
+        yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+        u, v = xd * fx + ox, yd * fy + oy
+    return u.reshape(h, w).astype(np.float32), v.reshape(h, w).astype(np.float32)
+
+
+def remap_band(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Resample one band with ``cv2.remap`` maps (bilinear; NaN where the source lies outside).
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        ``(height, width)`` band.
+    maps : tuple of numpy.ndarray
+        ``(map_x, map_y)`` as from :func:`dji_alignment_map`.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 ``(height, width)``.
+    """
+    return cv2.remap(np.asarray(image, dtype=np.float32), maps[0], maps[1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=float("nan"))
+
+
 def color_transform(channels: np.ndarray, matrix: Sequence[float], rows: Sequence[int]) -> np.ndarray:
     """Sentera crosstalk removal: band ``i`` = ``sum_j M[i, j] DN_j`` over the image channels.
 

@@ -167,14 +167,15 @@ def reflect_area_one_li(folder: Path, corners: tuple[tuple[tuple[int, int], ...]
     return folder
 
 
-def dji_xmp(band: int, cap_uuid: str, *, band_freq: bool = False) -> str:
+def dji_xmp(band: int, cap_uuid: str, *, band_freq: bool = False, dewarp: str | None = None,
+            hmatrix: str | None = None) -> str:
     name, wl, fwhm = DJI_BANDS[band - 1]
     attrs = {
         "drone-dji:SensorGain": f"{DJI['gain']:.3f}", "drone-dji:ExposureTime": f"{DJI['exposure_us']}",
         "drone-dji:SensorGainAdjustment": f"{DJI['adjust']}", "drone-dji:Irradiance": f"{DJI['irradiance'][band - 1]}",
         "drone-dji:CalibratedOpticalCenterX": f"{DJI['center'][0]}", "drone-dji:CalibratedOpticalCenterY": f"{DJI['center'][1]}",
-        "drone-dji:VignettingData": ", ".join(f"{k:.6e}" for k in DJI["k"]), "drone-dji:DewarpData": DJI["dewarp"],
-        "drone-dji:CalibratedHMatrix": DJI["hmatrix"], "drone-dji:CaptureUUID": cap_uuid, "drone-dji:SensorIndex": str(band),
+        "drone-dji:VignettingData": ", ".join(f"{k:.6e}" for k in DJI["k"]),
+        "drone-dji:DewarpData": dewarp or DJI["dewarp"], "drone-dji:CalibratedHMatrix": hmatrix or DJI["hmatrix"], "drone-dji:CaptureUUID": cap_uuid, "drone-dji:SensorIndex": str(band),
         "drone-dji:BandName": name,
     }
     elements = ""
@@ -240,4 +241,139 @@ def sentera_with_panel(src_folder: Path, folder: Path, value: int = 200) -> Path
         enc = enc.tobytes()
         app1 = [s for s in jpeg_segments(data) if s[1] == 0xE1]  # EXIF and XMP
         (folder / path.name).write_bytes(enc[:2] + b"".join(app1) + enc[2:])
+    return folder
+
+
+# --------------------------------------------------------------------------- Sentera 6X
+
+SENTERA_D4K = DATA.parent / "sentera-d4k"
+SENTERA_6X_SHAPE = (1428, 1904)  # documented ImageLength x ImageWidth
+# band -> (folder, D4K sensor, channel of its RGB-ordered JPEG, wavelength, FWHM); folders listed
+# out of the catalog's band order on purpose: the band is the file's XMP BandName
+SENTERA_6X_BANDS = {
+    "NIR": ("nir_840", "NDRE", 2, 840, 20), "Blue": ("blue_475", "nRGB", 2, 475, 30),
+    "RedEdge": ("rededge_715", "NDRE", 0, 715, 10), "Green": ("green_550", "nRGB", 1, 550, 20),
+    "Red": ("red_670", "nRGB", 0, 670, 30),
+}
+SENTERA_6X_SESSION = "2020-09-15_04-37-17"
+SENTERA_6X_PANEL = (slice(500, 800), slice(700, 1100), 3600)  # rows, columns, 12-bit DN in every band
+
+
+def _d4k_exif(path: Path) -> dict[str, object]:
+    import exifread
+
+    with open(path, "rb") as f:
+        t = exifread.process_file(f, details=False)
+    e = t["EXIF ExposureTime"].values[0]
+    return {"iso": int(t["EXIF ISOSpeedRatings"].values[0]), "exposure": (int(e.num), int(e.den)),
+            "time": str(t["EXIF DateTimeOriginal"].values), "subsec": str(t["EXIF SubSecTimeOriginal"].values)}
+
+
+def _d4k_packet_one_band(packet: str, band: str, wl: int, fwhm: int, sun: float) -> str:
+    """The real Double 4K XMP packet (Camera + ILS namespaces) for one band of a 6X file: the
+    band lists cut to that band, no ColorTransform (one imager per band), no perspective tags
+    (the 6X's are not published) and no rig tags (not in its tag table)."""
+    for tag, value in (("BandName", band), ("CentralWavelength", wl), ("WavelengthFWHM", fwhm), ("SunSensor", sun)):
+        packet = set_element(packet, f"Camera:{tag}", seq(value))
+    packet = drop_element(packet, "Camera:ColorTransform")
+    return re.sub(r'\s+Camera:(ModelType|PrincipalPoint|PerspectiveFocalLength|PerspectiveDistortion|IsNormalized|RigName|RigCameraIndex)="[^"]*"',
+                  "", packet)
+
+
+def sentera_6x(folder: Path, *, panel: bool = False) -> Path:
+    """A 6X session folder ``folder/2020-09-15_04-37-17/<band folder>/IMG_0000N.tif`` for the two
+    real Double 4K captures: each band is one channel of a D4K JPEG (NDRE: RedEdge, NIR; nRGB:
+    Blue, Green, Red) resized to the 6X's 1904 x 1428 and put on 12 bits (x 16); IFD0 holds the
+    documented tags (Make, Model, Software, ImageUniqueID, LensModel) and the EXIF ones the
+    documents list under "EXIF (IFD0)" (ExposureTime, ISOSpeedRatings, DateTimeOriginal; the
+    D4K capture's values); XMP from the D4K packet (:func:`_d4k_packet_one_band`). ``panel``: a
+    uniform gray square (:data:`SENTERA_6X_PANEL`) in every band of the first capture.
+    Returns the session folder; ``PARAMS`` has each file's ISO and exposure."""
+    import cv2
+
+    from pipeline.ingest.xmp import jpeg_xmp_packet
+
+    session = folder / SENTERA_6X_SESSION
+    for n, cap in enumerate(("IMG_00006", "IMG_00007"), start=1):
+        decoded = {}
+        for sensor in ("NDRE", "nRGB"):
+            data = (SENTERA_D4K / sensor / f"{cap}.jpg").read_bytes()
+            rgb = cv2.cvtColor(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+            decoded[sensor] = (cv2.resize(rgb, SENTERA_6X_SHAPE[::-1], interpolation=cv2.INTER_AREA),
+                               jpeg_xmp_packet(data).decode("utf-8"), _d4k_exif(SENTERA_D4K / sensor / f"{cap}.jpg"))
+        for k, (band, (sub, sensor, ch, wl, fwhm)) in enumerate(SENTERA_6X_BANDS.items()):
+            img, packet, ex = decoded[sensor]
+            dn = img[:, :, ch].astype(np.uint16) * 16
+            if panel and n == 1:
+                rows, cols, value = SENTERA_6X_PANEL
+                dn[rows, cols] = value
+            xmp = _d4k_packet_one_band(packet, band, wl, fwhm, 3000.0 + 100 * k).encode("utf-8")
+            path = session / sub / f"{cap}.tif"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tifffile.imwrite(path, dn, photometric="minisblack", software="2.0.0-21214", metadata=None, extratags=[
+                (271, "s", 0, "Sentera", True), (272, "s", 0, "21214-00_3.2MP-GS-0001", True), (42016, "s", 0, f"{SENTERA_6X_SESSION}_{n}", True),
+                (42036, "s", 0, "8.0mm-0001-0001", True), (33434, "2I", 1, ex["exposure"], True),
+                (34855, "H", 1, ex["iso"], True), (36867, "s", 0, ex["time"], True),
+                (37521, "s", 0, ex["subsec"], True), (700, 1, len(xmp), xmp, True)])
+            PARAMS[str(path)] = {"iso": ex["iso"], "exposure": ex["exposure"]}
+    return session
+
+
+PARAMS: dict[str, dict[str, object]] = {}
+
+
+# --------------------------------------------------------------------------- DJI band registration
+
+# Per band: (tx, ty) px, rotation deg, scale of the physical image plane against the designed
+# one (about the image centre), and the DewarpData's fx, cx, cy, k1 (the rest: DJI's example)
+DJI_WARPS = {1: (3.2, -2.7, 0.25, 1.003, 1949.45, 28.0, -17.0, -0.4082), 2: (-1.5, 4.1, -0.2, 0.998, 1935.0, -12.0, 9.0, -0.39),
+             3: (2.0, 2.0, 0.1, 1.0, 1960.0, 5.0, 20.0, -0.41), 4: (5.4, 1.3, -0.15, 1.001, 1942.0, 15.0, -6.0, -0.40),
+             5: (0.0, 0.0, 0.0, 1.0, 1951.0, 0.0, 0.0, -0.4082)}
+
+
+def dji_warp(band: int, shape: tuple[int, int] = (960, 1280)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The built band's CalibratedHMatrix H (physical -> designed plane), camera matrix K and
+    distortion (k1, k2, p1, p2, k3) of :data:`DJI_WARPS`."""
+    tx, ty, deg, sc, f, cx, cy, k1 = DJI_WARPS[band]
+    h, w = shape
+    c, s = np.cos(np.radians(deg)) * sc, np.sin(np.radians(deg)) * sc
+    ox, oy = (w - 1) / 2, (h - 1) / 2
+    hm = np.array([[c, -s, ox - c * ox + s * oy + tx], [s, c, oy - s * ox - c * oy + ty], [0, 0, 1]])
+    k = np.array([[f, 0, DJI["center"][0] + cx], [0, f * 0.995, DJI["center"][1] + cy], [0, 0, 1]])
+    return hm, k, np.array([k1, 0.3418, 0.00068, 0.00068, -0.3540])
+
+
+def dji_p4m_warped(folder: Path) -> Path:
+    """P4 Multispectral captures whose bands show one scene (the real RedEdge NIR frame of the
+    capture, DN as stored) through each band's own lens distortion and plane: stored band
+    ``I_b(q) = scene(H_b u)``, ``u`` the undistorted point of ``q`` (OpenCV's iterative
+    ``undistortPoints`` to 1e-12, camera matrix K_b kept). The tags say so (DewarpData, per-band
+    CalibratedHMatrix), so the guide's steps 2-3 put every band back onto the scene's grid."""
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    h, w = 960, 1280
+    qy, qx = np.mgrid[0:h, 0:w].astype(np.float64)
+    pts = np.stack([qx.ravel(), qy.ravel()], axis=1).reshape(-1, 1, 2)
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    maps = {}
+    for b in range(1, 6):  # stored pixel -> scene pixel, the same for every capture
+        hm, k, dist = dji_warp(b)
+        u = cv2.undistortPoints(pts, k, dist, R=None, P=k, criteria=crit).reshape(-1, 2)
+        x = (hm @ np.stack([u[:, 0], u[:, 1], np.ones(len(u))]))
+        maps[b] = (x[0] / x[2]).reshape(h, w).astype(np.float32), (x[1] / x[2]).reshape(h, w).astype(np.float32)
+    for c, cap in enumerate(CAPTURES, start=1):
+        scene = tifffile.imread(band_file(cap, 4)).astype(np.float32)
+        for b in range(1, 6):
+            hm, k, dist = dji_warp(b)
+            dn = cv2.remap(scene, *maps[b], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+            dn = np.clip(np.rint(dn), 0, 65535).astype(np.uint16)
+            dewarp = "2020-02-04;" + ",".join(f"{v:.10g}" for v in (k[0, 0], k[1, 1], k[0, 2] - DJI["center"][0],
+                                                                     k[1, 2] - DJI["center"][1], dist[0], dist[1],
+                                                                     dist[2], dist[3], dist[4]))
+            packet = dji_xmp(b, f"dji-capture-{cap}", dewarp=dewarp,
+                             hmatrix=",".join(f"{v:.12g}" for v in hm.ravel())).encode("utf-8")
+            tifffile.imwrite(folder / f"DJI_00{c}{b}.TIF", dn, photometric="minisblack", metadata=None, extratags=[
+                (271, "s", 0, "DJI", True), (272, "s", 0, "FC6360", True), (50714, "H", 1, int(DJI["black"]), True),
+                (700, 1, len(packet), packet, True)])
     return folder

@@ -43,7 +43,7 @@ from mscal_core.errors import FrameError
 from pipeline.apply.execution import Execution
 from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner, process_frame
 from pipeline.apply.flight import RUN_JSON, ApplyResult, previous_run, remove_frame_tiffs, software_versions
-from pipeline.ingest.camera_meta import Capture, capture_pattern, group_captures
+from pipeline.ingest.camera_meta import Capture, capture_folder_of, capture_pattern, group_captures
 from pipeline.ingest.catalog import Camera, Index
 from pipeline.ingest.photo_tags import CameraOptics, calibration_picture, read_optics
 from pipeline.ingest.raw import raw_codec
@@ -90,8 +90,9 @@ def find_captures(folder: str | Path, camera: Camera) -> CaptureFolder:
         if p.is_dir() or any(part.startswith(".") for part in p.relative_to(folder).parts):
             continue
         if pattern.match(p.name):
-            if p.parent not in dirs:
-                dirs.append(p.parent)
+            d = capture_folder_of(p, camera)  # a folder_per_band camera's session folder
+            if d not in dirs:
+                dirs.append(d)
         elif p.name.lower() not in _IGNORED_NAMES and p.name not in (RUN_JSON,):
             skipped.append({"file": str(p.relative_to(folder)),
                             "reason": f"not a capture file of {camera.name} (names matching {pattern.pattern})"})
@@ -257,6 +258,7 @@ class CaptureRun:
     tiff_dtype: str = "uint16"
     norm: tuple[str, float | int | None] = ("none", None)
     transforms: Path | None = None
+    factory_alignment: bool = False  # bands on the camera's common plane by each file's own registration (DJI)
     radiance_unit: str = "W m-2 sr-1 nm-1"  # of the factory chain's radiance (the vendor's model)
     irradiance_unit: str = "W m-2 nm-1"  # of the captures' sun-sensor readings
     scale: Callable[[str], tuple[float, ...] | None] = lambda name: None
@@ -334,6 +336,12 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
     }
     if isinstance(run.chain, FactoryChain):
         record["reflectance_missing"] = [m for o in outcomes for m in o.no_reflectance]
+    thermal = [{"capture": o.name, **t} for o in outcomes for t in o.thermal]
+    if thermal:
+        record["thermal"] = {"unit": "K", "formula": "the camera's own conversion of its thermal band (MicaSense "
+                                                     "LWIR: K = DN / 100); never mixed into reflectance",
+                             "files": thermal}
+        record["outputs"]["thermal"] = "thermal/"
     write_json_atomic(out / RUN_JSON, record)
     return ApplyResult(out, record, up_to_date=False, quarantined=quarantined)
 
@@ -386,6 +394,7 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
                                  fwhm_nm=first[b].fwhm_nm, rig_camera_index=i, optics=optics[i]))
                     for i, b in enumerate(export)),
         tiff_dtype=run.tiff_dtype, out=out, norm=run.norm, transforms=run.transforms,
+        factory_alignment=run.factory_alignment,
     )
     return tmp_refl, tmp_raw, plan
 

@@ -14,8 +14,9 @@ radiometric model is one per-band chain chosen per run (``Plan.chain``):
   or NaN for a radiance-only run; ``Job.scale`` overrides it).
 
 :func:`process_frame` reads the capture (hashing and checking it; a new one is written into
-``raw.zarr``), runs the chain, puts the bands on one pixel grid (band transforms or
-``--centre-bands``, :func:`geometry_step`), turns a capture read from its files upright (EXIF
+``raw.zarr``), runs the chain, puts the bands on one pixel grid (the band files' own
+registration, DJI's DewarpData and CalibratedHMatrix: ``Plan.factory_alignment``; band
+transforms or ``--centre-bands``, :func:`geometry_step`), turns a capture read from its files upright (EXIF
 Orientation: Parrot Sequoia stores its frames rotated 180 degrees; the band transforms belong
 to the stored frames, so they come first; raw.zarr is turned too), normalises, and writes its
 whole chunk of every ``reflectance.zarr`` variable, its photogrammetry TIFFs and its NDVI TIFF. :class:`Runner`
@@ -50,7 +51,9 @@ from pipeline.calibrate.registration import frame_transforms
 from pipeline.ingest.camera_meta import (
     Capture,
     FieldParts,
+    factory_align,
     factory_radiance,
+    read_capture_meta,
     read_capture_pixels,
     reflectance_factor,
     upright_meta,
@@ -58,7 +61,7 @@ from pipeline.ingest.camera_meta import (
 from pipeline.ingest.catalog import Camera, Index, load_camera
 from pipeline.ingest.discover import quarantine_entry
 from pipeline.ingest.raw import prefetch_file, read_frame, shape_problem
-from pipeline.ingest.session import FrameRecord
+from pipeline.ingest.session import FrameRecord, decode_raw
 from pipeline.products.writers import BandTags, FrameTags, file_band_name, write_band_tiff, write_ndvi_tiff
 from pipeline.storage.chunks import FrameChunks
 
@@ -242,6 +245,7 @@ class Plan:
     norm: tuple[str, float | int | None] = ("none", None)
     transforms: Path | None = None  # a store whose band transforms put the bands on the reference band's grid
     band_shift: tuple[tuple[float, float], ...] | None = None  # --centre-bands: (dx, dy) per band
+    factory_alignment: bool = False  # each band file's own registration (DJI), camera_meta.factory_align
 
 
 @dataclass(frozen=True)
@@ -279,6 +283,7 @@ class Outcome:
     saturated: int
     quarantine: dict[str, str] | None = None  # a capture that cannot be used: nothing written
     no_reflectance: tuple[dict[str, str], ...] = ()  # bands written as radiance only, and why (missing_reflectance)
+    thermal: tuple[dict[str, str], ...] = ()  # thermal bands written in kelvin (write_thermal), or why not
 
 
 def capture_dn(plan: Plan, job: Job) -> tuple[np.ndarray, str | None, dict[Path, np.ndarray]]:
@@ -348,6 +353,18 @@ def capture_reflectance(camera: Camera, chain: FieldChain | FactoryChain, job: J
     return signal if factor is None else signal * factor.astype(np.float32)[:, None, None]
 
 
+def one_grid(plan: Plan, job: Job, signal: np.ndarray) -> np.ndarray:
+    """A capture's bands (stored orientation) on one pixel grid: each band file's own
+    registration (``plan.factory_alignment``, DJI), then the plan's band transforms or
+    ``--centre-bands`` (:func:`geometry_step`); unchanged when the plan has none."""
+    if plan.factory_alignment and job.capture is not None:
+        signal = factory_align(job.capture.metas, signal)
+    if plan.transforms is not None or plan.band_shift is not None:
+        signal = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift, job.name,
+                               signal)
+    return signal
+
+
 def process_frame(plan: Plan, job: Job) -> Outcome:
     """One capture, every output: (for a capture read from its files) its raw.zarr chunk, the
     radiometric chain, the common pixel grid, normalisation, indices, Otsu mask, its chunk of
@@ -359,11 +376,9 @@ def process_frame(plan: Plan, job: Job) -> Outcome:
     try:
         dn, sha, channels = capture_dn(plan, job)
         signal, factor, radiance, saturated = radiometry(plan.camera, plan.chain, job, dn, channels)
+        signal = one_grid(plan, job, signal)
     except FrameError as exc:
         return _quarantined(job, exc)
-    if plan.transforms is not None or plan.band_shift is not None:
-        signal = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift, job.name,
-                               signal)
     if job.capture is not None:  # as meant to be seen, after the transforms (they belong to the stored frames)
         try:
             signal, dn = (np.ascontiguousarray(upright_meta(job.capture.metas[0], a)) for a in (signal, dn))
@@ -401,7 +416,36 @@ def process_frame(plan: Plan, job: Job) -> Outcome:
     if ndvi is not None and not job.panel:
         write_ndvi_tiff(plan.out / NDVI_DIR / f"{job.name}.tif", ndvi, tags)
     missing = () if job.capture is None else missing_reflectance(plan.chain, job.capture)
-    return Outcome(job.name, sha, saturated, no_reflectance=missing)
+    return Outcome(job.name, sha, saturated, no_reflectance=missing, thermal=write_thermal(plan, job, tags))
+
+
+def write_thermal(plan: Plan, job: Job, tags: FrameTags) -> tuple[dict[str, str], ...]:
+    """The thermal bands of a capture (band files kept out of reflectance whose reader says
+    ``thermal``: MicaSense Altum / Altum-PT LWIR) as temperature in kelvin with the camera's own
+    conversion (:func:`pipeline.ingest.camera_meta.factory_radiance`), each in its own float32
+    TIFF ``thermal/<capture>_<band>.tif``, upright, on the thermal band's own grid; never part
+    of reflectance. One ``{file, band, written | reason}`` per thermal band file."""
+    out: list[dict[str, str]] = []
+    for s in job.capture.skipped if job.capture is not None else ():
+        path = Path(s["file"])
+        try:
+            meta = read_capture_meta(path)
+            if meta.radiometry != "thermal":
+                continue
+            kelvin = upright_meta(meta, factory_radiance(meta, np.asarray(decode_raw(path.read_bytes(), path))))
+        except FrameError as exc:
+            out.append({"file": path.name, "band": s["band"], "reason": f"not written: {exc.reason}"})
+            continue
+        except Exception as exc:  # a truncated file: tifffile raises what it raises
+            out.append({"file": path.name, "band": s["band"], "reason": f"not written: unreadable ({type(exc).__name__})"})
+            continue
+        name = f"{job.name}_{file_band_name(meta.band_name)}.tif"
+        (plan.out / "thermal").mkdir(exist_ok=True)
+        write_band_tiff(plan.out / "thermal" / name, kelvin.astype(np.float32), tags,
+                        BandTags(name=meta.band_name, wavelength_nm=meta.wavelength_nm, fwhm_nm=meta.fwhm_nm,
+                                 rig_camera_index=meta.rig_camera_index or 0), dtype="float32")
+        out.append({"file": path.name, "band": meta.band_name, "written": f"thermal/{name}"})
+    return tuple(out)
 
 
 def _quarantined(job: Job, exc: FrameError) -> Outcome:

@@ -7,7 +7,10 @@ named with ``--camera``; each vendor's model is in :mod:`pipeline.ingest.camera_
 A frame is one capture (all its band files, grouped by file name, one XMP capture id per
 capture, or one multi-channel file; in the folder or an SD-card tree below it;
 :func:`pipeline.apply.captures.find_captures`). Bands the camera writes but reflectance does
-not use (panchromatic, thermal) are read, left out and named in run.json ``skipped_bands``.
+not use (panchromatic, thermal) are read, left out and named in run.json ``skipped_bands``; a
+thermal band's temperature in kelvin (the camera's own conversion) is written to its own
+float32 TIFFs ``thermal/<capture>_<band>.tif`` (run.json ``thermal``;
+:func:`pipeline.apply.executor.write_thermal`).
 The factory chain runs in the one apply executor (:mod:`pipeline.apply.executor`). Per band:
 
 - radiance ``L_b`` with the file's own factory model (MicaSense: black level,
@@ -46,7 +49,10 @@ output, raw.zarr included, after the band registration (run.json ``orientation``
 
 Outputs as for every apply (SPEC "Outputs of apply"): ``reflectance.zarr`` with
 ``reflectance`` and ``radiance`` (frame, band, y, x) float32 and the indices, ``raw.zarr``
-(the stored DN, frame x band x y x x), photogrammetry and NDVI TIFFs, ``run.json``. Bands are
+(the stored DN, frame x band x y x x), photogrammetry and NDVI TIFFs, ``run.json``. Bands whose
+files carry their own registration (DJI: ``drone-dji:DewarpData`` and ``CalibratedHMatrix``,
+the Image Processing Guides' steps 2-3; :func:`pipeline.ingest.camera_meta.factory_align`)
+are put on the camera's designed image plane (``--no-align``: not); other cameras' bands are
 *not* co-registered here (each band keeps its own pixel grid): per-pixel indices mix
 neighbouring ground points near edges; ``reflectance.zarr`` says so in its attributes. With
 ``--registration REG.zarr`` (a store from ``mscal register``, issue 9) the radiance of each
@@ -88,10 +94,12 @@ from pipeline.apply.flight import (
 )
 from pipeline.apply.panel import PanelBand, panel_factors
 from pipeline.ingest.camera_meta import (
+    FACTORY_ALIGNMENT_NOTE,
     Capture,
     FieldParts,
     capture_irradiance,
     factory_radiance,
+    has_factory_alignment,
     read_capture_pixels,
     reflectance_factor,
     sun_sensor_absolute,
@@ -125,6 +133,7 @@ class FactoryOptions:
     field_components: tuple[str, ...] = ()  # of FIELD_COMPONENTS taken from it; () = all it holds
     execution: Execution = Execution()  # how the pass runs (not what it computes: not fingerprinted)
     camera: str | None = None  # --camera NAME: the catalog camera, instead of recognising it from the files
+    align: bool = True  # False (--no-align): the band files' own registration (DJI) is not applied
 
     def __post_init__(self) -> None:
         if self.reference not in REFERENCES:
@@ -150,6 +159,8 @@ class FactoryOptions:
             d.pop("field_components")
         if d["camera"] is None:
             d.pop("camera")
+        if d["align"]:  # the default: earlier runs stay up to date
+            d.pop("align")
         return d
 
 
@@ -356,6 +367,11 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     attrs = {"calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
              "comment": "bands are not co-registered: each band keeps its own pixel grid",
              "components": json.dumps(_components_record(None if field is None else (*field[:2], "")))}
+    own = options.align and options.registration is None and all(
+        has_factory_alignment(m) for c in captures for m in c.metas)
+    if own:
+        attrs.update({"co_registered": 1, "registration": "factory metadata",
+                      "comment": f"bands on the camera's designed image plane: {FACTORY_ALIGNMENT_NOTE}"})
     if options.registration is not None:
         attrs.update({"co_registered": 1, "registration": str(options.registration),
                       "comment": "bands aligned to the reference band of the registration store "
@@ -370,7 +386,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         calibration=FACTORY, calibration_sha256=None, fingerprint=fingerprint, attrs=attrs,
         reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
         execution=options.execution,
-        transforms=None if options.registration is None else Path(options.registration),
+        transforms=None if options.registration is None else Path(options.registration), factory_alignment=own,
         radiance_unit=first.radiance_unit, irradiance_unit=first.irradiance_unit,
         record=lambda caps: {"components": _components_record(field),
                              "reference": {**_reference_record(reference, panels, panel_factor, camera, caps[0]),
@@ -379,6 +395,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                              "camera_identification": {"evidence": ident.evidence, "overridden": ident.overridden,
                                                        **ident.probe},
                              "radiance_unit": caps[0].metas[0].radiance_unit,
+                             "band_alignment": _alignment_record(options, own, caps),
                              "illumination": _light_record(options.illumination, panels, caps, scales, camera)},
         scale=lambda name: scales.get(name),
         panels=panel_names, reference_band=_reference_band(options.registration, camera),
@@ -395,6 +412,17 @@ def _reference_band(registration: str | None, camera: Camera) -> int | None:
 
     name = (open_calibration(registration, camera).attrs.get("registration") or {}).get("reference_band")
     return camera.band_names.index(name) if name in camera.band_names else None
+
+
+def _alignment_record(options: FactoryOptions, own: bool, captures: Sequence[Capture]) -> str:
+    """run.json ``band_alignment``: how the bands were put on one pixel grid, if they were."""
+    if options.registration is not None:
+        return f"transforms of {options.registration} (mscal register)"
+    if own:
+        return f"factory metadata: {FACTORY_ALIGNMENT_NOTE}"
+    if not options.align and any(has_factory_alignment(m) for c in captures for m in c.metas):
+        return "none (--no-align: the band files' own registration was not applied)"
+    return "none: each band keeps its own pixel grid"
 
 
 def _identify(folder: Path, options: FactoryOptions) -> Identification:

@@ -21,7 +21,7 @@ import mscal_core
 import numpy as np
 import xarray as xr
 from mscal_core import geometry, illumination, response, vignetting
-from mscal_core.errors import FitError, SessionError
+from mscal_core.errors import FitError, MscalError, SessionError
 from mscal_core.mosaic import band_offsets
 
 from pipeline.calibrate.intrinsics import fit_intrinsics_folder, parse_board, store_intrinsics
@@ -194,7 +194,8 @@ def with_intrinsics(session: Session, store: xr.Dataset | None = None,
     session.yaml (one for all bands, or per band) first, else the store's ``intrinsics``
     (``mscal fit intrinsics``), else board images in ``SESSION/intrinsics/`` (with its
     ``board.yaml``, fitted as ``mscal fit intrinsics`` does), else the band files' own
-    metadata (MicaSense XMP; the first capture of ``records``, else of ``vignetting/``).
+    metadata (MicaSense and Sentera perspective XMP, DJI DewarpData; the first capture of
+    ``records``, else of ``vignetting/``).
     :class:`SessionError` if none gives them."""
     if session.intrinsics is not None or session.band_intrinsics is not None:
         return session, "session.yaml"
@@ -208,13 +209,15 @@ def with_intrinsics(session: Session, store: xr.Dataset | None = None,
     board_dir = session.root / "intrinsics"
     if (board_dir / "board.yaml").is_file():
         return _set_intrinsics(session, board_intrinsics(board_dir, camera)), "board images in intrinsics/"
-    if is_multilens(camera):
-        if records is None:
+    if records is None:
+        try:
             records = read_frames(session.vignetting_dir, camera) if session.vignetting_dir.is_dir() else []
-        for rec in list(records)[:1]:
-            intr = band_intrinsics_from_files(rec.files)
-            if intr is not None:
-                return _set_intrinsics(session, intr), f"metadata of {rec.name}"
+        except MscalError:  # a folder that cannot be read as frames: no metadata to take them from
+            records = []
+    for rec in list(records)[:1]:  # band files (multi-lens), or one file of all bands (Sentera JPEG)
+        intr = band_intrinsics_from_files(rec.files, camera.n_bands)
+        if intr is not None:
+            return _set_intrinsics(session, intr), f"metadata of {rec.name}"
     raise SessionError(
         "intrinsics are missing",
         path=session.root / "session.yaml",

@@ -33,7 +33,7 @@ from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import xarray as xr
-from mscal_core.errors import CalibrationStoreError, FitError, InputError
+from mscal_core.errors import CalibrationStoreError, FitError, FrameError, InputError
 from mscal_core.registration import (
     BandRegistration,
     Thresholds,
@@ -45,9 +45,8 @@ from mscal_core.registration import (
     transform_distance,
 )
 
-from pipeline.ingest.camera_meta import Capture, group_captures
+from pipeline.ingest.camera_meta import Capture, capture_folder_of, group_captures, read_capture_pixels
 from pipeline.ingest.catalog import Camera, load_camera
-from pipeline.ingest.session import read_raw
 from pipeline.storage.store import new_dataset, open_calibration, write_store
 
 log = logging.getLogger(__name__)
@@ -89,8 +88,13 @@ class SessionRegistration:
 
 def read_capture(capture: Capture) -> np.ndarray:
     """Band stack ``(band, H, W)`` float32 of one capture's files, as stored (the scale does not
-    matter to registration)."""
-    bands = [read_raw(m.path) for m in capture.metas]
+    matter to registration), read as apply reads them
+    (:func:`pipeline.ingest.camera_meta.read_capture_pixels`: TIFF band files, or each band's
+    channel of a multi-channel JPEG)."""
+    try:
+        _, bands, _ = read_capture_pixels(capture)
+    except FrameError as exc:
+        raise InputError(f"capture {capture.name}: {exc.reason}", path=exc.path, hint=exc.hint) from None
     shapes = {b.shape for b in bands}
     if len(shapes) != 1 or bands[0].ndim != 2:
         raise InputError(f"capture {capture.name}: band files differ in size or are not single-band "
@@ -246,7 +250,7 @@ def collect_captures(paths: Sequence[Path], camera: Camera) -> tuple[list[Captur
         if p.is_dir():
             by_folder[p] = None
         elif p.is_file():
-            wanted = by_folder.setdefault(p.parent, set())
+            wanted = by_folder.setdefault(capture_folder_of(p, camera), set())
             if wanted is not None:
                 wanted.add(p.name)
         else:
@@ -277,8 +281,13 @@ def register_cli(paths: Sequence[Path], out: Path, camera_name: str | None, refe
     if Path(out).exists():
         existing = open_calibration(out)
         camera_name = camera_name or str(existing.attrs.get("camera"))
-    if not camera_name:
-        raise InputError("--camera is needed to create a new store", hint="e.g. --camera micasense-rededge")
+    if not camera_name:  # recognised from the files, as apply does
+        from pipeline.ingest.identify import identify_camera
+
+        first = Path(paths[0]) if paths else None
+        if first is None or not first.exists():
+            raise InputError("capture folder or band file not found", path=first)
+        camera_name = identify_camera(first if first.is_dir() else first.parent).camera.name
     camera = load_camera(camera_name)
     if existing is not None:
         existing = open_calibration(out, camera)

@@ -24,6 +24,7 @@ import math
 import re
 import struct
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
@@ -31,11 +32,13 @@ import numpy as np
 from mscal_core.errors import FrameError
 from mscal_core.factory import (
     color_transform,
+    dji_alignment_map,
     dji_camera_value,
     dji_vignetting_correction,
     field_response_scale,
     field_response_signal,
     radiance,
+    remap_band,
     sequoia_irradiance,
     sunshine_irradiance,
     thermal_kelvin,
@@ -44,7 +47,7 @@ from mscal_core.factory import (
     vignetting_map,
 )
 
-from pipeline.ingest.exif import dms_to_degrees, exif_datetime_iso, rational, signed_gps
+from pipeline.ingest.exif import EXIF_CODES, dms_to_degrees, exif_datetime_iso, rational, signed_gps
 from pipeline.ingest.xmp import TagError, TagProblem, Xmp, jpeg_xmp_packet, legacy_properties
 
 if TYPE_CHECKING:
@@ -57,7 +60,7 @@ RADIANCE_UNITS = {
     "micasense": "W m-2 sr-1 nm-1",
     "sequoia": "1 (Parrot SEQ AN 01 irradiance on the sensor, SI-homogeneous with an arbitrary scale)",
     "dji": "1 (DJI camera value pCam (p - p_BL) V / (g t), relative)",
-    "sentera": "1 (crosstalk-corrected DN / (ISO/100 * exposure s), relative)",
+    "sentera": "1 (DN, crosstalk-corrected by Camera:ColorTransform where written, / (ISO/100 * exposure s), relative)",
     "thermal": "K",
     "panchro": "W m-2 sr-1 nm-1",
 }
@@ -276,6 +279,9 @@ def meta_from_tags(path: Path, tags: dict[int, Any], shape: tuple[int, int], bit
     """Build and check a :class:`CaptureMeta` from a TIFF's tag values keyed by tag code."""
     xmp = Xmp.parse(tags[700], path)
     exif = dict(tags.get(34665) or {})
+    for name, code in EXIF_CODES.items():  # EXIF tags a camera wrote into IFD0 (Sentera 6X)
+        if name not in exif and code in tags:
+            exif[name] = tags[code]
     ctx = _Ctx(
         path=path, xmp=xmp, exif=exif, gps=dict(tags.get(34853) or {}), shape=shape, bits=bits,
         make=_clean(tags.get(271)), model=_clean(tags.get(272)), software=_clean(tags.get(305)),
@@ -657,6 +663,8 @@ def _sentera(ctx: _Ctx) -> list[CaptureMeta]:
                              "(one row per band)", path=path)
     sun = ctx.optional("sun_sensor", lambda: x.numbers("SunSensor", ("Camera",), len(names)))
     common = _finish(ctx)
+    if common["capture_id"] is None:  # 6X: EXIF ImageUniqueID "<session>_<capture number>", one per capture
+        common["capture_id"] = _clean(ctx.exif.get("ImageUniqueID"))
     out = []
     for i, (name, wl) in enumerate(zip(names, wls)):
         if wl <= 0 or name.lower() == "garbage":  # a channel Sentera writes for crosstalk only
@@ -697,6 +705,37 @@ def factory_vignetting(meta: CaptureMeta) -> np.ndarray:
         poly_2d=meta.vignetting_polynomial_2d,
         exponents_2d=meta.vignetting_polynomial_2d_exponents,
     )
+
+
+FACTORY_ALIGNMENT_NOTE = ("each band's drone-dji:DewarpData (distortion, camera matrix about CalibratedOpticalCenterX/Y) "
+                          "and CalibratedHMatrix (onto the designed ideal image plane): DJI Image Processing Guide "
+                          "steps 2-3; NaN where a band does not cover")
+
+
+def has_factory_alignment(meta: CaptureMeta) -> bool:
+    """Whether the band file carries its own registration to the camera's common image plane
+    (DJI: ``CalibratedHMatrix``, with ``DewarpData`` when written)."""
+    return meta.radiometry == "dji" and meta.dji_hmatrix is not None and meta.dji_center is not None
+
+
+@lru_cache(maxsize=32)
+def _alignment_map(shape: tuple[int, int], center: tuple[float, float], dewarp: tuple[float, ...] | None,
+                   hmatrix: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    return dji_alignment_map(shape, center, dewarp, hmatrix)  # the same for every capture of a flight
+
+
+def factory_align(metas: Sequence[CaptureMeta], stack: np.ndarray) -> np.ndarray:
+    """Bands ``(band, H, W)`` of one capture (stored orientation) on the camera's common image
+    plane with each band file's own registration (:func:`has_factory_alignment`;
+    :func:`mscal_core.factory.dji_alignment_map`); FrameError naming a band file without it."""
+    out = np.empty(stack.shape, np.float32)
+    for b, meta in enumerate(metas):
+        if not has_factory_alignment(meta):
+            raise FrameError("no band registration in the file's metadata (drone-dji:CalibratedHMatrix)", path=meta.path,
+                             hint="align the bands with 'mscal register' and --registration, or apply with --no-align")
+        assert meta.dji_center is not None and meta.dji_hmatrix is not None
+        out[b] = remap_band(stack[b], _alignment_map(meta.shape, meta.dji_center, meta.dji_dewarp, meta.dji_hmatrix))
+    return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -898,7 +937,9 @@ def group_captures(
     ``skip_bands`` (a panchromatic or thermal band) are named in ``Capture.skipped``. Without
     it, the band suffixes seen in the folder are expected in every capture. The band files of
     one capture must carry one XMP capture id, and no two captures may share one (the later
-    name is a copy). One file holding several bands (a Sentera JPEG) is one capture.
+    name is a copy). One file holding several bands (a Sentera JPEG) is one capture. A
+    ``folder_per_band`` camera (Sentera 6X) is given its session folder: the files of one name
+    in its band folders are one capture, each band known by its XMP BandName.
 
     Returns the complete captures (sorted by name) and one problem per incomplete or unusable
     capture as ``[{file, reason}]`` (``file`` the offending band file, else the capture's first
@@ -907,11 +948,12 @@ def group_captures(
     folder = Path(folder)
     pattern = capture_pattern(camera)
     per_file = camera is not None and camera.layout.kind == "file_per_capture"
+    per_folder = camera is not None and camera.layout.kind == "folder_per_band"
     skip = {s.name.casefold(): s for s in (camera.skip_bands if camera is not None else ())}
     by_name: dict[str, dict[str, CaptureMeta]] = {}
     unusable: dict[str, list[tuple[Path, str]]] = {}
     skipped: dict[str, list[dict[str, str]]] = {}
-    for path in sorted(folder.iterdir()):
+    for path in band_files(folder, per_folder):
         m = pattern.match(path.name)
         if m is None or not path.is_file():
             continue
@@ -919,7 +961,7 @@ def group_captures(
         try:
             metas = read_file_metas(path)
         except FrameError as exc:
-            s = next((s for s in skip.values() if not per_file and s.file_suffix == m["band"]), None)
+            s = next((s for s in skip.values() if not (per_file or per_folder) and s.file_suffix == m["band"]), None)
             if s is not None:  # the file of a band kept out of reflectance anyway: named, not fatal
                 skipped.setdefault(m["capture"], []).append(
                     {"file": str(path), "band": s.name, "reason": f"{s.reason}; unreadable: {exc.reason}"})
@@ -929,6 +971,12 @@ def group_captures(
         if per_file:
             for meta in metas:
                 bands[str(meta.channel)] = meta
+        elif per_folder:  # a band folder's file: the band is its XMP BandName
+            key = metas[0].band_name.casefold()
+            if key in bands:
+                unusable.setdefault(m["capture"], []).append(
+                    (path, f"band {metas[0].band_name} also in {bands[key].path.parent.name}/ (two folders of one band?)"))
+            bands[key] = metas[0]
         else:
             bands[m["band"]] = metas[0]
     for name, bands in by_name.items():  # bands kept out of reflectance, recognised by their XMP BandName
@@ -966,6 +1014,21 @@ def group_captures(
     return captures, problems
 
 
+def band_files(folder: Path, per_folder: bool = False) -> list[Path]:
+    """The files of a capture folder, sorted; with ``per_folder`` (layout ``folder_per_band``:
+    a session folder holding one folder per band) the files of its sub-folders."""
+    if not per_folder:
+        return sorted(folder.iterdir())
+    return sorted((p for d in folder.iterdir() if d.is_dir() and not d.name.startswith(".") for p in d.iterdir()),
+                  key=lambda p: (p.name, p.parent.name))
+
+
+def capture_folder_of(path: Path, camera: Camera) -> Path:
+    """The folder :func:`group_captures` takes for a band file of ``camera``: its own, or for
+    a ``folder_per_band`` camera the session folder above its band folder."""
+    return path.parent.parent if camera.layout.kind == "folder_per_band" else path.parent
+
+
 def _by_band_name(bands: dict[str, CaptureMeta], camera: Camera | None) -> list[str] | None:
     """The file keys in catalog band order when every catalog band is found, once, by its XMP
     BandName (case aside) and no other band is left: the manufacturer's file numbering then
@@ -988,6 +1051,8 @@ def _expected_suffixes(camera: Camera | None, by_id: dict[str, dict[str, Capture
     if camera is not None:
         if camera.layout.kind == "file_per_capture":
             return [str(b.channel) for b in camera.bands]
+        if camera.layout.kind == "folder_per_band":
+            return [b.name.casefold() for b in camera.bands]
         return [str(b.file_suffix) for b in camera.bands]
     seen = {s for bands in by_id.values() for s in bands}
     return sorted(seen, key=lambda s: (len(s), s))

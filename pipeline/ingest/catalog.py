@@ -28,7 +28,7 @@ from mscal_core.reflectance import keep_valid
 
 #: The catalogs shipped with mscal (the ``catalogs`` package's folder).
 CATALOG_ROOT = Path(str(importlib.resources.files("catalogs")))
-LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band", "file_per_capture")
+LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band", "file_per_capture", "folder_per_band")
 FACTORY_MODELS = ("micasense", "sequoia", "dji", "sentera")
 
 
@@ -128,7 +128,7 @@ class Band:
 class Layout:
     """How bands are laid out in the files a camera writes."""
 
-    kind: str  # mosaic | multichannel | file_per_band
+    kind: str  # mosaic | multichannel | file_per_band | file_per_capture | folder_per_band
     pattern: tuple[int, int] | None = None
     origin: tuple[int, int] = (0, 0)
     grid: tuple[int, int] | None = None  # band grid (rows, columns)
@@ -232,6 +232,9 @@ _LAYOUT_KEYS = {
     "multichannel": ({"kind", "channels"}, set()),
     "file_per_band": ({"kind", "capture_pattern"}, set()),
     "file_per_capture": ({"kind", "capture_pattern"}, set()),
+    # one folder per band in a session folder, the band files of a capture share one name
+    # (Sentera 6X: session/<band folder>/IMG_00001.tif); bands found by their XMP BandName
+    "folder_per_band": ({"kind", "capture_pattern"}, set()),
 }
 
 
@@ -315,7 +318,7 @@ def _parse_layout(lay: Any, path: Path) -> Layout:
         rx = re.compile(str(lay["capture_pattern"]))
     except re.error as exc:
         raise CatalogError(f"layout.capture_pattern is not a valid regex: {exc}", path=path) from None
-    need = {"capture", "band"} if lay["kind"] == "file_per_band" else {"capture"}
+    need = {"capture", "band"} if lay["kind"] == "file_per_band" else {"capture"}  # others: one name
     if not need <= set(rx.groupindex):
         raise CatalogError(
             f"layout.capture_pattern needs named groups {', '.join(f'(?P<{g}>...)' for g in sorted(need))}",
@@ -373,6 +376,8 @@ def _check_bands_fit_layout(bands: list[Band], layout: Layout, path: Path) -> No
         chans = [b.channel for b in bands]
         if any(not isinstance(c, int) or c < 0 for c in chans) or len(set(chans)) != len(chans):
             raise CatalogError("one-file-per-capture cameras need a unique 'channel' (0, 1, ...) per band", path=path)
+    elif layout.kind == "folder_per_band":
+        return  # bands are recognised by their XMP BandName (unique names are checked already)
     else:
         sufs = [b.file_suffix for b in bands]
         if any(s is None for s in sufs) or len(set(sufs)) != len(sufs):

@@ -24,7 +24,18 @@ from typing import Any
 
 import numpy as np
 
+#: EXIF tags by the names tifffile gives the EXIF IFD's entries, and their codes (EXIF 2.32).
+#: Some cameras (Sentera 6X: "EXIF (IFD0)" in its tag table) write them into IFD0 instead of
+#: the EXIF IFD; readers look for them there too.
+EXIF_CODES = {
+    "ExposureTime": 33434, "FNumber": 33437, "ISOSpeedRatings": 34855, "ISOSpeed": 34867,
+    "DateTimeOriginal": 36867, "SubsecTime": 37520, "SubsecTimeOriginal": 37521, "FocalLength": 37386,
+    "FocalPlaneXResolution": 41486, "FocalPlaneYResolution": 41487, "FocalPlaneResolutionUnit": 41488,
+    "ImageUniqueID": 42016, "BodySerialNumber": 42033, "LensModel": 42036,
+}
+
 __all__ = [
+    "EXIF_CODES",
     "NAT",
     "U32",
     "degrees_to_dms",

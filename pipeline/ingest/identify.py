@@ -67,12 +67,14 @@ def _band_order(m: CaptureMeta) -> tuple[int, str]:
 
 def probe_folder(folder: str | Path, limit: int = PROBE_FILES) -> Probe:
     """Read the metadata of the folder's first ``limit`` image files: its own, then (an SD
-    card's ``0000SET/000/``) those of the folders below it, by path (hidden folders left out)."""
+    card's ``0000SET/000/``) those of the folders below it, by depth, then name, then folder
+    (hidden folders left out): files of one name in sibling folders (a Sentera 6X session's
+    band folders) are read together."""
     folder = Path(folder)
     probe = Probe(folder)
     files = sorted((p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
                     and not any(part.startswith(".") for part in p.relative_to(folder).parts)),
-                   key=lambda p: (len(p.relative_to(folder).parts), p))
+                   key=lambda p: (len(p.relative_to(folder).parts), p.name, p))
     for path in files[:limit]:
         try:
             probe.metas.extend(read_file_metas(path))
@@ -160,6 +162,33 @@ def identify_camera(folder: str | Path, name: str | None = None) -> Identificati
     return Identification(cam, evidence, desc)
 
 
+def _has_images(d: Path) -> bool:
+    return any(p.suffix.lower() in IMAGE_SUFFIXES for p in d.iterdir() if p.is_file())
+
+
+def _folder_camera(d: Path, camera: str | None, lines: list[str]) -> Identification | None:
+    """The camera of a folder holding image files (a line for it in ``lines``; None and a
+    line saying why when it is not recognised), or of a folder whose band folders hold them
+    (a Sentera 6X session: ``folder_per_band``; None and no line when it is not one)."""
+    if not _has_images(d):
+        if not any(_has_images(s) for s in d.iterdir() if s.is_dir()):
+            return None
+        try:
+            ident = identify_camera(d, camera)
+        except (InputError, FrameError):
+            return None
+        if ident.camera.layout.kind != "folder_per_band":
+            return None
+        lines.append(f"{d}:")
+        return ident
+    lines.append(f"{d}:")
+    try:
+        return identify_camera(d, camera)
+    except (InputError, FrameError) as exc:
+        lines.append(f"  camera: not recognised: {exc}")
+        return None
+
+
 def describe_folders(folder: str | Path, camera: str | None = None) -> list[str]:
     """Lines for ``mscal cameras FOLDER``: per folder holding image files (FOLDER and its
     subfolders), the camera and why, the captures, bands, features, and problems."""
@@ -170,15 +199,15 @@ def describe_folders(folder: str | Path, camera: str | None = None) -> list[str]
         raise InputError("folder not found", path=folder)
     dirs = [folder] + sorted(p for p in folder.rglob("*") if p.is_dir())
     lines: list[str] = []
+    covered: set[Path] = set()  # band folders of a session already described
     for d in dirs:
-        if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in d.iterdir() if p.is_file()):
+        if d in covered:
             continue
-        lines.append(f"{d}:")
-        try:
-            ident = identify_camera(d, camera)
-        except (InputError, FrameError) as exc:
-            lines.append(f"  camera: not recognised: {exc}")
+        ident = _folder_camera(d, camera, lines)
+        if ident is None:
             continue
+        if ident.camera.layout.kind == "folder_per_band":
+            covered.update(p for p in d.rglob("*") if p.is_dir())
         cam = ident.camera
         caps, problems = group_captures(d, cam)
         lines.append(f"  camera: {cam.name} ({cam.description}); {ident.evidence}")

@@ -10,16 +10,21 @@ Metadata (MicaSense RedEdge/Altum, see /tmp/research/cameras.md 1.5 and MicaSens
 "Image Processing" tutorial, ``micasense/imageprocessing`` ``metadata.py``):
 
 - XMP ``Camera:PerspectiveFocalLength`` in mm when ``Camera:PerspectiveFocalLengthUnits`` is
-  ``mm``, else in pixels (RedEdge 3 writes pixels and no unit);
+  ``mm``, else in pixels (RedEdge 3 writes pixels and no unit) unless it is the EXIF
+  FocalLength in mm (Sentera Double 4K writes 5.4 and no unit: Pix4D's camera schema says mm);
 - XMP ``Camera:PrincipalPoint`` "x,y" in mm;
 - EXIF ``FocalPlaneXResolution`` / ``FocalPlaneYResolution`` (pixels per
   ``FocalPlaneResolutionUnit``: 2 inch, 3 cm, 4 mm);
 - XMP ``Camera:PerspectiveDistortion`` ``[k1, k2, k3, p1, p2]``, reordered to OpenCV's
-  ``[k1, k2, p1, p2, k3]``.
+  ``[k1, k2, p1, p2, k3]``;
+- the same tags in a Sentera Double 4K JPEG (exifread for its EXIF, XMP from APP1), one lens
+  for the file's bands;
+- DJI: ``drone-dji:DewarpData`` and ``CalibratedOpticalCenterX/Y`` (:func:`_dji_intrinsics`).
 """
 
 from __future__ import annotations
 
+import io
 import math
 from pathlib import Path
 from typing import Any, Sequence
@@ -29,7 +34,7 @@ from mscal_core.errors import FrameError, SessionError
 from mscal_core.geometry import Intrinsics
 
 from pipeline.ingest.camera_meta import xmp_properties
-from pipeline.ingest.exif import rational
+from pipeline.ingest.exif import EXIF_CODES, rational
 
 #: Parameter order of the store's ``intrinsics (band, intrinsics_param)`` variable.
 INTRINSICS_PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
@@ -40,12 +45,6 @@ XMP_TAG = 700
 FOCAL_PLANE_X_RES = 41486
 FOCAL_PLANE_Y_RES = 41487
 FOCAL_PLANE_UNIT = 41488
-#: The EXIF tags read here, by the names tifffile gives the EXIF IFD's entries.
-EXIF_CODES = {
-    "ExposureTime": 33434, "ISOSpeedRatings": 34855, "ISOSpeed": 34867, "DateTimeOriginal": 36867,
-    "SubsecTimeOriginal": 37521, "SubsecTime": 37520, "FocalPlaneXResolution": FOCAL_PLANE_X_RES,
-    "FocalPlaneYResolution": FOCAL_PLANE_Y_RES, "FocalPlaneResolutionUnit": FOCAL_PLANE_UNIT,
-}
 _UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 1e-3}  # mm per unit: inch, cm, mm, um
 
 
@@ -70,8 +69,8 @@ def tiff_tags(path: Path) -> dict[int, Any]:
 
 
 def intrinsics_from_tags(tags: dict[int, Any], path: Path) -> Intrinsics | None:
-    """Intrinsics from a band file's tags (see the module docstring); None when the file
-    does not carry them (no XMP, or no PerspectiveFocalLength / PrincipalPoint)."""
+    """Intrinsics from a band file's tags (see the module docstring): the Pix4D perspective
+    tags, else DJI's ``DewarpData``; None when the file carries neither."""
     packet = tags.get(XMP_TAG)
     if packet is None:
         return None
@@ -80,8 +79,8 @@ def intrinsics_from_tags(tags: dict[int, Any], path: Path) -> Intrinsics | None:
     except FrameError:
         return None
     if "PerspectiveFocalLength" not in props or "PrincipalPoint" not in props:
-        return None
-    unit_mm = _UNIT_MM.get(int(tags.get(FOCAL_PLANE_UNIT, 4) or 4), 1.0)
+        return _dji_intrinsics(packet, path)
+    unit_mm = _UNIT_MM.get(int(_first(tags.get(FOCAL_PLANE_UNIT, 4)) or 4), 1.0)
     try:
         rx = rational(tags[FOCAL_PLANE_X_RES]) / unit_mm
         ry = rational(tags.get(FOCAL_PLANE_Y_RES, tags[FOCAL_PLANE_X_RES])) / unit_mm
@@ -91,7 +90,6 @@ def intrinsics_from_tags(tags: dict[int, Any], path: Path) -> Intrinsics | None:
     try:
         f = float(props["PerspectiveFocalLength"] if not isinstance(props["PerspectiveFocalLength"], list)
                   else props["PerspectiveFocalLength"][0])
-        units = str(props.get("PerspectiveFocalLengthUnits", "px")).strip().lower()
         pp = [float(v) for v in str(props["PrincipalPoint"]).replace(" ", "").split(",")]
         dist = props.get("PerspectiveDistortion", [])
         dist = [float(v) for v in (dist if isinstance(dist, list) else str(dist).replace(",", " ").split())]
@@ -101,7 +99,7 @@ def intrinsics_from_tags(tags: dict[int, Any], path: Path) -> Intrinsics | None:
     if len(pp) != 2 or not all(math.isfinite(v) for v in (f, rx, ry, *pp)) or rx <= 0 or ry <= 0:
         raise FrameError(f"XMP PrincipalPoint {props['PrincipalPoint']!r} or the focal plane resolution is unusable",
                          path=path, hint="give the intrinsics in session.yaml instead")
-    fx, fy = (f * rx, f * ry) if units == "mm" else (f, f * ry / rx)
+    fx, fy = (f * rx, f * ry) if _focal_in_mm(props, f, tags) else (f, f * ry / rx)
     k = (dist + [0.0] * 5)[:5]
     opencv = (k[0], k[1], k[3], k[4], k[2])  # [k1, k2, k3, p1, p2] -> [k1, k2, p1, p2, k3]
     try:
@@ -110,23 +108,95 @@ def intrinsics_from_tags(tags: dict[int, Any], path: Path) -> Intrinsics | None:
         raise FrameError(f"intrinsics from metadata are unusable: {exc}", path=path) from None
 
 
+def _first(value: Any) -> Any:
+    """A tag value that a reader gives as a one-item list (exifread) as the item."""
+    return value[0] if isinstance(value, (list, tuple)) and len(value) == 1 else value
+
+
+def _focal_in_mm(props: dict[str, Any], f: float, tags: dict[int, Any]) -> bool:
+    """Whether ``Camera:PerspectiveFocalLength`` is in mm: as ``PerspectiveFocalLengthUnits``
+    says; without that tag, when it is within a factor of 1.5 of the EXIF FocalLength (mm;
+    Sentera Double 4K: 5.4 and 27/5) -- RedEdge 3 writes pixels (1449) beside FocalLength 5.5 --,
+    else (no EXIF FocalLength) when it is below 100 (no lens of these cameras is 100 px)."""
+    units = props.get("PerspectiveFocalLengthUnits")
+    if units is not None:
+        return str(units).strip().lower() == "mm"
+    focal = tags.get(EXIF_CODES["FocalLength"])
+    try:
+        mm = rational(_first(focal)) if focal is not None else None
+    except (TypeError, ValueError, ZeroDivisionError):
+        mm = None
+    if mm is not None and mm > 0:
+        return 1 / 1.5 <= f / mm <= 1.5
+    return f < 100
+
+
+def _dji_intrinsics(packet: Any, path: Path) -> Intrinsics | None:
+    """DJI P4 Multispectral / Mavic 3M: ``drone-dji:DewarpData`` ``date;fx,fy,cx,cy,k1,k2,p1,p2,k3``
+    with the principal point at ``CalibratedOpticalCenterX/Y + (cx, cy)`` (DJI Mavic 3M Image
+    Processing Guide, section II step 2; OpenCV's distortion order already)."""
+    from pipeline.ingest.xmp import TagError, Xmp
+
+    x = Xmp.parse(packet, path)
+    raw = x.text("DewarpData", ("drone-dji",))
+    if raw is None:
+        return None
+    try:
+        nums = [float(v) for v in raw.split(";", 1)[-1].replace(",", " ").split()]
+        centre = (x.numbers("CalibratedOpticalCenterX", ("drone-dji",), 1),
+                  x.numbers("CalibratedOpticalCenterY", ("drone-dji",), 1))
+    except (ValueError, TagError):
+        nums, centre = [], (None, None)
+    if len(nums) != 9 or centre[0] is None or centre[1] is None:
+        raise FrameError(f"XMP drone-dji:DewarpData {raw!r} (or CalibratedOpticalCenterX/Y) is unusable: expected "
+                         "'date;fx,fy,cx,cy,k1,k2,p1,p2,k3'", path=path, hint="give the intrinsics in session.yaml instead")
+    fx, fy, cx, cy, *dist = nums
+    return Intrinsics(fx=fx, fy=fy, cx=centre[0][0] + cx, cy=centre[1][0] + cy, dist=tuple(dist))
+
+
+def jpeg_tags(path: Path) -> dict[int, Any]:
+    """The EXIF tags of a JPEG by code (exifread) with its XMP packet as tag 700, the form
+    :func:`intrinsics_from_tags` reads."""
+    import exifread
+
+    from pipeline.ingest.xmp import jpeg_xmp_packet
+
+    data = path.read_bytes()
+    tags: dict[int, Any] = {}
+    for key, tag in exifread.process_file(io.BytesIO(data), details=False).items():
+        name = key.partition(" ")[2]
+        if name in EXIF_CODES:
+            tags[EXIF_CODES[name]] = tag.values
+    packet = jpeg_xmp_packet(data)
+    if packet is not None:
+        tags[XMP_TAG] = packet
+    return tags
+
+
 def intrinsics_from_file(path: str | Path) -> Intrinsics | None:
-    """Intrinsics written into one band file, or None (:func:`intrinsics_from_tags`)."""
+    """Intrinsics written into one band file (TIFF) or multi-channel file (JPEG: Sentera), or
+    None (:func:`intrinsics_from_tags`)."""
     path = Path(path)
-    if path.suffix.lower() not in (".tif", ".tiff"):
+    suffix = path.suffix.lower()
+    if suffix in (".jpg", ".jpeg"):
+        return intrinsics_from_tags(jpeg_tags(path), path)
+    if suffix not in (".tif", ".tiff"):
         return None
     return intrinsics_from_tags(tiff_tags(path), path)
 
 
-def band_intrinsics_from_files(files: Sequence[Path]) -> tuple[Intrinsics, ...] | None:
-    """Per band the intrinsics of ``files`` (one band file per band, camera band order), or
-    None if any band file carries none."""
+def band_intrinsics_from_files(files: Sequence[Path], n_bands: int | None = None) -> tuple[Intrinsics, ...] | None:
+    """Per band the intrinsics of ``files`` (one band file per band, camera band order; or
+    one file holding all ``n_bands`` bands behind one lens: a Sentera JPEG), or None if any
+    file carries none."""
     out = []
     for f in files:
         intr = intrinsics_from_file(f)
         if intr is None:
             return None
         out.append(intr)
+    if n_bands is not None and len(out) == 1:
+        out *= n_bands
     return tuple(out)
 
 

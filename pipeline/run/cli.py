@@ -265,7 +265,8 @@ def fit_intrinsics(frames: Path, out: Path, camera: str | None, kind: str | None
 @click.argument("captures", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
               help="Calibration store (.zarr): the registration is added to it, or a new store is created.")
-@click.option("--camera", default=None, help="Camera catalog name (default: the existing store's camera).")
+@click.option("--camera", default=None, help="Camera catalog name (default: the existing store's camera, else recognised "
+              "from the files as apply does).")
 @click.option("--reference", default=None, help="Band to align to (default: the lens in the middle of the rig).")
 @click.option("--min-ecc", default=0.3, show_default=True, type=float,
               help="Reject a band's transform whose gradient correlation after alignment is lower.")
@@ -326,7 +327,8 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
                    "any, scale the brightness in both). Default: linear; with --calibration factory, the "
                    "panels' mean factor for every capture.")
 @click.option("--no-align", "no_align", is_flag=True,
-              help="Keep each band on its own pixel grid even if the calibration has band transforms ('mscal register').")
+              help="Keep each band on its own pixel grid even if the calibration has band transforms ('mscal register'), "
+                   "or (--calibration factory) the band files their own registration (DJI DewarpData, CalibratedHMatrix).")
 @click.option("--registration", default=None, type=click.Path(path_type=Path),
               help="--calibration factory: align the bands with the transforms of this store ('mscal register').")
 @click.option("--centre-bands", "centre_bands", is_flag=True,
@@ -361,9 +363,8 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
         if centre_bands:
             raise InputError("--centre-bands is for snapshot mosaic cameras; --calibration factory is for "
                              "one-file-per-band cameras (align their bands with --registration)")
-        if no_align:
-            raise InputError("--no-align is for calibration stores with band transforms; with --calibration factory "
-                             "leave --registration out to keep each band on its own grid")
+        if no_align and registration is not None:
+            raise InputError("--no-align and --registration contradict each other", hint="give one of them")
         fopts = FactoryOptions(
             reference=reference, panel_captures=tuple(p.strip() for p in panel.split(",")) if panel else (),
             panel_reflectance=panel_reflectance, tiff_dtype="float32" if float32 else "uint16",
@@ -373,7 +374,7 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
             field_components=tuple(c.strip() for c in field_components.split(",") if c.strip())
             if field_components else (),
             execution=execution,
-            camera=camera,
+            camera=camera, align=not no_align,
         )
         stores = [p for p in (registration, field_calibration) if p is not None]
         _report_apply(apply_factory(flight, out, fopts), out, strict, stores)

@@ -115,3 +115,31 @@ def test_field_response_is_put_on_the_factory_scale_from_the_lower_half() -> Non
     assert rad[1, 1] == pytest.approx(1.3 * plain[1, 1])
     with pytest.raises(ValueError, match="no scale"):
         field_response_scale(np.zeros(4096), dn_shift=4, black_level=black)
+
+
+def test_dji_alignment_map_is_the_guides_undistort_then_warp() -> None:
+    """DJI's steps 2-3 as OpenCV calls (cv2.undistort with the camera matrix about the optical
+    centre plus DewarpData's cx, cy, then cv2.warpPerspective with CalibratedHMatrix) and the
+    one map of :func:`dji_alignment_map` give the same image (a smooth one: two resamplings
+    against one differ only by interpolation)."""
+    import cv2
+
+    from mscal_core.factory import dji_alignment_map, remap_band
+
+    h, w = 240, 320
+    y, x = np.mgrid[0:h, 0:w].astype(np.float64)
+    img = (1000 + 400 * np.sin(x / 9.0) * np.cos(y / 13.0) + 2 * x).astype(np.float32)
+    dewarp = (480.0, 478.0, 6.0, -4.0, -0.3, 0.2, 0.0007, -0.0005, -0.1)
+    center = (160.0, 120.0)
+    hm = np.array([[1.002, 0.004, 2.5], [-0.003, 0.999, -1.5], [1e-6, -2e-6, 1.0]])
+    k = np.array([[dewarp[0], 0, center[0] + dewarp[2]], [0, dewarp[1], center[1] + dewarp[3]], [0, 0, 1]])
+    steps = cv2.warpPerspective(cv2.undistort(img, k, np.array(dewarp[4:]), None, k), hm, (w, h),
+                                flags=cv2.INTER_LINEAR)
+    ours = remap_band(img, dji_alignment_map((h, w), center, dewarp, hm.ravel()))
+    inner = (slice(20, h - 20), slice(20, w - 20))
+    assert np.isfinite(ours[inner]).all()
+    np.testing.assert_allclose(ours[inner], steps[inner], atol=6.0)  # of a 1000 +- 400 image
+    assert np.abs(ours[inner] - steps[inner]).mean() < 0.5
+    # step 3 alone (no DewarpData): the homography's inverse, a pure shift here
+    shift = remap_band(img, dji_alignment_map((h, w), center, None, [1, 0, 3, 0, 1, -2, 0, 0, 1]))
+    np.testing.assert_allclose(shift[10:-10, 10:-10], img[12:-8, 7:-13], atol=1e-3)

@@ -126,7 +126,7 @@ def test_store_of_other_bands_is_refused(store, tmp_path, capsys) -> None:
 @pytest.mark.parametrize("extra, expect", [
     (["--illumination", "linear"], "--illumination is for the panel route"),
     (["--centre-bands"], "--centre-bands is for snapshot mosaic cameras"),
-    (["--no-align"], "--no-align is for calibration stores"),
+    (["--no-align", "--registration", "reg.zarr"], "--no-align and --registration contradict each other"),
     (["--normalise", "band:NIR"], "--normalise is for field calibrations"),
 ])
 def test_factory_refuses_options_it_would_ignore(tmp_path, capsys, extra, expect) -> None:

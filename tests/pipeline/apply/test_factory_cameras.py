@@ -241,8 +241,9 @@ def dji_expected(path: Path, x: int, y: int) -> float:
 def test_dji_p4_multispectral(tmp_path) -> None:
     require_data()
     folder = cf.dji_p4m(tmp_path / "p4m")
-    run = _apply(folder, tmp_path / "out")
+    run = _apply(folder, tmp_path / "out", "--no-align")  # radiance on each stored pixel (registration: below)
     assert run["camera"] == "dji-p4-multispectral" and run["frames"] == ["001", "002"] and run["quarantined"] == []
+    assert run["band_alignment"].startswith("none (--no-align")
     assert run["reference"]["route"] == "dls" and run["reference"]["scale"] == "relative"
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     assert list(ds["wavelength"].values) == [450, 560, 650, 730, 840]  # NIR's from drone-dji:BandFreq
@@ -261,6 +262,46 @@ def test_dji_p4_multispectral(tmp_path) -> None:
     vig = 1 + sum(k * r ** (i + 1) for i, k in enumerate(cf.DJI["k"]))
     full = np.maximum(1.002 * (tifffile.imread(path) - 4096.0) / 65535 * vig / 472.5e-6, 0)
     _check_radiance(ds, 0, 2, path, dji_expected, PANEL_CORNERS[2], full)
+
+
+def _shift_px(a: np.ndarray, b: np.ndarray) -> float:
+    """Displacement (px) between two 192 x 192 tiles by phase correlation (Hanning window)."""
+    (dx, dy), _ = cv2.phaseCorrelate(a, b, cv2.createHanningWindow(a.shape[::-1], cv2.CV_64F))
+    return float(np.hypot(dx, dy))
+
+
+def test_dji_bands_registered_by_their_own_metadata(tmp_path) -> None:
+    """DJI bands built through known lens distortions and planes (DewarpData, a different
+    CalibratedHMatrix per band; tests/camera_files.dji_p4m_warped): the factory path puts them
+    back on the scene's grid (the guide's steps 2-3) to < 0.5 px in the centre and the four
+    corners of the image; with --no-align they are many pixels off."""
+    require_data()
+    folder = cf.dji_p4m_warped(tmp_path / "warped")
+    run = _apply(folder, tmp_path / "out")
+    assert run["frames"] == ["001", "002"] and run["band_alignment"].startswith("factory metadata: each band's")
+    ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
+    assert ds.attrs["co_registered"] == 1 and ds.attrs["registration"] == "factory metadata"
+    _apply(folder, tmp_path / "raw", "--no-align")
+    raw = xr.open_zarr(tmp_path / "raw" / "reflectance.zarr")
+    tiles = [(160, 200), (160, 1080), (800, 200), (800, 1080), (480, 640)]  # (y, x) centres
+    worst, worst_raw = 0.0, 0.0
+    for f, cap in enumerate(cf.CAPTURES):
+        scene = tifffile.imread(cf.band_file(cap, 4)).astype(np.float64)
+        for b in range(5):
+            for y, x in tiles:
+                sl = (slice(y - 96, y + 96), slice(x - 96, x + 96))
+                ref = scene[sl] / scene[sl].mean()
+                for store, out in ((ds, "aligned"), (raw, "raw")):
+                    t = store["radiance"].isel(frame=f, band=b).values[sl].astype(np.float64)
+                    assert np.isfinite(t).mean() > 0.99, (cap, b, y, x, out)
+                    t = np.where(np.isfinite(t), t, np.nanmedian(t))
+                    d = _shift_px(ref, t / t.mean())
+                    if out == "aligned":
+                        worst = max(worst, d)
+                    else:
+                        worst_raw = max(worst_raw, d)
+    assert worst < 0.5  # measured 0.05 px
+    assert worst_raw > 10  # measured 21.6 px: the test sees a misregistration
 
 
 def test_dji_mavic_3m_black_level_from_xmp() -> None:
@@ -391,3 +432,65 @@ def test_sentera_panel_route(tmp_path) -> None:
     med = np.nanmedian(refl, axis=(1, 2))
     assert med[0] == pytest.approx(0.5, rel=0.03) and med[1] == pytest.approx(0.5, rel=0.01)
     assert np.isfinite(ds["reflectance"].isel(frame=1).values).mean() > 0.9
+
+
+def test_sentera_6x_session_built_from_d4k_files(tmp_path, capsys) -> None:
+    """Sentera 6X (built: tests/camera_files.sentera_6x): one folder per band in a session
+    folder, EXIF tags in IFD0, the capture id from ImageUniqueID. Recognised by ``mscal
+    cameras``; ``apply --calibration factory``: radiance DN / (ISO/100 x exposure) pixel by
+    pixel, no sun-sensor reflectance (route none), and a panel that reads 0.5 back."""
+    if not cf.SENTERA_D4K.is_dir():
+        pytest.skip("no Sentera sample")
+    session = cf.sentera_6x(tmp_path / "flight", panel=True)
+    assert main(["cameras", str(tmp_path / "flight")]) == 0
+    out = capsys.readouterr().out
+    assert f"{session}:" in out and "camera: sentera-6x" in out and "captures: 2 complete, 0 quarantined" in out
+    assert "bands: Blue 475 nm, Green 550 nm, Red 670 nm, RedEdge 715 nm, NIR 840 nm" in out
+    assert "blue_475:" not in out  # the band folders are part of the session, not folders of their own
+    run = _apply(tmp_path / "flight", tmp_path / "radiance")
+    assert run["camera"] == "sentera-6x" and run["frames"] == ["IMG_00006", "IMG_00007"] and run["quarantined"] == []
+    assert run["reference"]["route"] == "none"
+    ds = xr.open_zarr(tmp_path / "radiance" / "reflectance.zarr")
+    assert list(ds["band_name"].values) == ["Blue", "Green", "Red", "RedEdge", "NIR"]
+    checked = 0
+    for f, cap in enumerate(("IMG_00006", "IMG_00007")):
+        for b, band in enumerate(ds["band_name"].values):
+            path = session / cf.SENTERA_6X_BANDS[str(band)][0] / f"{cap}.tif"
+            p = cf.PARAMS[str(path)]
+            dn = tifffile.imread(path).astype(np.float64)
+            rad = ds["radiance"].isel(frame=f, band=b).values
+            for x, y in ((0, 0), (1903, 0), (0, 1427), (1903, 1427), (952, 714), (3, 5)):
+                expected = dn[y, x] / (p["iso"] / 100 * p["exposure"][0] / p["exposure"][1])
+                assert rad[y, x] == pytest.approx(expected, rel=TOL, abs=1e-6)
+                checked += 1
+    assert checked == 60
+    (tmp_path / "flight" / "session.yaml").write_text("panel:\n  polygon: [[720, 520], [1080, 520], [1080, 780], [720, 780]]\n")
+    run = _apply(tmp_path / "flight", tmp_path / "panel", "--panel-reflectance", "0.5", "--panel", "IMG_00006")
+    assert run["reference"]["route"] == "panel" and run["frames"] == ["IMG_00006", "IMG_00007"]
+    refl = xr.open_zarr(tmp_path / "panel" / "reflectance.zarr")["reflectance"].isel(frame=0).values
+    np.testing.assert_allclose(np.nanmedian(refl[:, 550:750, 750:1050], axis=(1, 2)), 0.5, rtol=0.03)
+
+
+def test_altum_thermal_in_kelvin_in_its_own_files(tmp_path) -> None:
+    """Altum (built): the LWIR band (centi-kelvin DN) is written as temperature in kelvin with
+    the camera's own conversion, K = DN / 100, to thermal/<capture>_LWIR.tif on its own 160 x
+    120 grid, and named in run.json; reflectance keeps the five reflectance bands only."""
+    require_data()
+    folder = cf.altum(tmp_path / "altum")
+    grad = (27315 + 1000 + np.arange(120)[:, None] * 10 + np.arange(160)[None, :]).astype(np.uint16)  # 283.15 K +
+    cf.extra_band(folder / "IMG_0001_6.tif", (120, 160), "LWIR", 11000, "0001", "Altum", grad)
+    run = _apply(folder, tmp_path / "out", "--reference", "dls")
+    assert run["camera"] == "micasense-altum" and run["frames"] == ["IMG_0000", "IMG_0001"]
+    assert [s["band"] for s in run["skipped_bands"]] == ["LWIR", "LWIR"]
+    assert run["thermal"]["unit"] == "K" and run["outputs"]["thermal"] == "thermal/"
+    assert [(t["capture"], t["written"]) for t in run["thermal"]["files"]] == [
+        ("IMG_0000", "thermal/IMG_0000_LWIR.tif"), ("IMG_0001", "thermal/IMG_0001_LWIR.tif")]
+    k0 = tifffile.imread(tmp_path / "out" / "thermal" / "IMG_0000_LWIR.tif")
+    assert k0.dtype == np.float32 and k0.shape == (120, 160)
+    np.testing.assert_allclose(k0, 298.15, rtol=1e-7)  # the builder's 29815 centi-kelvin
+    k1 = tifffile.imread(tmp_path / "out" / "thermal" / "IMG_0001_LWIR.tif")
+    np.testing.assert_allclose(k1, grad / 100.0, rtol=1e-7)
+    assert k1[0, 0] == pytest.approx(283.15) and k1[119, 159] == pytest.approx(283.15 + 11.9 + 1.59)
+    ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
+    assert ds.sizes["band"] == 5 and 11000 not in list(ds["wavelength"].values)
+    assert float(np.nanmax(ds["reflectance"].values)) < 5  # no kelvin in reflectance

@@ -271,3 +271,41 @@ def test_a_session_board_folder_gives_the_intrinsics(small_ml, tmp_path) -> None
     truth = np.load(session / "truth.npz")
     fx = [resolved.intrinsics_for(b).fx for b in range(5)]
     np.testing.assert_allclose(fx, truth["camera_intrinsics"][:, 0], rtol=0.01)
+
+
+def test_metadata_intrinsics_of_the_sentera_d4k_sample(tmp_path) -> None:
+    """Sentera Double 4K JPEG: XMP PerspectiveFocalLength 5.4 (mm: Pix4D's schema, the EXIF
+    FocalLength 27/5 mm), PrincipalPoint "3.100, 2.325" mm, EXIF FocalPlaneXResolution
+    64516129/10000 px per cm (1.55 um pixels), PerspectiveDistortion "-0.093, 0.122, 0, 0, 0";
+    one lens for the file's bands, taken by the field calibration when session.yaml gives none."""
+    f = MICASENSE.parent / "sentera-d4k" / "NDRE" / "IMG_00006.jpg"
+    if not f.is_file():
+        pytest.skip(f"Sentera sample files not found in {f.parent}")
+    px_per_mm = 6451.6129 / 10
+    intr = intrinsics_from_file(f)
+    assert intr.fx == pytest.approx(5.4 * px_per_mm, rel=1e-6) and intr.fx == pytest.approx(3483.87, abs=0.01)
+    assert intr.fy == intr.fx
+    assert (intr.cx, intr.cy) == (pytest.approx(3.1 * px_per_mm, rel=1e-6), pytest.approx(2.325 * px_per_mm, rel=1e-6))
+    assert (intr.cx, intr.cy) == (pytest.approx(2000, abs=0.01), pytest.approx(1500, abs=0.01))  # the 4000 x 3000 centre
+    assert intr.dist == pytest.approx((-0.093, 0.122, 0.0, 0.0, 0.0))
+    session = tmp_path / "s"
+    (session / "vignetting").mkdir(parents=True)
+    shutil.copyfile(f, session / "vignetting" / f.name)
+    (session / "session.yaml").write_text(yaml.safe_dump({
+        "camera": "sentera-d4k-ndre", "reflector": {"reflectance": 0.5, "size_m": [0.5, 0.5]},
+        "marker": {"dictionary": "DICT_4X4_50", "id": 3, "size_m": 0.1}}))
+    resolved, source = with_intrinsics(load_session(session))
+    assert source == "metadata of IMG_00006" and resolved.intrinsics == intr
+    assert resolved.intrinsics_for(0) == resolved.intrinsics_for(1) == intr
+
+
+def test_metadata_intrinsics_of_dji_dewarp_data(tmp_path) -> None:
+    """DJI: DewarpData fx, fy, cx, cy (offsets from CalibratedOpticalCenterX/Y), k1, k2, p1,
+    p2, k3 (OpenCV's order), as the guide's camera matrix for cv2.undistort."""
+    from tests import camera_files as cf
+
+    if not cf.DATA.is_dir():
+        pytest.skip("MicaSense sample files not found")
+    intr = intrinsics_from_file(cf.dji_p4m(tmp_path / "p4m") / "DJI_0011.TIF")
+    assert (intr.fx, intr.fy) == (1949.45, 1939.77) and (intr.cx, intr.cy) == (640.0 + 28, 480.0 - 17)
+    assert intr.dist == (-0.4082, 0.3418, 0.00068, 0.00068, -0.3540)

@@ -233,3 +233,35 @@ def test_sunshine_gain_from_calibration_table() -> None:
     assert e1 == pytest.approx(1.0) and e2 == pytest.approx(1.0)
     with pytest.raises(ValueError):
         sunshine_irradiance([65535], [1], [100], cal)
+
+
+def test_sentera_6x_session_grouping(tmp_path) -> None:
+    """A 6X session: the files of one name in the band folders are one capture, each band by
+    its XMP BandName, EXIF read from IFD0; a truncated band file quarantines its capture only,
+    naming the file; a band in two folders is named too."""
+    from pipeline.ingest.camera_meta import group_captures
+
+    if not cf.SENTERA_D4K.is_dir():
+        pytest.skip("no Sentera sample")
+    session = cf.sentera_6x(tmp_path / "f")
+    camera = catalog.load_camera("sentera-6x")
+    caps, problems = group_captures(session, camera)
+    assert [c.name for c in caps] == ["IMG_00006", "IMG_00007"] and problems == []
+    m = caps[0].metas
+    assert [x.band_name for x in m] == ["Blue", "Green", "Red", "RedEdge", "NIR"]
+    assert [x.path.parent.name for x in m] == ["blue_475", "green_550", "red_670", "rededge_715", "nir_840"]
+    assert caps[0].capture_id == "2020-09-15_04-37-17_1" and m[0].time.startswith("2020-09-15T04:37:17")
+    for x in m:  # EXIF ExposureTime and ISOSpeedRatings from IFD0: the D4K capture's they were built from
+        p = cf.PARAMS[str(x.path)]
+        assert x.exposure_s == pytest.approx(p["exposure"][0] / p["exposure"][1]) and x.gain == pytest.approx(p["iso"] / 100)
+    assert m[4].gain == pytest.approx(3.47) and m[4].exposure_s == pytest.approx(1 / 609)  # NDRE IMG_00006
+    bad = session / "nir_840" / "IMG_00007.tif"
+    bad.write_bytes(bad.read_bytes()[:400])
+    caps, problems = group_captures(session, camera)
+    assert [c.name for c in caps] == ["IMG_00006"]
+    assert problems[0]["file"] == str(bad) and "IMG_00007" in problems[0]["reason"]
+    twin = session / "nir_840_copy"
+    twin.mkdir()
+    (twin / "IMG_00006.tif").write_bytes((session / "nir_840" / "IMG_00006.tif").read_bytes())
+    caps, problems = group_captures(session, camera)
+    assert caps == [] and any("band NIR also in" in p["reason"] for p in problems)
