@@ -253,7 +253,11 @@ def test_dji_p4_multispectral(tmp_path) -> None:
             x, y = 3, 5
             refl = float(ds["reflectance"].isel(frame=f, band=b).values[y, x])
             scale = run["reference"]["relative_scale"]  # one constant for every band and capture
-            assert refl == pytest.approx(scale * dji_expected(path, x, y) / cf.DJI["irradiance"][b], rel=TOL)
+            # the reading turned horizontal (issue 22; no attitude tags here: a level sensor)
+            sun = run["sun_sensor"][run["frames"][f]]
+            assert sun["model"].endswith("orientation none (level assumed)")
+            corr = sun["correction"][ds["band_name"].values[b]]
+            assert refl == pytest.approx(scale * dji_expected(path, x, y) / (cf.DJI["irradiance"][b] * corr), rel=TOL)
     # the panel, as every other pixel, follows the guide's model
     path = folder / "DJI_0013.TIF"
     yy, xx = np.mgrid[0:960, 0:1280].astype(np.float64)
@@ -382,7 +386,8 @@ def test_sentera_panel_route(tmp_path) -> None:
         pytest.skip("no Sentera sample")
     folder = cf.sentera_with_panel(root, tmp_path / "ndre")
     run = _apply(folder, tmp_path / "out", "--panel-reflectance", "0.5", "--panel", "IMG_00006")
-    assert run["camera"] == "sentera-d4k-ndre" and run["reference"]["route"] == "panel"
+    # ILS counts: no reflectance alone, but they carry the light's change from the panel (issue 22)
+    assert run["camera"] == "sentera-d4k-ndre" and run["reference"]["route"] == "panel-dls"
     assert run["reference"]["panels"][0]["region_source"] == ["detected", "detected"]
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     refl = ds["reflectance"].isel(frame=0).values[:, 1300:1600, 1800:2100]
