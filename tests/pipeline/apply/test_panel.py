@@ -205,7 +205,6 @@ def test_one_panel_region_for_all_bands(panel_capture, tmp_path) -> None:
     0.75 inset of their detection); now the corner is carried into every band through its own
     detection of the same square: the same panel coordinates in all five bands."""
     from mscal_core.panel import detect_panel, to_panel_coords
-
     from tests.camera_files import add_camera_element, rewrite, seq
 
     metas, dns = panel_capture
