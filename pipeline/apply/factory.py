@@ -112,6 +112,7 @@ FACTORY = "factory"
 REFERENCES = ("auto", "panel", "dls", "panel-dls")  # + "none" (radiance only) when auto finds no usable sun sensor
 PANEL_SEARCH = 3  # captures at each end of the folder searched for a panel when none is named
 PANEL_SCAN_ALL = 50  # folders of at most this many captures are searched whole (panels mixed with the flight)
+LIGHT_MODEL = "issue22: sun sensor turned horizontal; panel-dls; one panel region for all bands"
 PANEL_GRID = 32  # cells per side of the panel grid for the S/B split (Eq. 11-14)
 FIELD_COMPONENTS = ("response", "vignetting")  # store variables: inverse_response, vignetting
 
@@ -335,6 +336,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     fingerprint = {
         "inputs": stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
         "mscal_version": mscal_core.__version__,
+        "light_model": LIGHT_MODEL,  # results of earlier runs (raw sun-sensor readings) are not reused
     }
     if registration is not None:
         fingerprint["registration_sha256"] = registration[1]
@@ -390,7 +392,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                                                        **ident.probe},
                              "radiance_unit": caps[0].metas[0].radiance_unit,
                              "illumination": _light_record(options.illumination, panels, caps, scales, camera),
-                             **light_record(reference, panels, captures, sensor, light, camera)},
+                             **light_record(reference, panels, captures, sensor, light, camera,
+                                          options.illumination or DEFAULT_LIGHT_MODE, times)},
         scale=lambda name: scales.get(name),
     )
     return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)
@@ -537,10 +540,12 @@ def panel_light(captures: Sequence[Capture], panels: Sequence[PanelReference], m
 
 
 def light_record(reference: str, panels: Sequence[PanelReference], captures: Sequence[Capture],
-                 sensor: SensorLight | None, light: PanelSensorLight | None, camera: Camera) -> dict[str, Any]:
+                 sensor: SensorLight | None, light: PanelSensorLight | None, camera: Camera,
+                 mode: str = DEFAULT_LIGHT_MODE, times: np.ndarray | None = None) -> dict[str, Any]:
     """run.json ``light``: per panel capture and band the panel's light ``1 / k`` beside the
-    sun sensor's (tilt-corrected) and their ratio, per capture the light used, and the warnings
-    (numbers with thresholds) when panels and sensor disagree."""
+    sun sensor's (tilt-corrected) and their ratio, per capture the light used, the warnings
+    (numbers with thresholds) when panels and sensor disagree, and with several panels each
+    panel's reflectance error when predicted from the others (``panel_check``)."""
     names, bands = [c.name for c in captures], list(camera.band_names)
     absolute = bool(captures) and sun_sensor_absolute(captures[0].metas[0])
     unit = "W m-2 nm-1 (pi / k)" if absolute else "relative (1 / k)"
@@ -559,10 +564,28 @@ def light_record(reference: str, panels: Sequence[PanelReference], captures: Seq
         rec["sensor_used"] = {n: bool(light.sensor_used[f].all()) for f, n in enumerate(names)}
         rec["panel_sensor_drift"] = dict(zip(bands, (None if not np.isfinite(d) else round(float(d), 6)
                                                      for d in light.drift)))
+    if light is not None and len(panels) > 1:
+        rec["panel_check"] = _panel_check(panels, names, sensor if reference == "panel-dls" else None, mode,
+                                          capture_times(captures) if times is None else times, bands)
     rec["warnings"] = light_warnings(names, bands, sensor, light, [p.capture for p in panels])
     out = {"light": rec}
     if sensor is not None:
         out["sun_sensor"] = sensor.record(names, bands)
+    return out
+
+
+def _panel_check(panels: Sequence[PanelReference], names: Sequence[str], sensor: SensorLight | None, mode: str,
+                 times: np.ndarray, bands: Sequence[str]) -> list[dict[str, Any]]:
+    """Each panel's reflectance predicted from the other panels (and the sensor) over its own:
+    ``k_pred / k_c - 1`` per band (0: they agree)."""
+    k = np.array([p.factor_split for p in panels], dtype=np.float64)
+    idx = [list(names).index(p.capture) for p in panels]
+    out = []
+    for c, p in enumerate(panels):
+        others = [i for i in range(len(panels)) if i != c]
+        pred = panel_sensor_light(k[others], [idx[i] for i in others], times, sensor, mode).factor[idx[c]]
+        out.append({"capture": p.capture, "from": [panels[i].capture for i in others],
+                    "reflectance_error": dict(zip(bands, (round(float(v), 6) for v in pred / k[c] - 1)))})
     return out
 
 

@@ -188,6 +188,8 @@ def panel_prediction(folder: str | Path, panel_reflectance: str, early: str, lat
       sensors only; NaN for relative ones);
     - ``combined``: the early panel anchoring the sensor (the ``panel-dls`` route with only the
       early panel), ``k' = k_early E^s(early) / E^s(late)``;
+    - ``combined_raw``: the same with the sensor's raw readings (no sun position, tilt or
+      direct/diffuse split: what mscal did before issue 22);
     - ``self``: the late panel against itself: its reflectance over its region with the split
       factor, ``k_late,split / k_late,mean - 1``.
     """
@@ -215,12 +217,14 @@ def panel_prediction(folder: str | Path, panel_reflectance: str, early: str, lat
     k_e, k_l = np.asarray(refs[early].factor_split), np.asarray(refs[late].factor_split)
     combined = panel_sensor_light(k_e[None], [i_e], times, sensor, mode).factor[i_l]
     k_sensor = sensor.factor[i_l] if sun_sensor_absolute(caps[i_l].metas[0]) else np.full(k_l.shape, np.nan)
+    raw = sensor.factor * sensor.correction  # the readings' own k, before the turn to horizontal
     bands = list(camera.band_names)
     return {
         "bands": bands,
         "panel": dict(zip(bands, (float(v) for v in k_e / k_l - 1))),
         "sensor": dict(zip(bands, (float(v) for v in k_sensor / k_l - 1))),
         "combined": dict(zip(bands, (float(v) for v in combined / k_l - 1))),
+        "combined_raw": dict(zip(bands, (float(v) for v in k_e * raw[i_l] / raw[i_e] / k_l - 1))),
         "self": dict(zip(bands, (float(v) for v in k_l / np.asarray(refs[late].factor_mean) - 1))),
         "region_source": list(refs[late].region_source),
     }

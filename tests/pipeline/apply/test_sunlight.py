@@ -95,3 +95,25 @@ def test_warnings_carry_numbers_and_thresholds() -> None:
         ("panel_sensor_disagree", "NIR", 0.08, RATIO_DRIFT_WARN)]
     assert "8.0%" in warns[0]["message"]
     assert light_warnings(["A"], ["Red", "NIR"], None, light, ["A"]) == []  # one panel: nothing to disagree
+
+
+def test_report_shows_the_light_and_its_warnings() -> None:
+    from pipeline.products.report.sections import light_tables
+    from pipeline.products.report.sections import light_warnings as report_warnings
+
+    run = {"light": {
+        "route": "panel-dls", "irradiance_unit": "W m-2 nm-1 (pi / k)",
+        "panels_over_time": [{"capture": "A", "panel_irradiance": {"NIR": 0.5, "Red": 0.8},
+                              "sensor_irradiance": {"NIR": 0.4, "Red": 1.0}}],
+        "panel_sensor_drift": {"NIR": 0.08, "Red": 0.0},
+        "frame_irradiance": {"A": {"NIR": 0.5, "Red": 0.8}, "B": {"NIR": 0.45, "Red": 0.7}},
+        "sensor_used": {"A": True, "B": True},
+        "warnings": [{"code": "panel_sensor_disagree", "band": "NIR", "value": 0.08, "threshold": 0.03,
+                      "message": "NIR: disagree by 8.0%"}]}}
+    over, frames = light_tables(run, ["Red", "NIR"])
+    assert over.rows == [["A", "Red", 0.8, 1.0, 0.8], ["A", "NIR", 0.5, 0.4, 1.25]]
+    assert "NIR 8.0%" in over.note
+    assert frames.columns == ["frame", "Red", "NIR", "sun sensor used"] and frames.rows[1] == ["B", 0.7, 0.45, True]
+    (w,) = report_warnings(run)
+    assert (w.code, w.value, w.threshold) == ("panel_sensor_disagree", 0.08, 0.03)
+    assert light_tables({}, []) == [] and report_warnings({}) == []

@@ -74,6 +74,17 @@ def test_apply_anchors_the_sensor_on_the_panels_and_finds_them_mixed(flight, tmp
     assert all(v < 0.01 for v in light["panel_sensor_drift"].values())  # panels and sensor agree
     assert not [w for w in light["warnings"] if w["code"] == "panel_sensor_disagree"]
     assert set(light["frame_irradiance"]) == set(truth.names)
+    # each panel predicted from the other one and the sensor: within 1 % (the drift is 9 %)
+    for chk in light["panel_check"]:
+        assert max(abs(v) for v in chk["reflectance_error"].values()) < 0.01, chk
+    from pipeline.products.report import report_dict
+
+    sec = report_dict(flights=[both])["sections"][0]
+    table = next(t for t in sec["tables"] if t["title"] == "Light over time: panels and sun sensor")
+    assert [r[0] for r in table["rows"]] == [truth.names[0]] * 5 + [truth.names[-1]] * 5
+    assert [r[1] for r in table["rows"]][:5] == list(BANDS)
+    per_frame = next(t for t in sec["tables"] if t["title"].startswith("Light at each frame"))
+    assert [r[0] for r in per_frame["rows"]] == list(truth.names)
 
 
 def test_real_panel_against_itself_within_one_percent() -> None:
