@@ -48,6 +48,7 @@ def test_late_panel_from_early_panel_and_sensor_within_one_percent(flight) -> No
     assert res["region_source"] == ["detected"] * 5
 
 
+@pytest.mark.long  # two applies of four full-size captures: 40-80 s on 2 shared cores
 def test_apply_anchors_the_sensor_on_the_panels_and_finds_them_mixed(flight, tmp_path) -> None:
     """End to end: with the early panel named, the late panel's reflectance over its area is
     the panel's within 1 % in every band; without naming, both panels are found among the
