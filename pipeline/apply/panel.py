@@ -156,8 +156,12 @@ def common_regions(
     """
     if config is None or config.marker is None:
         areas = [reflect_area_polygon(m) for m in metas]
-        found = [detect_panel(dn) for dn in dns]
-        if found and all(f is not None for f in found):
+        found = []
+        for dn in dns:  # stop at the first band without a panel: most captures of a flight have none
+            found.append(detect_panel(dn))
+            if found[-1] is None:
+                break
+        if found and len(found) == len(dns) and all(f is not None for f in found):
             ref = next((b for b, a in enumerate(areas) if a is not None and len(a) == 4), None)
             if ref is None:
                 uv, source = inset_square(inset), "detected"
