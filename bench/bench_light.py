@@ -65,6 +65,8 @@ SUN_CASES = (
     ("haze builds (diffuse ratio +30 %)", {"haze": 0.3}),
     ("bluer sky (r = 0.12 (550/lambda)^2)", {"r0": 0.12, "r_exponent": 2.0}),
     ("panel tilt 12 deg", {"panel_tilt_deg": 12.0}),
+    ("bluer sky, 12 flight captures (ratio fitted per band)", {"r0": 0.12, "r_exponent": 2.0, "n_flight": 12}),
+    ("haze builds, 12 flight captures (ratio fitted per band)", {"haze": 0.3, "n_flight": 12}),
 )
 
 
@@ -72,7 +74,8 @@ SUN_CASES = (
 TEMPLATE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "micasense-rededge"
 
 
-def sun_sensor_bench(seeds: int, duration_s: float, work: Path, template: Path = TEMPLATE) -> None:
+def sun_sensor_bench(seeds: int, duration_s: float, work: Path, template: Path = TEMPLATE,
+                     cases: tuple[int, ...] | None = None) -> None:
     from pipeline.sim.sunlight import panel_prediction, write_sunlight_flight
 
     methods = ("panel", "sensor", "combined_raw", "combined")
@@ -80,10 +83,12 @@ def sun_sensor_bench(seeds: int, duration_s: float, work: Path, template: Path =
           f"over the 5 bands, median / worst over seeds 0-{seeds - 1}\n")
     print("| case | panel alone | sun sensor alone | panel + raw sensor | panel + sensor (panel-dls) |")
     print("|---|---|---|---|---|")
-    for name, kw in SUN_CASES:
-        worst = {m: [] for m in methods}
+    for case, (name, kw) in enumerate(SUN_CASES):
+        if cases is not None and case not in cases:
+            continue
+        worst: dict[str, list[float]] = {m: [] for m in methods}
         for seed in range(seeds):
-            folder = work / f"sun-{len(worst)}-{seed}"
+            folder = work / f"sun-{case}-{seed}"
             shutil.rmtree(folder, ignore_errors=True)
             truth = write_sunlight_flight(template, folder, seed=seed, duration_s=duration_s, **kw)
             res = panel_prediction(folder, "micasense-rp02-1603036-sc", truth.names[0], truth.names[-1])
@@ -112,11 +117,13 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=3, help="--sun-sensor: seeds per case")
     ap.add_argument("--duration", type=float, default=2040.0, help="--sun-sensor: seconds between the panels")
     ap.add_argument("--template", type=Path, default=TEMPLATE, help="--sun-sensor: a RedEdge panel + flight capture")
+    ap.add_argument("--cases", default=None, help="--sun-sensor: comma-separated case numbers (default all)")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="mscal-light-"))
     work.mkdir(parents=True, exist_ok=True)
     if args.sun_sensor:
-        sun_sensor_bench(args.seeds, args.duration, work, args.template)
+        cases = None if args.cases is None else tuple(int(c) for c in args.cases.split(","))
+        sun_sensor_bench(args.seeds, args.duration, work, args.template, cases)
         if args.work is None:
             shutil.rmtree(work, ignore_errors=True)
         return

@@ -337,3 +337,65 @@ def ratio_drift(panel_irradiance: ArrayLike, panel_sensor: ArrayLike) -> FloatAr
     ok = np.all(np.isfinite(q), axis=0)
     with np.errstate(invalid="ignore"):
         return np.where(ok, np.max(q, axis=0) / np.min(q, axis=0) - 1.0, np.nan)
+
+
+@dataclass(frozen=True)
+class DiffuseFit:
+    """Result of :func:`fit_diffuse_ratio`.
+
+    ``ratio`` the ``r`` that makes the horizontal irradiance smoothest; ``roughness`` its
+    mean squared log-change between consecutive readings; ``roughness_at`` the same at the
+    ratio the caller compares with (``reference``); ``n`` readings used.
+    """
+
+    ratio: float
+    roughness: float
+    roughness_at: float
+    n: int
+
+
+def fit_diffuse_ratio(reading: ArrayLike, elevation: ArrayLike, azimuth: ArrayLike, yaw: ArrayLike,
+                      pitch: ArrayLike, roll: ArrayLike, reference: float = CLEAR_SKY_DIFFUSE_RATIO,
+                      grid: ArrayLike | None = None, layers: tuple[float, ...] = DIFFUSER_LAYERS) -> DiffuseFit:
+    """Estimate the sky's diffuse ratio from a sequence of tilted readings.
+
+    Parameters
+    ----------
+    reading, elevation, azimuth, yaw, pitch, roll : array_like, shape (n,)
+        Consecutive readings of one band in time order, with the sun's position and the
+        sensor's orientation (radians) at each; NaN entries are left out.
+    reference : float
+        The ratio to compare with (the clear-sky 1/6).
+    grid : array_like, optional
+        Candidate ratios (default 81 values from 0.02 to 2, geometric).
+    layers : tuple of float
+        Refractive indices of the diffuser's layers.
+
+    Returns
+    -------
+    DiffuseFit
+
+    Notes
+    -----
+    The light on the ground changes slowly between consecutive frames, the sensor's
+    orientation quickly (the aircraft turns, pitches, rolls): with the right ``r`` the
+    horizontal irradiance of :func:`horizontal_irradiance` does not jump with the attitude. The
+    estimate minimises ``mean_i (log E_h(t_{i+1}) - log E_h(t_i))^2`` over the grid. It needs
+    readings at different incidence angles; a caller keeps ``reference`` unless the fit lowers
+    the roughness clearly.
+    """
+    cols = [np.asarray(a, np.float64).ravel() for a in (reading, elevation, azimuth, yaw, pitch, roll)]
+    ok = np.all([np.isfinite(c) for c in cols], axis=0) & (cols[0] > 0)
+    e, el, az, y, p, r = (c[ok] for c in cols)
+    g = np.geomspace(0.02, 2.0, 81) if grid is None else np.asarray(grid, np.float64).ravel()
+
+    def rough(ratio: float) -> float:
+        h = horizontal_irradiance(e, el, az, y, p, r, diffuse_ratio=ratio, layers=layers).horizontal
+        d = np.diff(np.log(h[np.isfinite(h) & (h > 0)]))
+        return float(np.mean(d ** 2)) if d.size else float("nan")
+
+    if e.size < 3:
+        return DiffuseFit(float(reference), float("nan"), float("nan"), int(e.size))
+    values = np.array([rough(v) for v in g])
+    best = int(np.nanargmin(values))
+    return DiffuseFit(float(g[best]), float(values[best]), rough(float(reference)), int(e.size))

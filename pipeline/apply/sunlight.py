@@ -32,7 +32,10 @@ relative sensors) and the correction ``f = E_h / E_meas``:
   (no published conversion), only the change between panels.
 
 Without a sun position (no time or GPS) or orientation the correction is 1 (the raw reading)
-or the level-sensor one, and run.json says which (``sun_sensor.per_capture``).
+or the level-sensor one, and run.json says which (``sun_sensor``). Without a measured split
+(DLS 1, Sequoia, DJI, Sentera) the diffuse ratio is the clear sky's 1/6, or, on a flight of
+at least :data:`FIT_MIN_CAPTURES` captures at changing attitudes, fitted per band so that the
+horizontal irradiance does not jump when the aircraft turns (``sun_sensor.diffuse_ratio``).
 """
 
 from __future__ import annotations
@@ -49,6 +52,7 @@ from mscal_core.sunsensor import (
     CLEAR_SKY_DIFFUSE_RATIO,
     anchored_irradiance,
     dls2_horizontal,
+    fit_diffuse_ratio,
     horizontal_irradiance,
     ratio_drift,
 )
@@ -60,6 +64,12 @@ from pipeline.ingest.xmp import Xmp, jpeg_xmp_packet
 #: Above this tilt of the sensor against the vertical, or with the sun behind it, the reading
 #: rests on the diffuse model alone: flagged in run.json and the report.
 TILT_WARN_DEG = 20.0
+#: The sky's diffuse ratio is fitted per band from the flight's readings
+#: (:func:`mscal_core.sunsensor.fit_diffuse_ratio`) when at least this many captures have a
+#: reading, an orientation and the sun's position, and the fit lowers the roughness of the
+#: horizontal irradiance by at least :data:`FIT_GAIN_MIN` against the clear sky's 1/6.
+FIT_MIN_CAPTURES = 10
+FIT_GAIN_MIN = 0.25
 #: Panels and sensor disagree on the light's change when their ratio varies by more than this
 #: between panel captures (per band; :func:`mscal_core.sunsensor.ratio_drift`).
 RATIO_DRIFT_WARN = 0.03
@@ -159,10 +169,15 @@ class SensorLight:
     tilt_deg: np.ndarray
     incidence_deg: np.ndarray
     model: tuple[str, ...]
+    diffuse_ratio: tuple[float | None, ...] = ()  # per band, the ratio used without a measured split
+    ratio_source: tuple[str, ...] = ()
 
     def record(self, names: Sequence[str], bands: Sequence[str]) -> dict[str, Any]:
-        """What run.json says of the sensor per capture."""
-        out = {}
+        """What run.json says of the sensor per capture (and ``diffuse_ratio`` per band)."""
+        out: dict[str, Any] = {}
+        if self.diffuse_ratio:
+            out["diffuse_ratio"] = {b: {"ratio": _num(r), "source": src}
+                                    for b, r, src in zip(bands, self.diffuse_ratio, self.ratio_source)}
         for c, name in enumerate(names):
             out[str(name)] = {
                 "model": self.model[c],
@@ -178,9 +193,11 @@ def _num(v: float, digits: int = 6) -> float | None:
     return None if not np.isfinite(v) else round(float(v), digits)
 
 
-def _band_correction(meta: CaptureMeta, x: Xmp, el: float, az: float, orient: Orientation | None
+def _band_correction(x: Xmp, el: float, az: float, orient: Orientation | None,
+                     sky_ratio: float = CLEAR_SKY_DIFFUSE_RATIO, sky: str = "clear-sky diffuse ratio 1/6"
                      ) -> tuple[float, float, float, str]:
-    """``E_h / E_meas`` of one band file, the tilt and incidence (radians) and the model used."""
+    """``E_h / E_meas`` of one band file, the tilt and incidence (radians) and the model used
+    (``sky_ratio``: the diffuse ratio without a measured split, named ``sky``)."""
     split = _dls2_split(x)
     has_sun = math.isfinite(el) and math.isfinite(az)
     if split is not None and has_sun and x.number("Irradiance", ("Camera", "MicaSense")) is None:
@@ -188,10 +205,10 @@ def _band_correction(meta: CaptureMeta, x: Xmp, el: float, az: float, orient: Or
         return (float(dls2_horizontal(d, s, el)) / h if h else 1.0), float("nan"), float("nan"), "dls2 direct+scattered"
     if not has_sun:
         return 1.0, float("nan"), float("nan"), "raw reading (no sun position: time or GPS missing)"
-    ratio = CLEAR_SKY_DIFFUSE_RATIO if split is None else split[1] / split[0]
+    ratio = sky_ratio if split is None else split[1] / split[0]
     o = orientation_or_level(orient)
     h_irr = horizontal_irradiance(1.0, el, az, o.yaw, o.pitch, o.roll, diffuse_ratio=ratio)
-    name = ("tilt model, measured diffuse ratio" if split is not None else "tilt model, clear-sky diffuse ratio 1/6")
+    name = "tilt model, measured diffuse ratio" if split is not None else f"tilt model, {sky}"
     return float(h_irr.factor), float(h_irr.tilt), float(h_irr.incidence), f"{name}; orientation {o.source}"
 
 
@@ -208,26 +225,62 @@ def sensor_light(captures: Sequence[Capture], times: np.ndarray) -> SensorLight:
     lon = np.array([np.nan if c.metas[0].lon is None else c.metas[0].lon for c in captures], dtype=np.float64)
     alt = np.array([np.nan if c.metas[0].alt_m is None else c.metas[0].alt_m for c in captures], dtype=np.float64)
     el, az = solar_position(np.asarray(times, dtype="datetime64[ns]"), lat, lon, alt) if n_c else (np.zeros(0),) * 2
+    k = np.full((n_c, n_b), np.nan)
+    xmps: dict[tuple[int, int], Xmp] = {}
+    ypr = np.full((n_c, 3), np.nan)
+    for c, cap in enumerate(captures):
+        for b, meta in enumerate(cap.metas):
+            kb = reflectance_factor(meta) if meta.radiometry != "sentera" else _sentera_factor(meta)
+            if kb is None:
+                continue
+            k[c, b] = kb
+            xmps[c, b] = x = file_xmp(meta.path)
+            o = sensor_orientation(x)
+            if o is not None and not np.isfinite(ypr[c, 0]):
+                ypr[c] = (o.yaw, o.pitch, o.roll)
+    ratios, sources = _sky_ratios(k, el, az, ypr, xmps)
     factor = np.full((n_c, n_b), np.nan)
     corr = np.full((n_c, n_b), np.nan)
     tilt = np.full(n_c, np.nan)
     inc = np.full(n_c, np.nan)
     models = []
-    for c, cap in enumerate(captures):
+    for c in range(n_c):
         model = "no sun-sensor reading"
-        for b, meta in enumerate(cap.metas):
-            k = reflectance_factor(meta) if meta.radiometry != "sentera" else _sentera_factor(meta)
-            if k is None:
+        for b in range(n_b):
+            if (c, b) not in xmps:
                 continue
-            x = file_xmp(meta.path)
-            corr[c, b], t, i, model = _band_correction(meta, x, float(el[c]), float(az[c]), sensor_orientation(x))
-            factor[c, b] = k / corr[c, b]
-            if b == 0 or not np.isfinite(tilt[c]):
+            x = xmps[c, b]
+            corr[c, b], t, i, model = _band_correction(x, float(el[c]), float(az[c]), sensor_orientation(x),
+                                                       ratios[b], sources[b])
+            factor[c, b] = k[c, b] / corr[c, b]
+            if not np.isfinite(tilt[c]):
                 tilt[c], inc[c] = t, i
         models.append(model)
     with np.errstate(divide="ignore", invalid="ignore"):
         irr = 1.0 / factor
-    return SensorLight(factor, corr, irr, np.degrees(el), np.degrees(tilt), np.degrees(inc), tuple(models))
+    return SensorLight(factor, corr, irr, np.degrees(el), np.degrees(tilt), np.degrees(inc), tuple(models),
+                       tuple(float(r) for r in ratios), tuple(sources))
+
+
+def _sky_ratios(k: np.ndarray, el: np.ndarray, az: np.ndarray, ypr: np.ndarray,
+                xmps: dict[tuple[int, int], Xmp]) -> tuple[list[float], list[str]]:
+    """Per band the diffuse ratio used without a measured split: fitted from the flight's
+    readings (:data:`FIT_MIN_CAPTURES`, :data:`FIT_GAIN_MIN`), else the clear sky's 1/6."""
+    n_b = k.shape[1]
+    ratios = [CLEAR_SKY_DIFFUSE_RATIO] * n_b
+    sources = ["clear-sky diffuse ratio 1/6"] * n_b
+    split = any(_dls2_split(x) is not None for x in xmps.values())
+    for b in range(n_b):
+        usable = np.isfinite(k[:, b]) & np.isfinite(el) & np.isfinite(ypr[:, 0])
+        if split or np.count_nonzero(usable) < FIT_MIN_CAPTURES:
+            continue
+        with np.errstate(divide="ignore"):
+            fit = fit_diffuse_ratio(1.0 / k[:, b], el, az, ypr[:, 0], ypr[:, 1], ypr[:, 2])
+        if np.isfinite(fit.roughness_at) and fit.roughness <= (1.0 - FIT_GAIN_MIN) * fit.roughness_at:
+            ratios[b] = fit.ratio
+            sources[b] = (f"diffuse ratio {fit.ratio:.3f} fitted on {fit.n} captures (roughness "
+                          f"{fit.roughness:.2e} vs {fit.roughness_at:.2e} at 1/6)")
+    return ratios, sources
 
 
 def _sentera_factor(meta: CaptureMeta) -> float | None:

@@ -113,3 +113,21 @@ def test_ratio_drift_measures_disagreement_between_panels_and_sensor() -> None:
     es = np.array([[0.5, 0.5], [0.4, 0.44]])
     np.testing.assert_allclose(ss.ratio_drift(ep, es), [0.0, 2.0 / (0.8 / 0.44) - 1.0])
     assert np.isnan(ss.ratio_drift(ep, np.array([[0.5, 0.5], [np.nan, 0.4]]))[0])
+
+
+def test_diffuse_ratio_is_recovered_from_readings_at_changing_attitudes() -> None:
+    rng = np.random.default_rng(3)
+    n = 40
+    el = np.radians(np.linspace(45, 40, n))
+    az = np.radians(np.linspace(200, 210, n))
+    yaw = rng.uniform(-np.pi, np.pi, n)
+    pitch, roll = np.radians(rng.normal(0, 6, n)), np.radians(rng.normal(0, 6, n))
+    direct = np.linspace(1.0, 0.9, n)  # a slow fade
+    for true in (0.08, 0.3):
+        reading = ss.sensor_reading(direct, true * direct, el, az, yaw, pitch, roll)
+        reading = reading * (1 + 0.002 * rng.normal(0, 1, n))
+        fit = ss.fit_diffuse_ratio(reading, el, az, yaw, pitch, roll)
+        assert fit.ratio == pytest.approx(true, rel=0.15) and fit.n == n
+        assert fit.roughness < 0.5 * fit.roughness_at  # clearly better than the clear-sky 1/6
+    few = ss.fit_diffuse_ratio(reading[:2], el[:2], az[:2], yaw[:2], pitch[:2], roll[:2])
+    assert few.ratio == pytest.approx(ss.CLEAR_SKY_DIFFUSE_RATIO) and few.n == 2

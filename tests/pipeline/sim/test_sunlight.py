@@ -98,3 +98,23 @@ def test_real_panel_against_itself_within_one_percent() -> None:
         assert abs(res["self"][band]) < 0.01 and res["combined"][band] == pytest.approx(0.0, abs=1e-12)
     sensor = np.array([abs(res["sensor"][b]) for b in BANDS])
     assert sensor.min() > 0.03 and sensor.max() < 0.35
+
+
+@pytest.mark.long  # writes 14 full-size captures: about a minute on 2 shared cores
+def test_bluer_sky_ratio_is_fitted_from_the_flight(tmp_path) -> None:
+    """A sky bluer than the assumed 1/6 (r = 0.16 in Blue to 0.05 in NIR) and 12 flight
+    captures at changing attitudes: the pipeline fits the ratio per band from the readings and
+    the late panel is predicted within 1.5 % (6 % with 1/6 on this seed)."""
+    from pipeline.apply.captures import capture_times, find_captures
+    from pipeline.apply.sunlight import sensor_light
+    from pipeline.ingest.identify import identify_camera
+
+    truth = write_sunlight_flight(require_data(), tmp_path / "f", seed=0, n_flight=12, r0=0.12, r_exponent=2.0)
+    caps = find_captures(tmp_path / "f", identify_camera(tmp_path / "f", None).camera).captures
+    light = sensor_light(caps, capture_times(caps))
+    true = truth.diffuse_ratio[0]
+    for b in (2, 3, 4):  # Red, NIR, Red edge: far from 1/6, fitted
+        assert "fitted" in light.ratio_source[b]
+        assert light.diffuse_ratio[b] == pytest.approx(true[b], rel=0.3)
+    res = panel_prediction(tmp_path / "f", TARGET, truth.names[0], truth.names[-1])
+    assert max(abs(v) for v in res["combined"].values()) < 0.015
