@@ -30,7 +30,7 @@ Prints a markdown table. Importing this module runs nothing.
 from the real RedEdge capture (``pipeline.sim.sunlight.write_sunlight_flight``: panel at 0 and
 ``--duration`` s, the sun moving, the direct light fading, a tilted sun sensor with a direct and
 a diffuse part and a per-band calibration error), per case and ``--seeds``; the late panel is
-predicted from the early one (``pipeline.sim.sunlight.panel_prediction``) by the panel alone,
+predicted from the early one (``pipeline.apply.light_check.panel_prediction``) by the panel alone,
 the sun sensor alone (tilt-corrected), panel + raw sensor readings and panel + sensor (the
 ``panel-dls`` route). Prints the largest |error| over the bands (median and worst over seeds)::
 
@@ -76,7 +76,8 @@ TEMPLATE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "mic
 
 def sun_sensor_bench(seeds: int, duration_s: float, work: Path, template: Path = TEMPLATE,
                      cases: tuple[int, ...] | None = None) -> None:
-    from pipeline.sim.sunlight import panel_prediction, write_sunlight_flight
+    from pipeline.apply.light_check import panel_prediction
+    from pipeline.sim.sunlight import write_sunlight_flight
 
     methods = ("panel", "sensor", "combined_raw", "combined")
     print(f"\nlate panel ({duration_s:.0f} s after the early one) predicted from the early panel; largest |error| "

@@ -1,5 +1,6 @@
 """A flight under drifting light with a tilted sun sensor, written as a real camera's files
-(issue 22), and the panel-prediction check used on it and on real folders.
+(issue 22); the check run on it (and on real folders) is
+:func:`pipeline.apply.light_check.panel_prediction`.
 
 ``write_sunlight_flight(template, out)`` takes a MicaSense RedEdge capture folder (a panel
 capture ``IMG_0000_*`` and a flight capture ``IMG_0001_*``; ../shared/data/micasense-rededge)
@@ -31,7 +32,6 @@ how much).
 from __future__ import annotations
 
 import re
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -57,22 +57,42 @@ class SunlightTruth:
     scale: np.ndarray  # signal scale applied to the template's pixels
 
 
-def _template_light(template: Path, rho: str) -> tuple[Any, np.ndarray, np.ndarray]:
-    """The template's captures, its panel capture's light ``pi / k`` per band and the bands'
-    wavelengths."""
-    from pipeline.apply.captures import find_captures
-    from pipeline.apply.factory import panel_reference
-    from pipeline.ingest.camera_meta import read_capture_pixels
-    from pipeline.ingest.catalog import reflectance_option
-    from pipeline.ingest.identify import identify_camera
+@dataclass(frozen=True)
+class _Template:
+    """One template capture: its band files' metadata (band order of the file suffix)."""
 
-    camera = identify_camera(template, None).camera
-    caps = find_captures(template, camera).captures
+    metas: tuple[Any, ...]
+
+
+def _template_light(template: Path, rho: str) -> tuple[list[_Template], np.ndarray, np.ndarray]:
+    """The template's two captures (``IMG_0000_*`` panel, ``IMG_0001_*`` flight), the panel
+    capture's light ``pi L / rho`` per band (mean factory radiance over the inset of the detected
+    panel) and the bands' wavelengths."""
+    from mscal_core.factory import polygon_mask
+    from mscal_core.panel import DEFAULT_INSET, detect_panel, shrink_polygon
+
+    from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta
+    from pipeline.ingest.catalog import reflectance_option
+    from pipeline.ingest.session import read_raw
+
+    caps = []
+    for name in ("IMG_0000", "IMG_0001"):
+        files = sorted(template.glob(f"{name}_*.tif"), key=lambda f: int(f.stem.rsplit("_", 1)[1]))
+        if files:
+            caps.append(_Template(tuple(read_capture_meta(f) for f in files)))
+    if not caps:
+        raise FileNotFoundError(f"no IMG_0000_*.tif panel capture in {template}")
     wl = np.array([m.wavelength_nm for m in caps[0].metas])
-    r = [float(v) for v in reflectance_option(rho).at(wl)]
-    _, dns, ch = read_capture_pixels(caps[0])
-    ref = panel_reference(caps[0], dns, r, channels=ch)
-    return caps, np.pi / np.asarray(ref.factor_split), wl
+    r = np.asarray(reflectance_option(rho).at(wl), dtype=np.float64)
+    light = []
+    for meta in caps[0].metas:
+        dn = read_raw(meta.path)
+        found = detect_panel(dn)
+        if found is None:
+            raise ValueError(f"no panel detected in the template's {meta.path}")
+        mask = polygon_mask(dn.shape, shrink_polygon(found.outline, DEFAULT_INSET))
+        light.append(float(np.mean(factory_radiance(meta, dn)[mask])))
+    return caps, np.pi * np.asarray(light) / r, wl
 
 
 def sunlight_truth(times: np.ndarray, kinds: tuple[str, ...], lat: float, lon: float, e_template: np.ndarray,
@@ -170,70 +190,3 @@ def _relight(src: Any, panel_cap: Any, b: int) -> float:
         return 1.0
     e_src, e_panel = src.metas[b].irradiance, panel_cap.metas[b].irradiance
     return 1.0 if not (e_src and e_panel) else min(1.0, e_panel / e_src)
-
-
-# --------------------------------------------------------------------------- the check
-
-
-def panel_prediction(folder: str | Path, panel_reflectance: str, early: str, late: str,
-                     mode: str = "linear") -> dict[str, Any]:
-    """How well the late panel capture is predicted from the early one, per band.
-
-    Each panel capture is fitted on its own (``k = 1 / S``, Eq. 11-14 split, one region for
-    all bands); the late panel's reflectance predicted with a factor ``k'`` is
-    ``rho k' / k_late``, so the error is ``k' / k_late - 1`` for:
-
-    - ``panel``: the early panel alone, ``k' = k_early``;
-    - ``sensor``: the sun sensor alone (tilt-corrected), ``k' = k_sensor(late)`` (absolute
-      sensors only; NaN for relative ones);
-    - ``combined``: the early panel anchoring the sensor (the ``panel-dls`` route with only the
-      early panel), ``k' = k_early E^s(early) / E^s(late)``;
-    - ``combined_raw``: the same with the sensor's raw readings (no sun position, tilt or
-      direct/diffuse split: what mscal did before issue 22);
-    - ``self``: the late panel against itself: its reflectance over its region with the split
-      factor, ``k_late,split / k_late,mean - 1``.
-    """
-    from pipeline.apply.captures import capture_times, find_captures
-    from pipeline.apply.factory import panel_reference
-    from pipeline.apply.sunlight import panel_sensor_light, sensor_light
-    from pipeline.ingest.camera_meta import read_capture_pixels, sun_sensor_absolute
-    from pipeline.ingest.catalog import reflectance_option
-    from pipeline.ingest.identify import identify_camera
-
-    folder = Path(folder)
-    camera = identify_camera(folder, None).camera
-    caps = find_captures(folder, camera).captures
-    names = [c.name for c in caps]
-    wl = np.array([m.wavelength_nm for m in caps[0].metas])
-    rho = [float(v) for v in reflectance_option(panel_reflectance).at(wl)]
-    refs = {}
-    for name in (early, late):
-        cap = caps[names.index(name)]
-        _, dns, ch = read_capture_pixels(cap)
-        refs[name] = panel_reference(cap, dns, rho, channels=ch)
-    times = capture_times(caps)
-    sensor = sensor_light(caps, times)
-    i_e, i_l = names.index(early), names.index(late)
-    k_e, k_l = np.asarray(refs[early].factor_split), np.asarray(refs[late].factor_split)
-    combined = panel_sensor_light(k_e[None], [i_e], times, sensor, mode).factor[i_l]
-    k_sensor = sensor.factor[i_l] if sun_sensor_absolute(caps[i_l].metas[0]) else np.full(k_l.shape, np.nan)
-    raw = sensor.factor * sensor.correction  # the readings' own k, before the turn to horizontal
-    bands = list(camera.band_names)
-    return {
-        "bands": bands,
-        "panel": dict(zip(bands, (float(v) for v in k_e / k_l - 1))),
-        "sensor": dict(zip(bands, (float(v) for v in k_sensor / k_l - 1))),
-        "combined": dict(zip(bands, (float(v) for v in combined / k_l - 1))),
-        "combined_raw": dict(zip(bands, (float(v) for v in k_e * raw[i_l] / raw[i_e] / k_l - 1))),
-        "self": dict(zip(bands, (float(v) for v in k_l / np.asarray(refs[late].factor_mean) - 1))),
-        "region_source": list(refs[late].region_source),
-    }
-
-
-def copy_template(template: str | Path, out: str | Path) -> Path:
-    """A copy of a template folder's band files (for tests that alter them)."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    for f in sorted(Path(template).glob("IMG_*")):
-        shutil.copyfile(f, out / f.name)
-    return out

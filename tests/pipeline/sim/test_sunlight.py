@@ -12,9 +12,10 @@ import pytest
 import xarray as xr
 
 from mscal_core.factory import polygon_mask
+from pipeline.apply.light_check import panel_prediction
 from pipeline.ingest.catalog import load_target
 from pipeline.run.cli import main
-from pipeline.sim.sunlight import panel_prediction, write_sunlight_flight
+from pipeline.sim.sunlight import write_sunlight_flight
 from tests.micasense_data import BANDS, PANEL_CORNERS, require_data
 
 TARGET = "micasense-rp02-1603036-sc"
