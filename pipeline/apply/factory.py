@@ -353,7 +353,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     panel_factor = None
     if reference in ("panel", "panel-dls"):
         if options.panel_reflectance is None:
-            raise InputError("--reference panel needs --panel-reflectance (a number or a target name)",
+            raise InputError(f"--reference {reference} needs --panel-reflectance (a number or a target name)",
                              hint="e.g. --panel-reflectance micasense-rp02-1603036-sc")
         spec = reflectance_option(options.panel_reflectance)
         rho = [float(r) for r in spec.at(np.array([m.wavelength_nm for m in captures[0].metas]))]
@@ -516,6 +516,9 @@ def _capture_light(options: FactoryOptions, reference: str, captures: Sequence[C
         return None, {c.name: tuple(float(v) for v in k[f]) for f, c in enumerate(captures)}
     if reference not in ("panel", "panel-dls") or (reference == "panel" and options.illumination is None):
         return None, {}
+    if reference == "panel-dls" and sensor is None:
+        raise InputError("--reference panel-dls: no capture in the folder has a sun-sensor reading", path=folder,
+                         hint="use --reference panel (the panels alone), with --illumination to follow them in time")
     mode = options.illumination or DEFAULT_LIGHT_MODE
     light = panel_light(captures, panels, mode, folder, sensor if reference == "panel-dls" else None, times)
     return light, {c.name: tuple(float(v) for v in light.factor[f]) for f, c in enumerate(captures)}

@@ -117,3 +117,24 @@ def test_report_shows_the_light_and_its_warnings() -> None:
     (w,) = report_warnings(run)
     assert (w.code, w.value, w.threshold) == ("panel_sensor_disagree", 0.08, 0.03)
     assert light_tables({}, []) == [] and report_warnings({}) == []
+
+
+def test_panel_dls_without_readings_exits_2(tmp_path, capsys) -> None:
+    from pipeline.run.cli import main
+    from tests.camera_files import band_file, drop_element, rewrite
+
+    require_data()
+    folder = tmp_path / "noirr"
+    folder.mkdir()
+    for cap in ("0000", "0001"):
+        for b in range(1, 6):
+            rewrite(band_file(cap, b), folder / f"IMG_{cap}_{b}.tif",
+                    lambda x: drop_element(drop_element(x, "Camera:Irradiance"), "DLS:SpectralIrradiance"))
+    args = ["apply", str(folder), "--calibration", "factory", "--panel-reflectance", "micasense-rp02-1603036-sc"]
+    assert main([*args, "-o", str(tmp_path / "o"), "--reference", "panel-dls"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--reference panel-dls: no capture in the folder has a sun-sensor reading" in err and "\n" not in err
+    assert main([*args, "-o", str(tmp_path / "auto")]) == 0  # auto: the panel alone
+    import json
+
+    assert json.loads((tmp_path / "auto" / "run.json").read_text())["reference"]["route"] == "panel"
