@@ -25,6 +25,16 @@ Usage::
    frame, as mscal did before issue 8).
 
 Prints a markdown table. Importing this module runs nothing.
+
+``--sun-sensor`` runs the issue-22 cases instead (no calibration session): synthetic flights
+from the real RedEdge capture (``pipeline.sim.sunlight.write_sunlight_flight``: panel at 0 and
+``--duration`` s, the sun moving, the direct light fading, a tilted sun sensor with a direct and
+a diffuse part and a per-band calibration error), per case and ``--seeds``; the late panel is
+predicted from the early one (``pipeline.apply.light_check.panel_prediction``) by the panel alone,
+the sun sensor alone (tilt-corrected), panel + raw sensor readings and panel + sensor (the
+``panel-dls`` route). Prints the largest |error| over the bands (median and worst over seeds)::
+
+    .venv/bin/python bench/bench_light.py --sun-sensor [--seeds 3] [--duration 2040]
 """
 
 from __future__ import annotations
@@ -48,6 +58,48 @@ def panel_medians(out: Path, labels: np.ndarray, corrected: bool, label: int = 4
                      for f in range(refl.shape[0])])
 
 
+#: Synthetic drift cases of ``--sun-sensor``: name, keywords of ``write_sunlight_flight``.
+SUN_CASES = (
+    ("clear sky (r = 1/6), panel tilt 8 deg, flight 4 deg", {}),
+    ("direct light fades to 0.8", {"level_end": 0.8}),
+    ("haze builds (diffuse ratio +30 %)", {"haze": 0.3}),
+    ("bluer sky (r = 0.12 (550/lambda)^2)", {"r0": 0.12, "r_exponent": 2.0}),
+    ("panel tilt 12 deg", {"panel_tilt_deg": 12.0}),
+    ("bluer sky, 12 flight captures (ratio fitted per band)", {"r0": 0.12, "r_exponent": 2.0, "n_flight": 12}),
+    ("haze builds, 12 flight captures (ratio fitted per band)", {"haze": 0.3, "n_flight": 12}),
+)
+
+
+#: The real RedEdge capture the synthetic flights are built from (``--template``).
+TEMPLATE = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "micasense-rededge"
+
+
+def sun_sensor_bench(seeds: int, duration_s: float, work: Path, template: Path = TEMPLATE,
+                     cases: tuple[int, ...] | None = None) -> None:
+    from pipeline.apply.light_check import panel_prediction
+    from pipeline.sim.sunlight import write_sunlight_flight
+
+    methods = ("panel", "sensor", "combined_raw", "combined")
+    print(f"\nlate panel ({duration_s:.0f} s after the early one) predicted from the early panel; largest |error| "
+          f"over the 5 bands, median / worst over seeds 0-{seeds - 1}\n")
+    print("| case | panel alone | sun sensor alone | panel + raw sensor | panel + sensor (panel-dls) |")
+    print("|---|---|---|---|---|")
+    for case, (name, kw) in enumerate(SUN_CASES):
+        if cases is not None and case not in cases:
+            continue
+        worst: dict[str, list[float]] = {m: [] for m in methods}
+        for seed in range(seeds):
+            folder = work / f"sun-{case}-{seed}"
+            shutil.rmtree(folder, ignore_errors=True)
+            truth = write_sunlight_flight(template, folder, seed=seed, duration_s=duration_s, **kw)
+            res = panel_prediction(folder, "micasense-rp02-1603036-sc", truth.names[0], truth.names[-1])
+            for m in methods:
+                worst[m].append(max(abs(v) for v in res[m].values()))
+            shutil.rmtree(folder, ignore_errors=True)
+        cells = [f"{np.median(worst[m]):.2%} / {max(worst[m]):.2%}" for m in methods]
+        print(f"| {name} | " + " | ".join(cells) + " |")
+
+
 def main() -> None:
     from mscal_core.synth.scene import LightDrift
     from pipeline.run.cli import main as mscal
@@ -62,9 +114,20 @@ def main() -> None:
     ap.add_argument("--size", choices=("small", "full"), default="full",
                     help="calibration session of step 1 (its response and vignetting estimates)")
     ap.add_argument("--work", type=Path, default=None, help="work folder (kept; default a temporary one)")
+    ap.add_argument("--sun-sensor", action="store_true", help="the issue-22 panel + sun-sensor cases instead")
+    ap.add_argument("--seeds", type=int, default=3, help="--sun-sensor: seeds per case")
+    ap.add_argument("--duration", type=float, default=2040.0, help="--sun-sensor: seconds between the panels")
+    ap.add_argument("--template", type=Path, default=TEMPLATE, help="--sun-sensor: a RedEdge panel + flight capture")
+    ap.add_argument("--cases", default=None, help="--sun-sensor: comma-separated case numbers (default all)")
     args = ap.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="mscal-light-"))
     work.mkdir(parents=True, exist_ok=True)
+    if args.sun_sensor:
+        cases = None if args.cases is None else tuple(int(c) for c in args.cases.split(","))
+        sun_sensor_bench(args.seeds, args.duration, work, args.template, cases)
+        if args.work is None:
+            shutil.rmtree(work, ignore_errors=True)
+        return
     calib = work / f"{args.size}-seed{args.seed}.zarr"
     if not calib.exists():
         session = write_session(work / f"{args.size}-seed{args.seed}", seed=args.seed, size=args.size)

@@ -360,3 +360,64 @@ def panel_from_marker(
     panel = np.array([[du - w, dv + hh], [du + w, dv + hh], [du + w, dv - hh], [du - w, dv - hh]], dtype=np.float64)
     out = cv2.perspectiveTransform(panel.reshape(-1, 1, 2), H).reshape(4, 2)
     return order_corners(out)
+
+
+_UNIT = np.array([[1.0, 1.0], [0.0, 1.0], [0.0, 0.0], [1.0, 0.0]], dtype=np.float32)  # BR, BL, TL, TR
+
+
+def to_panel_coords(quad: Sequence[Sequence[float]], points: Sequence[Sequence[float]]) -> np.ndarray:
+    """Map image points into the unit square of a panel quadrilateral.
+
+    Parameters
+    ----------
+    quad : sequence of (x, y)
+        The panel's four corners (any order; :func:`order_corners`).
+    points : sequence of (x, y)
+        Image points.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n, 2)`` panel coordinates ``(u, v)``: (0, 0) the top-left corner, (1, 1) the
+        bottom-right, through the homography of the quadrilateral onto the unit square. The same
+        ``(u, v)`` in two bands' quadrilaterals is the same spot of the panel.
+    """
+    h = cv2.getPerspectiveTransform(order_corners(quad).astype(np.float32), _UNIT)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 1, 2)
+    return cv2.perspectiveTransform(pts, h).reshape(-1, 2)
+
+
+def from_panel_coords(quad: Sequence[Sequence[float]], uv: Sequence[Sequence[float]]) -> np.ndarray:
+    """Map panel coordinates ``(u, v)`` (:func:`to_panel_coords`) back into an image.
+
+    Parameters
+    ----------
+    quad : sequence of (x, y)
+        The panel's four corners in this image.
+    uv : sequence of (u, v)
+        Points in the panel's unit square.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(n, 2)`` image points ``(x, y)``.
+    """
+    h = cv2.getPerspectiveTransform(_UNIT, order_corners(quad).astype(np.float32))
+    pts = np.asarray(uv, dtype=np.float64).reshape(-1, 1, 2)
+    return cv2.perspectiveTransform(pts, h).reshape(-1, 2)
+
+
+def inset_square(inset: float = DEFAULT_INSET) -> np.ndarray:
+    """Return the centred square of side ``inset`` in panel coordinates, BR, BL, TL, TR.
+
+    Parameters
+    ----------
+    inset : float
+        Linear fraction of the panel kept, ``0 < inset <= 1``.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(4, 2)`` panel coordinates.
+    """
+    return shrink_polygon(_UNIT.astype(np.float64), inset)

@@ -227,3 +227,175 @@ def sensor_reading(direct: ArrayLike, diffuse: ArrayLike, elevation: ArrayLike, 
     d, s = np.asarray(direct, np.float64), np.asarray(diffuse, np.float64)
     return (relative_transmission(theta, layers) * np.maximum(np.cos(theta), 0.0) * d
             + diffuse_transmission(layers) * (1.0 + np.cos(tilt)) / 2.0 * s)
+
+
+def dls2_horizontal(direct: ArrayLike, scattered: ArrayLike, elevation: ArrayLike) -> FloatArray:
+    """Return the horizontal irradiance from a DLS 2's split of its reading.
+
+    Parameters
+    ----------
+    direct : array_like
+        ``DirectIrradiance``: direct light on a plane facing the sun.
+    scattered : array_like
+        ``ScatteredIrradiance``: diffuse light on a horizontal plane.
+    elevation : array_like
+        The sun's elevation, radians (recomputed from time and position: MicaSense's
+        ``compute_horizontal_irradiance_dls2`` does so because the camera's own can be wrong).
+
+    Returns
+    -------
+    ndarray
+        ``E_h = E_dir max(sin el, 0) + E_dif`` (the model of the module docstring with the
+        split measured instead of assumed).
+    """
+    el = np.asarray(elevation, np.float64)
+    return np.asarray(direct, np.float64) * np.maximum(np.sin(el), 0.0) + np.asarray(scattered, np.float64)
+
+
+@dataclass(frozen=True)
+class AnchoredLight:
+    """Result of :func:`anchored_irradiance`, arrays (n_frames, n_bands).
+
+    ``irradiance`` E_b(tau) on the panel's scale; ``ratio`` the interpolated panel / sensor
+    ratio ``q_b(tau)``; ``sensor_used`` whether the frame's own sensor reading carried the light
+    (else the panels' interpolated irradiance).
+    """
+
+    irradiance: FloatArray
+    ratio: FloatArray
+    sensor_used: NDArray[np.bool_]
+
+
+def anchored_irradiance(panel_irradiance: ArrayLike, panel_sensor: ArrayLike, weights: ArrayLike,
+                        frame_sensor: ArrayLike) -> AnchoredLight:
+    """Return each frame's irradiance per band: panels anchor the scale, the sun sensor the change.
+
+    Parameters
+    ----------
+    panel_irradiance : array_like, shape (n_panels, n_bands)
+        The light measured by each panel capture, ``E^p_{c,b} = pi L_{c,b} / rho_b`` (or any
+        quantity proportional to the irradiance per band, e.g. ``1 / k_{c,b}``).
+    panel_sensor : array_like, shape (n_panels, n_bands)
+        The sun sensor's horizontal irradiance at each panel capture (NaN: none).
+    weights : array_like, shape (n_frames, n_panels)
+        Interpolation weights in time, rows summing to 1
+        (:func:`mscal_core.illumination.capture_weights`, ``nearest`` or ``linear``).
+    frame_sensor : array_like, shape (n_frames, n_bands)
+        The sun sensor's horizontal irradiance at each frame (NaN: none).
+
+    Returns
+    -------
+    AnchoredLight
+
+    Notes
+    -----
+    Per band ``b`` the ratio ``q_{c,b} = E^p_{c,b} / E^s_{c,b}`` converts the sensor to the
+    panel's scale (it absorbs the sensor's calibration and any unit); it is interpolated in
+    time, ``q_b(tau) = sum_c w_c(tau) q_{c,b}``, and
+    ``E_b(tau) = q_b(tau) E^s_b(tau)``. Between two panels a drift of the sensor's calibration
+    is followed linearly; beyond them the nearest panel's ratio holds. A frame (or band)
+    without a reading, or a band whose panels have no reading, falls back to the panels'
+    interpolated irradiance ``sum_c w_c E^p_{c,b}``.
+    """
+    ep = np.atleast_2d(np.asarray(panel_irradiance, np.float64))
+    es = np.atleast_2d(np.asarray(panel_sensor, np.float64))
+    w = np.atleast_2d(np.asarray(weights, np.float64))
+    ef = np.atleast_2d(np.asarray(frame_sensor, np.float64))
+    if ep.shape != es.shape or w.shape[1] != ep.shape[0] or ef.shape != (w.shape[0], ep.shape[1]):
+        raise ValueError(f"shapes disagree: panels {ep.shape}, panel sensor {es.shape}, weights {w.shape}, "
+                         f"frame sensor {ef.shape}")
+    ok_c = np.isfinite(es) & (es > 0) & np.isfinite(ep)
+    band_ok = ok_c.all(axis=0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q_c = np.where(ok_c, ep / np.where(ok_c, es, 1.0), 0.0)
+    q = w @ q_c
+    used = np.isfinite(ef) & (ef > 0) & band_ok[None, :]
+    fallback = w @ np.nan_to_num(ep, nan=0.0)
+    e = np.where(used, q * np.where(used, ef, 0.0), fallback)
+    return AnchoredLight(e, np.where(band_ok[None, :], q, np.nan), used)
+
+
+def ratio_drift(panel_irradiance: ArrayLike, panel_sensor: ArrayLike) -> FloatArray:
+    """Return per band how much the panels and the sun sensor disagree on the light's change.
+
+    Parameters
+    ----------
+    panel_irradiance, panel_sensor : array_like, shape (n_panels, n_bands)
+        As in :func:`anchored_irradiance`.
+
+    Returns
+    -------
+    ndarray, shape (n_bands,)
+        ``max_c q_{c,b} / min_c q_{c,b} - 1``: 0 when the sensor follows the panels exactly
+        (one panel: 0; NaN where a reading is missing). A large value means the sensor misreads
+        the change (tilt, shade, a diffuse ratio far from the assumed one) or a panel is off.
+    """
+    ep = np.atleast_2d(np.asarray(panel_irradiance, np.float64))
+    es = np.atleast_2d(np.asarray(panel_sensor, np.float64))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = ep / es
+    ok = np.all(np.isfinite(q), axis=0)
+    with np.errstate(invalid="ignore"):
+        return np.where(ok, np.max(q, axis=0) / np.min(q, axis=0) - 1.0, np.nan)
+
+
+@dataclass(frozen=True)
+class DiffuseFit:
+    """Result of :func:`fit_diffuse_ratio`.
+
+    ``ratio`` the ``r`` that makes the horizontal irradiance smoothest; ``roughness`` its
+    mean squared log-change between consecutive readings; ``roughness_at`` the same at the
+    ratio the caller compares with (``reference``); ``n`` readings used.
+    """
+
+    ratio: float
+    roughness: float
+    roughness_at: float
+    n: int
+
+
+def fit_diffuse_ratio(reading: ArrayLike, elevation: ArrayLike, azimuth: ArrayLike, yaw: ArrayLike,
+                      pitch: ArrayLike, roll: ArrayLike, reference: float = CLEAR_SKY_DIFFUSE_RATIO,
+                      grid: ArrayLike | None = None, layers: tuple[float, ...] = DIFFUSER_LAYERS) -> DiffuseFit:
+    """Estimate the sky's diffuse ratio from a sequence of tilted readings.
+
+    Parameters
+    ----------
+    reading, elevation, azimuth, yaw, pitch, roll : array_like, shape (n,)
+        Consecutive readings of one band in time order, with the sun's position and the
+        sensor's orientation (radians) at each; NaN entries are left out.
+    reference : float
+        The ratio to compare with (the clear-sky 1/6).
+    grid : array_like, optional
+        Candidate ratios (default 81 values from 0.02 to 2, geometric).
+    layers : tuple of float
+        Refractive indices of the diffuser's layers.
+
+    Returns
+    -------
+    DiffuseFit
+
+    Notes
+    -----
+    The light on the ground changes slowly between consecutive frames, the sensor's
+    orientation quickly (the aircraft turns, pitches, rolls): with the right ``r`` the
+    horizontal irradiance of :func:`horizontal_irradiance` does not jump with the attitude. The
+    estimate minimises ``mean_i (log E_h(t_{i+1}) - log E_h(t_i))^2`` over the grid. It needs
+    readings at different incidence angles; a caller keeps ``reference`` unless the fit lowers
+    the roughness clearly.
+    """
+    cols = [np.asarray(a, np.float64).ravel() for a in (reading, elevation, azimuth, yaw, pitch, roll)]
+    ok = np.all([np.isfinite(c) for c in cols], axis=0) & (cols[0] > 0)
+    e, el, az, y, p, r = (c[ok] for c in cols)
+    g = np.geomspace(0.02, 2.0, 81) if grid is None else np.asarray(grid, np.float64).ravel()
+
+    def rough(ratio: float) -> float:
+        h = horizontal_irradiance(e, el, az, y, p, r, diffuse_ratio=ratio, layers=layers).horizontal
+        d = np.diff(np.log(h[np.isfinite(h) & (h > 0)]))
+        return float(np.mean(d ** 2)) if d.size else float("nan")
+
+    if e.size < 3:
+        return DiffuseFit(float(reference), float("nan"), float("nan"), int(e.size))
+    values = np.array([rough(v) for v in g])
+    best = int(np.nanargmin(values))
+    return DiffuseFit(float(g[best]), float(values[best]), rough(float(reference)), int(e.size))

@@ -80,7 +80,7 @@ from typing import Any, Sequence
 import mscal_core
 import numpy as np
 from mscal_core.errors import CalibrationStoreError, FrameError, InputError
-from mscal_core.illumination import INTERPOLATION_MODES, fit_illumination, frame_illumination
+from mscal_core.illumination import INTERPOLATION_MODES, fit_illumination
 from mscal_core.panel import sample_quad
 
 from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, stat_fingerprint
@@ -93,11 +93,19 @@ from pipeline.apply.flight import (
     previous_run,
 )
 from pipeline.apply.panel import PanelBand, panel_factors
+from pipeline.apply.sunlight import (
+    PanelSensorLight,
+    SensorLight,
+    check_times,
+    light_warnings,
+    panel_sensor_light,
+    readings_missing,
+    sensor_light,
+)
 from pipeline.ingest.camera_meta import (
     FACTORY_ALIGNMENT_NOTE,
     Capture,
     FieldParts,
-    capture_irradiance,
     factory_radiance,
     has_factory_alignment,
     read_capture_pixels,
@@ -109,8 +117,10 @@ from pipeline.ingest.identify import Identification, identify_camera
 from pipeline.ingest.session import PanelConfig, panel_config_near
 
 FACTORY = "factory"
-REFERENCES = ("auto", "panel", "dls")  # + "none" (radiance only) when auto finds no usable sun sensor
+REFERENCES = ("auto", "panel", "dls", "panel-dls")  # + "none" (radiance only) when auto finds no usable sun sensor
 PANEL_SEARCH = 3  # captures at each end of the folder searched for a panel when none is named
+PANEL_SCAN_ALL = 50  # folders of at most this many captures are searched whole (panels mixed with the flight)
+LIGHT_MODEL = "issue22: sun sensor turned horizontal; panel-dls; one panel region for all bands"
 PANEL_SEEN_SIDE = 1280  # px: panels_seen searches bigger images decimated to this (RedEdge size)
 PANEL_GRID = 32  # cells per side of the panel grid for the S/B split (Eq. 11-14)
 FIELD_COMPONENTS = ("response", "vignetting")  # store variables: inverse_response, vignetting
@@ -228,9 +238,8 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
             except FrameError as exc:
                 raise InputError(f"panel capture {n}: {exc.reason}", path=exc.path, hint=exc.hint) from None
         return refs
-    ends = list(captures[:PANEL_SEARCH]) + [c for c in captures[-PANEL_SEARCH:] if c not in captures[:PANEL_SEARCH]]
     refs = []
-    for c in ends:
+    for c in panel_candidates(captures):
         try:
             _, dns, channels = read_capture_pixels(c)
             refs.append(panel_reference(c, dns, rho, parts, config, channels))
@@ -238,10 +247,22 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
             continue
     if not refs:
         raise InputError(
-            f"no reflectance panel found in the first and last {PANEL_SEARCH} captures", path=folder,
+            f"no reflectance panel found in the captures searched (all of them up to {PANEL_SCAN_ALL}, else the "
+            f"first and last {PANEL_SEARCH} and those the camera flagged with XMP ReflectArea)", path=folder,
             hint="name the panel capture with --panel IMG_XXXX, or use --reference dls",
         )
     return refs
+
+
+def panel_candidates(captures: Sequence[Capture]) -> list[Capture]:
+    """Captures searched for a panel when none is named, in folder order: all of them in a
+    folder of at most :data:`PANEL_SCAN_ALL` captures (panels before, during and after the
+    flight, mixed with it); else the first and last :data:`PANEL_SEARCH` and every capture the
+    camera flagged as a panel capture (an XMP ``ReflectArea`` in one of its bands)."""
+    if len(captures) <= PANEL_SCAN_ALL:
+        return list(captures)
+    ends = {c.name for c in list(captures[:PANEL_SEARCH]) + list(captures[-PANEL_SEARCH:])}
+    return [c for c in captures if c.name in ends or any(m.reflect_area for m in c.metas)]
 
 
 # --------------------------------------------------------------------------- the pass
@@ -327,6 +348,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     fingerprint = {
         "inputs": stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
         "mscal_version": mscal_core.__version__,
+        "light_model": LIGHT_MODEL,  # results of earlier runs (raw sun-sensor readings) are not reused
     }
     if registration is not None:
         fingerprint["registration_sha256"] = registration[1]
@@ -341,9 +363,9 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     reference = _route(options, captures)
     panels: list[PanelReference] = []
     panel_factor = None
-    if reference == "panel":
+    if reference in ("panel", "panel-dls"):
         if options.panel_reflectance is None:
-            raise InputError("--reference panel needs --panel-reflectance (a number or a target name)",
+            raise InputError(f"--reference {reference} needs --panel-reflectance (a number or a target name)",
                              hint="e.g. --panel-reflectance micasense-rp02-1603036-sc")
         spec = reflectance_option(options.panel_reflectance)
         rho = [float(r) for r in spec.at(np.array([m.wavelength_nm for m in captures[0].metas]))]
@@ -351,18 +373,18 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                               None if near is None else near[0])
         panel_factor = tuple(float(np.mean([p.factor_split[b] for p in panels])) for b in range(camera.n_bands))
 
-    light = None
-    if options.illumination is not None:
-        if reference != "panel":
-            raise InputError("--illumination is for the panel route: with the sun sensor (DLS) each capture already "
-                             "has its own light", hint="leave --illumination out, or give --panel-reflectance")
-        light = panel_light(captures, panels, options.illumination, folder)
-    scales = {} if light is None else {c.name: tuple(float(v) for v in light[f]) for f, c in enumerate(captures)}
+    if options.illumination is not None and reference not in ("panel", "panel-dls"):
+        raise InputError("--illumination is for the panel route: with the sun sensor (DLS) each capture already "
+                         "has its own light", hint="leave --illumination out, or give --panel-reflectance")
+    uses_panels = reference in ("panel", "panel-dls")
     # One search for panel captures the run does not use: they go to OUT/panels/, and with
     # --reference auto the summary and report say how to use them.
-    unused = panels_seen(captures, options.panel_captures) if reference != "panel" else []
+    unused = panels_seen(captures, options.panel_captures) if not uses_panels else []
     seen = unused if options.reference == "auto" else []
     relative = relative_scale(captures, reference, saturation_dn(camera))
+    times = capture_times(captures)
+    sensor = None if readings_missing(captures) else sensor_light(captures, times)
+    light, scales = _capture_light(options, reference, captures, panels, times, sensor, relative, folder)
 
     attrs = {"calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
              "comment": "bands are not co-registered: each band keeps its own pixel grid",
@@ -381,8 +403,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     panel_names.update({name: "a reflectance panel (camera's panel flag, --panel, or detected); not used: "
                               "no --panel-reflectance" for name in unused})
     run = CaptureRun(
-        chain=FactoryChain(saturation_dn(camera), reference, panel_factor, None if field is None else field[:2],
-                           relative),
+        chain=FactoryChain(saturation_dn(camera), "panel" if reference == "panel-dls" else reference, panel_factor,
+                           None if field is None else field[:2], relative),
         calibration=FACTORY, calibration_sha256=None, fingerprint=fingerprint, attrs=attrs,
         reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
         execution=options.execution,
@@ -396,7 +418,9 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                                                        **ident.probe},
                              "radiance_unit": caps[0].metas[0].radiance_unit,
                              "band_alignment": _alignment_record(options, own, caps),
-                             "illumination": _light_record(options.illumination, panels, caps, scales, camera)},
+                             "illumination": _light_record(options.illumination, panels, caps, scales, camera),
+                             **light_record(reference, panels, captures, sensor, light, camera,
+                                          options.illumination or DEFAULT_LIGHT_MODE, times)},
         scale=lambda name: scales.get(name),
         panels=panel_names, reference_band=_reference_band(options.registration, camera),
     )
@@ -476,13 +500,13 @@ def _seen_record(seen: Sequence[str]) -> dict[str, Any]:
 
 
 def _route(options: FactoryOptions, captures: Sequence[Capture]) -> str:
-    """The reference route: as asked, or for ``auto`` the panel when a reflectance is given,
-    else the sun sensor, else ``none`` (radiance only) when no band of any capture has a
+    """The reference route: as asked, or for ``auto`` the panel when a reflectance is given
+    (anchoring the sun sensor, ``panel-dls``, when the captures have readings), else the sun sensor, else ``none`` (radiance only) when no band of any capture has a
     usable sun-sensor reflectance (Sentera)."""
     if options.reference != "auto":
         return options.reference
     if options.panel_reflectance is not None:
-        return "panel"
+        return "panel" if readings_missing(captures) else "panel-dls"
     if not any(reflectance_factor(m) is not None for c in captures for m in c.metas):
         return "none"
     return "dls"
@@ -541,13 +565,17 @@ def _reference_record(reference: str, panels: Sequence[PanelReference], factor: 
         return rec
     if reference == "dls":
         if meta is None or sun_sensor_absolute(meta):
-            rec["formula"] = "R_b = pi L_b / E_b, E_b the capture's XMP Irradiance (no tilt correction)"
+            rec["formula"] = ("R_b = pi L_b / E_h,b, E_h,b the capture's sun sensor reading turned horizontal (sun position, "
+                              "sensor tilt, direct/diffuse split: run.json sun_sensor)")
         else:
-            rec["formula"] = (f"R_b = L_b / E_b, E_b the capture's sun sensor ({meta.irradiance_unit}): reflectance "
+            rec["formula"] = (f"R_b = L_b / E_h,b, E_h,b the capture's sun sensor ({meta.irradiance_unit}) turned horizontal: reflectance "
                               "up to one unknown constant (indices are right; absolute values need a panel)")
             rec["scale"] = "relative"
         return rec
     rec["formula"] = "R_b = L_b / S_b, S_b from the panel's Eq. 11-14 split (median-lit panel)"
+    if reference == "panel-dls":
+        rec["formula"] = ("R_b(t) = L_b / E_b(t), E_b(t) = q_b(t) E^s_b(t): the panels' light over the sun sensor's "
+                          "(tilt-corrected) per band, interpolated in time, times the capture's own sensor reading")
     rec["factor"] = dict(zip(camera.band_names, factor or ()))
     rec["panels"] = []
     for p in panels:
@@ -565,33 +593,99 @@ def _reference_record(reference: str, panels: Sequence[PanelReference], factor: 
     return rec
 
 
-def panel_light(captures: Sequence[Capture], panels: Sequence[PanelReference], mode: str, folder: Path) -> np.ndarray:
-    """``k_b`` of every capture (n_captures, n_bands) from the light of the panel captures
-    (issue 8 for the factory chain): each panel capture's ``S_c = 1 / k_c`` (Eq. 11-14 split)
-    interpolated to the capture's time (``nearest`` or ``linear``), its level scaled by the
-    captures' sun-sensor readings between the panels when every band has one
-    (:func:`mscal_core.illumination.frame_illumination`)."""
-    by_name = {c.name: c for c in captures}
-    panel_caps = [by_name[p.capture] for p in panels]
-    times = capture_times(captures)
-    t_f = np.where(np.isnat(times), np.nan, times.astype("datetime64[ns]").astype(np.int64) / 1e9)
-    t_c = t_f[[list(by_name).index(c.name) for c in panel_caps]]
-    if len(panels) > 1 and not np.all(np.isfinite(t_f)):
-        missing = [captures[f].name for f in np.flatnonzero(~np.isfinite(t_f))[:3]]
-        raise InputError(f"capture(s) {', '.join(missing)} have no time (EXIF DateTimeOriginal), but the light of "
-                         f"{len(panels)} panel captures is interpolated to each capture's time", path=folder,
-                         hint="leave --illumination out to use the panels' mean factor")
-    s_c = 1.0 / np.array([p.factor_split for p in panels], dtype=np.float64)
-    e_c = np.array([np.nan if capture_irradiance(c) is None else capture_irradiance(c) for c in panel_caps])
-    e_f = np.array([np.nan if capture_irradiance(c) is None else capture_irradiance(c) for c in captures])
-    light = frame_illumination(s_c, t_c, t_f, mode, capture_irradiance=e_c, frame_irradiance=e_f)
-    return 1.0 / light.spectral_factor
+def _capture_light(options: FactoryOptions, reference: str, captures: Sequence[Capture],
+                   panels: Sequence[PanelReference], times: np.ndarray, sensor: SensorLight | None, relative: float,
+                   folder: Path) -> tuple[PanelSensorLight | None, dict[str, tuple[float, ...]]]:
+    """``k_b`` of every capture that does not take the run's one factor: the sun sensor's
+    (``dls``, tilt-corrected, :mod:`pipeline.apply.sunlight`), the panels' over time
+    (``panel`` with ``--illumination``) or the panels anchored by the sensor (``panel-dls``,
+    ``--illumination`` default linear)."""
+    if reference == "dls" and sensor is not None:
+        k = sensor.factor * relative
+        return None, {c.name: tuple(float(v) for v in k[f]) for f, c in enumerate(captures)}
+    if reference not in ("panel", "panel-dls") or (reference == "panel" and options.illumination is None):
+        return None, {}
+    if reference == "panel-dls" and sensor is None:
+        raise InputError("--reference panel-dls: no capture in the folder has a sun-sensor reading", path=folder,
+                         hint="use --reference panel (the panels alone), with --illumination to follow them in time")
+    mode = options.illumination or DEFAULT_LIGHT_MODE
+    light = panel_light(captures, panels, mode, folder, sensor if reference == "panel-dls" else None, times)
+    return light, {c.name: tuple(float(v) for v in light.factor[f]) for f, c in enumerate(captures)}
+
+
+#: ``panel-dls`` without ``--illumination``: the panel/sensor ratio linear in time between panels.
+DEFAULT_LIGHT_MODE = "linear"
+
+
+def panel_light(captures: Sequence[Capture], panels: Sequence[PanelReference], mode: str, folder: Path,
+                sensor: SensorLight | None = None, times: np.ndarray | None = None) -> PanelSensorLight:
+    """``k_b`` of every capture from the panel captures (issue 8, and 22 for the sensor): each
+    panel's ``1 / k_c`` (Eq. 11-14 split) interpolated to the capture's time (``nearest`` or
+    ``linear``); with ``sensor``, the panel / sensor ratio per band is interpolated instead and
+    multiplied by the capture's own tilt-corrected sensor reading
+    (:func:`pipeline.apply.sunlight.panel_sensor_light`)."""
+    times = capture_times(captures) if times is None else times
+    names = [c.name for c in captures]
+    check_times(captures, times, len(panels), folder)
+    idx = [names.index(p.capture) for p in panels]
+    return panel_sensor_light(np.array([p.factor_split for p in panels], dtype=np.float64), idx, times, sensor, mode)
+
+
+def light_record(reference: str, panels: Sequence[PanelReference], captures: Sequence[Capture],
+                 sensor: SensorLight | None, light: PanelSensorLight | None, camera: Camera,
+                 mode: str = DEFAULT_LIGHT_MODE, times: np.ndarray | None = None) -> dict[str, Any]:
+    """run.json ``light``: per panel capture and band the panel's light ``1 / k`` beside the
+    sun sensor's (tilt-corrected) and their ratio, per capture the light used, the warnings
+    (numbers with thresholds) when panels and sensor disagree, and with several panels each
+    panel's reflectance error when predicted from the others (``panel_check``)."""
+    names, bands = [c.name for c in captures], list(camera.band_names)
+    absolute = bool(captures) and sun_sensor_absolute(captures[0].metas[0])
+    unit = "W m-2 nm-1 (pi / k)" if absolute else "relative (1 / k)"
+    scale = math.pi if absolute else 1.0
+    rec: dict[str, Any] = {"route": reference, "irradiance_unit": unit}
+    idx = {c.name: f for f, c in enumerate(captures)}
+    rec["panels_over_time"] = [{
+        "capture": p.capture,
+        "panel_irradiance": dict(zip(bands, (round(scale / k, 6) for k in p.factor_split))),
+        "sensor_irradiance": None if sensor is None else dict(zip(bands, (
+            None if not np.isfinite(v) else round(scale * float(v), 6) for v in sensor.irradiance[idx[p.capture]]))),
+    } for p in panels]
+    if light is not None:
+        rec["frame_irradiance"] = {n: dict(zip(bands, (round(scale / float(k), 6) for k in light.factor[f])))
+                                   for f, n in enumerate(names)}
+        rec["sensor_used"] = {n: bool(light.sensor_used[f].all()) for f, n in enumerate(names)}
+        rec["panel_sensor_drift"] = dict(zip(bands, (None if not np.isfinite(d) else round(float(d), 6)
+                                                     for d in light.drift)))
+    if light is not None and len(panels) > 1:
+        rec["panel_check"] = _panel_check(panels, names, sensor if reference == "panel-dls" else None, mode,
+                                          capture_times(captures) if times is None else times, bands)
+    rec["warnings"] = light_warnings(names, bands, sensor, light, [p.capture for p in panels])
+    out = {"light": rec}
+    if sensor is not None:
+        out["sun_sensor"] = sensor.record(names, bands)
+    return out
+
+
+def _panel_check(panels: Sequence[PanelReference], names: Sequence[str], sensor: SensorLight | None, mode: str,
+                 times: np.ndarray, bands: Sequence[str]) -> list[dict[str, Any]]:
+    """Each panel's reflectance predicted from the other panels (and the sensor) over its own:
+    ``k_pred / k_c - 1`` per band (0: they agree)."""
+    k = np.array([p.factor_split for p in panels], dtype=np.float64)
+    idx = [list(names).index(p.capture) for p in panels]
+    out = []
+    for c, p in enumerate(panels):
+        others = [i for i in range(len(panels)) if i != c]
+        pred = panel_sensor_light(k[others], [idx[i] for i in others], times, sensor, mode).factor[idx[c]]
+        out.append({"capture": p.capture, "from": [panels[i].capture for i in others],
+                    "reflectance_error": dict(zip(bands, (round(float(v), 6) for v in pred / k[c] - 1)))})
+    return out
 
 
 def _light_record(mode: str | None, panels: Sequence[PanelReference], captures: Sequence[Capture],
                   scales: dict[str, tuple[float, ...]], camera: Camera) -> dict[str, Any]:
-    if mode is None:
+    if not scales:
         return {"varies_in_time": False, "panels": [p.capture for p in panels],
-                "note": "one factor per band for every capture (the panels' mean, or each capture's own DLS)"}
-    return {"varies_in_time": True, "mode": mode, "panels": [p.capture for p in panels],
+                "note": "one factor per band for every capture (the panels' mean)"}
+    return {"varies_in_time": True, "mode": mode or (DEFAULT_LIGHT_MODE if panels else None),
+            "panels": [p.capture for p in panels],
             "per_frame": {c.name: dict(zip(camera.band_names, scales[c.name])) for c in captures}}

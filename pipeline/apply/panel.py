@@ -14,6 +14,11 @@ Panel region of one band file, first that applies:
 
 Otherwise :class:`FrameError` "no reflectance panel found" naming the file.
 
+A panel capture's bands share one region (:func:`common_regions`, issue 22): when every band
+detects the panel, the region is chosen once in the panel's own coordinates (the camera's
+ReflectArea of one band, else the centred inset) and mapped into each band through its own
+detection of the same square, so that every band samples the same spot of the panel.
+
 Reflectance of a capture (bands are *not* co-registered: every band uses its own pixel grid,
 its own panel polygon, and per-pixel indices mix neighbouring ground points near edges):
 
@@ -36,7 +41,16 @@ from mscal_core.errors import FrameError
 from mscal_core.factory import panel_stats, polygon_mask
 from mscal_core.geometry import detect_marker
 from mscal_core.illumination import IlluminationFit, fit_illumination
-from mscal_core.panel import DEFAULT_INSET, detect_panel, panel_from_marker, sample_quad, shrink_polygon
+from mscal_core.panel import (
+    DEFAULT_INSET,
+    detect_panel,
+    from_panel_coords,
+    inset_square,
+    panel_from_marker,
+    sample_quad,
+    shrink_polygon,
+    to_panel_coords,
+)
 from mscal_core.reflectance import ndvi
 
 from pipeline.ingest.camera_meta import CaptureMeta, FieldParts, factory_radiance
@@ -119,6 +133,52 @@ def panel_region(
     )
 
 
+def common_regions(
+    metas: Sequence[CaptureMeta],
+    dns: Sequence[np.ndarray],
+    *,
+    session_polygon: Sequence[Sequence[float]] | None = None,
+    inset: float = DEFAULT_INSET,
+    config: PanelConfig | None = None,
+) -> list[PanelRegion]:
+    """One panel region for all bands of a capture (issue 22): the same physical spot of the
+    panel in every band, so that the panel's colour is not biased by where each band looked.
+
+    When every band shows the panel (:func:`mscal_core.panel.detect_panel`), the region is
+    chosen once in the panel's own coordinates (:func:`mscal_core.panel.to_panel_coords`): the
+    camera's XMP ReflectArea of the first band that has a four-corner one, else the centred
+    ``inset`` square; and mapped into each band through that band's detection of the same
+    square (source ``"detected"``, or ``"xmp:BAND"`` for the camera's area carried over).
+    Otherwise, when every band has its ReflectArea, those (``"xmp"``, the camera's choice);
+    else each band's own region (:func:`panel_region`: marker, detection, session polygon).
+    A session panel marker keeps the per-band route (the marker places the same rectangle in
+    every band already).
+    """
+    if config is None or config.marker is None:
+        areas = [reflect_area_polygon(m) for m in metas]
+        found = []
+        for dn in dns:  # stop at the first band without a panel: most captures of a flight have none
+            found.append(detect_panel(dn))
+            if found[-1] is None:
+                break
+        if found and len(found) == len(dns) and all(f is not None for f in found):
+            ref = next((b for b, a in enumerate(areas) if a is not None and len(a) == 4), None)
+            if ref is None:
+                uv, source = inset_square(inset), "detected"
+            else:
+                uv, source = to_panel_coords(found[ref].outline, areas[ref]), f"xmp:{metas[ref].band_name}"
+            out = []
+            for meta, f in zip(metas, found):
+                quad = from_panel_coords(f.outline, uv)
+                _check_inside(quad, meta, "the panel region mapped from the common panel coordinates")
+                out.append(PanelRegion(quad, source))
+            return out
+        if areas and all(a is not None for a in areas):
+            return [PanelRegion(a, "xmp") for a in areas]  # type: ignore[arg-type]
+    return [panel_region(m, dn, session_polygon=session_polygon, inset=inset, config=config)
+            for m, dn in zip(metas, dns)]
+
+
 @dataclass(frozen=True)
 class PanelBand:
     """One band of a panel capture: its region, mean radiance on it and the factor ``k_b``."""
@@ -152,8 +212,8 @@ def panel_factors(
     out = []
     parts = list(parts) if parts is not None else [None] * len(metas)
     chans = list(channels) if channels is not None else [None] * len(metas)
-    for meta, dn, rho_b, part, ch in zip(metas, dns, rho, parts, chans):
-        region = panel_region(meta, dn, session_polygon=session_polygon, config=config)
+    regions = common_regions(metas, dns, session_polygon=session_polygon, config=config)
+    for meta, dn, rho_b, part, ch, region in zip(metas, dns, rho, parts, chans, regions):
         mask = polygon_mask(dn.shape, region.corners)
         sat = SATURATION_DN if meta.bits_per_sample >= 16 else 2**meta.bits_per_sample - 2  # JPEG: 255 is clipped
         raw = panel_stats(dn, mask, saturation=sat)

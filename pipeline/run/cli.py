@@ -313,9 +313,10 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
               "With --calibration factory: the panel capture name(s), comma-separated (default: found among "
               "the folder's first and last captures).")
 @click.option("--panel-reflectance", default=None, help="Reflectance of the panel: a number or a target name.")
-@click.option("--reference", default="auto", show_default=True, type=click.Choice(["auto", "panel", "dls"]),
-              help="--calibration factory only: reflectance from a panel capture or from the sun sensor (DLS); "
-                   "auto takes the panel when --panel-reflectance is given.")
+@click.option("--reference", default="auto", show_default=True, type=click.Choice(["auto", "panel", "dls", "panel-dls"]),
+              help="--calibration factory only: reflectance from panel captures, from the sun sensor (DLS, "
+                   "tilt-corrected), or panel-dls (panels anchor the scale, the sensor the change); auto: "
+                   "panel-dls when --panel-reflectance is given and the captures have sensor readings.")
 @click.option("--camera", default=None, help="--calibration factory: the catalog camera (default: recognised from "
               "the files' Make/Model and XMP; see 'mscal cameras FOLDER').")
 @click.option("--float32", "float32", is_flag=True, help="Photogrammetry TIFFs as float32 instead of uint16 x 32768.")
@@ -324,8 +325,8 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
 @click.option("--illumination", type=ILLUMINATION_MODES, default=None,
               help="Light of each frame between several reflector captures (with --calibration factory: "
                    "panel captures): the nearest capture in time, or linear in time (irradiance readings, if "
-                   "any, scale the brightness in both). Default: linear; with --calibration factory, the "
-                   "panels' mean factor for every capture.")
+                   "any, scale the brightness in both). Default: linear; with --calibration factory and "
+                   "--reference panel, the panels' mean factor for every capture.")
 @click.option("--no-align", "no_align", is_flag=True,
               help="Keep each band on its own pixel grid even if the calibration has band transforms ('mscal register'), "
                    "or (--calibration factory) the band files their own registration (DJI DewarpData, CalibratedHMatrix).")

@@ -76,3 +76,58 @@ def test_sun_behind_the_sensor_is_flagged() -> None:
     got = ss.horizontal_irradiance(0.2, D(10), D(0), 0.0, D(30), 0.0)  # sun low in the north, sensor leaning south
     assert not bool(got.sun_visible)
     assert np.isfinite(got.horizontal)  # diffuse light alone, resting on the ratio
+
+
+def test_dls2_horizontal_is_direct_times_sin_elevation_plus_scattered() -> None:
+    assert ss.dls2_horizontal(2.0, 0.5, np.radians(30.0)) == pytest.approx(2.0 * 0.5 + 0.5)
+    assert ss.dls2_horizontal(2.0, 0.5, np.radians(-5.0)) == pytest.approx(0.5)  # sun down: the sky alone
+
+
+def test_anchored_irradiance_follows_the_sensor_on_the_panels_scale() -> None:
+    # two panels at t = 0 and 10; the sensor reads 0.8 of the panels' light at t = 0 and 0.9 at t = 10
+    ep = np.array([[1.0, 2.0], [0.8, 1.6]])
+    es = ep * np.array([[0.8], [0.9]])
+    w = np.array([[1.0, 0.0], [0.5, 0.5], [0.0, 1.0], [0.0, 1.0]])  # t = 0, 5, 10, 20 (held beyond)
+    ef = np.array([[0.8, 1.6], [0.6, 1.2], [0.72, 1.44], [0.45, 0.9]])
+    light = ss.anchored_irradiance(ep, es, w, ef)
+    q = np.array([1 / 0.8, 0.5 / 0.8 + 0.5 / 0.9, 1 / 0.9, 1 / 0.9])
+    np.testing.assert_allclose(light.ratio[:, 0], q)
+    np.testing.assert_allclose(light.irradiance, q[:, None] * ef)
+    np.testing.assert_allclose(light.irradiance[[0, 2]], ep)  # the panels get their own light back
+    assert light.sensor_used.all()
+    # a frame without a reading, and a band whose panels have none, fall back to the panels
+    ef2 = ef.copy()
+    ef2[1, 0] = np.nan
+    es2 = es.copy()
+    es2[0, 1] = np.nan
+    light2 = ss.anchored_irradiance(ep, es2, w, ef2)
+    assert light2.irradiance[1, 0] == pytest.approx(0.9) and not light2.sensor_used[1, 0]
+    np.testing.assert_allclose(light2.irradiance[:, 1], w @ ep[:, 1])
+    assert not light2.sensor_used[:, 1].any()
+    with pytest.raises(ValueError, match="shapes disagree"):
+        ss.anchored_irradiance(ep, es, w[:, :1], ef)
+
+
+def test_ratio_drift_measures_disagreement_between_panels_and_sensor() -> None:
+    ep = np.array([[1.0, 1.0], [0.8, 0.8]])
+    es = np.array([[0.5, 0.5], [0.4, 0.44]])
+    np.testing.assert_allclose(ss.ratio_drift(ep, es), [0.0, 2.0 / (0.8 / 0.44) - 1.0])
+    assert np.isnan(ss.ratio_drift(ep, np.array([[0.5, 0.5], [np.nan, 0.4]]))[0])
+
+
+def test_diffuse_ratio_is_recovered_from_readings_at_changing_attitudes() -> None:
+    rng = np.random.default_rng(3)
+    n = 40
+    el = np.radians(np.linspace(45, 40, n))
+    az = np.radians(np.linspace(200, 210, n))
+    yaw = rng.uniform(-np.pi, np.pi, n)
+    pitch, roll = np.radians(rng.normal(0, 6, n)), np.radians(rng.normal(0, 6, n))
+    direct = np.linspace(1.0, 0.9, n)  # a slow fade
+    for true in (0.08, 0.3):
+        reading = ss.sensor_reading(direct, true * direct, el, az, yaw, pitch, roll)
+        reading = reading * (1 + 0.002 * rng.normal(0, 1, n))
+        fit = ss.fit_diffuse_ratio(reading, el, az, yaw, pitch, roll)
+        assert fit.ratio == pytest.approx(true, rel=0.15) and fit.n == n
+        assert fit.roughness < 0.5 * fit.roughness_at  # clearly better than the clear-sky 1/6
+    few = ss.fit_diffuse_ratio(reading[:2], el[:2], az[:2], yaw[:2], pitch[:2], roll[:2])
+    assert few.ratio == pytest.approx(ss.CLEAR_SKY_DIFFUSE_RATIO) and few.n == 2

@@ -231,7 +231,7 @@ def reference_table(run: dict[str, Any], band_names: Sequence[str] = ()) -> Tabl
     rec = run.get("reference")
     if not isinstance(rec, dict):
         return None
-    if rec.get("route") != "panel":
+    if rec.get("route") not in ("panel", "panel-dls"):
         return Table("Reflectance reference", ["route", "formula"], [[rec.get("route"), rec.get("formula")]],
                      note="each capture's own sun-sensor reading; no panel to compare it with "
                           "(give --panel-reflectance to use and compare a panel capture)")
@@ -278,6 +278,51 @@ def reference_warnings(run: dict[str, Any]) -> list[QAWarning]:
     return out
 
 
+def _band_order(values: dict[str, Any], band_names: Sequence[str]) -> list[str]:
+    return [b for b in band_names if b in values] + sorted(b for b in values if b not in band_names)
+
+
+def light_tables(run: dict[str, Any], band_names: Sequence[str] = ()) -> list[Table]:
+    """The light of a factory apply over time (run.json ``light``, issue 22): per panel capture
+    and band the panel's irradiance beside the sun sensor's (tilt-corrected) and their ratio;
+    per frame the light it was given. [] for runs without one."""
+    rec = run.get("light")
+    if not isinstance(rec, dict):
+        return []
+    unit = rec.get("irradiance_unit", "")
+    rows = []
+    for p in rec.get("panels_over_time") or []:
+        panel, sensor = p.get("panel_irradiance") or {}, p.get("sensor_irradiance") or {}
+        for band in _band_order(panel, band_names):
+            e_p, e_s = panel.get(band), sensor.get(band)
+            rows.append([p.get("capture"), band, e_p, e_s, (e_p / e_s) if e_p and e_s else None])
+    drift = rec.get("panel_sensor_drift") or {}
+    tables = [Table("Light over time: panels and sun sensor", ["panel capture", "band", f"panel E ({unit})",
+                    "sun sensor E (tilt-corrected)", "panel / sensor"], rows,
+                    note="panel/sensor drift per band (max/min - 1 over the panels): "
+                         + ", ".join(f"{b} {drift[b]:.1%}" for b in _band_order(drift, band_names) if drift[b] is not None))]
+    frames = rec.get("frame_irradiance") or {}
+    if frames:
+        first = next(iter(frames.values()))
+        order = _band_order(first, band_names)
+        shown = list(frames.items())[:TABLE_MAX_ROWS]
+        tables.append(Table(f"Light at each frame ({unit})", ["frame", *order, "sun sensor used"],
+                            [[n, *[v.get(b) for b in order], (rec.get("sensor_used") or {}).get(n)] for n, v in shown],
+                            note=f"first {len(shown)} of {len(frames)} frames; all in run.json light"
+                            if len(frames) > len(shown) else rec.get("route", "")))
+    return tables
+
+
+def light_warnings(run: dict[str, Any]) -> list[QAWarning]:
+    """run.json ``light.warnings``: panels and sun sensor disagreeing on the light's change, a
+    sensor tilted too far (each with its number and threshold)."""
+    rec = run.get("light")
+    if not isinstance(rec, dict):
+        return []
+    return [QAWarning(str(w.get("code")), str(w.get("message")), float(w.get("value")), float(w.get("threshold")))
+            for w in rec.get("warnings") or []]
+
+
 def flight_section(flight: FlightResults, calibration: xr.Dataset | None) -> Section:
     rows = frame_rows(flight)
     ok = [r for r in rows if r["status"] == "ok"]
@@ -298,6 +343,8 @@ def flight_section(flight: FlightResults, calibration: xr.Dataset | None) -> Sec
     if ref is not None:
         tables.append(ref)
         warns += reference_warnings(run)
+    tables += light_tables(run, flight.camera.band_names if flight.camera is not None else ())
+    warns += light_warnings(run)
     sec = Section(f"Flight: {flight.name}", f"flight-{flight.name}", warns, tables + [table])
     sec.figures += [
         ("NDVI quick-looks", lambda: plot_ndvi(flight)),

@@ -6,6 +6,7 @@ not apply."""
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -138,23 +139,29 @@ def test_factory_refuses_options_it_would_ignore(tmp_path, capsys, extra, expect
 
 
 def test_factory_panel_light_follows_the_sun_sensor(tmp_path) -> None:
-    """--illumination with one panel capture: each capture's factor is the panel's scaled by
-    the sun sensor, E(panel) / E(capture) (mean over the bands); without it, the panel's
-    factor for every capture, as before."""
+    """Default with a panel and sun-sensor readings (``panel-dls``, issue 22): each capture's
+    factor is the panel's times the sensor's change per band, E_h,b(panel) / E_h,b(capture)
+    (tilt-corrected readings, run.json sun_sensor); ``--reference panel``: the panel's factor
+    for every capture, as before."""
     args = ["apply", str(require_data()), "--calibration", "factory", "--panel-reflectance",
             "micasense-rp02-1603036-sc", "--panel", "IMG_0000"]
-    assert main([*args, "-o", str(tmp_path / "lit"), "--illumination", "linear"]) == 0
-    assert main([*args, "-o", str(tmp_path / "flat")]) == 0
+    assert main([*args, "-o", str(tmp_path / "lit")]) == 0
+    assert main([*args, "-o", str(tmp_path / "flat"), "--reference", "panel"]) == 0
     lit = json.loads((tmp_path / "lit" / "run.json").read_text())
     flat = json.loads((tmp_path / "flat" / "run.json").read_text())
     k = flat["reference"]["factor"]
-    assert flat["illumination"]["varies_in_time"] is False
-    e = {c: np.mean([read_capture_meta(require_data() / f"{c}_{b}.tif").irradiance for b in range(1, 6)])
-         for c in ("IMG_0000", "IMG_0001")}
+    assert flat["illumination"]["varies_in_time"] is False and "frame_irradiance" not in flat["light"]
+    assert lit["reference"]["route"] == "panel-dls" and lit["illumination"]["mode"] == "linear"
+    e = {c: lit["sun_sensor"][c]["horizontal_irradiance"] for c in ("IMG_0000", "IMG_0001")}
     per = lit["illumination"]["per_frame"]
     for band in BANDS:
         assert per["IMG_0000"][band] == pytest.approx(k[band], rel=1e-9)
-        assert per["IMG_0001"][band] == pytest.approx(k[band] * e["IMG_0000"] / e["IMG_0001"], rel=1e-9)
+        assert per["IMG_0001"][band] == pytest.approx(k[band] * e["IMG_0000"][band] / e["IMG_0001"][band], rel=1e-5)
+        assert lit["light"]["frame_irradiance"]["IMG_0001"][band] == pytest.approx(math.pi / per["IMG_0001"][band],
+                                                                                   rel=1e-5)
+    # the sensor's light fell 1-14 % per band between the two captures (Blue rose 1 %)
+    change = {b: e["IMG_0001"][b] / e["IMG_0000"][b] for b in BANDS}
+    assert change["Blue"] == pytest.approx(1.0128, abs=2e-3) and change["Red"] == pytest.approx(0.8556, abs=2e-3)
     a = xr.open_zarr(tmp_path / "lit" / "reflectance.zarr")
     ratio = np.nanmedian(a["reflectance"].values[1, 3] / a["radiance"].values[1, 3])
     assert ratio == pytest.approx(per["IMG_0001"]["NIR"], rel=1e-5)

@@ -48,10 +48,19 @@ def dls_run(tmp_path_factory) -> Path:
 
 
 def test_radiance_is_the_factory_model_and_dls_reflectance_is_pi_l_over_e(dls_run) -> None:
+    """DLS route: R = pi L / E_h with E_h the reading turned horizontal (issue 22: sun position,
+    tilt, direct/diffuse split; the correction E_h / E per capture is in run.json sun_sensor)."""
     data = require_data()
     ds = xr.open_zarr(dls_run / "reflectance.zarr")
     run = json.loads((dls_run / "run.json").read_text())
     assert run["reference"]["route"] == "dls" and run["frames"] == ["IMG_0000", "IMG_0001"]
+    # the panel capture was held 10.8 deg off level, the flight capture 1.6 deg: the model
+    # (MicaSense's DLS 1, clear sky 1/6) lowers the tilted reading by 11 %, the level one barely
+    corr = {c: run["sun_sensor"][c]["correction"] for c in ("IMG_0000", "IMG_0001")}
+    assert run["sun_sensor"]["IMG_0000"]["sensor_tilt_deg"] == pytest.approx(10.806, abs=0.01)
+    assert run["sun_sensor"]["IMG_0000"]["sun_elevation_deg"] == pytest.approx(41.22, abs=0.02)
+    assert corr["IMG_0000"]["Blue"] == pytest.approx(0.8862, abs=2e-3)
+    assert corr["IMG_0001"]["Blue"] == pytest.approx(1.0170, abs=2e-3)
     assert list(ds["band_name"].values) == list(BANDS)
     for f, cap in enumerate(("IMG_0000", "IMG_0001")):
         for b in range(5):
@@ -62,7 +71,8 @@ def test_radiance_is_the_factory_model_and_dls_reflectance_is_pi_l_over_e(dls_ru
             got = ds["radiance"].isel(frame=f, band=b).values
             np.testing.assert_allclose(got, expect, rtol=1e-6, equal_nan=True)
             refl = ds["reflectance"].isel(frame=f, band=b).values
-            np.testing.assert_allclose(refl, expect * np.float32(math.pi / meta.irradiance), rtol=1e-5, equal_nan=True)
+            k = math.pi / (meta.irradiance * corr[cap][BANDS[b]])
+            np.testing.assert_allclose(refl, expect * np.float32(k), rtol=1e-5, equal_nan=True)
             assert float(ds["irradiance"].isel(frame=f, band=b)) == pytest.approx(meta.irradiance)
     raw = xr.open_zarr(dls_run / "raw.zarr")
     np.testing.assert_array_equal(raw["dn"].isel(frame=1, band=3).values, read_raw(data / "IMG_0001_4.tif"))
@@ -71,7 +81,7 @@ def test_radiance_is_the_factory_model_and_dls_reflectance_is_pi_l_over_e(dls_ru
 def test_panel_route_finds_the_panel_and_gives_its_reflectance_back(panel_run) -> None:
     run = json.loads((panel_run / "run.json").read_text())
     ref = run["reference"]
-    assert ref["route"] == "panel"
+    assert ref["route"] == "panel-dls"  # the default with a panel and sun-sensor readings (issue 22)
     (panel,) = ref["panels"]
     assert panel["capture"] == "IMG_0000" and panel["region_source"] == ["detected"] * 5
     # the panel is evenly lit in this capture: the Eq. 11-14 split and the plain mean agree

@@ -172,7 +172,8 @@ def test_reflect_area_as_one_li_and_other_prefix(tmp_path) -> None:
     folder = cf.reflect_area_one_li(tmp_path / "fw", PANEL_CORNERS)
     run = _apply(folder, tmp_path / "out", "--panel-reflectance", "micasense-rp02-1603036-sc")
     assert run["frames"] == ["IMG_0000", "IMG_0001"] and run["metadata_problems"] == []
-    assert run["reference"]["panels"][0]["region_source"] == ["xmp"] * 5
+    # one region for all bands (issue 22): band 1's area carried into each band by its detection
+    assert run["reference"]["panels"][0]["region_source"] == ["xmp:Blue"] * 5
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     for b in range(5):
         path = folder / f"IMG_0000_{b + 1}.tif"
@@ -187,9 +188,10 @@ def test_unreadable_reflect_area_disables_only_the_panel_area(tmp_path, capsys) 
     (problem,) = run["metadata_problems"]
     assert problem["file"].endswith("IMG_0000_1.tif") and problem["tag"] == "ReflectArea"
     assert problem["value"] == "622,371,574,abc" and problem["feature"] == "panel_area"
-    # the panel route still works: band 1 finds its panel by detection instead
+    # the panel route still works: band 2's area, carried into every band by its detection of
+    # the panel (one region for all bands, issue 22; band 1 used to take its own detected inset)
     run = _apply(folder, tmp_path / "panel", "--panel-reflectance", "micasense-rp02-1603036-sc")
-    assert run["reference"]["panels"][0]["region_source"] == ["detected", "xmp", "xmp", "xmp", "xmp"]
+    assert run["reference"]["panels"][0]["region_source"] == ["xmp:Green"] * 5
     assert main(["cameras", str(folder)]) == 0
     out = capsys.readouterr().out
     assert "tag problem: IMG_0000_1.tif: ReflectArea = '622,371,574,abc'" in out and "panel_area disabled" in out
@@ -254,7 +256,11 @@ def test_dji_p4_multispectral(tmp_path) -> None:
             x, y = 3, 5
             refl = float(ds["reflectance"].isel(frame=f, band=b).values[y, x])
             scale = run["reference"]["relative_scale"]  # one constant for every band and capture
-            assert refl == pytest.approx(scale * dji_expected(path, x, y) / cf.DJI["irradiance"][b], rel=TOL)
+            # the reading turned horizontal (issue 22; no attitude tags here: a level sensor)
+            sun = run["sun_sensor"][run["frames"][f]]
+            assert sun["model"].endswith("orientation none (level assumed)")
+            corr = sun["correction"][ds["band_name"].values[b]]
+            assert refl == pytest.approx(scale * dji_expected(path, x, y) / (cf.DJI["irradiance"][b] * corr), rel=TOL)
     # the panel, as every other pixel, follows the guide's model
     path = folder / "DJI_0013.TIF"
     yy, xx = np.mgrid[0:960, 0:1280].astype(np.float64)
@@ -423,7 +429,8 @@ def test_sentera_panel_route(tmp_path) -> None:
         pytest.skip("no Sentera sample")
     folder = cf.sentera_with_panel(root, tmp_path / "ndre")
     run = _apply(folder, tmp_path / "out", "--panel-reflectance", "0.5", "--panel", "IMG_00006")
-    assert run["camera"] == "sentera-d4k-ndre" and run["reference"]["route"] == "panel"
+    # ILS counts: no reflectance alone, but they carry the light's change from the panel (issue 22)
+    assert run["camera"] == "sentera-d4k-ndre" and run["reference"]["route"] == "panel-dls"
     assert run["reference"]["panels"][0]["region_source"] == ["detected", "detected"]
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     refl = ds["reflectance"].isel(frame=0).values[:, 1300:1600, 1800:2100]

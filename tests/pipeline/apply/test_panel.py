@@ -197,3 +197,28 @@ def test_light_on_the_panel_split_into_colour_and_brightness(panel_capture, fact
     assert (lo, hi) == (pytest.approx(0.975, abs=0.005), pytest.approx(1.022, abs=0.005))
     cols = np.nanmean(b, axis=0)  # measured: about 2 % darker on the panel's left edge
     assert cols[:4].mean() < cols[12:20].mean() - 0.01
+
+
+def test_one_panel_region_for_all_bands(panel_capture, tmp_path) -> None:
+    """Issue 22: band 1 carries the camera's small ReflectArea in one corner of the panel, the
+    other bands none. Each band used to look at its own spot (band 1 that corner, the others the
+    0.75 inset of their detection); now the corner is carried into every band through its own
+    detection of the same square: the same panel coordinates in all five bands."""
+    from mscal_core.panel import detect_panel, to_panel_coords
+    from tests.camera_files import add_camera_element, rewrite, seq
+
+    metas, dns = panel_capture
+    c = np.array(PANEL_CORNERS[0], dtype=float)  # BR, BL, TL, TR of band 1
+    small = np.round(c[2] + 0.1 * (c[0] - c[2])) + np.array([[40, 40], [0, 40], [0, 0], [40, 0]])  # 40 px near TL
+    text = ",".join(f"{x:.0f},{y:.0f}" for x, y in small)
+    path = rewrite(band_file("0000", 1), tmp_path / "IMG_0000_1.tif",
+                   lambda x: add_camera_element(x, f"<Camera:ReflectArea>{seq(text)}</Camera:ReflectArea>"))
+    metas1 = [read_capture_meta(path), *metas[1:]]
+    rho = load_target("micasense-rp02-1603036-sc").reflectance.at(np.array([m.wavelength_nm for m in metas]))
+    bands = panel_factors(metas1, dns, rho)
+    assert [b.region.source for b in bands] == ["xmp:Blue"] * 5
+    uv = [to_panel_coords(detect_panel(dn).outline, b.region.corners) for dn, b in zip(dns, bands)]
+    for b in range(1, 5):
+        np.testing.assert_allclose(uv[b], uv[0], atol=1e-6)
+    assert uv[0].min() > 0.05 and uv[0].max() < 0.45  # the corner square, not the centred inset
+    np.testing.assert_allclose(bands[0].region.corners, small, atol=1e-3)  # band 1 keeps the camera's area
