@@ -473,7 +473,8 @@ def test_sentera_6x_session_built_from_d4k_files(tmp_path, capsys) -> None:
     assert checked == 60
     (tmp_path / "flight" / "session.yaml").write_text("panel:\n  polygon: [[720, 520], [1080, 520], [1080, 780], [720, 780]]\n")
     run = _apply(tmp_path / "flight", tmp_path / "panel", "--panel-reflectance", "0.5", "--panel", "IMG_00006")
-    assert run["reference"]["route"] == "panel" and run["frames"] == ["IMG_00006", "IMG_00007"]
+    # the built files carry ILS readings: the panel anchors them (panel + sun sensor, the default)
+    assert run["reference"]["route"] == "panel-dls" and run["frames"] == ["IMG_00006", "IMG_00007"]
     refl = xr.open_zarr(tmp_path / "panel" / "reflectance.zarr")["reflectance"].isel(frame=0).values
     np.testing.assert_allclose(np.nanmedian(refl[:, 550:750, 750:1050], axis=(1, 2)), 0.5, rtol=0.03)
 
