@@ -724,12 +724,22 @@ class FieldParts:
 
 
 def factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None = None,
-                     channels: np.ndarray | None = None) -> np.ndarray:
+                     channels: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
     """Radiance of one band's DN with its own factory model (unit: ``meta.radiance_unit``;
     kelvin for a thermal band), or with the field-fitted ``parts`` in place of the factory's
     response and/or vignetting (MicaSense model only). ``channels``: the whole ``(H, W, C)``
     image of a multi-channel file (Sentera), which the colour transform needs. The result is
-    in the stored orientation (see :func:`upright_meta`)."""
+    in the stored orientation (see :func:`upright_meta`); with ``out`` (e.g. a float32 band of
+    the capture's cube) it is written there and ``out`` returned."""
+    rad = _factory_radiance(meta, dn, parts, channels, out)
+    if out is not None and rad is not out:
+        out[...] = rad
+        return out
+    return rad
+
+
+def _factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None, channels: np.ndarray | None,
+                      out: np.ndarray | None) -> np.ndarray:
     if dn.shape != meta.shape:
         raise FrameError(f"image {dn.shape} does not match its metadata {meta.shape}", path=meta.path)
     if parts is not None and (parts.vignetting is not None or parts.inverse_response is not None) and \
@@ -782,6 +792,7 @@ def factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None
         vignetting=vignetting,
         bits_per_sample=meta.bits_per_sample,
         signal=signal,
+        out=out,
     )
 
 
