@@ -109,7 +109,7 @@ def write_section(path: Path, body: str, key: str = SECTION_KEY) -> None:
 @dataclass
 class Run:
     """One command: wall time, CPU time of its process tree (it and its worker processes) and
-    peak RSS (its own high-water mark, or its tree's summed RSS when larger)."""
+    peak RSS (its own high-water mark, or its tree's summed PSS when larger)."""
 
     cmd: list[str]
     wall_s: float
@@ -138,7 +138,8 @@ class Run:
 #: processes the command leaves behind (a forkserver that outlives the command by a moment,
 #: with the workers it reaped) come to it and are reaped too, so the CPU reported is that of
 #: the whole process tree (``RUSAGE_CHILDREN``). The peak RSS is the larger of the command's
-#: own high-water mark and the tree's summed RSS, sampled every 0.25 s from ``/proc``.
+#: own high-water mark and the tree's summed memory (PSS: pages shared by the processes counted
+#: once), sampled every 0.25 s from ``/proc``.
 LAUNCHER = r"""
 import ctypes, json, os, resource, signal, sys, time
 res, out, err, timeout = sys.argv[1:5]
@@ -170,9 +171,18 @@ def tree_kib():
     total, todo = 0, [os.getpid()]
     while todo:
         for c in kids.get(todo.pop(), []):
-            total += rss[c]
+            total += pss_kib(c, rss[c])
             todo.append(c)
     return total
+def pss_kib(pid, rss):  # shared pages (a forkserver's imports in its workers) counted once
+    try:
+        with open(f"/proc/{pid}/smaps_rollup", "rb") as f:
+            for line in f:
+                if line.startswith(b"Pss:"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return rss
 load = os.getloadavg()
 t0 = time.perf_counter()
 pid = os.posix_spawnp(cmd[0], cmd, dict(os.environ),
