@@ -134,11 +134,13 @@ def post_flight(
                 with timings.step(f"fit_{st.name}"):
                     fit_stage(st.name, paths.session, st.store, st.partial, response_method)
             advance(1)
-        publish_calibration(plan.final_store, paths.out)
+        published = publish_calibration(plan.final_store, paths.out)
         for name, flight_dir in flights.items():
             with timings.step(f"apply_{name}"):
-                # apply reads the content-addressed cached store: its path changes when its content does
-                state = apply_flight(name, flight_dir, plan.final_store, str(Path(paths.out) / "flights" / name),
+                # apply reads OUT/calibration.zarr (the same arrays as the cached store), so that a
+                # flight's run.json names the calibration it applied by its place among the outputs
+                state = apply_flight(name, flight_dir, str(Path(published).resolve()),
+                                     str(Path(paths.out) / "flights" / name),
                                      normalise, dask_address, illumination, scheduler, workers, direct_io,
                                      return_state=True)
             # one bad flight (empty, every frame quarantined, unreadable) does not cost the others theirs

@@ -172,3 +172,29 @@ def test_factory_survey_copies_differ_in_pixels_and_capture_id(tmp_path: Path) -
     ids = [re.search(r"<MicaSense:CaptureId>([^<]+)<", (d / f"IMG_{i:04d}_3.tif").read_bytes().decode("latin-1")).group(1)
            for i in (0, 1)]
     assert len(set(ids)) == 2 and all(len(x) == 20 for x in ids)
+
+
+# --------------------------------------------------------------------------- bench_ab
+
+
+def test_ab_order_puts_each_version_first_equally_often() -> None:
+    ab = _load("bench_ab")
+    order = ab._order(4)
+    assert order == ["old", "new", "new", "old", "old", "new", "new", "old"]
+    assert order.count("old") == order.count("new") == 4
+
+
+def test_ab_render_ratios_and_section_replacement(tmp_path: Path) -> None:
+    ab = _load("bench_ab")
+    res = {"calibrate": {"old": [(20.0, 40.0, 800.0), (22.0, 42.0, 810.0)],
+                         "new": [(18.0, 36.0, 790.0), (19.0, 38.0, 805.0)]},
+           "apply": {"old": [(10.0, 12.0, 390.0)], "new": [(11.0, 13.2, 380.0)]}}
+    md = ab.render(res, "aaa", "bbb", "cmd", 300, ("l0", "l1"))
+    assert "new/old CPU median 0.90x, wall median 0.88x" in md  # 37/41, 18.5/21
+    assert "new/old CPU median 1.10x, wall median 1.10x" in md
+    assert "| `mscal calibrate` | old | 2 | 20.0 | 21.0 | 40.0 | 41.0 | 810 |" in md
+    doc = tmp_path / "b.md"
+    doc.write_text("head\n<!-- bench_ab:start -->\nold text\n<!-- bench_ab:end -->\ntail\n")
+    ab._replace_section(doc, md)
+    text = doc.read_text()
+    assert "old text" not in text and text.startswith("head\n") and text.endswith("tail\n") and md in text

@@ -26,6 +26,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import re
 import shutil
 import time
 import uuid
@@ -44,10 +45,12 @@ from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain
 from pipeline.apply.flight import RUN_JSON, ApplyResult, previous_run, remove_frame_tiffs, software_versions
 from pipeline.ingest.camera_meta import Capture, capture_pattern, group_captures
 from pipeline.ingest.catalog import Camera, Index
+from pipeline.ingest.photo_tags import CameraOptics, calibration_picture, read_optics
 from pipeline.ingest.raw import raw_codec
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries, write_json_atomic
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
+from pipeline.storage.store import CF_VARIABLES, FLIGHT_VARIABLES, FRAME_COORD_ATTRS, cf_annotate
 
 __all__ = ["CaptureFolder", "CaptureRun", "apply_captures", "capture_tags", "find_captures", "is_capture_folder"]
 
@@ -125,16 +128,58 @@ def stat_fingerprint(captures: Sequence[Capture]) -> str:
     return h.hexdigest()
 
 
+_UUID_HEX = re.compile(r"^[0-9A-Fa-f]{32}$")
+
+
 def capture_tags(camera: Camera, capture: Capture) -> FrameTags:
-    """Photogrammetry tags of a capture: its first band file's time and position, the median
-    exposure, a CaptureUUID from its XMP CaptureId (shared by its bands)."""
+    """Photogrammetry tags of a capture: its first band file's time, position, EXIF Make and
+    Model and XMP RigName, the median exposure; ``Camera:CaptureUUID`` the source's own when
+    it is one (32 hex digits: Parrot, DJI), else derived from its capture id (the same on
+    every run, shared by its bands); MicaSense captures keep their ``MicaSense:CaptureId``."""
     m = capture.metas[0]
+    cid = str(capture.capture_id)
+    own = cid.replace("-", "")
+    derived = str(uuid.uuid5(uuid.NAMESPACE_URL, f"mscal:{camera.name}:{cid}"))
+    make = m.make or (camera.identify.make if camera.identify is not None else "unknown")
     return FrameTags(
         time=m.time, lat=m.lat, lon=m.lon, alt_m=m.alt_m,
-        capture_uuid=str(uuid.uuid5(uuid.NAMESPACE_URL, f"mscal:{camera.name}:{capture.capture_id}")),
+        capture_uuid=own if _UUID_HEX.match(own) else derived,
         exposure_ms=float(np.median([x.exposure_s * 1e3 for x in capture.metas])),
-        camera_make="mscal", camera_model=camera.name,
+        camera_make=make, camera_model=m.model or camera.name, rig_name=m.rig_name or m.model or camera.name,
+        micasense_capture_id=cid if make.casefold() == "micasense" and cid != capture.name else None,
     )
+
+
+def band_optics(capture: Capture, export: Sequence[int], reference: int | None = None) -> list[CameraOptics | None]:
+    """The lens of each exported band, from ``capture``'s band files (the lens of a band does
+    not change between captures), turned upright with the frames; with ``reference`` (bands
+    warped onto that band's grid by a registration) every band gets the reference band's."""
+    out: list[CameraOptics | None] = []
+    for b in export:
+        meta = capture.metas[b if reference is None else reference]
+        try:
+            optics = read_optics(meta.path)
+        except FrameError:
+            out.append(None)
+            continue
+        h, w = meta.shape
+        out.append(optics.upright(meta.orientation, w, h))
+    return out
+
+
+def metadata_panels(captures: Sequence[Capture]) -> dict[str, str]:
+    """Captures whose own metadata say they show a reflectance panel: a MicaSense
+    ``ReflectArea``, or Pix4D's ``Camera:CalibrationPicture`` >= 1 (1 and 2: a radiometric
+    calibration target)."""
+    out = {}
+    for c in captures:
+        if any(m.reflect_area is not None for m in c.metas):
+            out[c.name] = "XMP ReflectArea (the camera located a reflectance panel)"
+            continue
+        flag = calibration_picture(c.metas[0].path)
+        if flag is not None and flag >= 1:
+            out[c.name] = f"XMP Camera:CalibrationPicture = {flag} (a radiometric calibration target)"
+    return out
 
 
 def capture_times(captures: Sequence[Capture]) -> np.ndarray:
@@ -147,24 +192,25 @@ def capture_coords(camera: Camera, captures: Sequence[Capture], irradiance_unit:
     def per_frame(get: Any) -> np.ndarray:
         return np.array([np.nan if get(c.metas[0]) is None else get(c.metas[0]) for c in captures], dtype=np.float64)
 
+    cf = FRAME_COORD_ATTRS
     return {
-        "frame": np.array([c.name for c in captures], dtype=object),
-        "band": np.arange(camera.n_bands),
-        "wavelength": ("band", np.array([m.wavelength_nm for m in captures[0].metas]), {"units": "nm"}),
+        "frame": ("frame", np.array([c.name for c in captures], dtype=object), dict(cf["frame"])),
+        "band": ("band", np.arange(camera.n_bands), dict(cf["band"])),
+        "wavelength": ("band", np.array([m.wavelength_nm for m in captures[0].metas]), dict(CF_VARIABLES["wavelength"])),
         "band_name": ("band", np.array(camera.band_names, dtype=object)),
         "exposure_ms": ("frame", np.array([np.median([m.exposure_s * 1e3 for m in c.metas]) for c in captures]),
-                        {"units": "ms", "long_name": "median exposure over the capture's bands"}),
+                        {**cf["exposure_ms"], "long_name": "median exposure over the capture's bands"}),
         "band_exposure_ms": (("frame", "band"), np.array([[m.exposure_s * 1e3 for m in c.metas] for c in captures]),
-                             {"units": "ms"}),
-        "gain": ("frame", per_frame(lambda m: m.gain), {"units": "1"}),
+                             dict(FLIGHT_VARIABLES["band_exposure_ms"])),
+        "gain": ("frame", per_frame(lambda m: m.gain), dict(cf["gain"])),
         "irradiance": (("frame", "band"),
                        np.array([[np.nan if m.irradiance is None else m.irradiance for m in c.metas] for c in captures]),
                        {"units": irradiance_unit,
                         "long_name": "downwelling light sensor (XMP Irradiance or the camera's sun sensor)"}),
-        "time": ("frame", capture_times(captures)),
-        "lat": ("frame", per_frame(lambda m: m.lat), {"units": "degrees_north"}),
-        "lon": ("frame", per_frame(lambda m: m.lon), {"units": "degrees_east"}),
-        "alt_m": ("frame", per_frame(lambda m: m.alt_m), {"units": "m"}),
+        "time": ("frame", capture_times(captures), dict(cf["time"])),
+        "lat": ("frame", per_frame(lambda m: m.lat), dict(cf["lat"])),
+        "lon": ("frame", per_frame(lambda m: m.lon), dict(cf["lon"])),
+        "alt_m": ("frame", per_frame(lambda m: m.alt_m), dict(cf["alt_m"])),
         "capture_id": ("frame", np.array([c.capture_id for c in captures], dtype=object)),
     }
 
@@ -174,12 +220,12 @@ def _template(coords: dict[str, Any], shape: tuple[int, int, int], variables: di
     import dask.array as da
 
     ds = xr.Dataset(coords=coords)
-    n = len(coords["frame"])
+    n = ds.sizes["frame"]
     for name, (dims, dtype, vattrs) in variables.items():
         full = (n, *shape) if len(dims) == 4 else (n, *shape[1:])
         ds[name] = (dims, da.zeros(full, chunks=(1, *full[1:]), dtype=dtype), vattrs)
     ds.attrs.update(attrs)
-    return ds
+    return cf_annotate(ds, FLIGHT_VARIABLES)
 
 
 def _create(ds: xr.Dataset, path: Path, compressors: Any) -> None:
@@ -217,6 +263,8 @@ class CaptureRun:
     extra_coords: Callable[[Sequence[Capture]], dict[str, Any]] = lambda captures: {}
     record: Callable[[Sequence[Capture]], dict[str, Any]] = lambda captures: {}
     execution: Execution = Execution()  # how the tasks run (never part of the fingerprint)
+    panels: dict[str, str] = dataclasses.field(default_factory=dict)  # panel captures -> why: TIFFs in OUT/panels/
+    reference_band: int | None = None  # the band a registration warps the others onto (their lens is its)
 
 
 def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder, shape: tuple[int, int, int],
@@ -232,11 +280,12 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
     if previous is not None:
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
     remove_temporaries(out)
+    panels = {**metadata_panels(captures), **run.panels}
     t0 = time.perf_counter()
     with Runner(len(captures), run.execution) as runner:
         while True:  # a capture found unusable in the pass is quarantined and the pass redone without it
             tmp_refl, tmp_raw, plan = _start(out, camera, captures, shape, indices, roles, export, run)
-            jobs = [Job(f, c.name, capture_tags(camera, c), capture=c, scale=run.scale(c.name))
+            jobs = [Job(f, c.name, capture_tags(camera, c), capture=c, scale=run.scale(c.name), panel=c.name in panels)
                     for f, c in enumerate(captures)]
             outcomes = runner.run(plan, jobs, fn=process_frame)
             bad = {o.name: o.quarantine for o in outcomes if o.quarantine is not None}
@@ -274,7 +323,8 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
         "saturated_pixels": {"total": int(sum(o.saturated for o in outcomes)),
                              "per_frame": {o.name: o.saturated for o in outcomes}},
         "outputs": {"reflectance": "reflectance.zarr", "raw": "raw.zarr", "photogrammetry": "photogrammetry/",
-                    "ndvi": "ndvi/"},
+                    "panels": "panels/", "ndvi": "ndvi/"},
+        "panels": [{"capture": name, "reason": why} for name, why in sorted(panels.items()) if name in frames],
         "export_bands": [camera.bands[b].name for b in export],
         "versions": software_versions(),
         "scheduler": runner.scheduler,
@@ -312,7 +362,8 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
         rvars["radiance"] = (("frame", "band", "y", "x"), np.float32,
                              {"long_name": "factory radiance", "units": run.radiance_unit})
     for ix in indices:
-        rvars[ix.name] = (("frame", "y", "x"), np.float32, {"long_name": ix.description, "expression": ix.expression})
+        rvars[ix.name] = (("frame", "y", "x"), np.float32,
+                          {"long_name": ix.description, "expression": ix.expression, "units": "1"})
     if any(ix.name == "ndvi" for ix in indices):
         rvars["vegetation_mask"] = (("frame", "y", "x"), np.uint8,
                                     {"long_name": "vegetation (Otsu threshold of NDVI per frame)",
@@ -322,16 +373,17 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
     refl_ds = _template(coords, shape, rvars, attrs)
     _create(refl_ds, tmp_refl, OUTPUT_COMPRESSORS)
     raw_ds = _template(coords, shape, {"dn": (("frame", "band", "y", "x"), np.uint16,
-                                              {"long_name": "stored DN of each band file"})}, attrs)
+                                              {"long_name": "stored DN of each band file", "units": "1"})}, attrs)
     _create(raw_ds, tmp_raw, [raw_codec()])
-    for sub in ("photogrammetry", "ndvi"):
+    for sub in ("photogrammetry", "panels", "ndvi"):
         (out / sub).mkdir(exist_ok=True)
     first = captures[0].metas
+    optics = band_optics(captures[0], export, run.reference_band if run.transforms is not None else None)
     plan = Plan(
         camera=camera, chain=run.chain, raw_dn=tmp_raw / "dn", cube_shape=shape, out_store=tmp_refl,
         outputs=tuple(str(v) for v in refl_ds.data_vars), indices=tuple((ix, roles[ix.name]) for ix in indices),
         bands=tuple((b, BandTags(name=camera.bands[b].name, wavelength_nm=first[b].wavelength_nm,
-                                 fwhm_nm=first[b].fwhm_nm, rig_camera_index=i))
+                                 fwhm_nm=first[b].fwhm_nm, rig_camera_index=i, optics=optics[i]))
                     for i, b in enumerate(export)),
         tiff_dtype=run.tiff_dtype, out=out, norm=run.norm, transforms=run.transforms,
     )
@@ -426,5 +478,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
         chain=chain, calibration=str(calib_path), calibration_sha256=chash, fingerprint=fingerprint, attrs=attrs,
         reflectance_name="reflectance (Eq. 15)", tiff_dtype=options.tiff_dtype, norm=norm, transforms=transforms,
         scale=lambda name: scales.get(name), extra_coords=extra_coords, record=record, execution=options.execution,
+        panels={options.panel.frame: "--panel names it"} if options.panel is not None else {},
+        reference_band=camera.band_names.index(reference) if align and reference in camera.band_names else None,
     )
     return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)

@@ -59,7 +59,7 @@ from pipeline.ingest.catalog import Camera, Index, load_camera
 from pipeline.ingest.discover import quarantine_entry
 from pipeline.ingest.raw import prefetch_file, read_frame, shape_problem
 from pipeline.ingest.session import FrameRecord
-from pipeline.products.writers import BandTags, FrameTags, write_band_tiff, write_ndvi_tiff
+from pipeline.products.writers import BandTags, FrameTags, file_band_name, write_band_tiff, write_ndvi_tiff
 from pipeline.storage.chunks import FrameChunks
 
 # --------------------------------------------------------------------------- helpers
@@ -258,6 +258,18 @@ class Job:
     capture: Capture | None = None
     scale: tuple[float, ...] | None = None  # per band: field S / S(lambda, time) (issue 8); factory k_b
     ahead: Path | None = None  # the file of a capture a few places on, to read ahead (prefetch_file)
+    panel: bool = False  # a panel capture: its band TIFFs go to OUT/panels/, apart from the survey frames
+
+
+#: Folders of the per-frame TIFFs under OUT: survey frames (photogrammetry input), panel
+#: captures (kept out of photogrammetry), NDVI of the survey frames.
+PHOTOGRAMMETRY_DIR, PANELS_DIR, NDVI_DIR = "photogrammetry", "panels", "ndvi"
+
+
+def band_tiff_path(out: Path, capture: str, band: str, panel: bool = False) -> Path:
+    """``OUT/photogrammetry/<capture>_<band>.tif`` (``OUT/panels/`` for a panel capture), the
+    band's name without spaces (:func:`pipeline.products.writers.file_band_name`)."""
+    return Path(out) / (PANELS_DIR if panel else PHOTOGRAMMETRY_DIR) / f"{capture}_{file_band_name(band)}.tif"
 
 
 @dataclass(frozen=True)
@@ -384,10 +396,10 @@ def process_frame(plan: Plan, job: Job) -> Outcome:
     if ndvi is not None and "vegetation_mask" in plan.outputs:
         write_frame(store / "vegetation_mask", job.index, vegetation_mask(ndvi))
     for b, btags in plan.bands:
-        write_band_tiff(plan.out / "photogrammetry" / f"{job.name}_{btags.name}.tif", refl[b], tags, btags,
+        write_band_tiff(band_tiff_path(plan.out, job.name, btags.name, job.panel), refl[b], tags, btags,
                         dtype=plan.tiff_dtype)
-    if ndvi is not None:
-        write_ndvi_tiff(plan.out / "ndvi" / f"{job.name}.tif", ndvi, tags)
+    if ndvi is not None and not job.panel:
+        write_ndvi_tiff(plan.out / NDVI_DIR / f"{job.name}.tif", ndvi, tags)
     missing = () if job.capture is None else missing_reflectance(plan.chain, job.capture)
     return Outcome(job.name, sha, saturated, no_reflectance=missing)
 

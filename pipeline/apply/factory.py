@@ -103,6 +103,7 @@ from pipeline.ingest.session import PanelConfig, panel_config_near
 FACTORY = "factory"
 REFERENCES = ("auto", "panel", "dls")  # + "none" (radiance only) when auto finds no usable sun sensor
 PANEL_SEARCH = 3  # captures at each end of the folder searched for a panel when none is named
+PANEL_SEEN_SIDE = 1280  # px: panels_seen searches bigger images decimated to this (RedEdge size)
 PANEL_GRID = 32  # cells per side of the panel grid for the S/B split (Eq. 11-14)
 FIELD_COMPONENTS = ("response", "vignetting")  # store variables: inverse_response, vignetting
 
@@ -346,6 +347,10 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                              "has its own light", hint="leave --illumination out, or give --panel-reflectance")
         light = panel_light(captures, panels, options.illumination, folder)
     scales = {} if light is None else {c.name: tuple(float(v) for v in light[f]) for f, c in enumerate(captures)}
+    # One search for panel captures the run does not use: they go to OUT/panels/, and with
+    # --reference auto the summary and report say how to use them.
+    unused = panels_seen(captures, options.panel_captures) if reference != "panel" else []
+    seen = unused if options.reference == "auto" else []
     relative = relative_scale(captures, reference, saturation_dn(camera))
 
     attrs = {"calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
@@ -356,6 +361,9 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                       "comment": "bands aligned to the reference band of the registration store "
                                  "(mscal register); NaN where a band does not cover the reference grid"})
     first = captures[0].metas[0]
+    panel_names = {p.capture: "reflectance panel of the panel route (--panel-reflectance)" for p in panels}
+    panel_names.update({name: "a reflectance panel (camera's panel flag, --panel, or detected); not used: "
+                              "no --panel-reflectance" for name in unused})
     run = CaptureRun(
         chain=FactoryChain(saturation_dn(camera), reference, panel_factor, None if field is None else field[:2],
                            relative),
@@ -366,14 +374,27 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         radiance_unit=first.radiance_unit, irradiance_unit=first.irradiance_unit,
         record=lambda caps: {"components": _components_record(field),
                              "reference": {**_reference_record(reference, panels, panel_factor, camera, caps[0]),
-                                           **({"relative_scale": relative} if relative != 1.0 else {})},
+                                           **({"relative_scale": relative} if relative != 1.0 else {}),
+                                           **_seen_record(seen)},
                              "camera_identification": {"evidence": ident.evidence, "overridden": ident.overridden,
                                                        **ident.probe},
                              "radiance_unit": caps[0].metas[0].radiance_unit,
                              "illumination": _light_record(options.illumination, panels, caps, scales, camera)},
         scale=lambda name: scales.get(name),
+        panels=panel_names, reference_band=_reference_band(options.registration, camera),
     )
     return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)
+
+
+def _reference_band(registration: str | None, camera: Camera) -> int | None:
+    """The band a ``--registration`` store warps the others onto (its ``registration``
+    attribute's ``reference_band``), or None."""
+    if registration is None:
+        return None
+    from pipeline.storage.store import open_calibration
+
+    name = (open_calibration(registration, camera).attrs.get("registration") or {}).get("reference_band")
+    return camera.band_names.index(name) if name in camera.band_names else None
 
 
 def _identify(folder: Path, options: FactoryOptions) -> Identification:
@@ -385,6 +406,45 @@ def _identify(folder: Path, options: FactoryOptions) -> Identification:
         raise InputError(f"--field-calibration replaces parts of MicaSense's radiance model; camera {camera.name} "
                          f"has the {camera.factory_model} model", path=folder, hint="leave out --field-calibration")
     return ident
+
+
+def panels_seen(captures: Sequence[Capture], named: Sequence[str] = ()) -> list[str]:
+    """Captures that show a reflectance panel, for a run that does not use one (exported to
+    ``OUT/panels/``, and named in the summary's hint):
+    those named with ``--panel``, else among the folder's first and last
+    :data:`PANEL_SEARCH` captures those with an XMP ReflectArea, or where a panel is detected
+    (:func:`mscal_core.panel.detect_panel`) in both the first and the last band (one band
+    alone finds a bright roof now and then), decimated to at most :data:`PANEL_SEEN_SIDE`
+    pixels a side. About 0.3 s per capture searched."""
+    from mscal_core.panel import detect_panel
+
+    if named:
+        return list(named)
+    ends = list(captures[:PANEL_SEARCH]) + [c for c in captures[-PANEL_SEARCH:] if c not in captures[:PANEL_SEARCH]]
+    seen = []
+    for c in ends:
+        if any(m.reflect_area for m in c.metas):
+            seen.append(c.name)
+            continue
+        try:
+            _, dns, _ = read_capture_pixels(c)
+        except FrameError:
+            continue
+        k = max(1, math.ceil(max(dns[0].shape[:2]) / PANEL_SEEN_SIDE))  # big images: searched decimated
+        if detect_panel(dns[0][::k, ::k]) is not None and (len(dns) == 1 or detect_panel(dns[-1][::k, ::k]) is not None):
+            seen.append(c.name)
+    return seen
+
+
+def _seen_record(seen: Sequence[str]) -> dict[str, Any]:
+    """run.json ``reference.panels_seen``: panel captures in the folder that the run did not
+    use, and how to use them (the QA report and the command's summary warn of them)."""
+    if not seen:
+        return {}
+    return {"panels_seen": list(seen),
+            "panel_hint": "give --panel-reflectance TARGET (a number, or a target of catalogs/targets such as "
+                          f"micasense-rp02-1603036-sc) to take the reflectance from the panel; --panel {seen[0]} "
+                          "chooses the capture"}
 
 
 def _route(options: FactoryOptions, captures: Sequence[Capture]) -> str:

@@ -43,6 +43,7 @@ from pipeline.apply.executor import (  # noqa: F401  (re-exported: the executor'
     Outcome,
     Plan,
     Runner,
+    band_tiff_path,
     calibration_tables,
     capture_uuid,
     geometry_step,
@@ -53,6 +54,7 @@ from pipeline.apply.executor import (  # noqa: F401  (re-exported: the executor'
 from pipeline.apply.light import DEFAULT_MODE, IlluminationPlan, illumination_plan, varies_in_time
 from pipeline.calibrate.registration import check_transforms, frame_transforms
 from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
+from pipeline.ingest.photo_tags import CameraOptics, optics_from_intrinsics
 from pipeline.ingest.raw import (
     FRAME_COORDS,
     Cube,
@@ -66,7 +68,7 @@ from pipeline.ingest.raw import (
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import install_folder, remove_temporaries, temporary_folder_name, write_json_atomic
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
-from pipeline.storage.store import open_calibration
+from pipeline.storage.store import FLIGHT_VARIABLES, FRAME_COORD_ATTRS, cf_annotate, open_calibration
 
 RUN_JSON = "run.json"
 MAX_EXPORT_BANDS = 8
@@ -268,12 +270,36 @@ def _frame_tags(coords: xr.Dataset, f: int, camera: Camera) -> FrameTags:
     tval = coords["time"].values[f]
     time_iso = None if np.isnat(tval) else np.datetime_as_string(tval, unit="ms") + "Z"
     sha = str(coords["sha256"].values[f])
+    make, model = catalog_make_model(camera)
     return FrameTags(
         time=time_iso, lat=opt("lat"), lon=opt("lon"), alt_m=opt("alt_m"),
         capture_uuid=capture_uuid(camera, sha) if sha else "",
         exposure_ms=float(coords["exposure_ms"].values[f]),
-        camera_make="mscal", camera_model=camera.name,
+        camera_make=make, camera_model=model, rig_name=camera.name,
     )
+
+
+def catalog_make_model(camera: Camera) -> tuple[str, str]:
+    """EXIF Make and Model of a camera whose frames carry none: the catalog's ``exif``, else
+    its ``identify`` make, else ``unknown``, and its catalog name."""
+    if camera.exif is not None:
+        return camera.exif.make, camera.exif.model
+    return (camera.identify.make if camera.identify is not None else "unknown"), camera.name
+
+
+def snapshot_optics(camera: Camera, calib: xr.Dataset, shape: tuple[int, int]) -> CameraOptics | None:
+    """The lens of a snapshot mosaic camera's band grid for its TIFFs: the calibration's
+    ``intrinsics`` (band-grid pixels; the band grid shares one lens) and the catalog's pixel
+    pitch times the mosaic pattern; None when either is missing."""
+    if "intrinsics" not in calib or camera.exif is None or camera.exif.pixel_um is None:
+        return None
+    rows, cols = camera.layout.pattern or (1, 1)
+    pitch = (camera.exif.pixel_um * 1e-3 * cols, camera.exif.pixel_um * 1e-3 * rows)
+    fx, fy, cx, cy, *dist = (float(v) for v in calib["intrinsics"].values[0])
+    try:
+        return optics_from_intrinsics(fx, fy, cx, cy, tuple(dist), pitch, width=int(shape[1]))
+    except ValueError:
+        return None
 
 
 
@@ -284,8 +310,8 @@ def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, i
     n = coords.sizes.get("frame", 0)
     out_coords = {
         "frame": coords["frame"].values.astype(object),
-        "band": np.arange(shape[0]),
-        "wavelength": ("band", camera.wavelengths, {"units": "nm"}),
+        "band": ("band", np.arange(shape[0]), dict(FRAME_COORD_ATTRS["band"])),
+        "wavelength": ("band", camera.wavelengths, dict(FLIGHT_VARIABLES["wavelength"])),
         "band_name": ("band", np.array(camera.band_names, dtype=object)),
     }
     for c in ("exposure_ms", "gain", "time", "lat", "lon", "alt_m"):
@@ -296,7 +322,8 @@ def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, i
                          {"long_name": "reflectance (Eq. 15)", "units": "1", "normalisation": options.normalise})
     plane = da.zeros((n, *shape[1:]), chunks=(1, *shape[1:]), dtype=np.float32)
     for ix in indices:
-        ds[ix.name] = (("frame", "y", "x"), plane, {"long_name": ix.description, "expression": ix.expression})
+        ds[ix.name] = (("frame", "y", "x"), plane, {"long_name": ix.description, "expression": ix.expression,
+                                                     "units": "1"})
     if any(ix.name == "ndvi" for ix in indices):
         ds["vegetation_mask"] = (("frame", "y", "x"), plane.astype(np.uint8),
                                  {"long_name": "vegetation (Otsu threshold of NDVI per frame)",
@@ -313,7 +340,7 @@ def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, i
         )
         ds.attrs["illumination_mode"] = illum.mode
         ds.attrs["illumination_captures"] = list(illum.captures)
-    return ds
+    return cf_annotate(ds, FLIGHT_VARIABLES)
 
 
 # --------------------------------------------------------------------------- apply
@@ -358,13 +385,14 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Consolidated metadata")
         ds.to_zarr(tmp_store, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
+    optics = snapshot_optics(camera, calib, tuple(cube_shape[1:]))
     plan = Plan(
         camera=camera, chain=FieldChain(calib_path, sat), raw_dn=raw_dn, cube_shape=tuple(cube_shape),
         out_store=tmp_store, outputs=tuple(str(v) for v in ds.data_vars), norm=norm,
         indices=tuple((ix, roles[ix.name]) for ix in indices),
         bands=tuple(
             (b, BandTags(name=camera.bands[b].name, wavelength_nm=camera.bands[b].wavelength_nm,
-                         fwhm_nm=camera.bands[b].fwhm_nm, rig_camera_index=i))
+                         fwhm_nm=camera.bands[b].fwhm_nm, rig_camera_index=i, optics=optics))
             for i, b in enumerate(export)
         ),
         tiff_dtype=options.tiff_dtype, out=out, transforms=calib_path if align else None, band_shift=band_shift,
@@ -395,9 +423,14 @@ def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path:
 
 
 def remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export: Sequence[int]) -> None:
+    """Remove the TIFFs of frames ``names`` (survey or panel; also under the names of runs
+    before band names lost their spaces)."""
     for name in names:
         for b in export:
-            (out / "photogrammetry" / f"{name}_{camera.bands[b].name}.tif").unlink(missing_ok=True)
+            band = camera.bands[b].name
+            for panel in (False, True):
+                band_tiff_path(out, name, band, panel).unlink(missing_ok=True)
+            (out / "photogrammetry" / f"{name}_{band}.tif").unlink(missing_ok=True)
         (out / "ndvi" / f"{name}.tif").unlink(missing_ok=True)
 
 

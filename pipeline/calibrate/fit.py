@@ -968,11 +968,17 @@ def provenance(ds: xr.Dataset, session_root: Path | None) -> xr.Dataset:
     return ds
 
 
+#: Steps of :func:`calibrate_session` that call its ``advance``: the three fits and the write.
+CALIBRATE_STEPS = 4
+
+
 def calibrate_session(session_dir: str | Path, out: str | Path, *, response_method: str = "forward",
-                      calibration: str | Path | None = None) -> xr.Dataset:
+                      calibration: str | Path | None = None, advance: Callable[[], None] | None = None) -> xr.Dataset:
     """``mscal calibrate``: the three fits from a session folder, written to ``out``.
     ``calibration``: a store whose ``intrinsics`` (``mscal fit intrinsics``) are used when
-    session.yaml gives none (nothing else is taken from it)."""
+    session.yaml gives none (nothing else is taken from it). ``advance``: called after each
+    of :data:`CALIBRATE_STEPS` steps (a progress bar)."""
+    advance = advance or (lambda: None)
     session = load_session(session_dir)
     camera = session.camera
     partial = open_calibration(calibration, camera) if calibration is not None else None
@@ -980,17 +986,21 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
     log.info("response: fitting %d bands from %s", camera.n_bands, session.response_dir)
     rfits, rrep = fit_response_frames(session.response_dir, camera, response_method, session.root)
     ds = response_dataset(camera, rfits, rrep)
+    advance()
     U = ds["inverse_response"].values
     sat = ds["saturation_dn"].values
     log.info("vignetting: fitting from %s", session.vignetting_dir)
     vfits, vrep = fit_vignetting_frames(session, U, sat)
     ds = add_vignetting(ds, vfits, vrep)
+    advance()
     log.info("illumination: fitting from %s", session.reflector_dir)
     ires = fit_illumination_frames(session, U, sat, ds["vignetting"].values)
     ds = add_illumination(ds, ires)
+    advance()
     ds = add_intrinsics(ds, session, source)
     ds = provenance(ds, session.root)
     write_store(ds, out)
+    advance()
     return ds
 
 

@@ -26,9 +26,10 @@ from __future__ import annotations
 
 import logging
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 import xarray as xr
@@ -119,7 +120,8 @@ def _why(r: BandRegistration, th: Thresholds) -> str:
 
 
 def register_session(stacks: Sequence[tuple[str, np.ndarray]], camera: Camera, *, reference: int | None = None,
-                     thresholds: Thresholds = Thresholds()) -> SessionRegistration:
+                     thresholds: Thresholds = Thresholds(),
+                     advance: Callable[[], None] | None = None) -> SessionRegistration:
     """Register ``(name, stack)`` captures and combine them (module docstring).
 
     The captures are registered to ``reference`` if given, else to the band of median
@@ -141,6 +143,8 @@ def register_session(stacks: Sequence[tuple[str, np.ndarray]], camera: Camera, *
         ok = tuple(accept(r, thresholds) for r in regs)
         log.info("registered %s in %.1f s (%d/%d bands pass)", name, time.perf_counter() - t0, sum(ok), len(ok))
         results.append(CaptureResult(name, tuple(regs), ok))
+        if advance is not None:  # one step per capture (a progress bar)
+            advance()
     session = np.empty((camera.n_bands, 3, 3))
     spread = np.zeros(camera.n_bands)
     for b in range(camera.n_bands):
@@ -256,11 +260,19 @@ def collect_captures(paths: Sequence[Path], camera: Camera) -> tuple[list[Captur
     return sorted(captures.values(), key=lambda c: c.name), problems
 
 
+@contextmanager
+def _no_progress(n: int) -> Iterator[Callable[[], None]]:
+    yield lambda: None
+
+
 def register_cli(paths: Sequence[Path], out: Path, camera_name: str | None, reference: str | None,
-                 thresholds: Thresholds = Thresholds(), max_captures: int = MAX_CAPTURES) -> tuple[xr.Dataset, list[dict]]:
+                 thresholds: Thresholds = Thresholds(), max_captures: int = MAX_CAPTURES,
+                 progress: Callable[[int], Any] | None = None) -> tuple[xr.Dataset, list[dict]]:
     """``mscal register CAPTURES... -o CALIB.zarr``: add the registration to ``out`` (an
     existing calibration store keeps its other variables) or create a store holding only it.
-    Returns the dataset written and the captures that could not be used."""
+    Returns the dataset written and the captures that could not be used. ``progress(n)``:
+    a context manager yielding ``advance`` for ``n`` steps (one per capture read and one per
+    capture registered; e.g. :func:`pipeline.run.console.progress` bound to a label)."""
     existing = None
     if Path(out).exists():
         existing = open_calibration(out)
@@ -285,8 +297,12 @@ def register_cli(paths: Sequence[Path], out: Path, camera_name: str | None, refe
         raise InputError("no complete captures found" + (f" ({why})" if why else ""), path=paths[0] if paths else None,
                          hint=f"name folders or band files of {camera.name} captures (IMG_XXXX_<band>.tif)")
     chosen = spread_captures(captures, max_captures)
-    stacks = [(c.name, read_capture(c)) for c in chosen]
-    reg = register_session(stacks, camera, reference=ref_index, thresholds=thresholds)
+    with (progress or _no_progress)(2 * len(chosen)) as advance:
+        stacks = []
+        for c in chosen:
+            stacks.append((c.name, read_capture(c)))
+            advance()
+        reg = register_session(stacks, camera, reference=ref_index, thresholds=thresholds, advance=advance)
     base = existing if existing is not None else new_dataset(camera)
     ds = with_registration(base, reg, camera)
     ds.attrs["registration"]["unused_files"] = problems

@@ -158,6 +158,18 @@ class Identify:
 
 
 @dataclass(frozen=True)
+class CameraExif:
+    """``exif: {make, model, pixel_um}``: the EXIF ``Make`` and ``Model`` of a camera whose
+    frames carry no EXIF of their own (a snapshot mosaic camera's frames), and its sensor's
+    pixel pitch in micrometres (the band grid's pitch is that times the mosaic pattern), from
+    which per-frame TIFFs get their focal length in mm and focal plane resolution."""
+
+    make: str
+    model: str
+    pixel_um: float | None = None
+
+
+@dataclass(frozen=True)
 class Camera:
     """A camera catalog entry (``catalogs/cameras/<name>.yaml``)."""
 
@@ -175,6 +187,7 @@ class Camera:
     factory_model: str | None = None  # radiometric model of the files' own metadata (FACTORY_MODELS)
     skip_bands: tuple[SkipBand, ...] = ()
     sources: tuple[str, ...] = ()  # the manufacturer's documents the entry is taken from
+    exif: "CameraExif | None" = None  # what per-frame TIFFs say of a camera whose frames carry no EXIF
 
     @property
     def dn_max(self) -> int:
@@ -211,7 +224,7 @@ class Camera:
 
 _CAMERA_REQUIRED = {"name", "description", "bit_depth", "layout", "bands"}
 _CAMERA_OPTIONAL = {"sensor", "index_bands", "export_bands", "container_bits", "identify", "factory_model",
-                    "skip_bands", "sources"}
+                    "skip_bands", "sources", "exif"}
 _BAND_REQUIRED = {"name", "wavelength_nm"}
 _BAND_OPTIONAL = {"fwhm_nm", "mosaic", "channel", "file_suffix"}
 _LAYOUT_KEYS = {
@@ -248,6 +261,7 @@ def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
         factory_model=model,
         skip_bands=skip,
         sources=sources,
+        exif=_parse_exif(data.get("exif"), path),
     )
     for role, wl in camera.index_bands.items():
         try:
@@ -418,6 +432,17 @@ def _parse_factory(data: Mapping[str, Any], names: list[str], path: Path
         raise CatalogError("a camera with a factory_model must cite the manufacturer's documents in 'sources'",
                            path=path)
     return identify, model, skip, tuple(sources)
+
+
+def _parse_exif(value: Any, path: Path) -> CameraExif | None:
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise CatalogError("exif must be a mapping {make, model, pixel_um}", path=path)
+    check_keys(value, {"make", "model"}, {"pixel_um"}, path, "exif")
+    pitch = value.get("pixel_um")
+    return CameraExif(make=str(value["make"]), model=str(value["model"]),
+                      pixel_um=None if pitch is None else _positive_number(pitch, path, "exif.pixel_um"))
 
 
 def _parse_identify(value: Any, path: Path) -> Identify | None:

@@ -63,7 +63,7 @@ from pipeline.ingest.exif import time_ns
 from pipeline.ingest.session import FrameRecord, decode_raw, to_bands
 from pipeline.storage.atomic import TMP_MARK, atomic_folder
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
-from pipeline.storage.store import file_sha256
+from pipeline.storage.store import FRAME_COORD_ATTRS, file_sha256
 
 __all__ = ["Cube", "IngestResult", "ingest_flight", "open_cube", "RAW_FORMAT", "FRAME_COORDS"]
 
@@ -254,20 +254,16 @@ def _template(camera: Camera, shape: tuple[int, int, int]):
             )
         },
         coords={
-            "frame": ("frame", np.array([], dtype=sdt), {"long_name": "frame name (file stem)"}),
-            "exposure_ms": ("frame", none, {"long_name": "exposure time", "units": "ms"}),
-            "gain": ("frame", none, {"long_name": "linear sensor gain", "units": "1"}),
-            "time": (
-                "frame",
-                np.array([], dtype="datetime64[ns]"),
-                {"standard_name": "time", "long_name": "acquisition time (UTC where the source gave an offset)"},
-            ),
-            "lat": ("frame", none, {"standard_name": "latitude", "long_name": "latitude (WGS84)", "units": "degrees_north"}),
-            "lon": ("frame", none, {"standard_name": "longitude", "long_name": "longitude (WGS84)", "units": "degrees_east"}),
-            "alt_m": ("frame", none, {"long_name": "altitude of the camera", "units": "m"}),
+            "frame": ("frame", np.array([], dtype=sdt), dict(FRAME_COORD_ATTRS["frame"])),
+            "exposure_ms": ("frame", none, dict(FRAME_COORD_ATTRS["exposure_ms"])),
+            "gain": ("frame", none, dict(FRAME_COORD_ATTRS["gain"])),
+            "time": ("frame", np.array([], dtype="datetime64[ns]"), dict(FRAME_COORD_ATTRS["time"])),
+            "lat": ("frame", none, dict(FRAME_COORD_ATTRS["lat"])),
+            "lon": ("frame", none, dict(FRAME_COORD_ATTRS["lon"])),
+            "alt_m": ("frame", none, dict(FRAME_COORD_ATTRS["alt_m"])),
             "source_file": ("frame", np.array([], dtype=sdt), {"long_name": "file name in the flight folder"}),
             "sha256": ("frame", np.array([], dtype=sdt), {"long_name": "SHA-256 of the source file"}),
-            "band": ("band", np.arange(nb), {"long_name": "band index"}),
+            "band": ("band", np.arange(nb), dict(FRAME_COORD_ATTRS["band"])),
             "band_name": ("band", np.array(camera.band_names, dtype=sdt), {"long_name": "band name"}),
             "wavelength": ("band", camera.wavelengths, {"long_name": "centre wavelength", "units": "nm"}),
         },

@@ -34,8 +34,9 @@ NDVI do not depend on the scale; indices with constants do.
 from __future__ import annotations
 
 import re
+import warnings
 from pathlib import Path
-from typing import Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 from mscal_core.errors import InputError
@@ -238,6 +239,33 @@ def _windows(height: int, width: int, block: int):
             yield Window(c, r, min(win_w, width - c), min(win_h, height - r))
 
 
+def _no_georeferencing_warning(f: Callable[..., Any]) -> Callable[..., Any]:
+    """Run ``f`` without rasterio's NotGeoreferencedWarning: an orthomosaic without a
+    geotransform gives an index map without one, which :func:`georeferenced` tells the caller
+    (``mscal index`` says it once, in its summary)."""
+    import functools
+
+    @functools.wraps(f)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from rasterio.errors import NotGeoreferencedWarning
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            return f(*args, **kwargs)
+
+    return wrapper
+
+
+@_no_georeferencing_warning
+def georeferenced(path: str | Path) -> bool:
+    """Whether a raster has a CRS and a geotransform (or GCPs)."""
+    import rasterio
+
+    with rasterio.open(path) as src:
+        return src.crs is not None and (not src.transform.is_identity or bool(src.gcps[0]))
+
+
+@_no_georeferencing_warning
 def index_map(
     ortho_path: str | Path, index_name: str, out_path: str | Path, *, bands: Mapping[str, int] | None = None,
     scale: float | None = None,

@@ -84,7 +84,7 @@ STAC_DIR = "stac"
 PROJECT_FILE = "mscal-project.yaml"
 LOCK_FILE = ".mscal-catalog.lock"
 ITEM_FORMAT = 1  # bump when items gain or change fields: every item is rebuilt once
-SKIP_DIRS = {"photogrammetry", "ndvi"}  # per-frame folders of a flight: never walked
+SKIP_DIRS = {"photogrammetry", "panels", "ndvi"}  # per-frame folders of a flight: never walked
 MEDIA_ZARR = "application/vnd+zarr"
 MEDIA_GEOTIFF = "image/tiff; application=geotiff"
 MEDIA_COG = "image/tiff; application=geotiff; profile=cloud-optimized"

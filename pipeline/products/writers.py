@@ -3,23 +3,48 @@
 One single-band TIFF per exported band per frame (``write_band_tiff``) and one NDVI TIFF per
 frame (``write_ndvi_tiff``), each carrying the metadata these tools read:
 
-* IFD0: ``Make``, ``Model``, ``Software``, ``DateTime``, ``XMP`` (tag 700), and for GDAL-based
-  readers ``GDAL_METADATA`` (band description, scale of uint16 data, wavelength in the
-  ``IMAGERY`` domain) and ``GDAL_NODATA``.
-* EXIF IFD (tag 34665): ``ExposureTime``, ``DateTimeOriginal`` (+ ``SubSecTimeOriginal`` /
-  ``SubSecTime`` when the time has a fraction of a second, ``OffsetTimeOriginal`` when it has
-  a time zone), ``ExifVersion``, ``PixelXDimension`` / ``PixelYDimension``.
+* IFD0: ``Make`` and ``Model`` of the camera that took the frame (the source files' own, or the
+  catalog's for a camera whose frames carry none), ``Software`` = ``mscal <version>``,
+  ``ImageDescription`` (what the pixels hold), ``DateTime``, ``XMP`` (tag 700), and for
+  GDAL-based readers ``GDAL_METADATA`` (band description, scale of uint16 data, wavelength in
+  the ``IMAGERY`` domain) and ``GDAL_NODATA``.
+* EXIF IFD (tag 34665): the lens of the band (:class:`pipeline.ingest.photo_tags.CameraOptics`):
+  ``FNumber``, ``FocalLength``, ``FocalPlaneXResolution`` / ``FocalPlaneYResolution`` /
+  ``FocalPlaneResolutionUnit``, ``FocalLengthIn35mmFilm``; ``DateTimeOriginal`` (+
+  ``SubSecTimeOriginal`` / ``SubSecTime`` when the time has a fraction of a second,
+  ``OffsetTimeOriginal`` when it has a time zone), ``ExifVersion``, ``PixelXDimension`` /
+  ``PixelYDimension``.
 * GPS IFD (tag 34853), when the frame has a position: ``GPSVersionID`` 2.3.0.0,
   ``GPSLatitudeRef`` / ``GPSLatitude``, ``GPSLongitudeRef`` / ``GPSLongitude`` (degrees,
   minutes, seconds as RATIONALs; seconds to 1e-6"), ``GPSAltitudeRef`` / ``GPSAltitude``
   (metres to 1 mm), ``GPSMapDatum`` WGS-84, and ``GPSDateStamp`` / ``GPSTimeStamp`` when the
   time zone is known.
 * XMP, namespace ``Camera`` = ``http://pix4d.com/camera/1.0/`` (Pix4D's camera tags, also read
-  by OpenDroneMap): ``Camera:BandName``, ``Camera:CentralWavelength``,
-  ``Camera:WavelengthFWHM`` as one-item ``rdf:Seq`` elements (Pix4D declares them sequences),
-  ``Camera:CaptureUUID`` and ``Camera:RigCameraIndex`` as attributes of ``rdf:Description``
-  (simple properties; OpenDroneMap's ``opendm/photo.py`` looks the capture UUID up only in
-  that attribute form, ``@Camera:CaptureUUID``).
+  by OpenDroneMap, whose ``opendm/photo.py`` parses the packet with xmltodict and looks tags up
+  by their literal ``Camera:`` / ``MicaSense:`` prefixes): ``Camera:BandName``,
+  ``Camera:CentralWavelength``, ``Camera:WavelengthFWHM`` as one-item ``rdf:Seq`` elements
+  (Pix4D declares them sequences), ``Camera:CaptureUUID`` and ``Camera:RigCameraIndex`` as
+  attributes of ``rdf:Description`` (OpenDroneMap looks them up only in that attribute form,
+  ``@Camera:CaptureUUID``), ``Camera:RigName``, the lens model of the source
+  (``Camera:ModelType``, ``PrincipalPoint``, ``PerspectiveFocalLength`` (+ ``Units``),
+  ``PerspectiveDistortion``, the fisheye tags), MicaSense's ``MicaSense:CaptureId`` for
+  MicaSense captures, and the reflectance marker below.
+
+Reflectance, not raw DN (the marker). OpenDroneMap has no tag meaning "already calibrated": it
+calibrates when run with ``--radiometric-calibration camera|camera+sun`` (default ``none``),
+and then ``opendm/multispectral.py`` computes ``dn_to_radiance`` from
+``MicaSense:RadiometricCalibration``, else from the photometric exposure ``ExposureTime /
+FNumber**2`` (leaving the values as they are when neither is there), and multiplies by
+``pi / E`` with ``E`` = ``Camera:HorizontalIrradiance`` (x ``IrradianceScaleToSIUnits``,
+default 1) when the file has it. So these TIFFs carry none of the raw-signal tags
+(no ``ExposureTime``, ISO, ``BlackLevel``, ``MicaSense:RadiometricCalibration``, vignetting,
+``Camera:Irradiance`` / ``SunSensor`` / ``BandSensitivity``) -- Pix4D's camera-level correction
+needs ``ExposureTime``, ``FNumber`` and ISO plus a sensitivity, so it does not apply either --
+and write ``Camera:HorizontalIrradiance = pi``: the irradiance for which OpenDroneMap's
+``pi L / E`` is the stored value itself (not a measurement). Whatever OpenDroneMap's setting,
+the pixel values stay mscal's reflectance. Beside it, for people and scripts, the XMP says so
+in mscal's own namespace (``mscal:Quantity`` = ``reflectance`` or ``ndvi``,
+``mscal:ReflectanceScale``, ``mscal:NoData``) and ``ImageDescription`` in words.
 
 Times: ``FrameTags.time`` is ISO 8601. A time with a zone (``...Z``, ``+02:00``) is written
 in UTC with ``OffsetTimeOriginal = "+00:00"`` (OpenDroneMap reads ``DateTimeOriginal`` as
@@ -43,17 +68,19 @@ is written to a temporary sibling name and renamed
 from __future__ import annotations
 
 import math
+import re
 import struct
 from dataclasses import dataclass
 from datetime import datetime
-from fractions import Fraction
 from pathlib import Path
 from xml.sax.saxutils import escape, quoteattr
 
+import mscal_core
 import numpy as np
 from mscal_core.errors import CatalogError
 
 from pipeline.ingest.exif import U32, degrees_to_dms, parse_iso, to_rational, utc_naive
+from pipeline.ingest.photo_tags import CameraOptics
 from pipeline.storage.atomic import atomic_path
 from pipeline.storage.directio import write_file
 
@@ -65,6 +92,7 @@ __all__ = [
     "XMP_CAMERA_NS",
     "build_xmp",
     "encode_reflectance_uint16",
+    "file_band_name",
     "write_band_tiff",
     "write_ndvi_tiff",
 ]
@@ -74,7 +102,13 @@ REFLECTANCE_SCALE = 32768.0
 NODATA_UINT16 = 65535
 """uint16 value of NaN (saturated / invalid) pixels; valid data is clipped to 0 .. 65534."""
 XMP_CAMERA_NS = "http://pix4d.com/camera/1.0/"
-SOFTWARE = "mscal"
+XMP_MICASENSE_NS = "http://micasense.com/MicaSense/1.0/"
+XMP_MSCAL_NS = "urn:mscal:xmp:1.0/"
+"""mscal's own XMP namespace (a URN: no web page behind it) for what the pixels hold."""
+SOFTWARE = f"mscal {mscal_core.__version__}"
+#: ``Camera:HorizontalIrradiance`` of every TIFF: OpenDroneMap's ``pi L / E`` is then the
+#: stored value (the reflectance marker, module docstring).
+MARKER_IRRADIANCE = math.pi
 
 
 @dataclass(frozen=True)
@@ -86,9 +120,11 @@ class FrameTags:
     lon: float | None
     alt_m: float | None
     capture_uuid: str  # one per frame, the same in all its bands
-    exposure_ms: float | None
+    exposure_ms: float | None  # of the source (reflectance.zarr); not written: the marker
     camera_make: str
     camera_model: str
+    rig_name: str | None = None  # XMP Camera:RigName of the source, else the camera's catalog name
+    micasense_capture_id: str | None = None  # the source's XMP MicaSense:CaptureId (MicaSense captures)
 
 
 @dataclass(frozen=True)
@@ -99,6 +135,19 @@ class BandTags:
     wavelength_nm: float
     fwhm_nm: float | None
     rig_camera_index: int
+    optics: CameraOptics | None = None  # the band's lens (EXIF focal tags, XMP lens model)
+
+
+def file_band_name(name: str) -> str:
+    """A band name as it appears in file names: characters other than ASCII letters and
+    digits are dropped and the letter after each dropped run is upper-cased (``Red edge`` ->
+    ``RedEdge``, ``NIR`` -> ``NIR``, ``b670`` -> ``b670``), so that names hold no spaces and
+    OpenDroneMap's ``<capture>_<band>.<ext>`` file-name rule (``[-_]\\w+``) matches them."""
+    words = [w for w in re.split(r"[^A-Za-z0-9]+", str(name)) if w]
+    if not words:
+        raise CatalogError(f"band name {name!r} has no letter or digit to put in a file name",
+                           hint="rename the band in the camera catalog")
+    return words[0] + "".join(w[0].upper() + w[1:] for w in words[1:])
 
 
 # --------------------------------------------------------------------------- pixel encoding
@@ -183,18 +232,6 @@ def _ascii(text: str) -> bytes:
     return str(text).encode("ascii", errors="replace") + b"\0"
 
 
-def _exposure_rational(exposure_ms: float) -> tuple[int, int]:
-    """Exposure time in seconds as a reduced fraction (2.5 ms -> 1/400)."""
-    secs = exposure_ms / 1000.0
-    denom = 1_000_000_000
-    while denom > 1 and secs * denom > U32:
-        denom //= 10
-    f = Fraction(round(secs * denom), denom)
-    if f == 0:
-        f = Fraction(1, U32)  # shorter than a nanosecond: the smallest positive value
-    return f.numerator, f.denominator
-
-
 def _finite(v: float | None) -> float | None:
     if v is None:
         return None
@@ -224,35 +261,55 @@ def _check_band_name(name: str) -> None:
 
 def build_xmp(
     *, band_name: str, capture_uuid: str, wavelength_nm: float | None = None, fwhm_nm: float | None = None,
-    rig_camera_index: int | None = None,
+    rig_camera_index: int | None = None, rig_name: str | None = None, micasense_capture_id: str | None = None,
+    optics: CameraOptics | None = None, quantity: str = "reflectance", scale: float | None = None,
+    nodata: str | None = None,
 ) -> bytes:
-    """The XMP packet (UTF-8) with the Pix4D ``Camera`` tags of one band file."""
+    """The XMP packet (UTF-8) of one band file: the Pix4D ``Camera`` tags, MicaSense's
+    capture id, the lens model of ``optics`` and the reflectance marker (module docstring)."""
     attrs = [f"Camera:CaptureUUID={quoteattr(str(capture_uuid))}"]
     if rig_camera_index is not None:
         attrs.append(f'Camera:RigCameraIndex="{int(rig_camera_index)}"')
+    attrs.append(f"mscal:Quantity={quoteattr(quantity)}")
+    if scale is not None:
+        attrs.append(f"mscal:ReflectanceScale={quoteattr(repr(float(scale)))}")
+    if nodata is not None:
+        attrs.append(f"mscal:NoData={quoteattr(nodata)}")
 
     def seq(tag: str, value: str) -> str:
         return (f"   <Camera:{tag}>\n    <rdf:Seq>\n     <rdf:li>{escape(value)}</rdf:li>\n"
                 f"    </rdf:Seq>\n   </Camera:{tag}>\n")
+
+    def text(qname: str, value: str) -> str:
+        return f"   <{qname}>{escape(value)}</{qname}>\n"
 
     body = seq("BandName", band_name)
     if wavelength_nm is not None:
         body += seq("CentralWavelength", _num(wavelength_nm))
     if fwhm_nm is not None:
         body += seq("WavelengthFWHM", _num(fwhm_nm))
+    if rig_name:
+        body += text("Camera:RigName", rig_name)
+    for tag, value in (optics.xmp if optics is not None else ()):
+        body += text(f"Camera:{tag}", value)
+    body += text("Camera:HorizontalIrradiance", repr(MARKER_IRRADIANCE))
+    ns = f'xmlns:Camera="{XMP_CAMERA_NS}"\n    xmlns:mscal="{XMP_MSCAL_NS}"'
+    if micasense_capture_id:
+        ns += f'\n    xmlns:MicaSense="{XMP_MICASENSE_NS}"'
+        body += text("MicaSense:CaptureId", micasense_capture_id)
     attr_text = "\n    ".join(attrs)
-    text = (
+    text_all = (
         '<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
         '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
         ' <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n'
-        f'  <rdf:Description rdf:about=""\n    xmlns:Camera="{XMP_CAMERA_NS}"\n    {attr_text}>\n'
+        f'  <rdf:Description rdf:about=""\n    {ns}\n    {attr_text}>\n'
         f"{body}"
         "  </rdf:Description>\n"
         " </rdf:RDF>\n"
         "</x:xmpmeta>\n"
         '<?xpacket end="w"?>'
     )
-    return text.encode("utf-8")
+    return text_all.encode("utf-8")
 
 
 def _num(v: float) -> str:
@@ -276,16 +333,17 @@ def _gdal_metadata(description: str, *, scale: float | None, wavelength_nm: floa
 
 def _write_tiff(
     path: Path, data: np.ndarray, frame: FrameTags, *, xmp: bytes, gdal_metadata: str, nodata: str,
+    description: str, optics: CameraOptics | None = None,
 ) -> None:
     """Baseline little-endian TIFF of one (H, W) uint16/float32 image with EXIF, GPS and XMP.
 
     Layout: header | IFD0 (+ its values) | EXIF IFD | GPS IFD | pixel strips."""
     strips = _strips(data)
     tparsed = _parse_time(frame.time)
-    exif, date_text = _exif_ifd(frame, strips, tparsed)
+    exif, date_text = _exif_ifd(strips, tparsed, optics)
     gps = _gps_ifd(frame, tparsed)
     ifd0 = _ifd0(frame, strips, date_text, xmp=xmp, gdal_metadata=gdal_metadata, nodata=nodata,
-                 has_gps=gps is not None)
+                 has_gps=gps is not None, description=description)
     head = _tiff_head(ifd0, exif, gps, strips)
     write_file(path, [head, np.ascontiguousarray(strips.pixels)])
 
@@ -326,15 +384,32 @@ def _strips(data: np.ndarray) -> _Strips:
     return _Strips(pixels, bits, sample_format, rows_per_strip, counts)
 
 
-def _exif_ifd(frame: FrameTags, strips: _Strips, tparsed: tuple[datetime, bool] | None) -> tuple[_IFD, str | None]:
+def _optics_entries(exif: _IFD, optics: CameraOptics | None) -> None:
+    """The lens of the band: FNumber, FocalLength, focal plane resolution, 35 mm equivalent.
+    No ExposureTime (nor ISO): with FNumber it would let OpenDroneMap compute a photometric
+    exposure and rescale reflectance (the marker, module docstring)."""
+    if optics is None:
+        return
+    if optics.f_number is not None:
+        exif.add(33437, _RATIONAL, [optics.f_number])  # FNumber
+    if optics.focal_length_mm is not None:
+        exif.add(37386, _RATIONAL, [optics.focal_length_mm])  # FocalLength (mm)
+    if optics.focal_plane_resolution is not None and optics.focal_plane_unit is not None:
+        exif.add(41486, _RATIONAL, [optics.focal_plane_resolution[0]])  # FocalPlaneXResolution
+        exif.add(41487, _RATIONAL, [optics.focal_plane_resolution[1]])  # FocalPlaneYResolution
+        exif.add(41488, _SHORT, [int(optics.focal_plane_unit)])  # FocalPlaneResolutionUnit
+    if optics.focal_length_35mm is not None and 0 < optics.focal_length_35mm < 65536:
+        exif.add(41989, _SHORT, [int(optics.focal_length_35mm)])  # FocalLengthIn35mmFilm
+
+
+def _exif_ifd(strips: _Strips, tparsed: tuple[datetime, bool] | None,
+              optics: CameraOptics | None = None) -> tuple[_IFD, str | None]:
     """The EXIF IFD, and the capture time as EXIF text (also IFD0's DateTime), if known."""
     exif = _IFD()
     exif.add(36864, _UNDEFINED, b"0232")  # ExifVersion 2.32
     exif.add(40962, _LONG, [strips.width])  # PixelXDimension
     exif.add(40963, _LONG, [strips.height])  # PixelYDimension
-    exposure = _finite(frame.exposure_ms)
-    if exposure is not None and exposure > 0:
-        exif.add(33434, _RATIONAL, [_exposure_rational(exposure)])  # ExposureTime (s)
+    _optics_entries(exif, optics)
     date_text = None
     if tparsed is not None:
         t, zoned = tparsed
@@ -379,7 +454,7 @@ def _gps_ifd(frame: FrameTags, tparsed: tuple[datetime, bool] | None) -> _IFD | 
 
 
 def _ifd0(frame: FrameTags, strips: _Strips, date_text: str | None, *, xmp: bytes, gdal_metadata: str,
-          nodata: str, has_gps: bool) -> _IFD:
+          nodata: str, has_gps: bool, description: str) -> _IFD:
     """IFD0 with placeholders for the strip, EXIF and GPS offsets (:func:`_tiff_head` sets them)."""
     ifd0 = _IFD()
     ifd0.add(254, _LONG, [0])  # NewSubfileType
@@ -388,6 +463,7 @@ def _ifd0(frame: FrameTags, strips: _Strips, date_text: str | None, *, xmp: byte
     ifd0.add(258, _SHORT, [strips.bits])
     ifd0.add(259, _SHORT, [1])  # no compression
     ifd0.add(262, _SHORT, [1])  # BlackIsZero
+    ifd0.add(270, _ASCII, description)  # ImageDescription
     ifd0.add(271, _ASCII, frame.camera_make or "unknown")
     ifd0.add(272, _ASCII, frame.camera_model or "unknown")
     ifd0.add(273, _LONG, [0] * len(strips.counts))  # StripOffsets, patched below
@@ -467,11 +543,15 @@ def write_band_tiff(
         raise ValueError(f"dtype must be 'uint16' or 'float32', got {dtype!r}")
     xmp = build_xmp(
         band_name=band.name, capture_uuid=frame.capture_uuid, wavelength_nm=band.wavelength_nm,
-        fwhm_nm=band.fwhm_nm, rig_camera_index=band.rig_camera_index,
+        fwhm_nm=band.fwhm_nm, rig_camera_index=band.rig_camera_index, rig_name=frame.rig_name,
+        micasense_capture_id=frame.micasense_capture_id, optics=band.optics, scale=scale or 1.0, nodata=nodata,
     )
     meta = _gdal_metadata(band.name, scale=scale, wavelength_nm=band.wavelength_nm, fwhm_nm=band.fwhm_nm)
+    what = (f"reflectance x {REFLECTANCE_SCALE:g}, {NODATA_UINT16} = no data" if scale is not None
+            else "reflectance, NaN = no data")
     with atomic_path(path) as tmp:
-        _write_tiff(tmp, data, frame, xmp=xmp, gdal_metadata=meta, nodata=nodata)
+        _write_tiff(tmp, data, frame, xmp=xmp, gdal_metadata=meta, nodata=nodata, optics=band.optics,
+                    description=f"{band.name} {what} ({SOFTWARE}); already reflectance: do not calibrate again")
     return path
 
 
@@ -486,8 +566,10 @@ def write_ndvi_tiff(path: str | Path, ndvi: np.ndarray, frame: FrameTags) -> Pat
     arr = np.asarray(ndvi)
     if arr.ndim != 2:
         raise ValueError(f"ndvi must be (H, W), got shape {arr.shape}")
-    xmp = build_xmp(band_name="NDVI", capture_uuid=frame.capture_uuid)
+    xmp = build_xmp(band_name="NDVI", capture_uuid=frame.capture_uuid, rig_name=frame.rig_name,
+                    micasense_capture_id=frame.micasense_capture_id, quantity="ndvi", nodata="nan")
     meta = _gdal_metadata("ndvi", scale=None, wavelength_nm=None, fwhm_nm=None)
     with atomic_path(path) as tmp:
-        _write_tiff(tmp, arr.astype(np.float32, copy=False), frame, xmp=xmp, gdal_metadata=meta, nodata="nan")
+        _write_tiff(tmp, arr.astype(np.float32, copy=False), frame, xmp=xmp, gdal_metadata=meta, nodata="nan",
+                    description=f"NDVI, NaN = no data ({SOFTWARE})")
     return path

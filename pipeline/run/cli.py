@@ -12,13 +12,26 @@ import logging
 import os
 import sys
 import time
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 import click
 from mscal_core.errors import MscalError
 
+from pipeline.run.console import (
+    LOG_LEVELS,
+    QUIET,
+    Summary,
+    common_options,
+    console,
+    note,
+    progress,
+    report_warnings,
+)
+
 RESPONSE_METHODS = click.Choice(["forward", "alternating"])
+RESPONSE_METHOD_HELP = "'forward' fits the response with the noise on DN; 'alternating' is the paper's Eq. 6/7."
 ILLUMINATION_MODES = click.Choice(["nearest", "linear"])  # mscal_core.illumination.INTERPOLATION_MODES
 SCHEDULERS = click.Choice(["auto", "threads", "processes"])  # pipeline.apply.execution.SCHEDULERS
 
@@ -51,7 +64,17 @@ def _summary(ds) -> str:  # noqa: ANN001 (xarray Dataset)
 def _report_skips(ds) -> None:  # noqa: ANN001
     for stage in ("response", "vignetting", "illumination"):
         for s in (ds.attrs.get(stage) or {}).get("skipped", []):
-            click.echo(f"skipped {stage} frame {s['file']}: {s['reason']}", err=True)
+            note(f"skipped {stage} frame {s['file']}: {s['reason']}")
+
+
+def _store_summary(command: str, ds, out: Path, headline: str, **details: Any) -> Summary:  # noqa: ANN001
+    """The summary of a command that wrote calibration store ``out``: its fits, the frames
+    each skipped, and the report's warnings on it."""
+    skipped = {st: len((ds.attrs.get(st) or {}).get("skipped", [])) for st in ("response", "vignetting", "illumination")
+               if ds.attrs.get(st)}
+    return Summary(command, headline, outputs={"calibration store": out},
+                   counts={"bands": int(ds.sizes.get("band", 0)), "frames_skipped": skipped},
+                   warnings=report_warnings(calibration=out), details={"camera": ds.attrs.get("camera"), **details})
 
 
 
@@ -81,54 +104,107 @@ def _writes(kind: str, what: str):  # noqa: ANN202 (a decorator)
     return deco
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
-@click.option("-v", "--verbose", is_flag=True, help="Log progress of each stage.")
-def cli(verbose: bool) -> None:
+class MscalCommand(click.Command):
+    """A command with ``-v``, ``-q`` and ``--json`` (:func:`pipeline.run.console.common_options`)."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.params += common_options()
+
+
+class MscalGroup(click.Group):
+    """A group whose commands and subgroups take ``-v/-q/--json`` too, before or after their name."""
+
+    command_class = MscalCommand
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.params += common_options()
+
+
+MscalGroup.group_class = MscalGroup
+
+
+def _version(ctx: click.Context, param: click.Parameter, value: bool) -> None:
+    if not value or ctx.resilient_parsing:
+        return
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        v = version("mscal")
+    except PackageNotFoundError:  # run from a checkout without installing
+        from mscal_core import __version__ as v
+    click.echo(f"mscal {v}")
+    ctx.exit()
+
+
+def _deprecated_alias(old: str, new: str, dest: str) -> Any:
+    """A hidden ``old`` spelling of option ``new`` that still works and says it is deprecated."""
+    def warn(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
+        if value is not None:
+            click.echo(f"mscal: warning: {old} is deprecated, use {new}", err=True)
+        return value
+
+    return click.option(old, dest, default=None, hidden=True, callback=warn, expose_value=True,
+                        type=RESPONSE_METHODS, help=f"Deprecated spelling of {new}.")
+
+
+@click.group(cls=MscalGroup, context_settings={"help_option_names": ["-h", "--help"]},
+             epilog="-v/-q/--json may be given before or after the command name. "
+                    "See 'mscal COMMAND --help' for each command.")
+@click.option("--version", is_flag=True, expose_value=False, is_eager=True, callback=_version,
+              help="Print mscal's version and exit.")
+def cli() -> None:
     """mscal: field radiometric calibration of multispectral cameras (Khanna et al., ICRA 2017)."""
-    logging.basicConfig(level=logging.INFO if verbose else logging.WARNING, format="%(name)s: %(message)s")
+    logging.basicConfig(level=LOG_LEVELS[console().verbosity], format="%(name)s: %(message)s")
 
 
-@cli.command()
+@cli.command(short_help="Fit response, vignetting and illumination of a session.")
 @_writes("store", "calibration store")
 @click.argument("session", type=click.Path(path_type=Path))
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path), help="Calibration store (.zarr) to write.")
 @click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True,
-              help="'forward' fits the response with the noise on DN; 'alternating' is the paper's Eq. 6/7.")
+              help=RESPONSE_METHOD_HELP)
 @click.option("--calibration", "partial", default=None, type=click.Path(path_type=Path),
               help="A store with intrinsics per band ('mscal fit intrinsics'), used when session.yaml gives none.")
 def calibrate(session: Path, out: Path, response_method: str, partial: Path | None) -> None:
     """All three fits of a SESSION folder: response, vignetting, illumination."""
-    from pipeline.calibrate.fit import calibrate_session
+    from pipeline.calibrate.fit import CALIBRATE_STEPS, calibrate_session
 
     t0 = time.perf_counter()
-    ds = calibrate_session(session, out, response_method=response_method, calibration=partial)
+    with progress(CALIBRATE_STEPS, "calibrate") as advance:
+        ds = calibrate_session(session, out, response_method=response_method, calibration=partial, advance=advance)
     _report_skips(ds)
-    click.echo(f"wrote {out} ({_summary(ds)}; {time.perf_counter() - t0:.1f} s)")
+    _store_summary("calibrate", ds, out, f"wrote {out} ({_summary(ds)}; {time.perf_counter() - t0:.1f} s)").emit()
 
 
-@cli.group()
+@cli.group(short_help="One fit at a time: U, V, S and B, or the intrinsics.")
 def fit() -> None:
-    """One fit at a time."""
+    """One fit at a time: response, vignetting, illumination or intrinsics."""
 
 
-@fit.command("response")
+@fit.command("response", short_help="Inverse response U per band (Eq. 5-7).")
 @_writes("store", "calibration store")
 @click.argument("directory", type=click.Path(path_type=Path))
 @click.option("--camera", "camera", default=None, help="Camera catalog name (required for a plain frame folder).")
-@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
-@click.option("--method", type=RESPONSE_METHODS, default="forward", show_default=True)
-def fit_response(directory: Path, camera: str | None, out: Path, method: str) -> None:
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
+              help="Calibration store (.zarr) to write.")
+@click.option("--response-method", type=RESPONSE_METHODS, default=None, help=RESPONSE_METHOD_HELP + "  [default: forward]")
+@_deprecated_alias("--method", "--response-method", "method")
+def fit_response(directory: Path, camera: str | None, out: Path, response_method: str | None,
+                 method: str | None) -> None:
     """Inverse response U per band (Eq. 5-7) from DIRECTORY: a frame folder with frames.csv,
     or a session (its response/ folder)."""
     from pipeline.calibrate.fit import fit_response_cli
 
-    ds = fit_response_cli(directory, out, camera, method)
-    click.echo(f"wrote {out} ({_summary(ds)})")
+    ds = fit_response_cli(directory, out, camera, response_method or method or "forward")
+    _store_summary("fit response", ds, out, f"wrote {out} ({_summary(ds)})").emit()
 
 
 def _stage_command(stage: str):  # noqa: ANN202
     @click.argument("session", type=click.Path(path_type=Path))
-    @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
+    @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
+                  help="Calibration store (.zarr) to write.")
     @click.option("--calibration", "partial", default=None, type=click.Path(path_type=Path),
                   help="A store holding the earlier fits; without it they are fitted from SESSION.")
     def command(session: Path, out: Path, partial: Path | None) -> None:
@@ -136,23 +212,25 @@ def _stage_command(stage: str):  # noqa: ANN202
 
         ds = fit_stage_cli(stage, session, out, partial)
         _report_skips(ds)
-        click.echo(f"wrote {out} ({_summary(ds)})")
+        _store_summary(f"fit {stage}", ds, out, f"wrote {out} ({_summary(ds)})").emit()
 
     command.__doc__ = {
         "vignetting": "Per-pixel, per-band vignetting V (Eq. 8-10) from SESSION/vignetting.",
         "illumination": "Spectral factor S and reflector brightness B (Eq. 11-14) from SESSION/reflector.",
     }[stage]
-    return fit.command(stage)(_writes("store", "calibration store")(command))
+    return fit.command(stage, short_help={"vignetting": "Per-pixel, per-band vignetting V (Eq. 8-10).",
+                                          "illumination": "Spectral factor S and reflector brightness B (Eq. 11-14)."}[stage])(_writes("store", "calibration store")(command))
 
 
 _stage_command("vignetting")
 _stage_command("illumination")
 
 
-@fit.command("intrinsics")
+@fit.command("intrinsics", short_help="Camera intrinsics per band from board images (OpenCV).")
 @_writes("store", "calibration store")
 @click.argument("frames", type=click.Path(path_type=Path))
-@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
+              help="Calibration store (.zarr) to write.")
 @click.option("--camera", default=None, help="Camera catalog name (default: session.yaml beside FRAMES).")
 @click.option("--board", "kind", type=click.Choice(["charuco", "checkerboard"]), default=None,
               help="Board kind (default: FRAMES/board.yaml).")
@@ -174,12 +252,16 @@ def fit_intrinsics(frames: Path, out: Path, camera: str | None, kind: str | None
     ds = fit_intrinsics_cli(frames, out, camera_name=camera, board=board, fix_k3=fix_k3)
     rep = ds.attrs["intrinsics"]
     for s in rep["skipped"]:
-        click.echo(f"skipped {s['file']}: {s['reason']}", err=True)
-    click.echo(f"wrote {out} (camera {ds.attrs['camera']}, {rep['images']} images, views per band {rep['views']}, "
-               f"reprojection rms {', '.join(f'{v:.2f}' for v in rep['rms_px'])} px)")
+        note(f"skipped {s['file']}: {s['reason']}")
+    summary = _store_summary(
+        "fit intrinsics", ds, out, f"wrote {out} (camera {ds.attrs['camera']}, {rep['images']} images, views per band "
+        f"{rep['views']}, reprojection rms {', '.join(f'{v:.2f}' for v in rep['rms_px'])} px)",
+        reprojection_rms_px=list(rep["rms_px"]))
+    summary.counts.update({"images": rep["images"], "views_per_band": rep["views"], "images_skipped": len(rep["skipped"])})
+    summary.emit()
 
 
-@cli.command()
+@cli.command(short_help="Band co-registration of a multi-lens camera (homographies).")
 @_writes("store", "calibration store")
 @click.argument("captures", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
@@ -199,20 +281,26 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
     from pipeline.calibrate.registration import register_cli
 
     t0 = time.perf_counter()
-    ds, problems = register_cli(list(captures), out, camera, reference, Thresholds(min_ecc=min_ecc), max_captures)
+    ds, problems = register_cli(list(captures), out, camera, reference, Thresholds(min_ecc=min_ecc), max_captures,
+                                progress=lambda n: progress(n, "register"))
     for p in problems:
-        click.echo(f"not used {p['file']}: {p['reason']}", err=True)
+        note(f"not used {p['file']}: {p['reason']}")
     reg = ds.attrs["registration"]
     for f in reg["fallbacks"]:
-        click.echo(f"capture {f['capture']} fell back to the session transform for {', '.join(f['bands'])}: {f['reason']}",
-                   err=True)
-    spread = ", ".join(f"{n} {s:.2f}" for n, s in zip(ds["band_name"].values, ds["registration_spread_px"].values))
-    click.echo(f"wrote {out} (reference band {reg['reference_band']}; {len(reg['captures'])} of {reg['registered_of']} "
-               f"captures registered, {len(reg['fallbacks'])} fell back; spread px: {spread}; "
-               f"{time.perf_counter() - t0:.1f} s)")
+        note(f"capture {f['capture']} fell back to the session transform for {', '.join(f['bands'])}: {f['reason']}")
+    spread = {str(n): float(s) for n, s in zip(ds["band_name"].values, ds["registration_spread_px"].values)}
+    summary = _store_summary(
+        "register", ds, out,
+        f"wrote {out} (reference band {reg['reference_band']}; {len(reg['captures'])} of {reg['registered_of']} "
+        f"captures registered, {len(reg['fallbacks'])} fell back; spread px: "
+        f"{', '.join(f'{n} {s:.2f}' for n, s in spread.items())}; {time.perf_counter() - t0:.1f} s)",
+        reference_band=reg["reference_band"], registration_spread_px=spread)
+    summary.counts.update({"captures_registered": len(reg["captures"]), "captures_given": reg["registered_of"],
+                           "fell_back": len(reg["fallbacks"]), "files_not_used": len(problems)})
+    summary.emit()
 
 
-@cli.command()
+@cli.command(short_help="Reflectance, indices and TIFFs of a flight's captures (Eq. 15).")
 @_writes("folder", "output folder")
 @click.argument("flight", type=click.Path(path_type=Path))
 @click.option("--calibration", "calibration", required=True,
@@ -288,7 +376,8 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
             execution=execution,
             camera=camera,
         )
-        _report_apply(apply_factory(flight, out, fopts), out, strict)
+        stores = [p for p in (registration, field_calibration) if p is not None]
+        _report_apply(apply_factory(flight, out, fopts), out, strict, stores)
         return
     if reference != "auto":
         raise InputError("--reference is for --calibration factory")
@@ -310,10 +399,10 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
         export_bands=bands, strict=strict, illumination=illumination or "linear", align=not no_align,
         centre_bands=centre_bands, execution=execution,
     )
-    _report_apply(apply_flight(flight, calibration, out, opts), out, strict)
+    _report_apply(apply_flight(flight, calibration, out, opts), out, strict, [Path(calibration)])
 
 
-@cli.command()
+@cli.command(short_help="Which camera wrote a folder's captures and what it allows.")
 @click.argument("folder", type=click.Path(path_type=Path))
 @click.option("--camera", default=None, help="Catalog camera to read the folder as, instead of recognising it.")
 def cameras(folder: Path, camera: str | None) -> None:
@@ -322,34 +411,65 @@ def cameras(folder: Path, camera: str | None) -> None:
     metadata allows."""
     from pipeline.ingest.identify import describe_folders
 
-    for line in describe_folders(folder, camera):
+    lines = describe_folders(folder, camera)
+    folders = [line[:-1] for line in lines if not line.startswith(" ")]
+    if console().json:
+        doc: dict[str, list[str]] = {}
+        for line in lines:
+            if not line.startswith(" "):
+                key = line[:-1]
+                doc[key] = []
+            else:
+                doc[key].append(line.strip())
+        Summary("cameras", f"{len(folders)} folder(s) with images under {folder}", counts={"folders": len(folders)},
+                details={"folders": doc}).emit()
+        return
+    for line in lines:
         click.echo(line)
+    click.echo(f"{len(folders)} folder(s) with images under {folder}")
 
 
-def _report_apply(res: Any, out: Path, strict: bool) -> None:
+#: What an apply OUT folder holds (SPEC "Outputs of apply"), for the summary.
+APPLY_OUTPUTS = {"reflectance": "reflectance.zarr", "raw DN": "raw.zarr", "photogrammetry TIFFs": "photogrammetry",
+                 "NDVI": "ndvi", "run record": "run.json"}
+
+
+def _report_apply(res: Any, out: Path, strict: bool, stores: list[Path]) -> None:
+    """Notes on skipped and quarantined files (stderr), then the summary with the warnings
+    report.html would show for this flight and the calibration stores it used."""
     skipped = res.run.get("skipped") or []
     if skipped:
-        click.echo(f"skipped {len(skipped)} file(s) that are not captures: "
-                   f"{', '.join(s['file'] for s in skipped[:5])}{' ...' if len(skipped) > 5 else ''}", err=True)
+        note(f"skipped {len(skipped)} file(s) that are not captures: "
+             f"{', '.join(s['file'] for s in skipped[:5])}{' ...' if len(skipped) > 5 else ''}")
     for q in res.quarantined:
-        click.echo(f"quarantined {q['file']}: {q['reason']}", err=True)
+        note(f"quarantined {q['file']}: {q['reason']}")
     state = "up to date" if res.up_to_date else f"{res.run['timings_s']['total']:.1f} s"
-    click.echo(f"wrote {out} ({res.run['frames_out']} frames, {len(res.quarantined)} quarantined; {state})")
+    warnings = report_warnings(calibration=stores[0] if stores else None, flights=[out])
+    for extra in stores[1:]:
+        warnings += report_warnings(calibration=extra)
+    sat = res.run.get("saturated_pixels") or {}
+    Summary("apply", f"wrote {out} ({res.run['frames_out']} frames, {len(res.quarantined)} quarantined; {state})",
+            outputs={k: out / v for k, v in APPLY_OUTPUTS.items() if (out / v).exists()},
+            counts={"frames_in": res.run.get("frames_in"), "frames_out": res.run["frames_out"],
+                    "quarantined": len(res.quarantined), "files_skipped": len(skipped),
+                    "saturated_pixels": sat.get("total")},
+            warnings=warnings, details={"up_to_date": res.up_to_date, "reference": res.run.get("reference")}).emit()
     if strict and res.quarantined:
         raise SystemExit(3)
 
 
-@cli.command()
+@cli.command(short_help="Index map of an orthomosaic as a Cloud Optimized GeoTIFF.")
 @_writes("file", "index map")
 @click.argument("ortho", type=click.Path(path_type=Path))
 @click.option("--index", "index_name", default="ndvi", show_default=True, help="Index name from catalogs/indices.")
-@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path))
+@click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
+              help="Index map (.tif, a Cloud Optimized GeoTIFF) to write.")
 @click.option("--bands", default=None, help="Band numbers of the roles, e.g. red=3,nir=5 (default: from band descriptions).")
 def index(ortho: Path, index_name: str, out: Path, bands: str | None) -> None:
     """Index map of a reflectance orthomosaic as a Cloud Optimized GeoTIFF."""
     from mscal_core.errors import InputError
 
-    from pipeline.products.indexmap import index_map
+    from pipeline.products.indexmap import georeferenced, index_map
 
     mapping = None
     if bands:
@@ -358,10 +478,15 @@ def index(ortho: Path, index_name: str, out: Path, bands: str | None) -> None:
         except ValueError:
             raise InputError(f"--bands {bands!r} is not ROLE=NUMBER,...", hint="e.g. --bands red=3,nir=5") from None
     index_map(ortho, index_name, out, bands=mapping)
-    click.echo(f"wrote {out}")
+    geo = georeferenced(out)
+    if not geo:
+        note(f"{ortho} has no georeferencing (no CRS or geotransform): the index map has none either "
+             "(fine for a single frame; an orthomosaic for GIS needs one)")
+    Summary("index", f"wrote {out} ({index_name}{'' if geo else ', not georeferenced'})", outputs={"index map": out},
+            details={"index": index_name, "georeferenced": geo}).emit()
 
 
-@cli.command()
+@cli.command(short_help="Build or update the STAC catalog of every flight under ROOT.")
 @click.argument("root", type=click.Path(path_type=Path))
 @click.option("--project-level", type=int, default=None,
               help="Collections by the folder this many levels below ROOT (0: one collection named after ROOT; "
@@ -374,17 +499,20 @@ def catalog(root: Path, project_level: int | None, validate_only: bool) -> None:
 
     if validate_only:
         n = validate_catalog(root)
-        click.echo(f"{root / 'catalog.json'}: {n} STAC object(s) valid")
+        Summary("catalog", f"{root / 'catalog.json'}: {n} STAC object(s) valid", outputs={"catalog": root / "catalog.json"},
+                counts={"valid_objects": n}).emit()
         return
     s = update_catalog(root, project_level=project_level)
     for key in s["removed"]:
-        click.echo(f"removed {key} (its flight is gone)", err=True)
-    click.echo(f"wrote {s['catalog']} ({s['items']} item(s) in {len(s['collections'])} collection(s): "
-               f"{len(s['added'])} added, {len(s['updated'])} updated, {s['unchanged']} unchanged, "
-               f"{len(s['removed'])} removed)")
+        note(f"removed {key} (its flight is gone)")
+    Summary("catalog", f"wrote {s['catalog']} ({s['items']} item(s) in {len(s['collections'])} collection(s): "
+            f"{len(s['added'])} added, {len(s['updated'])} updated, {s['unchanged']} unchanged, "
+            f"{len(s['removed'])} removed)", outputs={"catalog": s["catalog"]},
+            counts={"items": s["items"], "collections": len(s["collections"]), "added": len(s["added"]),
+                    "updated": len(s["updated"]), "unchanged": s["unchanged"], "removed": len(s["removed"])}).emit()
 
 
-@cli.command()
+@cli.command(short_help="Per-field statistics of an index over orthomosaics (a table).")
 @click.argument("orthos", nargs=-1, type=click.Path(path_type=Path))
 @click.option("--fields", "fields_path", required=True, type=click.Path(path_type=Path),
               help="GeoJSON of the fields (polygons; WGS 84 unless it names a CRS or --fields-crs is given).")
@@ -413,20 +541,23 @@ def stats(orthos: tuple[Path, ...], fields_path: Path, index_name: str, catalog_
         skipped: list[str] = []
         mosaics += mosaics_from_catalog(catalog_path, index_name, skipped)
         if skipped:
-            click.echo(f"{len(skipped)} flight(s) of the catalog have no orthomosaic or {index_name} map, so no "
-                       f"statistics: {', '.join(skipped[:10])}{' ...' if len(skipped) > 10 else ''}", err=True)
+            note(f"{len(skipped)} flight(s) of the catalog have no orthomosaic or {index_name} map, so no "
+                 f"statistics: {', '.join(skipped[:10])}{' ...' if len(skipped) > 10 else ''}")
     t0 = time.perf_counter()
     df = zonal_table(fields, mosaics, index_name, bands=parse_bands_option(bands) if bands else None, workers=workers)
     pq, csv = write_table(df, out)
-    for r in df[df["status"] != "ok"].itertuples():
-        click.echo(f"field {r.field_id}{' on ' + r.flight if r.flight else ''}: {r.status}", err=True)
-    click.echo(f"wrote {pq} and {csv} ({len(fields.fields)} field(s), {len(mosaics)} mosaic(s), {len(df)} row(s); "
-               f"{time.perf_counter() - t0:.1f} s)")
+    not_ok = df[df["status"] != "ok"]
+    for r in not_ok.itertuples():
+        note(f"field {r.field_id}{' on ' + r.flight if r.flight else ''}: {r.status}")
     if plot is not None:
         from pipeline.products.report import write_season_report
 
         write_season_report(df, plot)
-        click.echo(f"wrote {plot}")
+    Summary("stats", f"wrote {pq} and {csv} ({len(fields.fields)} field(s), {len(mosaics)} mosaic(s), {len(df)} row(s)"
+            f"{f', {len(not_ok)} not ok' if len(not_ok) else ''}; {time.perf_counter() - t0:.1f} s)",
+            outputs={"table (Parquet)": pq, "table (CSV)": csv, "season plots": plot},
+            counts={"fields": len(fields.fields), "mosaics": len(mosaics), "rows": len(df), "rows_not_ok": len(not_ok)}
+            ).emit()
 
 
 #: Entry-point group through which ``flows`` registers the Prefect flows the commands run
@@ -452,32 +583,52 @@ def _flow(name: str):  # noqa: ANN202 (a Prefect flow)
     return found[0].load()
 
 
+def run_warnings(out: str | Path, record: dict) -> list[dict[str, Any]]:
+    """The warnings of OUT/report.html of a post-flight run (its calibration and the flights
+    it processed); none for a remote OUT (the report is there)."""
+    from pipeline.run.runner import CALIBRATION_STORE, failed_flights, is_remote
+
+    if is_remote(str(out)) or not (Path(out) / CALIBRATION_STORE).exists():
+        return []
+    failed = failed_flights(record)
+    return report_warnings(calibration=Path(out) / CALIBRATION_STORE,
+                           flights=[Path(out) / "flights" / n for n in record["flights"] if n not in failed])
+
+
 def _echo_run(record: dict) -> None:
     for name, f in record["flights"].items():
         for q in f["quarantined"]:
-            click.echo(f"quarantined {name}/{q['file']}: {q['reason']}", err=True)
+            note(f"quarantined {name}/{q['file']}: {q['reason']}")
         if f.get("skipped"):
-            click.echo(f"skipped {len(f['skipped'])} file(s) of {name} that are not captures: "
-                       f"{', '.join(s['file'] for s in f['skipped'][:5])}{' ...' if len(f['skipped']) > 5 else ''}",
-                       err=True)
+            note(f"skipped {len(f['skipped'])} file(s) of {name} that are not captures: "
+                 f"{', '.join(s['file'] for s in f['skipped'][:5])}{' ...' if len(f['skipped']) > 5 else ''}")
     from pipeline.run.runner import failed_flights
 
     failed = failed_flights(record)
     for name, reason in failed.items():
-        click.echo(f"flight {name} was not processed: {reason}", err=True)
+        note(f"flight {name} was not processed: {reason}")
     calib = "reused from the cache" if record["calibration_cached"] else "fitted: " + ", ".join(record["fitted"])
     done = len(record["flights"]) - len(failed)
-    click.echo(f"wrote {record['out']} (calibration {calib}; {done} flight(s)"
-               f"{f', {len(failed)} not processed' if failed else ''}; {record['timings_s']['total']:.1f} s)")
+    out = record["out"]
+    Summary("run", f"wrote {out} (calibration {calib}; {done} flight(s)"
+            f"{f', {len(failed)} not processed' if failed else ''}; {record['timings_s']['total']:.1f} s)",
+            outputs={"run record": f"{out}/run.json", "calibration store": f"{out}/{record['calibration']}",
+                     "flights": f"{out}/flights/", "QA report": f"{out}/{record['report']}"},
+            counts={"flights": len(record["flights"]), "flights_not_processed": len(failed),
+                    "frames_out": sum(f.get("frames_out") or 0 for f in record["flights"].values()),
+                    "quarantined": sum(len(f.get("quarantined") or []) for f in record["flights"].values())},
+            warnings=run_warnings(out, record),
+            details={"calibration_cached": record["calibration_cached"], "not_processed": failed}).emit()
     if failed:  # as --strict does for frames: a script sees that something was skipped
         raise SystemExit(3)
 
 
-@cli.command()
+@cli.command(short_help="Calibrate a session and apply it to every flight (Prefect).")
 @_writes("folder", "output folder")
 @click.argument("session")
 @click.option("-o", "--output", "out", required=True, help="Output folder or fsspec URL (s3://bucket/prefix).")
-@click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True)
+@click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True,
+              help=RESPONSE_METHOD_HELP)
 @click.option("--normalise", default="relative", show_default=True, help="relative, or band:<name or nm>.")
 @click.option("--dask-address", default=None,
               help="tcp://HOST:PORT of a running 'dask scheduler' (default: a local cluster for long flights).")
@@ -507,7 +658,7 @@ def run(session: str, out: str, response_method: str, normalise: str, dask_addre
     _echo_run(record)
 
 
-@cli.command()
+@cli.command(short_help="Process each complete session of an inbox on a cron schedule.")
 @click.option("--inbox", "inbox_dir", required=True, type=click.Path(path_type=Path), help="Folder of session folders.")
 @click.option("-o", "--output", "out_root", required=True, type=click.Path(path_type=Path),
               help="Outputs: OUT_ROOT/<session name>/, and the state file OUT_ROOT/.mscal-serve.json.")
@@ -515,7 +666,8 @@ def run(session: str, out: str, response_method: str, normalise: str, dask_addre
 @click.option("--settle-seconds", default=600.0, show_default=True, type=float,
               help="A session without a READY file is complete once nothing in it changed for this long.")
 @click.option("--once", is_flag=True, help="Look at the inbox once and exit.")
-@click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True)
+@click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True,
+              help=RESPONSE_METHOD_HELP)
 @click.option("--dask-address", default=None, help="tcp://HOST:PORT of a running 'dask scheduler'.")
 def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, once: bool, response_method: str,
           dask_address: str | None) -> None:
@@ -533,8 +685,7 @@ def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, onc
     while True:
         done = process_inbox(str(inbox_dir), str(out_root), settle_seconds=settle_seconds,
                              response_method=response_method, dask_address=dask_address)
-        for name, status in done.items():
-            click.echo(f"{name}: {status} -> {out_root / name}")
+        _echo_serve(done, out_root)
         if once:
             return
         wake = next_time(cron, datetime.now())
@@ -542,7 +693,29 @@ def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, onc
         time.sleep(max(0.0, (wake - datetime.now()).total_seconds()))
 
 
-@cli.command()
+def _echo_serve(done: dict[str, str], out_root: Path) -> None:
+    """One line per session processed, each followed by its report's warnings; with --json one
+    JSON document per look at the inbox (one in all with --once); nothing when nothing was done."""
+    if not done:
+        return
+    docs = {}
+    for name, status in done.items():
+        run_json = out_root / name / "run.json"
+        record = json.loads(run_json.read_text()) if status == "done" and run_json.is_file() else None
+        warnings = run_warnings(out_root / name, record) if record else []
+        docs[name] = Summary("serve", f"{name}: {status} -> {out_root / name}", warnings=warnings)
+    if console().json:
+        Summary("serve", f"{len(done)} session(s) processed into {out_root}", outputs={"sessions": out_root},
+                counts={"sessions": len(done), "failed": sum(s != "done" for s in done.values())},
+                details={"sessions": {n: {"status": done[n], "out": out_root / n, "warnings": d.warnings}
+                                      for n, d in docs.items()}}).emit()
+        return
+    for d in docs.values():
+        for line in d.lines(QUIET):
+            click.echo(line)
+
+
+@cli.command(short_help="Self-contained HTML QA report of calibrations and flights.")
 @_writes("file", "report")
 @click.option("--calibration", "calibration", default=None, type=click.Path(path_type=Path),
               help="Calibration store (.zarr) to report on; calibration.json is written beside the report.")
@@ -556,31 +729,42 @@ def report(calibration: Path | None, flights: tuple[Path, ...], out: Path, title
            stats_table: Path | None) -> None:
     """Self-contained HTML QA report (plots embedded, opens offline) of a calibration, flights
     and the season of each field."""
-    from pipeline.products.report import write_report
+    from pipeline.products.report import write_report_sections
 
     t0 = time.perf_counter()
-    write_report(out, calibration=calibration, flights=flights, title=title, stats=stats_table)
-    extra = f" and {out.parent / 'calibration.json'}" if calibration is not None else ""
-    click.echo(f"wrote {out}{extra} ({out.stat().st_size / 1e6:.1f} MB; {time.perf_counter() - t0:.1f} s)")
+    _, sections = write_report_sections(out, calibration=calibration, flights=flights, title=title, stats=stats_table,
+                                        progress=lambda n: progress(n, "report"))
+    outputs = {"QA report": out, "calibration summary": out.parent / "calibration.json" if calibration else None}
+    extra = f" and {outputs['calibration summary']}" if calibration is not None else ""
+    Summary("report", f"wrote {out}{extra} ({out.stat().st_size / 1e6:.1f} MB; {time.perf_counter() - t0:.1f} s)",
+            outputs=outputs, counts={"sections": len(sections), "figures": sum(len(s.figures) for s in sections)},
+            warnings=[{"section": s.title, **asdict(w)} for s in sections for w in s.warnings]).emit()
 
 
-@cli.command()
+@cli.command(short_help="Run the whole flow on a synthetic session and score it.")
 @_writes("folder", "demo folder")
-@click.option("-o", "--output", "out", default=Path("demo-out"), show_default=True, type=click.Path(path_type=Path))
+@click.option("-o", "--output", "out", default=Path("demo-out"), show_default=True, type=click.Path(path_type=Path),
+              help="Folder for the session, the outputs and evaluation.json.")
 @click.option("--size", type=click.Choice(["small", "full"]), default="small", show_default=True,
               help="'full' is the paper-sized session (40 views, 14-frame sweep).")
-@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--seed", default=0, show_default=True, type=int, help="Seed of the synthetic session.")
 def demo(out: Path, size: str, seed: int) -> None:
     """Synthesize a session with known truth (two flights), run the whole post-flight flow on
     it and compare the calibration with the truth."""
     from pipeline.run.demo import run_demo
 
     summary = run_demo(out, size=size, seed=seed, flow=_flow("post_flight"))
-    click.echo(json.dumps(summary, indent=2))
-    click.echo(f"outputs: {summary['outputs']}")
-    click.echo(f"run record: {summary['run_json']}")
-    if summary.get("report"):
-        click.echo(f"report: {summary['report']}")
+    record = json.loads(Path(summary["run_json"]).read_text())
+    errors = summary["errors_vs_truth"]
+    Summary("demo", f"wrote {out} (demo session, {len(summary['flights'])} flight(s); calibration "
+            f"{'reused from the cache' if summary['calibration_cached'] else 'fitted'})",
+            outputs={"outputs": summary["outputs"], "session": summary["session"], "run record": summary["run_json"],
+                     "report": summary.get("report"), "evaluation": out / "evaluation.json",
+                     **{f"flight {k}": v for k, v in summary["flights"].items()},
+                     **{f"error vs truth: {k}": (f"{v:.4g}" if isinstance(v, float) else v)
+                        for k, v in errors.items() if not isinstance(v, (dict, list))}},
+            counts={"flights": len(summary["flights"])}, warnings=run_warnings(out, record),
+            details={"demo": summary}).emit()
 
 
 def main(argv: list[str] | None = None) -> int:

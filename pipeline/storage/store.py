@@ -71,7 +71,6 @@ CF_VARIABLES: dict[str, dict[str, str]] = {
     "dn_bin": {"units": "count", "long_name": "centre of a DN bin of the response residual"},
     "vignetting": {"units": "1", "long_name": "optical attenuation V (Eq. 8-10), max 1 per band"},
     "vignetting_count": {"units": "1", "long_name": "number of reflector observations of the pixel"},
-    "vignetting_observed": {"long_name": "V observed at the pixel (false: filled smoothly)"},
     "spectral_factor": {"units": "1", "long_name": "spectral factor S of the illumination (Eq. 11-14)"},
     "capture_spectral_factor": {"units": "1", "long_name": "spectral factor S of each reflector capture"},
     "capture_level": {"units": "1", "long_name": "brightness level of each reflector capture"},
@@ -82,14 +81,53 @@ CF_VARIABLES: dict[str, dict[str, str]] = {
     "reflector_exposure_ms": {"units": "ms", "long_name": "exposure time of each reflector image"},
     "registration_ecc": {"units": "1", "long_name": "gradient correlation after registration"},
     "registration_inliers": {"units": "1", "long_name": "feature inliers of the registration"},
+    "vignetting_observed": {"units": "1", "long_name": "V observed at the pixel (false: filled smoothly)"},
+    "intrinsics": {"units": "1", "long_name": "pinhole + OpenCV distortion per band (fx, fy, cx, cy in the "
+                                              "band's pixels; distortion dimensionless)"},
+    "band_transform": {"units": "1", "long_name": "homography of each band onto the reference band (pixels)"},
+    "capture_transform": {"units": "1", "long_name": "homography of each band of each registered capture (pixels)"},
+    "dn": {"units": "count", "long_name": "digital number"},
+    "band": {"units": "1", "long_name": "band index"},
+    "capture": {"units": "1", "long_name": "reflector capture index"},
+    "reflector_image": {"units": "1", "long_name": "reflector image index"},
+    "reflector_capture": {"units": "1", "long_name": "reflector capture of each reflector image"},
 }
 
 
-def cf_annotate(ds: xr.Dataset) -> xr.Dataset:
-    """``ds`` with the CF ``Conventions`` attribute and the units and names of
-    :data:`CF_VARIABLES` wherever a variable lacks them (in place; returned for chaining)."""
+#: CF attributes of the per-frame coordinates of every flight store (``raw.zarr`` and the
+#: ``reflectance.zarr`` of both apply paths, field and factory): one set, used by all writers.
+#: ``time`` has no ``units`` attribute: xarray writes its encoding's units itself.
+FRAME_COORD_ATTRS: dict[str, dict[str, str]] = {
+    "frame": {"long_name": "frame name (file stem, or capture name)"},
+    "exposure_ms": {"long_name": "exposure time", "units": "ms"},
+    "gain": {"long_name": "linear sensor gain", "units": "1"},
+    "time": {"standard_name": "time", "long_name": "acquisition time (UTC where the source gave an offset)"},
+    "lat": {"standard_name": "latitude", "long_name": "latitude (WGS84)", "units": "degrees_north"},
+    "lon": {"standard_name": "longitude", "long_name": "longitude (WGS84)", "units": "degrees_east"},
+    "alt_m": {"long_name": "altitude of the camera", "units": "m"},
+    "band": {"long_name": "band index", "units": "1"},
+}
+
+#: CF attributes of the variables of the flight stores beyond their frame coordinates.
+FLIGHT_VARIABLES: dict[str, dict[str, str]] = {
+    **FRAME_COORD_ATTRS,
+    "wavelength": CF_VARIABLES["wavelength"],
+    "reflectance": {"units": "1"},
+    "dn": {"units": "1"},
+    "band_exposure_ms": {"long_name": "exposure time of each band file", "units": "ms"},
+    "illumination_level": {"units": "1"},
+    "illumination_scale": {"units": "1"},
+    "vegetation_mask": {"units": "1"},
+    "irradiance": {"units": "1", "long_name": "sun-sensor irradiance (the sensor's own unit)"},
+}
+
+
+def cf_annotate(ds: xr.Dataset, table: dict[str, dict[str, str]] | None = None) -> xr.Dataset:
+    """``ds`` with the CF ``Conventions`` attribute and the units and names of ``table``
+    (default :data:`CF_VARIABLES`) wherever a variable lacks them (in place; returned for
+    chaining)."""
     ds.attrs.setdefault("Conventions", CF_CONVENTIONS)
-    for name, attrs in CF_VARIABLES.items():
+    for name, attrs in (CF_VARIABLES if table is None else table).items():
         if name in ds.variables:
             for k, v in attrs.items():
                 ds[name].attrs.setdefault(k, v)

@@ -59,6 +59,12 @@ def test_ximea_matches_spec() -> None:
     assert len(cam.export_bands) <= 8
 
 
+def test_ximea_exif_names_the_camera_and_its_pixel_pitch() -> None:
+    cam = catalog.load_camera("ximea-mq022hg-sm5x5-nir")
+    assert (cam.exif.make, cam.exif.model, cam.exif.pixel_um) == ("XIMEA", "MQ022HG-IM-SM5X5-NIR", 5.5)
+    assert catalog.load_camera("micasense-rededge").exif is None  # its files carry their own EXIF
+
+
 def test_generic_rgb8() -> None:
     cam = catalog.load_camera("generic-rgb8")
     assert cam.bit_depth == 8 and cam.layout.kind == "multichannel" and cam.layout.channels == 3
@@ -121,6 +127,9 @@ def _base_camera() -> dict:
         (lambda d: d["bands"][1].update(channel=0), "one band per channel"),
         (lambda d: d.update(export_bands=["uv"]), "unknown band(s) uv"),
         (lambda d: d.update(container_bits=4), "container_bits must be an integer from bit_depth (8) to 16"),
+        (lambda d: d.update(exif={"make": "X", "model": "Y", "pixel_um": -5.5}), "exif.pixel_um"),
+        (lambda d: d.update(exif={"make": "X", "model": "Y", "lens": 5}), "unknown key(s) lens"),
+        (lambda d: d.update(exif={"make": "X"}), "missing key(s) model"),
     ],
 )
 def test_bad_camera_rejected_naming_file(tmp_path, monkeypatch, mutate, message) -> None:

@@ -13,6 +13,7 @@ import pytest
 import xarray as xr
 
 from pipeline.apply.flight import calibration_hash
+from pipeline.products.report import report_dict
 from pipeline.run.cli import main
 from pipeline.sim.evaluate import evaluate_calibration
 from pipeline.storage.store import open_calibration
@@ -63,6 +64,12 @@ def test_first_run_fits_everything_and_writes_every_output(flow_session: Path, f
     item = json.loads(next((first_run / "stac").glob("*/items/field.json")).read_text())
     assert item["properties"]["mscal:calibration_sha256"] == run["flights"]["field"]["calibration_sha256"]
     assert item["properties"]["mscal:calibration_cached"] is False and item["geometry"]["type"] in ("Polygon", "LineString")
+    # each flight names the calibration it applied by its place among the outputs, not the cache
+    flight_run = json.loads((first_run / "flights" / "field" / "run.json").read_text())
+    assert flight_run["calibration"] == str((first_run / "calibration.zarr").resolve())
+    item_file = next((first_run / "stac").glob("*/items/field.json"))
+    assert (item_file.parent / item["properties"]["mscal:calibration"]).resolve() == (
+        first_run / "calibration.zarr").resolve()  # the STAC item points at it too (relative)
 
 
 def test_second_run_refits_nothing_and_says_so(flow_session: Path, first_run: Path, capsys) -> None:
@@ -151,10 +158,16 @@ def test_bad_dask_address_and_normalise_are_rejected(flow_session: Path, tmp_pat
 def test_demo_runs_the_whole_flow_and_says_where_the_outputs_are(first_run: Path, tmp_path: Path, capsys) -> None:
     """The demo's session is the flows' test session (seed 0, small, two flights): its
     calibration comes from the cache, so this checks the demo's wiring, not the fits again."""
-    assert main(["demo", "-o", str(tmp_path / "demo")]) == 0
-    lines = capsys.readouterr().out.splitlines()
-    assert f"outputs: {tmp_path / 'demo'}" in lines
-    assert f"run record: {tmp_path / 'demo' / 'run.json'}" in lines
+    assert main(["demo", "-o", str(tmp_path / "demo"), "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)  # one JSON document, nothing else (issue 24)
+    assert doc["command"] == "demo" and doc["outputs"]["outputs"] == str(tmp_path / "demo")
+    assert doc["outputs"]["run record"] == str(tmp_path / "demo" / "run.json")
+    assert doc["demo"]["errors_vs_truth"]["response_max_error"] < 0.02
+    # the report's warnings on the demo calibration (7 of 8 views used: vignetting coverage)
+    assert [w["code"] for w in doc["warnings"]] == [
+        w["code"] for s in report_dict(tmp_path / "demo" / "calibration.zarr",
+                                       [tmp_path / "demo" / "flights" / n for n in FLIGHTS])["sections"]
+        for w in s["warnings"]]
     summary = json.loads((tmp_path / "demo" / "evaluation.json").read_text())
     assert summary["calibration_cached"] is True
     assert sorted(summary["flights"]) == sorted(FLIGHTS)

@@ -64,6 +64,7 @@ from pipeline.products.report.page import (
     sections_markdown,
     write_report,
     write_report_and_markdown,
+    write_report_sections,
     write_season_report,
 )
 from pipeline.products.report.season import (
@@ -177,5 +178,6 @@ __all__ = [
     "sweep_coverage",
     "write_report",
     "write_report_and_markdown",
+    "write_report_sections",
     "write_season_report",
 ]

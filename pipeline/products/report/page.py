@@ -183,8 +183,9 @@ def _html_figure(caption: str, build: Callable[[], Figure]) -> str:
             f"<figcaption>{alt}</figcaption></figure>")
 
 
-def sections_html(sections: Sequence[Section], title: str) -> str:
-    """The whole page: inline CSS, embedded PNGs, no external resource of any kind."""
+def sections_html(sections: Sequence[Section], title: str, advance: Callable[[], None] | None = None) -> str:
+    """The whole page: inline CSS, embedded PNGs, no external resource of any kind.
+    ``advance``: called after each figure is rendered (a progress bar)."""
     parts = [
         "<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
         f'<meta http-equiv="Content-Security-Policy" content="{CSP}">',
@@ -196,7 +197,10 @@ def sections_html(sections: Sequence[Section], title: str) -> str:
         parts.append(f'<section id="{html.escape(s.anchor)}"><h2>{html.escape(s.title)}</h2>')
         parts.append(_html_warnings(s.warnings))
         parts += [_html_table(t) for t in s.tables]
-        parts += [_html_figure(c, fn) for c, fn in s.figures]
+        for c, fn in s.figures:
+            parts.append(_html_figure(c, fn))
+            if advance is not None:
+                advance()
         parts.append("</section>")
     parts.append(f"<script>{BROKEN_IMAGES_SCRIPT}</script></body></html>")
     return "\n".join(parts)
@@ -217,12 +221,31 @@ def write_report_and_markdown(out_html: str | Path, *, calibration: str | Path |
                               stats: Any = None) -> tuple[Path, str]:
     """:func:`write_report`, also returning the page's warnings and tables as markdown (for a
     Prefect artifact), from the same sections (the plots are made once)."""
+    out_html, sections = write_report_sections(out_html, calibration=calibration, flights=flights, title=title,
+                                               stats=stats)
+    return out_html, sections_markdown(sections, _title(title, as_calibration(calibration)))
+
+
+def _title(title: str | None, ds: xr.Dataset | None) -> str:
+    return title or "mscal QA report" + (f": {ds.attrs.get('camera')}" if ds is not None else "")
+
+
+def write_report_sections(out_html: str | Path, *, calibration: str | Path | xr.Dataset | None = None,
+                          flights: Iterable[str | Path | FlightResults] = (), title: str | None = None,
+                          stats: Any = None,
+                          progress: Callable[[int], Any] | None = None) -> tuple[Path, list[Section]]:
+    """:func:`write_report`, also returning the page's sections (their warnings are the
+    page's). ``progress(n)``: a context manager yielding ``advance`` for the ``n`` figures
+    (e.g. :func:`pipeline.run.console.progress` bound to a label)."""
     out_html = Path(out_html)
     ds = as_calibration(calibration)
     sections = build_sections(ds, flights, stats)
-    title = title or "mscal QA report" + (f": {ds.attrs.get('camera')}" if ds is not None else "")
-    page = sections_html(sections, title)
+    if progress is None:
+        page = sections_html(sections, _title(title, ds))
+    else:
+        with progress(sum(len(s.figures) for s in sections)) as advance:
+            page = sections_html(sections, _title(title, ds), advance)
     if ds is not None:
         write_text_atomic(out_html.parent / "calibration.json", json.dumps(calibration_summary(ds), indent=2))
     write_text_atomic(out_html, page)
-    return out_html, sections_markdown(sections, title)
+    return out_html, sections

@@ -251,11 +251,18 @@ def reference_table(run: dict[str, Any], band_names: Sequence[str] = ()) -> Tabl
 
 def reference_warnings(run: dict[str, Any]) -> list[QAWarning]:
     """A panel capture whose panel/DLS factor ratio spreads across bands by more than
-    :data:`PANEL_DLS_COLOUR_SPREAD_MAX`."""
+    :data:`PANEL_DLS_COLOUR_SPREAD_MAX`; panel captures seen in the folder but not used."""
     rec = run.get("reference")
     out: list[QAWarning] = []
     if not isinstance(rec, dict):
         return out
+    seen = rec.get("panels_seen") or []
+    if seen and rec.get("route") != "panel":
+        source = "the sun sensor (DLS)" if rec.get("route") == "dls" else "nothing (radiance only)"
+        out.append(QAWarning(
+            "panel_not_used", f"{len(seen)} panel capture(s) in the folder ({', '.join(seen[:5])}) but reflectance "
+            f"comes from {source}: {rec.get('panel_hint', 'give --panel-reflectance TARGET')}",
+            float(len(seen)), 0.0))
     for p in rec.get("panels") or []:
         ratio = _panel_dls(p)
         if len(ratio) < 2:

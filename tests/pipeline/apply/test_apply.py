@@ -393,6 +393,7 @@ def test_snapshot_outputs_are_the_kernel_and_the_writers_bit_for_bit(applied, tm
     import uuid
 
     from mscal_core.reflectance import eq15_fast, eq15_tables
+    from pipeline.apply.flight import catalog_make_model, snapshot_optics
     from pipeline.ingest.catalog import load_camera
     from pipeline.products.writers import BandTags, FrameTags, write_band_tiff
 
@@ -405,6 +406,10 @@ def test_snapshot_outputs_are_the_kernel_and_the_writers_bit_for_bit(applied, tm
     lut, inv_v = eq15_tables(cal["inverse_response"].values, cal["vignetting"].values, cal["spectral_factor"].values)
     sat = int(cal["saturation_dn"].values.min()) if "saturation_dn" in cal else cam.dn_max
     export = [cam.band_names.index(n) for n in cam.export_bands]
+    make, model = catalog_make_model(cam)
+    assert (make, model) == ("XIMEA", "MQ022HG-IM-SM5X5-NIR")
+    optics = snapshot_optics(cam, cal, ds["reflectance"].shape[2:])
+    assert optics is not None and optics.focal_length_mm == pytest.approx(cal["intrinsics"].values[0, 0] * 0.0275)
     compared = 0
     for f, name in enumerate(raw["frame"].values):
         t = float(raw["exposure_ms"].values[f] * raw["gain"].values[f])
@@ -414,12 +419,12 @@ def test_snapshot_outputs_are_the_kernel_and_the_writers_bit_for_bit(applied, tm
             time=np.datetime_as_string(raw["time"].values[f], unit="ms") + "Z",
             lat=float(raw["lat"].values[f]), lon=float(raw["lon"].values[f]), alt_m=float(raw["alt_m"].values[f]),
             capture_uuid=str(uuid.uuid5(uuid.NAMESPACE_URL, f"mscal:{cam.name}:{raw['sha256'].values[f]}")),
-            exposure_ms=float(raw["exposure_ms"].values[f]), camera_make="mscal", camera_model=cam.name)
+            exposure_ms=float(raw["exposure_ms"].values[f]), camera_make=make, camera_model=model, rig_name=cam.name)
         for i, b in enumerate(export):
             band = cam.bands[b]
             mine = write_band_tiff(tmp_path / f"{name}_{band.name}.tif", refl[b], tags,
                                    BandTags(name=band.name, wavelength_nm=band.wavelength_nm, fwhm_nm=band.fwhm_nm,
-                                            rig_camera_index=i))
+                                            rig_camera_index=i, optics=optics))
             assert (out / "photogrammetry" / mine.name).read_bytes() == mine.read_bytes(), mine.name
             compared += 1
     assert compared == 3 * len(export) == 24

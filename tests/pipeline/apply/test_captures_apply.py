@@ -58,7 +58,7 @@ def test_field_store_on_a_multilens_flight_is_eq15_per_band_file(field_run) -> N
     # one layout for all cameras: the same outputs as a snapshot flight
     assert {"reflectance", "ndvi", "ndre", "vegetation_mask"} <= set(ds.data_vars)
     assert sorted(p.name for p in (field_run / "photogrammetry").glob("IMG_0001_*.tif")) == sorted(
-        f"IMG_0001_{b}.tif" for b in BANDS)
+        f"IMG_0001_{b.replace(' e', 'E')}.tif" for b in BANDS)  # "Red edge" -> RedEdge: no spaces
     assert sorted(p.name for p in (field_run / "ndvi").glob("*.tif")) == ["IMG_0000.tif", "IMG_0001.tif"]
     assert run["calibration_sha256"] and run["frames_out"] == 2 and run["quarantined"] == []
     assert [s["file"] for s in run["skipped"]] == ["LICENSE", "README.md"]

@@ -59,8 +59,8 @@ def test_options_default_to_the_environment_and_are_recorded(tmp_path, monkeypat
     b = tmp_path / "b"
     assert main(["apply", str(data), "--calibration", "factory", "-o", str(b), "--workers", "2", "--direct-io"]) == 0
     assert _run(b)["execution"] == {"scheduler": "threads", "workers": 2, "direct_io": direct_io_enabled()}
-    files = sorted(p.relative_to(a) for p in (a / "photogrammetry").rglob("*.tif"))
-    assert len(files) == 10
+    files = sorted(p.relative_to(a) for sub in ("photogrammetry", "panels") for p in (a / sub).rglob("*.tif"))
+    assert len(files) == 10  # IMG_0001's five in photogrammetry/, the panel capture IMG_0000's in panels/
     assert all((a / f).read_bytes() == (b / f).read_bytes() for f in files)
     capsys.readouterr()
     assert main(["apply", str(data), "--calibration", "factory", "-o", str(a), "--scheduler", "processes"]) == 0

@@ -20,6 +20,7 @@ from mscal_core.factory import polygon_mask
 from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta
 from pipeline.ingest.catalog import load_target
 from pipeline.ingest.session import read_raw
+from pipeline.products.writers import file_band_name
 from pipeline.run.cli import main
 from tests.micasense_data import BANDS, MARKER_PANEL, PANEL_CORNERS, paint_marker, require_data
 
@@ -122,7 +123,7 @@ def test_report_compares_panel_and_dls(panel_run, dls_run, tmp_path) -> None:
 def test_photogrammetry_tiffs_of_a_capture_share_its_uuid(panel_run) -> None:
     uuids = set()
     for rig, band in enumerate(BANDS):
-        p = panel_run / "photogrammetry" / f"IMG_0001_{band}.tif"
+        p = panel_run / "photogrammetry" / f"IMG_0001_{file_band_name(band)}.tif"
         with p.open("rb") as fh:
             tags = exifread.process_file(fh, details=False)
         assert str(tags["GPS GPSLongitudeRef"]) == "W" and str(tags["GPS GPSLatitudeRef"]) == "N"
@@ -292,3 +293,18 @@ def test_folder_without_factory_metadata_is_named(tmp_path, capsys) -> None:
     assert _apply(folder, tmp_path / "o") == 2
     err = capsys.readouterr().err
     assert "no TIFF with factory radiometric metadata" in err and str(folder) in err
+
+
+def test_a_panel_capture_on_the_sun_sensor_route_is_kept_out_of_photogrammetry(dls_run) -> None:
+    """IMG_0000 shows the panel in every band: without --panel-reflectance it is still a
+    capture of reflectance.zarr, but its TIFFs go to OUT/panels/, not among the survey frames."""
+    run = json.loads((dls_run / "run.json").read_text())
+    assert run["panels"] == [{"capture": "IMG_0000",
+                              "reason": "a reflectance panel (camera's panel flag, --panel, or detected); not used: "
+                                        "no --panel-reflectance"}]
+    assert sorted(p.name for p in (dls_run / "panels").iterdir()) == sorted(
+        f"IMG_0000_{file_band_name(b)}.tif" for b in BANDS)
+    assert sorted(p.name for p in (dls_run / "photogrammetry").iterdir()) == sorted(
+        f"IMG_0001_{file_band_name(b)}.tif" for b in BANDS)
+    assert [p.name for p in (dls_run / "ndvi").iterdir()] == ["IMG_0001.tif"]
+    assert list(xr.open_zarr(dls_run / "reflectance.zarr")["frame"].values) == ["IMG_0000", "IMG_0001"]

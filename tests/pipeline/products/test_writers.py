@@ -16,15 +16,14 @@ import warnings
 import xml.etree.ElementTree as ET
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
-from xml.parsers import expat
 
-import exifread
 import numpy as np
 import pytest
 import rasterio
 import tifffile
 
 from mscal_core.errors import CatalogError
+from pipeline.ingest.photo_tags import CameraOptics
 from pipeline.products import writers
 from pipeline.products.writers import (
     NODATA_UINT16,
@@ -35,6 +34,10 @@ from pipeline.products.writers import (
     write_band_tiff,
     write_ndvi_tiff,
 )
+from tests.photo_readers import dms_to_decimal as _dms_to_decimal
+from tests.photo_readers import exif_tags as _exif
+from tests.photo_readers import odm_get_xmp_tag as _odm_get_xmp_tag
+from tests.photo_readers import odm_xmp as _odm_xmp
 
 FRAME = FrameTags(
     time="2024-05-01T10:00:00.250Z", lat=47.3977419, lon=8.5455938, alt_m=488.25,
@@ -59,71 +62,6 @@ def _refl(shape=(217, 409), seed=0) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- ODM-style readers
-
-
-def _exif(path: Path, details: bool = False) -> dict:
-    with open(path, "rb") as f:
-        return exifread.process_file(f, details=details)
-
-
-def _dms_to_decimal(dms_tag, ref_tag) -> float:
-    """As ODM_Photo.dms_to_decimal / float_values: Ratio .num/.den, sign from the Ref letter."""
-    d, m, s = (float(v.num) / float(v.den) for v in dms_tag.values)
-    return (-1 if ref_tag.values[0] in "SWsw" else 1) * (d + m / 60 + s / 3600)
-
-
-def _odm_xmp(path: Path) -> list[dict]:
-    """ODM_Photo.get_xmp: the rdf:Description mapping(s), as xmltodict would build them."""
-    raw = path.read_bytes()
-    start, end = raw.find(b"<x:xmpmeta"), raw.find(b"</x:xmpmeta")
-    assert 0 <= start < end
-    text = raw[start:end + 12].decode("utf8")
-
-    stack: list[tuple[str, dict, list[str]]] = [("", {}, [])]
-    parser = expat.ParserCreate()
-
-    def start_el(name, attrs):
-        stack.append((name, {f"@{k}": v for k, v in attrs.items()}, []))
-
-    def end_el(name):
-        _, node, texts = stack.pop()
-        txt = "".join(texts).strip()
-        value: object
-        if node:
-            if txt:
-                node["#text"] = txt
-            value = node
-        else:
-            value = txt or None
-        parent = stack[-1][1]
-        if name in parent:
-            if not isinstance(parent[name], list):
-                parent[name] = [parent[name]]
-            parent[name].append(value)
-        else:
-            parent[name] = value
-
-    parser.StartElementHandler = start_el
-    parser.EndElementHandler = end_el
-    parser.CharacterDataHandler = lambda data: stack[-1][2].append(data)
-    parser.Parse(text, True)
-    root = stack[0][1]
-    desc = root.get("x:xmpmeta", {}).get("rdf:RDF", {}).get("rdf:Description", {})
-    return desc if isinstance(desc, list) else [desc]
-
-
-def _odm_get_xmp_tag(xtags: dict, names: list[str]):
-    """ODM_Photo.get_xmp_tag: first of ``names`` present; a string, or an rdf:Seq's items."""
-    for tag in names:
-        if tag in xtags:
-            t = xtags[tag]
-            if isinstance(t, str):
-                return t
-            if isinstance(t, dict):
-                items = t.get("rdf:Seq", {}).get("rdf:li", {})
-                if items:
-                    return items if isinstance(items, str) else " ".join(items)
-    return None
 
 
 def _walk_tiff(path: Path) -> dict[int, dict[int, tuple[int, int, int]]]:
@@ -166,6 +104,7 @@ def test_band_tiff_exif_gps_as_odm_reads_them(tmp_path) -> None:
     for details in (False, True):  # ODM passes details=True in current photo.py; the brief uses False
         tags = _exif(p, details)
         assert tags["Image Make"].values == "mscal"
+        assert tags["Image Software"].values == writers.SOFTWARE
         assert tags["Image Model"].values == "ximea-mq022hg-sm5x5-nir"
         lat = _dms_to_decimal(tags["GPS GPSLatitude"], tags["GPS GPSLatitudeRef"])
         lon = _dms_to_decimal(tags["GPS GPSLongitude"], tags["GPS GPSLongitudeRef"])
@@ -179,8 +118,7 @@ def test_band_tiff_exif_gps_as_odm_reads_them(tmp_path) -> None:
         assert tags["EXIF DateTimeOriginal"].values == "2024:05:01 10:00:00"
         assert tags["EXIF SubSecTimeOriginal"].values == "25"
         assert tags["EXIF OffsetTimeOriginal"].values == "+00:00"
-        exp = tags["EXIF ExposureTime"].values[0]
-        assert (exp.num, exp.den) == (1, 400)
+        assert "EXIF ExposureTime" not in tags  # the reflectance marker: no photometric exposure for ODM
         assert tags["GPS GPSDate"].values == "2024:05:01"
     # ODM's capture time: DateTimeOriginal as UTC plus "0.<SubSecTime>" seconds
     tags = _exif(p)
@@ -284,8 +222,7 @@ def test_southern_western_below_sea_level_naive_time(tmp_path) -> None:
     assert tags["EXIF DateTimeOriginal"].values == "2023:12:31 23:59:59"
     assert tags["EXIF SubSecTimeOriginal"].values == "05"
     assert "EXIF OffsetTimeOriginal" not in tags and "GPS GPSDate" not in tags  # zone unknown
-    exp = tags["EXIF ExposureTime"].values[0]
-    assert (exp.num, exp.den) == (1, 1250)
+    assert "EXIF ExposureTime" not in tags and "EXIF FNumber" not in tags  # no optics given
 
 
 def test_zoned_time_is_written_in_utc(tmp_path) -> None:
@@ -358,3 +295,48 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path, monkeypatch) -> None:
         write_band_tiff(target, _refl(), FRAME, BAND)
     assert sorted(os.listdir(tmp_path)) == ["f.tif"]
     assert target.read_bytes() == b"old"
+
+
+OPTICS = CameraOptics(f_number=2.8, focal_length_mm=5.5, focal_plane_resolution=(266.666667, 266.666667),
+                      focal_plane_unit=4, focal_length_35mm=40,
+                      xmp=(("ModelType", "perspective"), ("PrincipalPoint", "2.4354,1.79714"),
+                           ("PerspectiveFocalLength", "1441.1993107495564"),
+                           ("PerspectiveDistortion", "-0.1037,0.1303,0.0110,-0.0008,0.0002")))
+
+
+def test_band_tiff_carries_the_lens_and_the_reflectance_marker(tmp_path) -> None:
+    """The band's lens in EXIF (FNumber, FocalLength, focal plane resolution, 35 mm
+    equivalent) and XMP (the lens model, verbatim), RigName, MicaSense's capture id, and the
+    marker: no ExposureTime (ODM: no photometric exposure), HorizontalIrradiance = pi."""
+    fr = FrameTags(time=None, lat=None, lon=None, alt_m=None, capture_uuid="u", exposure_ms=1.0,
+                   camera_make="MicaSense", camera_model="RedEdge", rig_name="RedEdge",
+                   micasense_capture_id="g2R43Qr5m7EeTFGbkh1W")
+    band = BandTags("Red edge", 717.0, 10.0, 4, optics=OPTICS)
+    p = write_band_tiff(tmp_path / "f.tif", _refl(), fr, band)
+    tags = _exif(p, True)
+    assert (tags["Image Make"].values, tags["Image Model"].values) == ("MicaSense", "RedEdge")
+    assert float(tags["EXIF FNumber"].values[0]) == pytest.approx(2.8)
+    assert float(tags["EXIF FocalLength"].values[0]) == pytest.approx(5.5)
+    assert float(tags["EXIF FocalPlaneXResolution"].values[0]) == pytest.approx(266.666667, rel=1e-9)
+    assert tags["EXIF FocalPlaneResolutionUnit"].values == [4]
+    assert tags["EXIF FocalLengthIn35mmFilm"].values == [40]
+    assert "EXIF ExposureTime" not in tags and "EXIF ISOSpeed" not in tags and "Image BlackLevel" not in tags
+    assert "already reflectance" in tags["Image ImageDescription"].values
+    (xt,) = _odm_xmp(p)
+    assert _odm_get_xmp_tag(xt, ["Camera:BandName"]) == "Red edge"
+    assert _odm_get_xmp_tag(xt, ["@drone-dji:CaptureUUID", "MicaSense:CaptureId", "@Camera:ImageUniqueID",
+                                 "@Camera:CaptureUUID"]) == "g2R43Qr5m7EeTFGbkh1W"
+    assert _odm_get_xmp_tag(xt, ["@Camera:ModelType", "Camera:ModelType"]) == "perspective"
+    assert xt["Camera:RigName"] == "RedEdge" and xt["Camera:PrincipalPoint"] == "2.4354,1.79714"
+    assert xt["Camera:PerspectiveFocalLength"] == "1441.1993107495564"
+    assert float(xt["Camera:HorizontalIrradiance"]) == pytest.approx(np.pi, rel=1e-15)
+    assert "MicaSense:RadiometricCalibration" not in xt and "Camera:Irradiance" not in xt
+    assert xt["@mscal:Quantity"] == "reflectance" and float(xt["@mscal:ReflectanceScale"]) == 1 / 32768
+    assert xt["@mscal:NoData"] == "65535"
+
+
+def test_file_band_names_have_no_spaces() -> None:
+    assert [writers.file_band_name(n) for n in ("Red edge", "NIR", "b670", "Red edge-705", "near infra red")] == [
+        "RedEdge", "NIR", "b670", "RedEdge705", "nearInfraRed"]
+    with pytest.raises(CatalogError, match="file name"):
+        writers.file_band_name(" - ")

@@ -1,0 +1,348 @@
+"""The command line follows conventions (issue 24): --version, -v/-q/--json on every command,
+short help never cut, help on every option, one name per option, a summary with the QA
+report's own warnings (one JSON document with --json), the panel a factory apply saw but did
+not use, index without rasterio's NotGeoreferencedWarning, progress bars on stderr."""
+
+from __future__ import annotations
+
+import contextlib
+import importlib.metadata
+import io
+import json
+import logging
+import shutil
+import sys
+import warnings
+from pathlib import Path
+
+import click
+import numpy as np
+import pytest
+
+from pipeline.products.report import report_dict
+from pipeline.run.cli import cli, main
+from tests.micasense_data import DATA as MICASENSE
+from tests.micasense_data import band_file, require_data
+
+DATA = MICASENSE.parent
+PANEL = "micasense-rp02-1603036-sc"
+
+
+def _run(argv: list) -> tuple[int, str, str]:
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        code = main([str(a) for a in argv])
+    return code, out.getvalue(), err.getvalue()
+
+
+def _commands(group: click.Group = cli, path: tuple[str, ...] = ()):
+    for name, cmd in sorted(group.commands.items()):
+        if isinstance(cmd, click.Group):
+            yield from _commands(cmd, (*path, name))
+        else:
+            yield (*path, name), cmd
+
+
+def _report_warnings(calibration=None, flights=()) -> list[dict]:
+    return [w for s in report_dict(calibration, flights)["sections"] for w in s["warnings"]]
+
+
+def _codes_values(ws: list[dict]) -> list[tuple[str, float, float]]:
+    return [(w["code"], round(w["value"], 9), round(w["threshold"], 9)) for w in ws]
+
+
+# --------------------------------------------------------------------------- options and help
+
+
+def test_version() -> None:
+    code, out, _ = _run(["--version"])
+    assert code == 0 and out == f"mscal {importlib.metadata.version('mscal')}\n"
+
+
+def test_every_command_takes_v_q_json_and_documents_them() -> None:
+    names = []
+    for path, _ in _commands():
+        code, out, _ = _run([*path, "--help"])
+        assert code == 0, path
+        for opt in ("-v, --verbose", "-q, --quiet", "--json"):
+            assert opt in out, (path, opt)
+        names.append(" ".join(path))
+    assert len(names) == 15  # 11 commands + fit's 4
+
+
+def test_v_and_q_before_or_after_the_command_name() -> None:
+    folder = DATA / "parrot-sequoia"
+    if not folder.is_dir():
+        pytest.skip("no shared data")
+    root = logging.getLogger()
+    level = root.level
+    try:
+        for argv, want in ((["-v", "cameras", folder], logging.INFO), (["cameras", folder, "-v"], logging.INFO),
+                           (["-q", "cameras", folder], logging.ERROR), (["cameras", "-q", folder], logging.ERROR)):
+            code, out, _ = _run(argv)
+            assert code == 0 and "camera: parrot-sequoia" in out
+            assert root.level == want, argv
+        code, _, err = _run(["-v", "cameras", folder, "-q"])
+        assert code == 2 and "give -v or -q, not both" in err
+    finally:
+        root.setLevel(level)
+    a = json.loads(_run(["--json", "cameras", folder])[1])
+    b = json.loads(_run(["cameras", folder, "--json"])[1])
+    assert a == b and a["counts"] == {"folders": 1}
+    assert any("camera: parrot-sequoia" in line for line in a["folders"][str(folder)])
+
+
+def test_short_help_is_whole_and_listed_uncut() -> None:
+    _, top, _ = _run(["--help"])
+    _, fit, _ = _run(["fit", "--help"])
+    for path, cmd in [((n,), c) for n, c in cli.commands.items()] + list(_commands()):
+        text = cmd.get_short_help_str(limit=45)
+        assert text == cmd.short_help and text.endswith(".") and "..." not in text, path
+        listing = fit if path[0] == "fit" and len(path) > 1 else top
+        assert any(line.split(None, 1)[1:] == [text] for line in listing.splitlines()
+                   if line.strip().startswith(path[-1] + " ")), (path, text)
+
+
+def test_every_option_has_help_and_one_name() -> None:
+    names: dict[str, set[str]] = {}
+    for path, cmd in _commands():
+        for p in cmd.params:
+            if isinstance(p, click.Option) and not p.hidden:
+                assert p.help, (path, p.opts)
+                names.setdefault(p.name, set()).add(tuple(sorted(p.opts)))
+    assert names["response_method"] == {("--response-method",)}
+    assert names["out"] == {("--output", "-o")}
+    for path in (("calibrate",), ("fit", "response"), ("run",), ("serve",)):
+        _, out, _ = _run([*path, "--help"])
+        assert "--response-method" in out and "--method " not in out, path
+
+
+def test_fit_response_method_is_a_deprecated_alias(small, tmp_path: Path, monkeypatch) -> None:
+    from pipeline.calibrate import fit
+    from pipeline.storage.store import open_calibration
+
+    session, calib = small
+    seen = []
+
+    def fake(directory, out, camera, method):  # noqa: ANN001, ANN202 (the fit is tested elsewhere)
+        seen.append(method)
+        return open_calibration(calib)
+
+    monkeypatch.setattr(fit, "fit_response_cli", fake)
+    code, out, err = _run(["fit", "response", session, "-o", calib, "--method", "alternating", "--json"])
+    assert code == 0 and seen == ["alternating"]
+    assert "--method is deprecated, use --response-method" in err
+    assert json.loads(out)["command"] == "fit response"
+    code, _, err = _run(["fit", "response", session, "-o", calib, "--response-method", "alternating"])
+    assert code == 0 and seen[-1] == "alternating" and "deprecated" not in err
+    assert _run(["fit", "response", session, "-o", calib])[0] == 0 and seen[-1] == "forward"
+
+
+# --------------------------------------------------------------------------- summaries
+
+
+@pytest.fixture(scope="module")
+def micasense(tmp_path_factory) -> Path:
+    require_data()
+    folder = tmp_path_factory.mktemp("rededge") / "flight"
+    folder.mkdir()
+    for cap in ("0000", "0001"):
+        for b in range(1, 6):
+            shutil.copy(band_file(cap, b), folder)
+    return folder
+
+
+def test_factory_apply_says_a_panel_was_seen_and_how_to_use_it(micasense: Path, tmp_path: Path) -> None:
+    out = tmp_path / "dls"
+    code, text, _ = _run(["apply", micasense, "--calibration", "factory", "-o", out])
+    assert code == 0
+    lines = text.splitlines()
+    assert lines[0].startswith(f"wrote {out} (2 frames, 0 quarantined;")
+    assert f"  run record: {out / 'run.json'}" in lines
+    (warn,) = [ln for ln in lines if ln.startswith("  warning ")]
+    assert warn.startswith("  warning panel_not_used: 1 panel capture(s) in the folder (IMG_0000) but reflectance "
+                           "comes from the sun sensor (DLS): give --panel-reflectance TARGET")
+    assert warn.endswith("(value 1, threshold 0)")
+    run = json.loads((out / "run.json").read_text())
+    assert run["reference"]["route"] == "dls" and run["reference"]["panels_seen"] == ["IMG_0000"]
+    # --json: one document and nothing else on stdout (the second run is up to date)
+    code, text, _ = _run(["apply", micasense, "--calibration", "factory", "-o", out, "--json"])
+    doc = json.loads(text)
+    assert code == 0 and doc["up_to_date"] is True and doc["counts"]["frames_out"] == 2
+    assert doc["counts"]["saturated_pixels"] == 7268
+    assert _codes_values(doc["warnings"]) == _codes_values(_report_warnings(flights=[out])) == [
+        ("panel_not_used", 1.0, 0.0)]
+
+
+def test_factory_apply_with_the_panel_reports_its_colour_disagreement(micasense: Path, tmp_path: Path) -> None:
+    out = tmp_path / "panel"
+    code, text, err = _run(["apply", micasense, "--calibration", "factory", "-o", out, "--panel-reflectance", PANEL,
+                            "--json"])
+    doc = json.loads(text)
+    assert code == 0 and doc["command"] == "apply" and doc["reference"]["route"] == "panel"
+    (w,) = doc["warnings"]
+    assert w["code"] == "panel_dls_colour" and w["threshold"] == 0.05
+    assert w["value"] == pytest.approx(0.532, abs=0.01)
+    assert _codes_values(doc["warnings"]) == _codes_values(_report_warnings(flights=[out]))
+    assert err == ""  # the flight folder holds only captures: no notes
+    # -q keeps the summary's first line and the warning, not the outputs
+    code, text, _ = _run(["-q", "apply", micasense, "--calibration", "factory", "-o", out, "--panel-reflectance",
+                          PANEL])
+    lines = text.splitlines()
+    assert code == 0 and lines[0].endswith("up to date)") and len(lines) == 3
+    assert lines[2].startswith("  warning panel_dls_colour: panel IMG_0000: panel and sun sensor disagree in colour "
+                               "by 53%") and lines[2].endswith("(value 0.5324, threshold 0.05)")
+
+
+def test_a_folder_without_a_panel_gets_no_panel_warning(tmp_path: Path) -> None:
+    require_data()
+    folder = tmp_path / "flight"
+    folder.mkdir()
+    for b in range(1, 6):
+        shutil.copy(band_file("0001", b), folder)
+    code, text, _ = _run(["apply", folder, "--calibration", "factory", "-o", tmp_path / "out", "--json"])
+    doc = json.loads(text)
+    assert code == 0 and doc["warnings"] == [] and "panels_seen" not in doc["reference"]
+
+
+def _fake_tty(monkeypatch) -> io.StringIO:
+    class Tty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    err = Tty()
+    monkeypatch.setattr(sys, "stderr", err)
+    return err
+
+
+def _main_tty(argv: list, monkeypatch) -> tuple[int, str, str]:
+    out = io.StringIO()
+    err = _fake_tty(monkeypatch)
+    with contextlib.redirect_stdout(out):
+        code = main([str(a) for a in argv])
+    monkeypatch.undo()
+    return code, out.getvalue(), err.getvalue()
+
+
+def test_report_progress_bar_summary_and_json(small, tmp_path: Path, monkeypatch) -> None:
+    _, calib = small
+    code, out, err = _main_tty(["report", "--calibration", calib, "-o", tmp_path / "r.html", "--json"], monkeypatch)
+    doc = json.loads(out)
+    assert code == 0 and "report" in err and "100%" in err
+    assert doc["counts"]["figures"] >= 5 and doc["outputs"]["QA report"] == str(tmp_path / "r.html")
+    assert _codes_values(doc["warnings"]) == _codes_values(_report_warnings(calib))
+    assert ("vignetting_coverage", pytest.approx(0.21, abs=0.01)) in [(w["code"], w["value"]) for w in doc["warnings"]]
+    code, _, err = _main_tty(["report", "--calibration", calib, "-o", tmp_path / "r.html", "-q"], monkeypatch)
+    assert code == 0 and err == ""  # -q: no bar
+    code, _, err = _run(["report", "--calibration", calib, "-o", tmp_path / "r.html"])
+    assert code == 0 and "100%" not in err  # not a terminal: no bar
+
+
+def test_calibrate_progress_bar_and_summary(small, tmp_path: Path, monkeypatch) -> None:
+    """The command's wiring (the fits themselves are tested elsewhere): four steps on the
+    bar, the summary's warnings those of the store written."""
+    from pipeline.calibrate import fit
+    from pipeline.storage.store import open_calibration
+
+    session, calib = small
+    steps = []
+
+    def fake(session_dir, out, *, response_method, calibration, advance):  # noqa: ANN001, ANN202
+        for _ in range(fit.CALIBRATE_STEPS):
+            advance()
+            steps.append(1)
+        return open_calibration(calib)
+
+    monkeypatch.setattr(fit, "calibrate_session", fake)
+    code, out, err = _main_tty(["calibrate", session, "-o", calib, "--json"], monkeypatch)
+    doc = json.loads(out)
+    assert code == 0 and len(steps) == 4 and "calibrate" in err and "100%" in err
+    assert doc["counts"]["bands"] == 25 and doc["counts"]["frames_skipped"]["vignetting"] == 1
+    assert _codes_values(doc["warnings"]) == _codes_values(_report_warnings(calib))
+
+
+def test_register_progress_bar_and_spread_warning(micasense: Path, tmp_path: Path, monkeypatch) -> None:
+    """Registered at a third of the resolution (test time): the panel capture (at 1 m) and the
+    flight capture disagree by several pixels; the summary has the report's warning."""
+    from pipeline.calibrate import registration
+
+    read = registration.read_capture
+    monkeypatch.setattr(registration, "read_capture", lambda c: read(c)[:, ::3, ::3])
+    with monkeypatch.context() as m:
+        out = io.StringIO()
+        err = _fake_tty(m)
+        with contextlib.redirect_stdout(out):
+            code = main(["register", str(micasense), "--camera", "micasense-rededge", "-o", str(tmp_path / "reg.zarr"),
+                         "--json"])
+    doc = json.loads(out.getvalue())
+    assert code == 0 and "register" in err.getvalue() and "100%" in err.getvalue()
+    assert doc["counts"]["captures_registered"] == 2
+    spread = doc["registration_spread_px"]
+    (w,) = [w for w in doc["warnings"] if w["code"] == "registration_spread"]
+    assert w["value"] == pytest.approx(max(spread.values())) and w["value"] > 1.0 and w["threshold"] == 1.0
+    assert _codes_values(doc["warnings"]) == _codes_values(_report_warnings(tmp_path / "reg.zarr"))
+
+
+# --------------------------------------------------------------------------- index
+
+
+def _raster(path: Path, georeferenced: bool) -> Path:
+    import rasterio
+    from rasterio.transform import Affine
+
+    data = np.stack([np.full((32, 48), v, dtype=np.float32) for v in (0.1, 0.5)])
+    profile = {"driver": "GTiff", "width": 48, "height": 32, "count": 2, "dtype": "float32"}
+    if georeferenced:
+        profile.update(crs="EPSG:32633", transform=Affine(0.1, 0.0, 500000.0, 0.0, -0.1, 4000000.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with rasterio.open(path, "w", **profile) as dst:
+            dst.write(data)
+    return path
+
+
+@pytest.mark.parametrize("geo", [False, True])
+def test_index_says_once_that_the_input_is_not_georeferenced(tmp_path: Path, geo: bool) -> None:
+    src = _raster(tmp_path / "in.tif", geo)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code, out, err = _run(["index", src, "--bands", "red=1,nir=2", "-o", tmp_path / "ndvi.tif", "--json"])
+    assert code == 0
+    assert not [w for w in caught if "NotGeoreferenced" in type(w.message).__name__ + str(w.category)]
+    doc = json.loads(out)
+    assert doc["georeferenced"] is geo and doc["outputs"]["index map"] == str(tmp_path / "ndvi.tif")
+    assert err.count("has no georeferencing") == (0 if geo else 1)
+    import rasterio
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with rasterio.open(tmp_path / "ndvi.tif") as ds:
+            assert ds.read(1)[0, 0] == pytest.approx((0.5 - 0.1) / (0.5 + 0.1), abs=1e-6)
+            assert (ds.crs is not None) is geo
+
+
+def test_demo_prints_plain_lines_or_one_json_document(tmp_path: Path, monkeypatch) -> None:
+    """The demo's printing (its flow is tested in tests/flows): plain lines without JSON, or
+    with --json one document and nothing else."""
+    from pipeline.run import cli as cli_mod
+    from pipeline.run import demo
+
+    out = tmp_path / "demo"
+
+    def fake(o, *, flow, size, seed):  # noqa: ANN001, ANN202
+        out.mkdir(exist_ok=True)
+        (out / "run.json").write_text(json.dumps({"flights": {"field": {}}}))
+        return {"session": str(out / "session"), "outputs": str(out), "run_json": str(out / "run.json"),
+                "report": None, "calibration_cached": False, "flights": {"field": f"{out}/flights/field (3 frames)"},
+                "errors_vs_truth": {"response_max_error": 0.0031, "flight_field": {"ndvi": 0.01}}}
+
+    monkeypatch.setattr(demo, "run_demo", fake)
+    monkeypatch.setattr(cli_mod, "_flow", lambda name: None)
+    code, text, _ = _run(["demo", "-o", out])
+    lines = text.splitlines()
+    assert code == 0 and lines[0] == f"wrote {out} (demo session, 1 flight(s); calibration fitted)"
+    assert f"  run record: {out / 'run.json'}" in lines and "  error vs truth: response_max_error: 0.0031" in lines
+    assert not any(ln.lstrip().startswith(("{", "}", '"')) for ln in lines)
+    code, text, _ = _run(["demo", "-o", out, "--json"])
+    doc = json.loads(text)
+    assert code == 0 and doc["demo"]["errors_vs_truth"]["flight_field"] == {"ndvi": 0.01}
