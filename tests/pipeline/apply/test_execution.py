@@ -112,5 +112,5 @@ def test_one_worker_and_two_worker_processes_write_the_same_bytes(tmp_path) -> N
     refl = a["reflectance.zarr/reflectance"]
     assert refl.shape == (2, 5, 960, 1280) and 0.05 < float(np.nanmedian(refl)) < 1.0
     files = sorted(p.relative_to(one) for p in one.rglob("*.tif"))
-    assert len(files) == 12  # 2 captures x (5 bands + NDVI)
+    assert len(files) == 11  # the panel capture IMG_0000: 5 bands in panels/; IMG_0001: 5 bands + NDVI
     assert all((one / f).read_bytes() == (two / f).read_bytes() for f in files)
