@@ -108,7 +108,8 @@ def write_section(path: Path, body: str, key: str = SECTION_KEY) -> None:
 
 @dataclass
 class Run:
-    """One child process: wall time, CPU time and peak RSS of that child alone."""
+    """One command: wall time, CPU time of its process tree (it and its worker processes) and
+    peak RSS (its own high-water mark, or its tree's summed PSS when larger)."""
 
     cmd: list[str]
     wall_s: float
@@ -131,23 +132,83 @@ class Run:
 #: the memory of the process it was spawned from (fork/vfork + exec keep the old image's
 #: high-water mark), so spawning the measured command straight from this (large) process would
 #: inflate its peak RSS; the launcher is a bare interpreter of ~10 MiB.
+#:
+#: A command may run worker processes (``mscal apply``'s forkserver pool, issue 25): their CPU
+#: counts too. The launcher is a child subreaper (Linux ``PR_SET_CHILD_SUBREAPER``): the
+#: processes the command leaves behind (a forkserver that outlives the command by a moment,
+#: with the workers it reaped) come to it and are reaped too, so the CPU reported is that of
+#: the whole process tree (``RUSAGE_CHILDREN``). The peak RSS is the larger of the command's
+#: own high-water mark and the tree's summed memory (PSS: pages shared by the processes counted
+#: once), sampled every 0.25 s from ``/proc``.
 LAUNCHER = r"""
-import json, os, signal, sys, time
+import ctypes, json, os, resource, signal, sys, time
 res, out, err, timeout = sys.argv[1:5]
 cmd = sys.argv[5:]
 fo = os.open(out, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
 fe = os.open(err, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+try:
+    ctypes.CDLL(None).prctl(36, 1, 0, 0, 0)  # PR_SET_CHILD_SUBREAPER
+except (OSError, AttributeError):
+    pass
+page_kib = os.sysconf("SC_PAGE_SIZE") // 1024
+def tree_kib():
+    kids, rss = {}, {}
+    try:
+        names = os.listdir("/proc")
+    except OSError:
+        return 0
+    for d in names:
+        if not d.isdigit():
+            continue
+        try:
+            with open(f"/proc/{d}/stat", "rb") as f:
+                s = f.read()
+        except OSError:
+            continue
+        fields = s[s.rindex(b")") + 2:].split()
+        kids.setdefault(int(fields[1]), []).append(int(d))
+        rss[int(d)] = int(fields[21]) * page_kib
+    total, todo = 0, [os.getpid()]
+    while todo:
+        for c in kids.get(todo.pop(), []):
+            total += pss_kib(c, rss[c])
+            todo.append(c)
+    return total
+def pss_kib(pid, rss):  # shared pages (a forkserver's imports in its workers) counted once
+    try:
+        with open(f"/proc/{pid}/smaps_rollup", "rb") as f:
+            for line in f:
+                if line.startswith(b"Pss:"):
+                    return int(line.split()[1])
+    except OSError:
+        pass
+    return rss
 load = os.getloadavg()
 t0 = time.perf_counter()
 pid = os.posix_spawnp(cmd[0], cmd, dict(os.environ),
                       file_actions=[(os.POSIX_SPAWN_DUP2, fo, 1), (os.POSIX_SPAWN_DUP2, fe, 2)])
 signal.signal(signal.SIGALRM, lambda *a: os.kill(pid, signal.SIGKILL))
 signal.alarm(max(1, int(float(timeout))))
-_, status, ru = os.wait4(pid, 0)
+peak = 0
+while True:
+    done, status, ru = os.wait4(pid, os.WNOHANG)
+    if done:
+        break
+    peak = max(peak, tree_kib())
+    time.sleep(0.25)
 wall = time.perf_counter() - t0
 signal.alarm(0)
+deadline = time.monotonic() + 30  # the command's orphans, if any, exit when it has
+while time.monotonic() < deadline:
+    try:
+        if os.waitpid(-1, os.WNOHANG)[0] == 0:
+            time.sleep(0.05)
+    except ChildProcessError:
+        break
+tree = resource.getrusage(resource.RUSAGE_CHILDREN)
 with open(res, "w") as fh:
-    json.dump({"wall_s": wall, "user_s": ru.ru_utime, "sys_s": ru.ru_stime, "maxrss_kib": ru.ru_maxrss,
+    json.dump({"wall_s": wall, "user_s": tree.ru_utime, "sys_s": tree.ru_stime,
+               "maxrss_kib": max(ru.ru_maxrss, peak), "own_user_s": ru.ru_utime, "own_sys_s": ru.ru_stime,
                "returncode": os.waitstatus_to_exitcode(status), "load_before": load,
                "load_after": os.getloadavg()}, fh)
 """

@@ -63,7 +63,7 @@ def list_flights(session: str) -> dict[str, str]:
 
 @task(**IO, task_run_name="apply-{name}")
 def apply_flight(name: str, flight_dir: str, calibration: str, out: str, normalise: str,
-                 dask_address: str | None, illumination: str = "linear", scheduler: str = "threads",
+                 dask_address: str | None, illumination: str = "linear", scheduler: str = "auto",
                  workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
     return runner.apply_one(flight_dir, calibration, out, normalise=normalise, dask_address=dask_address,
                             illumination=illumination, scheduler=scheduler, workers=workers, direct_io=direct_io)
@@ -100,7 +100,7 @@ def post_flight(
     work_dir: str | None = None,
     catalog_root: str | None = None,
     illumination: Literal["nearest", "linear"] = "linear",
-    scheduler: Literal["threads", "processes"] = "threads",
+    scheduler: Literal["auto", "threads", "processes"] = "auto",
     workers: int = 0,
     direct_io: bool | None = None,
 ) -> dict[str, Any]:

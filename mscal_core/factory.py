@@ -224,6 +224,7 @@ def radiance(
     vignetting: np.ndarray,
     bits_per_sample: int = 16,
     signal: np.ndarray | None = None,
+    out: np.ndarray | None = None,
 ) -> np.ndarray:
     """Compute the factory radiance ``L = V a1/g (p - p_BL) / (t_e + a2 y - a3 t_e y)``, W m-2 sr-1 nm-1.
 
@@ -245,11 +246,14 @@ def radiance(
         The container depth the DN are normalised by.
     signal : numpy.ndarray, optional
         Replaces ``p - p_BL`` (a field response, see :func:`field_response_signal`).
+    out : numpy.ndarray, optional
+        ``(H, W)`` array (e.g. float32) that receives the result, rounded once from the float64
+        computation.
 
     Returns
     -------
     numpy.ndarray
-        ``(H, W)`` float64 radiance; negative values are floored at 0.
+        ``(H, W)`` float64 radiance (``out`` if given); negative values are floored at 0.
 
     Raises
     ------
@@ -266,17 +270,28 @@ def radiance(
     if exposure_s <= 0 or gain <= 0:
         raise ValueError(f"exposure ({exposure_s}) and gain ({gain}) must be positive")
     a1, a2, a3 = (float(c) for c in calibration)
-    dn = np.asarray(dn, dtype=np.float64)
+    dn = np.asarray(dn)
     if vignetting.shape != dn.shape:
         raise ValueError(f"vignetting map {vignetting.shape} does not match the image {dn.shape}")
+    # one float64 work array, every step in place (fewer passes and allocations than the
+    # expression; each product in the same order, so the same values bit for bit)
     if signal is None:
-        p = (dn - float(black_level)) / 2.0**bits_per_sample
+        work = dn.astype(np.float64)  # (astype, then in place: numpy's casting loops are slower)
+        work -= float(black_level)
+        work /= 2.0**bits_per_sample
+        np.multiply(vignetting, work, out=work)
     else:
         p = np.asarray(signal, dtype=np.float64)
         if p.shape != dn.shape:
             raise ValueError(f"signal {p.shape} does not match the image {dn.shape}")
-    out = vignetting * p * row_gradient(dn.shape[0], exposure_s, a2, a3) * (a1 / (gain * exposure_s))
-    return np.maximum(out, 0.0)
+        work = vignetting * p
+    work *= row_gradient(dn.shape[0], exposure_s, a2, a3)
+    work *= a1 / (gain * exposure_s)
+    np.maximum(work, 0.0, out=work)
+    if out is None:
+        return work
+    out[...] = work
+    return out
 
 
 def field_response_scale(

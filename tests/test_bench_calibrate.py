@@ -71,3 +71,23 @@ def test_write_section_keeps_other_sections(tmp_path: Path) -> None:
     assert "second run" in text and "first run" not in text
     assert text.endswith("## Hand-written notes\n\nkeep me\n")
     assert not list(path.parent.glob("*.tmp"))
+
+
+def test_run_measured_counts_the_worker_processes_a_command_leaves_behind() -> None:
+    """A command whose worker process outlives it (as ``mscal apply``'s forkserver pool can,
+    issue 25): the worker's CPU is in the figures (the launcher is a subreaper and reaps it) and
+    its memory is in the peak (the tree's summed PSS, sampled while the command runs)."""
+    worker = ("import time, numpy as np\n"
+              "a = np.ones(200 * 2**20, np.uint8)\n"  # 200 MiB, touched
+              "print('ready', flush=True)\n"
+              "t = time.process_time()\n"
+              "while time.process_time() - t < 0.6: pass\n")
+    command = ("import subprocess, sys, time\n"
+               f"p = subprocess.Popen([sys.executable, '-c', {worker!r}], stdout=subprocess.PIPE)\n"
+               "p.stdout.readline()\n"
+               "time.sleep(0.8)\n"
+               "sys.exit(0)\n")  # without waiting for the worker: it is left to the launcher
+    run = bench.run_measured([sys.executable, "-c", command], timeout=120)
+    assert run.returncode == 0
+    assert run.cpu_s >= 0.6  # the command itself uses < 0.2 s
+    assert run.maxrss_mib >= 200

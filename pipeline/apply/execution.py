@@ -17,19 +17,26 @@ from mscal_core.errors import InputError
 
 from pipeline.storage.directio import direct_io_enabled, set_direct_io
 
-__all__ = ["SCHEDULERS", "Execution", "scheduler_for"]
+__all__ = ["AUTO_PROCESS_FRAMES", "SCHEDULERS", "Execution", "scheduler_for"]
 
-#: Schedulers of the per-frame pass without a ``distributed`` client.
-SCHEDULERS = ("threads", "processes")
+#: Schedulers of the per-frame pass without a ``distributed`` client (``auto``: see
+#: :func:`scheduler_for`).
+SCHEDULERS = ("auto", "threads", "processes")
+
+#: ``auto`` uses worker processes from this many frames on (with two workers or more). Starting
+#: them costs 1-2 s of CPU (a forkserver that imports the apply module, then one fork per
+#: worker); a full-resolution frame costs 0.1-0.2 s, a third to a half of it in Python under
+#: the GIL (TIFF headers, tag parsing, per-frame bookkeeping), which threads cannot overlap.
+AUTO_PROCESS_FRAMES = 32
 
 
 @dataclass(frozen=True)
 class Execution:
-    """``scheduler``: threads or processes (:func:`scheduler_for`); ``workers``: how many (0:
-    one per core); ``direct_io``: ``O_DIRECT`` writes on or off for this process and the
+    """``scheduler``: auto, threads or processes (:func:`scheduler_for`); ``workers``: how many
+    (0: one per core); ``direct_io``: ``O_DIRECT`` writes on or off for this process and the
     worker processes it starts (None: leave the process's setting)."""
 
-    scheduler: str = "threads"
+    scheduler: str = "auto"
     workers: int = 0
     direct_io: bool | None = None
 
@@ -51,10 +58,18 @@ class Execution:
 
 def scheduler_for(n_frames: int, execution: Execution = Execution()) -> tuple[str, int]:
     """Dask scheduler of the per-frame pass when no ``distributed`` client is active, and its
-    number of workers. Threads by default, one per core: the per-frame work is numpy, hashing
-    and file writes, which release the GIL (two threads run a 120-frame flight 1.8x faster
-    than one), and threads start at once where worker processes take 1-2 s. ``processes``
-    chooses worker processes instead (a forkserver that imports the apply module once).
+    number of workers (``execution.workers``, else one per core; never more than frames).
+    ``threads``: the numpy, hashing and file writes of a frame release the GIL, and threads
+    start at once, but the Python part of each frame (a third to a half of its CPU: TIFF
+    headers, tags, bookkeeping) runs one thread at a time. ``processes``: worker processes (a
+    forkserver that imports the apply module once; each worker keeps its own read-only tables,
+    e.g. the factory vignetting maps, for the whole pass), every core busy. ``auto`` (the
+    default): processes for a flight of :data:`AUTO_PROCESS_FRAMES` frames or more with two
+    workers or more, else threads. The outputs are the same bytes whichever runs them.
     """
     cpus = int(execution.workers) or os.cpu_count() or 1
-    return execution.scheduler, max(1, min(cpus, n_frames))
+    workers = max(1, min(cpus, n_frames))
+    scheduler = execution.scheduler
+    if scheduler == "auto":
+        scheduler = "processes" if workers >= 2 and n_frames >= AUTO_PROCESS_FRAMES else "threads"
+    return scheduler, workers

@@ -334,9 +334,9 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
     parts = field_parts(chain.field[0], chain.field[1], camera.name) if chain.field else [None] * dn.shape[0]
     rad = np.empty(dn.shape, np.float32)
     for b, meta in enumerate(cap.metas):
-        rad[b] = factory_radiance(meta, dn[b], parts[b], (channels or {}).get(meta.path))
+        factory_radiance(meta, dn[b], parts[b], (channels or {}).get(meta.path), out=rad[b])
     saturated = dn >= chain.sat
-    rad[saturated] = np.nan
+    np.copyto(rad, np.float32(np.nan), where=saturated)
     return rad, k, rad, int(np.count_nonzero(saturated))
 
 

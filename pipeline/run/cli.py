@@ -33,7 +33,7 @@ from pipeline.run.console import (
 RESPONSE_METHODS = click.Choice(["forward", "alternating"])
 RESPONSE_METHOD_HELP = "'forward' fits the response with the noise on DN; 'alternating' is the paper's Eq. 6/7."
 ILLUMINATION_MODES = click.Choice(["nearest", "linear"])  # mscal_core.illumination.INTERPOLATION_MODES
-SCHEDULERS = click.Choice(["threads", "processes"])  # pipeline.apply.execution.SCHEDULERS
+SCHEDULERS = click.Choice(["auto", "threads", "processes"])  # pipeline.apply.execution.SCHEDULERS
 
 
 def execution_options(command: Any) -> Any:
@@ -46,8 +46,9 @@ def execution_options(command: Any) -> Any:
         "--workers", type=click.IntRange(min=0), default=0, show_default=True, envvar="MSCAL_APPLY_WORKERS",
         show_envvar=True, help="Frames processed at once (0: one per core).")(command)
     return click.option(
-        "--scheduler", type=SCHEDULERS, default="threads", show_default=True, envvar="MSCAL_APPLY_SCHEDULER",
-        show_envvar=True, help="Threads, or worker processes (they take 1-2 s to start).")(command)
+        "--scheduler", type=SCHEDULERS, default="auto", show_default=True, envvar="MSCAL_APPLY_SCHEDULER",
+        show_envvar=True, help="Threads, or worker processes (they take 1-2 s to start; every core busy); auto: "
+                               "processes from 32 frames on.")(command)
 
 
 def _summary(ds) -> str:  # noqa: ANN001 (xarray Dataset)

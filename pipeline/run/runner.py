@@ -210,8 +210,9 @@ def dask_client(address: str | None, n_frames: int, execution: Execution = Execu
 
     With ``address``: that ``dask scheduler`` and its workers (they must see the same paths,
     e.g. a shared file system). Without: a ``LocalCluster`` of one single-threaded worker
-    process per core (or ``execution.workers``) when apply is to use processes
-    (:func:`pipeline.apply.execution.scheduler_for`), else apply's own in-process scheduler.
+    process per core (or ``execution.workers``) when ``--scheduler processes`` asks for
+    processes (:func:`pipeline.apply.execution.scheduler_for`), else apply's own scheduler
+    (``auto``: its own pool of worker processes for a long flight, without a cluster).
     """
     if address:
         from distributed import Client
@@ -224,7 +225,7 @@ def dask_client(address: str | None, n_frames: int, execution: Execution = Execu
         with client:
             yield f"dask scheduler {address}"
         return
-    if scheduler_for(n_frames, execution)[0] != "processes":
+    if execution.scheduler != "processes" or scheduler_for(n_frames, execution)[0] != "processes":
         yield "in-process"
         return
     from distributed import Client, LocalCluster
@@ -248,7 +249,7 @@ def count_frames(flight_dir: str | Path, camera: str | None = None) -> int:
 
 
 def apply_one(flight_dir: str, calibration: str, out: str, *, normalise: str = "relative",
-              dask_address: str | None = None, illumination: str = "linear", scheduler: str = "threads",
+              dask_address: str | None = None, illumination: str = "linear", scheduler: str = "auto",
               workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
     """``apply_flight`` under :func:`dask_client`; returns the flight's summary for run.json.
     ``scheduler``, ``workers``, ``direct_io``: :class:`pipeline.apply.execution.Execution`."""

@@ -50,6 +50,44 @@ def test_radiance_formula_by_hand() -> None:
     assert out[0, 1] == 0.0  # below the black level: floored, never negative
 
 
+def test_radiance_in_place_equals_the_expression_bit_for_bit() -> None:
+    """radiance() works in place on one float64 array (issue 25); every product keeps the
+    order of the published expression, so the values are the expression's, bit for bit, and
+    ``out`` (float32) holds them rounded once."""
+    rng = np.random.default_rng(3)
+    dn = rng.integers(0, 65535, size=(37, 29), dtype=np.uint16)
+    vig = 1.0 + rng.random((37, 29))
+    te, g, bl, cal = 0.0013, 2.0, 4800.5, (2.7e-4, 3.1e-7, 1.4e-5)
+    y = np.arange(37, dtype=np.float64)[:, None]
+    row = te / (te + cal[1] * y - cal[2] * te * y)
+    p = (dn.astype(np.float64) - bl) / 65536.0
+    expected = np.maximum(vig * p * row * (cal[0] / (g * te)), 0.0)
+    kw = dict(exposure_s=te, gain=g, black_level=bl, calibration=cal, vignetting=vig)
+    got = radiance(dn, **kw)
+    assert got.dtype == np.float64 and np.array_equal(got, expected)
+    assert (expected == 0).sum() > 50  # the floor is exercised
+    out = np.full(dn.shape, -1.0, np.float32)
+    assert radiance(dn, out=out, **kw) is out
+    assert np.array_equal(out, expected.astype(np.float32))
+    signal = rng.random((37, 29))  # a field response in place of p - p_BL
+    assert np.array_equal(radiance(dn, signal=signal, **kw), np.maximum(vig * signal * row * (cal[0] / (g * te)), 0.0))
+
+
+def test_factory_vignetting_is_computed_once_and_read_only() -> None:
+    """The map depends on the band's tags only: one computation per process and tags, shared
+    by every capture, and read-only so that no caller can change it for the next capture."""
+    from pipeline.ingest.camera_meta import factory_vignetting
+
+    meta = read_capture_meta(band_file("0000", 2))
+    v = factory_vignetting(meta)
+    assert factory_vignetting(read_capture_meta(band_file("0001", 2))) is v  # same camera band, other capture
+    assert np.array_equal(v, vignetting_map(meta.shape, meta.vignetting_center, meta.vignetting_polynomial))
+    assert not v.flags.writeable
+    with pytest.raises(ValueError, match="read-only"):
+        v[0, 0] = 0.0
+    assert factory_vignetting(read_capture_meta(band_file("0000", 3))) is not v  # another band, its own map
+
+
 def test_panel_stats_counts_and_saturation() -> None:
     img = np.arange(20.0).reshape(4, 5)
     mask = polygon_mask(img.shape, [(1, 1), (3, 1), (3, 2), (1, 2)])

@@ -7,10 +7,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from mscal_core.errors import InputError
-from pipeline.apply.execution import Execution, scheduler_for
+from pipeline.apply.execution import AUTO_PROCESS_FRAMES, Execution, scheduler_for
 from pipeline.apply.factory import FactoryOptions
 from pipeline.apply.flight import ApplyOptions
 from pipeline.run.cli import main
@@ -21,11 +22,14 @@ from tests.micasense_data import require_data
 
 def test_scheduler_for_and_validation(monkeypatch) -> None:
     monkeypatch.setattr("os.cpu_count", lambda: 8)
-    assert scheduler_for(100) == ("threads", 8)
+    assert scheduler_for(100) == ("processes", 8)  # auto: a long flight on worker processes (issue 25)
+    assert scheduler_for(AUTO_PROCESS_FRAMES - 1) == ("threads", 8)  # a short one on threads
+    assert scheduler_for(AUTO_PROCESS_FRAMES, Execution(workers=1)) == ("threads", 1)  # one worker: no pool
+    assert scheduler_for(100, Execution("threads")) == ("threads", 8)
     assert scheduler_for(3) == ("threads", 3)  # never more workers than frames
     assert scheduler_for(100, Execution("processes", 2)) == ("processes", 2)
     monkeypatch.setenv("MSCAL_APPLY_WORKERS", "1")  # read by the command line only
-    assert scheduler_for(100) == ("threads", 8)
+    assert scheduler_for(100) == ("processes", 8)
     with pytest.raises(InputError, match="--scheduler 'fork'"):
         Execution("fork")
     with pytest.raises(InputError, match="--workers -1"):
@@ -72,3 +76,41 @@ def test_run_records_execution_per_flight(small, tmp_path, monkeypatch) -> None:
                         direct_io=False)
     assert summary["execution"] == {"scheduler": "threads", "workers": 1, "direct_io": False}
     assert summary["frames_out"] == 3
+
+
+def _arrays(out: Path) -> dict[str, np.ndarray]:
+    import zarr
+
+    found = {}
+    for store in ("reflectance.zarr", "raw.zarr"):
+        group = zarr.open_group(out / store, mode="r")
+        found.update({f"{store}/{name}": np.asarray(group[name][...]) for name in group.array_keys()})
+    return found
+
+
+@pytest.mark.slow
+def test_one_worker_and_two_worker_processes_write_the_same_bytes(tmp_path) -> None:
+    """Issue 25: the factory pass over the MicaSense sample run by one thread and by two worker
+    processes (each with its own vignetting maps, each writing whole chunks of its own frames):
+    every array of reflectance.zarr and raw.zarr identical, every TIFF the same bytes, and
+    run.json says how each ran."""
+    data = require_data()
+    one, two = tmp_path / "one", tmp_path / "two"
+    args = ["apply", str(data), "--calibration", "factory", "--reference", "dls"]
+    assert main([*args, "-o", str(one), "--workers", "1"]) == 0
+    assert main([*args, "-o", str(two), "--workers", "2", "--scheduler", "processes"]) == 0
+    assert _run(one)["execution"]["scheduler"] == "threads" and _run(one)["execution"]["workers"] == 1
+    assert _run(two)["execution"]["scheduler"] == "processes" and _run(two)["execution"]["workers"] == 2
+    a, b = _arrays(one), _arrays(two)
+    assert a.keys() == b.keys() and {"reflectance.zarr/reflectance", "reflectance.zarr/radiance", "raw.zarr/dn"} <= a.keys()
+    for key in a:
+        assert a[key].shape == b[key].shape, key
+        if a[key].dtype.kind == "f":
+            np.testing.assert_array_equal(a[key], b[key], err_msg=key)  # NaN where NaN
+        else:
+            assert a[key].tolist() == b[key].tolist(), key
+    refl = a["reflectance.zarr/reflectance"]
+    assert refl.shape == (2, 5, 960, 1280) and 0.05 < float(np.nanmedian(refl)) < 1.0
+    files = sorted(p.relative_to(one) for p in one.rglob("*.tif"))
+    assert len(files) == 11  # the panel capture IMG_0000: 5 bands in panels/; IMG_0001: 5 bands + NDVI
+    assert all((one / f).read_bytes() == (two / f).read_bytes() for f in files)
