@@ -29,6 +29,7 @@ from mscal_core.errors import FrameError, SessionError
 from mscal_core.geometry import Intrinsics
 
 from pipeline.ingest.camera_meta import xmp_properties
+from pipeline.ingest.catalog import show_key
 from pipeline.ingest.exif import rational
 
 #: Parameter order of the store's ``intrinsics (band, intrinsics_param)`` variable.
@@ -154,9 +155,9 @@ def parse_band_intrinsics(data: Any, band_keys: Sequence[Sequence[str]], path: P
             )
         used.add(hits[0])
         out.append(parse_one(data[hits[0]], path))
-    extra = sorted(str(k) for k in data if str(k) not in used and k not in used)
+    extra = sorted((k for k in data if str(k) not in used and k not in used), key=repr)
     if extra:
-        raise SessionError(f"intrinsics: unknown band(s) {', '.join(extra)}", path=path)
+        raise SessionError(f"intrinsics: unknown band(s) {', '.join(map(show_key, extra))}", path=path)
     return tuple(out)
 
 
