@@ -17,6 +17,7 @@ import importlib.resources
 import math
 import os
 import re
+import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -353,7 +354,9 @@ def _parse_layout(lay: Any, path: Path) -> Layout:
             raise CatalogError(f"layout.channels must be a positive integer, got {ch!r}", path=path)
         return Layout(kind="multichannel", channels=ch)
     try:
-        rx = re.compile(str(lay["capture_pattern"]))
+        with warnings.catch_warnings():  # "possible nested set": a warning on stderr would break the one line
+            warnings.simplefilter("ignore", FutureWarning)
+            rx = re.compile(str(lay["capture_pattern"]))
     except (re.error, OverflowError, RecursionError, ValueError) as exc:  # OverflowError: a{99999999999}
         raise CatalogError(f"layout.capture_pattern is not a valid regex: {exc}", path=path) from None
     need = {"capture", "band"} if lay["kind"] == "file_per_band" else {"capture"}

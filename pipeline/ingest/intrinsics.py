@@ -96,13 +96,17 @@ def intrinsics_from_tags(tags: dict[int, Any], path: Path) -> Intrinsics | None:
         pp = [float(v) for v in str(props["PrincipalPoint"]).replace(" ", "").split(",")]
         dist = props.get("PerspectiveDistortion", [])
         dist = [float(v) for v in (dist if isinstance(dist, list) else str(dist).replace(",", " ").split())]
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, IndexError):  # IndexError: an empty rdf:Seq
         raise FrameError("XMP PerspectiveFocalLength / PrincipalPoint / PerspectiveDistortion are not numbers",
                          path=path, hint="give the intrinsics in session.yaml instead") from None
-    if len(pp) != 2 or not all(math.isfinite(v) for v in (f, rx, ry, *pp)) or rx <= 0 or ry <= 0:
+    if (len(pp) != 2 or not all(math.isfinite(v) for v in (f, rx, ry, *pp, *dist, f * rx, f * ry, pp[0] * rx,
+                                                             pp[-1] * ry)) or rx <= 0 or ry <= 0):
         raise FrameError(f"XMP PrincipalPoint {props['PrincipalPoint']!r} or the focal plane resolution is unusable",
                          path=path, hint="give the intrinsics in session.yaml instead")
     fx, fy = (f * rx, f * ry) if units == "mm" else (f, f * ry / rx)
+    if not (math.isfinite(fx) and math.isfinite(fy)):
+        raise FrameError(f"XMP PerspectiveFocalLength {props['PerspectiveFocalLength']!r} gives no finite focal length "
+                         "in pixels", path=path, hint="give the intrinsics in session.yaml instead")
     k = (dist + [0.0] * 5)[:5]
     opencv = (k[0], k[1], k[3], k[4], k[2])  # [k1, k2, k3, p1, p2] -> [k1, k2, p1, p2, k3]
     try:

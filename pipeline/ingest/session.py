@@ -407,18 +407,7 @@ def read_frame_table(
         try:
             with csv_path.open(newline="", encoding="utf-8-sig") as fh:
                 reader = csv.DictReader(fh)
-                cols = [c.strip() for c in (reader.fieldnames or [])]
-                twice = sorted({c for c in cols if c and cols.count(c) > 1})
-                if twice:
-                    raise SessionError(f"column(s) {', '.join(map(repr, twice))} given twice", path=csv_path,
-                                       hint="keep one column of each name")
-                for need in ("file", "exposure_ms"):
-                    if need not in cols:
-                        raise SessionError(
-                            f"column {need!r} is missing (columns: {', '.join(map(show_key, cols)) or 'none'})",
-                            path=csv_path,
-                            hint="frames.csv needs at least file,exposure_ms",
-                        )
+                _check_columns([c.strip() for c in (reader.fieldnames or [])], csv_path)
                 for line, row in enumerate(reader, start=2):
                     row = {(k or "").strip(): (v or "") for k, v in row.items()}
                     name = row["file"].strip()
@@ -449,6 +438,21 @@ def read_frame_table(
             hint=f"put {', '.join(IMAGE_SUFFIXES)} frames and a frames.csv in the folder",
         )
     return sorted(records.values(), key=lambda r: r.path.name)
+
+
+def _check_columns(cols: list[str], csv_path: Path) -> None:
+    """frames.csv's header: ``file`` and ``exposure_ms`` present, no column twice."""
+    twice = sorted({c for c in cols if c and cols.count(c) > 1})
+    if twice:
+        raise SessionError(f"column(s) {', '.join(map(repr, twice))} given twice", path=csv_path,
+                           hint="keep one column of each name")
+    for need in ("file", "exposure_ms"):
+        if need not in cols:
+            raise SessionError(
+                f"column {need!r} is missing (columns: {', '.join(map(show_key, cols)) or 'none'})",
+                path=csv_path,
+                hint="frames.csv needs at least file,exposure_ms",
+            )
 
 
 def _table_row(

@@ -35,8 +35,8 @@ import tifffile
 import yaml
 from hypothesis import Phase, assume, given, settings
 from hypothesis import strategies as st
-from mscal_core.errors import MscalError
 
+from mscal_core.errors import MscalError
 from pipeline.ingest.camera_meta import factory_vignetting, meta_from_tags, read_file_metas
 from pipeline.ingest.catalog import (
     CATALOG_ROOT,
