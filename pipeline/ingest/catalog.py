@@ -161,7 +161,7 @@ def finite_number(value: Any) -> float | None:
 def _positive_number(value: Any, path: Path, where: str) -> float:
     v = finite_number(value)
     if v is None or not v > 0:
-        raise CatalogError(f"{where} must be a positive (finite) number, got {value!r}", path=path)
+        raise CatalogError(f"{where} must be a positive number, got {value!r}", path=path)
     return v
 
 

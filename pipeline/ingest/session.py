@@ -89,7 +89,7 @@ class Session:
 def _number(value: Any, path: Path, where: str, *, positive: bool = False) -> float:
     v = finite_number(value)  # NaN, inf and integers too large for a float are not numbers here
     if v is None:
-        raise SessionError(f"{where} must be a (finite) number, got {value!r}", path=path)
+        raise SessionError(f"{where} must be a number, got {value!r}", path=path)
     if positive and v <= 0:
         raise SessionError(f"{where} must be positive, got {value!r}", path=path)
     return v

@@ -33,7 +33,7 @@ import numpy as np
 import pytest
 import tifffile
 import yaml
-from hypothesis import Phase, assume, given, settings
+from hypothesis import HealthCheck, Phase, assume, given, settings
 from hypothesis import strategies as st
 
 from mscal_core.errors import MscalError
@@ -643,7 +643,7 @@ def cli_session(small, tmp_path_factory) -> tuple[Path, Path]:
 # Two examples each, not shrunk (every example is a process start); the first that the reader
 # rejects is the one run.
 E2E = settings(max_examples=2, derandomize=True, database=None, deadline=None,
-               phases=[Phase.explicit, Phase.generate])
+               phases=[Phase.explicit, Phase.generate], suppress_health_check=list(HealthCheck))
 
 
 def test_cli_fuzzed_session_yaml(cli_session, session_seeds, tmp_path):
