@@ -52,7 +52,6 @@ from pipeline.ingest.exif import time_ns
 from pipeline.ingest.intrinsics import intrinsics_from_tags, tiff_tags
 from pipeline.ingest.session import Session, load_session, read_frame_table
 from pipeline.ingest.xmp import RDF_NS, Xmp, jpeg_xmp_packet
-from pipeline.sim.synth import write_session
 from tests.camera_files import dji_xmp, jpeg_segments
 
 DATA = Path(__file__).parents[3].parent / "shared" / "data"
@@ -191,9 +190,10 @@ def yaml_texts(draw, seeds):
 
 
 @pytest.fixture(scope="module")
-def synth(tmp_path_factory) -> Path:
-    """The small synthetic session (the demo's), without the minute of calibrating it."""
-    return write_session(tmp_path_factory.mktemp("fuzz_synth") / "session", seed=0, size="small")
+def synth(small) -> Path:
+    """The small synthetic session (the demo's: write_session(seed=0, size="small")), read only;
+    the one the other tests of the process calibrate, so that make test writes it once."""
+    return small[0]
 
 
 @pytest.fixture(scope="module")
