@@ -48,7 +48,7 @@ from mscal_core.factory import (
 )
 
 from pipeline.ingest.exif import EXIF_CODES, dms_to_degrees, exif_datetime_iso, rational, signed_gps
-from pipeline.ingest.xmp import TagError, TagProblem, Xmp, jpeg_xmp_packet, legacy_properties
+from pipeline.ingest.xmp import TagError, TagProblem, Xmp, jpeg_xmp_packet, legacy_properties, parse_numbers
 
 if TYPE_CHECKING:
     from pipeline.ingest.catalog import Camera
@@ -582,7 +582,7 @@ def _dji_band(ctx: _Ctx) -> tuple[str, float, float | None]:
         return _band(ctx)
     name = x.text("BandName", ("drone-dji",)) or x.text("BandName")
     freq = x.text("BandFreq", ("drone-dji",))
-    m = re.match(r"^\s*([0-9.]+)\s*(?:\(\s*\+/-\s*([0-9.]+)\s*\))?\s*nm\s*$", freq or "")
+    m = re.match(r"^\s*([0-9]+(?:\.[0-9]*)?)\s*(?:\(\s*\+/-\s*([0-9]+(?:\.[0-9]*)?)\s*\))?\s*nm\s*$", freq or "")
     if name is None or m is None:
         raise FrameError("no band name and centre wavelength (XMP Camera:CentralWavelength or drone-dji:BandFreq "
                          f"like 840(+/-26)nm; got {freq!r})", path=ctx.path, hint=FIRMWARE_HINT)
@@ -595,8 +595,7 @@ def _dji_dewarp(x: Xmp, path: Path) -> tuple[float, ...] | None:
     raw = x.text("DewarpData", ("drone-dji",))
     if raw is None:
         return None
-    values = raw.split(";", 1)[-1]
-    nums = [float(v) for v in values.replace(",", " ").split()] if values else []
+    nums = parse_numbers(raw.split(";", 1)[-1]) or ()
     if len(nums) != 9:
         raise TagError("XMP drone-dji:DewarpData", raw, "expected 'date;fx,fy,cx,cy,k1,k2,p1,p2,k3'", path)
     return tuple(nums)

@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import ast
 import importlib.resources
+import math
 import os
 import re
+import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -56,17 +58,54 @@ def yaml_problem(exc: yaml.YAMLError) -> str:
     return f"not valid YAML: {problem}"
 
 
+class _StrictLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a key given twice in one mapping (PyYAML keeps the
+    last one silently: which of two values was meant is anybody's guess)."""
+
+
+def _map_without_duplicates(loader: _StrictLoader, node: yaml.MappingNode) -> Any:
+    data: dict[Any, Any] = {}
+    yield data
+    seen: list[Any] = []
+    for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge":
+            continue
+        key = loader.construct_object(key_node, deep=True)
+        try:
+            duplicate = key in seen
+        except TypeError:  # an unhashable key: construct_mapping says so below
+            duplicate = False
+        if duplicate:
+            raise yaml.constructor.ConstructorError("while constructing a mapping", node.start_mark,
+                                                    f"found the key {key!r} twice", key_node.start_mark)
+        seen.append(key)
+    data.update(loader.construct_mapping(node))
+
+
+_StrictLoader.add_constructor("tag:yaml.org,2002:map", _map_without_duplicates)
+
+
 def read_yaml(path: Path, error: type[MscalError] = CatalogError) -> Any:
-    """``yaml.safe_load`` of ``path``; ``error`` naming the file and the line if it cannot be
-    read or parsed (see :func:`yaml_problem`)."""
+    """``yaml.safe_load`` of ``path`` (a key given twice is an error); ``error`` naming the
+    file and the line if it cannot be read or parsed (see :func:`yaml_problem`)."""
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise error(f"cannot read: {getattr(exc, 'strerror', None) or exc}", path=path) from None
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 (a SafeLoader)
     except yaml.YAMLError as exc:
         raise error(yaml_problem(exc), path=path, hint="fix the YAML syntax") from None
+    except RecursionError:
+        raise error("not valid YAML: nested too deeply", path=path, hint="fix the YAML syntax") from None
+    except (ValueError, OverflowError, TypeError) as exc:  # e.g. a date that does not exist: 2017-13-45
+        raise error(f"not valid YAML: a value cannot be read ({exc})", path=path,
+                    hint="quote a text that looks like a date or a number") from None
+
+
+def show_key(key: Any) -> str:
+    """A mapping key as it reads in a one-line message (repr unless plain printable text)."""
+    return key if isinstance(key, str) and key.isprintable() and key.strip() == key and key else repr(key)
 
 
 def _load_yaml(path: Path) -> dict[str, Any]:
@@ -83,30 +122,47 @@ def check_keys(
     missing = sorted(required - set(data))
     if missing:
         raise CatalogError(f"{where}: missing key(s) {', '.join(missing)}", path=path)
-    unknown = sorted(set(data) - required - optional)
+    unknown = sorted(set(data) - required - optional, key=repr)  # keys of any type (YAML: 1, null, ...)
     if unknown:
         allowed = ", ".join(sorted(required | optional))
         raise CatalogError(
-            f"{where}: unknown key(s) {', '.join(map(str, unknown))}",
+            f"{where}: unknown key(s) {', '.join(map(show_key, unknown))}",
             path=path,
             hint=f"allowed keys: {allowed}",
         )
+
+
+MAX_PIXELS = 100_000
+MAX_CHANNELS = 1024  # no sensor, mosaic or band grid is larger: a bigger number is a typo
 
 
 def _int_pair(value: Any, path: Path, where: str) -> tuple[int, int]:
     if (
         not isinstance(value, (list, tuple))
         or len(value) != 2
-        or not all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in value)
+        or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= MAX_PIXELS for v in value)
     ):
-        raise CatalogError(f"{where} must be a pair of non-negative integers, got {value!r}", path=path)
+        raise CatalogError(f"{where} must be a pair of integers 0..{MAX_PIXELS}, got {value!r}", path=path)
     return int(value[0]), int(value[1])
 
 
+def finite_number(value: Any) -> float | None:
+    """``value`` as a finite float, None if it is not a number (bools are not) or not finite
+    (NaN, inf, an integer too large for a float)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    try:
+        v = float(value)
+    except OverflowError:
+        return None
+    return v if math.isfinite(v) else None
+
+
 def _positive_number(value: Any, path: Path, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+    v = finite_number(value)
+    if v is None or not v > 0:
         raise CatalogError(f"{where} must be a positive number, got {value!r}", path=path)
-    return float(value)
+    return v
 
 
 # --------------------------------------------------------------------------- cameras
@@ -270,7 +326,7 @@ def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
         try:
             camera.band_for_wavelength(wl)
         except CatalogError as exc:
-            raise CatalogError(f"index_bands.{role}: {exc.reason}", path=path) from None
+            raise CatalogError(f"index_bands.{show_key(role)}: {exc.reason}", path=path) from None
     if camera.name != path.stem:
         raise CatalogError(f"name {camera.name!r} must match the file name {path.stem!r}", path=path)
     return camera
@@ -311,12 +367,14 @@ def _parse_layout(lay: Any, path: Path) -> Layout:
         )
     if lay["kind"] == "multichannel":
         ch = lay["channels"]
-        if not isinstance(ch, int) or ch < 1:
+        if not isinstance(ch, int) or isinstance(ch, bool) or not 1 <= ch <= MAX_CHANNELS:
             raise CatalogError(f"layout.channels must be a positive integer, got {ch!r}", path=path)
         return Layout(kind="multichannel", channels=ch)
     try:
-        rx = re.compile(str(lay["capture_pattern"]))
-    except re.error as exc:
+        with warnings.catch_warnings():  # "possible nested set": a warning on stderr would break the one line
+            warnings.simplefilter("ignore", FutureWarning)
+            rx = re.compile(str(lay["capture_pattern"]))
+    except (re.error, OverflowError, RecursionError, ValueError) as exc:  # OverflowError: a{99999999999}
         raise CatalogError(f"layout.capture_pattern is not a valid regex: {exc}", path=path) from None
     need = {"capture", "band"} if lay["kind"] == "file_per_band" else {"capture"}  # others: one name
     if not need <= set(rx.groupindex):
@@ -337,12 +395,15 @@ def _parse_bands(raw_bands: Any, path: Path) -> list[Band]:
         if not isinstance(b, dict):
             raise CatalogError(f"{where} must be a mapping", path=path)
         check_keys(b, _BAND_REQUIRED, _BAND_OPTIONAL, path, where)
+        ch = b.get("channel")
+        if ch is not None and (not isinstance(ch, int) or isinstance(ch, bool) or not 0 <= ch < MAX_CHANNELS):
+            raise CatalogError(f"{where}.channel must be an integer 0..{MAX_CHANNELS - 1}, got {ch!r}", path=path)
         band = Band(
             name=str(b["name"]),
             wavelength_nm=_positive_number(b["wavelength_nm"], path, f"{where}.wavelength_nm"),
             fwhm_nm=None if b.get("fwhm_nm") is None else _positive_number(b["fwhm_nm"], path, f"{where}.fwhm_nm"),
             mosaic=None if b.get("mosaic") is None else _int_pair(b["mosaic"], path, f"{where}.mosaic"),
-            channel=b.get("channel"),
+            channel=ch,
             file_suffix=None if b.get("file_suffix") is None else str(b["file_suffix"]),
         )
         bands.append(band)
@@ -391,10 +452,11 @@ def _parse_sensor(s: Any, layout: Layout, path: Path) -> tuple[int, int] | None:
     if not isinstance(s, dict):
         raise CatalogError("sensor must be a mapping {width, height}", path=path)
     check_keys(s, {"width", "height"}, set(), path, "sensor")
-    sensor = (
-        int(_positive_number(s["height"], path, "sensor.height")),
-        int(_positive_number(s["width"], path, "sensor.width")),
-    )
+    for key in ("height", "width"):
+        v = s[key]
+        if not isinstance(v, int) or isinstance(v, bool) or not 1 <= v <= MAX_PIXELS:
+            raise CatalogError(f"sensor.{key} must be an integer 1..{MAX_PIXELS} (pixels), got {v!r}", path=path)
+    sensor = (int(s["height"]), int(s["width"]))
     if layout.kind == "mosaic":
         assert layout.pattern and layout.grid
         need = (layout.origin[0] + layout.pattern[0] * layout.grid[0],
@@ -414,11 +476,14 @@ def _parse_index_and_export_bands(data: Mapping[str, Any], names: list[str], pat
     if not isinstance(index_bands, dict):
         raise CatalogError("index_bands must map a role (red, nir, ...) to a wavelength", path=path)
     for role, wl in index_bands.items():
-        _positive_number(wl, path, f"index_bands.{role}")
-    export = tuple(str(x) for x in (data.get("export_bands") or []))
+        _positive_number(wl, path, f"index_bands.{show_key(role)}")
+    raw_export = data.get("export_bands") or []
+    if not isinstance(raw_export, list):
+        raise CatalogError(f"export_bands must be a list of band names, got {raw_export!r}", path=path)
+    export = tuple(str(x) for x in raw_export)
     unknown_export = [x for x in export if x not in names]
     if unknown_export:
-        raise CatalogError(f"export_bands names unknown band(s) {', '.join(unknown_export)}", path=path)
+        raise CatalogError(f"export_bands names unknown band(s) {', '.join(map(show_key, unknown_export))}", path=path)
     return {str(k): float(v) for k, v in index_bands.items()}, export
 
 
@@ -487,11 +552,23 @@ def _parse_skip_bands(value: Any, path: Path, names: list[str]) -> tuple[SkipBan
     return tuple(out)
 
 
+_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,127}")
+
+
 def _find(kind: str, name: str) -> Path:
+    if not _NAME.fullmatch(name):  # a path, an empty or a 300-character name is no catalog entry
+        raise CatalogError(
+            f"{kind[:-1]} name {name!r} is not a catalog name",
+            hint=f"a name is the file name of catalogs/{kind}/NAME.yaml: letters, digits, '.', '_', '+', '-'; "
+                 f"known {kind}: {', '.join(list_entries(kind)) or 'none'}",
+        )
     for d in catalog_dirs(kind):
         p = d / f"{name}.yaml"
-        if p.is_file():
-            return p
+        try:
+            if p.is_file():
+                return p
+        except OSError:  # e.g. a folder of MSCAL_CATALOG_PATH that cannot be read
+            continue
     known = ", ".join(list_entries(kind)) or "none"
     raise CatalogError(
         f"unknown {kind[:-1]} {name!r}",
@@ -566,9 +643,14 @@ def reflectance_option(text: str, option: str = "--panel-reflectance") -> Reflec
 
 
 def parse_reflectance(value: Any, path: Path | str, where: str) -> ReflectanceSpec:
-    """Validate a reflectance: a number in (0, 1], a [[nm, rho], ...] table, or a target name."""
+    """Validate a reflectance: a number in (0, 1], a [[nm, rho], ...] table, or a target name.
+    An unknown or broken target is reported against ``path`` (the file that names it) too."""
     if isinstance(value, str):
-        return load_target(value).reflectance
+        try:
+            return load_target(value).reflectance
+        except CatalogError as exc:
+            at = f"its catalog entry {exc.path}: " if exc.path else ""
+            raise CatalogError(f"{where} {value!r}: {at}{exc.reason}", path=path, hint=exc.hint) from None
     if isinstance(value, (int, float)) and not isinstance(value, bool):
         if not 0 < value <= 1:
             raise CatalogError(f"{where} must be in (0, 1], got {value!r}", path=path)
@@ -576,15 +658,13 @@ def parse_reflectance(value: Any, path: Path | str, where: str) -> ReflectanceSp
     if isinstance(value, list) and value:
         rows: list[tuple[float, float]] = []
         for row in value:
-            if (
-                not isinstance(row, (list, tuple))
-                or len(row) != 2
-                or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in row)
-            ):
-                raise CatalogError(f"{where}: each row must be [wavelength_nm, reflectance], got {row!r}", path=path)
-            if not 0 < row[1] <= 1 or row[0] <= 0:
+            nums = [finite_number(v) for v in row] if isinstance(row, (list, tuple)) else []
+            if len(nums) != 2 or None in nums:
+                raise CatalogError(f"{where}: each row must be [wavelength_nm, reflectance] (finite numbers), "
+                                   f"got {row!r}", path=path)
+            if not 0 < nums[1] <= 1 or nums[0] <= 0:
                 raise CatalogError(f"{where}: row {row!r} out of range (nm > 0, 0 < rho <= 1)", path=path)
-            rows.append((float(row[0]), float(row[1])))
+            rows.append((nums[0], nums[1]))
         wl = [r[0] for r in rows]
         if wl != sorted(wl) or len(set(wl)) != len(wl):
             raise CatalogError(f"{where}: wavelengths must be strictly increasing", path=path)
@@ -647,22 +727,30 @@ def parse_index(data: Mapping[str, Any], path: Path) -> Index:
     expr = str(data["expression"])
     try:
         tree = ast.parse(expr, mode="eval")
-    except SyntaxError:
+        nodes = list(ast.walk(tree))
+    except (SyntaxError, ValueError, RecursionError, MemoryError):
         raise CatalogError(f"expression {expr!r} is not valid arithmetic", path=path) from None
-    bad = [type(n).__name__ for n in ast.walk(tree) if not isinstance(n, _ALLOWED_NODES)]
+    bad = [type(n).__name__ for n in nodes if not isinstance(n, _ALLOWED_NODES)]
+    bad += [f"the constant {n.value!r}" for n in nodes if isinstance(n, ast.Constant)
+            and finite_number(n.value) is None]
+    bad += ["a power other than a number from -8 to 8" for n in nodes if isinstance(n, ast.BinOp)
+            and isinstance(n.op, ast.Pow) and not (isinstance(n.right, ast.Constant)
+                                                   and finite_number(n.right.value) is not None
+                                                   and abs(n.right.value) <= 8)]
     if bad:
         raise CatalogError(
             f"expression {expr!r} uses {', '.join(sorted(set(bad)))}",
             path=path,
-            hint="only band roles, numbers and + - * / ** are allowed",
+            hint="only band roles, numbers and + - * / are allowed, and ** with a number from -8 to 8",
         )
-    inputs = tuple(sorted({n.id for n in ast.walk(tree) if isinstance(n, ast.Name)}))
+    inputs = tuple(sorted({n.id for n in nodes if isinstance(n, ast.Name)}))
     vr = data.get("valid_range")
     valid = None
     if vr is not None:
-        if not isinstance(vr, list) or len(vr) != 2:
-            raise CatalogError("valid_range must be [low, high]", path=path)
-        valid = (float(vr[0]), float(vr[1]))
+        lims = [finite_number(v) for v in vr] if isinstance(vr, list) else []
+        if len(lims) != 2 or None in lims or not lims[0] < lims[1]:
+            raise CatalogError(f"valid_range must be [low, high] (finite numbers, low < high), got {vr!r}", path=path)
+        valid = (lims[0], lims[1])
     if str(data["name"]) != path.stem:
         raise CatalogError(f"name {data['name']!r} must match the file name {path.stem!r}", path=path)
     return Index(str(data["name"]), str(data["description"]), expr, inputs, valid)

@@ -34,6 +34,7 @@ from mscal_core.errors import FrameError, SessionError
 from mscal_core.geometry import Intrinsics
 
 from pipeline.ingest.camera_meta import xmp_properties
+from pipeline.ingest.catalog import show_key
 from pipeline.ingest.exif import EXIF_CODES, rational
 
 #: Parameter order of the store's ``intrinsics (band, intrinsics_param)`` variable.
@@ -93,13 +94,17 @@ def intrinsics_from_tags(tags: dict[int, Any], path: Path) -> Intrinsics | None:
         pp = [float(v) for v in str(props["PrincipalPoint"]).replace(" ", "").split(",")]
         dist = props.get("PerspectiveDistortion", [])
         dist = [float(v) for v in (dist if isinstance(dist, list) else str(dist).replace(",", " ").split())]
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, IndexError):  # IndexError: an empty rdf:Seq
         raise FrameError("XMP PerspectiveFocalLength / PrincipalPoint / PerspectiveDistortion are not numbers",
                          path=path, hint="give the intrinsics in session.yaml instead") from None
-    if len(pp) != 2 or not all(math.isfinite(v) for v in (f, rx, ry, *pp)) or rx <= 0 or ry <= 0:
+    if (len(pp) != 2 or not all(math.isfinite(v) for v in (f, rx, ry, *pp, *dist, f * rx, f * ry, pp[0] * rx,
+                                                             pp[-1] * ry)) or rx <= 0 or ry <= 0):
         raise FrameError(f"XMP PrincipalPoint {props['PrincipalPoint']!r} or the focal plane resolution is unusable",
                          path=path, hint="give the intrinsics in session.yaml instead")
     fx, fy = (f * rx, f * ry) if _focal_in_mm(props, f, tags) else (f, f * ry / rx)
+    if not (math.isfinite(fx) and math.isfinite(fy)):
+        raise FrameError(f"XMP PerspectiveFocalLength {props['PerspectiveFocalLength']!r} gives no finite focal length "
+                         "in pixels", path=path, hint="give the intrinsics in session.yaml instead")
     k = (dist + [0.0] * 5)[:5]
     opencv = (k[0], k[1], k[3], k[4], k[2])  # [k1, k2, k3, p1, p2] -> [k1, k2, p1, p2, k3]
     try:
@@ -224,9 +229,9 @@ def parse_band_intrinsics(data: Any, band_keys: Sequence[Sequence[str]], path: P
             )
         used.add(hits[0])
         out.append(parse_one(data[hits[0]], path))
-    extra = sorted(str(k) for k in data if str(k) not in used and k not in used)
+    extra = sorted((k for k in data if str(k) not in used and k not in used), key=repr)
     if extra:
-        raise SessionError(f"intrinsics: unknown band(s) {', '.join(extra)}", path=path)
+        raise SessionError(f"intrinsics: unknown band(s) {', '.join(map(show_key, extra))}", path=path)
     return tuple(out)
 
 

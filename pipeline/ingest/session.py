@@ -17,11 +17,22 @@ from mscal_core.errors import CatalogError, FrameError, InputError, MscalError, 
 from mscal_core.geometry import Intrinsics
 from mscal_core.mosaic import demosaic
 
-from pipeline.ingest.catalog import Camera, ReflectanceSpec, check_keys, load_camera, parse_reflectance, read_yaml
-from pipeline.ingest.exif import dms_to_degrees, exif_datetime_iso, parse_iso, rational, signed_gps
+from pipeline.ingest.catalog import (
+    Camera,
+    ReflectanceSpec,
+    check_keys,
+    finite_number,
+    load_camera,
+    parse_reflectance,
+    read_yaml,
+    show_key,
+)
+from pipeline.ingest.exif import dms_to_degrees, exif_datetime_iso, parse_iso, rational, signed_gps, utc_naive
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
 FRAMES_CSV = "frames.csv"
+TIME_RANGE = (1678, 2261)  # the years int64 nanoseconds (the datacube's time axis) can hold
+MAX_NAME = 255  # the longest file name most file systems take
 
 
 # --------------------------------------------------------------------------- session.yaml
@@ -76,11 +87,12 @@ class Session:
 
 
 def _number(value: Any, path: Path, where: str, *, positive: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    v = finite_number(value)  # NaN, inf and integers too large for a float are not numbers here
+    if v is None:
         raise SessionError(f"{where} must be a number, got {value!r}", path=path)
-    if positive and value <= 0:
+    if positive and v <= 0:
         raise SessionError(f"{where} must be positive, got {value!r}", path=path)
-    return float(value)
+    return v
 
 
 def parse_intrinsics(data: Any, path: Path) -> Intrinsics:
@@ -130,8 +142,6 @@ def parse_panel(data: Any, path: Path) -> PanelConfig:
     ``marker: {dictionary, id, size_m}`` with the panel's ``size_m`` (``[w, h]`` or one side)
     and ``offset_m`` (``[du, dv]`` of its centre from the marker's, default ``[0, 0]``); the
     panel rectangle must not cover the marker."""
-    import cv2
-
     if not isinstance(data, dict):
         raise SessionError(f"panel must be a mapping, got {data!r}", path=path, hint=PANEL_EXAMPLE)
     check_keys(data, set(), {"polygon", "marker", "size_m", "offset_m"}, path, "panel")
@@ -146,10 +156,7 @@ def parse_panel(data: Any, path: Path) -> PanelConfig:
     if not isinstance(mk, dict):
         raise SessionError("panel.marker must be a mapping {dictionary, id, size_m}", path=path, hint=PANEL_EXAMPLE)
     check_keys(mk, {"dictionary", "id", "size_m"}, set(), path, "panel.marker")
-    name = str(mk["dictionary"])
-    if not (name.startswith("DICT_") and isinstance(getattr(cv2.aruco, name, None), int)):
-        raise SessionError(f"panel.marker.dictionary {name!r} is not an OpenCV ArUco/AprilTag dictionary", path=path,
-                           hint="e.g. DICT_4X4_50, DICT_5X5_100, DICT_APRILTAG_36h11")
+    name = marker_dictionary(mk["dictionary"], path, "panel.marker")
     if not isinstance(mk["id"], int) or isinstance(mk["id"], bool) or mk["id"] < 0:
         raise SessionError(f"panel.marker.id must be a non-negative integer, got {mk['id']!r}", path=path)
     msize = _number(mk["size_m"], path, "panel.marker.size_m", positive=True)
@@ -167,6 +174,17 @@ def parse_panel(data: Any, path: Path) -> PanelConfig:
         raise SessionError("the panel rectangle covers the marker", path=path,
                            hint="give panel.offset_m: where the panel's centre is from the marker's, in metres")
     return PanelConfig(polygon=polygon, marker=PanelMarker(name, int(mk["id"]), msize, (w, h), (du, dv)))
+
+
+def marker_dictionary(value: Any, path: Path, where: str) -> str:
+    """The name of an OpenCV ArUco/AprilTag dictionary (``DICT_4X4_50``, ...), checked."""
+    import cv2
+
+    name = str(value)
+    if not (name.startswith("DICT_") and isinstance(getattr(cv2.aruco, name, None), int)):
+        raise SessionError(f"{where}.dictionary {name!r} is not an OpenCV ArUco/AprilTag dictionary", path=path,
+                           hint="e.g. DICT_4X4_50, DICT_5X5_100, DICT_APRILTAG_36h11")
+    return name
 
 
 def parse_panel_polygon(data: Any, path: Path) -> tuple[tuple[float, float], ...]:
@@ -191,6 +209,8 @@ def parse_panel_polygon(data: Any, path: Path) -> tuple[tuple[float, float], ...
         corners.append((x, y))
     xs, ys = zip(*corners)
     area2 = sum(xs[i] * ys[i - 1] - xs[i - 1] * ys[i] for i in range(len(corners)))
+    if not math.isfinite(area2) or max(xs + ys) > 1e6:
+        raise SessionError(f"panel.polygon {poly!r}: pixel coordinates must be below 1e6", path=path)
     if abs(area2) < 2.0:
         raise SessionError(f"panel.polygon {poly!r} encloses no area", path=path)
     return tuple(corners)
@@ -213,7 +233,10 @@ def load_session(root: str | Path) -> Session:
         raise SessionError(exc.reason, path=path, hint=exc.hint) from None
     try:
         camera = load_camera(str(data["camera"]))
-    except CatalogError as exc:  # say which file named it
+    except CatalogError as exc:  # say which file named it, and which catalog file is at fault
+        if exc.path is not None:
+            raise SessionError(f"camera {str(data['camera'])!r}: its catalog entry {exc.path} is invalid: "
+                               f"{exc.reason}", path=path, hint=exc.hint or "fix that catalog file") from None
         raise SessionError(f"camera: {exc.reason}", path=path,
                            hint=exc.hint or "name a camera of catalogs/cameras/, or add its entry there") from None
     intr: Intrinsics | None = None
@@ -250,7 +273,8 @@ def load_session(root: str | Path) -> Session:
         raise SessionError(f"marker.id must be a non-negative integer, got {mk['id']!r}", path=path)
     msize = _number(mk["size_m"], path, "marker.size_m", positive=True)
     border = _number(mk.get("border_m", 0.25 * msize), path, "marker.border_m")
-    marker = MarkerSpec(dictionary=str(mk["dictionary"]), id=int(mk["id"]), size_m=msize, border_m=max(border, 0.0))
+    marker = MarkerSpec(dictionary=marker_dictionary(mk["dictionary"], path, "marker"), id=int(mk["id"]),
+                        size_m=msize, border_m=max(border, 0.0))
     if max(msize / 2 + border, 0) >= min(reflector.size_m) / 2:
         raise SessionError(
             "the marker and its border cover the whole reflector",
@@ -383,14 +407,7 @@ def read_frame_table(
         try:
             with csv_path.open(newline="", encoding="utf-8-sig") as fh:
                 reader = csv.DictReader(fh)
-                cols = [c.strip() for c in (reader.fieldnames or [])]
-                for need in ("file", "exposure_ms"):
-                    if need not in cols:
-                        raise SessionError(
-                            f"column {need!r} is missing (columns: {', '.join(cols) or 'none'})",
-                            path=csv_path,
-                            hint="frames.csv needs at least file,exposure_ms",
-                        )
+                _check_columns([c.strip() for c in (reader.fieldnames or [])], csv_path)
                 for line, row in enumerate(reader, start=2):
                     row = {(k or "").strip(): (v or "") for k, v in row.items()}
                     name = row["file"].strip()
@@ -405,6 +422,9 @@ def read_frame_table(
                         records[name] = rec
         except UnicodeDecodeError:
             raise SessionError("not a UTF-8 text file", path=csv_path) from None
+        except csv.Error as exc:  # e.g. a field over the csv module's size limit (131072 characters)
+            raise SessionError(f"not a readable CSV table (line {reader.line_num}: {exc})", path=csv_path,
+                               hint="frames.csv is a comma-separated table: file,exposure_ms,...") from None
     for p in sorted(folder.iterdir()):
         if p.suffix.lower() in IMAGE_SUFFIXES and p.name not in records and p.name not in dropped:
             try:
@@ -420,6 +440,21 @@ def read_frame_table(
     return sorted(records.values(), key=lambda r: r.path.name)
 
 
+def _check_columns(cols: list[str], csv_path: Path) -> None:
+    """frames.csv's header: ``file`` and ``exposure_ms`` present, no column twice."""
+    twice = sorted({c for c in cols if c and cols.count(c) > 1})
+    if twice:
+        raise SessionError(f"column(s) {', '.join(map(repr, twice))} given twice", path=csv_path,
+                           hint="keep one column of each name")
+    for need in ("file", "exposure_ms"):
+        if need not in cols:
+            raise SessionError(
+                f"column {need!r} is missing (columns: {', '.join(map(show_key, cols)) or 'none'})",
+                path=csv_path,
+                hint="frames.csv needs at least file,exposure_ms",
+            )
+
+
 def _table_row(
     folder: Path,
     csv_path: Path,
@@ -432,6 +467,9 @@ def _table_row(
     """One validated frames.csv row (:class:`FrameError` naming the line and the frame)."""
     if not name:
         raise FrameError(f"line {line}: empty file name", path=csv_path)
+    if name in (".", "..") or "/" in name or "\\" in name or not name.isprintable() or len(name.encode()) > MAX_NAME:
+        raise FrameError(f"line {line}: file {name[:80]!r} is not the name of a file in this folder", path=csv_path,
+                         hint="frames.csv lists the frames of its own folder by file name, without a path")
     exp = _parse_float(row["exposure_ms"], csv_path, line, "exposure_ms")
     if exp is None:
         raise FrameError(
@@ -469,13 +507,18 @@ def _table_row(
     return rec
 
 def _parse_time(text: str, csv_path: Path, line: int) -> str | None:
+    """An ISO 8601 time the datacube's time axis can hold (int64 ns: 1678-2261)."""
     text = (text or "").strip()
     if not text:
         return None
     try:
-        parse_iso(text)
-    except ValueError:
-        raise FrameError(f"line {line}: time {text!r} is not ISO 8601", path=csv_path) from None
+        dt, _ = utc_naive(parse_iso(text))
+    except (ValueError, OverflowError):  # OverflowError: 0001-01-01T00:00:00+01:00 is before year 1 in UTC
+        raise FrameError(f"line {line}: time {text!r} is not ISO 8601", path=csv_path,
+                         hint="e.g. 2017-06-14T09:50:00Z") from None
+    if not TIME_RANGE[0] <= dt.year <= TIME_RANGE[1]:
+        raise FrameError(f"line {line}: time {text!r} is outside the years {TIME_RANGE[0]}-{TIME_RANGE[1]}",
+                         path=csv_path, hint="e.g. 2017-06-14T09:50:00Z")
     return text
 
 

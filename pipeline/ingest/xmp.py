@@ -21,6 +21,7 @@ readers turn it into a :class:`TagProblem` that disables only the feature needin
 from __future__ import annotations
 
 import math
+import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
@@ -97,13 +98,16 @@ class Xmp:
     @classmethod
     def parse(cls, packet: bytes | str, path: Path | str) -> "Xmp":
         text = packet.decode("utf-8", errors="replace") if isinstance(packet, (bytes, bytearray)) else packet
-        start, end = text.find("<x:xmpmeta"), text.rfind("</x:xmpmeta>")
-        if start < 0 or end < 0:
-            raise FrameError("the XMP packet has no x:xmpmeta element", path=path)
+        xml = _packet_xml(text)
+        if xml is None:
+            raise FrameError("the XMP packet has no x:xmpmeta or rdf:RDF element", path=path,
+                             hint="the file's XMP metadata is damaged; copy the file again from the camera's card")
         try:
-            root = ET.fromstring(text[start : end + len("</x:xmpmeta>")])
-        except ET.ParseError as exc:
-            raise FrameError(f"the XMP packet is not valid XML ({exc})", path=path) from None
+            root = ET.fromstring(xml)
+        except (ET.ParseError, ValueError, RecursionError) as exc:
+            why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise FrameError(f"the XMP packet is not valid XML ({why})", path=path,
+                             hint="the file's XMP metadata is damaged; copy the file again from the camera's card") from None
         props: dict[tuple[str, str], str | list[str]] = {}
         for desc in root.iter(f"{{{RDF_NS}}}Description"):
             for key, value in desc.attrib.items():
@@ -186,6 +190,20 @@ def parse_numbers(value: str | list[str]) -> tuple[float, ...] | None:
                 return None
             out.append(x)
     return tuple(out)
+
+
+_ROOTS = (re.compile(r"<((?:[A-Za-z_][\w.-]*:)?)xmpmeta[\s>/]"), re.compile(r"<((?:[A-Za-z_][\w.-]*:)?)RDF[\s>/]"))
+
+
+def _packet_xml(text: str) -> str | None:
+    """The XML of a packet: its ``x:xmpmeta`` element (any prefix; XMP allows another or
+    none), else its ``rdf:RDF`` (the wrapper is optional); None if neither is there."""
+    for rx, local in zip(_ROOTS, ("xmpmeta", "RDF")):
+        m = rx.search(text)
+        if m is not None:
+            end = text.rfind(f"</{m[1]}{local}>")
+            return text[m.start(): end + len(f"</{m[1]}{local}>")] if end > m.start() else text[m.start():]
+    return None
 
 
 def _qualified(qname: str) -> tuple[str, str] | None:
