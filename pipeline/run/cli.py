@@ -451,7 +451,18 @@ def _flow(name: str):  # noqa: ANN202 (a Prefect flow)
     return found[0].load()
 
 
-def _echo_run(record: dict) -> None:
+def _logged(out: Any, command: str):  # noqa: ANN202 (a context manager)
+    """Prefect's and Dask's records (and tracebacks) of the block into ``OUT/logs/<time>-<command>.log``,
+    to the terminal too with -v (:func:`pipeline.run.logs.command_log`). Enter it after
+    :func:`_flow` (importing Prefect installs its console handler, which is taken off here)."""
+    from pipeline.run.logs import command_log
+    from pipeline.run.runner import default_cache_dir, is_remote
+
+    verbose = bool(click.get_current_context().find_root().params.get("verbose"))
+    return command_log(default_cache_dir() if is_remote(str(out)) else out, command, verbose=verbose)
+
+
+def _echo_run(record: dict, log_file: Path | None = None) -> None:
     for name, f in record["flights"].items():
         for q in f["quarantined"]:
             click.echo(f"quarantined {name}/{q['file']}: {q['reason']}", err=True)
@@ -469,6 +480,8 @@ def _echo_run(record: dict) -> None:
     click.echo(f"wrote {record['out']} (calibration {calib}; {done} flight(s)"
                f"{f', {len(failed)} not processed' if failed else ''}; {record['timings_s']['total']:.1f} s)")
     if failed:  # as --strict does for frames: a script sees that something was skipped
+        if log_file is not None:
+            click.echo(f"details of the flight(s) not processed: {log_file}", err=True)
         raise SystemExit(3)
 
 
@@ -499,11 +512,13 @@ def run(session: str, out: str, response_method: str, normalise: str, dask_addre
                      illumination=illumination)
     if cache_dir:
         os.environ["MSCAL_CACHE_DIR"] = cache_dir  # before Prefect starts: its home follows
-    record = _flow("post_flight")(session=session, out=out, response_method=response_method, normalise=normalise,
-                                  dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir,
-                                  catalog_root=catalog_root, illumination=illumination, scheduler=scheduler,
-                                  workers=workers, direct_io=direct_io)
-    _echo_run(record)
+    post_flight = _flow("post_flight")
+    with _logged(out, "run") as log_file:
+        record = post_flight(session=session, out=out, response_method=response_method, normalise=normalise,
+                             dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir,
+                             catalog_root=catalog_root, illumination=illumination, scheduler=scheduler,
+                             workers=workers, direct_io=direct_io)
+    _echo_run(record, log_file)
 
 
 @cli.command()
@@ -530,8 +545,9 @@ def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, onc
     pending_sessions(inbox_dir, out_root, settle_seconds)  # and so does a missing inbox
     process_inbox = _flow("process_inbox")
     while True:
-        done = process_inbox(str(inbox_dir), str(out_root), settle_seconds=settle_seconds,
-                             response_method=response_method, dask_address=dask_address)
+        with _logged(out_root, "serve"):
+            done = process_inbox(str(inbox_dir), str(out_root), settle_seconds=settle_seconds,
+                                 response_method=response_method, dask_address=dask_address)
         for name, status in done.items():
             click.echo(f"{name}: {status} -> {out_root / name}")
         if once:
@@ -574,7 +590,9 @@ def demo(out: Path, size: str, seed: int) -> None:
     it and compare the calibration with the truth."""
     from pipeline.run.demo import run_demo
 
-    summary = run_demo(out, size=size, seed=seed, flow=_flow("post_flight"))
+    post_flight = _flow("post_flight")
+    with _logged(out, "demo"):
+        summary = run_demo(out, size=size, seed=seed, flow=post_flight)
     click.echo(json.dumps(summary, indent=2))
     click.echo(f"outputs: {summary['outputs']}")
     click.echo(f"run record: {summary['run_json']}")
@@ -587,7 +605,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cli.main(args=argv, prog_name="mscal", standalone_mode=False)
     except MscalError as exc:
-        click.echo(f"mscal: error: {exc}", err=True)
+        click.echo(f"mscal: error: {exc}" + (f" (log: {exc.log_file})" if exc.log_file else ""), err=True)
         return exc.exit_code
     except (click.exceptions.Abort, KeyboardInterrupt):  # Ctrl-C, e.g. of a long mscal serve
         click.echo("mscal: aborted", err=True)
