@@ -23,6 +23,7 @@ size) goes into ``run.json``; a later run trusts the outputs only if they still 
 from __future__ import annotations
 
 import ctypes
+import errno
 import hashlib
 import json
 import os
@@ -146,14 +147,28 @@ def install_folder(tmp: str | Path, final: str | Path, *, durable: bool = False)
         _fsync_dir(final.parent)
 
 
-def _replace_folder(tmp: Path, final: Path) -> None:
-    if final.exists():
-        old = final.parent / f".{final.name}.old{TMP_MARK}{uuid.uuid4().hex[:8]}"
-        os.replace(final, old)
-        os.replace(tmp, final)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, final)
+def _replace_folder(tmp: Path, final: Path, attempts: int = 5) -> None:
+    """Move ``tmp`` onto ``final``. Another process may install the same name at the same
+    moment (two runs filling one calibration cache): a ``final`` that appears between the
+    check and the rename is moved aside in turn, and the last writer's folder stays."""
+    for attempt in range(attempts):
+        old = None
+        if final.exists():
+            old = final.parent / f".{final.name}.old{TMP_MARK}{uuid.uuid4().hex[:8]}"
+            try:
+                os.replace(final, old)
+            except FileNotFoundError:  # the other process moved it aside first
+                old = None
+        try:
+            os.replace(tmp, final)
+        except OSError as exc:
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or attempt == attempts - 1:
+                raise
+            continue
+        finally:
+            if old is not None:
+                shutil.rmtree(old, ignore_errors=True)
+        return
 
 
 def remove_temporaries(folder: str | Path) -> None:
