@@ -9,6 +9,7 @@ The kill comes from outside (``Popen.kill``): production code has no kill hook."
 from __future__ import annotations
 
 import json
+import os
 import random
 import subprocess
 import sys
@@ -83,27 +84,39 @@ def test_twenty_trials_of_two_applies(small, tmp_path: Path) -> None:
     _trials(small, tmp_path, 20, wait=False)
 
 
+def _entries(folder: Path) -> int:
+    """Files and folders under ``folder`` (os.walk skips what is renamed away meanwhile)."""
+    return sum(len(dirs) + len(files) for _, dirs, files in os.walk(folder))
+
+
+def _kill_at(proc: subprocess.Popen, out: Path, k: int) -> None:
+    """SIGKILL ``proc`` once ``out`` holds ``k`` files and folders (temporaries included): a
+    point in its progress, not a time, so that the kill lands inside the run however busy
+    the machine is. 0 kills it as it starts."""
+    while proc.poll() is None:
+        if _entries(out) >= k:
+            proc.kill()  # SIGKILL
+            break
+        time.sleep(0.005)
+    proc.communicate()
+
+
 def _killed_then_two_restarts(small, tmp_path: Path, n: int, seed: int) -> dict[str, int]:
-    """``n`` trials: an apply SIGKILLed after a random delay (seeded; up to 1.2 times an
-    uninterrupted run's duration, which only scales the delays), then two applies at once on
-    its OUT (every other trial with --wait). Returns how the trials went."""
+    """``n`` trials: an apply SIGKILLed at a random (seeded) point of its progress, once its OUT
+    holds k files and folders, k drawn from 0 to one less than an uninterrupted run leaves;
+    then two applies at once on its OUT (every other trial with --wait). Returns how the
+    trials went."""
     session, calib = small
     flight = session / "flights" / "field"
-    t0 = time.monotonic()
     clean = tmp_path / "clean"
     assert _start(flight, calib, clean).wait(timeout=600) == 0
-    span = time.monotonic() - t0
     reference = _assert_complete(clean, None)
     rng = random.Random(seed)
     tally = {"killed": 0, "finished_before_the_kill": 0, "refused": 0, "waited_or_after": 0}
     for k in range(n):
         out = tmp_path / f"killed{k}"
         victim = _start(flight, calib, out)
-        try:
-            victim.wait(timeout=rng.uniform(0.1, 1.2) * span)
-        except subprocess.TimeoutExpired:
-            victim.kill()  # SIGKILL
-        victim.communicate()
+        _kill_at(victim, out, rng.randrange(_entries(clean)))
         tally["killed" if victim.returncode == -9 else "finished_before_the_kill"] += 1
         assert victim.returncode in (0, -9)
         codes = _pair(flight, calib, out, wait=bool(k % 2))
@@ -114,10 +127,12 @@ def _killed_then_two_restarts(small, tmp_path: Path, n: int, seed: int) -> dict[
 
 def test_sigkill_then_two_restarts_at_once(small, tmp_path: Path) -> None:
     tally = _killed_then_two_restarts(small, tmp_path, 3, seed=23)
-    assert tally["killed"] + tally["finished_before_the_kill"] == 3
+    print(f"3 SIGKILLs then two restarts: {tally}")
+    assert tally["killed"] + tally["finished_before_the_kill"] == 3 and tally["killed"] >= 1, tally
 
 
-@pytest.mark.long  # ~5 min: make test-long
+@pytest.mark.long  # ~7 min: make test-long
 def test_twenty_sigkills_then_two_restarts_at_once(small, tmp_path: Path) -> None:
     tally = _killed_then_two_restarts(small, tmp_path, 20, seed=2023)
-    assert tally["killed"] >= 5, tally  # most delays fall inside the run
+    print(f"20 SIGKILLs then two restarts: {tally}")  # the README's numbers (pytest -s)
+    assert tally["killed"] >= 10, tally  # the kill points lie inside the run
