@@ -65,8 +65,12 @@ def list_flights(session: str) -> dict[str, str]:
 def apply_flight(name: str, flight_dir: str, calibration: str, out: str, normalise: str,
                  dask_address: str | None, illumination: str = "linear", scheduler: str = "auto",
                  workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
-    return runner.apply_one(flight_dir, calibration, out, normalise=normalise, dask_address=dask_address,
-                            illumination=illumination, scheduler=scheduler, workers=workers, direct_io=direct_io)
+    try:
+        return runner.apply_one(flight_dir, calibration, out, normalise=normalise, dask_address=dask_address,
+                                illumination=illumination, scheduler=scheduler, workers=workers, direct_io=direct_io)
+    except Exception:  # the run goes on without this flight; its traceback goes to the run's log file
+        get_run_logger().exception("flight %s could not be processed", name)
+        raise
 
 
 @task(cache_policy=NO_CACHE)

@@ -14,6 +14,9 @@ class MscalError(Exception):
     """Base class of every error mscal raises on purpose."""
 
     exit_code = 2
+    #: The log file holding the details (traceback, Prefect's and Dask's records) of a command
+    #: that runs Prefect or Dask, when one was written (:mod:`pipeline.run.logs`).
+    log_file: str | None = None
 
     def __init__(self, message: str, *, path: str | Path | None = None, hint: str | None = None):
         self.path = None if path is None else str(path)
@@ -52,6 +55,21 @@ class LockedError(MscalError):
     """
 
     exit_code = 75
+
+
+class UnexpectedError(MscalError):
+    """Not an error of the input but a defect of mscal (an exception it did not expect).
+
+    Exit status 1. The command line says it in one line naming the log file that holds the
+    traceback.
+    """
+
+    exit_code = 1
+
+    def __init__(self, message: str, *, log_file: str | Path | None = None):
+        super().__init__(f"unexpected error: {message}",
+                         hint="a defect of mscal, not of your input: please report it with the log file")
+        self.log_file = None if log_file is None else str(log_file)
 
 
 class CalibrationStoreError(InputError):

@@ -42,13 +42,21 @@ from mscal_core.errors import FrameError
 
 from pipeline.apply.execution import Execution
 from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner, process_frame
-from pipeline.apply.flight import RUN_JSON, ApplyResult, previous_run, remove_frame_tiffs, software_versions
+from pipeline.apply.flight import (
+    RUN_JSON,
+    ApplyResult,
+    forget_run,
+    previous_run,
+    remove_frame_tiffs,
+    software_versions,
+    write_run_record,
+)
 from pipeline.ingest.camera_meta import Capture, capture_folder_of, capture_pattern, group_captures
 from pipeline.ingest.catalog import Camera, Index
 from pipeline.ingest.photo_tags import CameraOptics, calibration_picture, read_optics
 from pipeline.ingest.raw import raw_codec
 from pipeline.products.writers import BandTags, FrameTags
-from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries, write_json_atomic
+from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 from pipeline.storage.store import CF_VARIABLES, FLIGHT_VARIABLES, FRAME_COORD_ATTRS, cf_annotate
 
@@ -281,6 +289,7 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
     previous = previous_run(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
     if previous is not None:
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
+    forget_run(out)
     remove_temporaries(out)
     panels = {**metadata_panels(captures), **run.panels}
     t0 = time.perf_counter()
@@ -342,7 +351,7 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
                                                      "LWIR: K = DN / 100); never mixed into reflectance",
                              "files": thermal}
         record["outputs"]["thermal"] = "thermal/"
-    write_json_atomic(out / RUN_JSON, record)
+    write_run_record(out, record)  # last: the completion marker
     return ApplyResult(out, record, up_to_date=False, quarantined=quarantined)
 
 

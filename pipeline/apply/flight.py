@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import platform
 import re
 import shutil
@@ -66,11 +67,19 @@ from pipeline.ingest.raw import (
     read_frame,
 )
 from pipeline.products.writers import BandTags, FrameTags
-from pipeline.storage.atomic import install_folder, remove_temporaries, temporary_folder_name, write_json_atomic
+from pipeline.storage.atomic import (
+    install_folder,
+    outputs_manifest,
+    remove_temporaries,
+    sync_file_system,
+    temporary_folder_name,
+    write_json_atomic,
+)
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 from pipeline.storage.store import FLIGHT_VARIABLES, FRAME_COORD_ATTRS, cf_annotate, open_calibration
 
 RUN_JSON = "run.json"
+log = logging.getLogger(__name__)
 MAX_EXPORT_BANDS = 8
 FRESH_BATCH = 64  # frames per commit of the single pass (a kill loses at most this much ingest)
 READ_AHEAD = 4  # a frame's task starts reading the file this many frames on (prefetch_file)
@@ -519,7 +528,11 @@ def run_fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
 
 def previous_run(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = ("reflectance.zarr",)
                 ) -> dict[str, Any] | None:
-    """The previous run's record if it made the outputs (``stores`` in ``out``) of exactly these inputs."""
+    """The previous run's record if it made the outputs (``stores`` in ``out``) of exactly these
+    inputs and they are still whole: ``run.json``, the completion marker written last
+    (:func:`write_run_record`), notes the outputs' files and sizes; a store that is missing,
+    empty, has a file less or a truncated chunk does not match and the flight is redone. A
+    ``run.json`` without that note (before issue 23) is not trusted either."""
     run_path = out / RUN_JSON
     if not (run_path.is_file() and all((out / s).is_dir() for s in stores)):
         return None
@@ -527,7 +540,35 @@ def previous_run(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] =
         previous = json.loads(run_path.read_text())
     except (OSError, ValueError):
         return None
-    return previous if previous.get("fingerprint") == fingerprint else None
+    if not isinstance(previous, dict) or previous.get("fingerprint") != fingerprint:
+        return None
+    manifest = previous.get(MANIFEST_KEY)
+    if not manifest or manifest != outputs_manifest(out, (previous.get("outputs") or {}).values()):
+        log.warning("%s: outputs changed since run.json was written (incomplete or damaged): redoing them", out)
+        return None
+    return previous
+
+
+#: run.json's note of the outputs it completes (:func:`pipeline.storage.atomic.outputs_manifest`).
+MANIFEST_KEY = "outputs_manifest"
+
+
+def forget_run(out: Path) -> None:
+    """Remove ``out/run.json`` before outputs are (re)written: until the new one is written
+    last, nothing in ``out`` claims to be complete."""
+    path = out / RUN_JSON
+    if path.exists():
+        path.unlink()
+        sync_file_system(out)
+
+
+def write_run_record(out: Path, record: dict[str, Any]) -> None:
+    """Write ``out/run.json``, the completion marker of a flight, last: the outputs are flushed
+    to the disk first (one ``syncfs``), their manifest goes into the record, and the record is
+    written atomically and fsynced (file and folder)."""
+    sync_file_system(out)
+    record[MANIFEST_KEY] = outputs_manifest(out, (record.get("outputs") or {}).values())
+    write_json_atomic(out / RUN_JSON, record)
 
 
 def software_versions() -> dict[str, str]:
@@ -613,6 +654,7 @@ def apply_flight(
     done: tuple[_Pass, list[Outcome]] | None = None
     with Runner(n_hint, options.execution) as runner:
         if fresh:
+            forget_run(out)
             try:
                 done = _fresh_pass(cube, runner, start, calib_path, sat, batch=FRESH_BATCH)
             finally:
@@ -633,6 +675,7 @@ def apply_flight(
             if previous is not None:
                 previous["quarantined"] = quarantined
                 return ApplyResult(out, previous, up_to_date=True, quarantined=quarantined)
+            forget_run(out)
             remove_frame_tiffs(out, [Path(q["file"]).stem for q in quarantined], camera, export)
             done = _cube_pass(out, runner, start, calib_path, sat, camera)
         else:
@@ -642,7 +685,7 @@ def apply_flight(
     install_folder(ps.tmp_store, out / "reflectance.zarr")
     run = _run_record(flight_dir, calib_path, chash, calib, camera, export, options, ps, outcomes, quarantined, runner,
                       single, {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)})
-    write_json_atomic(out / RUN_JSON, run)  # last: a run.json names a finished pass
+    write_run_record(out, run)  # last: a run.json names a finished pass
     return ApplyResult(out, run, up_to_date=False, quarantined=quarantined)
 
 

@@ -597,7 +597,18 @@ def run_warnings(out: str | Path, record: dict) -> list[dict[str, Any]]:
                            flights=[Path(out) / "flights" / n for n in record["flights"] if n not in failed])
 
 
-def _echo_run(record: dict) -> None:
+def _logged(out: Any, command: str):  # noqa: ANN202 (a context manager)
+    """Prefect's and Dask's records (and tracebacks) of the block into ``OUT/logs/<time>-<command>.log``,
+    to the terminal too with -v (:func:`pipeline.run.logs.command_log`). Enter it after
+    :func:`_flow` (importing Prefect installs its console handler, which is taken off here)."""
+    from pipeline.run.logs import command_log
+    from pipeline.run.runner import default_cache_dir, is_remote
+
+    verbose = bool(click.get_current_context().find_root().params.get("verbose"))
+    return command_log(default_cache_dir() if is_remote(str(out)) else out, command, verbose=verbose)
+
+
+def _echo_run(record: dict, log_file: Path | None = None) -> None:
     for name, f in record["flights"].items():
         for q in f["quarantined"]:
             note(f"quarantined {name}/{q['file']}: {q['reason']}")
@@ -622,6 +633,8 @@ def _echo_run(record: dict) -> None:
             warnings=run_warnings(out, record),
             details={"calibration_cached": record["calibration_cached"], "not_processed": failed}).emit()
     if failed:  # as --strict does for frames: a script sees that something was skipped
+        if log_file is not None:
+            click.echo(f"details of the flight(s) not processed: {log_file}", err=True)
         raise SystemExit(3)
 
 
@@ -653,11 +666,13 @@ def run(session: str, out: str, response_method: str, normalise: str, dask_addre
                      illumination=illumination)
     if cache_dir:
         os.environ["MSCAL_CACHE_DIR"] = cache_dir  # before Prefect starts: its home follows
-    record = _flow("post_flight")(session=session, out=out, response_method=response_method, normalise=normalise,
-                                  dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir,
-                                  catalog_root=catalog_root, illumination=illumination, scheduler=scheduler,
-                                  workers=workers, direct_io=direct_io)
-    _echo_run(record)
+    post_flight = _flow("post_flight")
+    with _logged(out, "run") as log_file:
+        record = post_flight(session=session, out=out, response_method=response_method, normalise=normalise,
+                             dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir,
+                             catalog_root=catalog_root, illumination=illumination, scheduler=scheduler,
+                             workers=workers, direct_io=direct_io)
+    _echo_run(record, log_file)
 
 
 @cli.command(short_help="Process each complete session of an inbox on a cron schedule.")
@@ -685,8 +700,9 @@ def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, onc
     pending_sessions(inbox_dir, out_root, settle_seconds)  # and so does a missing inbox
     process_inbox = _flow("process_inbox")
     while True:
-        done = process_inbox(str(inbox_dir), str(out_root), settle_seconds=settle_seconds,
-                             response_method=response_method, dask_address=dask_address)
+        with _logged(out_root, "serve"):
+            done = process_inbox(str(inbox_dir), str(out_root), settle_seconds=settle_seconds,
+                                 response_method=response_method, dask_address=dask_address)
         _echo_serve(done, out_root)
         if once:
             return
@@ -755,7 +771,9 @@ def demo(out: Path, size: str, seed: int) -> None:
     it and compare the calibration with the truth."""
     from pipeline.run.demo import run_demo
 
-    summary = run_demo(out, size=size, seed=seed, flow=_flow("post_flight"))
+    post_flight = _flow("post_flight")
+    with _logged(out, "demo"):
+        summary = run_demo(out, size=size, seed=seed, flow=post_flight)
     record = json.loads(Path(summary["run_json"]).read_text())
     errors = summary["errors_vs_truth"]
     Summary("demo", f"wrote {out} (demo session, {len(summary['flights'])} flight(s); calibration "
@@ -774,7 +792,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         cli.main(args=argv, prog_name="mscal", standalone_mode=False)
     except MscalError as exc:
-        click.echo(f"mscal: error: {exc}", err=True)
+        click.echo(f"mscal: error: {exc}" + (f" (log: {exc.log_file})" if exc.log_file else ""), err=True)
         return exc.exit_code
     except (click.exceptions.Abort, KeyboardInterrupt):  # Ctrl-C, e.g. of a long mscal serve
         click.echo("mscal: aborted", err=True)

@@ -182,9 +182,23 @@ def plan_calibration(session_dir: str | Path, cache_dir: str | Path, response_me
     partial: str | None = None
     for stage, key in stage_keys(session, response_method).items():
         store = root / f"{stage}-{key[:32]}.zarr"
-        stages.append(StagePlan(stage, key, str(store), partial, (store / "zarr.json").is_file()))
+        stages.append(StagePlan(stage, key, str(store), partial, whole_store(store)))
         partial = str(store)
     return CalibrationPlan(tuple(stages))
+
+
+def whole_store(store: Path) -> bool:
+    """Whether a cached stage store can be reused: it exists (it appears only whole, by the
+    durable rename of :func:`pipeline.storage.store.write_store`) and reads back (a damaged
+    chunk does not); a store that does not is fitted again and replaced."""
+    if not (store / "zarr.json").is_file():
+        return False
+    try:
+        open_calibration(store)
+    except MscalError as exc:
+        log.warning("cached calibration %s cannot be reused, fitting it again: %s", store, exc)
+        return False
+    return True
 
 
 def publish_calibration(cached_store: str | Path, out_dir: str | Path) -> Path:

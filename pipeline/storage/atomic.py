@@ -9,25 +9,41 @@ temporaries, which :func:`remove_temporaries` deletes when the run restarts.
 * :func:`write_text_atomic`, :func:`write_json_atomic`: the common cases of it.
 * :func:`atomic_folder`: a temporary folder the caller fills (Zarr stores); an existing folder
   of that name is replaced by :func:`install_folder`.
+
+Durability (what survives a power loss, issue 23): a rename is atomic but not durable by
+itself; the file system may write the new name before the data. What marks a run complete
+(``run.json``) and the calibration stores are made durable: ``durable=True`` fsyncs the
+file, or every file of the folder, before the rename and the parent folder after it.
+Per-frame outputs are not fsynced one by one (thousands of fsyncs cost more than the
+writes): before a flight's ``run.json`` is written, :func:`sync_file_system` flushes the
+file system holding them once, and :func:`outputs_manifest` (each output file's name and
+size) goes into ``run.json``; a later run trusts the outputs only if they still match it.
 """
 
 from __future__ import annotations
 
+import ctypes
+import errno
+import hashlib
 import json
 import os
 import shutil
+import sys
 import uuid
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterable, Iterator
 
 __all__ = [
     "GDAL_SIDECARS",
     "TMP_MARK",
     "atomic_folder",
     "atomic_path",
+    "fsync_tree",
     "install_folder",
+    "outputs_manifest",
     "remove_temporaries",
+    "sync_file_system",
     "temporary_folder_name",
     "write_json_atomic",
     "write_text_atomic",
@@ -103,32 +119,56 @@ def temporary_folder_name(path: str | Path) -> Path:
 
 
 @contextmanager
-def atomic_folder(path: str | Path) -> Iterator[Path]:
+def atomic_folder(path: str | Path, *, durable: bool = False) -> Iterator[Path]:
     """Yield a temporary sibling folder name of ``path`` (not yet created); when the block
-    ends without an exception, :func:`install_folder` moves it onto ``path``. The temporary
-    folder never survives the block."""
+    ends without an exception, :func:`install_folder` moves it onto ``path`` (``durable``:
+    see there). The temporary folder never survives the block."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = temporary_folder_name(path)
     try:
         yield tmp
-        install_folder(tmp, path)
+        install_folder(tmp, path, durable=durable)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
 
 
-def install_folder(tmp: str | Path, final: str | Path) -> None:
+def install_folder(tmp: str | Path, final: str | Path, *, durable: bool = False) -> None:
     """Rename the folder ``tmp`` to ``final``, replacing an existing ``final`` (which is first
-    moved aside under a temporary name, then deleted)."""
+    moved aside under a temporary name, then deleted). ``durable``: every file and folder
+    of ``tmp`` is fsynced before the rename and the parent folder after it, so that after a
+    power loss ``final`` is the old folder or the complete new one."""
     tmp, final = Path(tmp), Path(final)
-    if final.exists():
-        old = final.parent / f".{final.name}.old{TMP_MARK}{uuid.uuid4().hex[:8]}"
-        os.replace(final, old)
-        os.replace(tmp, final)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, final)
+    if durable:
+        fsync_tree(tmp)
+    _replace_folder(tmp, final)
+    if durable:
+        _fsync_dir(final.parent)
+
+
+def _replace_folder(tmp: Path, final: Path, attempts: int = 5) -> None:
+    """Move ``tmp`` onto ``final``. Another process may install the same name at the same
+    moment (two runs filling one calibration cache): a ``final`` that appears between the
+    check and the rename is moved aside in turn, and the last writer's folder stays."""
+    for attempt in range(attempts):
+        old = None
+        if final.exists():
+            old = final.parent / f".{final.name}.old{TMP_MARK}{uuid.uuid4().hex[:8]}"
+            try:
+                os.replace(final, old)
+            except FileNotFoundError:  # the other process moved it aside first
+                old = None
+        try:
+            os.replace(tmp, final)
+        except OSError as exc:
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST) or attempt == attempts - 1:
+                raise
+            continue
+        finally:
+            if old is not None:
+                shutil.rmtree(old, ignore_errors=True)
+        return
 
 
 def remove_temporaries(folder: str | Path) -> None:
@@ -142,6 +182,60 @@ def remove_temporaries(folder: str | Path) -> None:
             shutil.rmtree(p, ignore_errors=True)
         elif p.exists():
             p.unlink(missing_ok=True)
+
+
+def fsync_tree(folder: str | Path) -> None:
+    """fsync every file under ``folder``, then every folder (deepest first, ``folder`` last)."""
+    folder = Path(folder)
+    dirs = [folder]
+    for root, subdirs, files in os.walk(folder):
+        dirs.extend(Path(root) / d for d in subdirs)
+        for name in files:
+            fd = os.open(Path(root) / name, os.O_RDONLY)
+            try:
+                os.fsync(fd)
+            finally:
+                os.close(fd)
+    for d in sorted(dirs, key=lambda p: len(p.parts), reverse=True):
+        _fsync_dir(d)
+
+
+def sync_file_system(path: str | Path) -> None:
+    """Write everything written so far to the file system holding ``path`` to its disk:
+    ``syncfs(2)`` on Linux (one call, however many files), else ``sync(2)``."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        if sys.platform.startswith("linux"):
+            libc = ctypes.CDLL(None, use_errno=True)
+            if libc.syncfs(fd) == 0:
+                return
+        os.sync()
+    finally:
+        os.close(fd)
+
+
+def outputs_manifest(root: str | Path, names: Iterable[str]) -> dict[str, Any]:
+    """What a completion record (``run.json``) notes of the outputs ``names`` (files or
+    folders under ``root``): how many files, how many bytes, and the sha256 of every file's
+    relative path and size. Cheap (one ``stat`` per file, no reading); a store that is
+    missing, empty, has a file less or a truncated chunk no longer matches. Temporaries and
+    lock files are left out."""
+    root = Path(root)
+    lines: list[str] = []
+    total = 0
+    for name in sorted(set(names)):
+        top = root / name.rstrip("/")
+        paths = [top] if top.is_file() else sorted(p for p in top.rglob("*") if p.is_file()) if top.is_dir() else []
+        if not top.exists():
+            lines.append(f"{name.rstrip('/')}\tmissing")
+        for p in paths:
+            if TMP_MARK in p.name or p.name.endswith(".lock"):
+                continue
+            size = p.stat().st_size
+            total += size
+            lines.append(f"{p.relative_to(root).as_posix()}\t{size}")
+    digest = hashlib.sha256("\n".join(lines).encode()).hexdigest()
+    return {"files": sum(1 for ln in lines if not ln.endswith("\tmissing")), "bytes": total, "sha256": digest}
 
 
 def _remove_file(p: Path) -> None:

@@ -57,6 +57,26 @@ def describe_holder(text: str) -> str:
         return "a process that has not said who it is yet"
 
 
+#: How long a refused process waits for a holder that has just taken the lock to write who it is.
+SAY_WHO_S = 2.0
+
+
+def _holder_text(fd: int) -> str:
+    """The lock file's content, once its holder has written it: a holder takes the lock, then
+    writes (see :meth:`FolderLock.acquire`); a second process that comes in between waits a
+    moment (:data:`SAY_WHO_S`) rather than say that it does not know who holds the lock."""
+    deadline = time.monotonic() + SAY_WHO_S
+    while True:
+        text = os.pread(fd, 4096, 0).decode(errors="replace")
+        try:
+            json.loads(text)
+            return text
+        except ValueError:
+            if time.monotonic() >= deadline:
+                return text
+        time.sleep(0.02)
+
+
 class FolderLock:
     """Exclusive lock on ``folder`` (created if missing), as a context manager.
 
@@ -99,7 +119,7 @@ class FolderLock:
                 return True
             except BlockingIOError:
                 if deadline is not None and time.monotonic() >= deadline:
-                    holder = describe_holder(os.pread(fd, 4096, 0).decode(errors="replace"))
+                    holder = describe_holder(_holder_text(fd))
                     raise LockedError(f"{self.what} is writing here: {holder}", path=self.folder,
                                       hint="wait for it to finish, or run the same command again with --wait") from None
                 time.sleep(POLL_S)

@@ -139,13 +139,15 @@ def _to_jsonable(value: Any) -> Any:
 
 
 def write_store(ds: xr.Dataset, path: str | Path) -> Path:
-    """Write ``ds`` to ``path`` atomically (temporary sibling, then rename into place)."""
+    """Write ``ds`` to ``path`` atomically (temporary sibling, then rename into place) and
+    durably (every file fsynced before the rename, the folder after it): a calibration store
+    that exists is whole, after a power loss too."""
     path = Path(path)
     ds = cf_annotate(ds.copy())
     ds.attrs = _to_jsonable(dict(ds.attrs))
     for v in ds.variables.values():
         v.encoding = {}
-    with atomic_folder(path) as tmp, warnings.catch_warnings():
+    with atomic_folder(path, durable=True) as tmp, warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Consolidated metadata")
         ds.to_zarr(tmp, mode="w", consolidated=True, zarr_format=3)
     return path

@@ -6,10 +6,6 @@ import csv
 import json
 import os
 import shutil
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import exifread
@@ -243,25 +239,7 @@ def _outputs(out: Path) -> dict[str, bytes | np.ndarray]:
     return res
 
 
-@pytest.mark.slow
-def test_sigkill_at_any_moment_then_rerun_gives_identical_outputs(small, tmp_path) -> None:
-    session, calib = small
-    flight = session / "flights" / "field"
-    clean = tmp_path / "clean"
-    assert _apply(flight, calib, clean) == 0
-    reference = _outputs(clean)
-    cmd = [sys.executable, "-m", "pipeline.run.cli", "apply", str(flight), "--calibration", str(calib)]
-    for k, delay in enumerate([0.5, 1.5, 2.5, 4.0, 6.0]):
-        out = tmp_path / f"killed{k}"
-        proc = subprocess.Popen([*cmd, "-o", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        time.sleep(delay)
-        if proc.poll() is None:
-            os.kill(proc.pid, signal.SIGKILL)
-        proc.wait()
-        assert _apply(flight, calib, out) == 0
-        _assert_same_outputs(reference, _outputs(out))
-        leftovers = [p for p in out.rglob("*") if ".tmp-" in p.name]
-        assert leftovers == []
+# SIGKILL at a random moment, then a restart (two at once): tests/pipeline/apply/test_concurrent.py
 
 
 @pytest.mark.slow

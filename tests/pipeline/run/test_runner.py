@@ -69,9 +69,17 @@ def test_plan_finds_cached_stores_and_chains_partials(session: Path, tmp_path: P
     assert not plan.cached and [s.cached for s in plan.stages] == [False] * 3
     assert [s.partial for s in plan.stages] == [None, plan.stages[0].store, plan.stages[1].store]
     assert plan.final_store == plan.stages[2].store
+    import numpy as np
+    import xarray as xr
+
+    from pipeline.storage.store import STORE_FORMAT, write_store
+
+    store = xr.Dataset({"inverse_response": (("band", "dn"), np.zeros((1, 4), "float32"))},
+                       attrs={"format": STORE_FORMAT, "camera": "x"})
     for s in plan.stages[:2]:  # as a finished write_store leaves them
-        Path(s.store).mkdir(parents=True)
-        (Path(s.store) / "zarr.json").write_text("{}")
+        write_store(store, s.store)
+    Path(plan.stages[2].store).mkdir(parents=True)  # a damaged store: its metadata and nothing else
+    (Path(plan.stages[2].store) / "zarr.json").write_text("{}")
     again = runner.plan_calibration(session, cache)
     assert [s.cached for s in again.stages] == [True, True, False] and not again.cached
 

@@ -80,3 +80,26 @@ def test_remove_temporaries_removes_only_marked_names(tmp_path) -> None:
     remove_temporaries(tmp_path)
     assert sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*")) == ["keep", "keep/y.tif"]
     remove_temporaries(tmp_path / "absent")  # no folder: nothing to do
+
+
+def test_install_folder_when_another_process_installs_the_same_name_at_once(tmp_path, monkeypatch) -> None:
+    """Two runs filling one calibration cache: the other's folder appears between the check
+    and the rename (os.replace then fails with ENOTEMPTY); it is moved aside and ours stays."""
+    from pipeline.storage import atomic
+
+    final, tmp = tmp_path / "stage.zarr", tmp_path / ".stage.zarr.tmp-mine"
+    tmp.mkdir()
+    (tmp / "zarr.json").write_text("mine")
+    real_replace, raced = os.replace, []
+
+    def replace(src, dst):  # noqa: ANN001
+        if str(dst) == str(final) and not raced:
+            raced.append(1)
+            final.mkdir()
+            (final / "zarr.json").write_text("theirs")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(atomic.os, "replace", replace)
+    install_folder(tmp, final, durable=True)
+    assert raced and (final / "zarr.json").read_text() == "mine" and not tmp.exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["stage.zarr"]

@@ -3,6 +3,7 @@ paths refused before any work, never replacing what the user made."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -209,3 +210,25 @@ with FolderLock(folder, wait=True):
     log = (folder / "log").read_text().rstrip(";").split(";")
     assert sorted(log) == [f"{k}<>{k}" for k in range(3)]  # each holder's marks together
     assert not (folder / ".mscal.lock").exists()
+
+
+def test_a_refusal_names_a_holder_that_has_just_taken_the_lock(tmp_path) -> None:
+    """The holder writes who it is just after taking the lock; a second process that comes in
+    between still names it (found by the 20 trials of SIGKILL then two restarts)."""
+    import fcntl
+    import threading
+
+    from pipeline.storage.lock import LOCK_NAME, holder_info
+
+    fd = os.open(tmp_path / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # taken, nothing written yet
+    info = {**holder_info(), "pid": 4127, "host": "farm-pc"}
+    writer = threading.Timer(0.3, lambda: os.pwrite(fd, json.dumps(info).encode(), 0))
+    writer.start()
+    try:
+        with pytest.raises(LockedError) as refused:
+            FolderLock(tmp_path).acquire()
+        assert "pid 4127 on farm-pc" in str(refused.value)
+    finally:
+        writer.join()
+        os.close(fd)

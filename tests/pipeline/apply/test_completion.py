@@ -1,0 +1,94 @@
+"""A flight's outputs count as up to date only through its completion marker (issue 23):
+``run.json``, written last after the outputs are flushed, notes every output file's name and
+size. A half-written or damaged store, a missing TIFF or a missing marker is redone, never
+trusted; the redone outputs equal an uninterrupted run's."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from pipeline.storage.atomic import outputs_manifest
+from tests.pipeline.apply.test_apply import _apply, _assert_same_outputs, _outputs
+
+
+@pytest.fixture(scope="module")
+def applied(small, tmp_path_factory) -> tuple[Path, Path, Path]:
+    session, calib = small
+    out = tmp_path_factory.mktemp("complete") / "out"
+    assert _apply(session / "flights" / "field", calib, out) == 0
+    return session, calib, out
+
+
+def _largest_chunk(store: Path) -> Path:
+    return max((p for p in (store / "reflectance").rglob("*") if p.is_file() and p.name != "zarr.json"),
+               key=lambda p: p.stat().st_size)
+
+
+def _truncate_chunk(out: Path) -> None:
+    chunk = _largest_chunk(out / "reflectance.zarr")
+    with chunk.open("r+b") as f:
+        f.truncate(chunk.stat().st_size // 2)
+
+
+def _empty_store(out: Path) -> None:  # what two unlocked runs left in the report of issue 23
+    shutil.rmtree(out / "reflectance.zarr")
+    (out / "reflectance.zarr").mkdir()
+
+
+def _remove_chunk(out: Path) -> None:
+    _largest_chunk(out / "reflectance.zarr").unlink()
+
+
+def _remove_tiff(out: Path) -> None:
+    next((out / "photogrammetry").glob("*.tif")).unlink()
+
+
+def _remove_marker(out: Path) -> None:
+    (out / "run.json").unlink()
+
+
+def _marker_of_before(out: Path) -> None:  # a run.json written before completion markers had a manifest
+    run = json.loads((out / "run.json").read_text())
+    del run["outputs_manifest"]
+    (out / "run.json").write_text(json.dumps(run))
+
+
+DAMAGE = {"nothing": None, "chunk_truncated": _truncate_chunk, "chunk_removed": _remove_chunk,
+          "store_emptied": _empty_store, "tiff_removed": _remove_tiff, "marker_removed": _remove_marker,
+          "marker_without_manifest": _marker_of_before}
+
+
+@pytest.mark.parametrize("damage", list(DAMAGE))
+def test_a_damaged_or_unmarked_output_is_redone(applied, tmp_path: Path, damage: str, capsys) -> None:
+    session, calib, clean = applied
+    reference = _outputs(clean)
+    out = tmp_path / "out"
+    shutil.copytree(clean, out)
+    if DAMAGE[damage] is not None:
+        DAMAGE[damage](out)
+    capsys.readouterr()
+    assert _apply(session / "flights" / "field", calib, out) == 0
+    said = capsys.readouterr().out
+    assert ("up to date" in said) == (damage == "nothing"), said
+    _assert_same_outputs(reference, _outputs(out))
+    run = json.loads((out / "run.json").read_text())
+    assert run["outputs_manifest"] == outputs_manifest(out, run["outputs"].values())
+    assert run["outputs_manifest"]["files"] > 3 and run["outputs_manifest"]["bytes"] > 0
+
+
+def test_the_manifest_sees_a_changed_size_and_a_missing_output(tmp_path: Path) -> None:
+    (tmp_path / "a.zarr" / "c").mkdir(parents=True)
+    (tmp_path / "a.zarr" / "c" / "0").write_bytes(b"x" * 10)
+    (tmp_path / "a.zarr" / ".c.tmp-1234").write_bytes(b"left by a killed run")
+    m = outputs_manifest(tmp_path, ["a.zarr", "t/"])
+    assert m["files"] == 1 and m["bytes"] == 10
+    (tmp_path / "a.zarr" / "c" / "0").write_bytes(b"x" * 9)
+    assert outputs_manifest(tmp_path, ["a.zarr", "t/"])["sha256"] != m["sha256"]
+    (tmp_path / "a.zarr" / "c" / "0").write_bytes(b"y" * 10)  # same size: a name and size note, not a hash
+    assert outputs_manifest(tmp_path, ["a.zarr", "t/"]) == m
+    (tmp_path / "t").mkdir()
+    assert outputs_manifest(tmp_path, ["a.zarr", "t/"])["sha256"] != m["sha256"]  # an empty folder is not a missing one
