@@ -23,6 +23,7 @@ from prefect.tasks import exponential_backoff
 
 from pipeline.calibrate import fit as calibrate
 from pipeline.run import inbox, runner
+from pipeline.run.console import progress
 
 
 def _transient(task_: Any, task_run: Any, state: Any) -> bool:
@@ -130,7 +131,8 @@ def post_flight(
     plan = plan_calibration(paths.session, str(cache_dir or runner.default_cache_dir()), response_method)
     flights = list_flights(paths.session)
     summaries: dict[str, dict[str, Any]] = {}
-    with runner.progress(len(plan.stages) + len(flights), "post-flight") as advance:
+    # one bar for the run: each stage, each flight and the report (stderr on a terminal, not -q)
+    with progress(len(plan.stages) + len(flights) + 1, "post-flight") as advance:
         for st in plan.stages:
             if st.cached:
                 log.info("%s: inputs unchanged, calibration reused from the cache (%s), not re-fitted", st.name, st.store)
@@ -151,8 +153,9 @@ def post_flight(
             summaries[name] = state.result() if state.is_completed() else \
                 runner.failed_flight(flight_dir, state.result(raise_on_failure=False))
             advance(1)
-    with timings.step("report"):
-        qa_markdown = write_report(paths.out, [n for n, f in summaries.items() if f.get("status") != "failed"])
+        with timings.step("report"):
+            qa_markdown = write_report(paths.out, [n for n, f in summaries.items() if f.get("status") != "failed"])
+        advance(1)
     record = runner.run_record(session=session, out=out, plan=plan, flights=summaries, timings=timings,
                                dask_address=dask_address, flow_run_id=flow_run.id)
     write_run_json(paths.out, record)

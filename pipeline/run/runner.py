@@ -31,7 +31,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator
+from typing import Any, Iterable, Iterator
 
 import mscal_core
 from mscal_core.errors import InputError, MscalError, SessionError
@@ -528,21 +528,6 @@ def summary_markdown(record: dict[str, Any]) -> str:
         lines.append(f"| {row['flight']} | {row['frames_out']} / {row['frames_in']} | {row['quarantined']} "
                      f"| {row['saturated_pixels']} | {state} |")
     return "\n".join(lines) + "\n"
-
-
-# --------------------------------------------------------------------------- progress
-
-
-@contextmanager
-def progress(total: int, label: str) -> Iterator[Callable[[int], None]]:
-    """A progress bar on stderr when it is a terminal; yields ``advance(n)``. Quiet otherwise."""
-    if not sys.stderr.isatty():
-        yield lambda n=1: None
-        return
-    import click
-
-    with click.progressbar(length=total, label=label, file=sys.stderr) as bar:
-        yield bar.update
 
 
 __all__ = [
