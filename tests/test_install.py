@@ -65,4 +65,6 @@ def test_installed_mscal_applies_the_factory_model_from_another_folder(tmp_path)
     assert run.returncode == 0, run.stderr[-3000:]
     record = json.loads((out / "run.json").read_text())
     assert record["frames_out"] == 2 and record["quarantined"] == []
-    assert len(list((out / "photogrammetry").glob("*.tif"))) == 10  # 2 captures x 5 bands
+    # 2 captures x 5 bands: the survey capture's TIFFs for photogrammetry, the panel capture's apart
+    assert len(list((out / "photogrammetry").glob("*.tif"))) == 5
+    assert len(list((out / "panels").glob("*.tif"))) == 5

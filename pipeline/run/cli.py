@@ -700,9 +700,11 @@ def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, onc
     pending_sessions(inbox_dir, out_root, settle_seconds)  # and so does a missing inbox
     process_inbox = _flow("process_inbox")
     while True:
-        with _logged(out_root, "serve"):
+        with _logged(out_root, "serve") as log_file:
             done = process_inbox(str(inbox_dir), str(out_root), settle_seconds=settle_seconds,
                                  response_method=response_method, dask_address=dask_address)
+        if not done:  # a look that found nothing to do keeps no log: a cron serve would pile them up
+            Path(log_file).unlink(missing_ok=True)
         _echo_serve(done, out_root)
         if once:
             return

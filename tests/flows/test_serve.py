@@ -50,9 +50,13 @@ def test_serve_processes_complete_sessions_once_and_survives_restarts(
     assert not (root / "tuesday").exists()
     stamp = (root / "monday" / "run.json").stat().st_mtime_ns
 
-    # a restart: nothing new is complete, nothing is processed again
+    logs = sorted((root / "logs").iterdir())
+    assert len(logs) == 1 and logs[0].name.endswith("-serve.log")  # the look that processed sessions
+
+    # a restart: nothing new is complete, nothing is processed again, and no log is kept of it
     assert _serve(inbox, root) == 0
     assert capsys.readouterr().out == ""
+    assert sorted((root / "logs").iterdir()) == logs
     assert (root / "monday" / "run.json").stat().st_mtime_ns == stamp
 
     # tuesday settles (nothing modified for longer than --settle-seconds); monday is copied

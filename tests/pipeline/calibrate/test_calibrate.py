@@ -228,7 +228,7 @@ def test_bad_sweep_gives_one_line_naming_the_file(small, tmp_path, capsys, case,
     [
         (lambda t: t.replace("id: 3", "id: 7"), "marker DICT_4X4_50 id 7 was not found in any of the 8 frames"),
         (lambda t: t.replace("DICT_4X4_50", "DICT_5X5_50"), "was not found in any"),
-        (lambda t: t.replace("DICT_4X4_50", "DICT_NOPE"), "unknown ArUco dictionary 'DICT_NOPE'"),
+        (lambda t: t.replace("DICT_4X4_50", "DICT_NOPE"), "marker.dictionary 'DICT_NOPE' is not an OpenCV ArUco/AprilTag dictionary"),
         (lambda t: t.replace("camera: ximea-mq022hg-sm5x5-nir", "camera: ximea-typo"), "unknown camera 'ximea-typo'"),
         (lambda t: t.replace("camera:", "camera_name:"), "missing key(s) camera"),
         (lambda t: t + "\n  - ]\n", "not valid YAML"),

@@ -39,7 +39,7 @@ def arm(spec: str) -> None:
     point, _, count = spec.partition(":")
     k = int(count) if count else None
     if point == "create":
-        atomic.install_folder = lambda tmp, final: _die()  # atomic_folder looks it up at the rename
+        atomic.install_folder = lambda tmp, final, **kwargs: _die()  # atomic_folder looks it up at the rename
     elif point == "frame":
         _after_nth_chunk(k)
     elif point in ("coords", "consolidated", "commit", "recover"):
