@@ -154,7 +154,8 @@ def test_few_frames_two_stops_apart(tmp_path) -> None:
 @pytest.mark.slow
 # seed 21 in make test; the second seed under make test-long (make test stays under 10 min)
 @pytest.mark.parametrize("seed", [21, pytest.param(23, marks=pytest.mark.long)])
-@pytest.mark.parametrize("setting", ["handheld", "tripod", "9x2/3", "5x2"])
+@pytest.mark.parametrize("setting", [pytest.param("handheld", marks=pytest.mark.long), "tripod",
+                                     pytest.param("9x2/3", marks=pytest.mark.long), "5x2"])
 def test_each_interior_frame_held_out(tmp_path, seed: int, setting: str) -> None:
     kw = {
         "handheld": HANDHELD,
