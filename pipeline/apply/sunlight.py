@@ -40,7 +40,6 @@ horizontal irradiance does not jump when the aircraft turns (``sun_sensor.diffus
 
 from __future__ import annotations
 
-import base64
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,9 +56,9 @@ from mscal_core.sunsensor import (
     ratio_drift,
 )
 
-from pipeline.ingest.camera_meta import SUNSHINE_RECORD, Capture, CaptureMeta, reflectance_factor
+from pipeline.ingest.camera_meta import Capture, CaptureMeta, reflectance_factor, sunshine_records
 from pipeline.ingest.solar import solar_position
-from pipeline.ingest.xmp import Xmp, jpeg_xmp_packet
+from pipeline.ingest.xmp import TagError, Xmp, jpeg_xmp_packet
 
 #: Above this tilt of the sensor against the vertical, or with the sun behind it, the reading
 #: rests on the diffuse model alone: flagged in run.json and the report.
@@ -109,16 +108,13 @@ def _angles(x: Xmp, tags: tuple[str, str, str], ns: tuple[str, ...], degrees: bo
 
 
 def _sunshine_angles(x: Xmp) -> tuple[float, float, float] | None:
-    raw = x.text("IrradianceList", ("Camera",))
-    if raw is None:
-        return None
     try:
-        blob = base64.b64decode("".join(raw.split()), validate=True)
-    except (ValueError, TypeError):
+        recs = sunshine_records(x)
+    except TagError:  # named where the reading itself is read (camera_meta); no angles here
         return None
-    if not blob or len(blob) % SUNSHINE_RECORD.size:
+    if not recs:
         return None
-    last = list(SUNSHINE_RECORD.iter_unpack(blob))[-1]
+    last = recs[-1]
     return math.radians(last[5]), math.radians(last[6]), math.radians(last[7])
 
 

@@ -503,14 +503,10 @@ def _sequoia(ctx: _Ctx) -> CaptureMeta:
 SUNSHINE_RECORD = struct.Struct("<QHHHHfff")  # timestamp us, CH0, CH1, gain index, integration ms, yaw, pitch, roll
 
 
-def _sequoia_sunshine(x: Xmp, path: Path) -> float | None:
-    """Relative irradiance of the band's sunshine sensor from ``Camera:IrradianceList``
-    (base64 of 28-byte records) and ``IrradianceCalibrationMeasurement`` (gain index,
-    exposure ms, CH0, CH1 rows); :func:`mscal_core.factory.sunshine_irradiance`, divided by
-    the band's CH0 sensitivity ``IrradianceSensitivitiesGolden[0]`` so that the four bands'
-    readings share one scale. That division is inferred from the tag's name (no Parrot text
-    found): on the real capture in ../shared/data it turns an implausible spectrum (red edge
-    4x the others) into a vegetation-like one (NIR > red edge > green > red)."""
+def sunshine_records(x: Xmp, path: Path | None = None) -> list[tuple] | None:
+    """The records of a Sequoia's ``Camera:IrradianceList`` (base64 of :data:`SUNSHINE_RECORD`
+    structs: timestamp, CH0, CH1, gain index, integration ms, yaw, pitch, roll), or None when
+    the tag is absent; :class:`TagError` when it cannot be decoded."""
     raw = x.text("IrradianceList", ("Camera",))
     if raw is None:
         return None
@@ -521,7 +517,21 @@ def _sequoia_sunshine(x: Xmp, path: Path) -> float | None:
     if len(blob) == 0 or len(blob) % SUNSHINE_RECORD.size:
         raise TagError("XMP IrradianceList", raw, f"{len(blob)} bytes is not a whole number of "
                        f"{SUNSHINE_RECORD.size}-byte records (firmware before 1.1.0?)", path)
-    recs = list(SUNSHINE_RECORD.iter_unpack(blob))
+    return list(SUNSHINE_RECORD.iter_unpack(blob))
+
+
+def _sequoia_sunshine(x: Xmp, path: Path) -> float | None:
+    """Relative irradiance of the band's sunshine sensor from ``Camera:IrradianceList``
+    (base64 of 28-byte records) and ``IrradianceCalibrationMeasurement`` (gain index,
+    exposure ms, CH0, CH1 rows); :func:`mscal_core.factory.sunshine_irradiance`, divided by
+    the band's CH0 sensitivity ``IrradianceSensitivitiesGolden[0]`` so that the four bands'
+    readings share one scale. That division is inferred from the tag's name (no Parrot text
+    found): on the real capture in ../shared/data it turns an implausible spectrum (red edge
+    4x the others) into a vegetation-like one (NIR > red edge > green > red)."""
+    recs = sunshine_records(x, path)
+    if recs is None:
+        return None
+    raw = x.text("IrradianceList", ("Camera",))
     table = x.numbers("IrradianceCalibrationMeasurement", ("Camera",))
     if table is None or len(table) % 4:
         raise TagError("XMP IrradianceCalibrationMeasurement", x.raw("IrradianceCalibrationMeasurement", ("Camera",)),

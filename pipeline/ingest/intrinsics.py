@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-from mscal_core.errors import FrameError, SessionError
+from mscal_core.errors import FrameError, InputError, SessionError
 from mscal_core.geometry import Intrinsics
 
 from pipeline.ingest.camera_meta import xmp_properties
@@ -156,7 +156,11 @@ def _dji_intrinsics(packet: Any, path: Path) -> Intrinsics | None:
         raise FrameError(f"XMP drone-dji:DewarpData {raw!r} (or CalibratedOpticalCenterX/Y) is unusable: expected "
                          "'date;fx,fy,cx,cy,k1,k2,p1,p2,k3'", path=path, hint="give the intrinsics in session.yaml instead")
     fx, fy, cx, cy, *dist = nums
-    return Intrinsics(fx=fx, fy=fy, cx=centre[0][0] + cx, cy=centre[1][0] + cy, dist=tuple(dist))
+    try:
+        return Intrinsics(fx=fx, fy=fy, cx=centre[0][0] + cx, cy=centre[1][0] + cy, dist=tuple(dist))
+    except InputError as exc:  # NaN, inf, a non-positive focal length: name the file and the tag
+        raise FrameError(f"XMP drone-dji:DewarpData {raw!r} gives unusable intrinsics: {exc.reason}", path=path,
+                         hint="give the intrinsics in session.yaml instead") from None
 
 
 def jpeg_tags(path: Path) -> dict[int, Any]:

@@ -127,7 +127,11 @@ def _mutate_at(doc, path, op, draw):
     if op == "negate" and number:
         new = -node
     elif op == "scale" and number:
-        new = node * draw(st.sampled_from([0, 10**6, 10**30, 1e300, 1e-300, math.inf, math.nan]))
+        factor = draw(st.sampled_from([0, 10**6, 10**30, 1e300, 1e-300, math.inf, math.nan]))
+        try:
+            new = node * factor
+        except OverflowError:  # a huge int times a float: the document gets inf, as YAML would read it
+            new = math.inf
     elif op == "wrap":
         new = [node]
     elif op == "stringify":
