@@ -30,14 +30,6 @@ def _apply(flight: Path, calib: Path, out: Path, *extra: str) -> int:
     return main(["apply", str(flight), "--calibration", str(calib), "-o", str(out), *extra])
 
 
-@pytest.fixture(scope="module")
-def applied(small, tmp_path_factory) -> tuple[Path, Path, Path]:
-    session, calib = small
-    out = tmp_path_factory.mktemp("apply") / "out"
-    assert _apply(session / "flights" / "field", calib, out) == 0
-    return session, calib, out
-
-
 def _rows(flight: Path) -> list[dict[str, str]]:
     return list(csv.DictReader((flight / "frames.csv").open()))
 

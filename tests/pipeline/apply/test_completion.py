@@ -15,14 +15,6 @@ from pipeline.storage.atomic import outputs_manifest
 from tests.pipeline.apply.test_apply import _apply, _assert_same_outputs, _outputs
 
 
-@pytest.fixture(scope="module")
-def applied(small, tmp_path_factory) -> tuple[Path, Path, Path]:
-    session, calib = small
-    out = tmp_path_factory.mktemp("complete") / "out"
-    assert _apply(session / "flights" / "field", calib, out) == 0
-    return session, calib, out
-
-
 def _largest_chunk(store: Path) -> Path:
     return max((p for p in (store / "reflectance").rglob("*") if p.is_file() and p.name != "zarr.json"),
                key=lambda p: p.stat().st_size)
