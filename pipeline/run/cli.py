@@ -138,7 +138,7 @@ def _version(ctx: click.Context, param: click.Parameter, value: bool) -> None:
     ctx.exit()
 
 
-def _deprecated_alias(old: str, new: str, dest: str) -> Any:
+def _deprecated_alias(old: str, new: str, dest: str, type: Any = RESPONSE_METHODS) -> Any:  # noqa: A002 (click's name)
     """A hidden ``old`` spelling of option ``new`` that still works and says it is deprecated."""
     def warn(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
         if value is not None:
@@ -146,7 +146,7 @@ def _deprecated_alias(old: str, new: str, dest: str) -> Any:
         return value
 
     return click.option(old, dest, default=None, hidden=True, callback=warn, expose_value=True,
-                        type=RESPONSE_METHODS, help=f"Deprecated spelling of {new}.")
+                        type=type, help=f"Deprecated spelling of {new}.")
 
 
 @click.group(cls=MscalGroup, context_settings={"help_option_names": ["-h", "--help"]},
@@ -268,13 +268,15 @@ def fit_intrinsics(frames: Path, out: Path, camera: str | None, kind: str | None
               help="Calibration store (.zarr): the registration is added to it, or a new store is created.")
 @click.option("--camera", default=None, help="Camera catalog name (default: the existing store's camera, else recognised "
               "from the files as apply does).")
-@click.option("--reference", default=None, help="Band to align to (default: the lens in the middle of the rig).")
+@click.option("--reference-band", default=None,
+              help="Band to align to (default: the lens in the middle of the rig).")
+@_deprecated_alias("--reference", "--reference-band", "reference", type=str)
 @click.option("--min-ecc", default=0.3, show_default=True, type=float,
               help="Reject a band's transform whose gradient correlation after alignment is lower.")
 @click.option("--max-captures", default=12, show_default=True, type=int,
               help="Register at most this many captures, evenly spread over those given.")
-def register(captures: tuple[Path, ...], out: Path, camera: str | None, reference: str | None, min_ecc: float,
-             max_captures: int) -> None:
+def register(captures: tuple[Path, ...], out: Path, camera: str | None, reference_band: str | None,
+             reference: str | None, min_ecc: float, max_captures: int) -> None:
     """Band co-registration of a multi-lens camera from CAPTURES (folders or band files): one
     homography per band to the reference band, stored with its quality figures."""
     from mscal_core.registration import Thresholds
@@ -282,7 +284,8 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
     from pipeline.calibrate.registration import register_cli
 
     t0 = time.perf_counter()
-    ds, problems = register_cli(list(captures), out, camera, reference, Thresholds(min_ecc=min_ecc), max_captures,
+    # --reference is apply's light source; register's was renamed --reference-band (old spelling warns)
+    ds, problems = register_cli(list(captures), out, camera, reference_band or reference, Thresholds(min_ecc=min_ecc), max_captures,
                                 progress=lambda n: progress(n, "register"))
     for p in problems:
         note(f"not used {p['file']}: {p['reason']}")

@@ -239,3 +239,22 @@ def test_register_sentera_jpegs(tmp_path) -> None:
     for h in ds["band_transform"].values:
         assert np.max(reg.transform_distance(h, np.eye(3), (3000, 4000))) < 1.0
     assert float(ds["registration_ecc"].values.min()) > 0.8
+
+
+@pytest.mark.parametrize(("option", "warned"), [("--reference-band", False), ("--reference", True)])
+def test_register_reference_band_option(option: str, warned: bool, tmp_path, monkeypatch, capsys) -> None:
+    """``--reference-band`` names register's band (``--reference`` is apply's light source);
+    the old spelling still reaches the registration and says it is deprecated."""
+    import pipeline.calibrate.registration as registration
+
+    seen: list[str | None] = []
+
+    def fake(paths, out, camera, reference, *args, **kwargs):
+        seen.append(reference)
+        raise InputError("stop here", path=tmp_path)
+
+    monkeypatch.setattr(registration, "register_cli", fake)
+    code = main(["register", str(tmp_path), "-o", str(tmp_path / "r.zarr"), option, "Red"])
+    err = capsys.readouterr().err
+    assert code == 2 and seen == ["Red"]
+    assert ("--reference is deprecated, use --reference-band" in err) is warned
