@@ -94,6 +94,9 @@ def test_store_holds_every_capture(drifting) -> None:
     assert ds["reflector_capture"].values.tolist() == [0, 0, 1, 1]
     caps = ds.attrs["illumination"]["residuals"]["captures"]
     assert [c["images"] for c in caps] == [2, 2]
+    # issue 22: the store says how its levels were computed (here the frames.csv readings, raw)
+    assert ds["capture_irradiance"].attrs["sun_sensor_model"] == "horizontal (issue 22)"
+    assert [c["irradiance_source"] for c in caps] == [["frames.csv irradiance (raw: orientation unknown)"]] * 2
 
 
 def test_drifting_light_corrected_within_one_percent(drifting, tmp_path) -> None:

@@ -83,3 +83,35 @@ def test_real_rededge_sensor_geometry() -> None:
     # E_h = k-scale / factor: pi / factor is the horizontal irradiance in W m-2 nm-1
     raw = np.array([[m.irradiance for m in c.metas] for c in caps])
     np.testing.assert_allclose(math.pi / light.factor, raw * light.correction, rtol=1e-12)
+
+
+def test_frames_csv_irradiance_wins_and_unknown_files_stay_raw(tmp_path) -> None:
+    """Field-path levels of frame records: frames.csv ``irradiance`` as given (no orientation
+    known), a TIFF whose tags are no camera's the factory reader knows: its raw XMP Irradiance,
+    a RedEdge capture: the horizontal level (geometric mean of the bands' ``E_meas f``)."""
+    import tifffile
+
+    from pipeline.ingest.camera_meta import group_captures
+    from pipeline.ingest.captures import read_capture_table
+    from pipeline.ingest.catalog import load_camera
+    from pipeline.ingest.session import FrameRecord
+    from pipeline.ingest.sunsensor import capture_levels, record_levels
+
+    plain = tmp_path / "plain.tif"
+    tifffile.imwrite(plain, np.zeros((4, 4), np.uint16), extratags=[(700, "B", 0, (
+        b'<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+        b'<rdf:Description xmlns:Camera="http://pix4d.com/camera/1.0/" Camera:Irradiance="2.5"/>'
+        b"</rdf:RDF></x:xmpmeta>"), True)])
+    camera = load_camera("micasense-rededge")
+    rec = read_capture_table(require_data(), camera)[0]
+    given = FrameRecord(path=rec.path, exposure_ms=1.0, irradiance=123.0, band_files=rec.band_files, capture="given")
+    levels = record_levels([given, FrameRecord(path=plain, exposure_ms=1.0), rec])
+    assert levels.value[:2].tolist() == [123.0, 2.5]
+    assert levels.source[:2] == ("frames.csv irradiance (raw: orientation unknown)",
+                                 "XMP Irradiance (raw: tags not a known camera's)")
+    cap = group_captures(require_data(), camera)[0][0]
+    light = sensor_light([cap], _times([cap]), fit_ratio=False)
+    e_h = np.array([m.irradiance for m in cap.metas]) * light.correction[0]
+    assert levels.value[2] == pytest.approx(float(np.exp(np.mean(np.log(e_h)))), rel=1e-12)
+    assert levels.value[2] == capture_levels([cap]).value[0]
+    np.testing.assert_allclose(light.correction[0], 0.8862, atol=1e-4)  # hand-held, tilted 10.8 deg
