@@ -38,7 +38,7 @@ from pipeline.ingest.session import (
     read_bands,
     read_frame_table,
 )
-from pipeline.ingest.sunsensor import SUN_SENSOR_MODEL, SUN_SENSOR_MODEL_ATTR, Levels, record_levels
+from pipeline.ingest.sunsensor import SUN_SENSOR_MODEL, SUN_SENSOR_MODEL_ATTR, record_levels
 from pipeline.storage.store import content_hashes, new_dataset, open_calibration, write_store
 
 log = logging.getLogger("mscal.calibrate")
@@ -536,9 +536,12 @@ MIN_REFLECTOR_PIXELS = 100
 class ReflectorCapture:
     """Reflector images taken under one light: ``frames`` are indices into the records of
     :func:`reflector_captures`; ``time_s`` the mean frame time (s since the epoch, UTC; NaN
-    if unknown); ``irradiance`` the median sun-sensor level of its frames
-    (:func:`frame_irradiance`), None if any frame has none; ``irradiance_source`` how the
-    frames' levels were obtained (one per distinct source)."""
+    if unknown); ``irradiance`` the median sun-sensor level of its frames, None if any frame
+    has none: frames.csv ``irradiance`` where given (raw), else the horizontal irradiance of the
+    files' sun sensor, the geometric mean over the bands (issue 22;
+    :func:`pipeline.ingest.sunsensor.record_levels`, the function apply uses for the flight's
+    frames and captures; the store marks it with ``sun_sensor_model``); ``irradiance_source``
+    how the frames' levels were obtained (one per distinct source)."""
 
     name: str
     frames: tuple[int, ...]
@@ -551,14 +554,6 @@ class ReflectorCapture:
 def _time_s(rec: FrameRecord) -> float:
     ns = time_ns(rec.time)
     return float("nan") if ns == NAT else ns / 1e9
-
-
-def frame_irradiance(records: Sequence[FrameRecord]) -> Levels:
-    """The sun-sensor level of each frame (issue 22): frames.csv ``irradiance`` where given (raw),
-    else the horizontal irradiance of the files' sun sensor, the geometric mean over the bands
-    (:func:`pipeline.ingest.sunsensor.record_levels`: the same function apply uses for the
-    flight's frames and captures); the store marks it with :data:`SUN_SENSOR_MODEL`."""
-    return record_levels(records)
 
 
 def reflector_captures(folder: Path, camera: Camera | None = None) -> tuple[list[FrameRecord], list[ReflectorCapture]]:
@@ -588,7 +583,7 @@ def reflector_captures(folder: Path, camera: Camera | None = None) -> tuple[list
 
     def add(name: str, where: Path, idx: list[int]) -> None:
         times = np.array([_time_s(records[i]) for i in idx])
-        irr = frame_irradiance([records[i] for i in idx])
+        irr = record_levels([records[i] for i in idx])
         time_s = float(np.mean(times)) if np.all(np.isfinite(times)) else float("nan")
         level = float(np.median(irr.value)) if irr.value.size and np.all(np.isfinite(irr.value)) else None
         captures.append(ReflectorCapture(name, tuple(idx), time_s, level, where, tuple(dict.fromkeys(irr.source))))
