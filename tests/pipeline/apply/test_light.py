@@ -349,7 +349,7 @@ def test_run_checks_the_illumination_mode_before_prefect_starts(drifting, tmp_pa
 SUN_FLIGHT = dict(seed=1, n_flight=6, flight_tilt_deg=10.0, panel_tilt_deg=5.0)
 #: The level beta of every capture against the truth's horizontal light: measured 0.23 % worst
 #: with the horizontal levels (seeds 0-2: 0.18-0.23 %; the sensor's 0.2 % noise), 17 % with the
-#: raw readings of a store from before issue 22 (13-20 %).
+#: raw readings of a store from before issue 22 (seeds 0-2: 14-36 %).
 HORIZONTAL_TOL = 0.005
 RAW_WORSE_THAN = 0.10
 
