@@ -313,10 +313,6 @@ class Levels:
     value: np.ndarray
     source: tuple[str, ...]
 
-    def record(self, names: Sequence[str]) -> dict[str, dict[str, Any]]:
-        """Per name its level and source (run.json, the store's QA numbers)."""
-        return {str(n): {"level": _num(v), "source": src} for n, v, src in zip(names, self.value, self.source)}
-
 
 def capture_time(capture: Capture) -> np.datetime64:
     """The time of a capture's first band file (its EXIF time; NaT without one)."""

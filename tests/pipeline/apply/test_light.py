@@ -438,12 +438,16 @@ def test_calibrate_and_apply_levels_of_one_capture_agree(sun_flight) -> None:
     from pipeline.apply.captures import capture_times
     from pipeline.apply.light import frame_levels
     from pipeline.ingest.camera_meta import capture_irradiance
+    from pipeline.ingest.sunsensor import capture_levels
 
     truth, folder, captures, reflector, stores = sun_flight
     names = [c.name for c in captures]
     levels, how = frame_levels(stores["horizontal"], names, folder, captures)
     assert levels.value[0] == pytest.approx(reflector.irradiance, rel=1e-12)
     assert how.startswith("horizontal (issue 22)")
+    # a capture's level depends on its own files only, not on the flight it is read with
+    assert capture_levels(captures[:1]).value[0] == levels.value[0]
+    assert capture_levels(captures[::-1]).value[::-1].tolist() == levels.value.tolist()
     # before: calibrate took band 1's reading, apply the mean of the five: a bias of the ratio
     old_bias = capture_irradiance(captures[0]) / captures[0].metas[0].irradiance
     assert old_bias == pytest.approx(0.966, abs=1e-3)  # this flight; 0.72-0.78 on the real RedEdge captures
