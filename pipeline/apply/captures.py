@@ -412,7 +412,8 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
                          t_start: float) -> ApplyResult:
     """``mscal apply FLIGHT --calibration CALIB.zarr`` for a folder of one-file-per-band
     captures: Eq. 15 with the store's U, V and S per band file (its own exposure and gain),
-    the light of each capture's time (issue 8; the captures' sun-sensor readings), the
+    the light of each capture's time (issue 8; the captures' sun-sensor levels, horizontal for a
+    store that says so: :func:`pipeline.apply.light.frame_levels`), the
     store's band transforms, the normalisation of ``options`` (an ApplyOptions)."""
     from mscal_core.errors import CalibrationStoreError, InputError
 
@@ -428,7 +429,6 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     )
     from pipeline.apply.light import illumination_plan
     from pipeline.calibrate.registration import check_transforms
-    from pipeline.ingest.camera_meta import capture_irradiance
     from pipeline.ingest.catalog import load_index
     from pipeline.storage.store import open_calibration
 
@@ -459,8 +459,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
         check_transforms(calib, camera.n_bands, v_shape, calib_path)
     chain = FieldChain(calib_path, saturation_dn(calib, camera), camera.dn_shift)
     names = [c.name for c in captures]
-    irr = np.array([np.nan if capture_irradiance(c) is None else capture_irradiance(c) for c in captures])
-    illum = illumination_plan(calib, names, capture_times(captures), folder, options.illumination, irradiance=irr)
+    illum = illumination_plan(calib, names, capture_times(captures), folder, options.illumination, captures=captures)
     scales = {} if illum is None else {n: tuple(float(v) for v in illum.scale[f]) for f, n in enumerate(names)}
     transforms = calib_path if align else None
 

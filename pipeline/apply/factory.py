@@ -93,15 +93,7 @@ from pipeline.apply.flight import (
     previous_run,
 )
 from pipeline.apply.panel import PanelBand, panel_factors
-from pipeline.apply.sunlight import (
-    PanelSensorLight,
-    SensorLight,
-    check_times,
-    light_warnings,
-    panel_sensor_light,
-    readings_missing,
-    sensor_light,
-)
+from pipeline.apply.sunlight import PanelSensorLight, check_times, light_warnings, panel_sensor_light, readings_missing
 from pipeline.ingest.camera_meta import (
     FACTORY_ALIGNMENT_NOTE,
     Capture,
@@ -115,6 +107,7 @@ from pipeline.ingest.camera_meta import (
 from pipeline.ingest.catalog import Camera, load_index, reflectance_option
 from pipeline.ingest.identify import Identification, identify_camera
 from pipeline.ingest.session import PanelConfig, panel_config_near
+from pipeline.ingest.sunsensor import SensorLight, sensor_light
 
 FACTORY = "factory"
 REFERENCES = ("auto", "panel", "dls", "panel-dls")  # + "none" (radiance only) when auto finds no usable sun sensor

@@ -9,8 +9,16 @@ readings, the brightness level scaled by the sensor between the captures
 is folded into each frame's table as the factor ``k_b(tau) = S(lambda_b) / S(lambda_b, tau)``
 on the store's ``spectral_factor`` (:func:`mscal_core.reflectance.eq15_fast`).
 
-Irradiance of a frame: the ``irradiance`` column of its folder's frames.csv, else the XMP
-``Irradiance`` of a TIFF frame (MicaSense and other cameras with a downwelling light sensor).
+Sun-sensor level of a frame or capture (issue 22): for a store whose ``capture_irradiance``
+says ``sun_sensor_model = "horizontal (issue 22)"`` (:func:`sun_sensor_model`), the level the
+calibration used for its reflector captures, from the same function
+(:func:`pipeline.ingest.sunsensor.record_levels` for frames, :func:`pipeline.ingest.sunsensor.
+capture_levels` for one-file-per-band captures): frames.csv ``irradiance`` as given, else the
+sun sensor's horizontal irradiance (sun position, sensor tilt), the geometric mean over the
+bands. For an older store, the raw readings it was made with: the ``irradiance`` column of the
+flight's frames.csv, else the XMP ``Irradiance`` of a TIFF frame, and for a capture the mean of
+its bands' readings (:func:`pipeline.ingest.camera_meta.capture_irradiance`), so that it gives
+what it gave. run.json's ``illumination.sun_sensor_level`` says which.
 
 A store with one capture and no irradiance (every store written before issue 8) gives no
 plan: apply computes exactly what it did before.
@@ -28,15 +36,19 @@ import xarray as xr
 from mscal_core.errors import FrameError, InputError
 from mscal_core.illumination import INTERPOLATION_MODES, frame_illumination
 
-from pipeline.ingest.camera_meta import xmp_irradiance
-from pipeline.ingest.session import FRAMES_CSV, read_frame_table
+from pipeline.ingest.camera_meta import Capture, capture_irradiance, xmp_irradiance
+from pipeline.ingest.session import FRAMES_CSV, FrameRecord, read_frame_table
+from pipeline.ingest.sunsensor import SUN_SENSOR_MODEL, SUN_SENSOR_MODEL_ATTR, Levels, capture_levels, record_levels
 
 __all__ = ["IlluminationPlan", "INTERPOLATION_MODES", "calibration_captures", "flight_irradiance",
-           "illumination_plan", "varies_in_time", "DEFAULT_MODE"]
+           "flight_levels", "frame_levels", "illumination_plan", "sun_sensor_model", "varies_in_time", "DEFAULT_MODE"]
 
 #: Linear in time: a drift (the sun rising, haze building up) is followed between captures;
 #: ``nearest`` is for captures that bracket abrupt changes (a cloud bank arriving).
 DEFAULT_MODE = "linear"
+#: run.json ``illumination.sun_sensor_level`` of a store from before issue 22.
+RAW_LEVELS = ("raw readings: the store's capture_irradiance predates issue 22 (no sun_sensor_model); "
+              "recalibrate for horizontal levels")
 
 
 @dataclass(frozen=True)
@@ -72,15 +84,59 @@ def varies_in_time(calib: xr.Dataset) -> bool:
     return caps.spectral_factor.shape[0] > 1 or bool(np.any(np.isfinite(caps.irradiance)))
 
 
-def flight_irradiance(flight_dir: Path, names: Sequence[str]) -> np.ndarray:
-    """Sun-sensor reading of each frame (by frame name = file stem; NaN where none): frames.csv
-    ``irradiance``, else the file's XMP Irradiance. Frames the table cannot describe are left
-    NaN (discovery quarantines them)."""
+def sun_sensor_model(calib: xr.Dataset) -> str | None:
+    """How the store's ``capture_irradiance`` was computed: :data:`pipeline.ingest.sunsensor.
+    SUN_SENSOR_MODEL` for the horizontal levels of issue 22, None for an older store (raw)."""
+    if "capture_irradiance" not in calib:
+        return None
+    model = calib["capture_irradiance"].attrs.get(SUN_SENSOR_MODEL_ATTR)
+    return None if model is None else str(model)
+
+
+def _flight_records(flight_dir: Path) -> dict[str, FrameRecord] | None:
     records = {}
     try:
         for rec in read_frame_table(flight_dir, require_files=False, on_frame_error=lambda *_: None):
             records[rec.name] = rec
     except InputError:
+        return None
+    return records
+
+
+def flight_levels(flight_dir: Path, names: Sequence[str]) -> Levels:
+    """Horizontal sun-sensor level of each frame (by frame name = file stem; NaN where none):
+    :func:`pipeline.ingest.sunsensor.record_levels` of the flight's frame table, the function
+    calibrate used for the reflector frames."""
+    records = _flight_records(flight_dir)
+    if records is None:
+        return Levels(np.full(len(names), np.nan), ("no frame table",) * len(names))
+    found = [(f, records[str(n)]) for f, n in enumerate(names)
+             if str(n) in records and (records[str(n)].irradiance is not None or records[str(n)].path.is_file())]
+    value = np.full(len(names), np.nan)
+    source = ["no sun-sensor reading"] * len(names)
+    try:
+        levels = record_levels([rec for _, rec in found])
+    except FrameError:  # some frame's reading is unusable: the others keep theirs, it none
+        levels = Levels(*map(np.array, zip(*(_one_level(rec) for _, rec in found)))) if found else Levels(np.zeros(0), ())
+    for (f, _), v, src in zip(found, levels.value, levels.source):
+        value[f], source[f] = v, src
+    return Levels(value, tuple(source))
+
+
+def _one_level(rec: FrameRecord) -> tuple[float, str]:
+    try:
+        one = record_levels([rec])
+    except FrameError as exc:
+        return float("nan"), f"unusable sun-sensor reading: {exc.reason}"
+    return float(one.value[0]), one.source[0]
+
+
+def flight_irradiance(flight_dir: Path, names: Sequence[str]) -> np.ndarray:
+    """Raw sun-sensor reading of each frame (by frame name = file stem; NaN where none),
+    for stores from before issue 22: frames.csv ``irradiance``, else the file's XMP
+    Irradiance. Frames the table cannot describe are left NaN (discovery quarantines them)."""
+    records = _flight_records(flight_dir)
+    if records is None:
         return np.full(len(names), np.nan)
     out = np.full(len(names), np.nan)
     for f, name in enumerate(names):
@@ -112,6 +168,8 @@ class IlluminationPlan:
     irradiance: np.ndarray
     irradiance_used: np.ndarray
     captures: tuple[str, ...]
+    sun_sensor_level: str = RAW_LEVELS  # how the levels were computed (issue 22)
+    irradiance_source: tuple[str, ...] = ()  # per frame, when known
 
     def digest(self) -> str:
         """sha256 of the factors: part of the run's fingerprint (a changed reading re-applies)."""
@@ -123,6 +181,10 @@ class IlluminationPlan:
             "mode": self.mode,
             "captures": list(self.captures),
             "frames_with_irradiance": int(np.count_nonzero(self.irradiance_used)),
+            "sun_sensor_level": self.sun_sensor_level,
+            **({"irradiance_sources": {src: self.irradiance_source.count(src)
+                                       for src in dict.fromkeys(self.irradiance_source)}}
+               if self.irradiance_source else {}),
             "per_frame": {
                 str(n): {"level": round(float(self.level[f]), 6),
                          "scale": [round(float(v), 6) for v in self.scale[f]],
@@ -132,15 +194,34 @@ class IlluminationPlan:
         }
 
 
+def frame_levels(calib: xr.Dataset, frames: Sequence[str], flight_dir: Path,
+                 captures: Sequence[Capture] | None = None) -> tuple[Levels, str]:
+    """The sun-sensor level of each frame computed as the store's ``capture_irradiance`` was
+    (module docstring) and what run.json says of it. ``captures``: the frames are these
+    one-file-per-band captures (in order), else they are read from the flight's frame table."""
+    model = sun_sensor_model(calib)
+    if model == SUN_SENSOR_MODEL:
+        levels = capture_levels(captures) if captures is not None else flight_levels(flight_dir, frames)
+        return levels, (f"{model}: frames.csv irradiance as given, else the sun sensor's horizontal irradiance "
+                        "(sun position, sensor tilt; geometric mean over the bands), as for the store's captures")
+    if captures is not None:
+        raw = np.array([np.nan if capture_irradiance(c) is None else capture_irradiance(c) for c in captures])
+    else:
+        raw = flight_irradiance(flight_dir, frames)
+    text = RAW_LEVELS if model is None else f"raw readings: the store's sun_sensor_model {model!r} is not known here"
+    return Levels(raw, ()), text
+
+
 def illumination_plan(calib: xr.Dataset, frames: Sequence[str], times: np.ndarray, flight_dir: Path,
-                      mode: str = DEFAULT_MODE, irradiance: np.ndarray | None = None) -> IlluminationPlan | None:
+                      mode: str = DEFAULT_MODE, irradiance: np.ndarray | None = None,
+                      captures: Sequence[Capture] | None = None) -> IlluminationPlan | None:
     """Per-frame light of a flight (``frames`` names, ``times`` datetime64), or None when the
     store's light does not vary in time (:func:`varies_in_time`): Eq. 15 as before.
 
     Raises InputError naming the flight's frames.csv when several captures must be
-    interpolated and frames have no time. ``irradiance``: the frames' readings when the caller
-    has them (one-file-per-band captures: their bands' XMP Irradiance), else read from the
-    flight (:func:`flight_irradiance`).
+    interpolated and frames have no time. The frames' sun-sensor levels: ``irradiance`` when
+    the caller gives them (used as they are), else :func:`frame_levels` (of ``captures`` when
+    the frames are one-file-per-band captures, else of the flight's frames).
     """
     if mode not in INTERPOLATION_MODES:
         raise InputError(f"--illumination {mode!r}: use one of {', '.join(INTERPOLATION_MODES)}")
@@ -149,7 +230,11 @@ def illumination_plan(calib: xr.Dataset, frames: Sequence[str], times: np.ndarra
     caps = calibration_captures(calib)
     t = np.asarray(times).astype("datetime64[ns]")
     t_s = np.where(np.isnat(t), np.nan, t.astype(np.int64) / 1e9)
-    irr = flight_irradiance(flight_dir, frames) if irradiance is None else np.asarray(irradiance, dtype=np.float64)
+    if irradiance is None:
+        levels, how = frame_levels(calib, frames, flight_dir, captures)
+    else:
+        levels, how = Levels(np.asarray(irradiance, dtype=np.float64), ()), "as given by the caller"
+    irr = levels.value
     if caps.spectral_factor.shape[0] > 1 and not np.all(np.isfinite(t_s)):
         missing = [str(frames[f]) for f in np.flatnonzero(~np.isfinite(t_s))[:3]]
         raise InputError(
@@ -165,4 +250,5 @@ def illumination_plan(calib: xr.Dataset, frames: Sequence[str], times: np.ndarra
         return None  # one capture and no frame reading: the light is the store's S
     reference = np.asarray(calib["spectral_factor"].values, dtype=np.float64)
     return IlluminationPlan(mode=mode, scale=reference[None, :] / light.spectral_factor, level=light.level,
-                            irradiance=irr, irradiance_used=light.irradiance_used, captures=caps.names)
+                            irradiance=irr, irradiance_used=light.irradiance_used, captures=caps.names,
+                            sun_sensor_level=how, irradiance_source=levels.source)

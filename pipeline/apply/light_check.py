@@ -12,10 +12,11 @@ import numpy as np
 
 from pipeline.apply.captures import capture_times, find_captures
 from pipeline.apply.factory import panel_reference
-from pipeline.apply.sunlight import panel_sensor_light, sensor_light
+from pipeline.apply.sunlight import panel_sensor_light
 from pipeline.ingest.camera_meta import read_capture_pixels, sun_sensor_absolute
 from pipeline.ingest.catalog import reflectance_option
 from pipeline.ingest.identify import identify_camera
+from pipeline.ingest.sunsensor import sensor_light
 
 
 def panel_prediction(folder: str | Path, panel_reflectance: str, early: str, late: str,

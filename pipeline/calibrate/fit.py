@@ -25,7 +25,6 @@ from mscal_core.errors import FitError, MscalError, SessionError
 from mscal_core.mosaic import band_offsets
 
 from pipeline.calibrate.intrinsics import fit_intrinsics_folder, parse_board, store_intrinsics
-from pipeline.ingest.camera_meta import xmp_irradiance
 from pipeline.ingest.captures import is_multilens, read_frames
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.exif import NAT, time_ns
@@ -39,6 +38,7 @@ from pipeline.ingest.session import (
     read_bands,
     read_frame_table,
 )
+from pipeline.ingest.sunsensor import SUN_SENSOR_MODEL, SUN_SENSOR_MODEL_ATTR, record_levels
 from pipeline.storage.store import content_hashes, new_dataset, open_calibration, write_store
 
 log = logging.getLogger("mscal.calibrate")
@@ -536,24 +536,24 @@ MIN_REFLECTOR_PIXELS = 100
 class ReflectorCapture:
     """Reflector images taken under one light: ``frames`` are indices into the records of
     :func:`reflector_captures`; ``time_s`` the mean frame time (s since the epoch, UTC; NaN
-    if unknown); ``irradiance`` the median sun-sensor reading of its frames (frames.csv
-    ``irradiance``, else the files' XMP Irradiance), None if any frame has none."""
+    if unknown); ``irradiance`` the median sun-sensor level of its frames, None if any frame
+    has none: frames.csv ``irradiance`` where given (raw), else the horizontal irradiance of the
+    files' sun sensor, the geometric mean over the bands (issue 22;
+    :func:`pipeline.ingest.sunsensor.record_levels`, the function apply uses for the flight's
+    frames and captures; the store marks it with ``sun_sensor_model``); ``irradiance_source``
+    how the frames' levels were obtained (one per distinct source)."""
 
     name: str
     frames: tuple[int, ...]
     time_s: float
     irradiance: float | None
     folder: Path
+    irradiance_source: tuple[str, ...] = ()
 
 
 def _time_s(rec: FrameRecord) -> float:
     ns = time_ns(rec.time)
     return float("nan") if ns == NAT else ns / 1e9
-
-
-def frame_irradiance(rec: FrameRecord) -> float | None:
-    """The sun-sensor reading of a frame: its frames.csv ``irradiance``, else its XMP Irradiance."""
-    return rec.irradiance if rec.irradiance is not None else xmp_irradiance(rec.path)
 
 
 def reflector_captures(folder: Path, camera: Camera | None = None) -> tuple[list[FrameRecord], list[ReflectorCapture]]:
@@ -583,10 +583,10 @@ def reflector_captures(folder: Path, camera: Camera | None = None) -> tuple[list
 
     def add(name: str, where: Path, idx: list[int]) -> None:
         times = np.array([_time_s(records[i]) for i in idx])
-        irr = [frame_irradiance(records[i]) for i in idx]
+        irr = record_levels([records[i] for i in idx])
         time_s = float(np.mean(times)) if np.all(np.isfinite(times)) else float("nan")
-        level = float(np.median(irr)) if all(v is not None for v in irr) else None  # type: ignore[arg-type]
-        captures.append(ReflectorCapture(name, tuple(idx), time_s, level, where))
+        level = float(np.median(irr.value)) if irr.value.size and np.all(np.isfinite(irr.value)) else None
+        captures.append(ReflectorCapture(name, tuple(idx), time_s, level, where, tuple(dict.fromkeys(irr.source))))
 
     for name, where, recs in groups:
         first = len(records)
@@ -766,7 +766,8 @@ def _illumination_residuals(views: list[tuple[int, View]], masks: list[np.ndarra
     if len(fits) > 1:
         out["captures"] = [
             {"name": f.capture.name, "images": len(f.views), "residual_rms": round(float(f.fit.residual_rms), 5),
-             "irradiance": f.capture.irradiance, "centre_brightness": round(f.centre_brightness, 5)}
+             "irradiance": f.capture.irradiance, "irradiance_source": list(f.capture.irradiance_source),
+             "centre_brightness": round(f.centre_brightness, 5)}
             for f in fits
         ]
     return out
@@ -946,7 +947,10 @@ def add_captures(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
     )
     ds["capture_irradiance"] = (
         "capture", np.array([np.nan if c.capture.irradiance is None else c.capture.irradiance for c in caps]),
-        {"long_name": "median sun-sensor irradiance of the capture's frames (NaN: none)"},
+        {"long_name": "median sun-sensor level of the capture's frames (NaN: none): horizontal irradiance, "
+                      "geometric mean over the bands, or frames.csv irradiance as given",
+         # apply makes the flight's levels alike only for stores that say so (issue 22)
+         SUN_SENSOR_MODEL_ATTR: SUN_SENSOR_MODEL},
     )
     if "reflector_image" in ds.coords:
         owner = np.zeros(ds.sizes["reflector_image"], dtype=np.int32)

@@ -911,9 +911,11 @@ def xmp_irradiance(path: str | Path) -> float | None:
 
 
 def capture_irradiance(capture: "Capture") -> float | None:
-    """One irradiance level of a one-file-per-band capture: the mean of its bands' XMP
+    """One raw irradiance level of a one-file-per-band capture: the mean of its bands' XMP
     Irradiance (each band's sensor reading), None unless every band has one. Only ratios of
-    these levels are used (:func:`mscal_core.illumination.frame_illumination`)."""
+    these levels are used (:func:`mscal_core.illumination.frame_illumination`). Kept for
+    calibration stores from before issue 22 (raw ``capture_irradiance``); newer stores use the
+    horizontal level of :func:`pipeline.ingest.sunsensor.capture_levels`."""
     values = [m.irradiance for m in capture.metas]
     if not values or any(v is None or not v > 0 for v in values):
         return None

@@ -12,6 +12,7 @@ import csv
 import json
 import shutil
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import pytest
@@ -94,6 +95,9 @@ def test_store_holds_every_capture(drifting) -> None:
     assert ds["reflector_capture"].values.tolist() == [0, 0, 1, 1]
     caps = ds.attrs["illumination"]["residuals"]["captures"]
     assert [c["images"] for c in caps] == [2, 2]
+    # issue 22: the store says how its levels were computed (here the frames.csv readings, raw)
+    assert ds["capture_irradiance"].attrs["sun_sensor_model"] == "horizontal (issue 22)"
+    assert [c["irradiance_source"] for c in caps] == [["frames.csv irradiance (raw: orientation unknown)"]] * 2
 
 
 def test_drifting_light_corrected_within_one_percent(drifting, tmp_path) -> None:
@@ -334,3 +338,183 @@ def test_run_checks_the_illumination_mode_before_prefect_starts(drifting, tmp_pa
     check_run_inputs(str(root / "session"), str(tmp_path / "out"), illumination="nearest")
     with pytest.raises(InputError, match="--illumination 'cubic': use one of nearest, linear"):
         check_run_inputs(str(root / "session"), str(tmp_path / "out"), illumination="cubic")
+
+
+# --------------------------------------------------------------------------- issue 22: horizontal sun-sensor levels
+
+#: The flight of :func:`pipeline.sim.sunlight.write_sunlight_flight` (RedEdge band files, DLS 1
+#: tags): 6 flight captures between two panel captures 34 minutes apart, the direct light
+#: fading 5 % while the sun sinks, the sensor tilted with the aircraft (pitch and roll
+#: N(0, 10 deg) in flight, N(0, 5 deg) hand-held).
+SUN_FLIGHT = dict(seed=1, n_flight=6, flight_tilt_deg=10.0, panel_tilt_deg=5.0)
+#: The level beta of every capture against the truth's horizontal light: measured 0.23 % worst
+#: with the horizontal levels (seeds 0-2: 0.18-0.23 %; the sensor's 0.2 % noise), 17 % with the
+#: raw readings of a store from before issue 22 (seeds 0-2: 14-36 %).
+HORIZONTAL_TOL = 0.005
+RAW_WORSE_THAN = 0.10
+
+
+@pytest.fixture(scope="module")
+def sun_flight(tmp_path_factory):
+    """The tilted-sensor flight, its first capture copied as a reflector capture (``refl/``),
+    its captures, and stores whose one reflector capture is that capture: ``horizontal``
+    (capture_irradiance from calibrate's reflector_captures, marked) and ``old`` (band 1's raw
+    reading, unmarked: what a store from before issue 22 holds)."""
+    from pipeline.apply.captures import capture_times
+    from pipeline.calibrate.fit import reflector_captures
+    from pipeline.ingest.camera_meta import group_captures
+    from pipeline.ingest.catalog import load_camera
+    from pipeline.ingest.sunsensor import SUN_SENSOR_MODEL, SUN_SENSOR_MODEL_ATTR
+    from pipeline.sim.sunlight import write_sunlight_flight
+    from tests.micasense_data import factory_store
+
+    base = tmp_path_factory.mktemp("sun22")
+    truth = write_sunlight_flight(require_data(), base / "flight", **SUN_FLIGHT)
+    camera = load_camera("micasense-rededge")
+    refl = base / "refl"
+    refl.mkdir()
+    for f in (base / "flight").glob(f"{truth.names[0]}_*.tif"):
+        shutil.copy(f, refl / f.name)
+    _, reflector = reflector_captures(refl, camera)
+    captures, problems = group_captures(base / "flight", camera)
+    assert problems == [] and [c.name for c in captures] == list(truth.names)
+    store = xr.open_zarr(factory_store(base / "calib.zarr"), chunks=None).load()
+    s = store["spectral_factor"].values
+
+    def with_capture(irradiance: float, attrs: dict) -> xr.Dataset:
+        ds = store.copy()
+        ds["capture_spectral_factor"] = (("capture", "band"), s[None])
+        ds["capture_level"] = (("capture",), [float(np.exp(np.mean(np.log(s))))])
+        ds["capture_irradiance"] = (("capture",), [irradiance], attrs)
+        return ds.assign_coords(capture_name=("capture", np.array(["refl"], dtype=object)),
+                                capture_time=("capture", capture_times(captures[:1])))
+
+    stores = {"horizontal": with_capture(reflector[0].irradiance, {SUN_SENSOR_MODEL_ATTR: SUN_SENSOR_MODEL}),
+              "old": with_capture(captures[0].metas[0].irradiance, {})}
+    return truth, base / "flight", captures, reflector[0], stores
+
+
+def _level_error(sun_flight, which: str) -> tuple[np.ndarray, object]:
+    """beta(tau) / beta_c against the truth's horizontal light change, and the plan."""
+    from pipeline.apply.captures import capture_times
+    from pipeline.apply.light import illumination_plan
+
+    truth, folder, captures, _, stores = sun_flight
+    calib = stores[which]
+    plan = illumination_plan(calib, [c.name for c in captures], capture_times(captures), folder, "linear",
+                             captures=captures)
+    beta_c = float(calib["capture_level"].values[0])
+    true = np.exp(np.mean(np.log(truth.horizontal / truth.horizontal[0]), axis=1))
+    return plan.level / beta_c / true - 1.0, plan
+
+
+def test_tilted_sensor_level_follows_the_horizontal_light(sun_flight) -> None:
+    """Issue 22 on the field path: a multi-lens flight with a tilted sun sensor and drifting
+    light; the reflector capture's level (calibrate) and each flight capture's (apply) are
+    horizontal irradiance, so the light's level beta follows the true horizontal light within
+    0.5 % at every capture; with the raw readings (a store from before) it is off by > 10 %."""
+    from pipeline.apply.light import RAW_LEVELS
+
+    truth, *_ = sun_flight
+    tilt = np.degrees(np.hypot(truth.yaw_pitch_roll[:, 1], truth.yaw_pitch_roll[:, 2]))
+    assert tilt.max() > 10.0 and np.ptp(tilt) > 8.0  # the attitude changes from capture to capture
+    assert truth.horizontal[-1, 0] / truth.horizontal[0, 0] < 0.95  # and the light drifts
+    err, plan = _level_error(sun_flight, "horizontal")
+    assert np.abs(err).max() < HORIZONTAL_TOL, err
+    assert plan.irradiance_used.all() and plan.sun_sensor_level.startswith("horizontal (issue 22)")
+    summary = plan.summary([str(n) for n in truth.names])
+    assert summary["irradiance_sources"] == {
+        "horizontal: tilt model, clear-sky diffuse ratio 1/6; orientation DLS:Yaw/Pitch/Roll": len(truth.names)}
+    raw_err, raw_plan = _level_error(sun_flight, "old")
+    assert np.abs(raw_err).max() > RAW_WORSE_THAN, raw_err
+    assert raw_plan.sun_sensor_level == RAW_LEVELS and "irradiance_sources" not in raw_plan.summary(truth.names)
+
+
+def test_calibrate_and_apply_levels_of_one_capture_agree(sun_flight) -> None:
+    """The reflector capture's level at calibrate and the same capture's level at apply are one
+    number (the bias of band 1's reading against the mean of the bands is gone); a store from
+    before issue 22 gives its plan exactly as before: the mean of the bands' raw readings."""
+    from mscal_core.illumination import frame_illumination
+    from pipeline.apply.captures import capture_times
+    from pipeline.apply.light import frame_levels
+    from pipeline.ingest.camera_meta import capture_irradiance
+    from pipeline.ingest.sunsensor import capture_levels
+
+    truth, folder, captures, reflector, stores = sun_flight
+    names = [c.name for c in captures]
+    levels, how = frame_levels(stores["horizontal"], names, folder, captures)
+    assert levels.value[0] == pytest.approx(reflector.irradiance, rel=1e-12)
+    assert how.startswith("horizontal (issue 22)")
+    # a capture's level depends on its own files only, not on the flight it is read with
+    assert capture_levels(captures[:1]).value[0] == levels.value[0]
+    assert capture_levels(captures[::-1]).value[::-1].tolist() == levels.value.tolist()
+    # before: calibrate took band 1's reading, apply the mean of the five: a bias of the ratio
+    old_bias = capture_irradiance(captures[0]) / captures[0].metas[0].irradiance
+    assert old_bias == pytest.approx(0.966, abs=1e-3)  # this flight; 0.72-0.78 on the real RedEdge captures
+    _, plan = _level_error(sun_flight, "old")
+    raw = np.array([capture_irradiance(c) for c in captures])
+    np.testing.assert_array_equal(plan.irradiance, raw)
+    calib = stores["old"]
+    t = capture_times(captures).astype(np.int64) / 1e9
+    before = frame_illumination(calib["capture_spectral_factor"].values, [t[0]], t, "linear",
+                                capture_irradiance=calib["capture_irradiance"].values, frame_irradiance=raw)
+    np.testing.assert_array_equal(plan.level, before.level)
+    np.testing.assert_allclose(plan.level[0] / calib["capture_level"].values[0], old_bias, rtol=1e-12)
+
+
+def test_real_rededge_band_one_against_mean_of_bands() -> None:
+    """On the real RedEdge captures the old bias was 0.78 (IMG_0000) and 0.72 (IMG_0001): the mean
+    of the bands' DLS readings against band 1's. The horizontal level of a capture is one number
+    whether read as frame records (calibrate's reflector frames) or as a capture (apply)."""
+    from pipeline.ingest.camera_meta import capture_irradiance, group_captures
+    from pipeline.ingest.captures import read_capture_table
+    from pipeline.ingest.catalog import load_camera
+    from pipeline.ingest.sunsensor import capture_levels, record_levels
+
+    camera = load_camera("micasense-rededge")
+    captures, _ = group_captures(require_data(), camera)
+    bias = [capture_irradiance(c) / c.metas[0].irradiance for c in captures]
+    np.testing.assert_allclose(bias, [0.7833, 0.7214], atol=1e-4)
+    levels = capture_levels(captures)
+    np.testing.assert_allclose(levels.value, [0.72613, 0.67718], rtol=1e-4)  # W m-2 nm-1, horizontal
+    np.testing.assert_array_equal(record_levels(read_capture_table(require_data(), camera)).value, levels.value)
+
+
+def _panel_means(out: Path, frames: Sequence[str]) -> np.ndarray:
+    """Mean reflectance over the panel (0.7 inset of MicaSense's published corners) per frame and band."""
+    from mscal_core.factory import polygon_mask
+    from tests.micasense_data import PANEL_CORNERS
+
+    ds = xr.open_zarr(out / "reflectance.zarr")
+    order = [list(ds["frame"].values).index(f) for f in frames]
+    means = np.empty((len(frames), 5))
+    for b in range(5):
+        c = np.array(PANEL_CORNERS[b], dtype=float)
+        for i, f in enumerate(order):
+            img = ds["reflectance"].isel(frame=f, band=b).values
+            means[i, b] = np.nanmean(img[polygon_mask(img.shape, c.mean(axis=0) + 0.7 * (c - c.mean(axis=0)))])
+    return means
+
+
+def test_apply_panel_late_matches_early_with_horizontal_levels(sun_flight, tmp_path) -> None:
+    """End to end (mscal apply FLIGHT --calibration STORE): the panel seen early and 34 min late
+    (the direct light faded 5 %, the hand-held sensor tilted differently) reads the same
+    reflectance within 0.5 % in every band with the horizontal store (0.15 % measured), off by
+    > 5 % with the old store's raw readings (10.9 %); run.json says which levels were used."""
+    from pipeline.apply.light import RAW_LEVELS
+    from pipeline.storage.store import write_store
+
+    truth, folder, _, _, stores = sun_flight
+    runs = {}
+    for which in ("horizontal", "old"):
+        store = write_store(stores[which], tmp_path / f"{which}.zarr")
+        out = tmp_path / which
+        assert main(["apply", str(folder), "--calibration", str(store), "-o", str(out)]) == 0
+        panels = _panel_means(out, [truth.names[0], truth.names[-1]])
+        runs[which] = (panels[1] / panels[0] - 1.0, json.loads((out / "run.json").read_text())["illumination"])
+    err, ill = runs["horizontal"]
+    assert np.abs(err).max() < HORIZONTAL_TOL, err
+    assert ill["sun_sensor_level"].startswith("horizontal (issue 22)")
+    raw_err, raw_ill = runs["old"]
+    assert np.abs(raw_err).max() > 0.05, raw_err
+    assert raw_ill["sun_sensor_level"] == RAW_LEVELS

@@ -107,8 +107,8 @@ def test_bluer_sky_ratio_is_fitted_from_the_flight(tmp_path) -> None:
     captures at changing attitudes: the pipeline fits the ratio per band from the readings and
     the late panel is predicted within 1.5 % (6 % with 1/6 on this seed)."""
     from pipeline.apply.captures import capture_times, find_captures
-    from pipeline.apply.sunlight import sensor_light
     from pipeline.ingest.identify import identify_camera
+    from pipeline.ingest.sunsensor import sensor_light
 
     truth = write_sunlight_flight(require_data(), tmp_path / "f", seed=0, n_flight=12, r0=0.12, r_exponent=2.0)
     caps = find_captures(tmp_path / "f", identify_camera(tmp_path / "f", None).camera).captures
