@@ -74,8 +74,8 @@ CF_VARIABLES: dict[str, dict[str, str]] = {
     "spectral_factor": {"units": "1", "long_name": "spectral factor S of the illumination (Eq. 11-14)"},
     "capture_spectral_factor": {"units": "1", "long_name": "spectral factor S of each reflector capture"},
     "capture_level": {"units": "1", "long_name": "brightness level of each reflector capture"},
-    "capture_irradiance": {"units": "1", "long_name": "sun-sensor reading at each reflector capture "
-                                                      "(the sensor's own unit)"},
+    "capture_irradiance": {"units": "1", "long_name": "sun-sensor level at each reflector capture "
+                                                      "(horizontal when sun_sensor_model says so, else the raw reading)"},
     "reflector_brightness": {"units": "1", "long_name": "brightness B(x) of each reflector image (Eq. 11-14)"},
     "reflector_dn": {"units": "count", "long_name": "reflector image in the NIR band"},
     "reflector_exposure_ms": {"units": "ms", "long_name": "exposure time of each reflector image"},

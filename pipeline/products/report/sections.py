@@ -196,8 +196,30 @@ def registration_warnings(ds: xr.Dataset) -> list[QAWarning]:
     return out
 
 
+def capture_level_table(ds: xr.Dataset) -> Table | None:
+    """Per reflector capture: its time, brightness level and sun-sensor level, and how the
+    sensor level was obtained (store attribute ``sun_sensor_model``; issue 22). None when no
+    capture has a sensor level."""
+    if "capture_irradiance" not in ds:
+        return None
+    irr = np.asarray(ds["capture_irradiance"].values, dtype=np.float64)
+    if not np.isfinite(irr).any():
+        return None
+    model = ds["capture_irradiance"].attrs.get("sun_sensor_model") or "raw reading (store written before issue 22)"
+    names = ds["capture_name"].values if "capture_name" in ds else range(irr.size)
+    times = ds["capture_time"].values if "capture_time" in ds else [None] * irr.size
+    levels = ds["capture_level"].values if "capture_level" in ds else [np.nan] * irr.size
+    rows = [[str(n), None if t is None or np.isnat(t) else str(np.datetime_as_string(t, unit="s")),
+             float(lv), None if not np.isfinite(e) else float(e)]
+            for n, t, lv, e in zip(names, times, levels, irr)]
+    return Table("Sun-sensor level of each reflector capture", ["capture", "time (UTC)", "level of S", "sun-sensor level"],
+                 rows, note=f"sun-sensor level: {model}; a flight frame's light is scaled by its own level over the "
+                            "captures' (interpolated in time)")
+
+
 def calibration_section(ds: xr.Dataset, flights: Sequence["FlightResults"] = ()) -> Section:
     tables = [band_table(ds), skipped_table(ds)]
+    tables += [t for t in (capture_level_table(ds),) if t is not None]
     tables += [t for t in (registration_table(ds), registration_fallback_table(ds)) if t is not None]
     sec = Section(f"Calibration: {ds.attrs.get('camera', '?')}", "calibration",
                   calibration_warnings(ds) + registration_warnings(ds), tables)

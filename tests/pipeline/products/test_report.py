@@ -440,3 +440,24 @@ def test_older_and_partial_stores_still_report(calib_ds) -> None:
     assert [c for c, _ in sec.figures] == ["Inverse response per band"]
     assert report.calibration_warnings(partial) == []
     assert "| b803 | 803 |" in report.sections_markdown([sec])
+
+
+def test_capture_level_table_says_how_the_sensor_level_was_obtained() -> None:
+    """Issue 22: the calibration section lists each reflector capture's sun-sensor level and
+    the store's ``sun_sensor_model`` (raw for a store written before it); none without levels."""
+    import xarray as xr
+
+    from pipeline.products.report.sections import capture_level_table
+
+    times = np.array(["2026-06-01T10:00:00", "2026-06-01T10:34:00"], dtype="datetime64[ns]")
+    ds = xr.Dataset({"capture_level": ("capture", [1.0, 0.87]),
+                     "capture_irradiance": ("capture", [0.41, 0.356], {"sun_sensor_model": "horizontal (issue 22)"}),
+                     "capture_time": ("capture", times)},
+                    coords={"capture_name": ("capture", ["before", "after"])})
+    t = capture_level_table(ds)
+    assert t is not None and [r[0] for r in t.rows] == ["before", "after"]
+    assert t.rows[1] == ["after", "2026-06-01T10:34:00", 0.87, 0.356]
+    assert "horizontal (issue 22)" in t.note
+    old = ds.assign(capture_irradiance=("capture", [0.41, 0.356]))
+    assert "raw reading" in capture_level_table(old).note
+    assert capture_level_table(ds.assign(capture_irradiance=("capture", [np.nan, np.nan]))) is None
