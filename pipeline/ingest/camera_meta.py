@@ -703,17 +703,36 @@ def factory_vignetting(meta: CaptureMeta) -> np.ndarray:
     The map depends only on the band's shape and vignetting tags, which are the same in
     every capture of a camera: it is computed once per process and tags
     (:func:`_vignetting_of`; 0.1 s of a 1280 x 960 band, more than the rest of the band's
-    radiance) and returned read-only."""
-    return _vignetting_of(meta.radiometry, meta.shape, meta.dji_center, meta.dji_vignetting, meta.vignetting_center,
-                          meta.vignetting_polynomial, meta.vignetting_polynomial_2d,
-                          meta.vignetting_polynomial_2d_exponents)
+    radiance) and returned read-only. Tags whose map is not finite and positive everywhere
+    (a corrupt polynomial: a denominator through zero or overflowing) raise :class:`FrameError`
+    naming the file."""
+    v, ok = _vignetting_of(meta.radiometry, meta.shape, meta.dji_center, meta.dji_vignetting, meta.vignetting_center,
+                           meta.vignetting_polynomial, meta.vignetting_polynomial_2d,
+                           meta.vignetting_polynomial_2d_exponents)
+    if not ok:
+        raise FrameError("the vignetting tags give a correction that is not finite and positive over the image "
+                         "(XMP VignettingCenter/VignettingPolynomial, VignettingPolynomial2D or DJI "
+                         "VignettingData damaged)", path=meta.path,
+                         hint="copy the band file again from the camera's card; a file with damaged calibration "
+                              "tags cannot be used with --calibration factory")
+    return v
 
 
 @lru_cache(maxsize=16)  # a few bands of one or two cameras; 10 MB each at 1280 x 960
 def _vignetting_of(radiometry: str, shape: tuple[int, int], dji_center: tuple[float, float] | None,
                    dji_vignetting: tuple[float, ...] | None, center: tuple[float, float] | None,
                    poly: tuple[float, ...] | None, poly_2d: tuple[float, ...] | None,
-                   exponents_2d: tuple[float, ...] | None) -> np.ndarray:
+                   exponents_2d: tuple[float, ...] | None) -> tuple[np.ndarray, bool]:
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):  # judged below, once per tag set
+        v = _vignetting_map(radiometry, shape, dji_center, dji_vignetting, center, poly, poly_2d, exponents_2d)
+    v.flags.writeable = False  # shared by every capture: a caller that wrote into it would change the next ones
+    return v, bool(np.all(np.isfinite(v)) and np.all(v > 0))
+
+
+def _vignetting_map(radiometry: str, shape: tuple[int, int], dji_center: tuple[float, float] | None,
+                    dji_vignetting: tuple[float, ...] | None, center: tuple[float, float] | None,
+                    poly: tuple[float, ...] | None, poly_2d: tuple[float, ...] | None,
+                    exponents_2d: tuple[float, ...] | None) -> np.ndarray:
     if radiometry == "dji":
         assert dji_center is not None and dji_vignetting is not None
         v = dji_vignetting_correction(shape, dji_center, dji_vignetting)
@@ -724,7 +743,6 @@ def _vignetting_of(radiometry: str, shape: tuple[int, int], dji_center: tuple[fl
         v = vignetting_2d(shape, poly_2d, exponents_2d)
     else:
         v = vignetting_map(shape, center, poly, poly_2d=poly_2d, exponents_2d=exponents_2d)
-    v.flags.writeable = False  # shared by every capture: a caller that wrote into it would change the next ones
     return v
 
 

@@ -207,3 +207,19 @@ def test_capture_of_another_camera_is_reported() -> None:
     assert problems[0]["reason"] == (
         "capture IMG_0000: band names differ from camera micasense-rededge: _1 is 'Blue', catalog says 'Coastal'"
     )
+
+
+@pytest.mark.parametrize("poly", [(-0.01,), (1e300, 1e300, 1e300)])
+def test_damaged_vignetting_polynomial_names_the_file(poly) -> None:
+    """A VignettingPolynomial whose denominator crosses zero (k1 = -0.01: 1 - 0.01 r < 0 past
+    100 px) or overflows (found by the long fuzz profile: a silent map of zeros) is a
+    FrameError naming the band file, not a map with negative or zero corrections."""
+    from pipeline.ingest.camera_meta import factory_vignetting
+
+    meta = read_capture_meta(band_file("0001", 1))
+    v = factory_vignetting(meta)
+    assert np.all(np.isfinite(v)) and v.min() >= 1.0  # the real tags: a correction >= 1 everywhere
+    bad = dataclasses.replace(meta, vignetting_polynomial=poly)
+    with pytest.raises(FrameError, match="vignetting tags") as exc:
+        factory_vignetting(bad)
+    assert exc.value.path == str(meta.path)
