@@ -56,7 +56,7 @@ from mscal_core.sunsensor import (
     ratio_drift,
 )
 
-from pipeline.ingest.camera_meta import Capture, CaptureMeta, reflectance_factor, sunshine_records
+from pipeline.ingest.camera_meta import Capture, CaptureMeta, reflectance_factor, sun_sensor_xmp, sunshine_records
 from pipeline.ingest.solar import solar_position
 from pipeline.ingest.xmp import TagError, Xmp, jpeg_xmp_packet
 
@@ -230,7 +230,8 @@ def sensor_light(captures: Sequence[Capture], times: np.ndarray) -> SensorLight:
             if kb is None:
                 continue
             k[c, b] = kb
-            xmps[c, b] = x = file_xmp(meta.path)
+            kept = sun_sensor_xmp(meta)  # the properties read with the file's metadata
+            xmps[c, b] = x = kept if kept is not None else file_xmp(meta.path)
             o = sensor_orientation(x)
             if o is not None and not np.isfinite(ypr[c, 0]):
                 ypr[c] = (o.yaw, o.pitch, o.roll)

@@ -23,7 +23,7 @@ import base64
 import math
 import re
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
@@ -112,6 +112,9 @@ class CaptureMeta:
     channel_mix: tuple[float, ...] | None = None  # Camera:ColorTransform, whole matrix
     irradiance_unit: str = "W m-2 nm-1"
     problems: tuple[TagProblem, ...] = ()
+    # the file's XMP properties the sun-sensor model reads (SUN_SENSOR_XMP; sun_sensor_xmp)
+    sun_sensor_props: tuple[tuple[str, str, str | tuple[str, ...]], ...] | None = field(
+        default=None, compare=False, repr=False)
 
     @property
     def black_level(self) -> float:
@@ -288,8 +291,33 @@ def meta_from_tags(path: Path, tags: dict[int, Any], shape: tuple[int, int], bit
         serial=_clean(exif.get("BodySerialNumber") or tags.get(50735)), orientation=int(tags.get(274) or 1),
         black_tag=tags.get(50714),
     )
-    metas = _dispatch(ctx)
+    metas = _with_sun_sensor_props(ctx, _dispatch(ctx))
     return metas[0]
+
+
+#: Local names of the XMP properties read by the sun-sensor model
+#: (:mod:`pipeline.apply.sunlight`: orientation, DLS 2 split, Sequoia's IrradianceList): kept
+#: on each band's metadata, so the sun sensor reads no file a second time.
+SUN_SENSOR_XMP = frozenset({
+    "Yaw", "Pitch", "Roll", "IrradianceYaw", "IrradiancePitch", "IrradianceRoll", "Irradiance",
+    "DirectIrradiance", "ScatteredIrradiance", "HorizontalIrradiance", "IrradianceList",
+})
+
+
+def _with_sun_sensor_props(ctx: _Ctx, metas: list[CaptureMeta]) -> list[CaptureMeta]:
+    props = tuple((ns, name, tuple(v) if isinstance(v, list) else v)
+                  for (ns, name), v in ctx.xmp.props.items() if name in SUN_SENSOR_XMP)
+    return [replace(m, sun_sensor_props=props) for m in metas]
+
+
+def sun_sensor_xmp(meta: CaptureMeta) -> Xmp | None:
+    """The XMP properties of ``meta``'s file that the sun-sensor model reads
+    (:data:`SUN_SENSOR_XMP`), as kept when the file was read; None for metadata made
+    otherwise (read the file's XMP then)."""
+    if meta.sun_sensor_props is None:
+        return None
+    return Xmp({(ns, name): list(v) if isinstance(v, tuple) else v for ns, name, v in meta.sun_sensor_props},
+               meta.path)
 
 
 def _clean(value: Any) -> str | None:
@@ -649,7 +677,7 @@ def _read_jpeg(path: Path) -> list[CaptureMeta]:
         make=_clean(exif.get("Make")), model=_clean(exif.get("Model")), software=_clean(exif.get("Software")),
         serial=_clean(exif.get("BodySerialNumber")), orientation=int(exif.get("Orientation") or 1), black_tag=None,
     )
-    return _dispatch(ctx)
+    return _with_sun_sensor_props(ctx, _dispatch(ctx))
 
 
 def _sentera(ctx: _Ctx) -> list[CaptureMeta]:
