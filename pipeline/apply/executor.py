@@ -461,15 +461,42 @@ def _quarantined(job: Job, exc: FrameError) -> Outcome:
 # --------------------------------------------------------------------------- running the tasks
 
 
+#: glibc ``mallopt`` parameters: ``M_TRIM_THRESHOLD``, ``M_MMAP_THRESHOLD``.
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+
+
+def reuse_freed_memory() -> None:
+    """Keep the memory of one capture's arrays for the next (glibc only; elsewhere nothing).
+
+    Each capture allocates and frees the same large arrays (the bands' bytes, DN, float64
+    work arrays, the radiance and reflectance cubes: up to 25 MB each). glibc serves such
+    arrays with a fresh ``mmap`` and unmaps them when freed, so every capture touches new
+    pages, and the kernel zeroes each of them on a page fault: a tenth of the apply pass's
+    CPU, as system time. With ``M_MMAP_THRESHOLD`` at glibc's maximum (32 MB) they come from
+    the heap and are reused, and ``M_TRIM_THRESHOLD`` keeps up to 256 MB freed at the heap's
+    top instead of handing it back. The peak memory is the same (one capture's working set
+    per worker); the outputs too."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(_M_MMAP_THRESHOLD, 32 * 1024 * 1024)
+        libc.mallopt(_M_TRIM_THRESHOLD, 256 * 1024 * 1024)
+    except (OSError, AttributeError):  # not glibc
+        pass
+
+
 def _worker_init() -> None:
-    """Worker processes: die with the parent (a killed run leaves no writer behind) and keep
-    Blosc single-threaded (the workers already fill the cores)."""
+    """Worker processes: die with the parent (a killed run leaves no writer behind), keep
+    Blosc single-threaded (the workers already fill the cores), reuse freed memory
+    (:func:`reuse_freed_memory`)."""
     try:
         import ctypes
 
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):  # not Linux
         pass
+    reuse_freed_memory()
     try:
         from numcodecs import blosc
 
@@ -502,6 +529,7 @@ class Runner:
 
     def __init__(self, n_frames: int, execution: Execution = Execution()):
         execution.install()
+        reuse_freed_memory()  # the threads scheduler's frames run in this process
         self.client = _distributed_client()
         self.pool: ProcessPoolExecutor | None = None
         self.scheduler, self.workers = ("distributed", 0) if self.client is not None else scheduler_for(n_frames, execution)
