@@ -64,6 +64,7 @@ from pipeline.ingest.raw import prefetch_file, read_frame, shape_problem
 from pipeline.ingest.session import FrameRecord, decode_raw
 from pipeline.products.writers import BandTags, FrameTags, file_band_name, write_band_tiff, write_ndvi_tiff
 from pipeline.storage.chunks import FrameChunks
+from pipeline.storage.directio import aligned_empty
 
 # --------------------------------------------------------------------------- helpers
 
@@ -332,7 +333,7 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
         raise InputError("the factory chain needs the band files' own metadata (one-file-per-band captures)")
     k = np.asarray(job.scale, dtype=np.float64) if job.scale is not None else capture_factors(chain, cap)
     parts = field_parts(chain.field[0], chain.field[1], camera.name) if chain.field else [None] * dn.shape[0]
-    rad = np.empty(dn.shape, np.float32)
+    rad = aligned_empty(dn.shape, np.float32)  # written to raw chunks without a copy (write_file)
     for b, meta in enumerate(cap.metas):
         factory_radiance(meta, dn[b], parts[b], (channels or {}).get(meta.path), out=rad[b])
     saturated = dn >= chain.sat
@@ -391,16 +392,18 @@ def process_frame(plan: Plan, job: Job) -> Outcome:
         write_frame(plan.raw_dn, job.index, dn)
         if job.rec is not None:
             tags = replace(tags, capture_uuid=capture_uuid(plan.camera, sha))
-    refl = signal if factor is None else signal * factor.astype(np.float32)[:, None, None]
+    store = plan.out_store
+    if radiance is not None:  # first: reflectance is made from it in place
+        write_frame(store / "radiance", job.index, radiance)
+    refl = signal
+    if factor is not None:  # in place (the same products as signal * factor, no new 25 MB cube)
+        refl *= factor.astype(np.float32)[:, None, None]
     kind, value = plan.norm
     if kind == "scalar":
         refl *= np.float32(value)
     elif kind == "band":
         med = np.nanmedian(refl[int(value)])
         refl *= np.float32(1.0 / med) if np.isfinite(med) and med > 0 else np.float32(np.nan)
-    store = plan.out_store
-    if radiance is not None:
-        write_frame(store / "radiance", job.index, radiance)
     write_frame(store / "reflectance", job.index, refl)
     ndvi = None
     for ix, roles in plan.indices:
