@@ -305,10 +305,16 @@ def capture_dn(plan: Plan, job: Job) -> tuple[np.ndarray, str | None, dict[Path,
 
 
 def _capture_files(capture: Capture, shape: tuple[int, int, int]) -> tuple[np.ndarray, str, dict[Path, np.ndarray]]:
-    sha, dns, channels = read_capture_pixels(capture)
+    cube = np.empty(shape, np.uint16)  # plain band files are decoded straight into it
+    sha, dns, channels = read_capture_pixels(capture, out=cube)
     if any(dn.shape != shape[1:] for dn in dns):
         raise FrameError(f"band images {[d.shape for d in dns]} are not all {shape[1:]}", path=capture.files[0])
-    return np.stack(dns), sha, channels
+    if len(dns) != shape[0]:
+        return np.stack(dns), sha, channels
+    for b, dn in enumerate(dns):
+        if not np.may_share_memory(dn, cube[b]):  # decoded elsewhere (not a plain band file)
+            cube[b] = dn
+    return cube, sha, channels
 
 
 def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: np.ndarray,

@@ -1145,21 +1145,25 @@ def _capture_problem(
 # --------------------------------------------------------------------------- pixels
 
 
-def read_capture_pixels(capture: Capture) -> tuple[str, list[np.ndarray], dict[Path, np.ndarray]]:
+def read_capture_pixels(capture: Capture, out: np.ndarray | None = None
+                        ) -> tuple[str, list[np.ndarray], dict[Path, np.ndarray]]:
     """Content hash (over the capture's files, in band order), the stored DN of each band
     (its channel, for a multi-channel file) and the whole ``(H, W, C)`` image of every
-    multi-channel file (for :func:`factory_radiance`'s colour transform)."""
+    multi-channel file (for :func:`factory_radiance`'s colour transform). ``out``: a uint16
+    ``(band, H, W)`` cube into which a one-band file of that shape is decoded where it can be
+    (its DN are then ``out[b]``; the caller copies the others)."""
     from hashlib import sha256
 
     from pipeline.ingest.session import decode_raw
 
     h = sha256()
     decoded: dict[Path, np.ndarray] = {}
+    into = _band_slots(capture, out)
     for path in capture.files:
         data = path.read_bytes()
         h.update(data)
         try:
-            decoded[path] = np.asarray(decode_raw(data, path))
+            decoded[path] = np.asarray(decode_raw(data, path, into.get(path)))
         except FrameError:
             raise
         except Exception as exc:  # tifffile raises IndexError/ValueError on truncated files
@@ -1178,3 +1182,14 @@ def read_capture_pixels(capture: Capture) -> tuple[str, list[np.ndarray], dict[P
             raise FrameError(f"image {img.shape} does not match its metadata {meta.shape}", path=meta.path)
         dns.append(np.asarray(img).astype(np.uint16, copy=False))
     return h.hexdigest(), dns, stacks
+
+
+def _band_slots(capture: Capture, out: np.ndarray | None) -> dict[Path, np.ndarray]:
+    """``out[b]`` of each one-band file whose shape it has (:func:`read_capture_pixels`)."""
+    if out is None or out.ndim != 3 or out.dtype != np.uint16 or len(capture.metas) != out.shape[0]:
+        return {}
+    per_file: dict[Path, int] = {}
+    for meta in capture.metas:
+        per_file[meta.path] = per_file.get(meta.path, 0) + 1
+    return {m.path: out[b] for b, m in enumerate(capture.metas)
+            if m.channel is None and per_file[m.path] == 1 and tuple(m.shape) == out.shape[1:]}

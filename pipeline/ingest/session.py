@@ -577,12 +577,13 @@ _PLAIN_TIFF_TAGS = frozenset({
 _TIFF_TYPES = {3: "H", 4: "I"}  # SHORT, LONG: the types of the tags read here
 
 
-def plain_tiff_pixels(data: bytes | bytearray) -> np.ndarray | None:
+def plain_tiff_pixels(data: bytes | bytearray, out: np.ndarray | None = None) -> np.ndarray | None:
     """The pixels of a single-image, uncompressed, stripped, one-sample 8- or 16-bit unsigned
     classic TIFF (camera band files such as MicaSense's), straight from its strips: the array
     ``tifffile.imread`` returns for such a file, without building tifffile's page and tag
     objects (about 2 ms of Python per file). None for anything else, or anything unexpected
     (other tags, tiles, compression, several images, strips past the end): then tifffile reads it.
+    ``out``: an array to decode into when it has the image's shape and dtype (else a new one).
 
     References: TIFF 6.0 specification (Adobe, 1992), sections 2 (structure), 3 (baseline
     fields) and 8 (StripOffsets, StripByteCounts, RowsPerStrip)."""
@@ -631,19 +632,24 @@ def plain_tiff_pixels(data: bytes | bytearray) -> np.ndarray | None:
     if len(offsets) != strips or len(counts) != strips:
         return None
     dtype = np.dtype(f"{e}u{bits // 8}")
-    out = np.empty((height, width), dtype.newbyteorder("="))
-    flat = out.reshape(-1)
     for i, (at, nbytes) in enumerate(zip(offsets, counts)):
-        r = min(rows, height - i * rows)
-        if nbytes != r * row_bytes or at + nbytes > n:
+        if nbytes != min(rows, height - i * rows) * row_bytes or at + nbytes > n:
             return None
+    native = dtype.newbyteorder("=")
+    if out is None or out.shape != (height, width) or out.dtype != native or not out.flags.c_contiguous:
+        out = np.empty((height, width), native)
+    flat = out.reshape(-1)
+    for i, at in enumerate(offsets):
+        r = min(rows, height - i * rows)
         flat[i * rows * width:(i * rows + r) * width] = np.frombuffer(data, dtype, r * width, at)
     return out
 
 
-def decode_raw(source: bytes | Path, path: str | Path) -> np.ndarray:
+def decode_raw(source: bytes | Path, path: str | Path, out: np.ndarray | None = None) -> np.ndarray:
     """Pixels of a frame file, from its bytes or (``source`` a path) from the file itself;
-    ``path`` names the format by its suffix and the file in errors.
+    ``path`` names the format by its suffix and the file in errors. ``out``: where a plain
+    camera TIFF of that shape and dtype is decoded (:func:`plain_tiff_pixels`); the array
+    returned is ``out`` when it was used.
 
     A JPEG without its end-of-image marker is truncated: libjpeg would silently return the
     decoded part padded with gray, so it is rejected here.
@@ -656,7 +662,7 @@ def decode_raw(source: bytes | Path, path: str | Path) -> np.ndarray:
 
             import tifffile
 
-            img = plain_tiff_pixels(source) if isinstance(source, (bytes, bytearray)) else None
+            img = plain_tiff_pixels(source, out) if isinstance(source, (bytes, bytearray)) else None
             if img is None:
                 img = tifffile.imread(io.BytesIO(source) if isinstance(source, (bytes, bytearray)) else source)
         else:

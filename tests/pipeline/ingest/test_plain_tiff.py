@@ -75,3 +75,36 @@ def test_decode_raw_truncated_file_still_refused(tmp_path: Path) -> None:
 
     with pytest.raises(FrameError, match="a.tif|unreadable"):
         decode_raw(data[:300], tmp_path / "a.tif")
+
+
+def test_decoded_into_the_given_array_when_it_fits() -> None:
+    arr = np.arange(61 * 37, dtype=np.uint16).reshape(61, 37)
+    data = _tiff(arr, rowsperstrip=8)
+    into = np.zeros((61, 37), np.uint16)
+    assert plain_tiff_pixels(data, into) is into
+    np.testing.assert_array_equal(into, arr)
+    other = np.zeros((37, 61), np.uint16)  # wrong shape: a new array, the given one untouched
+    got = plain_tiff_pixels(data, other)
+    assert got is not other and not other.any()
+    np.testing.assert_array_equal(got, arr)
+    wrong_type = np.zeros((61, 37), np.uint8)
+    assert plain_tiff_pixels(data, wrong_type) is not wrong_type and not wrong_type.any()
+
+
+def test_capture_decoded_into_its_cube() -> None:
+    from pipeline.apply.captures import find_captures
+    from pipeline.ingest.camera_meta import read_capture_pixels
+    from pipeline.ingest.identify import identify_camera
+
+    folder = DATA / "micasense-rededge"
+    if not folder.is_dir():
+        pytest.skip("no MicaSense sample")
+    cap = find_captures(folder, identify_camera(folder, None).camera).captures[1]
+    sha, dns, _ = read_capture_pixels(cap)
+    cube = np.zeros((len(cap.metas), 960, 1280), np.uint16)
+    sha2, dns2, _ = read_capture_pixels(cap, out=cube)
+    assert sha2 == sha
+    for b, (a, c) in enumerate(zip(dns, dns2)):
+        np.testing.assert_array_equal(a, c)
+        assert np.shares_memory(c, cube[b])
+    np.testing.assert_array_equal(cube, np.stack(dns))
