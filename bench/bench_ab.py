@@ -20,6 +20,13 @@ calibration store for both versions (the store format is a contract).
 The markdown section replaces the text between ``<!-- bench_ab:start -->`` and
 ``<!-- bench_ab:end -->`` in ``--out`` (nothing is written without ``--out``).
 
+``--factory N`` (issue 25) compares ``mscal apply --calibration factory --reference dls`` of
+both versions on ``N`` MicaSense captures (``bench_factory.make_survey``), alternating with
+``bench_factory``'s hand-written numpy loop of the manufacturer's model (old, new, loop, then
+rotated). These runs go through ``bench_calibrate.run_measured``: CPU user+sys of the whole
+process tree (worker processes included: a forkserver's workers are reaped by a subreaper),
+peak summed PSS of the tree. Section key ``bench_ab_factory``.
+
 Importing this module runs nothing.
 """
 
@@ -112,6 +119,87 @@ def run(old_rev: str, frames: int, repeat: int, work: Path, log=print) -> dict:
                        capture_output=True)
 
 
+def run_factory(old_rev: str, captures: int, repeat: int, work: Path, log=print, settle_s: float = 0.0) -> dict:
+    """Factory apply of the old and new versions and the hand loop, rotating (module docstring)."""
+    sys.path.insert(0, str(ROOT / "bench"))
+    import bench_calibrate as bc
+    import bench_factory as bf
+    from bench_apply import settle
+
+    old_tree = work / "old"
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(old_tree), old_rev],
+                   check=True, capture_output=True)
+    here, pythonpath = os.getcwd(), os.environ.get("PYTHONPATH")
+    os.chdir(work)  # `python -m` puts the working directory first on sys.path: neither tree
+    try:
+        survey = bf.make_survey(work / "captures", captures, seed=1)
+        log(f"{captures} captures written to {survey}")
+        trees = {"old": old_tree, "new": ROOT}
+        res: dict = {"old": [], "new": [], "loop": []}
+        order = ["old", "new", "loop"]
+        for i in range(repeat):
+            for which in order[i % 3:] + order[:i % 3]:
+                out = work / f"out-{which}-{i}"
+                if which == "loop":
+                    os.environ["PYTHONPATH"] = str(ROOT)
+                    cmd = [sys.executable, str(ROOT / "bench" / "bench_factory.py"), "--child", "loop", str(survey),
+                           str(out)]
+                else:
+                    os.environ["PYTHONPATH"] = str(trees[which])
+                    cmd = [sys.executable, "-m", _cli_module(trees[which]), "apply", str(survey), "--calibration",
+                           "factory", "--reference", "dls", "-o", str(out), "-q"]
+                settle(settle_s)
+                r = bc._check(bc.run_measured(cmd), f"{which} run")
+                res[which].append((r.wall_s, r.cpu_s, r.maxrss_mib, r.user_s, r.sys_s))
+                log(f"factory {which}: wall {r.wall_s:.1f} s, CPU {r.cpu_s:.1f} s, {r.maxrss_mib:.0f} MiB")
+                shutil.rmtree(out, ignore_errors=True)
+        return res
+    finally:
+        os.chdir(here)
+        if pythonpath is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = pythonpath
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(old_tree)],
+                       capture_output=True)
+
+
+def render_factory(res: dict, old_rev: str, new_rev: str, command: str, captures: int,
+                   load: tuple[str, str]) -> str:
+    med = statistics.median
+    lines = [
+        '<a id="bench-ab-factory"></a>',
+        "",
+        "## A/B: factory apply of this checkout against an older commit and the hand loop",
+        "",
+        "Produced by `bench/bench_ab.py --factory`; a later run replaces this section.",
+        "",
+        "```", command, "```", "",
+        f"Old: git {old_rev}. New: git {new_rev}. {captures} MicaSense RedEdge captures "
+        "(`bench_factory.make_survey`); `mscal apply --calibration factory --reference dls` of each version and "
+        "`bench_factory`'s hand-written numpy loop, rotating. CPU: user+sys of the whole process tree.",
+        "",
+        f"Load (`uptime`): at start `{load[0]}`; at end `{load[1]}`.",
+        "",
+        "| command | runs | wall min (s) | wall median (s) | CPU median (s) | CPU / capture (ms) | user / sys (s) | "
+        "captures/s (median wall) | CPU / wall | peak RSS max (MiB) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    names = {"old": f"mscal apply, old ({old_rev})", "new": f"mscal apply, new ({new_rev})",
+             "loop": "hand-written numpy loop"}
+    for which in ("old", "new", "loop"):
+        runs = res[which]
+        w, c = med(r[0] for r in runs), med(r[1] for r in runs)
+        lines.append(f"| {names[which]} | {len(runs)} | {min(r[0] for r in runs):.1f} | {w:.1f} | {c:.1f} | "
+                     f"{1e3 * c / captures:.0f} | {med(r[3] for r in runs):.1f} / {med(r[4] for r in runs):.1f} | "
+                     f"{captures / w:.1f} | {c / w:.2f} | {max(r[2] for r in runs):.0f} |")
+    lw, ow, nw = (med(r[0] for r in res[k]) for k in ("loop", "old", "new"))
+    lc, oc, nc = (med(r[1] for r in res[k]) for k in ("loop", "old", "new"))
+    lines += ["", f"- new/old: CPU {nc / oc:.2f}x, wall {nw / ow:.2f}x. Loop wall / apply wall: old {lw / ow:.2f}x, "
+                  f"new {lw / nw:.2f}x (target >= 2.0x). Loop CPU / apply CPU: old {lc / oc:.2f}x, new {lc / nc:.2f}x."]
+    return "\n".join(lines) + "\n"
+
+
 def render(res: dict, old_rev: str, new_rev: str, command: str, frames: int, load: tuple[str, str]) -> str:
     lines = [
         '<a id="bench-ab"></a>',
@@ -149,8 +237,8 @@ def render(res: dict, old_rev: str, new_rev: str, command: str, frames: int, loa
     return "\n".join(lines) + "\n"
 
 
-def _replace_section(path: Path, text: str) -> None:
-    start, end = f"<!-- {SECTION_KEY}:start -->", f"<!-- {SECTION_KEY}:end -->"
+def _replace_section(path: Path, text: str, key: str = SECTION_KEY) -> None:
+    start, end = f"<!-- {key}:start -->", f"<!-- {key}:end -->"
     doc = path.read_text() if path.exists() else ""
     block = f"{start}\n{text}{end}"
     if start in doc and end in doc:
@@ -170,6 +258,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--frames", type=int, default=300, help="flight length for apply (default 300)")
     p.add_argument("--repeat", type=int, default=3, help="runs per version and command (default 3)")
     p.add_argument("--out", type=Path, default=None, help="markdown file to update (default: none)")
+    p.add_argument("--factory", type=int, default=0, metavar="N",
+                   help="instead: factory apply on N MicaSense captures, old vs new vs the hand loop")
+    p.add_argument("--settle", type=float, default=0.0, help="--factory: seconds of rest before each run")
     args = p.parse_args(argv)
     uptime = lambda: subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()  # noqa: E731
     load0 = uptime()
@@ -177,13 +268,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                              text=True).stdout.strip()
     old_rev = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", args.old], capture_output=True,
                              text=True, check=True).stdout.strip()
-    with tempfile.TemporaryDirectory(prefix="mscal-ab-") as tmp:
-        res = run(args.old, args.frames, args.repeat, Path(tmp))
     command = ".venv/bin/python bench/bench_ab.py " + " ".join(argv)
-    md = render(res, old_rev, new_rev, command, args.frames, (load0, uptime()))
+    with tempfile.TemporaryDirectory(prefix="mscal-ab-") as tmp:
+        if args.factory:
+            res = run_factory(args.old, args.factory, args.repeat, Path(tmp), settle_s=args.settle)
+        else:
+            res = run(args.old, args.frames, args.repeat, Path(tmp))
+    if args.factory:
+        md = render_factory(res, old_rev, new_rev, command, args.factory, (load0, uptime()))
+    else:
+        md = render(res, old_rev, new_rev, command, args.frames, (load0, uptime()))
     print(md)
     if args.out:
-        _replace_section(args.out, md)
+        _replace_section(args.out, md, "bench_ab_factory" if args.factory else SECTION_KEY)
     stamp = datetime.now(timezone.utc).isoformat(timespec="seconds")
     print(f"done {stamp}")
     return 0

@@ -23,7 +23,7 @@ import base64
 import math
 import re
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
@@ -112,6 +112,9 @@ class CaptureMeta:
     channel_mix: tuple[float, ...] | None = None  # Camera:ColorTransform, whole matrix
     irradiance_unit: str = "W m-2 nm-1"
     problems: tuple[TagProblem, ...] = ()
+    # the file's XMP properties the sun-sensor model reads (SUN_SENSOR_XMP; sun_sensor_xmp)
+    sun_sensor_props: tuple[tuple[str, str, str | tuple[str, ...]], ...] | None = field(
+        default=None, compare=False, repr=False)
 
     @property
     def black_level(self) -> float:
@@ -288,8 +291,34 @@ def meta_from_tags(path: Path, tags: dict[int, Any], shape: tuple[int, int], bit
         serial=_clean(exif.get("BodySerialNumber") or tags.get(50735)), orientation=int(tags.get(274) or 1),
         black_tag=tags.get(50714),
     )
-    metas = _dispatch(ctx)
+    metas = _with_sun_sensor_props(ctx, _dispatch(ctx))
     return metas[0]
+
+
+#: Local names of the XMP properties read by the sun-sensor model
+#: (:mod:`pipeline.apply.sunlight`: orientation, DLS 2 split, Sequoia's IrradianceList): kept
+#: on each band's metadata, so the sun sensor reads no file a second time.
+SUN_SENSOR_XMP = frozenset({
+    "Yaw", "Pitch", "Roll", "IrradianceYaw", "IrradiancePitch", "IrradianceRoll", "Irradiance",
+    "DirectIrradiance", "ScatteredIrradiance", "HorizontalIrradiance", "IrradianceList",
+    "FlightYawDegree", "FlightPitchDegree", "FlightRollDegree",  # DJI: the aircraft's, when no sensor's own
+})
+
+
+def _with_sun_sensor_props(ctx: _Ctx, metas: list[CaptureMeta]) -> list[CaptureMeta]:
+    props = tuple((ns, name, tuple(v) if isinstance(v, list) else v)
+                  for (ns, name), v in ctx.xmp.props.items() if name in SUN_SENSOR_XMP)
+    return [replace(m, sun_sensor_props=props) for m in metas]
+
+
+def sun_sensor_xmp(meta: CaptureMeta) -> Xmp | None:
+    """The XMP properties of ``meta``'s file that the sun-sensor model reads
+    (:data:`SUN_SENSOR_XMP`), as kept when the file was read; None for metadata made
+    otherwise (read the file's XMP then)."""
+    if meta.sun_sensor_props is None:
+        return None
+    return Xmp({(ns, name): list(v) if isinstance(v, tuple) else v for ns, name, v in meta.sun_sensor_props},
+               meta.path)
 
 
 def _clean(value: Any) -> str | None:
@@ -649,7 +678,7 @@ def _read_jpeg(path: Path) -> list[CaptureMeta]:
         make=_clean(exif.get("Make")), model=_clean(exif.get("Model")), software=_clean(exif.get("Software")),
         serial=_clean(exif.get("BodySerialNumber")), orientation=int(exif.get("Orientation") or 1), black_tag=None,
     )
-    return _dispatch(ctx)
+    return _with_sun_sensor_props(ctx, _dispatch(ctx))
 
 
 def _sentera(ctx: _Ctx) -> list[CaptureMeta]:
@@ -1137,21 +1166,25 @@ def _capture_problem(
 # --------------------------------------------------------------------------- pixels
 
 
-def read_capture_pixels(capture: Capture) -> tuple[str, list[np.ndarray], dict[Path, np.ndarray]]:
+def read_capture_pixels(capture: Capture, out: np.ndarray | None = None
+                        ) -> tuple[str, list[np.ndarray], dict[Path, np.ndarray]]:
     """Content hash (over the capture's files, in band order), the stored DN of each band
     (its channel, for a multi-channel file) and the whole ``(H, W, C)`` image of every
-    multi-channel file (for :func:`factory_radiance`'s colour transform)."""
+    multi-channel file (for :func:`factory_radiance`'s colour transform). ``out``: a uint16
+    ``(band, H, W)`` cube into which a one-band file of that shape is decoded where it can be
+    (its DN are then ``out[b]``; the caller copies the others)."""
     from hashlib import sha256
 
     from pipeline.ingest.session import decode_raw
 
     h = sha256()
     decoded: dict[Path, np.ndarray] = {}
+    into = _band_slots(capture, out)
     for path in capture.files:
         data = path.read_bytes()
         h.update(data)
         try:
-            decoded[path] = np.asarray(decode_raw(data, path))
+            decoded[path] = np.asarray(decode_raw(data, path, into.get(path)))
         except FrameError:
             raise
         except Exception as exc:  # tifffile raises IndexError/ValueError on truncated files
@@ -1170,3 +1203,14 @@ def read_capture_pixels(capture: Capture) -> tuple[str, list[np.ndarray], dict[P
             raise FrameError(f"image {img.shape} does not match its metadata {meta.shape}", path=meta.path)
         dns.append(np.asarray(img).astype(np.uint16, copy=False))
     return h.hexdigest(), dns, stacks
+
+
+def _band_slots(capture: Capture, out: np.ndarray | None) -> dict[Path, np.ndarray]:
+    """``out[b]`` of each one-band file whose shape it has (:func:`read_capture_pixels`)."""
+    if out is None or out.ndim != 3 or out.dtype != np.uint16 or len(capture.metas) != out.shape[0]:
+        return {}
+    per_file: dict[Path, int] = {}
+    for meta in capture.metas:
+        per_file[meta.path] = per_file.get(meta.path, 0) + 1
+    return {m.path: out[b] for b, m in enumerate(capture.metas)
+            if m.channel is None and per_file[m.path] == 1 and tuple(m.shape) == out.shape[1:]}

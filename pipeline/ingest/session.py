@@ -567,9 +567,89 @@ def read_raw(path: str | Path) -> np.ndarray:
     return decode_raw(path, path)
 
 
-def decode_raw(source: bytes | Path, path: str | Path) -> np.ndarray:
+#: IFD0 tags :func:`plain_tiff_pixels` accepts: baseline TIFF, XMP, EXIF and GPS IFDs, DNG
+#: black level, GDAL metadata, MicaSense's private tags and opcode list (none changes how
+#: tifffile reads the pixels). A file with any other tag is left to tifffile.
+_PLAIN_TIFF_TAGS = frozenset({
+    254, 256, 257, 258, 259, 262, 271, 272, 273, 274, 277, 278, 279, 280, 281, 282, 283, 284, 296, 305, 306, 339,
+    700, 34665, 34853, 42112, 42113, 48020, 48021, 48022, 50713, 50714, 50735, 51022,
+})
+_TIFF_TYPES = {3: "H", 4: "I"}  # SHORT, LONG: the types of the tags read here
+
+
+def plain_tiff_pixels(data: bytes | bytearray, out: np.ndarray | None = None) -> np.ndarray | None:
+    """The pixels of a single-image, uncompressed, stripped, one-sample 8- or 16-bit unsigned
+    classic TIFF (camera band files such as MicaSense's), straight from its strips: the array
+    ``tifffile.imread`` returns for such a file, without building tifffile's page and tag
+    objects (about 2 ms of Python per file). None for anything else, or anything unexpected
+    (other tags, tiles, compression, several images, strips past the end): then tifffile reads it.
+    ``out``: an array to decode into when it has the image's shape and dtype (else a new one).
+
+    References: TIFF 6.0 specification (Adobe, 1992), sections 2 (structure), 3 (baseline
+    fields) and 8 (StripOffsets, StripByteCounts, RowsPerStrip)."""
+    import struct
+
+    n = len(data)
+    if n < 8 or data[:4] not in (b"II*\0", b"MM\0*"):
+        return None
+    e = "<" if data[0] == 0x49 else ">"
+    ifd = struct.unpack_from(e + "I", data, 4)[0]
+    if ifd < 8 or ifd + 2 > n:
+        return None
+    count = struct.unpack_from(e + "H", data, ifd)[0]
+    end = ifd + 2 + 12 * count
+    if end + 4 > n or struct.unpack_from(e + "I", data, end)[0] != 0:  # one image only
+        return None
+    tags: dict[int, tuple[int, ...]] = {}
+    for k in range(count):
+        tag, typ, cnt, value = struct.unpack_from(e + "HHI4s", data, ifd + 2 + 12 * k)
+        if tag not in _PLAIN_TIFF_TAGS:
+            return None
+        if tag not in (256, 257, 258, 259, 273, 277, 278, 279, 284, 339):
+            continue
+        if typ not in _TIFF_TYPES or cnt < 1:
+            return None
+        fmt = f"{e}{cnt}{_TIFF_TYPES[typ]}"
+        size = struct.calcsize(fmt)
+        if size <= 4:
+            tags[tag] = struct.unpack_from(fmt, value)
+        else:
+            at = struct.unpack_from(e + "I", value)[0]
+            if at + size > n:
+                return None
+            tags[tag] = struct.unpack_from(fmt, data, at)
+    try:
+        (width,), (height,), (bits,) = tags[256], tags[257], tags[258]
+        offsets, counts = tags[273], tags[279]
+    except (KeyError, ValueError):
+        return None
+    if tags.get(259, (1,)) != (1,) or tags.get(277, (1,)) != (1,) or tags.get(339, (1,)) != (1,) \
+            or tags.get(284, (1,)) not in ((1,), (2,)) or bits not in (8, 16) or not (width and height):
+        return None
+    rows = min(tags.get(278, (height,))[0] or height, height)
+    strips = -(-height // rows)
+    row_bytes = width * bits // 8
+    if len(offsets) != strips or len(counts) != strips:
+        return None
+    dtype = np.dtype(f"{e}u{bits // 8}")
+    for i, (at, nbytes) in enumerate(zip(offsets, counts)):
+        if nbytes != min(rows, height - i * rows) * row_bytes or at + nbytes > n:
+            return None
+    native = dtype.newbyteorder("=")
+    if out is None or out.shape != (height, width) or out.dtype != native or not out.flags.c_contiguous:
+        out = np.empty((height, width), native)
+    flat = out.reshape(-1)
+    for i, at in enumerate(offsets):
+        r = min(rows, height - i * rows)
+        flat[i * rows * width:(i * rows + r) * width] = np.frombuffer(data, dtype, r * width, at)
+    return out
+
+
+def decode_raw(source: bytes | Path, path: str | Path, out: np.ndarray | None = None) -> np.ndarray:
     """Pixels of a frame file, from its bytes or (``source`` a path) from the file itself;
-    ``path`` names the format by its suffix and the file in errors.
+    ``path`` names the format by its suffix and the file in errors. ``out``: where a plain
+    camera TIFF of that shape and dtype is decoded (:func:`plain_tiff_pixels`); the array
+    returned is ``out`` when it was used.
 
     A JPEG without its end-of-image marker is truncated: libjpeg would silently return the
     decoded part padded with gray, so it is rejected here.
@@ -582,7 +662,9 @@ def decode_raw(source: bytes | Path, path: str | Path) -> np.ndarray:
 
             import tifffile
 
-            img = tifffile.imread(io.BytesIO(source) if isinstance(source, (bytes, bytearray)) else source)
+            img = plain_tiff_pixels(source, out) if isinstance(source, (bytes, bytearray)) else None
+            if img is None:
+                img = tifffile.imread(io.BytesIO(source) if isinstance(source, (bytes, bytearray)) else source)
         else:
             import cv2
 

@@ -66,6 +66,7 @@ from pipeline.ingest.camera_meta import (
     CaptureMeta,
     read_file_metas,
     reflectance_factor,
+    sun_sensor_xmp,
     sunshine_records,
     xmp_irradiance,
 )
@@ -240,7 +241,8 @@ def sensor_light(captures: Sequence[Capture], times: np.ndarray, *, fit_ratio: b
             if kb is None:
                 continue
             k[c, b] = kb
-            xmps[c, b] = x = file_xmp(meta.path)
+            kept = sun_sensor_xmp(meta)  # the properties read with the file's metadata
+            xmps[c, b] = x = kept if kept is not None else file_xmp(meta.path)
             o = sensor_orientation(x)
             if o is not None and not np.isfinite(ypr[c, 0]):
                 ypr[c] = (o.yaw, o.pitch, o.roll)

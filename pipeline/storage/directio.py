@@ -40,7 +40,7 @@ try:
 except ImportError:  # pragma: no cover - not POSIX: no O_DIRECT either
     fcntl = None  # type: ignore[assignment]
 
-__all__ = ["DIRECT_IO_ENV", "MIN_BYTES", "direct_io_enabled", "set_direct_io", "write_file"]
+__all__ = ["DIRECT_IO_ENV", "MIN_BYTES", "aligned_empty", "direct_io_enabled", "set_direct_io", "write_file"]
 
 #: Files smaller than this are written buffered (the copy into the aligned buffer and the
 #: extra system calls are not worth it).
@@ -66,6 +66,25 @@ def direct_io_enabled() -> bool:
 def set_direct_io(enabled: bool) -> None:
     """Switch ``O_DIRECT`` writes on or off for this process and the processes it starts."""
     os.environ[DIRECT_IO_ENV] = "1" if enabled else "0"
+
+
+def aligned_empty(shape: tuple[int, ...], dtype: np.dtype | type | str) -> np.ndarray:
+    """An uninitialised C-contiguous array whose data starts on a 4096-byte boundary: written
+    whole by :func:`write_file`, its bytes go to the device straight from it, without the copy
+    into the thread's aligned buffer."""
+    dtype = np.dtype(dtype)
+    n = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    raw = np.empty(n + _ALIGN, np.uint8)
+    start = -raw.ctypes.data % _ALIGN
+    return raw[start:start + n].view(dtype).reshape(shape)
+
+
+def _aligned_view(views: Sequence[memoryview]) -> memoryview | None:
+    """The only part, if it starts on a 4096-byte boundary (then it needs no copy)."""
+    if len(views) != 1:
+        return None
+    v = views[0]
+    return v[:] if np.frombuffer(v, dtype=np.uint8).ctypes.data % _ALIGN == 0 else None  # released on its own
 
 
 def _buffer(size: int) -> mmap.mmap:
@@ -127,14 +146,16 @@ def write_file(path: str | Path, parts: Sequence, *, exclusive: bool = True) -> 
         return "buffered"
     head = n // _ALIGN * _ALIGN  # written direct; the tail (< 4096 bytes) buffered, after it
     try:
-        buf = _buffer(n)
-        dst = np.frombuffer(buf, dtype=np.uint8, count=n)
-        pos = 0
-        for v in views:  # numpy copies without holding the GIL
-            dst[pos:pos + v.nbytes] = np.frombuffer(v, dtype=np.uint8)
-            pos += v.nbytes
-        del dst
-        mv = memoryview(buf)
+        mv = _aligned_view(views)
+        if mv is None:
+            buf = _buffer(n)
+            dst = np.frombuffer(buf, dtype=np.uint8, count=n)
+            pos = 0
+            for v in views:  # numpy copies without holding the GIL
+                dst[pos:pos + v.nbytes] = np.frombuffer(v, dtype=np.uint8)
+                pos += v.nbytes
+            del dst
+            mv = memoryview(buf)
         try:
             _pwrite_all(fd, mv, 0, head, path)
             if n > head:

@@ -162,3 +162,24 @@ def test_partial_last_block_is_written_without_truncating(tmp_path, monkeypatch,
     assert sum(k for off, k, direct in writes if direct) == head
     assert all(off + k <= head for off, k, direct in writes if direct)
     assert [(off, k) for off, k, direct in writes if not direct] == [(head, n - head)]
+
+
+@pytest.mark.parametrize("n", [MIN_BYTES, 4096 * 40, 4096 * 40 + 6, 1_000_003])
+def test_aligned_array_written_from_its_own_memory(tmp_path, monkeypatch, n) -> None:
+    """An array from aligned_empty starts on a 4096-byte boundary and is written without the
+    copy into the thread's buffer (which is never made), with exactly its bytes."""
+    arr = directio.aligned_empty((n,), np.uint8)
+    assert arr.ctypes.data % 4096 == 0 and arr.flags.c_contiguous and arr.shape == (n,)
+    arr[...] = np.frombuffer(_payload(n, seed=7), np.uint8)
+    cube = directio.aligned_empty((3, 5, 7), np.float32)
+    assert cube.ctypes.data % 4096 == 0 and cube.shape == (3, 5, 7) and cube.dtype == np.float32
+    monkeypatch.setattr(directio, "_local", threading.local())
+    how = write_file(tmp_path / "a.bin", [arr])
+    assert (tmp_path / "a.bin").read_bytes() == arr.tobytes()
+    if _direct_possible(tmp_path):
+        assert how == "direct"
+        assert getattr(directio._local, "buf", None) is None  # no copy through the aligned buffer
+    unaligned = np.empty(n + 1, np.uint8)[1:]
+    unaligned[...] = arr
+    write_file(tmp_path / "b.bin", [unaligned])
+    assert (tmp_path / "b.bin").read_bytes() == arr.tobytes()

@@ -1,0 +1,95 @@
+"""Issue 25's shortcuts in the factory path give the values of the longer way, exactly: the sun
+sensor from the XMP properties kept with each band file's metadata (not a second read of the
+file), the report's frame levels straight from raw.zarr's chunk files with a counting median."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.apply.captures import capture_times, find_captures
+from pipeline.ingest import sunsensor as sunlight
+from pipeline.ingest.camera_meta import SUN_SENSOR_XMP, read_file_metas, sun_sensor_xmp
+from pipeline.ingest.identify import identify_camera
+from pipeline.products.report import flight as report_flight
+from pipeline.products.report.flight import frame_levels, median_uint16
+from pipeline.products.report.inputs import open_flight
+
+SHARED = Path(__file__).parents[3].parent / "shared" / "data"
+
+
+@pytest.mark.parametrize("camera", ["micasense-rededge", "parrot-sequoia"])
+def test_sensor_light_from_kept_properties_equals_reading_the_files(camera, monkeypatch) -> None:
+    folder = SHARED / camera
+    if not folder.is_dir():
+        pytest.skip(f"{camera} sample not found")
+    caps = find_captures(folder, identify_camera(folder, None).camera).captures
+    assert all(m.sun_sensor_props is not None for c in caps for m in c.metas)
+    kept = sunlight.sensor_light(caps, capture_times(caps))
+    monkeypatch.setattr(sunlight, "sun_sensor_xmp", lambda meta: None)  # the files' XMP, read again
+    again = sunlight.sensor_light(caps, capture_times(caps))
+    for f in dataclasses.fields(kept):
+        a, b = getattr(kept, f.name), getattr(again, f.name)
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(a, b)
+        else:
+            assert a == b, f.name
+
+
+def test_kept_properties_are_the_files_own() -> None:
+    files = sorted((SHARED / "micasense-rededge").glob("*.tif")) + sorted((SHARED / "parrot-sequoia").glob("*.TIF"))
+    if not files:
+        pytest.skip("no sample files")
+    for path in files:
+        meta = read_file_metas(path)[0]
+        full = sunlight.file_xmp(path).props
+        want = {k: v for k, v in full.items() if k[1] in SUN_SENSOR_XMP}
+        assert want, path  # every sample carries a reading
+        assert sun_sensor_xmp(meta).props == want
+        assert meta == dataclasses.replace(meta, sun_sensor_props=None)  # not part of the metadata's identity
+        hash(meta)
+
+
+def test_counting_median_is_numpys() -> None:
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 4, 9, 10, 4097, 10_000):
+        for top in (1, 2, 255, 4096, 65536):
+            v = rng.integers(0, top, n).astype(np.uint16)
+            assert median_uint16(v) == np.median(v.astype(np.float64))
+    assert median_uint16(np.array([65534, 65535], np.uint16)) == 65534.5
+    assert median_uint16(np.array([[7, 1], [3, 200]], np.uint8)) == 5.0
+
+
+def test_frame_levels_from_chunk_files_equal_the_dask_read(applied, monkeypatch) -> None:
+    out = applied[2]
+    flight = open_flight(out)
+    fast = frame_levels(flight)
+    assert len(fast) >= 3 and all(np.isfinite(v) for v in fast.values())
+    monkeypatch.setattr(report_flight.FrameChunks, "open", staticmethod(lambda path: None))
+    monkeypatch.setattr(report_flight, "median_uint16", lambda v: float(np.median(np.asarray(v, dtype=float))))
+    assert frame_levels(flight) == fast
+
+
+def test_kept_properties_hold_every_orientation_the_model_reads(tmp_path: Path) -> None:
+    """DJI writes no sensor orientation of its own: the aircraft's FlightYaw/Pitch/RollDegree
+    must survive in the kept properties, or the tilt model would take a level sensor."""
+    from tests import camera_files as cf
+
+    if not (SHARED / "micasense-rededge").is_dir():
+        pytest.skip("no MicaSense sample")
+    folder = tmp_path / "dji"
+    folder.mkdir()
+    angles = 'drone-dji:FlightYawDegree="+37.5" drone-dji:FlightPitchDegree="-9.25" drone-dji:FlightRollDegree="+6.0" '
+    packet = cf.dji_xmp(1, "dji-capture-x").replace('drone-dji:SensorGain=', angles + 'drone-dji:SensorGain=')
+    cf.rewrite(cf.band_file(cf.CAPTURES[0], 1), folder / "DJI_0011.TIF", lambda _x: packet, make="DJI",
+               model="FC6360", black=(3200,))
+    path = folder / "DJI_0011.TIF"
+    meta = read_file_metas(path)[0]
+    full = sunlight.sensor_orientation(sunlight.file_xmp(path))
+    kept = sunlight.sensor_orientation(sun_sensor_xmp(meta))
+    assert full is not None and full.source.startswith("drone-dji")
+    assert kept == full
+    assert np.degrees([kept.yaw, kept.pitch, kept.roll]) == pytest.approx([37.5, -9.25, 6.0])

@@ -1,0 +1,110 @@
+"""The strip reader of plain camera TIFFs (session.plain_tiff_pixels) gives exactly what
+tifffile gives, and declines every file it does not fully understand (tifffile reads those)."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+from pipeline.ingest.session import decode_raw, plain_tiff_pixels
+
+DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
+
+
+def _tiff(arr: np.ndarray, **kw) -> bytes:
+    buf = io.BytesIO()
+    kw.setdefault("metadata", None)  # no shape description (a camera writes none)
+    tifffile.imwrite(buf, arr, **kw)
+    return buf.getvalue()
+
+
+@pytest.mark.parametrize("dtype", ["<u2", ">u2", "u1"])
+@pytest.mark.parametrize("rowsperstrip", [None, 1, 7, 64])
+def test_same_pixels_as_tifffile(dtype: str, rowsperstrip: int | None) -> None:
+    rng = np.random.default_rng(3)
+    arr = rng.integers(0, np.iinfo(np.dtype(dtype)).max, size=(61, 37)).astype(dtype)
+    data = _tiff(arr, byteorder=np.dtype(dtype).byteorder if dtype != "u1" else "<", rowsperstrip=rowsperstrip,
+                 photometric="minisblack")
+    got = plain_tiff_pixels(data)
+    ref = tifffile.imread(io.BytesIO(data))
+    assert got is not None
+    assert got.dtype == ref.dtype and got.dtype.isnative and got.shape == ref.shape == (61, 37)
+    np.testing.assert_array_equal(got, ref)
+    np.testing.assert_array_equal(got, arr)
+    got[0, 0] = 1  # a writable array of its own, as tifffile's
+
+
+def test_real_band_files_match_tifffile() -> None:
+    files = sorted((DATA / "micasense-rededge").glob("*.tif"))
+    if not files:
+        pytest.skip("no MicaSense sample")
+    for f in files:
+        data = f.read_bytes()
+        got = plain_tiff_pixels(data)
+        assert got is not None, f
+        np.testing.assert_array_equal(got, tifffile.imread(f))
+        assert got.dtype == np.uint16 and got.shape == (960, 1280)
+
+
+def test_declines_what_it_does_not_read() -> None:
+    arr = np.arange(64 * 32, dtype=np.uint16).reshape(64, 32)
+    assert plain_tiff_pixels(_tiff(arr, compression="zlib")) is None
+    assert plain_tiff_pixels(_tiff(arr, tile=(16, 16))) is None
+    assert plain_tiff_pixels(_tiff(np.stack([arr, arr]))) is None  # two images
+    assert plain_tiff_pixels(_tiff(arr.astype(np.float32))) is None
+    assert plain_tiff_pixels(_tiff(arr.astype(np.int16))) is None
+    assert plain_tiff_pixels(_tiff(np.dstack([arr, arr, arr]).astype(np.uint8), photometric="rgb")) is None
+    assert plain_tiff_pixels(_tiff(arr, metadata={})) is None  # ImageDescription: tifffile's call  # ImageDescription: tifffile's call
+    assert plain_tiff_pixels(_tiff(arr, bigtiff=True)) is None
+    assert plain_tiff_pixels(b"not a tiff at all") is None
+    full = _tiff(arr, rowsperstrip=16)
+    assert plain_tiff_pixels(full) is not None
+    assert plain_tiff_pixels(full[:-10]) is None  # a strip past the end of a truncated file
+    assert plain_tiff_pixels(full[:40]) is None
+
+
+def test_decode_raw_truncated_file_still_refused(tmp_path: Path) -> None:
+    arr = np.arange(64 * 32, dtype=np.uint16).reshape(64, 32)
+    data = _tiff(arr, rowsperstrip=16)
+    np.testing.assert_array_equal(decode_raw(data, tmp_path / "a.tif"), arr)
+    from mscal_core.errors import FrameError
+
+    with pytest.raises(FrameError, match="a.tif|unreadable"):
+        decode_raw(data[:300], tmp_path / "a.tif")
+
+
+def test_decoded_into_the_given_array_when_it_fits() -> None:
+    arr = np.arange(61 * 37, dtype=np.uint16).reshape(61, 37)
+    data = _tiff(arr, rowsperstrip=8)
+    into = np.zeros((61, 37), np.uint16)
+    assert plain_tiff_pixels(data, into) is into
+    np.testing.assert_array_equal(into, arr)
+    other = np.zeros((37, 61), np.uint16)  # wrong shape: a new array, the given one untouched
+    got = plain_tiff_pixels(data, other)
+    assert got is not other and not other.any()
+    np.testing.assert_array_equal(got, arr)
+    wrong_type = np.zeros((61, 37), np.uint8)
+    assert plain_tiff_pixels(data, wrong_type) is not wrong_type and not wrong_type.any()
+
+
+def test_capture_decoded_into_its_cube() -> None:
+    from pipeline.apply.captures import find_captures
+    from pipeline.ingest.camera_meta import read_capture_pixels
+    from pipeline.ingest.identify import identify_camera
+
+    folder = DATA / "micasense-rededge"
+    if not folder.is_dir():
+        pytest.skip("no MicaSense sample")
+    cap = find_captures(folder, identify_camera(folder, None).camera).captures[1]
+    sha, dns, _ = read_capture_pixels(cap)
+    cube = np.zeros((len(cap.metas), 960, 1280), np.uint16)
+    sha2, dns2, _ = read_capture_pixels(cap, out=cube)
+    assert sha2 == sha
+    for b, (a, c) in enumerate(zip(dns, dns2)):
+        np.testing.assert_array_equal(a, c)
+        assert np.shares_memory(c, cube[b])
+    np.testing.assert_array_equal(cube, np.stack(dns))
