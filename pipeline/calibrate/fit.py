@@ -267,11 +267,31 @@ def _energy(dn: np.ndarray, inverse_response: np.ndarray, t: float, saturation_d
 def detection_image(bands: np.ndarray, inverse_response: np.ndarray) -> np.ndarray:
     """A single image for marker detection: the mean of the linearised bands, each scaled by
     its median so that no band dominates."""
-    lin = np.take_along_axis(inverse_response, bands.reshape(bands.shape[0], -1).astype(np.intp), axis=1)
-    lin = lin.reshape(bands.shape)
-    med = np.median(lin.reshape(lin.shape[0], -1), axis=1)
+    u = np.asarray(inverse_response)
+    if bands.dtype.kind == "u" and bool(np.all(np.diff(u, axis=1) >= 0)):
+        # U is monotone (it always is: Eq. 6 fits are made so): a per-band table look-up, and
+        # the median of U(I) is U at the median DN, read off the DN histogram (no sort)
+        lin = np.empty(bands.shape, dtype=u.dtype)
+        med = np.empty(bands.shape[0], dtype=u.dtype)
+        for b in range(bands.shape[0]):
+            lin[b] = u[b][bands[b]]
+            med[b] = _monotone_median(bands[b], u[b])
+    else:
+        lin = np.take_along_axis(u, bands.reshape(bands.shape[0], -1).astype(np.intp), axis=1)
+        lin = lin.reshape(bands.shape)
+        med = np.median(lin.reshape(lin.shape[0], -1), axis=1)
     med[med <= 0] = 1.0
     return (lin / med[:, None, None]).mean(axis=0).astype(np.float32)
+
+
+def _monotone_median(dn: np.ndarray, table: np.ndarray) -> float:
+    """``np.median(table[dn])`` for a non-decreasing ``table``: the table at the middle DN(s)."""
+    c = np.cumsum(np.bincount(dn.ravel(), minlength=table.size))
+    n = int(c[-1])
+    hi = table[np.searchsorted(c, n // 2, side="right")]
+    if n % 2:
+        return hi
+    return (table[np.searchsorted(c, n // 2 - 1, side="right")] + hi) / 2
 
 
 def find_views(
