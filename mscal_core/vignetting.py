@@ -527,8 +527,10 @@ def fit_vignetting(
 
 
 def _compact(index: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(np.unique(index), position of each index in it)`` for indices in ``[0, size)``, by
-    counting instead of sorting (O(n + size))."""
+    """Return ``(np.unique(index), position of each index in it)``.
+
+    For indices in ``[0, size)``, by counting instead of sorting (O(n + size)).
+    """
     seen = np.bincount(index, minlength=size) > 0
     active = np.flatnonzero(seen)
     rank = np.cumsum(seen) - 1

@@ -10,7 +10,7 @@ from ._curve import Curve
 
 
 def _bin_order_stats(values: np.ndarray, k: np.ndarray, cnt: np.ndarray, ranks: np.ndarray) -> np.ndarray:
-    """The ``ranks[j]``-th smallest of ``values`` in bin ``j`` (0 where bin ``j`` is empty).
+    """Return the ``ranks[j]``-th smallest of ``values`` in bin ``j`` (0 where bin ``j`` is empty).
 
     The same numbers as sorting all samples by (bin, value) and picking
     ``starts[j] + ranks[j]`` (bin medians of :func:`_noise_model`, :func:`_gradient_noise`,
