@@ -283,17 +283,17 @@ def detection_image(bands: np.ndarray, inverse_response: np.ndarray) -> np.ndarr
     its median so that no band dominates."""
     u = np.asarray(inverse_response)
     if bands.dtype.kind == "u" and bool(np.all(np.diff(u, axis=1) >= 0)):
-        # U is monotone (it always is: Eq. 6 fits are made so): a per-band table look-up, and
-        # the median of U(I) is U at the median DN, read off the DN histogram (no sort)
-        lin = np.empty(bands.shape, dtype=u.dtype)
-        med = np.empty(bands.shape[0], dtype=u.dtype)
+        # U is monotone (it always is: Eq. 6 fits are made so): the median of U(I) is U at the
+        # median DN, read off the DN histogram (no sort), and U(I) / median is a look-up in the
+        # table U / median. The bands are summed in order, as mean(axis=0) does: same numbers.
+        acc = np.zeros(bands.shape[1:], dtype=np.result_type(u.dtype, np.float64))
         for b in range(bands.shape[0]):
-            lin[b] = u[b][bands[b]]
-            med[b] = _monotone_median(bands[b], u[b])
-    else:
-        lin = np.take_along_axis(u, bands.reshape(bands.shape[0], -1).astype(np.intp), axis=1)
-        lin = lin.reshape(bands.shape)
-        med = np.median(lin.reshape(lin.shape[0], -1), axis=1)
+            med = _monotone_median(bands[b], u[b])
+            acc += (u[b] / (med if med > 0 else 1.0))[bands[b]]
+        return (acc / bands.shape[0]).astype(np.float32)
+    lin = np.take_along_axis(u, bands.reshape(bands.shape[0], -1).astype(np.intp), axis=1)
+    lin = lin.reshape(bands.shape)
+    med = np.median(lin.reshape(lin.shape[0], -1), axis=1)
     med[med <= 0] = 1.0
     return (lin / med[:, None, None]).mean(axis=0).astype(np.float32)
 
@@ -377,14 +377,32 @@ def _find_views_per_lens(
     return views
 
 
-def load_marker_frames(
-    session: Session, folder: Path, inverse_response: np.ndarray, report: StageReport
-) -> tuple[list[FrameRecord], np.ndarray, list[tuple[int, View]]]:
-    """Frames of a marker folder (vignetting/ or reflector/), their band stacks and the views
-    whose marker was found; :class:`FitError` naming the folder if it was found in none."""
+@dataclass(frozen=True)
+class FolderFrames:
+    """A frame folder read: its records, their band stack ``(frame, band, H, W)`` and the
+    content hashes of their files (the stage report's ``inputs``)."""
+
+    records: list[FrameRecord]
+    stack: np.ndarray
+    inputs: dict[str, str]
+
+
+def read_folder_frames(session: Session, folder: Path) -> FolderFrames:
+    """:class:`FolderFrames` of a session's frame folder (``vignetting/``)."""
     recs = read_frames(folder, session.camera)
-    stack = read_stack(recs, session.camera)
-    report.inputs = content_hashes(record_files(recs), session.root)
+    return FolderFrames(recs, read_stack(recs, session.camera), content_hashes(record_files(recs), session.root))
+
+
+def load_marker_frames(
+    session: Session, folder: Path, inverse_response: np.ndarray, report: StageReport,
+    frames: FolderFrames | None = None,
+) -> tuple[list[FrameRecord], np.ndarray, list[tuple[int, View]]]:
+    """Frames of a marker folder (vignetting/ or reflector/; ``frames`` if already read),
+    their band stacks and the views whose marker was found; :class:`FitError` naming the
+    folder if it was found in none."""
+    frames = frames or read_folder_frames(session, folder)
+    recs, stack = frames.records, frames.stack
+    report.inputs = frames.inputs
     views = find_views(recs, stack, session, inverse_response, report)
     if not views:
         raise FitError(
@@ -415,15 +433,18 @@ def _offsets(camera: Camera) -> np.ndarray:
 
 def fit_vignetting_frames(
     session: Session, inverse_response: np.ndarray, saturation_dn: np.ndarray, pool: BandPool | None = None,
+    frames: Callable[[], FolderFrames] | None = None,
 ) -> tuple[list[vignetting.VignettingFit], StageReport]:
     """Eq. 8-10 per band from the session's ``vignetting/`` views; the bands are fitted on
-    ``pool``'s workers (a pool of its own if None)."""
+    ``pool``'s workers (a pool of its own if None). ``frames``: gives the folder already read
+    (:func:`read_folder_frames`, e.g. read ahead while the response was fitted)."""
     t0 = time.perf_counter()
     camera = session.camera
     report = StageReport("vignetting")
     session, _ = with_intrinsics(session)
     with _pool(pool, camera.n_bands) as p:
-        recs, stack, views = load_marker_frames(session, session.vignetting_dir, inverse_response, report)
+        recs, stack, views = load_marker_frames(session, session.vignetting_dir, inverse_response, report,
+                                                frames() if frames is not None else None)
         if is_multilens(camera):
             fits, saturated = _fit_multilens_vignetting(session, stack, views, inverse_response, saturation_dn,
                                                         report)
@@ -1038,7 +1059,10 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
     camera = session.camera
     partial = open_calibration(calibration, camera) if calibration is not None else None
     session, source = with_intrinsics(session, partial)
-    with BandPool(band_workers(camera.n_bands)) as pool:  # one set of workers for both per-band stages
+    # one set of workers for both per-band stages; the vignetting frames are read (and
+    # hashed) on a thread while the workers fit the response
+    with BandPool(band_workers(camera.n_bands)) as pool, ThreadPoolExecutor(1) as reader:
+        ahead = reader.submit(read_folder_frames, session, session.vignetting_dir)
         log.info("response: fitting %d bands from %s", camera.n_bands, session.response_dir)
         rfits, rrep = fit_response_frames(session.response_dir, camera, response_method, session.root, pool)
         ds = response_dataset(camera, rfits, rrep)
@@ -1046,7 +1070,7 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
         U = ds["inverse_response"].values
         sat = ds["saturation_dn"].values
         log.info("vignetting: fitting from %s", session.vignetting_dir)
-        vfits, vrep = fit_vignetting_frames(session, U, sat, pool)
+        vfits, vrep = fit_vignetting_frames(session, U, sat, pool, frames=ahead.result)
     ds = add_vignetting(ds, vfits, vrep)
     advance()
     log.info("illumination: fitting from %s", session.reflector_dir)
