@@ -734,9 +734,18 @@ def qa_band(camera: Camera) -> int:
     return camera.n_bands // 2
 
 
+def read_reflector_frames(session: Session) -> tuple[list[ReflectorCapture], FolderFrames]:
+    """The session's ``reflector/`` frames read (:func:`reflector_captures`), and their captures."""
+    folder = session.reflector_dir
+    if not folder.is_dir():
+        raise SessionError("frame folder not found", path=folder)
+    recs, captures = reflector_captures(folder, session.camera)
+    return captures, FolderFrames(recs, read_stack(recs, session.camera), content_hashes(record_files(recs), session.root))
+
+
 def fit_illumination_frames(
     session: Session, inverse_response: np.ndarray, saturation_dn: np.ndarray, vignetting_maps: np.ndarray,
-    *, shared_pixels: bool = True,
+    *, shared_pixels: bool = True, frames: Callable[[], tuple[list[ReflectorCapture], FolderFrames]] | None = None,
 ) -> IlluminationResult:
     """Eq. 11-14 from the session's ``reflector/`` image(s), per capture (:func:`reflector_captures`):
     S and B of each capture's images under its own light.
@@ -747,17 +756,15 @@ def fit_illumination_frames(
     them (bench/bench_light.py: the capture-to-capture error of S 0.5-0.6 % -> 0.11-0.13 % worst
     band); the fraction of reflector pixels kept is reported as ``shared_pixel_fraction`` (0
     when some capture would keep fewer than :data:`MIN_REFLECTOR_PIXELS`: all pixels are used,
-    and the QA report warns)."""
+    and the QA report warns). ``frames``: gives :func:`read_reflector_frames` already read."""
     t0 = time.perf_counter()
     camera = session.camera
     report = StageReport("illumination")
     session, _ = with_intrinsics(session)
     folder = session.reflector_dir
-    if not folder.is_dir():
-        raise SessionError("frame folder not found", path=folder)
-    recs, captures = reflector_captures(folder, camera)
-    stack = read_stack(recs, camera)
-    report.inputs = content_hashes(record_files(recs), session.root)
+    captures, read = frames() if frames is not None else read_reflector_frames(session)
+    recs, stack = read.records, read.stack
+    report.inputs = read.inputs
     views = find_views(recs, stack, session, inverse_response, report)
     if not views:
         raise FitError(
@@ -1061,20 +1068,24 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
     session, source = with_intrinsics(session, partial)
     # one set of workers for both per-band stages; the vignetting frames are read (and
     # hashed) on a thread while the workers fit the response
-    with BandPool(band_workers(camera.n_bands)) as pool, ThreadPoolExecutor(1) as reader:
-        ahead = reader.submit(read_folder_frames, session, session.vignetting_dir)
+    with BandPool(band_workers(camera.n_bands)) as pool, ThreadPoolExecutor(1) as aside:
+        # what does not wait for the fits is done aside, while the workers fit: reading the
+        # vignetting and reflector frames, building the response's part of the store
+        views_ahead = aside.submit(read_folder_frames, session, session.vignetting_dir)
+        reflector_ahead = aside.submit(read_reflector_frames, session)
         log.info("response: fitting %d bands from %s", camera.n_bands, session.response_dir)
         rfits, rrep = fit_response_frames(session.response_dir, camera, response_method, session.root, pool)
-        ds = response_dataset(camera, rfits, rrep)
         advance()
-        U = ds["inverse_response"].values
-        sat = ds["saturation_dn"].values
+        ds_ahead = aside.submit(response_dataset, camera, rfits, rrep)
+        U = np.stack([f.inverse_response for f in rfits])  # the store's inverse_response and saturation_dn
+        sat = np.array([f.saturation_dn for f in rfits], dtype=np.int32)
         log.info("vignetting: fitting from %s", session.vignetting_dir)
-        vfits, vrep = fit_vignetting_frames(session, U, sat, pool, frames=ahead.result)
+        vfits, vrep = fit_vignetting_frames(session, U, sat, pool, frames=views_ahead.result)
+        ds = ds_ahead.result()
     ds = add_vignetting(ds, vfits, vrep)
     advance()
     log.info("illumination: fitting from %s", session.reflector_dir)
-    ires = fit_illumination_frames(session, U, sat, ds["vignetting"].values)
+    ires = fit_illumination_frames(session, U, sat, ds["vignetting"].values, frames=reflector_ahead.result)
     ds = add_illumination(ds, ires)
     advance()
     ds = add_intrinsics(ds, session, source)
