@@ -209,3 +209,19 @@ def vignetting_band(bv: BandViews, screen: bool = False) -> tuple[vignetting.Vig
     fit = fit_observations(obs, bv.dn.shape[1:], bv.grid[0] * bv.grid[1])
     frac = np.array([vignetting.view_inconsistency(fit, *o) for o in obs]) if screen else None
     return fit, saturated, frac
+
+
+def lens_vignetting_band(bv: BandViews, min_views_to_screen: int) -> tuple[vignetting.VignettingFit, float, np.ndarray,
+                                                                          list[int]]:
+    """Eq. 8-10 of one lens of a multi-lens camera on its own views, screened on its own fit:
+    views that disagree with it (:func:`mscal_core.vignetting.inconsistent_views`) are dropped
+    and the lens fitted again when at least ``min_views_to_screen`` remain. Returns the fit,
+    the saturated fraction (of all its views), each view's inconsistency and the views dropped."""
+    obs, saturated = band_observations(bv)
+    shape, n_cells = bv.dn.shape[1:], bv.grid[0] * bv.grid[1]
+    fit = fit_observations(obs, shape, n_cells)
+    frac = np.array([vignetting.view_inconsistency(fit, *o) for o in obs])
+    bad = sorted(set(vignetting.inconsistent_views(frac).tolist()))
+    if not bad or len(obs) - len(bad) < min_views_to_screen:
+        return fit, saturated, frac, []
+    return fit_observations([o for k, o in enumerate(obs) if k not in bad], shape, n_cells), saturated, frac, bad

@@ -28,10 +28,9 @@ from mscal_core.mosaic import band_offsets
 from pipeline.calibrate.bands import (
     BandPool,
     BandViews,
-    band_observations,
     band_workers,
     energy,
-    fit_observations,
+    lens_vignetting_band,
     response_band,
     vignetting_band,
 )
@@ -447,7 +446,7 @@ def fit_vignetting_frames(
                                                 frames() if frames is not None else None)
         if is_multilens(camera):
             fits, saturated = _fit_multilens_vignetting(session, stack, views, inverse_response, saturation_dn,
-                                                        report)
+                                                        report, p)
             views_used: Any = [sum(v.pose_for(b) is not None for _, v in views) for b in range(camera.n_bands)]
         else:
             fits, saturated, views = _fit_band_vignetting(session, stack, views, inverse_response, saturation_dn,
@@ -526,49 +525,31 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
 
 
 def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[tuple[int, View]],
-                              inverse_response: np.ndarray, saturation_dn: np.ndarray,
-                              report: StageReport) -> tuple[list[vignetting.VignettingFit], dict[int, float]]:
+                              inverse_response: np.ndarray, saturation_dn: np.ndarray, report: StageReport,
+                              pool: BandPool) -> tuple[list[vignetting.VignettingFit], dict[int, float]]:
     """Eq. 8-10 of a multi-lens camera: each lens on the views whose marker it found (its own
-    poses), on threads."""
+    poses), screened on its own fit like the band-grid camera's reference band, on ``pool``."""
     camera = session.camera
-    saturated: dict[int, float] = {}
-
-    def observations(b: int, use: Sequence[tuple[int, View]]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        obs, saturated[b] = band_observations(_band_views(session, stack, b, use, inverse_response, saturation_dn))
-        return obs
-
-    shape = stack.shape[2:]
-    n_cells = int(np.prod(vignetting.cell_grid(session.reflector.size_m)))
-
-    def fit(obs: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> vignetting.VignettingFit:
-        return fit_observations(obs, shape, n_cells)
-
-    fits = _map(lambda b: _fit_lens_vignetting(b, views, observations, fit, camera, report), camera.n_bands)
-    return fits, saturated
-
-
-def _fit_lens_vignetting(b: int, views: Sequence[tuple[int, View]], observations, fit, camera: Camera,
-                         report: StageReport) -> vignetting.VignettingFit:
-    """Eq. 8-10 of one lens of a multi-lens camera, on the views whose marker that lens found
-    (its own poses): screened on its own fit like the band-grid camera's reference band."""
-    use = [v for v in views if v[1].pose_for(b) is not None]
-    if not use:
-        raise FitError(f"band {camera.bands[b].name}: the marker was found in none of its vignetting views",
-                       hint="check that the marker is in view of every lens and sharp")
-    obs = observations(b, use)
-    result = fit(obs)
-    frac = np.array([vignetting.view_inconsistency(result, *o) for o in obs])
-    bad = set(vignetting.inconsistent_views(frac).tolist())
-    if bad and len(use) - len(bad) >= MIN_VIEWS_TO_SCREEN:
-        med = float(np.nanmedian(frac))
-        for k in sorted(bad):
+    uses = [[v for v in views if v[1].pose_for(b) is not None] for b in range(camera.n_bands)]
+    for b, use in enumerate(uses):
+        if not use:
+            raise FitError(f"band {camera.bands[b].name}: the marker was found in none of its vignetting views",
+                           hint="check that the marker is in view of every lens and sharp")
+    results = pool.map(lens_vignetting_band, [
+        (_band_views(session, stack, b, uses[b], inverse_response, saturation_dn), MIN_VIEWS_TO_SCREEN)
+        for b in range(camera.n_bands)
+    ])
+    fits, saturated = [], {}
+    for b, (fit, saturated[b], frac, dropped) in enumerate(results):
+        med = float(np.nanmedian(frac)) if dropped else 0.0
+        for k in dropped:
             report.skipped.append({
-                "file": use[k][1].record.name,
+                "file": uses[b][k][1].record.name,
                 "reason": f"band {camera.bands[b].name}: inconsistent with the other views ({frac[k]:.0%} of its "
                           f"reflector pixels off by >10 %, median view {med:.1%}): marker pose likely wrong",
             })
-        result = fit([o for k, o in enumerate(obs) if k not in bad])
-    return result
+        fits.append(fit)
+    return fits, saturated
 
 
 def add_vignetting(ds: xr.Dataset, fits: Sequence[vignetting.VignettingFit], report: StageReport) -> xr.Dataset:
