@@ -9,24 +9,25 @@ from scipy.special import log_ndtr
 from ._curve import Curve
 
 
-def _bin_order_stats(values: np.ndarray, k: np.ndarray, cnt: np.ndarray, ranks: np.ndarray) -> np.ndarray:
+def _bin_order_stats(values: np.ndarray, k: np.ndarray, cnt: np.ndarray, *ranks: np.ndarray) -> np.ndarray:
     """Return the ``ranks[j]``-th smallest of ``values`` in bin ``j`` (0 where bin ``j`` is empty).
 
     The same numbers as sorting all samples by (bin, value) and picking
     ``starts[j] + ranks[j]`` (bin medians of :func:`_noise_model`, :func:`_gradient_noise`,
     :func:`outlier_weights`), in O(n): a stable radix sort of the small bin index, then one
-    ``np.partition`` per bin.
+    ``np.partition`` per bin. Several rank arrays give one row each.
     """
     order = np.argsort(k.astype(np.uint8) if cnt.size <= 256 else k, kind="stable")
     vs = values[order]
-    out = np.zeros(cnt.size)
+    out = np.zeros((len(ranks), cnt.size))
     start = 0
     for j, c in enumerate(cnt.tolist()):
         if c > 0:
-            rank = min(int(ranks[j]), c - 1)
-            out[j] = np.partition(vs[start:start + c], rank)[rank]
+            want = [min(int(r[j]), c - 1) for r in ranks]
+            part = np.partition(vs[start:start + c], sorted(set(want)))
+            out[:, j] = part[want]
         start += c
-    return out
+    return out if len(ranks) > 1 else out[0]
 
 
 def _noise_model(r: np.ndarray, mu: np.ndarray, leverage: np.ndarray, floor: float,
@@ -54,8 +55,7 @@ def _noise_model(r: np.ndarray, mu: np.ndarray, leverage: np.ndarray, floor: flo
     ok = cnt > 0
     if robust:  # median / 0.4549 (median of chi2_1): outliers do not inflate the scale
         n_bin = cnt.astype(np.intp)
-        lo_v = _bin_order_stats(r2, k, n_bin, (n_bin - 1) // 2)
-        hi_v = _bin_order_stats(r2, k, n_bin, n_bin // 2)
+        lo_v, hi_v = _bin_order_stats(r2, k, n_bin, (n_bin - 1) // 2, n_bin // 2)
         med = np.where(ok, 0.5 * (lo_v + hi_v), 0.0)
         mv = med[ok] / 0.4549
     else:

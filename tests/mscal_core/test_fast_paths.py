@@ -79,3 +79,13 @@ def test_rays_to_plane_matches_the_gathering_form() -> None:
     missed = np.isnan(want[:, 0])
     assert 100 < missed.sum() < rays.shape[0] - 100  # both kinds of ray are tested
     np.testing.assert_array_equal(got, want)
+
+
+def test_bin_order_stats_several_ranks_at_once() -> None:
+    rng = np.random.default_rng(5)
+    values = rng.random(3000)
+    k = rng.integers(0, 16, 3000)
+    cnt = np.bincount(k, minlength=16)
+    lo, hi = _bin_order_stats(values, k, cnt, (cnt - 1) // 2, cnt // 2)
+    np.testing.assert_array_equal(lo, _lexsort_order_stats(values, k, cnt, (cnt - 1) // 2))
+    np.testing.assert_array_equal(hi, _lexsort_order_stats(values, k, cnt, cnt // 2))
