@@ -488,10 +488,8 @@ def fit_vignetting(
     use = _informative(pix, cell, n_pix, n_cells)
     fp, fc, fy, fw = pix[use], cell[use], y[use], wt[use]
     # compact indices of the active unknowns
-    act_p = np.unique(fp)
-    act_c = np.unique(fc)
-    cp = np.searchsorted(act_p, fp)
-    cc = np.searchsorted(act_c, fc)
+    act_p, cp = _compact(fp, n_pix)
+    act_c, cc = _compact(fc, n_cells)
     v, lum = _log_init(cp, cc, fy, act_p.size, act_c.size, int(init_iter))
     v, lum, iterations, converged = _alternate(cp, cc, fy, fw, v, act_c.size, int(max_iter), tol)
     resid = fy / (v[cp] * lum[cc]) - 1.0
@@ -526,6 +524,17 @@ def fit_vignetting(
         iterations=iterations,
         converged=converged,
     )
+
+
+def _compact(index: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``(np.unique(index), position of each index in it)``.
+
+    For indices in ``[0, size)``, by counting instead of sorting (O(n + size)).
+    """
+    seen = np.bincount(index, minlength=size) > 0
+    active = np.flatnonzero(seen)
+    rank = np.cumsum(seen) - 1
+    return active, rank[index]
 
 
 def _checked_observations(

@@ -12,10 +12,11 @@ import functools
 import logging
 import time
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import mscal_core
 import numpy as np
@@ -24,6 +25,15 @@ from mscal_core import geometry, illumination, response, vignetting
 from mscal_core.errors import FitError, MscalError, SessionError
 from mscal_core.mosaic import band_offsets
 
+from pipeline.calibrate.bands import (
+    BandPool,
+    BandViews,
+    band_workers,
+    energy,
+    lens_vignetting_band,
+    response_band,
+    vignetting_band,
+)
 from pipeline.calibrate.intrinsics import fit_intrinsics_folder, parse_board, store_intrinsics
 from pipeline.ingest.captures import is_multilens, read_frames
 from pipeline.ingest.catalog import Camera, load_camera
@@ -81,6 +91,16 @@ def _map(fn: Callable[[int], Any], n: int) -> list[Any]:
         return list(ex.map(fn, range(n)))
 
 
+@contextmanager
+def _pool(pool: BandPool | None, n_tasks: int) -> Iterator[BandPool]:
+    """``pool``, or a pool of its own for ``n_tasks`` band fits, closed on leaving."""
+    if pool is not None:
+        yield pool
+        return
+    with BandPool(band_workers(n_tasks)) as own:
+        yield own
+
+
 def read_stack(records: Sequence[FrameRecord], camera: Camera) -> np.ndarray:
     """All frames as ``(frame, band, H, W)`` uint16; frames of different shape are an error."""
     first = read_bands(records[0], camera)
@@ -101,9 +121,10 @@ def read_stack(records: Sequence[FrameRecord], camera: Camera) -> np.ndarray:
 
 
 def fit_response_frames(
-    folder: Path, camera: Camera, method: str = "forward", root: Path | None = None
+    folder: Path, camera: Camera, method: str = "forward", root: Path | None = None, pool: BandPool | None = None,
 ) -> tuple[list[response.ResponseFit], StageReport]:
-    """Eq. 5-7 per band from an exposure sweep folder (frames.csv + frames)."""
+    """Eq. 5-7 per band from an exposure sweep folder (frames.csv + frames); the bands are
+    fitted on ``pool``'s workers (a pool of its own if None)."""
     t0 = time.perf_counter()
     report = StageReport("response")
     recs = read_frames(folder, camera)
@@ -116,22 +137,21 @@ def fit_response_frames(
         )
     stack = read_stack(recs, camera)
     report.inputs = content_hashes(record_files(recs), root or folder)
-    n, nb = stack.shape[:2]
-
-    def one(b: int) -> response.ResponseFit:
-        dn = stack[:, b].reshape(n, -1)
-        exposures = np.array([r.band_exposure(b) for r in recs])  # a multi-lens camera exposes each lens
-        bad = response.check_exposure_consistency(dn, exposures, camera.bit_depth)
+    nb = stack.shape[1]
+    # a multi-lens camera exposes each lens
+    exposures_b = [np.array([r.band_exposure(b) for r in recs]) for b in range(nb)]
+    with _pool(pool, nb) as p:
+        results = p.map(response_band, [(stack[:, b], exposures_b[b], camera.bit_depth, method) for b in range(nb)])
+    fits = []
+    for b, (bad, fit) in enumerate(results):
         if bad:
-            names = ", ".join(f"{recs[i].path.name} ({exposures[i]:g} ms)" for i in bad[:3])
+            names = ", ".join(f"{recs[i].path.name} ({exposures_b[b][i]:g} ms)" for i in bad[:3])
             raise FitError(
                 f"band {camera.bands[b].name}: brightness contradicts exposure for {names}",
                 path=folder / "frames.csv",
                 hint="check exposure_ms of these frames, or remove frames taken while the scene or light changed",
             )
-        return response.fit_response(dn, exposures, camera.bit_depth, method=method)
-
-    fits = _map(one, nb)
+        fits.append(fit)
     report.residuals = {
         "method": method,
         "residual_rms_dn": [round(f.residual_rms_dn, 4) for f in fits],
@@ -257,21 +277,34 @@ def add_intrinsics(ds: xr.Dataset, session: Session, source: str) -> xr.Dataset:
     return store_intrinsics(ds, intr, source)  # type: ignore[arg-type]
 
 
-def _energy(dn: np.ndarray, inverse_response: np.ndarray, t: float, saturation_dn: int) -> np.ndarray:
-    """``U(I) / t`` for one band, NaN where saturated (Eq. 4)."""
-    e = (inverse_response[dn] / t).astype(np.float32)
-    e[dn >= saturation_dn] = np.nan
-    return e
-
-
 def detection_image(bands: np.ndarray, inverse_response: np.ndarray) -> np.ndarray:
     """A single image for marker detection: the mean of the linearised bands, each scaled by
     its median so that no band dominates."""
-    lin = np.take_along_axis(inverse_response, bands.reshape(bands.shape[0], -1).astype(np.intp), axis=1)
+    u = np.asarray(inverse_response)
+    if bands.dtype.kind == "u" and bool(np.all(np.diff(u, axis=1) >= 0)):
+        # U is monotone (it always is: Eq. 6 fits are made so): the median of U(I) is U at the
+        # median DN, read off the DN histogram (no sort), and U(I) / median is a look-up in the
+        # table U / median. The bands are summed in order, as mean(axis=0) does: same numbers.
+        acc = np.zeros(bands.shape[1:], dtype=np.result_type(u.dtype, np.float64))
+        for b in range(bands.shape[0]):
+            med = _monotone_median(bands[b], u[b])
+            acc += (u[b] / (med if med > 0 else 1.0))[bands[b]]
+        return (acc / bands.shape[0]).astype(np.float32)
+    lin = np.take_along_axis(u, bands.reshape(bands.shape[0], -1).astype(np.intp), axis=1)
     lin = lin.reshape(bands.shape)
     med = np.median(lin.reshape(lin.shape[0], -1), axis=1)
     med[med <= 0] = 1.0
     return (lin / med[:, None, None]).mean(axis=0).astype(np.float32)
+
+
+def _monotone_median(dn: np.ndarray, table: np.ndarray) -> float:
+    """``np.median(table[dn])`` for a non-decreasing ``table``: the table at the middle DN(s)."""
+    c = np.cumsum(np.bincount(dn.ravel(), minlength=table.size))
+    n = int(c[-1])
+    hi = table[np.searchsorted(c, n // 2, side="right")]
+    if n % 2:
+        return hi
+    return (table[np.searchsorted(c, n // 2 - 1, side="right")] + hi) / 2
 
 
 def find_views(
@@ -343,14 +376,32 @@ def _find_views_per_lens(
     return views
 
 
-def load_marker_frames(
-    session: Session, folder: Path, inverse_response: np.ndarray, report: StageReport
-) -> tuple[list[FrameRecord], np.ndarray, list[tuple[int, View]]]:
-    """Frames of a marker folder (vignetting/ or reflector/), their band stacks and the views
-    whose marker was found; :class:`FitError` naming the folder if it was found in none."""
+@dataclass(frozen=True)
+class FolderFrames:
+    """A frame folder read: its records, their band stack ``(frame, band, H, W)`` and the
+    content hashes of their files (the stage report's ``inputs``)."""
+
+    records: list[FrameRecord]
+    stack: np.ndarray
+    inputs: dict[str, str]
+
+
+def read_folder_frames(session: Session, folder: Path) -> FolderFrames:
+    """:class:`FolderFrames` of a session's frame folder (``vignetting/``)."""
     recs = read_frames(folder, session.camera)
-    stack = read_stack(recs, session.camera)
-    report.inputs = content_hashes(record_files(recs), session.root)
+    return FolderFrames(recs, read_stack(recs, session.camera), content_hashes(record_files(recs), session.root))
+
+
+def load_marker_frames(
+    session: Session, folder: Path, inverse_response: np.ndarray, report: StageReport,
+    frames: FolderFrames | None = None,
+) -> tuple[list[FrameRecord], np.ndarray, list[tuple[int, View]]]:
+    """Frames of a marker folder (vignetting/ or reflector/; ``frames`` if already read),
+    their band stacks and the views whose marker was found; :class:`FitError` naming the
+    folder if it was found in none."""
+    frames = frames or read_folder_frames(session, folder)
+    recs, stack = frames.records, frames.stack
+    report.inputs = frames.inputs
     views = find_views(recs, stack, session, inverse_response, report)
     if not views:
         raise FitError(
@@ -380,62 +431,69 @@ def _offsets(camera: Camera) -> np.ndarray:
 
 
 def fit_vignetting_frames(
-    session: Session, inverse_response: np.ndarray, saturation_dn: np.ndarray
+    session: Session, inverse_response: np.ndarray, saturation_dn: np.ndarray, pool: BandPool | None = None,
+    frames: Callable[[], FolderFrames] | None = None,
 ) -> tuple[list[vignetting.VignettingFit], StageReport]:
-    """Eq. 8-10 per band from the session's ``vignetting/`` views."""
+    """Eq. 8-10 per band from the session's ``vignetting/`` views; the bands are fitted on
+    ``pool``'s workers (a pool of its own if None). ``frames``: gives the folder already read
+    (:func:`read_folder_frames`, e.g. read ahead while the response was fitted)."""
     t0 = time.perf_counter()
     camera = session.camera
     report = StageReport("vignetting")
     session, _ = with_intrinsics(session)
-    recs, stack, views = load_marker_frames(session, session.vignetting_dir, inverse_response, report)
-    shape = stack.shape[2:]
-    offsets = _offsets(camera)
-    grid = vignetting.cell_grid(session.reflector.size_m)
-    n_cells = grid[0] * grid[1]
-    exclude, edge = _exclude_half(session), _edge_margin(session)
+    with _pool(pool, camera.n_bands) as p:
+        recs, stack, views = load_marker_frames(session, session.vignetting_dir, inverse_response, report,
+                                                frames() if frames is not None else None)
+        if is_multilens(camera):
+            fits, saturated = _fit_multilens_vignetting(session, stack, views, inverse_response, saturation_dn,
+                                                        report, p)
+            views_used: Any = [sum(v.pose_for(b) is not None for _, v in views) for b in range(camera.n_bands)]
+        else:
+            fits, saturated, views = _fit_band_vignetting(session, stack, views, inverse_response, saturation_dn,
+                                                          report, p)
+            views_used = len(views)
+    report.residuals = {
+        **report.residuals,
+        "views_used": views_used,
+        "views_total": len(recs),
+        "residual_rms": [round(float(f.residual_rms), 5) for f in fits],
+        "observed_fraction": [round(float(f.observed.mean()), 4) for f in fits],
+        "saturated_fraction": [round(saturated.get(b, 0.0), 6) for b in range(camera.n_bands)],
+    }
+    report.seconds = time.perf_counter() - t0
+    return fits, report
 
+
+def _band_views(session: Session, stack: np.ndarray, b: int, use: Sequence[tuple[int, View]],
+                inverse_response: np.ndarray, saturation_dn: np.ndarray) -> BandViews:
+    """Band ``b``'s vignetting views ``use`` for :func:`pipeline.calibrate.bands.vignetting_band`."""
+    return BandViews(
+        dn=stack[:, b], frames=tuple(i for i, _ in use),
+        exposures=tuple(v.record.band_exposure(b) for _, v in use),
+        poses=tuple(v.pose_for(b) for _, v in use),  # type: ignore[misc]
+        inverse_response=inverse_response[b], saturation_dn=int(saturation_dn[b]),
+        intrinsics=session.intrinsics_for(b), offset=tuple(_offsets(session.camera)[b]),  # type: ignore[arg-type]
+        size_m=tuple(np.broadcast_to(np.asarray(session.reflector.size_m, dtype=np.float64), (2,))),  # type: ignore[arg-type]
+        exclude_half_m=_exclude_half(session), edge_margin_m=_edge_margin(session),
+        grid=vignetting.cell_grid(session.reflector.size_m),
+    )
+
+
+def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[int, View]],
+                         inverse_response: np.ndarray, saturation_dn: np.ndarray, report: StageReport,
+                         pool: BandPool) -> tuple[list[vignetting.VignettingFit], dict[int, float], list[tuple[int, View]]]:
+    """Eq. 8-10 of a band-grid camera (one pose per view for all bands): the views are
+    screened on one band first, then every band is fitted on the views kept, on ``pool``."""
+    camera = session.camera
     saturated: dict[int, float] = {}  # band -> saturated fraction of its reflector pixels (QA report)
-
-    def observations(b: int, use: Sequence[tuple[int, View]]) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        intr = session.intrinsics_for(b)
-        rays = geometry.pixel_rays(intr, shape, tuple(offsets[b]))
-        obs = []
-        n_sat = n_pix = 0
-        for i, view in use:
-            t = view.record.band_exposure(b)
-            energy = _energy(stack[i, b], inverse_response[b], t, int(saturation_dn[b]))
-            uv = geometry.pixels_to_plane(view.pose_for(b), intr, shape, rays=rays)
-            mask = geometry.reflector_mask(uv, session.reflector.size_m, exclude, edge)
-            n_sat += int(np.count_nonzero(stack[i, b][mask] >= saturation_dn[b]))
-            n_pix += int(np.count_nonzero(mask))
-            obs.append(vignetting.view_observations(energy, uv, mask, session.reflector.size_m, grid=grid))
-        saturated[b] = n_sat / max(n_pix, 1)
-        return obs
-
-    def fit(obs: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> vignetting.VignettingFit:
-        return vignetting.fit_vignetting(
-            *(np.concatenate([o[k] for o in obs]) for k in range(3)), shape, n_cells
-        )
-
-    if is_multilens(camera):
-        fits = _map(lambda b: _fit_lens_vignetting(b, views, observations, fit, camera, report), camera.n_bands)
-        report.residuals = {
-            **report.residuals,
-            "views_used": [sum(v.pose_for(b) is not None for _, v in views) for b in range(camera.n_bands)],
-            "views_total": len(recs),
-            "residual_rms": [round(float(f.residual_rms), 5) for f in fits],
-            "observed_fraction": [round(float(f.observed.mean()), 4) for f in fits],
-            "saturated_fraction": [round(saturated.get(b, 0.0), 6) for b in range(camera.n_bands)],
-        }
-        report.seconds = time.perf_counter() - t0
-        return fits, report
-
     # Screen the views on one band first: a view whose marker pose is wrong (planar-pose
-    # ambiguity, a mis-detected corner) disagrees with all the others and is dropped.
+    # ambiguity, a mis-detected corner) disagrees with all the others and is dropped. The
+    # other bands start meanwhile on all views, and are fitted again if a view is dropped.
     ref = camera.n_bands // 2
-    ref_obs = observations(ref, views)
-    ref_fit = fit(ref_obs)
-    frac = np.array([vignetting.view_inconsistency(ref_fit, *o) for o in ref_obs])
+    order = [ref] + [b for b in range(camera.n_bands) if b != ref]
+    futures = {b: pool.submit(vignetting_band, _band_views(session, stack, b, views, inverse_response, saturation_dn),
+                              b == ref) for b in order}
+    ref_fit, saturated[ref], frac = futures[ref].result()
     bad = set(vignetting.inconsistent_views(frac).tolist())
     if bad and len(views) - len(bad) < MIN_VIEWS_TO_SCREEN:
         # With few views the overlap is thin and a sound view that alone covers part of the
@@ -455,47 +513,43 @@ def fit_vignetting_frames(
                           f"by >10 %, median view {med:.1%}): marker pose likely wrong",
             })
         views = [v for k, v in enumerate(views) if k not in bad]
-
-    def one(b: int) -> vignetting.VignettingFit:
-        if b == ref and not bad:
-            return ref_fit
-        return fit(observations(b, views))
-
-    fits = _map(one, camera.n_bands)
-    report.residuals = {
-        **report.residuals,
-        "views_used": len(views),
-        "views_total": len(recs),
-        "residual_rms": [round(float(f.residual_rms), 5) for f in fits],
-        "observed_fraction": [round(float(f.observed.mean()), 4) for f in fits],
-        "saturated_fraction": [round(saturated.get(b, 0.0), 6) for b in range(camera.n_bands)],
-    }
-    report.seconds = time.perf_counter() - t0
-    return fits, report
+        for b in order:
+            futures[b].cancel()
+            futures[b] = pool.submit(vignetting_band,
+                                     _band_views(session, stack, b, views, inverse_response, saturation_dn))
+    fits = []
+    for b in range(camera.n_bands):
+        fit, saturated[b], _ = futures[b].result()
+        fits.append(fit)
+    return fits, saturated, views
 
 
-def _fit_lens_vignetting(b: int, views: Sequence[tuple[int, View]], observations, fit, camera: Camera,
-                         report: StageReport) -> vignetting.VignettingFit:
-    """Eq. 8-10 of one lens of a multi-lens camera, on the views whose marker that lens found
-    (its own poses): screened on its own fit like the band-grid camera's reference band."""
-    use = [v for v in views if v[1].pose_for(b) is not None]
-    if not use:
-        raise FitError(f"band {camera.bands[b].name}: the marker was found in none of its vignetting views",
-                       hint="check that the marker is in view of every lens and sharp")
-    obs = observations(b, use)
-    result = fit(obs)
-    frac = np.array([vignetting.view_inconsistency(result, *o) for o in obs])
-    bad = set(vignetting.inconsistent_views(frac).tolist())
-    if bad and len(use) - len(bad) >= MIN_VIEWS_TO_SCREEN:
-        med = float(np.nanmedian(frac))
-        for k in sorted(bad):
+def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[tuple[int, View]],
+                              inverse_response: np.ndarray, saturation_dn: np.ndarray, report: StageReport,
+                              pool: BandPool) -> tuple[list[vignetting.VignettingFit], dict[int, float]]:
+    """Eq. 8-10 of a multi-lens camera: each lens on the views whose marker it found (its own
+    poses), screened on its own fit like the band-grid camera's reference band, on ``pool``."""
+    camera = session.camera
+    uses = [[v for v in views if v[1].pose_for(b) is not None] for b in range(camera.n_bands)]
+    for b, use in enumerate(uses):
+        if not use:
+            raise FitError(f"band {camera.bands[b].name}: the marker was found in none of its vignetting views",
+                           hint="check that the marker is in view of every lens and sharp")
+    results = pool.map(lens_vignetting_band, [
+        (_band_views(session, stack, b, uses[b], inverse_response, saturation_dn), MIN_VIEWS_TO_SCREEN)
+        for b in range(camera.n_bands)
+    ])
+    fits, saturated = [], {}
+    for b, (fit, saturated[b], frac, dropped) in enumerate(results):
+        med = float(np.nanmedian(frac)) if dropped else 0.0
+        for k in dropped:
             report.skipped.append({
-                "file": use[k][1].record.name,
+                "file": uses[b][k][1].record.name,
                 "reason": f"band {camera.bands[b].name}: inconsistent with the other views ({frac[k]:.0%} of its "
                           f"reflector pixels off by >10 %, median view {med:.1%}): marker pose likely wrong",
             })
-        result = fit([o for k, o in enumerate(obs) if k not in bad])
-    return result
+        fits.append(fit)
+    return fits, saturated
 
 
 def add_vignetting(ds: xr.Dataset, fits: Sequence[vignetting.VignettingFit], report: StageReport) -> xr.Dataset:
@@ -661,9 +715,18 @@ def qa_band(camera: Camera) -> int:
     return camera.n_bands // 2
 
 
+def read_reflector_frames(session: Session) -> tuple[list[ReflectorCapture], FolderFrames]:
+    """The session's ``reflector/`` frames read (:func:`reflector_captures`), and their captures."""
+    folder = session.reflector_dir
+    if not folder.is_dir():
+        raise SessionError("frame folder not found", path=folder)
+    recs, captures = reflector_captures(folder, session.camera)
+    return captures, FolderFrames(recs, read_stack(recs, session.camera), content_hashes(record_files(recs), session.root))
+
+
 def fit_illumination_frames(
     session: Session, inverse_response: np.ndarray, saturation_dn: np.ndarray, vignetting_maps: np.ndarray,
-    *, shared_pixels: bool = True,
+    *, shared_pixels: bool = True, frames: Callable[[], tuple[list[ReflectorCapture], FolderFrames]] | None = None,
 ) -> IlluminationResult:
     """Eq. 11-14 from the session's ``reflector/`` image(s), per capture (:func:`reflector_captures`):
     S and B of each capture's images under its own light.
@@ -674,17 +737,15 @@ def fit_illumination_frames(
     them (bench/bench_light.py: the capture-to-capture error of S 0.5-0.6 % -> 0.11-0.13 % worst
     band); the fraction of reflector pixels kept is reported as ``shared_pixel_fraction`` (0
     when some capture would keep fewer than :data:`MIN_REFLECTOR_PIXELS`: all pixels are used,
-    and the QA report warns)."""
+    and the QA report warns). ``frames``: gives :func:`read_reflector_frames` already read."""
     t0 = time.perf_counter()
     camera = session.camera
     report = StageReport("illumination")
     session, _ = with_intrinsics(session)
     folder = session.reflector_dir
-    if not folder.is_dir():
-        raise SessionError("frame folder not found", path=folder)
-    recs, captures = reflector_captures(folder, camera)
-    stack = read_stack(recs, camera)
-    report.inputs = content_hashes(record_files(recs), session.root)
+    captures, read = frames() if frames is not None else read_reflector_frames(session)
+    recs, stack = read.records, read.stack
+    report.inputs = read.inputs
     views = find_views(recs, stack, session, inverse_response, report)
     if not views:
         raise FitError(
@@ -727,7 +788,7 @@ def fit_illumination_frames(
             t = view.record.band_exposure(b)
             dn = stack[i, b][mask]
             n_sat[b] += int(np.count_nonzero(dn >= saturation_dn[b]))
-            e = _energy(dn, inverse_response[b], t, int(saturation_dn[b]))
+            e = energy(dn, inverse_response[b], t, int(saturation_dn[b]))
             with np.errstate(divide="ignore", invalid="ignore"):
                 rad[b] = e / vignetting_maps[b][mask]
         columns.append(rad)
@@ -849,11 +910,11 @@ def _lens_radiance(session: Session, stack: np.ndarray, views: list[tuple[int, V
         for b in range(camera.n_bands):
             t = view.record.band_exposure(b)
             dn = stack[i, b]
-            energy = _energy(dn, inverse_response[b], t, int(saturation_dn[b]))
+            e_img = energy(dn, inverse_response[b], t, int(saturation_dn[b]))
             own = geometry.reflector_mask(geometry.pixels_to_plane(view.pose_for(b), session.intrinsics_for(b), shape,
                                                                    rays=rays[b]), size, excl, edge)
             n_sat[b] += int(np.count_nonzero(dn[own] >= saturation_dn[b]))
-            valid = (own & np.isfinite(energy)).astype(np.float32)
+            valid = (own & np.isfinite(e_img)).astype(np.float32)
             if b == ref:
                 xy = np.argwhere(mask)[:, ::-1].astype(np.float32)
             else:
@@ -869,7 +930,7 @@ def _lens_radiance(session: Session, stack: np.ndarray, views: list[tuple[int, V
                                  borderMode=cv2.BORDER_CONSTANT, borderValue=0.0).ravel()[:n]
 
             ok &= sample(valid) > 0.999
-            e = sample(np.nan_to_num(energy, nan=0.0))
+            e = sample(np.nan_to_num(e_img, nan=0.0))
             v = sample(vignetting_maps[b])
             with np.errstate(divide="ignore", invalid="ignore"):
                 rad[b] = e / v
@@ -990,18 +1051,26 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
     camera = session.camera
     partial = open_calibration(calibration, camera) if calibration is not None else None
     session, source = with_intrinsics(session, partial)
-    log.info("response: fitting %d bands from %s", camera.n_bands, session.response_dir)
-    rfits, rrep = fit_response_frames(session.response_dir, camera, response_method, session.root)
-    ds = response_dataset(camera, rfits, rrep)
-    advance()
-    U = ds["inverse_response"].values
-    sat = ds["saturation_dn"].values
-    log.info("vignetting: fitting from %s", session.vignetting_dir)
-    vfits, vrep = fit_vignetting_frames(session, U, sat)
+    # one set of workers for both per-band stages; the vignetting frames are read (and
+    # hashed) on a thread while the workers fit the response
+    with BandPool(band_workers(camera.n_bands)) as pool, ThreadPoolExecutor(1) as aside:
+        # what does not wait for the fits is done aside, while the workers fit: reading the
+        # vignetting and reflector frames, building the response's part of the store
+        views_ahead = aside.submit(read_folder_frames, session, session.vignetting_dir)
+        reflector_ahead = aside.submit(read_reflector_frames, session)
+        log.info("response: fitting %d bands from %s", camera.n_bands, session.response_dir)
+        rfits, rrep = fit_response_frames(session.response_dir, camera, response_method, session.root, pool)
+        advance()
+        ds_ahead = aside.submit(response_dataset, camera, rfits, rrep)
+        U = np.stack([f.inverse_response for f in rfits])  # the store's inverse_response and saturation_dn
+        sat = np.array([f.saturation_dn for f in rfits], dtype=np.int32)
+        log.info("vignetting: fitting from %s", session.vignetting_dir)
+        vfits, vrep = fit_vignetting_frames(session, U, sat, pool, frames=views_ahead.result)
+        ds = ds_ahead.result()
     ds = add_vignetting(ds, vfits, vrep)
     advance()
     log.info("illumination: fitting from %s", session.reflector_dir)
-    ires = fit_illumination_frames(session, U, sat, ds["vignetting"].values)
+    ires = fit_illumination_frames(session, U, sat, ds["vignetting"].values, frames=reflector_ahead.result)
     ds = add_illumination(ds, ires)
     advance()
     ds = add_intrinsics(ds, session, source)

@@ -1,0 +1,63 @@
+"""Per-band fits on worker processes (issue 25): the same store whichever process fits a band."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from pipeline.calibrate.bands import WORKERS_ENV, BandPool, band_workers
+from pipeline.calibrate.fit import detection_image
+from pipeline.run.cli import main
+
+
+def test_one_worker_and_two_give_the_same_store(small, tmp_path, monkeypatch) -> None:
+    session, _ = small
+    stores = {}
+    for workers in ("1", "2"):
+        monkeypatch.setenv(WORKERS_ENV, workers)
+        out = tmp_path / f"cal-{workers}.zarr"
+        assert main(["calibrate", str(session), "-o", str(out)]) == 0
+        stores[workers] = xr.open_zarr(out).load()
+    one, two = stores["1"], stores["2"]
+    assert sorted(one.data_vars) == sorted(two.data_vars)
+    for name in ("inverse_response", "vignetting", "vignetting_count", "spectral_factor", "reflector_brightness"):
+        np.testing.assert_array_equal(one[name].values, two[name].values, err_msg=name)
+    for stage in ("response", "vignetting", "illumination"):
+        assert one.attrs[stage]["residuals"] == two.attrs[stage]["residuals"]
+        assert one.attrs[stage]["skipped"] == two.attrs[stage]["skipped"]
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_worker_error_reaches_the_caller(workers: int) -> None:
+    with BandPool(workers) as pool:
+        assert pool.map(int, [("7",), ("8",)]) == [7, 8]
+        with pytest.raises(ValueError, match="invalid literal"):
+            pool.map(int, [("1",), ("not a number",)])
+
+
+@pytest.mark.parametrize(("env", "tasks", "expect"), [("3", 25, 3), ("3", 2, 2), ("1", 25, 1), ("", 1, 1)])
+def test_band_workers(monkeypatch, env: str, tasks: int, expect: int) -> None:
+    monkeypatch.setenv(WORKERS_ENV, env)
+    assert band_workers(tasks) == expect
+
+
+def test_band_workers_default_is_the_cores(monkeypatch) -> None:
+    import os
+
+    monkeypatch.setenv(WORKERS_ENV, "junk")
+    assert band_workers(1000) == len(os.sched_getaffinity(0))
+
+
+def test_detection_image_table_path_matches_the_plain_one() -> None:
+    rng = np.random.default_rng(0)
+    u = np.maximum.accumulate(rng.gamma(2.0, 1.0, (25, 1024)), axis=1)
+    u[:, :40] = 0.0  # black level
+    u[3] = 0.0  # a dark band: its median is 0 and it is not rescaled
+    bands = rng.integers(0, 1024, (25, 60, 80)).astype(np.uint16)
+    fast = detection_image(bands, u)  # monotone U, unsigned DN: table look-ups, median from counts
+    plain = detection_image(bands.astype(np.int64), u)  # np.median of U(I), mean over bands
+    assert fast.dtype == np.float32
+    np.testing.assert_array_equal(fast, plain)
+    odd = bands[:, :59, :79]  # an odd pixel count: the median is one DN's U
+    np.testing.assert_array_equal(detection_image(odd, u), detection_image(odd.astype(np.int64), u))
