@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-import signal
 import sys
 import uuid
 from concurrent.futures import ProcessPoolExecutor
@@ -65,6 +64,7 @@ from pipeline.ingest.session import FrameRecord, decode_raw
 from pipeline.products.writers import BandTags, FrameTags, file_band_name, write_band_tiff, write_ndvi_tiff
 from pipeline.storage.chunks import FrameChunks
 from pipeline.storage.directio import aligned_empty
+from pipeline.storage.process import die_with_parent, reuse_freed_memory
 
 # --------------------------------------------------------------------------- helpers
 
@@ -470,41 +470,11 @@ def _quarantined(job: Job, exc: FrameError) -> Outcome:
 # --------------------------------------------------------------------------- running the tasks
 
 
-#: glibc ``mallopt`` parameters: ``M_TRIM_THRESHOLD``, ``M_MMAP_THRESHOLD``.
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-
-
-def reuse_freed_memory() -> None:
-    """Keep the memory of one capture's arrays for the next (glibc only; elsewhere nothing).
-
-    Each capture allocates and frees the same large arrays (the bands' bytes, DN, float64
-    work arrays, the radiance and reflectance cubes: up to 25 MB each). glibc serves such
-    arrays with a fresh ``mmap`` and unmaps them when freed, so every capture touches new
-    pages, and the kernel zeroes each of them on a page fault: a tenth of the apply pass's
-    CPU, as system time. With ``M_MMAP_THRESHOLD`` at glibc's maximum (32 MB) they come from
-    the heap and are reused, and ``M_TRIM_THRESHOLD`` keeps up to 256 MB freed at the heap's
-    top instead of handing it back. The peak memory is the same (one capture's working set
-    per worker); the outputs too."""
-    try:
-        import ctypes
-
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(_M_MMAP_THRESHOLD, 32 * 1024 * 1024)
-        libc.mallopt(_M_TRIM_THRESHOLD, 256 * 1024 * 1024)
-    except (OSError, AttributeError):  # not glibc
-        pass
-
-
 def _worker_init() -> None:
     """Worker processes: die with the parent (a killed run leaves no writer behind), keep
     Blosc single-threaded (the workers already fill the cores), reuse freed memory
     (:func:`reuse_freed_memory`)."""
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):  # not Linux
-        pass
+    die_with_parent()
     reuse_freed_memory()
     try:
         from numcodecs import blosc

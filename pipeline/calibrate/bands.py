@@ -26,13 +26,14 @@ from __future__ import annotations
 
 import multiprocessing
 import os
-import signal
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
 import numpy as np
 from mscal_core import geometry, response, vignetting
+
+from pipeline.storage.process import die_with_parent, reuse_freed_memory
 
 #: Environment variable: worker processes for the per-band fits (0 or unset: one per core;
 #: 1: none, every band in the main process).
@@ -60,14 +61,11 @@ _WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THR
 
 
 def _worker_init() -> None:
-    """A worker dies with the parent (a killed calibration leaves no process behind) and
-    runs OpenCV on one thread."""
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):  # not Linux
-        pass
+    """A worker dies with the parent (a killed calibration leaves no process behind), reuses
+    freed memory (a band's stacks are allocated again for every band) and runs OpenCV on one
+    thread."""
+    die_with_parent()
+    reuse_freed_memory()
     import cv2
 
     cv2.setNumThreads(1)
@@ -82,6 +80,7 @@ class BandPool:
     def __init__(self, workers: int | None = None):
         self.workers = band_workers(64) if workers is None else max(1, int(workers))
         self._pool: ProcessPoolExecutor | None = None
+        reuse_freed_memory()  # this process reads every stack; with one worker it fits them too
         if self.workers >= 2:
             self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
                                              initializer=_worker_init)

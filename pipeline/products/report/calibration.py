@@ -4,12 +4,10 @@ reflector brightness and correction) and its warnings (:func:`calibration_warnin
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
-import matplotlib
 import numpy as np
 import xarray as xr
-from matplotlib.figure import Figure
 from mscal_core.illumination import colour_change, split_level
 from mscal_core.reflectance import eq15
 
@@ -28,6 +26,9 @@ from pipeline.products.report.thresholds import (
     VIGNETTING_RESIDUAL_RMS_MAX,
     QAWarning,
 )
+
+if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn (0.6 s of every command otherwise)
+    from matplotlib.figure import Figure
 
 # --------------------------------------------------------------------------- calibration plots
 
@@ -113,6 +114,8 @@ def plot_spectral_factor(ds: xr.Dataset) -> Figure:
     wl = ds["wavelength"].values.astype(float)
     S = ds["spectral_factor"].values.astype(float)
     order = np.argsort(wl)
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(6.5, 3.2), layout="constrained")
     ax = fig.add_subplot(1, 1, 1)
     ax.plot(wl[order], S[order], "o-", color="C1", ms=4)
@@ -139,6 +142,9 @@ def plot_light_over_time(ds: xr.Dataset, flights: Sequence["FlightResults"] = ()
     names = [str(n) for n in ds["capture_name"].values]
     t0 = float(np.nanmin(tc)) if np.isfinite(tc).any() else 0.0
     x = (tc - t0) / 60.0 if np.isfinite(tc).all() else np.arange(tc.size, dtype=float)
+    import matplotlib
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(7.5, 5.0), layout="constrained")
     ax1, ax2 = fig.add_subplot(2, 1, 1), fig.add_subplot(2, 1, 2)
     wl = ds["wavelength"].values.astype(float)
@@ -239,6 +245,8 @@ def plot_reflector_correction(ds: xr.Dataset) -> Figure:
     names = reflector_image_names(ds)
     allv = np.concatenate([np.concatenate([r["eq15"].ravel(), r["eq16"].ravel()]) for r in rows])
     lo, hi = np.nanpercentile(allv, [1, 99]) if np.isfinite(allv).any() else (0.0, 1.0)
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(3.2 * len(rows) + 0.8, 5.0), layout="constrained")
     axes = []
     im = None

@@ -6,15 +6,15 @@ from __future__ import annotations
 
 import io
 import math
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import xarray as xr
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
-from matplotlib.ticker import MaxNLocator
 
 from pipeline.products.report.thresholds import PNG_DPI
+
+if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn (0.6 s of every command otherwise)
+    from matplotlib.figure import Figure
 
 # --------------------------------------------------------------------------- figure helpers
 
@@ -28,6 +28,8 @@ def panel_figure(n: int, panel_in: float = 2.0, extra_w: float = 0.0) -> tuple[F
     """A figure with ``n`` panels on a near-square grid; unused grid cells are not created."""
     rows, cols = _grid(n)
     w, h = cols * panel_in + extra_w, rows * panel_in * 0.8 + 0.6
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(w, h))
     # A fixed layout: the constrained layout engine costs seconds on 25 panels.
     fig.subplots_adjust(left=0.03, right=1 - (extra_w + 0.1) / w, bottom=0.04, top=1 - 0.55 / h,
@@ -44,6 +46,8 @@ def band_titles(ds: xr.Dataset) -> list[str]:
 def few_ticks(ax: Any, xticks: Sequence[float] | None = None) -> None:
     """Three ticks per axis at most: tick objects are most of the rendering time of a
     25-panel figure."""
+    from matplotlib.ticker import MaxNLocator
+
     if xticks is not None:
         ax.set_xticks(list(xticks))
     else:
@@ -59,6 +63,8 @@ def image_axes(ax: Any) -> None:
 
 def figure_png(fig: Figure) -> bytes:
     """PNG bytes of ``fig`` (Agg canvas); the figure is cleared afterwards."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     FigureCanvasAgg(fig)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=PNG_DPI)

@@ -6,11 +6,10 @@ segmentation, track, histograms).
 from __future__ import annotations
 
 import math
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 import xarray as xr
-from matplotlib.figure import Figure
 from mscal_core.reflectance import ndvi, otsu_ndvi_threshold, vegetation_mask
 
 from pipeline.products.report.calibration import band_name_of, stage_residuals
@@ -27,6 +26,9 @@ from pipeline.products.report.thresholds import (
     QAWarning,
 )
 from pipeline.storage.chunks import FrameChunks
+
+if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn (0.6 s of every command otherwise)
+    from matplotlib.figure import Figure
 
 # --------------------------------------------------------------------------- flight data
 
@@ -231,6 +233,8 @@ def plot_ndvi(flight: FlightResults) -> Figure:
     """NDVI from raw DN vs calibrated NDVI, and their Otsu segmentations (paper Fig. 1e/f):
     one row per shown frame, four panels each."""
     pairs = ndvi_pairs(flight)
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(11, 2.4 * max(len(pairs), 1) + 0.5), layout="constrained")
     if not pairs:
         ax = fig.add_subplot(1, 1, 1)
@@ -255,6 +259,8 @@ def plot_ndvi(flight: FlightResults) -> Figure:
 def plot_track(flight: FlightResults) -> Figure:
     """Frame positions (lon, lat) in flight order; first frame a square, last a triangle."""
     ds = flight.reflectance
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=(5.5, 4.5), layout="constrained")
     ax = fig.add_subplot(1, 1, 1)
     lat = ds["lat"].values.astype(float) if "lat" in ds.coords else np.array([])

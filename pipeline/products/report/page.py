@@ -10,11 +10,10 @@ import html
 import json
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Sequence
 
 import numpy as np
 import xarray as xr
-from matplotlib.figure import Figure
 from mscal_core.errors import InputError
 from mscal_core.illumination import colour_change
 
@@ -30,6 +29,9 @@ from pipeline.products.report.season import season_sections
 from pipeline.products.report.sections import Section, Table, band_table, calibration_section, flight_section, fmt_value
 from pipeline.products.report.thresholds import QAWarning
 from pipeline.storage.atomic import write_text_atomic
+
+if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn (0.6 s of every command otherwise)
+    from matplotlib.figure import Figure
 
 # --------------------------------------------------------------------------- machine-readable
 

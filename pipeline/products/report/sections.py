@@ -6,11 +6,10 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 import xarray as xr
-from matplotlib.figure import Figure
 from mscal_core.registration import local_motion
 
 from pipeline.products.report.calibration import (
@@ -36,6 +35,9 @@ from pipeline.products.report.thresholds import (
     TABLE_MAX_ROWS,
     QAWarning,
 )
+
+if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn (0.6 s of every command otherwise)
+    from matplotlib.figure import Figure
 
 # --------------------------------------------------------------------------- the report model
 

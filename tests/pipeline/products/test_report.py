@@ -461,3 +461,17 @@ def test_capture_level_table_says_how_the_sensor_level_was_obtained() -> None:
     old = ds.assign(capture_irradiance=("capture", [0.41, 0.356]))
     assert "raw reading" in capture_level_table(old).note
     assert capture_level_table(ds.assign(capture_irradiance=("capture", [np.nan, np.nan]))) is None
+
+
+def test_report_warnings_do_not_import_matplotlib(calib, flights) -> None:
+    """Every command's summary asks the report for its warnings; matplotlib (0.6 s to import)
+    is loaded only where a figure is drawn."""
+    import subprocess
+
+    code = ("import sys; from pipeline.run.console import report_warnings; "
+            f"w = report_warnings({str(calib)!r}, [{str(flights['bad'])!r}]); "
+            "print(len(w), sorted(m for m in sys.modules if m.split('.')[0] == 'matplotlib'))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    n, mods = out.stdout.split(" ", 1)
+    assert int(n) >= 2 and mods.strip() == "[]"  # the bad flight's warnings, without matplotlib
