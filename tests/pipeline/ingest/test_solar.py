@@ -29,3 +29,28 @@ def test_missing_time_or_position_gives_nan_and_bad_position_is_an_error() -> No
     assert np.isnan(el).all() and np.isnan(az).all()
     with pytest.raises(InputError, match="latitude"):
         solar_position(["2026-06-21T12:00:00"], 95.0, 0.0)
+
+
+def test_one_call_for_all_frames_gives_each_frame_its_own_sun() -> None:
+    """Frames at different times and places in one call: the same bits as pvlib's
+    get_solarposition called once per frame (with its pressure from the altitude)."""
+    import warnings
+
+    import pandas as pd
+    from pvlib.solarposition import get_solarposition
+
+    rng = np.random.default_rng(3)
+    n = 40
+    t = (np.datetime64("2026-06-01T06:00", "ns") + rng.integers(0, 12 * 3600, n) * np.timedelta64(1, "s"))
+    t[5] = np.datetime64("NaT")
+    lat, lon, alt = rng.uniform(-60, 60, n), rng.uniform(-179, 179, n), rng.uniform(0, 3000, n)
+    lat[7] = np.nan
+    el, az = solar_position(t, lat, lon, alt)
+    assert np.isnan(el[[5, 7]]).all() and np.isnan(az[[5, 7]]).all()
+    for i in (0, 1, 13, n - 1):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)
+            sp = get_solarposition(pd.DatetimeIndex([t[i]], tz="UTC"), lat[i], lon[i], altitude=alt[i])
+        assert el[i] == np.deg2rad(float(sp["apparent_elevation"].iloc[0]))
+        assert az[i] == np.deg2rad(float(sp["azimuth"].iloc[0]))
+    assert np.ptp(el[np.isfinite(el)]) > 0.5  # frames really differ
