@@ -198,11 +198,24 @@ def _num(v: float, digits: int = 6) -> float | None:
     return None if not np.isfinite(v) else round(float(v), digits)
 
 
+@dataclass(frozen=True)
+class _TiltCase:
+    """A band file whose correction is the tilt model's (:func:`_band_correction`): computed
+    for every such file of the flight in one :func:`horizontal_irradiance` call."""
+
+    el: float
+    az: float
+    orient: Orientation
+    ratio: float
+    model: str
+
+
 def _band_correction(x: Xmp, el: float, az: float, orient: Orientation | None,
                      sky_ratio: float = CLEAR_SKY_DIFFUSE_RATIO, sky: str = "clear-sky diffuse ratio 1/6"
-                     ) -> tuple[float, float, float, str]:
+                     ) -> tuple[float, float, float, str] | _TiltCase:
     """``E_h / E_meas`` of one band file, the tilt and incidence (radians) and the model used
-    (``sky_ratio``: the diffuse ratio without a measured split, named ``sky``)."""
+    (``sky_ratio``: the diffuse ratio without a measured split, named ``sky``); for the tilt
+    model, what it needs (:func:`_tilt_corrections` computes them all at once)."""
     split = _dls2_split(x)
     has_sun = math.isfinite(el) and math.isfinite(az)
     if split is not None and has_sun and x.number("Irradiance", ("Camera", "MicaSense")) is None:
@@ -212,9 +225,20 @@ def _band_correction(x: Xmp, el: float, az: float, orient: Orientation | None,
         return 1.0, float("nan"), float("nan"), "raw reading (no sun position: time or GPS missing)"
     ratio = sky_ratio if split is None else split[1] / split[0]
     o = orientation_or_level(orient)
-    h_irr = horizontal_irradiance(1.0, el, az, o.yaw, o.pitch, o.roll, diffuse_ratio=ratio)
     name = "tilt model, measured diffuse ratio" if split is not None else f"tilt model, {sky}"
-    return float(h_irr.factor), float(h_irr.tilt), float(h_irr.incidence), f"{name}; orientation {o.source}"
+    return _TiltCase(el, az, o, ratio, f"{name}; orientation {o.source}")
+
+
+def _tilt_corrections(cases: Sequence[_TiltCase]) -> list[tuple[float, float, float, str]]:
+    """:func:`_band_correction`'s result of each tilt-model case, from one vectorised call
+    (one call per band file cost 1.5 ms: 37 s of a 5,000-capture, 5-band flight)."""
+    if not cases:
+        return []
+    col = {f: np.array([getattr(c, f) for c in cases], np.float64) for f in ("el", "az", "ratio")}
+    ypr = np.array([(c.orient.yaw, c.orient.pitch, c.orient.roll) for c in cases], np.float64)
+    h = horizontal_irradiance(np.ones(len(cases)), col["el"], col["az"], ypr[:, 0], ypr[:, 1], ypr[:, 2],
+                              diffuse_ratio=col["ratio"])
+    return [(float(h.factor[i]), float(h.tilt[i]), float(h.incidence[i]), c.model) for i, c in enumerate(cases)]
 
 
 def orientation_or_level(orient: Orientation | None) -> Orientation:
@@ -247,6 +271,10 @@ def sensor_light(captures: Sequence[Capture], times: np.ndarray, *, fit_ratio: b
             if o is not None and not np.isfinite(ypr[c, 0]):
                 ypr[c] = (o.yaw, o.pitch, o.roll)
     ratios, sources = _sky_ratios(k, el, az, ypr, xmps, fit_ratio)
+    found = {cb: _band_correction(x, float(el[cb[0]]), float(az[cb[0]]), sensor_orientation(x),
+                                  ratios[cb[1]], sources[cb[1]]) for cb, x in xmps.items()}
+    tilted = [cb for cb, v in found.items() if isinstance(v, _TiltCase)]
+    found.update(zip(tilted, _tilt_corrections([found[cb] for cb in tilted])))  # type: ignore[misc]
     factor = np.full((n_c, n_b), np.nan)
     corr = np.full((n_c, n_b), np.nan)
     tilt = np.full(n_c, np.nan)
@@ -255,11 +283,9 @@ def sensor_light(captures: Sequence[Capture], times: np.ndarray, *, fit_ratio: b
     for c in range(n_c):
         model = "no sun-sensor reading"
         for b in range(n_b):
-            if (c, b) not in xmps:
+            if (c, b) not in found:
                 continue
-            x = xmps[c, b]
-            corr[c, b], t, i, model = _band_correction(x, float(el[c]), float(az[c]), sensor_orientation(x),
-                                                       ratios[b], sources[b])
+            corr[c, b], t, i, model = found[c, b]  # type: ignore[misc]
             factor[c, b] = k[c, b] / corr[c, b]
             if not np.isfinite(tilt[c]):
                 tilt[c], inc[c] = t, i
