@@ -54,7 +54,7 @@ from pipeline.apply.flight import (
 from pipeline.ingest.camera_meta import Capture, capture_folder_of, capture_pattern, group_captures
 from pipeline.ingest.catalog import Camera, Index
 from pipeline.ingest.photo_tags import CameraOptics, calibration_picture, read_optics
-from pipeline.ingest.raw import raw_codec
+from pipeline.ingest.raw import DN_MEDIAN, raw_codec
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
@@ -231,7 +231,7 @@ def _template(coords: dict[str, Any], shape: tuple[int, int, int], variables: di
     ds = xr.Dataset(coords=coords)
     n = ds.sizes["frame"]
     for name, (dims, dtype, vattrs) in variables.items():
-        full = (n, *shape) if len(dims) == 4 else (n, *shape[1:])
+        full = (n, *shape) if len(dims) == 4 else (n, shape[0]) if dims == ("frame", "band") else (n, *shape[1:])
         ds[name] = (dims, da.zeros(full, chunks=(1, *full[1:]), dtype=dtype), vattrs)
     ds.attrs.update(attrs)
     return cf_annotate(ds, FLIGHT_VARIABLES)
@@ -389,8 +389,10 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
     tmp_refl, tmp_raw = _tmp(out, "reflectance.zarr"), _tmp(out, "raw.zarr")
     refl_ds = _template(coords, shape, rvars, attrs)
     _create(refl_ds, tmp_refl, OUTPUT_COMPRESSORS)
-    raw_ds = _template(coords, shape, {"dn": (("frame", "band", "y", "x"), np.uint16,
-                                              {"long_name": "stored DN of each band file", "units": "1"})}, attrs)
+    raw_ds = _template(coords, shape, {
+        "dn": (("frame", "band", "y", "x"), np.uint16, {"long_name": "stored DN of each band file", "units": "1"}),
+        DN_MEDIAN: (("frame", "band"), np.float64, {"long_name": "median stored DN of each band", "units": "1"}),
+    }, attrs)
     _create(raw_ds, tmp_raw, [raw_codec()])
     for sub in ("photogrammetry", "panels", "ndvi"):
         (out / sub).mkdir(exist_ok=True)
@@ -398,6 +400,7 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
     optics = band_optics(captures[0], export, run.reference_band if run.transforms is not None else None)
     plan = Plan(
         camera=camera, chain=run.chain, raw_dn=tmp_raw / "dn", cube_shape=shape, out_store=tmp_refl,
+        raw_medians=tmp_raw / DN_MEDIAN,
         outputs=tuple(str(v) for v in refl_ds.data_vars), indices=tuple((ix, roles[ix.name]) for ix in indices),
         bands=tuple((b, BandTags(name=camera.bands[b].name, wavelength_nm=first[b].wavelength_nm,
                                  fwhm_nm=first[b].fwhm_nm, rig_camera_index=i, optics=optics[i]))

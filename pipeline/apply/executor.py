@@ -59,7 +59,7 @@ from pipeline.ingest.camera_meta import (
 )
 from pipeline.ingest.catalog import Camera, Index, load_camera
 from pipeline.ingest.discover import quarantine_entry
-from pipeline.ingest.raw import prefetch_file, read_frame, shape_problem
+from pipeline.ingest.raw import band_medians, prefetch_file, read_frame, shape_problem
 from pipeline.ingest.session import FrameRecord, decode_raw
 from pipeline.products.writers import BandTags, FrameTags, file_band_name, write_band_tiff, write_ndvi_tiff
 from pipeline.storage.chunks import FrameChunks
@@ -247,6 +247,7 @@ class Plan:
     transforms: Path | None = None  # a store whose band transforms put the bands on the reference band's grid
     band_shift: tuple[tuple[float, float], ...] | None = None  # --centre-bands: (dx, dy) per band
     factory_alignment: bool = False  # each band file's own registration (DJI), camera_meta.factory_align
+    raw_medians: Path | None = None  # raw.zarr's dn_median (frame, band), written with each new frame's DN
 
 
 @dataclass(frozen=True)
@@ -372,6 +373,13 @@ def one_grid(plan: Plan, job: Job, signal: np.ndarray) -> np.ndarray:
     return signal
 
 
+def write_raw(plan: Plan, index: int, dn: np.ndarray) -> None:
+    """A new frame's raw.zarr chunk, and its band medians where the cube keeps them."""
+    write_frame(plan.raw_dn, index, dn)
+    if plan.raw_medians is not None:
+        write_frame(plan.raw_medians, index, band_medians(dn))
+
+
 def process_frame(plan: Plan, job: Job) -> Outcome:
     """One capture, every output: (for a capture read from its files) its raw.zarr chunk, the
     radiometric chain, the common pixel grid, normalisation, indices, Otsu mask, its chunk of
@@ -395,7 +403,7 @@ def process_frame(plan: Plan, job: Job) -> Outcome:
         radiance = signal
     tags = job.tags
     if sha is not None:
-        write_frame(plan.raw_dn, job.index, dn)
+        write_raw(plan, job.index, dn)
         if job.rec is not None:
             tags = replace(tags, capture_uuid=capture_uuid(plan.camera, sha))
     store = plan.out_store

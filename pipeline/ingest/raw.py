@@ -65,7 +65,35 @@ from pipeline.storage.atomic import TMP_MARK, atomic_folder
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 from pipeline.storage.store import FRAME_COORD_ATTRS, file_sha256
 
-__all__ = ["Cube", "IngestResult", "ingest_flight", "open_cube", "RAW_FORMAT", "FRAME_COORDS"]
+__all__ = ["Cube", "IngestResult", "ingest_flight", "open_cube", "RAW_FORMAT", "FRAME_COORDS", "DN_MEDIAN",
+           "band_medians", "median_uint16"]
+
+#: Variable of raw.zarr (frame, band): the median stored DN of each band of each frame, written
+#: by the task that writes the frame (capture folders). The report's exposure-normalised frame
+#: levels read it instead of decoding every frame again (5 s of a 150-capture factory apply's
+#: summary, on the main process after the pass).
+DN_MEDIAN = "dn_median"
+
+
+def median_uint16(values: np.ndarray) -> float:
+    """``np.median`` of unsigned integers of up to 16 bits, by counting: the middle value, or
+    the float64 mean of the middle two (as ``np.median`` takes it), for a third of its CPU on
+    a full-resolution band (no partition of a copy)."""
+    counts = np.cumsum(np.bincount(np.asarray(values).ravel()))
+    n = int(counts[-1])
+    lo = int(np.searchsorted(counts, (n - 1) // 2, side="right"))
+    hi = int(np.searchsorted(counts, n // 2, side="right"))
+    return float(np.mean(np.array([lo, hi], dtype=np.uint16)))
+
+
+def band_medians(dn: np.ndarray) -> np.ndarray:
+    """``(band,)`` float64: the median of each band of a ``(band, y, x)`` frame as stored
+    (:data:`DN_MEDIAN`); NaN for an empty band."""
+    out = np.full(dn.shape[0], np.nan)
+    for b in range(dn.shape[0]):
+        if dn[b].size:
+            out[b] = median_uint16(dn[b]) if dn.dtype.kind == "u" and dn.dtype.itemsize <= 2 else float(np.median(dn[b]))
+    return out
 
 log = logging.getLogger(__name__)
 

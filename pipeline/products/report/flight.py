@@ -12,6 +12,7 @@ import numpy as np
 import xarray as xr
 from mscal_core.reflectance import ndvi, otsu_ndvi_threshold, vegetation_mask
 
+from pipeline.ingest.raw import DN_MEDIAN, median_uint16
 from pipeline.products.report.calibration import band_name_of, stage_residuals
 from pipeline.products.report.figures import band_titles, few_ticks, image_axes, panel_figure
 from pipeline.products.report.inputs import FlightResults
@@ -98,6 +99,11 @@ def frame_levels(flight: FlightResults, calibration: xr.Dataset | None = None) -
     names = [str(f) for f in raw["frame"].values]
     out = {}
     frames = [int(f) for f in sample_indices(len(names), LEVEL_MAX_FRAMES)]
+    if DN_MEDIAN in raw:  # written with each frame: no frame decoded again
+        med = np.asarray(raw[DN_MEDIAN].isel(band=b).values, dtype=np.float64)
+        for f in frames:
+            out[names[f]] = float((med[f] - black) / t[f]) if t[f] > 0 else float("nan")
+        return out
     for f, dn in _qa_bands(flight, b, frames):
         out[names[f]] = _level(dn, black, t[f])
     return out
@@ -111,17 +117,6 @@ def _level(dn: np.ndarray, black: float, t: float) -> float:
     if black == 0.0 and dn.dtype.kind == "u" and dn.dtype.itemsize <= 2 and dn.size:
         return float(median_uint16(dn) / t)
     return float(np.median(np.asarray(dn, dtype=float) - black) / t)
-
-
-def median_uint16(values: np.ndarray) -> float:
-    """``np.median`` of unsigned integers of up to 16 bits, by counting: the middle value, or
-    the float64 mean of the middle two (as ``np.median`` takes it), for a third of its CPU on
-    a full-resolution band (no partition of a copy)."""
-    counts = np.cumsum(np.bincount(np.asarray(values).ravel()))
-    n = int(counts[-1])
-    lo = int(np.searchsorted(counts, (n - 1) // 2, side="right"))
-    hi = int(np.searchsorted(counts, n // 2, side="right"))
-    return float(np.mean(np.array([lo, hi], dtype=np.uint16)))
 
 
 def _qa_bands(flight: FlightResults, b: int, frames: Sequence[int]):  # noqa: ANN202 (a generator)

@@ -14,8 +14,9 @@ from pipeline.apply.captures import capture_times, find_captures
 from pipeline.ingest import sunsensor as sunlight
 from pipeline.ingest.camera_meta import SUN_SENSOR_XMP, read_file_metas, sun_sensor_xmp
 from pipeline.ingest.identify import identify_camera
+from pipeline.ingest.raw import DN_MEDIAN, band_medians, median_uint16
 from pipeline.products.report import flight as report_flight
-from pipeline.products.report.flight import frame_levels, median_uint16
+from pipeline.products.report.flight import frame_levels
 from pipeline.products.report.inputs import open_flight
 
 SHARED = Path(__file__).parents[3].parent / "shared" / "data"
@@ -61,11 +62,34 @@ def test_counting_median_is_numpys() -> None:
             assert median_uint16(v) == np.median(v.astype(np.float64))
     assert median_uint16(np.array([65534, 65535], np.uint16)) == 65534.5
     assert median_uint16(np.array([[7, 1], [3, 200]], np.uint8)) == 5.0
+    cube = rng.integers(0, 4096, (3, 17, 9)).astype(np.uint16)
+    np.testing.assert_array_equal(band_medians(cube), np.median(cube.astype(np.float64), axis=(1, 2)))
+
+
+def test_frame_levels_from_stored_medians_equal_decoding_the_frames(tmp_path: Path) -> None:
+    """A capture folder's raw.zarr keeps each band's median DN, written with the frame; the
+    report's levels from it are those of the frames decoded again (an older raw.zarr)."""
+    from pipeline.run.cli import main
+
+    folder = SHARED / "micasense-rededge"
+    if not folder.is_dir():
+        pytest.skip("no MicaSense sample")
+    out = tmp_path / "out"
+    assert main(["apply", str(folder), "--calibration", "factory", "-o", str(out)]) == 0
+    flight = open_flight(out)
+    stored = flight.raw[DN_MEDIAN].values
+    dn = flight.raw["dn"].values
+    np.testing.assert_array_equal(stored, np.median(dn.astype(np.float64), axis=(2, 3)))
+    fast = frame_levels(flight)
+    assert len(fast) == dn.shape[0] and all(np.isfinite(v) and v > 0 for v in fast.values())
+    older = dataclasses.replace(flight, raw=flight.raw.drop_vars(DN_MEDIAN))
+    assert frame_levels(older) == fast
 
 
 def test_frame_levels_from_chunk_files_equal_the_dask_read(applied, monkeypatch) -> None:
     out = applied[2]
     flight = open_flight(out)
+    assert DN_MEDIAN not in flight.raw  # a snapshot flight's raw.zarr (ingested): frames decoded again
     fast = frame_levels(flight)
     assert len(fast) >= 3 and all(np.isfinite(v) for v in fast.values())
     monkeypatch.setattr(report_flight.FrameChunks, "open", staticmethod(lambda path: None))
