@@ -22,6 +22,9 @@ _COMMON = dict(
 )
 settings.register_profile("mscal-short", derandomize=True, max_examples=60, **_COMMON)
 settings.register_profile("mscal-long", derandomize=False, max_examples=2000, **_COMMON)
+# pytest -n 2 already fills the cores: calibrations in tests fit their bands in-process instead
+# of spawning band workers each (tests that check the workers set the variable themselves).
+os.environ.setdefault("MSCAL_CALIBRATE_WORKERS", "1")
 SHORT = os.environ.get("HYPOTHESIS_PROFILE", "mscal-short")
 settings.load_profile(SHORT)
 
