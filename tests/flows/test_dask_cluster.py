@@ -68,6 +68,22 @@ def cluster_run(cluster: str, flow_session: Path, first_run: Path, tmp_path_fact
     return out
 
 
+def _frame_compute_seconds(cluster: str) -> float:
+    """Compute seconds of every ``process_frame`` task the scheduler has seen."""
+    from distributed import Client
+
+    def seconds(dask_scheduler) -> float:  # noqa: ANN001
+        tp = dask_scheduler.task_prefixes.get("process_frame")
+        return 0.0 if tp is None else tp.all_durations["compute"]
+
+    with Client(cluster, timeout="30s") as client:
+        return client.run_on_scheduler(seconds)
+
+
+# The two `mscal run --dask-address` tests share a second full run (~40 s beyond the local one):
+# make test-long. make test keeps the cluster through the factory apply test below (same
+# executor: outputs identical to a local run, frames computed on the workers).
+@pytest.mark.long
 def test_cluster_run_outputs_are_identical_to_the_local_run(cluster_run: Path, first_run: Path, cluster: str) -> None:
     run = json.loads((cluster_run / "run.json").read_text())
     assert run["dask_address"] == cluster
@@ -78,17 +94,11 @@ def test_cluster_run_outputs_are_identical_to_the_local_run(cluster_run: Path, f
         assert_same_flight_outputs(first_run / "flights" / name, cluster_run / "flights" / name)
 
 
+@pytest.mark.long
 def test_cluster_run_computed_its_frames_on_the_cluster_workers(cluster_run: Path, cluster: str) -> None:
     """apply's per-frame tasks ran on the scheduler's workers (the default client's), not
     in the flow's process. Needs apply to use an active distributed client (lead's change)."""
-    from distributed import Client
-
-    def frame_compute_seconds(dask_scheduler) -> float:  # noqa: ANN001
-        tp = dask_scheduler.task_prefixes.get("process_frame")
-        return 0.0 if tp is None else tp.all_durations["compute"]
-
-    with Client(cluster, timeout="30s") as client:
-        assert client.run_on_scheduler(frame_compute_seconds) > 0
+    assert _frame_compute_seconds(cluster) > 0
 
 
 @pytest.mark.long  # 27 s; the MicaSense factory apply on the cluster stays in make test
@@ -121,8 +131,10 @@ def test_factory_apply_runs_on_the_cluster(cluster: str, tmp_path) -> None:
     from tests.micasense_data import require_data
 
     opts = FactoryOptions(panel_reflectance="micasense-rp02-1603036-sc")
+    before = _frame_compute_seconds(cluster)
     with Client(cluster, timeout="30s"):
         remote = apply_factory(require_data(), tmp_path / "remote", opts)
+    assert _frame_compute_seconds(cluster) > before  # its captures were computed on the workers
     local = apply_factory(require_data(), tmp_path / "local", opts)
     assert remote.run["scheduler"] == "distributed" and local.run["scheduler"] != "distributed"
     assert remote.run["frames_out"] == local.run["frames_out"] == 2

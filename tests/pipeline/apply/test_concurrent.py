@@ -126,9 +126,10 @@ def _killed_then_two_restarts(small, tmp_path: Path, n: int, seed: int) -> dict[
 
 
 def test_sigkill_then_two_restarts_at_once(small, tmp_path: Path) -> None:
-    tally = _killed_then_two_restarts(small, tmp_path, 3, seed=23)
-    print(f"3 SIGKILLs then two restarts: {tally}")
-    assert tally["killed"] + tally["finished_before_the_kill"] == 3 and tally["killed"] >= 1, tally
+    # two trials (one plain pair, one with --wait): the twenty-trial version is make test-long
+    tally = _killed_then_two_restarts(small, tmp_path, 2, seed=23)
+    print(f"2 SIGKILLs then two restarts: {tally}")
+    assert tally["killed"] + tally["finished_before_the_kill"] == 2 and tally["killed"] >= 1, tally
 
 
 @pytest.mark.long  # ~7 min: make test-long
