@@ -279,7 +279,9 @@ def _template(camera: Camera, shape: tuple[int, int, int]):
                     "valid_min": 0,
                     "valid_max": camera.dn_max,
                 },
-            )
+            ),
+            DN_MEDIAN: (("frame", "band"), np.zeros((0, nb), np.float64),
+                        {"long_name": "median stored DN of each band", "units": "1"}),
         },
         coords={
             "frame": ("frame", np.array([], dtype=sdt), dict(FRAME_COORD_ATTRS["frame"])),
@@ -325,7 +327,9 @@ def raw_codec():  # noqa: ANN201 - zarr.codecs.BloscCodec
 def _encoding(shape: tuple[int, int, int], compress: bool = True) -> dict:
     codec = raw_codec()
     enc: dict = {"dn": {"chunks": (1, *shape), "compressors": (codec,) if compress else None,
-                        "chunk_key_encoding": FLAT_CHUNK_KEYS}}
+                        "chunk_key_encoding": FLAT_CHUNK_KEYS},
+                 # one chunk per frame, as dn: written by whoever writes the frame's dn chunk
+                 DN_MEDIAN: {"chunks": (1, shape[0]), "compressors": None, "chunk_key_encoding": FLAT_CHUNK_KEYS}}
     for name in FRAME_COORDS:
         enc[name] = {"chunks": (COORD_CHUNK,)}
     enc["time"].update({"units": TIME_UNITS, "calendar": "proleptic_gregorian", "dtype": "int64"})
@@ -359,6 +363,8 @@ def _open(out: Path, camera: Camera) -> tuple[zarr.Group, int]:
         g = zarr.open_group(str(out), mode="r+", use_consolidated=False)
         attrs = dict(g.attrs)
         arrays = {name: g[name] for name in FRAME_VARS}
+        if DN_MEDIAN in g:  # cubes written before it was kept have none
+            arrays[DN_MEDIAN] = g[DN_MEDIAN]
     except Exception:
         raise bad from None
     if attrs.get("format") != RAW_FORMAT or not isinstance(attrs.get("frames_committed"), int):
@@ -608,6 +614,7 @@ class CubeWriter:
         self.max_writes = max(1, workers) + 1  # chunk writes in flight (memory bound)
         self.writes: deque[Future] = deque()
         self.dn: zarr.Array | None = None
+        self.medians: zarr.Array | None = None  # DN_MEDIAN, if the cube keeps it
         self.n = committed  # frames whose chunk is written or being written
         self.pending: list[dict] = []
         self.added: list[str] = []
@@ -619,7 +626,22 @@ class CubeWriter:
             # a whole new frame is written at once: no need to look for all-fill chunks
             # (open_array's config= is not honoured in zarr 3.1; with_config is)
             self.dn = zarr.open_array(str(self.out / "dn"), mode="r+").with_config({"write_empty_chunks": True})
+            if (self.out / DN_MEDIAN).is_dir():
+                self.medians = zarr.open_array(str(self.out / DN_MEDIAN), mode="r+")
         return self.dn
+
+    @property
+    def medians_path(self) -> Path | None:
+        """Where a frame's band medians go beside its dn chunk (None: the cube keeps none)."""
+        self._dn()
+        return None if self.medians is None else self.out / DN_MEDIAN
+
+    def _resize(self, n: int) -> None:
+        dn = self._dn()
+        if dn.shape[0] != n:
+            dn.resize((n, *dn.shape[1:]))
+        if self.medians is not None and self.medians.shape[0] != n:
+            self.medians.resize((n, self.medians.shape[1]))
 
     def add(self, rec: FrameRecord, sha: str, bands: np.ndarray) -> str | None:
         """Write one frame's chunk; returns a reason instead if it does not fit the cube."""
@@ -632,8 +654,8 @@ class CubeWriter:
             return problem
         dn = self._dn()
         if not self.pending:  # a new batch: room for it beyond the committed frames
-            dn.resize((self.committed + self.commit_every, *self.shape))
-        self.writes.append(self.pool.submit(_write_chunk, dn, self.n, bands))
+            self._resize(self.committed + self.commit_every)
+        self.writes.append(self.pool.submit(_write_chunk, dn, self.medians, self.n, bands))
         self.n += 1
         self.pending.append(frame_row(rec, sha))
         self._drain(self.max_writes)
@@ -644,9 +666,8 @@ class CubeWriter:
     def reserve(self, n_frames: int) -> int:
         """Room for ``n_frames`` more frames beyond those written or being written, for chunks
         that others write (:meth:`register` them in order); returns the first new index."""
-        dn = self._dn()
-        if dn.shape[0] < self.n + n_frames:
-            dn.resize((self.n + n_frames, *dn.shape[1:]))
+        if self._dn().shape[0] < self.n + n_frames:
+            self._resize(self.n + n_frames)
         return self.n
 
     def register(self, rec: FrameRecord, sha: str) -> None:
@@ -670,9 +691,7 @@ class CubeWriter:
             if arr.shape[0] != n:
                 arr.resize((n,))
             arr[k0:n] = _column(name, [row[name] for row in self.pending])
-        dn = self._dn()
-        if dn.shape[0] != n:
-            dn.resize((n, *dn.shape[1:]))
+        self._resize(n)
         _consolidate(self.out)
         _set_committed(self.out, n)
         self.added.extend(row["frame"] for row in self.pending)
@@ -680,5 +699,7 @@ class CubeWriter:
         self.committed = n
 
 
-def _write_chunk(dn: zarr.Array, index: int, bands: np.ndarray) -> None:
+def _write_chunk(dn: zarr.Array, medians: zarr.Array | None, index: int, bands: np.ndarray) -> None:
     dn[index] = bands  # exactly one whole chunk
+    if medians is not None:
+        medians[index] = band_medians(bands)  # its own chunk too

@@ -28,13 +28,14 @@ import numpy as np
 import pytest
 import tifffile
 import xarray as xr
+import zarr
 
 import mscal_core
 import pipeline.ingest.raw as ingest_mod
 from mscal_core.errors import InputError, SessionError
 from pipeline.ingest.catalog import load_camera
 from pipeline.ingest.discover import discover_flight
-from pipeline.ingest.raw import ingest_flight
+from pipeline.ingest.raw import DN_MEDIAN, ingest_flight
 from pipeline.ingest.session import decode_raw, exif_record, read_bands
 from tests.pipeline.ingest.kill_points import KILL_CODE, arm
 
@@ -359,6 +360,33 @@ def test_new_frames_are_appended_in_name_order(tmp_path, catalog, spy) -> None:
     cam = load_camera(TINY)
     np.testing.assert_array_equal(after["dn"][3], read_bands(d / "A_0009.tif", cam))
     np.testing.assert_array_equal(after["dn"][4], read_bands(d / "Z_0007.tif", cam))
+
+
+def test_band_medians_are_kept_with_each_frame_and_older_cubes_still_append(tmp_path, catalog) -> None:
+    """raw.zarr keeps each frame's band medians (dn_median, for the report's frame levels),
+    appended frames included; a cube written before it existed takes new frames without it."""
+    d = _flight(tmp_path / "f", 3)
+    out = tmp_path / "raw.zarr"
+    ingest_flight(d, TINY, out, commit_every=2)
+    _flight(d, 2, start=3, seed=1)
+    ingest_flight(d, TINY, out)
+    ds = xr.open_zarr(out).load()
+    assert ds[DN_MEDIAN].dims == ("frame", "band") and ds[DN_MEDIAN].shape == (5, ds.sizes["band"])
+    np.testing.assert_array_equal(ds[DN_MEDIAN].values, np.median(ds["dn"].values.astype(np.float64), axis=(2, 3)))
+    assert len(np.unique(ds[DN_MEDIAN].values[:, 0])) == 5  # each frame its own medians
+
+    older = tmp_path / "older.zarr"
+    d2 = _flight(tmp_path / "g", 2, seed=3)
+    ingest_flight(d2, TINY, older)
+    g = zarr.open_group(str(older), mode="r+")
+    del g[DN_MEDIAN]
+    zarr.consolidate_metadata(str(older))
+    _flight(d2, 1, start=2, seed=4)
+    res = ingest_flight(d2, TINY, older)
+    assert res.added == ["IMG_0002"] and res.n_frames == 3
+    ds = xr.open_zarr(older).load()
+    assert DN_MEDIAN not in ds and ds.sizes["frame"] == 3
+    np.testing.assert_array_equal(ds["dn"].values[2], read_bands(d2 / "IMG_0002.tif", load_camera(TINY)))
 
 
 def test_changed_file_is_quarantined_and_the_cube_kept(tmp_path, catalog, spy) -> None:
