@@ -155,6 +155,7 @@ def test_bad_dask_address_and_normalise_are_rejected(flow_session: Path, tmp_pat
     assert "--normalise 'panel'" in capsys.readouterr().err
 
 
+@pytest.mark.long  # ~38 s: a second whole demo run; make test keeps the flow through first_run
 def test_demo_runs_the_whole_flow_and_says_where_the_outputs_are(first_run: Path, tmp_path: Path, capsys) -> None:
     """The demo's session is the flows' test session (seed 0, small, two flights): its
     calibration comes from the cache, so this checks the demo's wiring, not the fits again."""

@@ -24,6 +24,7 @@ def _state(root: Path) -> dict:
     return json.loads((root / STATE_FILE).read_text())["sessions"]
 
 
+@pytest.mark.long  # ~52 s (a serve process, its own Prefect server, two sessions, restarts): make test-long
 def test_serve_processes_complete_sessions_once_and_survives_restarts(
         flow_session: Path, first_run: Path, tmp_path: Path, capsys) -> None:
     inbox, root = tmp_path / "inbox", tmp_path / "processed"

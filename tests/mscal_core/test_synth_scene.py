@@ -314,6 +314,7 @@ def test_seeded_reproducible_and_seed_dependent():
 
 
 @pytest.mark.slow
+@pytest.mark.long  # ~20 s (full-size dataset): make test-long; the small datasets stay in make test
 def test_full_vignetting_dataset_covers_the_whole_image(truth):
     fs = S.vignetting_views(truth, seed=0, n_views=40, n_missing=2)
     T = fs.truth
