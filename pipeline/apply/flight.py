@@ -57,13 +57,13 @@ from pipeline.calibrate.registration import check_transforms, frame_transforms
 from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
 from pipeline.ingest.photo_tags import CameraOptics, optics_from_intrinsics
 from pipeline.ingest.raw import (
-    DN_MEDIAN,
     FRAME_COORDS,
     Cube,
     CubeWriter,
     frame_coords,
     frame_row,
     ingest_flight,
+    kept_medians,
     open_cube,
     read_frame,
 )
@@ -398,7 +398,7 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
     optics = snapshot_optics(camera, calib, tuple(cube_shape[1:]))
     plan = Plan(
         camera=camera, chain=FieldChain(calib_path, sat), raw_dn=raw_dn, cube_shape=tuple(cube_shape),
-        raw_medians=raw_dn.parent / DN_MEDIAN if (raw_dn.parent / DN_MEDIAN).is_dir() else None,
+        raw_medians=kept_medians(raw_dn.parent),
         out_store=tmp_store, outputs=tuple(str(v) for v in ds.data_vars), norm=norm,
         indices=tuple((ix, roles[ix.name]) for ix in indices),
         bands=tuple(

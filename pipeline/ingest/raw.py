@@ -66,7 +66,7 @@ from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 from pipeline.storage.store import FRAME_COORD_ATTRS, file_sha256
 
 __all__ = ["Cube", "IngestResult", "ingest_flight", "open_cube", "RAW_FORMAT", "FRAME_COORDS", "DN_MEDIAN",
-           "band_medians", "median_uint16"]
+           "band_medians", "kept_medians", "median_uint16"]
 
 #: Variable of raw.zarr (frame, band): the median stored DN of each band of each frame, written
 #: by the task that writes the frame (capture folders). The report's exposure-normalised frame
@@ -84,6 +84,13 @@ def median_uint16(values: np.ndarray) -> float:
     lo = int(np.searchsorted(counts, (n - 1) // 2, side="right"))
     hi = int(np.searchsorted(counts, n // 2, side="right"))
     return float(np.mean(np.array([lo, hi], dtype=np.uint16)))
+
+
+def kept_medians(cube: Path) -> Path | None:
+    """The :data:`DN_MEDIAN` array of the raw cube at ``cube``; None for cubes written before
+    it was kept (their frames' medians are computed from the frames when needed)."""
+    path = Path(cube) / DN_MEDIAN
+    return path if path.is_dir() else None
 
 
 def band_medians(dn: np.ndarray) -> np.ndarray:
@@ -626,15 +633,10 @@ class CubeWriter:
             # a whole new frame is written at once: no need to look for all-fill chunks
             # (open_array's config= is not honoured in zarr 3.1; with_config is)
             self.dn = zarr.open_array(str(self.out / "dn"), mode="r+").with_config({"write_empty_chunks": True})
-            if (self.out / DN_MEDIAN).is_dir():
-                self.medians = zarr.open_array(str(self.out / DN_MEDIAN), mode="r+")
+            medians = kept_medians(self.out)
+            if medians is not None:
+                self.medians = zarr.open_array(str(medians), mode="r+")
         return self.dn
-
-    @property
-    def medians_path(self) -> Path | None:
-        """Where a frame's band medians go beside its dn chunk (None: the cube keeps none)."""
-        self._dn()
-        return None if self.medians is None else self.out / DN_MEDIAN
 
     def _resize(self, n: int) -> None:
         dn = self._dn()
