@@ -108,6 +108,10 @@ def _trials(env: dict[str, str], session: Path, first_run: Path, tmp_path: Path,
     return tally
 
 
+# ~50 s (two trials of two `mscal run` subprocesses, each with its own Prefect server): make
+# test-long, beside its 20-trial twin. make test keeps the same lock through two applies at once
+# on one OUT (tests/pipeline/apply/test_concurrent.py).
+@pytest.mark.long
 def test_two_runs_on_one_out_one_completes_the_other_refuses_or_waits(run_env, bad_session, first_run,
                                                                        tmp_path: Path) -> None:
     tally = _trials(run_env, bad_session, first_run, tmp_path, 1)  # --wait: the long test and the apply tests

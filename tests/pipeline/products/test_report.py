@@ -407,6 +407,7 @@ CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic
 
 
 @pytest.mark.slow
+@pytest.mark.long  # ~25 s (an apply, a report, a headless browser): make test-long
 def test_demo_report_renders_in_chromium(small, tmp_path) -> None:
     if not os.access(CHROMIUM, os.X_OK):
         pytest.skip(f"{CHROMIUM} is not installed (Debian package 'chromium'; .ci/run installs it)")
