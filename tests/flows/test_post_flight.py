@@ -133,6 +133,9 @@ def test_short_flights_compute_in_process(first_run: Path) -> None:
     assert run["dask_address"] is None
 
 
+# ~20 s, a third whole run: make test-long. make test keeps the check through the S3 run, a
+# rerun elsewhere with the cached calibration compared byte for byte with the first run.
+@pytest.mark.long
 def test_identical_outputs_of_a_rerun_into_a_new_folder(flow_session: Path, first_run: Path, tmp_path: Path) -> None:
     out = tmp_path / "again"
     assert main(["run", str(flow_session), "-o", str(out)]) == 0
