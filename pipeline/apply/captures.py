@@ -54,7 +54,7 @@ from pipeline.apply.flight import (
 from pipeline.ingest.camera_meta import Capture, capture_folder_of, capture_pattern, group_captures
 from pipeline.ingest.catalog import Camera, Index
 from pipeline.ingest.photo_tags import CameraOptics, calibration_picture, read_optics
-from pipeline.ingest.raw import DN_MEDIAN, raw_codec
+from pipeline.ingest.raw import DN_MEDIAN, DN_MEDIAN_ATTRS, raw_codec
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS
@@ -391,7 +391,7 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
     _create(refl_ds, tmp_refl, OUTPUT_COMPRESSORS)
     raw_ds = _template(coords, shape, {
         "dn": (("frame", "band", "y", "x"), np.uint16, {"long_name": "stored DN of each band file", "units": "1"}),
-        DN_MEDIAN: (("frame", "band"), np.float64, {"long_name": "median stored DN of each band", "units": "1"}),
+        DN_MEDIAN: (("frame", "band"), np.float64, dict(DN_MEDIAN_ATTRS)),
     }, attrs)
     _create(raw_ds, tmp_raw, [raw_codec()])
     for sub in ("photogrammetry", "panels", "ndvi"):

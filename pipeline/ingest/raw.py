@@ -66,13 +66,14 @@ from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 from pipeline.storage.store import FRAME_COORD_ATTRS, file_sha256
 
 __all__ = ["Cube", "IngestResult", "ingest_flight", "open_cube", "RAW_FORMAT", "FRAME_COORDS", "DN_MEDIAN",
-           "band_medians", "kept_medians", "median_uint16"]
+           "DN_MEDIAN_ATTRS", "band_medians", "kept_medians", "median_uint16"]
 
 #: Variable of raw.zarr (frame, band): the median stored DN of each band of each frame, written
-#: by the task that writes the frame (capture folders). The report's exposure-normalised frame
-#: levels read it instead of decoding every frame again (5 s of a 150-capture factory apply's
-#: summary, on the main process after the pass).
+#: by whoever writes the frame's dn chunk (snapshot flights and capture folders). The report's
+#: exposure-normalised frame levels read it instead of decoding every frame again (5 s of a
+#: 150-capture factory apply's summary, on the main process after the pass).
 DN_MEDIAN = "dn_median"
+DN_MEDIAN_ATTRS = {"long_name": "median stored DN of each band", "units": "1"}
 
 
 def median_uint16(values: np.ndarray) -> float:
@@ -287,8 +288,7 @@ def _template(camera: Camera, shape: tuple[int, int, int]):
                     "valid_max": camera.dn_max,
                 },
             ),
-            DN_MEDIAN: (("frame", "band"), np.zeros((0, nb), np.float64),
-                        {"long_name": "median stored DN of each band", "units": "1"}),
+            DN_MEDIAN: (("frame", "band"), np.zeros((0, nb), np.float64), dict(DN_MEDIAN_ATTRS)),
         },
         coords={
             "frame": ("frame", np.array([], dtype=sdt), dict(FRAME_COORD_ATTRS["frame"])),
