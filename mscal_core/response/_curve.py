@@ -235,8 +235,10 @@ def joint_step(
     ok = h > 1e-12 * max(h.max(), 1e-300)
     if not joint:
         ok[:] = False
-    Gh = G[ok] / h[ok, None]
-    M = _normal_matrix(xs, seg, ws, xk) - np.einsum("ij,ik->jk", G[ok], Gh) + prior[0]
+    Go = G[ok]
+    Gh = Go / h[ok, None]
+    # G' G / h as a BLAS product (np.einsum's own loop took a sixth of the whole fit)
+    M = _normal_matrix(xs, seg, ws, xk) - Go.T @ Gh + prior[0]
     b = _ramp_stats(xs, seg, ws * ds, xk) - Gh.T @ q[ok] + prior[1]
     lb = np.concatenate([[-np.inf], np.full(xk.size - 1, s_min)])
     theta = _solve_bounded(M, b, lb)
