@@ -1,125 +1,21 @@
-"""Per-band work of the calibration, run on worker processes (issue 25).
+"""Per-band work of the calibration, run on the workers of :class:`pipeline.calibrate.pool.BandPool`.
 
 The response (Eq. 5-7) and vignetting (Eq. 8-10) fits of one band do not depend on the other
-bands. Run on threads they did not get faster on 2 cores (measured: response 6.8 s with one
-thread, 6.9 s with two; vignetting 9.9 s and 10.9 s): the fits are many short numpy calls
-and ``np.bincount`` steps that hold the GIL. :class:`BandPool` runs them on worker
-processes instead. Each task gets its band's frames (a view of the stack, pickled when it is
-sent, a few at a time) and returns the fit.
-
-Workers are spawned (not forked from a forkserver): a spawned worker is a child of the main
-process, joined when the pool closes, so its CPU time counts in the main process's
-``RUSAGE_CHILDREN`` and in ``os.wait4`` of whoever started ``mscal`` (the benchmarks). A
-forkserver's workers are its children, and the forkserver is never waited for: their CPU
-time would vanish from every measurement. Spawning costs each worker the import of this
-module (numpy, OpenCV, scipy, ``mscal_core``: about 0.5 s of CPU), made while the main
-process reads the frames. Workers run single-threaded BLAS and OpenCV (the workers fill
-the cores).
-
-The numbers are the same whichever process fits a band: the worker runs exactly the code the
-main process would (``tests/pipeline/calibrate/test_bands.py`` checks 1 worker against 2).
+bands. Each task gets its band's frames (a view of the stack, pickled when it is sent, a few
+at a time) and returns the fit. The numbers are the same whichever process fits a band: the
+worker runs exactly the code the main process would (``tests/pipeline/calibrate/test_bands.py``
+checks 1 worker against 2).
 
 Only this module and ``mscal_core`` are imported here: a worker imports nothing else.
 """
 
 from __future__ import annotations
 
-import multiprocessing
-import os
-from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass
-from typing import Any, Callable, Sequence
+from typing import Sequence
 
 import numpy as np
 from mscal_core import geometry, response, vignetting
-
-from pipeline.storage.process import die_with_parent, reuse_freed_memory
-
-#: Environment variable: worker processes for the per-band fits (0 or unset: one per core;
-#: 1: none, every band in the main process).
-WORKERS_ENV = "MSCAL_CALIBRATE_WORKERS"
-
-
-def band_workers(n_tasks: int) -> int:
-    """Worker processes for ``n_tasks`` band fits: ``MSCAL_CALIBRATE_WORKERS`` if set (> 0),
-    else the cores this process may run on; never more than the tasks."""
-    raw = os.environ.get(WORKERS_ENV, "").strip()
-    try:
-        asked = int(raw) if raw else 0
-    except ValueError:
-        asked = 0
-    if asked <= 0:
-        try:
-            asked = len(os.sched_getaffinity(0))
-        except AttributeError:  # not Linux
-            asked = os.cpu_count() or 1
-    return max(1, min(asked, n_tasks))
-
-
-#: Set for the workers when they start: one BLAS/OpenMP thread each.
-_WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-
-
-def _worker_init() -> None:
-    """A worker dies with the parent (a killed calibration leaves no process behind), reuses
-    freed memory (a band's stacks are allocated again for every band) and runs OpenCV on one
-    thread."""
-    die_with_parent()
-    reuse_freed_memory()
-    import cv2
-
-    cv2.setNumThreads(1)
-
-
-class BandPool:
-    """Runs per-band fits on worker processes (in the main process with one worker).
-
-    Use as a context manager; the workers start when the pool is made, so they start while
-    the main process reads the frames."""
-
-    def __init__(self, workers: int | None = None):
-        self.workers = band_workers(64) if workers is None else max(1, int(workers))
-        self._pool: ProcessPoolExecutor | None = None
-        reuse_freed_memory()  # this process reads every stack; with one worker it fits them too
-        if self.workers >= 2:
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                             initializer=_worker_init)
-            saved = {k: os.environ.get(k) for k in _WORKER_ENV}
-            os.environ.update({k: v for k, v in _WORKER_ENV.items() if saved[k] is None})
-            try:
-                for _ in range(self.workers):  # start them now (a spawned worker copies the environment)
-                    self._pool.submit(int)
-            finally:
-                for k, v in saved.items():
-                    if v is None:
-                        os.environ.pop(k, None)
-
-    def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
-        """``fn(*args)`` on a worker (or now, in this process, without workers)."""
-        if self._pool is None:
-            fut: Future = Future()
-            try:
-                fut.set_result(fn(*args))
-            except BaseException as exc:  # noqa: BLE001 - handed to the caller by .result()
-                fut.set_exception(exc)
-            return fut
-        return self._pool.submit(fn, *args)
-
-    def map(self, fn: Callable[..., Any], args: Sequence[tuple]) -> list[Any]:
-        """``[fn(*a) for a in args]``, in order; the first error is raised."""
-        return [f.result() for f in [self.submit(fn, *a) for a in args]]
-
-    def close(self) -> None:
-        if self._pool is not None:
-            self._pool.shutdown(wait=True, cancel_futures=True)
-            self._pool = None
-
-    def __enter__(self) -> "BandPool":
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
-
 
 # --------------------------------------------------------------------------- response (Eq. 5-7)
 

@@ -25,16 +25,9 @@ from mscal_core import geometry, illumination, response, vignetting
 from mscal_core.errors import FitError, MscalError, SessionError
 from mscal_core.mosaic import band_offsets
 
-from pipeline.calibrate.bands import (
-    BandPool,
-    BandViews,
-    band_workers,
-    energy,
-    lens_vignetting_band,
-    response_band,
-    vignetting_band,
-)
+from pipeline.calibrate.bands import BandViews, energy, lens_vignetting_band, response_band, vignetting_band
 from pipeline.calibrate.intrinsics import fit_intrinsics_folder, parse_board, store_intrinsics
+from pipeline.calibrate.pool import BandPool, band_workers
 from pipeline.ingest.captures import is_multilens, read_frames
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.exif import NAT, time_ns
@@ -1041,11 +1034,14 @@ CALIBRATE_STEPS = 4
 
 
 def calibrate_session(session_dir: str | Path, out: str | Path, *, response_method: str = "forward",
-                      calibration: str | Path | None = None, advance: Callable[[], None] | None = None) -> xr.Dataset:
+                      calibration: str | Path | None = None, advance: Callable[[], None] | None = None,
+                      pool: BandPool | None = None) -> xr.Dataset:
     """``mscal calibrate``: the three fits from a session folder, written to ``out``.
     ``calibration``: a store whose ``intrinsics`` (``mscal fit intrinsics``) are used when
     session.yaml gives none (nothing else is taken from it). ``advance``: called after each
-    of :data:`CALIBRATE_STEPS` steps (a progress bar)."""
+    of :data:`CALIBRATE_STEPS` steps (a progress bar). ``pool``: the band fits' workers,
+    started by the caller (a pool of its own if None; see
+    :func:`pipeline.calibrate.pool.session_pool`)."""
     advance = advance or (lambda: None)
     session = load_session(session_dir)
     camera = session.camera
@@ -1053,7 +1049,7 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
     session, source = with_intrinsics(session, partial)
     # one set of workers for both per-band stages; the vignetting frames are read (and
     # hashed) on a thread while the workers fit the response
-    with BandPool(band_workers(camera.n_bands)) as pool, ThreadPoolExecutor(1) as aside:
+    with _pool(pool, camera.n_bands) as pool, ThreadPoolExecutor(1) as aside:
         # what does not wait for the fits is done aside, while the workers fit: reading the
         # vignetting and reflector frames, building the response's part of the store
         views_ahead = aside.submit(read_folder_frames, session, session.vignetting_dir)

@@ -169,11 +169,17 @@ def cli() -> None:
               help="A store with intrinsics per band ('mscal fit intrinsics'), used when session.yaml gives none.")
 def calibrate(session: Path, out: Path, response_method: str, partial: Path | None) -> None:
     """All three fits of a SESSION folder: response, vignetting, illumination."""
-    from pipeline.calibrate.fit import CALIBRATE_STEPS, calibrate_session
+    from pipeline.calibrate.pool import session_pool
 
     t0 = time.perf_counter()
-    with progress(CALIBRATE_STEPS, "calibrate") as advance:
-        ds = calibrate_session(session, out, response_method=response_method, calibration=partial, advance=advance)
+    # the band fits' workers start first: they import the fits while this process imports
+    # the rest of the calibration (xarray, zarr), instead of one core waiting for the other
+    with session_pool(session) as pool:
+        from pipeline.calibrate.fit import CALIBRATE_STEPS, calibrate_session
+
+        with progress(CALIBRATE_STEPS, "calibrate") as advance:
+            ds = calibrate_session(session, out, response_method=response_method, calibration=partial,
+                                   advance=advance, pool=pool)
     _report_skips(ds)
     _store_summary("calibrate", ds, out, f"wrote {out} ({_summary(ds)}; {time.perf_counter() - t0:.1f} s)").emit()
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from pipeline.calibrate.bands import WORKERS_ENV, BandPool, band_workers
+from pipeline.calibrate.pool import WORKERS_ENV, BandPool, band_workers
 from pipeline.calibrate.fit import detection_image
 from pipeline.run.cli import main
 

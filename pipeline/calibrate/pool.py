@@ -1,0 +1,134 @@
+"""The worker processes of the per-band calibration fits (issue 25).
+
+The response (Eq. 5-7) and vignetting (Eq. 8-10) fits of one band do not depend on the other
+bands (:mod:`pipeline.calibrate.bands`). Run on threads they did not get faster on 2 cores
+(measured: response 6.8 s with one thread, 6.9 s with two; vignetting 9.9 s and 10.9 s): the
+fits are many short numpy calls and ``np.bincount`` steps that hold the GIL.
+:class:`BandPool` runs them on worker processes instead.
+
+Workers are spawned (not forked from a forkserver): a spawned worker is a child of the main
+process, joined when the pool closes, so its CPU time counts in the main process's
+``RUSAGE_CHILDREN`` and in ``os.wait4`` of whoever started ``mscal`` (the benchmarks). A
+forkserver's workers are its children, and the forkserver is never waited for: their CPU
+time would vanish from every measurement. Spawning costs each worker the import of
+:mod:`pipeline.calibrate.bands` (numpy, OpenCV, scipy, ``mscal_core``: about 1 s of CPU).
+Each worker makes it as soon as the pool is made: this module imports none of that itself,
+so ``mscal calibrate`` starts the pool first and the workers import on the second core while
+the main process imports the rest (xarray, zarr) and reads the frames. Workers run
+single-threaded BLAS and OpenCV (the workers fill the cores).
+"""
+
+from __future__ import annotations
+
+import importlib
+import multiprocessing
+import os
+from concurrent.futures import Future, ProcessPoolExecutor
+from typing import Any, Callable, Sequence
+
+from threadpoolctl import threadpool_limits
+
+from pipeline.storage.process import die_with_parent, reuse_freed_memory
+
+#: What a worker imports when it starts: the module of the per-band fits.
+FITS_MODULE = "pipeline.calibrate.bands"
+
+
+#: Environment variable: worker processes for the per-band fits (0 or unset: one per core;
+#: 1: none, every band in the main process).
+WORKERS_ENV = "MSCAL_CALIBRATE_WORKERS"
+
+
+def band_workers(n_tasks: int) -> int:
+    """Worker processes for ``n_tasks`` band fits: ``MSCAL_CALIBRATE_WORKERS`` if set (> 0),
+    else the cores this process may run on; never more than the tasks."""
+    raw = os.environ.get(WORKERS_ENV, "").strip()
+    try:
+        asked = int(raw) if raw else 0
+    except ValueError:
+        asked = 0
+    if asked <= 0:
+        try:
+            asked = len(os.sched_getaffinity(0))
+        except AttributeError:  # not Linux
+            asked = os.cpu_count() or 1
+    return max(1, min(asked, n_tasks))
+
+
+#: Set for the workers when they start: one BLAS/OpenMP thread each.
+_WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def _worker_init() -> None:
+    """A worker dies with the parent (a killed calibration leaves no process behind), reuses
+    freed memory (a band's stacks are allocated again for every band), runs OpenCV on one
+    thread and imports the fits' module now, not when its first band arrives."""
+    die_with_parent()
+    reuse_freed_memory()
+    import cv2
+
+    cv2.setNumThreads(1)
+    importlib.import_module(FITS_MODULE)
+
+
+class BandPool:
+    """Runs per-band fits on worker processes (in the main process with one worker).
+
+    Use as a context manager; the workers start when the pool is made, so they start while
+    the main process reads the frames."""
+
+    def __init__(self, workers: int | None = None):
+        self.workers = band_workers(64) if workers is None else max(1, int(workers))
+        self._pool: ProcessPoolExecutor | None = None
+        reuse_freed_memory()  # this process reads every stack; with one worker it fits them too
+        if self.workers >= 2:
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                             initializer=_worker_init)
+            saved = {k: os.environ.get(k) for k in _WORKER_ENV}
+            os.environ.update({k: v for k, v in _WORKER_ENV.items() if saved[k] is None})
+            try:
+                for _ in range(self.workers):  # start them now (a spawned worker copies the environment)
+                    self._pool.submit(int)
+            finally:
+                for k, v in saved.items():
+                    if v is None:
+                        os.environ.pop(k, None)
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
+        """``fn(*args)`` on a worker (or now, in this process, without workers)."""
+        if self._pool is None:
+            fut: Future = Future()
+            try:
+                # one BLAS thread, as in a worker: a threaded BLAS sums a matrix product in
+                # another order, and the store would differ in its last bits with the workers
+                with threadpool_limits(limits=1, user_api="blas"):
+                    fut.set_result(fn(*args))
+            except BaseException as exc:  # noqa: BLE001 - handed to the caller by .result()
+                fut.set_exception(exc)
+            return fut
+        return self._pool.submit(fn, *args)
+
+    def map(self, fn: Callable[..., Any], args: Sequence[tuple]) -> list[Any]:
+        """``[fn(*a) for a in args]``, in order; the first error is raised."""
+        return [f.result() for f in [self.submit(fn, *a) for a in args]]
+
+    def close(self) -> None:
+        if self._pool is not None:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            self._pool = None
+
+    def __enter__(self) -> "BandPool":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def session_pool(session_dir: str | os.PathLike[str]) -> BandPool:
+    """A :class:`BandPool` for a session folder's camera (a worker per core, at most one per
+    band), started now: ``mscal calibrate`` makes it before it imports the rest of the
+    calibration, so the workers' imports use the core that import leaves idle. Raises what
+    :func:`pipeline.ingest.session.load_session` raises for a bad session folder."""
+    from pipeline.ingest.session import load_session
+
+    return BandPool(band_workers(load_session(session_dir).camera.n_bands))
