@@ -42,6 +42,7 @@ __all__ = [
     "pixels_to_plane",
     "project_to_pixels",
     "reflector_mask",
+    "reflector_window",
 ]
 
 # Undistortion (cv2.undistortPoints) is iterative; the default 5 iterations leave errors of
@@ -538,6 +539,77 @@ def project_to_pixels(points_uv: np.ndarray, pose: Pose, intrinsics: Intrinsics)
     obj = np.concatenate([uv, np.zeros((uv.shape[0], 1))], axis=1).reshape(-1, 1, 3)
     img, _ = cv2.projectPoints(obj, pose.rvec, pose.tvec, intrinsics.matrix, intrinsics.dist_coeffs)
     return img.reshape(-1, 2)
+
+
+#: Plane samples per side of :func:`reflector_window` (a grid over the whole reflector).
+WINDOW_SAMPLES = 33
+#: Pixels added on every side of :func:`reflector_window` beyond the sample spacing.
+WINDOW_MARGIN_PX = 2.0
+
+
+def reflector_window(
+    pose: Pose,
+    intrinsics: Intrinsics,
+    shape: tuple[int, int],
+    size_m: float | Sequence[float],
+    offset: tuple[float, float] = (0.0, 0.0),
+) -> tuple[slice, slice]:
+    """Rows and columns of a band that can see the reflector: a box around ``pi_i`` of it.
+
+    Parameters
+    ----------
+    pose : Pose
+        Pose of the marker.
+    intrinsics : Intrinsics
+        The band grid's intrinsics.
+    shape : tuple of int
+        ``(H, W)`` of the band.
+    size_m : float or sequence of float
+        Reflector size ``[w, h]`` centred on the marker.
+    offset : tuple of float
+        The band's offset on the band grid (:func:`pixel_rays`).
+
+    Returns
+    -------
+    tuple of slice
+        ``(rows, cols)``: every pixel whose plane point (:func:`pixels_to_plane`) lies on the
+        reflector is inside; the whole band when the box cannot be bounded (part of the
+        reflector behind the camera, or its projection folds).
+
+    Notes
+    -----
+    ``pi_i`` (:func:`project_to_pixels`) of a :data:`WINDOW_SAMPLES` square grid of plane
+    points over the whole reflector. A pixel that sees the reflector sees a point of one grid
+    cell, and lies in the box of that cell's projected corners (widened by
+    :data:`WINDOW_MARGIN_PX` for the curvature of the lens over one cell); the window is the
+    union of the boxes of the cells that reach the band. Within the lens's field ``pi_i``
+    inverts the pixel rays (both exact to ~1e-10 px), so restricting :func:`pixels_to_plane`
+    and everything after it to the window gives the same pixels and plane points as the
+    whole band, for less work: the reflector fills a fraction of most views.
+    """
+    h, w = int(shape[0]), int(shape[1])
+    whole = (slice(0, h), slice(0, w))
+    sw, sh = size_wh(size_m)
+    n = WINDOW_SAMPLES
+    uu, vv = np.meshgrid(np.linspace(-sw / 2, sw / 2, n), np.linspace(-sh / 2, sh / 2, n))
+    plane = np.stack([uu.ravel(), vv.ravel()], axis=1)
+    depth = plane @ pose.rotation[2, :2] + pose.tvec[2]
+    if not np.all(depth > 0):
+        return whole
+    xy = project_to_pixels(plane, pose, intrinsics).reshape(n, n, 2)
+    if not np.all(np.isfinite(xy)):
+        return whole
+    px, py = xy[..., 0] - float(offset[0]), xy[..., 1] - float(offset[1])  # in pixel indices
+    corners_x = np.stack([px[:-1, :-1], px[1:, :-1], px[:-1, 1:], px[1:, 1:]])
+    corners_y = np.stack([py[:-1, :-1], py[1:, :-1], py[:-1, 1:], py[1:, 1:]])
+    x0, x1 = corners_x.min(0) - WINDOW_MARGIN_PX, corners_x.max(0) + WINDOW_MARGIN_PX
+    y0, y1 = corners_y.min(0) - WINDOW_MARGIN_PX, corners_y.max(0) + WINDOW_MARGIN_PX
+    reach = (x1 >= 0) & (x0 <= w - 1) & (y1 >= 0) & (y0 <= h - 1)
+    if not reach.any():
+        return slice(0, 0), slice(0, 0)
+    rows = slice(max(int(np.floor(y0[reach].min())), 0), min(int(np.ceil(y1[reach].max())) + 1, h))
+    cols = slice(max(int(np.floor(x0[reach].min())), 0), min(int(np.ceil(x1[reach].max())) + 1, w))
+    return rows, cols
 
 
 def size_wh(size_m: float | Sequence[float]) -> tuple[float, float]:

@@ -78,17 +78,23 @@ def band_observations(bv: BandViews) -> tuple[list[Observations], float]:
     """Eq. 8-10 observations of every view of one band, and the saturated fraction of its
     reflector pixels (QA report)."""
     shape = bv.dn.shape[1:]
+    width = shape[1]
     rays = geometry.pixel_rays(bv.intrinsics, shape, bv.offset)
     obs = []
     n_sat = n_pix = 0
     for k, pose in enumerate(bv.poses):
-        dn = bv.dn[bv.frames[k]]
+        # only the box of pixels that can see the reflector: the same observations, in the
+        # same order, as the whole band (geometry.reflector_window)
+        rows, cols = geometry.reflector_window(pose, bv.intrinsics, shape, bv.size_m, bv.offset)
+        dn = bv.dn[bv.frames[k], rows, cols]
         e = energy(dn, bv.inverse_response, bv.exposures[k], bv.saturation_dn)
-        uv = geometry.pixels_to_plane(pose, bv.intrinsics, shape, rays=rays)
+        uv = geometry.pixels_to_plane(pose, bv.intrinsics, dn.shape, rays=rays[rows, cols])
         mask = geometry.reflector_mask(uv, bv.size_m, bv.exclude_half_m, bv.edge_margin_m)
         n_sat += int(np.count_nonzero(dn[mask] >= bv.saturation_dn))
         n_pix += int(np.count_nonzero(mask))
-        obs.append(vignetting.view_observations(e, uv, mask, bv.size_m, grid=bv.grid))
+        pix, cell, val = vignetting.view_observations(e, uv, mask, bv.size_m, grid=bv.grid)
+        sub_w = dn.shape[1]
+        obs.append(((pix // sub_w + rows.start) * width + pix % sub_w + cols.start, cell, val))
     return obs, n_sat / max(n_pix, 1)
 
 

@@ -17,6 +17,7 @@ from mscal_core.geometry import (
     pixels_to_plane,
     project_to_pixels,
     reflector_mask,
+    reflector_window,
 )
 
 SHAPE = (217, 409)
@@ -155,6 +156,48 @@ def test_pixels_to_plane_nan_where_ray_misses():
     # the plane is behind the camera entirely
     behind = Pose(np.array([np.pi, 0.0, 0.0]), np.array([0.0, 0.0, -1.0]))
     assert np.isnan(pixels_to_plane(behind, K_PLAIN, (5, 7))).all()
+
+
+def _on_reflector(pose: Pose, k: Intrinsics, size: tuple[float, float], offset=(0.0, 0.0)) -> np.ndarray:
+    uv = pixels_to_plane(pose, k, SHAPE, offset=offset)
+    with np.errstate(invalid="ignore"):
+        return (np.abs(uv[..., 0]) <= size[0] / 2) & (np.abs(uv[..., 1]) <= size[1] / 2)
+
+
+@pytest.mark.parametrize("offset", [(0.0, 0.0), (0.4, 0.8), (-0.5, 0.25)])
+def test_reflector_window_holds_every_reflector_pixel(offset):
+    """Random oblique poses through a strongly distorted lens: every pixel whose plane point is
+    on the reflector is inside the window, which is a fraction of the band when the reflector
+    is small in the view."""
+    rng = np.random.default_rng(5)
+    size = (0.5, 0.4)
+    small = 0
+    for _ in range(24):
+        rvec = np.array([np.pi, 0.0, 0.0]) + rng.uniform(-0.6, 0.6, 3)
+        tvec = np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.2, 0.2), rng.uniform(0.5, 1.6)])
+        pose = Pose(rvec, tvec)
+        rows, cols = reflector_window(pose, K_DIST, SHAPE, size, offset)
+        on = _on_reflector(pose, K_DIST, size, offset)
+        inside = np.zeros(SHAPE, dtype=bool)
+        inside[rows, cols] = True
+        assert not (on & ~inside).any(), (rvec, tvec)
+        if on.any():
+            rr, cc = np.nonzero(on)
+            # tight: at most the sample spacing plus the margin beyond the reflector's pixels
+            assert rows.start >= rr.min() - 20 and cols.start >= cc.min() - 20
+        small += inside.sum() < 0.5 * inside.size
+    assert small >= 6
+
+
+def test_reflector_window_whole_band_when_unbounded():
+    # part of the reflector behind the camera: no box, the whole band
+    grazing = Pose(np.array([np.pi - np.radians(85), 0.0, 0.0]), np.array([0.0, 0.0, 0.3]))
+    assert reflector_window(grazing, K_PLAIN, SHAPE, 5.0) == (slice(0, SHAPE[0]), slice(0, SHAPE[1]))
+    # the reflector entirely off the image: an empty box, and no pixel sees it
+    aside = Pose(np.array([np.pi, 0.0, 0.0]), np.array([3.0, 0.0, 1.0]))
+    rows, cols = reflector_window(aside, K_PLAIN, SHAPE, 0.5)
+    assert (rows.stop - rows.start) * (cols.stop - cols.start) == 0
+    assert not _on_reflector(aside, K_PLAIN, (0.5, 0.5)).any()
 
 
 def test_reflector_mask():
