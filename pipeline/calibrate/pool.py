@@ -6,16 +6,17 @@ bands (:mod:`pipeline.calibrate.bands`). Run on threads they did not get faster 
 fits are many short numpy calls and ``np.bincount`` steps that hold the GIL.
 :class:`BandPool` runs them on worker processes instead.
 
-Workers are spawned (not forked from a forkserver): a spawned worker is a child of the main
-process, joined when the pool closes, so its CPU time counts in the main process's
-``RUSAGE_CHILDREN`` and in ``os.wait4`` of whoever started ``mscal`` (the benchmarks). A
-forkserver's workers are its children, and the forkserver is never waited for: their CPU
-time would vanish from every measurement. Spawning costs each worker the import of
-:mod:`pipeline.calibrate.bands` (numpy, OpenCV, scipy, ``mscal_core``: about 1 s of CPU).
-Each worker makes it as soon as the pool is made: this module imports none of that itself,
-so ``mscal calibrate`` starts the pool first and the workers import on the second core while
-the main process imports the rest (xarray, zarr) and reads the frames. Workers run
-single-threaded BLAS and OpenCV (the workers fill the cores).
+Workers are children of the main process, joined when the pool closes, so their CPU time
+counts in the main process's ``RUSAGE_CHILDREN`` and in ``os.wait4`` of whoever started
+``mscal`` (the benchmarks); not a forkserver's (its workers are its children, and it is never
+waited for: their CPU time would vanish from every measurement). They are forked when this
+process has a single thread (``mscal calibrate``: :func:`session_pool` imports the fits'
+module first, so a forked worker starts with it imported and costs nothing), and spawned
+otherwise (a fork copies only the calling thread, and a lock another thread held would stay
+held in the child: a Prefect worker, a notebook). A spawned worker imports
+:mod:`pipeline.calibrate.bands` (numpy, OpenCV, scipy, ``mscal_core``: about 1 s of CPU each)
+as soon as the pool is made. Workers run single-threaded BLAS and OpenCV (the workers fill
+the cores).
 """
 
 from __future__ import annotations
@@ -23,6 +24,8 @@ from __future__ import annotations
 import importlib
 import multiprocessing
 import os
+import sys
+import threading
 from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any, Callable, Sequence
 
@@ -61,14 +64,23 @@ _WORKER_ENV = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THR
 
 def _worker_init() -> None:
     """A worker dies with the parent (a killed calibration leaves no process behind), reuses
-    freed memory (a band's stacks are allocated again for every band), runs OpenCV on one
-    thread and imports the fits' module now, not when its first band arrives."""
+    freed memory (a band's stacks are allocated again for every band), runs BLAS and OpenCV
+    on one thread (a forked worker inherits the parent's BLAS, loaded before the environment
+    said so) and imports the fits' module now, not when its first band arrives."""
     die_with_parent()
     reuse_freed_memory()
     import cv2
 
     cv2.setNumThreads(1)
+    threadpool_limits(limits=1, user_api="blas")
     importlib.import_module(FITS_MODULE)
+
+
+def start_method() -> str:
+    """``"fork"`` when this process has one thread (on Linux), else ``"spawn"``."""
+    if sys.platform.startswith("linux") and threading.active_count() == 1:
+        return "fork"
+    return "spawn"
 
 
 class BandPool:
@@ -77,17 +89,19 @@ class BandPool:
     Use as a context manager; the workers start when the pool is made, so they start while
     the main process reads the frames."""
 
-    def __init__(self, workers: int | None = None):
+    def __init__(self, workers: int | None = None, method: str | None = None):
+        """``workers`` (default: one per core); ``method``: the start method of the workers
+        (default :func:`start_method`)."""
         self.workers = band_workers(64) if workers is None else max(1, int(workers))
         self._pool: ProcessPoolExecutor | None = None
         reuse_freed_memory()  # this process reads every stack; with one worker it fits them too
         if self.workers >= 2:
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context("spawn"),
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context(method or start_method()),
                                              initializer=_worker_init)
             saved = {k: os.environ.get(k) for k in _WORKER_ENV}
             os.environ.update({k: v for k, v in _WORKER_ENV.items() if saved[k] is None})
             try:
-                for _ in range(self.workers):  # start them now (a spawned worker copies the environment)
+                for _ in range(self.workers):  # start them now (a worker copies the environment)
                     self._pool.submit(int)
             finally:
                 for k, v in saved.items():
@@ -126,9 +140,11 @@ class BandPool:
 
 def session_pool(session_dir: str | os.PathLike[str]) -> BandPool:
     """A :class:`BandPool` for a session folder's camera (a worker per core, at most one per
-    band), started now: ``mscal calibrate`` makes it before it imports the rest of the
-    calibration, so the workers' imports use the core that import leaves idle. Raises what
+    band), started now, with the fits' module imported first (a forked worker then has it):
+    ``mscal calibrate`` makes it before it imports the rest of the calibration. Raises what
     :func:`pipeline.ingest.session.load_session` raises for a bad session folder."""
     from pipeline.ingest.session import load_session
 
-    return BandPool(band_workers(load_session(session_dir).camera.n_bands))
+    n_bands = load_session(session_dir).camera.n_bands
+    importlib.import_module(FITS_MODULE)
+    return BandPool(band_workers(n_bands))

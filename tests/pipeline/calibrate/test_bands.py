@@ -3,25 +3,29 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import xarray as xr
 
-from pipeline.calibrate.pool import WORKERS_ENV, BandPool, band_workers
 from pipeline.calibrate.fit import detection_image
-from pipeline.run.cli import main
+from pipeline.calibrate.pool import WORKERS_ENV, BandPool, band_workers
 
 
-def test_one_worker_and_two_give_the_same_store(small, tmp_path, monkeypatch) -> None:
+def test_one_worker_and_two_give_the_same_store(small, tmp_path) -> None:
     """The shared small store was fitted in-process (tests/conftest.py sets one worker); the
-    same session on two band workers gives the same store, bit for bit."""
+    same session on two band workers, run as users run it (``mscal calibrate`` in a process
+    of its own, single-threaded: forked workers), gives the same store, bit for bit."""
     session, calib = small
     assert os.environ.get(WORKERS_ENV) == "1"
     one = xr.open_zarr(calib).load()
-    monkeypatch.setenv(WORKERS_ENV, "2")
     out = tmp_path / "cal-2.zarr"
-    assert main(["calibrate", str(session), "-o", str(out)]) == 0
+    env = {**os.environ, WORKERS_ENV: "2"}
+    run = subprocess.run([sys.executable, "-m", "pipeline.run.cli", "calibrate", str(session), "-o", str(out)],
+                         env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-2000:]
     two = xr.open_zarr(out).load()
     assert sorted(one.data_vars) == sorted(two.data_vars)
     for name in ("inverse_response", "vignetting", "vignetting_count", "spectral_factor", "reflector_brightness"):
@@ -29,6 +33,31 @@ def test_one_worker_and_two_give_the_same_store(small, tmp_path, monkeypatch) ->
     for stage in ("response", "vignetting", "illumination"):
         assert one.attrs[stage]["residuals"] == two.attrs[stage]["residuals"]
         assert one.attrs[stage]["skipped"] == two.attrs[stage]["skipped"]
+
+
+def test_workers_fork_only_from_a_single_threaded_process() -> None:
+    code = ("import threading, time\n"
+            "from pipeline.calibrate.pool import start_method\n"
+            "alone = start_method()\n"
+            "threading.Thread(target=time.sleep, args=(0.5,)).start()\n"
+            "print(alone, start_method())\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60)
+    assert out.stdout.split() == ["fork", "spawn"]
+
+
+def _band_sum(values: np.ndarray) -> float:
+    """A stand-in band task: a BLAS product, run in whichever process the pool chooses."""
+    return float(values @ values)
+
+
+@pytest.mark.parametrize("method", ["fork", "spawn"])
+def test_forked_and_spawned_workers_run_the_same_code(method: str) -> None:
+    x = np.linspace(0.0, 1.0, 1001)
+    with BandPool(2, method=method) as pool:
+        assert pool.workers == 2
+        assert pool.map(_band_sum, [(x,), (2 * x,)]) == [float(x @ x), float(4 * (x @ x))]
+        with pytest.raises(ValueError, match="invalid literal"):
+            pool.map(int, [("1",), ("not a number",)])
 
 
 @pytest.mark.parametrize("workers", [1, 2])
