@@ -273,27 +273,53 @@ def view_observations(
 # --------------------------------------------------------------------------- the fit
 
 
+def _incidence(rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return one sparse incidence structure for all the fit's sums.
+
+    ``(order, indices, indptr)`` of the CSR matrix with one entry per observation (row = pixel,
+    column = cell), the entries of a row in observation order (a stable sort).
+    ``csr(data[order], indices, indptr)`` then sums ``data`` times a vector per pixel (``@``)
+    or per cell (``.T @``), as ``np.bincount`` of the gathered products does, in one sparse
+    product each, without the (observation,) temporaries.
+    """
+    order = np.argsort(rows, kind="stable")
+    indptr = np.zeros(n_rows + 1, dtype=np.int64)
+    np.cumsum(np.bincount(rows, minlength=n_rows), out=indptr[1:])
+    small = max(n_cols, int(indptr[-1])) < np.iinfo(np.int32).max
+    idx_type = np.int32 if small else np.int64
+    return order, cols[order].astype(idx_type), indptr.astype(idx_type)
+
+
+def _csr(data: np.ndarray, structure: tuple[np.ndarray, np.ndarray, np.ndarray], shape: tuple[int, int]) -> sp.csr_matrix:
+    order, indices, indptr = structure
+    return sp.csr_matrix((data[order], indices, indptr), shape=shape)
+
+
 def _log_init(
-    pix: np.ndarray, cell: np.ndarray, y: np.ndarray, n_pix: int, n_cell: int, max_iter: int
+    pix: np.ndarray, cell: np.ndarray, y: np.ndarray, n_pix: int, n_cell: int, max_iter: int,
+    structure: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Start V, L from ``log y = log V(x) + log L(p)`` by sparse linear least squares.
 
     Solved by Jacobi-preconditioned conjugate gradients on the normal equations (CGLS, the
-    method behind ``scipy.sparse.linalg.lsqr``), with the matrix never formed: a product is
-    two gathers and two ``np.bincount``. This avoids building a sparse matrix and lsqr's
-    threaded-BLAS dot products over all observations (slow on a busy 2-core machine). The
-    one-dimensional null space (log V + c, log L - c) does not disturb CG on this
-    consistent system; the scale is fixed later.
+    method behind ``scipy.sparse.linalg.lsqr``). With ``A`` the pixel x cell incidence matrix
+    of the observations (:func:`_incidence`), the normal matrix is ``[[D_p, A], [A', D_c]]``
+    (``D`` the observation counts): a product is two sparse products, no (observation,)
+    temporaries and no threaded-BLAS dot products over all observations (slow on a busy
+    2-core machine). The one-dimensional null space (log V + c, log L - c) does not disturb
+    CG on this consistent system; the scale is fixed later.
     """
     z = np.log(y)
     z = z - float(np.median(z))
     deg_p = np.bincount(pix, minlength=n_pix).astype(np.float64)
     deg_c = np.bincount(cell, minlength=n_cell).astype(np.float64)
+    if structure is None:
+        structure = _incidence(pix, cell, n_pix, n_cell)
+    inc = _csr(np.ones(pix.size), structure, (n_pix, n_cell))
+    inc_t = inc.T
 
     def normal(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        r = a[pix] + b[cell]
-        return (np.bincount(pix, weights=r, minlength=n_pix),
-                np.bincount(cell, weights=r, minlength=n_cell))
+        return deg_p * a + inc @ b, inc_t @ a + deg_c * b
 
     a = np.zeros(n_pix)
     b = np.zeros(n_cell)
@@ -490,8 +516,9 @@ def fit_vignetting(
     # compact indices of the active unknowns
     act_p, cp = _compact(fp, n_pix)
     act_c, cc = _compact(fc, n_cells)
-    v, lum = _log_init(cp, cc, fy, act_p.size, act_c.size, int(init_iter))
-    v, lum, iterations, converged = _alternate(cp, cc, fy, fw, v, act_c.size, int(max_iter), tol)
+    structure = _incidence(cp, cc, act_p.size, act_c.size)
+    v, lum = _log_init(cp, cc, fy, act_p.size, act_c.size, int(init_iter), structure)
+    v, lum, iterations, converged = _alternate(cp, cc, fy, fw, v, act_c.size, int(max_iter), tol, structure)
     resid = fy / (v[cp] * lum[cc]) - 1.0
     residual_rms = float(np.sqrt(np.mean(resid * resid)))
 
@@ -620,36 +647,33 @@ def _informative(pix: np.ndarray, cell: np.ndarray, n_pix: int, n_cells: int) ->
 
 def _alternate(
     cp: np.ndarray, cc: np.ndarray, fy: np.ndarray, fw: np.ndarray, v: np.ndarray, nca: int,
-    max_iter: int, tol: float,
+    max_iter: int, tol: float, structure: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, int, bool]:
     """Step 3 of :func:`fit_vignetting`.
 
     Alternate Eq. 10' (L from V) and Eq. 9' (V from L) from ``v``; returns
-    ``(V, L consistent with V, sweeps, converged)``.
+    ``(V, L consistent with V, sweeps, converged)``. The sums over a cell's and a pixel's
+    observations are sparse products with the incidence matrix weighted by ``w y`` and ``w``
+    (:func:`_incidence`): ``L = (W_y' V) / (W' V^2)``, ``V = (W_y L) / (W L^2)``.
     """
     npa = v.size
-    wy = fw * fy
+    if structure is None:
+        structure = _incidence(cp, cc, npa, nca)
+    wy_m = _csr(fw * fy, structure, (npa, nca))
+    w_m = _csr(fw, structure, (npa, nca))
+    wy_t, w_t = wy_m.T, w_m.T
     iterations = 0
     converged = False
     for iterations in range(1, max_iter + 1):
-        vp = v[cp]
-        lum = np.bincount(cc, weights=wy * vp, minlength=nca) / np.bincount(
-            cc, weights=fw * vp * vp, minlength=nca
-        )
-        lp = lum[cc]
-        v_new = np.bincount(cp, weights=wy * lp, minlength=npa) / np.bincount(
-            cp, weights=fw * lp * lp, minlength=npa
-        )
+        lum = (wy_t @ v) / (w_t @ (v * v))
+        v_new = (wy_m @ lum) / (w_m @ (lum * lum))
         change = float(np.max(np.abs(v_new - v) / v_new))
         v = v_new
         if change < tol:
             converged = True
             break
     # final L consistent with the final V
-    vp = v[cp]
-    lum = np.bincount(cc, weights=wy * vp, minlength=nca) / np.bincount(
-        cc, weights=fw * vp * vp, minlength=nca
-    )
+    lum = (wy_t @ v) / (w_t @ (v * v))
     return v, lum, iterations, converged
 
 
