@@ -153,11 +153,7 @@ def fit_illumination(
     brightness = brightness / med
     s = s * med
 
-    pred = s[:, None] * brightness[None, :] * r
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rel = rad / pred - 1.0
-    rel = rel[valid & np.isfinite(rel)]
-    residual_rms = float(np.sqrt(np.mean(rel * rel))) if rel.size else float("nan")
+    residual_rms = _residual_rms(rad, valid, s * refl, brightness)
     return IlluminationFit(
         spectral_factor=s,
         brightness=brightness,
@@ -235,6 +231,22 @@ def _alternate(
             converged = True
             break
     return s, b, pix_ok, iterations, converged
+
+
+def _residual_rms(rad: np.ndarray, valid: np.ndarray, factor: np.ndarray, brightness: np.ndarray) -> float:
+    """Return the RMS of the relative residual ``L / (S R B) - 1`` (NaN without any entry).
+
+    Over the valid finite entries, one band at a time (no (band, pixel) temporaries);
+    ``factor`` is ``S R`` per band.
+    """
+    total, count = 0.0, 0
+    for band in range(rad.shape[0]):
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rel = rad[band] / (factor[band] * brightness) - 1.0
+        rel = rel[valid[band] & np.isfinite(rel)]
+        total += float(np.sum(rel * rel))
+        count += rel.size
+    return float(np.sqrt(total / count)) if count else float("nan")
 
 
 def _image_brightness(brightness: np.ndarray, idx: np.ndarray) -> np.ndarray:
