@@ -25,9 +25,10 @@ from mscal_core import geometry, illumination, response, vignetting
 from mscal_core.errors import FitError, MscalError, SessionError
 from mscal_core.mosaic import band_offsets
 
-from pipeline.calibrate.bands import BandViews, energy, lens_vignetting_band, response_band, vignetting_band
+from pipeline.calibrate.bands import BandViews, energy, lens_vignetting_band, vignetting_band
 from pipeline.calibrate.intrinsics import fit_intrinsics_folder, parse_board, store_intrinsics
 from pipeline.calibrate.pool import BandPool, band_workers
+from pipeline.calibrate.sweep import SweepFits, read_stack, submit_sweep
 from pipeline.ingest.captures import is_multilens, read_frames
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.exif import NAT, time_ns
@@ -38,7 +39,6 @@ from pipeline.ingest.session import (
     FrameRecord,
     Session,
     load_session,
-    read_bands,
     read_frame_table,
 )
 from pipeline.ingest.sunsensor import SUN_SENSOR_MODEL, SUN_SENSOR_MODEL_ATTR, record_levels
@@ -94,47 +94,24 @@ def _pool(pool: BandPool | None, n_tasks: int) -> Iterator[BandPool]:
         yield own
 
 
-def read_stack(records: Sequence[FrameRecord], camera: Camera) -> np.ndarray:
-    """All frames as ``(frame, band, H, W)`` uint16; frames of different shape are an error."""
-    first = read_bands(records[0], camera)
-    out = np.empty((len(records), *first.shape), dtype=np.uint16)
-    out[0] = first
-    for i, rec in enumerate(records[1:], start=1):
-        b = read_bands(rec, camera)
-        if b.shape != first.shape:
-            raise SessionError(
-                f"frame size {b.shape[1:]} differs from {records[0].path.name}'s {first.shape[1:]}",
-                path=rec.path,
-            )
-        out[i] = b
-    return out
-
-
 # --------------------------------------------------------------------------- response (Eq. 5-7)
 
 
 def fit_response_frames(
     folder: Path, camera: Camera, method: str = "forward", root: Path | None = None, pool: BandPool | None = None,
+    sweep: SweepFits | None = None,
 ) -> tuple[list[response.ResponseFit], StageReport]:
     """Eq. 5-7 per band from an exposure sweep folder (frames.csv + frames); the bands are
-    fitted on ``pool``'s workers (a pool of its own if None)."""
+    fitted on ``pool``'s workers (a pool of its own if None). ``sweep``: the same folder's fits
+    already submitted (:func:`pipeline.calibrate.sweep.submit_sweep`, same method)."""
     t0 = time.perf_counter()
     report = StageReport("response")
-    recs = read_frames(folder, camera)
-    exposures = np.array([r.effective_exposure for r in recs])
-    if np.unique(exposures).size < 2:
-        raise FitError(
-            f"the sweep has {np.unique(exposures).size} distinct exposure(s); the response fit needs at least 2",
-            path=folder / "frames.csv",
-            hint="capture the static scene at several exposure times",
-        )
-    stack = read_stack(recs, camera)
-    report.inputs = content_hashes(record_files(recs), root or folder)
-    nb = stack.shape[1]
-    # a multi-lens camera exposes each lens
-    exposures_b = [np.array([r.band_exposure(b) for r in recs]) for b in range(nb)]
-    with _pool(pool, nb) as p:
-        results = p.map(response_band, [(stack[:, b], exposures_b[b], camera.bit_depth, method) for b in range(nb)])
+    with _pool(pool, camera.n_bands) as p:
+        if sweep is None or not sweep.is_for(Path(folder), method):
+            sweep = submit_sweep(Path(folder), camera, method, p)
+        recs, exposures_b = sweep.records, sweep.exposures
+        report.inputs = content_hashes(record_files(recs), root or folder)
+        results = [f.result() for f in sweep.futures]
     fits = []
     for b, (bad, fit) in enumerate(results):
         if bad:
@@ -151,7 +128,7 @@ def fit_response_frames(
         "black_level": [round(f.black_level, 3) for f in fits],
         "observed_dn": [list(map(int, f.observed_dn)) for f in fits],
     }
-    report.seconds = time.perf_counter() - t0
+    report.seconds = time.perf_counter() - min(t0, sweep.started)
     return fits, report
 
 
@@ -1035,13 +1012,14 @@ CALIBRATE_STEPS = 4
 
 def calibrate_session(session_dir: str | Path, out: str | Path, *, response_method: str = "forward",
                       calibration: str | Path | None = None, advance: Callable[[], None] | None = None,
-                      pool: BandPool | None = None) -> xr.Dataset:
+                      pool: BandPool | None = None, sweep: SweepFits | None = None) -> xr.Dataset:
     """``mscal calibrate``: the three fits from a session folder, written to ``out``.
     ``calibration``: a store whose ``intrinsics`` (``mscal fit intrinsics``) are used when
     session.yaml gives none (nothing else is taken from it). ``advance``: called after each
     of :data:`CALIBRATE_STEPS` steps (a progress bar). ``pool``: the band fits' workers,
     started by the caller (a pool of its own if None; see
-    :func:`pipeline.calibrate.pool.session_pool`)."""
+    :func:`pipeline.calibrate.pool.session_pool`); ``sweep``: the response fits already
+    submitted to it (:func:`pipeline.calibrate.sweep.start_sweep`)."""
     advance = advance or (lambda: None)
     session = load_session(session_dir)
     camera = session.camera
@@ -1055,7 +1033,7 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
         views_ahead = aside.submit(read_folder_frames, session, session.vignetting_dir)
         reflector_ahead = aside.submit(read_reflector_frames, session)
         log.info("response: fitting %d bands from %s", camera.n_bands, session.response_dir)
-        rfits, rrep = fit_response_frames(session.response_dir, camera, response_method, session.root, pool)
+        rfits, rrep = fit_response_frames(session.response_dir, camera, response_method, session.root, pool, sweep)
         advance()
         ds_ahead = aside.submit(response_dataset, camera, rfits, rrep)
         U = np.stack([f.inverse_response for f in rfits])  # the store's inverse_response and saturation_dn

@@ -170,16 +170,18 @@ def cli() -> None:
 def calibrate(session: Path, out: Path, response_method: str, partial: Path | None) -> None:
     """All three fits of a SESSION folder: response, vignetting, illumination."""
     from pipeline.calibrate.pool import session_pool
+    from pipeline.calibrate.sweep import start_sweep
 
     t0 = time.perf_counter()
-    # the band fits' workers start first: they import the fits while this process imports
-    # the rest of the calibration (xarray, zarr), instead of one core waiting for the other
+    # the band fits' workers start first, and the response fits on them, before this process
+    # imports the rest of the calibration (xarray, zarr): the workers fit meanwhile
     with session_pool(session) as pool:
+        sweep = start_sweep(session, response_method, pool)
         from pipeline.calibrate.fit import CALIBRATE_STEPS, calibrate_session
 
         with progress(CALIBRATE_STEPS, "calibrate") as advance:
             ds = calibrate_session(session, out, response_method=response_method, calibration=partial,
-                                   advance=advance, pool=pool)
+                                   advance=advance, pool=pool, sweep=sweep)
     _report_skips(ds)
     _store_summary("calibrate", ds, out, f"wrote {out} ({_summary(ds)}; {time.perf_counter() - t0:.1f} s)").emit()
 
