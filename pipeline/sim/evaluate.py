@@ -16,7 +16,7 @@ from mscal_core import metrics
 from mscal_core.illumination import eq16_reflectance
 from mscal_core.reflectance import eq15
 
-from pipeline.calibrate.fit import read_stack
+from pipeline.calibrate.sweep import read_stack
 from pipeline.ingest.session import load_session, read_frame_table
 
 

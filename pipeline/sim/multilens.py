@@ -196,7 +196,7 @@ def evaluate_multilens(session_dir: str | Path, calibration) -> dict:
     ``panel_abs_error_uncalibrated`` the same with raw DN above black / t instead of Eq. 15."""
     import xarray as xr
 
-    from pipeline.calibrate.fit import read_stack
+    from pipeline.calibrate.sweep import read_stack
     from pipeline.ingest.captures import read_capture_table
     from pipeline.ingest.catalog import load_camera
     from pipeline.sim.evaluate import evaluate_calibration
