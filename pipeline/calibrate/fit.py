@@ -11,7 +11,7 @@ import dataclasses
 import functools
 import logging
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -402,11 +402,13 @@ def _offsets(camera: Camera) -> np.ndarray:
 
 def fit_vignetting_frames(
     session: Session, inverse_response: np.ndarray, saturation_dn: np.ndarray, pool: BandPool | None = None,
-    frames: Callable[[], FolderFrames] | None = None,
+    frames: Callable[[], FolderFrames] | None = None, started: Callable[[], None] | None = None,
 ) -> tuple[list[vignetting.VignettingFit], StageReport]:
     """Eq. 8-10 per band from the session's ``vignetting/`` views; the bands are fitted on
     ``pool``'s workers (a pool of its own if None). ``frames``: gives the folder already read
-    (:func:`read_folder_frames`, e.g. read ahead while the response was fitted)."""
+    (:func:`read_folder_frames`, e.g. read ahead while the response was fitted); ``started``:
+    called once the marker was searched for and the band fits are on the workers (this
+    process then only waits for them)."""
     t0 = time.perf_counter()
     camera = session.camera
     report = StageReport("vignetting")
@@ -414,13 +416,14 @@ def fit_vignetting_frames(
     with _pool(pool, camera.n_bands) as p:
         recs, stack, views = load_marker_frames(session, session.vignetting_dir, inverse_response, report,
                                                 frames() if frames is not None else None)
+        started = started or (lambda: None)
         if is_multilens(camera):
             fits, saturated = _fit_multilens_vignetting(session, stack, views, inverse_response, saturation_dn,
-                                                        report, p)
+                                                        report, p, started)
             views_used: Any = [sum(v.pose_for(b) is not None for _, v in views) for b in range(camera.n_bands)]
         else:
             fits, saturated, views = _fit_band_vignetting(session, stack, views, inverse_response, saturation_dn,
-                                                          report, p)
+                                                          report, p, started)
             views_used = len(views)
     report.residuals = {
         **report.residuals,
@@ -451,7 +454,8 @@ def _band_views(session: Session, stack: np.ndarray, b: int, use: Sequence[tuple
 
 def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[int, View]],
                          inverse_response: np.ndarray, saturation_dn: np.ndarray, report: StageReport,
-                         pool: BandPool) -> tuple[list[vignetting.VignettingFit], dict[int, float], list[tuple[int, View]]]:
+                         pool: BandPool, started: Callable[[], None]
+                         ) -> tuple[list[vignetting.VignettingFit], dict[int, float], list[tuple[int, View]]]:
     """Eq. 8-10 of a band-grid camera (one pose per view for all bands): the views are
     screened on one band first, then every band is fitted on the views kept, on ``pool``."""
     camera = session.camera
@@ -463,6 +467,7 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
     order = [ref] + [b for b in range(camera.n_bands) if b != ref]
     futures = {b: pool.submit(vignetting_band, _band_views(session, stack, b, views, inverse_response, saturation_dn),
                               b == ref) for b in order}
+    started()
     ref_fit, saturated[ref], frac = futures[ref].result()
     bad = set(vignetting.inconsistent_views(frac).tolist())
     if bad and len(views) - len(bad) < MIN_VIEWS_TO_SCREEN:
@@ -496,7 +501,8 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
 
 def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[tuple[int, View]],
                               inverse_response: np.ndarray, saturation_dn: np.ndarray, report: StageReport,
-                              pool: BandPool) -> tuple[list[vignetting.VignettingFit], dict[int, float]]:
+                              pool: BandPool, started: Callable[[], None]
+                              ) -> tuple[list[vignetting.VignettingFit], dict[int, float]]:
     """Eq. 8-10 of a multi-lens camera: each lens on the views whose marker it found (its own
     poses), screened on its own fit like the band-grid camera's reference band, on ``pool``."""
     camera = session.camera
@@ -505,10 +511,11 @@ def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[t
         if not use:
             raise FitError(f"band {camera.bands[b].name}: the marker was found in none of its vignetting views",
                            hint="check that the marker is in view of every lens and sharp")
-    results = pool.map(lens_vignetting_band, [
-        (_band_views(session, stack, b, uses[b], inverse_response, saturation_dn), MIN_VIEWS_TO_SCREEN)
-        for b in range(camera.n_bands)
-    ])
+    futures = [pool.submit(lens_vignetting_band, _band_views(session, stack, b, uses[b], inverse_response,
+                                                             saturation_dn), MIN_VIEWS_TO_SCREEN)
+               for b in range(camera.n_bands)]
+    started()
+    results = [f.result() for f in futures]
     fits, saturated = [], {}
     for b, (fit, saturated[b], frac, dropped) in enumerate(results):
         med = float(np.nanmedian(frac)) if dropped else 0.0
@@ -1028,23 +1035,29 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
     # one set of workers for both per-band stages; the vignetting frames are read (and
     # hashed) on a thread while the workers fit the response
     with _pool(pool, camera.n_bands) as pool, ThreadPoolExecutor(1) as aside:
-        # what does not wait for the fits is done aside, while the workers fit: reading the
-        # vignetting and reflector frames, building the response's part of the store
+        # what does not wait for the fits is done aside, while the workers fit: the vignetting
+        # frames are read during the response fits (the marker search needs them next); the
+        # response's part of the store and the reflector frames are made during the vignetting
+        # fits, once the marker search (which competes for this process) is done
         views_ahead = aside.submit(read_folder_frames, session, session.vignetting_dir)
-        reflector_ahead = aside.submit(read_reflector_frames, session)
         log.info("response: fitting %d bands from %s", camera.n_bands, session.response_dir)
         rfits, rrep = fit_response_frames(session.response_dir, camera, response_method, session.root, pool, sweep)
         advance()
-        ds_ahead = aside.submit(response_dataset, camera, rfits, rrep)
+        later: list[Future] = []
+
+        def meanwhile() -> None:
+            later.extend([aside.submit(response_dataset, camera, rfits, rrep),
+                          aside.submit(read_reflector_frames, session)])
+
         U = np.stack([f.inverse_response for f in rfits])  # the store's inverse_response and saturation_dn
         sat = np.array([f.saturation_dn for f in rfits], dtype=np.int32)
         log.info("vignetting: fitting from %s", session.vignetting_dir)
-        vfits, vrep = fit_vignetting_frames(session, U, sat, pool, frames=views_ahead.result)
-        ds = ds_ahead.result()
+        vfits, vrep = fit_vignetting_frames(session, U, sat, pool, frames=views_ahead.result, started=meanwhile)
+        ds, reflector = (f.result() for f in later)
     ds = add_vignetting(ds, vfits, vrep)
     advance()
     log.info("illumination: fitting from %s", session.reflector_dir)
-    ires = fit_illumination_frames(session, U, sat, ds["vignetting"].values, frames=reflector_ahead.result)
+    ires = fit_illumination_frames(session, U, sat, ds["vignetting"].values, frames=lambda: reflector)
     ds = add_illumination(ds, ires)
     advance()
     ds = add_intrinsics(ds, session, source)
