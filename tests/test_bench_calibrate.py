@@ -91,3 +91,20 @@ def test_run_measured_counts_the_worker_processes_a_command_leaves_behind() -> N
     assert run.returncode == 0
     assert run.cpu_s >= 0.6  # the command itself uses < 0.2 s
     assert run.maxrss_mib >= 200
+
+
+def test_scaling_lines_read_the_two_worker_counts_as_amdahl() -> None:
+    """1 worker 20 s, 2 workers 11 s: 18 s spread over workers, 2 s do not; 4 cores 6.5 s."""
+    from types import SimpleNamespace
+
+    def seed(one: float, two: float) -> SimpleNamespace:
+        return SimpleNamespace(one_worker=SimpleNamespace(wall_s=one), fastest=SimpleNamespace(wall_s=two))
+
+    (line,) = bench._scaling_lines([seed(20.0, 11.0), seed(18.0, 9.5)])
+    assert "took 9.5-11.0 s wall (target 10 s on 2 cores: FAIL)" in line
+    assert "2 workers are 1.82-1.89x faster" in line
+    assert "1.0-2.0 s do not spread" in line and "17.0-18.0 s do (the band fits)" in line
+    assert "expected 5.2-6.5 s on 4 cores" in line
+    (ok,) = bench._scaling_lines([seed(18.0, 9.5)])
+    assert "target 10 s on 2 cores: PASS" in ok
+    assert bench._scaling_lines([SimpleNamespace(one_worker=None, fastest=SimpleNamespace(wall_s=9.0))]) == []
