@@ -1025,8 +1025,9 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
     session.yaml gives none (nothing else is taken from it). ``advance``: called after each
     of :data:`CALIBRATE_STEPS` steps (a progress bar). ``pool``: the band fits' workers,
     started by the caller (a pool of its own if None; see
-    :func:`pipeline.calibrate.pool.session_pool`); ``sweep``: the response fits already
-    submitted to it (:func:`pipeline.calibrate.sweep.start_sweep`)."""
+    :func:`pipeline.calibrate.pool.session_pool`), closed here once the band fits are done;
+    ``sweep``: the response fits already submitted to it
+    (:func:`pipeline.calibrate.sweep.start_sweep`)."""
     advance = advance or (lambda: None)
     session = load_session(session_dir)
     camera = session.camera
@@ -1054,6 +1055,11 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
         log.info("vignetting: fitting from %s", session.vignetting_dir)
         vfits, vrep = fit_vignetting_frames(session, U, sat, pool, frames=views_ahead.result, started=meanwhile)
         ds, reflector = (f.result() for f in later)
+        # the band fits are done: the vignetting frames (180 MB on the full synthetic session)
+        # and the workers (their freed memory kept for reuse) are let go before the
+        # illumination fit and the store, the peak's moment
+        views_ahead = None
+        pool.close()
     ds = add_vignetting(ds, vfits, vrep)
     advance()
     log.info("illumination: fitting from %s", session.reflector_dir)
