@@ -45,19 +45,24 @@ def test_workers_fork_only_from_a_single_threaded_process() -> None:
     assert out.stdout.split() == ["fork", "spawn"]
 
 
-def _band_sum(values: np.ndarray) -> float:
-    """A stand-in band task: a BLAS product, run in whichever process the pool chooses."""
-    return float(values @ values)
-
-
 @pytest.mark.parametrize("method", ["fork", "spawn"])
 def test_forked_and_spawned_workers_run_the_same_code(method: str) -> None:
-    x = np.linspace(0.0, 1.0, 1001)
-    with BandPool(2, method=method) as pool:
-        assert pool.workers == 2
-        assert pool.map(_band_sum, [(x,), (2 * x,)]) == [float(x @ x), float(4 * (x @ x))]
-        with pytest.raises(ValueError, match="invalid literal"):
-            pool.map(int, [("1",), ("not a number",)])
+    """In a fresh single-threaded interpreter, as ``mscal calibrate`` runs (this test process
+    has threads: forking it could deadlock a child, which is why BandPool spawns then)."""
+    code = ("import numpy as np\n"
+            "from pipeline.calibrate.pool import BandPool\n"
+            "if __name__ == '__main__':\n"
+            "    x = np.linspace(0.0, 1.0, 1001)\n"
+            f"    with BandPool(2, method={method!r}) as pool:\n"
+            "        got = pool.map(np.dot, [(x, x), (2 * x, 2 * x)])\n"
+            "        try:\n"
+            "            pool.map(int, [('1',), ('not a number',)])\n"
+            "        except ValueError as exc:\n"
+            "            err = str(exc)\n"
+            "    print(got == [float(x @ x), float((2 * x) @ (2 * x))], pool.workers, 'invalid literal' in err)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["True", "2", "True"]
 
 
 @pytest.mark.parametrize("workers", [1, 2])
