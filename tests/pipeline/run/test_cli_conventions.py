@@ -247,7 +247,9 @@ def test_calibrate_progress_bar_and_summary(small, tmp_path: Path, monkeypatch) 
     session, calib = small
     steps = []
 
-    def fake(session_dir, out, *, response_method, calibration, advance):  # noqa: ANN001, ANN202
+    def fake(session_dir, out, *, response_method, calibration, advance, pool, sweep):  # noqa: ANN001, ANN202
+        # the band workers and the sweep's fits were started before the fit module was used
+        assert pool.workers >= 1 and sweep.method == response_method and len(sweep.futures) == 25
         for _ in range(fit.CALIBRATE_STEPS):
             advance()
             steps.append(1)
