@@ -91,7 +91,8 @@ class BandPool:
 
     def __init__(self, workers: int | None = None, method: str | None = None):
         """``workers`` (default: one per core); ``method``: the start method of the workers
-        (default :func:`start_method`)."""
+        (default :func:`start_method`; ``"fork"`` from a process with other threads can leave a
+        worker waiting forever on a lock one of them held: a pytest-xdist worker did)."""
         self.workers = band_workers(64) if workers is None else max(1, int(workers))
         self._pool: ProcessPoolExecutor | None = None
         reuse_freed_memory()  # this process reads every stack; with one worker it fits them too
