@@ -297,7 +297,7 @@ def _csr(data: np.ndarray, structure: tuple[np.ndarray, np.ndarray, np.ndarray],
 
 def _log_init(
     pix: np.ndarray, cell: np.ndarray, y: np.ndarray, n_pix: int, n_cell: int, max_iter: int,
-    structure: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    structure: tuple[np.ndarray, np.ndarray, np.ndarray],
 ) -> tuple[np.ndarray, np.ndarray]:
     """Start V, L from ``log y = log V(x) + log L(p)`` by sparse linear least squares.
 
@@ -313,8 +313,6 @@ def _log_init(
     z = z - float(np.median(z))
     deg_p = np.bincount(pix, minlength=n_pix).astype(np.float64)
     deg_c = np.bincount(cell, minlength=n_cell).astype(np.float64)
-    if structure is None:
-        structure = _incidence(pix, cell, n_pix, n_cell)
     inc = _csr(np.ones(pix.size), structure, (n_pix, n_cell))
     inc_t = inc.T
 
@@ -518,7 +516,7 @@ def fit_vignetting(
     act_c, cc = _compact(fc, n_cells)
     structure = _incidence(cp, cc, act_p.size, act_c.size)
     v, lum = _log_init(cp, cc, fy, act_p.size, act_c.size, int(init_iter), structure)
-    v, lum, iterations, converged = _alternate(cp, cc, fy, fw, v, act_c.size, int(max_iter), tol, structure)
+    v, lum, iterations, converged = _alternate(fy, fw, v, act_c.size, int(max_iter), tol, structure)
     resid = fy / (v[cp] * lum[cc]) - 1.0
     residual_rms = float(np.sqrt(np.mean(resid * resid)))
 
@@ -646,8 +644,8 @@ def _informative(pix: np.ndarray, cell: np.ndarray, n_pix: int, n_cells: int) ->
 
 
 def _alternate(
-    cp: np.ndarray, cc: np.ndarray, fy: np.ndarray, fw: np.ndarray, v: np.ndarray, nca: int,
-    max_iter: int, tol: float, structure: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+    fy: np.ndarray, fw: np.ndarray, v: np.ndarray, nca: int, max_iter: int, tol: float,
+    structure: tuple[np.ndarray, np.ndarray, np.ndarray],
 ) -> tuple[np.ndarray, np.ndarray, int, bool]:
     """Step 3 of :func:`fit_vignetting`.
 
@@ -657,8 +655,6 @@ def _alternate(
     (:func:`_incidence`): ``L = (W_y' V) / (W' V^2)``, ``V = (W_y L) / (W L^2)``.
     """
     npa = v.size
-    if structure is None:
-        structure = _incidence(cp, cc, npa, nca)
     wy_m = _csr(fw * fy, structure, (npa, nca))
     w_m = _csr(fw, structure, (npa, nca))
     wy_t, w_t = wy_m.T, w_m.T
