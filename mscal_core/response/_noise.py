@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.optimize import lsq_linear
 from scipy.special import log_ndtr
@@ -9,16 +11,17 @@ from scipy.special import log_ndtr
 from ._curve import Curve
 
 
-def _bin_order_stats(values: np.ndarray, k: np.ndarray, cnt: np.ndarray, *ranks: np.ndarray) -> np.ndarray:
+def _bin_order_stats(values: np.ndarray, k: np.ndarray, cnt: np.ndarray, *ranks: np.ndarray,
+                     order: np.ndarray | None = None) -> np.ndarray:
     """Return the ``ranks[j]``-th smallest of ``values`` in bin ``j`` (0 where bin ``j`` is empty).
 
     The same numbers as sorting all samples by (bin, value) and picking
     ``starts[j] + ranks[j]`` (bin medians of :func:`_noise_model`, :func:`_gradient_noise`,
     :func:`outlier_weights`), in O(n): a stable radix sort of the small bin index, then one
-    ``np.partition`` per bin. Several rank arrays give one row each.
+    ``np.partition`` per bin. Several rank arrays give one row each. ``order``: that sort
+    (:func:`_bin_order`), when it is already known.
     """
-    order = np.argsort(k.astype(np.uint8) if cnt.size <= 256 else k, kind="stable")
-    vs = values[order]
+    vs = values[_bin_order(k, cnt) if order is None else order]
     out = np.zeros((len(ranks), cnt.size))
     start = 0
     for j, c in enumerate(cnt.tolist()):
@@ -30,37 +33,85 @@ def _bin_order_stats(values: np.ndarray, k: np.ndarray, cnt: np.ndarray, *ranks:
     return out if len(ranks) > 1 else out[0]
 
 
+def _bin_order(k: np.ndarray, cnt: np.ndarray) -> np.ndarray:
+    """Order the samples by their bin ``k`` (stable: a radix sort when the bins fit a byte)."""
+    return np.argsort(k.astype(np.uint8) if cnt.size <= 256 else k, kind="stable")
+
+
+@dataclass(frozen=True)
+class _Bins:
+    """Quantile bins of one variable.
+
+    The bin ``k`` of every sample, the counts, and the samples in bin order
+    (:func:`_bin_order`).
+    """
+
+    k: np.ndarray
+    cnt: np.ndarray
+    order: np.ndarray
+
+
+def _quantile_bins(x: np.ndarray, n_bins: int) -> _Bins | None:
+    """``x`` in ``n_bins`` bins between its quantiles (ties merged); None below 2 bins."""
+    edges = np.unique(np.quantile(x, np.linspace(0, 1, n_bins + 1)))
+    if edges.size < 3:
+        return None
+    k = np.clip(np.searchsorted(edges, x, side="right") - 1, 0, edges.size - 2)
+    cnt = np.bincount(k, minlength=edges.size - 1)
+    return _Bins(k, cnt, _bin_order(k, cnt))
+
+
+@dataclass(frozen=True)
+class _Residuals:
+    """The squared residuals of the noise fits, with their ``mu`` and its 16 quantile bins.
+
+    Each squared residual is divided by ``1 - leverage`` (samples of leverage >= 0.9 left
+    out: ``keep``). They do not change while :func:`noise_update` alternates the noise model
+    and the gradient term.
+    """
+
+    keep: np.ndarray
+    r2: np.ndarray
+    mu: np.ndarray
+    bins: _Bins | None
+
+
+def _residuals(r: np.ndarray, mu: np.ndarray, leverage: np.ndarray) -> _Residuals:
+    keep = leverage < 0.9
+    r2 = r[keep] ** 2 / (1.0 - leverage[keep])
+    mu = mu[keep]
+    return _Residuals(keep, r2, mu, _quantile_bins(mu, 16) if r2.size >= 10 else None)
+
+
 def _noise_model(r: np.ndarray, mu: np.ndarray, leverage: np.ndarray, floor: float,
-                 robust: bool = False, offset: np.ndarray | None = None) -> tuple[float, float]:
+                 robust: bool = False, offset: np.ndarray | None = None,
+                 prepared: _Residuals | None = None) -> tuple[float, float]:
     """Fit the read + shot noise model ``var(I) = a + b mu`` to residuals.
 
     Fit ``var(I) = a + b * mu`` (read + shot noise, ``mu = C - black``) to the squared
     residuals, each divided by ``1 - leverage`` (the share of the sample's noise absorbed by its
     pixel's fitted E), less a known ``offset`` (the gradient term), averaged in 16 quantile bins
     of mu (``robust``: median / 0.4549, so outliers do not inflate it); two weighted passes,
-    ``a >= floor``.
+    ``a >= floor``. ``prepared``: :func:`_residuals` of ``(r, mu, leverage)``, when known.
     """
-    keep = leverage < 0.9
-    r2 = r[keep] ** 2 / (1.0 - leverage[keep])
+    res = _residuals(r, mu, leverage) if prepared is None else prepared
+    r2 = res.r2
     if offset is not None:  # a known part of the variance (gradient term)
-        r2 = np.maximum(r2 - offset[keep], 0.0)
-    mu = mu[keep]
+        r2 = np.maximum(r2 - offset[res.keep], 0.0)
     if r2.size < 10:
         return max(float(np.mean(r ** 2)) if r.size else 1.0, floor), 0.0
-    edges = np.unique(np.quantile(mu, np.linspace(0, 1, 17)))
-    if edges.size < 3:
+    if res.bins is None:
         return max(float(r2.mean()), floor), 0.0
-    k = np.clip(np.searchsorted(edges, mu, side="right") - 1, 0, edges.size - 2)
-    cnt = np.bincount(k, minlength=edges.size - 1).astype(np.float64)
+    k, n_bin = res.bins.k, res.bins.cnt
+    cnt = n_bin.astype(np.float64)
     ok = cnt > 0
     if robust:  # median / 0.4549 (median of chi2_1): outliers do not inflate the scale
-        n_bin = cnt.astype(np.intp)
-        lo_v, hi_v = _bin_order_stats(r2, k, n_bin, (n_bin - 1) // 2, n_bin // 2)
+        lo_v, hi_v = _bin_order_stats(r2, k, n_bin, (n_bin - 1) // 2, n_bin // 2, order=res.bins.order)
         med = np.where(ok, 0.5 * (lo_v + hi_v), 0.0)
         mv = med[ok] / 0.4549
     else:
-        mv = np.bincount(k, r2, edges.size - 1)[ok] / cnt[ok]
-    mm = np.bincount(k, mu, edges.size - 1)[ok] / cnt[ok]
+        mv = np.bincount(k, r2, cnt.size)[ok] / cnt[ok]
+    mm = np.bincount(k, res.mu, cnt.size)[ok] / cnt[ok]
     X = np.stack([np.ones_like(mm), mm], 1)
     sw = np.sqrt(cnt[ok]) / np.maximum(mv, floor)
     sol = np.array([max(float(np.mean(mv)), floor), 0.0])
@@ -81,43 +132,68 @@ def noise_update(
     """Re-estimate the DN noise model ``var = a + b mu + c g2``.
 
     Re-estimate the DN noise model ``var = a + b mu + c g2`` from the residuals (see
-    :func:`_noise_model`; ``c = 0`` without ``g2``).
+    :func:`_noise_model`; ``c = 0`` without ``g2``). With ``g2`` the two are fitted in turn,
+    twice; the residuals, their bins and the gradient term's bin medians are made once.
     """
     mu, s = curve(t[:, None] * e[None, :])
-    lev = _leverage(w, t, s)
+    lev = _leverage(w, t, s)[m]
     r, above = (d - mu)[m], np.maximum(mu - curve.c[0], 0.0)[m]
+    res = _residuals(r, above, lev)
     if g2 is None or not np.any(g2[m] > 0):
-        return (*_noise_model(r, above, lev[m], 1 / 12, robust), 0.0)
+        return (*_noise_model(r, above, lev, 1 / 12, robust, prepared=res), 0.0)
     gm = g2[m]
+    grad = _gradient_bins(res, gm)
     a, b, c = 1.0, 0.0, 0.0
     for _ in range(2):
-        a, b = _noise_model(r, above, lev[m], 1 / 12, robust, offset=c * gm)
-        c = _gradient_noise(r, lev[m], a + b * above, gm)
+        a, b = _noise_model(r, above, lev, 1 / 12, robust, offset=c * gm, prepared=res)
+        c = _gradient_noise(grad, a + b * above)
     return a, b, c
 
 
-def _gradient_noise(r: np.ndarray, leverage: np.ndarray, base: np.ndarray, g2: np.ndarray) -> float:
+@dataclass(frozen=True)
+class _GradientBins:
+    """The squared residuals of :class:`_Residuals` in 8 quantile bins of the squared DN gradient.
+
+    The bins of the squared local DN gradient ``g2``, and each non-empty bin's robust
+    variance (median / 0.4549) and mean ``g2``.
+    """
+
+    keep: np.ndarray
+    bins: _Bins
+    med: np.ndarray
+    gmean: np.ndarray
+
+
+def _gradient_bins(res: _Residuals, g2: np.ndarray) -> _GradientBins | None:
+    """:class:`_GradientBins` of ``res`` (None with fewer than 64 residuals or 2 bins)."""
+    if res.r2.size < 64:
+        return None
+    g2 = g2[res.keep]
+    bins = _quantile_bins(g2, 8)
+    if bins is None:
+        return None
+    k, cnt = bins.k, bins.cnt
+    ok = cnt > 0
+    med = _bin_order_stats(res.r2, k, cnt, cnt // 2, order=bins.order) / 0.4549
+    gmean = np.bincount(k, g2, cnt.size)[ok] / cnt[ok]
+    return _GradientBins(res.keep, bins, med[ok], gmean)
+
+
+def _gradient_noise(grad: _GradientBins | None, base: np.ndarray) -> float:
     """``c >= 0`` in ``var = base + c g2``.
 
-    The squared residuals in 8 quantile bins of the squared local DN gradient ``g2``, robust
-    (median / 0.4549) minus the mean ``base`` of the bin, regressed on the bin's mean ``g2``
-    (weights: counts / variance^2). ``c`` is the mean squared shift (pixels^2) of a scene
-    between frames: 0 on a tripod.
+    The robust variance of each ``g2`` bin (:class:`_GradientBins`) minus the mean ``base``
+    of the bin, regressed on the bin's mean ``g2`` (weights: counts / variance^2). ``c`` is
+    the mean squared shift (pixels^2) of a scene between frames: 0 on a tripod. 0 without
+    bins.
     """
-    keep = leverage < 0.9
-    r2 = r[keep] ** 2 / (1.0 - leverage[keep])
-    g2, base = g2[keep], base[keep]
-    edges = np.unique(np.quantile(g2, np.linspace(0, 1, 9)))
-    if edges.size < 3 or r2.size < 64:
+    if grad is None:
         return 0.0
-    k = np.clip(np.searchsorted(edges, g2, side="right") - 1, 0, edges.size - 2)
-    cnt = np.bincount(k, minlength=edges.size - 1)
+    k, cnt = grad.bins.k, grad.bins.cnt
     ok = cnt > 0
-    med = _bin_order_stats(r2, k, cnt, cnt // 2) / 0.4549
-    gmean = np.bincount(k, g2, edges.size - 1)[ok] / cnt[ok]
-    excess = med[ok] - np.bincount(k, base, edges.size - 1)[ok] / cnt[ok]
-    wts = cnt[ok] / np.maximum(med[ok], 1e-6) ** 2
-    c = float(np.sum(wts * gmean * excess) / max(float(np.sum(wts * gmean * gmean)), 1e-300))
+    excess = grad.med - np.bincount(k, base[grad.keep], cnt.size)[ok] / cnt[ok]
+    wts = cnt[ok] / np.maximum(grad.med, 1e-6) ** 2
+    c = float(np.sum(wts * grad.gmean * excess) / max(float(np.sum(wts * grad.gmean * grad.gmean)), 1e-300))
     return max(c, 0.0)
 
 

@@ -89,3 +89,90 @@ def test_bin_order_stats_several_ranks_at_once() -> None:
     lo, hi = _bin_order_stats(values, k, cnt, (cnt - 1) // 2, cnt // 2)
     np.testing.assert_array_equal(lo, _lexsort_order_stats(values, k, cnt, (cnt - 1) // 2))
     np.testing.assert_array_equal(hi, _lexsort_order_stats(values, k, cnt, cnt // 2))
+
+
+def _noise_model_each_time(r, mu, lev, floor, robust, offset=None):  # noqa: ANN001, ANN202
+    """_noise_model before the residuals and bins were made once per noise_update."""
+    from scipy.optimize import lsq_linear
+
+    keep = lev < 0.9
+    r2 = r[keep] ** 2 / (1.0 - lev[keep])
+    if offset is not None:
+        r2 = np.maximum(r2 - offset[keep], 0.0)
+    mu = mu[keep]
+    if r2.size < 10:
+        return max(float(np.mean(r ** 2)) if r.size else 1.0, floor), 0.0
+    edges = np.unique(np.quantile(mu, np.linspace(0, 1, 17)))
+    if edges.size < 3:
+        return max(float(r2.mean()), floor), 0.0
+    k = np.clip(np.searchsorted(edges, mu, side="right") - 1, 0, edges.size - 2)
+    cnt = np.bincount(k, minlength=edges.size - 1).astype(np.float64)
+    ok = cnt > 0
+    if robust:
+        n_bin = cnt.astype(np.intp)
+        lo_v, hi_v = _bin_order_stats(r2, k, n_bin, (n_bin - 1) // 2, n_bin // 2)
+        mv = np.where(ok, 0.5 * (lo_v + hi_v), 0.0)[ok] / 0.4549
+    else:
+        mv = np.bincount(k, r2, edges.size - 1)[ok] / cnt[ok]
+    mm = np.bincount(k, mu, edges.size - 1)[ok] / cnt[ok]
+    X = np.stack([np.ones_like(mm), mm], 1)
+    sw = np.sqrt(cnt[ok]) / np.maximum(mv, floor)
+    sol = np.array([max(float(np.mean(mv)), floor), 0.0])
+    for _ in range(2):
+        trial = lsq_linear(X * sw[:, None], mv * sw, bounds=([floor, 0.0], [np.inf, np.inf])).x
+        if not np.all(np.isfinite(trial)):
+            break
+        sol = trial
+        sw = np.sqrt(cnt[ok]) / np.maximum(X @ sol, floor)
+    return float(sol[0]), float(sol[1])
+
+
+def _gradient_noise_each_time(r, lev, base, g2):  # noqa: ANN001, ANN202
+    keep = lev < 0.9
+    r2 = r[keep] ** 2 / (1.0 - lev[keep])
+    g2, base = g2[keep], base[keep]
+    edges = np.unique(np.quantile(g2, np.linspace(0, 1, 9)))
+    if edges.size < 3 or r2.size < 64:
+        return 0.0
+    k = np.clip(np.searchsorted(edges, g2, side="right") - 1, 0, edges.size - 2)
+    cnt = np.bincount(k, minlength=edges.size - 1)
+    ok = cnt > 0
+    med = _bin_order_stats(r2, k, cnt, cnt // 2) / 0.4549
+    gmean = np.bincount(k, g2, edges.size - 1)[ok] / cnt[ok]
+    excess = med[ok] - np.bincount(k, base, edges.size - 1)[ok] / cnt[ok]
+    wts = cnt[ok] / np.maximum(med[ok], 1e-6) ** 2
+    return max(float(np.sum(wts * gmean * excess) / max(float(np.sum(wts * gmean * gmean)), 1e-300)), 0.0)
+
+
+@pytest.mark.parametrize("robust", [False, True])
+def test_noise_update_matches_refitting_the_bins_each_time(robust: bool) -> None:
+    from mscal_core.response._curve import Curve  # noqa: PLC2701
+    from mscal_core.response._noise import _leverage, noise_update  # noqa: PLC2701
+
+    rng = np.random.default_rng(6)
+    n_frames, n_pix = 9, 3000
+    t = np.geomspace(1.0, 16.0, n_frames)
+    e = rng.uniform(2.0, 60.0, n_pix)
+    xk = np.linspace(0.0, 1000.0, 17)
+    curve = Curve(xk=xk, c=20.0 + 900.0 * np.sqrt(xk / 1000.0) + 0.1 * xk)
+    mu, _ = curve(t[:, None] * e[None, :])
+    g2 = rng.gamma(0.5, 40.0, (n_frames, n_pix))
+    g2[:, :200] = 0.0  # flat pixels
+    d = np.round(mu + rng.normal(0.0, 1.0, mu.shape) * np.sqrt(2.0 + 0.05 * (mu - 20.0) + 1.0 * g2))
+    m = (d > 0) & (d < 1000)
+    m[:, rng.integers(0, n_pix, 40)] = False
+    w = m / (2.0 + 0.05 * np.maximum(mu - 20.0, 0.0))
+    got = noise_update(d, m, w, t, e, curve, robust, g2)
+    # the loop of noise_update as it was: everything made again in each pass
+    mu, s = curve(t[:, None] * e[None, :])
+    lev = _leverage(w, t, s)
+    r, above = (d - mu)[m], np.maximum(mu - curve.c[0], 0.0)[m]
+    a, b, c = 1.0, 0.0, 0.0
+    for _ in range(2):
+        a, b = _noise_model_each_time(r, above, lev[m], 1 / 12, robust, offset=c * g2[m])
+        c = _gradient_noise_each_time(r, lev[m], a + b * above, g2[m])
+    assert c > 0.1  # the gradient term is exercised (1.0 in the simulated noise)
+    assert got == (a, b, c)
+    # without g2: the noise model alone
+    a0, b0, c0 = noise_update(d, m, w, t, e, curve, robust)
+    assert (a0, b0, c0) == (*_noise_model_each_time(r, above, lev[m], 1 / 12, robust), 0.0)
