@@ -41,8 +41,10 @@ __all__ = [
     "marker_object_points",
     "pixels_to_plane",
     "project_to_pixels",
+    "reflector_cells",
     "reflector_mask",
     "reflector_window",
+    "window_of_cells",
 ]
 
 # Undistortion (cv2.undistortPoints) is iterative; the default 5 iterations leave errors of
@@ -587,23 +589,77 @@ def reflector_window(
     and everything after it to the window gives the same pixels and plane points as the
     whole band, for less work: the reflector fills a fraction of most views.
     """
-    h, w = int(shape[0]), int(shape[1])
-    whole = (slice(0, h), slice(0, w))
+    return window_of_cells(reflector_cells(pose, intrinsics, size_m), shape, offset)
+
+
+def reflector_cells(pose: Pose, intrinsics: Intrinsics, size_m: float | Sequence[float]) -> np.ndarray | None:
+    """Pixel boxes of the cells of a grid over the reflector, the first half of :func:`reflector_window`.
+
+    Parameters
+    ----------
+    pose : Pose
+        Pose of the marker.
+    intrinsics : Intrinsics
+        The band grid's intrinsics.
+    size_m : float or sequence of float
+        Reflector size ``[w, h]`` centred on the marker.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        ``(4, n, n)``: the least and greatest x, then y, on the band grid of the projected
+        corners of each cell of the :data:`WINDOW_SAMPLES` grid (``n = WINDOW_SAMPLES - 1``);
+        None when they do not bound the reflector (part of it behind the camera, or a
+        projection that is not finite).
+
+    Notes
+    -----
+    They depend on the pose and the intrinsics only, not on a band's offset: one projection
+    serves every band of a band-grid camera (:func:`window_of_cells`).
+    """
     sw, sh = size_wh(size_m)
     n = WINDOW_SAMPLES
     uu, vv = np.meshgrid(np.linspace(-sw / 2, sw / 2, n), np.linspace(-sh / 2, sh / 2, n))
     plane = np.stack([uu.ravel(), vv.ravel()], axis=1)
     depth = plane @ pose.rotation[2, :2] + pose.tvec[2]
     if not np.all(depth > 0):
-        return whole
+        return None
     xy = project_to_pixels(plane, pose, intrinsics).reshape(n, n, 2)
     if not np.all(np.isfinite(xy)):
-        return whole
-    px, py = xy[..., 0] - float(offset[0]), xy[..., 1] - float(offset[1])  # in pixel indices
-    corners_x = np.stack([px[:-1, :-1], px[1:, :-1], px[:-1, 1:], px[1:, 1:]])
-    corners_y = np.stack([py[:-1, :-1], py[1:, :-1], py[:-1, 1:], py[1:, 1:]])
-    x0, x1 = corners_x.min(0) - WINDOW_MARGIN_PX, corners_x.max(0) + WINDOW_MARGIN_PX
-    y0, y1 = corners_y.min(0) - WINDOW_MARGIN_PX, corners_y.max(0) + WINDOW_MARGIN_PX
+        return None
+    out = np.empty((4, n - 1, n - 1))
+    for i, c in enumerate((xy[..., 0], xy[..., 1])):
+        corners = np.stack([c[:-1, :-1], c[1:, :-1], c[:-1, 1:], c[1:, 1:]])
+        corners.min(0, out=out[2 * i])
+        corners.max(0, out=out[2 * i + 1])
+    return out
+
+
+def window_of_cells(
+    cells: np.ndarray | None, shape: tuple[int, int], offset: tuple[float, float] = (0.0, 0.0)
+) -> tuple[slice, slice]:
+    """Bound the window of :func:`reflector_window` from its cells' boxes (:func:`reflector_cells`).
+
+    Parameters
+    ----------
+    cells : numpy.ndarray or None
+        :func:`reflector_cells` of the pose; None gives the whole band.
+    shape : tuple of int
+        ``(H, W)`` of the band.
+    offset : tuple of float
+        The band's offset on the band grid (:func:`pixel_rays`).
+
+    Returns
+    -------
+    tuple of slice
+        ``(rows, cols)``, as :func:`reflector_window`.
+    """
+    h, w = int(shape[0]), int(shape[1])
+    if cells is None:
+        return slice(0, h), slice(0, w)
+    # a box in pixel indices, widened (x - offset is monotone: the least corner stays least)
+    x0, x1 = cells[0] - float(offset[0]) - WINDOW_MARGIN_PX, cells[1] - float(offset[0]) + WINDOW_MARGIN_PX
+    y0, y1 = cells[2] - float(offset[1]) - WINDOW_MARGIN_PX, cells[3] - float(offset[1]) + WINDOW_MARGIN_PX
     reach = (x1 >= 0) & (x0 <= w - 1) & (y1 >= 0) & (y0 <= h - 1)
     if not reach.any():
         return slice(0, 0), slice(0, 0)

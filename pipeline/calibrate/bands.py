@@ -1,8 +1,9 @@
 """Per-band work of the calibration, run on the workers of :class:`pipeline.calibrate.pool.BandPool`.
 
 The response (Eq. 5-7) and vignetting (Eq. 8-10) fits of one band do not depend on the other
-bands. Each task gets its band's frames (a view of the stack, pickled when it is sent, a few
-at a time) and returns the fit. The numbers are the same whichever process fits a band: the
+bands. Each task gets its band's frames (views of the stack, pickled when it is sent, a few
+at a time; of the vignetting views only the box of pixels that can see the reflector) and
+returns the fit. The numbers are the same whichever process fits a band: the
 worker runs exactly the code the main process would (``tests/pipeline/calibrate/test_bands.py``
 checks 1 worker against 2).
 
@@ -36,14 +37,16 @@ def response_band(dn: np.ndarray, exposures: np.ndarray, bit_depth: int,
 
 @dataclass(frozen=True)
 class BandViews:
-    """One band's vignetting views: the band's DN of every frame ``(frame, H, W)`` (a view of
-    the stack: pickled only when the task is sent), the frames used as views and, per view,
-    its exposure time and marker pose; the band's U table, saturation and intrinsics, its
-    offset on the band grid ``(dx, dy)`` and the reflector geometry (size, excluded centre,
-    edge margin, cell grid)."""
+    """One band's vignetting views: per view, the band's DN in the box of pixels that can see
+    the reflector (``dn``: views of the stack, pickled only when the task is sent) and that box
+    (``windows``: :func:`mscal_core.geometry.reflector_window`, found by the main process, which
+    projects the reflector once per view for every band), its exposure time and marker pose;
+    the band's shape, U table, saturation and intrinsics, its offset on the band grid
+    ``(dx, dy)`` and the reflector geometry (size, excluded centre, edge margin, cell grid)."""
 
-    dn: np.ndarray
-    frames: tuple[int, ...]
+    dn: tuple[np.ndarray, ...]
+    windows: tuple[tuple[slice, slice], ...]
+    shape: tuple[int, int]
     exposures: tuple[float, ...]
     poses: tuple[geometry.Pose, ...]
     inverse_response: np.ndarray
@@ -54,14 +57,6 @@ class BandViews:
     exclude_half_m: float
     edge_margin_m: float
     grid: tuple[int, int]
-
-    def select(self, keep: Sequence[int]) -> "BandViews":
-        """The same band with only views ``keep``."""
-        from dataclasses import replace
-
-        idx = list(keep)
-        return replace(self, frames=tuple(self.frames[k] for k in idx),
-                       exposures=tuple(self.exposures[k] for k in idx), poses=tuple(self.poses[k] for k in idx))
 
 
 Observations = tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -77,16 +72,15 @@ def energy(dn: np.ndarray, inverse_response: np.ndarray, t: float, saturation_dn
 def band_observations(bv: BandViews) -> tuple[list[Observations], float]:
     """Eq. 8-10 observations of every view of one band, and the saturated fraction of its
     reflector pixels (QA report)."""
-    shape = bv.dn.shape[1:]
-    width = shape[1]
-    rays = geometry.pixel_rays(bv.intrinsics, shape, bv.offset)
+    width = bv.shape[1]
+    rays = geometry.pixel_rays(bv.intrinsics, bv.shape, bv.offset)
     obs = []
     n_sat = n_pix = 0
     for k, pose in enumerate(bv.poses):
         # only the box of pixels that can see the reflector: the same observations, in the
         # same order, as the whole band (geometry.reflector_window)
-        rows, cols = geometry.reflector_window(pose, bv.intrinsics, shape, bv.size_m, bv.offset)
-        dn = bv.dn[bv.frames[k], rows, cols]
+        rows, cols = bv.windows[k]
+        dn = bv.dn[k]
         e = energy(dn, bv.inverse_response, bv.exposures[k], bv.saturation_dn)
         uv = geometry.pixels_to_plane(pose, bv.intrinsics, dn.shape, rays=rays[rows, cols])
         mask = geometry.reflector_mask(uv, bv.size_m, bv.exclude_half_m, bv.edge_margin_m)
@@ -107,7 +101,7 @@ def vignetting_band(bv: BandViews, screen: bool = False) -> tuple[vignetting.Vig
     """Eq. 8-10 of one band: the fit, the saturated fraction and, with ``screen``, each
     view's :func:`mscal_core.vignetting.view_inconsistency` with that fit."""
     obs, saturated = band_observations(bv)
-    fit = fit_observations(obs, bv.dn.shape[1:], bv.grid[0] * bv.grid[1])
+    fit = fit_observations(obs, bv.shape, bv.grid[0] * bv.grid[1])
     frac = np.array([vignetting.view_inconsistency(fit, *o) for o in obs]) if screen else None
     return fit, saturated, frac
 
@@ -119,7 +113,7 @@ def lens_vignetting_band(bv: BandViews, min_views_to_screen: int) -> tuple[vigne
     and the lens fitted again when at least ``min_views_to_screen`` remain. Returns the fit,
     the saturated fraction (of all its views), each view's inconsistency and the views dropped."""
     obs, saturated = band_observations(bv)
-    shape, n_cells = bv.dn.shape[1:], bv.grid[0] * bv.grid[1]
+    shape, n_cells = bv.shape, bv.grid[0] * bv.grid[1]
     fit = fit_observations(obs, shape, n_cells)
     frac = np.array([vignetting.view_inconsistency(fit, *o) for o in obs])
     bad = sorted(set(vignetting.inconsistent_views(frac).tolist()))

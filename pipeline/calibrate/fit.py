@@ -437,16 +437,33 @@ def fit_vignetting_frames(
     return fits, report
 
 
+#: The reflector's cell boxes (:func:`mscal_core.geometry.reflector_cells`) of the views
+#: already projected, by frame, pose and intrinsics: one projection per view serves every band.
+CellCache = dict[tuple[int, bytes, geometry.Intrinsics], "np.ndarray | None"]
+
+
 def _band_views(session: Session, stack: np.ndarray, b: int, use: Sequence[tuple[int, View]],
-                inverse_response: np.ndarray, saturation_dn: np.ndarray) -> BandViews:
-    """Band ``b``'s vignetting views ``use`` for :func:`pipeline.calibrate.bands.vignetting_band`."""
+                inverse_response: np.ndarray, saturation_dn: np.ndarray, cells: CellCache) -> BandViews:
+    """Band ``b``'s vignetting views ``use`` for :func:`pipeline.calibrate.bands.vignetting_band`:
+    each view's window of the band (:func:`mscal_core.geometry.reflector_window`)."""
+    intr = session.intrinsics_for(b)
+    offset = tuple(float(o) for o in _offsets(session.camera)[b])
+    size = tuple(float(x) for x in np.broadcast_to(np.asarray(session.reflector.size_m, dtype=np.float64), (2,)))
+    shape = stack.shape[2:]
+    windows = []
+    for i, v in use:
+        pose = v.pose_for(b)
+        key = (i, np.concatenate([pose.rvec, pose.tvec]).tobytes(), intr)  # type: ignore[union-attr]
+        if key not in cells:
+            cells[key] = geometry.reflector_cells(pose, intr, size)  # type: ignore[arg-type]
+        windows.append(geometry.window_of_cells(cells[key], shape, offset))  # type: ignore[arg-type]
     return BandViews(
-        dn=stack[:, b], frames=tuple(i for i, _ in use),
+        dn=tuple(stack[i, b, rows, cols] for (i, _), (rows, cols) in zip(use, windows)),
+        windows=tuple(windows), shape=shape,
         exposures=tuple(v.record.band_exposure(b) for _, v in use),
         poses=tuple(v.pose_for(b) for _, v in use),  # type: ignore[misc]
         inverse_response=inverse_response[b], saturation_dn=int(saturation_dn[b]),
-        intrinsics=session.intrinsics_for(b), offset=tuple(_offsets(session.camera)[b]),  # type: ignore[arg-type]
-        size_m=tuple(np.broadcast_to(np.asarray(session.reflector.size_m, dtype=np.float64), (2,))),  # type: ignore[arg-type]
+        intrinsics=intr, offset=offset, size_m=size,  # type: ignore[arg-type]
         exclude_half_m=_exclude_half(session), edge_margin_m=_edge_margin(session),
         grid=vignetting.cell_grid(session.reflector.size_m),
     )
@@ -465,8 +482,9 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
     # other bands start meanwhile on all views, and are fitted again if a view is dropped.
     ref = camera.n_bands // 2
     order = [ref] + [b for b in range(camera.n_bands) if b != ref]
-    futures = {b: pool.submit(vignetting_band, _band_views(session, stack, b, views, inverse_response, saturation_dn),
-                              b == ref) for b in order}
+    cells: CellCache = {}
+    futures = {b: pool.submit(vignetting_band, _band_views(session, stack, b, views, inverse_response, saturation_dn,
+                                                           cells), b == ref) for b in order}
     started()
     ref_fit, saturated[ref], frac = futures[ref].result()
     bad = set(vignetting.inconsistent_views(frac).tolist())
@@ -491,7 +509,7 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
         for b in order:
             futures[b].cancel()
             futures[b] = pool.submit(vignetting_band,
-                                     _band_views(session, stack, b, views, inverse_response, saturation_dn))
+                                     _band_views(session, stack, b, views, inverse_response, saturation_dn, cells))
     fits = []
     for b in range(camera.n_bands):
         fit, saturated[b], _ = futures[b].result()
@@ -511,8 +529,9 @@ def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[t
         if not use:
             raise FitError(f"band {camera.bands[b].name}: the marker was found in none of its vignetting views",
                            hint="check that the marker is in view of every lens and sharp")
+    cells: CellCache = {}
     futures = [pool.submit(lens_vignetting_band, _band_views(session, stack, b, uses[b], inverse_response,
-                                                             saturation_dn), MIN_VIEWS_TO_SCREEN)
+                                                             saturation_dn, cells), MIN_VIEWS_TO_SCREEN)
                for b in range(camera.n_bands)]
     started()
     results = [f.result() for f in futures]

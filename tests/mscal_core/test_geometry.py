@@ -16,8 +16,10 @@ from mscal_core.geometry import (
     marker_object_points,
     pixels_to_plane,
     project_to_pixels,
+    reflector_cells,
     reflector_mask,
     reflector_window,
+    window_of_cells,
 )
 
 SHAPE = (217, 409)
@@ -284,3 +286,41 @@ def test_estimate_pose_behind_camera_rejected(monkeypatch):
     monkeypatch.setattr(geometry.cv2, "solvePnP", fake_solve)
     with pytest.raises(FitError, match="behind"):
         estimate_pose(np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float), 0.1, K_PLAIN)
+
+
+def _window_shifted_first(pose: Pose, k: Intrinsics, size, offset) -> tuple[slice, slice]:  # noqa: ANN001
+    """reflector_window as first written: the projection shifted by the band's offset, then boxed."""
+    n = 33
+    uu, vv = np.meshgrid(np.linspace(-size[0] / 2, size[0] / 2, n), np.linspace(-size[1] / 2, size[1] / 2, n))
+    xy = project_to_pixels(np.stack([uu.ravel(), vv.ravel()], axis=1), pose, k).reshape(n, n, 2)
+    px, py = xy[..., 0] - offset[0], xy[..., 1] - offset[1]
+    cx = np.stack([px[:-1, :-1], px[1:, :-1], px[:-1, 1:], px[1:, 1:]])
+    cy = np.stack([py[:-1, :-1], py[1:, :-1], py[:-1, 1:], py[1:, 1:]])
+    x0, x1, y0, y1 = cx.min(0) - 2.0, cx.max(0) + 2.0, cy.min(0) - 2.0, cy.max(0) + 2.0
+    h, w = SHAPE
+    reach = (x1 >= 0) & (x0 <= w - 1) & (y1 >= 0) & (y0 <= h - 1)
+    if not reach.any():
+        return slice(0, 0), slice(0, 0)
+    return (slice(max(int(np.floor(y0[reach].min())), 0), min(int(np.ceil(y1[reach].max())) + 1, h)),
+            slice(max(int(np.floor(x0[reach].min())), 0), min(int(np.ceil(x1[reach].max())) + 1, w)))
+
+
+def test_one_projection_serves_every_band_offset():
+    """The cells projected once (reflector_cells) give each band offset the window that
+    projecting and shifting for that band gives, to the pixel: the main process projects each
+    view once for all the bands of a band-grid camera."""
+    rng = np.random.default_rng(7)
+    size = (0.5, 0.4)
+    offsets = [(float(dx), float(dy)) for dx, dy in rng.uniform(-2.0, 2.0, (25, 2))]
+    partial = 0
+    for _ in range(12):
+        pose = Pose(np.array([np.pi, 0.0, 0.0]) + rng.uniform(-0.6, 0.6, 3),
+                    np.array([rng.uniform(-0.6, 0.6), rng.uniform(-0.4, 0.4), rng.uniform(0.5, 1.6)]))
+        cells = reflector_cells(pose, K_DIST, size)
+        assert cells is not None and cells.shape == (4, 32, 32)
+        for off in offsets:
+            got = window_of_cells(cells, SHAPE, off)
+            assert got == _window_shifted_first(pose, K_DIST, size, off) == reflector_window(pose, K_DIST, SHAPE, size, off)
+            partial += (got[0].stop - got[0].start) * (got[1].stop - got[1].start) < SHAPE[0] * SHAPE[1]
+    assert partial > 100  # windows smaller than the band are compared, not only whole bands
+    assert window_of_cells(None, SHAPE, (0.5, 0.5)) == (slice(0, SHAPE[0]), slice(0, SHAPE[1]))
