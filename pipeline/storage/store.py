@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, Iterable
 
 import numpy as np
 import xarray as xr
+import zarr  # noqa: F401 - imported with this module, not by xarray at the first write (see below)
 from mscal_core.errors import CalibrationStoreError
 
 from pipeline.storage.atomic import atomic_folder
@@ -143,6 +144,8 @@ def write_store(ds: xr.Dataset, path: str | Path) -> Path:
     durably (every file fsynced before the rename, the folder after it): a calibration store
     that exists is whole, after a power loss too."""
     path = Path(path)
+    # zarr is imported when this module is (0.3 s of CPU): xarray would import it here, and
+    # ``mscal calibrate`` writes at its end, on one core, while its fits keep both busy before
     ds = cf_annotate(ds.copy())
     ds.attrs = _to_jsonable(dict(ds.attrs))
     for v in ds.variables.values():
