@@ -7,6 +7,7 @@ traceback (an :class:`~mscal_core.errors.MscalError` is always caught here).
 from __future__ import annotations
 
 import errno
+import gc
 import json
 import logging
 import os
@@ -837,5 +838,21 @@ _OS_HINTS = {
 }
 
 
+def script_main() -> None:
+    """The ``mscal`` executable: :func:`main`, then exit with its status.
+
+    Before the interpreter shuts down, every object is moved out of the garbage collector's
+    reach (``gc.freeze``): its shutdown otherwise walks the ~1,600 modules' objects in
+    several full collections, 0.3-0.4 s of CPU after ``mscal calibrate`` (a tenth of what is
+    left of it once the fits are done). The exit handlers (logging, multiprocessing, zarr)
+    still run and open files are still flushed; only reference cycles still alive at exit
+    are not collected, and Python does not promise to finalise those anyway. Tests call
+    :func:`main` in their own process instead, which stays as it was.
+    """
+    status = main()
+    gc.freeze()
+    sys.exit(status)
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    script_main()

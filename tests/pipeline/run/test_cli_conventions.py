@@ -348,3 +348,28 @@ def test_demo_prints_plain_lines_or_one_json_document(tmp_path: Path, monkeypatc
     code, text, _ = _run(["demo", "-o", out, "--json"])
     doc = json.loads(text)
     assert code == 0 and doc["demo"]["errors_vs_truth"]["flight_field"] == {"ndvi": 0.01}
+
+
+def test_the_executable_is_script_main_and_exits_with_main_status(tmp_path):
+    """The installed ``mscal`` runs :func:`pipeline.run.cli.script_main`: main's exit status
+    (2 and the one-line reason on bad input, 0 on success), with the garbage collector's
+    objects frozen before the shutdown and the exit handlers (logging's) still run."""
+    import subprocess
+
+    eps = [ep for ep in importlib.metadata.entry_points(group="console_scripts") if ep.name == "mscal"]
+    assert [ep.value for ep in eps] == ["pipeline.run.cli:script_main"]
+    probe = (
+        "import atexit, gc, sys\n"
+        "from pipeline.run import cli\n"
+        "atexit.register(lambda: print('frozen', gc.get_freeze_count() > 1000, flush=True))\n"
+        "sys.argv = ['mscal', *sys.argv[1:]]\n"
+        "cli.script_main()\n"
+    )
+    bad = subprocess.run([sys.executable, "-c", probe, "calibrate", str(tmp_path / "none"), "-o", str(tmp_path / "c.zarr")],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2
+    assert "mscal: error:" in bad.stderr and "session folder not found" in bad.stderr
+    assert bad.stdout.strip() == "frozen True"
+    ok = subprocess.run([sys.executable, "-c", probe, "--version"], capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0 and ok.stdout.splitlines()[-1] == "frozen True"
+    assert not (tmp_path / "c.zarr").exists()
