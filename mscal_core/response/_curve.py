@@ -62,6 +62,23 @@ class Curve:
         s = self.slopes[seg]
         return self.c[seg] + s * (x - self.xk[seg]), s
 
+    def at(self, t: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(C(t_i E_x), C'(t_i E_x))`` of every frame ``i`` and pixel ``x``, read-only.
+
+        The fit evaluates one curve at one ``(t, E)`` several times per iteration (the noise
+        model, the outlier weights, the censored samples, the next step's Jacobian and cost):
+        for the same two array objects as the last call, the same result is returned. Neither
+        ``t`` nor ``E`` is ever changed in place by the fit (each step makes a new E).
+        """
+        memo = self.__dict__.get("_at")
+        if memo is not None and memo[0] is t and memo[1] is e:
+            return memo[2]
+        mu, s = self(t[:, None] * e[None, :])
+        mu.flags.writeable = False
+        s.flags.writeable = False
+        self.__dict__["_at"] = (t, e, (mu, s))
+        return mu, s
+
     def inverse(self, y: np.ndarray) -> np.ndarray:
         """``C^{-1}(y)`` (C strictly increasing); linear beyond the ends."""
         s = self.slopes
@@ -223,7 +240,7 @@ def joint_step(
     xk = curve.xk
     n_f, n_p = d.shape
     x = t[:, None] * e[None, :]
-    _, s = curve(x)
+    _, s = curve.at(t, e)
     J = t[:, None] * s
     on = w > 0
     xs, ws, Js, ds = x[on], w[on], J[on], d[on]
@@ -250,7 +267,7 @@ def joint_step(
 def _cost(d: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
           prior: tuple[np.ndarray, np.ndarray]) -> float:
     """``sum w (I - C(t E))^2`` plus the prior."""
-    c, _ = curve(t[:, None] * e[None, :])
+    c, _ = curve.at(t, e)
     th = _theta_of(curve)
     return float(np.sum(w * (d - c) ** 2) + th @ prior[0] @ th - 2 * prior[1] @ th)
 
@@ -311,12 +328,12 @@ def fit_energy(
     not reduce its cost. ``w`` is 0 on unusable samples.
     """
     def pix_cost(ee: np.ndarray) -> np.ndarray:
-        c, _ = curve(t[:, None] * ee[None, :])
+        c, _ = curve.at(t, ee)
         return (w * (d - c) ** 2).sum(0)
 
     cost = pix_cost(e)
     for _ in range(steps):
-        c, s = curve(t[:, None] * e[None, :])
+        c, s = curve.at(t, e)
         jac = t[:, None] * s
         num = (w * jac * (d - c)).sum(0)
         den = (w * jac * jac).sum(0)

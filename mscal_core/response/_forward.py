@@ -108,7 +108,7 @@ def forward_fit(
         if it in reknot_at:
             curve, e = reknot(curve, e, t, m, hi, n_seg)
         if it <= settle:
-            mu, _ = curve(t[:, None] * e[None, :])
+            mu, _ = curve.at(t, e)
             var = a_var + b_var * np.maximum(mu - curve.c[0], 0.0) + c_var * g2
             w = w_obs = mf * rob / var
             sm = smoothness
@@ -138,7 +138,7 @@ def forward_fit(
         noise = (a_var, b_var, c_var * g2)
         u_raw = hidden_saturation_top(u_raw, d, t, e, curve, noise, sat, lo, hi)
     U = finalise(u_raw, black, hi, bits)
-    mu, _ = curve(t[:, None] * e[None, :])
+    mu, _ = curve.at(t, e)
     rms = float(np.sqrt(np.mean((d - mu)[m] ** 2)))
     return ResponseFit(U, black, sat, observed, rms, "forward", it, int(m.sum()), residual_profile(d, mu, m, bits))
 

@@ -135,7 +135,7 @@ def noise_update(
     :func:`_noise_model`; ``c = 0`` without ``g2``). With ``g2`` the two are fitted in turn,
     twice; the residuals, their bins and the gradient term's bin medians are made once.
     """
-    mu, s = curve(t[:, None] * e[None, :])
+    mu, s = curve.at(t, e)
     lev = _leverage(w, t, s)[m]
     r, above = (d - mu)[m], np.maximum(mu - curve.c[0], 0.0)[m]
     res = _residuals(r, above, lev)
@@ -225,7 +225,7 @@ def outlier_weights(
     (which would leave that range to the prior).
     """
     z0, z1 = OUTLIER_Z
-    mu, s = curve(t[:, None] * e[None, :])
+    mu, s = curve.at(t, e)
     lev = np.minimum(_leverage(w, t, s), 0.9)
     r2 = (d - mu) ** 2 / (1.0 - lev)
     var = a_var + b_var * np.maximum(mu - curve.c[0], 0.0) + extra
@@ -260,7 +260,7 @@ def censored_terms(
     """
     low, high = cen
     a_var, b_var, extra = noise
-    mu, _ = curve(t[:, None] * e[None, :])
+    mu, _ = curve.at(t, e)
     sd = np.sqrt(a_var + b_var * np.maximum(mu - curve.c[0], 0.0) + extra)
     dw = d.copy()
     wc = np.zeros_like(d)
@@ -287,7 +287,7 @@ def censored_outlier_weights(
     low, high = cen
     z0, z1 = OUTLIER_Z
     a_var, b_var, extra = noise
-    mu, _ = curve(t[:, None] * e[None, :])
+    mu, _ = curve.at(t, e)
     sd = np.sqrt(a_var + b_var * np.maximum(mu - curve.c[0], 0.0) + extra)
     deficit = np.where(low, (mu - 0.5) / sd, np.where(high, (sat - 0.5 - mu) / sd, 0.0))
     u = np.clip((deficit - z0) / (z1 - z0), 0.0, 1.0)

@@ -176,3 +176,30 @@ def test_noise_update_matches_refitting_the_bins_each_time(robust: bool) -> None
     # without g2: the noise model alone
     a0, b0, c0 = noise_update(d, m, w, t, e, curve, robust)
     assert (a0, b0, c0) == (*_noise_model_each_time(r, above, lev[m], 1 / 12, robust), 0.0)
+
+
+def test_curve_at_remembers_the_last_exposures_and_energies() -> None:
+    """Curve.at gives C(t E) of __call__ bit for bit, the same arrays again for the same t and
+    E objects (the fit asks several times per iteration), read-only so no caller can change
+    what the next one gets, and a new result for a new E."""
+    from mscal_core.response._curve import Curve  # noqa: PLC2701
+
+    rng = np.random.default_rng(8)
+    xk = np.linspace(0.0, 500.0, 9)
+    curve = Curve(xk=xk, c=10.0 + 700.0 * np.sqrt(xk / 500.0) + 0.2 * xk)
+    t = np.array([1.0, 2.0, 4.5])
+    e = rng.uniform(0.0, 150.0, 1000)
+    mu, s = curve.at(t, e)
+    want_mu, want_s = curve(t[:, None] * e[None, :])
+    np.testing.assert_array_equal(mu, want_mu)
+    np.testing.assert_array_equal(s, want_s)
+    again = curve.at(t, e)
+    assert again[0] is mu and again[1] is s
+    with pytest.raises(ValueError, match="read-only"):
+        mu[0, 0] = 0.0
+    e2 = e * 1.01
+    mu2, _ = curve.at(t, e2)
+    assert mu2 is not mu
+    np.testing.assert_array_equal(mu2, curve(t[:, None] * e2[None, :])[0])
+    # an equal but different E array is evaluated again, not taken for the last one
+    assert curve.at(t, e.copy())[0] is not mu
