@@ -29,8 +29,9 @@ from __future__ import annotations
 import multiprocessing
 import os
 import sys
+import threading
 import uuid
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
@@ -373,6 +374,40 @@ def one_grid(plan: Plan, job: Job, signal: np.ndarray) -> np.ndarray:
     return signal
 
 
+_writer_of_thread = threading.local()
+
+
+def _writer() -> ThreadPoolExecutor:
+    """This thread's writer thread (made on first use, kept: its direct-I/O buffer is reused)."""
+    ex = getattr(_writer_of_thread, "executor", None)
+    if ex is None:
+        ex = _writer_of_thread.executor = ThreadPoolExecutor(1, thread_name_prefix="mscal-writer")
+    return ex
+
+
+class FrameWrites:
+    """A frame's chunk writes on a writer thread, while the frame goes on computing.
+
+    A frame's outputs are made one after the other (reflectance, then the indices, then the
+    TIFFs from them); each chunk write waits for the device (direct I/O), and the computing
+    of the next product need not wait with it. Only arrays that nothing changes afterwards
+    are handed over. :meth:`wait` returns once every write is on disk (the frame is reported
+    done only then, as before) and raises the first write's error.
+    """
+
+    def __init__(self) -> None:
+        self._pending: list[Future] = []
+
+    def submit(self, fn: Callable[..., Any], *args: Any) -> None:
+        self._pending.append(_writer().submit(fn, *args))
+
+    def wait(self, raise_errors: bool = True) -> None:
+        pending, self._pending = self._pending, []
+        errors = [exc for f in pending if (exc := f.exception()) is not None]
+        if errors and raise_errors:
+            raise errors[0]
+
+
 def write_raw(plan: Plan, index: int, dn: np.ndarray) -> None:
     """A new frame's raw.zarr chunk, and its band medians where the cube keeps them."""
     write_frame(plan.raw_dn, index, dn)
@@ -401,13 +436,30 @@ def process_frame(plan: Plan, job: Job) -> Outcome:
             return _quarantined(job, exc)
     if radiance is not None:
         radiance = signal
+    writes = FrameWrites()
+    try:
+        tags = _write_products(plan, job, dn, sha, signal, factor, radiance, writes)
+    except BaseException:
+        writes.wait(raise_errors=False)  # nothing of this frame is left writing behind the error
+        raise
+    writes.wait()
+    missing = () if job.capture is None else missing_reflectance(plan.chain, job.capture)
+    return Outcome(job.name, sha, saturated, no_reflectance=missing, thermal=write_thermal(plan, job, tags))
+
+
+def _write_products(plan: Plan, job: Job, dn: np.ndarray, sha: str | None, signal: np.ndarray,
+                    factor: np.ndarray | None, radiance: np.ndarray | None, writes: FrameWrites) -> FrameTags:
+    """:func:`process_frame`'s outputs of one capture: the raw chunk (a new capture), radiance,
+    reflectance (``signal`` times ``factor``, normalised, in place), indices, mask, TIFFs.
+    Chunks go to ``writes`` once nothing changes them; the TIFFs are made here meanwhile.
+    Returns the frame's tags (with its CaptureUUID)."""
     tags = job.tags
     if sha is not None:
-        write_raw(plan, job.index, dn)
+        writes.submit(write_raw, plan, job.index, dn)
         if job.rec is not None:
             tags = replace(tags, capture_uuid=capture_uuid(plan.camera, sha))
     store = plan.out_store
-    if radiance is not None:  # first: reflectance is made from it in place
+    if radiance is not None:  # written first, here: reflectance is made from it in place
         write_frame(store / "radiance", job.index, radiance)
     refl = signal
     if factor is not None:  # in place (the same products as signal * factor, no new 25 MB cube)
@@ -418,22 +470,21 @@ def process_frame(plan: Plan, job: Job) -> Outcome:
     elif kind == "band":
         med = np.nanmedian(refl[int(value)])
         refl *= np.float32(1.0 / med) if np.isfinite(med) and med > 0 else np.float32(np.nan)
-    write_frame(store / "reflectance", job.index, refl)
+    writes.submit(write_frame, store / "reflectance", job.index, refl)  # only read from here on
     ndvi = None
     for ix, roles in plan.indices:
         val = ix.evaluate({role: refl[b] for role, b in roles.items()})
-        write_frame(store / ix.name, job.index, val)
+        writes.submit(write_frame, store / ix.name, job.index, val)
         if ix.name == "ndvi":
             ndvi = val
     if ndvi is not None and "vegetation_mask" in plan.outputs:
-        write_frame(store / "vegetation_mask", job.index, vegetation_mask(ndvi))
+        writes.submit(write_frame, store / "vegetation_mask", job.index, vegetation_mask(ndvi))
     for b, btags in plan.bands:
         write_band_tiff(band_tiff_path(plan.out, job.name, btags.name, job.panel), refl[b], tags, btags,
                         dtype=plan.tiff_dtype)
     if ndvi is not None and not job.panel:
         write_ndvi_tiff(plan.out / NDVI_DIR / f"{job.name}.tif", ndvi, tags)
-    missing = () if job.capture is None else missing_reflectance(plan.chain, job.capture)
-    return Outcome(job.name, sha, saturated, no_reflectance=missing, thermal=write_thermal(plan, job, tags))
+    return tags
 
 
 def write_thermal(plan: Plan, job: Job, tags: FrameTags) -> tuple[dict[str, str], ...]:
