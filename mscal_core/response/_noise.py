@@ -83,18 +83,16 @@ def _residuals(r: np.ndarray, mu: np.ndarray, leverage: np.ndarray) -> _Residual
     return _Residuals(keep, r2, mu, _quantile_bins(mu, 16) if r2.size >= 10 else None)
 
 
-def _noise_model(r: np.ndarray, mu: np.ndarray, leverage: np.ndarray, floor: float,
-                 robust: bool = False, offset: np.ndarray | None = None,
-                 prepared: _Residuals | None = None) -> tuple[float, float]:
+def _noise_model(r: np.ndarray, res: _Residuals, floor: float, robust: bool = False,
+                 offset: np.ndarray | None = None) -> tuple[float, float]:
     """Fit the read + shot noise model ``var(I) = a + b mu`` to residuals.
 
     Fit ``var(I) = a + b * mu`` (read + shot noise, ``mu = C - black``) to the squared
-    residuals, each divided by ``1 - leverage`` (the share of the sample's noise absorbed by its
-    pixel's fitted E), less a known ``offset`` (the gradient term), averaged in 16 quantile bins
-    of mu (``robust``: median / 0.4549, so outliers do not inflate it); two weighted passes,
-    ``a >= floor``. ``prepared``: :func:`_residuals` of ``(r, mu, leverage)``, when known.
+    residuals ``res`` of ``r`` (:func:`_residuals`: each divided by ``1 - leverage``, the share
+    of the sample's noise absorbed by its pixel's fitted E), less a known ``offset`` (the
+    gradient term), averaged in 16 quantile bins of mu (``robust``: median / 0.4549, so
+    outliers do not inflate it); two weighted passes, ``a >= floor``.
     """
-    res = _residuals(r, mu, leverage) if prepared is None else prepared
     r2 = res.r2
     if offset is not None:  # a known part of the variance (gradient term)
         r2 = np.maximum(r2 - offset[res.keep], 0.0)
@@ -140,12 +138,12 @@ def noise_update(
     r, above = (d - mu)[m], np.maximum(mu - curve.c[0], 0.0)[m]
     res = _residuals(r, above, lev)
     if g2 is None or not np.any(g2[m] > 0):
-        return (*_noise_model(r, above, lev, 1 / 12, robust, prepared=res), 0.0)
+        return (*_noise_model(r, res, 1 / 12, robust), 0.0)
     gm = g2[m]
     grad = _gradient_bins(res, gm)
     a, b, c = 1.0, 0.0, 0.0
     for _ in range(2):
-        a, b = _noise_model(r, above, lev, 1 / 12, robust, offset=c * gm, prepared=res)
+        a, b = _noise_model(r, res, 1 / 12, robust, offset=c * gm)
         c = _gradient_noise(grad, a + b * above)
     return a, b, c
 
