@@ -437,9 +437,9 @@ def fit_vignetting_frames(
     return fits, report
 
 
-#: The reflector's cell boxes (:func:`mscal_core.geometry.reflector_cells`) of the views
-#: already projected, by frame, pose and intrinsics: one projection per view serves every band.
-CellCache = dict[tuple[int, bytes, geometry.Intrinsics], "np.ndarray | None"]
+#: The reflector's cell boxes (:func:`mscal_core.geometry.reflector_cells`) already projected,
+#: by pose (rvec, tvec bytes) and intrinsics: one projection per view serves every band.
+CellCache = dict[tuple[bytes, geometry.Intrinsics], "np.ndarray | None"]
 
 
 def _band_views(session: Session, stack: np.ndarray, b: int, use: Sequence[tuple[int, View]],
@@ -451,9 +451,9 @@ def _band_views(session: Session, stack: np.ndarray, b: int, use: Sequence[tuple
     size = tuple(float(x) for x in np.broadcast_to(np.asarray(session.reflector.size_m, dtype=np.float64), (2,)))
     shape = stack.shape[2:]
     windows = []
-    for i, v in use:
+    for _, v in use:
         pose = v.pose_for(b)
-        key = (i, np.concatenate([pose.rvec, pose.tvec]).tobytes(), intr)  # type: ignore[union-attr]
+        key = (np.concatenate([pose.rvec, pose.tvec]).tobytes(), intr)  # type: ignore[union-attr]
         if key not in cells:
             cells[key] = geometry.reflector_cells(pose, intr, size)  # type: ignore[arg-type]
         windows.append(geometry.window_of_cells(cells[key], shape, offset))  # type: ignore[arg-type]
