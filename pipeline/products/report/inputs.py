@@ -20,7 +20,7 @@ from pipeline.storage.store import open_calibration
 
 @dataclass
 class FlightResults:
-    """The stored results of one ``mscal apply`` OUT folder (arrays stay lazy)."""
+    """The stored results of one ``mscal apply`` OUT folder (arrays stay lazy: read when indexed)."""
 
     out: Path
     run: dict[str, Any]
@@ -47,8 +47,12 @@ def open_flight(out: str | Path) -> FlightResults:
                          hint="run 'mscal apply' again to rewrite it") from None
     if not (out / "reflectance.zarr").is_dir():
         raise InputError("reflectance.zarr is missing", path=out, hint="run 'mscal apply' again")
-    refl = xr.open_zarr(out / "reflectance.zarr")
-    raw = xr.open_zarr(out / "raw.zarr") if (out / "raw.zarr").is_dir() else None
+    # lazily indexed, not dask (chunks=None): the report reads coordinates, per-frame medians
+    # and a few sampled frames, each by indexing first; through dask each read was a graph
+    # of one task per stored chunk (300 for a 300-frame flight's dn_median) and the first
+    # compute imported distributed to look for a client
+    refl = xr.open_zarr(out / "reflectance.zarr", chunks=None)
+    raw = xr.open_zarr(out / "raw.zarr", chunks=None) if (out / "raw.zarr").is_dir() else None
     camera = None
     name = refl.attrs.get("camera")
     if name:
