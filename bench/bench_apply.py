@@ -19,8 +19,9 @@ process alone; see ``bench_calibrate.run_measured``):
 - ``mscal apply`` on a flight ``--large / --frames`` times longer, for memory flatness.
 
 The loop and ``mscal apply`` run ``--repeat`` times each, alternating, and the median run of
-each is the figure. Before every measured command the previous outputs are deleted, dirty
-pages flushed and the machine left to rest ``--settle`` seconds (see :func:`settle`).
+each is the figure. Before every measured command the previous outputs are emptied and moved
+aside (``bench_calibrate.discard``: not deleted, see there), dirty pages flushed and the machine
+left to rest ``--settle`` seconds (see :func:`settle`).
 
 Targets (issue 25, which tightened issue 3's): apply wall <= 1.2 x the I/O floor and >= 2.0 x
 faster than the (single-threaded) loop; CPU / wall >= 0.9 x cores (every core busy); peak RSS
@@ -35,7 +36,6 @@ import argparse
 import csv
 import os
 import shlex
-import shutil
 import sys
 import tempfile
 import time
@@ -158,11 +158,11 @@ def _py(*args: str) -> list[str]:
 def settle(seconds: float) -> None:
     """Bring the machine to the same state before each measured command: dirty pages
     flushed, then ``seconds`` of rest. On the benchmark VM both matter (perf profiles,
-    docs/benchmarks.md): ext4 without a journal skips inodes deleted in the last 60 s
-    (``recently_deleted``) on every file it creates, so whichever command ran right after the
-    previous outputs were deleted paid for scanning past thousands of them; and the guest
-    gives freed memory back to its host within ~20 s, after which the first touch of a page
-    costs ~2.8 ms per MB, so a command that started sooner found its pages still backed."""
+    docs/benchmarks.md): the guest gives freed memory back to its host within ~20 s, after
+    which the first touch of a page costs ~2.8 ms per MB, so a command that started sooner
+    found its pages still backed; and flushing leaves no earlier command's writeback to the
+    next. Previous outputs are emptied, not deleted (``bench_calibrate.discard``): ext4 makes
+    every file created within 60-360 s of a deletion scan past the deleted inodes."""
     os.sync()
     if seconds > 0:
         time.sleep(seconds)
@@ -189,10 +189,10 @@ def run(frames: int, large: int, workdir: Path, log=print, settle_s: float = 65.
         return bc._check(bc.run_measured(cmd, timeout=timeout), what)
 
     res["floor"] = measured(_py("--child", "floor", str(flight), str(workdir / "floor")), "floor")
-    shutil.rmtree(workdir / "floor")
+    bc.discard(workdir / "floor")
     res["loop_same"] = measured(_py("--child", "loop_same", str(flight), str(calib), str(workdir / "loop_same")),
                                 "loop (same products)")
-    shutil.rmtree(workdir / "loop_same")
+    bc.discard(workdir / "loop_same")
     out = workdir / "out"
     # the two figures of the loop target, interleaved and repeated: on a shared VM one run of
     # either varies by +-25 % from minute to minute; the median of alternating runs does not
@@ -200,27 +200,26 @@ def run(frames: int, large: int, workdir: Path, log=print, settle_s: float = 65.
     res["loop_runs"], res["apply_runs"] = [], []
     for k in range(max(1, repeat)):
         res["loop_runs"].append(measured(_py("--child", "loop", str(flight), str(calib), str(workdir / "loop")), "loop"))
-        shutil.rmtree(workdir / "loop")
-        if out.exists():
-            shutil.rmtree(out)
+        bc.discard(workdir / "loop")
+        bc.discard(out)
         res["apply_runs"].append(measured([*mscal, "apply", str(flight), "--calibration", str(calib), "-o", str(out)],
                                           "apply"))
     res["loop"], res["apply"] = median_run(res["loop_runs"]), median_run(res["apply_runs"])
     res["rerun"] = measured([*mscal, "apply", str(flight), "--calibration", str(calib), "-o", str(out)], "re-run")
-    shutil.rmtree(out)
+    bc.discard(out)
     res["apply_1"] = measured([*mscal, "apply", str(flight), "--calibration", str(calib), "-o", str(out),
                                "--workers", "1"], "apply (1 worker)")
-    shutil.rmtree(out)
+    bc.discard(out)
     log(f"apply on {frames} frames: {res['apply'].wall_s:.1f} s, floor {res['floor'].wall_s:.1f} s, loop {res['loop'].wall_s:.1f} s")
     if large:
-        shutil.rmtree(flight)
+        bc.discard(flight)
         big = make_flight(session / "flights" / "field", workdir / "flight_large", large, seed=2)
         res["apply_large"] = measured([*mscal, "apply", str(big), "--calibration", str(calib), "-o",
                                        str(workdir / "out_large")], "apply (large)", timeout=4 * 3600)
-        shutil.rmtree(workdir / "out_large")
+        bc.discard(workdir / "out_large")
         res["floor_large"] = measured(_py("--child", "floor", str(big), str(workdir / "floor_large")), "floor (large)")
-        shutil.rmtree(workdir / "floor_large")
-        shutil.rmtree(big)
+        bc.discard(workdir / "floor_large")
+        bc.discard(big)
     return res
 
 
@@ -257,9 +256,10 @@ def render(res: dict, command: str) -> str:
         "flight frames of a small synthetic session, each with its own random least-significant bits. Outputs of "
         "`mscal apply`: raw.zarr, reflectance.zarr (reflectance, ndvi, ndre, vegetation_mask), 8 photogrammetry TIFFs "
         "and 1 NDVI TIFF per frame, run.json. The frames are in the page cache for every command. Before each "
-        f"command: the previous command's outputs deleted, `sync`, then {res.get('settle_s', 0):.0f} s of rest "
-        "(`--settle`; see `settle()` in the script: without it, on this VM, the command that follows a deletion "
-        "pays for the deleted inodes and whichever starts first after one finds its memory still backed).",
+        "command: the previous command's outputs emptied and moved aside, not deleted (`discard()` in "
+        "bench_calibrate.py: on ext4 every file created within 60-360 s of a deletion scans past the deleted "
+        f"inodes), `sync`, then {res.get('settle_s', 0):.0f} s of rest (`--settle`; see `settle()` in the script: "
+        "a command that starts sooner after another finds that one's freed memory still backed).",
         "",
         f"| command ({n} frames) | wall (s) | frames/s | CPU (s) | peak RSS (MiB) | 1-min load before |",
         "|---|---:|---:|---:|---:|---:|",

@@ -142,26 +142,79 @@ def _py(*args: str) -> list[str]:
     return [sys.executable, str(Path(__file__).resolve()), *args]
 
 
+PROBE_CAPTURES = 4
+DISK_MARGIN_B = 2e9
+
+
+def allocated_bytes(path: Path) -> int:
+    """Disk blocks a tree takes (``du``), not its files' apparent sizes."""
+    return sum(p.lstat().st_blocks * 512 for p in path.rglob("*"))
+
+
+def disk_per_capture(workdir: Path, mscal: list[str]) -> tuple[float, float]:
+    """Bytes one capture takes on disk: its band files, and what ``mscal apply`` writes for it,
+    measured on a probe survey of ``PROBE_CAPTURES`` captures (so the figure follows whatever
+    apply writes; its per-flight files are counted against those few captures: an over-estimate)."""
+    probe, out = workdir / "probe", workdir / "probe-out"
+    make_survey(probe, PROBE_CAPTURES, seed=99)
+    bc._check(bc.run_measured([*mscal, "apply", str(probe), "--calibration", "factory", "--reference", "dls",
+                               "-o", str(out)]), "probe apply")
+    per_in, per_out = allocated_bytes(probe) / PROBE_CAPTURES, allocated_bytes(out) / PROBE_CAPTURES
+    bc.discard(probe)
+    bc.discard(out)
+    return per_in, per_out
+
+
+def captures_that_fit(asked: int, per_in: float, per_out: float, free: float) -> int:
+    """The largest count <= ``asked`` whose survey and one run's outputs fit in ``free`` bytes
+    with ``DISK_MARGIN_B`` to spare (the loop's outputs, smaller than apply's, are emptied
+    before apply runs)."""
+    return max(0, min(asked, int((free - DISK_MARGIN_B) // (per_in + per_out))))
+
+
 def run(captures: int, workdir: Path, log=print, settle_s: float = 20.0, repeat: int = 3) -> dict:
     mscal = bc.mscal_command()
+    per_in, per_out = disk_per_capture(workdir, mscal)
+    free = float(shutil.disk_usage(workdir).free)
+    fit = captures_that_fit(captures, per_in, per_out, free)
+    disk = {"asked": captures, "fit": fit, "free_gb": free / 1e9, "in_mb": per_in / 1e6, "out_mb": per_out / 1e6}
+    if fit < captures:
+        need = captures * (per_in + per_out) + DISK_MARGIN_B
+        msg = (f"{captures} captures need ~{need / 1e9:.0f} GB on {workdir} ({per_in / 1e6:.1f} MB in + "
+               f"{per_out / 1e6:.1f} MB of apply outputs per capture), {free / 1e9:.0f} GB free")
+        if fit < PROBE_CAPTURES * 10:
+            raise SystemExit(f"bench_factory: {msg}; free disk space or pass --workdir on a larger disk")
+        log(f"WARNING: {msg}: measuring {fit} captures instead (the section says so)")
+    captures = fit
     survey = make_survey(workdir / "captures", captures, seed=1)
     log(f"{captures} captures ({captures * BANDS} files) written to {survey}")
     res: dict = {"captures": captures, "settle_s": settle_s, "repeat": max(1, repeat),
-                 "loop_runs": [], "apply_runs": []}
+                 "loop_runs": [], "apply_runs": [], "disk": disk}
     out = workdir / "out"
     for _ in range(max(1, repeat)):
         settle(settle_s)
         res["loop_runs"].append(bc._check(bc.run_measured(_py("--child", "loop", str(survey), str(workdir / "loop"))),
                                           "hand loop"))
-        shutil.rmtree(workdir / "loop")
+        bc.discard(workdir / "loop")
         settle(settle_s)
         res["apply_runs"].append(bc._check(bc.run_measured(
             [*mscal, "apply", str(survey), "--calibration", "factory", "--reference", "dls", "-o", str(out)]),
             "mscal apply --calibration factory"))
-        shutil.rmtree(out)
+        bc.discard(out)
     res["loop"], res["apply"] = median_run(res["loop_runs"]), median_run(res["apply_runs"])
     log(f"factory apply {res['apply'].wall_s:.1f} s, hand loop {res['loop'].wall_s:.1f} s")
     return res
+
+
+def _disk_lines(disk: dict | None) -> list[str]:
+    if not disk:
+        return []
+    note = (f"Disk per capture (measured on a {PROBE_CAPTURES}-capture probe): {disk['in_mb']:.1f} MB of band files, "
+            f"{disk['out_mb']:.1f} MB of apply outputs; {disk['free_gb']:.0f} GB free on the work disk.")
+    if disk["fit"] < disk["asked"]:
+        note += (f" **{disk['asked']} captures were asked; {disk['fit']} fit, and the figures below are for "
+                 f"{disk['fit']}**: captures/s is the figure to carry over.")
+    return ["", note]
 
 
 def render(res: dict, command: str) -> str:
@@ -183,8 +236,10 @@ def render(res: dict, command: str) -> str:
         "",
         f"Survey: {n} MicaSense RedEdge captures ({n * BANDS} band files of 1280 x 960, 16-bit), byte copies of the "
         "real flight capture `IMG_0001` with distinct pixels and CaptureIds. Reflectance from the sun sensor "
-        f"(`--reference dls`). Before each command: `sync`, then {res['settle_s']:.0f} s of rest. The loop and apply "
+        f"(`--reference dls`). Before each command: the previous one's outputs emptied and moved aside (not deleted: "
+        f"see `discard()` in bench_calibrate.py), `sync`, then {res['settle_s']:.0f} s of rest. The loop and apply "
         "alternate; the median run of each counts.",
+        *_disk_lines(res.get("disk")),
         "",
         f"| command ({n} captures) | wall (s) | captures/s | CPU (s) | CPU / wall | peak RSS (MiB) | 1-min load before |",
         "|---|---:|---:|---:|---:|---:|---:|",

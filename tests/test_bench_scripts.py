@@ -174,6 +174,38 @@ def test_factory_survey_copies_differ_in_pixels_and_capture_id(tmp_path: Path) -
     assert len(set(ids)) == 2 and all(len(x) == 20 for x in ids)
 
 
+def test_factory_count_is_cut_to_the_disk_and_says_so() -> None:
+    fac = _load("bench_factory")
+    mb = 1e6
+    # 12 MB in + 84 MB out per capture, 80 GB free, 2 GB margin: 812 of 1000 fit
+    assert fac.captures_that_fit(1000, 12 * mb, 84 * mb, 80e9) == 812
+    assert fac.captures_that_fit(100, 12 * mb, 84 * mb, 80e9) == 100
+    assert fac.captures_that_fit(1000, 12 * mb, 84 * mb, 1e9) == 0
+    lines = fac._disk_lines({"asked": 1000, "fit": 812, "free_gb": 80.0, "in_mb": 12.0, "out_mb": 84.0})
+    assert "1000 captures were asked; 812 fit" in lines[-1]
+    assert "were asked" not in fac._disk_lines({"asked": 40, "fit": 40, "free_gb": 80.0, "in_mb": 12.0,
+                                                "out_mb": 84.0})[-1]
+
+
+def test_discard_empties_files_keeps_linked_ones_and_moves_the_tree_aside(tmp_path: Path) -> None:
+    bc = _load("bench_calibrate")
+    src = tmp_path / "source.bin"
+    src.write_bytes(b"x" * 5000)
+    out = tmp_path / "out"
+    (out / "sub").mkdir(parents=True)
+    (out / "sub" / "a.bin").write_bytes(b"y" * 9000)
+    (out / "linked.bin").hardlink_to(src)
+    bc.discard(out)
+    bc.discard(tmp_path / "missing")  # nothing to do
+    assert not out.exists()
+    moved = tmp_path / bc.TRASH / "out.0"
+    assert (moved / "sub" / "a.bin").stat().st_size == 0
+    assert src.read_bytes() == b"x" * 5000 and (moved / "linked.bin").stat().st_size == 5000
+    out.mkdir()
+    bc.discard(out)  # a second tree of the same name goes beside the first
+    assert (tmp_path / bc.TRASH / "out.1").is_dir()
+
+
 # --------------------------------------------------------------------------- bench_ab
 
 
