@@ -244,7 +244,7 @@ def measure_frames(kind: str, counts: Sequence[int], big: Path, calib: Path, wor
             continue
         flight = subset_flight(big, work / f"flight-{kind}-{n}", n)
         floor = bc._check(bc.run_measured(_me("floor", str(flight), str(work / "floor"), kind)), f"floor {kind} {n}")
-        shutil.rmtree(work / "floor", ignore_errors=True)
+        bc.discard(work / "floor")  # emptied, not deleted: see bench_calibrate.discard
         out = work / "out"
         if kind == "full":
             cmd = [*mscal, "apply", str(flight), "--calibration", str(calib), "-o", str(out)]
@@ -252,8 +252,8 @@ def measure_frames(kind: str, counts: Sequence[int], big: Path, calib: Path, wor
             cmd = _me("apply", str(flight), str(calib), str(out), kind)
         ap = bc._check(bc.run_measured(cmd, timeout=4 * 3600), f"apply {kind} {n}")
         row["out_mb_per_frame"] = _du_mb(out) / n
-        shutil.rmtree(out, ignore_errors=True)
-        shutil.rmtree(flight, ignore_errors=True)
+        bc.discard(out)
+        shutil.rmtree(flight, ignore_errors=True)  # hard links: deleting them frees no inode
         row.update(floor=floor, apply=ap)
         log(f"[{kind} {n}] apply {ap.wall_s:.1f} s ({n / ap.wall_s:.1f} frames/s, {ap.maxrss_mib:.0f} MiB), "
             f"floor {floor.wall_s:.1f} s")
@@ -273,7 +273,7 @@ def measure_dask(workers: Sequence[int], big: Path, n: int, calib: Path, work: P
             out = work / "out-dask"
             run = bc._check(bc.run_measured(_me("dask", str(flight), str(calib), str(out), str(k))), f"dask {k}")
             info = _last_json(run)
-            shutil.rmtree(out, ignore_errors=True)
+            bc.discard(out)
             shutil.rmtree(work / "dask-scratch", ignore_errors=True)
             rss = run.maxrss_mib + sum(info["worker_peak_rss_kib"]) / 1024.0
             rows.append({"workers": k, "frames": n, "run": run, "startup_s": info["startup_s"],
