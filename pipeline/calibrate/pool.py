@@ -21,13 +21,14 @@ the cores).
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import multiprocessing
 import os
 import sys
 import threading
 from concurrent.futures import Future, ProcessPoolExecutor
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 from threadpoolctl import threadpool_limits
 
@@ -76,6 +77,24 @@ def _worker_init() -> None:
     importlib.import_module(FITS_MODULE)
 
 
+@contextlib.contextmanager
+def _opencv_pool_stopped() -> Iterator[None]:
+    """OpenCV's worker threads stopped for the time of the block (``cv2.setNumThreads(1)``, its
+    setting restored after). Forked while they run, a child that calls ``cv2.setNumThreads``
+    waits forever in ``pthread_cond_destroy`` for waiters that were not copied into it: a
+    second calibration in one process (a notebook, ``bench_accuracy.py``) hung so."""
+    cv2 = sys.modules.get("cv2")  # not imported: its threads cannot have started
+    if cv2 is None:
+        yield
+        return
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
+
+
 def start_method() -> str:
     """``"fork"`` when this process has one thread (on Linux), else ``"spawn"``."""
     if sys.platform.startswith("linux") and threading.active_count() == 1:
@@ -97,13 +116,17 @@ class BandPool:
         self._pool: ProcessPoolExecutor | None = None
         reuse_freed_memory()  # this process reads every stack; with one worker it fits them too
         if self.workers >= 2:
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context(method or start_method()),
+            method = method or start_method()
+            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context(method),
                                              initializer=_worker_init)
             saved = {k: os.environ.get(k) for k in _WORKER_ENV}
             os.environ.update({k: v for k, v in _WORKER_ENV.items() if saved[k] is None})
             try:
-                for _ in range(self.workers):  # start them now (a worker copies the environment)
-                    self._pool.submit(int)
+                # start them now (a worker copies the environment); a fork pool forks every
+                # worker in the first submit
+                with _opencv_pool_stopped() if method == "fork" else contextlib.nullcontext():
+                    for _ in range(self.workers):
+                        self._pool.submit(int)
             finally:
                 for k, v in saved.items():
                     if v is None:

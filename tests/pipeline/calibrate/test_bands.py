@@ -65,6 +65,25 @@ def test_forked_and_spawned_workers_run_the_same_code(method: str) -> None:
     assert out.stdout.split() == ["True", "2", "True"]
 
 
+def test_workers_fork_after_opencv_ran_its_own_threads() -> None:
+    """A second calibration in one process (a notebook, ``bench_accuracy.py``): OpenCV's
+    worker threads, started by the first, were running at the fork, and every forked worker
+    hung in ``cv2.setNumThreads`` (``pthread_cond_destroy``). The pool stops them around the
+    fork and gives OpenCV its setting back."""
+    code = ("import cv2, numpy as np\n"
+            "from pipeline.calibrate.pool import BandPool, start_method\n"
+            "img = np.random.default_rng(0).random((1500, 1500), dtype=np.float32)\n"
+            "for _ in range(3):\n"
+            "    cv2.GaussianBlur(img, (31, 31), 5)\n"
+            "before = cv2.getNumThreads()\n"
+            "with BandPool(2) as pool:\n"
+            "    got = pool.map(int, [('7',), ('8',)])\n"
+            "print(start_method(), got == [7, 8], cv2.getNumThreads() == before)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.split() == ["fork", "True", "True"]
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_a_worker_error_reaches_the_caller(workers: int) -> None:
     with BandPool(workers) as pool:
