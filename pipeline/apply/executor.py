@@ -26,6 +26,7 @@ The drivers (:mod:`pipeline.apply.flight` for frames ingested into raw.zarr,
 """
 from __future__ import annotations
 
+import itertools
 import multiprocessing
 import os
 import sys
@@ -35,7 +36,7 @@ from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import dask
 import dask.multiprocessing
@@ -559,6 +560,12 @@ def _distributed_client():  # noqa: ANN202
         return None
 
 
+#: Frames handed to the scheduler at a time (:meth:`Runner.run`): large enough that the
+#: workers' wait at the end of a window (at most one frame each) is noise, small enough that
+#: the task graph's memory stays flat over any flight.
+RUN_WINDOW = 512
+
+
 class Runner:
     """Runs the per-frame tasks (dask.delayed) on the caller's ``distributed`` client if one is
     active, else on worker processes (long flights) or threads; see :func:`scheduler_for`.
@@ -579,14 +586,26 @@ class Runner:
             for _ in range(self.workers):  # start them now
                 self.pool.submit(int)
 
-    def run(self, plan: Any, jobs: Sequence[Any], fn: Callable[[Any, Any], Any] | None = None) -> list[Any]:
-        """``fn(plan, job)`` (default :func:`process_frame`) for every job, in job order."""
+    def run(self, plan: Any, jobs: Iterable[Any], fn: Callable[[Any, Any], Any] | None = None) -> list[Any]:
+        """``fn(plan, job)`` (default :func:`process_frame`) for every job, in job order.
+
+        The jobs go to the scheduler ``RUN_WINDOW`` at a time: one graph for every frame (the
+        tasks, their keys, the scheduler's state) grew with the flight, and a 5,000-frame flight
+        of small frames peaked at 436 MiB against 393 MiB with windows (380 and 376 MiB at
+        1,000 frames). ``jobs`` may be a generator, drawn one window at a time."""
+        it = iter(jobs)
+        results: list[Any] = []
+        while window := list(itertools.islice(it, RUN_WINDOW)):
+            results += self._run_window(plan, window, fn or process_frame)
+        return results
+
+    def _run_window(self, plan: Any, jobs: list[Any], fn: Callable[[Any, Any], Any]) -> list[Any]:
         # arguments wrapped whole: dask would otherwise walk every dataclass field of every
         # argument of every task looking for collections (15 ms a task)
         token = uuid.uuid4().hex
         plan_d = dask.delayed(plan, traverse=False, name=f"mscal-plan-{token}")
         tasks = [
-            dask.delayed(fn or process_frame, pure=False)(plan_d, dask.delayed(job, traverse=False, name=f"mscal-job-{token}-{k}"))
+            dask.delayed(fn, pure=False)(plan_d, dask.delayed(job, traverse=False, name=f"mscal-job-{token}-{k}"))
             for k, job in enumerate(jobs)
         ]
         if self.client is not None:

@@ -501,8 +501,8 @@ def _cube_pass(out: Path, runner: Runner, start: Callable[..., _Pass], calib_pat
     t = _effective_exposure(coords)
     raw_dn = out / "raw.zarr" / "dn"
     ps = start(coords, lambda f: read_frame_chunk(raw_dn, f))
-    jobs = [Job(f, str(name), _frame_tags(coords, f, camera), float(t[f]), scale=ps.scale(f))
-            for f, name in enumerate(coords["frame"].values)]
+    jobs = (Job(f, str(name), _frame_tags(coords, f, camera), float(t[f]), scale=ps.scale(f))
+            for f, name in enumerate(coords["frame"].values))  # made a window at a time by the runner
     return ps, runner.run(ps.plan, jobs)
 
 

@@ -114,3 +114,29 @@ def test_one_worker_and_two_worker_processes_write_the_same_bytes(tmp_path) -> N
     files = sorted(p.relative_to(one) for p in one.rglob("*.tif"))
     assert len(files) == 11  # the panel capture IMG_0000: 5 bands in panels/; IMG_0001: 5 bands + NDVI
     assert all((one / f).read_bytes() == (two / f).read_bytes() for f in files)
+
+
+def test_runner_hands_the_jobs_over_a_window_at_a_time(monkeypatch) -> None:
+    """The task graph of a long flight is built a window of frames at a time (its memory stays
+    flat); results come back in job order, and a generator of jobs is drawn lazily."""
+    from pipeline.apply import executor
+
+    monkeypatch.setattr(executor, "RUN_WINDOW", 3)
+    drawn: list[int] = []
+
+    def jobs():
+        for k in range(10):
+            drawn.append(k)
+            yield k
+
+    seen_when: dict[int, int] = {}
+
+    def fn(plan, job):
+        seen_when[job] = len(drawn)
+        return plan + job
+
+    with executor.Runner(10, Execution("threads", 2)) as runner:
+        assert runner.run(100, jobs(), fn=fn) == [100 + k for k in range(10)]
+    # job k ran before any job past the end of its window was drawn
+    assert all(seen_when[k] <= min(10, (k // 3 + 1) * 3) for k in range(10))
+    assert max(seen_when.values()) == 10 and seen_when[0] == 3
