@@ -40,6 +40,7 @@ import os
 import platform
 import shlex
 import shutil
+import stat
 import subprocess
 import sys
 import tempfile
@@ -270,7 +271,7 @@ def discard(path: Path) -> None:
         for name in files:
             p = os.path.join(root, name)
             st = os.lstat(p)
-            if st.st_nlink == 1 and not os.path.islink(p) and st.st_size:
+            if stat.S_ISREG(st.st_mode) and st.st_nlink == 1 and st.st_size:
                 os.truncate(p, 0)
     trash = path.parent / TRASH
     trash.mkdir(exist_ok=True)
