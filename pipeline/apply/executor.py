@@ -63,7 +63,15 @@ from pipeline.ingest.catalog import Camera, Index, load_camera
 from pipeline.ingest.discover import quarantine_entry
 from pipeline.ingest.raw import band_medians, prefetch_file, read_frame, shape_problem
 from pipeline.ingest.session import FrameRecord, decode_raw
-from pipeline.products.writers import BandTags, FrameTags, file_band_name, write_band_tiff, write_ndvi_tiff
+from pipeline.products.writers import (
+    BandTags,
+    FrameTags,
+    band_tiff_parts,
+    file_band_name,
+    ndvi_tiff_parts,
+    write_band_tiff,
+    write_tiff_file,
+)
 from pipeline.storage.chunks import FrameChunks
 from pipeline.storage.directio import aligned_empty
 from pipeline.storage.process import die_with_parent, reuse_freed_memory
@@ -377,20 +385,28 @@ def one_grid(plan: Plan, job: Job, signal: np.ndarray) -> np.ndarray:
 
 _writer_of_thread = threading.local()
 
+#: Writer threads of each computing thread (:class:`FrameWrites`). A frame hands over 15 files
+#: (its chunks and, encoded on the computing thread, its 9 TIFFs); each direct write waits for
+#: the device. One writer thread became the bottleneck once the TIFFs went to it; two kept
+#: both cores busier: 600 full-resolution frames, 3 alternating runs each, median wall 16.7 s
+#: against 17.9 s with the TIFFs written on the computing thread (docs/benchmarks.md).
+WRITER_THREADS = 2
+
 
 def _writer() -> ThreadPoolExecutor:
-    """This thread's writer thread (made on first use, kept: its direct-I/O buffer is reused)."""
+    """This thread's writer threads (made on first use, kept: their direct-I/O buffers are reused)."""
     ex = getattr(_writer_of_thread, "executor", None)
     if ex is None:
-        ex = _writer_of_thread.executor = ThreadPoolExecutor(1, thread_name_prefix="mscal-writer")
+        ex = _writer_of_thread.executor = ThreadPoolExecutor(WRITER_THREADS, thread_name_prefix="mscal-writer")
     return ex
 
 
 class FrameWrites:
-    """A frame's chunk writes on a writer thread, while the frame goes on computing.
+    """A frame's file writes (chunks and TIFFs) on writer threads, while the frame goes on
+    computing.
 
     A frame's outputs are made one after the other (reflectance, then the indices, then the
-    TIFFs from them); each chunk write waits for the device (direct I/O), and the computing
+    TIFFs from them); each file write waits for the device (direct I/O), and the computing
     of the next product need not wait with it. Only arrays that nothing changes afterwards
     are handed over. :meth:`wait` returns once every write is on disk (the frame is reported
     done only then, as before) and raises the first write's error.
@@ -480,11 +496,11 @@ def _write_products(plan: Plan, job: Job, dn: np.ndarray, sha: str | None, signa
             ndvi = val
     if ndvi is not None and "vegetation_mask" in plan.outputs:
         writes.submit(write_frame, store / "vegetation_mask", job.index, vegetation_mask(ndvi))
-    for b, btags in plan.bands:
-        write_band_tiff(band_tiff_path(plan.out, job.name, btags.name, job.panel), refl[b], tags, btags,
-                        dtype=plan.tiff_dtype)
+    for b, btags in plan.bands:  # encoded here, written by the writer thread
+        writes.submit(write_tiff_file, band_tiff_path(plan.out, job.name, btags.name, job.panel),
+                      band_tiff_parts(refl[b], tags, btags, dtype=plan.tiff_dtype))
     if ndvi is not None and not job.panel:
-        write_ndvi_tiff(plan.out / NDVI_DIR / f"{job.name}.tif", ndvi, tags)
+        writes.submit(write_tiff_file, plan.out / NDVI_DIR / f"{job.name}.tif", ndvi_tiff_parts(ndvi, tags))
     return tags
 
 

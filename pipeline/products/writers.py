@@ -90,11 +90,14 @@ __all__ = [
     "NODATA_UINT16",
     "REFLECTANCE_SCALE",
     "XMP_CAMERA_NS",
+    "band_tiff_parts",
     "build_xmp",
     "encode_reflectance_uint16",
     "file_band_name",
+    "ndvi_tiff_parts",
     "write_band_tiff",
     "write_ndvi_tiff",
+    "write_tiff_file",
 ]
 
 REFLECTANCE_SCALE = 32768.0
@@ -331,11 +334,12 @@ def _gdal_metadata(description: str, *, scale: float | None, wavelength_nm: floa
     return "<GDALMetadata>\n" + "\n".join(items) + "\n</GDALMetadata>"
 
 
-def _write_tiff(
-    path: Path, data: np.ndarray, frame: FrameTags, *, xmp: bytes, gdal_metadata: str, nodata: str,
+def _tiff_parts(
+    data: np.ndarray, frame: FrameTags, *, xmp: bytes, gdal_metadata: str, nodata: str,
     description: str, optics: CameraOptics | None = None,
-) -> None:
-    """Baseline little-endian TIFF of one (H, W) uint16/float32 image with EXIF, GPS and XMP.
+) -> list:
+    """Baseline little-endian TIFF of one (H, W) uint16/float32 image with EXIF, GPS and XMP,
+    as the parts of the file: ``[header and IFDs, pixels]``.
 
     Layout: header | IFD0 (+ its values) | EXIF IFD | GPS IFD | pixel strips."""
     strips = _strips(data)
@@ -345,7 +349,7 @@ def _write_tiff(
     ifd0 = _ifd0(frame, strips, date_text, xmp=xmp, gdal_metadata=gdal_metadata, nodata=nodata,
                  has_gps=gps is not None, description=description)
     head = _tiff_head(ifd0, exif, gps, strips)
-    write_file(path, [head, np.ascontiguousarray(strips.pixels)])
+    return [head, np.ascontiguousarray(strips.pixels)]
 
 
 @dataclass(frozen=True)
@@ -521,6 +525,16 @@ def _tiff_head(ifd0: _IFD, exif: _IFD, gps: _IFD | None, strips: _Strips) -> byt
 # --------------------------------------------------------------------------- public writers
 
 
+def write_tiff_file(path: str | Path, parts: list) -> Path:
+    """Write the parts of a TIFF made by :func:`band_tiff_parts` or :func:`ndvi_tiff_parts` to
+    ``path`` atomically (temporary name, then rename); returns ``path``. The parts are only
+    read: a caller may build them on one thread and write them on another."""
+    path = Path(path)
+    with atomic_path(path, sidecars=()) as tmp:  # written here, not by GDAL: no sidecars to clear
+        write_file(tmp, parts)
+    return path
+
+
 def write_band_tiff(
     path: str | Path, reflectance: np.ndarray, frame: FrameTags, band: BandTags, *, dtype: str = "uint16",
 ) -> Path:
@@ -530,7 +544,13 @@ def write_band_tiff(
     stores ``round(R * 32768)`` clipped to 0 .. 65534 with NaN -> 65535 (GDAL_NODATA 65535,
     GDAL scale 1/32768); ``dtype="float32"`` stores R with NaN (GDAL_NODATA nan).
     """
-    path = Path(path)
+    return write_tiff_file(path, band_tiff_parts(reflectance, frame, band, dtype=dtype))
+
+
+def band_tiff_parts(reflectance: np.ndarray, frame: FrameTags, band: BandTags, *, dtype: str = "uint16") -> list:
+    """The bytes of :func:`write_band_tiff`'s file, as parts for :func:`write_tiff_file` (the
+    pixels are a new array, unless ``dtype="float32"`` and ``reflectance`` is already
+    contiguous little-endian float32: then they are ``reflectance`` itself)."""
     refl = np.asarray(reflectance)
     if refl.ndim != 2:
         raise ValueError(f"reflectance must be (H, W), got shape {refl.shape}")
@@ -549,10 +569,8 @@ def write_band_tiff(
     meta = _gdal_metadata(band.name, scale=scale, wavelength_nm=band.wavelength_nm, fwhm_nm=band.fwhm_nm)
     what = (f"reflectance x {REFLECTANCE_SCALE:g}, {NODATA_UINT16} = no data" if scale is not None
             else "reflectance, NaN = no data")
-    with atomic_path(path) as tmp:
-        _write_tiff(tmp, data, frame, xmp=xmp, gdal_metadata=meta, nodata=nodata, optics=band.optics,
-                    description=f"{band.name} {what} ({SOFTWARE}); already reflectance: do not calibrate again")
-    return path
+    return _tiff_parts(data, frame, xmp=xmp, gdal_metadata=meta, nodata=nodata, optics=band.optics,
+                       description=f"{band.name} {what} ({SOFTWARE}); already reflectance: do not calibrate again")
 
 
 def write_ndvi_tiff(path: str | Path, ndvi: np.ndarray, frame: FrameTags) -> Path:
@@ -562,14 +580,17 @@ def write_ndvi_tiff(path: str | Path, ndvi: np.ndarray, frame: FrameTags) -> Pat
     index or wavelength: keep NDVI TIFFs in their own folder, apart from the band TIFFs, or
     photogrammetry software will take NDVI for one more band of the rig.
     """
-    path = Path(path)
+    return write_tiff_file(path, ndvi_tiff_parts(ndvi, frame))
+
+
+def ndvi_tiff_parts(ndvi: np.ndarray, frame: FrameTags) -> list:
+    """The bytes of :func:`write_ndvi_tiff`'s file, as parts for :func:`write_tiff_file` (the
+    pixels may be ``ndvi`` itself: do not change it until they are written)."""
     arr = np.asarray(ndvi)
     if arr.ndim != 2:
         raise ValueError(f"ndvi must be (H, W), got shape {arr.shape}")
     xmp = build_xmp(band_name="NDVI", capture_uuid=frame.capture_uuid, rig_name=frame.rig_name,
                     micasense_capture_id=frame.micasense_capture_id, quantity="ndvi", nodata="nan")
     meta = _gdal_metadata("ndvi", scale=None, wavelength_nm=None, fwhm_nm=None)
-    with atomic_path(path) as tmp:
-        _write_tiff(tmp, arr.astype(np.float32, copy=False), frame, xmp=xmp, gdal_metadata=meta, nodata="nan",
-                    description=f"NDVI, NaN = no data ({SOFTWARE})")
-    return path
+    return _tiff_parts(arr.astype(np.float32, copy=False), frame, xmp=xmp, gdal_metadata=meta, nodata="nan",
+                       description=f"NDVI, NaN = no data ({SOFTWARE})")

@@ -336,7 +336,7 @@ def test_disk_full_is_one_line_and_the_same_command_then_resumes(small, tmp_path
     session, calib = small
     flight = session / "flights" / "field"
     assert _apply(flight, calib, tmp_path / "clean") == 0
-    real = apply_mod.write_band_tiff
+    real = apply_mod.write_tiff_file
     full = tmp_path / "out" / "photogrammetry" / "IMG_0001_b700.tif"
 
     def disk_full(path, *args, **kwargs):
@@ -344,13 +344,13 @@ def test_disk_full_is_one_line_and_the_same_command_then_resumes(small, tmp_path
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
         return real(path, *args, **kwargs)
 
-    monkeypatch.setattr(apply_mod, "write_band_tiff", disk_full)
+    monkeypatch.setattr(apply_mod, "write_tiff_file", disk_full)
     capsys.readouterr()
     assert _apply(flight, calib, tmp_path / "out") == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "Traceback" not in err
     assert err.startswith(f"mscal: error: {full}: No space left on device") and "run the same command again" in err
-    monkeypatch.setattr(apply_mod, "write_band_tiff", real)
+    monkeypatch.setattr(apply_mod, "write_tiff_file", real)
     assert _apply(flight, calib, tmp_path / "out") == 0
     _assert_same_outputs(_outputs(tmp_path / "clean"), _outputs(tmp_path / "out"))
 

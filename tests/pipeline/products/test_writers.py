@@ -290,7 +290,7 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path, monkeypatch) -> None:
         Path(path).write_bytes(b"partial")
         raise OSError("disk full")
 
-    monkeypatch.setattr(writers, "_write_tiff", broken)
+    monkeypatch.setattr(writers, "write_file", broken)
     with pytest.raises(OSError, match="disk full"):
         write_band_tiff(target, _refl(), FRAME, BAND)
     assert sorted(os.listdir(tmp_path)) == ["f.tif"]
