@@ -64,6 +64,34 @@ def test_counting_median_is_numpys() -> None:
     assert median_uint16(np.array([[7, 1], [3, 200]], np.uint8)) == 5.0
     cube = rng.integers(0, 4096, (3, 17, 9)).astype(np.uint16)
     np.testing.assert_array_equal(band_medians(cube), np.median(cube.astype(np.float64), axis=(1, 2)))
+    # full-resolution bands (OpenCV's histogram), a non-contiguous view, a constant band
+    for top in (1, 1024, 65536):
+        band = rng.integers(0, top, (217, 409)).astype(np.uint16)
+        for v in (band, band[::2, 1::3], band.T):
+            assert median_uint16(v) == np.median(v.astype(np.float64)), (top, v.shape)
+    skewed = np.minimum(rng.exponential(40, (1088, 2048)), 1023).astype(np.uint16)
+    assert median_uint16(skewed) == np.median(skewed.astype(np.float64))
+
+
+def test_counting_median_of_more_values_than_float32_counts_exactly(monkeypatch) -> None:
+    """Past 2**24 values OpenCV's float32 counts would round: those arrays are counted by
+    numpy (the limit lowered here so the test stays small)."""
+    import cv2
+
+    import pipeline.ingest.raw as raw
+
+    v = np.random.default_rng(6).integers(0, 300, 5_001).astype(np.uint16)
+    want = np.median(v.astype(np.float64))
+
+    def not_here(*args, **kwargs):
+        raise AssertionError("OpenCV's float32 counts used past the exact limit")
+
+    monkeypatch.setattr(cv2, "calcHist", not_here)
+    monkeypatch.setattr(raw, "_EXACT_HISTOGRAM", 5_001)
+    assert median_uint16(v) == want  # numpy's count
+    monkeypatch.setattr(raw, "_EXACT_HISTOGRAM", 5_002)
+    with pytest.raises(AssertionError, match="exact limit"):
+        median_uint16(v)  # below the limit: OpenCV's
 
 
 def test_frame_levels_from_stored_medians_equal_decoding_the_frames(tmp_path: Path) -> None:
