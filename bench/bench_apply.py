@@ -16,6 +16,9 @@ process alone; see ``bench_calibrate.run_measured``):
 - ``mscal apply --workers 1`` (one worker: the scaling with cores, 1 vs the default of one
   worker per core);
 - ``mscal apply`` again on the finished OUT (nothing to do);
+- the write floor: apply's own output files (paths, sizes, order taken from that OUT) written
+  as apply writes them (direct I/O, temporary name then rename), one thread per core, nothing
+  computed: what the device and the file system cost for apply's bytes alone;
 - ``mscal apply`` on a flight ``--large / --frames`` times longer, for memory flatness.
 
 The loop and ``mscal apply`` run ``--repeat`` times each, alternating, and the median run of
@@ -34,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import json
 import os
 import shlex
 import sys
@@ -89,6 +93,43 @@ def child_floor(flight: str, out: str) -> None:
         arr = np.empty(shape, np.float32)
         arr[0, 0, 0] = raw[0, 0]
         arr.tofile(Path(out) / (Path(r["file"]).stem + ".f32"))
+
+
+def output_manifest(out: Path) -> list[tuple[str, int]]:
+    """Every file of a finished apply OUT as ``(path relative to OUT, size)``, in the order
+    the files were written (modification time): the input of :func:`child_writes`."""
+    files = [p for p in Path(out).rglob("*") if p.is_file()]
+    stats = {p: p.stat() for p in files}
+    files.sort(key=lambda p: (stats[p].st_mtime_ns, str(p)))
+    return [(str(p.relative_to(out)), stats[p].st_size) for p in files]
+
+
+def child_writes(manifest: str, out: str, threads: str = "0") -> None:
+    """The write floor of apply's own outputs: the files of ``manifest`` (written by a real
+    ``mscal apply``), same paths, sizes and order, each written the way apply writes a file
+    (:func:`pipeline.storage.directio.write_file` to a temporary name, then renamed), by one
+    thread per core and nothing computed. What the device and the file system cost for
+    apply's bytes alone."""
+    import json
+    from concurrent.futures import ThreadPoolExecutor
+
+    from pipeline.storage.directio import aligned_empty, write_file
+
+    entries = [(Path(out) / rel, int(size)) for rel, size in json.loads(Path(manifest).read_text())]
+    for folder in sorted({p.parent for p, _ in entries}):
+        folder.mkdir(parents=True, exist_ok=True)
+    data = aligned_empty((max((s for _, s in entries), default=0),), np.uint8)
+    data[:] = np.random.default_rng(0).integers(0, 256, data.size, dtype=np.uint8)
+
+    def one(entry: tuple[Path, int]) -> None:
+        path, size = entry
+        tmp = path.with_name(f".{path.name}.tmp")
+        write_file(tmp, [data[:size]])
+        os.replace(tmp, path)
+
+    with ThreadPoolExecutor(int(threads) or os.cpu_count() or 1) as ex:
+        for _ in ex.map(one, entries):
+            pass
 
 
 def _loop_frames(flight: str, calib: str):
@@ -206,7 +247,14 @@ def run(frames: int, large: int, workdir: Path, log=print, settle_s: float = 65.
                                           "apply"))
     res["loop"], res["apply"] = median_run(res["loop_runs"]), median_run(res["apply_runs"])
     res["rerun"] = measured([*mscal, "apply", str(flight), "--calibration", str(calib), "-o", str(out)], "re-run")
+    manifest = output_manifest(out)
+    (workdir / "manifest.json").write_text(json.dumps(manifest))
     bc.discard(out)
+    res["writes"] = measured(_py("--child", "writes", str(workdir / "manifest.json"), str(workdir / "writes")),
+                             "write floor")
+    res["writes_mb"] = sum(size for _, size in manifest) / 1e6
+    res["writes_files"] = len(manifest)
+    bc.discard(workdir / "writes")
     res["apply_1"] = measured([*mscal, "apply", str(flight), "--calibration", str(calib), "-o", str(out),
                                "--workers", "1"], "apply (1 worker)")
     bc.discard(out)
@@ -237,6 +285,9 @@ def render(res: dict, command: str) -> str:
         ("`mscal apply`", ap, "apply-mscal"),
         ("`mscal apply` again on the finished OUT", rr, "apply-rerun"),
         *([("`mscal apply --workers 1` (one worker)", res["apply_1"], "apply-one-worker")] if "apply_1" in res else []),
+        *([(f"write floor: apply's own {res['writes_files']} files ({res['writes_mb'] / 1e3:.1f} GB), same sizes and "
+            "order, direct I/O, one thread per core, nothing computed", res["writes"], "apply-write-floor")]
+          if "writes" in res else []),
     ]
     cores = int(info["nproc"]) if str(info["nproc"]).isdigit() else os.cpu_count() or 1
     busy = ap.cpu_s / ap.wall_s
@@ -283,6 +334,10 @@ def render(res: dict, command: str) -> str:
            f"{res['apply_1'].wall_s / ap.wall_s:.2f}x | | |"] if "apply_1" in res else []),
         *([f'| <a id="apply-vs-loop-same"></a>same-products loop wall / apply wall (context) | '
            f"{res['loop_same'].wall_s / ap.wall_s:.2f}x | | |"] if "loop_same" in res else []),
+        *([f'| <a id="apply-vs-write-floor"></a>apply wall / write floor wall (context: the device and file '
+           f"system for apply's bytes alone) | {ap.wall_s / res['writes'].wall_s:.2f}x | | |",
+           f'| <a id="apply-loop-target"></a>wall the 2.0x loop target allows, beside the write floor | '
+           f"{lp.wall_s / 2:.1f} s vs {res['writes'].wall_s:.1f} s | | |"] if "writes" in res else []),
         f'| <a id="apply-rss"></a>apply peak RSS | {ap.maxrss_mib:.0f} MiB'
         f" | <= 1024 MiB | {'PASS' if ap.maxrss_mib <= 1024 else 'FAIL'} |",
     ]
@@ -323,6 +378,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             child_loop(*rest)
         elif kind == "loop_same":
             child_loop_same(*rest)
+        elif kind == "writes":
+            child_writes(*rest)
         return 0
     if a.quick:
         a.frames, a.large = 60, 240

@@ -206,6 +206,29 @@ def test_discard_empties_files_keeps_linked_ones_and_moves_the_tree_aside(tmp_pa
     assert (tmp_path / bc.TRASH / "out.1").is_dir()
 
 
+def test_write_floor_rewrites_an_out_folder_file_for_file(tmp_path: Path) -> None:
+    """The apply write floor: a manifest of an OUT folder in write order, then the same paths
+    and sizes written again (and nothing else), with no temporaries left."""
+    import json
+    import os
+
+    ba = _load("bench_apply")
+    out = tmp_path / "out"
+    files = {"reflectance.zarr/reflectance/c.0.0.0.0": 300_000, "photogrammetry/IMG_1_b1.tif": 70_001,
+             "ndvi/IMG_1.tif": 5, "run.json": 0}
+    for k, (rel, size) in enumerate(files.items()):
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        (out / rel).write_bytes(b"x" * size)
+        os.utime(out / rel, ns=(10**9 * (k + 1), 10**9 * (k + 1)))  # the order of writing
+    manifest = ba.output_manifest(out)
+    assert manifest == list(files.items())
+    (tmp_path / "m.json").write_text(json.dumps(manifest))
+    ba.child_writes(str(tmp_path / "m.json"), str(tmp_path / "again"), "2")
+    again = {str(q.relative_to(tmp_path / "again")): q.stat().st_size
+             for q in (tmp_path / "again").rglob("*") if q.is_file()}
+    assert again == files
+
+
 # --------------------------------------------------------------------------- bench_ab
 
 
