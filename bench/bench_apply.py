@@ -196,17 +196,36 @@ def _py(*args: str) -> list[str]:
     return [sys.executable, str(Path(__file__).resolve()), *args]
 
 
-def settle(seconds: float) -> None:
+def settle(seconds: float, warm: Sequence[Path] = ()) -> None:
     """Bring the machine to the same state before each measured command: dirty pages
-    flushed, then ``seconds`` of rest. On the benchmark VM both matter (perf profiles,
-    docs/benchmarks.md): the guest gives freed memory back to its host within ~20 s, after
-    which the first touch of a page costs ~2.8 ms per MB, so a command that started sooner
-    found its pages still backed; and flushing leaves no earlier command's writeback to the
-    next. Previous outputs are emptied, not deleted (``bench_calibrate.discard``): ext4 makes
-    every file created within 60-360 s of a deletion scan past the deleted inodes."""
+    flushed, then ``seconds`` of rest, then every file under ``warm`` (the command's inputs)
+    read once. On the benchmark VM all three matter (perf profiles, docs/benchmarks.md): the
+    guest gives freed memory back to its host within ~20 s, after which the first touch of a
+    page costs ~2.8 ms per MB, so a command that started sooner found its pages still backed;
+    flushing leaves no earlier command's writeback to the next; and the kernel runs DAMON's
+    ``pageout`` scheme (kdamond: memory not accessed for 60 s is paged out, up to 128 MB/s),
+    so after 65 s of rest the inputs were partly gone from the page cache: in one run apply
+    took 14.3, 21.1 and 16.0 s and the re-run on a finished OUT 17.9 s (4.2 s the day
+    before). Previous outputs are emptied, not deleted (``bench_calibrate.discard``): ext4
+    makes every file created within 60-360 s of a deletion scan past the deleted inodes."""
     os.sync()
     if seconds > 0:
         time.sleep(seconds)
+    warm_files(warm)
+
+
+def warm_files(paths: Sequence[Path]) -> int:
+    """Read every file under ``paths`` (files or folders) into the page cache; returns the
+    bytes read."""
+    buf = bytearray(8 << 20)
+    total = 0
+    for top in paths:
+        top = Path(top)
+        for f in ([top] if top.is_file() else sorted(q for q in top.rglob("*") if q.is_file())):
+            with f.open("rb", buffering=0) as fh:
+                while k := fh.readinto(buf):
+                    total += k
+    return total
 
 
 def median_run(runs: list):  # noqa: ANN201 - bench_calibrate.Run
@@ -225,8 +244,8 @@ def run(frames: int, large: int, workdir: Path, log=print, settle_s: float = 65.
     flight = make_flight(session / "flights" / "field", workdir / "flight", frames, seed=1)
     log(f"flight of {frames} frames written")
 
-    def measured(cmd: list[str], what: str, timeout: float = bc.CHILD_TIMEOUT_S):
-        settle(settle_s)
+    def measured(cmd: list[str], what: str, timeout: float = bc.CHILD_TIMEOUT_S, inputs: Sequence[Path] = ()):
+        settle(settle_s, warm=inputs or (flight, calib))
         return bc._check(bc.run_measured(cmd, timeout=timeout), what)
 
     res["floor"] = measured(_py("--child", "floor", str(flight), str(workdir / "floor")), "floor")
@@ -251,7 +270,7 @@ def run(frames: int, large: int, workdir: Path, log=print, settle_s: float = 65.
     (workdir / "manifest.json").write_text(json.dumps(manifest))
     bc.discard(out)
     res["writes"] = measured(_py("--child", "writes", str(workdir / "manifest.json"), str(workdir / "writes")),
-                             "write floor")
+                             "write floor", inputs=(workdir / "manifest.json",))
     res["writes_mb"] = sum(size for _, size in manifest) / 1e6
     res["writes_files"] = len(manifest)
     bc.discard(workdir / "writes")
@@ -263,9 +282,11 @@ def run(frames: int, large: int, workdir: Path, log=print, settle_s: float = 65.
         bc.discard(flight)
         big = make_flight(session / "flights" / "field", workdir / "flight_large", large, seed=2)
         res["apply_large"] = measured([*mscal, "apply", str(big), "--calibration", str(calib), "-o",
-                                       str(workdir / "out_large")], "apply (large)", timeout=4 * 3600)
+                                       str(workdir / "out_large")], "apply (large)", timeout=4 * 3600,
+                                      inputs=(big, calib))
         bc.discard(workdir / "out_large")
-        res["floor_large"] = measured(_py("--child", "floor", str(big), str(workdir / "floor_large")), "floor (large)")
+        res["floor_large"] = measured(_py("--child", "floor", str(big), str(workdir / "floor_large")), "floor (large)",
+                                      inputs=(big,))
         bc.discard(workdir / "floor_large")
         bc.discard(big)
     return res
@@ -306,7 +327,8 @@ def render(res: dict, command: str) -> str:
         f"Flight: {n} full-resolution frames (2048 x 1088 raw mosaic, 10-bit, 25 bands of 217 x 409), built from the "
         "flight frames of a small synthetic session, each with its own random least-significant bits. Outputs of "
         "`mscal apply`: raw.zarr, reflectance.zarr (reflectance, ndvi, ndre, vegetation_mask), 8 photogrammetry TIFFs "
-        "and 1 NDVI TIFF per frame, run.json. The frames are in the page cache for every command. Before each "
+        "and 1 NDVI TIFF per frame, run.json. The frames are in the page cache for every command (read once after the "
+        "rest: the VM pages out memory not accessed for 60 s). Before each "
         "command: the previous command's outputs emptied and moved aside, not deleted (`discard()` in "
         "bench_calibrate.py: on ext4 every file created within 60-360 s of a deletion scans past the deleted "
         f"inodes), `sync`, then {res.get('settle_s', 0):.0f} s of rest (`--settle`; see `settle()` in the script: "

@@ -196,12 +196,12 @@ def run(captures: int, workdir: Path, log=print, settle_s: float = 20.0, repeat:
     res: dict = {"captures": captures, "settle_s": settle_s, "repeat": max(1, repeat),
                  "loop_runs": [], "apply_runs": [], "disk": disk}
     out = workdir / "out"
-    for _ in range(max(1, repeat)):
-        settle(settle_s)
+    for _ in range(max(1, repeat)):  # the captures read once after each rest (settle: the VM pages out idle memory)
+        settle(settle_s, warm=(survey,))
         res["loop_runs"].append(bc._check(bc.run_measured(_py("--child", "loop", str(survey), str(workdir / "loop"))),
                                           "hand loop"))
         bc.discard(workdir / "loop")
-        settle(settle_s)
+        settle(settle_s, warm=(survey,))
         res["apply_runs"].append(bc._check(bc.run_measured(
             [*mscal, "apply", str(survey), "--calibration", "factory", "--reference", "dls", "-o", str(out)]),
             "mscal apply --calibration factory"))

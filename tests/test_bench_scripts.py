@@ -229,6 +229,15 @@ def test_write_floor_rewrites_an_out_folder_file_for_file(tmp_path: Path) -> Non
     assert again == files
 
 
+def test_warm_files_reads_every_file_of_files_and_folders(tmp_path: Path) -> None:
+    ba = _load("bench_apply")
+    (tmp_path / "d" / "e").mkdir(parents=True)
+    (tmp_path / "d" / "a.bin").write_bytes(b"a" * (9 << 20))  # more than one read
+    (tmp_path / "d" / "e" / "b.bin").write_bytes(b"b" * 7)
+    (tmp_path / "c.bin").write_bytes(b"")
+    assert ba.warm_files([tmp_path / "d", tmp_path / "c.bin", tmp_path / "missing"]) == (9 << 20) + 7
+
+
 # --------------------------------------------------------------------------- bench_ab
 
 
