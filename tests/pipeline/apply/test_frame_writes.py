@@ -7,7 +7,7 @@ import threading
 
 import pytest
 
-from pipeline.apply.executor import FrameWrites
+from pipeline.apply.executor import WRITER_THREADS, FrameWrites
 
 
 def test_the_frame_goes_on_while_a_write_waits_and_wait_returns_when_all_are_done() -> None:
@@ -17,25 +17,29 @@ def test_the_frame_goes_on_while_a_write_waits_and_wait_returns_when_all_are_don
 
     def write(name: str) -> None:
         threads.add(threading.current_thread().name)
-        if name == "reflectance":
-            assert release.wait(60), "the writer was never released"
+        assert release.wait(60), "the writer was never released"
         done.append(name)
 
+    # more writes than writer threads, every one held until released
+    names = [f"chunk{i}" for i in range(WRITER_THREADS + 2)]
     writes = FrameWrites()
-    writes.submit(write, "reflectance")
-    writes.submit(write, "ndvi")
-    # the writer is blocked in the first write: this thread is free to compute meanwhile
+    for name in names:
+        writes.submit(write, name)
+    # every writer is blocked in a write: this thread is free to compute meanwhile
     assert done == []
     release.set()
     writes.wait()
-    assert done == ["reflectance", "ndvi"]  # in submission order, all finished
+    assert sorted(done) == sorted(names)  # all finished when wait returns
     assert threads and threading.current_thread().name not in threads
     assert all(t.startswith("mscal-writer") for t in threads)
-    # the same writer thread serves this thread's next frame (its direct-I/O buffer is reused)
+    assert len(threads) <= WRITER_THREADS
+    # the same writer threads serve this thread's next frame (their direct-I/O buffers are reused)
     again = FrameWrites()
-    again.submit(write, "raw")
+    for name in names:
+        again.submit(write, name)
     again.wait()
-    assert len(threads) == 1
+    assert len(done) == 2 * len(names)
+    assert len(threads) <= WRITER_THREADS
 
 
 def test_wait_raises_the_first_error_after_every_write_has_finished() -> None:
