@@ -262,3 +262,22 @@ def test_ab_render_ratios_and_section_replacement(tmp_path: Path) -> None:
     ab._replace_section(doc, md)
     text = doc.read_text()
     assert "old text" not in text and text.startswith("head\n") and text.endswith("tail\n") and md in text
+
+
+def test_factory_render_puts_the_write_floor_beside_the_loop_target() -> None:
+    fac = _load("bench_factory")
+    bc = _load("bench_calibrate")
+
+    def run(wall: float, cpu: float, rss: float):
+        return bc.Run(["x"], wall, cpu, 0.0, rss, 0, (0.5, 0.5, 0.5))
+
+    loop, apply, writes = run(60.0, 55.0, 250.0), run(50.0, 52.0, 700.0), run(40.0, 8.0, 60.0)
+    res = {"captures": 500, "settle_s": 20.0, "loop": loop, "apply": apply, "loop_runs": [loop],
+           "apply_runs": [apply], "writes": writes, "writes_mb": 43_500.0, "writes_files": 8_004}
+    md = fac.render(res, "cmd")
+    assert "| 1.20x | >= 2.0x | FAIL |" in md  # 60 / 50
+    assert "write floor: apply's own 8004 files (43.5 GB)" in md and "| 40.0 | 12.5 | 8.0 | 0.20 | 60 |" in md
+    assert '<a id="factory-vs-write-floor"></a>' in md and "| 1.25x | | |" in md  # 50 / 40
+    assert "| 30.0 s vs 40.0 s | | |" in md  # the 2.0x target allows half the loop's 60 s
+    del res["writes"]
+    assert "write floor" not in fac.render(res, "cmd")
