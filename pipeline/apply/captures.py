@@ -41,7 +41,7 @@ import xarray as xr
 from mscal_core.errors import FrameError
 
 from pipeline.apply.execution import Execution
-from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner, process_frame
+from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner
 from pipeline.apply.flight import (
     RUN_JSON,
     ApplyResult,
@@ -298,7 +298,7 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
             tmp_refl, tmp_raw, plan = _start(out, camera, captures, shape, indices, roles, export, run)
             jobs = [Job(f, c.name, capture_tags(camera, c), capture=c, scale=run.scale(c.name), panel=c.name in panels)
                     for f, c in enumerate(captures)]
-            outcomes = runner.run(plan, jobs, fn=process_frame)
+            outcomes = runner.run(plan, jobs)
             bad = {o.name: o.quarantine for o in outcomes if o.quarantine is not None}
             if not bad:
                 break

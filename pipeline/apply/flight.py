@@ -1,7 +1,7 @@
 """``mscal apply``: Eq. 15 over a whole flight, all outputs in one pass over the frames.
 
 1. discover the flight (bad frames quarantined with their reasons) and open ``OUT/raw.zarr``;
-2. plan one dask task per frame (:func:`process_frame`): its DN (from the file for a flight
+2. plan dask tasks of a few frames each (:func:`process_frames`): each frame's DN (from the file for a flight
    whose cube is still empty: read once, hashed, checked and written into raw.zarr; else from
    raw.zarr), Eq. 15 with the ``mscal_core`` kernel (U lookup, divide by t V S), optional
    normalisation, indices, Otsu mask, and every output of that frame: its whole chunk of each

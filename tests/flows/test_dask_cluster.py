@@ -69,11 +69,11 @@ def cluster_run(cluster: str, flow_session: Path, first_run: Path, tmp_path_fact
 
 
 def _frame_compute_seconds(cluster: str) -> float:
-    """Compute seconds of every ``process_frame`` task the scheduler has seen."""
+    """Compute seconds of every ``process_frames`` task the scheduler has seen."""
     from distributed import Client
 
     def seconds(dask_scheduler) -> float:  # noqa: ANN001
-        tp = dask_scheduler.task_prefixes.get("process_frame")
+        tp = dask_scheduler.task_prefixes.get("process_frames")
         return 0.0 if tp is None else tp.all_durations["compute"]
 
     with Client(cluster, timeout="30s") as client:

@@ -68,7 +68,7 @@ def test_field_store_on_a_multilens_flight_is_eq15_per_band_file(field_run) -> N
 
 
 def test_factory_and_field_chains_run_in_the_same_executor(store, tmp_path, monkeypatch) -> None:
-    """Both chains are one task function (executor.process_frame -> executor.radiometry)."""
+    """Both chains are one task function (executor.process_frames -> executor.radiometry)."""
     seen: list[tuple[str, str]] = []
     real = executor.radiometry
 

@@ -59,3 +59,105 @@ def test_wait_raises_the_first_error_after_every_write_has_finished() -> None:
     quiet = FrameWrites()
     quiet.submit(fail, "swallowed")
     quiet.wait(raise_errors=False)  # an error is already on its way: wait, do not replace it
+
+
+# --------------------------------------------------------------------------- process_frames
+
+
+class _Frames:
+    """start_frame / finish_frame stand-ins: every frame hands one write to its writer
+    threads; ``log`` records the order of starts, writes and finishes."""
+
+    def __init__(self, quarantined=(), fail_start=None, fail_write=None) -> None:
+        self.log: list[str] = []
+        self.quarantined, self.fail_start, self.fail_write = set(quarantined), fail_start, fail_write
+
+    def start(self, plan, job):  # noqa: ANN001, ANN202
+        from pipeline.apply import executor
+
+        self.log.append(f"start {job}")
+        if job == self.fail_start:
+            raise RuntimeError(f"{job} failed")
+        if job in self.quarantined:
+            return executor.Outcome(job, None, 0, quarantine={"file": job, "reason": "bad"})
+        writes = FrameWrites()
+        writes.submit(self._write, job)
+        return executor._Writing(job, None, 0, None, writes)  # type: ignore[arg-type]
+
+    def _write(self, job: str) -> None:
+        self.log.append(f"written {job}")
+        if job == self.fail_write:
+            raise OSError(28, f"{job}: the disk is full")
+
+    def finish(self, plan, w):  # noqa: ANN001, ANN202
+        from pipeline.apply import executor
+
+        w.writes.wait()
+        self.log.append(f"finish {w.job}")
+        return executor.Outcome(w.job, None, 0)
+
+
+def _patched(monkeypatch, frames: _Frames) -> None:
+    from pipeline.apply import executor
+
+    monkeypatch.setattr(executor, "start_frame", frames.start)
+    monkeypatch.setattr(executor, "finish_frame", frames.finish)
+
+
+def test_a_frame_is_finished_after_the_next_one_is_started_and_outcomes_keep_job_order(monkeypatch) -> None:
+    from pipeline.apply.executor import process_frames
+
+    frames = _Frames(quarantined={"c"})
+    _patched(monkeypatch, frames)
+    out = process_frames(None, ["a", "b", "c", "d"])
+    assert [o.name for o in out] == ["a", "b", "c", "d"]
+    assert [o.quarantine is not None for o in out] == [False, False, True, False]
+    log = frames.log
+    # a's outcome is made only once b is computed (its writes overlapped b), and every
+    # frame's files are written before its outcome and before process_frames returns
+    assert log.index("start b") < log.index("finish a")
+    assert log.index("start c") < log.index("finish b") < log.index("start d")
+    assert log[-1] == "finish d"
+    for job in "abd":
+        assert log.index(f"written {job}") < log.index(f"finish {job}")
+
+
+def test_on_an_error_no_frame_is_left_writing(monkeypatch) -> None:
+    from pipeline.apply.executor import process_frames
+
+    frames = _Frames(fail_start="c")
+    _patched(monkeypatch, frames)
+    with pytest.raises(RuntimeError, match="c failed"):
+        process_frames(None, ["a", "b", "c", "d"])
+    assert "written b" in frames.log and "start d" not in frames.log  # b's write waited for
+    frames = _Frames(fail_write="a")
+    _patched(monkeypatch, frames)
+    with pytest.raises(OSError, match="a: the disk is full"):
+        process_frames(None, ["a", "b", "c"])
+    assert "written b" in frames.log and "start c" not in frames.log
+
+
+def test_frames_per_task_keeps_every_worker_busy_to_the_end() -> None:
+    from pipeline.apply.executor import FRAMES_PER_TASK, frames_per_task
+
+    assert frames_per_task(512, 2) == FRAMES_PER_TASK == 8
+    assert frames_per_task(40, 2) == 5  # four tasks per worker at least
+    assert frames_per_task(3, 2) == 1 and frames_per_task(0, 2) == 1
+    assert frames_per_task(512, 64) == 2
+
+
+def test_runner_runs_the_frames_a_few_to_a_task_in_job_order(monkeypatch) -> None:
+    from pipeline.apply import executor
+    from pipeline.apply.execution import Execution
+
+    tasks: list[list[int]] = []
+
+    def frames(plan, jobs):  # noqa: ANN001, ANN202
+        tasks.append(list(jobs))
+        return [plan + j for j in jobs]
+
+    monkeypatch.setattr(executor, "process_frames", frames)
+    with executor.Runner(100, Execution("threads", 2)) as runner:
+        assert runner.run(1000, range(100)) == [1000 + k for k in range(100)]
+    assert sorted(j for t in tasks for j in t) == list(range(100))
+    assert {len(t) for t in tasks} == {8, 4}  # 12 tasks of 8, one of 4
