@@ -432,11 +432,6 @@ def write_raw(plan: Plan, index: int, dn: np.ndarray) -> None:
         write_frame(plan.raw_medians, index, band_medians(dn))
 
 
-def process_frame(plan: Plan, job: Job) -> Outcome:
-    """One capture, every output: :func:`process_frames` of one job."""
-    return process_frames(plan, [job])[0]
-
-
 @dataclass
 class _Writing:
     """A frame whose outputs are made and on their way to disk (:func:`process_frames`)."""
@@ -458,20 +453,23 @@ def process_frames(plan: Plan, jobs: Sequence[Job]) -> list[Outcome]:
     outcomes: list[Outcome] = []
     previous: _Writing | None = None  # the frame before, its files on their way
     current: Outcome | _Writing | None = None
+
+    def finish_previous() -> None:
+        nonlocal previous
+        if previous is not None:
+            done, previous = previous, None
+            outcomes.append(finish_frame(plan, done))
+
     try:
         for job in jobs:
             current = start_frame(plan, job)
-            if previous is not None:
-                done, previous = previous, None
-                outcomes.append(finish_frame(plan, done))
+            finish_previous()
             if isinstance(current, Outcome):
                 outcomes.append(current)
             else:
                 previous = current
             current = None
-        if previous is not None:
-            done, previous = previous, None
-            outcomes.append(finish_frame(plan, done))
+        finish_previous()
     except BaseException:
         for w in (previous, current):
             if isinstance(w, _Writing):
@@ -522,7 +520,7 @@ def finish_frame(plan: Plan, w: _Writing) -> Outcome:
 
 def _write_products(plan: Plan, job: Job, dn: np.ndarray, sha: str | None, signal: np.ndarray,
                     factor: np.ndarray | None, radiance: np.ndarray | None, writes: FrameWrites) -> FrameTags:
-    """:func:`process_frame`'s outputs of one capture: the raw chunk (a new capture), radiance,
+    """:func:`start_frame`'s outputs of one capture: the raw chunk (a new capture), radiance,
     reflectance (``signal`` times ``factor``, normalised, in place), indices, mask, TIFFs.
     Chunks go to ``writes`` once nothing changes them; the TIFFs are made here meanwhile.
     Returns the frame's tags (with its CaptureUUID)."""

@@ -48,7 +48,6 @@ from pipeline.apply.executor import (  # noqa: F401  (re-exported: the executor'
     calibration_tables,
     capture_uuid,
     geometry_step,
-    process_frame,
     read_frame_chunk,
     write_frame,
 )
