@@ -132,6 +132,22 @@ def child_writes(manifest: str, out: str, threads: str = "0") -> None:
             pass
 
 
+def write_floor_label(res: dict) -> str:
+    """The write floor's row label (``res`` holds ``writes_files`` and ``writes_mb``)."""
+    return (f"write floor: apply's own {res['writes_files']} files ({res['writes_mb'] / 1e3:.1f} GB), same sizes and "
+            "order, direct I/O, one thread per core, nothing computed")
+
+
+def write_floor_rows(prefix: str, subject: str, apply_wall: float, loop_wall: float, writes_wall: float) -> list[str]:
+    """The two figure rows that put the write floor beside ``subject`` (the apply measured)
+    and the 2.0x loop target; their anchors are ``{prefix}-vs-write-floor`` and
+    ``{prefix}-loop-target``."""
+    return [f'| <a id="{prefix}-vs-write-floor"></a>{subject} wall / write floor wall (context: the device and '
+            f"file system for apply's bytes alone) | {apply_wall / writes_wall:.2f}x | | |",
+            f'| <a id="{prefix}-loop-target"></a>wall the 2.0x loop target allows, beside the write floor | '
+            f"{loop_wall / 2:.1f} s vs {writes_wall:.1f} s | | |"]
+
+
 def _loop_frames(flight: str, calib: str):
     """The obvious per-frame numpy loop: read, demosaic, LUT, divide by t V S; yields
     (frame stem, DN, reflectance) per frame."""
@@ -306,9 +322,7 @@ def render(res: dict, command: str) -> str:
         ("`mscal apply`", ap, "apply-mscal"),
         ("`mscal apply` again on the finished OUT", rr, "apply-rerun"),
         *([("`mscal apply --workers 1` (one worker)", res["apply_1"], "apply-one-worker")] if "apply_1" in res else []),
-        *([(f"write floor: apply's own {res['writes_files']} files ({res['writes_mb'] / 1e3:.1f} GB), same sizes and "
-            "order, direct I/O, one thread per core, nothing computed", res["writes"], "apply-write-floor")]
-          if "writes" in res else []),
+        *([(write_floor_label(res), res["writes"], "apply-write-floor")] if "writes" in res else []),
     ]
     cores = int(info["nproc"]) if str(info["nproc"]).isdigit() else os.cpu_count() or 1
     busy = ap.cpu_s / ap.wall_s
@@ -356,10 +370,7 @@ def render(res: dict, command: str) -> str:
            f"{res['apply_1'].wall_s / ap.wall_s:.2f}x | | |"] if "apply_1" in res else []),
         *([f'| <a id="apply-vs-loop-same"></a>same-products loop wall / apply wall (context) | '
            f"{res['loop_same'].wall_s / ap.wall_s:.2f}x | | |"] if "loop_same" in res else []),
-        *([f'| <a id="apply-vs-write-floor"></a>apply wall / write floor wall (context: the device and file '
-           f"system for apply's bytes alone) | {ap.wall_s / res['writes'].wall_s:.2f}x | | |",
-           f'| <a id="apply-loop-target"></a>wall the 2.0x loop target allows, beside the write floor | '
-           f"{lp.wall_s / 2:.1f} s vs {res['writes'].wall_s:.1f} s | | |"] if "writes" in res else []),
+        *(write_floor_rows("apply", "apply", ap.wall_s, lp.wall_s, res["writes"].wall_s) if "writes" in res else []),
         f'| <a id="apply-rss"></a>apply peak RSS | {ap.maxrss_mib:.0f} MiB'
         f" | <= 1024 MiB | {'PASS' if ap.maxrss_mib <= 1024 else 'FAIL'} |",
     ]

@@ -49,7 +49,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 import bench_calibrate as bc  # noqa: E402  (shared measurement and markdown helpers)
-from bench_apply import median_run, output_manifest, settle  # noqa: E402
+from bench_apply import median_run, output_manifest, settle, write_floor_label, write_floor_rows  # noqa: E402
 
 SECTION_KEY = "bench_factory"
 ROOT = HERE.parent
@@ -268,9 +268,7 @@ def render(res: dict, command: str) -> str:
              "5-band float32 file per capture)", lp, res["loop_runs"], "factory-loop"),
             ("`mscal apply --calibration factory --reference dls` (all its products)", ap, res["apply_runs"],
              "factory-mscal"),
-            *([(f"write floor: apply's own {res['writes_files']} files ({res['writes_mb'] / 1e3:.1f} GB), same sizes "
-                "and order, direct I/O, one thread per core, nothing computed", res["writes"], [],
-                "factory-write-floor")] if "writes" in res else [])):
+            *([(write_floor_label(res), res["writes"], [], "factory-write-floor")] if "writes" in res else [])):
         each = f" (median; runs: {', '.join(f'{x.wall_s:.1f}' for x in runs)})" if len(runs) > 1 else ""
         lines.append(f'| <a id="{aid}"></a>{label}{each} | {r.wall_s:.1f} | {n / r.wall_s:.1f} | {r.cpu_s:.1f} | '
                      f"{r.cpu_s / r.wall_s:.2f} | {r.maxrss_mib:.0f} | {r.load_before[0]:.2f} |")
@@ -280,10 +278,7 @@ def render(res: dict, command: str) -> str:
         "|---|---:|---:|:---:|",
         f'| <a id="factory-vs-loop"></a>loop wall / factory apply wall | {speedup:.2f}x | >= 2.0x | '
         f"{'PASS' if speedup >= 2.0 else 'FAIL'} |",
-        *([f'| <a id="factory-vs-write-floor"></a>factory apply wall / write floor wall (context: the device and file '
-           f"system for apply's bytes alone) | {ap.wall_s / res['writes'].wall_s:.2f}x | | |",
-           f'| <a id="factory-loop-target"></a>wall the 2.0x loop target allows, beside the write floor | '
-           f"{lp.wall_s / 2:.1f} s vs {res['writes'].wall_s:.1f} s | | |"] if "writes" in res else []),
+        *(write_floor_rows("factory", "factory apply", ap.wall_s, lp.wall_s, res["writes"].wall_s) if "writes" in res else []),
         f'| <a id="factory-rss"></a>factory apply peak RSS | {ap.maxrss_mib:.0f} MiB | <= 1024 MiB | '
         f"{'PASS' if ap.maxrss_mib <= 1024 else 'FAIL'} |",
     ]
