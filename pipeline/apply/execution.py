@@ -9,15 +9,21 @@ records them.
 
 from __future__ import annotations
 
+import multiprocessing
 import os
+import sys
 from dataclasses import dataclass
+from multiprocessing.context import ForkServerContext
+from pathlib import Path
 from typing import Any
 
 from mscal_core.errors import InputError
 
 from pipeline.storage.directio import direct_io_enabled, set_direct_io
 
-__all__ = ["AUTO_PROCESS_FRAMES", "SCHEDULERS", "Execution", "scheduler_for"]
+__all__ = ["AUTO_PROCESS_FRAMES", "SCHEDULERS", "WORKER_MODULE", "Execution", "distributed_client", "flight_size_hint",
+           "scheduler_for", "start_worker_server", "take_worker_environment", "worker_context",
+           "worker_environment"]
 
 #: Schedulers of the per-frame pass without a ``distributed`` client (``auto``: see
 #: :func:`scheduler_for`).
@@ -73,3 +79,85 @@ def scheduler_for(n_frames: int, execution: Execution = Execution()) -> tuple[st
     if scheduler == "auto":
         scheduler = "processes" if workers >= 2 and n_frames >= AUTO_PROCESS_FRAMES else "threads"
     return scheduler, workers
+
+
+#: The module the worker processes run, imported once by their server (the forkserver) before
+#: any worker is forked from it.
+WORKER_MODULE = "pipeline.apply.executor"
+
+#: Environment variables a worker process reads (direct I/O, catalog path): given to each
+#: worker as the main process has them when the pass starts (:func:`worker_environment`), not
+#: as they were when the server was started.
+WORKER_ENV_PREFIX = "MSCAL_"
+
+
+def worker_context() -> ForkServerContext:
+    """The worker processes' multiprocessing context: a forkserver that has imported
+    :data:`WORKER_MODULE` (one import for every worker of the process's passes)."""
+    ctx = multiprocessing.get_context("forkserver")
+    ctx.set_forkserver_preload([WORKER_MODULE])
+    return ctx
+
+
+def worker_environment() -> dict[str, str]:
+    """This process's ``MSCAL_*`` variables, for a worker to take over when it starts: the
+    forkserver keeps the environment of the moment it was started (possibly an earlier pass,
+    or before ``--no-direct-io`` was applied), and its workers inherit the server's."""
+    return {k: v for k, v in os.environ.items() if k.startswith(WORKER_ENV_PREFIX)}
+
+
+def take_worker_environment(environment: dict[str, str]) -> None:
+    """In a worker process: its ``MSCAL_*`` variables become ``environment`` (those of
+    :func:`worker_environment` in the main process), others of that prefix are removed."""
+    for key in [k for k in os.environ if k.startswith(WORKER_ENV_PREFIX) and k not in environment]:
+        del os.environ[key]
+    os.environ.update(environment)
+
+
+def distributed_client():  # noqa: ANN201
+    """The active ``distributed`` client (the caller's ``with Client(...)``), if any. A caller
+    with a client has imported ``distributed``; without one it is not imported here (0.2 s of
+    every run's start)."""
+    if "distributed" not in sys.modules:
+        return None
+    try:
+        from distributed import default_client
+    except ImportError:
+        return None
+    try:
+        return default_client()
+    except ValueError:
+        return None
+
+
+def flight_size_hint(folder: str | Path, limit: int = AUTO_PROCESS_FRAMES) -> int:
+    """Files in ``folder`` and its subfolders, counted up to ``limit`` (cheap: no file is
+    opened). An upper bound of the frames of a flight (a capture can be several files)."""
+    n = 0
+    stack = [str(folder)]
+    while stack and n < limit:
+        try:
+            with os.scandir(stack.pop()) as it:
+                for entry in it:
+                    if entry.is_dir(follow_symlinks=False):
+                        stack.append(entry.path)
+                    elif entry.is_file():
+                        n += 1
+        except OSError:
+            continue
+    return min(n, limit)
+
+
+def start_worker_server(execution: Execution, frames_hint: int) -> bool:
+    """Start the worker processes' server now, if a pass of about ``frames_hint`` frames would
+    run on worker processes (:func:`scheduler_for`): its import of :data:`WORKER_MODULE` (about
+    a second) then runs while this process imports and reads the flight, instead of before
+    the first frame. Returns whether it was started. Harmless when the guess is wrong: the
+    pass starts the server itself if needed, and an unused server ends with this process."""
+    if distributed_client() is not None or scheduler_for(frames_hint, execution)[0] != "processes":
+        return False
+    from multiprocessing import forkserver
+
+    worker_context()
+    forkserver.ensure_running()
+    return True

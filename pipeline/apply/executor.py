@@ -27,9 +27,7 @@ The drivers (:mod:`pipeline.apply.flight` for frames ingested into raw.zarr,
 from __future__ import annotations
 
 import itertools
-import multiprocessing
 import os
-import sys
 import threading
 import uuid
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
@@ -47,7 +45,14 @@ from mscal_core.errors import FrameError, InputError
 from mscal_core.reflectance import eq15_fast, eq15_tables, vegetation_mask
 from mscal_core.registration import align_bands, shift_bands
 
-from pipeline.apply.execution import Execution, scheduler_for
+from pipeline.apply.execution import (
+    Execution,
+    distributed_client,
+    scheduler_for,
+    take_worker_environment,
+    worker_context,
+    worker_environment,
+)
 from pipeline.calibrate.registration import frame_transforms
 from pipeline.ingest.camera_meta import (
     Capture,
@@ -600,10 +605,13 @@ def _quarantined(job: Job, exc: FrameError) -> Outcome:
 # --------------------------------------------------------------------------- running the tasks
 
 
-def _worker_init() -> None:
-    """Worker processes: die with the parent (a killed run leaves no writer behind), keep
-    Blosc single-threaded (the workers already fill the cores), reuse freed memory
-    (:func:`reuse_freed_memory`)."""
+def _worker_init(environment: dict[str, str] | None = None) -> None:
+    """Worker processes: take the main process's ``MSCAL_*`` settings (``environment``,
+    :func:`pipeline.apply.execution.worker_environment`), die with the parent (a killed run
+    leaves no writer behind), keep Blosc single-threaded (the workers already fill the
+    cores), reuse freed memory (:func:`reuse_freed_memory`)."""
+    if environment is not None:
+        take_worker_environment(environment)
     die_with_parent()
     reuse_freed_memory()
     try:
@@ -612,22 +620,6 @@ def _worker_init() -> None:
         blosc.set_nthreads(1)
     except ImportError:  # pragma: no cover
         pass
-
-
-def _distributed_client():  # noqa: ANN202
-    """The active ``distributed`` client (the caller's ``with Client(...)``), if any. A caller
-    with a client has imported ``distributed``; without one it is not imported here (0.2 s of
-    every run's start)."""
-    if "distributed" not in sys.modules:
-        return None
-    try:
-        from distributed import default_client
-    except ImportError:
-        return None
-    try:
-        return default_client()
-    except ValueError:
-        return None
 
 
 #: Frames handed to the scheduler at a time (:meth:`Runner.run`): large enough that the
@@ -652,20 +644,21 @@ def frames_per_task(n_jobs: int, parallelism: int) -> int:
 class Runner:
     """Runs the per-frame tasks (dask.delayed) on the caller's ``distributed`` client if one is
     active, else on worker processes (long flights) or threads; see :func:`scheduler_for`.
-    Worker processes are started when the runner is made, so they start while the main
-    process reads the calibration and the flight."""
+    Worker processes are forked when the runner is made, from a server that
+    :func:`pipeline.apply.execution.start_worker_server` may have started earlier (its imports
+    then ran beside the main process's); each takes the main process's ``MSCAL_*`` settings of
+    now (:func:`pipeline.apply.execution.worker_environment`)."""
 
     def __init__(self, n_frames: int, execution: Execution = Execution()):
         execution.install()
         reuse_freed_memory()  # the threads scheduler's frames run in this process
-        self.client = _distributed_client()
+        self.client = distributed_client()
         self.pool: ProcessPoolExecutor | None = None
         self.scheduler, self.workers = ("distributed", 0) if self.client is not None else scheduler_for(n_frames, execution)
         self.execution = execution.record(self.scheduler, self.workers)
         if self.scheduler == "processes":
-            ctx = multiprocessing.get_context("forkserver")
-            ctx.set_forkserver_preload(["pipeline.apply.executor"])
-            self.pool = ProcessPoolExecutor(self.workers, mp_context=ctx, initializer=_worker_init)
+            self.pool = ProcessPoolExecutor(self.workers, mp_context=worker_context(), initializer=_worker_init,
+                                            initargs=(worker_environment(),))
             for _ in range(self.workers):  # start them now
                 self.pool.submit(int)
 
@@ -715,7 +708,7 @@ class Runner:
             return list(dask.compute(*tasks, scheduler=dask.multiprocessing.get, pool=self.pool,
                                      num_workers=self.workers, chunksize=1))
         # the schedulers' functions, not their names: a name makes dask import distributed
-        # (0.2 s) to look for a client, which _distributed_client has done already
+        # (0.2 s) to look for a client, which distributed_client has done already
         return list(dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=self.workers))
 
     def close(self) -> None:

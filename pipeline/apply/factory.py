@@ -84,7 +84,7 @@ from mscal_core.illumination import INTERPOLATION_MODES, fit_illumination
 from mscal_core.panel import sample_quad
 
 from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, stat_fingerprint
-from pipeline.apply.execution import Execution
+from pipeline.apply.execution import Execution, flight_size_hint, start_worker_server
 from pipeline.apply.executor import FactoryChain, field_parts
 from pipeline.apply.flight import (
     ApplyResult,
@@ -316,6 +316,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     folder, out = Path(capture_dir), Path(out)
     if not folder.is_dir():
         raise InputError("capture folder not found", path=folder)
+    start_worker_server(options.execution, flight_size_hint(folder))  # imports while the captures are read
     ident = _identify(folder, options)
     camera = ident.camera
     found = find_captures(folder, camera)

@@ -36,7 +36,7 @@ from mscal_core.errors import FrameError, InputError
 from mscal_core.reflectance import eq15_fast, eq15_tables
 from mscal_core.registration import align_bands, mosaic_centre_offsets
 
-from pipeline.apply.execution import Execution
+from pipeline.apply.execution import Execution, flight_size_hint, start_worker_server
 from pipeline.apply.executor import (  # noqa: F401  (re-exported: the executor's pieces were here before)
     OUTPUT_COMPRESSORS,
     FieldChain,
@@ -613,6 +613,7 @@ def apply_flight(
     flight_dir, out = Path(flight_dir), Path(out)
     if not flight_dir.is_dir():
         raise InputError("flight folder not found", path=flight_dir)
+    start_worker_server(options.execution, flight_size_hint(flight_dir))  # imports while the flight is read
     if str(calibration) == "factory":
         raise InputError("--calibration factory needs factory radiometric metadata, which this camera's files do not carry",
                          hint="fit a calibration with 'mscal calibrate SESSION -o CALIB.zarr'")

@@ -364,10 +364,13 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
     a calibration store, or with --calibration factory the band files' own metadata."""
     from mscal_core.errors import InputError
 
-    from pipeline.apply.execution import Execution
-    from pipeline.apply.flight import ApplyOptions, PanelSpec, apply_flight
+    from pipeline.apply.execution import Execution, flight_size_hint, start_worker_server
 
     execution = Execution(scheduler=scheduler, workers=workers, direct_io=direct_io)
+    start_worker_server(execution, flight_size_hint(flight))  # its imports run beside this process's
+
+    from pipeline.apply.flight import ApplyOptions, PanelSpec, apply_flight
+
     bands = tuple(b.strip() for b in export_bands.split(",")) if export_bands else None
     if calibration == "factory":
         from pipeline.apply.factory import FactoryOptions, apply_factory

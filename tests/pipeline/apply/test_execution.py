@@ -140,3 +140,53 @@ def test_runner_hands_the_jobs_over_a_window_at_a_time(monkeypatch) -> None:
     # job k ran before any job past the end of its window was drawn
     assert all(seen_when[k] <= min(10, (k // 3 + 1) * 3) for k in range(10))
     assert max(seen_when.values()) == 10 and seen_when[0] == 3
+
+
+def test_flight_size_hint_counts_files_of_nested_folders_up_to_the_limit(tmp_path) -> None:
+    from pipeline.apply.execution import flight_size_hint
+
+    assert flight_size_hint(tmp_path / "missing") == 0
+    for k in range(3):  # an SD-card tree: SET/000/IMG_0000_1.tif ...
+        folder = tmp_path / "0001SET" / f"00{k}"
+        folder.mkdir(parents=True)
+        for b in range(5):
+            (folder / f"IMG_{k:04d}_{b + 1}.tif").write_bytes(b"x")
+    (tmp_path / "frames.csv").write_text("file\n")
+    assert flight_size_hint(tmp_path, limit=100) == 16
+    assert flight_size_hint(tmp_path, limit=7) == 7
+    assert flight_size_hint(tmp_path) == 16  # below AUTO_PROCESS_FRAMES: counted whole
+
+
+def test_worker_server_is_started_only_for_a_pass_on_processes(monkeypatch) -> None:
+    from pipeline.apply.execution import start_worker_server
+
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    assert not start_worker_server(Execution(), AUTO_PROCESS_FRAMES - 1)  # a short flight: threads
+    assert not start_worker_server(Execution("threads"), 500)
+    assert not start_worker_server(Execution(workers=1), 500)
+    assert start_worker_server(Execution(), AUTO_PROCESS_FRAMES)
+    assert start_worker_server(Execution(), 500)  # running already: nothing more
+
+
+def _worker_environment(plan, job) -> dict[str, str | None]:
+    import os
+
+    return {k: os.environ.get(k) for k in ("MSCAL_DIRECT_IO", "MSCAL_TEST_KEPT", "MSCAL_TEST_GONE")}
+
+
+def test_worker_processes_take_the_settings_of_the_pass_not_of_their_server(monkeypatch) -> None:
+    """The workers are forked from a server started earlier (by the command line before its
+    imports, or by an earlier pass of the process) with the environment of that moment; a
+    pass's ``--no-direct-io`` (and any other ``MSCAL_*`` setting) must still reach them."""
+    from pipeline.apply.execution import start_worker_server
+    from pipeline.apply.executor import Runner
+
+    monkeypatch.setenv("MSCAL_DIRECT_IO", "1")
+    monkeypatch.setenv("MSCAL_TEST_GONE", "set when the server started")
+    start_worker_server(Execution("processes", 2), 100)
+    monkeypatch.delenv("MSCAL_TEST_GONE")
+    monkeypatch.setenv("MSCAL_TEST_KEPT", "set after")
+    with Runner(100, Execution("processes", 2, direct_io=False)) as runner:
+        assert runner.scheduler == "processes"
+        seen = runner.run(None, range(4), fn=_worker_environment)
+    assert seen == [{"MSCAL_DIRECT_IO": "0", "MSCAL_TEST_KEPT": "set after", "MSCAL_TEST_GONE": None}] * 4
