@@ -446,14 +446,16 @@ def eq15_fast(
         else:
             table = lut * (k[f] / t[f]).astype(np.float32)[:, None]
         table[:, sat:] = np.nan
+        top = int(d[f].max(initial=0))
+        if top >= lut.shape[1]:
+            raise InputError(
+                f"DN {top} outside the response table 0..{lut.shape[1] - 1}",
+                hint="is the calibration for this camera's bit depth?",
+            )
         for b in range(d.shape[1]):
             o = out[f, b]
-            try:
-                np.take(table[b], d[f, b], out=o)  # bounds-checked
-            except IndexError:
-                raise InputError(
-                    f"DN {int(d.max())} outside the response table 0..{lut.shape[1] - 1}",
-                    hint="is the calibration for this camera's bit depth?",
-                ) from None
+            # bounds checked once per frame above: numpy's own check per lookup ("raise")
+            # made the lookup ~1.5x slower (5.9 against 4.0 ms a full-resolution frame)
+            np.take(table[b], d[f, b], out=o, mode="clip")
             o *= inv_v[b]
     return out

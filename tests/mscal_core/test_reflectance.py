@@ -246,3 +246,17 @@ def test_eq15_fast_band_scale_is_eq15_with_another_s() -> None:
         eq15_fast(dn, lut, inv_v, t, 1000, band_scale=np.zeros(n_bands))
     with pytest.raises(InputError, match="does not fit"):
         eq15_fast(dn, lut, inv_v, t, 1000, band_scale=np.ones((3, n_bands)))
+
+
+def test_eq15_fast_refuses_dn_beyond_the_table_in_any_frame() -> None:
+    """The lookup clips instead of checking each DN; one check per frame must still refuse a
+    DN past the table (a 12-bit frame with a 10-bit calibration), in the last frame too."""
+    from mscal_core.reflectance import eq15_fast, eq15_tables
+
+    U = np.tile(np.linspace(0.0, 1.0, 1024), (2, 1))
+    lut, inv_v = eq15_tables(U, np.ones((2, 4, 5)), np.ones(2))
+    dn = np.full((3, 2, 4, 5), 1023, dtype=np.uint16)
+    assert np.isfinite(eq15_fast(dn, lut, inv_v, 1.0, 1024)).all()  # the table's last DN is in it
+    dn[2, 1, 3, 4] = 1024
+    with pytest.raises(InputError, match="DN 1024 outside the response table 0..1023"):
+        eq15_fast(dn, lut, inv_v, 1.0, 1024)
