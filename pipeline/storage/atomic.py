@@ -225,17 +225,40 @@ def outputs_manifest(root: str | Path, names: Iterable[str]) -> dict[str, Any]:
     total = 0
     for name in sorted(set(names)):
         top = root / name.rstrip("/")
-        paths = [top] if top.is_file() else sorted(p for p in top.rglob("*") if p.is_file()) if top.is_dir() else []
-        if not top.exists():
+        if top.is_file():
+            entries: list[tuple[tuple[str, ...], int]] = [((), top.stat().st_size)]
+        elif top.is_dir():
+            entries = sorted(_files_under(top))  # by path components, as pathlib sorts paths
+        else:
             lines.append(f"{name.rstrip('/')}\tmissing")
-        for p in paths:
-            if TMP_MARK in p.name or p.name.endswith(".lock"):
+            continue
+        rel_top = top.relative_to(root).as_posix()
+        for parts, size in entries:
+            file_name = parts[-1] if parts else top.name
+            if TMP_MARK in file_name or file_name.endswith(".lock"):
                 continue
-            size = p.stat().st_size
             total += size
-            lines.append(f"{p.relative_to(root).as_posix()}\t{size}")
+            lines.append(f"{'/'.join((rel_top, *parts))}\t{size}")
     digest = hashlib.sha256("\n".join(lines).encode()).hexdigest()
     return {"files": sum(1 for ln in lines if not ln.endswith("\tmissing")), "bytes": total, "sha256": digest}
+
+
+def _files_under(top: Path) -> list[tuple[tuple[str, ...], int]]:
+    """``(path components below top, size)`` of every file under ``top``; links to folders are
+    not followed, links to files count as their target (as ``Path.rglob`` + ``is_file``).
+    ``os.scandir`` instead of ``rglob`` and ``stat`` per path: 0.06 against 0.23 s for a
+    600-frame apply OUT (7,825 files), on every run.json written or checked."""
+    found: list[tuple[tuple[str, ...], int]] = []
+    stack: list[tuple[str, tuple[str, ...]]] = [(str(top), ())]
+    while stack:
+        folder, prefix = stack.pop()
+        with os.scandir(folder) as it:
+            for entry in it:
+                if entry.is_dir(follow_symlinks=False):
+                    stack.append((entry.path, (*prefix, entry.name)))
+                elif entry.is_file():
+                    found.append(((*prefix, entry.name), entry.stat().st_size))
+    return found
 
 
 def _remove_file(p: Path) -> None:

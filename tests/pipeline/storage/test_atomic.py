@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 import pytest
 
@@ -13,6 +14,7 @@ from pipeline.storage.atomic import (
     atomic_folder,
     atomic_path,
     install_folder,
+    outputs_manifest,
     remove_temporaries,
     write_json_atomic,
     write_text_atomic,
@@ -103,3 +105,42 @@ def test_install_folder_when_another_process_installs_the_same_name_at_once(tmp_
     install_folder(tmp, final, durable=True)
     assert raced and (final / "zarr.json").read_text() == "mine" and not tmp.exists()
     assert [p.name for p in tmp_path.iterdir()] == ["stage.zarr"]
+
+
+def _manifest_by_pathlib(root: Path, names: list[str]) -> dict:
+    """outputs_manifest as first written (Path.rglob, sorted Paths, Path.stat): run.json files
+    written by it must still match (a mismatch redoes the flight)."""
+    import hashlib
+
+    lines, total = [], 0
+    for name in sorted(set(names)):
+        top = root / name.rstrip("/")
+        paths = [top] if top.is_file() else sorted(p for p in top.rglob("*") if p.is_file()) if top.is_dir() else []
+        if not top.exists():
+            lines.append(f"{name.rstrip('/')}\tmissing")
+        for p in paths:
+            if TMP_MARK in p.name or p.name.endswith(".lock"):
+                continue
+            total += p.stat().st_size
+            lines.append(f"{p.relative_to(root).as_posix()}\t{p.stat().st_size}")
+    digest = hashlib.sha256("\n".join(lines).encode()).hexdigest()
+    return {"files": sum(1 for ln in lines if not ln.endswith("\tmissing")), "bytes": total, "sha256": digest}
+
+
+def test_outputs_manifest_is_the_pathlib_walk_it_replaced(tmp_path) -> None:
+    """Same files, sizes, order and digest as the pathlib walk: names whose order differs as
+    strings and as path components ("a/b" before "a.b/c" by components, after as strings),
+    nested folders, temporaries and locks left out, a link to a file counted, a link to a
+    folder not followed, a name that is missing."""
+    out = tmp_path / "out"
+    for rel, size in [("s.zarr/a/b", 3), ("s.zarr/a.b/c", 5), ("s.zarr/a-b", 7), ("s.zarr/a/z/y/x", 11),
+                      ("s.zarr/c.0.0.0", 13), (f"s.zarr/a/tmp{TMP_MARK}x", 17), ("s.zarr/zarr.json.lock", 19),
+                      ("tiffs/IMG_1_Red.tif", 23), ("run.json", 29)]:
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        (out / rel).write_bytes(b"x" * size)
+    os.symlink(out / "tiffs" / "IMG_1_Red.tif", out / "tiffs" / "link.tif")
+    os.symlink(out / "s.zarr" / "a", out / "tiffs" / "folder_link")
+    names = ["s.zarr", "tiffs/", "run.json", "absent.zarr"]
+    got = outputs_manifest(out, names)
+    assert got == _manifest_by_pathlib(out, names)
+    assert got["files"] == 8 and got["bytes"] == 3 + 5 + 7 + 11 + 13 + 23 + 23 + 29
