@@ -19,6 +19,7 @@ from typing import Any
 
 from mscal_core.errors import InputError
 
+from pipeline.storage.atomic import iter_files
 from pipeline.storage.directio import direct_io_enabled, set_direct_io
 
 __all__ = ["AUTO_PROCESS_FRAMES", "SCHEDULERS", "WORKER_MODULE", "Execution", "distributed_client", "flight_size_hint",
@@ -132,20 +133,17 @@ def distributed_client():  # noqa: ANN201
 
 def flight_size_hint(folder: str | Path, limit: int = AUTO_PROCESS_FRAMES) -> int:
     """Files in ``folder`` and its subfolders, counted up to ``limit`` (cheap: no file is
-    opened). An upper bound of the frames of a flight (a capture can be several files)."""
+    opened; a folder that cannot be read ends the count). An upper bound of the frames of a
+    flight (a capture can be several files)."""
     n = 0
-    stack = [str(folder)]
-    while stack and n < limit:
-        try:
-            with os.scandir(stack.pop()) as it:
-                for entry in it:
-                    if entry.is_dir(follow_symlinks=False):
-                        stack.append(entry.path)
-                    elif entry.is_file():
-                        n += 1
-        except OSError:
-            continue
-    return min(n, limit)
+    try:
+        for _ in iter_files(folder):
+            n += 1
+            if n >= limit:
+                break
+    except OSError:
+        pass
+    return n
 
 
 def start_worker_server(execution: Execution, frames_hint: int) -> bool:

@@ -605,13 +605,12 @@ def _quarantined(job: Job, exc: FrameError) -> Outcome:
 # --------------------------------------------------------------------------- running the tasks
 
 
-def _worker_init(environment: dict[str, str] | None = None) -> None:
+def _worker_init(environment: dict[str, str]) -> None:
     """Worker processes: take the main process's ``MSCAL_*`` settings (``environment``,
     :func:`pipeline.apply.execution.worker_environment`), die with the parent (a killed run
     leaves no writer behind), keep Blosc single-threaded (the workers already fill the
     cores), reuse freed memory (:func:`reuse_freed_memory`)."""
-    if environment is not None:
-        take_worker_environment(environment)
+    take_worker_environment(environment)
     die_with_parent()
     reuse_freed_memory()
     try:

@@ -41,6 +41,7 @@ __all__ = [
     "atomic_path",
     "fsync_tree",
     "install_folder",
+    "iter_files",
     "outputs_manifest",
     "remove_temporaries",
     "sync_file_system",
@@ -244,11 +245,16 @@ def outputs_manifest(root: str | Path, names: Iterable[str]) -> dict[str, Any]:
 
 
 def _files_under(top: Path) -> list[tuple[tuple[str, ...], int]]:
-    """``(path components below top, size)`` of every file under ``top``; links to folders are
-    not followed, links to files count as their target (as ``Path.rglob`` + ``is_file``).
+    """``(path components below top, size)`` of every file under ``top`` (:func:`iter_files`).
     ``os.scandir`` instead of ``rglob`` and ``stat`` per path: 0.06 against 0.23 s for a
     600-frame apply OUT (7,825 files), on every run.json written or checked."""
-    found: list[tuple[tuple[str, ...], int]] = []
+    return [(parts, entry.stat().st_size) for parts, entry in iter_files(top)]
+
+
+def iter_files(top: str | Path) -> Iterator[tuple[tuple[str, ...], os.DirEntry]]:
+    """Every file under the folder ``top``, as ``(path components below top, its entry)``, as
+    the folders are read (no order); links to folders are not followed, links to files count
+    (as ``Path.rglob`` + ``is_file``). ``OSError`` for a folder that cannot be read."""
     stack: list[tuple[str, tuple[str, ...]]] = [(str(top), ())]
     while stack:
         folder, prefix = stack.pop()
@@ -257,8 +263,7 @@ def _files_under(top: Path) -> list[tuple[tuple[str, ...], int]]:
                 if entry.is_dir(follow_symlinks=False):
                     stack.append((entry.path, (*prefix, entry.name)))
                 elif entry.is_file():
-                    found.append(((*prefix, entry.name), entry.stat().st_size))
-    return found
+                    yield (*prefix, entry.name), entry
 
 
 def _remove_file(p: Path) -> None:
