@@ -378,7 +378,7 @@ def eq15_tables(
 
 def eq15_fast(
     dn: np.ndarray, lut: np.ndarray, inv_v: np.ndarray, exposure: np.ndarray | float, saturation_dn: int,
-    band_scale: np.ndarray | None = None,
+    band_scale: np.ndarray | None = None, out: np.ndarray | None = None,
 ) -> np.ndarray:
     """Return Eq. 15 for a stack of frames with the tables of :func:`eq15_tables` (float32 throughout).
 
@@ -396,18 +396,21 @@ def eq15_fast(
         (n_frames, n_bands) or (n_bands,): a per-frame, per-band factor folded into each frame's
         table at no extra cost per pixel, ``R = lut[b][I] k_b / t * inv_v[b]``. None (default)
         computes exactly what it did without the argument.
+    out : numpy.ndarray, optional
+        C-contiguous float32 array the shape of ``dn`` to write the result into (a caller's
+        buffer, e.g. one aligned for direct I/O); None (default): a new array.
 
     Returns
     -------
     numpy.ndarray
-        float32 ``R = lut[b][I] * inv_v[b] / t``, the shape of ``dn``.
+        float32 ``R = lut[b][I] * inv_v[b] / t``, the shape of ``dn`` (``out`` if given).
 
     Raises
     ------
     InputError
         For DN that are not unsigned integers of 4 dimensions, non-positive or non-finite
-        exposures, a ``band_scale`` that does not fit or is not positive, or tables that do
-        not fit.
+        exposures, a ``band_scale`` that does not fit or is not positive, tables that do
+        not fit, or an ``out`` that is not C-contiguous float32 of the shape of ``dn``.
 
     Notes
     -----
@@ -436,7 +439,10 @@ def eq15_fast(
             raise InputError(f"band_scale of shape {np.shape(band_scale)} does not fit {d.shape[0]} frames x {d.shape[1]} bands") from None
         if not np.all(np.isfinite(k) & (k > 0)):
             raise InputError("band_scale must be positive and finite")
-    out = np.empty(d.shape, dtype=np.float32)
+    if out is None:
+        out = np.empty(d.shape, dtype=np.float32)
+    elif out.shape != d.shape or out.dtype != np.float32 or not out.flags.c_contiguous or not out.flags.writeable:
+        raise InputError(f"out must be writeable C-contiguous float32 {d.shape}, got {out.dtype} {out.shape}")
     sat = max(0, min(int(saturation_dn), lut.shape[1]))
     for f in range(d.shape[0]):
         # 1/t and the saturation mask folded into the frame's table: NaN from DN >= saturation

@@ -342,14 +342,17 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
     of each multi-channel band file (:func:`capture_dn`). FrameError: unusable."""
     if isinstance(chain, FieldChain):
         lut, inv_v = calibration_tables(str(chain.calibration))
+        # into a page-aligned array: its reflectance.zarr chunk goes to the device straight from
+        # it (write_file), without an 8.9 MB copy per full-resolution snapshot frame
+        refl = aligned_empty((1, *dn.shape), np.float32)
         if job.capture is None:
-            refl = eq15_fast(dn[None], lut, inv_v, job.t, chain.sat,
-                             None if job.scale is None else np.asarray(job.scale)[None])[0]
-            return refl, None, None, int(np.count_nonzero(dn >= chain.sat))
+            eq15_fast(dn[None], lut, inv_v, job.t, chain.sat,
+                      None if job.scale is None else np.asarray(job.scale)[None], out=refl)
+            return refl[0], None, None, int(np.count_nonzero(dn >= chain.sat))
         d = np.right_shift(dn, chain.dn_shift) if chain.dn_shift else dn
         k = (np.ones(dn.shape[0]) if job.scale is None else np.asarray(job.scale, dtype=np.float64))
-        refl = eq15_fast(d[None], lut, inv_v, 1.0, chain.sat, (k / band_exposures(job.capture))[None])[0]
-        return refl, None, None, int(np.count_nonzero(d >= chain.sat))
+        eq15_fast(d[None], lut, inv_v, 1.0, chain.sat, (k / band_exposures(job.capture))[None], out=refl)
+        return refl[0], None, None, int(np.count_nonzero(d >= chain.sat))
     cap = job.capture
     if cap is None:
         raise InputError("the factory chain needs the band files' own metadata (one-file-per-band captures)")

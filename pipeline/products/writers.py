@@ -210,6 +210,15 @@ class _IFD:
             raise ValueError(f"unsupported TIFF type {typ}")
         self.entries[tag] = (typ, count, data)
 
+    def size(self) -> int:
+        """``len(self.serialize(base))`` for any 4-aligned ``base`` (the padding depends on
+        ``base`` modulo 4 only), without making the bytes."""
+        pos = 2 + 12 * len(self.entries) + 4
+        for _, _, data in self.entries.values():
+            if len(data) > 4:
+                pos = _align(pos) + len(data)
+        return _align(pos)
+
     def serialize(self, base: int) -> bytes:
         """The IFD at absolute file offset ``base`` (4-aligned), followed by its large values."""
         assert base % 4 == 0
@@ -496,9 +505,11 @@ def _tiff_head(ifd0: _IFD, exif: _IFD, gps: _IFD | None, strips: _Strips) -> byt
     """Header and IFDs, up to where the pixel strips start (16-byte aligned); sets the
     offsets in IFD0 (offset sizes do not depend on their values)."""
     pos0 = 8
-    exif_pos = pos0 + len(ifd0.serialize(pos0))
-    gps_pos = exif_pos + len(exif.serialize(exif_pos))
-    end = gps_pos + (len(gps.serialize(gps_pos)) if gps is not None else 0)
+    exif_pos = pos0 + ifd0.size()
+    exif_bytes = exif.serialize(exif_pos)
+    gps_pos = exif_pos + len(exif_bytes)
+    gps_bytes = gps.serialize(gps_pos) if gps is not None else b""
+    end = gps_pos + len(gps_bytes)
     data_pos = _align(end, 16)
     offsets, p = [], data_pos
     for c in strips.counts:
@@ -514,10 +525,9 @@ def _tiff_head(ifd0: _IFD, exif: _IFD, gps: _IFD | None, strips: _Strips) -> byt
     head = bytearray(b"II" + struct.pack("<HI", 42, pos0))
     head += ifd0.serialize(pos0)
     assert len(head) == exif_pos
-    head += exif.serialize(exif_pos)
-    if gps is not None:
-        assert len(head) == gps_pos
-        head += gps.serialize(gps_pos)
+    head += exif_bytes
+    assert len(head) == gps_pos
+    head += gps_bytes
     head += b"\0" * (data_pos - len(head))
     return head
 

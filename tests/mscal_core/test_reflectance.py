@@ -223,6 +223,28 @@ def test_eq15_fast_agrees_with_eq15() -> None:
     assert np.nanmin(fast) >= 0
 
 
+def test_eq15_fast_writes_into_a_given_array() -> None:
+    """``out``: the same values in the caller's array (apply passes a page-aligned one, written
+    to the device without a copy); one that does not fit is refused, nothing computed."""
+    from mscal_core.reflectance import eq15_fast, eq15_tables
+
+    rng = np.random.default_rng(6)
+    n_bands, h, w = 3, 12, 17
+    U = np.cumsum(rng.uniform(0, 2, size=(n_bands, 1024)), axis=1)
+    V = rng.uniform(0.4, 1.0, size=(n_bands, h, w))
+    lut, inv_v = eq15_tables(U, V, np.full(n_bands, 2.0))
+    dn = rng.integers(0, 1024, size=(2, n_bands, h, w)).astype(np.uint16)
+    t = np.array([1.5, 3.0])
+    out = np.full(dn.shape, -1.0, np.float32)
+    got = eq15_fast(dn, lut, inv_v, t, 1000, out=out)
+    assert got is out
+    np.testing.assert_array_equal(out, eq15_fast(dn, lut, inv_v, t, 1000))
+    for bad in (np.empty(dn.shape, np.float64), np.empty((2, n_bands, h, w + 1), np.float32),
+                np.empty((2, n_bands, w, h), np.float32).transpose(0, 1, 3, 2)):
+        with pytest.raises(InputError, match="out must be"):
+            eq15_fast(dn, lut, inv_v, t, 1000, out=bad)
+
+
 def test_eq15_fast_band_scale_is_eq15_with_another_s() -> None:
     """A per-frame, per-band factor k folded into the frame's table is Eq. 15 with S / k."""
     from mscal_core.reflectance import eq15, eq15_fast, eq15_tables

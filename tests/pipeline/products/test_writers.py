@@ -205,6 +205,32 @@ def test_opencv_reads_them(tmp_path) -> None:
     assert f.dtype == np.float32 and f[1, 1] == 0.5
 
 
+def test_ifd_size_is_the_length_of_its_bytes_at_any_aligned_offset() -> None:
+    """_tiff_head places the EXIF and GPS IFDs by IFD0's size() without making its bytes:
+    size() must equal the serialised length wherever the IFD lands (values of every length,
+    odd ones needing padding)."""
+    from pipeline.products.writers import _ASCII, _BYTE, _IFD, _LONG, _RATIONAL, _SHORT
+
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        ifd = _IFD()
+        for tag in rng.choice(1000, size=rng.integers(0, 12), replace=False):
+            kind = int(rng.integers(0, 5))
+            n = int(rng.integers(1, 9))
+            if kind == 0:
+                ifd.add(int(tag), _ASCII, "x" * n)
+            elif kind == 1:
+                ifd.add(int(tag), _BYTE, bytes(n))
+            elif kind == 2:
+                ifd.add(int(tag), _SHORT, list(range(n)))
+            elif kind == 3:
+                ifd.add(int(tag), _LONG, list(range(n)))
+            else:
+                ifd.add(int(tag), _RATIONAL, [(k + 1, 7) for k in range(n)])
+        for base in (8, 12, 4096, 1 << 20):
+            assert ifd.size() == len(ifd.serialize(base))
+
+
 def test_encode_uint16_clips_and_marks_nan() -> None:
     v = encode_reflectance_uint16(np.array([-0.1, 0.0, 0.5, 1.0, 1.99997, 2.5, np.inf, np.nan], np.float32))
     assert v.tolist() == [0, 0, 16384, 32768, 65534, 65534, 65534, 65535]
