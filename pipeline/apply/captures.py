@@ -57,7 +57,7 @@ from pipeline.ingest.photo_tags import CameraOptics, calibration_picture, read_o
 from pipeline.ingest.raw import DN_MEDIAN, DN_MEDIAN_ATTRS, raw_codec
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries
-from pipeline.storage.chunks import FLAT_CHUNK_KEYS
+from pipeline.storage.chunks import frame_encoding, unwritten_frames
 from pipeline.storage.store import CF_VARIABLES, FLIGHT_VARIABLES, FRAME_COORD_ATTRS, cf_annotate
 
 __all__ = ["CaptureFolder", "CaptureRun", "apply_captures", "capture_tags", "find_captures", "is_capture_folder"]
@@ -226,20 +226,17 @@ def capture_coords(camera: Camera, captures: Sequence[Capture], irradiance_unit:
 
 def _template(coords: dict[str, Any], shape: tuple[int, int, int], variables: dict[str, tuple[tuple[str, ...], Any, dict]],
               attrs: dict[str, Any]) -> xr.Dataset:
-    import dask.array as da
-
     ds = xr.Dataset(coords=coords)
     n = ds.sizes["frame"]
     for name, (dims, dtype, vattrs) in variables.items():
         full = (n, *shape) if len(dims) == 4 else (n, shape[0]) if dims == ("frame", "band") else (n, *shape[1:])
-        ds[name] = (dims, da.zeros(full, chunks=(1, *full[1:]), dtype=dtype), vattrs)
+        ds[name] = (dims, unwritten_frames(full, dtype), vattrs)
     ds.attrs.update(attrs)
     return cf_annotate(ds, FLIGHT_VARIABLES)
 
 
 def _create(ds: xr.Dataset, path: Path, compressors: Any) -> None:
-    encoding = {v: {"chunks": (1, *ds[v].shape[1:]), "compressors": compressors, "chunk_key_encoding": FLAT_CHUNK_KEYS}
-                for v in ds.data_vars}
+    encoding = {v: frame_encoding(ds[v].shape, compressors) for v in ds.data_vars}
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Consolidated metadata")
         ds.to_zarr(path, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
@@ -412,12 +409,14 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
 
 
 def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Camera, options: Any,
-                         t_start: float) -> ApplyResult:
+                         t_start: float, calib: xr.Dataset | None = None) -> ApplyResult:
     """``mscal apply FLIGHT --calibration CALIB.zarr`` for a folder of one-file-per-band
     captures: Eq. 15 with the store's U, V and S per band file (its own exposure and gain),
     the light of each capture's time (issue 8; the captures' sun-sensor levels, horizontal for a
     store that says so: :func:`pipeline.apply.light.frame_levels`), the
-    store's band transforms, the normalisation of ``options`` (an ApplyOptions)."""
+    store's band transforms, the normalisation of ``options`` (an ApplyOptions). ``calib``:
+    the store at ``calib_path`` already opened (:func:`pipeline.storage.store.open_calibration`
+    with ``need="apply"``), checked here against ``camera``; None: opened here."""
     from mscal_core.errors import CalibrationStoreError, InputError
 
     from pipeline.apply.executor import capture_reflectance
@@ -433,9 +432,12 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     from pipeline.apply.light import illumination_plan
     from pipeline.calibrate.registration import check_transforms
     from pipeline.ingest.catalog import load_index
-    from pipeline.storage.store import open_calibration
+    from pipeline.storage.store import check_camera, open_calibration
 
-    calib = open_calibration(calib_path, camera, need="apply")
+    if calib is None:
+        calib = open_calibration(calib_path, camera, need="apply")
+    else:
+        check_camera(calib, camera, calib_path)
     if "band_name" in calib.coords and [str(n) for n in calib["band_name"].values] != list(camera.band_names):
         raise CalibrationStoreError(
             f"store bands {', '.join(map(str, calib['band_name'].values))} are not the bands of {camera.name} "

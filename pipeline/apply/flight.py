@@ -75,8 +75,8 @@ from pipeline.storage.atomic import (
     temporary_folder_name,
     write_json_atomic,
 )
-from pipeline.storage.chunks import FLAT_CHUNK_KEYS
-from pipeline.storage.store import FLIGHT_VARIABLES, FRAME_COORD_ATTRS, cf_annotate, open_calibration
+from pipeline.storage.chunks import frame_encoding, unwritten_frames
+from pipeline.storage.store import FLIGHT_VARIABLES, FRAME_COORD_ATTRS, cf_annotate, check_camera, open_calibration
 
 RUN_JSON = "run.json"
 log = logging.getLogger(__name__)
@@ -326,10 +326,10 @@ def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, i
     for c in ("exposure_ms", "gain", "time", "lat", "lon", "alt_m"):
         out_coords[c] = ("frame", coords[c].values, dict(coords[c].attrs))
     ds = xr.Dataset(coords=out_coords)
-    cube = da.zeros((n, *shape), chunks=(1, *shape), dtype=np.float32)
+    cube = unwritten_frames((n, *shape), np.float32)
     ds["reflectance"] = (("frame", "band", "y", "x"), cube,
                          {"long_name": "reflectance (Eq. 15)", "units": "1", "normalisation": options.normalise})
-    plane = da.zeros((n, *shape[1:]), chunks=(1, *shape[1:]), dtype=np.float32)
+    plane = unwritten_frames((n, *shape[1:]), np.float32)
     for ix in indices:
         ds[ix.name] = (("frame", "y", "x"), plane, {"long_name": ix.description, "expression": ix.expression,
                                                      "units": "1"})
@@ -389,8 +389,7 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
     if band_shift is not None:
         ds["reflectance"].attrs["band_positions"] = "resampled to the mosaic's centre position (--centre-bands)"
     tmp_store = temporary_folder_name(out / "reflectance.zarr")
-    encoding = {v: {"chunks": (1, *ds[v].shape[1:]), "compressors": OUTPUT_COMPRESSORS,
-                    "chunk_key_encoding": FLAT_CHUNK_KEYS} for v in ds.data_vars}
+    encoding = {v: frame_encoding(ds[v].shape, OUTPUT_COMPRESSORS) for v in ds.data_vars}
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message="Consolidated metadata")
         ds.to_zarr(tmp_store, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
@@ -613,18 +612,18 @@ def apply_flight(
     flight_dir, out = Path(flight_dir), Path(out)
     if not flight_dir.is_dir():
         raise InputError("flight folder not found", path=flight_dir)
-    start_worker_server(options.execution, flight_size_hint(flight_dir))  # imports while the flight is read
     if str(calibration) == "factory":
         raise InputError("--calibration factory needs factory radiometric metadata, which this camera's files do not carry",
                          hint="fit a calibration with 'mscal calibrate SESSION -o CALIB.zarr'")
+    start_worker_server(options.execution, flight_size_hint(flight_dir))  # imports while the flight is read
     calib_path = Path(calibration)
-    probe = open_calibration(calib_path, need="apply")
-    camera = load_camera(str(probe.attrs.get("camera")))
+    calib = open_calibration(calib_path, need="apply")
+    camera = load_camera(str(calib.attrs.get("camera")))
     if camera.layout.kind == "file_per_band":  # one file per band: a capture is several files (issue 20)
         from pipeline.apply.captures import apply_field_captures
 
-        return apply_field_captures(flight_dir, calib_path, out, camera, options, t_start)
-    calib = open_calibration(calib_path, camera, need="apply")
+        return apply_field_captures(flight_dir, calib_path, out, camera, options, t_start, calib)
+    check_camera(calib, camera, calib_path)  # the store opened once (0.1 s a load)
     chash = calibration_hash(calib)
     export = export_band_indices(camera, options.export_bands)
     indices = [load_index(n) for n in options.indices]

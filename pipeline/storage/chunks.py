@@ -36,12 +36,30 @@ import numpy as np
 from pipeline.storage.atomic import atomic_path
 from pipeline.storage.directio import write_file
 
-__all__ = ["FLAT_CHUNK_KEYS", "FrameChunks"]
+__all__ = ["FLAT_CHUNK_KEYS", "FrameChunks", "frame_encoding", "unwritten_frames"]
 
 # chunk key encoding of the per-frame variables this package creates (see the module doc)
 FLAT_CHUNK_KEYS = {"name": "default", "separator": "."}
 
 _SHUFFLE = {"noshuffle": 0, "shuffle": 1, "bitshuffle": 2}
+
+
+def unwritten_frames(shape: tuple[int, ...], dtype: np.dtype | type | str):  # noqa: ANN201 - dask.array.Array
+    """A variable of a store template (``to_zarr(..., compute=False)``: metadata and
+    coordinates are written, its data never computed; the frames' chunks are written later,
+    one whole chunk per frame). Lazy zeros in one dask chunk: the Zarr chunks come from the
+    encoding (:func:`frame_encoding`), and one dask chunk per frame only made the store graph
+    that ``to_zarr`` builds and the caller drops (0.22-0.31 s against 0.04 s for the four
+    variables of a 600-frame reflectance.zarr; the same metadata)."""
+    import dask.array as da
+
+    return da.zeros(shape, chunks=shape, dtype=dtype)
+
+
+def frame_encoding(shape: tuple[int, ...], compressors: object) -> dict:
+    """The ``to_zarr`` encoding of a per-frame variable of ``shape``: one chunk per frame, flat
+    chunk keys (the layout :class:`FrameChunks` writes)."""
+    return {"chunks": (1, *shape[1:]), "compressors": compressors, "chunk_key_encoding": FLAT_CHUNK_KEYS}
 
 
 @dataclass(frozen=True)

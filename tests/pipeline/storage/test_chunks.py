@@ -61,3 +61,37 @@ def test_other_layouts_are_left_to_zarr(tmp_path) -> None:
     with pytest.raises(ValueError, match="is \\(10,\\)"):
         FrameChunks.open(tmp_path / "ok").write(0, np.zeros(11, np.float32))
     assert ok.shape == (4, 10)
+
+
+def test_template_of_unwritten_frames_then_frames_written_whole(tmp_path) -> None:
+    """A store template as apply makes it (one lazy dask chunk, never computed; one Zarr chunk
+    per frame from frame_encoding): the same metadata as a template with one dask chunk per
+    frame, no chunk file until a frame is written, then each frame's chunk as FrameChunks
+    wrote it, read through xarray."""
+    import dask.array as da
+
+    from pipeline.storage.chunks import frame_encoding, unwritten_frames
+
+    n, shape = 5, (3, 4, 6)
+    lazy = unwritten_frames((n, *shape), np.float32)
+    assert lazy.numblocks == (1, 1, 1, 1) and lazy.shape == (n, *shape)
+    stores = {}
+    per_frame = da.zeros((n, *shape), chunks=(1, *shape), dtype=np.float32)
+    for name, data in (("one", lazy), ("per_frame", per_frame)):
+        ds = xr.Dataset({"reflectance": (("frame", "band", "y", "x"), data)},
+                        coords={"frame": np.array([f"f{i}" for i in range(n)], dtype=object)})
+        path = tmp_path / f"{name}.zarr"
+        ds.to_zarr(path, mode="w", compute=False, consolidated=False, zarr_format=3,
+                   encoding={"reflectance": frame_encoding(ds["reflectance"].shape, None)})
+        stores[name] = path
+    one, per = ((stores[k] / "reflectance" / "zarr.json").read_text() for k in ("one", "per_frame"))
+    assert one == per
+    assert not [p for p in (stores["one"] / "reflectance").iterdir() if p.name != "zarr.json"]
+    fc = FrameChunks.open(stores["one"] / "reflectance")
+    assert fc is not None
+    frames = np.random.default_rng(0).random((n, *shape)).astype(np.float32)
+    for f in (3, 0):
+        fc.write(f, frames[f])
+    got = xr.open_zarr(stores["one"], consolidated=False)["reflectance"].values
+    np.testing.assert_array_equal(got[[0, 3]], frames[[0, 3]])
+    assert np.isnan(got[[1, 2, 4]]).all()  # never written: the fill value (NaN for xarray floats)

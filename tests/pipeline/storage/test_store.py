@@ -62,6 +62,27 @@ def test_failed_write_keeps_the_old_store(tmp_path, monkeypatch) -> None:
     assert sorted(os.listdir(tmp_path)) == ["c.zarr"]
 
 
+def test_check_camera_of_an_opened_store(tmp_path) -> None:
+    """apply opens the store once to learn its camera, then checks that same store against the
+    catalog camera: a name, band count or response length that does not fit is refused with
+    the store's path."""
+    from dataclasses import replace
+
+    from pipeline.storage.store import check_camera
+
+    p = write_store(_calib(), tmp_path / "c.zarr")
+    ds = open_calibration(p, need="apply")
+    cam = load_camera("ximea-mq022hg-sm5x5-nir")
+    check_camera(ds, cam, p)
+    with pytest.raises(CalibrationStoreError, match="not 'generic-rgb8'") as err:
+        check_camera(ds, load_camera("generic-rgb8"), p)
+    assert "c.zarr" in str(err.value)
+    with pytest.raises(CalibrationStoreError, match="store has 24 bands, camera 25"):
+        check_camera(ds.isel(band=slice(0, 24)), cam, p)
+    with pytest.raises(CalibrationStoreError, match="inverse_response covers 1024 DN, camera has 4096"):
+        check_camera(ds, replace(cam, bit_depth=12), p)
+
+
 def test_open_checks_camera_and_content(tmp_path) -> None:
     p = write_store(_calib(), tmp_path / "c.zarr")
     assert open_calibration(p, load_camera("ximea-mq022hg-sm5x5-nir"), need="apply").sizes["band"] == 25
