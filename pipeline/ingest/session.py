@@ -569,15 +569,75 @@ def read_raw(path: str | Path) -> np.ndarray:
 
 #: IFD0 tags :func:`plain_tiff_pixels` accepts: baseline TIFF, XMP, EXIF and GPS IFDs, DNG
 #: black level, GDAL metadata, MicaSense's private tags and opcode list (none changes how
-#: tifffile reads the pixels). A file with any other tag is left to tifffile.
+#: tifffile reads the pixels), and an ImageDescription (270) that is tifffile's own shape
+#: record of this very image (:func:`_shape_description_fits`). A file with any other tag is
+#: left to tifffile.
 _PLAIN_TIFF_TAGS = frozenset({
-    254, 256, 257, 258, 259, 262, 271, 272, 273, 274, 277, 278, 279, 280, 281, 282, 283, 284, 296, 305, 306, 339,
-    700, 34665, 34853, 42112, 42113, 48020, 48021, 48022, 50713, 50714, 50735, 51022,
+    254, 256, 257, 258, 259, 262, 270, 271, 272, 273, 274, 277, 278, 279, 280, 281, 282, 283, 284, 296, 305, 306,
+    339, 700, 34665, 34853, 42112, 42113, 48020, 48021, 48022, 50713, 50714, 50735, 51022,
 })
 _TIFF_TYPES = {3: "H", 4: "I"}  # SHORT, LONG: the types of the tags read here
 
 
-def plain_tiff_pixels(data: bytes | bytearray, out: np.ndarray | None = None) -> np.ndarray | None:
+def _shape_description_fits(text: bytes, height: int, width: int) -> bool:
+    """Whether an ImageDescription leaves the pixels as they are: only the JSON shape record
+    that tifffile writes into the files it makes (``{"shape": [H, W], ...}``), for this
+    image's own height and width. Every other description (ImageJ, OME-XML, a shape that
+    reshapes the image, free text a reader might interpret) is left to tifffile."""
+    import json
+
+    body = text.rstrip(b"\0").strip()
+    if not body.startswith(b"{"):
+        return False
+    try:
+        record = json.loads(body.decode("ascii"))
+    except (UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(record, dict) and record.get("shape") == [height, width]
+
+
+def _plain_ifd(data: bytes | bytearray | memoryview, e: str, ifd: int
+               ) -> tuple[dict[int, tuple[int, ...]], bytes | None] | None:
+    """The only IFD of a plain TIFF at offset ``ifd`` (byte order ``e``): the values of the
+    tags that say how the pixels are stored, and the ImageDescription's bytes (None: no
+    description); None if it is not the only image or has a tag or value
+    :func:`plain_tiff_pixels` does not read."""
+    import struct
+
+    n = len(data)
+    count = struct.unpack_from(e + "H", data, ifd)[0]
+    end = ifd + 2 + 12 * count
+    if end + 4 > n or struct.unpack_from(e + "I", data, end)[0] != 0:  # one image only
+        return None
+    tags: dict[int, tuple[int, ...]] = {}
+    description = None
+    for k in range(count):
+        tag, typ, cnt, value = struct.unpack_from(e + "HHI4s", data, ifd + 2 + 12 * k)
+        if tag not in _PLAIN_TIFF_TAGS:
+            return None
+        if tag == 270:  # ASCII, checked once the image's size is known
+            at = ifd + 2 + 12 * k + 8 if cnt <= 4 else struct.unpack_from(e + "I", value)[0]
+            if typ != 2 or at + cnt > n:
+                return None
+            description = bytes(data[at:at + cnt])
+            continue
+        if tag not in (256, 257, 258, 259, 273, 277, 278, 279, 284, 339):
+            continue
+        if typ not in _TIFF_TYPES or cnt < 1:
+            return None
+        fmt = f"{e}{cnt}{_TIFF_TYPES[typ]}"
+        size = struct.calcsize(fmt)
+        if size <= 4:
+            tags[tag] = struct.unpack_from(fmt, value)
+        else:
+            at = struct.unpack_from(e + "I", value)[0]
+            if at + size > n:
+                return None
+            tags[tag] = struct.unpack_from(fmt, data, at)
+    return tags, description
+
+
+def plain_tiff_pixels(data: bytes | bytearray | memoryview, out: np.ndarray | None = None) -> np.ndarray | None:
     """The pixels of a single-image, uncompressed, stripped, one-sample 8- or 16-bit unsigned
     classic TIFF (camera band files such as MicaSense's), straight from its strips: the array
     ``tifffile.imread`` returns for such a file, without building tifffile's page and tag
@@ -596,28 +656,10 @@ def plain_tiff_pixels(data: bytes | bytearray, out: np.ndarray | None = None) ->
     ifd = struct.unpack_from(e + "I", data, 4)[0]
     if ifd < 8 or ifd + 2 > n:
         return None
-    count = struct.unpack_from(e + "H", data, ifd)[0]
-    end = ifd + 2 + 12 * count
-    if end + 4 > n or struct.unpack_from(e + "I", data, end)[0] != 0:  # one image only
+    read = _plain_ifd(data, e, ifd)
+    if read is None:
         return None
-    tags: dict[int, tuple[int, ...]] = {}
-    for k in range(count):
-        tag, typ, cnt, value = struct.unpack_from(e + "HHI4s", data, ifd + 2 + 12 * k)
-        if tag not in _PLAIN_TIFF_TAGS:
-            return None
-        if tag not in (256, 257, 258, 259, 273, 277, 278, 279, 284, 339):
-            continue
-        if typ not in _TIFF_TYPES or cnt < 1:
-            return None
-        fmt = f"{e}{cnt}{_TIFF_TYPES[typ]}"
-        size = struct.calcsize(fmt)
-        if size <= 4:
-            tags[tag] = struct.unpack_from(fmt, value)
-        else:
-            at = struct.unpack_from(e + "I", value)[0]
-            if at + size > n:
-                return None
-            tags[tag] = struct.unpack_from(fmt, data, at)
+    tags, description = read
     try:
         (width,), (height,), (bits,) = tags[256], tags[257], tags[258]
         offsets, counts = tags[273], tags[279]
@@ -625,6 +667,8 @@ def plain_tiff_pixels(data: bytes | bytearray, out: np.ndarray | None = None) ->
         return None
     if tags.get(259, (1,)) != (1,) or tags.get(277, (1,)) != (1,) or tags.get(339, (1,)) != (1,) \
             or tags.get(284, (1,)) not in ((1,), (2,)) or bits not in (8, 16) or not (width and height):
+        return None
+    if description is not None and not _shape_description_fits(description, height, width):
         return None
     rows = min(tags.get(278, (height,))[0] or height, height)
     strips = -(-height // rows)
@@ -645,7 +689,8 @@ def plain_tiff_pixels(data: bytes | bytearray, out: np.ndarray | None = None) ->
     return out
 
 
-def decode_raw(source: bytes | Path, path: str | Path, out: np.ndarray | None = None) -> np.ndarray:
+def decode_raw(source: bytes | bytearray | memoryview | Path, path: str | Path, out: np.ndarray | None = None
+               ) -> np.ndarray:
     """Pixels of a frame file, from its bytes or (``source`` a path) from the file itself;
     ``path`` names the format by its suffix and the file in errors. ``out``: where a plain
     camera TIFF of that shape and dtype is decoded (:func:`plain_tiff_pixels`); the array
@@ -662,13 +707,14 @@ def decode_raw(source: bytes | Path, path: str | Path, out: np.ndarray | None = 
 
             import tifffile
 
-            img = plain_tiff_pixels(source, out) if isinstance(source, (bytes, bytearray)) else None
+            in_memory = isinstance(source, (bytes, bytearray, memoryview))
+            img = plain_tiff_pixels(source, out) if in_memory else None
             if img is None:
-                img = tifffile.imread(io.BytesIO(source) if isinstance(source, (bytes, bytearray)) else source)
+                img = tifffile.imread(io.BytesIO(source) if in_memory else source)
         else:
             import cv2
 
-            data = source if isinstance(source, (bytes, bytearray)) else Path(source).read_bytes()
+            data = source if isinstance(source, (bytes, bytearray, memoryview)) else Path(source).read_bytes()
             if suffix in (".jpg", ".jpeg") and data[-2:] != b"\xff\xd9":
                 raise ValueError("JPEG end-of-image marker missing")
             img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)

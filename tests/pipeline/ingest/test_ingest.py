@@ -664,3 +664,44 @@ def test_prefetch_file_asks_for_the_whole_file_and_never_fails(tmp_path, monkeyp
     assert opened == [str(f)] and calls == [(0, 0, os.POSIX_FADV_WILLNEED)]
     ingest_mod.prefetch_file(tmp_path / "missing.tif")  # its own task reports it
     assert calls == [(0, 0, os.POSIX_FADV_WILLNEED)]
+
+
+def test_read_frame_reads_once_same_hash_and_bands_as_from_the_file(tmp_path, catalog, monkeypatch) -> None:
+    """read_frame hashes and decodes a frame from one read into the thread's buffer: the sha256
+    of the file's bytes and the bands decoded from the file itself, frame after frame (the
+    buffer reused, a larger frame growing it); a frame over the size limit takes the stream
+    hash and the file decode; a file that ends before its size is refused, naming it."""
+    from pipeline.ingest.raw import read_frame
+    from pipeline.ingest.session import FrameRecord, to_bands
+    from pipeline.storage.store import file_sha256
+
+    cam = load_camera(TINY)
+    small = [tmp_path / "a.tif", tmp_path / "b.tif"]
+    tifffile.imwrite(small[0], _mosaic(1), photometric="minisblack")  # tifffile's shape description
+    tifffile.imwrite(small[1], _mosaic(2), photometric="minisblack", metadata=None, description="free text")
+    big = tmp_path / "c.tif"
+    tifffile.imwrite(big, _mosaic(3), photometric="minisblack", extratags=[(65000, "B", 5000, bytes(5000), False)])
+    for path in (*small, big, small[0]):
+        sha, bands = read_frame(FrameRecord(path, 2.0), cam)
+        assert sha == file_sha256(path) == hashlib.sha256(path.read_bytes()).hexdigest()
+        np.testing.assert_array_equal(bands, to_bands(decode_raw(path, path), cam, path))
+    monkeypatch.setattr(ingest_mod, "READ_ONCE_MAX_BYTES", 100)
+    seen: list = []
+    monkeypatch.setattr(ingest_mod, "_read_whole", lambda *a: seen.append(a))
+    sha, bands = read_frame(FrameRecord(small[0], 2.0), cam)
+    assert not seen and sha == file_sha256(small[0])
+    np.testing.assert_array_equal(bands, to_bands(decode_raw(small[0], small[0]), cam, small[0]))
+    monkeypatch.undo()
+
+    real_stat = Path.stat
+    shrunk = tmp_path / "shrunk.tif"
+    shutil.copy(small[0], shrunk)
+
+    def larger(self, *a, **k):  # the size seen before the read: the copy was still growing
+        st = real_stat(self, *a, **k)
+        return os.stat_result((*st[:6], st.st_size + 100, *st[7:])) if self == shrunk else st
+
+    monkeypatch.setattr(Path, "stat", larger)
+    with pytest.raises(ingest_mod.FrameError, match="changed while it was being read") as err:
+        read_frame(FrameRecord(shrunk, 2.0), cam)
+    assert "shrunk.tif" in str(err.value)

@@ -50,6 +50,22 @@ def test_real_band_files_match_tifffile() -> None:
         assert got.dtype == np.uint16 and got.shape == (960, 1280)
 
 
+@pytest.mark.parametrize("rowsperstrip", [None, 5])
+def test_tifffile_shape_record_is_read(rowsperstrip: int | None) -> None:
+    """Files written by tifffile carry an ImageDescription with its JSON shape record (the
+    frames of a Python capture script, the synthetic sessions): for a single 2-D image it
+    changes nothing tifffile returns, so they take the strip reader too, with the same pixels."""
+    rng = np.random.default_rng(8)
+    arr = rng.integers(0, 1024, size=(40, 23)).astype(np.uint16)
+    for kw in ({"metadata": {}}, {"metadata": {"exposure_ms": 2.5}}):
+        data = _tiff(arr, rowsperstrip=rowsperstrip, **kw)
+        assert b'"shape": [40, 23]' in data
+        got = plain_tiff_pixels(data)
+        assert got is not None
+        np.testing.assert_array_equal(got, tifffile.imread(io.BytesIO(data)))
+        np.testing.assert_array_equal(plain_tiff_pixels(memoryview(bytearray(data))), arr)  # from a buffer view
+
+
 def test_declines_what_it_does_not_read() -> None:
     arr = np.arange(64 * 32, dtype=np.uint16).reshape(64, 32)
     assert plain_tiff_pixels(_tiff(arr, compression="zlib")) is None
@@ -58,7 +74,12 @@ def test_declines_what_it_does_not_read() -> None:
     assert plain_tiff_pixels(_tiff(arr.astype(np.float32))) is None
     assert plain_tiff_pixels(_tiff(arr.astype(np.int16))) is None
     assert plain_tiff_pixels(_tiff(np.dstack([arr, arr, arr]).astype(np.uint8), photometric="rgb")) is None
-    assert plain_tiff_pixels(_tiff(arr, metadata={})) is None  # ImageDescription: tifffile's call  # ImageDescription: tifffile's call
+    # an ImageDescription other than tifffile's shape record of this very image: tifffile's call
+    assert plain_tiff_pixels(_tiff(arr, description='{"shape": [1, 64, 32]}')) is None
+    assert plain_tiff_pixels(_tiff(arr, description='{"shape": [32, 64]}')) is None
+    assert plain_tiff_pixels(_tiff(arr, description="a camera's free text")) is None
+    assert plain_tiff_pixels(_tiff(arr, description="{not json")) is None
+    assert plain_tiff_pixels(_tiff(arr, imagej=True, metadata={"axes": "YX"})) is None
     assert plain_tiff_pixels(_tiff(arr, bigtiff=True)) is None
     assert plain_tiff_pixels(b"not a tiff at all") is None
     full = _tiff(arr, rowsperstrip=16)
