@@ -100,9 +100,11 @@ def frame_levels(flight: FlightResults, calibration: xr.Dataset | None = None) -
     out = {}
     frames = [int(f) for f in sample_indices(len(names), LEVEL_MAX_FRAMES)]
     if DN_MEDIAN in raw:  # written with each frame: no frame decoded again
-        med = np.asarray(raw[DN_MEDIAN].isel(band=b).values, dtype=np.float64)
-        for f in frames:
-            out[names[f]] = float((med[f] - black) / t[f]) if t[f] > 0 else float("nan")
+        # only the checked frames' chunks are read (one small chunk per frame: all of them took
+        # 0.14 s for 600 frames and grow with the flight)
+        med = np.asarray(raw[DN_MEDIAN].isel(band=b, frame=frames).values, dtype=np.float64)
+        for m, f in zip(med, frames):
+            out[names[f]] = float((m - black) / t[f]) if t[f] > 0 else float("nan")
         return out
     for f, dn in _qa_bands(flight, b, frames):
         out[names[f]] = _level(dn, black, t[f])

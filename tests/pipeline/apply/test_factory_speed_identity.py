@@ -131,6 +131,23 @@ def test_frame_levels_from_chunk_files_equal_the_dask_read(applied, monkeypatch)
     assert frame_levels(flight) == fast
 
 
+def test_frame_levels_of_a_sample_of_the_frames_read_only_their_medians(applied, monkeypatch) -> None:
+    """Past LEVEL_MAX_FRAMES the report checks evenly spaced frames: the stored medians of just
+    those frames (one chunk each) give each its own level, as decoding those frames does."""
+    flight = open_flight(applied[2])
+    n = flight.raw.sizes["frame"]
+    assert n >= 3
+    monkeypatch.setattr(report_flight, "LEVEL_MAX_FRAMES", 2)
+    stored = frame_levels(flight)
+    names = [str(f) for f in flight.raw["frame"].values]
+    assert list(stored) == [names[0], names[-1]]
+    decoded = frame_levels(dataclasses.replace(flight, raw=flight.raw.drop_vars(DN_MEDIAN)))
+    assert stored == decoded
+    monkeypatch.setattr(report_flight, "LEVEL_MAX_FRAMES", n)
+    every = frame_levels(flight)
+    assert stored == {k: every[k] for k in stored} and len(set(every.values())) > 1
+
+
 def test_kept_properties_hold_every_orientation_the_model_reads(tmp_path: Path) -> None:
     """DJI writes no sensor orientation of its own: the aircraft's FlightYaw/Pitch/RollDegree
     must survive in the kept properties, or the tilt model would take a level sensor."""
