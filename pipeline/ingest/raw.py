@@ -196,7 +196,7 @@ READ_ONCE_MAX_BYTES = 256 * 1024 * 1024
 def _read_whole(path: Path, size: int) -> memoryview | None:
     """The first ``size`` bytes of ``path`` in this thread's buffer (reused from frame to frame,
     grown when needed; valid until this thread's next call), or None if the file ended
-    before (it is being written: the caller's size check reports it)."""
+    before (it is being written or was cut short: :func:`read_frame` refuses it)."""
     buf = getattr(_read_buffer, "buf", None)
     if buf is None or len(buf) < size:
         buf = _read_buffer.buf = bytearray(size)
@@ -218,8 +218,9 @@ def read_frame(rec: FrameRecord, camera: Camera, known: "Callable[[str], bool] |
     to after the decode).
 
     A file is read once: into the thread's buffer, hashed and decoded from there (plain TIFFs
-    straight from their strips, :func:`pipeline.ingest.session.plain_tiff_pixels`). Reading it
-    a second time to decode cost a full-resolution snapshot frame 1 ms more.
+    straight from their strips, :func:`pipeline.ingest.session.plain_tiff_pixels`). Hashing the
+    file as a stream and then decoding it from the file took a 4.4 MB snapshot frame 3.9 ms
+    of CPU, against 3.3 ms this way.
 
     :class:`FrameError` naming the file if it is unreadable, unusable, or changed while it was
     being read (a copy still in progress).
