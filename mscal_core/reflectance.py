@@ -376,6 +376,19 @@ def eq15_tables(
     return lut.astype(np.float32), inv_v.astype(np.float32)
 
 
+def _output_array(out: np.ndarray | None, shape: tuple[int, ...]) -> np.ndarray:
+    """Return the array :func:`eq15_fast` writes its result into.
+
+    ``out`` itself if it can take a float32 result of ``shape`` in place (writeable,
+    C-contiguous), a new array if None; InputError otherwise.
+    """
+    if out is None:
+        return np.empty(shape, dtype=np.float32)
+    if out.shape != shape or out.dtype != np.float32 or not out.flags.c_contiguous or not out.flags.writeable:
+        raise InputError(f"out must be writeable C-contiguous float32 {shape}, got {out.dtype} {out.shape}")
+    return out
+
+
 def eq15_fast(
     dn: np.ndarray, lut: np.ndarray, inv_v: np.ndarray, exposure: np.ndarray | float, saturation_dn: int,
     band_scale: np.ndarray | None = None, out: np.ndarray | None = None,
@@ -439,10 +452,7 @@ def eq15_fast(
             raise InputError(f"band_scale of shape {np.shape(band_scale)} does not fit {d.shape[0]} frames x {d.shape[1]} bands") from None
         if not np.all(np.isfinite(k) & (k > 0)):
             raise InputError("band_scale must be positive and finite")
-    if out is None:
-        out = np.empty(d.shape, dtype=np.float32)
-    elif out.shape != d.shape or out.dtype != np.float32 or not out.flags.c_contiguous or not out.flags.writeable:
-        raise InputError(f"out must be writeable C-contiguous float32 {d.shape}, got {out.dtype} {out.shape}")
+    out = _output_array(out, d.shape)
     sat = max(0, min(int(saturation_dn), lut.shape[1]))
     for f in range(d.shape[0]):
         # 1/t and the saturation mask folded into the frame's table: NaN from DN >= saturation
