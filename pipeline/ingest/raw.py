@@ -52,7 +52,7 @@ from collections import deque
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable, Iterator, Sequence
 
 import mscal_core
 import numpy as np
@@ -97,14 +97,48 @@ def _counts(values: np.ndarray) -> np.ndarray:
     return cv2.calcHist([image], [0], None, [top], [0, top]).ravel().astype(np.int64)
 
 
+#: From this largest value on, :func:`median_uint16` counts in two steps (:func:`_ranked_wide`):
+#: one unit-wide bin per value scatters its counts over a table too large for the fastest cache
+#: (a 16-bit MicaSense band: 1.9 ms for 65,536 bins against 0.5 ms for 4,096).
+_WIDE_HISTOGRAM = 4096
+
+
+def _ranked_wide(image: np.ndarray, ranks: Sequence[int]) -> list[int]:
+    """The values of ``image`` (2-D uint16, C-contiguous, fewer than :data:`_EXACT_HISTOGRAM`
+    values) at each 0-based rank of its sorted values, counted in two steps: the high bytes
+    (256 bins), then the low bytes of the values whose high byte holds the rank. Exact, as
+    one count per value."""
+    import cv2
+
+    high = (image >> 8).astype(np.uint8)
+    cum = np.cumsum(cv2.calcHist([high], [0], None, [256], [0, 256]).ravel().astype(np.int64))
+    low_cum: dict[int, np.ndarray] = {}
+    out = []
+    for r in ranks:
+        k = int(np.searchsorted(cum, r, side="right"))
+        if k not in low_cum:
+            low = (image[high == k] & 0xFF).astype(np.uint8).reshape(1, -1)
+            low_cum[k] = np.cumsum(cv2.calcHist([low], [0], None, [256], [0, 256]).ravel().astype(np.int64))
+        below = int(cum[k - 1]) if k else 0
+        out.append(k * 256 + int(np.searchsorted(low_cum[k], r - below, side="right")))
+    return out
+
+
 def median_uint16(values: np.ndarray) -> float:
     """``np.median`` of unsigned integers of up to 16 bits, by counting: the middle value, or
     the float64 mean of the middle two (as ``np.median`` takes it), for a fraction of its CPU
-    on a full-resolution band (no partition of a copy; :func:`_counts`)."""
-    counts = np.cumsum(_counts(values))
-    n = int(counts[-1])
-    lo = int(np.searchsorted(counts, (n - 1) // 2, side="right"))
-    hi = int(np.searchsorted(counts, n // 2, side="right"))
+    on a full-resolution band (no partition of a copy; :func:`_counts`, or in two steps for
+    values past :data:`_WIDE_HISTOGRAM`: :func:`_ranked_wide`)."""
+    v = np.asarray(values)
+    if v.dtype == np.uint16 and 0 < v.size < _EXACT_HISTOGRAM and int(v.max()) >= _WIDE_HISTOGRAM:
+        n = v.size
+        image = np.ascontiguousarray(v.reshape(-1, v.shape[-1]) if v.ndim >= 2 else v.reshape(1, -1))
+        lo, hi = _ranked_wide(image, ((n - 1) // 2, n // 2))
+    else:
+        counts = np.cumsum(_counts(v))
+        n = int(counts[-1])
+        lo = int(np.searchsorted(counts, (n - 1) // 2, side="right"))
+        hi = int(np.searchsorted(counts, n // 2, side="right"))
     return float(np.mean(np.array([lo, hi], dtype=np.uint16)))
 
 

@@ -73,6 +73,34 @@ def test_counting_median_is_numpys() -> None:
     assert median_uint16(skewed) == np.median(skewed.astype(np.float64))
 
 
+def test_counting_median_of_wide_values_in_two_steps(monkeypatch) -> None:
+    """16-bit values (MicaSense bands) are counted by high byte, then by the low bytes of the
+    middle values' high byte: np.median's value, wherever the middle ranks fall (across two
+    high bytes, at a bin's first or last value, on a constant band, 12-bit DN in the high
+    bits), and the same as one count per value."""
+    import pipeline.ingest.raw as raw
+
+    rng = np.random.default_rng(12)
+    cases = [rng.integers(0, 65536, n).astype(np.uint16) for n in (1, 2, 3, 4, 255, 256, 257, 4097)]
+    cases += [np.array([4095, 4096], np.uint16), np.array([4351, 4352, 4352, 9000], np.uint16),
+              np.array([255, 256, 65535, 0], np.uint16), np.full((30, 40), 65535, np.uint16),
+              (rng.integers(0, 4096, (960, 1280)) << 4).astype(np.uint16),
+              np.where(rng.random((200, 301)) < 0.5, rng.integers(0, 256, (200, 301)),
+                       rng.integers(60_000, 65_536, (200, 301))).astype(np.uint16)]
+    band = rng.integers(4000, 4300, (217, 409)).astype(np.uint16)
+    cases += [band, band[::2, 1::3], band.T]
+    calls = []
+    real = raw._ranked_wide
+    monkeypatch.setattr(raw, "_ranked_wide", lambda *a: calls.append(1) or real(*a))
+    for v in cases:
+        want = np.median(v.astype(np.float64))
+        assert median_uint16(v) == want, v.shape
+    assert len(calls) == len(cases)  # every case reaches 4096: the two-step count
+    monkeypatch.setattr(raw, "_WIDE_HISTOGRAM", 1 << 16)  # one count per value: the same medians
+    assert [median_uint16(v) for v in cases] == [np.median(v.astype(np.float64)) for v in cases]
+    assert len(calls) == len(cases)
+
+
 def test_counting_median_of_more_values_than_float32_counts_exactly(monkeypatch) -> None:
     """Past 2**24 values OpenCV's float32 counts would round: those arrays are counted by
     numpy (the limit lowered here so the test stays small)."""
