@@ -68,7 +68,7 @@ from pipeline.storage.chunks import FLAT_CHUNK_KEYS
 from pipeline.storage.store import FRAME_COORD_ATTRS, file_sha256
 
 __all__ = ["Cube", "IngestResult", "ingest_flight", "open_cube", "RAW_FORMAT", "FRAME_COORDS", "DN_MEDIAN",
-           "DN_MEDIAN_ATTRS", "band_medians", "kept_medians", "median_uint16"]
+           "DN_MEDIAN_ATTRS", "band_medians", "kept_medians", "median_uint16", "read_whole"]
 
 #: Variable of raw.zarr (frame, band): the median stored DN of each band of each frame, written
 #: by whoever writes the frame's dn chunk (snapshot flights and capture folders). The report's
@@ -227,10 +227,11 @@ _read_buffer = threading.local()
 READ_ONCE_MAX_BYTES = 256 * 1024 * 1024
 
 
-def _read_whole(path: Path, size: int) -> memoryview | None:
-    """The first ``size`` bytes of ``path`` in this thread's buffer (reused from frame to frame,
-    grown when needed; valid until this thread's next call), or None if the file ended
-    before (it is being written or was cut short: :func:`read_frame` refuses it)."""
+def read_whole(path: Path, size: int) -> memoryview | None:
+    """The first ``size`` bytes of ``path`` in this thread's buffer (reused from file to file,
+    grown when needed; valid until this thread's next call: decode or copy before), or None
+    if the file ended before (it is being written or was cut short: the caller refuses it).
+    A new ``bytes`` per file instead gives every file fresh memory to fault in."""
     buf = getattr(_read_buffer, "buf", None)
     if buf is None or len(buf) < size:
         buf = _read_buffer.buf = bytearray(size)
@@ -262,7 +263,7 @@ def read_frame(rec: FrameRecord, camera: Camera, known: "Callable[[str], bool] |
     try:
         st0 = rec.path.stat()
         once = st0.st_size <= READ_ONCE_MAX_BYTES
-        data = _read_whole(rec.path, st0.st_size) if once else None
+        data = read_whole(rec.path, st0.st_size) if once else None
         if once and data is None:
             raise FrameError("the file changed while it was being read (it ended early)", path=rec.path,
                              hint="run ingest again")

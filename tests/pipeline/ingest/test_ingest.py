@@ -687,7 +687,7 @@ def test_read_frame_reads_once_same_hash_and_bands_as_from_the_file(tmp_path, ca
         np.testing.assert_array_equal(bands, to_bands(decode_raw(path, path), cam, path))
     monkeypatch.setattr(ingest_mod, "READ_ONCE_MAX_BYTES", 100)
     seen: list = []
-    monkeypatch.setattr(ingest_mod, "_read_whole", lambda *a: seen.append(a))
+    monkeypatch.setattr(ingest_mod, "read_whole", lambda *a: seen.append(a))
     sha, bands = read_frame(FrameRecord(small[0], 2.0), cam)
     assert not seen and sha == file_sha256(small[0])
     np.testing.assert_array_equal(bands, to_bands(decode_raw(small[0], small[0]), cam, small[0]))

@@ -4,6 +4,7 @@ tifffile gives, and declines every file it does not fully understand (tifffile r
 from __future__ import annotations
 
 import io
+import os
 from pathlib import Path
 
 import numpy as np
@@ -129,3 +130,39 @@ def test_capture_decoded_into_its_cube() -> None:
         np.testing.assert_array_equal(a, c)
         assert np.shares_memory(c, cube[b])
     np.testing.assert_array_equal(cube, np.stack(dns))
+
+
+def test_capture_read_once_per_file_hash_and_a_file_cut_short(monkeypatch) -> None:
+    """read_capture_pixels reads each band file once into the thread's buffer (shared with the
+    snapshot reader, pipeline.ingest.raw.read_whole): the content hash of the files' bytes in
+    band order, each band decoded before the next file reuses the buffer, and a file that ends
+    before its stat size (a copy in progress) refused, naming it."""
+    import hashlib
+
+    from mscal_core.errors import FrameError
+    from pipeline.apply.captures import find_captures
+    from pipeline.ingest.camera_meta import read_capture_pixels
+    from pipeline.ingest.identify import identify_camera
+
+    folder = DATA / "micasense-rededge"
+    if not folder.is_dir():
+        pytest.skip("no MicaSense sample")
+    cap = find_captures(folder, identify_camera(folder, None).camera).captures[1]
+    sha, dns, _ = read_capture_pixels(cap)
+    h = hashlib.sha256()
+    for f in cap.files:
+        h.update(f.read_bytes())
+    assert sha == h.hexdigest()
+    for meta, dn in zip(cap.metas, dns):
+        np.testing.assert_array_equal(dn, tifffile.imread(meta.path))
+    short = cap.files[2]
+    real_stat = Path.stat
+
+    def larger(self, *a, **k):
+        st = real_stat(self, *a, **k)
+        return os.stat_result((*st[:6], st.st_size + 10, *st[7:])) if self == short else st
+
+    monkeypatch.setattr(Path, "stat", larger)
+    with pytest.raises(FrameError, match="changed while it was being read") as err:
+        read_capture_pixels(cap)
+    assert short.name in str(err.value)
