@@ -93,8 +93,12 @@ def _counts(values: np.ndarray) -> np.ndarray:
     import cv2
 
     top = int(v.max()) + 1
-    image = np.ascontiguousarray(v.reshape(-1, v.shape[-1]) if v.ndim >= 2 else v.reshape(1, -1))
-    return cv2.calcHist([image], [0], None, [top], [0, top]).ravel().astype(np.int64)
+    return cv2.calcHist([_as_image(v)], [0], None, [top], [0, top]).ravel().astype(np.int64)
+
+
+def _as_image(v: np.ndarray) -> np.ndarray:
+    """``v`` as a C-contiguous 2-D image for OpenCV's histogram (rows of its last axis)."""
+    return np.ascontiguousarray(v.reshape(-1, v.shape[-1]) if v.ndim >= 2 else v.reshape(1, -1))
 
 
 #: From this largest value on, :func:`median_uint16` counts in two steps (:func:`_ranked_wide`):
@@ -132,8 +136,7 @@ def median_uint16(values: np.ndarray) -> float:
     v = np.asarray(values)
     if v.dtype == np.uint16 and 0 < v.size < _EXACT_HISTOGRAM and int(v.max()) >= _WIDE_HISTOGRAM:
         n = v.size
-        image = np.ascontiguousarray(v.reshape(-1, v.shape[-1]) if v.ndim >= 2 else v.reshape(1, -1))
-        lo, hi = _ranked_wide(image, ((n - 1) // 2, n // 2))
+        lo, hi = _ranked_wide(_as_image(v), ((n - 1) // 2, n // 2))
     else:
         counts = np.cumsum(_counts(v))
         n = int(counts[-1])
