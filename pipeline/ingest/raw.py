@@ -64,7 +64,7 @@ from pipeline.ingest.discover import Discovery, discover_flight, quarantine_entr
 from pipeline.ingest.exif import time_ns
 from pipeline.ingest.session import FrameRecord, decode_raw, to_bands
 from pipeline.storage.atomic import TMP_MARK, atomic_folder
-from pipeline.storage.chunks import FLAT_CHUNK_KEYS
+from pipeline.storage.chunks import frame_encoding
 from pipeline.storage.store import FRAME_COORD_ATTRS, file_sha256
 
 __all__ = ["Cube", "IngestResult", "ingest_flight", "open_cube", "RAW_FORMAT", "FRAME_COORDS", "DN_MEDIAN",
@@ -427,10 +427,9 @@ def raw_codec():  # noqa: ANN201 - zarr.codecs.BloscCodec
 
 def _encoding(shape: tuple[int, int, int], compress: bool = True) -> dict:
     codec = raw_codec()
-    enc: dict = {"dn": {"chunks": (1, *shape), "compressors": (codec,) if compress else None,
-                        "chunk_key_encoding": FLAT_CHUNK_KEYS},
+    enc: dict = {"dn": frame_encoding((0, *shape), (codec,) if compress else None),
                  # one chunk per frame, as dn: written by whoever writes the frame's dn chunk
-                 DN_MEDIAN: {"chunks": (1, shape[0]), "compressors": None, "chunk_key_encoding": FLAT_CHUNK_KEYS}}
+                 DN_MEDIAN: frame_encoding((0, shape[0]), None)}
     for name in FRAME_COORDS:
         enc[name] = {"chunks": (COORD_CHUNK,)}
     enc["time"].update({"units": TIME_UNITS, "calendar": "proleptic_gregorian", "dtype": "int64"})

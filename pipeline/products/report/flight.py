@@ -116,8 +116,8 @@ def _stored_medians(flight: FlightResults, b: int, frames: Sequence[int]) -> np.
     every frame's chunk through xarray took 0.19 s of a 600-frame apply's summary and grew with
     the flight; 400 chunks through zarr 0.15 s; straight from the files a tenth of that."""
     da = flight.raw[DN_MEDIAN]
-    chunks = FrameChunks.open(flight.out / "raw.zarr" / DN_MEDIAN)
-    if chunks is not None and da.dims == ("frame", "band") and chunks.shape == da.shape:
+    chunks = _chunk_files(flight, DN_MEDIAN)
+    if chunks is not None:
         try:
             return np.array([chunks.read(f)[b] for f in frames], dtype=np.float64)
         except FileNotFoundError:  # a frame without its chunk: zarr gives the fill value
@@ -135,13 +135,23 @@ def _level(dn: np.ndarray, black: float, t: float) -> float:
     return float(np.median(np.asarray(dn, dtype=float) - black) / t)
 
 
+def _chunk_files(flight: FlightResults, name: str) -> FrameChunks | None:
+    """The whole-frame chunk files of raw.zarr's ``name`` (frame, band, ...), where its layout
+    is one :class:`pipeline.storage.chunks.FrameChunks` reads and matches the opened array;
+    None: read it through xarray."""
+    da = flight.raw[name]
+    chunks = FrameChunks.open(flight.out / "raw.zarr" / name)
+    ok = chunks is not None and da.dims[:2] == ("frame", "band") and chunks.shape == da.shape
+    return chunks if ok else None
+
+
 def _qa_bands(flight: FlightResults, b: int, frames: Sequence[int]):  # noqa: ANN202 (a generator)
     """``(frame, DN of band b)`` of each of ``frames``: straight from the whole-frame chunk
     files where raw.zarr's layout allows (:class:`pipeline.storage.chunks.FrameChunks`: one
     read and decode per frame, no dask graph), else a few frames per dask read."""
     dn = flight.raw["dn"]
-    chunks = FrameChunks.open(flight.out / "raw.zarr" / "dn")
-    if chunks is not None and dn.dims[:2] == ("frame", "band") and chunks.shape == dn.shape:
+    chunks = _chunk_files(flight, "dn")
+    if chunks is not None:
         for f in frames:
             yield f, chunks.read(f)[b]
         return
