@@ -30,6 +30,7 @@ import itertools
 import os
 import threading
 import uuid
+from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from functools import lru_cache
@@ -417,13 +418,16 @@ class FrameWrites:
     TIFFs from them); each file write waits for the device (direct I/O), and the computing
     of the next product need not wait with it. Only arrays that nothing changes afterwards
     are handed over. :meth:`wait` returns once every write is on disk (the frame is reported
-    done only then, as before) and raises the first write's error.
+    done only then, as before) and raises the first write's error. ``nbytes``: the bytes of
+    the arrays and parts handed over (what the frame holds in memory until written).
     """
 
     def __init__(self) -> None:
         self._pending: list[Future] = []
+        self.nbytes = 0
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> None:
+        self.nbytes += sum(_held_bytes(a) for a in args)
         self._pending.append(_writer().submit(fn, *args))
 
     def wait(self, raise_errors: bool = True) -> None:
@@ -431,6 +435,17 @@ class FrameWrites:
         errors = [exc for f in pending if (exc := f.exception()) is not None]
         if errors and raise_errors:
             raise errors[0]
+
+
+def _held_bytes(arg: Any) -> int:
+    """Bytes of an array, a bytes-like object or a list of them (a TIFF's parts); 0 for others."""
+    if isinstance(arg, np.ndarray):
+        return int(arg.nbytes)
+    if isinstance(arg, (bytes, bytearray, memoryview)):
+        return memoryview(arg).nbytes
+    if isinstance(arg, (list, tuple)):
+        return sum(_held_bytes(a) for a in arg)
+    return 0
 
 
 def write_raw(plan: Plan, index: int, dn: np.ndarray) -> None:
@@ -451,37 +466,51 @@ class _Writing:
     writes: FrameWrites
 
 
+#: At most this many frames of a task have their files on the way to disk while the next
+#: frame is computed (:func:`process_frames`), ...
+WRITING_FRAMES = 2
+#: ... and more than one only while those frames' outputs total at most this many bytes (a
+#: full-resolution snapshot frame holds ~16 MB until written, a MicaSense capture with
+#: radiance ~90 MB: a factory pass keeps one).
+WRITING_BYTES = 64 * 1024 * 1024
+
+
 def process_frames(plan: Plan, jobs: Sequence[Job]) -> list[Outcome]:
     """Captures one after the other, every output of each (:func:`start_frame`), one
     :class:`Outcome` per job in job order. A frame's files are still being written while the
-    next frame is computed; its outcome is made once they are on disk, and every frame's
-    are before this returns. (With the wait at the end of every frame, the computing thread
-    spent ~40 % of a 600-frame snapshot apply waiting for its own writes.) On an error
-    nothing is left writing behind it."""
-    outcomes: list[Outcome] = []
-    previous: _Writing | None = None  # the frame before, its files on their way
-    current: Outcome | _Writing | None = None
+    next frames are computed (up to :data:`WRITING_FRAMES` frames writing, within
+    :data:`WRITING_BYTES`); its outcome is made once they are on disk, and every frame's
+    are before this returns. On an error nothing is left writing behind it.
 
-    def finish_previous() -> None:
-        nonlocal previous
-        if previous is not None:
-            done, previous = previous, None
-            outcomes.append(finish_frame(plan, done))
+    Why: with the wait at the end of every frame, the computing thread spent ~40 % of a
+    600-frame snapshot apply waiting for its own writes; with one frame writing behind, it
+    still waited whenever a frame's writes took longer than the next frame's computing (the
+    device is shared by both workers). Two frames writing (3 and 5 measured too, no better):
+    600 frames, 4 alternating runs each (both without raw.zarr's commit barriers), median
+    wall 10.47 -> 9.98 s, peak RSS +15 MiB (docs/benchmarks.md)."""
+    outcomes: list[Outcome] = []
+    pending: deque[Outcome | _Writing] = deque()  # in job order; the _Writing ones still writing
+
+    def writing() -> list[_Writing]:
+        return [p for p in pending if isinstance(p, _Writing)]
+
+    def finish_due(limit: int) -> None:
+        while pending:
+            w = writing()
+            over = len(w) > limit or (len(w) > 1 and sum(x.writes.nbytes for x in w) > WRITING_BYTES)
+            if isinstance(pending[0], _Writing) and not over:
+                return
+            done = pending.popleft()
+            outcomes.append(finish_frame(plan, done) if isinstance(done, _Writing) else done)
 
     try:
         for job in jobs:
-            current = start_frame(plan, job)
-            finish_previous()
-            if isinstance(current, Outcome):
-                outcomes.append(current)
-            else:
-                previous = current
-            current = None
-        finish_previous()
+            pending.append(start_frame(plan, job))
+            finish_due(WRITING_FRAMES)  # these write on while the next frame is computed
+        finish_due(0)
     except BaseException:
-        for w in (previous, current):
-            if isinstance(w, _Writing):
-                w.writes.wait(raise_errors=False)
+        for w in writing():
+            w.writes.wait(raise_errors=False)
         raise
     return outcomes
 

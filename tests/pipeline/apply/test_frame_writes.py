@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import threading
 
+import numpy as np
 import pytest
 
 from pipeline.apply.executor import WRITER_THREADS, FrameWrites
@@ -68,9 +69,10 @@ class _Frames:
     """start_frame / finish_frame stand-ins: every frame hands one write to its writer
     threads; ``log`` records the order of starts, writes and finishes."""
 
-    def __init__(self, quarantined=(), fail_start=None, fail_write=None) -> None:
+    def __init__(self, quarantined=(), fail_start=None, fail_write=None, nbytes: int = 0) -> None:
         self.log: list[str] = []
         self.quarantined, self.fail_start, self.fail_write = set(quarantined), fail_start, fail_write
+        self.nbytes = nbytes  # the size of the array each frame hands to its writes
 
     def start(self, plan, job):  # noqa: ANN001, ANN202
         from pipeline.apply import executor
@@ -81,10 +83,10 @@ class _Frames:
         if job in self.quarantined:
             return executor.Outcome(job, None, 0, quarantine={"file": job, "reason": "bad"})
         writes = FrameWrites()
-        writes.submit(self._write, job)
+        writes.submit(self._write, job, np.zeros(self.nbytes, np.uint8))
         return executor._Writing(job, None, 0, None, writes)  # type: ignore[arg-type]
 
-    def _write(self, job: str) -> None:
+    def _write(self, job: str, data: np.ndarray) -> None:
         self.log.append(f"written {job}")
         if job == self.fail_write:
             raise OSError(28, f"{job}: the disk is full")
@@ -104,22 +106,42 @@ def _patched(monkeypatch, frames: _Frames) -> None:
     monkeypatch.setattr(executor, "finish_frame", frames.finish)
 
 
-def test_a_frame_is_finished_after_the_next_one_is_started_and_outcomes_keep_job_order(monkeypatch) -> None:
-    from pipeline.apply.executor import process_frames
+def test_two_frames_write_on_while_the_next_is_computed_and_outcomes_keep_job_order(monkeypatch) -> None:
+    from pipeline.apply.executor import WRITING_FRAMES, process_frames
 
+    assert WRITING_FRAMES == 2
     frames = _Frames(quarantined={"c"})
     _patched(monkeypatch, frames)
-    out = process_frames(None, ["a", "b", "c", "d"])
-    assert [o.name for o in out] == ["a", "b", "c", "d"]
-    assert [o.quarantine is not None for o in out] == [False, False, True, False]
+    out = process_frames(None, ["a", "b", "c", "d", "e"])
+    assert [o.name for o in out] == ["a", "b", "c", "d", "e"]
+    assert [o.quarantine is not None for o in out] == [False, False, True, False, False]
     log = frames.log
-    # a's outcome is made only once b is computed (its writes overlapped b), and every
-    # frame's files are written before its outcome and before process_frames returns
-    assert log.index("start b") < log.index("finish a")
-    assert log.index("start c") < log.index("finish b") < log.index("start d")
-    assert log[-1] == "finish d"
-    for job in "abd":
+    # a's outcome is made only once two more frames are computed (b's and, c being
+    # quarantined without writes, d's): a and b wrote on meanwhile
+    assert log.index("start d") < log.index("finish a") < log.index("start e")
+    assert log.index("start e") < log.index("finish b")
+    assert log.index("finish b") < log.index("finish d") < log.index("finish e") == len(log) - 1
+    # every frame's files are written before its outcome and before process_frames returns
+    for job in "abde":
         assert log.index(f"written {job}") < log.index(f"finish {job}")
+
+
+def test_large_frames_write_one_at_a_time(monkeypatch) -> None:
+    """Frames whose outputs exceed WRITING_BYTES together (MicaSense captures with radiance:
+    ~90 MB) keep one frame writing, as before: memory does not grow with them."""
+    from pipeline.apply import executor
+
+    monkeypatch.setattr(executor, "WRITING_BYTES", 1000)
+    frames = _Frames(nbytes=600)
+    _patched(monkeypatch, frames)
+    assert [o.name for o in executor.process_frames(None, ["a", "b", "c"])] == ["a", "b", "c"]
+    log = frames.log
+    assert log.index("start b") < log.index("finish a") < log.index("start c") < log.index("finish b")
+    frames = _Frames(nbytes=400)  # two of them fit
+    _patched(monkeypatch, frames)
+    executor.process_frames(None, ["a", "b", "c"])
+    log = frames.log
+    assert log.index("start c") < log.index("finish a")
 
 
 def test_on_an_error_no_frame_is_left_writing(monkeypatch) -> None:
@@ -133,8 +155,9 @@ def test_on_an_error_no_frame_is_left_writing(monkeypatch) -> None:
     frames = _Frames(fail_write="a")
     _patched(monkeypatch, frames)
     with pytest.raises(OSError, match="a: the disk is full"):
-        process_frames(None, ["a", "b", "c"])
-    assert "written b" in frames.log and "start c" not in frames.log
+        process_frames(None, ["a", "b", "c", "d"])
+    # a's error surfaces when its outcome is due (after c is computed); b and c were waited for
+    assert {"written b", "written c"} <= set(frames.log) and "start d" not in frames.log
 
 
 def test_frames_per_task_keeps_every_worker_busy_to_the_end() -> None:
