@@ -32,13 +32,13 @@ import threading
 import uuid
 from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import wait as futures_wait
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import dask
-import dask.multiprocessing
 import dask.threaded
 import numpy as np
 import xarray as xr
@@ -672,9 +672,22 @@ def frames_per_task(n_jobs: int, parallelism: int) -> int:
     return max(1, min(FRAMES_PER_TASK, n_jobs // (4 * max(1, parallelism))))
 
 
+#: Tasks given to the process pool per worker beyond the one whose outcome is waited for
+#: (:meth:`Runner.stream`): every worker always has its next task while the outcomes are
+#: taken in job order; a task's outcomes are small.
+TASKS_AHEAD = 3
+
+
+def _results(item: tuple[Future, bool]) -> list[Any]:
+    fut, many = item
+    result = fut.result()
+    return list(result) if many else [result]
+
+
 class Runner:
-    """Runs the per-frame tasks (dask.delayed) on the caller's ``distributed`` client if one is
-    active, else on worker processes (long flights) or threads; see :func:`scheduler_for`.
+    """Runs the per-frame tasks on the caller's ``distributed`` client if one is active (dask
+    graphs), else on worker processes (long flights: straight to the process pool) or threads
+    (dask's threaded scheduler); see :func:`scheduler_for`.
     Worker processes are forked when the runner is made, from a server that
     :func:`pipeline.apply.execution.start_worker_server` may have started earlier (its imports
     then ran beside the main process's); each takes the main process's ``MSCAL_*`` settings of
@@ -694,25 +707,56 @@ class Runner:
                 self.pool.submit(int)
 
     def run(self, plan: Any, jobs: Iterable[Any], fn: Callable[[Any, Any], Any] | None = None) -> list[Any]:
-        """The outcome of every job, in job order: :func:`process_frames` on runs of up to
-        ``FRAMES_PER_TASK`` jobs (:func:`frames_per_task`), or, given ``fn``, ``fn(plan, job)``
-        one job a task.
+        """The outcome of every job, in job order (:meth:`stream`, collected)."""
+        return list(self.stream(plan, jobs, fn))
 
-        The jobs go to the scheduler ``RUN_WINDOW`` at a time: one graph for every frame (the
-        tasks, their keys, the scheduler's state) grew with the flight, and a 5,000-frame flight
-        of small frames peaked at 436 MiB against 393 MiB with windows (380 and 376 MiB at
-        1,000 frames). ``jobs`` may be a generator, drawn one window at a time."""
+    def stream(self, plan: Any, jobs: Iterable[Any], fn: Callable[[Any, Any], Any] | None = None) -> Iterator[Any]:
+        """The outcome of every job, in job order, each as soon as it and those before it are
+        done: :func:`process_frames` on runs of up to ``FRAMES_PER_TASK`` jobs
+        (:func:`frames_per_task`), or, given ``fn``, ``fn(plan, job)`` one job a task.
+
+        ``jobs`` (may be a generator) is drawn ``RUN_WINDOW`` jobs at a time: one dask graph
+        for every frame (the tasks, their keys, the scheduler's state) grew with the flight,
+        and a 5,000-frame flight of small frames peaked at 436 MiB against 393 MiB with
+        windows. On worker processes the tasks go to the pool directly, at most
+        :data:`TASKS_AHEAD` per worker beyond the outcome being waited for, with no barrier
+        between windows or between the caller's steps: a caller that commits every 64 frames
+        lets the workers compute on meanwhile (with a dask graph per batch, both workers
+        waited at the end of each batch for the slower one and for the commit). Closing the
+        iterator early (or an error) cancels the tasks not started and waits for the others:
+        nothing is left writing behind the caller."""
+        runs = self._runs(jobs, fn)
+        if self.pool is None:
+            for f, window, many in runs:
+                for result in self._run_window(plan, window, f):
+                    yield from (result if many else (result,))
+            return
+        ahead: deque[tuple[Future, bool]] = deque()
+        limit = TASKS_AHEAD * max(1, self.workers)
+        try:
+            for f, window, many in runs:
+                for arg in window:
+                    ahead.append((self.pool.submit(f, plan, arg), many))
+                    while len(ahead) > limit:
+                        yield from _results(ahead.popleft())
+            while ahead:
+                yield from _results(ahead.popleft())
+        finally:
+            for fut, _ in ahead:
+                fut.cancel()
+            futures_wait([fut for fut, _ in ahead])
+
+    def _runs(self, jobs: Iterable[Any], fn: Callable[[Any, Any], Any] | None
+              ) -> Iterator[tuple[Callable[[Any, Any], Any], list[Any], bool]]:
+        """``(function, its task arguments, whether each returns a list of outcomes)`` per
+        window of ``RUN_WINDOW`` jobs, drawn from ``jobs`` one window at a time."""
         it = iter(jobs)
-        results: list[Any] = []
         while window := list(itertools.islice(it, RUN_WINDOW)):
             if fn is not None:
-                results += self._run_window(plan, window, fn)
+                yield fn, window, False
                 continue
             size = frames_per_task(len(window), self.parallelism())
-            runs = [window[k:k + size] for k in range(0, len(window), size)]
-            for outcomes in self._run_window(plan, runs, process_frames):
-                results += outcomes
-        return results
+            yield process_frames, [window[k:k + size] for k in range(0, len(window), size)], True
 
     def parallelism(self) -> int:
         """Tasks that run at once: the local workers, or the client's threads."""
@@ -734,10 +778,6 @@ class Runner:
         ]
         if self.client is not None:
             return list(dask.compute(*tasks))
-        if self.pool is not None:  # one task at a time to a worker: dask's default hands out 6, and
-            # with 8 tasks of 8 frames between raw.zarr commits one worker got 6 while the other idled
-            return list(dask.compute(*tasks, scheduler=dask.multiprocessing.get, pool=self.pool,
-                                     num_workers=self.workers, chunksize=1))
         # the schedulers' functions, not their names: a name makes dask import distributed
         # (0.2 s) to look for a client, which distributed_client has done already
         return list(dask.compute(*tasks, scheduler=dask.threaded.get, num_workers=self.workers))

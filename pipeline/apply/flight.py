@@ -7,8 +7,10 @@
    normalisation, indices, Otsu mask, and every output of that frame: its whole chunk of each
    ``reflectance.zarr`` variable (no two tasks share a chunk), its photogrammetry TIFFs and
    its NDVI TIFF. Nothing is computed until the pass runs; each frame is read once;
-3. run the pass on the caller's ``distributed`` client, or on local threads (processes on
-   request); raw.zarr is committed batch by batch, reflectance.zarr is renamed into place;
+3. run the pass on the caller's ``distributed`` client, or on local threads or worker
+   processes (:class:`pipeline.apply.executor.Runner`); raw.zarr is committed every
+   ``FRESH_BATCH`` frames as their outcomes come in (the workers go on meanwhile),
+   reflectance.zarr is renamed into place;
 4. write ``OUT/run.json`` last. Every output is written under a temporary name and renamed;
    a run that finds ``run.json`` matching its inputs, calibration and options does nothing.
 """
@@ -448,7 +450,8 @@ def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_p
     """Ingest and apply in one pass over the files, for a cube that has no frames yet.
 
     Frames are given indices in file-name order before they are read, assuming each can be
-    used; batches are committed to raw.zarr as they finish. A frame that cannot be used (or
+    used; every ``batch`` frames are committed to raw.zarr as their outcomes come in, while
+    the workers go on with the frames after them (:meth:`Runner.stream`). A frame that cannot be used (or
     is a duplicate) would shift the frames after it: then the frames before it are committed
     and ``None`` is returned, and the caller goes the general way (ingest, then a pass over
     the cube), which gives the same outputs.
@@ -468,24 +471,29 @@ def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_p
     ps = start(coords, file_dn)
     writer = CubeWriter(cube.path, cube.group, cube.committed, cube.shape, cube.camera, commit_every=len(recs) + 1,
                      pool=None, workers=1)  # type: ignore[arg-type]  (no chunk writes of its own)
+    first = writer.reserve(len(recs))
+    jobs = (Job(first + f, recs[f].name, _frame_tags(coords, f, cube.camera), float(t[f]), rec=recs[f],
+                scale=ps.scale(f), ahead=recs[f + READ_AHEAD].path if f + READ_AHEAD < len(recs) else None)
+            for f in range(len(recs)))
     seen: set[str] = set()
     outcomes: list[Outcome] = []
-    for b0 in range(0, len(recs), batch):
-        first = writer.reserve(min(batch, len(recs) - b0))
-        jobs = [Job(first + k, recs[f].name, _frame_tags(coords, f, cube.camera), float(t[f]), rec=recs[f],
-                    scale=ps.scale(f), ahead=recs[f + READ_AHEAD].path if f + READ_AHEAD < len(recs) else None)
-                for k, f in enumerate(range(b0, min(b0 + batch, len(recs))))]
-        results = runner.run(ps.plan, jobs)
-        for job, res in zip(jobs, results):
+    results = runner.stream(ps.plan, jobs)
+    try:
+        for f, res in enumerate(results):
             if res.quarantine is not None or res.sha256 in seen:
-                writer.commit()  # the frames before this one are in place
+                results.close()  # no task left writing: then the frames before this one are committed
+                writer.commit()
                 shutil.rmtree(ps.tmp_store, ignore_errors=True)
                 return None
-            assert job.rec is not None and res.sha256 is not None
-            writer.register(job.rec, res.sha256)
+            assert res.sha256 is not None
+            writer.register(recs[f], res.sha256)
             seen.add(res.sha256)
             outcomes.append(res)
-        writer.commit()
+            if len(outcomes) % batch == 0 and len(outcomes) < len(recs):
+                writer.commit(room=len(recs) - len(outcomes))  # the workers go on meanwhile
+    finally:
+        results.close()
+    writer.commit()
     shas = np.array([o.sha256 for o in outcomes], dtype=object)
     ps.coords = ps.coords.assign_coords(sha256=("frame", shas))
     return ps, outcomes

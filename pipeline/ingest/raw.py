@@ -24,7 +24,10 @@ is created under a temporary name and renamed into place. New frames are written
 chunk by whole chunk beyond the committed count, then the coordinate arrays, then the
 consolidated metadata, and last the ``frames_committed`` attribute. On open, anything beyond
 ``frames_committed`` is cut off (arrays resized back, their chunks deleted), so a killed run
-followed by a re-run gives the same cube as one uninterrupted run. One process at a time:
+followed by a re-run gives the same cube as one uninterrupted run. Apply's single pass
+commits while its workers write the frames after the commit point
+(:meth:`CubeWriter.commit` with ``room``): the readers' metadata shows the committed frames
+only, and chunks a kill leaves beyond the arrays' shape are deleted on open too. One process at a time:
 an advisory lock on the output folder.
 
 Memory is flat in the number of frames: frames stream through a small thread pool with a
@@ -58,13 +61,14 @@ import mscal_core
 import numpy as np
 import zarr
 from mscal_core.errors import FrameError, InputError
+from zarr.core.sync import sync
 
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.discover import Discovery, discover_flight, quarantine_entry
 from pipeline.ingest.exif import time_ns
 from pipeline.ingest.session import FrameRecord, decode_raw, to_bands
 from pipeline.storage.atomic import TMP_MARK, atomic_folder
-from pipeline.storage.chunks import frame_encoding
+from pipeline.storage.chunks import FrameChunks, frame_encoding
 from pipeline.storage.store import FRAME_COORD_ATTRS, file_sha256
 
 __all__ = ["Cube", "IngestResult", "ingest_flight", "open_cube", "RAW_FORMAT", "FRAME_COORDS", "DN_MEDIAN",
@@ -493,9 +497,35 @@ def _open(out: Path, camera: Camera) -> tuple[zarr.Group, int]:
             if p.is_file():
                 p.unlink(missing_ok=True)
     if stale:
+        for name in ("dn", DN_MEDIAN):
+            _drop_chunks_beyond(out / name, n)
         _consolidate(out)
         _set_committed(out, n)
     return g, n
+
+
+def _drop_chunks_beyond(array: Path, n: int) -> None:
+    """Delete the chunk files of frames ``n`` and later of a frame-chunked array: a run killed
+    within a commit made while its workers wrote frames beyond (:meth:`CubeWriter.commit`
+    with ``room``) can leave some outside the array's shape, where resizing does not see them."""
+    fc = FrameChunks.open(array)
+    if fc is None:
+        return
+    if fc.separator == "/":
+        folder, prefix = array / "c", ""
+    else:
+        folder, prefix = array, "c."
+    try:
+        entries = list(os.scandir(folder))
+    except FileNotFoundError:
+        return
+    for e in entries:
+        key = e.name[len(prefix):].split(".", 1)[0] if e.name.startswith(prefix) else ""
+        if key.isdigit() and int(key) >= n:
+            if e.is_dir(follow_symlinks=False):
+                shutil.rmtree(e.path, ignore_errors=True)
+            else:
+                Path(e.path).unlink(missing_ok=True)
 
 
 def _consolidated_matches(root: dict, arrays: dict[str, zarr.Array]) -> bool:
@@ -731,12 +761,16 @@ class CubeWriter:
                 self.medians = zarr.open_array(str(medians), mode="r+")
         return self.dn
 
-    def _resize(self, n: int) -> None:
-        dn = self._dn()
-        if dn.shape[0] != n:
-            dn.resize((n, *dn.shape[1:]))
-        if self.medians is not None and self.medians.shape[0] != n:
-            self.medians.resize((n, self.medians.shape[1]))
+    def _resize(self, n: int, delete: bool = True) -> None:
+        """``dn`` (and the medians) to ``n`` frames; ``delete=False`` keeps the chunks beyond
+        (metadata only: others are writing them)."""
+        for arr in (self._dn(), self.medians):
+            if arr is None or arr.shape[0] == n:
+                continue
+            if delete:
+                arr.resize((n, *arr.shape[1:]))
+            else:
+                sync(arr.async_array.resize((n, *arr.shape[1:]), delete_outside_chunks=False))
 
     def add(self, rec: FrameRecord, sha: str, bands: np.ndarray) -> str | None:
         """Write one frame's chunk; returns a reason instead if it does not fit the cube."""
@@ -774,7 +808,12 @@ class CubeWriter:
         while len(self.writes) > limit:
             self.writes.popleft().result()
 
-    def commit(self) -> None:
+    def commit(self, room: int = 0) -> None:
+        """Make the frames registered so far durable. ``room``: frames beyond them whose
+        chunks others are still writing (a pass that commits while its workers go on): their
+        chunks are kept and ``dn`` grows back over them once the commit is made, so that
+        what readers see (the consolidated metadata) is always the committed frames, and a
+        killed run's frames beyond are cut off on open as before."""
         self._drain(0)
         g = self.group
         if g is None or (not self.pending and self._dn().shape[0] == self.committed):
@@ -786,8 +825,10 @@ class CubeWriter:
             if arr.shape[0] != n:
                 arr.resize((n,))
             arr[k0:n] = _column(name, [row[name] for row in self.pending])
-        self._resize(n)
+        self._resize(n, delete=room <= 0)
         _consolidate(self.out)
+        if room > 0:  # before the count: a run killed after it is cut back on open, chunks and all
+            self._resize(n + room)
         _set_committed(self.out, n)
         self.added.extend(row["frame"] for row in self.pending)
         self.pending.clear()

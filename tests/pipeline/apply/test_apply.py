@@ -271,25 +271,61 @@ def test_single_pass_equals_ingest_then_apply(applied, tmp_path) -> None:
     assert list(a["sha256"].values) == list(b["sha256"].values)
 
 
-def test_duplicate_frame_in_a_fresh_flight(small, tmp_path) -> None:
+@pytest.mark.parametrize("scheduler, dup_of", [("threads", 0), ("processes", 4)])
+def test_duplicate_frame_in_a_fresh_flight(small, tmp_path, monkeypatch, scheduler: str, dup_of: int) -> None:
     """A duplicate found during the single pass: the frames before it stay, the rest go the
-    general way; outputs equal those of the flight without the duplicate."""
+    general way; outputs equal those of the flight without the duplicate. On worker processes
+    with a commit every 2 frames the duplicate comes after commits made while the workers
+    wrote the frames beyond (``CubeWriter.commit(room=...)``); the pass stops with no task
+    left writing, and raw.zarr holds exactly the flight's frames."""
+    from pipeline.apply import flight as flight_mod
+
+    monkeypatch.setattr(flight_mod, "FRESH_BATCH", 2)
     session, calib = small
     flight = _flight_copy(session, tmp_path / "flight")
     rows = _rows(flight)
+    if scheduler == "processes":  # 9 frames: the 3 of the session, then copies with one DN changed
+        for k in range(3, 9):
+            dn = tifffile.imread(flight / rows[k % 3]["file"])
+            dn[0, k] ^= 1
+            tifffile.imwrite(flight / f"IMG_{k:04d}.tif", dn)
+            rows.append(dict(rows[k % 3], file=f"IMG_{k:04d}.tif"))
+        with (flight / "frames.csv").open("w", newline="") as fh:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
     clean = tmp_path / "clean"
-    assert _apply(flight, calib, clean) == 0
-    dup = dict(rows[0], file="IMG_0000b.tif")
-    shutil.copy(flight / rows[0]["file"], flight / dup["file"])
+    assert _apply(flight, calib, clean, "--scheduler", scheduler) == 0
+    name = Path(rows[dup_of]["file"]).stem + "b.tif"  # sorts right after the frame it copies
+    dup = dict(rows[dup_of], file=name)
+    shutil.copy(flight / rows[dup_of]["file"], flight / name)
     with (flight / "frames.csv").open("a", newline="") as fh:
         csv.DictWriter(fh, fieldnames=list(rows[0])).writerow(dup)
+    from pipeline.ingest.raw import CubeWriter
+
+    rooms: list[int] = []
+    commit = CubeWriter.commit
+
+    def spy(self, room: int = 0) -> None:
+        rooms.append(room)
+        commit(self, room)
+
+    monkeypatch.setattr(CubeWriter, "commit", spy)
     out = tmp_path / "out"
-    assert _apply(flight, calib, out) == 0
+    assert _apply(flight, calib, out, "--scheduler", scheduler, "--workers", "2") == 0
+    if scheduler == "processes":  # committed twice with frames in flight, then at the duplicate
+        assert rooms[:3] == [8, 6, 0]
     run = json.loads((out / "run.json").read_text())
-    assert [q["file"] for q in run["quarantined"]] == ["IMG_0000b.tif"]
+    assert run["execution"]["scheduler"] == scheduler
+    assert [q["file"] for q in run["quarantined"]] == [name]
     assert "duplicate" in run["quarantined"][0]["reason"] and run["single_pass"] is False
-    assert not list((out / "photogrammetry").glob("IMG_0000b_*")) and not (out / "ndvi" / "IMG_0000b.tif").exists()
+    stem = Path(name).stem
+    assert not list((out / "photogrammetry").glob(f"{stem}_*")) and not (out / "ndvi" / f"{stem}.tif").exists()
     _assert_same_outputs(_outputs(clean), _outputs(out))
+    a, b = xr.open_zarr(clean / "raw.zarr"), xr.open_zarr(out / "raw.zarr")
+    np.testing.assert_array_equal(a["dn"].values, b["dn"].values)
+    assert sorted(p.name for p in (out / "raw.zarr" / "dn").iterdir() if p.name.startswith("c")) == \
+        sorted(p.name for p in (clean / "raw.zarr" / "dn").iterdir() if p.name.startswith("c"))
 
 
 def test_lazy_reflectance_of_the_cube_equals_the_pass(applied) -> None:

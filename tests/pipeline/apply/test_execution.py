@@ -142,6 +142,37 @@ def test_runner_hands_the_jobs_over_a_window_at_a_time(monkeypatch) -> None:
     assert max(seen_when.values()) == 10 and seen_when[0] == 3
 
 
+def _slow_job(folder: str, job: int) -> int:
+    import time
+
+    time.sleep(0.05)
+    (Path(folder) / str(job)).write_text("done")
+    return job * 10
+
+
+def test_stream_on_processes_gives_outcomes_in_order_and_closing_leaves_nothing_running(tmp_path) -> None:
+    """Worker processes get their tasks straight from the pool, a few ahead; the caller takes
+    the outcomes in job order as they come (apply's single pass commits raw.zarr meanwhile).
+    Closing the stream early cancels what has not started and waits for what has."""
+    import itertools
+    import time
+
+    from pipeline.apply.executor import TASKS_AHEAD, Runner
+
+    with Runner(100, Execution("processes", 2, direct_io=False)) as runner:
+        assert runner.run(str(tmp_path), range(12), fn=_slow_job) == [10 * k for k in range(12)]
+        folder = tmp_path / "early"
+        folder.mkdir()
+        stream = runner.stream(str(folder), range(200), fn=_slow_job)
+        assert list(itertools.islice(stream, 3)) == [0, 10, 20]
+        stream.close()
+        done = sorted(int(p.name) for p in folder.iterdir())
+        time.sleep(0.5)  # a task still running would write its file meanwhile
+        assert sorted(int(p.name) for p in folder.iterdir()) == done
+        # the three taken, and at most the tasks that were given to the pool ahead of them
+        assert done[:3] == [0, 1, 2] and 3 <= len(done) <= 3 + TASKS_AHEAD * 2 + 1
+
+
 def test_flight_size_hint_counts_files_of_nested_folders_up_to_the_limit(tmp_path) -> None:
     from pipeline.apply.execution import flight_size_hint
 

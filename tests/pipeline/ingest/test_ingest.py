@@ -583,6 +583,37 @@ def test_stale_consolidated_metadata_is_repaired_without_new_frames(tmp_path, ki
     np.testing.assert_array_equal(snap["dn"], reference["dn"][:3])
 
 
+def test_chunks_beyond_the_shape_left_by_a_commit_with_frames_in_flight_are_dropped(tmp_path, kill_flight) -> None:
+    """``CubeWriter.commit(room=...)`` (apply's single pass commits while its workers write
+    the frames after) shrinks ``dn`` without deleting their chunks, then grows it back. A run
+    killed in between leaves chunks beyond the array's shape; the next open drops them with
+    the rest of the uncommitted frames."""
+    import zarr
+    from zarr.core.sync import sync
+
+    flight, reference = kill_flight
+    out = tmp_path / "raw.zarr"
+    ingest_flight(flight, TINY, out, commit_every=COMMIT_EVERY)
+    for name in ("dn", "dn_median"):  # the state of a kill inside the commit of frame 5
+        arr = zarr.open_array(str(out / name), mode="r+")
+        sync(arr.async_array.resize((5, *arr.shape[1:]), delete_outside_chunks=False))
+    zarr.open_group(str(out), mode="r+", use_consolidated=False).attrs.update({"frames_committed": 3})
+    assert sorted(p.name for p in (out / "dn").glob("c.*")) == [f"c.{k}.0.0.0" for k in range(7)]
+    only3 = tmp_path / "only3"
+    only3.mkdir()
+    rows = list(csv.DictReader((flight / "frames.csv").open()))[:3]
+    for r in rows:
+        os.link(flight / r["file"], only3 / r["file"])
+    _write_csv(only3, rows)
+    res = ingest_flight(only3, TINY, out)
+    assert (res.frames_added, res.frames_already_present) == (0, 3)
+    assert sorted(p.name for p in (out / "dn").glob("c.*")) == [f"c.{k}.0.0.0" for k in range(3)]
+    assert sorted(p.name for p in (out / "dn_median").glob("c.*")) == [f"c.{k}.0" for k in range(3)]
+    snap = _snapshot(out)
+    assert snap["dn"].shape[0] == 3
+    np.testing.assert_array_equal(snap["dn"], reference["dn"][:3])
+
+
 # --------------------------------------------------------------------------- full size (slow)
 
 
