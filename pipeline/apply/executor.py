@@ -470,8 +470,8 @@ class _Writing:
 #: frame is computed (:func:`process_frames`), ...
 WRITING_FRAMES = 2
 #: ... and more than one only while those frames' outputs total at most this many bytes (a
-#: full-resolution snapshot frame holds ~16 MB until written, a MicaSense capture with
-#: radiance ~90 MB: a factory pass keeps one).
+#: full-resolution snapshot frame hands ~16 MB to its writes, a 5-band MicaSense capture
+#: ~60 MB: a factory pass keeps one frame writing, and its memory as before).
 WRITING_BYTES = 64 * 1024 * 1024
 
 

@@ -127,8 +127,8 @@ def test_two_frames_write_on_while_the_next_is_computed_and_outcomes_keep_job_or
 
 
 def test_large_frames_write_one_at_a_time(monkeypatch) -> None:
-    """Frames whose outputs exceed WRITING_BYTES together (MicaSense captures with radiance:
-    ~90 MB) keep one frame writing, as before: memory does not grow with them."""
+    """Frames whose outputs exceed WRITING_BYTES together (5-band MicaSense captures: ~60 MB
+    each) keep one frame writing, as before: memory does not grow with them."""
     from pipeline.apply import executor
 
     monkeypatch.setattr(executor, "WRITING_BYTES", 1000)
