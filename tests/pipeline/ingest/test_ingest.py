@@ -565,17 +565,22 @@ def test_sigkill_during_recovery_then_rerun(tmp_path, kill_flight) -> None:
     _assert_same(reference, _snapshot(out))
 
 
+def _first_frames(flight: Path, dst: Path, n: int) -> Path:
+    """A flight folder of the first ``n`` frames of ``flight`` (hard links, its table cut)."""
+    dst.mkdir()
+    rows = list(csv.DictReader((flight / "frames.csv").open()))[:n]
+    for r in rows:
+        os.link(flight / r["file"], dst / r["file"])
+    _write_csv(dst, rows)
+    return dst
+
+
 def test_stale_consolidated_metadata_is_repaired_without_new_frames(tmp_path, kill_flight) -> None:
     flight, reference = kill_flight
     out = tmp_path / "raw.zarr"
     _killed_run(flight, out, "consolidated:2")  # readers would see 6 frames, 3 are committed
     _killed_run(flight, out, "recover")  # cut back to 3, killed before re-consolidating
-    only3 = tmp_path / "only3"
-    only3.mkdir()
-    rows = list(csv.DictReader((flight / "frames.csv").open()))[:3]
-    for r in rows:
-        os.link(flight / r["file"], only3 / r["file"])
-    _write_csv(only3, rows)
+    only3 = _first_frames(flight, tmp_path / "only3", 3)
     res = ingest_flight(only3, TINY, out)  # nothing new to append
     assert (res.frames_added, res.frames_already_present) == (0, 3)
     snap = _snapshot(out)
@@ -599,12 +604,7 @@ def test_chunks_beyond_the_shape_left_by_a_commit_with_frames_in_flight_are_drop
         sync(arr.async_array.resize((5, *arr.shape[1:]), delete_outside_chunks=False))
     zarr.open_group(str(out), mode="r+", use_consolidated=False).attrs.update({"frames_committed": 3})
     assert sorted(p.name for p in (out / "dn").glob("c.*")) == [f"c.{k}.0.0.0" for k in range(7)]
-    only3 = tmp_path / "only3"
-    only3.mkdir()
-    rows = list(csv.DictReader((flight / "frames.csv").open()))[:3]
-    for r in rows:
-        os.link(flight / r["file"], only3 / r["file"])
-    _write_csv(only3, rows)
+    only3 = _first_frames(flight, tmp_path / "only3", 3)
     res = ingest_flight(only3, TINY, out)
     assert (res.frames_added, res.frames_already_present) == (0, 3)
     assert sorted(p.name for p in (out / "dn").glob("c.*")) == [f"c.{k}.0.0.0" for k in range(3)]
