@@ -1182,10 +1182,7 @@ def read_capture_pixels(capture: Capture, out: np.ndarray | None = None
     decoded: dict[Path, np.ndarray] = {}
     into = _band_slots(capture, out)
     for path in capture.files:  # each read into the thread's buffer, decoded before the next
-        data = read_whole(path, path.stat().st_size)
-        if data is None:
-            raise FrameError("the file changed while it was being read (it ended early)", path=path,
-                             hint="wait for the copy to finish, or re-copy the file")
+        data = read_whole(path, path.stat().st_size, "wait for the copy to finish, or re-copy the file")
         h.update(data)
         try:
             decoded[path] = np.asarray(decode_raw(data, path, into.get(path)))

@@ -234,11 +234,11 @@ _read_buffer = threading.local()
 READ_ONCE_MAX_BYTES = 256 * 1024 * 1024
 
 
-def read_whole(path: Path, size: int) -> memoryview | None:
+def read_whole(path: Path, size: int, hint: str) -> memoryview:
     """The first ``size`` bytes of ``path`` in this thread's buffer (reused from file to file,
-    grown when needed; valid until this thread's next call: decode or copy before), or None
-    if the file ended before (it is being written or was cut short: the caller refuses it).
-    A new ``bytes`` per file instead gives every file fresh memory to fault in."""
+    grown when needed; valid until this thread's next call: decode or copy before). A new
+    ``bytes`` per file instead gives every file fresh memory to fault in. :class:`FrameError`
+    naming the file, with ``hint``, if it ends before (it is being written or was cut short)."""
     buf = getattr(_read_buffer, "buf", None)
     if buf is None or len(buf) < size:
         buf = _read_buffer.buf = bytearray(size)
@@ -248,7 +248,7 @@ def read_whole(path: Path, size: int) -> memoryview | None:
         while done < size:
             k = fh.readinto(view[done:])
             if not k:
-                return None
+                raise FrameError("the file changed while it was being read (it ended early)", path=path, hint=hint)
             done += k
     return view
 
@@ -269,11 +269,7 @@ def read_frame(rec: FrameRecord, camera: Camera, known: "Callable[[str], bool] |
     """
     try:
         st0 = rec.path.stat()
-        once = st0.st_size <= READ_ONCE_MAX_BYTES
-        data = read_whole(rec.path, st0.st_size) if once else None
-        if once and data is None:
-            raise FrameError("the file changed while it was being read (it ended early)", path=rec.path,
-                             hint="run ingest again")
+        data = read_whole(rec.path, st0.st_size, "run ingest again") if st0.st_size <= READ_ONCE_MAX_BYTES else None
         sha = hashlib.sha256(data).hexdigest() if data is not None else file_sha256(rec.path)
     except OSError as exc:
         raise FrameError(f"cannot read: {exc.strerror}", path=rec.path) from None
@@ -498,34 +494,11 @@ def _open(out: Path, camera: Camera) -> tuple[zarr.Group, int]:
                 p.unlink(missing_ok=True)
     if stale:
         for name in ("dn", DN_MEDIAN):
-            _drop_chunks_beyond(out / name, n)
+            if (chunks := FrameChunks.open(out / name)) is not None:
+                chunks.remove_from(n)
         _consolidate(out)
         _set_committed(out, n)
     return g, n
-
-
-def _drop_chunks_beyond(array: Path, n: int) -> None:
-    """Delete the chunk files of frames ``n`` and later of a frame-chunked array: a run killed
-    within a commit made while its workers wrote frames beyond (:meth:`CubeWriter.commit`
-    with ``room``) can leave some outside the array's shape, where resizing does not see them."""
-    fc = FrameChunks.open(array)
-    if fc is None:
-        return
-    if fc.separator == "/":
-        folder, prefix = array / "c", ""
-    else:
-        folder, prefix = array, "c."
-    try:
-        entries = list(os.scandir(folder))
-    except FileNotFoundError:
-        return
-    for e in entries:
-        key = e.name[len(prefix):].split(".", 1)[0] if e.name.startswith(prefix) else ""
-        if key.isdigit() and int(key) >= n:
-            if e.is_dir(follow_symlinks=False):
-                shutil.rmtree(e.path, ignore_errors=True)
-            else:
-                Path(e.path).unlink(missing_ok=True)
 
 
 def _consolidated_matches(root: dict, arrays: dict[str, zarr.Array]) -> bool:

@@ -28,6 +28,8 @@ allows (:mod:`pipeline.storage.directio`). Tests read every chunk back through `
 from __future__ import annotations
 
 import json
+import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -138,6 +140,23 @@ class FrameChunks:
             except FileNotFoundError:  # the chunk's folders ("/" separator) do not exist yet
                 target.parent.mkdir(parents=True, exist_ok=True)
                 write_file(tmp, [payload])
+
+    def remove_from(self, frame: int) -> None:
+        """Delete the chunk files of frames ``frame`` and later, wherever the array's shape
+        ends (a run killed while a commit had shrunk the shape below chunks still being
+        written leaves some outside it, where resizing does not see them)."""
+        folder, prefix = (self.path / "c", "") if self.separator == "/" else (self.path, "c.")
+        try:
+            entries = list(os.scandir(folder))
+        except FileNotFoundError:
+            return
+        for e in entries:
+            key = e.name[len(prefix):].split(".", 1)[0] if e.name.startswith(prefix) else ""
+            if key.isdigit() and int(key) >= frame:
+                if e.is_dir(follow_symlinks=False):
+                    shutil.rmtree(e.path, ignore_errors=True)
+                else:
+                    Path(e.path).unlink(missing_ok=True)
 
     def read(self, frame: int) -> np.ndarray:
         """Frame ``frame``'s data (the chunk must exist: frames of this package are written whole)."""

@@ -7,6 +7,7 @@ import pytest
 import xarray as xr
 import zarr
 import zarr.codecs
+from zarr.core.sync import sync
 
 from pipeline.storage.chunks import FLAT_CHUNK_KEYS, FrameChunks
 
@@ -34,6 +35,29 @@ def test_chunks_match_zarr_and_read_back(tmp_path, separator, codec, dtype) -> N
     a[1] = x  # zarr's own chunk for the same data: the same bytes
     assert fc.chunk_path(1).read_bytes() == bytes(fc.encode(x))
     assert not list((tmp_path / "a").rglob("*.partial"))
+
+
+@pytest.mark.parametrize("separator", ["/", "."])
+def test_remove_from_deletes_the_frames_chunks_beyond_the_shape_too(tmp_path, separator) -> None:
+    """Chunks of frames from ``n`` on go, those the shape no longer covers included (a run
+    killed while a commit had shrunk the array below chunks still being written); the frames
+    before stay, and nothing else in the array's folder is touched."""
+    keys = {"name": "default", "separator": separator}
+    zarr.create_array(str(tmp_path / "a"), shape=(12, 2, 4), chunks=(1, 2, 4), dtype="uint16",
+                      compressors=None, chunk_key_encoding=keys)
+    fc = FrameChunks.open(tmp_path / "a")
+    assert fc is not None
+    for f in range(12):
+        fc.write(f, np.full((2, 4), f, np.uint16))
+    arr = zarr.open_array(str(tmp_path / "a"), mode="r+")
+    sync(arr.async_array.resize((6, 2, 4), delete_outside_chunks=False))  # 6..11 left outside
+    fc.remove_from(3)
+    assert [f for f in range(12) if fc.chunk_path(f).exists()] == [0, 1, 2]
+    assert (tmp_path / "a" / "zarr.json").is_file()
+    np.testing.assert_array_equal(zarr.open_array(str(tmp_path / "a"))[2], np.full((2, 4), 2))
+    fc.remove_from(0)
+    FrameChunks.open(tmp_path / "a").remove_from(0)  # nothing left: no error
+    assert not any(fc.chunk_path(f).exists() for f in range(12))
 
 
 def test_flat_keys_through_xarray(tmp_path) -> None:
