@@ -15,16 +15,16 @@ import sys
 from dataclasses import dataclass
 from multiprocessing.context import ForkServerContext
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 from mscal_core.errors import InputError
 
 from pipeline.storage.atomic import iter_files
 from pipeline.storage.directio import direct_io_enabled, set_direct_io
 
-__all__ = ["AUTO_PROCESS_FRAMES", "SCHEDULERS", "WORKER_MODULE", "Execution", "distributed_client", "flight_size_hint",
-           "scheduler_for", "start_worker_server", "take_worker_environment", "worker_context",
-           "worker_environment"]
+__all__ = ["AUTO_PROCESS_FRAMES", "SCHEDULERS", "WORKER_MODULE", "Execution", "distributed_client",
+           "ensure_worker_server", "flight_size_hint", "scheduler_for", "server_import_path", "start_worker_server",
+           "take_worker_environment", "worker_context", "worker_environment"]
 
 #: Schedulers of the per-frame pass without a ``distributed`` client (``auto``: see
 #: :func:`scheduler_for`).
@@ -94,10 +94,53 @@ WORKER_ENV_PREFIX = "MSCAL_"
 
 def worker_context() -> ForkServerContext:
     """The worker processes' multiprocessing context: a forkserver that has imported
-    :data:`WORKER_MODULE` (one import for every worker of the process's passes)."""
+    :data:`WORKER_MODULE` (one import for every worker of the process's passes), started
+    (:func:`ensure_worker_server`) if it is not running."""
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload([WORKER_MODULE])
+    ensure_worker_server()
     return ctx
+
+
+def ensure_worker_server() -> None:
+    """Start the forkserver (if it is not running) so that it imports what this process
+    imports: :func:`server_import_path` as its ``PYTHONPATH``, and no current folder first
+    (``PYTHONSAFEPATH``), both for the server's start only.
+
+    Why: the server is a new interpreter (``python -c``), so its import path begins with the
+    current folder, and Python 3.11's forkserver imports its preload before it takes the
+    parent's ``sys.path``. Run from a folder that held a ``pipeline`` or ``mscal_core``
+    folder (a user's own project, another checkout of mscal), the workers ran that code,
+    not the installed one: an error at best (``module 'mscal_core' has no attribute
+    '__version__'``), at worst another version's outputs. An interpreter started with ``-I``
+    or ``-E`` gives its server neither variable; its own import path has no current folder
+    either, so both then import from the same places."""
+    from multiprocessing import forkserver
+
+    keys = ("PYTHONPATH", "PYTHONSAFEPATH")
+    saved = {k: os.environ.get(k) for k in keys}
+    os.environ["PYTHONPATH"] = os.pathsep.join(server_import_path())
+    os.environ["PYTHONSAFEPATH"] = "1"
+    try:
+        forkserver.ensure_running()
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def server_import_path(path: Sequence[str] | None = None) -> list[str]:
+    """This process's import path (``path``, default ``sys.path``) as the worker server's
+    ``PYTHONPATH``: every entry absolute (``''``, the current folder, made explicit), in
+    order; entries that hold the path separator cannot be given and are left out."""
+    out = []
+    for entry in sys.path if path is None else path:
+        full = os.path.abspath(entry or os.curdir)
+        if os.pathsep not in full and full not in out:
+            out.append(full)
+    return out
 
 
 def worker_environment() -> dict[str, str]:
@@ -154,8 +197,5 @@ def start_worker_server(execution: Execution, frames_hint: int) -> bool:
     pass starts the server itself if needed, and an unused server ends with this process."""
     if distributed_client() is not None or scheduler_for(frames_hint, execution)[0] != "processes":
         return False
-    from multiprocessing import forkserver
-
     worker_context()
-    forkserver.ensure_running()
     return True

@@ -5,6 +5,7 @@ fingerprint that decides whether a run is up to date."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -221,3 +222,57 @@ def test_worker_processes_take_the_settings_of_the_pass_not_of_their_server(monk
         assert runner.scheduler == "processes"
         seen = runner.run(None, range(4), fn=_worker_environment)
     assert seen == [{"MSCAL_DIRECT_IO": "0", "MSCAL_TEST_KEPT": "set after", "MSCAL_TEST_GONE": None}] * 4
+
+
+def test_server_import_path_is_this_process_path_made_absolute(tmp_path, monkeypatch) -> None:
+    from pipeline.apply.execution import server_import_path
+
+    monkeypatch.chdir(tmp_path)
+    assert server_import_path(["", "lib", "/opt/x", str(tmp_path), "/opt/x", "/a:b"]) == [
+        str(tmp_path), str(tmp_path / "lib"), "/opt/x"]  # once each, in order; "a:b" cannot be given
+
+
+PROBE = '''
+import json, sys
+from pipeline.apply.execution import Execution
+from pipeline.apply.executor import Runner
+import probe_fns
+if __name__ == "__main__":
+    with Runner(100, Execution("processes", 1)) as runner:
+        assert runner.scheduler == "processes"
+        seen = runner.run(None, [0], fn=probe_fns.imported)
+    print(json.dumps({"main": probe_fns.imported(None, 0), "worker": seen[0]}))
+'''
+
+PROBE_FNS = '''
+import sys
+def imported(plan, job):
+    return {m: getattr(sys.modules.get(m), "__file__", None) for m in ("pipeline.apply.executor", "mscal_core")}
+'''
+
+
+def test_workers_import_what_the_main_process_imports_whatever_the_current_folder(tmp_path) -> None:
+    """Run from a folder holding folders named ``pipeline`` and ``mscal_core`` (a user's own
+    project, another checkout), the worker processes ran that code: their server is a new
+    interpreter whose import path began with the current folder."""
+    import subprocess
+    import sys
+
+    import pipeline
+
+    here = tmp_path / "project"  # the current folder, with look-alike packages
+    for pkg in ("pipeline", "pipeline/apply", "mscal_core"):
+        (here / pkg).mkdir(parents=True)
+        (here / pkg / "__init__.py").write_text("DECOY = True\n")
+    (here / "pipeline" / "apply" / "executor.py").write_text("DECOY = True\n")
+    tool = tmp_path / "tool"  # the script's folder (as the ``mscal`` entry point's)
+    tool.mkdir()
+    (tool / "probe.py").write_text(PROBE)
+    (tool / "probe_fns.py").write_text(PROBE_FNS)
+    env = {**os.environ, "PYTHONPATH": str(Path(pipeline.__file__).resolve().parents[1])}
+    done = subprocess.run([sys.executable, str(tool / "probe.py")], cwd=here, env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    seen = json.loads(done.stdout.strip().splitlines()[-1])
+    assert seen["worker"] == seen["main"]
+    assert all(f is not None and not f.startswith(str(here)) for f in seen["main"].values()), seen
