@@ -133,11 +133,12 @@ def ensure_worker_server() -> None:
 
 def server_import_path(path: Sequence[str] | None = None) -> list[str]:
     """This process's import path (``path``, default ``sys.path``) as the worker server's
-    ``PYTHONPATH``: every entry absolute (``''``, the current folder, made explicit), in
-    order; entries that hold the path separator cannot be given and are left out."""
+    ``PYTHONPATH``, in order: folders and archives made absolute (``''``, the current folder,
+    made explicit), other entries as they are (a path hook's name, e.g. an editable
+    install's); entries that hold the path separator cannot be given and are left out."""
     out = []
     for entry in sys.path if path is None else path:
-        full = os.path.abspath(entry or os.curdir)
+        full = os.path.abspath(entry or os.curdir) if os.path.exists(entry or os.curdir) else entry
         if os.pathsep not in full and full not in out:
             out.append(full)
     return out

@@ -228,8 +228,10 @@ def test_server_import_path_is_this_process_path_made_absolute(tmp_path, monkeyp
     from pipeline.apply.execution import server_import_path
 
     monkeypatch.chdir(tmp_path)
-    assert server_import_path(["", "lib", "/opt/x", str(tmp_path), "/opt/x", "/a:b"]) == [
-        str(tmp_path), str(tmp_path / "lib"), "/opt/x"]  # once each, in order; "a:b" cannot be given
+    (tmp_path / "lib").mkdir()
+    hook = "__editable__.mscal-0.1.0.finder.__path_hook__"  # not a folder: kept as it is
+    assert server_import_path(["", "lib", hook, "/no/such", str(tmp_path), "/no/such", "/a:b"]) == [
+        str(tmp_path), str(tmp_path / "lib"), hook, "/no/such"]  # once each, in order; "a:b" cannot be given
 
 
 PROBE = '''
