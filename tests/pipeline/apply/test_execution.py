@@ -224,7 +224,7 @@ def test_worker_processes_take_the_settings_of_the_pass_not_of_their_server(monk
     assert seen == [{"MSCAL_DIRECT_IO": "0", "MSCAL_TEST_KEPT": "set after", "MSCAL_TEST_GONE": None}] * 4
 
 
-def test_server_import_path_is_this_process_path_made_absolute(tmp_path, monkeypatch) -> None:
+def test_server_import_path_is_this_process_path_in_order_with_folders_made_absolute(tmp_path, monkeypatch) -> None:
     from pipeline.apply.execution import server_import_path
 
     monkeypatch.chdir(tmp_path)
