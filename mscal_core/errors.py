@@ -74,3 +74,9 @@ class UnexpectedError(MscalError):
 
 class CalibrationStoreError(InputError):
     """A calibration store is missing, incomplete or does not match the camera."""
+
+
+class ProcessesUnavailable(MscalError):
+    """Worker processes cannot start on this system (no working POSIX semaphores, e.g. AWS
+    Lambda or a sandbox; no temporary folder for the worker server's socket; no processes
+    left). Where mscal chose processes itself it runs on threads instead."""

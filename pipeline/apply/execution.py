@@ -21,6 +21,7 @@ from mscal_core.errors import InputError
 
 from pipeline.storage.atomic import iter_files
 from pipeline.storage.directio import direct_io_enabled, set_direct_io
+from pipeline.storage.process import POOL_ERRORS
 
 __all__ = ["AUTO_PROCESS_FRAMES", "SCHEDULERS", "WORKER_MODULE", "Execution", "distributed_client",
            "ensure_worker_server", "flight_size_hint", "scheduler_for", "server_import_path", "start_worker_server",
@@ -198,5 +199,8 @@ def start_worker_server(execution: Execution, frames_hint: int) -> bool:
     pass starts the server itself if needed, and an unused server ends with this process."""
     if distributed_client() is not None or scheduler_for(frames_hint, execution)[0] != "processes":
         return False
-    worker_context()
+    try:
+        worker_context()
+    except POOL_ERRORS:  # the pass says why (pipeline.storage.process.start_pool)
+        return False
     return True

@@ -27,6 +27,7 @@ The drivers (:mod:`pipeline.apply.flight` for frames ingested into raw.zarr,
 from __future__ import annotations
 
 import itertools
+import logging
 import os
 import threading
 import uuid
@@ -42,7 +43,7 @@ import dask
 import dask.threaded
 import numpy as np
 import xarray as xr
-from mscal_core.errors import FrameError, InputError
+from mscal_core.errors import FrameError, InputError, ProcessesUnavailable
 from mscal_core.reflectance import eq15_fast, eq15_tables, vegetation_mask
 from mscal_core.registration import align_bands, shift_bands
 
@@ -80,7 +81,9 @@ from pipeline.products.writers import (
 )
 from pipeline.storage.chunks import FrameChunks
 from pipeline.storage.directio import aligned_empty
-from pipeline.storage.process import die_with_parent, reuse_freed_memory
+from pipeline.storage.process import die_with_parent, reuse_freed_memory, start_pool
+
+log = logging.getLogger(__name__)
 
 # --------------------------------------------------------------------------- helpers
 
@@ -699,12 +702,16 @@ class Runner:
         self.client = distributed_client()
         self.pool: ProcessPoolExecutor | None = None
         self.scheduler, self.workers = ("distributed", 0) if self.client is not None else scheduler_for(n_frames, execution)
-        self.execution = execution.record(self.scheduler, self.workers)
         if self.scheduler == "processes":
-            self.pool = ProcessPoolExecutor(self.workers, mp_context=worker_context(), initializer=_worker_init,
-                                            initargs=(worker_environment(),))
-            for _ in range(self.workers):  # start them now
-                self.pool.submit(int)
+            try:
+                self.pool = start_pool(self.workers, worker_context, _worker_init, (worker_environment(),))
+            except ProcessesUnavailable as exc:
+                if execution.scheduler == "processes":  # asked for: say so, and how to run instead
+                    raise
+                # chosen here (auto): the same outputs on threads, only slower
+                log.warning("%s: running on %d threads instead", exc.reason, self.workers)
+                self.scheduler = "threads"
+        self.execution = execution.record(self.scheduler, self.workers)
 
     def run(self, plan: Any, jobs: Iterable[Any], fn: Callable[[Any, Any], Any] | None = None) -> list[Any]:
         """The outcome of every job, in job order (:meth:`stream`, collected)."""

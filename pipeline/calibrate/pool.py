@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import importlib
+import logging
 import multiprocessing
 import os
 import sys
@@ -30,9 +31,12 @@ import threading
 from concurrent.futures import Future, ProcessPoolExecutor
 from typing import Any, Callable, Iterator, Sequence
 
+from mscal_core.errors import ProcessesUnavailable
 from threadpoolctl import threadpool_limits
 
-from pipeline.storage.process import die_with_parent, reuse_freed_memory
+from pipeline.storage.process import die_with_parent, reuse_freed_memory, start_pool
+
+log = logging.getLogger(__name__)
 
 #: What a worker imports when it starts: the module of the per-band fits.
 FITS_MODULE = "pipeline.calibrate.bands"
@@ -95,6 +99,21 @@ def _opencv_pool_stopped() -> Iterator[None]:
         cv2.setNumThreads(before)
 
 
+@contextlib.contextmanager
+def _starting_workers(method: str) -> Iterator[None]:
+    """While the workers start: one BLAS/OpenMP thread each (:data:`_WORKER_ENV`, where this
+    process does not set its own), and for forked workers OpenCV's threads stopped."""
+    saved = {k: os.environ.get(k) for k in _WORKER_ENV}
+    os.environ.update({k: v for k, v in _WORKER_ENV.items() if saved[k] is None})
+    try:
+        with _opencv_pool_stopped() if method == "fork" else contextlib.nullcontext():
+            yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+
+
 def start_method() -> str:
     """``"fork"`` when this process has one thread (on Linux), else ``"spawn"``."""
     if sys.platform.startswith("linux") and threading.active_count() == 1:
@@ -117,20 +136,14 @@ class BandPool:
         reuse_freed_memory()  # this process reads every stack; with one worker it fits them too
         if self.workers >= 2:
             method = method or start_method()
-            self._pool = ProcessPoolExecutor(self.workers, mp_context=multiprocessing.get_context(method),
-                                             initializer=_worker_init)
-            saved = {k: os.environ.get(k) for k in _WORKER_ENV}
-            os.environ.update({k: v for k, v in _WORKER_ENV.items() if saved[k] is None})
             try:
-                # start them now (a worker copies the environment); a fork pool forks every
+                # started now (a worker copies the environment); a fork pool forks every
                 # worker in the first submit
-                with _opencv_pool_stopped() if method == "fork" else contextlib.nullcontext():
-                    for _ in range(self.workers):
-                        self._pool.submit(int)
-            finally:
-                for k, v in saved.items():
-                    if v is None:
-                        os.environ.pop(k, None)
+                self._pool = start_pool(self.workers, lambda: multiprocessing.get_context(method), _worker_init,
+                                        starting=lambda: _starting_workers(method))
+            except ProcessesUnavailable as exc:  # the same fits in this process, only slower
+                log.warning("%s: fitting the bands in this process instead", exc.reason)
+                self.workers = 1
 
     def submit(self, fn: Callable[..., Any], *args: Any) -> Future:
         """``fn(*args)`` on a worker (or now, in this process, without workers)."""

@@ -1,6 +1,8 @@
 """Settings of a process that runs mscal's per-frame or per-band work (the apply executor's
 and the calibration's worker pools, and the main process itself): one copy for both.
 
+``start_pool``: a pool of worker processes, started now, or :class:`ProcessesUnavailable`
+where the system cannot run one.
 ``die_with_parent``: a worker killed with its parent leaves no writer behind.
 ``reuse_freed_memory``: the large arrays freed by one frame or band are reused by the next
 instead of being handed back to the kernel and zeroed again on the next touch, and new
@@ -9,13 +11,51 @@ arrays are touched in small pages (``small_pages``).
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing.context import BaseContext
+from typing import Any, Callable, ContextManager
+
+from mscal_core.errors import ProcessesUnavailable
 
 #: glibc ``mallopt`` parameters: ``M_TRIM_THRESHOLD``, ``M_MMAP_THRESHOLD``.
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
 #: ``prctl`` option ``PR_SET_PDEATHSIG`` (linux/prctl.h).
 _PR_SET_PDEATHSIG = 1
+
+
+#: What making or starting a process pool raises on a system that cannot run one: ``OSError``
+#: from ``sem_open`` (AWS Lambda: ENOSYS; a sandbox: EACCES), from a fork (EAGAIN, ENOMEM) or
+#: from the forkserver's socket; ``NotImplementedError`` or ``ImportError`` where Python has
+#: no semaphores at all (``concurrent.futures`` checks for them).
+POOL_ERRORS = (OSError, NotImplementedError, ImportError)
+
+
+def start_pool(workers: int, context: Callable[[], BaseContext], initializer: Callable[..., Any],
+               initargs: tuple = (), starting: Callable[[], ContextManager[Any]] = contextlib.nullcontext
+               ) -> ProcessPoolExecutor:
+    """A pool of ``workers`` processes of the multiprocessing ``context()`` (called here: a
+    forkserver starts in it), each started now, inside ``starting()``.
+
+    Raises :class:`ProcessesUnavailable` (saying why, and that threads work) when the system
+    cannot run them, with nothing left running; the caller decides whether to run on threads
+    or in its own process instead, or to stop."""
+    pool = None
+    try:
+        pool = ProcessPoolExecutor(workers, mp_context=context(), initializer=initializer, initargs=initargs)
+        with starting():
+            for _ in range(workers):
+                pool.submit(int)
+        return pool
+    except POOL_ERRORS as exc:
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
+        raise ProcessesUnavailable(
+            f"worker processes cannot start on this system ({type(exc).__name__}: {exc})",
+            hint="run on threads: --scheduler threads, or MSCAL_APPLY_SCHEDULER=threads",
+        ) from exc
 
 
 def die_with_parent() -> None:
@@ -81,4 +121,4 @@ def small_pages() -> None:
     _set_madvise_hugepage(False)
 
 
-__all__ = ["NUMPY_HUGEPAGE_ENV", "die_with_parent", "reuse_freed_memory", "small_pages"]
+__all__ = ["NUMPY_HUGEPAGE_ENV", "POOL_ERRORS", "die_with_parent", "reuse_freed_memory", "small_pages", "start_pool"]

@@ -278,3 +278,29 @@ def test_workers_import_what_the_main_process_imports_whatever_the_current_folde
     seen = json.loads(done.stdout.strip().splitlines()[-1])
     assert seen["worker"] == seen["main"]
     assert all(f is not None and not f.startswith(str(here)) for f in seen["main"].values()), seen
+
+
+def _twice(plan, job) -> int:
+    return 2 * job
+
+
+class _NoSemaphores:
+    def __init__(self, *args, **kwargs):
+        raise OSError(38, "Function not implemented")  # sem_open on AWS Lambda
+
+
+def test_where_worker_processes_cannot_start_auto_runs_on_threads_and_processes_are_refused(monkeypatch,
+                                                                                             caplog) -> None:
+    from mscal_core.errors import ProcessesUnavailable
+    from pipeline.apply.executor import Runner
+
+    monkeypatch.setattr("pipeline.storage.process.ProcessPoolExecutor", _NoSemaphores)
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    with caplog.at_level("WARNING"), Runner(100, Execution()) as runner:  # auto would take processes
+        assert (runner.scheduler, runner.workers, runner.pool) == ("threads", 2, None)
+        assert runner.execution["scheduler"] == "threads"  # run.json says what ran
+        assert runner.run(None, range(4), fn=_twice) == [0, 2, 4, 6]
+    assert "worker processes cannot start on this system (OSError: [Errno 38] Function not implemented): " \
+           "running on 2 threads instead" in caplog.text
+    with pytest.raises(ProcessesUnavailable, match="run on threads: --scheduler threads"):
+        Runner(100, Execution("processes", 2))  # asked for: refused, saying what to do

@@ -120,3 +120,16 @@ def test_detection_image_table_path_matches_the_plain_one() -> None:
     np.testing.assert_array_equal(fast, plain)
     odd = bands[:, :59, :79]  # an odd pixel count: the median is one DN's U
     np.testing.assert_array_equal(detection_image(odd, u), detection_image(odd.astype(np.int64), u))
+
+
+class _NoSemaphores:
+    def __init__(self, *args, **kwargs):
+        raise OSError(38, "Function not implemented")  # sem_open on AWS Lambda
+
+
+def test_band_fits_run_in_this_process_where_worker_processes_cannot_start(monkeypatch, caplog) -> None:
+    monkeypatch.setattr("pipeline.storage.process.ProcessPoolExecutor", _NoSemaphores)
+    with caplog.at_level("WARNING"), BandPool(2) as pool:
+        assert pool.workers == 1
+        assert pool.map(pow, [(2, 3), (3, 2)]) == [8, 9]
+    assert "fitting the bands in this process instead" in caplog.text

@@ -28,3 +28,45 @@ def test_new_arrays_use_small_pages_unless_numpy_is_told_otherwise(env: str | No
     out = subprocess.run([sys.executable, "-c", PROBE], capture_output=True, text=True, env=environ, timeout=120,
                          check=True)
     assert out.stdout.strip() == want
+
+
+class _Pool:
+    """A process pool whose workers cannot start (the system refuses a fork)."""
+
+    made: list["_Pool"] = []
+
+    def __init__(self, workers, mp_context=None, initializer=None, initargs=()):
+        self.shut = False
+        _Pool.made.append(self)
+
+    def submit(self, fn, *args):
+        raise OSError(11, "Resource temporarily unavailable")
+
+    def shutdown(self, wait=True, cancel_futures=False):
+        self.shut = True
+
+
+class _NoSemaphores:
+    def __init__(self, *args, **kwargs):
+        raise OSError(38, "Function not implemented")  # sem_open on AWS Lambda
+
+
+def test_a_pool_the_system_cannot_run_is_refused_with_its_reason_and_nothing_left_running(monkeypatch) -> None:
+    import multiprocessing
+
+    from mscal_core.errors import ProcessesUnavailable
+    from pipeline.storage.process import start_pool
+
+    entered = []
+
+    def starting():
+        entered.append(True)
+        return open(os.devnull)  # any context manager
+
+    monkeypatch.setattr("pipeline.storage.process.ProcessPoolExecutor", _Pool)
+    with pytest.raises(ProcessesUnavailable, match=r"cannot start on this system \(BlockingIOError: \[Errno 11\].*--scheduler threads"):
+        start_pool(2, lambda: multiprocessing.get_context("spawn"), print, starting=starting)
+    assert entered == [True] and _Pool.made[-1].shut  # started inside starting(); shut down after
+    monkeypatch.setattr("pipeline.storage.process.ProcessPoolExecutor", _NoSemaphores)
+    with pytest.raises(ProcessesUnavailable, match=r"\(OSError: \[Errno 38\] Function not implemented\)"):
+        start_pool(2, lambda: multiprocessing.get_context("spawn"), print)
