@@ -77,6 +77,9 @@ class CalibrationStoreError(InputError):
 
 
 class ProcessesUnavailable(MscalError):
-    """Worker processes cannot start on this system (no working POSIX semaphores, e.g. AWS
-    Lambda or a sandbox; no temporary folder for the worker server's socket; no processes
-    left). Where mscal chose processes itself it runs on threads instead."""
+    """Worker processes cannot start on this system.
+
+    No working POSIX semaphores (AWS Lambda, some sandboxes), no temporary folder for the
+    worker server's socket, no processes left. Where mscal chose processes itself it runs on
+    threads (or in its own process) instead.
+    """
