@@ -21,7 +21,7 @@ from mscal_core.errors import InputError
 
 from pipeline.storage.atomic import iter_files
 from pipeline.storage.directio import direct_io_enabled, set_direct_io
-from pipeline.storage.process import POOL_ERRORS
+from pipeline.storage.process import POOL_ERRORS, environment
 
 __all__ = ["AUTO_PROCESS_FRAMES", "SCHEDULERS", "WORKER_MODULE", "Execution", "distributed_client",
            "ensure_worker_server", "flight_size_hint", "scheduler_for", "server_import_path", "start_worker_server",
@@ -118,18 +118,8 @@ def ensure_worker_server() -> None:
     either, so both then import from the same places."""
     from multiprocessing import forkserver
 
-    keys = ("PYTHONPATH", "PYTHONSAFEPATH")
-    saved = {k: os.environ.get(k) for k in keys}
-    os.environ["PYTHONPATH"] = os.pathsep.join(server_import_path())
-    os.environ["PYTHONSAFEPATH"] = "1"
-    try:
+    with environment({"PYTHONPATH": os.pathsep.join(server_import_path()), "PYTHONSAFEPATH": "1"}):
         forkserver.ensure_running()
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
-            else:
-                os.environ[k] = v
 
 
 def server_import_path(path: Sequence[str] | None = None) -> list[str]:

@@ -34,7 +34,7 @@ from typing import Any, Callable, Iterator, Sequence
 from mscal_core.errors import ProcessesUnavailable
 from threadpoolctl import threadpool_limits
 
-from pipeline.storage.process import die_with_parent, reuse_freed_memory, start_pool
+from pipeline.storage.process import die_with_parent, environment, reuse_freed_memory, start_pool
 
 log = logging.getLogger(__name__)
 
@@ -103,15 +103,9 @@ def _opencv_pool_stopped() -> Iterator[None]:
 def _starting_workers(method: str) -> Iterator[None]:
     """While the workers start: one BLAS/OpenMP thread each (:data:`_WORKER_ENV`, where this
     process does not set its own), and for forked workers OpenCV's threads stopped."""
-    saved = {k: os.environ.get(k) for k in _WORKER_ENV}
-    os.environ.update({k: v for k, v in _WORKER_ENV.items() if saved[k] is None})
-    try:
-        with _opencv_pool_stopped() if method == "fork" else contextlib.nullcontext():
-            yield
-    finally:
-        for k, v in saved.items():
-            if v is None:
-                os.environ.pop(k, None)
+    with environment({k: v for k, v in _WORKER_ENV.items() if k not in os.environ}), \
+            _opencv_pool_stopped() if method == "fork" else contextlib.nullcontext():
+        yield
 
 
 def start_method() -> str:

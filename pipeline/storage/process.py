@@ -2,7 +2,8 @@
 and the calibration's worker pools, and the main process itself): one copy for both.
 
 ``start_pool``: a pool of worker processes, started now, or :class:`ProcessesUnavailable`
-where the system cannot run one.
+where the system cannot run one; ``environment``: variables set for a block (what a process
+started in it inherits), restored after.
 ``die_with_parent``: a worker killed with its parent leaves no writer behind.
 ``reuse_freed_memory``: the large arrays freed by one frame or band are reused by the next
 instead of being handed back to the kernel and zeroed again on the next touch, and new
@@ -16,7 +17,7 @@ import os
 import signal
 from concurrent.futures import ProcessPoolExecutor
 from multiprocessing.context import BaseContext
-from typing import Any, Callable, ContextManager
+from typing import Any, Callable, ContextManager, Iterator, Mapping
 
 from mscal_core.errors import ProcessesUnavailable
 
@@ -56,6 +57,22 @@ def start_pool(workers: int, context: Callable[[], BaseContext], initializer: Ca
             f"worker processes cannot start on this system ({type(exc).__name__}: {exc})",
             hint="run on threads: --scheduler threads, or MSCAL_APPLY_SCHEDULER=threads",
         ) from exc
+
+
+@contextlib.contextmanager
+def environment(values: Mapping[str, str]) -> Iterator[None]:
+    """``values`` set in ``os.environ`` for the block (a process started in it inherits them),
+    each variable restored after: to its earlier value, or removed if it had none."""
+    saved = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in saved.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
 
 
 def die_with_parent() -> None:
@@ -121,4 +138,5 @@ def small_pages() -> None:
     _set_madvise_hugepage(False)
 
 
-__all__ = ["NUMPY_HUGEPAGE_ENV", "POOL_ERRORS", "die_with_parent", "reuse_freed_memory", "small_pages", "start_pool"]
+__all__ = ["NUMPY_HUGEPAGE_ENV", "POOL_ERRORS", "die_with_parent", "environment", "reuse_freed_memory", "small_pages",
+           "start_pool"]

@@ -19,6 +19,7 @@ from pipeline.run.cli import main
 from pipeline.run.runner import apply_one
 from pipeline.storage.directio import direct_io_enabled
 from tests.micasense_data import require_data
+from tests.no_processes import NoSemaphores
 
 
 def test_scheduler_for_and_validation(monkeypatch) -> None:
@@ -284,17 +285,12 @@ def _twice(plan, job) -> int:
     return 2 * job
 
 
-class _NoSemaphores:
-    def __init__(self, *args, **kwargs):
-        raise OSError(38, "Function not implemented")  # sem_open on AWS Lambda
-
-
 def test_where_worker_processes_cannot_start_auto_runs_on_threads_and_processes_are_refused(monkeypatch,
                                                                                              caplog) -> None:
     from mscal_core.errors import ProcessesUnavailable
     from pipeline.apply.executor import Runner
 
-    monkeypatch.setattr("pipeline.storage.process.ProcessPoolExecutor", _NoSemaphores)
+    monkeypatch.setattr("pipeline.storage.process.ProcessPoolExecutor", NoSemaphores)
     monkeypatch.setattr("os.cpu_count", lambda: 2)
     with caplog.at_level("WARNING"), Runner(100, Execution()) as runner:  # auto would take processes
         assert (runner.scheduler, runner.workers, runner.pool) == ("threads", 2, None)

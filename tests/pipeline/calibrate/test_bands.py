@@ -12,6 +12,7 @@ import xarray as xr
 
 from pipeline.calibrate.fit import detection_image
 from pipeline.calibrate.pool import WORKERS_ENV, BandPool, band_workers
+from tests.no_processes import NoSemaphores
 
 
 def test_one_worker_and_two_give_the_same_store(small, tmp_path) -> None:
@@ -122,13 +123,8 @@ def test_detection_image_table_path_matches_the_plain_one() -> None:
     np.testing.assert_array_equal(detection_image(odd, u), detection_image(odd.astype(np.int64), u))
 
 
-class _NoSemaphores:
-    def __init__(self, *args, **kwargs):
-        raise OSError(38, "Function not implemented")  # sem_open on AWS Lambda
-
-
 def test_band_fits_run_in_this_process_where_worker_processes_cannot_start(monkeypatch, caplog) -> None:
-    monkeypatch.setattr("pipeline.storage.process.ProcessPoolExecutor", _NoSemaphores)
+    monkeypatch.setattr("pipeline.storage.process.ProcessPoolExecutor", NoSemaphores)
     with caplog.at_level("WARNING"), BandPool(2) as pool:
         assert pool.workers == 1
         assert pool.map(pow, [(2, 3), (3, 2)]) == [8, 9]

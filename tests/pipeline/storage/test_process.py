@@ -8,6 +8,8 @@ import sys
 
 import pytest
 
+from tests.no_processes import NoSemaphores
+
 PROBE = (
     "from numpy._core.multiarray import _set_madvise_hugepage as hp\n"
     "from pipeline.storage.process import reuse_freed_memory\n"
@@ -46,11 +48,6 @@ class _Pool:
         self.shut = True
 
 
-class _NoSemaphores:
-    def __init__(self, *args, **kwargs):
-        raise OSError(38, "Function not implemented")  # sem_open on AWS Lambda
-
-
 def test_a_pool_the_system_cannot_run_is_refused_with_its_reason_and_nothing_left_running(monkeypatch) -> None:
     import multiprocessing
 
@@ -67,6 +64,17 @@ def test_a_pool_the_system_cannot_run_is_refused_with_its_reason_and_nothing_lef
     with pytest.raises(ProcessesUnavailable, match=r"cannot start on this system \(BlockingIOError: \[Errno 11\].*--scheduler threads"):
         start_pool(2, lambda: multiprocessing.get_context("spawn"), print, starting=starting)
     assert entered == [True] and _Pool.made[-1].shut  # started inside starting(); shut down after
-    monkeypatch.setattr("pipeline.storage.process.ProcessPoolExecutor", _NoSemaphores)
+    monkeypatch.setattr("pipeline.storage.process.ProcessPoolExecutor", NoSemaphores)
     with pytest.raises(ProcessesUnavailable, match=r"\(OSError: \[Errno 38\] Function not implemented\)"):
         start_pool(2, lambda: multiprocessing.get_context("spawn"), print)
+
+
+def test_environment_is_set_for_the_block_and_restored_after(monkeypatch) -> None:
+    from pipeline.storage.process import environment
+
+    monkeypatch.setenv("MSCAL_TEST_HAD", "before")
+    monkeypatch.delenv("MSCAL_TEST_NEW", raising=False)
+    with pytest.raises(RuntimeError), environment({"MSCAL_TEST_HAD": "in", "MSCAL_TEST_NEW": "in"}):
+        assert (os.environ["MSCAL_TEST_HAD"], os.environ["MSCAL_TEST_NEW"]) == ("in", "in")
+        raise RuntimeError("restored on an error too")
+    assert os.environ["MSCAL_TEST_HAD"] == "before" and "MSCAL_TEST_NEW" not in os.environ
