@@ -707,7 +707,8 @@ class Runner:
                 self.pool = start_pool(self.workers, worker_context, _worker_init, (worker_environment(),))
             except ProcessesUnavailable as exc:
                 if execution.scheduler == "processes":  # asked for: say so, and how to run instead
-                    raise
+                    raise ProcessesUnavailable(
+                        exc.reason, hint="run on threads: --scheduler threads, or MSCAL_APPLY_SCHEDULER=threads") from exc
                 # chosen here (auto): the same outputs on threads, only slower
                 log.warning("%s: running on %d threads instead", exc.reason, self.workers)
                 self.scheduler = "threads"

@@ -40,9 +40,9 @@ def start_pool(workers: int, context: Callable[[], BaseContext], initializer: Ca
     """A pool of ``workers`` processes of the multiprocessing ``context()`` (called here: a
     forkserver starts in it), each started now, inside ``starting()``.
 
-    Raises :class:`ProcessesUnavailable` (saying why, and that threads work) when the system
-    cannot run them, with nothing left running; the caller decides whether to run on threads
-    or in its own process instead, or to stop."""
+    Raises :class:`ProcessesUnavailable` (saying why) when the system cannot run them, with
+    nothing left running; the caller decides whether to run on threads or in its own process
+    instead, or to stop, and gives its own users' fix."""
     pool = None
     try:
         pool = ProcessPoolExecutor(workers, mp_context=context(), initializer=initializer, initargs=initargs)
@@ -54,9 +54,7 @@ def start_pool(workers: int, context: Callable[[], BaseContext], initializer: Ca
         if pool is not None:
             pool.shutdown(wait=False, cancel_futures=True)
         raise ProcessesUnavailable(
-            f"worker processes cannot start on this system ({type(exc).__name__}: {exc})",
-            hint="run on threads: --scheduler threads, or MSCAL_APPLY_SCHEDULER=threads",
-        ) from exc
+            f"worker processes cannot start on this system ({type(exc).__name__}: {exc})") from exc
 
 
 @contextlib.contextmanager

@@ -201,6 +201,22 @@ def test_worker_server_is_started_only_for_a_pass_on_processes(monkeypatch) -> N
     assert start_worker_server(Execution(), 500)  # running already: nothing more
 
 
+def test_worker_server_that_cannot_start_is_left_to_the_pass(monkeypatch) -> None:
+    """Where the system cannot start the server (no socket folder, no processes left), the
+    early start gives up quietly: the pass then runs on threads or says why
+    (``test_where_worker_processes_cannot_start_...``)."""
+    from pipeline.apply.execution import start_worker_server
+
+    def cannot(*args: object) -> None:
+        raise OSError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    monkeypatch.setattr("multiprocessing.forkserver.ensure_running", cannot)
+    assert not start_worker_server(Execution(), 500)
+    monkeypatch.setattr("multiprocessing.forkserver.ensure_running", lambda: None)
+    assert start_worker_server(Execution(), 500)  # the same call where the server starts
+
+
 def _worker_environment(plan, job) -> dict[str, str | None]:
     import os
 
@@ -298,5 +314,7 @@ def test_where_worker_processes_cannot_start_auto_runs_on_threads_and_processes_
         assert runner.run(None, range(4), fn=_twice) == [0, 2, 4, 6]
     assert "worker processes cannot start on this system (OSError: [Errno 38] Function not implemented): " \
            "running on 2 threads instead" in caplog.text
-    with pytest.raises(ProcessesUnavailable, match="run on threads: --scheduler threads"):
+    with pytest.raises(ProcessesUnavailable) as refused:
         Runner(100, Execution("processes", 2))  # asked for: refused, saying what to do
+    assert str(refused.value) == ("worker processes cannot start on this system (OSError: [Errno 38] Function not "
+                                  "implemented) (run on threads: --scheduler threads, or MSCAL_APPLY_SCHEDULER=threads)")

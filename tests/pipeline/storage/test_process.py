@@ -61,7 +61,7 @@ def test_a_pool_the_system_cannot_run_is_refused_with_its_reason_and_nothing_lef
         return open(os.devnull)  # any context manager
 
     monkeypatch.setattr("pipeline.storage.process.ProcessPoolExecutor", _Pool)
-    with pytest.raises(ProcessesUnavailable, match=r"cannot start on this system \(BlockingIOError: \[Errno 11\].*--scheduler threads"):
+    with pytest.raises(ProcessesUnavailable, match=r"cannot start on this system \(BlockingIOError: \[Errno 11\] Resource temporarily unavailable\)$"):
         start_pool(2, lambda: multiprocessing.get_context("spawn"), print, starting=starting)
     assert entered == [True] and _Pool.made[-1].shut  # started inside starting(); shut down after
     monkeypatch.setattr("pipeline.storage.process.ProcessPoolExecutor", NoSemaphores)
