@@ -290,7 +290,8 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
     remove_temporaries(out)
     panels = {**metadata_panels(captures), **run.panels}
     t0 = time.perf_counter()
-    with Runner(len(captures), run.execution) as runner:
+    warm = run.chain.calibration if isinstance(run.chain, FieldChain) else None
+    with Runner(len(captures), run.execution, calibration=warm) as runner:
         while True:  # a capture found unusable in the pass is quarantined and the pass redone without it
             tmp_refl, tmp_raw, plan = _start(out, camera, captures, shape, indices, roles, export, run)
             jobs = [Job(f, c.name, capture_tags(camera, c), capture=c, scale=run.scale(c.name), panel=c.name in panels)

@@ -661,7 +661,7 @@ def apply_flight(
     fresh = cube.group is not None and cube.committed == 0 and n_hint > 0
     quarantined = list(cube.found.quarantined)
     done: tuple[_Pass, list[Outcome]] | None = None
-    with Runner(n_hint, options.execution) as runner:
+    with Runner(n_hint, options.execution, calibration=calib_path) as runner:
         if fresh:
             forget_run(out)
             try:

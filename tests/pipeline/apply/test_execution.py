@@ -241,6 +241,28 @@ def test_worker_processes_take_the_settings_of_the_pass_not_of_their_server(monk
     assert seen == [{"MSCAL_DIRECT_IO": "0", "MSCAL_TEST_KEPT": "set after", "MSCAL_TEST_GONE": None}] * 4
 
 
+def _tables_held(plan, job) -> int:
+    from pipeline.apply.executor import loaded_calibrations
+
+    return loaded_calibrations()
+
+
+def test_workers_load_the_calibration_tables_as_they_start(small, tmp_path) -> None:
+    """``Runner(calibration=...)``: every worker holds the store's Eq. 15 tables before its
+    first frame (loaded while the main process makes the stores and the plan); without it
+    none does; a store that cannot be read is left to the frames, which raise its error."""
+    from pipeline.apply.executor import Runner
+
+    _, calib = small
+    with Runner(100, Execution("processes", 2), calibration=calib) as runner:
+        assert runner.scheduler == "processes"
+        assert runner.run(None, range(4), fn=_tables_held) == [1] * 4
+    with Runner(100, Execution("processes", 2)) as runner:
+        assert runner.run(None, range(2), fn=_tables_held) == [0, 0]
+    with Runner(100, Execution("processes", 2), calibration=tmp_path / "missing.zarr") as runner:
+        assert runner.run(None, range(2), fn=_tables_held) == [0, 0]
+
+
 def test_server_import_path_is_this_process_path_in_order_with_folders_made_absolute(tmp_path, monkeypatch) -> None:
     from pipeline.apply.execution import server_import_path
 
