@@ -250,7 +250,8 @@ def _tables_held(plan, job) -> int:
 def test_workers_load_the_calibration_tables_as_they_start(small, tmp_path) -> None:
     """``Runner(calibration=...)``: every worker holds the store's Eq. 15 tables before its
     first frame (loaded while the main process makes the stores and the plan); without it
-    none does; a store that cannot be read is left to the frames, which raise its error."""
+    none does; a store that cannot be read does not stop the workers (nothing is held: the
+    frames' own load then raises its error)."""
     from pipeline.apply.executor import Runner
 
     _, calib = small
