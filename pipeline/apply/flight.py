@@ -24,7 +24,8 @@ import re
 import shutil
 import time
 import warnings
-from dataclasses import asdict, dataclass, field
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -137,10 +138,15 @@ class ApplyOptions:
 
 @dataclass
 class ApplyResult:
+    """What one apply did: ``run`` is ``OUT/run.json``'s record. ``calibration``: the
+    calibration store as apply read it (in memory), for the caller's summary to use instead of
+    reading the store again; None for ``--calibration factory``."""
+
     out: Path
     run: dict[str, Any]
     up_to_date: bool = False
     quarantined: list[dict[str, str]] = field(default_factory=list)
+    calibration: xr.Dataset | None = field(default=None, repr=False, compare=False)
 
 
 # --------------------------------------------------------------------------- helpers
@@ -573,9 +579,13 @@ def forget_run(out: Path) -> None:
 def write_run_record(out: Path, record: dict[str, Any]) -> None:
     """Write ``out/run.json``, the completion marker of a flight, last: the outputs are flushed
     to the disk first (one ``syncfs``), their manifest goes into the record, and the record is
-    written atomically and fsynced (file and folder)."""
-    sync_file_system(out)
-    record[MANIFEST_KEY] = outputs_manifest(out, (record.get("outputs") or {}).values())
+    written atomically and fsynced (file and folder). The manifest (a ``stat`` per file, 0.04 s
+    of CPU for a 600-frame OUT) is taken while ``syncfs`` waits for the disk (0.1 s): it reads
+    sizes, which flushing does not change; run.json is written only after both."""
+    with ThreadPoolExecutor(1) as pool:
+        synced = pool.submit(sync_file_system, out)
+        record[MANIFEST_KEY] = outputs_manifest(out, (record.get("outputs") or {}).values())
+        synced.result()  # its error, if any, before anything claims the outputs complete
     write_json_atomic(out / RUN_JSON, record)
 
 
@@ -630,7 +640,8 @@ def apply_flight(
     if camera.layout.kind == "file_per_band":  # one file per band: a capture is several files (issue 20)
         from pipeline.apply.captures import apply_field_captures
 
-        return apply_field_captures(flight_dir, calib_path, out, camera, options, t_start, calib)
+        return replace(apply_field_captures(flight_dir, calib_path, out, camera, options, t_start, calib),
+                       calibration=calib)
     check_camera(calib, camera, calib_path)  # the store opened once (0.1 s a load)
     chash = calibration_hash(calib)
     export = export_band_indices(camera, options.export_bands)
@@ -683,7 +694,7 @@ def apply_flight(
             previous = previous_run(out, fingerprint)
             if previous is not None:
                 previous["quarantined"] = quarantined
-                return ApplyResult(out, previous, up_to_date=True, quarantined=quarantined)
+                return ApplyResult(out, previous, up_to_date=True, quarantined=quarantined, calibration=calib)
             forget_run(out)
             remove_frame_tiffs(out, [Path(q["file"]).stem for q in quarantined], camera, export)
             done = _cube_pass(out, runner, start, calib_path, sat, camera)
@@ -695,7 +706,7 @@ def apply_flight(
     run = _run_record(flight_dir, calib_path, chash, calib, camera, export, options, ps, outcomes, quarantined, runner,
                       single, {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)})
     write_run_record(out, run)  # last: a run.json names a finished pass
-    return ApplyResult(out, run, up_to_date=False, quarantined=quarantined)
+    return ApplyResult(out, run, up_to_date=False, quarantined=quarantined, calibration=calib)
 
 
 def _run_record(flight_dir: Path, calib_path: Path, chash: str, calib: xr.Dataset, camera: Camera,

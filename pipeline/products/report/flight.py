@@ -6,7 +6,9 @@ segmentation, track, histograms).
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any, Sequence
+import os
+from concurrent.futures import ThreadPoolExecutor
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 import xarray as xr
@@ -45,10 +47,28 @@ def _stride(shape: Sequence[int], max_pixels: int) -> int:
     return max(1, math.ceil(math.sqrt(shape[-2] * shape[-1] / max_pixels)))
 
 
-def _sampled(da: xr.DataArray, frames: np.ndarray, max_pixels: int) -> np.ndarray:
-    """``da[frames, ..., ::s, ::s]`` in memory, one frame at a time (bounded memory)."""
+def _sampled(da: xr.DataArray, frames: np.ndarray, max_pixels: int, chunks: FrameChunks | None = None) -> np.ndarray:
+    """``da[frames, ..., ::s, ::s]`` in memory, one whole frame decoded at a time per thread
+    (bounded memory): straight from the whole-frame chunk files of ``chunks``
+    (:func:`_chunk_files`), a thread per core (file reads and blosc release the GIL), else
+    through xarray one frame at a time. Through xarray the 12 raw frames of the warnings that
+    ``mscal apply`` prints took 0.15 s after every 600-frame run; from the files 0.02-0.03 s."""
     s = _stride(da.shape, max_pixels)
+    if chunks is not None:
+        try:
+            return np.stack(_thread_map(lambda f: chunks.read(int(f))[..., ::s, ::s].copy(), frames))
+        except FileNotFoundError:  # a frame without its chunk: zarr gives the fill value
+            pass
     return np.stack([np.asarray(da.isel(frame=int(f)).values[..., ::s, ::s]) for f in frames])
+
+
+def _thread_map(fn: Callable[[Any], np.ndarray], items: Sequence[Any]) -> list[np.ndarray]:
+    """``[fn(x) for x in items]``, on a thread per core."""
+    n = min(len(items), os.cpu_count() or 1)
+    if n <= 1:
+        return [fn(x) for x in items]
+    with ThreadPoolExecutor(n) as pool:
+        return list(pool.map(fn, items))
 
 
 def _role_bands(flight: FlightResults) -> tuple[int, int] | None:
@@ -135,13 +155,18 @@ def _level(dn: np.ndarray, black: float, t: float) -> float:
     return float(np.median(np.asarray(dn, dtype=float) - black) / t)
 
 
-def _chunk_files(flight: FlightResults, name: str) -> FrameChunks | None:
-    """The whole-frame chunk files of raw.zarr's ``name`` (frame, band, ...), where its layout
-    is one :class:`pipeline.storage.chunks.FrameChunks` reads and matches the opened array;
-    None: read it through xarray."""
-    da = flight.raw[name]
-    chunks = FrameChunks.open(flight.out / "raw.zarr" / name)
-    ok = chunks is not None and da.dims[:2] == ("frame", "band") and chunks.shape == da.shape
+def _chunk_files(flight: FlightResults, name: str, store: str = "raw.zarr") -> FrameChunks | None:
+    """The whole-frame chunk files of ``store``'s ``name`` (frame, band, ...), where its layout
+    is one :class:`pipeline.storage.chunks.FrameChunks` reads and matches the opened array
+    (dims, shape, dtype, and values as stored: no scale, offset or fill value other than NaN
+    for xarray to apply); None: read it through xarray."""
+    da = (flight.raw if store == "raw.zarr" else flight.reflectance)[name]
+    chunks = FrameChunks.open(flight.out / store / name)
+    fill = da.encoding.get("_FillValue")
+    as_stored = (not {"scale_factor", "add_offset"} & set(da.encoding)
+                 and (fill is None or (da.dtype.kind == "f" and np.isnan(fill))))
+    ok = (chunks is not None and da.dims[:2] == ("frame", "band") and chunks.shape == da.shape
+          and chunks.dtype == da.dtype and as_stored)
     return chunks if ok else None
 
 
@@ -182,7 +207,7 @@ def dn_outside_sweep(flight: FlightResults, calibration: xr.Dataset) -> tuple[fl
     if not observed or raw is None or "dn" not in raw:
         return float("nan"), -1
     frames = sample_indices(raw.sizes["frame"], HIST_MAX_FRAMES)
-    dn = _sampled(raw["dn"], frames, HIST_MAX_PIXELS)  # (frame, band, h, w)
+    dn = _sampled(raw["dn"], frames, HIST_MAX_PIXELS, _chunk_files(flight, "dn"))  # (frame, band, h, w)
     sat = calibration["saturation_dn"].values if "saturation_dn" in calibration else np.full(dn.shape[1], np.inf)
     frac = np.array([np.mean((dn[:, b] > observed[b][1]) & (dn[:, b] < sat[b])) for b in range(dn.shape[1])])
     b = int(np.argmax(frac))
@@ -311,7 +336,8 @@ def plot_histograms(flight: FlightResults) -> Figure:
     :data:`HIST_MAX_FRAMES` frames x :data:`HIST_MAX_PIXELS` pixels per band)."""
     ds = flight.reflectance
     frames = sample_indices(ds.sizes["frame"], HIST_MAX_FRAMES)
-    r = _sampled(ds["reflectance"], frames, HIST_MAX_PIXELS)  # (frame, band, h, w)
+    r = _sampled(ds["reflectance"], frames, HIST_MAX_PIXELS,
+                 _chunk_files(flight, "reflectance", "reflectance.zarr"))  # (frame, band, h, w)
     finite = r[np.isfinite(r)]
     lo, hi = np.percentile(finite, [0.5, 99.5]) if finite.size else (0.0, 1.0)
     edges = np.linspace(float(lo), float(max(hi, lo + 1e-6)), 61)

@@ -199,3 +199,47 @@ def test_kept_properties_hold_every_orientation_the_model_reads(tmp_path: Path) 
     assert full is not None and full.source.startswith("drone-dji")
     assert kept == full
     assert np.degrees([kept.yaw, kept.pitch, kept.roll]) == pytest.approx([37.5, -9.25, 6.0])
+
+
+def test_sampled_frames_from_chunk_files_equal_the_xarray_read(applied) -> None:
+    """The report's frame samples (the DN of the warning that ``mscal apply`` prints, the
+    reflectance histograms) read straight from the chunk files, a thread per core, are the
+    values xarray reads: raw DN as uint16, reflectance as float32."""
+    flight = open_flight(applied[2])
+    n = flight.raw.sizes["frame"]
+    frames = report_flight.sample_indices(n, n)
+    assert len(frames) >= 3
+    for da, chunks in ((flight.raw["dn"], report_flight._chunk_files(flight, "dn")),
+                       (flight.reflectance["reflectance"],
+                        report_flight._chunk_files(flight, "reflectance", "reflectance.zarr"))):
+        assert chunks is not None, da.name
+        fast = report_flight._sampled(da, frames, 2_000, chunks)
+        slow = report_flight._sampled(da, frames, 2_000)
+        assert fast.dtype == slow.dtype == da.dtype and fast.shape == slow.shape
+        assert fast.shape[0] == len(frames) and fast.shape[-1] < da.shape[-1]  # strided
+        np.testing.assert_array_equal(fast, slow)
+    assert fast.dtype == np.float32 and np.isfinite(fast).mean() > 0.9
+
+
+def test_sampled_frames_fall_back_to_xarray_where_the_files_differ(applied, tmp_path: Path) -> None:
+    """A frame without its chunk file reads as zarr's fill value, and an array xarray would
+    decode (scale, offset, a fill value other than NaN) is not read from the files at all."""
+    import shutil
+
+    out = tmp_path / "out"
+    shutil.copytree(applied[2], out)
+    flight = open_flight(out)
+    chunks = report_flight._chunk_files(flight, "dn")
+    (chunks.chunk_path(1)).unlink()
+    frames = np.array([0, 1])
+    got = report_flight._sampled(flight.raw["dn"], frames, 2_000, chunks)
+    assert (got[1] == 0).all() and got[0].any()
+    np.testing.assert_array_equal(got, report_flight._sampled(flight.raw["dn"], frames, 2_000))
+    for key, value in (("scale_factor", 0.5), ("add_offset", 1.0), ("_FillValue", 7)):
+        decoded = flight.raw.copy()
+        decoded["dn"].encoding[key] = value
+        assert report_flight._chunk_files(dataclasses.replace(flight, raw=decoded), "dn") is None, key
+    refl = flight.reflectance.copy()
+    refl["reflectance"].encoding["_FillValue"] = -1.0
+    assert report_flight._chunk_files(dataclasses.replace(flight, reflectance=refl), "reflectance",
+                                      "reflectance.zarr") is None

@@ -373,3 +373,23 @@ def test_the_executable_is_script_main_and_exits_with_main_status(tmp_path):
     ok = subprocess.run([sys.executable, "-c", probe, "--version"], capture_output=True, text=True, timeout=120)
     assert ok.returncode == 0 and ok.stdout.splitlines()[-1] == "frozen True"
     assert not (tmp_path / "c.zarr").exists()
+
+
+def test_apply_summary_warns_from_the_calibration_apply_read(small, tmp_path: Path, monkeypatch) -> None:
+    """The summary's warnings come from the calibration store apply has in memory (the report
+    does not read it a second time) and are those of the report of the same store and OUT."""
+    from pipeline.products.report import inputs
+
+    session, calib = small
+    read = []
+    opened = inputs.open_calibration
+    monkeypatch.setattr(inputs, "open_calibration", lambda path, *a, **k: read.append(path) or opened(path, *a, **k))
+    out = tmp_path / "out"
+    code, text, _ = _run(["apply", session / "flights" / "field", "--calibration", calib, "-o", out, "--json"])
+    doc = json.loads(text)
+    assert code == 0 and doc["counts"]["frames_out"] >= 3
+    assert read == []
+    want = _report_warnings(calib, [out])
+    assert read == [calib]
+    assert "vignetting_coverage" in [w["code"] for w in want]  # the calibration's section is in both
+    assert _codes_values(doc["warnings"]) == _codes_values(want)
