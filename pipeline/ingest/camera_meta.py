@@ -466,17 +466,39 @@ def _micasense(ctx: _Ctx, panchro: bool = False) -> CaptureMeta:
 
 
 def _micasense_irradiance(ctx: _Ctx) -> float | None:
-    """Spectral irradiance on the DLS, W m-2 nm-1: ``Camera:Irradiance`` (DLS 1), else DLS 2's
-    ``HorizontalIrradiance`` x ``IrradianceScaleToSIUnits`` (0.01 when that tag is missing,
-    as micasense/imageprocessing ``metadata.py`` assumes)."""
+    """Spectral irradiance on the DLS, W m-2 nm-1: ``Camera:Irradiance`` (the reading on the
+    sensor's own plane), else DLS 2's ``HorizontalIrradiance``; either times the file's
+    irradiance scale (:func:`_micasense_irradiance_scale`). DLS 2 firmware still writes the
+    legacy ``Irradiance`` tag beside ``HorizontalIrradiance``, in the same uW cm-2 nm-1 as its
+    other irradiance tags (micasense/imageprocessing issue #47, "DLS2 irradiance units"): read
+    unscaled it gave reflectance 100x too low."""
+    ns = ("Camera", "MicaSense", "DLS")
     irr = _positive_irradiance(ctx, "Irradiance", ("Camera", "MicaSense"))
-    if irr is not None:
-        return irr
-    horiz = _positive_irradiance(ctx, "HorizontalIrradiance", ("Camera", "MicaSense", "DLS"))
-    if horiz is None:
+    if irr is None:
+        irr = _positive_irradiance(ctx, "HorizontalIrradiance", ns)
+    if irr is None:
         return None
-    scale = ctx.optional("sun_sensor", lambda: ctx.xmp.number("IrradianceScaleToSIUnits", ("Camera", "MicaSense", "DLS")))
-    return horiz * (0.01 if scale is None else scale)
+    scale = _micasense_irradiance_scale(ctx)
+    return None if scale is None else irr * scale
+
+
+def _micasense_irradiance_scale(ctx: _Ctx) -> float | None:
+    """The factor to W m-2 nm-1 of a MicaSense file's irradiance tags, as micasense/imageprocessing
+    ``metadata.py`` ``irradiance_scale_factor()`` takes it: ``IrradianceScaleToSIUnits`` when the
+    file has it; else 0.01 when it has DLS 2's ``HorizontalIrradiance`` (uW cm-2 nm-1); else 1
+    (DLS 1). None, with the problem recorded, when the scale tag is there but not a positive number."""
+    ns = ("Camera", "MicaSense", "DLS")
+
+    def read() -> float | None:
+        v = ctx.xmp.numbers("IrradianceScaleToSIUnits", ns)
+        if v is None:
+            return 0.01 if ctx.xmp.has("HorizontalIrradiance", ns) else 1.0
+        if not (math.isfinite(v[0]) and v[0] > 0):
+            raise TagError("XMP IrradianceScaleToSIUnits", ctx.xmp.raw("IrradianceScaleToSIUnits", ns),
+                           "not a positive number", ctx.path)
+        return v[0]
+
+    return ctx.optional("sun_sensor", read)
 
 
 def _radiance_tag(ctx: _Ctx, tag: str, count: int | None = None) -> tuple[float, ...] | None:

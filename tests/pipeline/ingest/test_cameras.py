@@ -130,6 +130,34 @@ def test_dls2_horizontal_irradiance_and_its_scale() -> None:
     assert meta_from_tags(path, tags, (960, 1280), 16).irradiance == pytest.approx(0.123)
 
 
+def test_dls2_legacy_irradiance_takes_the_files_scale() -> None:
+    """DLS 2 firmware also writes the legacy ``Camera:Irradiance`` beside HorizontalIrradiance,
+    in the same uW cm-2 nm-1 (micasense/imageprocessing issue #47): it is scaled like the other
+    irradiance tags of the file (0.01 without IrradianceScaleToSIUnits), not read as W m-2 nm-1.
+    A DLS 1 file (the sample: no HorizontalIrradiance) keeps its reading as it is."""
+    from pipeline.ingest.camera_meta import meta_from_tags
+
+    require_data()
+    path = cf.band_file("0000", 2)
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        tags = {t.code: t.value for t in tif.pages[0].tags.values()}
+    dls1 = meta_from_tags(path, tags, (960, 1280), 16).irradiance
+    x = cf.drop_element(tags[700].decode(), "Camera:Irradiance")
+    x = cf.add_camera_element(x, "<Camera:Irradiance>95.74</Camera:Irradiance>")
+    x = cf.add_camera_element(x, "<Camera:HorizontalIrradiance>88.5</Camera:HorizontalIrradiance>")
+    tags[700] = x.encode()
+    m = meta_from_tags(path, tags, (960, 1280), 16)
+    assert m.irradiance == pytest.approx(0.9574) and not m.problems
+    tags[700] = cf.add_camera_element(x, "<Camera:IrradianceScaleToSIUnits>0.001</Camera:IrradianceScaleToSIUnits>").encode()
+    assert meta_from_tags(path, tags, (960, 1280), 16).irradiance == pytest.approx(0.09574)
+    tags[700] = cf.add_camera_element(x, "<Camera:IrradianceScaleToSIUnits>-1</Camera:IrradianceScaleToSIUnits>").encode()
+    bad = meta_from_tags(path, tags, (960, 1280), 16)
+    assert bad.irradiance is None and any("IrradianceScaleToSIUnits" in str(p) for p in bad.problems)
+    assert 0.5 < dls1 < 2.0  # the sample's DLS 1 reading, W m-2 nm-1, unscaled
+
+
 # --------------------------------------------------------------------------- identification
 
 
