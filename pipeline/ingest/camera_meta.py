@@ -606,7 +606,8 @@ def _dji(ctx: _Ctx) -> CaptureMeta:
     x, path = ctx.xmp, ctx.path
     dj = ("drone-dji",)
     name, wl, fwhm = _dji_band(ctx)
-    black = _black_levels(ctx) or ctx.required("BlackLevel", dj, 1)
+    black = _black_levels(ctx) or (ctx.required("BlackLevel", dj, 1) if x.has("BlackLevel", dj) or not x.has(
+        "BlackCurrent", dj) else ctx.required("BlackCurrent", dj, 1))  # BlackCurrent: the Mavic 3M manual's name
     gain = ctx.required("SensorGain", dj, 1)[0]
     if not gain > 0:
         raise FrameError(f"XMP drone-dji:SensorGain {gain!r} must be positive", path=path)
@@ -643,13 +644,20 @@ def _dji_band(ctx: _Ctx) -> tuple[str, float, float | None]:
         return _band(ctx)
     name = x.text("BandName", ("drone-dji",)) or x.text("BandName")
     freq = x.text("BandFreq", ("drone-dji",))
-    m = re.match(r"^\s*([0-9]+(?:\.[0-9]*)?)\s*(?:\(\s*\+/-\s*([0-9]+(?:\.[0-9]*)?)\s*\))?\s*nm\s*$", freq or "")
-    if name is None or m is None:
-        raise FrameError("no band name and centre wavelength (XMP Camera:CentralWavelength or drone-dji:BandFreq "
-                         f"like 840(+/-26)nm; got {freq!r})", path=ctx.path, hint=FIRMWARE_HINT)
-    wl = float(m[1])
+    m = _DJI_BAND_FREQ.match(freq or "")
+    own = ctx.optional(None, lambda: x.numbers("CentralWavelength", ("drone-dji",), 1))
+    if name is None or (m is None and own is None):
+        raise FrameError("no band name and centre wavelength (XMP Camera:CentralWavelength, drone-dji:"
+                         f"CentralWavelength or drone-dji:BandFreq like 840(+/-26)nm; got {freq!r})",
+                         path=ctx.path, hint=FIRMWARE_HINT)
+    wl = own[0] if own is not None else float(m[1])  # type: ignore[index]
     _check_wavelength(wl, ctx.path)
-    return name, wl, (2 * float(m[2])) if m[2] else None
+    return name, wl, (2 * float(m[2])) if m is not None and m[2] else None
+
+
+#: drone-dji:BandFreq: ``840(+/-26)nm`` (P4 Multispectral Image Processing Guide), ``560(±16)nm``
+#: (Mavic 3M User Manual, "Photo File"), spaces allowed.
+_DJI_BAND_FREQ = re.compile(r"^\s*([0-9]+(?:\.[0-9]*)?)\s*(?:\(\s*(?:\+/-|\+-|±)\s*([0-9]+(?:\.[0-9]*)?)\s*\))?\s*nm\s*$")
 
 
 def _dji_dewarp(x: Xmp, path: Path) -> tuple[float, ...] | None:
