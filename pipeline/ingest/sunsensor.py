@@ -27,16 +27,19 @@ relative sensors) and the correction ``f = E_h / E_meas``:
   Irradiance List tag for Sunshine sensor", Parrot's answer: "a linear irradiance sensor with
   no black level"): the tilt model with the sensor's own angles of its last record (degrees),
   else ``Camera:Yaw/Pitch/Roll``.
-- **DJI** (``drone-dji:Irradiance`` with ``SensorGainAdjustment``, P4 Multispectral Image
-  Processing Guide): the sunlight sensor on top of the aircraft, tilted with it:
-  ``drone-dji:FlightYawDegree/FlightPitchDegree/FlightRollDegree``.
+- **DJI** (``drone-dji:Irradiance`` with ``SensorGainAdjustment``): used as the camera wrote
+  it, correction 1. The P4 Multispectral Image Processing Guide calls it the "calibrated
+  sunlight sensor value" and divides the camera value by it with no angle term; the Mavic 3M
+  User Manual ("Photo File") says it is the "solar irradiance value after compensation by
+  built-in algorithm" (``SunSensor`` is the one before). A tilt model on top of it corrected
+  the aircraft's attitude twice (lines flown in opposite directions 14 % apart).
 - **Sentera** ILS counts (``ILS:*``, Sentera radiometric-corrections repository): the tilt
   model with ``Camera:Yaw/Pitch/Roll``; Sentera's sun sensor gives no reflectance on its own
   (no published conversion), only the change between panels.
 
 Without a sun position (no time or GPS) or orientation the correction is 1 (the raw reading)
 or the level-sensor one, and run.json says which (``sun_sensor``). Without a measured split
-(DLS 1, Sequoia, DJI, Sentera) the diffuse ratio is the clear sky's 1/6, or, on a flight of
+(DLS 1, Sequoia, Sentera) the diffuse ratio is the clear sky's 1/6, or, on a flight of
 at least :data:`FIT_MIN_CAPTURES` captures at changing attitudes, fitted per band so that the
 horizontal irradiance does not jump when the aircraft turns (``sun_sensor.diffuse_ratio``).
 
@@ -200,7 +203,7 @@ def _num(v: float, digits: int = 6) -> float | None:
 
 @dataclass(frozen=True)
 class _TiltCase:
-    """A band file whose correction is the tilt model's (:func:`_band_correction`): computed
+    """A band file whose correction is the tilt model's (:func:`band_correction`): computed
     for every such file of the flight in one :func:`horizontal_irradiance` call."""
 
     el: float
@@ -210,12 +213,14 @@ class _TiltCase:
     model: str
 
 
-def _band_correction(x: Xmp, el: float, az: float, orient: Orientation | None,
+def band_correction(x: Xmp, el: float, az: float, orient: Orientation | None,
                      sky_ratio: float = CLEAR_SKY_DIFFUSE_RATIO, sky: str = "clear-sky diffuse ratio 1/6"
                      ) -> tuple[float, float, float, str] | _TiltCase:
     """``E_h / E_meas`` of one band file, the tilt and incidence (radians) and the model used
     (``sky_ratio``: the diffuse ratio without a measured split, named ``sky``); for the tilt
     model, what it needs (:func:`_tilt_corrections` computes them all at once)."""
+    if camera_compensated(x):
+        return 1.0, float("nan"), float("nan"), DJI_COMPENSATED
     split = _dls2_split(x)
     has_sun = math.isfinite(el) and math.isfinite(az)
     if split is not None and has_sun and x.number("Irradiance", ("Camera", "MicaSense")) is None:
@@ -229,8 +234,18 @@ def _band_correction(x: Xmp, el: float, az: float, orient: Orientation | None,
     return _TiltCase(el, az, o, ratio, f"{name}; orientation {o.source}")
 
 
+#: run.json's ``sun_sensor`` model of a reading the camera compensated itself (DJI).
+DJI_COMPENSATED = "DJI Irradiance as written (compensated by the camera's built-in algorithm)"
+
+
+def camera_compensated(x: Xmp) -> bool:
+    """True for a reading the camera already made independent of its attitude: DJI's
+    ``drone-dji:Irradiance`` (module docstring)."""
+    return x.has("Irradiance", ("drone-dji",))
+
+
 def _tilt_corrections(cases: Sequence[_TiltCase]) -> list[tuple[float, float, float, str]]:
-    """:func:`_band_correction`'s result of each tilt-model case, from one vectorised call
+    """:func:`band_correction`'s result of each tilt-model case, from one vectorised call
     (one call per band file cost 1.5 ms: 37 s of a 5,000-capture, 5-band flight)."""
     if not cases:
         return []
@@ -267,11 +282,11 @@ def sensor_light(captures: Sequence[Capture], times: np.ndarray, *, fit_ratio: b
             k[c, b] = kb
             kept = sun_sensor_xmp(meta)  # the properties read with the file's metadata
             xmps[c, b] = x = kept if kept is not None else file_xmp(meta.path)
-            o = sensor_orientation(x)
+            o = None if camera_compensated(x) else sensor_orientation(x)  # no ratio fit from those
             if o is not None and not np.isfinite(ypr[c, 0]):
                 ypr[c] = (o.yaw, o.pitch, o.roll)
     ratios, sources = _sky_ratios(k, el, az, ypr, xmps, fit_ratio)
-    found = {cb: _band_correction(x, float(el[cb[0]]), float(az[cb[0]]), sensor_orientation(x),
+    found = {cb: band_correction(x, float(el[cb[0]]), float(az[cb[0]]), sensor_orientation(x),
                                   ratios[cb[1]], sources[cb[1]]) for cb, x in xmps.items()}
     tilted = [cb for cb, v in found.items() if isinstance(v, _TiltCase)]
     found.update(zip(tilted, _tilt_corrections([found[cb] for cb in tilted])))  # type: ignore[misc]

@@ -256,11 +256,11 @@ def test_dji_p4_multispectral(tmp_path) -> None:
             x, y = 3, 5
             refl = float(ds["reflectance"].isel(frame=f, band=b).values[y, x])
             scale = run["reference"]["relative_scale"]  # one constant for every band and capture
-            # the reading turned horizontal (issue 22; no attitude tags here: a level sensor)
+            # DJI's Irradiance is already compensated by the camera: divided by as written
             sun = run["sun_sensor"][run["frames"][f]]
-            assert sun["model"].endswith("orientation none (level assumed)")
-            corr = sun["correction"][ds["band_name"].values[b]]
-            assert refl == pytest.approx(scale * dji_expected(path, x, y) / (cf.DJI["irradiance"][b] * corr), rel=TOL)
+            assert sun["model"].startswith("DJI Irradiance as written")
+            assert sun["correction"][ds["band_name"].values[b]] == 1.0
+            assert refl == pytest.approx(scale * dji_expected(path, x, y) / cf.DJI["irradiance"][b], rel=TOL)
     # the panel, as every other pixel, follows the guide's model
     path = folder / "DJI_0013.TIF"
     yy, xx = np.mgrid[0:960, 0:1280].astype(np.float64)

@@ -115,3 +115,22 @@ def test_frames_csv_irradiance_wins_and_unknown_files_stay_raw(tmp_path) -> None
     assert levels.value[2] == pytest.approx(float(np.exp(np.mean(np.log(e_h)))), rel=1e-12)
     assert levels.value[2] == capture_levels([cap]).value[0]
     np.testing.assert_allclose(light.correction[0], 0.8862, atol=1e-4)  # hand-held, tilted 10.8 deg
+
+
+def test_dji_irradiance_is_used_as_the_camera_compensated_it() -> None:
+    """DJI's drone-dji:Irradiance is the value "after compensation by built-in algorithm"
+    (Mavic 3M User Manual; the P4 Multispectral guide's "calibrated sunlight sensor value",
+    divided by with no angle term): no tilt model on top of it, whatever the aircraft's
+    attitude, while a MicaSense DLS 1 reading at that attitude is corrected."""
+    from pipeline.ingest.sunsensor import DJI_COMPENSATED, band_correction, camera_compensated
+
+    el, az = math.radians(40.0), math.radians(150.0)
+    dji = _xmp('drone-dji:Irradiance="1210.5" drone-dji:FlightYawDegree="180" drone-dji:FlightPitchDegree="15" '
+               'drone-dji:FlightRollDegree="-4"')
+    assert camera_compensated(dji)
+    corr, tilt, inc, model = band_correction(dji, el, az, sensor_orientation(dji))
+    assert (corr, model) == (1.0, DJI_COMPENSATED) and math.isnan(tilt) and math.isnan(inc)
+    dls1 = _xmp('Camera:Irradiance="1.08" Camera:IrradianceYaw="180" Camera:IrradiancePitch="15" '
+                'Camera:IrradianceRoll="-4"')
+    assert not camera_compensated(dls1)
+    assert not isinstance(band_correction(dls1, el, az, sensor_orientation(dls1)), tuple)  # the tilt model
