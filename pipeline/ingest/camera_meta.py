@@ -431,6 +431,7 @@ def _micasense(ctx: _Ctx, panchro: bool = False) -> CaptureMeta:
     """MicaSense: micasense/imageprocessing ``image.py`` ``radiance()`` (cameras.md §1.3)."""
     x, path = ctx.xmp, ctx.path
     exposure, gain = _exposure_and_gain(ctx.exif, path)
+    exposure = micasense_exposure(exposure, ctx.model)
     name, wl, fwhm = _band(ctx)
     black = _black_levels(ctx)
     dark = ctx.optional(None, lambda: x.numbers("DarkRowValue"))
@@ -463,6 +464,21 @@ def _micasense(ctx: _Ctx, panchro: bool = False) -> CaptureMeta:
         radiometry="panchro" if panchro else "micasense", iso=gain * 100.0,
         **_finish(ctx),
     )
+
+
+#: The ExposureTime some legacy RedEdge firmware wrote for its shortest exposure, and the
+#: exposure it really used (micasense/imageprocessing ``metadata.py`` ``exposure()``: "correct
+#: for incorrect exposure in some legacy RedEdge firmware versions"; every model but Altum).
+LEGACY_REDEDGE_EXPOSURE = (1.0 / 6329.0, 0.000274)
+
+
+def micasense_exposure(exposure_s: float, model: str | None) -> float:
+    """A MicaSense file's EXIF ExposureTime in seconds, with the legacy RedEdge firmware's
+    wrong 1/6329 s replaced by the 0.274 ms it used (:data:`LEGACY_REDEDGE_EXPOSURE`)."""
+    wrong, used = LEGACY_REDEDGE_EXPOSURE
+    if (model or "").strip().lower() != "altum" and abs(exposure_s - wrong) < 1e-6:
+        return used
+    return exposure_s
 
 
 def _micasense_irradiance(ctx: _Ctx) -> float | None:

@@ -342,3 +342,25 @@ def test_dji_black_level_from_exif_xmp_or_the_manuals_black_current() -> None:
     tags[700] = packet.encode()
     with pytest.raises(Exception, match="BlackLevel"):
         meta_from_tags(path, tags, (960, 1280), 16)
+
+
+def test_legacy_rededge_exposure_is_corrected_as_micasense_does() -> None:
+    """Some legacy RedEdge firmware wrote ExposureTime 1/6329 s for an exposure of 0.274 ms
+    (micasense/imageprocessing metadata.py ``exposure()``, every model but Altum): radiance
+    would be 1.73x too high. Other exposures, and Altum's 1/6329 s, are kept."""
+    from pipeline.ingest.camera_meta import meta_from_tags, micasense_exposure
+
+    require_data()
+    path = cf.band_file("0000", 2)
+    import tifffile
+
+    with tifffile.TiffFile(path) as tif:
+        tags = {t.code: t.value for t in tif.pages[0].tags.values()}
+    exif = dict(tags[34665])
+    own = meta_from_tags(path, tags, (960, 1280), 16).exposure_s
+    assert own != pytest.approx(0.000274, abs=1e-6)
+    exif["ExposureTime"] = (1, 6329)
+    tags[34665] = exif
+    assert meta_from_tags(path, tags, (960, 1280), 16).exposure_s == 0.000274
+    assert micasense_exposure(1 / 6329, "Altum") == pytest.approx(1 / 6329)
+    assert micasense_exposure(1 / 6000, "RedEdge") == pytest.approx(1 / 6000)
