@@ -198,7 +198,7 @@ class SkipBand:
     another resolution, a thermal band), and why."""
 
     name: str
-    file_suffix: str
+    file_suffix: str | None  # None: a folder_per_band camera's band, known by its XMP BandName
     reason: str
 
 
@@ -305,6 +305,9 @@ def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
     sensor = _parse_sensor(data.get("sensor"), layout, path)
     index_bands, export = _parse_index_and_export_bands(data, [b.name for b in bands], path)
     identify, model, skip, sources = _parse_factory(data, [b.name for b in bands], path)
+    if layout.kind == "file_per_band" and any(s.file_suffix is None for s in skip):
+        raise CatalogError("skip_bands of a one-file-per-band camera need their file_suffix", path=path,
+                           hint="add file_suffix: the band's number in the file name, as in bands")
     camera = Camera(
         name=str(data["name"]),
         description=str(data["description"]),
@@ -540,15 +543,16 @@ def _parse_skip_bands(value: Any, path: Path, names: list[str]) -> tuple[SkipBan
     if value is None:
         return ()
     if not isinstance(value, list):
-        raise CatalogError("skip_bands must be a list of {name, file_suffix, reason}", path=path)
+        raise CatalogError("skip_bands must be a list of {name, reason, file_suffix (one file per band)}", path=path)
     out = []
     for k, v in enumerate(value):
         if not isinstance(v, dict):
             raise CatalogError(f"skip_bands[{k}] must be a mapping", path=path)
-        check_keys(v, {"name", "file_suffix", "reason"}, set(), path, f"skip_bands[{k}]")
+        check_keys(v, {"name", "reason"}, {"file_suffix"}, path, f"skip_bands[{k}]")
         if str(v["name"]) in names:
             raise CatalogError(f"skip_bands[{k}] {v['name']!r} is also in bands", path=path)
-        out.append(SkipBand(str(v["name"]), str(v["file_suffix"]), str(v["reason"])))
+        suffix = v.get("file_suffix")
+        out.append(SkipBand(str(v["name"]), None if suffix is None else str(suffix), str(v["reason"])))
     return tuple(out)
 
 

@@ -196,3 +196,14 @@ def test_catalog_root_is_the_catalogs_package() -> None:
 
     assert ROOT == Path(catalogs.__file__).parent
     assert {"cameras", "targets", "indices"} <= {p.name for p in ROOT.iterdir() if p.is_dir()}
+
+
+def test_skip_bands_need_a_file_suffix_only_where_files_are_numbered(tmp_path) -> None:
+    """A one-file-per-band camera's skipped band is found by its file number (it may be
+    unreadable); a folder-per-band camera's by its XMP BandName, so no file_suffix there."""
+    data = yaml.safe_load((ROOT / "cameras" / "micasense-altum.yaml").read_text())
+    del data["skip_bands"][0]["file_suffix"]
+    with pytest.raises(CatalogError, match="need their file_suffix"):
+        catalog.parse_camera(data, tmp_path / "micasense-altum.yaml")
+    six = catalog.load_camera("sentera-6x")
+    assert [(s.name, s.file_suffix) for s in six.skip_bands] == [("LWIR", None)]

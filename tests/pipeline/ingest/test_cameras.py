@@ -295,6 +295,33 @@ def test_sentera_6x_session_grouping(tmp_path) -> None:
     assert caps == [] and any("band NIR also in" in p["reason"] for p in problems)
 
 
+def test_sentera_6x_thermal_folder_is_named_and_kept_out(tmp_path) -> None:
+    """A 6X Thermal session holds a sixth imager folder (LWIR, kelvin x 100: Sentera 6X "Data
+    Import"): its files are named in Capture.skipped, the five reflectance bands make the
+    capture, instead of every capture being quarantined for an unexpected band."""
+    import tifffile
+
+    from pipeline.ingest.camera_meta import group_captures
+
+    if not cf.SENTERA_D4K.is_dir():
+        pytest.skip("no Sentera sample")
+    session = cf.sentera_6x(tmp_path / "f")
+    (session / "lwir").mkdir()
+    for src in sorted((session / "nir_840").glob("*.tif")):
+        with tifffile.TiffFile(src) as tif:
+            page = tif.pages[0]
+            dn, tags = page.asarray(), {t.code: (t.dtype, t.count, t.value) for t in page.tags.values()}
+        xmp = cf.set_element(tags[700][2].decode(), "Camera:BandName", cf.seq("LWIR"))
+        xmp = cf.set_element(xmp, "Camera:CentralWavelength", cf.seq(11000)).encode()
+        keep = [(c, d, n, v, True) for c, (d, n, v) in tags.items() if c in (271, 272, 42016, 33434, 34855, 36867)]
+        tifffile.imwrite(session / "lwir" / src.name, (dn // 16 + 29315).astype(np.uint16), photometric="minisblack",
+                         metadata=None, extratags=[*keep, (700, 1, len(xmp), xmp, True)])
+    caps, problems = group_captures(session, catalog.load_camera("sentera-6x"))
+    assert problems == [] and [c.name for c in caps] == ["IMG_00006", "IMG_00007"]
+    assert [x.band_name for x in caps[0].metas] == ["Blue", "Green", "Red", "RedEdge", "NIR"]
+    assert [(Path(s["file"]).parent.name, s["band"]) for s in caps[1].skipped] == [("lwir", "LWIR")]
+
+
 def _dji_tags(packet: str) -> tuple[Path, dict]:
     """The tags of a real band file with a DJI XMP packet and DJI's EXIF black level (4096)."""
     import tifffile
