@@ -20,6 +20,7 @@ and disables that feature only.
 from __future__ import annotations
 
 import base64
+import itertools
 import math
 import re
 import struct
@@ -688,28 +689,13 @@ def _dji_dewarp(x: Xmp, path: Path) -> tuple[float, ...] | None:
 
 def _read_jpeg(path: Path) -> list[CaptureMeta]:
     """A JPEG of a multi-channel camera (Sentera Double 4K): EXIF with exifread, XMP from APP1."""
-    import exifread
-
     data = path.read_bytes()
     if data[:2] != b"\xff\xd8":
         raise FrameError("not a JPEG file", path=path)
     packet = jpeg_xmp_packet(data)
     if packet is None:
         raise FrameError("no XMP packet (JPEG APP1 http://ns.adobe.com/xap/1.0/)", path=path, hint=FIRMWARE_HINT)
-    import io
-
-    tags = exifread.process_file(io.BytesIO(data), details=False)
-    exif: dict[str, Any] = {}
-    gps: dict[str, Any] = {}
-    for key, tag in tags.items():
-        group, _, name = key.partition(" ")
-        value = tag.values
-        if isinstance(value, list) and len(value) == 1 and name not in ("GPSLatitude", "GPSLongitude"):
-            value = value[0]
-        if isinstance(value, str):
-            value = value.strip()
-        name = name.replace("SubSecTime", "SubsecTime")  # exifread's spelling -> tifffile's
-        (gps if group == "GPS" else exif)[name] = value
+    exif, gps = _jpeg_exif(data)
     width = int(exif.get("ExifImageWidth") or 0)
     height = int(exif.get("ExifImageLength") or 0)
     if not (width and height):
@@ -725,6 +711,51 @@ def _read_jpeg(path: Path) -> list[CaptureMeta]:
         serial=_clean(exif.get("BodySerialNumber")), orientation=int(exif.get("Orientation") or 1), black_tag=None,
     )
     return _with_sun_sensor_props(ctx, _dispatch(ctx))
+
+
+def _jpeg_exif(data: bytes) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A JPEG's EXIF and GPS tags (exifread), named and shaped as tifffile gives a TIFF's."""
+    import io
+
+    import exifread
+
+    exif: dict[str, Any] = {}
+    gps: dict[str, Any] = {}
+    for key, tag in exifread.process_file(io.BytesIO(data), details=False).items():
+        group, _, name = key.partition(" ")
+        value = tag.values
+        if isinstance(value, list) and len(value) == 1 and name not in ("GPSLatitude", "GPSLongitude"):
+            value = value[0]
+        if isinstance(value, str):
+            value = value.strip()
+        name = name.replace("SubSecTime", "SubsecTime")  # exifread's spelling -> tifffile's
+        (gps if group == "GPS" else exif)[name] = value
+    return exif, gps
+
+
+#: The JPEG beside a capture's band files that holds its position when they do not: Parrot
+#: Sequoia's ``<capture>_RGB.JPG`` (OpenDroneMap contrib/sequoia: the camera "captures five
+#: images per shot, an RGB JPG and four single band TIFs, but only the JPG contains GPS Exif
+#: tags").
+RGB_SIBLING_SUFFIX = "_RGB"
+
+
+def sibling_position(folder: Path, capture: str) -> tuple[float, float, float | None] | None:
+    """``(lat, lon, alt_m)`` from the EXIF GPS of ``folder/<capture>_RGB.JPG`` (or ``.jpg``), or
+    None when there is no such file or it has no usable position."""
+    for suffix, ext in itertools.product((RGB_SIBLING_SUFFIX, RGB_SIBLING_SUFFIX.lower()), (".JPG", ".jpg", ".jpeg")):
+        path = folder / f"{capture}{suffix}{ext}"
+        if not path.is_file():
+            continue
+        try:
+            _, gps = _jpeg_exif(path.read_bytes())
+            lat, lon, alt = _gps(gps)
+        except (OSError, TypeError, ValueError, ZeroDivisionError, IndexError, KeyError):
+            return None
+        if lat is None or lon is None or not (math.isfinite(lat) and math.isfinite(lon)) or (lat, lon) == (0.0, 0.0):
+            return None
+        return lat, lon, alt
+    return None
 
 
 def _sentera(ctx: _Ctx) -> list[CaptureMeta]:
@@ -1136,9 +1167,19 @@ def group_captures(
             problems.append({"file": str(first), "reason": reason})
             continue
         owner[cid] = name
-        captures.append(Capture(name=name, capture_id=cid, metas=tuple(bands[s] for s in expected),
+        metas = tuple(bands[s] for s in expected)
+        captures.append(Capture(name=name, capture_id=cid, metas=metas if per_folder else _placed(name, metas),
                                 skipped=tuple(skipped.get(name, []))))
     return captures, problems
+
+
+def _placed(name: str, metas: tuple[CaptureMeta, ...]) -> tuple[CaptureMeta, ...]:
+    """The band files' metadata, positioned from the capture's RGB JPEG
+    (:func:`sibling_position`) when none of them has a position of its own."""
+    if any(m.lat is not None for m in metas):
+        return metas
+    pos = sibling_position(metas[0].path.parent, name)
+    return metas if pos is None else tuple(replace(m, lat=pos[0], lon=pos[1], alt_m=pos[2]) for m in metas)
 
 
 def band_files(folder: Path, per_folder: bool = False) -> list[Path]:

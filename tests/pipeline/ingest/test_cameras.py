@@ -391,3 +391,36 @@ def test_legacy_rededge_exposure_is_corrected_as_micasense_does() -> None:
     assert meta_from_tags(path, tags, (960, 1280), 16).exposure_s == 0.000274
     assert micasense_exposure(1 / 6329, "Altum") == pytest.approx(1 / 6329)
     assert micasense_exposure(1 / 6000, "RedEdge") == pytest.approx(1 / 6000)
+
+
+def _sequoia_with_rgb(folder: Path, gps: dict | None) -> Path:
+    """The real Sequoia capture (its TIFFs: GPSStatus V, no position) and beside it the
+    capture's ``_RGB.JPG`` with ``gps`` (PIL's GPS IFD keys) or without a GPS IFD."""
+    from PIL import Image
+
+    src = DATA_ROOT / "parrot-sequoia"
+    if not src.is_dir():
+        pytest.skip("no Sequoia sample")
+    folder.mkdir(parents=True)
+    for p in src.glob("*.TIF"):
+        (folder / p.name).write_bytes(p.read_bytes())
+    ex = Image.Exif()
+    ex[0x010F], ex[0x0110] = "Parrot", "Sequoia"
+    if gps is not None:
+        ex.get_ifd(0x8825).update(gps)
+    Image.new("RGB", (64, 48), (120, 130, 140)).save(folder / "IMG_180413_080658_0000_RGB.JPG", exif=ex)
+    return folder
+
+
+def test_sequoia_position_from_the_captures_rgb_jpeg(tmp_path) -> None:
+    """Sequoia writes GPS only into the capture's RGB JPEG (OpenDroneMap contrib/sequoia): the
+    band files, which have none, take its position; without a fix there, they stay unplaced."""
+    from pipeline.ingest.camera_meta import group_captures
+
+    camera = catalog.load_camera("parrot-sequoia")
+    folder = _sequoia_with_rgb(tmp_path / "a", {1: "S", 2: (47.0, 30.0, 0.0), 3: "W", 4: (7.0, 36.0, 0.0), 5: 0, 6: 420.0})
+    caps, problems = group_captures(folder, camera)
+    assert problems == [] and len(caps) == 1 and len(caps[0].metas) == 4
+    assert [(m.lat, m.lon, m.alt_m) for m in caps[0].metas] == [(pytest.approx(-47.5), pytest.approx(-7.6), 420.0)] * 4
+    caps, _ = group_captures(_sequoia_with_rgb(tmp_path / "b", None), camera)
+    assert all(m.lat is None and m.lon is None for m in caps[0].metas)
