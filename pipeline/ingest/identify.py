@@ -31,21 +31,26 @@ class Probe:
     folder: Path
     metas: list[CaptureMeta] = field(default_factory=list)
     unreadable: list[tuple[Path, str]] = field(default_factory=list)
+    cut: Path | None = None  # the last file read when the folder had more: its capture may be partial
 
-    def best_capture(self) -> list[CaptureMeta]:
-        """The band files of one typical capture: files grouped by capture id (and by name
-        without its last ``_part``, so that a copied capture stays apart; a file without an
-        id is a capture of its own), then a group of the most common size (an incomplete
-        capture does not decide), the largest of those."""
+    def captures(self) -> list[list[CaptureMeta]]:
+        """The files read, grouped by capture id (and by name without its last ``_part``, so
+        that a copied capture stays apart; a file without an id is a capture of its own)."""
         groups: dict[tuple[str, str], list[CaptureMeta]] = {}
         for m in self.metas:
             key = (m.capture_id or str(m.path), m.path.stem.rsplit("_", 1)[0] if m.capture_id else "")
             if m not in groups.setdefault(key, []):
                 groups[key].append(m)
+        return list(groups.values())
+
+    def best_capture(self) -> list[CaptureMeta]:
+        """The band files of one typical capture: of :meth:`captures`, a group of the most
+        common size (an incomplete capture does not decide), the largest of those."""
+        groups = self.captures()
         if not groups:
             return []
-        sizes = Counter(len(g) for g in groups.values())
-        return max(groups.values(), key=lambda g: (sizes[len(g)], len(g)))
+        sizes = Counter(len(g) for g in groups)
+        return max(groups, key=lambda g: (sizes[len(g)], len(g)))
 
     def describe(self) -> dict[str, object]:
         cap = self.best_capture()
@@ -75,6 +80,8 @@ def probe_folder(folder: str | Path, limit: int = PROBE_FILES) -> Probe:
     files = sorted((p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
                     and not any(part.startswith(".") for part in p.relative_to(folder).parts)),
                    key=lambda p: (len(p.relative_to(folder).parts), p.name, p))
+    if len(files) > limit:
+        probe.cut = files[limit - 1]
     for path in files[:limit]:
         try:
             probe.metas.extend(read_file_metas(path))
@@ -99,8 +106,12 @@ def _matches(pattern: str, value: str | None) -> bool:
 
 def score(camera: Camera, probe: Probe) -> int | None:
     """How well a camera fits the probe (higher is better), None if it cannot be it."""
+    return score_capture(camera, probe.best_capture())
+
+
+def score_capture(camera: Camera, cap: list[CaptureMeta]) -> int | None:
+    """How well a camera fits the band files of one capture, None if it cannot be it."""
     ident = camera.identify
-    cap = probe.best_capture()
     if ident is None or not cap:
         return None
     first = cap[0]
@@ -156,10 +167,32 @@ def identify_camera(folder: str | Path, name: str | None = None) -> Identificati
         raise InputError(f"the files fit cameras {scored[0][1].name} and {scored[1][1].name} equally",
                          path=folder, hint="name it with --camera NAME")
     cam = scored[0][1]
+    _check_one_camera(probe)
     evidence = (f"EXIF Make {desc['make']!r}, Model {desc['model']!r}"
                 + (f", XMP RigName {desc['rig_name']!r}" if desc["rig_name"] else "")
                 + f", {desc['bands_per_capture']} band(s) per capture id: {', '.join(map(str, desc['band_names']))}")
     return Identification(cam, evidence, desc)
+
+
+def _check_one_camera(probe: Probe) -> None:
+    """An :class:`InputError` when complete captures of another catalog camera sit in the
+    folder tree beside the first's (a Sentera Double 4K card's NDRE/ and nRGB/ folders): one
+    run would keep one camera's captures and quarantine the other's as incomplete."""
+    cams = factory_cameras()
+    where: dict[str, set[str]] = {}
+    for cap in probe.captures():
+        if probe.cut is not None and any(m.path == probe.cut for m in cap):
+            continue  # possibly cut short by the probe's limit
+        scored = sorted(((s, c.name) for c in cams if (s := score_capture(c, cap)) is not None), reverse=True)
+        if not scored or (len(scored) > 1 and scored[0][0] == scored[1][0]):
+            continue
+        rel = cap[0].path.parent.relative_to(probe.folder)
+        where.setdefault(scored[0][1], set()).add(str(rel) if str(rel) != "." else ".")
+    if len(where) > 1:
+        found = "; ".join(f"{name} in {', '.join(sorted(d))}" for name, d in sorted(where.items()))
+        raise InputError(f"the folder holds captures of {len(where)} cameras ({found}): one run applies one camera",
+                         path=probe.folder, hint="give each camera's folder to its own run, or name the one to "
+                         "apply with --camera NAME (the other's captures are then quarantined)")
 
 
 def _has_images(d: Path) -> bool:

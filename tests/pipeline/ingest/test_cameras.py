@@ -424,3 +424,23 @@ def test_sequoia_position_from_the_captures_rgb_jpeg(tmp_path) -> None:
     assert [(m.lat, m.lon, m.alt_m) for m in caps[0].metas] == [(pytest.approx(-47.5), pytest.approx(-7.6), 420.0)] * 4
     caps, _ = group_captures(_sequoia_with_rgb(tmp_path / "b", None), camera)
     assert all(m.lat is None and m.lon is None for m in caps[0].metas)
+
+
+def test_a_folder_of_two_cameras_is_refused_naming_both(tmp_path) -> None:
+    """A Sentera Double 4K card's NDRE/ and nRGB/ folders given as one flight: each complete
+    capture names its camera; two cameras in one tree are an input error naming both and their
+    folders (before: one sensor applied, the other's captures quarantined as incomplete, exit
+    0). Each folder alone, or --camera, still works."""
+    src = DATA_ROOT / "sentera-d4k"
+    if not src.is_dir():
+        pytest.skip("no Sentera sample")
+    for sub in ("NDRE", "nRGB"):
+        (tmp_path / "card" / sub).mkdir(parents=True)
+        for p in (src / sub).glob("*.jpg"):
+            (tmp_path / "card" / sub / p.name).write_bytes(p.read_bytes())
+    with pytest.raises(InputError, match=r"2 cameras \(sentera-d4k-ndre in NDRE; sentera-d4k-nrgb in nRGB\)"):
+        identify_camera(tmp_path / "card")
+    assert identify_camera(tmp_path / "card" / "NDRE").camera.name == "sentera-d4k-ndre"
+    assert identify_camera(tmp_path / "card", "sentera-d4k-nrgb").camera.name == "sentera-d4k-nrgb"
+    assert main(["apply", str(tmp_path / "card"), "--calibration", "factory", "-o", str(tmp_path / "out")]) == 2
+    assert not (tmp_path / "out").exists()
