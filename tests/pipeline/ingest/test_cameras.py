@@ -444,3 +444,19 @@ def test_a_folder_of_two_cameras_is_refused_naming_both(tmp_path) -> None:
     assert identify_camera(tmp_path / "card", "sentera-d4k-nrgb").camera.name == "sentera-d4k-nrgb"
     assert main(["apply", str(tmp_path / "card"), "--calibration", "factory", "-o", str(tmp_path / "out")]) == 2
     assert not (tmp_path / "out").exists()
+
+
+def test_sentera_6x_cal_captures_are_captures(tmp_path) -> None:
+    """Sentera names the 6X's panel captures CAL_NNNNN.tif (py-radiometric-corrections
+    sensor_defs: "calibration images are all named CAL_...tif"): they are captures of the
+    session (panel candidates), not files skipped as foreign."""
+    from pipeline.ingest.camera_meta import group_captures
+
+    if not cf.SENTERA_D4K.is_dir():
+        pytest.skip("no Sentera sample")
+    session = cf.sentera_6x(tmp_path / "f")
+    for p in session.glob("*/IMG_00006.tif"):
+        p.rename(p.with_name("CAL_00006.tif"))
+    caps, problems = group_captures(session, catalog.load_camera("sentera-6x"))
+    assert problems == [] and [c.name for c in caps] == ["CAL_00006", "IMG_00007"]
+    assert len(caps[0].metas) == 5
