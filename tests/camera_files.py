@@ -377,3 +377,25 @@ def dji_p4m_warped(folder: Path) -> Path:
                 (271, "s", 0, "DJI", True), (272, "s", 0, "FC6360", True), (50714, "H", 1, int(DJI["black"]), True),
                 (700, 1, len(packet), packet, True)])
     return folder
+
+
+SEQUOIA = DATA.parent / "parrot-sequoia"
+SEQUOIA_CAPTURE = "IMG_180413_080658_0000"
+SEQUOIA_BANDS = ("GRE", "RED", "REG", "NIR")
+
+
+def sequoia_without_golden(folder: Path) -> Path:
+    """The real Sequoia capture with ``Camera:IrradianceSensitivitiesGolden`` taken out of every
+    band file (firmware that did not write it): IrradianceList, IrradianceCalibrationMeasurement
+    and SensorModel intact."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for band in SEQUOIA_BANDS:
+        name = f"{SEQUOIA_CAPTURE}_{band}.TIF"
+
+        def edit(xmp: str) -> str:
+            new, n = re.subn(r'\s+Camera:IrradianceSensitivitiesGolden="[^"]*"', "", xmp)
+            assert n == 1
+            return new
+
+        rewrite(SEQUOIA / name, folder / name, edit)
+    return folder

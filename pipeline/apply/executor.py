@@ -61,6 +61,7 @@ from pipeline.ingest.camera_meta import (
     FieldParts,
     factory_align,
     factory_radiance,
+    no_reflectance_reason,
     read_capture_meta,
     read_capture_pixels,
     reflectance_factor,
@@ -247,10 +248,9 @@ def missing_reflectance(chain: FieldChain | FactoryChain, capture: Capture) -> t
         return ()
     out = []
     for meta in capture.metas:
-        if reflectance_factor(meta) is None:
-            why = [p.message() for p in meta.problems if p.feature == "sun_sensor"]
-            out.append({"capture": capture.name, "file": meta.path.name, "band": meta.band_name,
-                        "reason": why[0] if why else f"no sun sensor reading (irradiance = {meta.irradiance!r})"})
+        why = no_reflectance_reason(meta)
+        if why is not None:
+            out.append({"capture": capture.name, "file": meta.path.name, "band": meta.band_name, "reason": why})
     return tuple(out)
 
 

@@ -595,7 +595,10 @@ def _sequoia_sunshine(x: Xmp, path: Path) -> float | None:
     the band's CH0 sensitivity ``IrradianceSensitivitiesGolden[0]`` so that the four bands'
     readings share one scale. That division is inferred from the tag's name (no Parrot text
     found): on the real capture in ../shared/data it turns an implausible spectrum (red edge
-    4x the others) into a vegetation-like one (NIR > red edge > green > red)."""
+    4x the others) into a vegetation-like one (NIR > red edge > green > red). Without the tag
+    the band has no reading (a sun_sensor problem naming it): the sun-sensor route divides
+    every band by one run constant (:func:`pipeline.apply.factory.relative_scale`), so a
+    per-band sensitivity left out would not cancel but change every index."""
     recs = sunshine_records(x, path)
     if recs is None:
         return None
@@ -611,7 +614,10 @@ def _sequoia_sunshine(x: Xmp, path: Path) -> float | None:
     except ValueError as exc:
         raise TagError("XMP IrradianceList", raw, str(exc), path) from None
     sens = x.numbers("IrradianceSensitivitiesGolden", ("Camera",))
-    if sens is None or not sens[0] > 0:
+    if sens is None:
+        raise TagError("XMP IrradianceSensitivitiesGolden", "(missing)", "not in the file (older firmware?): the "
+                       "bands' sunshine readings cannot be put on one scale without it", path)
+    if not sens[0] > 0:
         raise TagError("XMP IrradianceSensitivitiesGolden", x.raw("IrradianceSensitivitiesGolden", ("Camera",)),
                        "expected the CH0 and CH1 sensitivities (positive): the bands' sunshine readings cannot be "
                        "compared without them", path)
@@ -986,6 +992,31 @@ def reflectance_factor(meta: CaptureMeta) -> float | None:
     if e is None or not math.isfinite(e) or e <= 0 or meta.radiometry in ("sentera", "thermal", "panchro"):
         return None
     return math.pi / e if meta.radiometry == "micasense" else 1.0 / e
+
+
+#: The sun-sensor tags each radiance model reads (named when a band has no reading at all).
+SUN_SENSOR_TAGS = {
+    "micasense": "XMP Camera:Irradiance (DLS 1) or DLS:HorizontalIrradiance (DLS 2)",
+    "sequoia": "XMP Camera:IrradianceList (sunshine sensor)",
+    "dji": "XMP drone-dji:Irradiance",
+}
+
+
+def no_reflectance_reason(meta: CaptureMeta) -> str | None:
+    """Why the band's own sun sensor gives no reflectance factor (:func:`reflectance_factor`
+    is None), naming the tag: the problem recorded when a sun-sensor tag was present but
+    unusable, else the tag that is missing; None when the band has a usable reading."""
+    if reflectance_factor(meta) is not None:
+        return None
+    why = [p.message() for p in meta.problems if p.feature == "sun_sensor"]
+    if why:
+        return why[0]
+    if meta.radiometry == "sentera":
+        return "Sentera's sun sensor (ILS) counts have no published conversion to reflectance"
+    if meta.radiometry in ("thermal", "panchro"):
+        return f"a {meta.radiometry} band has no sun-sensor reflectance"
+    tag = SUN_SENSOR_TAGS.get(meta.radiometry, "XMP Irradiance")
+    return f"no sun-sensor reading: no {tag} in the file"
 
 
 def sun_sensor_absolute(meta: CaptureMeta) -> bool:

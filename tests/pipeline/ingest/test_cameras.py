@@ -11,7 +11,7 @@ import pytest
 from mscal_core.errors import CatalogError, InputError
 from mscal_core.factory import sunshine_irradiance, thermal_kelvin, upright
 from pipeline.ingest import catalog
-from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta, read_file_metas
+from pipeline.ingest.camera_meta import factory_radiance, no_reflectance_reason, read_capture_meta, read_file_metas
 from pipeline.ingest.identify import identify_camera
 from pipeline.ingest.xmp import TagError, Xmp, jpeg_xmp_packet, parse_numbers
 from pipeline.run.cli import main
@@ -84,6 +84,38 @@ def test_sequoia_reader() -> None:
     # sunshine: 10 records CH0 = 14 at gain index 1, 100 ms; golden CH0 sensitivity 656.1082
     assert m.irradiance == pytest.approx(14 / 100 / 656.1082, rel=1e-9)
     assert m.lat is None and m.features()["position"] is False
+
+
+def test_sequoia_without_golden_sensitivities_has_radiance_but_no_sun_sensor_reading(tmp_path) -> None:
+    """Firmware that wrote no Camera:IrradianceSensitivitiesGolden: the radiance model is the
+    same, the sunshine reading is none (the bands' readings cannot be put on one scale) and
+    the reason names the tag; the intact file keeps its reading."""
+    if not cf.SEQUOIA.is_dir():
+        pytest.skip("no Sequoia sample")
+    folder = cf.sequoia_without_golden(tmp_path / "old")
+    name = "IMG_180413_080658_0000_NIR.TIF"
+    m, intact = read_capture_meta(folder / name), read_capture_meta(cf.SEQUOIA / name)
+    assert m.sensor_model == intact.sensor_model == (271665.8, 5008.3, 2581.1)
+    dn = np.full(m.shape, 20000, np.uint16)
+    np.testing.assert_array_equal(factory_radiance(m, dn), factory_radiance(intact, dn))
+    assert m.irradiance is None and intact.irradiance == pytest.approx(14 / 100 / 656.1082, rel=1e-9)
+    (problem,) = m.problems
+    assert (problem.tag, problem.value, problem.feature) == ("XMP IrradianceSensitivitiesGolden", "(missing)", "sun_sensor")
+    assert problem.file == str(folder / name)
+    why = no_reflectance_reason(m)
+    assert why.startswith("XMP IrradianceSensitivitiesGolden = '(missing)': not in the file") and "one scale" in why
+    assert no_reflectance_reason(intact) is None and m.features()["sun_sensor_reading"] is False
+
+
+def test_no_reflectance_reason_names_the_missing_tag(tmp_path) -> None:
+    require_data()
+    path = cf.rewrite(cf.band_file("0000", 1), tmp_path / "IMG_0000_1.tif",
+                      lambda x: cf.drop_element(cf.drop_element(x, "Camera:Irradiance"), "DLS:SpectralIrradiance"))
+    assert no_reflectance_reason(read_capture_meta(path)) == (
+        "no sun-sensor reading: no XMP Camera:Irradiance (DLS 1) or DLS:HorizontalIrradiance (DLS 2) in the file")
+    sentera = DATA_ROOT / "sentera-d4k" / "NDRE" / "IMG_00006.jpg"
+    if sentera.is_file():  # a reading, but no published conversion
+        assert "no published conversion" in no_reflectance_reason(read_file_metas(sentera)[0])
 
 
 def test_sentera_reader_one_meta_per_kept_channel() -> None:
