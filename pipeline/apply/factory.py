@@ -32,10 +32,13 @@ The factory chain runs in the one apply executor (:mod:`pipeline.apply.executor`
     to one constant shared by the bands: ``k_b = c / E_b`` with one run constant ``c``
     (:func:`relative_scale`, run.json ``reference.relative_scale``). A band without a usable
     reading keeps its radiance; its reflectance is NaN and named in run.json
-    ``reflectance_missing`` (the capture is not quarantined);
+    ``reflectance_missing`` (the capture is not quarantined). When no band
+    of any capture has one, ``--reference dls`` is refused before anything is written
+    (InputError naming a band file and the tag, :func:`sun_sensor_missing`);
   - ``none``: radiance only (reflectance NaN), when no panel is given and no band of any
     capture has a usable sun-sensor reflectance (Sentera: its sun sensor has no published
-    conversion).
+    conversion; a sun sensor whose tags are missing or unusable): run.json
+    ``reference.reason`` names a file and the tag.
 
   ``auto`` (default) takes the panel when ``--panel-reflectance`` is given, else the DLS,
   else none.
@@ -100,6 +103,7 @@ from pipeline.ingest.camera_meta import (
     FieldParts,
     factory_radiance,
     has_factory_alignment,
+    no_reflectance_reason,
     read_capture_pixels,
     reflectance_factor,
     sun_sensor_absolute,
@@ -329,6 +333,10 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         raise InputError(f"band images of different sizes {sorted(shapes)}", path=folder,
                          hint="bands of another resolution (e.g. thermal) need their own catalog camera")
     shape = (camera.n_bands, *shapes.pop())
+    no_sun = sun_sensor_missing(captures)
+    if options.reference == "dls" and no_sun is not None:  # before anything is read or written
+        raise InputError(f"--reference dls, but no band of the {len(captures)} capture(s) has a usable sun-sensor "
+                         f"reading; here: {no_sun[1]}", path=no_sun[0], hint=NO_SUN_SENSOR_HINT)
     export = export_band_indices(camera, options.export_bands)
     indices = [load_index(n) for n in options.indices]
     if options.indices == FactoryOptions.indices:  # the defaults: only the indices this camera's bands allow
@@ -405,7 +413,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         transforms=None if options.registration is None else Path(options.registration), factory_alignment=own,
         radiance_unit=first.radiance_unit, irradiance_unit=first.irradiance_unit,
         record=lambda caps: {"components": _components_record(field),
-                             "reference": {**_reference_record(reference, panels, panel_factor, camera, caps[0]),
+                             "reference": {**_reference_record(reference, panels, panel_factor, camera, caps[0], no_sun),
                                            **({"relative_scale": relative} if relative != 1.0 else {}),
                                            **_seen_record(seen)},
                              "camera_identification": {"evidence": ident.evidence, "overridden": ident.overridden,
@@ -493,6 +501,27 @@ def _seen_record(seen: Sequence[str]) -> dict[str, Any]:
                           "chooses the capture"}
 
 
+#: How to get reflectance when the sun sensor gives none: run.json ``reference.hint`` of a run
+#: without reflectance (the summary's warning) and, with the radiance-only way out, the error
+#: of ``--reference dls``.
+PANEL_HINT = ("give --panel-reflectance TARGET (a number, or a target of catalogs/targets) with a panel capture "
+              "in the folder (--panel IMG_XXXX names it)")
+NO_SUN_SENSOR_HINT = f"{PANEL_HINT}; or leave out --reference dls for radiance only (reflectance NaN)"
+
+
+def sun_sensor_missing(captures: Sequence[Capture]) -> tuple[Path, str] | None:
+    """None when a band of some capture has a usable sun-sensor reflectance factor; else the
+    first band file and why it has none (the tag, :func:`pipeline.ingest.camera_meta.
+    no_reflectance_reason`): the sun-sensor route would give no reflectance at all."""
+    for c in captures:
+        if any(reflectance_factor(m) is not None for m in c.metas):
+            return None
+    if not captures:
+        return None
+    meta = captures[0].metas[0]
+    return meta.path, str(no_reflectance_reason(meta))
+
+
 def _route(options: FactoryOptions, captures: Sequence[Capture]) -> str:
     """The reference route: as asked, or for ``auto`` the panel when a reflectance is given
     (anchoring the sun sensor, ``panel-dls``, when the captures have readings), else the sun sensor, else ``none`` (radiance only) when no band of any capture has a
@@ -501,9 +530,7 @@ def _route(options: FactoryOptions, captures: Sequence[Capture]) -> str:
         return options.reference
     if options.panel_reflectance is not None:
         return "panel" if readings_missing(captures) else "panel-dls"
-    if not any(reflectance_factor(m) is not None for c in captures for m in c.metas):
-        return "none"
-    return "dls"
+    return "none" if sun_sensor_missing(captures) is not None else "dls"
 
 
 def saturation_dn(camera: Camera) -> int:
@@ -548,14 +575,19 @@ def relative_scale(captures: Sequence[Capture], reference: str, sat: int = (1 <<
 
 
 def _reference_record(reference: str, panels: Sequence[PanelReference], factor: tuple[float, ...] | None,
-                      camera: Camera, first: Capture | None = None) -> dict[str, Any]:
+                      camera: Camera, first: Capture | None = None,
+                      no_sun: tuple[Path, str] | None = None) -> dict[str, Any]:
     """What run.json says of the reference: the route, and for the panel route every panel
-    capture's factors beside the DLS's on the same capture (their ratio compares the two)."""
+    capture's factors beside the DLS's on the same capture (their ratio compares the two);
+    for no route (``none``) why the sun sensor gives none (``no_sun``: a band file and its
+    reason, :func:`sun_sensor_missing`) and how to get reflectance."""
     rec: dict[str, Any] = {"route": reference}
     meta = first.metas[0] if first is not None else None
     if reference == "none":
         rec["formula"] = "no reflectance (NaN): no panel given and the sun sensor gives no usable reflectance"
-        rec["hint"] = "give a panel capture: --panel-reflectance TARGET"
+        if no_sun is not None:
+            rec["reason"] = f"{no_sun[0].name}: {no_sun[1]}"
+        rec["hint"] = PANEL_HINT
         return rec
     if reference == "dls":
         if meta is None or sun_sensor_absolute(meta):

@@ -387,6 +387,65 @@ def test_sequoia_on_an_sd_card_tree(tmp_path) -> None:
     np.testing.assert_array_equal(a, b)
 
 
+def _without_sun_sensor(kind: str, folder: Path) -> Path:
+    """A folder whose captures have no usable sun-sensor reflectance in any band."""
+    if kind == "sequoia":  # older firmware: no Camera:IrradianceSensitivitiesGolden
+        if not cf.SEQUOIA.is_dir():
+            pytest.skip("no Sequoia sample")
+        return cf.sequoia_without_golden(folder)
+    if kind == "sentera":  # ILS counts: no published conversion
+        if not (DATA_ROOT / "sentera-d4k" / "NDRE").is_dir():
+            pytest.skip("no Sentera sample")
+        return DATA_ROOT / "sentera-d4k" / "NDRE"
+    require_data()  # MicaSense without its DLS tags
+    folder.mkdir(parents=True)
+    for cap in cf.CAPTURES:
+        for b in range(1, 6):
+            cf.rewrite(cf.band_file(cap, b), folder / f"IMG_{cap}_{b}.tif",
+                       lambda x: cf.drop_element(cf.drop_element(x, "Camera:Irradiance"), "DLS:SpectralIrradiance"))
+    return folder
+
+
+@pytest.mark.parametrize(("kind", "file", "why"), [
+    ("sequoia", "IMG_180413_080658_0000_GRE.TIF", "XMP IrradianceSensitivitiesGolden = '(missing)': not in the file"),
+    ("micasense", "IMG_0000_1.tif",
+     "no sun-sensor reading: no XMP Camera:Irradiance (DLS 1) or DLS:HorizontalIrradiance (DLS 2) in the file"),
+    ("sentera", "IMG_00006.jpg", "Sentera's sun sensor (ILS) counts have no published conversion to reflectance"),
+])
+def test_reference_dls_without_any_sun_sensor_reading_exits_2(tmp_path, capsys, kind, file, why) -> None:
+    """--reference dls asks for the sun sensor: when no band of any capture has a usable
+    reading it is refused before anything is written (one line naming a band file, the tag
+    and the fixes), and an earlier run's outputs in OUT stay as they were."""
+    folder = _without_sun_sensor(kind, tmp_path / kind)
+    dls = ["apply", str(folder), "--calibration", "factory", "--reference", "dls", "-o"]
+    capsys.readouterr()
+    assert main([*dls, str(tmp_path / "new")]) == 2
+    err = capsys.readouterr().err.strip()
+    n = 1 if kind == "sequoia" else 2
+    assert len(err.splitlines()) == 1 and err.startswith(
+        f"mscal: error: {folder / file}: --reference dls, but no band of the {n} capture(s) has a usable sun-sensor "
+        f"reading; here: {why}"), err
+    assert err.endswith("(give --panel-reflectance TARGET (a number, or a target of catalogs/targets) with a panel "
+                        "capture in the folder (--panel IMG_XXXX names it); or leave out --reference dls for radiance "
+                        "only (reflectance NaN))"), err
+    assert not (tmp_path / "new").exists()
+    if kind == "sentera":
+        return  # its radiance-only run: test_sentera_d4k_real_captures
+    out = tmp_path / "out"
+    run = _apply(folder, out)  # auto: radiance only, and why
+    assert run["reference"]["route"] == "none" and run["reference"]["reason"].startswith(f"{file}: {why}")
+    assert run["reflectance_missing"] == []  # a band is named there only on the sun-sensor route
+    before = {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    assert main([*dls, str(out)]) == 2
+    assert {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()} == before
+    ds = xr.open_zarr(out / "reflectance.zarr")
+    assert np.isnan(ds["reflectance"].values).all() and np.isnan(ds["ndvi"].values).all()
+    if kind == "sequoia":  # the radiance is the factory model's, tag or no tag (stored rotated 180 degrees)
+        rad = ds["radiance"].isel(frame=0, band=3).values
+        assert rad[959 - 480, 1279 - 640] == pytest.approx(
+            sequoia_expected(folder / "IMG_180413_080658_0000_NIR.TIF", 640, 480), rel=TOL)
+
+
 def test_sentera_d4k_real_captures(tmp_path) -> None:
     root = DATA_ROOT / "sentera-d4k"
     if not root.is_dir():
