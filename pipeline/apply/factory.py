@@ -32,13 +32,15 @@ The factory chain runs in the one apply executor (:mod:`pipeline.apply.executor`
     to one constant shared by the bands: ``k_b = c / E_b`` with one run constant ``c``
     (:func:`relative_scale`, run.json ``reference.relative_scale``). A band without a usable
     reading keeps its radiance; its reflectance is NaN and named in run.json
-    ``reflectance_missing`` (the capture is not quarantined). When no band
-    of any capture has one, ``--reference dls`` is refused before anything is written
-    (InputError naming a band file and the tag, :func:`sun_sensor_missing`);
+    ``reflectance_missing`` (the capture is not quarantined; the summary and the report warn,
+    ``reflectance_missing``). When no band of any capture has one, ``--reference dls`` is
+    refused before anything is written (InputError naming a band file and the tag,
+    :func:`sun_sensor_missing`);
   - ``none``: radiance only (reflectance NaN), when no panel is given and no band of any
     capture has a usable sun-sensor reflectance (Sentera: its sun sensor has no published
     conversion; a sun sensor whose tags are missing or unusable): run.json
-    ``reference.reason`` names a file and the tag.
+    ``reference.reason`` names a file and the tag, and the summary and the report warn
+    (``no_reflectance``).
 
   ``auto`` (default) takes the panel when ``--panel-reflectance`` is given, else the DLS,
   else none.

@@ -275,11 +275,29 @@ def reference_table(run: dict[str, Any], band_names: Sequence[str] = ()) -> Tabl
 
 def reference_warnings(run: dict[str, Any]) -> list[QAWarning]:
     """A panel capture whose panel/DLS factor ratio spreads across bands by more than
-    :data:`PANEL_DLS_COLOUR_SPREAD_MAX`; panel captures seen in the folder but not used."""
+    :data:`PANEL_DLS_COLOUR_SPREAD_MAX`; panel captures seen in the folder but not used; a run
+    without reflectance (route ``none``: radiance only, why and how to get it) and band files
+    of the sun-sensor route without a usable reading (run.json ``reflectance_missing``)."""
     rec = run.get("reference")
     out: list[QAWarning] = []
     if not isinstance(rec, dict):
         return out
+    if rec.get("route") == "none":
+        frames = int(run.get("frames_out") or 0)
+        why = f" ({rec['reason']})" if rec.get("reason") else ""
+        out.append(QAWarning(
+            "no_reflectance", f"reflectance and indices are NaN in all {frames} frame(s), radiance only: no panel "
+            f"given and the sun sensor gives no usable reflectance{why}: {rec.get('hint', 'give --panel-reflectance TARGET')}",
+            float(frames), 0.0))
+    missing = run.get("reflectance_missing") or []
+    if missing:
+        first = missing[0]
+        captures = len({m.get("capture") for m in missing})
+        out.append(QAWarning(
+            "reflectance_missing", f"{len(missing)} band file(s) of {captures} capture(s) have no usable sun-sensor "
+            f"reading: their reflectance and the indices using them are NaN, radiance kept (run.json "
+            f"reflectance_missing; first {first.get('file')}: {first.get('reason')}); a panel capture with "
+            "--panel-reflectance TARGET gives every band reflectance", float(len(missing)), 0.0))
     seen = rec.get("panels_seen") or []
     if seen and rec.get("route") != "panel":
         source = "the sun sensor (DLS)" if rec.get("route") == "dls" else "nothing (radiance only)"

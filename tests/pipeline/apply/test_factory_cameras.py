@@ -197,9 +197,10 @@ def test_unreadable_reflect_area_disables_only_the_panel_area(tmp_path, capsys) 
     assert "tag problem: IMG_0000_1.tif: ReflectArea = '622,371,574,abc'" in out and "panel_area disabled" in out
 
 
-def test_unreadable_sun_sensor_reading_keeps_the_radiance(tmp_path) -> None:
+def test_unreadable_sun_sensor_reading_keeps_the_radiance(tmp_path, capsys) -> None:
     """A capture whose Irradiance is unreadable still has radiance: processed, that band's
-    reflectance NaN and named, the other bands' reflectance as before."""
+    reflectance NaN and named (run.json and a warning of the summary), the other bands'
+    reflectance as before."""
     require_data()
     folder = tmp_path / "irr"
     folder.mkdir()
@@ -207,8 +208,14 @@ def test_unreadable_sun_sensor_reading_keeps_the_radiance(tmp_path) -> None:
         for b in range(1, 6):
             edit = (lambda x: cf.set_element(x, "Camera:Irradiance", "n/a")) if (cap, b) == ("0001", 3) else None
             cf.rewrite(cf.band_file(cap, b), folder / f"IMG_{cap}_{b}.tif", edit)
+    capsys.readouterr()
     run = _apply(folder, tmp_path / "out")
     assert run["frames"] == ["IMG_0000", "IMG_0001"] and run["quarantined"] == [] and run["reference"]["route"] == "dls"
+    (warn,) = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  warning reflectance_missing")]
+    assert warn == ("  warning reflectance_missing: 1 band file(s) of 1 capture(s) have no usable sun-sensor reading: "
+                    "their reflectance and the indices using them are NaN, radiance kept (run.json reflectance_missing; "
+                    "first IMG_0001_3.tif: Irradiance = 'n/a': expected numbers (sun_sensor disabled)); a panel capture "
+                    "with --panel-reflectance TARGET gives every band reflectance (value 1, threshold 0)")
     (missing,) = run["reflectance_missing"]
     assert (missing["capture"], missing["file"], missing["band"]) == ("IMG_0001", "IMG_0001_3.tif", "Red")
     assert "Irradiance = 'n/a'" in missing["reason"] and "sun_sensor disabled" in missing["reason"]

@@ -174,6 +174,36 @@ def test_factory_apply_says_a_panel_was_seen_and_how_to_use_it(micasense: Path, 
         ("panel_not_used", 1.0, 0.0)]
 
 
+def test_factory_apply_without_any_reflectance_warns_why_and_how(tmp_path: Path) -> None:
+    """--reference auto on a Sequoia capture without Camera:IrradianceSensitivitiesGolden: no
+    panel, no usable sun sensor, so radiance only; the summary (and report.html) says so, with
+    the file, the tag and the fix, instead of looking like a success."""
+    from tests import camera_files as cf
+
+    if not cf.SEQUOIA.is_dir():
+        pytest.skip("no Sequoia sample")
+    folder = cf.sequoia_without_golden(tmp_path / "old")
+    out = tmp_path / "out"
+    code, text, _ = _run(["apply", folder, "--calibration", "factory", "-o", out])
+    assert code == 0
+    lines = text.splitlines()
+    assert lines[0].startswith(f"wrote {out} (1 frames, 0 quarantined;")
+    assert "  1 quality warning(s) (as in report.html):" in lines
+    (warn,) = [ln for ln in lines if ln.startswith("  warning ")]
+    assert warn == (
+        "  warning no_reflectance: reflectance and indices are NaN in all 1 frame(s), radiance only: no panel given "
+        "and the sun sensor gives no usable reflectance (IMG_180413_080658_0000_GRE.TIF: XMP "
+        "IrradianceSensitivitiesGolden = '(missing)': not in the file (older firmware?): the bands' sunshine readings "
+        "cannot be put on one scale without it (sun_sensor disabled)): give --panel-reflectance TARGET (a number, or "
+        "a target of catalogs/targets) with a panel capture in the folder (--panel IMG_XXXX names it) "
+        "(value 1, threshold 0)")
+    assert _codes_values(_report_warnings(flights=[out])) == [("no_reflectance", 1.0, 0.0)]
+    code, text, _ = _run(["apply", folder, "--calibration", "factory", "-o", out, "--json"])  # up to date
+    doc = json.loads(text)
+    assert code == 0 and doc["up_to_date"] is True and doc["reference"]["route"] == "none"
+    assert _codes_values(doc["warnings"]) == [("no_reflectance", 1.0, 0.0)]
+
+
 def test_factory_apply_with_the_panel_reports_its_colour_disagreement(micasense: Path, tmp_path: Path) -> None:
     out = tmp_path / "panel"
     code, text, err = _run(["apply", micasense, "--calibration", "factory", "-o", out, "--panel-reflectance", PANEL,
