@@ -113,6 +113,46 @@ def extra_band(path: Path, shape: tuple[int, int], band: str, wavelength: float,
     return path
 
 
+def pack12(dn: np.ndarray) -> bytes:
+    """12-bit samples (< 4096) packed as TIFF 6.0 stores BitsPerSample 12 (section 2: FillOrder
+    1, the most significant bit first whatever the byte order; each row starts on a byte):
+    two pixels ``a b`` in three bytes ``a>>4, (a&15)<<4 | b>>8, b&255``."""
+    h, w = dn.shape
+    a = np.zeros((h, w + w % 2), np.uint16)
+    a[:, :w] = dn
+    x0, x1 = a[:, 0::2], a[:, 1::2]
+    packed = np.stack([x0 >> 4, ((x0 & 15) << 4) | (x1 >> 8), x1 & 255], axis=-1).astype(np.uint8).reshape(h, -1)
+    return packed[:, :(w * 12 + 7) // 8].tobytes()
+
+
+def rededge_12bit(src: Path, dst: Path) -> Path:
+    """``src``, a real RedEdge band file (12-bit DN in the high bits of 16-bit samples), as a
+    RedEdge set to save 12-bit TIFFs writes it (MicaSense, "RedEdge Camera Radiometric
+    Calibration Model": "12-bit or 16-bit format ... divide the raw DN by 2^N"): the sensor's
+    DN (``sample >> 4``) packed in 12 bits (:func:`pack12`), each strip in place of the
+    16-bit one (same RowsPerStrip; StripByteCounts 3/4 of theirs), BitsPerSample 12 and the
+    EXIF BlackLevel in the file's own DN (4800 -> 300). Every other tag is the source's."""
+    shutil.copyfile(src, dst)
+    dst.chmod(0o644)
+    dn = tifffile.imread(src)
+    assert not np.any(dn & 15), src  # the real files: multiples of 16
+    with tifffile.TiffFile(dst, mode="r+b") as tif:
+        page = tif.pages[0]
+        rows = int(page.rowsperstrip)
+        offsets = page.dataoffsets
+        counts = []
+        for i, at in enumerate(offsets):
+            strip = pack12(dn[i * rows:(i + 1) * rows] >> 4)
+            tif.filehandle.seek(at)
+            tif.filehandle.write(strip)
+            counts.append(len(strip))
+        tags = page.tags
+        tags[279].overwrite(tuple(counts))
+        tags[258].overwrite(12)
+        tags[50714].overwrite(tuple(v // 16 for v in tags[50714].value))
+    return dst
+
+
 def rededge_mx_dual(folder: Path) -> Path:
     """Two five-lens rigs sharing one CaptureId per capture: IMG_XXXX_1..10.tif."""
     folder.mkdir(parents=True, exist_ok=True)

@@ -689,6 +689,51 @@ def plain_tiff_pixels(data: bytes | bytearray | memoryview, out: np.ndarray | No
     return out
 
 
+#: What tifffile says when a TIFF is intact but stored in a way it cannot decode here: a codec
+#: that needs the imagecodecs package (12-bit packed samples, most compressions), or a
+#: compression or sample layout that neither implements. Re-copying such a file cannot help.
+_UNSUPPORTED_TIFF = ("imagecodecs", "not supported", "not implemented", "is not a known COMPRESSION")
+
+
+def _unsupported_tiff(exc: Exception, source: bytes | bytearray | memoryview | Path, path: Path
+                      ) -> FrameError | None:
+    """The FrameError for a TIFF that decoded to an error of its *format*, not of its data
+    (:data:`_UNSUPPORTED_TIFF`): its BitsPerSample and Compression, the decoder's words, and
+    the real remedy (install imagecodecs, or convert the file); None for any other error
+    (truncated or corrupt data: :func:`decode_raw`'s re-copy hint stands)."""
+    text = str(exc)
+    if not (isinstance(exc, NotImplementedError) or any(s in text for s in _UNSUPPORTED_TIFF)):
+        return None
+    import io
+
+    import tifffile
+
+    stored = "a pixel format"
+    in_memory = isinstance(source, (bytes, bytearray, memoryview))
+    try:
+        with tifffile.TiffFile(io.BytesIO(source) if in_memory else source) as tif:
+            page = tif.pages[0]
+            name = getattr(page.compression, "name", None)  # a plain int: a code tifffile does not know
+            stored = (f"BitsPerSample {page.bitspersample}, Compression {int(page.compression)}"
+                      f"{f' ({name})' if name else ''}")
+    except Exception:  # the decoder's own words below still say what it is
+        pass
+    if "imagecodecs" in text:
+        try:
+            import imagecodecs  # noqa: F401
+        except ImportError:
+            return FrameError(
+                f"TIFF stored with {stored} needs the imagecodecs package to decode, and it is not installed "
+                f"({type(exc).__name__}: {text[:120]})", path=path,
+                hint="the file is fine: install mscal's dependencies again, imagecodecs among them: make setup, or "
+                     "pip install -e . in the checkout")
+    return FrameError(
+        f"TIFF stored with {stored}, which this installation cannot decode ({type(exc).__name__}: {text[:120]})",
+        path=path,
+        hint="the file is fine but in a format mscal does not read: convert it to an uncompressed 8-, 12- or "
+             "16-bit TIFF, or remove it from the folder")
+
+
 def decode_raw(source: bytes | bytearray | memoryview | Path, path: str | Path, out: np.ndarray | None = None
                ) -> np.ndarray:
     """Pixels of a frame file, from its bytes or (``source`` a path) from the file itself;
@@ -725,6 +770,9 @@ def decode_raw(source: bytes | bytearray | memoryview | Path, path: str | Path, 
     except FrameError:
         raise
     except Exception as exc:  # decoders raise many types on truncated/corrupt data
+        unsupported = _unsupported_tiff(exc, source, path) if suffix in (".tif", ".tiff") else None
+        if unsupported is not None:
+            raise unsupported from None
         raise FrameError(
             f"unreadable or truncated image ({type(exc).__name__}: {str(exc)[:120]})",
             path=path,

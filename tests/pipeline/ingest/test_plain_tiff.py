@@ -166,3 +166,56 @@ def test_capture_read_once_per_file_hash_and_a_file_cut_short(monkeypatch) -> No
     with pytest.raises(FrameError, match="changed while it was being read") as err:
         read_capture_pixels(cap)
     assert short.name in str(err.value)
+
+
+def _with_compression(code: int) -> bytes:
+    """A small 16-bit TIFF whose Compression tag says ``code`` (the strip left as it is)."""
+    import struct
+
+    data = bytearray(_tiff(np.arange(64, dtype=np.uint16).reshape(8, 8), photometric="minisblack"))
+    with tifffile.TiffFile(io.BytesIO(bytes(data))) as tif:
+        struct.pack_into("<H", data, tif.pages[0].tags[259].valueoffset, code)
+    return bytes(data)
+
+
+def test_a_format_not_decoded_is_named_not_blamed_on_the_copy(tmp_path: Path) -> None:
+    """An intact TIFF in a format the decoders do not read: the error names the file, its
+    BitsPerSample and Compression and the decoder's words, and says to convert it, not to
+    re-copy it (a truncated file keeps the re-copy hint: test_decode_raw_truncated_file_still_refused)."""
+    from mscal_core.errors import FrameError
+
+    path = tmp_path / "odd.tif"
+    path.write_bytes(_with_compression(60000))
+    with pytest.raises(FrameError) as err:
+        decode_raw(path.read_bytes(), path)
+    text = str(err.value)
+    assert text.startswith(f"{path}: TIFF stored with BitsPerSample 16, Compression 60000, which this installation "
+                           "cannot decode (ValueError: 60000 is not a known COMPRESSION)")
+    assert "convert it to an uncompressed" in text and "re-copy" not in text
+
+
+def test_12bit_without_imagecodecs_says_to_install_it(tmp_path: Path, monkeypatch) -> None:
+    """Packed 12-bit samples decode only through imagecodecs (a dependency): where it is missing
+    the error says so and how to install it, naming the file and its BitsPerSample."""
+    import sys
+
+    from mscal_core.errors import FrameError
+    from tests import camera_files as cf
+
+    src = DATA / "micasense-rededge" / "IMG_0000_2.tif"
+    if not src.is_file():
+        pytest.skip("no MicaSense sample")
+    path = cf.rededge_12bit(src, tmp_path / "IMG_0000_2.tif")
+
+    def without_imagecodecs(*args, **kwargs):  # what tifffile raises when imagecodecs is not installed
+        raise NotImplementedError("packints_decode of 12-bit integers requires the 'imagecodecs' package")
+
+    monkeypatch.setattr(tifffile, "imread", without_imagecodecs)
+    monkeypatch.setitem(sys.modules, "imagecodecs", None)
+    with pytest.raises(FrameError) as err:
+        decode_raw(path.read_bytes(), path)
+    assert str(err.value) == (
+        f"{path}: TIFF stored with BitsPerSample 12, Compression 1 (NONE) needs the imagecodecs package to decode, "
+        "and it is not installed (NotImplementedError: packints_decode of 12-bit integers requires the "
+        "'imagecodecs' package) (the file is fine: install mscal's dependencies again, imagecodecs among them: "
+        "make setup, or pip install -e . in the checkout)")
