@@ -203,7 +203,7 @@ class FactoryChain:
     that replace the factory's), times ``k_b`` (the panel's, else the capture's sun sensor's,
     else NaN: radiance only)."""
 
-    sat: int  # stored DN from which a pixel is clipped
+    sat: int  # stored DN from which a pixel is clipped (the camera's; a file's own depth may lower it: clipped_from)
     reference: str = "dls"  # panel | dls | none (radiance only)
     panel_factor: tuple[float, ...] | None = None
     field: tuple[str, tuple[str, ...]] | None = None  # (store, components) replacing the factory's
@@ -380,7 +380,9 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
     rad = aligned_empty(dn.shape, np.float32)  # written to raw chunks without a copy (write_file)
     for b, meta in enumerate(cap.metas):
         factory_radiance(meta, dn[b], parts[b], (channels or {}).get(meta.path), out=rad[b])
-    saturated = dn >= chain.sat
+    saturated = np.empty(dn.shape, bool)
+    for b, meta in enumerate(cap.metas):  # each file clips at its own depth's top (12-bit: 4095)
+        np.greater_equal(dn[b], meta.clipped_from(chain.sat), out=saturated[b])
     np.copyto(rad, np.float32(np.nan), where=saturated)
     return rad, k, rad, int(np.count_nonzero(saturated))
 

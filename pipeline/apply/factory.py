@@ -537,7 +537,9 @@ def _route(options: FactoryOptions, captures: Sequence[Capture]) -> str:
 
 def saturation_dn(camera: Camera) -> int:
     """Stored value at and above which a pixel is clipped: the sensor's largest DN in the
-    container's high bits (65520 for 12-bit data in 16-bit samples)."""
+    container's high bits (65520 for 12-bit data in 16-bit samples). A file whose own
+    BitsPerSample holds less (12-bit packed) clips lower:
+    :meth:`pipeline.ingest.camera_meta.CaptureMeta.clipped_from`."""
     return ((1 << camera.bit_depth) - 1) << camera.dn_shift
 
 
@@ -569,7 +571,7 @@ def relative_scale(captures: Sequence[Capture], reference: str, sat: int = (1 <<
         if k is None:
             continue
         rad = factory_radiance(meta, dn, None, channels.get(meta.path))
-        rad = rad[np.asarray(dn) < sat]
+        rad = rad[np.asarray(dn) < meta.clipped_from(sat)]
         if rad.size and np.isfinite(rad).any():
             medians.append(float(np.nanmedian(rad)) * k)
     best = max(medians, default=0.0)

@@ -73,7 +73,7 @@ class CaptureMeta:
 
     path: Path
     shape: tuple[int, int]  # (height, width) as stored
-    bits_per_sample: int  # container depth (16 for RedEdge's 12-bit data, 8 for JPEG)
+    bits_per_sample: int  # the file's BitsPerSample (16 for RedEdge's 12-bit data in 16-bit samples, 12 packed, 8 JPEG)
     band_name: str
     wavelength_nm: float
     fwhm_nm: float | None
@@ -123,6 +123,15 @@ class CaptureMeta:
         JPEG cameras)."""
         levels = self.black_levels or self.dark_row_values or ()
         return float(sum(levels) / len(levels)) if levels else 0.0
+
+    def clipped_from(self, camera_sat: int) -> int:
+        """Stored value at and above which a pixel of this file is clipped: ``camera_sat``
+        (the catalog camera's, the sensor's largest DN in the container's high bits: 65520 for
+        a RedEdge's 12-bit data in 16-bit samples), at most the largest value the file's own
+        BitsPerSample holds. A RedEdge set to save 12-bit TIFFs (MicaSense: "12-bit or 16-bit
+        format ... divide the raw DN by 2^N") and a Sentera 6X store the sensor's DN as they
+        are, packed in 12 bits: they clip at 4095."""
+        return min(int(camera_sat), (1 << self.bits_per_sample) - 1)
 
     @property
     def radiance_unit(self) -> str:

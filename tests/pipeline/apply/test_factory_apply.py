@@ -177,6 +177,36 @@ def test_incomplete_and_truncated_captures_are_quarantined(tmp_path, capsys) -> 
     assert _apply(folder, tmp_path / "strict", "--strict") == 3
 
 
+def test_12bit_band_files_give_the_16bit_radiance_and_their_clipped_pixels(dls_run, tmp_path) -> None:
+    """IMG_0001 saved as packed 12-bit TIFFs (tests.camera_files.rededge_12bit): applied, not
+    quarantined; radiance and reflectance as from the 16-bit files; its pixels at 4095 are
+    saturated (NaN and counted, as the 16-bit files' at 65520); raw.zarr keeps the DN as stored."""
+    from tests import camera_files as cf
+
+    data = require_data()
+    folder = tmp_path / "caps12"
+    folder.mkdir()
+    for b in range(1, 6):
+        cf.rededge_12bit(data / f"IMG_0001_{b}.tif", folder / f"IMG_0001_{b}.tif")
+    out = tmp_path / "out12"
+    assert _apply(folder, out) == 0
+    run = json.loads((out / "run.json").read_text())
+    ref = json.loads((dls_run / "run.json").read_text())
+    assert run["frames"] == ["IMG_0001"] and run["quarantined"] == []
+    assert run["saturated_pixels"]["per_frame"]["IMG_0001"] == ref["saturated_pixels"]["per_frame"]["IMG_0001"] == 7240
+    ds, ds16 = xr.open_zarr(out / "reflectance.zarr"), xr.open_zarr(dls_run / "reflectance.zarr")
+    raw = xr.open_zarr(out / "raw.zarr")
+    for b in range(5):
+        dn16 = read_raw(data / f"IMG_0001_{b + 1}.tif")
+        dn = raw["dn"].isel(frame=0, band=b).values
+        np.testing.assert_array_equal(dn, dn16 >> 4)
+        rad = ds["radiance"].isel(frame=0, band=b).values
+        assert np.isnan(rad[dn == 4095]).all() and np.isfinite(rad[dn < 4095]).all()
+        for var in ("radiance", "reflectance"):
+            np.testing.assert_allclose(ds[var].isel(frame=0, band=b).values, ds16[var].isel(frame=1, band=b).values,
+                                       rtol=1e-6, equal_nan=True)
+
+
 def test_panel_marker_from_session_yaml(panel_run, tmp_path) -> None:
     """A session.yaml beside the captures says where the panel is from a marker in its plane;
     the factors agree with the ones from the detected panel (same panel, 0.75-inset regions)."""

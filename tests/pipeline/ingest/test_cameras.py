@@ -295,6 +295,34 @@ def test_sunshine_gain_from_calibration_table() -> None:
         sunshine_irradiance([65535], [1], [100], cal)
 
 
+def test_rededge_12bit_band_file_is_read_and_clips_at_4095(tmp_path) -> None:
+    """A RedEdge band file saved as a packed 12-bit TIFF (BitsPerSample 12, uncompressed; MicaSense's
+    "12-bit or 16-bit format") decodes to the sensor's DN, the 16-bit file's >> 4; its factory
+    radiance is the 16-bit file's wherever neither is clipped, and it clips at 4095 (its own
+    depth's top), the 16-bit file at the catalog's 65520."""
+    from pipeline.apply.factory import saturation_dn
+    from pipeline.ingest.session import plain_tiff_pixels, read_raw
+
+    require_data()
+    src = cf.band_file("0001", 1)
+    dst = cf.rededge_12bit(src, tmp_path / "IMG_0001_1.tif")
+    m16, m12 = read_capture_meta(src), read_capture_meta(dst)
+    assert (m16.bits_per_sample, m12.bits_per_sample) == (16, 12)
+    assert (m16.black_level, m12.black_level) == (4800.0, 300.0)
+    assert plain_tiff_pixels(dst.read_bytes()) is None  # the strip reader leaves 12-bit to tifffile
+    dn16, dn12 = read_raw(src), read_raw(dst)
+    assert dn12.dtype == np.uint16 and int(dn12.max()) == 4095
+    np.testing.assert_array_equal(dn12, dn16 >> 4)
+    sat = saturation_dn(catalog.load_camera("micasense-rededge"))
+    assert (sat, m16.clipped_from(sat), m12.clipped_from(sat)) == (65520, 65520, 4095)
+    clipped16, clipped12 = dn16 >= m16.clipped_from(sat), dn12 >= m12.clipped_from(sat)
+    assert int(clipped12.sum()) == int(clipped16.sum()) == 1829  # IMG_0001 Blue: sky glint
+    np.testing.assert_array_equal(clipped12, clipped16)
+    r16, r12 = factory_radiance(m16, dn16), factory_radiance(m12, dn12)
+    np.testing.assert_allclose(r12[~clipped12], r16[~clipped16], rtol=1e-12, atol=0)
+    assert float(np.median(r12[~clipped12])) == pytest.approx(float(np.median(r16[~clipped16])), rel=1e-12)
+
+
 def test_sentera_6x_session_grouping(tmp_path) -> None:
     """A 6X session: the files of one name in the band folders are one capture, each band by
     its XMP BandName, EXIF read from IFD0; a truncated band file quarantines its capture only,
