@@ -463,7 +463,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     align, band_shift, reference = pass_geometry(calib, camera, options)
     if align:
         check_transforms(calib, camera.n_bands, v_shape, calib_path)
-    chain = FieldChain(calib_path, saturation_dn(calib, camera), camera.dn_shift)
+    chain = FieldChain(calib_path, saturation_dn(calib, camera))
     names = [c.name for c in captures]
     illum = illumination_plan(calib, names, capture_times(captures), folder, options.illumination, captures=captures)
     scales = {} if illum is None else {n: tuple(float(v) for v in illum.scale[f]) for f, n in enumerate(names)}

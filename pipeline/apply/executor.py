@@ -192,7 +192,6 @@ class FieldChain:
 
     calibration: Path
     sat: int  # DN (the calibration's) from which a pixel is saturated
-    dn_shift: int = 0  # band files hold sensor DN << dn_shift (MicaSense: 4); snapshot DN are sensor DN already
 
     kind = "field"
 
@@ -222,7 +221,7 @@ def field_parts(store: str, components: tuple[str, ...], camera_name: str) -> tu
     lut = ds["inverse_response"].values.astype(np.float64) if "response" in components else None
     vig = ds["vignetting"].values.astype(np.float64) if "vignetting" in components else None
     return tuple(FieldParts(inverse_response=None if lut is None else lut[b], vignetting=None if vig is None else vig[b],
-                            dn_shift=camera.dn_shift) for b in range(camera.n_bands))
+                            dn_shift=camera.dn_shift, sensor_bits=camera.bit_depth) for b in range(camera.n_bands))
 
 
 def capture_factors(chain: FactoryChain, capture: Capture) -> np.ndarray:
@@ -368,7 +367,13 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
             eq15_fast(dn[None], lut, inv_v, job.t, chain.sat,
                       None if job.scale is None else np.asarray(job.scale)[None], out=refl)
             return refl[0], None, None, int(np.count_nonzero(dn >= chain.sat))
-        d = np.right_shift(dn, chain.dn_shift) if chain.dn_shift else dn
+        # band files to sensor DN, each by what it stores (Camera.shift_for): a RedEdge's 16-bit
+        # file by 4, its 12-bit file not at all; snapshot DN are sensor DN already
+        shifts = [camera.shift_for(m.bits_per_sample) for m in job.capture.metas]
+        if len(set(shifts)) == 1:
+            d = np.right_shift(dn, shifts[0]) if shifts[0] else dn
+        else:
+            d = np.stack([np.right_shift(dn[b], s) for b, s in enumerate(shifts)])
         k = (np.ones(dn.shape[0]) if job.scale is None else np.asarray(job.scale, dtype=np.float64))
         eq15_fast(d[None], lut, inv_v, 1.0, chain.sat, (k / band_exposures(job.capture))[None], out=refl)
         return refl[0], None, None, int(np.count_nonzero(d >= chain.sat))

@@ -35,7 +35,7 @@ from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
 from pipeline.ingest.captures import is_multilens
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.intrinsics import INTRINSICS_PARAMS, intrinsics_array
-from pipeline.ingest.session import IMAGE_SUFFIXES, read_raw, to_bands
+from pipeline.ingest.session import IMAGE_SUFFIXES, stored_bands
 from pipeline.storage.store import content_hashes, new_dataset, write_store
 
 BOARD_EXAMPLE = "board.yaml: {kind: charuco, squares: [7, 5], square_m: 0.04, marker_m: 0.03, dictionary: DICT_4X4_50}"
@@ -113,9 +113,9 @@ def fit_intrinsics_folder(folder: str | Path, camera: Camera, board: board_fit.B
     skipped: list[dict[str, str]] = []
     for name, files in frames:
         if multilens:
-            images = [None if f is None else to_bands(read_raw(f), camera, f)[0] for f in files]
+            images = [None if f is None else stored_bands(Path(f), f, camera)[0] for f in files]
         else:
-            images = list(to_bands(read_raw(files[0]), camera, files[0]))
+            images = list(stored_bands(Path(files[0]), files[0], camera))
         missing = []
         for b, img in enumerate(images):
             if img is None:

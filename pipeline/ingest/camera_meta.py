@@ -906,7 +906,13 @@ class FieldParts:
 
     inverse_response: np.ndarray | None = None
     vignetting: np.ndarray | None = None
-    dn_shift: int = 0  # stored DN = sensor DN << dn_shift (4 for 12-bit data in 16-bit TIFFs)
+    dn_shift: int = 0  # the camera's: stored DN = sensor DN << dn_shift (4 for 12-bit data in 16-bit TIFFs)
+    sensor_bits: int = 16  # the sensor's bits per DN: a file with fewer bits per sample is shifted less
+
+    def shift_for(self, meta: "CaptureMeta") -> int:
+        """The shift of ``meta``'s file to sensor DN: :attr:`dn_shift`, less when the file stores
+        fewer bits per sample (a RedEdge's packed 12-bit TIFF: 0; see ``Camera.shift_for``)."""
+        return min(self.dn_shift, max(0, meta.bits_per_sample - self.sensor_bits))
 
 
 def factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None = None,
@@ -965,9 +971,10 @@ def _factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | Non
         v = np.asarray(parts.vignetting, dtype=np.float64)
         vignetting = np.divide(1.0, v, out=np.full(v.shape, np.nan), where=v > 0)
     if parts is not None and parts.inverse_response is not None:
-        c = field_response_scale(parts.inverse_response, dn_shift=parts.dn_shift, black_level=meta.black_level,
+        shift = parts.shift_for(meta)
+        c = field_response_scale(parts.inverse_response, dn_shift=shift, black_level=meta.black_level,
                                  bits_per_sample=meta.bits_per_sample)
-        signal = field_response_signal(dn, parts.inverse_response, dn_shift=parts.dn_shift, scale=c)
+        signal = field_response_signal(dn, parts.inverse_response, dn_shift=shift, scale=c)
     assert meta.radiometric_calibration is not None
     return radiance(
         dn,

@@ -254,6 +254,15 @@ class Camera:
         """Right shift from stored samples to sensor DN (4 for 12-bit data in 16-bit samples)."""
         return 0 if self.container_bits is None else self.container_bits - self.bit_depth
 
+    def shift_for(self, stored_bits: int | None) -> int:
+        """Right shift from one file's samples to sensor DN: :attr:`dn_shift` for a file in the
+        catalog's container (a RedEdge's 16-bit TIFF: 4); less for a file with fewer bits per
+        sample, 0 for one that holds the sensor's DN as they are (a RedEdge set to save 12-bit
+        TIFFs). ``stored_bits`` None (not known): the catalog's :attr:`dn_shift`."""
+        if stored_bits is None:
+            return self.dn_shift
+        return min(self.dn_shift, max(0, int(stored_bits) - self.bit_depth))
+
     @property
     def n_bands(self) -> int:
         return len(self.bands)

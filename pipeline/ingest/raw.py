@@ -66,7 +66,7 @@ from zarr.core.sync import sync
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.discover import Discovery, discover_flight, quarantine_entry
 from pipeline.ingest.exif import time_ns
-from pipeline.ingest.session import FrameRecord, decode_raw, to_bands
+from pipeline.ingest.session import FrameRecord, stored_bands
 from pipeline.storage.atomic import TMP_MARK, atomic_folder
 from pipeline.storage.chunks import FrameChunks, frame_encoding
 from pipeline.storage.store import FRAME_COORD_ATTRS, file_sha256
@@ -276,7 +276,7 @@ def read_frame(rec: FrameRecord, camera: Camera, known: "Callable[[str], bool] |
     if known is not None and known(sha):
         return sha, None  # known: never decoded again
     try:
-        bands = to_bands(decode_raw(rec.path if data is None else data, rec.path), camera, rec.path)
+        bands = stored_bands(rec.path if data is None else data, rec.path, camera)
     except FrameError:
         raise
     except InputError as exc:  # e.g. the mosaic split of a frame too small for the camera

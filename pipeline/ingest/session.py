@@ -784,8 +784,39 @@ def decode_raw(source: bytes | bytearray | memoryview | Path, path: str | Path, 
     return img
 
 
-def to_bands(img: np.ndarray, camera: Camera, path: Path | str = "") -> np.ndarray:
-    """Split a stored frame into the camera's band stack ``(band, H, W)`` (uint16 DN)."""
+def sample_bits(source: bytes | bytearray | memoryview | Path) -> int | None:
+    """BitsPerSample of a TIFF's first image, from its bytes or its file (None: not a TIFF, or
+    unreadable: :func:`decode_raw` says why). A RedEdge writes its 12-bit DN in the high bits of
+    16-bit samples, or, set to its 12-bit format, as they are in packed 12-bit samples: the
+    decoded arrays are both uint16, only the file says which (:meth:`Camera.shift_for`)."""
+    import io
+
+    import tifffile
+
+    in_memory = isinstance(source, (bytes, bytearray, memoryview))
+    if (bytes(source[:4]) if in_memory else b"") not in (b"", b"II*\0", b"MM\0*"):
+        return None
+    try:
+        with tifffile.TiffFile(io.BytesIO(source) if in_memory else source) as tif:
+            return int(tif.pages[0].bitspersample)
+    except Exception:  # not a TIFF, or damaged: the decode names the file
+        return None
+
+
+def stored_bands(source: bytes | bytearray | memoryview | Path, path: Path | str, camera: Camera) -> np.ndarray:
+    """One frame file's band stack in sensor DN (:func:`to_bands` of :func:`decode_raw`), shifted
+    by what the file itself stores (:func:`sample_bits`): a 16-bit RedEdge file by 4, a 12-bit
+    one not at all."""
+    if isinstance(source, Path) and not source.is_file():
+        raise FrameError("frame file does not exist", path=path)
+    bits = sample_bits(source) if camera.dn_shift and Path(path).suffix.lower() in (".tif", ".tiff") else None
+    return to_bands(decode_raw(source, path), camera, path, stored_bits=bits)
+
+
+def to_bands(img: np.ndarray, camera: Camera, path: Path | str = "", stored_bits: int | None = None) -> np.ndarray:
+    """Split a stored frame into the camera's band stack ``(band, H, W)`` (uint16 sensor DN);
+    ``stored_bits``: the file's bits per sample, which sets the shift to sensor DN
+    (:meth:`Camera.shift_for`; None: the catalog's)."""
     lay = camera.layout
     if lay.kind == "mosaic":
         if img.ndim != 2:
@@ -812,8 +843,9 @@ def to_bands(img: np.ndarray, camera: Camera, path: Path | str = "") -> np.ndarr
         if img.ndim != 2:
             raise FrameError(f"expected a single-band image, got shape {img.shape}", path=path)
         bands = img[None]
-    if camera.dn_shift:  # e.g. MicaSense: 12-bit DN stored in the high bits of 16-bit samples
-        bands = np.right_shift(bands, camera.dn_shift)
+    shift = camera.shift_for(stored_bits)
+    if shift:  # e.g. MicaSense: 12-bit DN stored in the high bits of 16-bit samples
+        bands = np.right_shift(bands, shift)
     top = int(bands.max(initial=0))
     if top > camera.dn_max:
         raise FrameError(
@@ -828,14 +860,18 @@ def read_bands(rec: FrameRecord | Path, camera: Camera) -> np.ndarray:
     """Read one frame and split it into bands (:class:`FrameError` naming the file); a
     capture of a one-file-per-band camera is read band file by band file."""
     if isinstance(rec, FrameRecord) and rec.band_files is not None:
-        bands = [to_bands(read_raw(f), camera, f)[0] for f in rec.band_files]
+        bands = [_file_bands(f, camera)[0] for f in rec.band_files]
         for f, b in zip(rec.band_files[1:], bands[1:]):
             if b.shape != bands[0].shape:
                 raise FrameError(f"band image is {b.shape[1]}x{b.shape[0]}, the capture's first band "
                                  f"{bands[0].shape[1]}x{bands[0].shape[0]}", path=f)
         return np.stack(bands)
     path = rec.path if isinstance(rec, FrameRecord) else Path(rec)
-    return to_bands(read_raw(path), camera, path)
+    return _file_bands(path, camera)
+
+
+def _file_bands(path: Path, camera: Camera) -> np.ndarray:
+    return stored_bands(Path(path), path, camera)
 
 
 
@@ -848,6 +884,8 @@ __all__ = [
     "exif_record",
     "load_session",
     "read_bands",
+    "sample_bits",
+    "stored_bands",
     "read_frame_table",
     "decode_raw",
     "read_raw",

@@ -87,6 +87,27 @@ def test_factory_and_field_chains_run_in_the_same_executor(store, tmp_path, monk
     assert a["reflectance"].shape == f["reflectance"].shape
 
 
+def test_field_store_on_12bit_band_files_is_the_16bit_result(field_run, store, tmp_path) -> None:
+    """IMG_0001 as a RedEdge set to its 12-bit format writes it (tests.camera_files.rededge_12bit):
+    the store's U is over the sensor DN, so the 12-bit files (sensor DN as they are) give the
+    16-bit run's reflectance and saturated pixels. Shifting them by the catalog's 4 as well gave
+    a sixteenth of the DN: reflectance near zero and no pixel saturated."""
+    from tests import camera_files as cf
+
+    folder = tmp_path / "caps12"
+    folder.mkdir()
+    for b in range(1, 6):
+        cf.rededge_12bit(require_data() / f"IMG_0001_{b}.tif", folder / f"IMG_0001_{b}.tif")
+    out = tmp_path / "out"
+    assert main(["apply", str(folder), "--calibration", str(store), "-o", str(out)]) == 0
+    got = xr.open_zarr(out / "reflectance.zarr")["reflectance"].isel(frame=0).values
+    ref = xr.open_zarr(field_run / "reflectance.zarr")["reflectance"].isel(frame=1).values
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(ref))
+    np.testing.assert_allclose(got, ref, rtol=1e-6, equal_nan=True)
+    run, ref_run = (json.loads((o / "run.json").read_text()) for o in (out, field_run))
+    assert run["saturated_pixels"]["total"] == ref_run["saturated_pixels"]["per_frame"]["IMG_0001"] == 7240
+
+
 def test_rerun_is_up_to_date(field_run, store, capsys) -> None:
     assert main(["apply", str(require_data()), "--calibration", str(store), "-o", str(field_run)]) == 0
     assert "up to date" in capsys.readouterr().out

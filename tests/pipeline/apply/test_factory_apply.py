@@ -294,6 +294,31 @@ def test_field_components_replace_the_factory_ones(tmp_path) -> None:
         assert slope > 0 and np.corrcoef(dn[lit], ratio)[0, 1] > 0.99, b
 
 
+def test_field_components_on_12bit_band_files(tmp_path) -> None:
+    """The field response over sensor DN on IMG_0001 as packed 12-bit files: the same radiance
+    as on the 16-bit files (U is indexed by the sensor DN, which the 12-bit file stores as it
+    is, and scaled with the file's own black level and depth). Indexing it with the catalog's
+    shift of 4 as well read U at a sixteenth of the DN."""
+    from tests import camera_files as cf
+
+    data = require_data()
+    f16, f12 = tmp_path / "caps16", tmp_path / "caps12"
+    f16.mkdir()
+    f12.mkdir()
+    for b in range(1, 6):
+        shutil.copy(data / f"IMG_0001_{b}.tif", f16 / f"IMG_0001_{b}.tif")
+        cf.rededge_12bit(data / f"IMG_0001_{b}.tif", f12 / f"IMG_0001_{b}.tif")
+    square = _field_store(tmp_path / "square.zarr", "IMG_0001", response="square", vignetting="factory")
+    rad = {}
+    for name, folder in (("16", f16), ("12", f12)):
+        assert _apply(folder, tmp_path / name, "--field-calibration", str(square)) == 0, name
+        rad[name] = xr.open_zarr(tmp_path / name / "reflectance.zarr")["radiance"].isel(frame=0).values
+    lit = np.isfinite(rad["16"]) & (rad["16"] > 0)
+    assert lit.mean() > 0.9
+    np.testing.assert_array_equal(np.isnan(rad["12"]), np.isnan(rad["16"]))
+    np.testing.assert_allclose(rad["12"][lit], rad["16"][lit], rtol=1e-5)
+
+
 @pytest.mark.parametrize(
     ("extra", "expect"),
     [

@@ -520,3 +520,29 @@ def test_sentera_6x_cal_captures_are_captures(tmp_path) -> None:
     caps, problems = group_captures(session, catalog.load_camera("sentera-6x"))
     assert problems == [] and [c.name for c in caps] == ["CAL_00006", "IMG_00007"]
     assert len(caps[0].metas) == 5
+
+
+def test_rededge_12bit_files_reach_the_field_fits_in_sensor_dn(tmp_path) -> None:
+    """Calibration's reads (read_bands, stored_bands from bytes, as ingest reads them) shift each
+    band file by what it stores: a 16-bit RedEdge file by the catalog's 4, a packed 12-bit one
+    not at all; both give the same sensor DN. Shifting the 12-bit file by 4 too (the catalog's
+    shift for every file) gave DN / 16, silently: a 4095 highlight became 255."""
+    from pipeline.ingest.session import FrameRecord, read_bands, sample_bits, stored_bands
+
+    require_data()
+    cam = catalog.load_camera("micasense-rededge")
+    assert (cam.shift_for(None), cam.shift_for(16), cam.shift_for(12), cam.shift_for(14)) == (4, 4, 0, 2)
+    assert catalog.load_camera("generic-rgb8").shift_for(16) == 0
+    src16 = [cf.band_file("0001", b) for b in range(1, 6)]
+    src12 = [cf.rededge_12bit(p, tmp_path / p.name) for p in src16]
+    assert [sample_bits(p) for p in (src16[0], src12[0])] == [16, 12]
+    assert sample_bits(src12[0].read_bytes()) == 12 and sample_bits(b"\xff\xd8\xff\xe0") is None
+    rec16, rec12 = (FrameRecord(path=f[0], exposure_ms=1.0, band_files=tuple(f), capture="IMG_0001")
+                    for f in (src16, src12))
+    b16, b12 = read_bands(rec16, cam), read_bands(rec12, cam)
+    assert b12.shape == (5, 960, 1280) and int(b12.max()) == 4095
+    np.testing.assert_array_equal(b12, b16)
+    for p16, p12 in zip(src16, src12):
+        np.testing.assert_array_equal(stored_bands(p12.read_bytes(), p12, cam), stored_bands(p16.read_bytes(), p16, cam))
+    mixed = FrameRecord(path=src12[0], exposure_ms=1.0, band_files=(src12[0], *src16[1:]), capture="IMG_0001")
+    np.testing.assert_array_equal(read_bands(mixed, cam), b16)
