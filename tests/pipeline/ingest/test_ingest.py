@@ -32,6 +32,7 @@ import zarr
 
 import mscal_core
 import pipeline.ingest.raw as ingest_mod
+import pipeline.ingest.session as session_mod
 from mscal_core.errors import InputError, SessionError
 from pipeline.ingest.catalog import load_camera
 from pipeline.ingest.discover import discover_flight
@@ -153,7 +154,7 @@ class _Spy:
 @pytest.fixture
 def spy(monkeypatch) -> _Spy:
     s = _Spy()
-    monkeypatch.setattr(ingest_mod, "decode_raw", s)
+    monkeypatch.setattr(session_mod, "decode_raw", s)  # ingest decodes through session.stored_bands
     return s
 
 
