@@ -48,7 +48,7 @@ from mscal_core.factory import (
     vignetting_map,
 )
 
-from pipeline.ingest.exif import EXIF_CODES, dms_to_degrees, exif_datetime_iso, rational, signed_gps
+from pipeline.ingest.exif import EXIF_CODES, dms_to_degrees, exif_time_utc, rational, signed_gps
 from pipeline.ingest.xmp import TagError, TagProblem, Xmp, jpeg_xmp_packet, legacy_properties, parse_numbers
 
 if TYPE_CHECKING:
@@ -180,8 +180,15 @@ def _gps(gps: dict[str, Any]) -> tuple[float | None, float | None, float | None]
     )
 
 
-def _time(exif: dict[str, Any]) -> str | None:
-    return exif_datetime_iso(exif.get("DateTimeOriginal"), exif.get("SubsecTimeOriginal") or exif.get("SubsecTime"))
+def _time(exif: dict[str, Any], xmp: Xmp) -> str | None:
+    """The exposure's time (:func:`exif_time_utc`): DJI's ``drone-dji:UTCAtExposure`` (UTC; its
+    DateTimeOriginal is the aircraft's local clock), else DateTimeOriginal in UTC when EXIF 2.31
+    ``OffsetTimeOriginal`` gives its zone, else DateTimeOriginal as written (zone unknown)."""
+    utc = exif_time_utc(xmp.text("UTCAtExposure", ("drone-dji",)), offset="+00:00")
+    if utc is not None and utc.endswith("Z"):
+        return utc
+    return exif_time_utc(exif.get("DateTimeOriginal"), exif.get("SubsecTimeOriginal") or exif.get("SubsecTime"),
+                         exif.get("OffsetTimeOriginal"))
 
 
 def _exposure(exif: dict[str, Any], path: Path) -> float:
@@ -406,7 +413,7 @@ def _common(ctx: _Ctx) -> dict[str, Any]:
                   or x.text("CaptureUUID", ("Camera",)) or x.text("ImageUniqueID", ("Camera",)))
     return dict(
         capture_id=capture_id, rig_camera_index=None if rig is None else int(rig), reflect_area=area,
-        lat=lat, lon=lon, alt_m=alt, time=_time(ctx.exif), make=ctx.make, model=ctx.model,
+        lat=lat, lon=lon, alt_m=alt, time=_time(ctx.exif, x), make=ctx.make, model=ctx.model,
         rig_name=x.text("RigName", ("Camera",)), serial=ctx.serial, software=ctx.software,
         orientation=ctx.orientation,
     )

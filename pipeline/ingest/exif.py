@@ -18,7 +18,7 @@ from __future__ import annotations
 import math
 import numbers
 import re
-from datetime import datetime, timezone
+from datetime import datetime, timedelta, timezone
 from fractions import Fraction
 from functools import lru_cache
 from typing import Any
@@ -30,7 +30,7 @@ import numpy as np
 #: the EXIF IFD; readers look for them there too.
 EXIF_CODES = {
     "ExposureTime": 33434, "FNumber": 33437, "ISOSpeedRatings": 34855, "ISOSpeed": 34867,
-    "DateTimeOriginal": 36867, "SubsecTime": 37520, "SubsecTimeOriginal": 37521, "FocalLength": 37386,
+    "DateTimeOriginal": 36867, "OffsetTimeOriginal": 36881, "SubsecTime": 37520, "SubsecTimeOriginal": 37521, "FocalLength": 37386,
     "FocalPlaneXResolution": 41486, "FocalPlaneYResolution": 41487, "FocalPlaneResolutionUnit": 41488,
     "ImageUniqueID": 42016, "BodySerialNumber": 42033, "LensModel": 42036,
 }
@@ -42,6 +42,7 @@ __all__ = [
     "degrees_to_dms",
     "dms_to_degrees",
     "exif_datetime_iso",
+    "exif_time_utc",
     "parse_iso",
     "rational",
     "signed_gps",
@@ -153,6 +154,36 @@ def exif_datetime_iso(date_time: Any, subsec: Any = None) -> str | None:
     iso = f"{m[1]}-{m[2]}-{m[3]}T{m[4]}"
     sub = str(subsec or "").strip()
     return f"{iso}.{sub}" if sub.isdigit() else iso
+
+
+_EXIF_STAMP = re.compile(r"\s*(\d{4}):(\d{2}):(\d{2}) (\d{2}):(\d{2}):(\d{2})(?:\.(\d+))?\s*$")
+_EXIF_OFFSET = re.compile(r"\s*([+-])(\d{2}):(\d{2})\s*$")
+
+
+def exif_time_utc(date_time: Any, subsec: Any = None, offset: Any = None) -> str | None:
+    """The time of an exposure as ISO 8601 text: in UTC with ``Z`` when the zone is known,
+    local as :func:`exif_datetime_iso` gives it when not.
+
+    ``date_time``: EXIF ``DateTimeOriginal`` (``2025:05:20 10:12:34``, the camera's local
+    clock), or a DJI ``drone-dji:UTCAtExposure`` (``2025:05:20 02:12:54.019996``, UTC, with its
+    fraction; pass ``offset="+00:00"``); ``subsec``: ``SubSecTimeOriginal`` digits; ``offset``:
+    EXIF 2.31 ``OffsetTimeOriginal`` (``+08:00``). An offset that is blank or not ``+HH:MM``
+    leaves the zone unknown. None when the time itself is missing or blank."""
+    m = _EXIF_STAMP.match(str(date_time or ""))
+    if not m:
+        return exif_datetime_iso(date_time, subsec)
+    o = _EXIF_OFFSET.match(str(offset or ""))
+    sub = m[7] if m[7] is not None else str(subsec or "").strip()
+    if o is None or int(o[2]) > 23 or int(o[3]) > 59:
+        return exif_datetime_iso(f"{m[1]}:{m[2]}:{m[3]} {m[4]}:{m[5]}:{m[6]}", sub)
+    try:
+        local = datetime(int(m[1]), int(m[2]), int(m[3]), int(m[4]), int(m[5]), int(m[6]))
+    except ValueError:  # e.g. month 13: not a time
+        return None
+    sign = 1 if o[1] == "+" else -1
+    utc = local - sign * timedelta(hours=int(o[2]), minutes=int(o[3]))
+    frac = f".{sub}" if sub.isdigit() else ""
+    return f"{utc.strftime('%Y-%m-%dT%H:%M:%S')}{frac}Z"
 
 
 def parse_iso(text: str) -> datetime:

@@ -27,7 +27,7 @@ from pipeline.ingest.catalog import (
     read_yaml,
     show_key,
 )
-from pipeline.ingest.exif import dms_to_degrees, exif_datetime_iso, parse_iso, rational, signed_gps, utc_naive
+from pipeline.ingest.exif import dms_to_degrees, exif_time_utc, parse_iso, rational, signed_gps, utc_naive
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
 FRAMES_CSV = "frames.csv"
@@ -550,7 +550,8 @@ def exif_record(path: Path) -> FrameRecord:
         rational(tags["GPS GPSAltitude"]) if "GPS GPSAltitude" in tags else None,
         ref is not None and bool(ref.values) and ref.values[0] == 1,
     )
-    time = exif_datetime_iso(tags.get("EXIF DateTimeOriginal"))
+    offset = tags.get("EXIF OffsetTimeOriginal")
+    time = exif_time_utc(tags.get("EXIF DateTimeOriginal"), offset=None if offset is None else offset.values)
     rec = FrameRecord(path=path, exposure_ms=rational(exp) * 1000.0, gain=gain, time=time, lat=lat, lon=lon, alt_m=alt)
     _check_exposure(rec, path)
     return rec

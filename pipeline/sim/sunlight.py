@@ -161,7 +161,7 @@ def write_sunlight_flight(template: str | Path, out: str | Path, *, seed: int = 
     out.mkdir(parents=True, exist_ok=True)
     caps, e_template, wl = _template_light(template, rho)
     panel_cap, flight_cap = caps[0], caps[min(1, len(caps) - 1)]
-    t0 = np.datetime64(panel_cap.metas[0].time.split(".")[0], "s")
+    t0 = np.datetime64(panel_cap.metas[0].time.rstrip("Z").split(".")[0], "s")
     n = n_flight + 2
     times = t0 + np.round(np.linspace(0.0, duration_s, n)).astype("timedelta64[s]")
     kinds = tuple("panel" if i in (0, n - 1) else "flight" for i in range(n))
@@ -172,7 +172,7 @@ def write_sunlight_flight(template: str | Path, out: str | Path, *, seed: int = 
     names = []
     for i in range(n):
         src = panel_cap if kinds[i] == "panel" else flight_cap
-        when_src = np.datetime64(src.metas[0].time.split(".")[0], "s").astype(object).strftime(TIME_FMT).encode()
+        when_src = np.datetime64(src.metas[0].time.rstrip("Z").split(".")[0], "s").astype(object).strftime(TIME_FMT).encode()
         name = f"IMG_{i:04d}"
         names.append(name)
         when = times[i].astype("datetime64[s]").astype(object).strftime(TIME_FMT)

@@ -277,6 +277,43 @@ def test_dji_p4_multispectral(tmp_path) -> None:
     _check_radiance(ds, 0, 2, path, dji_expected, PANEL_CORNERS[2], full)
 
 
+def test_dji_time_is_utc_at_exposure_not_the_local_clock(tmp_path) -> None:
+    """A DJI band file's DateTimeOriginal is the aircraft's local clock; drone-dji:UTCAtExposure
+    is UTC. Captures whose local clock reads 13:40 (UTC-7) and UTCAtExposure 20:40 UTC get the
+    sun of 20:40 UTC (run.json), and their TIFFs say 20:40 UTC with GPS time stamps, as
+    OpenDroneMap reads them. Taken as UTC, 13:40 put the sun 48 degrees lower, below the horizon."""
+    import exifread
+
+    from pipeline.ingest.solar import solar_position
+
+    require_data()
+    local = cf.dji_p4m(tmp_path / "local")
+    folder = tmp_path / "utc"
+    folder.mkdir()
+    utc = {"1": "2017:10:19 20:40:39.200173", "2": "2017:10:19 20:42:10.200159"}
+    for path in sorted(local.glob("*.TIF")):
+        data = path.read_bytes()
+        for a, b in ((b"2017:10:19 20:40:39", b"2017:10:19 13:40:39"), (b"2017:10:19 20:42:10", b"2017:10:19 13:42:10")):
+            data = data.replace(a, b)  # every EXIF date of the file: the local clock, UTC-7
+        path.write_bytes(data)
+        stamp = utc[path.stem[-2]]
+        cf.rewrite(path, folder / path.name,
+                   lambda x, s=stamp: x.replace('drone-dji:SensorIndex=', f'drone-dji:UTCAtExposure="{s}" drone-dji:SensorIndex='))
+    run = _apply(folder, tmp_path / "out", "--no-align")
+    run_local = _apply(local, tmp_path / "out_local", "--no-align")
+    for frame, when, lat, lon, alt in (("001", "2017-10-19T20:40:39.200173", 36.576096, -119.435269, 101.861),
+                                       ("002", "2017-10-19T20:42:10.200159", 36.5760815, -119.4352604, 174.527)):
+        el, _ = solar_position(np.array([when], "datetime64[ns]"), np.array([lat]), np.array([lon]), np.array([alt]))
+        assert run["sun_sensor"][frame]["sun_elevation_deg"] == pytest.approx(math.degrees(float(el[0])), abs=0.01)
+        assert run["sun_sensor"][frame]["sun_elevation_deg"] > run_local["sun_sensor"][frame]["sun_elevation_deg"] + 40
+    with (tmp_path / "out" / "photogrammetry" / "002_Green.tif").open("rb") as fh:  # 001: the panel capture
+        tags = exifread.process_file(fh, details=False)
+    assert str(tags["EXIF DateTimeOriginal"]) == "2017:10:19 20:42:10"
+    assert str(tags["EXIF OffsetTimeOriginal"]) == "+00:00"
+    assert str(tags["GPS GPSDate"]) == "2017:10:19"
+    assert [float(v.num) / v.den for v in tags["GPS GPSTimeStamp"].values] == pytest.approx([20, 42, 10.200159])
+
+
 def _shift_px(a: np.ndarray, b: np.ndarray) -> float:
     """Displacement (px) between two 192 x 192 tiles by phase correlation (Hanning window)."""
     (dx, dy), _ = cv2.phaseCorrelate(a, b, cv2.createHanningWindow(a.shape[::-1], cv2.CV_64F))

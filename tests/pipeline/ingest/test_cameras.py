@@ -413,6 +413,27 @@ def test_dji_band_from_the_mavic_3m_manuals_spellings() -> None:
         meta_from_tags(*_dji_tags(base.replace("560(+/-16)nm", "garbled")), (960, 1280), 16)
 
 
+def test_exposure_time_in_utc_when_the_file_says_its_zone() -> None:
+    """drone-dji:UTCAtExposure (UTC) wins over a DJI file's local DateTimeOriginal; EXIF 2.31
+    OffsetTimeOriginal turns DateTimeOriginal into UTC; without either the time is as written
+    (zone unknown: MicaSense's, which its own library reads as UTC). A garbled UTCAtExposure
+    or offset leaves the time as written."""
+    from pipeline.ingest.camera_meta import meta_from_tags
+
+    packet = cf.dji_xmp(2, "abc")
+    path, tags = _dji_tags(packet)
+    assert meta_from_tags(path, tags, (960, 1280), 16).time == "2017-10-19T20:40:39.200173789"
+    for stamp, want in (("2017:10:20 03:40:39.25", "2017-10-20T03:40:39.25Z"), ("2017:10:20 03:40:39", "2017-10-20T03:40:39Z"),
+                        ("garbled", "2017-10-19T20:40:39.200173789")):
+        p = packet.replace("drone-dji:SensorIndex=", f'drone-dji:UTCAtExposure="{stamp}" drone-dji:SensorIndex=')
+        assert meta_from_tags(*_dji_tags(p), (960, 1280), 16).time == want, stamp
+    for offset, want in (("-07:00", "2017-10-20T03:40:39.200173789Z"), ("+09:30", "2017-10-19T11:10:39.200173789Z"),
+                         ("+00:00", "2017-10-19T20:40:39.200173789Z"), ("   ", "2017-10-19T20:40:39.200173789"),
+                         ("+7", "2017-10-19T20:40:39.200173789")):
+        exif = {**tags[34665], "OffsetTimeOriginal": offset}
+        assert meta_from_tags(path, {**tags, 34665: exif}, (960, 1280), 16).time == want, offset
+
+
 def test_dji_black_level_from_exif_xmp_or_the_manuals_black_current() -> None:
     """EXIF BlackLevel first (P4 Multispectral guide), else drone-dji:BlackLevel (Mavic 3M
     guide), else drone-dji:BlackCurrent (the Mavic 3M User Manual's name for it)."""
