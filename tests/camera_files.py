@@ -12,7 +12,7 @@ from __future__ import annotations
 import re
 import shutil
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import tifffile
@@ -201,6 +201,23 @@ def reflect_area_one_li(folder: Path, corners: tuple[tuple[tuple[int, int], ...]
                 if b == 2:  # prefix "Cam", URI with the trailing slash: the same namespace
                     x = x.replace('xmlns:Camera="http://pix4d.com/1.0"', 'xmlns:Cam="http://pix4d.com/camera/1.0/"')
                     x = x.replace("<Camera:", "<Cam:").replace("</Camera:", "</Cam:")
+                return x
+
+            rewrite(band_file(cap, b), folder / f"IMG_{cap}_{b}.tif", edit)
+    return folder
+
+
+def rededge_auto_panel(folder: Path, albedo: Sequence[str]) -> Path:
+    """The real captures, IMG_0000 (the panel) as a MicaSense firmware writes an automatic panel
+    capture: XMP ``Camera:CalibrationPicture`` 2 and ``Camera:Albedo`` (the panel's reflectance
+    in the band, read from its QR code; ``albedo[b - 1]`` as written, garbled text allowed)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for cap in CAPTURES:
+        for b in range(1, 6):
+            def edit(x: str, b: int = b, cap: str = cap) -> str:
+                if cap == "0000":
+                    x = add_camera_element(x, "<Camera:CalibrationPicture>2</Camera:CalibrationPicture>"
+                                              f"<Camera:Albedo>{albedo[b - 1]}</Camera:Albedo>")
                 return x
 
             rewrite(band_file(cap, b), folder / f"IMG_{cap}_{b}.tif", edit)

@@ -42,8 +42,11 @@ The factory chain runs in the one apply executor (:mod:`pipeline.apply.executor`
     ``reference.reason`` names a file and the tag, and the summary and the report warn
     (``no_reflectance``).
 
-  ``auto`` (default) takes the panel when ``--panel-reflectance`` is given, else the DLS,
-  else none.
+  ``auto`` (default) takes the panel when ``--panel-reflectance`` is given, or when panel
+  captures carry the panel's reflectance as the camera read it from the panel's QR code
+  (MicaSense XMP ``Albedo`` in every band file, as MicaSense's own library uses it; each such
+  capture with its own values; run.json ``reference.panel_reflectance`` says which), else the
+  DLS, else none.
 
 Frames stored turned (EXIF Orientation; Sequoia: 180 degrees) are turned upright in every
 output, raw.zarr included, after the band registration (run.json ``orientation``).
@@ -123,6 +126,7 @@ LIGHT_MODEL = "issue22: sun sensor turned horizontal; panel-dls; one panel regio
 PANEL_SEEN_SIDE = 1280  # px: panels_seen searches bigger images decimated to this (RedEdge size)
 PANEL_GRID = 32  # cells per side of the panel grid for the S/B split (Eq. 11-14)
 FIELD_COMPONENTS = ("response", "vignetting")  # store variables: inverse_response, vignetting
+ALBEDO_SOURCE = "XMP Albedo of each panel capture's band files (the camera's reading of the panel's QR code)"
 
 
 @dataclass(frozen=True)
@@ -188,6 +192,7 @@ class PanelReference:
     brightness_p10_p90: tuple[float, float]
     split_residual_rms: float
     region_source: tuple[str, ...]
+    reflectance: tuple[float, ...] = ()  # rho_b of the panel used per band
 
 
 def panel_reference(capture: Capture, dns: Sequence[np.ndarray], rho: Sequence[float],
@@ -217,6 +222,7 @@ def panel_reference(capture: Capture, dns: Sequence[np.ndarray], rho: Sequence[f
     return PanelReference(
         capture=capture.name, factor_split=split, factor_mean=tuple(b.factor for b in bands), factor_dls=dls,
         brightness_p10_p90=spread, split_residual_rms=resid, region_source=tuple(b.region.source for b in bands),
+        reflectance=tuple(float(b.reflectance) for b in bands),
     )
 
 
@@ -250,6 +256,52 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
             f"first and last {PANEL_SEARCH} and those the camera flagged with XMP ReflectArea)", path=folder,
             hint="name the panel capture with --panel IMG_XXXX, or use --reference dls",
         )
+    return refs
+
+
+def albedo_captures(captures: Sequence[Capture], named: Sequence[str] = ()) -> list[Capture]:
+    """Panel captures whose panel reflectance the camera wrote: every reflectance band file
+    carries XMP ``Albedo`` (MicaSense: the panel's reflectance in that band, read from its QR
+    code, in the panel captures it also gives a ``ReflectArea``). With ``named`` (``--panel``)
+    only those captures are looked at."""
+    pool = [c for c in captures if c.name in set(named)] if named else list(captures)
+    return [c for c in pool if any(m.reflectance_band for m in c.metas)
+            and all(m.panel_albedo is not None for m in c.metas if m.reflectance_band)]
+
+
+def albedo_reflectance(capture: Capture) -> list[float]:
+    """``rho_b`` per band file of an :func:`albedo_captures` capture: its XMP Albedo (a band
+    kept out of reflectance, e.g. thermal, takes the others' mean: its factor is never used)."""
+    vals = [float(m.panel_albedo) for m in capture.metas if m.reflectance_band and m.panel_albedo is not None]
+    fill = float(np.mean(vals))
+    return [float(m.panel_albedo) if m.reflectance_band and m.panel_albedo is not None else fill
+            for m in capture.metas]
+
+
+def _albedo_panels(captures: Sequence[Capture], named: Sequence[str], folder: Path,
+                   parts: Sequence[FieldParts | None] | None = None, config: PanelConfig | None = None
+                   ) -> list[PanelReference]:
+    """:func:`panel_reference` of every :func:`albedo_captures` capture with its own Albedo.
+    A named capture that fails is an error; otherwise failures are skipped unless all fail."""
+    found = albedo_captures(captures, named)
+    missing = [n for n in named if n not in {c.name for c in found}]
+    if missing:
+        raise InputError(f"--panel capture(s) {', '.join(missing)}: not in the folder, or a band file has no XMP Albedo "
+                         "(the panel's reflectance as the camera read it)", path=folder,
+                         hint="give the panel's reflectance with --panel-reflectance TARGET")
+    refs, failed = [], []
+    for c in found:
+        try:
+            _, dns, channels = read_capture_pixels(c)
+            refs.append(panel_reference(c, dns, albedo_reflectance(c), parts, config, channels))
+        except FrameError as exc:
+            if named:
+                raise InputError(f"panel capture {c.name}: {exc.reason}", path=exc.path, hint=exc.hint) from None
+            failed.append(exc)
+    if not refs:
+        exc = failed[0]
+        raise InputError(f"no usable panel among the {len(found)} capture(s) with the camera's XMP Albedo: {exc.reason}",
+                         path=exc.path, hint=exc.hint or "name a panel capture with --panel and --panel-reflectance")
     return refs
 
 
@@ -367,14 +419,21 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     reference = _route(options, captures)
     panels: list[PanelReference] = []
     panel_factor = None
+    rho_source = None
     if reference in ("panel", "panel-dls"):
-        if options.panel_reflectance is None:
-            raise InputError(f"--reference {reference} needs --panel-reflectance (a number or a target name)",
+        config = None if near is None else near[0]
+        if options.panel_reflectance is not None:
+            spec = reflectance_option(options.panel_reflectance)
+            rho = [float(r) for r in spec.at(np.array([m.wavelength_nm for m in captures[0].metas]))]
+            panels = _find_panels(captures, options.panel_captures, rho, folder, parts, config)
+            rho_source = f"--panel-reflectance {options.panel_reflectance}"
+        elif albedo_captures(captures, options.panel_captures):  # the camera read the panel's QR code
+            panels = _albedo_panels(captures, options.panel_captures, folder, parts, config)
+            rho_source = ALBEDO_SOURCE
+        else:
+            raise InputError(f"--reference {reference} needs --panel-reflectance (a number or a target name); no "
+                             "panel capture in the folder carries the camera's XMP Albedo",
                              hint="e.g. --panel-reflectance micasense-rp02-1603036-sc")
-        spec = reflectance_option(options.panel_reflectance)
-        rho = [float(r) for r in spec.at(np.array([m.wavelength_nm for m in captures[0].metas]))]
-        panels = _find_panels(captures, options.panel_captures, rho, folder, parts,
-                              None if near is None else near[0])
         panel_factor = tuple(float(np.mean([p.factor_split[b] for p in panels])) for b in range(camera.n_bands))
 
     if options.illumination is not None and reference not in ("panel", "panel-dls"):
@@ -415,7 +474,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         transforms=None if options.registration is None else Path(options.registration), factory_alignment=own,
         radiance_unit=first.radiance_unit, irradiance_unit=first.irradiance_unit,
         record=lambda caps: {"components": _components_record(field),
-                             "reference": {**_reference_record(reference, panels, panel_factor, camera, caps[0], no_sun),
+                             "reference": {**_reference_record(reference, panels, panel_factor, camera, caps[0], no_sun,
+                                                               rho_source),
                                            **({"relative_scale": relative} if relative != 1.0 else {}),
                                            **_seen_record(seen)},
                              "camera_identification": {"evidence": ident.evidence, "overridden": ident.overridden,
@@ -525,12 +585,13 @@ def sun_sensor_missing(captures: Sequence[Capture]) -> tuple[Path, str] | None:
 
 
 def _route(options: FactoryOptions, captures: Sequence[Capture]) -> str:
-    """The reference route: as asked, or for ``auto`` the panel when a reflectance is given
-    (anchoring the sun sensor, ``panel-dls``, when the captures have readings), else the sun sensor, else ``none`` (radiance only) when no band of any capture has a
-    usable sun-sensor reflectance (Sentera)."""
+    """The reference route: as asked, or for ``auto`` the panel when a reflectance is given or
+    a panel capture carries the camera's own (:func:`albedo_captures`), anchoring the sun
+    sensor (``panel-dls``) when the captures have readings; else the sun sensor, else ``none``
+    (radiance only) when no band of any capture has a usable sun-sensor reflectance (Sentera)."""
     if options.reference != "auto":
         return options.reference
-    if options.panel_reflectance is not None:
+    if options.panel_reflectance is not None or albedo_captures(captures, options.panel_captures):
         return "panel" if readings_missing(captures) else "panel-dls"
     return "none" if sun_sensor_missing(captures) is not None else "dls"
 
@@ -580,7 +641,7 @@ def relative_scale(captures: Sequence[Capture], reference: str, sat: int = (1 <<
 
 def _reference_record(reference: str, panels: Sequence[PanelReference], factor: tuple[float, ...] | None,
                       camera: Camera, first: Capture | None = None,
-                      no_sun: tuple[Path, str] | None = None) -> dict[str, Any]:
+                      no_sun: tuple[Path, str] | None = None, rho_source: str | None = None) -> dict[str, Any]:
     """What run.json says of the reference: the route, and for the panel route every panel
     capture's factors beside the DLS's on the same capture (their ratio compares the two);
     for no route (``none``) why the sun sensor gives none (``no_sun``: a band file and its
@@ -607,6 +668,8 @@ def _reference_record(reference: str, panels: Sequence[PanelReference], factor: 
         rec["formula"] = ("R_b(t) = L_b / E_b(t), E_b(t) = q_b(t) E^s_b(t): the panels' light over the sun sensor's "
                           "(tilt-corrected) per band, interpolated in time, times the capture's own sensor reading")
     rec["factor"] = dict(zip(camera.band_names, factor or ()))
+    if rho_source is not None:
+        rec["panel_reflectance"] = rho_source
     rec["panels"] = []
     for p in panels:
         ratio = {name: (ks / kd if kd else None) for name, ks, kd in zip(camera.band_names, p.factor_split, p.factor_dls)}
@@ -619,6 +682,7 @@ def _reference_record(reference: str, panels: Sequence[PanelReference], factor: 
             "brightness_p10_p90": list(p.brightness_p10_p90),
             "split_residual_rms": p.split_residual_rms,
             "region_source": list(p.region_source),
+            "reflectance": dict(zip(camera.band_names, p.reflectance)),
         })
     return rec
 

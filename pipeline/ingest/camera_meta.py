@@ -112,6 +112,9 @@ class CaptureMeta:
     channel: int | None = None  # channel of a multi-channel file (Sentera JPEG)
     channel_mix: tuple[float, ...] | None = None  # Camera:ColorTransform, whole matrix
     irradiance_unit: str = "W m-2 nm-1"
+    # MicaSense XMP Albedo: the reflectance of the panel in this band file, as the camera read
+    # it from the panel's QR code (written in its panel captures with ReflectArea)
+    panel_albedo: float | None = None
     problems: tuple[TagProblem, ...] = ()
     # the file's XMP properties the sun-sensor model reads (SUN_SENSOR_XMP; sun_sensor_xmp)
     sun_sensor_props: tuple[tuple[str, str, str | tuple[str, ...]], ...] | None = field(
@@ -152,6 +155,7 @@ class CaptureMeta:
             "sun_sensor_reflectance": reflectance_factor(self) is not None and "sun_sensor" not in bad,
             "sun_sensor_absolute": sun_sensor_absolute(self) and reflectance_factor(self) is not None,
             "panel_area": self.reflect_area is not None and "panel_area" not in bad,
+            "panel_albedo": self.panel_albedo is not None,
             "position": self.lat is not None and self.lon is not None,
             "rig_index": self.rig_camera_index is not None,
             "factory_band_alignment": self.dji_hmatrix is not None,
@@ -409,13 +413,18 @@ def _common(ctx: _Ctx) -> dict[str, Any]:
             ctx.problems.append(TagProblem(str(ctx.path), "XMP ReflectArea", str(area),
                                            f"lies outside the {w} x {h} image", "panel_area"))
             area = None
+    albedo = ctx.optional("panel_albedo", lambda: x.number("Albedo"))
+    if albedo is not None and not 0 < albedo <= 1:
+        ctx.problems.append(TagProblem(str(ctx.path), "XMP Albedo", repr(albedo), "a panel reflectance is in (0, 1]",
+                                       "panel_albedo"))
+        albedo = None
     capture_id = (x.text("CaptureId", ("MicaSense",)) or x.text("CaptureUUID", ("drone-dji",))
                   or x.text("CaptureUUID", ("Camera",)) or x.text("ImageUniqueID", ("Camera",)))
     return dict(
         capture_id=capture_id, rig_camera_index=None if rig is None else int(rig), reflect_area=area,
         lat=lat, lon=lon, alt_m=alt, time=_time(ctx.exif, x), make=ctx.make, model=ctx.model,
         rig_name=x.text("RigName", ("Camera",)), serial=ctx.serial, software=ctx.software,
-        orientation=ctx.orientation,
+        orientation=ctx.orientation, panel_albedo=albedo,
     )
 
 

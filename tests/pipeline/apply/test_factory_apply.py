@@ -22,6 +22,7 @@ from pipeline.ingest.catalog import load_target
 from pipeline.ingest.session import read_raw
 from pipeline.products.writers import file_band_name
 from pipeline.run.cli import main
+from tests import camera_files as cf
 from tests.micasense_data import BANDS, MARKER_PANEL, PANEL_CORNERS, paint_marker, require_data
 
 PANEL_TARGET = "micasense-rp02-1603036-sc"
@@ -100,6 +101,40 @@ def test_panel_route_finds_the_panel_and_gives_its_reflectance_back(panel_run) -
     ndvi = ds["ndvi"].isel(frame=1).values
     assert 0.5 < float(np.nanmedian(ndvi)) < 0.75
     assert np.isfinite(ds["reflectance"].values).mean() > 0.99
+
+
+def test_panel_reflectance_from_the_cameras_albedo(panel_run, tmp_path) -> None:
+    """A panel capture whose band files carry XMP Albedo (MicaSense: the panel's reflectance as
+    the camera read it from its QR code) gives reflectance without --panel-reflectance: the
+    panel comes back at its Albedo and run.json says where rho came from. --panel-reflectance
+    still wins; an Albedo that is not a reflectance in one band is named and not used (the
+    sun-sensor route then, with the panel_not_used warning)."""
+    from pipeline.apply.factory import ALBEDO_SOURCE
+
+    folder = cf.rededge_auto_panel(tmp_path / "auto", ["0.25"] * 5)
+    assert _apply(folder, tmp_path / "albedo") == 0
+    run = json.loads((tmp_path / "albedo" / "run.json").read_text())
+    ref = run["reference"]
+    assert ref["route"] == "panel-dls" and ref["panel_reflectance"] == ALBEDO_SOURCE and "panels_seen" not in ref
+    (panel,) = ref["panels"]
+    assert panel["capture"] == "IMG_0000" and panel["reflectance"] == dict.fromkeys(BANDS, 0.25)
+    ds = xr.open_zarr(tmp_path / "albedo" / "reflectance.zarr")
+    for b in range(5):
+        img = ds["reflectance"].isel(frame=0, band=b).values
+        corners = np.array(PANEL_CORNERS[b], dtype=np.float64)
+        inner = polygon_mask(img.shape, corners.mean(axis=0) + 0.7 * (corners - corners.mean(axis=0)))
+        assert float(np.nanmean(img[inner])) == pytest.approx(0.25, rel=0.01)
+    # the same panel, its reflectance given: the published one wins, outputs as the plain run's
+    assert _apply(folder, tmp_path / "given", "--panel-reflectance", PANEL_TARGET) == 0
+    given = json.loads((tmp_path / "given" / "run.json").read_text())["reference"]
+    assert given["panel_reflectance"] == f"--panel-reflectance {PANEL_TARGET}"
+    np.testing.assert_allclose(xr.open_zarr(tmp_path / "given" / "reflectance.zarr")["reflectance"].values,
+                               xr.open_zarr(panel_run / "reflectance.zarr")["reflectance"].values, rtol=1e-6, equal_nan=True)
+    bad = cf.rededge_auto_panel(tmp_path / "bad", ["0.25", "0.25", "1.7", "0.25", "0.25"])
+    assert _apply(bad, tmp_path / "bad_out") == 0
+    bad_run = json.loads((tmp_path / "bad_out" / "run.json").read_text())
+    assert bad_run["reference"]["route"] == "dls" and bad_run["reference"]["panels_seen"] == ["IMG_0000"]
+    assert any(p["feature"] == "panel_albedo" and p["file"].endswith("IMG_0000_3.tif") for p in bad_run["metadata_problems"])
 
 
 def test_panel_and_dls_are_compared_in_run_json(panel_run) -> None:
