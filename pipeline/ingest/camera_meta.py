@@ -414,7 +414,9 @@ def _common(ctx: _Ctx) -> dict[str, Any]:
                                            f"lies outside the {w} x {h} image", "panel_area"))
             area = None
     albedo = ctx.optional("panel_albedo", lambda: x.number("Albedo"))
-    if albedo is not None and not 0 < albedo <= 1:
+    if albedo == 0:  # no panel measured (MicaSense's own reader takes an unreadable Albedo as 0 too)
+        albedo = None
+    elif albedo is not None and not 0 < albedo <= 1:
         ctx.problems.append(TagProblem(str(ctx.path), "XMP Albedo", repr(albedo), "a panel reflectance is in (0, 1]",
                                        "panel_albedo"))
         albedo = None

@@ -107,7 +107,8 @@ def test_panel_reflectance_from_the_cameras_albedo(panel_run, tmp_path) -> None:
     """A panel capture whose band files carry XMP Albedo (MicaSense: the panel's reflectance as
     the camera read it from its QR code) gives reflectance without --panel-reflectance: the
     panel comes back at its Albedo and run.json says where rho came from. --panel-reflectance
-    still wins; an Albedo that is not a reflectance in one band is named and not used (the
+    still wins; an Albedo that is not a reflectance in one band is named and not used, 0 means
+    none measured (the
     sun-sensor route then, with the panel_not_used warning)."""
     from pipeline.apply.factory import ALBEDO_SOURCE
 
@@ -130,11 +131,12 @@ def test_panel_reflectance_from_the_cameras_albedo(panel_run, tmp_path) -> None:
     assert given["panel_reflectance"] == f"--panel-reflectance {PANEL_TARGET}"
     np.testing.assert_allclose(xr.open_zarr(tmp_path / "given" / "reflectance.zarr")["reflectance"].values,
                                xr.open_zarr(panel_run / "reflectance.zarr")["reflectance"].values, rtol=1e-6, equal_nan=True)
-    bad = cf.rededge_auto_panel(tmp_path / "bad", ["0.25", "0.25", "1.7", "0.25", "0.25"])
+    bad = cf.rededge_auto_panel(tmp_path / "bad", ["0.25", "0", "1.7", "0.25", "0.25"])  # 0: not measured
     assert _apply(bad, tmp_path / "bad_out") == 0
     bad_run = json.loads((tmp_path / "bad_out" / "run.json").read_text())
     assert bad_run["reference"]["route"] == "dls" and bad_run["reference"]["panels_seen"] == ["IMG_0000"]
-    assert any(p["feature"] == "panel_albedo" and p["file"].endswith("IMG_0000_3.tif") for p in bad_run["metadata_problems"])
+    (problem,) = [p for p in bad_run["metadata_problems"] if p["feature"] == "panel_albedo"]
+    assert problem["file"].endswith("IMG_0000_3.tif") and problem["value"] == "1.7"
 
 
 def test_panel_and_dls_are_compared_in_run_json(panel_run) -> None:
