@@ -107,9 +107,8 @@ def test_panel_reflectance_from_the_cameras_albedo(panel_run, tmp_path) -> None:
     """A panel capture whose band files carry XMP Albedo (MicaSense: the panel's reflectance as
     the camera read it from its QR code) gives reflectance without --panel-reflectance: the
     panel comes back at its Albedo and run.json says where rho came from. --panel-reflectance
-    still wins; an Albedo that is not a reflectance in one band is named and not used, 0 means
-    none measured (the
-    sun-sensor route then, with the panel_not_used warning)."""
+    still wins; an Albedo that is not a reflectance in one band is named and not used (0: none
+    measured; the sun-sensor route then, with the panel_not_used warning)."""
     from pipeline.apply.factory import ALBEDO_SOURCE
 
     folder = cf.rededge_auto_panel(tmp_path / "auto", ["0.25"] * 5)
