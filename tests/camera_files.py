@@ -207,16 +207,17 @@ def reflect_area_one_li(folder: Path, corners: tuple[tuple[tuple[int, int], ...]
     return folder
 
 
-def rededge_auto_panel(folder: Path, albedo: Sequence[str]) -> Path:
-    """The real captures, IMG_0000 (the panel) as a MicaSense firmware writes an automatic panel
-    capture: XMP ``Camera:CalibrationPicture`` 2 and ``Camera:Albedo`` (the panel's reflectance
-    in the band, read from its QR code; ``albedo[b - 1]`` as written, garbled text allowed)."""
+def rededge_auto_panel(folder: Path, albedo: Sequence[str], *, capture: str = "0000", picture: int = 2) -> Path:
+    """The real captures, ``capture`` (IMG_0000: the panel) as a MicaSense firmware writes an
+    automatic panel capture: XMP ``Camera:CalibrationPicture`` ``picture`` (2: a valid panel
+    capture) and ``Camera:Albedo`` (the panel's reflectance in the band, read from its QR code;
+    ``albedo[b - 1]`` as written, garbled text allowed)."""
     folder.mkdir(parents=True, exist_ok=True)
     for cap in CAPTURES:
         for b in range(1, 6):
             def edit(x: str, b: int = b, cap: str = cap) -> str:
-                if cap == "0000":
-                    x = add_camera_element(x, "<Camera:CalibrationPicture>2</Camera:CalibrationPicture>"
+                if cap == capture:
+                    x = add_camera_element(x, f"<Camera:CalibrationPicture>{picture}</Camera:CalibrationPicture>"
                                               f"<Camera:Albedo>{albedo[b - 1]}</Camera:Albedo>")
                 return x
 

@@ -51,9 +51,9 @@ from pipeline.apply.flight import (
     software_versions,
     write_run_record,
 )
-from pipeline.ingest.camera_meta import Capture, capture_folder_of, capture_pattern, group_captures
+from pipeline.ingest.camera_meta import METADATA_READING, Capture, capture_folder_of, capture_pattern, group_captures
 from pipeline.ingest.catalog import Camera, Index
-from pipeline.ingest.photo_tags import CameraOptics, calibration_picture, read_optics
+from pipeline.ingest.photo_tags import CameraOptics, read_optics
 from pipeline.ingest.raw import DN_MEDIAN, DN_MEDIAN_ATTRS, raw_codec
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries
@@ -185,7 +185,7 @@ def metadata_panels(captures: Sequence[Capture]) -> dict[str, str]:
         if any(m.reflect_area is not None for m in c.metas):
             out[c.name] = "XMP ReflectArea (the camera located a reflectance panel)"
             continue
-        flag = calibration_picture(c.metas[0].path)
+        flag = c.metas[0].calibration_picture
         if flag is not None and flag >= 1:
             out[c.name] = f"XMP Camera:CalibrationPicture = {flag} (a radiometric calibration target)"
     return out
@@ -478,7 +478,8 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
             raise InputError(f"--panel capture {c.name} cannot be used: {exc.reason}", path=exc.path) from None
 
     norm = normalisation(options, camera, names, panel_reflectance)
-    fingerprint = {**run_fingerprint([stat_fingerprint(captures)], chash, options, illum), "layout": "captures"}
+    fingerprint = {**run_fingerprint([stat_fingerprint(captures)], chash, options, illum), "layout": "captures",
+                   "metadata_reading": METADATA_READING}
     attrs = {"calibration_sha256": chash, "source": str(folder), "calibration": str(calib_path)}
     if align:
         attrs["aligned_to_band"] = reference

@@ -44,8 +44,10 @@ The factory chain runs in the one apply executor (:mod:`pipeline.apply.executor`
 
   ``auto`` (default) takes the panel when ``--panel-reflectance`` is given, or when panel
   captures carry the panel's reflectance as the camera read it from the panel's QR code
-  (MicaSense XMP ``Albedo`` in every band file, as MicaSense's own library uses it; each such
-  capture with its own values; run.json ``reference.panel_reflectance`` says which), else the
+  (MicaSense XMP ``Albedo`` with ``CalibrationPicture`` 2 in every band file, as MicaSense's
+  own library uses it; each such capture with its own values; run.json
+  ``reference.panel_reflectance`` says which; when no panel is found in them, the route it
+  would have taken without them, the reason in ``reference.albedo_panel_unusable``), else the
   DLS, else none.
 
 Frames stored turned (EXIF Orientation; Sequoia: 180 degrees) are turned upright in every
@@ -104,6 +106,7 @@ from pipeline.apply.panel import PanelBand, panel_factors
 from pipeline.apply.sunlight import PanelSensorLight, check_times, light_warnings, panel_sensor_light, readings_missing
 from pipeline.ingest.camera_meta import (
     FACTORY_ALIGNMENT_NOTE,
+    METADATA_READING,
     Capture,
     FieldParts,
     factory_radiance,
@@ -262,11 +265,12 @@ def _find_panels(captures: Sequence[Capture], named: Sequence[str], rho: Sequenc
 def albedo_captures(captures: Sequence[Capture], named: Sequence[str] = ()) -> list[Capture]:
     """Panel captures whose panel reflectance the camera wrote: every reflectance band file
     carries XMP ``Albedo`` (MicaSense: the panel's reflectance in that band, read from its QR
-    code, in the panel captures it also gives a ``ReflectArea``). With ``named`` (``--panel``)
-    only those captures are looked at."""
+    code) and ``CalibrationPicture`` 2 (Pix4D: a valid panel capture; 1 is an invalid one),
+    as MicaSense's own library asks of an automatic panel capture. With ``named``
+    (``--panel``) only those captures are looked at."""
     pool = [c for c in captures if c.name in set(named)] if named else list(captures)
     return [c for c in pool if any(m.reflectance_band for m in c.metas)
-            and all(m.panel_albedo is not None for m in c.metas if m.reflectance_band)]
+            and all(m.panel_albedo is not None and m.calibration_picture == 2 for m in c.metas if m.reflectance_band)]
 
 
 def albedo_reflectance(capture: Capture) -> list[float]:
@@ -287,7 +291,7 @@ def _albedo_panels(captures: Sequence[Capture], named: Sequence[str], folder: Pa
     missing = [n for n in named if n not in {c.name for c in found}]
     if missing:
         raise InputError(f"--panel capture(s) {', '.join(missing)}: not in the folder, or a band file has no XMP Albedo "
-                         "(the panel's reflectance as the camera read it)", path=folder,
+                         "with CalibrationPicture 2 (the panel's reflectance as the camera read it)", path=folder,
                          hint="give the panel's reflectance with --panel-reflectance TARGET")
     refs, failed = [], []
     for c in found:
@@ -303,6 +307,34 @@ def _albedo_panels(captures: Sequence[Capture], named: Sequence[str], folder: Pa
         raise InputError(f"no usable panel among the {len(found)} capture(s) with the camera's XMP Albedo: {exc.reason}",
                          path=exc.path, hint=exc.hint or "name a panel capture with --panel and --panel-reflectance")
     return refs
+
+
+def _reference_panels(options: FactoryOptions, reference: str, captures: Sequence[Capture], folder: Path,
+                      parts: Sequence[FieldParts | None] | None, config: PanelConfig | None
+                      ) -> tuple[str, list[PanelReference], str | None, str | None]:
+    """The panels of a panel route: ``(route, panels, where rho came from, why the camera's own
+    panel could not be used)``. rho from ``--panel-reflectance``, else from the panel captures'
+    XMP Albedo (:func:`albedo_captures`); when ``auto`` chose the camera's panel on its own and
+    it cannot be used, the route falls back to the sun sensor (or none) with the reason."""
+    if reference not in ("panel", "panel-dls"):
+        return reference, [], None, None
+    if options.panel_reflectance is not None:
+        spec = reflectance_option(options.panel_reflectance)
+        rho = [float(r) for r in spec.at(np.array([m.wavelength_nm for m in captures[0].metas]))]
+        return (reference, _find_panels(captures, options.panel_captures, rho, folder, parts, config),
+                f"--panel-reflectance {options.panel_reflectance}", None)
+    if albedo_captures(captures, options.panel_captures):  # the camera read the panel's QR code
+        try:
+            return reference, _albedo_panels(captures, options.panel_captures, folder, parts, config), ALBEDO_SOURCE, None
+        except InputError as exc:
+            if options.reference != "auto" or options.panel_captures:
+                raise
+            why = f"{Path(exc.path).name if exc.path else folder.name}: {exc.reason}"
+            return ("none" if sun_sensor_missing(captures) is not None else "dls"), [], None, why
+    where = ("the --panel capture(s) carry no" if options.panel_captures
+             else "no panel capture in the folder carries the")
+    raise InputError(f"--reference {reference} needs --panel-reflectance (a number or a target name); {where} camera's "
+                     "XMP Albedo with CalibrationPicture 2", hint="e.g. --panel-reflectance micasense-rp02-1603036-sc")
 
 
 def panel_candidates(captures: Sequence[Capture]) -> list[Capture]:
@@ -405,6 +437,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         "inputs": stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
         "mscal_version": mscal_core.__version__,
         "light_model": LIGHT_MODEL,  # results of earlier runs (raw sun-sensor readings) are not reused
+        "metadata_reading": METADATA_READING,
     }
     if registration is not None:
         fingerprint["registration_sha256"] = registration[1]
@@ -416,24 +449,10 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     if previous is not None:  # before the panels are searched: an up-to-date run reads no pixels
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
 
-    reference = _route(options, captures)
-    panels: list[PanelReference] = []
+    reference, panels, rho_source, albedo_unusable = _reference_panels(
+        options, _route(options, captures), captures, folder, parts, None if near is None else near[0])
     panel_factor = None
-    rho_source = None
-    if reference in ("panel", "panel-dls"):
-        config = None if near is None else near[0]
-        if options.panel_reflectance is not None:
-            spec = reflectance_option(options.panel_reflectance)
-            rho = [float(r) for r in spec.at(np.array([m.wavelength_nm for m in captures[0].metas]))]
-            panels = _find_panels(captures, options.panel_captures, rho, folder, parts, config)
-            rho_source = f"--panel-reflectance {options.panel_reflectance}"
-        elif albedo_captures(captures, options.panel_captures):  # the camera read the panel's QR code
-            panels = _albedo_panels(captures, options.panel_captures, folder, parts, config)
-            rho_source = ALBEDO_SOURCE
-        else:
-            raise InputError(f"--reference {reference} needs --panel-reflectance (a number or a target name); no "
-                             "panel capture in the folder carries the camera's XMP Albedo",
-                             hint="e.g. --panel-reflectance micasense-rp02-1603036-sc")
+    if panels:
         panel_factor = tuple(float(np.mean([p.factor_split[b] for p in panels])) for b in range(camera.n_bands))
 
     if options.illumination is not None and reference not in ("panel", "panel-dls"):
@@ -462,7 +481,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                       "comment": "bands aligned to the reference band of the registration store "
                                  "(mscal register); NaN where a band does not cover the reference grid"})
     first = captures[0].metas[0]
-    panel_names = {p.capture: "reflectance panel of the panel route (--panel-reflectance)" for p in panels}
+    used = "the camera's XMP Albedo" if rho_source == ALBEDO_SOURCE else "--panel-reflectance"
+    panel_names = {p.capture: f"reflectance panel of the panel route ({used})" for p in panels}
     panel_names.update({name: "a reflectance panel (camera's panel flag, --panel, or detected); not used: "
                               "no --panel-reflectance" for name in unused})
     run = CaptureRun(
@@ -477,6 +497,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                              "reference": {**_reference_record(reference, panels, panel_factor, camera, caps[0], no_sun,
                                                                rho_source),
                                            **({"relative_scale": relative} if relative != 1.0 else {}),
+                                           **({"albedo_panel_unusable": albedo_unusable} if albedo_unusable else {}),
                                            **_seen_record(seen)},
                              "camera_identification": {"evidence": ident.evidence, "overridden": ident.overridden,
                                                        **ident.probe},

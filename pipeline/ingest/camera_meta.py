@@ -48,7 +48,7 @@ from mscal_core.factory import (
     vignetting_map,
 )
 
-from pipeline.ingest.exif import EXIF_CODES, dms_to_degrees, exif_time_utc, rational, signed_gps
+from pipeline.ingest.exif import EXIF_CODES, dms_to_degrees, exposure_time, rational, signed_gps
 from pipeline.ingest.xmp import TagError, TagProblem, Xmp, jpeg_xmp_packet, legacy_properties, parse_numbers
 
 if TYPE_CHECKING:
@@ -115,6 +115,7 @@ class CaptureMeta:
     # MicaSense XMP Albedo: the reflectance of the panel in this band file, as the camera read
     # it from the panel's QR code (written in its panel captures with ReflectArea)
     panel_albedo: float | None = None
+    calibration_picture: int | None = None  # XMP Camera:CalibrationPicture (Pix4D: 2, a valid panel capture)
     problems: tuple[TagProblem, ...] = ()
     # the file's XMP properties the sun-sensor model reads (SUN_SENSOR_XMP; sun_sensor_xmp)
     sun_sensor_props: tuple[tuple[str, str, str | tuple[str, ...]], ...] | None = field(
@@ -155,7 +156,7 @@ class CaptureMeta:
             "sun_sensor_reflectance": reflectance_factor(self) is not None and "sun_sensor" not in bad,
             "sun_sensor_absolute": sun_sensor_absolute(self) and reflectance_factor(self) is not None,
             "panel_area": self.reflect_area is not None and "panel_area" not in bad,
-            "panel_albedo": self.panel_albedo is not None,
+            "panel_albedo": self.panel_albedo is not None and self.calibration_picture == 2,
             "position": self.lat is not None and self.lon is not None,
             "rig_index": self.rig_camera_index is not None,
             "factory_band_alignment": self.dji_hmatrix is not None,
@@ -185,14 +186,9 @@ def _gps(gps: dict[str, Any]) -> tuple[float | None, float | None, float | None]
 
 
 def _time(exif: dict[str, Any], xmp: Xmp) -> str | None:
-    """The exposure's time (:func:`exif_time_utc`): DJI's ``drone-dji:UTCAtExposure`` (UTC; its
-    DateTimeOriginal is the aircraft's local clock), else DateTimeOriginal in UTC when EXIF 2.31
-    ``OffsetTimeOriginal`` gives its zone, else DateTimeOriginal as written (zone unknown)."""
-    utc = exif_time_utc(xmp.text("UTCAtExposure", ("drone-dji",)), offset="+00:00")
-    if utc is not None and utc.endswith("Z"):
-        return utc
-    return exif_time_utc(exif.get("DateTimeOriginal"), exif.get("SubsecTimeOriginal") or exif.get("SubsecTime"),
-                         exif.get("OffsetTimeOriginal"))
+    """The exposure's time: :func:`pipeline.ingest.exif.exposure_time` of the file's tags."""
+    return exposure_time(exif.get("DateTimeOriginal"), exif.get("SubsecTimeOriginal") or exif.get("SubsecTime"),
+                         exif.get("OffsetTimeOriginal"), xmp.text("UTCAtExposure", ("drone-dji",)))
 
 
 def _exposure(exif: dict[str, Any], path: Path) -> float:
@@ -420,6 +416,7 @@ def _common(ctx: _Ctx) -> dict[str, Any]:
         ctx.problems.append(TagProblem(str(ctx.path), "XMP Albedo", repr(albedo), "a panel reflectance is in (0, 1]",
                                        "panel_albedo"))
         albedo = None
+    picture = ctx.optional("panel_albedo", lambda: x.number("CalibrationPicture", ("Camera",)))
     capture_id = (x.text("CaptureId", ("MicaSense",)) or x.text("CaptureUUID", ("drone-dji",))
                   or x.text("CaptureUUID", ("Camera",)) or x.text("ImageUniqueID", ("Camera",)))
     return dict(
@@ -427,6 +424,7 @@ def _common(ctx: _Ctx) -> dict[str, Any]:
         lat=lat, lon=lon, alt_m=alt, time=_time(ctx.exif, x), make=ctx.make, model=ctx.model,
         rig_name=x.text("RigName", ("Camera",)), serial=ctx.serial, software=ctx.software,
         orientation=ctx.orientation, panel_albedo=albedo,
+        calibration_picture=None if picture is None else int(picture),
     )
 
 
@@ -593,6 +591,11 @@ def _sequoia(ctx: _Ctx) -> CaptureMeta:
         radiometry="sequoia", f_number=f_number, iso=iso, sensor_model=(model[0], model[1], model[2]),
         irradiance_unit="1 (sunshine CH0 / (gain x ms x golden sensitivity), relative)", **_finish(ctx),
     )
+
+
+#: How band files' metadata are read, in the fingerprints of runs on them: a change here gives
+#: the same files and options other results, so an earlier run is not reused as up to date.
+METADATA_READING = "2026-12-05: exposure times in UTC when the file says so; XMP Albedo panels; 12-bit files by their depth"
 
 
 SUNSHINE_RECORD = struct.Struct("<QHHHHfff")  # timestamp us, CH0, CH1, gain index, integration ms, yaw, pitch, roll

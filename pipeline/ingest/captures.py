@@ -22,9 +22,10 @@ from mscal_core.errors import FrameError, SessionError
 
 from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
 from pipeline.ingest.catalog import Camera
-from pipeline.ingest.exif import rational
-from pipeline.ingest.intrinsics import EXIF_CODES, tiff_tags
+from pipeline.ingest.exif import exposure_time, rational
+from pipeline.ingest.intrinsics import EXIF_CODES, XMP_TAG, tiff_tags
 from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES, FrameRecord, read_frame_table
+from pipeline.ingest.xmp import Xmp
 
 EXPOSURE_TIME, ISO_SPEED_RATINGS, ISO_SPEED, DATE_TIME_ORIGINAL, SUBSEC_ORIGINAL = (
     EXIF_CODES[k] for k in ("ExposureTime", "ISOSpeedRatings", "ISOSpeed", "DateTimeOriginal", "SubsecTimeOriginal"))
@@ -54,12 +55,16 @@ def band_file_record(path: Path) -> FrameRecord:
     if isinstance(iso, tuple):
         iso = iso[0] if iso else None
     gain = float(iso) / 100.0 if iso else 1.0
-    time = None
-    dto = str(tags.get(DATE_TIME_ORIGINAL) or "").strip()
-    m = re.match(r"(\d{4}):(\d{2}):(\d{2}) (\d{2}:\d{2}:\d{2})", dto)
-    if m:
-        sub = str(tags.get(SUBSEC_ORIGINAL) or tags.get(EXIF_CODES["SubsecTime"]) or "").strip()  # RedEdge: SubsecTime
-        time = f"{m[1]}-{m[2]}-{m[3]}T{m[4]}" + (f".{sub}" if sub.isdigit() else "")
+    packet = tags.get(XMP_TAG)
+    utc = None
+    if packet is not None:
+        try:
+            utc = Xmp.parse(packet, path).text("UTCAtExposure", ("drone-dji",))
+        except FrameError:  # a damaged packet: the EXIF time stands
+            utc = None
+    time = exposure_time(tags.get(DATE_TIME_ORIGINAL),
+                         tags.get(SUBSEC_ORIGINAL) or tags.get(EXIF_CODES["SubsecTime"]),  # RedEdge: SubsecTime
+                         tags.get(EXIF_CODES["OffsetTimeOriginal"]), utc)
     if not (exposure_ms > 0 and gain > 0):
         raise FrameError(f"EXIF exposure {exposure_ms:g} ms / gain {gain:g} must be positive", path=path)
     return FrameRecord(path=path, exposure_ms=exposure_ms, gain=gain, time=time)

@@ -43,6 +43,7 @@ __all__ = [
     "dms_to_degrees",
     "exif_datetime_iso",
     "exif_time_utc",
+    "exposure_time",
     "parse_iso",
     "rational",
     "signed_gps",
@@ -171,19 +172,31 @@ def exif_time_utc(date_time: Any, subsec: Any = None, offset: Any = None) -> str
     leaves the zone unknown. None when the time itself is missing or blank."""
     m = _EXIF_STAMP.match(str(date_time or ""))
     if not m:
-        return exif_datetime_iso(date_time, subsec)
+        return None
+    try:  # a camera without a clock writes 0000:00:00 00:00:00: no time
+        local = datetime(int(m[1]), int(m[2]), int(m[3]), int(m[4]), int(m[5]), int(m[6]))
+    except ValueError:
+        return None
     o = _EXIF_OFFSET.match(str(offset or ""))
     sub = m[7] if m[7] is not None else str(subsec or "").strip()
-    if o is None or int(o[2]) > 23 or int(o[3]) > 59:
-        return exif_datetime_iso(f"{m[1]}:{m[2]}:{m[3]} {m[4]}:{m[5]}:{m[6]}", sub)
-    try:
-        local = datetime(int(m[1]), int(m[2]), int(m[3]), int(m[4]), int(m[5]), int(m[6]))
-    except ValueError:  # e.g. month 13: not a time
-        return None
-    sign = 1 if o[1] == "+" else -1
-    utc = local - sign * timedelta(hours=int(o[2]), minutes=int(o[3]))
     frac = f".{sub}" if sub.isdigit() else ""
-    return f"{utc.strftime('%Y-%m-%dT%H:%M:%S')}{frac}Z"
+    if o is None or int(o[2]) > 23 or int(o[3]) > 59:
+        return f"{local.isoformat(timespec='seconds')}{frac}"
+    sign = 1 if o[1] == "+" else -1
+    try:
+        utc = local - sign * timedelta(hours=int(o[2]), minutes=int(o[3]))
+    except OverflowError:  # within hours of year 1 or 9999: not a flight's time
+        return None
+    return f"{utc.isoformat(timespec='seconds')}{frac}Z"
+
+
+def exposure_time(date_time: Any, subsec: Any = None, offset: Any = None, utc_at_exposure: Any = None) -> str | None:
+    """A band file's exposure time (:func:`exif_time_utc`): DJI's ``drone-dji:UTCAtExposure``
+    when it reads as a time (UTC; the file's DateTimeOriginal is the aircraft's local clock),
+    else ``DateTimeOriginal`` (+ ``subsec``) in UTC when ``OffsetTimeOriginal`` gives its zone,
+    else as written (zone unknown)."""
+    utc = exif_time_utc(utc_at_exposure, offset="+00:00") if utc_at_exposure is not None else None
+    return utc if utc is not None else exif_time_utc(date_time, subsec, offset)
 
 
 def parse_iso(text: str) -> datetime:

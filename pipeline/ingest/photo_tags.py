@@ -31,7 +31,7 @@ from mscal_core.errors import FrameError
 from pipeline.ingest.exif import rational
 from pipeline.ingest.xmp import Xmp, jpeg_xmp_packet
 
-__all__ = ["CameraOptics", "XMP_LENS_TAGS", "calibration_picture", "optics_from_intrinsics", "read_optics"]
+__all__ = ["CameraOptics", "XMP_LENS_TAGS", "optics_from_intrinsics", "read_optics"]
 
 #: XMP ``Camera:`` tags of the lens model (Pix4D's camera XMP specification), carried verbatim.
 XMP_LENS_TAGS = (
@@ -189,25 +189,3 @@ def optics_from_intrinsics(fx: float, fy: float, cx: float, cy: float, dist: tup
         f_number=None, focal_length_mm=f_mm, focal_plane_resolution=(10.0 / px, 10.0 / py), focal_plane_unit=3,
         focal_length_35mm=int(round(f_mm * 36.0 / (width * px))), xmp=xmp,
     )
-
-
-def calibration_picture(path: str | Path) -> int | None:
-    """XMP ``Camera:CalibrationPicture`` of a band file (Pix4D: 0 no, 1 a radiometric
-    calibration target but invalid, 2 a valid one; Sequoia writes 0 or 1), None if absent or
-    unreadable."""
-    path = Path(path)
-    try:
-        if path.suffix.lower() in (".jpg", ".jpeg"):
-            packet = jpeg_xmp_packet(path.read_bytes())
-        else:
-            import tifffile
-
-            with tifffile.TiffFile(path) as tif:
-                tag = tif.pages[0].tags.get(700)
-                packet = None if tag is None else tag.value
-        if packet is None:
-            return None
-        v = Xmp.parse(packet, path).number("CalibrationPicture", ("Camera",))
-    except (OSError, ValueError, IndexError, FrameError):
-        return None
-    return None if v is None else int(v)

@@ -786,22 +786,52 @@ def decode_raw(source: bytes | bytearray | memoryview | Path, path: str | Path, 
 
 
 def sample_bits(source: bytes | bytearray | memoryview | Path) -> int | None:
-    """BitsPerSample of a TIFF's first image, from its bytes or its file (None: not a TIFF, or
-    unreadable: :func:`decode_raw` says why). A RedEdge writes its 12-bit DN in the high bits of
-    16-bit samples, or, set to its 12-bit format, as they are in packed 12-bit samples: the
-    decoded arrays are both uint16, only the file says which (:meth:`Camera.shift_for`)."""
-    import io
+    """BitsPerSample of a classic TIFF's first image, from its bytes or its file, read from the
+    header and the first IFD alone (TIFF 6.0 section 2); None when it is not a classic TIFF,
+    has no such tag or is cut short (:func:`decode_raw` then says why). A RedEdge writes its
+    12-bit DN in the high bits of 16-bit samples, or, set to its 12-bit format, as they are in
+    packed 12-bit samples: the decoded arrays are both uint16, only the file says which
+    (:meth:`Camera.shift_for`)."""
+    import struct
 
-    import tifffile
-
-    in_memory = isinstance(source, (bytes, bytearray, memoryview))
-    if (bytes(source[:4]) if in_memory else b"") not in (b"", b"II*\0", b"MM\0*"):
-        return None
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        view = memoryview(source)
+        return _ifd0_bits(lambda at, n: bytes(view[at:at + n]))
     try:
-        with tifffile.TiffFile(io.BytesIO(source) if in_memory else source) as tif:
-            return int(tif.pages[0].bitspersample)
-    except Exception:  # not a TIFF, or damaged: the decode names the file
+        with open(source, "rb") as fh:
+            def read(at: int, n: int) -> bytes:
+                fh.seek(at)
+                return fh.read(n)
+
+            return _ifd0_bits(read)
+    except (OSError, struct.error):
         return None
+
+
+def _ifd0_bits(read: Callable[[int, int], bytes]) -> int | None:
+    import struct
+
+    head = read(0, 8)
+    if len(head) < 8 or head[:4] not in (b"II*\0", b"MM\0*"):
+        return None
+    e = "<" if head[0] == 0x49 else ">"
+    ifd = struct.unpack(e + "I", head[4:])[0]
+    count = read(ifd, 2)
+    if len(count) < 2:
+        return None
+    n = struct.unpack(e + "H", count)[0]
+    entries = read(ifd + 2, 12 * n)
+    for i in range(len(entries) // 12):
+        tag, kind, items = struct.unpack_from(e + "HHI", entries, 12 * i)
+        if tag != 258:
+            continue
+        if kind != 3 or items < 1:  # SHORT, one per sample
+            return None
+        if items <= 2:
+            return int(struct.unpack_from(e + "H", entries, 12 * i + 8)[0])
+        value = read(struct.unpack_from(e + "I", entries, 12 * i + 8)[0], 2)
+        return int(struct.unpack(e + "H", value)[0]) if len(value) == 2 else None
+    return None
 
 
 def stored_bands(source: bytes | bytearray | memoryview | Path, path: Path | str, camera: Camera) -> np.ndarray:

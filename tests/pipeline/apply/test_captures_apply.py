@@ -88,16 +88,20 @@ def test_factory_and_field_chains_run_in_the_same_executor(store, tmp_path, monk
 
 
 def test_field_store_on_12bit_band_files_is_the_16bit_result(field_run, store, tmp_path) -> None:
-    """IMG_0001 as a RedEdge set to its 12-bit format writes it (tests.camera_files.rededge_12bit):
-    the store's U is over the sensor DN, so the 12-bit files (sensor DN as they are) give the
-    16-bit run's reflectance and saturated pixels. Shifting them by the catalog's 4 as well gave
-    a sixteenth of the DN: reflectance near zero and no pixel saturated."""
+    """IMG_0001 with bands 3-5 as a RedEdge set to its 12-bit format writes them
+    (tests.camera_files.rededge_12bit) and bands 1-2 as 16-bit files: the store's U is over the
+    sensor DN, so the 12-bit files (sensor DN as they are) give the 16-bit run's reflectance and
+    saturated pixels. Shifting them by the catalog's 4 as well gave a sixteenth of the DN:
+    reflectance near zero and no pixel saturated."""
     from tests import camera_files as cf
 
     folder = tmp_path / "caps12"
     folder.mkdir()
-    for b in range(1, 6):
-        cf.rededge_12bit(require_data() / f"IMG_0001_{b}.tif", folder / f"IMG_0001_{b}.tif")
+    for b in range(1, 6):  # bands 1-2 as 16-bit files, 3-5 as 12-bit ones: each file by its own depth
+        if b <= 2:
+            shutil.copy(require_data() / f"IMG_0001_{b}.tif", folder / f"IMG_0001_{b}.tif")
+        else:
+            cf.rededge_12bit(require_data() / f"IMG_0001_{b}.tif", folder / f"IMG_0001_{b}.tif")
     out = tmp_path / "out"
     assert main(["apply", str(folder), "--calibration", str(store), "-o", str(out)]) == 0
     got = xr.open_zarr(out / "reflectance.zarr")["reflectance"].isel(frame=0).values

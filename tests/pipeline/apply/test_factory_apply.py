@@ -138,6 +138,32 @@ def test_panel_reflectance_from_the_cameras_albedo(panel_run, tmp_path) -> None:
     assert problem["file"].endswith("IMG_0000_3.tif") and problem["value"] == "1.7"
 
 
+def test_albedo_only_of_a_valid_panel_capture_and_auto_falls_back_without_a_panel(tmp_path, capsys) -> None:
+    """Albedo counts only with CalibrationPicture 2 (MicaSense's automatic panel capture; Pix4D
+    1: an invalid one): with 1 it is ignored. With 2 on a capture where no panel can be found
+    (the flight capture), --reference auto takes the sun sensor as without it and run.json says
+    why; --reference panel, asked for, stops with the reason; --panel naming a capture without
+    Albedo stops naming it."""
+    invalid = cf.rededge_auto_panel(tmp_path / "invalid", ["0.25"] * 5, picture=1)
+    assert _apply(invalid, tmp_path / "invalid_out") == 0
+    ref = json.loads((tmp_path / "invalid_out" / "run.json").read_text())["reference"]
+    assert ref["route"] == "dls" and "albedo_panel_unusable" not in ref and ref["panels_seen"] == ["IMG_0000"]
+    flight = cf.rededge_auto_panel(tmp_path / "flight", ["0.25"] * 5, capture="0001")
+    assert _apply(flight, tmp_path / "flight_out") == 0
+    ref = json.loads((tmp_path / "flight_out" / "run.json").read_text())["reference"]
+    assert ref["route"] == "dls" and "panel_reflectance" not in ref
+    assert ref["albedo_panel_unusable"].startswith(
+        "IMG_0001_1.tif: no usable panel among the 1 capture(s) with the camera's XMP Albedo: no reflectance panel found")
+    capsys.readouterr()
+    assert _apply(flight, tmp_path / "asked", "--reference", "panel") == 2
+    assert "no usable panel among the 1 capture(s)" in capsys.readouterr().err
+    assert _apply(flight, tmp_path / "named", "--reference", "panel", "--panel", "IMG_0000") == 2
+    assert "the --panel capture(s) carry no camera's XMP Albedo with CalibrationPicture 2" in capsys.readouterr().err
+    assert _apply(flight, tmp_path / "named", "--reference", "panel", "--panel", "IMG_0000,IMG_0001") == 2
+    assert "--panel capture(s) IMG_0000: not in the folder, or a band file has no XMP Albedo" in capsys.readouterr().err
+    assert not (tmp_path / "asked").exists() and not (tmp_path / "named").exists()
+
+
 def test_panel_and_dls_are_compared_in_run_json(panel_run) -> None:
     panel = json.loads((panel_run / "run.json").read_text())["reference"]["panels"][0]
     for band in BANDS:

@@ -434,6 +434,25 @@ def test_exposure_time_in_utc_when_the_file_says_its_zone() -> None:
         assert meta_from_tags(path, {**tags, 34665: exif}, (960, 1280), 16).time == want, offset
 
 
+def test_calibration_and_apply_read_the_same_exposure_time(tmp_path) -> None:
+    """A session's band files (captures.band_file_record: reflector captures, frames of mscal
+    calibrate) and apply's (camera_meta) give one time: DJI's UTCAtExposure, not the local
+    DateTimeOriginal, so a store's reflector times and a flight's are on one clock; a RedEdge
+    file without a zone keeps its time as written in both."""
+    from pipeline.ingest.captures import band_file_record
+
+    require_data()
+    local = cf.dji_p4m(tmp_path / "local")
+    path = local / "DJI_0012.TIF"
+    path.write_bytes(path.read_bytes().replace(b"2017:10:19 20:40:39", b"2017:10:19 13:40:39"))  # UTC-7
+    utc = cf.rewrite(path, tmp_path / "DJI_0012.TIF", lambda x: x.replace(
+        "drone-dji:SensorIndex=", 'drone-dji:UTCAtExposure="2017:10:19 20:40:39.200173" drone-dji:SensorIndex='))
+    assert band_file_record(path).time == read_capture_meta(path).time == "2017-10-19T13:40:39.200173789"
+    assert band_file_record(utc).time == read_capture_meta(utc).time == "2017-10-19T20:40:39.200173Z"
+    src = cf.band_file("0000", 1)
+    assert band_file_record(src).time == read_capture_meta(src).time == "2017-10-19T20:40:39.200173789"
+
+
 def test_dji_black_level_from_exif_xmp_or_the_manuals_black_current() -> None:
     """EXIF BlackLevel first (P4 Multispectral guide), else drone-dji:BlackLevel (Mavic 3M
     guide), else drone-dji:BlackCurrent (the Mavic 3M User Manual's name for it)."""

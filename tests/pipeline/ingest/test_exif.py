@@ -15,6 +15,8 @@ from pipeline.ingest.exif import (
     degrees_to_dms,
     dms_to_degrees,
     exif_datetime_iso,
+    exif_time_utc,
+    exposure_time,
     parse_iso,
     rational,
     signed_gps,
@@ -72,3 +74,23 @@ def test_exif_datetime_and_iso_times() -> None:
     assert time_ns(None) == time_ns("") == NAT
     with pytest.raises(ValueError):
         parse_iso("yesterday")
+
+
+def test_exposure_times_in_utc_when_the_zone_is_known() -> None:
+    """EXIF 2.31 OffsetTimeOriginal gives DateTimeOriginal's zone: UTC with Z, across a day;
+    no usable offset: as written; a clock that was never set (zeros, spaces): no time; DJI's
+    UTCAtExposure (with its fraction) wins over the local DateTimeOriginal unless unreadable."""
+    assert exif_time_utc("2025:05:20 10:12:34", None, "+08:00") == "2025-05-20T02:12:34Z"
+    assert exif_time_utc("2025:01:01 03:00:00", "5", "+08:00") == "2024-12-31T19:00:00.5Z"
+    assert exif_time_utc("2025:01:01 22:00:00", None, "-05:30") == "2025-01-02T03:30:00Z"
+    assert exif_time_utc("2025:05:20 10:12:34", "123", None) == "2025-05-20T10:12:34.123"
+    for offset in ("", "   ", "+8", "+24:00", "+08:60", "Z"):
+        assert exif_time_utc("2025:05:20 10:12:34", None, offset) == "2025-05-20T10:12:34", offset
+    for never in ("0000:00:00 00:00:00", "    :  :     :  :  ", "2025:13:01 10:00:00", "2025:05:20 10:12", None):
+        assert exif_time_utc(never, None, "+01:00") is None and exif_time_utc(never) is None, never
+    assert exif_time_utc("0001:01:01 00:30:00", None, "+01:00") is None  # before year 1 in UTC
+    assert exif_time_utc("0999:01:01 00:30:00") == "0999-01-01T00:30:00"
+    assert exposure_time("2025:05:20 10:12:34", None, None, "2025:05:20 02:12:54.019996") == "2025-05-20T02:12:54.019996Z"
+    assert exposure_time("2025:05:20 10:12:34", "7", "+08:00", "garbled") == "2025-05-20T02:12:34.7Z"
+    assert exposure_time("2025:05:20 10:12:34", "7") == "2025-05-20T10:12:34.7"
+    assert time_ns(exposure_time("2025:05:20 10:12:34", None, "+08:00")) == time_ns("2025-05-20T02:12:34")
