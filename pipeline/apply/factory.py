@@ -331,10 +331,11 @@ def _reference_panels(options: FactoryOptions, reference: str, captures: Sequenc
                 raise
             why = f"{Path(exc.path).name if exc.path else folder.name}: {exc.reason}"
             return ("none" if sun_sensor_missing(captures) is not None else "dls"), [], None, why
-    where = ("the --panel capture(s) carry no" if options.panel_captures
-             else "no panel capture in the folder carries the")
-    raise InputError(f"--reference {reference} needs --panel-reflectance (a number or a target name); {where} camera's "
-                     "XMP Albedo with CalibrationPicture 2", hint="e.g. --panel-reflectance micasense-rp02-1603036-sc")
+    where = ("the --panel capture(s) do not all carry" if options.panel_captures
+             else "no panel capture in the folder carries")
+    raise InputError(f"--reference {reference} needs --panel-reflectance (a number or a target name); {where} the "
+                     "camera's XMP Albedo with CalibrationPicture 2",
+                     hint="e.g. --panel-reflectance micasense-rp02-1603036-sc")
 
 
 def panel_candidates(captures: Sequence[Capture]) -> list[Capture]:

@@ -158,7 +158,7 @@ def test_albedo_only_of_a_valid_panel_capture_and_auto_falls_back_without_a_pane
     assert _apply(flight, tmp_path / "asked", "--reference", "panel") == 2
     assert "no usable panel among the 1 capture(s)" in capsys.readouterr().err
     assert _apply(flight, tmp_path / "named", "--reference", "panel", "--panel", "IMG_0000") == 2
-    assert "the --panel capture(s) carry no camera's XMP Albedo with CalibrationPicture 2" in capsys.readouterr().err
+    assert "the --panel capture(s) do not all carry the camera's XMP Albedo with CalibrationPicture 2" in capsys.readouterr().err
     assert _apply(flight, tmp_path / "named", "--reference", "panel", "--panel", "IMG_0000,IMG_0001") == 2
     assert "--panel capture(s) IMG_0000: not in the folder, or a band file has no XMP Albedo" in capsys.readouterr().err
     assert not (tmp_path / "asked").exists() and not (tmp_path / "named").exists()
