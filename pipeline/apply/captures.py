@@ -197,6 +197,18 @@ def capture_times(captures: Sequence[Capture]) -> np.ndarray:
                      for c in captures])
 
 
+def capture_time_zones(captures: Sequence[Capture]) -> dict[str, Any]:
+    """run.json ``capture_times``: how many captures have a time in UTC (the file says its
+    zone: DJI UTCAtExposure, EXIF OffsetTimeOriginal), a time as written (zone unknown) or
+    none, and the first capture of each kind. A flight with both UTC and as-written times has
+    them on two clocks (the QA report warns, ``mixed_time_zones``)."""
+    kinds: dict[str, list[str]] = {"utc": [], "as_written": [], "missing": []}
+    for c in captures:
+        t = c.metas[0].time
+        kinds["missing" if not t else "utc" if t.endswith("Z") else "as_written"].append(c.name)
+    return {**{k: len(v) for k, v in kinds.items()}, "first": {k: v[0] for k, v in kinds.items() if v}}
+
+
 def capture_coords(camera: Camera, captures: Sequence[Capture], irradiance_unit: str = "W m-2 nm-1") -> dict[str, Any]:
     def per_frame(get: Any) -> np.ndarray:
         return np.array([np.nan if get(c.metas[0]) is None else get(c.metas[0]) for c in captures], dtype=np.float64)
@@ -329,6 +341,7 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
         "skipped_bands": [{**s, "file": _relative(s["file"], folder)} for c in captures for s in c.skipped],
         "metadata_problems": [p.as_dict() for c in captures for p in c.problems],
         "orientation": _orientation_record(captures[0]),
+        "capture_times": capture_time_zones(captures),
         "saturated_pixels": {"total": int(sum(o.saturated for o in outcomes)),
                              "per_frame": {o.name: o.saturated for o in outcomes}},
         "outputs": {"reflectance": "reflectance.zarr", "raw": "raw.zarr", "photogrammetry": "photogrammetry/",

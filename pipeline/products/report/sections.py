@@ -273,11 +273,28 @@ def reference_table(run: dict[str, Any], band_names: Sequence[str] = ()) -> Tabl
                             "(brightness only), a spread across bands changes every index")
 
 
+def time_warnings(run: dict[str, Any]) -> list[QAWarning]:
+    """Capture times on two clocks (run.json ``capture_times``: some in UTC because the files
+    say their zone, some as written): the sun's position and the light between panels are off
+    by the time zone for the latter."""
+    out: list[QAWarning] = []
+    times = run.get("capture_times")
+    if isinstance(times, dict) and times.get("utc") and times.get("as_written"):
+        first = times.get("first") or {}
+        out.append(QAWarning(
+            "mixed_time_zones", f"{times['utc']} capture(s) have their time in UTC (e.g. {first.get('utc')}) and "
+            f"{times['as_written']} as written, zone unknown (e.g. {first.get('as_written')}): the sun's position and "
+            "the light between panels may be off by the time zone for the latter; check those files' "
+            "OffsetTimeOriginal / drone-dji:UTCAtExposure tags", float(times["as_written"]), 0.0))
+    return out
+
+
 def reference_warnings(run: dict[str, Any]) -> list[QAWarning]:
     """A panel capture whose panel/DLS factor ratio spreads across bands by more than
     :data:`PANEL_DLS_COLOUR_SPREAD_MAX`; panel captures seen in the folder but not used; a run
-    without reflectance (route ``none``: radiance only, why and how to get it) and band files
-    of the sun-sensor route without a usable reading (run.json ``reflectance_missing``)."""
+    without reflectance (route ``none``: radiance only, why and how to get it), band files of
+    the sun-sensor route without a usable reading (run.json ``reflectance_missing``), and the
+    camera's own panel captures (XMP Albedo) that could not be used."""
     rec = run.get("reference")
     out: list[QAWarning] = []
     if not isinstance(rec, dict):
@@ -298,6 +315,11 @@ def reference_warnings(run: dict[str, Any]) -> list[QAWarning]:
             f"reading: their reflectance and the indices using them are NaN, radiance kept (run.json "
             f"reflectance_missing; first {first.get('file')}: {first.get('reason')}); a panel capture with "
             "--panel-reflectance TARGET gives every band reflectance", float(len(missing)), 0.0))
+    if rec.get("albedo_panel_unusable"):
+        out.append(QAWarning(
+            "albedo_panel_unusable", f"the camera's panel capture(s) (XMP Albedo) could not be used "
+            f"({rec['albedo_panel_unusable']}): reflectance comes from the {rec.get('route')} route instead; name the "
+            "panel capture with --panel, or give --panel-reflectance TARGET", 1.0, 0.0))
     seen = rec.get("panels_seen") or []
     if seen and rec.get("route") != "panel":
         source = "the sun sensor (DLS)" if rec.get("route") == "dls" else "nothing (radiance only)"
@@ -386,7 +408,7 @@ def flight_section(flight: FlightResults, calibration: xr.Dataset | None) -> Sec
         tables.append(ref)
         warns += reference_warnings(run)
     tables += light_tables(run, flight.camera.band_names if flight.camera is not None else ())
-    warns += light_warnings(run)
+    warns += light_warnings(run) + time_warnings(run)
     sec = Section(f"Flight: {flight.name}", f"flight-{flight.name}", warns, tables + [table])
     sec.figures += [
         ("NDVI quick-looks", lambda: plot_ndvi(flight)),

@@ -154,6 +154,10 @@ def test_albedo_only_of_a_valid_panel_capture_and_auto_falls_back_without_a_pane
     assert ref["route"] == "dls" and "panel_reflectance" not in ref
     assert ref["albedo_panel_unusable"].startswith(
         "IMG_0001_1.tif: no usable panel among the 1 capture(s) with the camera's XMP Albedo: no reflectance panel found")
+    from pipeline.products.report import report_dict
+
+    warns = {w["code"]: w for s in report_dict(None, [tmp_path / "flight_out"])["sections"] for w in s["warnings"]}
+    assert "reflectance comes from the dls route instead" in warns["albedo_panel_unusable"]["message"]
     capsys.readouterr()
     assert _apply(flight, tmp_path / "asked", "--reference", "panel") == 2
     assert "no usable panel among the 1 capture(s)" in capsys.readouterr().err

@@ -19,6 +19,7 @@ import pytest
 import tifffile
 import xarray as xr
 
+from pipeline.products.report import report_dict
 from pipeline.run.cli import main
 from tests import camera_files as cf
 from tests.micasense_data import PANEL_CORNERS, require_data
@@ -306,6 +307,21 @@ def test_dji_time_is_utc_at_exposure_not_the_local_clock(tmp_path) -> None:
         el, _ = solar_position(np.array([when], "datetime64[ns]"), np.array([lat]), np.array([lon]), np.array([alt]))
         assert run["sun_sensor"][frame]["sun_elevation_deg"] == pytest.approx(math.degrees(float(el[0])), abs=0.01)
         assert run["sun_sensor"][frame]["sun_elevation_deg"] > run_local["sun_sensor"][frame]["sun_elevation_deg"] + 40
+    assert run["capture_times"] == {"utc": 2, "as_written": 0, "missing": 0, "first": {"utc": "001"}}
+    assert run_local["capture_times"] == {"utc": 0, "as_written": 2, "missing": 0, "first": {"as_written": "001"}}
+    codes = [w["code"] for s in report_dict(None, [tmp_path / "out"])["sections"] for w in s["warnings"]]
+    assert "mixed_time_zones" not in codes
+    # one capture with UTCAtExposure, one without: two clocks in one flight, warned of
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    for path in sorted(folder.glob("DJI_001*.TIF")) + sorted(local.glob("DJI_002*.TIF")):
+        (mixed / path.name).write_bytes(path.read_bytes())
+    run_mixed = _apply(mixed, tmp_path / "out_mixed", "--no-align")
+    assert run_mixed["capture_times"] == {"utc": 1, "as_written": 1, "missing": 0,
+                                          "first": {"utc": "001", "as_written": "002"}}
+    (warn,) = [w for s in report_dict(None, [tmp_path / "out_mixed"])["sections"] for w in s["warnings"]
+               if w["code"] == "mixed_time_zones"]
+    assert "1 capture(s) have their time in UTC (e.g. 001) and 1 as written" in warn["message"]
     with (tmp_path / "out" / "photogrammetry" / "002_Green.tif").open("rb") as fh:  # 001: the panel capture
         tags = exifread.process_file(fh, details=False)
     assert str(tags["EXIF DateTimeOriginal"]) == "2017:10:19 20:42:10"
