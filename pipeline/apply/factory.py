@@ -282,12 +282,11 @@ def albedo_reflectance(capture: Capture) -> list[float]:
             for m in capture.metas]
 
 
-def _albedo_panels(captures: Sequence[Capture], named: Sequence[str], folder: Path,
+def _albedo_panels(found: Sequence[Capture], named: Sequence[str], folder: Path,
                    parts: Sequence[FieldParts | None] | None = None, config: PanelConfig | None = None
                    ) -> list[PanelReference]:
-    """:func:`panel_reference` of every :func:`albedo_captures` capture with its own Albedo.
-    A named capture that fails is an error; otherwise failures are skipped unless all fail."""
-    found = albedo_captures(captures, named)
+    """:func:`panel_reference` of every capture ``found`` by :func:`albedo_captures` with its own
+    Albedo. A named capture that fails is an error; otherwise failures are skipped unless all fail."""
     missing = [n for n in named if n not in {c.name for c in found}]
     if missing:
         raise InputError(f"--panel capture(s) {', '.join(missing)}: not in the folder, or a band file has no XMP Albedo "
@@ -323,9 +322,10 @@ def _reference_panels(options: FactoryOptions, reference: str, captures: Sequenc
         rho = [float(r) for r in spec.at(np.array([m.wavelength_nm for m in captures[0].metas]))]
         return (reference, _find_panels(captures, options.panel_captures, rho, folder, parts, config),
                 f"--panel-reflectance {options.panel_reflectance}", None)
-    if albedo_captures(captures, options.panel_captures):  # the camera read the panel's QR code
+    found = albedo_captures(captures, options.panel_captures)
+    if found:  # the camera read the panel's QR code
         try:
-            return reference, _albedo_panels(captures, options.panel_captures, folder, parts, config), ALBEDO_SOURCE, None
+            return reference, _albedo_panels(found, options.panel_captures, folder, parts, config), ALBEDO_SOURCE, None
         except InputError as exc:
             if options.reference != "auto" or options.panel_captures:
                 raise

@@ -48,6 +48,7 @@ from mscal_core.factory import (
     vignetting_map,
 )
 
+from pipeline.ingest.catalog import sample_shift
 from pipeline.ingest.exif import EXIF_CODES, dms_to_degrees, exposure_time, rational, signed_gps
 from pipeline.ingest.xmp import TagError, TagProblem, Xmp, jpeg_xmp_packet, legacy_properties, parse_numbers
 
@@ -931,9 +932,10 @@ class FieldParts:
     sensor_bits: int = 16  # the sensor's bits per DN: a file with fewer bits per sample is shifted less
 
     def shift_for(self, meta: "CaptureMeta") -> int:
-        """The shift of ``meta``'s file to sensor DN: :attr:`dn_shift`, less when the file stores
-        fewer bits per sample (a RedEdge's packed 12-bit TIFF: 0; see ``Camera.shift_for``)."""
-        return min(self.dn_shift, max(0, meta.bits_per_sample - self.sensor_bits))
+        """The shift of ``meta``'s file to sensor DN (:func:`pipeline.ingest.catalog.sample_shift`):
+        :attr:`dn_shift`, less when the file stores fewer bits per sample (a RedEdge's packed
+        12-bit TIFF: 0)."""
+        return sample_shift(self.dn_shift, self.sensor_bits, meta.bits_per_sample)
 
 
 def factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None = None,

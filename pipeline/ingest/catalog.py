@@ -213,6 +213,16 @@ class Identify:
     bands_per_capture: int | None = None  # every band file of one capture id, skipped ones included
 
 
+def sample_shift(dn_shift: int, bit_depth: int, stored_bits: int | None) -> int:
+    """Right shift from one file's samples to sensor DN: ``dn_shift`` (the catalog's, for data
+    in the high bits of a wider container), less for a file with fewer bits per sample than
+    that container, 0 for one holding the ``bit_depth``-bit DN as they are; ``stored_bits``
+    None (not known): ``dn_shift``."""
+    if stored_bits is None:
+        return dn_shift
+    return min(dn_shift, max(0, int(stored_bits) - bit_depth))
+
+
 @dataclass(frozen=True)
 class CameraExif:
     """``exif: {make, model, pixel_um}``: the EXIF ``Make`` and ``Model`` of a camera whose
@@ -259,9 +269,7 @@ class Camera:
         catalog's container (a RedEdge's 16-bit TIFF: 4); less for a file with fewer bits per
         sample, 0 for one that holds the sensor's DN as they are (a RedEdge set to save 12-bit
         TIFFs). ``stored_bits`` None (not known): the catalog's :attr:`dn_shift`."""
-        if stored_bits is None:
-            return self.dn_shift
-        return min(self.dn_shift, max(0, int(stored_bits) - self.bit_depth))
+        return sample_shift(self.dn_shift, self.bit_depth, stored_bits)
 
     @property
     def n_bands(self) -> int:

@@ -7,8 +7,9 @@
 * GPS positions as degrees, minutes, seconds (``GPSLatitude``, ``GPSLongitude``: three
   RATIONALs, section 4.6.6) to and from decimal degrees, with the signs from the reference
   tags (``S``, ``W``, ``GPSAltitudeRef`` 1 = below sea level).
-* ``DateTimeOriginal`` (``YYYY:MM:DD HH:MM:SS``, local time without a zone) plus
-  ``SubSecTimeOriginal`` as ISO 8601 text.
+* ``DateTimeOriginal`` (``YYYY:MM:DD HH:MM:SS``, the camera's clock) plus
+  ``SubSecTimeOriginal`` as ISO 8601 text, in UTC when ``OffsetTimeOriginal`` or DJI's
+  ``UTCAtExposure`` says the zone (:func:`exposure_time`).
 * ISO 8601 text (frames.csv ``time``, STAC ``datetime``) to :class:`datetime`, to naive UTC,
   and to int64 nanoseconds for the datacube's ``time`` coordinate.
 """
@@ -41,7 +42,6 @@ __all__ = [
     "U32",
     "degrees_to_dms",
     "dms_to_degrees",
-    "exif_datetime_iso",
     "exif_time_utc",
     "exposure_time",
     "parse_iso",
@@ -142,19 +142,6 @@ def signed_gps(lat: float | None, lat_ref: Any, lon: float | None, lon_ref: Any,
 
 # --------------------------------------------------------------------------- times
 
-_EXIF_DATETIME = re.compile(r"(\d{4}):(\d{2}):(\d{2}) (\d{2}:\d{2}:\d{2})")
-
-
-def exif_datetime_iso(date_time: Any, subsec: Any = None) -> str | None:
-    """``DateTimeOriginal`` (``2024:06:01 10:30:00``) as ISO 8601 (``2024-06-01T10:30:00``),
-    with ``.<subsec>`` appended when ``subsec`` is all digits; None when the tag is missing or
-    blank (cameras without a clock write spaces)."""
-    m = _EXIF_DATETIME.match(str(date_time or "").strip())
-    if not m:
-        return None
-    iso = f"{m[1]}-{m[2]}-{m[3]}T{m[4]}"
-    sub = str(subsec or "").strip()
-    return f"{iso}.{sub}" if sub.isdigit() else iso
 
 
 _EXIF_STAMP = re.compile(r"\s*(\d{4}):(\d{2}):(\d{2}) (\d{2}):(\d{2}):(\d{2})(?:\.(\d+))?\s*$")
@@ -162,8 +149,8 @@ _EXIF_OFFSET = re.compile(r"\s*([+-])(\d{2}):(\d{2})\s*$")
 
 
 def exif_time_utc(date_time: Any, subsec: Any = None, offset: Any = None) -> str | None:
-    """The time of an exposure as ISO 8601 text: in UTC with ``Z`` when the zone is known,
-    local as :func:`exif_datetime_iso` gives it when not.
+    """The time of an exposure as ISO 8601 text (``2025-05-20T02:12:34.7``): in UTC with ``Z``
+    when the zone is known, as written when not.
 
     ``date_time``: EXIF ``DateTimeOriginal`` (``2025:05:20 10:12:34``, the camera's local
     clock), or a DJI ``drone-dji:UTCAtExposure`` (``2025:05:20 02:12:54.019996``, UTC, with its

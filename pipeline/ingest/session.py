@@ -891,18 +891,14 @@ def read_bands(rec: FrameRecord | Path, camera: Camera) -> np.ndarray:
     """Read one frame and split it into bands (:class:`FrameError` naming the file); a
     capture of a one-file-per-band camera is read band file by band file."""
     if isinstance(rec, FrameRecord) and rec.band_files is not None:
-        bands = [_file_bands(f, camera)[0] for f in rec.band_files]
+        bands = [stored_bands(Path(f), f, camera)[0] for f in rec.band_files]
         for f, b in zip(rec.band_files[1:], bands[1:]):
             if b.shape != bands[0].shape:
                 raise FrameError(f"band image is {b.shape[1]}x{b.shape[0]}, the capture's first band "
                                  f"{bands[0].shape[1]}x{bands[0].shape[0]}", path=f)
         return np.stack(bands)
     path = rec.path if isinstance(rec, FrameRecord) else Path(rec)
-    return _file_bands(path, camera)
-
-
-def _file_bands(path: Path, camera: Camera) -> np.ndarray:
-    return stored_bands(Path(path), path, camera)
+    return stored_bands(path, path, camera)
 
 
 

@@ -14,7 +14,6 @@ from pipeline.ingest.exif import (
     NAT,
     degrees_to_dms,
     dms_to_degrees,
-    exif_datetime_iso,
     exif_time_utc,
     exposure_time,
     parse_iso,
@@ -62,10 +61,10 @@ def test_to_rational_fits_32_bits() -> None:
 
 
 def test_exif_datetime_and_iso_times() -> None:
-    assert exif_datetime_iso("2024:06:01 10:30:00") == "2024-06-01T10:30:00"
-    assert exif_datetime_iso(b"2024:06:01 10:30:00".decode(), "123") == "2024-06-01T10:30:00.123"
-    assert exif_datetime_iso("2024:06:01 10:30:00", " ") == "2024-06-01T10:30:00"
-    assert exif_datetime_iso("    :  :     :  :  ") is None and exif_datetime_iso(None) is None
+    assert exif_time_utc("2024:06:01 10:30:00") == "2024-06-01T10:30:00"
+    assert exif_time_utc(b"2024:06:01 10:30:00".decode(), "123") == "2024-06-01T10:30:00.123"
+    assert exif_time_utc("2024:06:01 10:30:00", " ") == "2024-06-01T10:30:00"
+    assert exif_time_utc("    :  :     :  :  ") is None and exif_time_utc(None) is None
     t, zoned = utc_naive(parse_iso("2024-06-01T12:30:00+02:00"))
     assert zoned and t.isoformat() == "2024-06-01T10:30:00"
     assert utc_naive(parse_iso("2024-06-01T10:30:00")) == (parse_iso("2024-06-01T10:30:00"), False)
