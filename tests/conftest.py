@@ -9,7 +9,10 @@ machine's speed or load.
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
+import tempfile
 
 import pytest
 from hypothesis import HealthCheck, settings
@@ -25,6 +28,11 @@ settings.register_profile("mscal-long", derandomize=False, max_examples=2000, **
 # pytest -n 2 already fills the cores: calibrations in tests fit their bands in-process instead
 # of spawning band workers each (tests that check the workers set the variable themselves).
 os.environ.setdefault("MSCAL_CALIBRATE_WORKERS", "1")
+# `mscal calibrate` records every store it writes into the calibration library of the cache
+# folder: the tests' stores go to one temporary cache per test process, not the user's.
+_CACHE = tempfile.mkdtemp(prefix="mscal-test-cache-")
+os.environ["MSCAL_CACHE_DIR"] = _CACHE
+atexit.register(shutil.rmtree, _CACHE, True)
 SHORT = os.environ.get("HYPOTHESIS_PROFILE", "mscal-short")
 settings.load_profile(SHORT)
 

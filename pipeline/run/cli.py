@@ -184,7 +184,19 @@ def calibrate(session: Path, out: Path, response_method: str, partial: Path | No
             ds = calibrate_session(session, out, response_method=response_method, calibration=partial,
                                    advance=advance, pool=pool, sweep=sweep)
     _report_skips(ds)
-    _store_summary("calibrate", ds, out, f"wrote {out} ({_summary(ds)}; {time.perf_counter() - t0:.1f} s)").emit()
+    # recorded by camera and serial number, for later flights of the same camera; the store
+    # is written whatever happens here, so a library that cannot be written is only a note
+    from pipeline.calibrate.library import record_fitted
+
+    try:
+        library: str | None = str(record_fitted(out, session))
+    except (MscalError, OSError) as exc:
+        library = None
+        note(f"not recorded in the calibration library: {exc}")
+    summary = _store_summary("calibrate", ds, out, f"wrote {out} ({_summary(ds)}; {time.perf_counter() - t0:.1f} s)",
+                             library=library)
+    summary.outputs["calibration library"] = library
+    summary.emit()
 
 
 @cli.group(short_help="One fit at a time: U, V, S and B, or the intrinsics.")

@@ -17,8 +17,9 @@ Band files as a RedEdge writes them: 12-bit DN in the high bits of 16-bit sample
 ``CaptureId``, ``RigCameraIndex``, ``PerspectiveFocalLength`` (pixels, no unit tag, as
 RedEdge 3), ``PrincipalPoint`` ("x,y" mm), ``PerspectiveDistortion`` ``[k1, k2, k3, p1, p2]``;
 ``ExposureTime`` (s, rational), ``ISOSpeed`` (100: gain 1), ``DateTimeOriginal``,
-``FocalPlaneX/YResolution`` (px/mm, unit 4). The EXIF tags sit in IFD0 (tifffile writes no
-EXIF sub-IFD); mscal's readers look in both places. No frames.csv unless ``frames_csv``.
+``FocalPlaneX/YResolution`` (px/mm, unit 4), ``BodySerialNumber`` (``serial``: sessions of
+two serials are two camera bodies). The EXIF tags sit in IFD0 (tifffile writes no EXIF
+sub-IFD); mscal's readers look in both places. No frames.csv unless ``frames_csv``.
 """
 
 from __future__ import annotations
@@ -45,6 +46,8 @@ from mscal_core.synth.rig import (
 from mscal_core.synth.scene import SESSION_START
 
 CAMERA = "micasense-rededge"
+#: The serial number the synthetic camera writes unless told another.
+SERIAL = "RE0000001"
 PIX4D_NS = "http://pix4d.com/camera/1.0/"
 SIZES = {
     "small": dict(n_response=8, step=2.2, n_vignetting=14, n_reflector=2, n_check=2),
@@ -75,7 +78,7 @@ def _xmp(band: int, truth: RigTruth, capture_id: str) -> bytes:
 
 
 def write_band_file(path: Path, dn12: np.ndarray, *, band: int, truth: RigTruth, capture_id: str,
-                    exposure_ms: float, time_s: float) -> None:
+                    exposure_ms: float, time_s: float, serial: str = SERIAL) -> None:
     """One RedEdge-style band file (see the module docstring)."""
     res = REDEDGE_PX_PER_MM * dn12.shape[1] / REDEDGE_SHAPE[1]
     xmp = _xmp(band, truth, capture_id)
@@ -87,17 +90,20 @@ def write_band_file(path: Path, dn12: np.ndarray, *, band: int, truth: RigTruth,
         (34867, "I", 1, 100, True),  # ISOSpeed: gain 1
         (36867, "s", 0, when, True),  # DateTimeOriginal
         (41486, "2I", 1, res_q, True), (41487, "2I", 1, res_q, True), (41488, "H", 1, 4, True),  # px per mm
+        (42033, "s", 0, serial, True),  # BodySerialNumber
     ]
     tifffile.imwrite(path, (dn12.astype(np.uint16) << 4), photometric="minisblack", extratags=tags)
 
 
-def write_frames(folder: Path, frames: RigFrames, truth: RigTruth, *, frames_csv: bool = False) -> None:
+def write_frames(folder: Path, frames: RigFrames, truth: RigTruth, *, frames_csv: bool = False,
+                 serial: str = SERIAL) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     for k, name in enumerate(frames.names):
         cid = f"syn{truth.seed:03d}{frames.kind[:3]}{k:04d}"
         for b in range(truth.n_bands):
             write_band_file(folder / f"{name}_{REDEDGE_BANDS[b][3]}.tif", frames.dn[k][b], band=b, truth=truth,
-                            capture_id=cid, exposure_ms=float(frames.exposure_ms[k, b]), time_s=frames.times_s[k])
+                            capture_id=cid, exposure_ms=float(frames.exposure_ms[k, b]), time_s=frames.times_s[k],
+                            serial=serial)
     if frames_csv:  # one row per band file: the lenses are exposed separately
         with open(folder / "frames.csv", "w", newline="") as fh:
             w = csv.writer(fh)
@@ -112,7 +118,8 @@ def write_frames(folder: Path, frames: RigFrames, truth: RigTruth, *, frames_csv
 BOARD = {"kind": "charuco", "squares": [7, 5], "square_m": 0.06, "marker_m": 0.045, "dictionary": "DICT_4X4_50"}
 
 
-def write_board_images(folder: str | Path, truth: RigTruth, *, seed: int = 0, n_views: int = 12) -> Path:
+def write_board_images(folder: str | Path, truth: RigTruth, *, seed: int = 0, n_views: int = 12,
+                       serial: str = SERIAL) -> Path:
     """``folder/`` with ChArUco board captures of the rig (:func:`mscal_core.synth.rig.board_views`)
     and its ``board.yaml``."""
     from mscal_core.intrinsics import Board
@@ -124,7 +131,7 @@ def write_board_images(folder: str | Path, truth: RigTruth, *, seed: int = 0, n_
     img = board.charuco().generateImage((board.squares[0] * px, board.squares[1] * px), marginSize=0)
     size = (board.squares[0] * board.square_m, board.squares[1] * board.square_m)
     fs = board_views(truth, img, size, seed=seed, n_views=n_views)
-    write_frames(folder, fs, truth)
+    write_frames(folder, fs, truth, serial=serial)
     with open(folder / "board.yaml", "w") as fh:
         yaml.safe_dump(BOARD, fh, sort_keys=False)
     return folder
@@ -133,13 +140,14 @@ def write_board_images(folder: str | Path, truth: RigTruth, *, seed: int = 0, n_
 def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "small",
                             shape: tuple[int, int] = (240, 320), frames_csv: bool = False,
                             intrinsics_in_yaml: bool = False, board_views: int = 0,
-                            board_folder: str = "intrinsics") -> Path:
+                            board_folder: str = "intrinsics", serial: str = SERIAL) -> Path:
     """Render and write a multi-lens session (module docstring); returns its path.
     ``size``: ``small`` (8-frame sweep x2.2, 14 views, 2 reflector and 2 check captures) or
     ``full`` (12 x1.7, 28, 3, 3). ``shape`` (H, W) of every band image (RedEdge: 960 x 1280).
     ``intrinsics_in_yaml`` writes the true intrinsics per band into session.yaml;
     ``board_views`` > 0 writes that many ChArUco board captures into ``board_folder``
-    (``intrinsics/``: the calibration then takes the intrinsics from them)."""
+    (``intrinsics/``: the calibration then takes the intrinsics from them). ``serial``: the
+    camera's serial number in every band file (EXIF BodySerialNumber)."""
     if size not in SIZES:
         raise ValueError(f"size must be one of {sorted(SIZES)}, got {size!r}")
     cfg = SIZES[size]
@@ -173,13 +181,13 @@ def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "sma
     for name, fs in sets.items():
         if (root / name).exists():
             shutil.rmtree(root / name)
-        write_frames(root / name, fs, truth, frames_csv=frames_csv)
+        write_frames(root / name, fs, truth, frames_csv=frames_csv, serial=serial)
         arrays[f"{name}_exposure_ms"] = fs.exposure_ms
         arrays.update({f"{name}_{k}": v for k, v in fs.truth.items()})
     if board_views:
         if (root / board_folder).exists():
             shutil.rmtree(root / board_folder)
-        write_board_images(root / board_folder, truth, seed=seed, n_views=board_views)
+        write_board_images(root / board_folder, truth, seed=seed, n_views=board_views, serial=serial)
     # the names evaluate_calibration (pipeline.sim.evaluate) reads
     for key in ("inverse_response", "vignetting", "spectral_factor"):
         arrays[key] = arrays[f"camera_{key}"]

@@ -286,11 +286,18 @@ def test_calibrate_progress_bar_and_summary(small, tmp_path: Path, monkeypatch) 
         return open_calibration(calib)
 
     monkeypatch.setattr(fit, "calibrate_session", fake)
+    monkeypatch.setenv("MSCAL_CACHE_DIR", str(tmp_path / "cache"))
     code, out, err = _main_tty(["calibrate", session, "-o", calib, "--json"], monkeypatch)
     doc = json.loads(out)
     assert code == 0 and len(steps) == 4 and "calibrate" in err and "100%" in err
     assert doc["counts"]["bands"] == 25 and doc["counts"]["frames_skipped"]["vignetting"] == 1
     assert _codes_values(doc["warnings"]) == _codes_values(_report_warnings(calib))
+    # the store is recorded in the calibration library of the cache folder (the snapshot
+    # session's frames carry no serial number: filed under unknown)
+    index = json.loads((tmp_path / "cache" / "library" / "index.json").read_text())
+    (entry,) = index["entries"]
+    assert doc["library"] == doc["outputs"]["calibration library"] == str(tmp_path / "cache" / "library" / entry["store"])
+    assert entry["store"].startswith("ximea-mq022hg-sm5x5-nir/unknown/") and entry["session"] == str(Path(session).resolve())
 
 
 def test_register_progress_bar_and_spread_warning(micasense: Path, tmp_path: Path, monkeypatch) -> None:
