@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import re
 import shutil
+import struct
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -456,4 +457,166 @@ def sequoia_without_golden(folder: Path) -> Path:
             return new
 
         rewrite(SEQUOIA / name, folder / name, edit)
+    return folder
+
+
+# --------------------------------------------------------------------------- DJI P4M card
+
+# EXIF (CIPA DC-008, "Exif 2.32") field types and the struct format of one item of each
+EXIF_TYPES = {"BYTE": (1, "B"), "ASCII": (2, "s"), "SHORT": (3, "H"), "LONG": (4, "I"), "RATIONAL": (5, "II"),
+              "UNDEFINED": (7, "s"), "SRATIONAL": (10, "ii"), "DOUBLE": (12, "d")}
+# What the P4 Multispectral's RGB camera (FC6360) writes into its JPEG, the part mscal looks at
+DJI_RGB = {"model": "FC6360", "exposure": (1, 1000), "f_number": (22, 10), "iso": 100,
+           "lat": 47.3769, "lon": 8.5417, "alt_m": 512.25}
+DJI_RGB_SHAPE = (48, 64)  # the real camera: 1300 x 1600; a small one keeps the card small
+
+
+def _exif_value(kind: str, value: object) -> tuple[int, int, bytes]:
+    """``(type code, count, little-endian bytes)`` of one EXIF entry's value: ASCII ``str``
+    (NUL added), BYTE/UNDEFINED ``bytes``, SHORT/LONG ints, (S)RATIONAL ``(num, den)`` pairs
+    (a zero denominator written as given), DOUBLE floats."""
+    code, item = EXIF_TYPES[kind]
+    if kind == "ASCII":
+        raw = (value.encode("utf-8") if isinstance(value, str) else bytes(value)) + b"\x00"
+        return code, len(raw), raw
+    if kind in ("BYTE", "UNDEFINED"):
+        return code, len(value), bytes(value)
+    items = list(value) if isinstance(value, (list, tuple)) and not (
+        kind.endswith("RATIONAL") and len(value) == 2 and isinstance(value[0], int)) else [value]
+    raw = b"".join(struct.pack("<" + item, *(v if isinstance(v, tuple) else (v,))) for v in items)
+    return code, len(items), raw
+
+
+def _exif_ifd(entries: Sequence[tuple[int, str, object]], at: int, next_ifd: int) -> bytes:
+    """One IFD at offset ``at`` of the TIFF block (entries sorted by tag, values over 4 bytes
+    in a data area right after the IFD, each on a word boundary), ``next_ifd`` its link."""
+    entries = sorted(entries, key=lambda e: e[0])
+    data_at = at + 2 + 12 * len(entries) + 4
+    head, data = [struct.pack("<H", len(entries))], b""
+    for tag, kind, value in entries:
+        code, count, raw = _exif_value(kind, value)
+        if len(raw) <= 4:
+            head.append(struct.pack("<HHI", tag, code, count) + raw.ljust(4, b"\x00"))
+        else:
+            head.append(struct.pack("<HHII", tag, code, count, data_at + len(data)))
+            data += raw + b"\x00" * (len(raw) % 2)
+    return b"".join(head) + struct.pack("<I", next_ifd) + data
+
+
+def exif_app1(ifd0: Sequence[tuple[int, str, object]], exif: Sequence[tuple[int, str, object]] = (),
+              gps: Sequence[tuple[int, str, object]] = (), thumbnail: bytes | None = None) -> bytes:
+    """A JPEG APP1 EXIF segment (marker included): ``Exif\\0\\0``, a little-endian TIFF header,
+    IFD0 (``ifd0`` + the ExifIFD 0x8769 and GPS IFD 0x8825 pointers when ``exif``/``gps``), the
+    ExifIFD, the GPS IFD and, with ``thumbnail`` (a JPEG), IFD1: Compression 6,
+    JPEGInterchangeFormat (0x0201, its offset) and JPEGInterchangeFormatLength (0x0202), the
+    thumbnail's bytes last -- the layout that makes exifread return it as ``JPEGThumbnail``.
+    Entries are ``(tag, type name of EXIF_TYPES, value)``; offsets are from the TIFF header."""
+    def size(entries: Sequence[tuple[int, str, object]]) -> int:
+        return len(_exif_ifd(entries, 0, 0))
+
+    ifd0 = list(ifd0) + ([(0x8769, "LONG", 0)] if exif else []) + ([(0x8825, "LONG", 0)] if gps else [])
+    thumb_ifd = [(0x0103, "SHORT", 6), (0x0201, "LONG", 0), (0x0202, "LONG", len(thumbnail or b""))]
+    at0 = 8
+    at_exif = at0 + size(ifd0)
+    at_gps = at_exif + (size(exif) if exif else 0)
+    at1 = at_gps + (size(gps) if gps else 0)
+    at_thumb = at1 + (size(thumb_ifd) if thumbnail is not None else 0)
+    ifd0 = [(t, k, at_exif if t == 0x8769 else at_gps if t == 0x8825 else v) for t, k, v in ifd0]
+    thumb_ifd[1] = (0x0201, "LONG", at_thumb)
+    tiff = b"II*\x00" + struct.pack("<I", at0) + _exif_ifd(ifd0, at0, at1 if thumbnail is not None else 0)
+    tiff += _exif_ifd(exif, at_exif, 0) if exif else b""
+    tiff += _exif_ifd(gps, at_gps, 0) if gps else b""
+    if thumbnail is not None:
+        tiff += _exif_ifd(thumb_ifd, at1, 0) + thumbnail
+    body = b"Exif\x00\x00" + tiff
+    assert len(body) + 2 <= 0xFFFF, "an APP1 segment holds at most 65533 bytes"
+    return b"\xff\xe1" + struct.pack(">H", len(body) + 2) + body
+
+
+def gps_entries(lat: float, lon: float, alt_m: float) -> list[tuple[int, str, object]]:
+    """The GPS IFD of a position: version 2.3, N/S and E/W, degrees/minutes/seconds, altitude
+    above sea level."""
+    from pipeline.ingest.exif import degrees_to_dms
+
+    return [(0x0000, "BYTE", bytes((2, 3, 0, 0))), (0x0001, "ASCII", "N" if lat >= 0 else "S"),
+            (0x0002, "RATIONAL", degrees_to_dms(lat)), (0x0003, "ASCII", "E" if lon >= 0 else "W"),
+            (0x0004, "RATIONAL", degrees_to_dms(lon)), (0x0005, "BYTE", b"\x00"),
+            (0x0006, "RATIONAL", (round(alt_m * 1000), 1000))]
+
+
+def with_app1(jpeg: bytes, *segments: bytes) -> bytes:
+    """``jpeg`` (as cv2.imencode writes it: SOI, APP0 JFIF, ...) with ``segments`` after its
+    SOI (EXIF's APP1 then XMP's, where cameras put them)."""
+    assert jpeg[:2] == b"\xff\xd8"
+    return jpeg[:2] + b"".join(segments) + jpeg[2:]
+
+
+def xmp_app1(packet: str) -> bytes:
+    """An APP1 XMP segment (``http://ns.adobe.com/xap/1.0/``) holding ``packet``."""
+    body = b"http://ns.adobe.com/xap/1.0/\x00" + packet.encode("utf-8")
+    return b"\xff\xe1" + struct.pack(">H", len(body) + 2) + body
+
+
+def encode_jpeg(img: np.ndarray, quality: int = 90) -> bytes:
+    import cv2
+
+    ok, enc = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    assert ok
+    return enc.tobytes()
+
+
+def dji_rgb_jpeg(path: Path, *, stamp: str = "2024:05:20 10:12:34", cap_uuid: str | None = None,
+                 exif_extra: Sequence[tuple[int, str, object]] = (), thumbnail: bool = True,
+                 maker_note: bytes | None = b"[ae_dbg_info:...]\x00DJI\x01\x02\xff" * 3) -> Path:
+    """The RGB camera's JPEG of a P4 Multispectral capture: a small colour image with EXIF as
+    the FC6360 writes it (Make DJI, Model FC6360, ExposureTime, FNumber, ISO, DateTimeOriginal,
+    ExifImageWidth/Length, an undefined-bytes MakerNote, GPS) and an EXIF thumbnail (IFD1,
+    JPEGInterchangeFormat: exifread's ``JPEGThumbnail``), and an XMP packet of DJI's flight
+    tags (``drone-dji:`` altitude, gimbal and flight angles; ``cap_uuid`` as its CaptureUUID),
+    no band or calibration tags. ``exif_extra``: further ExifIFD entries (replacing those of
+    the same tag)."""
+    h, w = DJI_RGB_SHAPE
+    yy, xx = np.mgrid[0:h, 0:w]
+    img = np.stack([xx * 255 // w, yy * 255 // h, np.full((h, w), 96)], axis=-1).astype(np.uint8)
+    thumb = encode_jpeg(img[::4, ::4], 70) if thumbnail else None
+    d = DJI_RGB
+    exif = {t: (t, k, v) for t, k, v in [
+        (0x829A, "RATIONAL", d["exposure"]), (0x829D, "RATIONAL", d["f_number"]), (0x8827, "SHORT", d["iso"]),
+        (0x9000, "UNDEFINED", b"0230"), (0x9003, "ASCII", stamp), (0x9004, "ASCII", stamp),
+        (0xA002, "LONG", w), (0xA003, "LONG", h),
+        *([(0x927C, "UNDEFINED", maker_note)] if maker_note is not None else [])]}
+    exif.update({t: (t, k, v) for t, k, v in exif_extra})
+    app1 = exif_app1([(0x010F, "ASCII", "DJI"), (0x0110, "ASCII", d["model"]), (0x0112, "SHORT", 1)],
+                     list(exif.values()), gps_entries(d["lat"], d["lon"], d["alt_m"]), thumb)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(with_app1(encode_jpeg(img), app1, xmp_app1(dji_rgb_xmp(cap_uuid))))
+    return path
+
+
+def dji_rgb_xmp(cap_uuid: str | None = None) -> str:
+    """The XMP packet of the P4 Multispectral's RGB JPEG: DJI's flight tags (``drone-dji:``
+    altitudes, gimbal and aircraft angles, RTK flag; ``cap_uuid`` as its CaptureUUID), no band
+    or radiometric tags."""
+    d = DJI_RGB
+    attrs = {"drone-dji:AbsoluteAltitude": f"+{d['alt_m']:.2f}", "drone-dji:RelativeAltitude": "+60.10",
+             "drone-dji:GimbalRollDegree": "+0.00", "drone-dji:GimbalYawDegree": "-12.30",
+             "drone-dji:GimbalPitchDegree": "-89.90", "drone-dji:FlightRollDegree": "+1.20",
+             "drone-dji:FlightYawDegree": "-12.50", "drone-dji:FlightPitchDegree": "-3.40",
+             "drone-dji:RtkFlag": "50", **({"drone-dji:CaptureUUID": cap_uuid} if cap_uuid else {})}
+    return ('<?xpacket begin="" id="W5M0MpCehiHzreSzNTczkc9d"?><x:xmpmeta xmlns:x="adobe:ns:meta/">'
+            '<rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#"><rdf:Description rdf:about="" '
+            'xmlns:tiff="http://ns.adobe.com/tiff/1.0/" xmlns:drone-dji="http://www.dji.com/drone-dji/1.0/" '
+            f'tiff:Make="DJI" tiff:Model="{d["model"]}" '
+            + " ".join(f'{k}="{v}"' for k, v in attrs.items())
+            + '/></rdf:RDF></x:xmpmeta><?xpacket end="w"?>')
+
+
+def dji_card(folder: Path) -> Path:
+    """A P4 Multispectral SD card as the drone writes it: ``folder/DCIM/100MEDIA/`` holding two
+    captures, each the RGB camera's ``DJI_00N0.JPG`` (:func:`dji_rgb_jpeg`: EXIF with a
+    thumbnail, maker note and GPS) and the five band files ``DJI_00N1.TIF .. DJI_00N5.TIF``
+    (:func:`dji_p4m`: DJI's documented tags). Returns ``folder`` (the card's root)."""
+    media = dji_p4m(folder / "DCIM" / "100MEDIA")
+    for c, cap in enumerate(CAPTURES, start=1):
+        dji_rgb_jpeg(media / f"DJI_00{c}0.JPG", stamp=f"2024:05:20 10:12:{30 + c:02d}", cap_uuid=f"dji-capture-{cap}")
     return folder

@@ -51,7 +51,14 @@ from pipeline.apply.flight import (
     software_versions,
     write_run_record,
 )
-from pipeline.ingest.camera_meta import METADATA_READING, Capture, capture_folder_of, capture_pattern, group_captures
+from pipeline.ingest.camera_meta import (
+    METADATA_READING,
+    Capture,
+    capture_folder_of,
+    capture_pattern,
+    companion_images,
+    group_captures,
+)
 from pipeline.ingest.catalog import Camera, Index
 from pipeline.ingest.photo_tags import CameraOptics, read_optics
 from pipeline.ingest.raw import DN_MEDIAN, DN_MEDIAN_ATTRS, raw_codec
@@ -94,13 +101,16 @@ def find_captures(folder: str | Path, camera: Camera) -> CaptureFolder:
     pattern = capture_pattern(camera)
     dirs: list[Path] = []
     skipped: list[dict[str, str]] = []
-    for p in sorted(folder.rglob("*")):
-        if p.is_dir() or any(part.startswith(".") for part in p.relative_to(folder).parts):
-            continue
+    files = [p for p in sorted(folder.rglob("*"))
+             if not p.is_dir() and not any(part.startswith(".") for part in p.relative_to(folder).parts)]
+    companions = companion_images(files, camera)  # the camera's own other images (DJI's RGB JPEGs)
+    for p in files:
         if pattern.match(p.name):
             d = capture_folder_of(p, camera)  # a folder_per_band camera's session folder
             if d not in dirs:
                 dirs.append(d)
+        elif p in companions:
+            skipped.append({"file": str(p.relative_to(folder)), "reason": companions[p]})
         elif p.name.lower() not in _IGNORED_NAMES and p.name not in (RUN_JSON,):
             skipped.append({"file": str(p.relative_to(folder)),
                             "reason": f"not a capture file of {camera.name} (names matching {pattern.pattern})"})

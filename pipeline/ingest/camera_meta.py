@@ -49,7 +49,7 @@ from mscal_core.factory import (
 )
 
 from pipeline.ingest.catalog import sample_shift
-from pipeline.ingest.exif import EXIF_CODES, dms_to_degrees, exposure_time, rational, signed_gps
+from pipeline.ingest.exif import EXIF_CODES, dms_to_degrees, exifread_tags, exposure_time, rational, signed_gps
 from pipeline.ingest.xmp import TagError, TagProblem, Xmp, jpeg_xmp_packet, legacy_properties, parse_numbers
 
 if TYPE_CHECKING:
@@ -177,13 +177,29 @@ def xmp_properties(packet: bytes | str, path: Path | str) -> dict[str, Any]:
 
 
 def _gps(gps: dict[str, Any]) -> tuple[float | None, float | None, float | None]:
+    """``(lat, lon, alt_m)`` of a GPS IFD (None: not written); ``ValueError`` when a latitude
+    or longitude is written but is not a number (a zero denominator: NaN). An altitude that
+    is not a number is left out."""
     has_pos = "GPSLatitude" in gps and "GPSLongitude" in gps
-    return signed_gps(
+    lat, lon, alt = signed_gps(
         dms_to_degrees(gps["GPSLatitude"]) if has_pos else None, gps.get("GPSLatitudeRef"),
         dms_to_degrees(gps["GPSLongitude"]) if has_pos else None, gps.get("GPSLongitudeRef"),
         rational(gps["GPSAltitude"]) if "GPSAltitude" in gps else None,
         gps.get("GPSAltitudeRef") in (1, b"\x01", "1"),
     )
+    if has_pos and not (lat is not None and lon is not None and math.isfinite(lat) and math.isfinite(lon)):
+        raise ValueError("GPSLatitude/GPSLongitude is not a number (a zero denominator?)")
+    return lat, lon, alt if alt is not None and math.isfinite(alt) else None
+
+
+def _int_tag(value: Any, default: int) -> int:
+    """An integer tag (Orientation, ExifImageWidth) as int; ``default`` when it is missing or
+    not one integer (another type, several values, text)."""
+    if isinstance(value, (list, tuple)) and len(value) == 1:
+        value = value[0]
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        return default
+    return int(value)
 
 
 def _time(exif: dict[str, Any], xmp: Xmp) -> str | None:
@@ -195,7 +211,7 @@ def _time(exif: dict[str, Any], xmp: Xmp) -> str | None:
 def _exposure(exif: dict[str, Any], path: Path) -> float:
     if "ExposureTime" not in exif:
         raise FrameError("no EXIF ExposureTime tag", path=path, hint=FIRMWARE_HINT)
-    exposure = rational(exif["ExposureTime"])
+    exposure = _number(exif["ExposureTime"], "EXIF ExposureTime", path)
     _check_exposure(exposure, "EXIF ExposureTime", path)
     return exposure
 
@@ -209,13 +225,25 @@ def _check_exposure(exposure: float, what: str, path: Path) -> None:
         )
 
 
+def _number(value: Any, what: str, path: Path) -> float:
+    """A RATIONAL or number tag as float (:func:`rational`; NaN for a zero denominator), a
+    :class:`FrameError` naming the tag when it is text or another form that is no number."""
+    try:
+        return rational(value)
+    except (TypeError, ValueError, ZeroDivisionError, IndexError, OverflowError):
+        raise FrameError(f"{what} {str(value)[:40]!r} is not a number", path=path, hint=FIRMWARE_HINT) from None
+
+
 def _iso(exif: dict[str, Any], path: Path) -> float:
     iso = exif.get("ISOSpeed") or exif.get("ISOSpeedRatings") or exif.get("PhotographicSensitivity")
     if isinstance(iso, (tuple, list)):
         iso = iso[0] if iso else None
     if not iso:
         raise FrameError("no EXIF ISOSpeed/ISOSpeedRatings tag (the gain)", path=path, hint=FIRMWARE_HINT)
-    return float(iso)
+    value = _number(iso, "EXIF ISO", path)
+    if not (math.isfinite(value) and value > 0):
+        raise FrameError(f"EXIF ISO {value!r} is not a positive number (the gain)", path=path, hint=FIRMWARE_HINT)
+    return value
 
 
 def _exposure_and_gain(exif: dict[str, Any], path: Path) -> tuple[float, float]:
@@ -299,14 +327,14 @@ def read_file_metas(path: str | Path) -> list[CaptureMeta]:
 def meta_from_tags(path: Path, tags: dict[int, Any], shape: tuple[int, int], bits: int) -> CaptureMeta:
     """Build and check a :class:`CaptureMeta` from a TIFF's tag values keyed by tag code."""
     xmp = Xmp.parse(tags[700], path)
-    exif = dict(tags.get(34665) or {})
+    exif = dict(tags[34665]) if isinstance(tags.get(34665), dict) else {}  # an EXIF IFD tifffile could not follow: none
     for name, code in EXIF_CODES.items():  # EXIF tags a camera wrote into IFD0 (Sentera 6X)
         if name not in exif and code in tags:
             exif[name] = tags[code]
     ctx = _Ctx(
-        path=path, xmp=xmp, exif=exif, gps=dict(tags.get(34853) or {}), shape=shape, bits=bits,
-        make=_clean(tags.get(271)), model=_clean(tags.get(272)), software=_clean(tags.get(305)),
-        serial=_clean(exif.get("BodySerialNumber") or tags.get(50735)), orientation=int(tags.get(274) or 1),
+        path=path, xmp=xmp, exif=exif, gps=dict(tags[34853]) if isinstance(tags.get(34853), dict) else {},
+        shape=shape, bits=bits, make=_clean(tags.get(271)), model=_clean(tags.get(272)), software=_clean(tags.get(305)),
+        serial=_clean(exif.get("BodySerialNumber") or tags.get(50735)), orientation=_int_tag(tags.get(274), 1),
         black_tag=tags.get(50714),
     )
     metas = _with_sun_sensor_props(ctx, _dispatch(ctx))
@@ -556,7 +584,7 @@ def _minimal(ctx: _Ctx, band: str, radiometry: str) -> CaptureMeta:
     centi-kelvin DN) or a panchromatic band without a full radiometric model."""
     x = ctx.xmp
     wl = ctx.optional(None, lambda: x.number("CentralWavelength")) or 11000.0
-    exposure = rational(ctx.exif["ExposureTime"]) if "ExposureTime" in ctx.exif else 0.0
+    exposure = _number(ctx.exif["ExposureTime"], "EXIF ExposureTime", ctx.path) if "ExposureTime" in ctx.exif else 0.0
     return CaptureMeta(
         path=ctx.path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=band, wavelength_nm=wl, fwhm_nm=None,
         exposure_s=exposure, gain=1.0, black_levels=(), dark_row_values=None, radiometric_calibration=None,
@@ -575,7 +603,7 @@ def _sequoia(ctx: _Ctx) -> CaptureMeta:
     model = ctx.required("SensorModel", ("Camera",), 3)
     if "FNumber" not in ctx.exif:
         raise FrameError("no EXIF FNumber tag (Parrot's sensor model needs it)", path=path, hint=FIRMWARE_HINT)
-    f_number = rational(ctx.exif["FNumber"])
+    f_number = _number(ctx.exif["FNumber"], "EXIF FNumber", path)
     if not (math.isfinite(f_number) and 0.5 < f_number < 64):
         raise FrameError(f"EXIF FNumber {f_number!r} is not an f-number", path=path)
     poly2d = _radiance_tag(ctx, "VignettingPolynomial2D")
@@ -596,7 +624,8 @@ def _sequoia(ctx: _Ctx) -> CaptureMeta:
 
 #: How band files' metadata are read, in the fingerprints of runs on them: a change here gives
 #: the same files and options other results, so an earlier run is not reused as up to date.
-METADATA_READING = "2026-12-05: exposure times in UTC when the file says so; XMP Albedo panels; 12-bit files by their depth"
+METADATA_READING = ("2026-12-05: exposure times in UTC when the file says so; XMP Albedo panels; 12-bit files by their "
+                    "depth; EXIF values that are none (zero denominators, empty fields) left out")
 
 
 SUNSHINE_RECORD = struct.Struct("<QHHHHfff")  # timestamp us, CH0, CH1, gain index, integration ms, yaw, pitch, roll
@@ -732,9 +761,11 @@ def _read_jpeg(path: Path) -> list[CaptureMeta]:
     packet = jpeg_xmp_packet(data)
     if packet is None:
         raise FrameError("no XMP packet (JPEG APP1 http://ns.adobe.com/xap/1.0/)", path=path, hint=FIRMWARE_HINT)
-    exif, gps = _jpeg_exif(data)
-    width = int(exif.get("ExifImageWidth") or 0)
-    height = int(exif.get("ExifImageLength") or 0)
+    exif, gps = _jpeg_exif(data, path)
+    width = _int_tag(exif.get("ExifImageWidth"), 0)
+    height = _int_tag(exif.get("ExifImageLength"), 0)
+    if not (0 < width <= 1 << 16 and 0 < height <= 1 << 16):  # a JPEG is at most 65535 pixels a side
+        width = height = 0
     if not (width and height):
         import cv2
 
@@ -745,26 +776,28 @@ def _read_jpeg(path: Path) -> list[CaptureMeta]:
     ctx = _Ctx(
         path=path, xmp=Xmp.parse(packet, path), exif=exif, gps=gps, shape=(height, width), bits=8,
         make=_clean(exif.get("Make")), model=_clean(exif.get("Model")), software=_clean(exif.get("Software")),
-        serial=_clean(exif.get("BodySerialNumber")), orientation=int(exif.get("Orientation") or 1), black_tag=None,
+        serial=_clean(exif.get("BodySerialNumber")), orientation=_int_tag(exif.get("Orientation"), 1), black_tag=None,
     )
     return _with_sun_sensor_props(ctx, _dispatch(ctx))
 
 
-def _jpeg_exif(data: bytes) -> tuple[dict[str, Any], dict[str, Any]]:
-    """A JPEG's EXIF and GPS tags (exifread), named and shaped as tifffile gives a TIFF's."""
+def _jpeg_exif(data: bytes, path: Path | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A JPEG's EXIF and GPS tags, named and shaped as tifffile gives a TIFF's
+    (:func:`pipeline.ingest.exif.exifread_tags`: what is not a value -- the thumbnail, a maker
+    note, an empty field, a zero denominator -- is left out). IFD0 and the EXIF IFD make one
+    dict (the EXIF IFD's tag wins), the GPS IFD the other. EXIF that exifread cannot parse
+    raises :class:`FrameError`; a JPEG without EXIF gives two empty dicts."""
     import io
 
-    import exifread
-
+    try:
+        tags = exifread_tags(io.BytesIO(data))
+    except Exception as exc:  # noqa: BLE001 (exifread raises a zoo of errors on corrupt EXIF)
+        raise FrameError(f"EXIF unreadable ({type(exc).__name__}: {str(exc)[:80]})", path=path,
+                         hint="copy the file again from the camera's card") from None
     exif: dict[str, Any] = {}
     gps: dict[str, Any] = {}
-    for key, tag in exifread.process_file(io.BytesIO(data), details=False).items():
+    for key, value in tags.items():  # IFD0's, then the EXIF IFD's, then the GPS IFD's
         group, _, name = key.partition(" ")
-        value = tag.values
-        if isinstance(value, list) and len(value) == 1 and name not in ("GPSLatitude", "GPSLongitude"):
-            value = value[0]
-        if isinstance(value, str):
-            value = value.strip()
         name = name.replace("SubSecTime", "SubsecTime")  # exifread's spelling -> tifffile's
         (gps if group == "GPS" else exif)[name] = value
     return exif, gps
@@ -785,14 +818,44 @@ def sibling_position(folder: Path, capture: str) -> tuple[float, float, float | 
         if not path.is_file():
             continue
         try:
-            _, gps = _jpeg_exif(path.read_bytes())
+            _, gps = _jpeg_exif(path.read_bytes(), path)
             lat, lon, alt = _gps(gps)
-        except (OSError, TypeError, ValueError, ZeroDivisionError, IndexError, KeyError):
+        except (OSError, FrameError, TypeError, ValueError, ZeroDivisionError, IndexError, KeyError):
             return None
         if lat is None or lon is None or not (math.isfinite(lat) and math.isfinite(lon)) or (lat, lon) == (0.0, 0.0):
             return None
         return lat, lon, alt
     return None
+
+
+#: Images a camera saves beside its band files that are not band files, by catalog camera:
+#: the file-name pattern (group ``capture``: the capture the image belongs to, as the camera's
+#: ``capture_pattern`` names it in its band files) and why the image is left out. The P4
+#: Multispectral numbers the six files of a capture as one: its RGB camera's ``DJI_XXX0.JPG``,
+#: then the band files ``DJI_XXX1.TIF`` .. ``DJI_XXX5.TIF``.
+COMPANION_IMAGES: dict[str, tuple[str, str]] = {
+    "dji-p4-multispectral": (r"(?i)^DJI_(?P<capture>[0-9]+)0\.jpe?g$",
+                             "RGB camera image of the DJI P4 Multispectral (not a band file)"),
+}
+
+
+def companion_images(files: Sequence[Path], camera: Camera) -> dict[Path, str]:
+    """Of ``files``, the images ``camera`` saves with its band files (:data:`COMPANION_IMAGES`)
+    whose capture has band files among ``files`` in the same folder, with why each is left
+    out of the captures. A file only named like one (no band file of its capture beside it)
+    is not one."""
+    entry = COMPANION_IMAGES.get(camera.name)
+    if entry is None:
+        return {}
+    companion, reason = re.compile(entry[0]), entry[1]
+    bands = capture_pattern(camera)
+    captures = {(p.parent, m["capture"]) for p in files if (m := bands.match(p.name)) is not None}
+    out = {}
+    for p in files:
+        m = companion.match(p.name)
+        if m is not None and not bands.match(p.name) and (p.parent, m["capture"]) in captures:
+            out[p] = reason
+    return out
 
 
 def _sentera(ctx: _Ctx) -> list[CaptureMeta]:

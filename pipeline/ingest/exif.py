@@ -4,6 +4,8 @@
   denominator) as read by tifffile (``(num, den)`` tuples, or GPS triples flattened to
   ``(n, d, n, d, n, d)``) or by exifread (``Ratio`` objects with ``.num`` / ``.den``), and
   written back (:func:`to_rational`).
+* exifread's tags shaped as tifffile gives a TIFF's (:func:`exifread_tags`), what is not a
+  value (the thumbnail's bytes, maker notes, empty fields, zero denominators) left out.
 * GPS positions as degrees, minutes, seconds (``GPSLatitude``, ``GPSLongitude``: three
   RATIONALs, section 4.6.6) to and from decimal degrees, with the signs from the reference
   tags (``S``, ``W``, ``GPSAltitudeRef`` 1 = below sea level).
@@ -37,12 +39,15 @@ EXIF_CODES = {
 }
 
 __all__ = [
+    "EXIFREAD_GROUPS",
     "EXIF_CODES",
     "NAT",
     "U32",
     "degrees_to_dms",
     "dms_to_degrees",
     "exif_time_utc",
+    "exifread_tags",
+    "exifread_value",
     "exposure_time",
     "parse_iso",
     "rational",
@@ -102,6 +107,68 @@ def to_rational(v: Any) -> tuple[int, int]:
     if not (0 <= n <= U32 and 0 < d <= U32):
         raise ValueError(f"value {v!r} does not fit an unsigned TIFF RATIONAL")
     return int(n), int(d)
+
+
+# --------------------------------------------------------------------------- exifread
+
+#: The IFDs whose tags mscal reads, by exifread's key prefix: IFD0, the EXIF IFD, the GPS IFD
+#: (in this order: a tag of the EXIF IFD wins over IFD0's). The thumbnail's IFD1,
+#: Interoperability, sub-IFDs and maker notes are not read.
+EXIFREAD_GROUPS = ("Image", "EXIF", "GPS")
+_UNDEFINED = 7  # EXIF field type UNDEFINED: bytes, as tifffile gives them
+_BLOBS = frozenset({"MakerNote", "UserComment", "PrintIM"})  # vendor data, never a value mscal reads
+
+
+def exifread_value(name: str, tag: Any) -> Any:
+    """An exifread tag's value shaped as tifffile gives it, or None when it is not a value
+    mscal can use: not a tag (``JPEGThumbnail``/``TIFFThumbnail`` are the thumbnail's bytes),
+    a maker note or other vendor blob, a tag exifread does not name, an empty list or text
+    (count 0, or exifread's empty list for a long field), or a RATIONAL with a zero
+    denominator (``0/0``: unknown). Text is stripped (bytes that are not UTF-8 read as
+    Latin-1), UNDEFINED fields are bytes, FLOAT/DOUBLE items floats, RATIONALs exifread's
+    ``Ratio`` (``num``/``den``: :func:`rational`); a one-item list is its item (GPS degrees,
+    minutes, seconds stay a list)."""
+    values = getattr(tag, "values", None)
+    if values is None or name in _BLOBS or name.startswith("Tag 0x"):
+        return None
+    if isinstance(values, (bytes, bytearray)):
+        values = bytes(values).split(b"\x00", 1)[0].decode("latin-1")
+    if isinstance(values, str):
+        return values.strip().strip("\x00").strip() or None
+    if not isinstance(values, list) or not values:
+        return None
+    if getattr(tag, "field_type", None) == _UNDEFINED:
+        try:
+            return bytes(values)
+        except (TypeError, ValueError):
+            return None
+    items = []
+    for v in values:
+        if isinstance(v, tuple):  # FLOAT/DOUBLE: exifread keeps struct.unpack's 1-tuple
+            v = v[0] if len(v) == 1 else None
+        if v is None or (hasattr(v, "den") and not v.den):
+            return None
+        items.append(v)
+    if len(items) == 1 and name not in ("GPSLatitude", "GPSLongitude"):
+        return items[0]
+    return items
+
+
+def exifread_tags(fh: Any) -> dict[str, Any]:
+    """The EXIF tags of an open file (JPEG or TIFF) by exifread's keys (``Image Make``,
+    ``EXIF ExposureTime``, ``GPS GPSLatitude``), of :data:`EXIFREAD_GROUPS` only, in that
+    order, each value :func:`exifread_value` (tags that are no value left out). exifread's
+    own exceptions on a corrupt file are the caller's to catch."""
+    import exifread
+
+    tags = exifread.process_file(fh, details=False)
+    out: dict[str, Any] = {}
+    for group in EXIFREAD_GROUPS:
+        for key, tag in tags.items():
+            head, _, name = key.partition(" ")
+            if head == group and (value := exifread_value(name, tag)) is not None:
+                out[key] = value
+    return out
 
 
 # --------------------------------------------------------------------------- GPS

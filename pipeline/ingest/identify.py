@@ -17,7 +17,7 @@ from pathlib import Path
 
 from mscal_core.errors import FrameError, InputError
 
-from pipeline.ingest.camera_meta import CaptureMeta, read_file_metas
+from pipeline.ingest.camera_meta import COMPANION_IMAGES, CaptureMeta, companion_images, read_file_metas
 from pipeline.ingest.catalog import Camera, list_entries, load_camera
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".jpg", ".jpeg")
@@ -31,6 +31,7 @@ class Probe:
     folder: Path
     metas: list[CaptureMeta] = field(default_factory=list)
     unreadable: list[tuple[Path, str]] = field(default_factory=list)
+    skipped: list[tuple[Path, str]] = field(default_factory=list)  # a camera's other images (DJI's RGB JPEGs)
     cut: Path | None = None  # the last file read when the folder had more: its capture may be partial
 
     def captures(self) -> list[list[CaptureMeta]]:
@@ -74,12 +75,19 @@ def probe_folder(folder: str | Path, limit: int = PROBE_FILES) -> Probe:
     """Read the metadata of the folder's first ``limit`` image files: its own, then (an SD
     card's ``0000SET/000/``) those of the folders below it, by depth, then name, then folder
     (hidden folders left out): files of one name in sibling folders (a Sentera 6X session's
-    band folders) are read together."""
+    band folders) are read together. The images a catalog camera saves beside its band files
+    (a DJI P4 Multispectral's RGB ``DJI_XXX0.JPG``: :func:`companion_images`) are not read,
+    but named in ``Probe.skipped``."""
     folder = Path(folder)
     probe = Probe(folder)
     files = sorted((p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES
                     and not any(part.startswith(".") for part in p.relative_to(folder).parts)),
                    key=lambda p: (len(p.relative_to(folder).parts), p.name, p))
+    others: dict[Path, str] = {}
+    for name in sorted(set(COMPANION_IMAGES) & set(list_entries("cameras"))):
+        others.update(companion_images(files, load_camera(name)))
+    probe.skipped = [(p, others[p]) for p in files if p in others]
+    files = [p for p in files if p not in others]
     if len(files) > limit:
         probe.cut = files[limit - 1]
     for path in files[:limit]:
@@ -222,6 +230,17 @@ def _folder_camera(d: Path, camera: str | None, lines: list[str]) -> Identificat
         return None
 
 
+def _other_images(d: Path, camera: Camera) -> list[str]:
+    """Lines naming the images ``camera`` saves in folder ``d`` beside its band files
+    (:func:`companion_images`: a DJI P4 Multispectral's RGB JPEGs), left out of the captures."""
+    others = companion_images(sorted(p for p in d.iterdir() if p.is_file()), camera)
+    lines = []
+    for why in sorted(set(others.values())):
+        names = sorted(p.name for p, w in others.items() if w == why)
+        lines.append(f"  skipped {len(names)} file(s), {why}: {', '.join(names[:3])}{' ...' if len(names) > 3 else ''}")
+    return lines
+
+
 def describe_folders(folder: str | Path, camera: str | None = None) -> list[str]:
     """Lines for ``mscal cameras FOLDER``: per folder holding image files (FOLDER and its
     subfolders), the camera and why, the captures, bands, features, and problems."""
@@ -245,6 +264,7 @@ def describe_folders(folder: str | Path, camera: str | None = None) -> list[str]
         caps, problems = group_captures(d, cam)
         lines.append(f"  camera: {cam.name} ({cam.description}); {ident.evidence}")
         lines.append(f"  captures: {len(caps)} complete, {len(problems)} quarantined")
+        lines += _other_images(d, cam)
         for q in problems[:5]:
             lines.append(f"    quarantined {Path(q['file']).name}: {q['reason']}")
         if caps:

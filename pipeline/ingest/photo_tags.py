@@ -28,7 +28,7 @@ from typing import Any
 
 from mscal_core.errors import FrameError
 
-from pipeline.ingest.exif import rational
+from pipeline.ingest.exif import exifread_tags, rational
 from pipeline.ingest.xmp import Xmp, jpeg_xmp_packet
 
 __all__ = ["CameraOptics", "XMP_LENS_TAGS", "optics_from_intrinsics", "read_optics"]
@@ -110,12 +110,6 @@ def _positive(value: Any) -> float | None:
     return v if math.isfinite(v) and v > 0 else None
 
 
-def _exif_tags(fh: Any) -> dict[str, Any]:
-    import exifread
-
-    return exifread.process_file(fh, details=False)
-
-
 def read_optics(path: str | Path) -> CameraOptics:
     """The optics tags of one band file (TIFF or JPEG); empty :class:`CameraOptics` where it
     has none. A TIFF's pixels are not read (its EXIF IFD and tag 700 only)."""
@@ -132,12 +126,14 @@ def read_optics(path: str | Path) -> CameraOptics:
                 packet = None if tag is None else tag.value
             data = None
         if data is not None:
-            exif = _exif_tags(io.BytesIO(data))
+            exif = exifread_tags(io.BytesIO(data))
         else:
             with path.open("rb") as fh:
-                exif = _exif_tags(fh)
-    except (OSError, ValueError, IndexError) as exc:
-        raise FrameError(f"cannot read the file's tags ({type(exc).__name__}: {exc})", path=path) from None
+                exif = exifread_tags(fh)
+    except FrameError:
+        raise
+    except Exception as exc:  # noqa: BLE001 (OSError, tifffile's errors, exifread's zoo on corrupt EXIF)
+        raise FrameError(f"cannot read the file's tags ({type(exc).__name__}: {str(exc)[:80]})", path=path) from None
     unit = exif.get("EXIF FocalPlaneResolutionUnit")
     rx, ry = _positive(exif.get("EXIF FocalPlaneXResolution")), _positive(exif.get("EXIF FocalPlaneYResolution"))
     f35 = _positive(exif.get("EXIF FocalLengthIn35mmFilm"))
@@ -155,7 +151,7 @@ def read_optics(path: str | Path) -> CameraOptics:
         f_number=_positive(exif.get("EXIF FNumber")),
         focal_length_mm=_positive(exif.get("EXIF FocalLength")),
         focal_plane_resolution=(rx, ry or rx) if rx is not None else None,
-        focal_plane_unit=int(unit.values[0]) if unit is not None and unit.values else None,
+        focal_plane_unit=unit if isinstance(unit, int) and not isinstance(unit, bool) else None,
         focal_length_35mm=None if f35 is None else int(round(f35)),
         xmp=tuple(xmp_pairs),
     )

@@ -27,7 +27,15 @@ from pipeline.ingest.catalog import (
     read_yaml,
     show_key,
 )
-from pipeline.ingest.exif import dms_to_degrees, exif_time_utc, parse_iso, rational, signed_gps, utc_naive
+from pipeline.ingest.exif import (
+    dms_to_degrees,
+    exif_time_utc,
+    exifread_tags,
+    parse_iso,
+    rational,
+    signed_gps,
+    utc_naive,
+)
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
 FRAMES_CSV = "frames.csv"
@@ -228,7 +236,7 @@ def load_session(root: str | Path) -> Session:
     if not isinstance(data, dict):
         raise SessionError("must be a YAML mapping (camera, intrinsics, reflector, marker)", path=path)
     try:
-        check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes", "panel"}, path, "session.yaml")
+        check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes", "panel", "serial"}, path, "session.yaml")
     except MscalError as exc:
         raise SessionError(exc.reason, path=path, hint=exc.hint) from None
     try:
@@ -523,15 +531,15 @@ def _parse_time(text: str, csv_path: Path, line: int) -> str | None:
 
 
 def exif_record(path: Path) -> FrameRecord:
-    """A :class:`FrameRecord` from a file's EXIF tags (ExposureTime, ISO, GPS, DateTimeOriginal)."""
-    import exifread
-
+    """A :class:`FrameRecord` from a file's EXIF tags (ExposureTime, ISO, GPS, DateTimeOriginal),
+    each as :func:`pipeline.ingest.exif.exifread_tags` gives it (what is not a value left out);
+    a position that is no number is left out, an exposure that is none raises."""
     try:
         with path.open("rb") as fh:
-            tags = exifread.process_file(fh, details=False)
+            tags = exifread_tags(fh)
     except OSError as exc:
         raise FrameError(f"cannot read: {exc.strerror}", path=path) from None
-    except Exception:  # exifread raises a zoo of errors on corrupt files
+    except Exception:  # noqa: BLE001 (exifread raises a zoo of errors on corrupt files)
         tags = {}
     exp = tags.get("EXIF ExposureTime")
     if exp is None:
@@ -541,18 +549,28 @@ def exif_record(path: Path) -> FrameRecord:
             hint="add a row 'file,exposure_ms' for it to frames.csv",
         )
     iso = tags.get("EXIF ISOSpeedRatings")
-    gain = float(iso.values[0]) / 100.0 if iso is not None and iso.values and iso.values[0] else 1.0
+    try:
+        exposure_s = rational(exp)
+        gain = rational(iso) / 100.0 if iso else 1.0
+    except (TypeError, ValueError, ZeroDivisionError, IndexError, OverflowError):
+        raise FrameError(f"EXIF ExposureTime {str(exp)[:40]!r} or ISOSpeedRatings {str(iso)[:40]!r} is not a number",
+                         path=path, hint="add a row 'file,exposure_ms' for it to frames.csv") from None
     has_pos = "GPS GPSLatitude" in tags and "GPS GPSLongitude" in tags
-    ref = tags.get("GPS GPSAltitudeRef")
-    lat, lon, alt = signed_gps(
-        dms_to_degrees(tags["GPS GPSLatitude"]) if has_pos else None, tags.get("GPS GPSLatitudeRef"),
-        dms_to_degrees(tags["GPS GPSLongitude"]) if has_pos else None, tags.get("GPS GPSLongitudeRef"),
-        rational(tags["GPS GPSAltitude"]) if "GPS GPSAltitude" in tags else None,
-        ref is not None and bool(ref.values) and ref.values[0] == 1,
-    )
-    offset = tags.get("EXIF OffsetTimeOriginal")
-    time = exif_time_utc(tags.get("EXIF DateTimeOriginal"), offset=None if offset is None else offset.values)
-    rec = FrameRecord(path=path, exposure_ms=rational(exp) * 1000.0, gain=gain, time=time, lat=lat, lon=lon, alt_m=alt)
+    try:
+        lat, lon, alt = signed_gps(
+            dms_to_degrees(tags["GPS GPSLatitude"]) if has_pos else None, tags.get("GPS GPSLatitudeRef"),
+            dms_to_degrees(tags["GPS GPSLongitude"]) if has_pos else None, tags.get("GPS GPSLongitudeRef"),
+            rational(tags["GPS GPSAltitude"]) if "GPS GPSAltitude" in tags else None,
+            tags.get("GPS GPSAltitudeRef") in (1, b"\x01"),
+        )
+    except (TypeError, ValueError, ZeroDivisionError, IndexError, OverflowError):
+        lat = lon = alt = None
+    if lat is None or lon is None or not (math.isfinite(lat) and math.isfinite(lon)):
+        lat = lon = None
+    if alt is not None and not math.isfinite(alt):
+        alt = None
+    time = exif_time_utc(tags.get("EXIF DateTimeOriginal"), offset=tags.get("EXIF OffsetTimeOriginal"))
+    rec = FrameRecord(path=path, exposure_ms=exposure_s * 1000.0, gain=gain, time=time, lat=lat, lon=lon, alt_m=alt)
     _check_exposure(rec, path)
     return rec
 
