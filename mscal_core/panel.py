@@ -34,10 +34,12 @@ from .factory import polygon_mask
 
 __all__ = [
     "PanelDetection",
+    "QR_UPSCALE",
     "detect_panel",
     "order_corners",
     "panel_from_marker",
     "polygon_iou",
+    "qr_serial",
     "sample_quad",
     "shrink_polygon",
 ]
@@ -421,3 +423,94 @@ def inset_square(inset: float = DEFAULT_INSET) -> np.ndarray:
         ``(4, 2)`` panel coordinates.
     """
     return shrink_polygon(_UNIT.astype(np.float64), inset)
+
+
+# --------------------------------------------------------------------------- the panel's QR code
+
+#: Percentiles between which a band is stretched to 8 bits for QR decoding: robust to a few
+#: hot or clipped pixels and to the 12-bit-in-16 storage of the band files.
+QR_STRETCH_PERCENTILES = (0.5, 99.5)
+#: Second try of a band whose QR code was located but not read: the image enlarged this much.
+QR_UPSCALE = 2
+
+
+def _qr_u8(image: np.ndarray) -> np.ndarray:
+    """Stretch a band linearly to uint8 between its :data:`QR_STRETCH_PERCENTILES`.
+
+    The percentiles are taken on every other pixel of every other row (the same values, a
+    quarter of the work).
+    """
+    img = np.asarray(image)
+    lo, hi = (float(v) for v in np.percentile(img[::2, ::2], QR_STRETCH_PERCENTILES))
+    if not hi > lo:
+        return np.zeros(img.shape, dtype=np.uint8)
+    scaled = (img.astype(np.float32) - np.float32(lo)) * np.float32(255.0 / (hi - lo))
+    return np.clip(scaled, 0.0, 255.0).astype(np.uint8)
+
+
+def _qr_read(detector: cv2.QRCodeDetector, u8: np.ndarray) -> tuple[str, bool]:
+    """Read a QR code: its text ('' when none is read) and whether one was located at all."""
+    try:
+        text, points, _ = detector.detectAndDecode(u8)
+    except cv2.error:
+        return "", False
+    return (text or "").strip(), points is not None
+
+
+def qr_serial(bands: Sequence[np.ndarray], give_up_after: int | None = 3) -> str | None:
+    """Return the text of the QR code seen in a capture's band images, or None.
+
+    On a calibrated reflectance panel it is the panel's serial number (``RP02-1603036-SC`` on
+    MicaSense's sample panel), which names its reflectance (a catalog target).
+
+    Method, per band in order: the image is stretched linearly to uint8 between its 0.5th
+    and 99.5th percentiles, ``u8 = clip(255 (I - p0.5) / (p99.5 - p0.5), 0, 255)`` (12-bit
+    data in 16-bit samples and a dark scene around a bright panel both fill the 8 bits), and
+    OpenCV's ``QRCodeDetector.detectAndDecode`` reads it. A band whose code is located but not
+    read is tried again enlarged :data:`QR_UPSCALE` times (bilinear), which reads codes only a
+    few pixels per module across. The answer is the text read in most bands (a majority vote:
+    QR codes carry error correction, so a wrong text is rare, but two texts read equally often
+    give None). Reading stops once one text holds a majority of all the bands.
+
+    Cost: about 25 ms per 1280 x 960 band. A capture without a code (a flight capture) stops
+    after ``give_up_after`` bands in a row in which no code was even located (None: every
+    band is tried).
+
+    Parameters
+    ----------
+    bands : sequence of 2-D arrays
+        The capture's band images (any numeric type: stored DN are fine).
+    give_up_after : int or None
+        Bands in a row without a located code after which a capture with nothing read yet is
+        taken to show no code.
+
+    Returns
+    -------
+    str or None
+        The decoded text, stripped of surrounding whitespace, or None.
+    """
+    detector = cv2.QRCodeDetector()
+    votes: dict[str, int] = {}
+    misses = 0
+    for image in bands:
+        img = np.asarray(image)
+        if img.ndim != 2 or min(img.shape) < 21:  # a QR code is at least 21 modules a side
+            continue
+        u8 = _qr_u8(img)
+        text, located = _qr_read(detector, u8)
+        if not text and located:
+            big = cv2.resize(u8, None, fx=QR_UPSCALE, fy=QR_UPSCALE, interpolation=cv2.INTER_LINEAR)
+            text, _ = _qr_read(detector, big)
+        if text:
+            votes[text] = votes.get(text, 0) + 1
+            if 2 * votes[text] > len(bands):
+                break
+        misses = 0 if (text or located) else misses + 1
+        if not votes and give_up_after is not None and misses >= give_up_after:
+            break
+    if not votes:
+        return None
+    ranked = sorted(votes.items(), key=lambda kv: kv[1], reverse=True)
+    if len(ranked) > 1 and ranked[0][1] == ranked[1][1]:
+        return None
+    return ranked[0][0]

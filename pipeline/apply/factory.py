@@ -47,8 +47,9 @@ The factory chain runs in the one apply executor (:mod:`pipeline.apply.executor`
   (MicaSense XMP ``Albedo`` with ``CalibrationPicture`` 2 in every band file, as MicaSense's
   own library uses it; each such capture with its own values; run.json
   ``reference.panel_reflectance`` says which; when no panel is found in them, the route it
-  would have taken without them, the reason in ``reference.albedo_panel_unusable``), else the
-  DLS, else none.
+  would have taken without them, the reason in ``reference.albedo_panel_unusable``), or when a
+  panel capture's serial (XMP PanelSerial, else its QR code) is a catalog target's
+  (:mod:`pipeline.apply.panel_search`; run.json ``reference.panel_serial``), else the DLS, else none.
 
 Frames stored turned (EXIF Orientation; Sequoia: 180 degrees) are turned upright in every
 output, raw.zarr included, after the band registration (run.json ``orientation``).
@@ -103,6 +104,15 @@ from pipeline.apply.flight import (
     previous_run,
 )
 from pipeline.apply.panel import PanelBand, panel_factors
+from pipeline.apply.panel_search import (
+    PANEL_SCAN_ALL,
+    PANEL_SEARCH,
+    PanelSerial,
+    find_panel_serial,
+    panel_candidates,
+    panels_seen,
+    seen_record,
+)
 from pipeline.apply.sunlight import PanelSensorLight, check_times, light_warnings, panel_sensor_light, readings_missing
 from pipeline.ingest.camera_meta import (
     FACTORY_ALIGNMENT_NOTE,
@@ -120,13 +130,11 @@ from pipeline.ingest.catalog import Camera, load_index, reflectance_option
 from pipeline.ingest.identify import Identification, identify_camera
 from pipeline.ingest.session import PanelConfig, panel_config_near
 from pipeline.ingest.sunsensor import SensorLight, sensor_light
+from pipeline.ingest.targets import serial_targets_digest
 
 FACTORY = "factory"
 REFERENCES = ("auto", "panel", "dls", "panel-dls")  # + "none" (radiance only) when auto finds no usable sun sensor
-PANEL_SEARCH = 3  # captures at each end of the folder searched for a panel when none is named
-PANEL_SCAN_ALL = 50  # folders of at most this many captures are searched whole (panels mixed with the flight)
 LIGHT_MODEL = "issue22: sun sensor turned horizontal; panel-dls; one panel region for all bands"
-PANEL_SEEN_SIDE = 1280  # px: panels_seen searches bigger images decimated to this (RedEdge size)
 PANEL_GRID = 32  # cells per side of the panel grid for the S/B split (Eq. 11-14)
 FIELD_COMPONENTS = ("response", "vignetting")  # store variables: inverse_response, vignetting
 ALBEDO_SOURCE = "XMP Albedo of each panel capture's band files (the camera's reading of the panel's QR code)"
@@ -309,44 +317,48 @@ def _albedo_panels(found: Sequence[Capture], named: Sequence[str], folder: Path,
 
 
 def _reference_panels(options: FactoryOptions, reference: str, captures: Sequence[Capture], folder: Path,
-                      parts: Sequence[FieldParts | None] | None, config: PanelConfig | None
-                      ) -> tuple[str, list[PanelReference], str | None, str | None]:
+                      parts: Sequence[FieldParts | None] | None, config: PanelConfig | None,
+                      serial: PanelSerial | None = None) -> tuple[str, list[PanelReference], str | None, str | None]:
     """The panels of a panel route: ``(route, panels, where rho came from, why the camera's own
     panel could not be used)``. rho from ``--panel-reflectance``, else from the panel captures'
-    XMP Albedo (:func:`albedo_captures`); when ``auto`` chose the camera's panel on its own and
-    it cannot be used, the route falls back to the sun sensor (or none) with the reason."""
+    XMP Albedo (:func:`albedo_captures`), else from the target of the panel's ``serial``
+    (:func:`pipeline.apply.panel_search.find_panel_serial`); when ``auto`` chose the panel on
+    its own and it cannot be used, the route falls back to the sun sensor (or none) with the reason."""
     if reference not in ("panel", "panel-dls"):
         return reference, [], None, None
-    if options.panel_reflectance is not None:
-        spec = reflectance_option(options.panel_reflectance)
+    fallback = "none" if sun_sensor_missing(captures) is not None else "dls"
+    found = [] if options.panel_reflectance is not None else albedo_captures(captures, options.panel_captures)
+    if options.panel_reflectance is not None or (not found and serial is not None and serial.target is not None):
+        name = options.panel_reflectance or serial.target.name  # type: ignore[union-attr]
+        spec = reflectance_option(name)
         rho = [float(r) for r in spec.at(np.array([m.wavelength_nm for m in captures[0].metas]))]
-        return (reference, _find_panels(captures, options.panel_captures, rho, folder, parts, config),
-                f"--panel-reflectance {options.panel_reflectance}", None)
-    found = albedo_captures(captures, options.panel_captures)
+        try:
+            return (reference, _find_panels(captures, options.panel_captures, rho, folder, parts, config),
+                    f"--panel-reflectance {name}" if options.panel_reflectance else serial.rho_source, None)  # type: ignore[union-attr]
+        except InputError as exc:
+            if options.panel_reflectance is not None or options.reference != "auto" or options.panel_captures:
+                raise
+            return fallback, [], None, f"{Path(exc.path).name if exc.path else folder.name}: {exc.reason}"
     if found:  # the camera read the panel's QR code
         try:
             return reference, _albedo_panels(found, options.panel_captures, folder, parts, config), ALBEDO_SOURCE, None
         except InputError as exc:
             if options.reference != "auto" or options.panel_captures:
                 raise
-            why = f"{Path(exc.path).name if exc.path else folder.name}: {exc.reason}"
-            return ("none" if sun_sensor_missing(captures) is not None else "dls"), [], None, why
+            return fallback, [], None, f"{Path(exc.path).name if exc.path else folder.name}: {exc.reason}"
     where = ("the --panel capture(s) do not all carry" if options.panel_captures
              else "no panel capture in the folder carries")
+    known = "" if serial is None or serial.serial is None else f"; {serial.where} is in no catalogs/targets file"
     raise InputError(f"--reference {reference} needs --panel-reflectance (a number or a target name); {where} the "
-                     "camera's XMP Albedo with CalibrationPicture 2",
+                     f"camera's XMP Albedo with CalibrationPicture 2{known}",
                      hint="e.g. --panel-reflectance micasense-rp02-1603036-sc")
 
 
-def panel_candidates(captures: Sequence[Capture]) -> list[Capture]:
-    """Captures searched for a panel when none is named, in folder order: all of them in a
-    folder of at most :data:`PANEL_SCAN_ALL` captures (panels before, during and after the
-    flight, mixed with it); else the first and last :data:`PANEL_SEARCH` and every capture the
-    camera flagged as a panel capture (an XMP ``ReflectArea`` in one of its bands)."""
-    if len(captures) <= PANEL_SCAN_ALL:
-        return list(captures)
-    ends = {c.name for c in list(captures[:PANEL_SEARCH]) + list(captures[-PANEL_SEARCH:])}
-    return [c for c in captures if c.name in ends or any(m.reflect_area for m in c.metas)]
+def serial_wanted(options: FactoryOptions, captures: Sequence[Capture]) -> bool:
+    """Whether the panel's serial can choose the reference: a panel route (``auto`` included)
+    without ``--panel-reflectance`` and no capture with the camera's XMP Albedo."""
+    return (options.reference != "dls" and options.panel_reflectance is None
+            and not albedo_captures(captures, options.panel_captures))
 
 
 # --------------------------------------------------------------------------- the pass
@@ -446,12 +458,20 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         fingerprint["field_sha256"] = field[2]
     if near is not None:
         fingerprint["panel_config"] = {"session_yaml": str(near[1].resolve()), "panel": repr(near[0])}
+    wanted = serial_wanted(options, captures)
+    if wanted:  # the serial is read from the inputs; what its target says is in the catalog
+        fingerprint["panel_serial_targets"] = serial_targets_digest()
     previous = previous_run(Path(out), json.loads(json.dumps(fingerprint)), ("reflectance.zarr", "raw.zarr"))
     if previous is not None:  # before the panels are searched: an up-to-date run reads no pixels
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
 
-    reference, panels, rho_source, albedo_unusable = _reference_panels(
-        options, _route(options, captures), captures, folder, parts, None if near is None else near[0])
+    serial = find_panel_serial(captures, options.panel_captures) if wanted else None
+    reference, panels, rho_source, unusable = _reference_panels(
+        options, _route(options, captures, serial), captures, folder, parts, None if near is None else near[0], serial)
+    by_serial = serial is not None and serial.target is not None and rho_source == serial.rho_source
+    notes = {} if serial is None or options.reference != "auto" else {
+        "albedo": f"no {'--panel ' if options.panel_captures else ''}capture carries XMP Albedo with CalibrationPicture 2",
+        **serial.record(by_serial, unusable)}
     panel_factor = None
     if panels:
         panel_factor = tuple(float(np.mean([p.factor_split[b] for p in panels])) for b in range(camera.n_bands))
@@ -482,7 +502,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                       "comment": "bands aligned to the reference band of the registration store "
                                  "(mscal register); NaN where a band does not cover the reference grid"})
     first = captures[0].metas[0]
-    used = "the camera's XMP Albedo" if rho_source == ALBEDO_SOURCE else "--panel-reflectance"
+    used = {ALBEDO_SOURCE: "the camera's XMP Albedo"}.get(rho_source or "", "the panel's serial" if by_serial
+                                                          else "--panel-reflectance")
     panel_names = {p.capture: f"reflectance panel of the panel route ({used})" for p in panels}
     panel_names.update({name: "a reflectance panel (camera's panel flag, --panel, or detected); not used: "
                               "no --panel-reflectance" for name in unused})
@@ -498,8 +519,9 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                              "reference": {**_reference_record(reference, panels, panel_factor, camera, caps[0], no_sun,
                                                                rho_source),
                                            **({"relative_scale": relative} if relative != 1.0 else {}),
-                                           **({"albedo_panel_unusable": albedo_unusable} if albedo_unusable else {}),
-                                           **_seen_record(seen)},
+                                           **({"albedo_panel_unusable": unusable}
+                                              if unusable and serial is None else {}),
+                                           **seen_record(seen), **notes},
                              "camera_identification": {"evidence": ident.evidence, "overridden": ident.overridden,
                                                        **ident.probe},
                              "radiance_unit": caps[0].metas[0].radiance_unit,
@@ -546,45 +568,6 @@ def _identify(folder: Path, options: FactoryOptions) -> Identification:
     return ident
 
 
-def panels_seen(captures: Sequence[Capture], named: Sequence[str] = ()) -> list[str]:
-    """Captures that show a reflectance panel, for a run that does not use one (exported to
-    ``OUT/panels/``, and named in the summary's hint):
-    those named with ``--panel``, else among the folder's first and last
-    :data:`PANEL_SEARCH` captures those with an XMP ReflectArea, or where a panel is detected
-    (:func:`mscal_core.panel.detect_panel`) in both the first and the last band (one band
-    alone finds a bright roof now and then), decimated to at most :data:`PANEL_SEEN_SIDE`
-    pixels a side. About 0.3 s per capture searched."""
-    from mscal_core.panel import detect_panel
-
-    if named:
-        return list(named)
-    ends = list(captures[:PANEL_SEARCH]) + [c for c in captures[-PANEL_SEARCH:] if c not in captures[:PANEL_SEARCH]]
-    seen = []
-    for c in ends:
-        if any(m.reflect_area for m in c.metas):
-            seen.append(c.name)
-            continue
-        try:
-            _, dns, _ = read_capture_pixels(c)
-        except FrameError:
-            continue
-        k = max(1, math.ceil(max(dns[0].shape[:2]) / PANEL_SEEN_SIDE))  # big images: searched decimated
-        if detect_panel(dns[0][::k, ::k]) is not None and (len(dns) == 1 or detect_panel(dns[-1][::k, ::k]) is not None):
-            seen.append(c.name)
-    return seen
-
-
-def _seen_record(seen: Sequence[str]) -> dict[str, Any]:
-    """run.json ``reference.panels_seen``: panel captures in the folder that the run did not
-    use, and how to use them (the QA report and the command's summary warn of them)."""
-    if not seen:
-        return {}
-    return {"panels_seen": list(seen),
-            "panel_hint": "give --panel-reflectance TARGET (a number, or a target of catalogs/targets such as "
-                          f"micasense-rp02-1603036-sc) to take the reflectance from the panel; --panel {seen[0]} "
-                          "chooses the capture"}
-
-
 #: How to get reflectance when the sun sensor gives none: run.json ``reference.hint`` of a run
 #: without reflectance (the summary's warning) and, with the radiance-only way out, the error
 #: of ``--reference dls``.
@@ -606,14 +589,16 @@ def sun_sensor_missing(captures: Sequence[Capture]) -> tuple[Path, str] | None:
     return meta.path, str(no_reflectance_reason(meta))
 
 
-def _route(options: FactoryOptions, captures: Sequence[Capture]) -> str:
+def _route(options: FactoryOptions, captures: Sequence[Capture], serial: PanelSerial | None = None) -> str:
     """The reference route: as asked, or for ``auto`` the panel when a reflectance is given or
-    a panel capture carries the camera's own (:func:`albedo_captures`), anchoring the sun
-    sensor (``panel-dls``) when the captures have readings; else the sun sensor, else ``none``
-    (radiance only) when no band of any capture has a usable sun-sensor reflectance (Sentera)."""
+    a panel capture carries the camera's own (:func:`albedo_captures`) or shows a serial of a
+    catalog target (``serial``), anchoring the sun sensor (``panel-dls``) when the captures
+    have readings; else the sun sensor, else ``none`` (radiance only) when no band of any
+    capture has a usable sun-sensor reflectance (Sentera)."""
     if options.reference != "auto":
         return options.reference
-    if options.panel_reflectance is not None or albedo_captures(captures, options.panel_captures):
+    if (options.panel_reflectance is not None or albedo_captures(captures, options.panel_captures)
+            or (serial is not None and serial.target is not None)):
         return "panel" if readings_missing(captures) else "panel-dls"
     return "none" if sun_sensor_missing(captures) is not None else "dls"
 

@@ -701,6 +701,7 @@ class Target:
     name: str
     description: str
     reflectance: ReflectanceSpec
+    serials: tuple[str, ...] = ()  # of the panels it describes, as in their QR codes (pipeline.ingest.targets)
 
 
 def load_target(name: str) -> Target:
@@ -709,11 +710,24 @@ def load_target(name: str) -> Target:
 
 
 def parse_target(data: Mapping[str, Any], path: Path) -> Target:
-    check_keys(data, {"name", "description", "reflectance"}, set(), path, "target")
+    check_keys(data, {"name", "description", "reflectance"}, {"serial", "serials"}, path, "target")
     if isinstance(data["reflectance"], str):
         raise CatalogError("a target's reflectance must be a number or a table", path=path)
     spec = parse_reflectance(data["reflectance"], path, "reflectance")
-    return Target(name=str(data["name"]), description=str(data["description"]), reflectance=spec)
+    serials = _parse_serials(data, path)
+    if serials and str(data["name"]) != path.stem:  # found by its serial, used by its file name
+        raise CatalogError(f"name {data['name']!r} must match the file name {path.stem!r}", path=path)
+    return Target(name=str(data["name"]), description=str(data["description"]), reflectance=spec, serials=serials)
+
+
+def _parse_serials(data: Mapping[str, Any], path: Path) -> tuple[str, ...]:  # serial: A / serials: [A, B]
+    many = data.get("serials", [])
+    raw = ([data["serial"]] if "serial" in data else []) + (many if isinstance(many, list) else [None])
+    if not all(isinstance(v, str) and v.strip() for v in raw):
+        raise CatalogError(f"serial {data.get('serial')!r}, serials {data.get('serials')!r}: give serial: TEXT or "
+                           "serials: [TEXT, ...] (non-empty text)", path=path, hint="quote a serial YAML reads as a number")
+    seen: dict[str, str] = {}  # the first spelling of each serial
+    return tuple(seen.setdefault(v.strip().casefold(), v.strip()) for v in raw if v.strip().casefold() not in seen)
 
 
 # --------------------------------------------------------------------------- indices

@@ -23,9 +23,49 @@ def test_every_camera_file_loads(path: Path) -> None:
 
 @pytest.mark.parametrize("path", sorted((ROOT / "targets").glob("*.yaml")), ids=lambda p: p.stem)
 def test_every_target_file_loads(path: Path) -> None:
+    from pipeline.ingest.targets import target_for_serial
+
     t = catalog.load_target(path.stem)
     rho = t.reflectance.at(np.array([450.0, 650.0, 850.0]))
     assert np.all((rho > 0) & (rho <= 1))
+    for serial in t.serials:  # each serial finds this target and no other
+        assert target_for_serial(serial) == t and t.name == path.stem
+
+
+def test_the_micasense_panel_target_carries_its_serial() -> None:
+    from pipeline.ingest.targets import serial_targets, target_for_serial
+
+    t = catalog.load_target("micasense-rp02-1603036-sc")
+    assert t.serials == ("RP02-1603036-SC",)
+    assert target_for_serial(" rp02-1603036-sc ") == t and target_for_serial("RP02-1603036") is None
+    assert [x.name for x in serial_targets()] == ["micasense-rp02-1603036-sc"]
+    assert catalog.load_target("gray-50").serials == ()
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        ({"serial": 1603036}, "serial 1603036, serials None: give serial: TEXT or serials: [TEXT, ...]"),
+        ({"serial": " "}, "give serial: TEXT"),
+        ({"serials": "RP02-1"}, "serial None, serials 'RP02-1'"),
+        ({"serials": ["RP02-1", None]}, "serials ['RP02-1', None]"),
+        ({"serial": "RP02-1", "name": "other"}, "name 'other' must match the file name 't-x'"),
+        ({"serail": "RP02-1"}, "unknown key(s) serail"),
+    ],
+)
+def test_bad_target_serial_rejected_naming_file(tmp_path, monkeypatch, extra, message) -> None:
+    (tmp_path / "targets").mkdir()
+    p = tmp_path / "targets" / "t-x.yaml"
+    p.write_text(yaml.safe_dump({"name": "t-x", "description": "d", "reflectance": 0.5} | extra))
+    monkeypatch.setenv("MSCAL_CATALOG_PATH", str(tmp_path))
+    with pytest.raises(CatalogError) as err:
+        catalog.load_target("t-x")
+    assert message in str(err.value) and str(p) in str(err.value)
+
+
+def test_target_serials_are_stripped_and_kept_once() -> None:
+    data = {"name": "t", "description": "d", "reflectance": 0.5, "serial": " A-1 ", "serials": ["a-1", "B-2"]}
+    assert catalog.parse_target(data, Path("t.yaml")).serials == ("A-1", "B-2")
 
 
 @pytest.mark.parametrize("path", sorted((ROOT / "indices").glob("*.yaml")), ids=lambda p: p.stem)

@@ -1,4 +1,5 @@
-"""mscal_core.panel: automatic panel detection on rendered images (not tuned to one capture)."""
+"""mscal_core.panel: automatic panel detection on rendered images (not tuned to one capture), and
+the panel's QR code (its serial) read on rendered images and on MicaSense's real panel capture."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mscal_core.panel import detect_panel, order_corners, polygon_iou, sample_quad, shrink_polygon
+from mscal_core.panel import detect_panel, order_corners, polygon_iou, qr_serial, sample_quad, shrink_polygon
 
 
 def _render(angle_deg: float, seed: int, *, panel: bool = True, distractor: bool = True) -> tuple[np.ndarray, np.ndarray]:
@@ -81,3 +82,48 @@ def test_panel_from_marker_maps_the_plane_rectangle_through_the_marker_homograph
     got = panel_from_marker(marker, s, (0.15, 0.10), (0.14, -0.02))
     want = order_corners(project(np.array([[0.065, 0.03], [0.215, 0.03], [0.215, -0.07], [0.065, -0.07]])))
     np.testing.assert_allclose(got, want, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- the panel's QR code
+
+SAMPLE_SERIAL = "RP02-1603036-SC"  # printed on MicaSense's sample panel (IMG_0000) and in its QR code
+
+
+def _qr_band(text: str | None, seed: int, module: int = 4) -> np.ndarray:
+    """A 480 x 640 band as a RedEdge stores it (12-bit DN in the high bits of 16): textured dark
+    ground and, unless ``text`` is None, a QR code of ``text`` with ``module`` px per module."""
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.normal(6000, 1500, (480, 640)), (0, 0), 4) + rng.normal(0, 200, (480, 640))
+    if text is not None:
+        code = cv2.QRCodeEncoder.create().encode(text)
+        code = cv2.resize(code, None, fx=module, fy=module, interpolation=cv2.INTER_NEAREST)
+        code = cv2.copyMakeBorder(code, 16, 16, 16, 16, cv2.BORDER_CONSTANT, value=255)
+        h, w = code.shape
+        img[100:100 + h, 200:200 + w] = np.where(code > 127, 40000, 4000)
+    return (np.clip(img, 0, 65535).astype(np.uint16) >> 4) << 4
+
+
+def test_qr_serial_majority_of_the_bands() -> None:
+    """The text read in most bands; a tie between two texts is no answer; no code is None."""
+    assert qr_serial([_qr_band(SAMPLE_SERIAL, s) for s in range(5)]) == SAMPLE_SERIAL
+    assert qr_serial([_qr_band("AAA-1", 0), _qr_band("BBB-2", 1), _qr_band("AAA-1", 2)]) == "AAA-1"
+    assert qr_serial([_qr_band("AAA-1", 0), _qr_band("BBB-2", 1)]) is None
+    assert qr_serial([_qr_band(None, s) for s in range(5)]) is None
+    assert qr_serial([]) is None and qr_serial([np.zeros((8, 8), np.uint16)]) is None
+    # a capture stops after give_up_after bands in a row without a code located
+    late = [_qr_band(None, 1), _qr_band(None, 2), _qr_band(None, 3), _qr_band(SAMPLE_SERIAL, 0)]
+    assert qr_serial(late) is None and qr_serial(late, give_up_after=None) == SAMPLE_SERIAL
+
+
+def test_qr_serial_of_the_real_micasense_panel_capture() -> None:
+    """IMG_0000 (the panel) gives the panel's serial, in every band alone too (band 2 only
+    through the 2x enlargement: its code is located but not read at full size); IMG_0001 (the
+    flight) gives None."""
+    import tifffile
+
+    from tests.micasense_data import band_file
+
+    panel = [tifffile.imread(band_file("0000", b)) for b in range(1, 6)]
+    assert qr_serial(panel) == SAMPLE_SERIAL
+    assert [qr_serial([band], give_up_after=None) for band in panel] == [SAMPLE_SERIAL] * 5
+    assert qr_serial([tifffile.imread(band_file("0001", b)) for b in range(1, 6)]) is None

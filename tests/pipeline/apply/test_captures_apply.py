@@ -150,7 +150,7 @@ def test_store_of_other_bands_is_refused(store, tmp_path, capsys) -> None:
 
 
 @pytest.mark.parametrize("extra, expect", [
-    (["--illumination", "linear"], "--illumination is for the panel route"),
+    (["--illumination", "linear", "--reference", "dls"], "--illumination is for the panel route"),
     (["--centre-bands"], "--centre-bands is for snapshot mosaic cameras"),
     (["--no-align", "--registration", "reg.zarr"], "--no-align and --registration contradict each other"),
     (["--normalise", "band:NIR"], "--normalise is for field calibrations"),

@@ -26,6 +26,7 @@ from tests import camera_files as cf
 from tests.micasense_data import BANDS, MARKER_PANEL, PANEL_CORNERS, paint_marker, require_data
 
 PANEL_TARGET = "micasense-rp02-1603036-sc"
+SERIAL_SOURCE = f"panel serial RP02-1603036-SC (QR code of IMG_0000) -> target {PANEL_TARGET}"
 
 
 def _apply(folder: Path, out: Path, *extra: str) -> int:
@@ -44,7 +45,7 @@ def panel_run(tmp_path_factory) -> Path:
 def dls_run(tmp_path_factory) -> Path:
     data = require_data()
     out = tmp_path_factory.mktemp("factory") / "dls"
-    assert _apply(data, out) == 0
+    assert _apply(data, out, "--reference", "dls") == 0  # auto reads the panel's serial: the panel route
     return out
 
 
@@ -108,7 +109,7 @@ def test_panel_reflectance_from_the_cameras_albedo(panel_run, tmp_path) -> None:
     the camera read it from its QR code) gives reflectance without --panel-reflectance: the
     panel comes back at its Albedo and run.json says where rho came from. --panel-reflectance
     still wins; an Albedo that is not a reflectance in one band is named and not used (0: none
-    measured; the sun-sensor route then, with the panel_not_used warning)."""
+    measured; the panel's serial, read from its QR code, gives the reflectance then)."""
     from pipeline.apply.factory import ALBEDO_SOURCE
 
     folder = cf.rededge_auto_panel(tmp_path / "auto", ["0.25"] * 5)
@@ -133,21 +134,24 @@ def test_panel_reflectance_from_the_cameras_albedo(panel_run, tmp_path) -> None:
     bad = cf.rededge_auto_panel(tmp_path / "bad", ["0.25", "0", "1.7", "0.25", "0.25"])  # 0: not measured
     assert _apply(bad, tmp_path / "bad_out") == 0
     bad_run = json.loads((tmp_path / "bad_out" / "run.json").read_text())
-    assert bad_run["reference"]["route"] == "dls" and bad_run["reference"]["panels_seen"] == ["IMG_0000"]
+    assert bad_run["reference"]["route"] == "panel-dls" and "panels_seen" not in bad_run["reference"]
+    assert bad_run["reference"]["panel_reflectance"] == SERIAL_SOURCE
     (problem,) = [p for p in bad_run["metadata_problems"] if p["feature"] == "panel_albedo"]
     assert problem["file"].endswith("IMG_0000_3.tif") and problem["value"] == "1.7"
 
 
 def test_albedo_only_of_a_valid_panel_capture_and_auto_falls_back_without_a_panel(tmp_path, capsys) -> None:
     """Albedo counts only with CalibrationPicture 2 (MicaSense's automatic panel capture; Pix4D
-    1: an invalid one): with 1 it is ignored. With 2 on a capture where no panel can be found
-    (the flight capture), --reference auto takes the sun sensor as without it and run.json says
-    why; --reference panel, asked for, stops with the reason; --panel naming a capture without
-    Albedo stops naming it."""
+    1: an invalid one): with 1 it is ignored (the panel's serial, from its QR code, is used
+    instead). With 2 on a capture where no panel can be found (the flight capture),
+    --reference auto takes the sun sensor as without it and run.json says why; --reference
+    panel, asked for, stops with the reason; --panel naming a capture without Albedo takes the
+    panel's serial, or stops naming the capture(s) without Albedo."""
     invalid = cf.rededge_auto_panel(tmp_path / "invalid", ["0.25"] * 5, picture=1)
     assert _apply(invalid, tmp_path / "invalid_out") == 0
     ref = json.loads((tmp_path / "invalid_out" / "run.json").read_text())["reference"]
-    assert ref["route"] == "dls" and "albedo_panel_unusable" not in ref and ref["panels_seen"] == ["IMG_0000"]
+    assert ref["route"] == "panel-dls" and "albedo_panel_unusable" not in ref and "panels_seen" not in ref
+    assert ref["panel_reflectance"] == SERIAL_SOURCE and ref["panels"][0]["reflectance"]["Red"] == 0.68
     flight = cf.rededge_auto_panel(tmp_path / "flight", ["0.25"] * 5, capture="0001")
     assert _apply(flight, tmp_path / "flight_out") == 0
     ref = json.loads((tmp_path / "flight_out" / "run.json").read_text())["reference"]
@@ -161,8 +165,9 @@ def test_albedo_only_of_a_valid_panel_capture_and_auto_falls_back_without_a_pane
     capsys.readouterr()
     assert _apply(flight, tmp_path / "asked", "--reference", "panel") == 2
     assert "no usable panel among the 1 capture(s)" in capsys.readouterr().err
-    assert _apply(flight, tmp_path / "named", "--reference", "panel", "--panel", "IMG_0000") == 2
-    assert "the --panel capture(s) do not all carry the camera's XMP Albedo with CalibrationPicture 2" in capsys.readouterr().err
+    assert _apply(flight, tmp_path / "serial", "--reference", "panel", "--panel", "IMG_0000") == 0
+    ref = json.loads((tmp_path / "serial" / "run.json").read_text())["reference"]
+    assert ref["route"] == "panel" and ref["panel_reflectance"] == SERIAL_SOURCE
     assert _apply(flight, tmp_path / "named", "--reference", "panel", "--panel", "IMG_0000,IMG_0001") == 2
     assert "--panel capture(s) IMG_0000: not in the folder, or a band file has no XMP Albedo" in capsys.readouterr().err
     assert not (tmp_path / "asked").exists() and not (tmp_path / "named").exists()
@@ -404,7 +409,6 @@ def test_bad_field_components_exit_2(tmp_path, capsys, extra, expect) -> None:
 @pytest.mark.parametrize(
     ("extra", "expect"),
     [
-        (["--reference", "panel"], "needs --panel-reflectance"),
         (["--panel", "IMG_0042", "--panel-reflectance", "0.5"], "IMG_0042 that are not in the folder"),
         (["--panel", "IMG_0001", "--panel-reflectance", "0.5"], "panel capture IMG_0001"),
         (["--normalise", "band:Red"], "use --reference"),

@@ -210,7 +210,7 @@ def test_unreadable_sun_sensor_reading_keeps_the_radiance(tmp_path, capsys) -> N
             edit = (lambda x: cf.set_element(x, "Camera:Irradiance", "n/a")) if (cap, b) == ("0001", 3) else None
             cf.rewrite(cf.band_file(cap, b), folder / f"IMG_{cap}_{b}.tif", edit)
     capsys.readouterr()
-    run = _apply(folder, tmp_path / "out")
+    run = _apply(folder, tmp_path / "out", "--reference", "dls")  # auto: the panel's serial (its QR code)
     assert run["frames"] == ["IMG_0000", "IMG_0001"] and run["quarantined"] == [] and run["reference"]["route"] == "dls"
     (warn,) = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  warning reflectance_missing")]
     assert warn == ("  warning reflectance_missing: 1 band file(s) of 1 capture(s) have no usable sun-sensor reading: "
@@ -251,7 +251,9 @@ def dji_expected(path: Path, x: int, y: int) -> float:
 def test_dji_p4_multispectral(tmp_path) -> None:
     require_data()
     folder = cf.dji_p4m(tmp_path / "p4m")
-    run = _apply(folder, tmp_path / "out", "--no-align")  # radiance on each stored pixel (registration: below)
+    # radiance on each stored pixel (registration: below); the sun sensor (auto: the QR code of the
+    # MicaSense panel in the pixels these files were made of)
+    run = _apply(folder, tmp_path / "out", "--no-align", "--reference", "dls")
     assert run["camera"] == "dji-p4-multispectral" and run["frames"] == ["001", "002"] and run["quarantined"] == []
     assert run["band_alignment"].startswith("none (--no-align")
     assert run["reference"]["route"] == "dls" and run["reference"]["scale"] == "relative"
@@ -472,11 +474,17 @@ def _without_sun_sensor(kind: str, folder: Path) -> Path:
      "no sun-sensor reading: no XMP Camera:Irradiance (DLS 1) or DLS:HorizontalIrradiance (DLS 2) in the file"),
     ("sentera", "IMG_00006.jpg", "Sentera's sun sensor (ILS) counts have no published conversion to reflectance"),
 ])
-def test_reference_dls_without_any_sun_sensor_reading_exits_2(tmp_path, capsys, kind, file, why) -> None:
+def test_reference_dls_without_any_sun_sensor_reading_exits_2(tmp_path, capsys, monkeypatch, kind, file, why) -> None:
     """--reference dls asks for the sun sensor: when no band of any capture has a usable
     reading it is refused before anything is written (one line naming a band file, the tag
-    and the fixes), and an earlier run's outputs in OUT stay as they were."""
+    and the fixes), and an earlier run's outputs in OUT stay as they were. (The MicaSense
+    panel's serial, read from its QR code, is kept out of the catalog here: auto would take
+    the panel otherwise.)"""
     folder = _without_sun_sensor(kind, tmp_path / kind)
+    (tmp_path / "catalog" / "targets").mkdir(parents=True)
+    (tmp_path / "catalog" / "targets" / "micasense-rp02-1603036-sc.yaml").write_text(
+        "name: micasense-rp02-1603036-sc\ndescription: without its serial\nreflectance: 0.5\n")
+    monkeypatch.setenv("MSCAL_CATALOG_PATH", str(tmp_path / "catalog"))
     dls = ["apply", str(folder), "--calibration", "factory", "--reference", "dls", "-o"]
     capsys.readouterr()
     assert main([*dls, str(tmp_path / "new")]) == 2

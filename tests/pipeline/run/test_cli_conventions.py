@@ -152,7 +152,13 @@ def micasense(tmp_path_factory) -> Path:
     return folder
 
 
-def test_factory_apply_says_a_panel_was_seen_and_how_to_use_it(micasense: Path, tmp_path: Path) -> None:
+def test_factory_apply_says_a_panel_was_seen_and_how_to_use_it(micasense: Path, tmp_path: Path, monkeypatch) -> None:
+    """The panel's serial (its QR code) is in no target here (the shipped target is shadowed by
+    one without it): the sun sensor gives reflectance and the summary says how to use the panel."""
+    (tmp_path / "catalog" / "targets").mkdir(parents=True)
+    (tmp_path / "catalog" / "targets" / f"{PANEL}.yaml").write_text(
+        f"name: {PANEL}\ndescription: the panel without its serial\nreflectance: 0.5\n")
+    monkeypatch.setenv("MSCAL_CATALOG_PATH", str(tmp_path / "catalog"))
     out = tmp_path / "dls"
     code, text, _ = _run(["apply", micasense, "--calibration", "factory", "-o", out])
     assert code == 0
@@ -161,10 +167,13 @@ def test_factory_apply_says_a_panel_was_seen_and_how_to_use_it(micasense: Path, 
     assert f"  run record: {out / 'run.json'}" in lines
     (warn,) = [ln for ln in lines if ln.startswith("  warning ")]
     assert warn.startswith("  warning panel_not_used: 1 panel capture(s) in the folder (IMG_0000) but reflectance "
-                           "comes from the sun sensor (DLS): give --panel-reflectance TARGET")
+                           "comes from the sun sensor (DLS): add catalogs/targets/NAME.yaml with 'serial: "
+                           "RP02-1603036-SC' and the panel's per-band reflectance")
+    assert "or give --panel-reflectance TARGET; --panel IMG_0000 chooses the capture" in warn
     assert warn.endswith("(value 1, threshold 0)")
     run = json.loads((out / "run.json").read_text())
     assert run["reference"]["route"] == "dls" and run["reference"]["panels_seen"] == ["IMG_0000"]
+    assert run["reference"]["panel_serial_unknown"].startswith("RP02-1603036-SC (QR code of IMG_0000) is in no")
     # --json: one document and nothing else on stdout (the second run is up to date)
     code, text, _ = _run(["apply", micasense, "--calibration", "factory", "-o", out, "--json"])
     doc = json.loads(text)
