@@ -38,7 +38,7 @@ from typing import Any, Callable, Sequence
 import mscal_core
 import numpy as np
 import xarray as xr
-from mscal_core.errors import FrameError
+from mscal_core.errors import FrameError, InputError
 
 from pipeline.apply.execution import Execution
 from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner
@@ -69,9 +69,10 @@ from pipeline.storage.store import CF_VARIABLES, FLIGHT_VARIABLES, FRAME_COORD_A
 
 __all__ = ["CaptureFolder", "CaptureRun", "apply_captures", "capture_tags", "find_captures", "is_capture_folder"]
 
-# Files a camera writes beside its captures that are not band files; named in run.json's
-# ``skipped`` like any other file that is not a capture.
-_IGNORED_NAMES = {".ds_store", "thumbs.db"}
+# Files left out without a word (every other file that is not a capture is named in run.json's
+# ``skipped``): the file systems' own, the uploader's READY marker (mscal serve) and a card
+# session's session.yaml (mscal run).
+_IGNORED_NAMES = {".ds_store", "thumbs.db", "ready", "session.yaml"}
 
 
 @dataclass
@@ -90,9 +91,10 @@ def is_capture_folder(folder: Path, camera: Camera) -> bool:
     return any(pattern.match(p.name) for p in Path(folder).rglob("*") if p.is_file())
 
 
-def find_captures(folder: str | Path, camera: Camera) -> CaptureFolder:
+def find_captures(folder: str | Path, camera: Camera, only: Sequence[str] = ()) -> CaptureFolder:
     """Every capture of ``camera`` in ``folder`` and the folders below it (an SD card's
-    ``0000SET/000/``). Capture names are the file names without the band suffix; when two
+    ``0000SET/000/``); with ``only``, just the captures of those names (one flight of a folder
+    holding several, :mod:`pipeline.run.card`). Capture names are the file names without the band suffix; when two
     folders of the tree hold captures of the same name (a new set restarts the numbering),
     every capture below ``folder`` is named by its path, ``0000SET_000_IMG_0000``. Two
     captures with the same XMP CaptureId anywhere in the tree: the later one is a copy and
@@ -134,6 +136,13 @@ def find_captures(folder: str | Path, camera: Camera) -> CaptureFolder:
             continue
         owner[c.capture_id] = c.name
         captures.append(c)
+    if only:
+        keep = set(only)
+        missing = sorted(keep - {c.name for c in captures})
+        if missing:
+            raise InputError(f"capture(s) {', '.join(missing[:5])} of the flight are not in the folder", path=folder,
+                             hint="the folder changed since the flight was planned: run again")
+        captures = [c for c in captures if c.name in keep]
     return CaptureFolder(captures, sorted(quarantined, key=lambda q: q["file"]), skipped)
 
 
@@ -466,7 +475,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
         raise CalibrationStoreError(
             f"store bands {', '.join(map(str, calib['band_name'].values))} are not the bands of {camera.name} "
             f"({', '.join(camera.band_names)})", path=calib_path, hint="use a calibration of this camera")
-    found = find_captures(folder, camera)
+    found = find_captures(folder, camera, options.captures)
     captures = found.captures
     if not captures:
         raise FrameError(f"no complete capture of {camera.name} (the store's camera) in the folder", path=folder,

@@ -158,6 +158,7 @@ class FactoryOptions:
     execution: Execution = Execution()  # how the pass runs (not what it computes: not fingerprinted)
     camera: str | None = None  # --camera NAME: the catalog camera, instead of recognising it from the files
     align: bool = True  # False (--no-align): the band files' own registration (DJI) is not applied
+    captures: tuple[str, ...] = ()  # only these captures of the folder (one flight of a card); () = all
 
     def __post_init__(self) -> None:
         if self.reference not in REFERENCES:
@@ -185,6 +186,8 @@ class FactoryOptions:
             d.pop("camera")
         if d["align"]:  # the default: earlier runs stay up to date
             d.pop("align")
+        if not d["captures"]:
+            d.pop("captures")
         return d
 
 
@@ -422,7 +425,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     start_worker_server(options.execution, flight_size_hint(folder))  # imports while the captures are read
     ident = _identify(folder, options)
     camera = ident.camera
-    found = find_captures(folder, camera)
+    found = find_captures(folder, camera, options.captures)
     captures = found.captures
     if not captures:
         raise FrameError("no complete capture in the folder (all quarantined)", path=folder,

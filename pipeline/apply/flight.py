@@ -122,11 +122,14 @@ class ApplyOptions:
     align: bool = True  # align bands with the store's band_transform, if it has one (issue 9)
     centre_bands: bool = False  # snapshot mosaics: resample every band to the mosaic's centre position
     execution: Execution = Execution()  # how the pass runs (not what it computes: not fingerprinted)
+    captures: tuple[str, ...] = ()  # one-file-per-band cameras: only these captures of the folder (one flight)
 
     def fingerprint(self) -> dict[str, Any]:
         d = asdict(self)
         d.pop("strict")
         d.pop("execution")
+        if not d["captures"]:  # the default: earlier runs stay up to date
+            d.pop("captures")
         d.pop("illumination")  # in the fingerprint only when the light varies (see run_fingerprint)
         for key, default in (("align", True), ("centre_bands", False)):  # runs before issue 9 stay up to date
             if d[key] == default:
