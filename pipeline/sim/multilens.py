@@ -55,7 +55,23 @@ SIZES = {
 }
 
 
-def _xmp(band: int, truth: RigTruth, capture_id: str) -> bytes:
+#: ``factory_tags``: the MicaSense factory model written into the band files (``Make``/``Model``,
+#: EXIF BlackLevel = the lens's true black level, XMP RadiometricCalibration with this a1 and no
+#: row-gradient terms, a flat vignetting polynomial). It is *not* the rig's truth (no
+#: non-linearity, no vignetting): a camera's factory model is an approximation, which a field
+#: calibration's response and vignetting replace (``mscal apply --field-calibration``).
+FACTORY_A1 = 1.0e-4
+
+
+def _factory_xmp(truth: RigTruth, band: int) -> str:
+    h, w = truth.lenses[band].camera.grid_shape
+    seq = lambda tag, vals: (f"<Camera:{tag}><rdf:Seq>" + "".join(f"<rdf:li>{v!r}</rdf:li>" for v in vals)
+                             + f"</rdf:Seq></Camera:{tag}>")
+    return (seq("RadiometricCalibration", (FACTORY_A1, 0.0, 0.0)) + seq("VignettingCenter", (w / 2.0, h / 2.0))
+            + seq("VignettingPolynomial", (0.0,)))
+
+
+def _xmp(band: int, truth: RigTruth, capture_id: str, factory_tags: bool = False) -> bytes:
     name, wl, fwhm, _ = REDEDGE_BANDS[band]
     cam = truth.lenses[band].camera
     res = REDEDGE_PX_PER_MM * cam.grid_shape[1] / REDEDGE_SHAPE[1]
@@ -72,16 +88,20 @@ def _xmp(band: int, truth: RigTruth, capture_id: str) -> bytes:
         f"<Camera:PerspectiveFocalLength>{cam.fx!r}</Camera:PerspectiveFocalLength>"
         f"<Camera:PrincipalPoint>{cam.cx / res!r},{cam.cy / res!r}</Camera:PrincipalPoint>"
         + seq("PerspectiveDistortion", (k1, k2, k3, p1, p2))
-        + "</rdf:Description></rdf:RDF></x:xmpmeta><?xpacket end=\"w\"?>"
+        + (_factory_xmp(truth, band) if factory_tags else "")
+        + "</rdf:Description>"
+        + ('<rdf:Description rdf:about="" xmlns:MicaSense="http://micasense.com/MicaSense/1.0/">'
+           f"<MicaSense:CaptureId>{capture_id}</MicaSense:CaptureId></rdf:Description>" if factory_tags else "")
+        + "</rdf:RDF></x:xmpmeta><?xpacket end=\"w\"?>"
     )
     return text.encode("utf-8")
 
 
 def write_band_file(path: Path, dn12: np.ndarray, *, band: int, truth: RigTruth, capture_id: str,
-                    exposure_ms: float, time_s: float, serial: str = SERIAL) -> None:
-    """One RedEdge-style band file (see the module docstring)."""
+                    exposure_ms: float, time_s: float, serial: str = SERIAL, factory_tags: bool = False) -> None:
+    """One RedEdge-style band file (see the module docstring; ``factory_tags``: :data:`FACTORY_A1`)."""
     res = REDEDGE_PX_PER_MM * dn12.shape[1] / REDEDGE_SHAPE[1]
-    xmp = _xmp(band, truth, capture_id)
+    xmp = _xmp(band, truth, capture_id, factory_tags)
     when = (SESSION_START + dt.timedelta(seconds=float(time_s))).strftime("%Y:%m:%d %H:%M:%S")
     res_q = (int(round(res * 1e6)), 1_000_000)
     tags = [
@@ -92,18 +112,22 @@ def write_band_file(path: Path, dn12: np.ndarray, *, band: int, truth: RigTruth,
         (41486, "2I", 1, res_q, True), (41487, "2I", 1, res_q, True), (41488, "H", 1, 4, True),  # px per mm
         (42033, "s", 0, serial, True),  # BodySerialNumber
     ]
+    if factory_tags:  # stored units: the 12-bit DN in the high bits of 16-bit samples
+        black = int(round(truth.lenses[band].sensor.black_level * 16))
+        tags += [(271, "s", 0, "MicaSense", True), (272, "s", 0, "RedEdge", True),
+                 (50714, "H", 4, (black,) * 4, True)]
     tifffile.imwrite(path, (dn12.astype(np.uint16) << 4), photometric="minisblack", extratags=tags)
 
 
 def write_frames(folder: Path, frames: RigFrames, truth: RigTruth, *, frames_csv: bool = False,
-                 serial: str = SERIAL) -> None:
+                 serial: str = SERIAL, factory_tags: bool = False) -> None:
     folder.mkdir(parents=True, exist_ok=True)
     for k, name in enumerate(frames.names):
         cid = f"syn{truth.seed:03d}{frames.kind[:3]}{k:04d}"
         for b in range(truth.n_bands):
             write_band_file(folder / f"{name}_{REDEDGE_BANDS[b][3]}.tif", frames.dn[k][b], band=b, truth=truth,
                             capture_id=cid, exposure_ms=float(frames.exposure_ms[k, b]), time_s=frames.times_s[k],
-                            serial=serial)
+                            serial=serial, factory_tags=factory_tags)
     if frames_csv:  # one row per band file: the lenses are exposed separately
         with open(folder / "frames.csv", "w", newline="") as fh:
             w = csv.writer(fh)
@@ -140,14 +164,17 @@ def write_board_images(folder: str | Path, truth: RigTruth, *, seed: int = 0, n_
 def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "small",
                             shape: tuple[int, int] = (240, 320), frames_csv: bool = False,
                             intrinsics_in_yaml: bool = False, board_views: int = 0,
-                            board_folder: str = "intrinsics", serial: str = SERIAL) -> Path:
+                            board_folder: str = "intrinsics", serial: str = SERIAL,
+                            factory_tags: bool = False) -> Path:
     """Render and write a multi-lens session (module docstring); returns its path.
     ``size``: ``small`` (8-frame sweep x2.2, 14 views, 2 reflector and 2 check captures) or
     ``full`` (12 x1.7, 28, 3, 3). ``shape`` (H, W) of every band image (RedEdge: 960 x 1280).
     ``intrinsics_in_yaml`` writes the true intrinsics per band into session.yaml;
     ``board_views`` > 0 writes that many ChArUco board captures into ``board_folder``
     (``intrinsics/``: the calibration then takes the intrinsics from them). ``serial``: the
-    camera's serial number in every band file (EXIF BodySerialNumber)."""
+    camera's serial number in every band file (EXIF BodySerialNumber). ``factory_tags``: the
+    files also carry Make/Model and a MicaSense factory model (:data:`FACTORY_A1`), as a camera's
+    card does."""
     if size not in SIZES:
         raise ValueError(f"size must be one of {sorted(SIZES)}, got {size!r}")
     cfg = SIZES[size]
@@ -181,7 +208,7 @@ def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "sma
     for name, fs in sets.items():
         if (root / name).exists():
             shutil.rmtree(root / name)
-        write_frames(root / name, fs, truth, frames_csv=frames_csv, serial=serial)
+        write_frames(root / name, fs, truth, frames_csv=frames_csv, serial=serial, factory_tags=factory_tags)
         arrays[f"{name}_exposure_ms"] = fs.exposure_ms
         arrays.update({f"{name}_{k}": v for k, v in fs.truth.items()})
     if board_views:
