@@ -75,6 +75,27 @@ def apply_flight(name: str, flight_dir: str, calibration: str, out: str, normali
 
 
 @task(cache_policy=NO_CACHE)
+def record_calibration(session: str, store: str, cache_dir: str) -> str | None:
+    return runner.record_calibration(session, store, cache_dir)
+
+
+@task(cache_policy=NO_CACHE)
+def plan_card(session: str, cache_dir: str) -> dict[str, Any]:
+    return runner.plan_card_session(session, cache_dir)
+
+
+@task(**IO, task_run_name="apply-{name}")
+def apply_card(name: str, plan: dict[str, Any], out: str, dask_address: str | None, scheduler: str = "auto",
+               workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
+    try:
+        return runner.apply_card(plan, name, out, dask_address=dask_address, scheduler=scheduler, workers=workers,
+                                 direct_io=direct_io)
+    except Exception:  # the run goes on without this flight; its traceback goes to the run's log file
+        get_run_logger().exception("flight %s could not be processed", name)
+        raise
+
+
+@task(cache_policy=NO_CACHE)
 def write_report(out: str, flights: list[str]) -> str:
     return runner.qa_report(out, flights)
 
@@ -128,7 +149,11 @@ def post_flight(
     if runner.is_remote(session):
         with timings.step("stage_in"):
             stage_in(session, paths.session)
-    plan = plan_calibration(paths.session, str(cache_dir or runner.default_cache_dir()), response_method)
+    cache = str(cache_dir or runner.default_cache_dir())
+    if runner.session_kind(paths.session) == "card":
+        return _card_flight(session, out, paths, cache, timings, dask_address=dask_address, catalog_root=catalog_root,
+                            scheduler=scheduler, workers=workers, direct_io=direct_io)
+    plan = plan_calibration(paths.session, cache, response_method)
     flights = list_flights(paths.session)
     summaries: dict[str, dict[str, Any]] = {}
     # one bar for the run: each stage, each flight and the report (stderr on a terminal, not -q)
@@ -141,6 +166,9 @@ def post_flight(
                     fit_stage(st.name, paths.session, st.store, st.partial, response_method)
             advance(1)
         published = publish_calibration(plan.final_store, paths.out)
+        library = record_calibration(paths.session, plan.final_store, cache)
+        if library is not None:
+            log.info("calibration recorded in the calibration library: %s", library)
         for name, flight_dir in flights.items():
             with timings.step(f"apply_{name}"):
                 # apply reads OUT/calibration.zarr (the same arrays as the cached store), so that a
@@ -158,6 +186,17 @@ def post_flight(
         advance(1)
     record = runner.run_record(session=session, out=out, plan=plan, flights=summaries, timings=timings,
                                dask_address=dask_address, flow_run_id=flow_run.id)
+    record["calibration_library"] = library
+    _finish(record, qa_markdown, session, out, paths, catalog_root)
+    log.info("calibration %s; %d flight(s); outputs in %s",
+             "reused from the cache (nothing re-fitted)" if plan.cached else f"fitted: {', '.join(record['fitted'])}",
+             len(summaries), out)
+    return record
+
+
+def _finish(record: dict[str, Any], qa_markdown: str, session: str, out: str, paths: runner.RunPaths,
+            catalog_root: str | None) -> None:
+    """run.json, the STAC catalog, the upload and the artifacts of a run (both kinds of session)."""
     write_run_json(paths.out, record)
     update_catalog(catalog_root or paths.out, None if catalog_root else out)  # a bad root is logged, not fatal
     if runner.is_remote(out):
@@ -167,11 +206,35 @@ def post_flight(
                              description=f"mscal run {session}")
     create_table_artifact(runner.flight_table(record), key="mscal-flights", description="flights of the run")
     create_markdown_artifact(qa_markdown, key="mscal-qa-report", description="QA report: fits, warnings, flights")
+    log = get_run_logger()
     for name, reason in runner.failed_flights(record).items():
         log.warning("flight %s was not processed: %s", name, reason)
-    log.info("calibration %s; %d flight(s); outputs in %s",
-             "reused from the cache (nothing re-fitted)" if plan.cached else f"fitted: {', '.join(record['fitted'])}",
-             len(summaries), out)
+
+
+def _card_flight(session: str, out: str, paths: runner.RunPaths, cache: str, timings: runner.Timings, *,
+                 dask_address: str | None, catalog_root: str | None, scheduler: str, workers: int,
+                 direct_io: bool | None) -> dict[str, Any]:
+    """A card session (a flight folder as it comes off the camera): each of its flights with the
+    camera's factory radiometry or the library's field calibration of its serial, no fits."""
+    plan = plan_card(paths.session, cache)
+    summaries: dict[str, dict[str, Any]] = {}
+    with progress(len(plan["flights"]) + 1, "post-flight") as advance:
+        for flight in plan["flights"]:
+            name = flight["name"]
+            with timings.step(f"apply_{name}"):
+                state = apply_card(name, plan, str(Path(paths.out) / "flights" / name), dask_address, scheduler,
+                                   workers, direct_io, return_state=True)
+            summaries[name] = state.result() if state.is_completed() else \
+                runner.failed_flight(flight["folder"], state.result(raise_on_failure=False))
+            advance(1)
+        with timings.step("report"):
+            qa_markdown = write_report(paths.out, [n for n, f in summaries.items() if f.get("status") != "failed"])
+        advance(1)
+    record = runner.card_run_record(session=session, out=out, plan=plan, flights=summaries, timings=timings,
+                                    dask_address=dask_address, flow_run_id=flow_run.id)
+    _finish(record, qa_markdown, session, out, paths, catalog_root)
+    get_run_logger().info("card session: camera %s serial %s; %d flight(s); outputs in %s", plan["camera"],
+                          plan["serial"], len(summaries), out)
     return record
 
 
@@ -179,13 +242,22 @@ def post_flight(
 def process_inbox(inbox_dir: str, out_root: str, settle_seconds: float = 600.0,
                   response_method: Literal["forward", "alternating"] = "forward",
                   dask_address: str | None = None, cache_dir: str | None = None) -> dict[str, str]:
-    """One pass over INBOX: every complete, unprocessed session through ``post_flight`` into
-    ``OUT_ROOT/<session name>``; each recorded in the serve state file. Returns
-    ``{session name: status}`` of the sessions processed in this pass."""
+    """One pass over INBOX: every complete, unprocessed session (a field session or a flight
+    folder off a camera's card) through ``post_flight`` into ``OUT_ROOT/<session name>``; each
+    recorded in the serve state file; one that cannot be run (no known camera, two cameras) is
+    recorded as failed with the reason, and the others go on. Returns ``{name: status}`` of the
+    sessions processed in this pass (done, partial, failed) and of what was not processed now
+    (``waiting``: still being copied, empty, not a folder; the reason is in the state file)."""
     log = get_run_logger()
     done: dict[str, str] = {}
     for p in inbox.pending_sessions(inbox_dir, out_root, settle_seconds):
         log.info("session %s: complete and not processed yet", p.name)
+        problem = runner.session_problem(p.path, cache_dir)  # no known camera, two cameras, a bad session.yaml
+        if problem is not None:
+            log.warning("session %s not processed: %s", p.name, problem)
+            inbox.record(Path(out_root), p.name, listing=p.listing, content=p.content, status="failed", detail=problem)
+            done[p.name] = "failed"
+            continue
         state = post_flight(p.path, str(Path(out_root) / p.name), response_method=response_method,
                             dask_address=dask_address, cache_dir=cache_dir, catalog_root=str(out_root),
                             return_state=True)
@@ -197,4 +269,9 @@ def process_inbox(inbox_dir: str, out_root: str, settle_seconds: float = 600.0,
                 status, detail = "partial", "; ".join(f"{n}: {r}" for n, r in failed.items())
         inbox.record(Path(out_root), p.name, listing=p.listing, content=p.content, status=status, detail=detail)
         done[p.name] = status
+    waits = inbox.waiting(inbox_dir, settle_seconds)  # named in the state file and the summary, each look
+    inbox.record_waiting(Path(out_root), waits)
+    for name, why in waits.items():
+        log.info("%s not processed now: %s", name, why)
+    done.update({name: "waiting" for name in waits})
     return done

@@ -29,7 +29,10 @@ the imaged ground extends about half an image footprint beyond it), else none
 (``mscal:footprint_source`` says which). Time: first and last frame time (``time``
 coordinate); a flight without frame times gets its ``run.json`` modification time, marked
 ``mscal:time_source: processing``. Properties: ``instruments`` = [camera], ``mscal:camera``,
-frame counts, calibration provenance (``mscal:calibration``, ``mscal:calibration_sha256``, and
+``mscal:camera_make``, ``mscal:camera_model`` and ``mscal:camera_serial`` (as the files say,
+for cameras recognised from them; a card session's flights also ``mscal:radiometry`` and
+``mscal:light_reference``), frame counts, calibration provenance (``mscal:calibration``,
+``mscal:calibration_sha256``, and
 from the session's ``run.json`` when there is one ``mscal:calibration_cached`` and
 ``mscal:calibration_stages``), ``mscal:version``. Assets (hrefs relative to the item file):
 ``reflectance`` (zarr), ``run`` (run.json), ``photogrammetry`` and ``ndvi_frames`` (folders),
@@ -83,7 +86,7 @@ CATALOG_FILE = "catalog.json"
 STAC_DIR = "stac"
 PROJECT_FILE = "mscal-project.yaml"
 LOCK_FILE = ".mscal-catalog.lock"
-ITEM_FORMAT = 1  # bump when items gain or change fields: every item is rebuilt once
+ITEM_FORMAT = 2  # bump when items gain or change fields: every item is rebuilt once
 SKIP_DIRS = {"photogrammetry", "panels", "ndvi"}  # per-frame folders of a flight: never walked
 MEDIA_ZARR = "application/vnd+zarr"
 MEDIA_GEOTIFF = "image/tiff; application=geotiff"
@@ -287,6 +290,23 @@ def _rel_inside(target: str | Path | None, root: Path | None, item_file: Path) -
     return _rel(t, item_file)
 
 
+def _camera_props(run: dict[str, Any], srun: dict[str, Any], name: str) -> dict[str, Any]:
+    """``mscal:camera_make``/``_model``/``_serial`` as the files say (the flight's
+    ``camera_identification``, else a card session's ``card``), and for a card session's flight
+    the radiometry and light reference it got."""
+    ident = dict(run.get("camera_identification") or {})
+    for key, value in (srun.get("card") or {}).items():
+        if key in ("make", "model", "serial") and value and not ident.get(key):
+            ident[key] = value
+    props = {"mscal:camera_make": ident.get("make"), "mscal:camera_model": ident.get("model"),
+             "mscal:camera_serial": ident.get("serial")}
+    flight_rec = (srun.get("flights") or {}).get(name) or {}
+    if flight_rec.get("calibration"):
+        props["mscal:radiometry"] = flight_rec["calibration"]
+        props["mscal:light_reference"] = (flight_rec.get("reference") or {}).get("route")
+    return props
+
+
 def flight_item(flight: Path, project: Project, project_dir: Path, item_file: Path, fingerprint: str,
                 root: Path | None = None) -> Any:
     """The pystac Item of one flight folder (module docstring); asset hrefs relative to ``item_file``.
@@ -336,6 +356,7 @@ def flight_item(flight: Path, project: Project, project_dir: Path, item_file: Pa
         "mscal:version": (run.get("versions") or {}).get("mscal"), "mscal:fingerprint": fingerprint,
         "mscal:flight_dir": _rel(flight, item_file),
     })
+    props.update(_camera_props(run, srun, flight.name))
     if srun:
         props["mscal:calibration_cached"] = srun.get("calibration_cached")
         props["mscal:calibration_stages"] = {k: (v or {}).get("key") for k, v in (srun.get("calibration_stages") or {}).items()}

@@ -22,7 +22,6 @@ from mscal_core.errors import MscalError
 
 from pipeline.run.console import (
     LOG_LEVELS,
-    QUIET,
     Summary,
     common_options,
     console,
@@ -30,6 +29,7 @@ from pipeline.run.console import (
     progress,
     report_warnings,
 )
+from pipeline.run.summaries import echo_run, echo_serve, run_warnings
 
 RESPONSE_METHODS = click.Choice(["forward", "alternating"])
 RESPONSE_METHOD_HELP = "'forward' fits the response with the noise on DN; 'alternating' is the paper's Eq. 6/7."
@@ -614,18 +614,6 @@ def _flow(name: str):  # noqa: ANN202 (a Prefect flow)
     return found[0].load()
 
 
-def run_warnings(out: str | Path, record: dict) -> list[dict[str, Any]]:
-    """The warnings of OUT/report.html of a post-flight run (its calibration and the flights
-    it processed); none for a remote OUT (the report is there)."""
-    from pipeline.run.runner import CALIBRATION_STORE, failed_flights, is_remote
-
-    if is_remote(str(out)) or not (Path(out) / CALIBRATION_STORE).exists():
-        return []
-    failed = failed_flights(record)
-    return report_warnings(calibration=Path(out) / CALIBRATION_STORE,
-                           flights=[Path(out) / "flights" / n for n in record["flights"] if n not in failed])
-
-
 def _logged(out: Any, command: str):  # noqa: ANN202 (a context manager)
     """Prefect's and Dask's records (and tracebacks) of the block into ``OUT/logs/<time>-<command>.log``,
     to the terminal too with -v (:func:`pipeline.run.logs.command_log`). Enter it after
@@ -635,36 +623,6 @@ def _logged(out: Any, command: str):  # noqa: ANN202 (a context manager)
 
     verbose = bool(click.get_current_context().find_root().params.get("verbose"))
     return command_log(default_cache_dir() if is_remote(str(out)) else out, command, verbose=verbose)
-
-
-def _echo_run(record: dict, log_file: Path | None = None) -> None:
-    for name, f in record["flights"].items():
-        for q in f["quarantined"]:
-            note(f"quarantined {name}/{q['file']}: {q['reason']}")
-        if f.get("skipped"):
-            note(f"skipped {len(f['skipped'])} file(s) of {name} that are not captures: "
-                 f"{', '.join(s['file'] for s in f['skipped'][:5])}{' ...' if len(f['skipped']) > 5 else ''}")
-    from pipeline.run.runner import failed_flights
-
-    failed = failed_flights(record)
-    for name, reason in failed.items():
-        note(f"flight {name} was not processed: {reason}")
-    calib = "reused from the cache" if record["calibration_cached"] else "fitted: " + ", ".join(record["fitted"])
-    done = len(record["flights"]) - len(failed)
-    out = record["out"]
-    Summary("run", f"wrote {out} (calibration {calib}; {done} flight(s)"
-            f"{f', {len(failed)} not processed' if failed else ''}; {record['timings_s']['total']:.1f} s)",
-            outputs={"run record": f"{out}/run.json", "calibration store": f"{out}/{record['calibration']}",
-                     "flights": f"{out}/flights/", "QA report": f"{out}/{record['report']}"},
-            counts={"flights": len(record["flights"]), "flights_not_processed": len(failed),
-                    "frames_out": sum(f.get("frames_out") or 0 for f in record["flights"].values()),
-                    "quarantined": sum(len(f.get("quarantined") or []) for f in record["flights"].values())},
-            warnings=run_warnings(out, record),
-            details={"calibration_cached": record["calibration_cached"], "not_processed": failed}).emit()
-    if failed:  # as --strict does for frames: a script sees that something was skipped
-        if log_file is not None:
-            click.echo(f"details of the flight(s) not processed: {log_file}", err=True)
-        raise SystemExit(3)
 
 
 @cli.command(short_help="Calibrate a session and apply it to every flight (Prefect).")
@@ -687,12 +645,17 @@ def _echo_run(record: dict, log_file: Path | None = None) -> None:
 def run(session: str, out: str, response_method: str, normalise: str, dask_address: str | None,
         cache_dir: str | None, work_dir: str | None, catalog_root: str | None,
         illumination: str, scheduler: str, workers: int, direct_io: bool) -> None:
-    """The whole post-flight flow on Prefect's embedded server: calibrate SESSION (cached by
-    content) and apply it to every SESSION/flights/<name>; SESSION and OUT may be s3:// URLs."""
+    """The whole post-flight flow on Prefect's embedded server. SESSION is a field session
+    (session.yaml with response/, vignetting/, reflector/): calibrate it (cached by content) and
+    apply it to every SESSION/flights/<name>. Or SESSION is a flight folder as it comes off the
+    camera's card (no session.yaml needed): camera and serial from the files, one
+    OUT/flights/<name>/ per flight (SET folder, or captures more than 30 min apart), factory
+    radiometry or the field calibration of that serial, the light from the panel or sun sensor.
+    SESSION and OUT may be s3:// URLs."""
     from pipeline.run.runner import check_run_inputs
 
     check_run_inputs(session, out, normalise=normalise, dask_address=dask_address, catalog_root=catalog_root,
-                     illumination=illumination)
+                     illumination=illumination, cache_dir=cache_dir)
     if cache_dir:
         os.environ["MSCAL_CACHE_DIR"] = cache_dir  # before Prefect starts: its home follows
     post_flight = _flow("post_flight")
@@ -701,11 +664,12 @@ def run(session: str, out: str, response_method: str, normalise: str, dask_addre
                              dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir,
                              catalog_root=catalog_root, illumination=illumination, scheduler=scheduler,
                              workers=workers, direct_io=direct_io)
-    _echo_run(record, log_file)
+    echo_run(record, log_file)
 
 
 @cli.command(short_help="Process each complete session of an inbox on a cron schedule.")
-@click.option("--inbox", "inbox_dir", required=True, type=click.Path(path_type=Path), help="Folder of session folders.")
+@click.option("--inbox", "inbox_dir", required=True, type=click.Path(path_type=Path),
+              help="Folder of session folders: field sessions, or flight folders as they come off a camera's card.")
 @click.option("-o", "--output", "out_root", required=True, type=click.Path(path_type=Path),
               help="Outputs: OUT_ROOT/<session name>/, and the state file OUT_ROOT/.mscal-serve.json.")
 @click.option("--cron", default="*/15 * * * *", show_default=True, help="When to look at the inbox (cron expression).")
@@ -719,7 +683,8 @@ def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, onc
           dask_address: str | None) -> None:
     """Process every complete session folder of an INBOX once, now and then on a cron schedule.
 
-    Complete: session.yaml and a READY file, or nothing modified for --settle-seconds.
+    A session folder is a field session or a flight folder as it comes off the camera's card (no
+    session.yaml needed). Complete: a READY file, or nothing modified for --settle-seconds.
     Processed sessions are recorded in OUT_ROOT/.mscal-serve.json; a restart does not redo them."""
     from datetime import datetime
 
@@ -732,36 +697,14 @@ def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, onc
         with _logged(out_root, "serve") as log_file:
             done = process_inbox(str(inbox_dir), str(out_root), settle_seconds=settle_seconds,
                                  response_method=response_method, dask_address=dask_address)
-        if not done:  # a look that found nothing to do keeps no log: a cron serve would pile them up
+        if all(s == "waiting" for s in done.values()):  # a look that processed nothing keeps no log
             Path(log_file).unlink(missing_ok=True)
-        _echo_serve(done, out_root)
+        echo_serve(done, out_root)
         if once:
             return
         wake = next_time(cron, datetime.now())
         click.echo(f"next look at {inbox_dir}: {wake:%Y-%m-%d %H:%M}", err=True)
         time.sleep(max(0.0, (wake - datetime.now()).total_seconds()))
-
-
-def _echo_serve(done: dict[str, str], out_root: Path) -> None:
-    """One line per session processed, each followed by its report's warnings; with --json one
-    JSON document per look at the inbox (one in all with --once); nothing when nothing was done."""
-    if not done:
-        return
-    docs = {}
-    for name, status in done.items():
-        run_json = out_root / name / "run.json"
-        record = json.loads(run_json.read_text()) if status == "done" and run_json.is_file() else None
-        warnings = run_warnings(out_root / name, record) if record else []
-        docs[name] = Summary("serve", f"{name}: {status} -> {out_root / name}", warnings=warnings)
-    if console().json:
-        Summary("serve", f"{len(done)} session(s) processed into {out_root}", outputs={"sessions": out_root},
-                counts={"sessions": len(done), "failed": sum(s != "done" for s in done.values())},
-                details={"sessions": {n: {"status": done[n], "out": out_root / n, "warnings": d.warnings}
-                                      for n, d in docs.items()}}).emit()
-        return
-    for d in docs.values():
-        for line in d.lines(QUIET):
-            click.echo(line)
 
 
 @cli.command(short_help="Self-contained HTML QA report of calibrations and flights.")

@@ -1,8 +1,12 @@
 """The inbox of ``mscal serve``: which session folders are complete and not yet processed.
 
-A session folder ``INBOX/<name>/`` is **complete** when it holds ``session.yaml`` and either
-a ``READY`` file (the uploader writes it last) or no file in it was modified for
-``settle_s`` seconds. Each complete session is processed once: the state file
+A session folder ``INBOX/<name>/`` is a field session (``session.yaml``, ``response/``, ...)
+or a flight folder as it comes off the camera's card (no ``session.yaml`` needed,
+:mod:`pipeline.run.card`). It is **complete** when it holds a file and either a ``READY``
+file (the uploader writes it last) or no file in it was modified for ``settle_s`` seconds.
+Nothing in the inbox is passed over without a word: a folder still being copied, an empty
+folder and a file that is not in a folder are named with the reason (:func:`waiting`, kept in
+the state file's ``waiting`` and said in serve's summary). Each complete session is processed once: the state file
 ``OUTROOT/.mscal-serve.json`` (written atomically) records every session processed, with
 the fingerprint of its listing (names, sizes, modification times) and the sha256 of its
 content. A session is processed again only if its content changed; a restart reads the state
@@ -49,14 +53,52 @@ def content_sha256(folder: Path) -> str:
 
 
 def is_complete(folder: Path, settle_s: float, now: float | None = None) -> bool:
-    """``session.yaml`` present, and a ``READY`` file or nothing modified for ``settle_s``."""
-    if not (folder / "session.yaml").is_file():
-        return False
+    """A file besides ``READY``, and a ``READY`` file or nothing modified for ``settle_s``."""
+    return incomplete_reason(folder, settle_s, now) is None
+
+
+def incomplete_reason(folder: Path, settle_s: float, now: float | None = None) -> str | None:
+    """Why ``folder`` is not complete yet (one line), or None when it is."""
+    files = [p for p in _files(folder) if p.name != READY]
+    if not files:
+        return "empty folder: nothing to process"
     if (folder / READY).is_file():
-        return True
+        return None
     now = time.time() if now is None else now
-    newest = max((p.stat().st_mtime for p in _files(folder)), default=now)
-    return now - newest >= settle_s
+    age = now - max(p.stat().st_mtime for p in files)
+    if age >= settle_s:
+        return None
+    return (f"still being copied: a file was modified {max(age, 0.0):.0f} s ago and there is no {READY} file; "
+            f"processed once nothing changed for {settle_s:g} s (or once {READY} is written)")
+
+
+def waiting(inbox: str | Path, settle_s: float, now: float | None = None) -> dict[str, str]:
+    """``{name: reason}`` of what in the inbox is not processed in this look: folders not
+    complete (:func:`incomplete_reason`) and files that are not in a session folder."""
+    inbox = Path(inbox)
+    out: dict[str, str] = {}
+    for p in sorted(inbox.iterdir()):
+        if p.name.startswith(".") or p.name == STATE_FILE:
+            continue
+        if p.is_dir():
+            why = incomplete_reason(p, settle_s, now)
+            if why is not None:
+                out[p.name] = why
+        else:
+            out[p.name] = "a file, not a folder: put each flight or session in a folder of its own in the inbox"
+    return out
+
+
+def record_waiting(out_root: Path, names: dict[str, str]) -> None:
+    """Keep this look's :func:`waiting` in the state file (``waiting``: name -> reason, time)."""
+    path = out_root / STATE_FILE
+    sessions = load_state(out_root)
+    utc = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    if not names and not path.is_file():
+        return
+    out_root.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(path, {"format": STATE_FORMAT, "sessions": sessions,
+                             "waiting": {n: {"reason": r, "utc": utc} for n, r in names.items()}})
 
 
 def load_state(out_root: Path) -> dict[str, Any]:
@@ -78,7 +120,19 @@ def record(out_root: Path, name: str, *, listing: str, content: str, status: str
     sessions[name] = {"listing": listing, "content_sha256": content, "status": status, "detail": detail,
                       "utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
     out_root.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(out_root / STATE_FILE, {"format": STATE_FORMAT, "sessions": sessions})
+    waiting_now = {k: v for k, v in load_waiting(out_root).items() if k != name}
+    write_json_atomic(out_root / STATE_FILE, {"format": STATE_FORMAT, "sessions": sessions, "waiting": waiting_now})
+
+
+def load_waiting(out_root: Path) -> dict[str, Any]:
+    """The state file's ``waiting`` mapping (what the last look did not process, and why)."""
+    path = out_root / STATE_FILE
+    if not path.is_file():
+        return {}
+    try:
+        return dict(json.loads(path.read_text()).get("waiting", {}))
+    except (OSError, ValueError):
+        return {}
 
 
 @dataclass(frozen=True)

@@ -43,7 +43,9 @@ from pipeline.calibrate.fit import STAGES
 from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
 from pipeline.ingest.catalog import CATALOG_ROOT, load_camera
 from pipeline.ingest.session import Session, load_session, read_frame_table
+from pipeline.run.card import apply_card_flight, is_field_session, plan_card, plan_from_record, plan_record
 from pipeline.storage.atomic import write_json_atomic
+from pipeline.storage.cache import default_cache_dir
 from pipeline.storage.store import content_hashes, file_sha256, open_calibration, write_store
 
 log = logging.getLogger(__name__)
@@ -57,14 +59,6 @@ _FIT_SOURCES = ("calibrate/fit.py", "ingest/session.py", "ingest/catalog.py", "s
 
 
 # --------------------------------------------------------------------------- environment
-
-
-def default_cache_dir() -> Path:
-    """``$MSCAL_CACHE_DIR``, else ``$XDG_CACHE_HOME/mscal``, else ``~/.cache/mscal``."""
-    if os.environ.get("MSCAL_CACHE_DIR"):
-        return Path(os.environ["MSCAL_CACHE_DIR"])
-    base = os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache"
-    return Path(base) / "mscal"
 
 
 def configure_prefect(home: str | Path | None = None) -> Path:
@@ -209,6 +203,54 @@ def publish_calibration(cached_store: str | Path, out_dir: str | Path) -> Path:
 def flight_dirs(session_dir: str | Path) -> dict[str, str]:
     """``{flight name: folder}`` of ``SESSION/flights/*``."""
     return {p.name: str(p) for p in load_session(session_dir).flight_dirs()}
+
+
+def session_problem(session_dir: str | Path, cache_dir: str | Path | None = None) -> str | None:
+    """Why a session folder cannot be run (one line naming the file), or None: a field
+    session's session.yaml that is not valid, a card session of no known camera or of two."""
+    try:
+        if is_field_session(session_dir):
+            load_session(session_dir)
+        else:
+            plan_card_session(session_dir, cache_dir)
+    except MscalError as exc:
+        return str(exc).splitlines()[0]
+    return None
+
+
+def session_kind(session_dir: str | Path) -> str:
+    """``field`` (session.yaml with response/, vignetting/ or reflector/: the paper's fits run)
+    or ``card`` (a flight folder as it comes off the camera, :mod:`pipeline.run.card`)."""
+    return "field" if is_field_session(session_dir) else "card"
+
+
+def plan_card_session(session_dir: str | Path, cache_dir: str | Path | None = None) -> dict[str, Any]:
+    """:func:`pipeline.run.card.plan_card` of a card session, as data; the calibration library
+    is the one under ``cache_dir`` (default :func:`default_cache_dir`)."""
+    return plan_record(plan_card(session_dir, _library(cache_dir)))
+
+
+def _library(cache_dir: str | Path | None) -> Path:
+    """The calibration library of the cache folder ``cache_dir`` (default :func:`default_cache_dir`)."""
+    return (Path(cache_dir) if cache_dir else default_cache_dir()) / "library"
+
+
+def apply_card(plan: dict[str, Any], name: str, out: str, *, dask_address: str | None = None,
+               scheduler: str = "auto", workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
+    """One flight ``name`` of a card session's plan (:func:`plan_card_session`) into ``out``."""
+    card = plan_from_record(plan)
+    flight = next(f for f in card.flights if f.name == name)
+    return apply_card_flight(card, flight, out, dask_address=dask_address, scheduler=scheduler, workers=workers,
+                             direct_io=direct_io)
+
+
+def record_calibration(session_dir: str | Path, store: str | Path, cache_dir: str | Path | None = None) -> str | None:
+    """Record a field session's fitted calibration in the calibration library under
+    ``cache_dir`` (:mod:`pipeline.calibrate.library`), keyed by its camera and serial number;
+    returns the library's copy (recording the same calibration again adds nothing)."""
+    from pipeline.calibrate.library import record_fitted
+
+    return str(record_fitted(store, session_dir, library_root=_library(cache_dir)))
 
 
 # --------------------------------------------------------------------------- Dask and apply
@@ -389,17 +431,25 @@ def remove_work(paths: RunPaths) -> None:
 
 
 def check_run_inputs(session: str, out: str, *, normalise: str = "relative", dask_address: str | None = None,
-                     catalog_root: str | None = None, illumination: str = "linear") -> None:
-    """Fail fast, before Prefect starts: a session that is not there, an unusable option."""
+                     catalog_root: str | None = None, illumination: str = "linear",
+                     cache_dir: str | None = None) -> None:
+    """Fail fast, before Prefect starts: a session that is not there (a field session whose
+    session.yaml is not valid, a card session of no known camera), an unusable option."""
     if catalog_root is not None and is_remote(catalog_root):
         raise InputError(f"--catalog-root {catalog_root!r} must be a local folder",
                          hint="leave it out to catalogue OUT itself (uploaded with the run)")
     if is_remote(session):
         fs, root = _fs(session)
-        if not fs.exists(f"{root.rstrip('/')}/session.yaml"):
-            raise SessionError("session.yaml is missing", path=session, hint="check the URL and the storage credentials")
-    else:
+        if not fs.exists(root.rstrip("/")) or not fs.ls(root.rstrip("/")):
+            raise SessionError("no files found", path=session, hint="check the URL and the storage credentials")
+    elif not Path(session).is_dir():
+        raise SessionError("session folder not found", path=session,
+                           hint="pass a field session (session.yaml, response/, vignetting/, reflector/) or a flight "
+                                "folder as it comes off the camera's card")
+    elif is_field_session(session):
         load_session(session)
+    else:
+        plan_card_session(session, cache_dir)
     if dask_address and not DASK_ADDRESS.match(dask_address):
         raise InputError(f"--dask-address {dask_address!r} is not a scheduler address", hint="e.g. tcp://10.0.0.5:8786")
     if not (normalise == "relative" or re.fullmatch(r"band:\S+", normalise)):
@@ -442,7 +492,9 @@ def qa_report(out_dir: str | Path, flights: Iterable[str]) -> str:
     from pipeline.products.report import write_report_and_markdown
 
     out_dir = Path(out_dir)
-    _, markdown = write_report_and_markdown(out_dir / REPORT_HTML, calibration=out_dir / CALIBRATION_STORE,
+    calibration = out_dir / CALIBRATION_STORE
+    _, markdown = write_report_and_markdown(out_dir / REPORT_HTML,
+                                            calibration=calibration if calibration.exists() else None,
                                             flights=[out_dir / "flights" / name for name in flights])
     return markdown
 
@@ -491,6 +543,35 @@ def run_record(*, session: str, out: str, plan: CalibrationPlan, flights: dict[s
     }
 
 
+def card_run_record(*, session: str, out: str, plan: dict[str, Any], flights: dict[str, dict[str, Any]],
+                    timings: Timings, dask_address: str | None, flow_run_id: str | None = None) -> dict[str, Any]:
+    """``OUT/run.json`` of a card session: as :func:`run_record` with nothing fitted, plus
+    ``card`` (the camera, its serial and how they were found) and per flight the calibration
+    it got and why (``calibration``, ``field_calibration``, ``calibration_source``) and its
+    light reference (``reference``)."""
+    card = plan_from_record(plan)
+    return {
+        "report": REPORT_HTML,
+        "format": RUN_FORMAT,
+        "kind": "card",
+        "session": str(session),
+        "out": str(out),
+        "calibration": None,
+        "calibration_cached": False,
+        "calibration_stages": {},
+        "fitted": [],
+        "card": card.record(),
+        "flights": {name: {**summary, "outputs": None if summary.get("status") == "failed" else f"flights/{name}/"}
+                    for name, summary in flights.items()},
+        "status": "partial" if any(f.get("status") == "failed" for f in flights.values()) else "done",
+        "dask_address": dask_address,
+        "versions": versions(),
+        "timings_s": timings.total(),
+        "prefect_flow_run_id": flow_run_id,
+        "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
 def write_run_json(out_dir: str | Path, record: dict[str, Any]) -> Path:
     """``OUT/run.json``, atomically (temporary name, then rename)."""
     path = Path(out_dir) / RUN_JSON
@@ -513,11 +594,19 @@ def summary_markdown(record: dict[str, Any]) -> str:
     """A short Markdown summary of a run (Prefect artifact, README-style)."""
     stages = ", ".join(f"{k} " + ("cached" if v["cached"] else f"fitted in {v['seconds']:.1f} s")
                        for k, v in record["calibration_stages"].items())
+    if record.get("kind") == "card":
+        card = record["card"]
+        calib = (f"card session of {card['camera']} (serial {card['serial'] or 'unknown'}): "
+                 + "; ".join(f"{n} {f.get('calibration', 'failed')}" for n, f in record["flights"].items()))
+        holds = "`run.json`, `flights/<name>/`"
+    else:
+        calib = f"{'reused from the cache' if record['calibration_cached'] else 'fitted'} ({stages})"
+        holds = f"`run.json`, `{record['calibration']}`, `flights/<name>/`"
     lines = [
         f"# mscal post-flight run: {record['session']}",
         "",
-        f"- outputs: `{record['out']}` (`run.json`, `{record['calibration']}`, `flights/<name>/`)",
-        f"- calibration: {'reused from the cache' if record['calibration_cached'] else 'fitted'} ({stages})",
+        f"- outputs: `{record['out']}` ({holds})",
+        f"- calibration: {calib}",
         f"- total {record['timings_s']['total']:.1f} s",
         "",
         "| flight | frames out / in | quarantined | saturated px | |",
@@ -531,7 +620,7 @@ def summary_markdown(record: dict[str, Any]) -> str:
 
 
 __all__ = [
-    "CalibrationPlan", "RunPaths", "StagePlan", "Timings", "apply_one", "check_run_inputs", "configure_prefect",
-    "default_cache_dir", "flight_dirs", "is_remote", "is_transient", "plan_calibration", "publish_calibration",
+    "CalibrationPlan", "RunPaths", "StagePlan", "Timings", "apply_card", "apply_one", "card_run_record", "check_run_inputs", "configure_prefect",
+    "default_cache_dir", "flight_dirs", "is_remote", "is_transient", "plan_calibration", "plan_card_session", "publish_calibration", "record_calibration", "session_kind", "session_problem",
     "remove_work", "run_paths", "run_record", "update_catalog", "stage_in", "summary_markdown", "upload", "write_run_json",
 ]

@@ -147,7 +147,8 @@ def test_identical_outputs_of_a_rerun_into_a_new_folder(flow_session: Path, firs
 def test_bad_input_is_one_line_and_exit_2_before_prefect_starts(tmp_path: Path, capsys) -> None:
     assert main(["run", str(tmp_path / "nowhere"), "-o", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == [f"mscal: error: {tmp_path / 'nowhere'}: session folder not found (pass the folder that holds session.yaml)"]
+    assert err == [f"mscal: error: {tmp_path / 'nowhere'}: session folder not found (pass a field session (session.yaml, response/, vignetting/, "
+                   "reflector/) or a flight folder as it comes off the camera's card)"]
     assert not (tmp_path / "out").exists()
 
 

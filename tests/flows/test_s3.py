@@ -65,5 +65,5 @@ def test_s3_session_and_outputs_match_the_local_run(s3, flow_session: Path, firs
 def test_a_missing_s3_session_is_one_line_and_exit_2(s3, tmp_path: Path, capsys) -> None:
     assert main(["run", f"s3://{BUCKET}/nothing-here", "-o", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == [f"mscal: error: s3://{BUCKET}/nothing-here: session.yaml is missing "
+    assert err == [f"mscal: error: s3://{BUCKET}/nothing-here: no files found "
                    "(check the URL and the storage credentials)"]

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import tifffile
 import xarray as xr
 import yaml
 
@@ -309,3 +310,51 @@ def test_metadata_intrinsics_of_dji_dewarp_data(tmp_path) -> None:
     intr = intrinsics_from_file(cf.dji_p4m(tmp_path / "p4m") / "DJI_0011.TIF")
     assert (intr.fx, intr.fy) == (1949.45, 1939.77) and (intr.cx, intr.cy) == (640.0 + 28, 480.0 - 17)
     assert intr.dist == (-0.4082, 0.3418, 0.00068, 0.00068, -0.3540)
+
+
+def _set_serial(folder: Path, serial: str) -> None:
+    """Overwrite EXIF BodySerialNumber in every band file of ``folder`` (another camera body)."""
+    for p in sorted(folder.glob("*.tif")):
+        with tifffile.TiffFile(p, mode="r+b") as tif:
+            tif.pages[0].tags[42033].overwrite(serial)
+
+
+def _radiance(out: Path) -> np.ndarray:
+    with xr.open_zarr(out / "reflectance.zarr") as ds:
+        return ds["radiance"].values
+
+
+def test_a_later_flight_of_the_same_camera_body_gets_its_field_calibration(tmp_path) -> None:
+    """``mscal calibrate`` records the session's store in the calibration library under the
+    band files' serial number. A card flight of that camera body taken later (the session's
+    check captures, 09:50 against the session's 09:45, as the card holds them: Make, Model and
+    the MicaSense factory model in the files) gets it: the factory model with the field
+    response and vignetting, as ``mscal apply --field-calibration`` gives; the same flight
+    from another camera body gets the factory model alone."""
+    from pipeline.calibrate.library import default_library_root, store_digest
+    from pipeline.run import card
+
+    session = write_multilens_session(tmp_path / "session", seed=2, size="small", shape=(120, 160),
+                                      serial="RE0000007", factory_tags=True)
+    calib = tmp_path / "calib.zarr"
+    assert main(["calibrate", str(session), "-o", str(calib)]) == 0
+    flight = tmp_path / "card"
+    shutil.copytree(session / "check", flight)
+    plan = card.plan_card(flight, default_library_root())
+    assert (plan.camera, plan.serial, plan.factory) == ("micasense-rededge", "RE0000007", True)
+    f = plan.flights[0]
+    assert f.calibration == "factory+field" and f.calibration_source.startswith("calibration library")
+    assert store_digest(f.field_calibration) == store_digest(calib)
+    res = card.apply_card_flight(plan, f, tmp_path / "out")
+    assert (res["frames_out"], res["calibration"]) == (2, "factory+field")
+    assert main(["apply", str(session / "check"), "--calibration", "factory", "--field-calibration", str(calib),
+                 "-o", str(tmp_path / "alone")]) == 0
+    np.testing.assert_array_equal(_radiance(tmp_path / "out"), _radiance(tmp_path / "alone"))
+
+    _set_serial(flight, "RE0000008")
+    other = card.plan_card(flight, default_library_root())
+    assert other.serial == "RE0000008" and other.flights[0].calibration == "factory"
+    assert "no field calibration of micasense-rededge serial RE0000008" in other.flights[0].calibration_source
+    card.apply_card_flight(other, other.flights[0], tmp_path / "other")
+    ratio = np.nanmedian(_radiance(tmp_path / "out") / _radiance(tmp_path / "other"))
+    assert abs(ratio - 1) > 0.05  # the field response and vignetting did change the radiance

@@ -203,8 +203,35 @@ def test_complete_means_ready_file_or_settled(tmp_path: Path) -> None:
     assert inbox.is_complete(d, 600, now + 601)
     (d / inbox.READY).write_text("")
     assert inbox.is_complete(d, 600, now)
-    (d / "session.yaml").unlink()
-    assert not inbox.is_complete(d, 600, now + 10_000)
+    (d / "session.yaml").unlink()  # a card folder needs none
+    assert inbox.is_complete(d, 600, now)
+    (d / "response" / "f.tif").unlink()
+    assert not inbox.is_complete(d, 600, now + 10_000)  # nothing but READY
+    assert inbox.incomplete_reason(d, 600, now) == "empty folder: nothing to process"
+
+
+def test_what_is_not_processed_is_named_with_the_reason(tmp_path: Path) -> None:
+    box = tmp_path / "inbox"
+    _session_folder(box, "ready", ready=True)
+    fresh = _session_folder(box, "copying", ready=False)
+    (box / "empty").mkdir()
+    (box / "stray.tif").write_bytes(b"x")
+    (box / ".hidden").write_text("")
+    now = time.time()
+    for p in fresh.rglob("*"):
+        os.utime(p, (now - 42, now - 42))
+    assert inbox.waiting(box, 600, now) == {
+        "copying": "still being copied: a file was modified 42 s ago and there is no READY file; processed once "
+                   "nothing changed for 600 s (or once READY is written)",
+        "empty": "empty folder: nothing to process",
+        "stray.tif": "a file, not a folder: put each flight or session in a folder of its own in the inbox",
+    }
+    out = tmp_path / "out"
+    inbox.record_waiting(out, inbox.waiting(box, 600, now))
+    assert sorted(inbox.load_waiting(out)) == ["copying", "empty", "stray.tif"]
+    inbox.record(out, "ready", listing="l", content="c", status="done")
+    assert sorted(inbox.load_waiting(out)) == ["copying", "empty", "stray.tif"]  # kept beside the sessions
+    assert inbox.load_state(out)["ready"]["status"] == "done"
 
 
 def test_pending_sessions_and_the_state_file(tmp_path: Path) -> None:
