@@ -177,12 +177,9 @@ def post_flight(
                                      str(Path(paths.out) / "flights" / name),
                                      normalise, dask_address, illumination, scheduler, workers, direct_io,
                                      return_state=True)
-            # one bad flight (empty, every frame quarantined, unreadable) does not cost the others theirs
-            summaries[name] = state.result() if state.is_completed() else \
-                runner.failed_flight(flight_dir, state.result(raise_on_failure=False))
+            summaries[name] = _outcome(state, flight_dir)
             advance(1)
-        with timings.step("report"):
-            qa_markdown = write_report(paths.out, [n for n, f in summaries.items() if f.get("status") != "failed"])
+        qa_markdown = _report(paths.out, summaries, timings)
         advance(1)
     record = runner.run_record(session=session, out=out, plan=plan, flights=summaries, timings=timings,
                                dask_address=dask_address, flow_run_id=flow_run.id)
@@ -192,6 +189,19 @@ def post_flight(
              "reused from the cache (nothing re-fitted)" if plan.cached else f"fitted: {', '.join(record['fitted'])}",
              len(summaries), out)
     return record
+
+
+def _outcome(state: Any, flight_dir: str) -> dict[str, Any]:
+    """A flight's summary; one bad flight (empty, every frame quarantined, unreadable) does not
+    cost the others theirs."""
+    return state.result() if state.is_completed() else \
+        runner.failed_flight(flight_dir, state.result(raise_on_failure=False))
+
+
+def _report(out: str, summaries: dict[str, dict[str, Any]], timings: runner.Timings) -> str:
+    """OUT/report.html of the flights processed; its markdown for the artifact."""
+    with timings.step("report"):
+        return write_report(out, [n for n, f in summaries.items() if f.get("status") != "failed"])
 
 
 def _finish(record: dict[str, Any], qa_markdown: str, session: str, out: str, paths: runner.RunPaths,
@@ -224,11 +234,9 @@ def _card_flight(session: str, out: str, paths: runner.RunPaths, cache: str, tim
             with timings.step(f"apply_{name}"):
                 state = apply_card(name, plan, str(Path(paths.out) / "flights" / name), dask_address, scheduler,
                                    workers, direct_io, return_state=True)
-            summaries[name] = state.result() if state.is_completed() else \
-                runner.failed_flight(flight["folder"], state.result(raise_on_failure=False))
+            summaries[name] = _outcome(state, flight["folder"])
             advance(1)
-        with timings.step("report"):
-            qa_markdown = write_report(paths.out, [n for n, f in summaries.items() if f.get("status") != "failed"])
+        qa_markdown = _report(paths.out, summaries, timings)
         advance(1)
     record = runner.card_run_record(session=session, out=out, plan=plan, flights=summaries, timings=timings,
                                     dask_address=dask_address, flow_run_id=flow_run.id)

@@ -521,26 +521,14 @@ def update_catalog(root: str | Path, out_url: str | None = None) -> dict[str, An
 def run_record(*, session: str, out: str, plan: CalibrationPlan, flights: dict[str, dict[str, Any]],
                timings: Timings, dask_address: str | None, flow_run_id: str | None = None) -> dict[str, Any]:
     """The contents of ``OUT/run.json`` (SPEC.md, Outputs of the post-flight flow)."""
-    return {
-        "report": REPORT_HTML,
-        "format": RUN_FORMAT,
-        "session": str(session),
-        "out": str(out),
-        "calibration": CALIBRATION_STORE,
-        "calibration_cached": plan.cached,
-        "calibration_stages": {s.name: {"key": s.key, "cached": s.cached,
-                                        "seconds": 0.0 if s.cached else timings.seconds.get(f"fit_{s.name}", 0.0)}
-                               for s in plan.stages},
-        "fitted": [s.name for s in plan.stages if not s.cached],
-        "flights": {name: {**summary, "outputs": None if summary.get("status") == "failed" else f"flights/{name}/"}
-                    for name, summary in flights.items()},
-        "status": "partial" if any(f.get("status") == "failed" for f in flights.values()) else "done",
-        "dask_address": dask_address,
-        "versions": versions(),
-        "timings_s": timings.total(),
-        "prefect_flow_run_id": flow_run_id,
-        "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-    }
+    return _record(
+        {"kind": "field", "calibration": CALIBRATION_STORE, "calibration_cached": plan.cached,
+         "calibration_stages": {s.name: {"key": s.key, "cached": s.cached,
+                                         "seconds": 0.0 if s.cached else timings.seconds.get(f"fit_{s.name}", 0.0)}
+                                for s in plan.stages},
+         "fitted": [s.name for s in plan.stages if not s.cached]},
+        session=session, out=out, flights=flights, timings=timings, dask_address=dask_address,
+        flow_run_id=flow_run_id)
 
 
 def card_run_record(*, session: str, out: str, plan: dict[str, Any], flights: dict[str, dict[str, Any]],
@@ -549,18 +537,21 @@ def card_run_record(*, session: str, out: str, plan: dict[str, Any], flights: di
     ``card`` (the camera, its serial and how they were found) and per flight the calibration
     it got and why (``calibration``, ``field_calibration``, ``calibration_source``) and its
     light reference (``reference``)."""
-    card = plan_from_record(plan)
+    return _record(
+        {"kind": "card", "calibration": None, "calibration_cached": False, "calibration_stages": {}, "fitted": [],
+         "card": plan_from_record(plan).record()},
+        session=session, out=out, flights=flights, timings=timings, dask_address=dask_address,
+        flow_run_id=flow_run_id)
+
+
+def _record(calibration: dict[str, Any], *, session: str, out: str, flights: dict[str, dict[str, Any]],
+            timings: Timings, dask_address: str | None, flow_run_id: str | None) -> dict[str, Any]:
     return {
         "report": REPORT_HTML,
         "format": RUN_FORMAT,
-        "kind": "card",
         "session": str(session),
         "out": str(out),
-        "calibration": None,
-        "calibration_cached": False,
-        "calibration_stages": {},
-        "fitted": [],
-        "card": card.record(),
+        **calibration,
         "flights": {name: {**summary, "outputs": None if summary.get("status") == "failed" else f"flights/{name}/"}
                     for name, summary in flights.items()},
         "status": "partial" if any(f.get("status") == "failed" for f in flights.values()) else "done",
