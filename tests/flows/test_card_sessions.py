@@ -54,7 +54,8 @@ def test_run_on_a_card_uses_its_panel_with_no_option(first_run: Path, tmp_path: 
     assert f["reference"]["route"] == "panel-dls"
     assert "RP02-1603036-SC" in f["reference"]["panel_reflectance"]
     assert "flight 0000SET: radiometry factory" in captured.err and "light reference panel-dls" in captured.err
-    assert (out / "report.html").is_file() and (out / "flights" / "0000SET" / "reflectance.zarr").is_dir()
+    assert (out / "flights" / "0000SET" / "reflectance.zarr").is_dir()
+    assert "panel reflectance: panel serial RP02-1603036-SC (QR code of IMG_0000)" in (out / "report.html").read_text()
     alone = tmp_path / "alone"
     assert main(["apply", str(card), "--calibration", "factory", "--panel-reflectance",
                  "micasense-rp02-1603036-sc", "-o", str(alone)]) == 0

@@ -139,3 +139,26 @@ def test_factory_apply_runs_on_the_cluster(cluster: str, tmp_path) -> None:
     assert remote.run["scheduler"] == "distributed" and local.run["scheduler"] != "distributed"
     assert remote.run["frames_out"] == local.run["frames_out"] == 2
     assert_same_flight_outputs(tmp_path / "remote", tmp_path / "local")
+
+
+def test_a_card_session_runs_on_the_cluster(cluster: str, tmp_path) -> None:
+    """``mscal run CARD --dask-address``: a flight folder off the card (no field session) is
+    computed on the cluster's workers, with the outputs of a local factory apply."""
+    import shutil
+
+    from pipeline.apply.factory import FactoryOptions, apply_factory
+    from tests.micasense_data import require_data
+
+    card = tmp_path / "card" / "0000SET" / "000"
+    card.mkdir(parents=True)
+    for f in sorted(require_data().glob("IMG_000*_*.tif")):
+        shutil.copy(f, card / f.name)
+    before = _frame_compute_seconds(cluster)
+    out = tmp_path / "out"
+    assert main(["run", str(tmp_path / "card"), "-o", str(out), "--dask-address", cluster]) == 0
+    assert _frame_compute_seconds(cluster) > before
+    run = json.loads((out / "run.json").read_text())
+    assert run["kind"] == "card" and run["dask_address"] == cluster
+    assert run["flights"]["0000SET"]["computed_on"] == f"dask scheduler {cluster}"
+    apply_factory(tmp_path / "card" / "0000SET", tmp_path / "local", FactoryOptions(camera="micasense-rededge"))
+    assert_same_flight_outputs(out / "flights" / "0000SET", tmp_path / "local")

@@ -247,6 +247,10 @@ def _panel_dls(panel: dict[str, Any]) -> dict[str, float]:
     return {b: float(v) for b, v in ratio.items() if v is not None and math.isfinite(float(v)) and float(v) > 0}
 
 
+#: run.json ``reference`` keys saying why a light reference before the one used was not used.
+REFERENCE_WHY = ("albedo", "albedo_panel_unusable", "panel_serial_none", "panel_serial_unknown", "panel_serial_unusable")
+
+
 def reference_table(run: dict[str, Any], band_names: Sequence[str] = ()) -> Table | None:
     """The reflectance reference of a factory apply (run.json ``reference``): per panel capture
     and band, the panel's factor (Eq. 11-14 split and plain mean) beside the sun sensor's
@@ -255,10 +259,12 @@ def reference_table(run: dict[str, Any], band_names: Sequence[str] = ()) -> Tabl
     rec = run.get("reference")
     if not isinstance(rec, dict):
         return None
+    # why the references before this one (the camera's Albedo, the panel's serial) were not used
+    why = "; ".join(f"{k.replace('_', ' ')}: {rec[k]}" for k in REFERENCE_WHY if rec.get(k))
     if rec.get("route") not in ("panel", "panel-dls"):
         return Table("Reflectance reference", ["route", "formula"], [[rec.get("route"), rec.get("formula")]],
                      note="each capture's own sun-sensor reading; no panel to compare it with "
-                          "(give --panel-reflectance to use and compare a panel capture)")
+                          "(give --panel-reflectance to use and compare a panel capture)" + (f". {why}" if why else ""))
     rows = []
     for p in rec.get("panels") or []:
         split = p.get("factor_split") or {}
@@ -269,8 +275,9 @@ def reference_table(run: dict[str, Any], band_names: Sequence[str] = ()) -> Tabl
                          (p.get("factor_dls") or {}).get(band), (p.get("panel_over_dls") or {}).get(band)])
     return Table("Reflectance reference: panel vs sun sensor",
                  ["panel capture", "band", "k panel (S/B split)", "k panel (mean)", "k DLS (pi/E)", "panel / DLS"],
-                 rows, note=f"{rec.get('formula')}; a panel/DLS ratio equal in all bands is the DLS's tilt "
-                            "(brightness only), a spread across bands changes every index")
+                 rows, note=(f"panel reflectance: {rec['panel_reflectance']}. " if rec.get("panel_reflectance") else "")
+                 + f"{rec.get('formula')}; a panel/DLS ratio equal in all bands is the DLS's tilt "
+                   "(brightness only), a spread across bands changes every index" + (f". {why}" if why else ""))
 
 
 def time_warnings(run: dict[str, Any]) -> list[QAWarning]:
