@@ -75,7 +75,7 @@ def apply_flight(name: str, flight_dir: str, calibration: str, out: str, normali
 
 
 @task(cache_policy=NO_CACHE)
-def record_calibration(session: str, store: str, cache_dir: str) -> str | None:
+def record_calibration(session: str, store: str, cache_dir: str) -> dict[str, str]:
     return runner.record_calibration(session, store, cache_dir)
 
 
@@ -167,8 +167,6 @@ def post_flight(
             advance(1)
         published = publish_calibration(plan.final_store, paths.out)
         library = record_calibration(paths.session, plan.final_store, cache)
-        if library is not None:
-            log.info("calibration recorded in the calibration library: %s", library)
         for name, flight_dir in flights.items():
             with timings.step(f"apply_{name}"):
                 # apply reads OUT/calibration.zarr (the same arrays as the cached store), so that a

@@ -244,13 +244,20 @@ def apply_card(plan: dict[str, Any], name: str, out: str, *, dask_address: str |
                              direct_io=direct_io)
 
 
-def record_calibration(session_dir: str | Path, store: str | Path, cache_dir: str | Path | None = None) -> str | None:
+def record_calibration(session_dir: str | Path, store: str | Path, cache_dir: str | Path | None = None
+                       ) -> dict[str, str]:
     """Record a field session's fitted calibration in the calibration library under
-    ``cache_dir`` (:mod:`pipeline.calibrate.library`), keyed by its camera and serial number;
-    returns the library's copy (recording the same calibration again adds nothing)."""
+    ``cache_dir`` (:mod:`pipeline.calibrate.library`), keyed by its camera and serial number:
+    ``{"store": the library's copy}`` (recording the same calibration again adds nothing), or
+    ``{"not_recorded": why}`` when the session's frames cannot say its serial or time (the
+    run goes on: its calibration is published all the same)."""
     from pipeline.calibrate.library import record_fitted
 
-    return str(record_fitted(store, session_dir, library_root=_library(cache_dir)))
+    try:
+        return {"store": str(record_fitted(store, session_dir, library_root=_library(cache_dir)))}
+    except MscalError as exc:
+        log.warning("calibration not recorded in the calibration library: %s", exc)
+        return {"not_recorded": str(exc).splitlines()[0]}
 
 
 # --------------------------------------------------------------------------- Dask and apply

@@ -35,6 +35,10 @@ def test_first_run_fits_everything_and_writes_every_output(flow_session: Path, f
     assert run["fitted"] == STAGES
     assert all(run["calibration_stages"][s]["seconds"] > 0 for s in STAGES)
     assert sorted(run["flights"]) == sorted(FLIGHTS)
+    assert run["kind"] == "field"
+    # recorded in the calibration library (the snapshot frames name no serial: "unknown")
+    recorded = Path(run["calibration_library"]["store"])
+    assert recorded.parent.name == "unknown" and (recorded / "zarr.json").is_file()
     ds = open_calibration(first_run / "calibration.zarr", need="apply")
     errors = evaluate_calibration(flow_session, ds)
     assert errors["response_max_error"] < 0.02
@@ -221,6 +225,8 @@ def test_run_on_a_multilens_session_applies_its_captures(multilens_session, tmp_
     assert main(["run", str(session), "-o", str(out)]) == 0
     run = _run_json(out)
     assert run["calibration_cached"] is True and run["fitted"] == []
+    # its frame folders are empty (the stores come from the cache): no serial to record it under
+    assert "no captures of camera micasense-rededge found" in run["calibration_library"]["not_recorded"]
     f = run["flights"]["field"]
     assert (f["frames_in"], f["frames_out"], f["quarantined"], f["up_to_date"]) == (2, 2, [], False)
     flight = out / "flights" / "field"
