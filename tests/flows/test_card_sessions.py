@@ -108,6 +108,10 @@ def test_serve_takes_card_folders_of_every_kind_and_names_what_it_passes_over(
     assert p4m["frames_out"] == 2 and sorted(s["file"] for s in p4m["skipped"]) == [
         "DCIM/100MEDIA/DJI_0010.JPG", "DCIM/100MEDIA/DJI_0020.JPG"]
     assert json.loads((root / "field" / "run.json").read_text())["calibration_cached"] is True
+    # mscal run on the same card gives what serve gave
+    assert main(["run", str(inbox / "ms1"), "-o", str(tmp_path / "run")]) == 0
+    np.testing.assert_array_equal(_reflectance(tmp_path / "run" / "flights" / "0000SET"),
+                                  _reflectance(root / "ms1" / "flights" / "0000SET"))
 
     # the catalog: one valid STAC item per flight, camera model and serial in its properties
     assert main(["catalog", str(root)]) == 0
@@ -119,3 +123,38 @@ def test_serve_takes_card_folders_of_every_kind_and_names_what_it_passes_over(
     assert props["mscal:radiometry"] == "factory" and props["mscal:light_reference"] == "panel-dls"
     assert items["sequoia__flight"]["properties"]["mscal:camera_serial"] == "PI040378AA6C000181"
     assert main(["catalog", str(root), "--validate-only"]) == 0
+
+
+def test_frames_of_a_snapshot_camera_take_the_library_calibration_of_their_serial(
+        flow_session: Path, first_run: Path, tmp_path: Path) -> None:
+    """A snapshot camera's frames with frames.csv and a session.yaml naming the camera and its
+    serial (no factory radiometry): the library's calibration of that serial fitted before the
+    flight is the whole radiometry (Eq. 15), with the outputs of the field run; one fitted after
+    the flight is not used, and with none the folder is refused with the reason."""
+    from datetime import datetime, timezone
+
+    from mscal_core.errors import InputError
+    from pipeline.calibrate.library import record
+    from pipeline.run import card
+
+    from .conftest import assert_same_flight_outputs
+
+    flight = tmp_path / "frames"
+    shutil.copytree(flow_session / "flights" / "field", flight)
+    (flight / "session.yaml").write_text("camera: ximea-mq022hg-sm5x5-nir\nserial: XI-0042\n")
+    lib = tmp_path / "library"
+    before = datetime(2017, 6, 14, 9, 45, tzinfo=timezone.utc)  # the flight: 09:50 that day
+    record(first_run / "calibration.zarr", camera="ximea-mq022hg-sm5x5-nir", serial="XI-0042", session_time=before,
+           library_root=lib)
+    plan = card.plan_card(flight, lib)
+    f = plan.flights[0]
+    assert (f.name, f.calibration, f.start) == ("flight", "field", "2017-06-14T09:50:00.000Z")
+    assert card.apply_card_flight(plan, f, tmp_path / "out")["frames_out"] == 3
+    assert_same_flight_outputs(first_run / "flights" / "field", tmp_path / "out")
+
+    late = tmp_path / "late"
+    record(first_run / "calibration.zarr", camera="ximea-mq022hg-sm5x5-nir", serial="XI-0042",
+           session_time=datetime(2017, 6, 15, tzinfo=timezone.utc), library_root=late)
+    with pytest.raises(InputError, match="no field calibration of ximea-mq022hg-sm5x5-nir serial XI-0042 fitted "
+                                         "before the flight"):
+        card.plan_card(flight, late)
