@@ -232,7 +232,8 @@ def _card_flight(session: str, out: str, paths: runner.RunPaths, cache: str, tim
             with timings.step(f"apply_{name}"):
                 state = apply_card(name, plan, str(Path(paths.out) / "flights" / name), dask_address, scheduler,
                                    workers, direct_io, return_state=True)
-            summaries[name] = _outcome(state, flight["folder"])
+            summaries[name] = state.result() if state.is_completed() else \
+                runner.failed_card_flight(flight, state.result(raise_on_failure=False))
             advance(1)
         qa_markdown = _report(paths.out, summaries, timings)
         advance(1)

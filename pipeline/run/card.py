@@ -39,7 +39,8 @@ from typing import Any
 import numpy as np
 from mscal_core.errors import InputError, MscalError, SessionError
 
-from pipeline.ingest.catalog import Camera, check_keys, load_camera, read_yaml
+from pipeline.ingest.catalog import Camera, check_keys, load_camera, read_yaml, reflectance_option
+from pipeline.ingest.exif import parse_iso
 
 #: Folders that make a session a field session (the paper's three fits).
 FIELD_FOLDERS = ("response", "vignetting", "reflector")
@@ -104,6 +105,12 @@ def load_card_settings(folder: str | Path) -> CardSettings:
                                hint=f"give a store from 'mscal calibrate', or '{NO_FIELD}' for factory radiometry")
         store = str(p.resolve())
     rho = data.get("panel_reflectance")
+    if rho is not None:
+        try:
+            reflectance_option(str(rho), "panel_reflectance")
+        except MscalError as exc:
+            raise SessionError(exc.reason, path=path, hint=exc.hint or "a number in (0, 1] or a catalogs/targets name"
+                               ) from None
     return CardSettings(
         camera=None if data.get("camera") is None else str(data["camera"]),
         serial=None if data.get("serial") is None else str(data["serial"]).strip(),
@@ -153,6 +160,16 @@ def _time(t: np.datetime64) -> str | None:
     return None if np.isnat(t) else np.datetime_as_string(t, unit="s") + "Z"
 
 
+def _utc(text: str) -> datetime:
+    """ISO 8601 text in UTC (a time without a zone is taken as UTC, as the frames' clocks)."""
+    dt = parse_iso(text)
+    return dt.replace(tzinfo=timezone.utc) if dt.tzinfo is None else dt.astimezone(timezone.utc)
+
+
+def _iso_utc(dt: datetime) -> str:
+    return dt.astimezone(timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z")
+
+
 def split_by_time(times: np.ndarray, gap_s: float) -> list[np.ndarray]:
     """Indices of ``times`` (datetime64, NaT allowed) in runs where consecutive captures (in
     time order) are at most ``gap_s`` apart. Captures without a time stay with the run of the
@@ -186,8 +203,17 @@ def _set_folder(capture_files: tuple[Path, ...], root: Path) -> Path:
     return root
 
 
+def _set_names(set_dirs: list[Path], root: Path) -> dict[Path, str]:
+    """Flight names of the SET folders (and of ``root`` itself, for captures in no SET folder:
+    ``flight``): the folder's name, or its path below ``root`` joined with ``_`` when two SET
+    folders of the card share a name (two cards copied into one folder)."""
+    short = {d: (d.name if d != root else "flight") for d in set_dirs}
+    taken = [n for n in short.values()]
+    return {d: (n if taken.count(n) == 1 else "_".join(d.relative_to(root).parts) or n) for d, n in short.items()}
+
+
 def _calibration(settings: CardSettings, camera: Camera, serial: str | None, factory: bool, start: str | None,
-                 library_root: Path | None) -> tuple[str, str | None, str]:
+                 library_root: Path | None, folder: Path) -> tuple[str, str | None, str]:
     """``(kind, store, why)`` of one flight: factory, factory+field (MicaSense's model with the
     field response and vignetting) or field (Eq. 15 with the store's U, V, S)."""
     store, why = None, ""
@@ -198,7 +224,7 @@ def _calibration(settings: CardSettings, camera: Camera, serial: str | None, fac
     else:
         from pipeline.calibrate.library import default_library_root, lookup
 
-        flight_time = None if start is None else datetime.fromisoformat(start.rstrip("Z")).replace(tzinfo=timezone.utc)
+        flight_time = None if start is None else _utc(start)
         root = library_root if library_root is not None else default_library_root()
         entry = lookup(camera.name, serial, flight_time, root) if serial else None
         if entry is not None:
@@ -213,7 +239,7 @@ def _calibration(settings: CardSettings, camera: Camera, serial: str | None, fac
         if not factory:
             raise InputError(
                 f"the files carry no factory radiometry of {camera.name} and no field calibration is known ({why})",
-                hint=f"run 'mscal calibrate' on a field session of this camera (it is then recorded for serial "
+                path=folder, hint=f"run 'mscal calibrate' on a field session of this camera (it is then recorded for serial "
                      f"{serial or '?'}), or name a store with field_calibration in session.yaml")
         return "factory", None, why
     if not factory:
@@ -235,6 +261,11 @@ def plan_card(folder: str | Path, library_root: str | Path | None = None) -> Car
     root = Path(folder)
     if not root.is_dir():
         raise InputError("flight folder not found", path=root)
+    field = [d for d in FIELD_FOLDERS if (root / d).is_dir()]
+    if field and not (root / "session.yaml").is_file():  # not a card: a field session without its file
+        raise SessionError(f"session.yaml is missing beside {', '.join(d + '/' for d in field)}", path=root / "session.yaml",
+                           hint="a field session needs session.yaml (camera, reflector, marker: see SPEC.md); a flight "
+                                "folder off a card holds no response/, vignetting/ or reflector/")
     settings = load_card_settings(root)
     lib = None if library_root is None else Path(library_root)
     if (root / "frames.csv").is_file() or (settings.camera and load_camera(settings.camera).factory_model is None):
@@ -243,11 +274,16 @@ def plan_card(folder: str | Path, library_root: str | Path | None = None) -> Car
     camera = ident.camera
     probe = ident.probe
     factory = camera.factory_model is not None and bool(probe.get("bands_per_capture"))
-    serial = settings.serial or (str(probe["serial"]) if probe.get("serial") else None)
+    serial = str(probe["serial"]) if probe.get("serial") else None
     if serial is None:  # files without the maker's metadata (camera named in session.yaml): their EXIF
         from pipeline.calibrate.library import camera_serial
 
         serial = camera_serial(root, camera)
+    if settings.serial is not None:
+        if serial is not None and serial.casefold() != settings.serial.casefold():
+            raise SessionError(f"serial {settings.serial!r} is not the files' serial number {serial!r}",
+                               path=settings.source, hint="leave serial out (the files say it), or correct it")
+        serial = serial or settings.serial
     found = find_captures(root, camera)
     if not found.captures:
         why = "; ".join(f"{q['file']}: {q['reason']}" for q in found.quarantined[:2])
@@ -259,21 +295,24 @@ def plan_card(folder: str | Path, library_root: str | Path | None = None) -> Car
         by_set[s] = by_set.get(s, 0) + 1
     flights: list[CardFlight] = []
     gap_s = settings.flight_gap_minutes * 60.0
+    names = _set_names(sorted(by_set), root)
     for set_dir in sorted(by_set):
         caps = find_captures(set_dir, camera).captures if set_dir != root or len(by_set) > 1 else found.captures
-        if set_dir == root and len(by_set) > 1:  # captures beside the SET folders: those not in one
+        # captures beside SET folders: only those not in one (apply of root would read the SET folders too)
+        loose = set_dir == root and len(by_set) > 1
+        if loose:
             caps = [c for c in caps if _set_folder(c.files, root) == root]
         times = capture_times(caps)
         parts = split_by_time(times, gap_s)
-        base = set_dir.name if set_dir != root else "flight"
         for k, idx in enumerate(parts):
-            name = base if len(parts) == 1 else f"{base}-{k + 1}"
+            name = names[set_dir] if len(parts) == 1 else f"{names[set_dir]}-{k + 1}"
             span = times[idx][~np.isnat(times[idx])]
             start = _time(span.min()) if span.size else None
             end = _time(span.max()) if span.size else None
-            kind, store, why = _calibration(settings, camera, serial, factory, start, lib)
+            kind, store, why = _calibration(settings, camera, serial, factory, start, lib, root)
             flights.append(CardFlight(
-                name=name, folder=str(set_dir), captures=() if len(parts) == 1 else tuple(caps[i].name for i in idx),
+                name=name, folder=str(set_dir),
+                captures=tuple(caps[i].name for i in idx) if len(parts) > 1 or loose else (),
                 start=start, end=end, calibration=kind, field_calibration=store, calibration_source=why))
     return CardPlan(root=str(root), camera=camera.name, evidence=ident.evidence, make=probe.get("make"),
                     model=probe.get("model"), serial=serial, factory=factory, flights=tuple(flights), settings=settings)
@@ -293,15 +332,12 @@ def _plan_frames(root: Path, settings: CardSettings, library_root: Path | None) 
         raise InputError(f"no frames.csv and no capture files of {camera.name} in the folder", path=root)
     flights = []
     for d in dirs:
-        times: list[str] = []
-        for rec in read_frame_table(d, on_frame_error=lambda name, exc: None):
-            if getattr(rec, "time", None):
-                times.append(str(rec.time))
-        start = min(times) if times else None
-        kind, store, why = _calibration(settings, camera, settings.serial, False, start, library_root)
+        times = [_utc(rec.time) for rec in read_frame_table(d, on_frame_error=lambda name, exc: None) if rec.time]
+        start = _iso_utc(min(times)) if times else None
+        kind, store, why = _calibration(settings, camera, settings.serial, False, start, library_root, root)
         flights.append(CardFlight(name=d.name if d != root else "flight", folder=str(d), start=start,
-                                  end=max(times) if times else None, calibration=kind, field_calibration=store,
-                                  calibration_source=why))
+                                  end=_iso_utc(max(times)) if times else None, calibration=kind,
+                                  field_calibration=store, calibration_source=why))
     return CardPlan(root=str(root), camera=camera.name, evidence=f"camera {camera.name} of {settings.source}",
                     make=None, model=None, serial=settings.serial, factory=False, flights=tuple(flights),
                     settings=settings)

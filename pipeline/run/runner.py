@@ -244,6 +244,13 @@ def apply_card(plan: dict[str, Any], name: str, out: str, *, dask_address: str |
                              direct_io=direct_io)
 
 
+def failed_card_flight(flight: dict[str, Any], error: BaseException | None) -> dict[str, Any]:
+    """:func:`failed_flight` of a card session's flight, with what its plan said of it (its
+    captures, time span, calibration and why)."""
+    keep = ("calibration", "field_calibration", "calibration_source", "start", "end", "captures")
+    return {**failed_flight(flight["folder"], error), "kind": "card", **{k: flight.get(k) for k in keep}}
+
+
 def record_calibration(session_dir: str | Path, store: str | Path, cache_dir: str | Path | None = None
                        ) -> dict[str, str]:
     """Record a field session's fitted calibration in the calibration library under
@@ -255,7 +262,7 @@ def record_calibration(session_dir: str | Path, store: str | Path, cache_dir: st
 
     try:
         return {"store": str(record_fitted(store, session_dir, library_root=_library(cache_dir)))}
-    except MscalError as exc:
+    except (MscalError, OSError) as exc:  # a full disk, an unwritable cache: the run's outputs come first
         log.warning("calibration not recorded in the calibration library: %s", exc)
         return {"not_recorded": str(exc).splitlines()[0]}
 
@@ -618,7 +625,7 @@ def summary_markdown(record: dict[str, Any]) -> str:
 
 
 __all__ = [
-    "CalibrationPlan", "RunPaths", "StagePlan", "Timings", "apply_card", "apply_one", "card_run_record", "check_run_inputs", "configure_prefect",
+    "CalibrationPlan", "RunPaths", "StagePlan", "Timings", "apply_card", "apply_one", "card_run_record", "failed_card_flight", "check_run_inputs", "configure_prefect",
     "default_cache_dir", "flight_dirs", "is_remote", "is_transient", "plan_calibration", "plan_card_session", "publish_calibration", "record_calibration", "session_kind", "session_problem",
     "remove_work", "run_paths", "run_record", "update_catalog", "stage_in", "summary_markdown", "upload", "write_run_json",
 ]

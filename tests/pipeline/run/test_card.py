@@ -116,3 +116,74 @@ def test_a_field_session_is_not_a_card(tmp_path: Path) -> None:
     assert card.is_field_session(tmp_path)
     (tmp_path / "response").rmdir()
     assert not card.is_field_session(tmp_path)
+
+
+def test_captures_beside_set_folders_are_a_flight_of_their_own(tmp_path: Path) -> None:
+    src = require_data()
+    root = tmp_path / "ms1"
+    (root / "0000SET" / "000").mkdir(parents=True)
+    for f in src.glob("IMG_0000_*.tif"):
+        shutil.copy(f, root / "0000SET" / "000" / f.name)
+    for f in src.glob("IMG_0001_*.tif"):
+        shutil.copy(f, root / f.name)
+    plan = card.plan_card(root, tmp_path / "library")
+    assert [(f.name, Path(f.folder).name, f.captures) for f in plan.flights] == [
+        ("flight", "ms1", ("IMG_0001",)), ("0000SET", "0000SET", ())]
+    res = card.apply_card_flight(plan, plan.flights[0], tmp_path / "out")
+    assert (res["frames_in"], res["frames_out"]) == (1, 1)  # not the SET folder's capture too
+
+
+def test_set_folders_of_one_name_in_two_places_are_two_flights(tmp_path: Path) -> None:
+    src = require_data()
+    root = tmp_path / "cards"
+    for sub, cap in (("cardA", "IMG_0000"), ("cardB", "IMG_0001")):
+        d = root / sub / "0000SET" / "000"
+        d.mkdir(parents=True)
+        for f in src.glob(f"{cap}_*.tif"):
+            shutil.copy(f, d / f.name)
+    plan = card.plan_card(root, tmp_path / "library")
+    assert [f.name for f in plan.flights] == ["cardA_0000SET", "cardB_0000SET"]
+
+
+def test_a_field_session_without_its_session_yaml_is_not_taken_for_a_card(tmp_path: Path) -> None:
+    root = _card(tmp_path / "sess")
+    (root / "response").mkdir()
+    with pytest.raises(SessionError, match=r"session\.yaml: session\.yaml is missing beside response/"):
+        card.plan_card(root, tmp_path / "library")
+
+
+def test_session_yaml_serial_and_panel_reflectance_are_checked(tmp_path: Path) -> None:
+    root = _card(tmp_path / "ms1")
+    (root / "session.yaml").write_text("serial: RE-OTHER-999\n")
+    with pytest.raises(SessionError, match="serial 'RE-OTHER-999' is not the files' serial number '1777777'"):
+        card.plan_card(root, tmp_path / "library")
+    (root / "session.yaml").write_text("serial: 1777777\n")  # the same: fine
+    assert card.plan_card(root, tmp_path / "library").serial == "1777777"
+    (root / "session.yaml").write_text("panel_reflectance: rp02-typo\n")
+    with pytest.raises(SessionError, match=r"ms1/session\.yaml: .*rp02-typo"):
+        card.load_card_settings(root)
+
+
+def test_frame_times_of_a_snapshot_flight_are_taken_in_utc(tmp_path: Path) -> None:
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "frames.csv").write_text("file,exposure_ms,time\nf0.tif,1.0,2026-06-01T12:00:00+02:00\n"
+                                       "f1.tif,1.0,2026-06-01T10:30:00Z\n")
+    for name in ("f0.tif", "f1.tif"):
+        (frames / name).write_bytes(b"II*\0")  # the plan reads frames.csv only
+    (frames / "calib.zarr").mkdir()
+    (frames / "session.yaml").write_text("camera: ximea-mq022hg-sm5x5-nir\nfield_calibration: calib.zarr\n")
+    f = card.plan_card(frames, tmp_path / "library").flights[0]
+    assert (f.start, f.end, f.calibration) == ("2026-06-01T10:00:00Z", "2026-06-01T10:30:00Z", "field")
+    assert f.field_calibration == str((frames / "calib.zarr").resolve())
+
+
+def test_a_failed_card_flight_keeps_what_its_plan_said() -> None:
+    from pipeline.run.runner import failed_card_flight
+
+    flight = {"name": "0000SET-2", "folder": "/card/0000SET", "captures": ["IMG_0001"], "start": "t0", "end": "t1",
+              "calibration": "factory", "field_calibration": None, "calibration_source": "none known"}
+    rec = failed_card_flight(flight, InputError("no complete capture"))
+    assert rec["status"] == "failed" and rec["reason"] == "no complete capture"
+    assert (rec["captures"], rec["start"], rec["calibration"], rec["calibration_source"]) == (
+        ["IMG_0001"], "t0", "factory", "none known")
