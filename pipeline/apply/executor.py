@@ -206,7 +206,6 @@ class FactoryChain:
     reference: str = "dls"  # panel | dls | none (radiance only)
     panel_factor: tuple[float, ...] | None = None
     field: tuple[str, tuple[str, ...]] | None = None  # (store, components) replacing the factory's
-    relative_scale: float = 1.0  # one constant on every band of a relative sun-sensor route (DJI, Sequoia)
 
     kind = "factory"
 
@@ -226,8 +225,8 @@ def field_parts(store: str, components: tuple[str, ...], camera_name: str) -> tu
 
 def capture_factors(chain: FactoryChain, capture: Capture) -> np.ndarray:
     """``k_b`` of one capture: the panel's; or its own sun sensor's
-    (:func:`pipeline.ingest.camera_meta.reflectance_factor`: ``pi / E_b`` for MicaSense,
-    ``1 / E_b`` times ``chain.relative_scale`` for the relative routes), NaN for a band without
+    (:func:`pipeline.ingest.camera_meta.reflectance_factor`: ``c / E_b``, ``c`` the camera
+    model's fixed scale, :mod:`pipeline.ingest.sun_scale`), NaN for a band without
     a usable reading (:func:`missing_reflectance` names it); NaN for every band when the run
     has no reference (radiance only)."""
     if chain.reference == "panel":
@@ -236,7 +235,7 @@ def capture_factors(chain: FactoryChain, capture: Capture) -> np.ndarray:
     if chain.reference == "none":
         return np.full(len(capture.metas), np.nan)
     k = [reflectance_factor(meta) for meta in capture.metas]
-    return np.array([np.nan if kb is None else kb for kb in k], dtype=np.float64) * chain.relative_scale
+    return np.array([np.nan if kb is None else kb for kb in k], dtype=np.float64)
 
 
 def missing_reflectance(chain: FieldChain | FactoryChain, capture: Capture) -> tuple[dict[str, str], ...]:

@@ -27,10 +27,10 @@ The factory chain runs in the one apply executor (:mod:`pipeline.apply.executor`
     panel region: XMP ReflectArea, else a marker in the panel's plane, else detected, else a
     pixel polygon (the last two from ``panel`` of a session.yaml in the folder or up to two
     levels above it; :func:`pipeline.ingest.session.parse_panel`);
-  - ``dls``: the capture's own downwelling light sensor, ``k_b = pi / E_b`` (XMP Irradiance,
-    W m-2 nm-1, no tilt correction). For DJI and Sequoia the sun sensor gives reflectance up
-    to one constant shared by the bands: ``k_b = c / E_b`` with one run constant ``c``
-    (:func:`relative_scale`, run.json ``reference.relative_scale``). A band without a usable
+  - ``dls``: the capture's own downwelling light sensor, ``k_b = c / E_b`` with ``c`` the
+    camera model's one fixed scale (:mod:`pipeline.ingest.sun_scale`: MicaSense pi, E in W m-2
+    nm-1; DJI 1 as its guides write it; Sequoia Parrot's K fixed at 5e-4; run.json
+    ``reference.sun_sensor_scale``), never a constant chosen from a run. A band without a usable
     reading keeps its radiance; its reflectance is NaN and named in run.json
     ``reflectance_missing`` (the capture is not quarantined; the summary and the report warn,
     ``reflectance_missing``). When no band of any capture has one, ``--reference dls`` is
@@ -82,7 +82,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -129,12 +128,14 @@ from pipeline.ingest.camera_meta import (
 from pipeline.ingest.catalog import Camera, load_index, reflectance_option
 from pipeline.ingest.identify import Identification, identify_camera
 from pipeline.ingest.session import PanelConfig, panel_config_near
+from pipeline.ingest.sun_scale import sun_scale_constant, sun_scale_record
 from pipeline.ingest.sunsensor import SensorLight, sensor_light
 from pipeline.ingest.targets import serial_targets_digest
 
 FACTORY = "factory"
 REFERENCES = ("auto", "panel", "dls", "panel-dls")  # + "none" (radiance only) when auto finds no usable sun sensor
-LIGHT_MODEL = "issue22: sun sensor turned horizontal; panel-dls; one panel region for all bands"
+LIGHT_MODEL = ("sun sensor turned horizontal; panel-dls; one panel region for all bands; one fixed sun-sensor scale "
+               "per camera model; DLS 2 unit rules checked against the clear sky")
 PANEL_GRID = 32  # cells per side of the panel grid for the S/B split (Eq. 11-14)
 FIELD_COMPONENTS = ("response", "vignetting")  # store variables: inverse_response, vignetting
 ALBEDO_SOURCE = "XMP Albedo of each panel capture's band files (the camera's reading of the panel's QR code)"
@@ -487,10 +488,9 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     # --reference auto the summary and report say how to use them.
     unused = panels_seen(captures, options.panel_captures) if not uses_panels else []
     seen = unused if options.reference == "auto" else []
-    relative = relative_scale(captures, reference, saturation_dn(camera))
     times = capture_times(captures)
     sensor = None if readings_missing(captures) else sensor_light(captures, times)
-    light, scales = _capture_light(options, reference, captures, panels, times, sensor, relative, folder)
+    light, scales = _capture_light(options, reference, captures, panels, times, sensor, folder)
 
     attrs = {"calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
              "comment": "bands are not co-registered: each band keeps its own pixel grid",
@@ -512,7 +512,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                               "no --panel-reflectance" for name in unused})
     run = CaptureRun(
         chain=FactoryChain(saturation_dn(camera), "panel" if reference == "panel-dls" else reference, panel_factor,
-                           None if field is None else field[:2], relative),
+                           None if field is None else field[:2]),
         calibration=FACTORY, calibration_sha256=None, fingerprint=fingerprint, attrs=attrs,
         reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
         execution=options.execution,
@@ -521,7 +521,6 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         record=lambda caps: {"components": _components_record(field),
                              "reference": {**_reference_record(reference, panels, panel_factor, camera, caps[0], no_sun,
                                                                rho_source),
-                                           **({"relative_scale": relative} if relative != 1.0 else {}),
                                            **({"albedo_panel_unusable": unusable}
                                               if unusable and serial is None else {}),
                                            **seen_record(seen), **notes},
@@ -619,36 +618,6 @@ def _components_record(field: tuple[str, tuple[str, ...], str] | None) -> dict[s
     return {c: (f"field:{field[0]}" if field is not None and c in field[1] else FACTORY) for c in FIELD_COMPONENTS}
 
 
-RELATIVE_LEVEL = 0.5  # a relative sun-sensor route puts the first capture's brightest band median here
-
-
-def relative_scale(captures: Sequence[Capture], reference: str, sat: int = (1 << 16) - 1) -> float:
-    """The constant of a *relative* sun-sensor route (DJI, Sequoia: reflectance known up to one
-    factor shared by the bands): chosen so that the brightest band's median over the first
-    capture is :data:`RELATIVE_LEVEL`, which keeps the values in the range of the uint16
-    photogrammetry TIFFs (0..2). 1 for absolute routes. Indices do not depend on it; values of
-    two runs are comparable only through a panel. ``sat``: stored DN from which a pixel is
-    clipped (left out of the medians)."""
-    if reference != "dls" or not captures or sun_sensor_absolute(captures[0].metas[0]):
-        return 1.0
-    cap = captures[0]
-    try:
-        _, dns, channels = read_capture_pixels(cap)
-    except FrameError:
-        return 1.0
-    medians = []
-    for meta, dn in zip(cap.metas, dns):
-        k = reflectance_factor(meta)
-        if k is None:
-            continue
-        rad = factory_radiance(meta, dn, None, channels.get(meta.path))
-        rad = rad[np.asarray(dn) < meta.clipped_from(sat)]
-        if rad.size and np.isfinite(rad).any():
-            medians.append(float(np.nanmedian(rad)) * k)
-    best = max(medians, default=0.0)
-    return RELATIVE_LEVEL / best if best > 0 and math.isfinite(best) else 1.0
-
-
 def _reference_record(reference: str, panels: Sequence[PanelReference], factor: tuple[float, ...] | None,
                       camera: Camera, first: Capture | None = None,
                       no_sun: tuple[Path, str] | None = None, rho_source: str | None = None) -> dict[str, Any]:
@@ -665,14 +634,7 @@ def _reference_record(reference: str, panels: Sequence[PanelReference], factor: 
         rec["hint"] = PANEL_HINT
         return rec
     if reference == "dls":
-        if meta is None or sun_sensor_absolute(meta):
-            rec["formula"] = ("R_b = pi L_b / E_h,b, E_h,b the capture's sun sensor reading turned horizontal (sun position, "
-                              "sensor tilt, direct/diffuse split: run.json sun_sensor)")
-        else:
-            rec["formula"] = (f"R_b = L_b / E_h,b, E_h,b the capture's sun sensor ({meta.irradiance_unit}) turned horizontal: reflectance "
-                              "up to one unknown constant (indices are right; absolute values need a panel)")
-            rec["scale"] = "relative"
-        return rec
+        return {**rec, **sun_scale_record(meta)}
     rec["formula"] = "R_b = L_b / S_b, S_b from the panel's Eq. 11-14 split (median-lit panel)"
     if reference == "panel-dls":
         rec["formula"] = ("R_b(t) = L_b / E_b(t), E_b(t) = q_b(t) E^s_b(t): the panels' light over the sun sensor's "
@@ -698,15 +660,14 @@ def _reference_record(reference: str, panels: Sequence[PanelReference], factor: 
 
 
 def _capture_light(options: FactoryOptions, reference: str, captures: Sequence[Capture],
-                   panels: Sequence[PanelReference], times: np.ndarray, sensor: SensorLight | None, relative: float,
+                   panels: Sequence[PanelReference], times: np.ndarray, sensor: SensorLight | None,
                    folder: Path) -> tuple[PanelSensorLight | None, dict[str, tuple[float, ...]]]:
     """``k_b`` of every capture that does not take the run's one factor: the sun sensor's
     (``dls``, tilt-corrected, :mod:`pipeline.apply.sunlight`), the panels' over time
     (``panel`` with ``--illumination``) or the panels anchored by the sensor (``panel-dls``,
     ``--illumination`` default linear)."""
     if reference == "dls" and sensor is not None:
-        k = sensor.factor * relative
-        return None, {c.name: tuple(float(v) for v in k[f]) for f, c in enumerate(captures)}
+        return None, {c.name: tuple(float(v) for v in sensor.factor[f]) for f, c in enumerate(captures)}
     if reference not in ("panel", "panel-dls") or (reference == "panel" and options.illumination is None):
         return None, {}
     if reference == "panel-dls" and sensor is None:
@@ -744,8 +705,8 @@ def light_record(reference: str, panels: Sequence[PanelReference], captures: Seq
     panel's reflectance error when predicted from the others (``panel_check``)."""
     names, bands = [c.name for c in captures], list(camera.band_names)
     absolute = bool(captures) and sun_sensor_absolute(captures[0].metas[0])
-    unit = "W m-2 nm-1 (pi / k)" if absolute else "relative (1 / k)"
-    scale = math.pi if absolute else 1.0
+    unit = "W m-2 nm-1 (pi / k)" if absolute else "relative (c / k)"
+    scale = sun_scale_constant(captures[0].metas[0] if captures else None)
     rec: dict[str, Any] = {"route": reference, "irradiance_unit": unit}
     idx = {c.name: f for f, c in enumerate(captures)}
     rec["panels_over_time"] = [{

@@ -656,9 +656,9 @@ def _sequoia_sunshine(x: Xmp, path: Path) -> float | None:
     readings share one scale. That division is inferred from the tag's name (no Parrot text
     found): on the real capture in ../shared/data it turns an implausible spectrum (red edge
     4x the others) into a vegetation-like one (NIR > red edge > green > red). Without the tag
-    the band has no reading (a sun_sensor problem naming it): the sun-sensor route divides
-    every band by one run constant (:func:`pipeline.apply.factory.relative_scale`), so a
-    per-band sensitivity left out would not cancel but change every index."""
+    the band has no reading (a sun_sensor problem naming it): every band shares Parrot's one
+    constant K (:mod:`pipeline.ingest.sun_scale`), so a per-band sensitivity left out would
+    not cancel but change every index."""
     recs = sunshine_records(x, path)
     if recs is None:
         return None
@@ -1085,15 +1085,16 @@ def upright_meta(meta: CaptureMeta, image: np.ndarray) -> np.ndarray:
 
 
 def reflectance_factor(meta: CaptureMeta) -> float | None:
-    """``k`` with reflectance ``R = k L`` from the band's own sun sensor, or None when it has
-    no usable reading. MicaSense: ``pi / E`` (E in W m-2 nm-1). DJI: ``1 / E`` (the guide's
-    ``X pCam / Irradiance``; reflectance up to one constant shared by the bands). Sequoia:
-    ``1 / E`` (the sunshine sensor's relative irradiance; Parrot: the ratio is reflectance up
-    to a constant). Sentera: None (ILS counts have no published conversion: use a panel)."""
-    e = meta.irradiance
-    if e is None or not math.isfinite(e) or e <= 0 or meta.radiometry in ("sentera", "thermal", "panchro"):
+    """``k = c / E`` with reflectance ``R = k L`` from the band's own sun sensor, ``c`` the camera
+    model's one fixed scale (:data:`pipeline.ingest.sun_scale.SUN_SENSOR_SCALES`: MicaSense pi,
+    DJI 1 as DJI's guides write it, Sequoia Parrot's K fixed at 5e-4), or None when it has no
+    usable reading or its sensor gives no reflectance (Sentera's ILS counts: use a panel)."""
+    from pipeline.ingest.sun_scale import sun_scale
+
+    e, scale = meta.irradiance, sun_scale(meta.radiometry)
+    if e is None or not math.isfinite(e) or e <= 0 or scale is None:
         return None
-    return math.pi / e if meta.radiometry == "micasense" else 1.0 / e
+    return scale.constant / e
 
 
 #: The sun-sensor tags each radiance model reads (named when a band has no reading at all).

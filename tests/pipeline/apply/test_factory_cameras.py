@@ -256,7 +256,9 @@ def test_dji_p4_multispectral(tmp_path) -> None:
     run = _apply(folder, tmp_path / "out", "--no-align", "--reference", "dls")
     assert run["camera"] == "dji-p4-multispectral" and run["frames"] == ["001", "002"] and run["quarantined"] == []
     assert run["band_alignment"].startswith("none (--no-align")
-    assert run["reference"]["route"] == "dls" and run["reference"]["scale"] == "relative"
+    assert run["reference"]["route"] == "dls" and run["reference"]["scale"].startswith("fixed per camera model")
+    # DJI's guides: R = X pCam / Irradiance, no further constant
+    assert run["reference"]["sun_sensor_scale"]["constant"] == 1.0 and "relative_scale" not in run["reference"]
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     assert list(ds["wavelength"].values) == [450, 560, 650, 730, 840]  # NIR's from drone-dji:BandFreq
     for f in range(2):
@@ -265,12 +267,11 @@ def test_dji_p4_multispectral(tmp_path) -> None:
             _check_radiance(ds, f, b, path, dji_expected)
             x, y = 3, 5
             refl = float(ds["reflectance"].isel(frame=f, band=b).values[y, x])
-            scale = run["reference"]["relative_scale"]  # one constant for every band and capture
             # DJI's Irradiance is already compensated by the camera: divided by as written
             sun = run["sun_sensor"][run["frames"][f]]
             assert sun["model"].startswith("DJI Irradiance as written")
             assert sun["correction"][ds["band_name"].values[b]] == 1.0
-            assert refl == pytest.approx(scale * dji_expected(path, x, y) / cf.DJI["irradiance"][b], rel=TOL)
+            assert refl == pytest.approx(dji_expected(path, x, y) / cf.DJI["irradiance"][b], rel=TOL)
     # the panel, as every other pixel, follows the guide's model
     path = folder / "DJI_0013.TIF"
     yy, xx = np.mgrid[0:960, 0:1280].astype(np.float64)
@@ -412,7 +413,8 @@ def test_parrot_sequoia_real_capture(tmp_path) -> None:
         pytest.skip("no Sequoia sample")
     run = _apply(folder, tmp_path / "out")
     assert run["camera"] == "parrot-sequoia" and run["frames"] == ["IMG_180413_080658_0000"]
-    assert run["orientation"].startswith("EXIF Orientation 3") and run["reference"]["scale"] == "relative"
+    assert run["orientation"].startswith("EXIF Orientation 3") and run["reference"]["scale"].startswith("fixed per")
+    assert run["reference"]["sun_sensor_scale"]["constant"] == 5e-4  # Parrot's K, fixed for the camera model
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     assert list(ds["band_name"].values) == ["Green", "Red", "Red edge", "NIR"]
     for b, suffix in enumerate(("GRE", "RED", "REG", "NIR")):
@@ -426,8 +428,9 @@ def test_parrot_sequoia_real_capture(tmp_path) -> None:
     # vegetation in the morning light: NIR above red in the median
     refl = np.nanmedian(ds["reflectance"].values, axis=(0, 2, 3))
     assert refl[3] > refl[1] and np.isfinite(ds["ndvi"].values).mean() > 0.9
-    # the relative route's constant: brightest median 0.5 over the pixels the outputs keep (not clipped)
-    assert refl.max() == pytest.approx(0.5, rel=1e-5)
+    # Parrot's R = K I / E with K fixed at 5e-4 for the camera model (was: a run constant that
+    # put the first capture's brightest median at 0.5): the band medians of this capture
+    np.testing.assert_allclose(refl, [0.17848, 0.14583, 0.30822, 0.40934], rtol=1e-4)
 
 
 def test_sequoia_on_an_sd_card_tree(tmp_path) -> None:
