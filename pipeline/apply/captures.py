@@ -60,6 +60,7 @@ from pipeline.ingest.camera_meta import (
     group_captures,
 )
 from pipeline.ingest.catalog import Camera, Index
+from pipeline.ingest.gps import without_unreachable
 from pipeline.ingest.photo_tags import CameraOptics, read_optics
 from pipeline.ingest.raw import DN_MEDIAN, DN_MEDIAN_ATTRS, raw_codec
 from pipeline.products.writers import BandTags, FrameTags
@@ -143,6 +144,7 @@ def find_captures(folder: str | Path, camera: Camera, only: Sequence[str] = ()) 
             raise InputError(f"capture(s) {', '.join(missing[:5])} of the flight are not in the folder", path=folder,
                              hint="the folder changed since the flight was planned: run again")
         captures = [c for c in captures if c.name in keep]
+    captures = without_unreachable(captures)  # a position the flight could not have reached: left out
     return CaptureFolder(captures, sorted(quarantined, key=lambda q: q["file"]), skipped)
 
 

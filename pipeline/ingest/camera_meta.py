@@ -49,7 +49,9 @@ from mscal_core.factory import (
 )
 
 from pipeline.ingest.catalog import sample_shift
-from pipeline.ingest.exif import EXIF_CODES, dms_to_degrees, exifread_tags, exposure_time, rational, signed_gps
+from pipeline.ingest.exif import EXIF_CODES, exifread_tags, exposure_time, rational
+from pipeline.ingest.gps import NoPosition
+from pipeline.ingest.gps import exif_position as _gps
 from pipeline.ingest.xmp import TagError, TagProblem, Xmp, jpeg_xmp_packet, legacy_properties, parse_numbers
 
 if TYPE_CHECKING:
@@ -174,22 +176,6 @@ def xmp_properties(packet: bytes | str, path: Path | str) -> dict[str, Any]:
 
 
 # --------------------------------------------------------------------------- EXIF
-
-
-def _gps(gps: dict[str, Any]) -> tuple[float | None, float | None, float | None]:
-    """``(lat, lon, alt_m)`` of a GPS IFD (None: not written); ``ValueError`` when a latitude
-    or longitude is written but is not a number (a zero denominator: NaN). An altitude that
-    is not a number is left out."""
-    has_pos = "GPSLatitude" in gps and "GPSLongitude" in gps
-    lat, lon, alt = signed_gps(
-        dms_to_degrees(gps["GPSLatitude"]) if has_pos else None, gps.get("GPSLatitudeRef"),
-        dms_to_degrees(gps["GPSLongitude"]) if has_pos else None, gps.get("GPSLongitudeRef"),
-        rational(gps["GPSAltitude"]) if "GPSAltitude" in gps else None,
-        gps.get("GPSAltitudeRef") in (1, b"\x01", "1"),
-    )
-    if has_pos and not (lat is not None and lon is not None and math.isfinite(lat) and math.isfinite(lon)):
-        raise ValueError("GPSLatitude/GPSLongitude is not a number (a zero denominator?)")
-    return lat, lon, alt if alt is not None and math.isfinite(alt) else None
 
 
 def _int_tag(value: Any, default: int) -> int:
@@ -422,6 +408,8 @@ def _common(ctx: _Ctx) -> dict[str, Any]:
     lat = lon = alt = None
     try:
         lat, lon, alt = _gps(ctx.gps)
+    except NoPosition as exc:  # written, but no fix: named, left out (pipeline.ingest.gps)
+        ctx.problems.append(TagProblem(str(ctx.path), exc.tag, exc.value, str(exc), "position"))
     except (TypeError, ValueError, ZeroDivisionError, IndexError) as exc:
         ctx.problems.append(TagProblem(str(ctx.path), "EXIF GPS", str(ctx.gps)[:160], str(exc), "position"))
     rig = ctx.optional("rig_index", lambda: x.number("RigCameraIndex"))
@@ -625,7 +613,8 @@ def _sequoia(ctx: _Ctx) -> CaptureMeta:
 #: How band files' metadata are read, in the fingerprints of runs on them: a change here gives
 #: the same files and options other results, so an earlier run is not reused as up to date.
 METADATA_READING = ("2026-12-05: exposure times in UTC when the file says so; XMP Albedo panels; 12-bit files by their "
-                    "depth; EXIF values that are none (zero denominators, empty fields) left out")
+                    "depth; EXIF values that are none (zero denominators, empty fields) left out; GPS 0/0, void or "
+                    "unreachable: no position")
 
 
 SUNSHINE_RECORD = struct.Struct("<QHHHHfff")  # timestamp us, CH0, CH1, gain index, integration ms, yaw, pitch, roll

@@ -36,6 +36,7 @@ from pipeline.ingest.exif import (
     signed_gps,
     utc_naive,
 )
+from pipeline.ingest.gps import no_fix_reason, placed_records
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
 FRAMES_CSV = "frames.csv"
@@ -445,7 +446,7 @@ def read_frame_table(
             path=folder,
             hint=f"put {', '.join(IMAGE_SUFFIXES)} frames and a frames.csv in the folder",
         )
-    return sorted(records.values(), key=lambda r: r.path.name)
+    return placed_records(sorted(records.values(), key=lambda r: r.path.name))  # no fix, unreachable: no position
 
 
 def _check_columns(cols: list[str], csv_path: Path) -> None:
@@ -565,8 +566,11 @@ def exif_record(path: Path) -> FrameRecord:
         )
     except (TypeError, ValueError, ZeroDivisionError, IndexError, OverflowError):
         lat = lon = alt = None
+    status = tags.get("GPS GPSStatus")
     if lat is None or lon is None or not (math.isfinite(lat) and math.isfinite(lon)):
         lat = lon = None
+    elif no_fix_reason(lat, lon, getattr(status, "values", status)):  # no fix: no position (pipeline.ingest.gps)
+        lat = lon = alt = None
     if alt is not None and not math.isfinite(alt):
         alt = None
     time = exif_time_utc(tags.get("EXIF DateTimeOriginal"), offset=tags.get("EXIF OffsetTimeOriginal"))

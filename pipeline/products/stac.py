@@ -66,7 +66,7 @@ import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 from mscal_core.errors import InputError
@@ -255,7 +255,11 @@ def _raster_info(path: Path) -> dict[str, Any] | None:
         return None
 
 
-def _frame_coords(flight: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, str | None]:
+def _frame_coords(flight: Path, panels: Sequence[str] = ()) -> tuple[np.ndarray, np.ndarray, np.ndarray, str | None]:
+    """Latitude, longitude and time of the flight's frames and its camera. A position that is
+    none is NaN: latitude and longitude 0 (no GPS fix, :mod:`pipeline.ingest.gps`), and the
+    frames of ``panels`` (panel captures, taken on the ground before or after the flight: they
+    do not widen its footprint) when any other frame has a position."""
     import xarray as xr
 
     try:
@@ -267,7 +271,14 @@ def _frame_coords(flight: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, str
         lat = np.asarray(ds["lat"].values, float) if "lat" in ds.coords else np.empty(0)
         lon = np.asarray(ds["lon"].values, float) if "lon" in ds.coords else np.empty(0)
         t = np.asarray(ds["time"].values) if "time" in ds.coords else np.empty(0, "datetime64[ns]")
-        return lat, lon, t, ds.attrs.get("camera")
+        names = [str(f) for f in ds["frame"].values] if "frame" in ds.coords else []
+    none = (lat == 0) & (lon == 0)
+    lat, lon = np.where(none, np.nan, lat), np.where(none, np.nan, lon)
+    if panels and len(names) == lat.size:
+        panel = np.isin(names, list(panels))
+        if (np.isfinite(lat) & np.isfinite(lon) & ~panel).any():
+            lat, lon = np.where(panel, np.nan, lat), np.where(panel, np.nan, lon)
+    return lat, lon, t, ds.attrs.get("camera")
 
 
 def _rel(target: Path, item_file: Path) -> str:
@@ -322,7 +333,7 @@ def flight_item(flight: Path, project: Project, project_dir: Path, item_file: Pa
     run = json.loads((flight / "run.json").read_text())
     session = _session_out(flight)
     srun = json.loads((session / "run.json").read_text()) if session else {}
-    lat, lon, t, camera = _frame_coords(flight)
+    lat, lon, t, camera = _frame_coords(flight, [str(p.get("capture")) for p in run.get("panels") or () if isinstance(p, dict)])
     rasters = {p: _raster_info(p) for p in _tifs(flight)}
     rasters = {p: r for p, r in rasters.items() if r is not None}
     if rasters:

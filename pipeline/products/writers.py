@@ -441,9 +441,10 @@ def _exif_ifd(strips: _Strips, tparsed: tuple[datetime, bool] | None,
 
 
 def _gps_ifd(frame: FrameTags, tparsed: tuple[datetime, bool] | None) -> _IFD | None:
-    """The GPS IFD of a frame with a position (None without one)."""
+    """The GPS IFD of a frame with a position (None without one, or with latitude and
+    longitude 0: no fix, :mod:`pipeline.ingest.gps`)."""
     lat, lon, alt = _finite(frame.lat), _finite(frame.lon), _finite(frame.alt_m)
-    if lat is None or lon is None:
+    if lat is None or lon is None or (lat == 0 and lon == 0):
         return None
     if not (-90 <= lat <= 90 and -180 <= lon <= 180):
         raise ValueError(f"GPS position ({lat}, {lon}) is not WGS84 degrees")
