@@ -69,11 +69,11 @@ def test_gps_zero_zero_is_no_position(no_fix_run: Path) -> None:
     assert {(p["tag"], p["value"]) for p in zero} == {("EXIF GPSLatitude/GPSLongitude", "0, 0")}
     assert "before the GPS had a fix" in zero[0]["reason"]
     # the panel capture's TIFFs carry no GPS at all; the flight capture's carry its own position
-    (panel_tif,) = sorted((out / "panels").glob("IMG_0000*_1*.tif")) or sorted((out / "panels").glob("IMG_0000*.tif"))[:1]
-    assert _gps_tags(panel_tif) == {}
-    flight_tif = sorted((out / "photogrammetry").glob("IMG_0001*.tif"))[0]
-    gps = _gps_tags(flight_tif)
+    panel_tifs = sorted((out / "panels").glob("IMG_0000_*.tif"))
+    assert len(panel_tifs) == 5 and all(_gps_tags(p) == {} for p in panel_tifs)
+    gps = _gps_tags(out / "photogrammetry" / "IMG_0001_Blue.tif")
     assert gps["GPS GPSLatitudeRef"] == "N" and gps["GPS GPSLongitudeRef"] == "W"
+    assert gps["GPS GPSLatitude"] == "[36, 34, 169467/5000]"  # 33.8934"
     # track plot: the one positioned capture, not (0, 0)
     fig = report.plot_track(report.open_flight(out))
     offsets = fig.axes[0].collections[0].get_offsets()
