@@ -1358,7 +1358,8 @@ def _capture_problem(
     if camera is not None and camera.layout.kind == "file_per_capture":
         extra = []  # channels the catalog does not use (e.g. Sentera's Garbage) are not an error
     if missing or extra:
-        parts = ([f"missing band file(s) {', '.join(missing)}"] if missing else []) + (
+        named = {str(b.file_suffix): f"{b.file_suffix} ({b.name})" for b in (camera.bands if camera else ())}
+        parts = ([f"missing band file(s) {', '.join(named.get(s, s) for s in missing)}"] if missing else []) + (
             [f"unexpected band file(s) {', '.join(extra)}"] if extra else []
         )
         return f"capture {name}: {'; '.join(parts)}"

@@ -118,7 +118,14 @@ def score(camera: Camera, probe: Probe) -> int | None:
 
 
 def score_capture(camera: Camera, cap: list[CaptureMeta]) -> int | None:
-    """How well a camera fits the band files of one capture, None if it cannot be it."""
+    """How well a camera fits the band files of one capture, None if it cannot be it.
+
+    A capture with fewer files than the camera writes still fits a camera its EXIF Model
+    names (``identify.models``): one whose reflectance bands are all there and only files of
+    ``skip_bands`` are missing (a RedEdge-P copied without its panchromatic files) scores one
+    point less than a whole capture; one that lacks a reflectance band scores two less (the
+    camera is known; the capture is quarantined with the band named). Without a Model to go
+    by, the files of a capture must be all there."""
     ident = camera.identify
     if ident is None or not cap:
         return None
@@ -126,21 +133,30 @@ def score_capture(camera: Camera, cap: list[CaptureMeta]) -> int | None:
     if (first.make or "").casefold() != ident.make.casefold():
         return None
     points = 1
+    named = False  # the EXIF Model names the camera
     if ident.models:
         if not any(_matches(m, first.model) for m in ident.models):
             return None
         points += 4
+        named = True
     if ident.rig_names:
         if not any(_matches(r, first.rig_name) for r in ident.rig_names):
             return None
         points += 2
-    if ident.bands_per_capture is not None:
-        if len(cap) != ident.bands_per_capture:  # every band file of one capture id, skipped bands included
-            return None
-        points += 2
     names = Counter(m.band_name.casefold() for m in cap)
-    if not all(names[b.name.casefold()] for b in camera.bands):
-        return None
+    reflectance = all(names[b.name.casefold()] for b in camera.bands)
+    if ident.bands_per_capture is not None:
+        missing = ident.bands_per_capture - len(cap)  # every band file of one capture id, skipped bands included
+        if missing == 0:
+            points += 2
+        elif not (named and missing > 0):
+            return None
+        elif reflectance and missing <= len(camera.skip_bands):
+            points += 1  # only files of bands kept out of reflectance are missing
+    if not reflectance:
+        if not named:
+            return None
+        return points - 1
     return points + 1
 
 

@@ -178,7 +178,7 @@ def test_incomplete_capture_is_reported_not_grouped(tmp_path: Path) -> None:
             shutil.copyfile(band_file("0001", b), tmp_path / f"IMG_0001_{b}.tif")
     captures, problems = group_captures(tmp_path, catalog.load_camera("micasense-rededge"))
     assert [c.name for c in captures] == ["IMG_0000"]
-    assert problems == [{"file": str(tmp_path / "IMG_0001_1.tif"), "reason": "capture IMG_0001: missing band file(s) 4"}]
+    assert problems == [{"file": str(tmp_path / "IMG_0001_1.tif"), "reason": "capture IMG_0001: missing band file(s) 4 (NIR)"}]
 
 
 def test_truncated_band_file_and_copied_capture_give_one_entry_each(tmp_path: Path) -> None:
@@ -198,7 +198,8 @@ def test_capture_of_another_camera_is_reported() -> None:
     folder = band_file("0000", 1).parent
     captures, problems = group_captures(folder, catalog.load_camera("micasense-rededge-mx-dual"))
     assert captures == [] and len(problems) == 2
-    assert problems[0]["reason"] == "capture IMG_0000: missing band file(s) 6, 7, 8, 9, 10"
+    assert problems[0]["reason"] == ("capture IMG_0000: missing band file(s) 6 (Blue-444), 7 (Green-531), 8 (Red-650), "
+                                     "9 (Red edge-705), 10 (Red edge-740)")
     rededge = catalog.load_camera("micasense-rededge")
     first = dataclasses.replace(rededge.bands[0], name="Coastal")
     swapped = dataclasses.replace(rededge, bands=(first, *rededge.bands[1:]))
