@@ -402,12 +402,15 @@ def dji_warp(band: int, shape: tuple[int, int] = (960, 1280)) -> tuple[np.ndarra
     return hm, k, np.array([k1, 0.3418, 0.00068, 0.00068, -0.3540])
 
 
-def dji_p4m_warped(folder: Path) -> Path:
+def dji_p4m_warped(folder: Path, h_error: dict[int, tuple[float, float]] | None = None) -> Path:
     """P4 Multispectral captures whose bands show one scene (the real RedEdge NIR frame of the
     capture, DN as stored) through each band's own lens distortion and plane: stored band
     ``I_b(q) = scene(H_b u)``, ``u`` the undistorted point of ``q`` (OpenCV's iterative
     ``undistortPoints`` to 1e-12, camera matrix K_b kept). The tags say so (DewarpData, per-band
-    CalibratedHMatrix), so the guide's steps 2-3 put every band back onto the scene's grid."""
+    CalibratedHMatrix), so the guide's steps 2-3 put every band back onto the scene's grid.
+    ``h_error``: band (1-5) -> ``(dx, dy)`` px written wrong into its CalibratedHMatrix (a
+    translation after ``H_b`` on the designed plane): the guide's steps then put that band at
+    ``scene(x - (dx, dy))``, as a wrong matrix of the camera's firmware would."""
     import cv2
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -430,8 +433,10 @@ def dji_p4m_warped(folder: Path) -> Path:
             dewarp = "2020-02-04;" + ",".join(f"{v:.10g}" for v in (k[0, 0], k[1, 1], k[0, 2] - DJI["center"][0],
                                                                      k[1, 2] - DJI["center"][1], dist[0], dist[1],
                                                                      dist[2], dist[3], dist[4]))
+            err = (h_error or {}).get(b, (0.0, 0.0))
+            written = np.array([[1, 0, err[0]], [0, 1, err[1]], [0, 0, 1]]) @ hm
             packet = dji_xmp(b, f"dji-capture-{cap}", dewarp=dewarp,
-                             hmatrix=",".join(f"{v:.12g}" for v in hm.ravel())).encode("utf-8")
+                             hmatrix=",".join(f"{v:.12g}" for v in written.ravel())).encode("utf-8")
             tifffile.imwrite(folder / f"DJI_00{c}{b}.TIF", dn, photometric="minisblack", metadata=None, extratags=[
                 (271, "s", 0, "DJI", True), (272, "s", 0, "FC6360", True), (50714, "H", 1, int(DJI["black"]), True),
                 (700, 1, len(packet), packet, True)])

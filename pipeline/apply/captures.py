@@ -40,6 +40,7 @@ import numpy as np
 import xarray as xr
 from mscal_core.errors import FrameError, InputError
 
+from pipeline.apply.coregistration import RunCoregistration, prepare
 from pipeline.apply.execution import Execution
 from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner
 from pipeline.apply.flight import (
@@ -305,6 +306,8 @@ class CaptureRun:
     execution: Execution = Execution()  # how the tasks run (never part of the fingerprint)
     panels: dict[str, str] = dataclasses.field(default_factory=dict)  # panel captures -> why: TIFFs in OUT/panels/
     reference_band: int | None = None  # the band a registration warps the others onto (their lens is its)
+    refine: tuple[float, ...] | None = None  # image registration on top of the files' own (coregistration.prepare)
+    coreg_reference: int | None = None  # the band measured captures' residual shifts are against
 
 
 def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder, shape: tuple[int, int, int],
@@ -323,12 +326,13 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
     remove_temporaries(out)
     panels = {**metadata_panels(captures), **run.panels}
     t0 = time.perf_counter()
+    run, coreg = coregistered(camera, captures, run, panels)
     warm = run.chain.calibration if isinstance(run.chain, FieldChain) else None
     with Runner(len(captures), run.execution, calibration=warm) as runner:
         while True:  # a capture found unusable in the pass is quarantined and the pass redone without it
             tmp_refl, tmp_raw, plan = _start(out, camera, captures, shape, indices, roles, export, run)
-            jobs = [Job(f, c.name, capture_tags(camera, c), capture=c, scale=run.scale(c.name), panel=c.name in panels)
-                    for f, c in enumerate(captures)]
+            jobs = [Job(f, c.name, capture_tags(camera, c), capture=c, scale=run.scale(c.name), panel=c.name in panels,
+                        measure=c.name in coreg.measured) for f, c in enumerate(captures)]
             outcomes = runner.run(plan, jobs)
             bad = {o.name: o.quarantine for o in outcomes if o.quarantine is not None}
             if not bad:
@@ -374,6 +378,7 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
         "execution": runner.execution,
         "timings_s": {"apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
         "fingerprint": fingerprint,
+        **coreg.record(camera, {o.name: o.coregistration for o in outcomes if o.coregistration}),
     }
     if isinstance(run.chain, FactoryChain):
         record["reflectance_missing"] = [m for o in outcomes for m in o.no_reflectance]
@@ -397,6 +402,21 @@ def _relative(file: str, folder: Path) -> str:
 def _orientation_record(capture: Capture) -> str:
     o = capture.metas[0].orientation
     return "as stored" if o in (0, 1) else f"EXIF Orientation {o}: outputs turned upright (raw.zarr too)"
+
+
+def coregistered(camera: Camera, captures: Sequence[Capture], run: CaptureRun,
+                 panels: dict[str, str]) -> tuple[CaptureRun, RunCoregistration]:
+    """The run with the bands' alignment chosen on the pixels, and what the pass measures
+    (:func:`pipeline.apply.coregistration.prepare`)."""
+    coreg = prepare(camera, captures, run.factory_alignment, run.transforms is not None, run.reference_band, set(panels))
+    choice = coreg.choice
+    if choice is None or choice.label is None:
+        return dataclasses.replace(run, coreg_reference=coreg.reference), coreg
+    attrs = {**run.attrs, "co_registered": 1, "registration": choice.label,
+             "comment": f"{choice.label}: per band a transform from band {camera.band_names[coreg.reference or 0]} "
+                        "(run.json coregistration); NaN where a band does not cover"}
+    return dataclasses.replace(run, factory_alignment=choice.factory_alignment, refine=choice.refine, attrs=attrs,
+                               coreg_reference=coreg.reference), coreg
 
 
 def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[int, int, int], indices: Sequence[Index],
@@ -438,7 +458,7 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
                                  fwhm_nm=first[b].fwhm_nm, rig_camera_index=i, optics=optics[i]))
                     for i, b in enumerate(export)),
         tiff_dtype=run.tiff_dtype, out=out, norm=run.norm, transforms=run.transforms,
-        factory_alignment=run.factory_alignment,
+        factory_alignment=run.factory_alignment, refine=run.refine, coreg_reference=run.coreg_reference,
     )
     return tmp_refl, tmp_raw, plan
 
@@ -454,7 +474,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     with ``need="apply"``), checked here against ``camera``; None: opened here."""
     from mscal_core.errors import CalibrationStoreError, InputError
 
-    from pipeline.apply.executor import capture_reflectance
+    from pipeline.apply.bandgrid import capture_reflectance
     from pipeline.apply.flight import (
         calibration_hash,
         export_band_indices,

@@ -15,8 +15,9 @@ radiometric model is one per-band chain chosen per run (``Plan.chain``):
 
 :func:`process_frames` reads each capture (hashing and checking it; a new one is written into
 ``raw.zarr``), runs the chain, puts the bands on one pixel grid (the band files' own
-registration, DJI's DewarpData and CalibratedHMatrix: ``Plan.factory_alignment``; band
-transforms or ``--centre-bands``, :func:`geometry_step`), turns a capture read from its files upright (EXIF
+registration, DJI's DewarpData and CalibratedHMatrix: ``Plan.factory_alignment``, refined by
+image registration: ``Plan.refine``; band transforms or ``--centre-bands``, :func:`geometry_step`;
+:mod:`pipeline.apply.bandgrid`, which also measures what is left on sampled captures), turns a capture read from its files upright (EXIF
 Orientation: Parrot Sequoia stores its frames rotated 180 degrees; the band transforms belong
 to the stored frames, so they come first; raw.zarr is turned too), normalises, and writes its
 whole chunk of every ``reflectance.zarr`` variable, its photogrammetry TIFFs and its NDVI TIFF. :class:`Runner`
@@ -47,6 +48,7 @@ from mscal_core.errors import FrameError, InputError, ProcessesUnavailable
 from mscal_core.reflectance import eq15_fast, eq15_tables, vegetation_mask
 from mscal_core.registration import align_bands, shift_bands
 
+from pipeline.apply.bandgrid import grid_residuals, one_grid
 from pipeline.apply.execution import (
     Execution,
     distributed_client,
@@ -59,7 +61,6 @@ from pipeline.calibrate.registration import frame_transforms
 from pipeline.ingest.camera_meta import (
     Capture,
     FieldParts,
-    factory_align,
     factory_radiance,
     no_reflectance_reason,
     read_capture_meta,
@@ -279,6 +280,8 @@ class Plan:
     transforms: Path | None = None  # a store whose band transforms put the bands on the reference band's grid
     band_shift: tuple[tuple[float, float], ...] | None = None  # --centre-bands: (dx, dy) per band
     factory_alignment: bool = False  # each band file's own registration (DJI), camera_meta.factory_align
+    refine: tuple[float, ...] | None = None  # (band x 9) transforms refining it by image registration (bandgrid)
+    coreg_reference: int | None = None  # the band the measured captures' residual shifts are against (bandgrid)
     raw_medians: Path | None = None  # raw.zarr's dn_median (frame, band), written with each new frame's DN
 
 
@@ -297,6 +300,7 @@ class Job:
     scale: tuple[float, ...] | None = None  # per band: field S / S(lambda, time) (issue 8); factory k_b
     ahead: Path | None = None  # the file of a capture a few places on, to read ahead (prefetch_file)
     panel: bool = False  # a panel capture: its band TIFFs go to OUT/panels/, apart from the survey frames
+    measure: bool = False  # the bands' residual shifts are measured on its pixels (bandgrid.grid_residuals)
 
 
 #: Folders of the per-frame TIFFs under OUT: survey frames (photogrammetry input), panel
@@ -318,6 +322,7 @@ class Outcome:
     quarantine: dict[str, str] | None = None  # a capture that cannot be used: nothing written
     no_reflectance: tuple[dict[str, str], ...] = ()  # bands written as radiance only, and why (missing_reflectance)
     thermal: tuple[dict[str, str], ...] = ()  # thermal bands written in kelvin (write_thermal), or why not
+    coregistration: dict[str, Any] | None = None  # residual shifts of a measured capture (bandgrid.grid_residuals)
 
 
 def capture_dn(plan: Plan, job: Job) -> tuple[np.ndarray, str | None, dict[Path, np.ndarray]]:
@@ -389,31 +394,6 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
         np.greater_equal(dn[b], meta.clipped_from(chain.sat), out=saturated[b])
     np.copyto(rad, np.float32(np.nan), where=saturated)
     return rad, k, rad, int(np.count_nonzero(saturated))
-
-
-def capture_reflectance(camera: Camera, chain: FieldChain | FactoryChain, job: Job, transforms: Path | None = None,
-                        band_shift: Sequence[tuple[float, float]] | None = None) -> np.ndarray:
-    """Reflectance (band, y, x) of one capture read from its band files, on the outputs' pixel
-    grid, before normalisation (a panel's region is measured on it); writes nothing."""
-    assert job.capture is not None
-    sha, dns, channels = read_capture_pixels(job.capture)
-    signal, factor, _, _ = radiometry(camera, chain, job, np.stack(dns), channels)
-    if transforms is not None or band_shift is not None:
-        signal = geometry_step(transforms or Path(), transforms is not None, band_shift, job.name, signal)
-    signal = upright_meta(job.capture.metas[0], signal)
-    return signal if factor is None else signal * factor.astype(np.float32)[:, None, None]
-
-
-def one_grid(plan: Plan, job: Job, signal: np.ndarray) -> np.ndarray:
-    """A capture's bands (stored orientation) on one pixel grid: each band file's own
-    registration (``plan.factory_alignment``, DJI), then the plan's band transforms or
-    ``--centre-bands`` (:func:`geometry_step`); unchanged when the plan has none."""
-    if plan.factory_alignment and job.capture is not None:
-        signal = factory_align(job.capture.metas, signal)
-    if plan.transforms is not None or plan.band_shift is not None:
-        signal = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift, job.name,
-                               signal)
-    return signal
 
 
 _writer_of_thread = threading.local()
@@ -488,6 +468,7 @@ class _Writing:
     saturated: int
     tags: FrameTags
     writes: FrameWrites
+    coregistration: dict[str, Any] | None = None
 
 
 #: At most this many frames of a task have their files on the way to disk while the next
@@ -551,7 +532,8 @@ def start_frame(plan: Plan, job: Job) -> Outcome | _Writing:
     try:
         dn, sha, channels = capture_dn(plan, job)
         signal, factor, radiance, saturated = radiometry(plan.camera, plan.chain, job, dn, channels)
-        signal = one_grid(plan, job, signal)
+        signal, before = one_grid(plan, job, signal), signal
+        residuals = grid_residuals(plan, job, before, signal)
     except FrameError as exc:
         return _quarantined(job, exc)
     if job.capture is not None:  # as meant to be seen, after the transforms (they belong to the stored frames)
@@ -567,7 +549,7 @@ def start_frame(plan: Plan, job: Job) -> Outcome | _Writing:
     except BaseException:
         writes.wait(raise_errors=False)  # nothing of this frame is left writing behind the error
         raise
-    return _Writing(job, sha, saturated, tags, writes)
+    return _Writing(job, sha, saturated, tags, writes, residuals)
 
 
 def finish_frame(plan: Plan, w: _Writing) -> Outcome:
@@ -576,7 +558,8 @@ def finish_frame(plan: Plan, w: _Writing) -> Outcome:
     w.writes.wait()
     job = w.job
     missing = () if job.capture is None else missing_reflectance(plan.chain, job.capture)
-    return Outcome(job.name, w.sha256, w.saturated, no_reflectance=missing, thermal=write_thermal(plan, job, w.tags))
+    return Outcome(job.name, w.sha256, w.saturated, no_reflectance=missing, thermal=write_thermal(plan, job, w.tags),
+                   coregistration=w.coregistration)
 
 
 def _write_products(plan: Plan, job: Job, dn: np.ndarray, sha: str | None, signal: np.ndarray,

@@ -27,6 +27,7 @@ from pipeline.products.report.calibration import (
     sweep_coverage,
     worst_of,
 )
+from pipeline.products.report.coregistration import coregistration_tables, coregistration_warnings
 from pipeline.products.report.flight import flight_warnings, frame_rows, plot_histograms, plot_ndvi, plot_track
 from pipeline.products.report.inputs import FlightResults
 from pipeline.products.report.thresholds import (
@@ -415,7 +416,8 @@ def flight_section(flight: FlightResults, calibration: xr.Dataset | None) -> Sec
         tables.append(ref)
         warns += reference_warnings(run)
     tables += light_tables(run, flight.camera.band_names if flight.camera is not None else ())
-    warns += light_warnings(run) + time_warnings(run)
+    tables += coregistration_tables(run, flight.camera.band_names if flight.camera is not None else ())
+    warns += light_warnings(run) + time_warnings(run) + coregistration_warnings(run)
     sec = Section(f"Flight: {flight.name}", f"flight-{flight.name}", warns, tables + [table])
     sec.figures += [
         ("NDVI quick-looks", lambda: plot_ndvi(flight)),

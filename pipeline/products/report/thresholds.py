@@ -56,6 +56,10 @@ PANEL_DLS_COLOUR_SPREAD_MAX = 0.05
 #: registration went wrong, and frames that were not registered themselves take a median
 #: that fits none of them.
 REGISTRATION_SPREAD_MAX_PX = 1.0
+#: Band co-registration measured on a flight's pixels (run.json ``coregistration``): the median
+#: residual shift of a band against the reference band after the run's alignment. Above 1 px
+#: per-pixel indices mix neighbouring ground points at every edge.
+BAND_MISREGISTRATION_MAX_PX = 1.0
 
 # --------------------------------------------------------------------------- sampling bounds
 

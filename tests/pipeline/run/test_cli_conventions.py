@@ -165,7 +165,10 @@ def test_factory_apply_says_a_panel_was_seen_and_how_to_use_it(micasense: Path, 
     lines = text.splitlines()
     assert lines[0].startswith(f"wrote {out} (2 frames, 0 quarantined;")
     assert f"  run record: {out / 'run.json'}" in lines
-    (warn,) = [ln for ln in lines if ln.startswith("  warning ")]
+    # the bands' own grids, measured on the flight capture's pixels: MicaSense writes no alignment
+    warn, misreg = [ln for ln in lines if ln.startswith("  warning ")]
+    assert misreg.startswith("  warning band_misregistration: bands are off band Red after alignment 'none' by "
+                             "NIR 14.1 px, Red edge 13.7 px, Blue 10.3 px, Green 2.5 px (median over 1 measured")
     assert warn.startswith("  warning panel_not_used: 1 panel capture(s) in the folder (IMG_0000) but reflectance "
                            "comes from the sun sensor (DLS): add catalogs/targets/NAME.yaml with 'serial: "
                            "RP02-1603036-SC' and the panel's per-band reflectance")
@@ -180,7 +183,7 @@ def test_factory_apply_says_a_panel_was_seen_and_how_to_use_it(micasense: Path, 
     assert code == 0 and doc["up_to_date"] is True and doc["counts"]["frames_out"] == 2
     assert doc["counts"]["saturated_pixels"] == 7268
     assert _codes_values(doc["warnings"]) == _codes_values(_report_warnings(flights=[out])) == [
-        ("panel_not_used", 1.0, 0.0)]
+        ("panel_not_used", 1.0, 0.0), ("band_misregistration", 14.062, 1.0)]
 
 
 def test_factory_apply_without_any_reflectance_warns_why_and_how(tmp_path: Path) -> None:
@@ -197,8 +200,10 @@ def test_factory_apply_without_any_reflectance_warns_why_and_how(tmp_path: Path)
     assert code == 0
     lines = text.splitlines()
     assert lines[0].startswith(f"wrote {out} (1 frames, 0 quarantined;")
-    assert "  1 quality warning(s) (as in report.html):" in lines
-    (warn,) = [ln for ln in lines if ln.startswith("  warning ")]
+    assert "  2 quality warning(s) (as in report.html):" in lines
+    warn, misreg = [ln for ln in lines if ln.startswith("  warning ")]
+    assert misreg.startswith("  warning band_misregistration: bands are off band Red after alignment 'none' by "
+                             "Red edge 82.0 px, NIR 50.5 px, Green 41.0 px")  # Sequoia writes no alignment
     assert warn == (
         "  warning no_reflectance: reflectance and indices are NaN in all 1 frame(s), radiance only: no panel given "
         "and the sun sensor gives no usable reflectance (IMG_180413_080658_0000_GRE.TIF: XMP "
@@ -206,11 +211,12 @@ def test_factory_apply_without_any_reflectance_warns_why_and_how(tmp_path: Path)
         "cannot be put on one scale without it (sun_sensor disabled)): give --panel-reflectance TARGET (a number, or "
         "a target of catalogs/targets) with a panel capture in the folder (--panel IMG_XXXX names it) "
         "(value 1, threshold 0)")
-    assert _codes_values(_report_warnings(flights=[out])) == [("no_reflectance", 1.0, 0.0)]
+    assert _codes_values(_report_warnings(flights=[out])) == [("no_reflectance", 1.0, 0.0),
+                                                              ("band_misregistration", 82.028, 1.0)]
     code, text, _ = _run(["apply", folder, "--calibration", "factory", "-o", out, "--json"])  # up to date
     doc = json.loads(text)
     assert code == 0 and doc["up_to_date"] is True and doc["reference"]["route"] == "none"
-    assert _codes_values(doc["warnings"]) == [("no_reflectance", 1.0, 0.0)]
+    assert _codes_values(doc["warnings"]) == [("no_reflectance", 1.0, 0.0), ("band_misregistration", 82.028, 1.0)]
 
 
 def test_factory_apply_with_the_panel_reports_its_colour_disagreement(micasense: Path, tmp_path: Path) -> None:
@@ -219,7 +225,8 @@ def test_factory_apply_with_the_panel_reports_its_colour_disagreement(micasense:
                             "--json"])
     doc = json.loads(text)
     assert code == 0 and doc["command"] == "apply" and doc["reference"]["route"] == "panel-dls"  # issue 22 default
-    (w,) = doc["warnings"]
+    w, misreg = doc["warnings"]
+    assert misreg["code"] == "band_misregistration" and misreg["value"] == pytest.approx(14.06, abs=0.01)
     assert w["code"] == "panel_dls_colour" and w["threshold"] == 0.05
     assert w["value"] == pytest.approx(0.532, abs=0.01)
     assert _codes_values(doc["warnings"]) == _codes_values(_report_warnings(flights=[out]))
@@ -228,7 +235,7 @@ def test_factory_apply_with_the_panel_reports_its_colour_disagreement(micasense:
     code, text, _ = _run(["-q", "apply", micasense, "--calibration", "factory", "-o", out, "--panel-reflectance",
                           PANEL])
     lines = text.splitlines()
-    assert code == 0 and lines[0].endswith("up to date)") and len(lines) == 3
+    assert code == 0 and lines[0].endswith("up to date)") and len(lines) == 4
     assert lines[2].startswith("  warning panel_dls_colour: panel IMG_0000: panel and sun sensor disagree in colour "
                                "by 53%") and lines[2].endswith("(value 0.5322, threshold 0.05)")  # one panel region for all bands (issue 22)
 
@@ -241,7 +248,8 @@ def test_a_folder_without_a_panel_gets_no_panel_warning(tmp_path: Path) -> None:
         shutil.copy(band_file("0001", b), folder)
     code, text, _ = _run(["apply", folder, "--calibration", "factory", "-o", tmp_path / "out", "--json"])
     doc = json.loads(text)
-    assert code == 0 and doc["warnings"] == [] and "panels_seen" not in doc["reference"]
+    assert code == 0 and "panels_seen" not in doc["reference"]
+    assert [w["code"] for w in doc["warnings"]] == ["band_misregistration"]  # MicaSense writes no alignment
 
 
 def _fake_tty(monkeypatch) -> io.StringIO:

@@ -1,0 +1,77 @@
+"""A capture's bands on one pixel grid, and the check of it on the pixels.
+
+:func:`one_grid` puts a capture's bands (stored orientation) on one grid: each band file's own
+registration (DJI's DewarpData and CalibratedHMatrix, ``Plan.factory_alignment``), then the
+image registration that refines it (``Plan.refine``: per band a translation from the reference
+band, estimated on the run's captures by :mod:`pipeline.apply.coregistration`), then the band
+transforms of a registration store or ``--centre-bands``
+(:func:`pipeline.apply.executor.geometry_step`).
+
+:func:`grid_residuals` measures, on a sampled capture's pixels, the shift of each band against
+the reference band left after that grid and without it
+(:func:`mscal_core.coregistration.stack_residuals`): run.json ``coregistration``.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Sequence
+
+import numpy as np
+from mscal_core.coregistration import stack_residuals
+from mscal_core.registration import align_bands
+
+from pipeline.ingest.camera_meta import factory_align, read_capture_pixels, upright_meta
+
+if TYPE_CHECKING:
+    from pipeline.apply.executor import FactoryChain, FieldChain, Job, Plan
+    from pipeline.ingest.catalog import Camera
+
+
+def one_grid(plan: Plan, job: Job, signal: np.ndarray) -> np.ndarray:
+    """A capture's bands (stored orientation) on one pixel grid (see the module docstring);
+    unchanged when the plan has none of the steps."""
+    from pipeline.apply.executor import geometry_step
+
+    if plan.factory_alignment and job.capture is not None:
+        signal = factory_align(job.capture.metas, signal)
+    if plan.refine is not None and job.capture is not None:
+        signal = align_bands(signal, np.asarray(plan.refine, dtype=np.float64).reshape(-1, 3, 3))
+    if plan.transforms is not None or plan.band_shift is not None:
+        signal = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift, job.name,
+                               signal)
+    return signal
+
+
+def grid_residuals(plan: Plan, job: Job, before: np.ndarray, after: np.ndarray) -> dict[str, Any] | None:
+    """For a capture the run measures (``job.measure``, reference band ``plan.coreg_reference``):
+    per band the median residual shift (px) against the reference band and the tiles used, on
+    the bands as written (``after``) and, when a step moved them, as stored (``before``).
+    None for the other captures."""
+    if not job.measure or plan.coreg_reference is None:
+        return None
+    names = [b.name for b in plan.camera.bands][: after.shape[0]]
+    res = stack_residuals(after, plan.coreg_reference)
+    out: dict[str, Any] = {"residual_px": {n: _px(r.median_px) for n, r in zip(names, res)},
+                           "tiles": {n: r.n_tiles for n, r in zip(names, res)}}
+    if before is not after:
+        out["unaligned_px"] = {n: _px(r.median_px) for n, r in zip(names, stack_residuals(before, plan.coreg_reference))}
+    return out
+
+
+def _px(v: float) -> float | None:
+    return round(float(v), 3) if np.isfinite(v) else None
+
+
+def capture_reflectance(camera: Camera, chain: FieldChain | FactoryChain, job: Job, transforms: Path | None = None,
+                        band_shift: Sequence[tuple[float, float]] | None = None) -> np.ndarray:
+    """Reflectance (band, y, x) of one capture read from its band files, on the outputs' pixel
+    grid, before normalisation (a panel's region is measured on it); writes nothing."""
+    from pipeline.apply.executor import geometry_step, radiometry
+
+    assert job.capture is not None
+    sha, dns, channels = read_capture_pixels(job.capture)
+    signal, factor, _, _ = radiometry(camera, chain, job, np.stack(dns), channels)
+    if transforms is not None or band_shift is not None:
+        signal = geometry_step(transforms or Path(), transforms is not None, band_shift, job.name, signal)
+    signal = upright_meta(job.capture.metas[0], signal)
+    return signal if factor is None else signal * factor.astype(np.float32)[:, None, None]
