@@ -1,0 +1,199 @@
+"""Run invariance of the sun-sensor reflectance (SPEC: one fixed scale per camera model, never a
+constant chosen from the data of a run): a capture's reflectance is bit-identical processed
+alone, within its flight, or within another flight, for every camera kind with a sun sensor
+(MicaSense, DJI, Sequoia; Sentera has none) and every light route without panels (``dls``;
+``none``: radiance only). With panels only the interpolation in time may change it, by the
+amount the panels' light over the sensor's changes.
+
+Before the fixed scales, DJI and Sequoia divided by a constant that put the run's first
+capture's brightest band median at 0.5: a DJI capture processed alone and after another
+differed by 14.9 % in every band.
+
+Flights here have fewer captures than :data:`pipeline.ingest.sunsensor.FIT_MIN_CAPTURES`: on
+longer flights at changing attitudes the diffuse ratio of the tilt model (MicaSense DLS 1,
+Sequoia) is fitted from the flight, which is not run-invariant.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from pipeline.run.cli import main
+from tests import camera_files as cf
+from tests.micasense_data import DATA, require_data
+
+SEQUOIA = DATA.parent / "parrot-sequoia"
+SEQ = "IMG_180413_080658_0000"
+
+
+def _apply(folder: Path, out: Path, *extra: str) -> tuple[dict, xr.Dataset]:
+    assert main(["apply", str(folder), "--calibration", "factory", "-o", str(out), *extra]) == 0
+    return json.loads((out / "run.json").read_text()), xr.open_zarr(out / "reflectance.zarr")
+
+
+def _frame(run: dict, ds: xr.Dataset, name: str, var: str = "reflectance") -> np.ndarray:
+    return ds[var].isel(frame=run["frames"].index(name)).values
+
+
+# --------------------------------------------------------------------------- capture builders
+# Each writes one capture into ``folder``: ``slot`` names it (its place in the flight's order),
+# ``source`` picks the real pixels, ``variant`` 0 is the capture under test, 1 another capture
+# (other light on the sun sensor, other id); ``sun`` False strips the sun-sensor tags.
+
+
+def _micasense(folder: Path, slot: str, source: str, variant: int, sun: bool) -> str:
+    ident = cf.capture_id(source)
+
+    def edit(x: str) -> str:
+        if variant:
+            x = x.replace(ident, f"{ident[:-3]}v{slot[-2:]}")
+            x = re.sub(r"<Camera:Irradiance>([^<]+)</Camera:Irradiance>",
+                       lambda m: f"<Camera:Irradiance>{float(m[1]) * 1.7}</Camera:Irradiance>", x)
+        if not sun:
+            x = cf.drop_element(cf.drop_element(x, "Camera:Irradiance"), "DLS:SpectralIrradiance")
+        return x
+
+    for b in range(1, 6):
+        cf.rewrite(cf.band_file(source, b), folder / f"IMG_{slot}_{b}.tif", edit)
+    return f"IMG_{slot}"
+
+
+def _dji(folder: Path, slot: str, source: str, variant: int, sun: bool) -> str:
+    for b in range(1, 6):
+        packet = cf.dji_xmp(b, f"dji-capture-{slot}-{variant}", band_freq=b == 5)
+        if variant:
+            packet = re.sub(r'drone-dji:Irradiance="([^"]+)"',
+                            lambda m: f'drone-dji:Irradiance="{float(m[1]) * 1.7}"', packet)
+        if not sun:
+            packet = re.sub(r'\s*drone-dji:Irradiance="[^"]+"', "", packet)
+        cf.rewrite(cf.band_file(source, b), folder / f"DJI_00{slot}{b}.TIF", lambda _x, p=packet: p, make="DJI",
+                   model="FC6360", black=(int(cf.DJI["black"]),))
+    return f"00{slot}"
+
+
+def _sequoia(folder: Path, slot: str, source: str, variant: int, sun: bool) -> str:
+    name = SEQ if not variant else SEQ.replace("080658", f"0806{slot}")
+
+    def edit(x: str) -> str:
+        if variant:  # another capture: its own id, a less sensitive imager (darker radiance)
+            x = re.sub(r'Camera:CaptureUUID="[^"]*"', f'Camera:CaptureUUID="BE5AB0ABA969E1CB424A394AA2FD3{variant}{slot}"', x)
+            x = re.sub(r"(<Camera:SensorModel>\s*<rdf:Seq>\s*<rdf:li>)([-0-9.eE+]+)",
+                       lambda m: f"{m[1]}{float(m[2]) * (1 + variant)}", x)
+        if not sun:
+            x, n = re.subn(r'\s+Camera:IrradianceSensitivitiesGolden="[^"]*"', "", x)
+            assert n == 1
+        return x
+
+    for band in cf.SEQUOIA_BANDS:
+        cf.rewrite(SEQUOIA / f"{SEQ}_{band}.TIF", folder / f"{name}_{band}.TIF", edit)
+    return name
+
+
+def _require(kind: str) -> None:
+    require_data()
+    if kind == "sequoia" and not SEQUOIA.is_dir():
+        pytest.skip("no Sequoia sample")
+
+
+Builder = Callable[[Path, str, str, int, bool], str]
+# kind -> (builder, slots (other capture first in the order, the capture under test last), pixels of each)
+KINDS: dict[str, tuple[Builder, tuple[str, str], tuple[str, str]]] = {
+    "micasense": (_micasense, ("0001", "0002"), ("0000", "0001")),
+    "dji": (_dji, ("1", "2"), ("0000", "0001")),
+    "sequoia": (_sequoia, ("00", "58"), ("", "")),
+}
+
+
+def _flights(tmp_path: Path, kind: str, sun: bool) -> tuple[dict[str, Path], str]:
+    """The capture under test alone, after the other capture of its flight, and after a capture
+    of another flight (another light on the sun sensor)."""
+    build, (first, last), (src_first, src_last) = KINDS[kind]
+    folders = {k: tmp_path / k for k in ("alone", "flight", "other_flight")}
+    for f in folders.values():
+        f.mkdir()
+    name = build(folders["alone"], last, src_last, 0, sun)
+    assert build(folders["flight"], last, src_last, 0, sun) == name
+    # without a sun sensor, no panel in the pixels either (auto would take the panel's QR code)
+    build(folders["flight"], first, src_first if sun else src_last, 0 if kind != "sequoia" and sun else 2, sun)
+    assert build(folders["other_flight"], last, src_last, 0, sun) == name
+    build(folders["other_flight"], first, src_last, 1, sun)
+    return folders, name
+
+
+@pytest.mark.parametrize("kind", sorted(KINDS))
+def test_sun_sensor_reflectance_is_the_same_alone_in_its_flight_and_in_another(tmp_path, kind) -> None:
+    _require(kind)
+    folders, name = _flights(tmp_path, kind, sun=True)
+    # --no-align: each band on its own grid, so that only the light is compared (a band
+    # registration measured on the flight's captures is another matter)
+    out = {k: _apply(f, tmp_path / f"out_{k}", "--reference", "dls", "--no-align") for k, f in folders.items()}
+    alone = _frame(*out["alone"], name)
+    assert len(out["flight"][0]["frames"]) == 2 and out["flight"][0]["frames"][-1] == name
+    assert np.isfinite(alone).mean() > 0.9 and 0.01 < float(np.nanmedian(alone)) < 2.0  # on the TIFFs' scale
+    for k in ("flight", "other_flight"):
+        np.testing.assert_array_equal(_frame(*out[k], name), alone)
+        assert "relative_scale" not in out[k][0]["reference"]
+        assert out[k][0]["reference"]["sun_sensor_scale"] == out["alone"][0]["reference"]["sun_sensor_scale"]
+    # the photogrammetry TIFFs (uint16 x 32768 for every camera) of the capture: the same bytes
+    for tif in sorted((tmp_path / "out_alone" / "photogrammetry").glob(f"{name}_*.tif")):
+        for k in ("flight", "other_flight"):
+            assert (tmp_path / f"out_{k}" / "photogrammetry" / tif.name).read_bytes() == tif.read_bytes()
+
+
+@pytest.mark.parametrize("kind", sorted(KINDS))
+def test_radiance_only_route_is_the_same_alone_in_its_flight_and_in_another(tmp_path, kind) -> None:
+    _require(kind)
+    folders, name = _flights(tmp_path, kind, sun=False)
+    out = {k: _apply(f, tmp_path / f"out_{k}", "--no-align") for k, f in folders.items()}
+    alone = _frame(*out["alone"], name, "radiance")
+    assert out["alone"][0]["reference"]["route"] == "none" and np.isnan(_frame(*out["alone"], name)).all()
+    for k in ("flight", "other_flight"):
+        assert out[k][0]["reference"]["route"] == "none"
+        np.testing.assert_array_equal(_frame(*out[k], name, "radiance"), alone)
+        assert np.isnan(_frame(*out[k], name)).all()
+
+
+def test_with_panels_only_the_interpolation_in_time_changes_a_capture(tmp_path) -> None:
+    """IMG_0001 with the panel capture IMG_0000 before it (panel-dls: the panel's light over the
+    sensor's, q, carried by the sensor), then with a second panel 181 s after IMG_0000 whose sun
+    sensor reads 10 % more: q is interpolated in time, so IMG_0001 (91 s after the first panel,
+    weight 0.503 on the second) changes by q_before / q(t) = 1 / (0.497 + 0.503 q_after / q_before):
+    4.7 %, the same in every pixel of a band."""
+    require_data()
+    one, two = tmp_path / "one", tmp_path / "two"
+    for folder in (one, two):
+        folder.mkdir()
+        for cap in ("0000", "0001"):
+            for b in range(1, 6):
+                shutil.copyfile(cf.band_file(cap, b), folder / f"IMG_{cap}_{b}.tif")
+    ident = cf.capture_id("0000")
+    for b in range(1, 6):
+        dst = cf.rewrite(cf.band_file("0000", b), two / f"IMG_0002_{b}.tif", lambda x: re.sub(
+            r"<Camera:Irradiance>([^<]+)</Camera:Irradiance>",
+            lambda m: f"<Camera:Irradiance>{float(m[1]) * 1.1}</Camera:Irradiance>", x.replace(ident, ident[:-3] + "two")))
+        dst.write_bytes(dst.read_bytes().replace(b"2017:10:19 20:40:39", b"2017:10:19 20:43:40"))
+    run1, ds1 = _apply(one, tmp_path / "o1", "--panel-reflectance", "0.5", "--panel", "IMG_0000")
+    run2, ds2 = _apply(two, tmp_path / "o2", "--panel-reflectance", "0.5", "--panel", "IMG_0000,IMG_0002")
+    assert run1["reference"]["route"] == run2["reference"]["route"] == "panel-dls"
+    ratio = _frame(run2, ds2, "IMG_0001") / _frame(run1, ds1, "IMG_0001")
+    per_band = np.nanmedian(ratio, axis=(1, 2))
+    # the same factor on every pixel of a band (only the light changed, not the pixels' model)
+    np.testing.assert_allclose(np.nanmax(ratio, axis=(1, 2)), per_band, rtol=1e-5)
+    np.testing.assert_allclose(np.nanmin(ratio, axis=(1, 2)), per_band, rtol=1e-5)
+    # by how much: the interpolation of q between the panels, from run.json's light record
+    panels = {p["capture"]: p for p in run2["light"]["panels_over_time"]}
+    w_after = 91.0 / 181.0  # IMG_0001 at 20:42:10.2, panels at 20:40:39.2 and 20:43:40.2
+    for b, band in enumerate(ds2["band_name"].values):
+        q = {c: panels[c]["panel_irradiance"][band] / panels[c]["sensor_irradiance"][band]
+             for c in ("IMG_0000", "IMG_0002")}
+        expected = 1.0 / ((1 - w_after) + w_after * q["IMG_0002"] / q["IMG_0000"])
+        assert per_band[b] == pytest.approx(expected, rel=1e-4)
+    np.testing.assert_allclose(per_band, 1 / (1 - w_after + w_after / 1.1), rtol=3e-3)  # ~ +4.7 %
