@@ -6,8 +6,9 @@ of the paper's datasets, read as a ``(band, H, W)`` stack. Its exposure, gain an
 from ``frames.csv`` when the folder has one (a row per capture, ``file`` = the capture name
 ``IMG_0000`` or any of its band files, or a row per band file), else from each band file's
 EXIF ``ExposureTime`` (s), ``ISOSpeed``/``ISOSpeedRatings`` (gain = ISO / 100) and
-``DateTimeOriginal``. A multi-lens camera exposes each lens on its own, so each band keeps
-its own exposure (:meth:`FrameRecord.band_exposure`). Unlike the factory route
+``DateTimeOriginal`` -- of a file with factory metadata the exposure and gain apply reads
+(:func:`band_file_record`: DJI's XMP SensorGain, not its ISO). A multi-lens camera exposes
+each lens on its own, so each band keeps its own exposure (:meth:`FrameRecord.band_exposure`). Unlike the factory route
 (:func:`pipeline.ingest.camera_meta.group_captures`), no radiometric calibration tags are
 needed: the field calibration replaces them.
 """
@@ -20,7 +21,7 @@ from pathlib import Path
 
 from mscal_core.errors import FrameError, SessionError
 
-from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
+from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN, read_file_metas
 from pipeline.ingest.catalog import Camera
 from pipeline.ingest.exif import exposure_time, rational
 from pipeline.ingest.intrinsics import EXIF_CODES, XMP_TAG, tiff_tags
@@ -44,8 +45,25 @@ def read_frames(folder: str | Path, camera: Camera, *, recursive: bool = True) -
 
 
 def band_file_record(path: Path) -> FrameRecord:
-    """Exposure, gain and time of one band file from its EXIF (:class:`FrameError` if it has
-    no exposure)."""
+    """Exposure, gain and time of one band file: those apply takes (the
+    :class:`pipeline.ingest.camera_meta.CaptureMeta` of
+    :func:`pipeline.ingest.camera_meta.read_file_metas`: a DJI file's XMP ExposureTime x
+    SensorGain, a MicaSense file's EXIF ExposureTime x ISO / 100) when the file has factory
+    metadata, so that a field calibration and its apply see one effective exposure; else
+    from its EXIF (:func:`exif_band_record`)."""
+    try:
+        meta = read_file_metas(path)[0]
+    except FrameError:  # no factory metadata (a field-only camera): the EXIF rule
+        return exif_band_record(path)
+    if not (meta.exposure_s > 0 and meta.gain > 0):  # a band read but not modelled (thermal): the EXIF rule
+        return exif_band_record(path)
+    return FrameRecord(path=path, exposure_ms=meta.exposure_s * 1000.0, gain=meta.gain, time=meta.time)
+
+
+def exif_band_record(path: Path) -> FrameRecord:
+    """Exposure, gain and time of one band file from its EXIF: ExposureTime, ISOSpeed /
+    ISOSpeedRatings (gain = ISO / 100), DateTimeOriginal (:class:`FrameError` if it has no
+    exposure)."""
     tags = tiff_tags(path)
     if EXPOSURE_TIME not in tags:
         raise FrameError("no exposure time: no frames.csv row and no EXIF ExposureTime", path=path,
