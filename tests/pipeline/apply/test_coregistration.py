@@ -1,0 +1,162 @@
+"""Band co-registration checked on the pixels of every multi-lens capture (run.json
+``coregistration``, the report's table and ``band_misregistration`` warning), and a DJI
+metadata alignment that leaves the bands apart refined by image registration."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+import xarray as xr
+
+from pipeline.products.report import report_dict
+from pipeline.run.cli import main
+from tests import camera_files as cf
+from tests.micasense_data import DATA, require_data
+
+#: CalibratedHMatrix written wrong by these translations (px on the designed plane) in four of
+#: the five bands; Red (band 3) is the band the residuals are measured against.
+H_ERRORS = {1: (12.0, -6.0), 2: (-15.0, 4.0), 4: (10.0, 10.0), 5: (18.0, -3.0)}
+
+
+def _apply(folder: Path, out: Path, *extra: str) -> dict:
+    assert main(["-q", "apply", str(folder), "--calibration", "factory", "-o", str(out), *extra]) == 0
+    return json.loads((out / "run.json").read_text())
+
+
+def _section(out: Path) -> dict:
+    (sec,) = [s for s in report_dict(None, [out])["sections"] if s["title"].startswith("Flight")]
+    return sec
+
+
+def _table(sec: dict) -> dict[str, list]:
+    (table,) = [t for t in sec["tables"] if t["title"].startswith("Band co-registration")]
+    assert table["columns"] == ["band", "residual median", "residual max", "without alignment", "metadata alone",
+                                "captures", "tiles"]
+    return {row[0]: row[1:] for row in table["rows"]}
+
+
+def _scene_shift(scene: np.ndarray, band: np.ndarray) -> float:
+    """Worst displacement (px) of a written band against the scene over five 192 px tiles
+    (centre and corners; phase correlation, Hanning window): an independent check."""
+    worst = 0.0
+    for y, x in ((160, 200), (160, 1080), (800, 200), (800, 1080), (480, 640)):
+        sl = (slice(y - 96, y + 96), slice(x - 96, x + 96))
+        ref, t = scene[sl] / scene[sl].mean(), band[sl].astype(np.float64)
+        t = np.where(np.isfinite(t), t, np.nanmedian(t))
+        (dx, dy), _ = cv2.phaseCorrelate(ref, t / t.mean(), cv2.createHanningWindow(ref.shape[::-1], cv2.CV_64F))
+        worst = max(worst, math.hypot(dx, dy))
+    return worst
+
+
+def test_a_wrong_dji_h_matrix_is_measured_and_refined_by_image_registration(tmp_path) -> None:
+    """DJI bands whose CalibratedHMatrix is off by 10-20 px (as firmware that writes wrong
+    matrices): the metadata alignment alone leaves each band its error against Red (measured
+    13.4-18.2 px, > 10 px); apply sees it on the pixels and refines the alignment by image
+    registration: <= 0.5 px left (measured 0.02-0.03 px), in run.json, the report and the
+    written radiance itself."""
+    require_data()
+    folder = cf.dji_p4m_warped(tmp_path / "wrong", H_ERRORS)
+    out = tmp_path / "out"
+    run = _apply(folder, out)
+    assert run["band_alignment"].startswith("factory metadata + image registration: the metadata alignment left ")
+    co = run["coregistration"]
+    assert co["alignment"] == "factory metadata + image registration" and co["reference_band"] == "Red"
+    # before: the metadata alone, on the same captures, against no alignment at all
+    check = co["metadata_check"]
+    assert check["captures"] == ["002"]  # 001 is the panel capture
+    for b, (dx, dy) in H_ERRORS.items():
+        name = cf.DJI_BANDS[b - 1][0]
+        assert check["metadata_px"][name] == pytest.approx(math.hypot(dx, dy), abs=0.2)
+        assert check["metadata_px"][name] > 10
+        assert check["unaligned_px"][name] < 5  # the bands as stored were closer: the matrix made it worse
+    # after: measured on the written capture
+    assert co["sample"] == {"every": 1, "captures": 1, "of": 2, "max_side_px": 640,
+                            "note": "survey captures only (panel captures left out)"}
+    assert set(co["captures"]) == {"002"}
+    for name in ("Blue", "Green", "RedEdge", "NIR"):
+        assert co["flight"][name]["median_px"] <= 0.5 and co["flight"][name]["max_px"] <= 0.5
+        assert co["flight"][name]["tiles"] == 9
+        assert co["captures"]["002"]["residual_px"][name] <= 0.5
+    assert co["worst_median_px"] <= 0.5
+    ds = xr.open_zarr(out / "reflectance.zarr")
+    assert ds.attrs["co_registered"] == 1 and ds.attrs["registration"] == "factory metadata + image registration"
+    # the written radiance is on the scene's grid (the builders' scene: the RedEdge NIR frame)
+    for f, cap in enumerate(cf.CAPTURES):
+        scene = tifffile.imread(cf.band_file(cap, 4)).astype(np.float64)
+        for b in range(5):
+            assert _scene_shift(scene, ds["radiance"].isel(frame=f, band=b).values) < 0.5, (cap, b)
+    # the report: the numbers before and after, no warning left
+    sec = _section(out)
+    rows = _table(sec)
+    assert list(rows) == ["Blue", "Green", "RedEdge", "NIR"]
+    for name, row in rows.items():
+        assert float(row[0]) <= 0.5 and float(row[3]) > 10
+    assert not [w for w in sec["warnings"] if w["code"] == "band_misregistration"]
+    # without the refinement the bands would be off by the matrix's errors: the numbers say so
+    _apply(folder, tmp_path / "plain", "--no-align")
+    plain = json.loads((tmp_path / "plain" / "run.json").read_text())["coregistration"]
+    assert plain["alignment"] == "none" and plain["worst_median_px"] > 1
+
+
+def test_a_right_dji_h_matrix_is_kept_and_the_outputs_do_not_change(tmp_path, monkeypatch) -> None:
+    """Correct DewarpData and CalibratedHMatrix: within 1 px (measured 0.01 px), so the metadata
+    alignment is kept and nothing is warped again: the TIFFs are byte for byte those of a pass
+    that neither measures nor refines."""
+    import pipeline.apply.captures as captures_mod
+    from pipeline.apply.coregistration import RunCoregistration
+
+    require_data()
+    folder = cf.dji_p4m_warped(tmp_path / "right")
+    run = _apply(folder, tmp_path / "out")
+    co = run["coregistration"]
+    assert run["band_alignment"].startswith("factory metadata: each band's") and co["alignment"] == "factory metadata"
+    assert co["metadata_check"]["decision"].startswith("factory metadata kept")
+    assert co["worst_median_px"] < 0.1
+    assert all(co["flight"][name]["unaligned_median_px"] > 1 for name in ("Blue", "Green", "RedEdge", "NIR"))
+    assert "refined_px" not in co["metadata_check"] and _table(_section(tmp_path / "out"))["NIR"][0] == "0.011"
+    assert xr.open_zarr(tmp_path / "out" / "reflectance.zarr").attrs["registration"] == "factory metadata"
+    monkeypatch.setattr(captures_mod, "prepare", lambda *args: RunCoregistration())
+    assert "coregistration" not in _apply(folder, tmp_path / "unmeasured")
+    tiffs = sorted(p.relative_to(tmp_path / "out") for p in (tmp_path / "out").rglob("*.tif"))
+    assert len(tiffs) == 11  # 2 captures x 5 bands, the survey capture's NDVI
+    for rel in tiffs:
+        assert (tmp_path / "out" / rel).read_bytes() == (tmp_path / "unmeasured" / rel).read_bytes(), rel
+
+
+def test_micasense_bands_are_measured_and_warned_of(tmp_path) -> None:
+    """The real RedEdge sample: MicaSense writes no alignment, so the bands keep their own
+    grids; on the flight capture (the panel capture is left out) they are 2.5-14 px from Red,
+    and the summary and report warn (band_misregistration, with mscal register as the way)."""
+    require_data()
+    out = tmp_path / "out"
+    run = _apply(DATA, out)
+    assert run["band_alignment"] == "none: each band keeps its own pixel grid"
+    co = run["coregistration"]
+    assert co["alignment"] == "none" and co["reference_band"] == "Red" and "metadata_check" not in co
+    assert list(co["captures"]) == ["IMG_0001"] and co["sample"]["of"] == 2
+    measured = co["captures"]["IMG_0001"]["residual_px"]
+    expected = {"Blue": 10.29, "Green": 2.51, "Red": 0.0, "NIR": 14.06, "Red edge": 13.69}
+    assert measured == pytest.approx(expected, abs=0.05)
+    assert co["flight"]["NIR"] == {"median_px": pytest.approx(14.06, abs=0.05), "max_px": pytest.approx(14.06, abs=0.05),
+                                   "captures": 1, "tiles": 9}
+    sec = _section(out)
+    (warn,) = [w for w in sec["warnings"] if w["code"] == "band_misregistration"]
+    assert warn["value"] == pytest.approx(14.06, abs=0.05) and warn["threshold"] == 1.0
+    assert "NIR 14.1 px, Red edge 13.7 px, Blue 10.3 px, Green 2.5 px" in warn["message"]
+    assert "mscal register" in warn["message"]
+    rows = _table(sec)
+    assert rows["NIR"][0] == rows["NIR"][2] == "14.06"  # without alignment: the same numbers
+
+
+def test_single_file_cameras_are_not_measured(tmp_path) -> None:
+    """A Sentera Double 4K JPEG holds its bands in one file (one lens per JPEG): nothing to measure."""
+    if not cf.SENTERA_D4K.is_dir():
+        pytest.skip("no Sentera sample")
+    run = _apply(cf.SENTERA_D4K / "NDRE", tmp_path / "out")
+    assert "coregistration" not in run
