@@ -40,7 +40,7 @@ import numpy as np
 import xarray as xr
 from mscal_core.errors import FrameError, InputError
 
-from pipeline.apply.coregistration import RunCoregistration, prepare
+from pipeline.apply.coregistration import COREGISTRATION_CHECK, RunCoregistration, prepare
 from pipeline.apply.execution import Execution
 from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner
 from pipeline.apply.flight import (
@@ -533,7 +533,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
 
     norm = normalisation(options, camera, names, panel_reflectance)
     fingerprint = {**run_fingerprint([stat_fingerprint(captures)], chash, options, illum), "layout": "captures",
-                   "metadata_reading": METADATA_READING}
+                   "metadata_reading": METADATA_READING, "coregistration": COREGISTRATION_CHECK}
     attrs = {"calibration_sha256": chash, "source": str(folder), "calibration": str(calib_path)}
     if align:
         attrs["aligned_to_band"] = reference

@@ -247,3 +247,8 @@ def prepare(camera: Camera, captures: Sequence[Capture], factory_alignment: bool
     else:
         alignment = "transforms of the registration store (mscal register)" if transforms else "none"
     return RunCoregistration(reference, frozenset(names), step, len(captures), alignment, choice)
+
+
+#: In every apply's fingerprint: an output written before the bands were checked on the pixels
+#: (no run.json ``coregistration``, a DJI metadata alignment never refined) is not up to date.
+COREGISTRATION_CHECK = "bands measured on the pixels; DJI metadata alignment refined by image registration"

@@ -94,6 +94,7 @@ from mscal_core.illumination import INTERPOLATION_MODES, fit_illumination
 from mscal_core.panel import sample_quad
 
 from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, stat_fingerprint
+from pipeline.apply.coregistration import COREGISTRATION_CHECK
 from pipeline.apply.execution import Execution, flight_size_hint, start_worker_server
 from pipeline.apply.executor import FactoryChain, field_parts
 from pipeline.apply.flight import (
@@ -455,6 +456,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         "mscal_version": mscal_core.__version__,
         "light_model": LIGHT_MODEL,  # results of earlier runs (raw sun-sensor readings) are not reused
         "metadata_reading": METADATA_READING,
+        "coregistration": COREGISTRATION_CHECK,
     }
     if registration is not None:
         fingerprint["registration_sha256"] = registration[1]
