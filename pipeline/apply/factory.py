@@ -113,6 +113,7 @@ from pipeline.apply.panel_search import (
     panels_seen,
     seen_record,
 )
+from pipeline.apply.sun_check import SunCheck, sun_sensor_check
 from pipeline.apply.sunlight import PanelSensorLight, check_times, light_warnings, panel_sensor_light, readings_missing
 from pipeline.ingest.camera_meta import (
     FACTORY_ALIGNMENT_NOTE,
@@ -492,6 +493,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     seen = unused if options.reference == "auto" else []
     times = capture_times(captures)
     sensor = None if readings_missing(captures) else sensor_light(captures, times)
+    check = None if sensor is None else sun_sensor_check(captures, sensor, times, camera.band_names)
+    sensor = sensor if check is None else check.apply(sensor)  # each reading on its plausible unit rule
     light, scales = _capture_light(options, reference, captures, panels, times, sensor, folder)
 
     attrs = {"calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
@@ -532,7 +535,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                              "band_alignment": _alignment_record(options, own, caps),
                              "illumination": _light_record(options.illumination, panels, caps, scales, camera),
                              **light_record(reference, panels, captures, sensor, light, camera,
-                                          options.illumination or DEFAULT_LIGHT_MODE, times)},
+                                          options.illumination or DEFAULT_LIGHT_MODE, times, check)},
         scale=lambda name: scales.get(name),
         panels=panel_names, reference_band=_reference_band(options.registration, camera),
     )
@@ -700,11 +703,13 @@ def panel_light(captures: Sequence[Capture], panels: Sequence[PanelReference], m
 
 def light_record(reference: str, panels: Sequence[PanelReference], captures: Sequence[Capture],
                  sensor: SensorLight | None, light: PanelSensorLight | None, camera: Camera,
-                 mode: str = DEFAULT_LIGHT_MODE, times: np.ndarray | None = None) -> dict[str, Any]:
+                 mode: str = DEFAULT_LIGHT_MODE, times: np.ndarray | None = None,
+                 check: SunCheck | None = None) -> dict[str, Any]:
     """run.json ``light``: per panel capture and band the panel's light ``1 / k`` beside the
     sun sensor's (tilt-corrected) and their ratio, per capture the light used, the warnings
     (numbers with thresholds) when panels and sensor disagree, and with several panels each
-    panel's reflectance error when predicted from the others (``panel_check``)."""
+    panel's reflectance error when predicted from the others (``panel_check``); with ``check``,
+    the sun sensor against the clear sky (``sun_sensor_check``, its warnings with the others)."""
     names, bands = [c.name for c in captures], list(camera.band_names)
     absolute = bool(captures) and sun_sensor_absolute(captures[0].metas[0])
     unit = "W m-2 nm-1 (pi / k)" if absolute else "relative (c / k)"
@@ -728,6 +733,9 @@ def light_record(reference: str, panels: Sequence[PanelReference], captures: Seq
                                           capture_times(captures) if times is None else times, bands)
     rec["warnings"] = light_warnings(names, bands, sensor, light, [p.capture for p in panels])
     out = {"light": rec}
+    if check is not None:
+        rec["warnings"] += check.warnings
+        out["sun_sensor_check"] = check.record
     if sensor is not None:
         out["sun_sensor"] = sensor.record(names, bands)
     return out

@@ -332,7 +332,7 @@ def meta_from_tags(path: Path, tags: dict[int, Any], shape: tuple[int, int], bit
 #: on each band's metadata, so the sun sensor reads no file a second time.
 SUN_SENSOR_XMP = frozenset({
     "Yaw", "Pitch", "Roll", "IrradianceYaw", "IrradiancePitch", "IrradianceRoll", "Irradiance",
-    "DirectIrradiance", "ScatteredIrradiance", "HorizontalIrradiance", "IrradianceList",
+    "DirectIrradiance", "ScatteredIrradiance", "HorizontalIrradiance", "IrradianceList", "IrradianceScaleToSIUnits",
     "FlightYawDegree", "FlightPitchDegree", "FlightRollDegree",  # DJI: the aircraft's, when no sensor's own
 })
 
