@@ -160,3 +160,58 @@ def test_single_file_cameras_are_not_measured(tmp_path) -> None:
         pytest.skip("no Sentera sample")
     run = _apply(cf.SENTERA_D4K / "NDRE", tmp_path / "out")
     assert "coregistration" not in run
+
+
+def test_a_metadata_alignment_worse_than_none_is_replaced_by_image_registration(monkeypatch) -> None:
+    """Bands stored a few pixels apart (3.6-5.8 px) that the files' own registration bends
+    radially by up to 16 px at the corners (a wrong distortion: neither a translation nor an
+    affine undoes it): the metadata alignment does worse than none, image registration on top
+    of it cannot straighten the bend, so the bands are registered from the stored grids instead
+    (< 0.1 px left)."""
+    from types import SimpleNamespace
+
+    import pipeline.apply.coregistration as coreg
+    from pipeline.ingest.catalog import load_camera
+
+    rng = np.random.default_rng(5)
+    shape = (480, 640)
+    offsets = [(3.0, -2.0), (-4.0, 1.5), (0.0, 0.0), (5.0, 3.0), (-2.5, -4.0)]  # Red (index 2) the reference
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]].astype(np.float32)
+
+    def stored(seed: int) -> list[np.ndarray]:
+        scene = sum(w * cv2.GaussianBlur(np.random.default_rng(seed).random((560, 720)).astype(np.float32), (0, 0), s)
+                    for s, w in ((2.0, 1.0), (6.0, 2.0)))
+        return [cv2.remap(scene, xx + 40 + dx, yy + 40 + dy, cv2.INTER_CUBIC) for dx, dy in offsets]
+
+    cx, cy = (shape[1] - 1) / 2, (shape[0] - 1) / 2
+    r2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / 266.0**2  # 1 at the corner tiles' centres
+
+    def bend(metas, stack):  # the "metadata" alignment: band b bent radially, 8 |b - 2| px at the corner tiles
+        out = np.empty(stack.shape, np.float32)
+        for b in range(stack.shape[0]):
+            k = 8.0 * abs(b - 2) / 266.0
+            out[b] = cv2.remap(stack[b], cx + (xx - cx) * (1 + k * r2), cy + (yy - cy) * (1 + k * r2),
+                               cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+        return out
+
+    pixels = {f"{k:03d}": stored(int(rng.integers(1 << 30))) for k in range(3)}
+    monkeypatch.setattr(coreg, "read_capture_pixels", lambda cap: ("", pixels[cap.name], {}))
+    monkeypatch.setattr(coreg, "factory_align", bend)
+    camera = load_camera("dji-p4-multispectral")
+    captures = [SimpleNamespace(name=n, metas=[SimpleNamespace(path=Path(f"{n}_{b}.TIF")) for b in range(5)])
+                for n in pixels]
+    run = coreg.prepare(camera, captures, True, False, None, set())
+    choice = run.choice
+    assert run.reference == 2 and run.alignment == coreg.INSTEAD and choice is not None
+    assert choice.factory_alignment is False and choice.label == coreg.INSTEAD
+    rec = choice.record
+    assert rec["captures"] == ["000", "001", "002"]
+    assert rec["metadata_px"]["NIR"] > rec["unaligned_px"]["NIR"]  # worse than none
+    assert rec["decision"].startswith("image registration (metadata alignment was worse than none): ")
+    for name, (dx, dy) in zip(camera.band_names, offsets):
+        assert rec["unaligned_px"][name] == pytest.approx(math.hypot(dx - offsets[2][0], dy - offsets[2][1]), abs=0.1)
+        assert rec["refined_px"][name] < 0.1
+    on_meta = rec["refinements_px"]["metadata + affine"]  # a bend is not an affine: measured 0.27-1.13 px left
+    assert min(v for name, v in on_meta.items() if name != "Red") > 0.2
+    h = np.asarray(choice.refine).reshape(5, 3, 3)
+    assert h[0, :2, 2] == pytest.approx([3.0 - 0.0, -2.0 - 0.0], abs=0.1)  # Blue: its stored offset from Red
