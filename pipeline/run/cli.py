@@ -30,6 +30,7 @@ from pipeline.run.console import (
     report_warnings,
 )
 from pipeline.run.summaries import echo_run, echo_serve, run_warnings
+from pipeline.storage.process import stop_process_servers
 
 RESPONSE_METHODS = click.Choice(["forward", "alternating"])
 RESPONSE_METHOD_HELP = "'forward' fits the response with the noise on DN; 'alternating' is the paper's Eq. 6/7."
@@ -158,6 +159,7 @@ def _deprecated_alias(old: str, new: str, dest: str, type: Any = RESPONSE_METHOD
 def cli() -> None:
     """mscal: field radiometric calibration of multispectral cameras (Khanna et al., ICRA 2017)."""
     logging.basicConfig(level=LOG_LEVELS[console().verbosity], format="%(name)s: %(message)s")
+    click.get_current_context().call_on_close(stop_process_servers)  # no process of the command outlives it
 
 
 @cli.command(short_help="Fit response, vignetting and illumination of a session.")

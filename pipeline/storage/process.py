@@ -73,6 +73,28 @@ def environment(values: Mapping[str, str]) -> Iterator[None]:
                 os.environ[k] = v
 
 
+def stop_process_servers() -> None:
+    """End the helper processes multiprocessing started for this process's pools -- the
+    forkserver (the apply executor's worker server) and the resource tracker -- and wait for
+    them, so that a command leaves no process of its own behind when it returns (they would
+    otherwise see this process's end only when it exits, up to a second later). The pools
+    must be shut down first; a later pool starts them again. Objects of a shut-down pool that
+    still hold semaphores are collected first (:mod:`gc`), so that the tracker has none left
+    to clean up."""
+    import gc
+    from multiprocessing import forkserver, resource_tracker
+
+    server = forkserver._forkserver  # noqa: SLF001 - multiprocessing has no public stop
+    if getattr(server, "_forkserver_pid", None) is not None:
+        with contextlib.suppress(ChildProcessError):  # already reaped (a SIGCHLD handler)
+            server._stop()  # noqa: SLF001
+    tracker = resource_tracker._resource_tracker  # noqa: SLF001
+    if getattr(tracker, "_pid", None) is not None:
+        gc.collect()  # a pool's queues and locks: their semaphores unregistered now, not at exit
+        with contextlib.suppress(ChildProcessError):
+            tracker._stop()  # noqa: SLF001
+
+
 def die_with_parent() -> None:
     """Ask the kernel to SIGKILL this process when its parent dies (Linux; elsewhere nothing)."""
     try:
@@ -137,4 +159,4 @@ def small_pages() -> None:
 
 
 __all__ = ["NUMPY_HUGEPAGE_ENV", "POOL_ERRORS", "die_with_parent", "environment", "reuse_freed_memory", "small_pages",
-           "start_pool"]
+           "start_pool", "stop_process_servers"]
