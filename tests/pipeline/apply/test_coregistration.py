@@ -214,4 +214,4 @@ def test_a_metadata_alignment_worse_than_none_is_replaced_by_image_registration(
     on_meta = rec["refinements_px"]["metadata + affine"]  # a bend is not an affine: measured 0.27-1.13 px left
     assert min(v for name, v in on_meta.items() if name != "Red") > 0.2
     h = np.asarray(choice.refine).reshape(5, 3, 3)
-    assert h[0, :2, 2] == pytest.approx([3.0 - 0.0, -2.0 - 0.0], abs=0.1)  # Blue: its stored offset from Red
+    assert h[0, :2, 2] == pytest.approx([-3.0, 2.0], abs=0.1)  # Blue, stored at scene(x + (3, -2)): band(x - (3, -2)) ~ Red(x)
