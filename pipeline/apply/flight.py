@@ -707,7 +707,8 @@ def apply_flight(
     t_pass = time.perf_counter() - t0
     install_folder(ps.tmp_store, out / "reflectance.zarr")
     run = _run_record(flight_dir, calib_path, chash, calib, camera, export, options, ps, outcomes, quarantined, runner,
-                      single, {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)})
+                      single, {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
+                      cube.found.metadata_problems)
     write_run_record(out, run)  # last: a run.json names a finished pass
     return ApplyResult(out, run, up_to_date=False, quarantined=quarantined, calibration=calib)
 
@@ -715,8 +716,9 @@ def apply_flight(
 def _run_record(flight_dir: Path, calib_path: Path, chash: str, calib: xr.Dataset, camera: Camera,
                 export: Sequence[int], options: ApplyOptions, ps: "_Pass", outcomes: Sequence[Outcome],
                 quarantined: list[dict[str, str]], runner: Runner, single: bool,
-                timings: dict[str, float]) -> dict[str, Any]:
-    """The flight's ``run.json`` after a pass (SPEC.md, Outputs of apply)."""
+                timings: dict[str, float], problems: Sequence[dict[str, Any]] = ()) -> dict[str, Any]:
+    """The flight's ``run.json`` after a pass (SPEC.md, Outputs of apply); ``problems``: the
+    frames' metadata problems (:class:`pipeline.ingest.discover.Discovery`)."""
     frames = [o.name for o in outcomes]
     sat_counts = [o.saturated for o in outcomes]
     shas = [str(s) for s in ps.coords["sha256"].values]  # the pass's frames, in cube order
@@ -728,6 +730,7 @@ def _run_record(flight_dir: Path, calib_path: Path, chash: str, calib: xr.Datase
         "frames_out": len(frames),
         "frames": frames,
         "quarantined": quarantined,
+        "metadata_problems": [p for p in problems if Path(str(p["file"])).stem in frames],
         "saturated_pixels": {"total": int(np.sum(sat_counts)), "per_frame": {n: int(c) for n, c in zip(frames, sat_counts)}},
         "outputs": {"reflectance": "reflectance.zarr", "photogrammetry": "photogrammetry/", "ndvi": "ndvi/"},
         "export_bands": [camera.bands[b].name for b in export],

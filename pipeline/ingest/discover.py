@@ -38,6 +38,8 @@ class Discovery:
 
     frames: list[FrameRecord] = field(default_factory=list)
     quarantined: list[dict[str, str]] = field(default_factory=list)
+    # positions left out (no GPS fix, out of the flight's reach): run.json metadata_problems
+    metadata_problems: list[dict[str, object]] = field(default_factory=list)
 
 
 def quarantine_entry(file: str, error: MscalError | str) -> dict[str, str]:
@@ -67,7 +69,8 @@ def discover_flight(flight_dir: str | Path, camera: Camera) -> Discovery:
     def on_frame_error(name: str, exc: FrameError) -> None:
         found.quarantined.append(quarantine_entry(name, exc))
 
-    records = read_frame_table(flight_dir, on_frame_error=on_frame_error)
+    records = read_frame_table(flight_dir, on_frame_error=on_frame_error,
+                               on_position_problem=lambda p: found.metadata_problems.append(p.as_dict()))
 
     by_stem: dict[str, list[FrameRecord]] = defaultdict(list)
     for rec in records:

@@ -19,7 +19,7 @@ positions would put a flight at (0, 0) or stretch it over kilometres it never fl
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -164,13 +164,26 @@ def without_unreachable(captures: Sequence["Capture"]) -> list["Capture"]:
     return out
 
 
-def placed_records(records: Sequence[Any]) -> list[Any]:
+def placed_records(records: Sequence[Any], on_problem: Callable[[Any], None] | None = None) -> list[Any]:
     """Frame records (:class:`pipeline.ingest.session.FrameRecord`: ``path``, ``lat``, ``lon``,
-    ``alt_m``, ``time``) with the positions that are none left out: latitude and longitude 0
-    (no fix) and the positions :func:`unreachable_positions` finds."""
+    ``alt_m``, ``time``, ``gps_status``) with the positions that are none left out: no fix
+    (:func:`no_fix_reason`) and the positions :func:`unreachable_positions` finds. Each is
+    given to ``on_problem`` as a ``position`` :class:`pipeline.ingest.xmp.TagProblem` naming
+    the frame's file (run.json ``metadata_problems``)."""
     from dataclasses import replace
 
-    out = [replace(r, lat=None, lon=None, alt_m=None) if no_fix_reason(r.lat, r.lon) else r for r in records]
+    from pipeline.ingest.xmp import TagProblem
+
+    def drop(r: Any, tag: str, value: str, why: str) -> Any:
+        if on_problem is not None:
+            on_problem(TagProblem(r.path.name, tag, value, why, "position"))
+        return replace(r, lat=None, lon=None, alt_m=None)
+
+    out = []
+    for r in records:
+        why = no_fix_reason(r.lat, r.lon, r.gps_status) if r.lat is not None and r.lon is not None else None
+        out.append(r if why is None else drop(r, *why))
     far = unreachable_positions([r.lat for r in out], [r.lon for r in out], seconds_of([r.time for r in out]),
                                 [r.path.name for r in out])
-    return [replace(r, lat=None, lon=None, alt_m=None) if i in far else r for i, r in enumerate(out)]
+    return [drop(r, "GPS latitude/longitude", f"{r.lat:.7f}, {r.lon:.7f}", far[i]) if i in far else r
+            for i, r in enumerate(out)]

@@ -36,7 +36,8 @@ from pipeline.ingest.exif import (
     signed_gps,
     utc_naive,
 )
-from pipeline.ingest.gps import no_fix_reason, placed_records
+from pipeline.ingest.gps import placed_records
+from pipeline.ingest.xmp import TagProblem
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
 FRAMES_CSV = "frames.csv"
@@ -333,6 +334,7 @@ class FrameRecord:
     band_files: tuple[Path, ...] | None = None
     capture: str | None = None
     band_effective_exposure: tuple[float, ...] | None = None
+    gps_status: str | None = None  # EXIF GPSStatus as written (V: void, no fix: pipeline.ingest.gps)
 
     @property
     def effective_exposure(self) -> float:
@@ -386,6 +388,7 @@ def read_frame_table(
     *,
     require_files: bool = True,
     on_frame_error: Callable[[str, FrameError], None] | None = None,
+    on_position_problem: Callable[[TagProblem], None] | None = None,
 ) -> list[FrameRecord]:
     """Frames of a folder with their exposure and position (SPEC.md, Session folder).
 
@@ -398,6 +401,9 @@ def read_frame_table(
     reported as ``on_frame_error(file_name, error)`` and left out; a frame listed twice is
     left out entirely (its metadata is ambiguous). A table that cannot be read as a whole
     (missing column, not UTF-8) still raises :class:`SessionError`.
+
+    A written position that is none (:func:`pipeline.ingest.gps.placed_records`: no GPS fix,
+    or out of the flight's reach) is left out, and given to ``on_position_problem``.
     """
     dropped: set[str] = set()  # frames reported to on_frame_error: no EXIF fallback either
 
@@ -446,7 +452,8 @@ def read_frame_table(
             path=folder,
             hint=f"put {', '.join(IMAGE_SUFFIXES)} frames and a frames.csv in the folder",
         )
-    return placed_records(sorted(records.values(), key=lambda r: r.path.name))  # no fix, unreachable: no position
+    # a position written without a fix, or one the flight could not have reached: none
+    return placed_records(sorted(records.values(), key=lambda r: r.path.name), on_position_problem)
 
 
 def _check_columns(cols: list[str], csv_path: Path) -> None:
@@ -566,15 +573,15 @@ def exif_record(path: Path) -> FrameRecord:
         )
     except (TypeError, ValueError, ZeroDivisionError, IndexError, OverflowError):
         lat = lon = alt = None
-    status = tags.get("GPS GPSStatus")
     if lat is None or lon is None or not (math.isfinite(lat) and math.isfinite(lon)):
         lat = lon = None
-    elif no_fix_reason(lat, lon, getattr(status, "values", status)):  # no fix: no position (pipeline.ingest.gps)
-        lat = lon = alt = None
+    status = tags.get("GPS GPSStatus")
+    status = str(getattr(status, "values", status)).strip("\x00 ") if status is not None else None
     if alt is not None and not math.isfinite(alt):
         alt = None
     time = exif_time_utc(tags.get("EXIF DateTimeOriginal"), offset=tags.get("EXIF OffsetTimeOriginal"))
-    rec = FrameRecord(path=path, exposure_ms=exposure_s * 1000.0, gain=gain, time=time, lat=lat, lon=lon, alt_m=alt)
+    rec = FrameRecord(path=path, exposure_ms=exposure_s * 1000.0, gain=gain, time=time, lat=lat, lon=lon, alt_m=alt,
+                      gps_status=status)
     _check_exposure(rec, path)
     return rec
 

@@ -115,3 +115,45 @@ def test_unreachable_position_is_no_position(tmp_path: Path) -> None:
     assert "10.00 km from the flight's median position and 5000 m/s from IMG_0001 (2.0 s apart)" in problem["reason"]
     assert _gps_tags(sorted((out / "photogrammetry").glob("IMG_0002*.tif"))[0]) == {}
     assert _gps_tags(sorted((out / "photogrammetry").glob("IMG_0001*.tif"))[0])["GPS GPSLatitudeRef"] == "N"
+
+
+def test_snapshot_frames_without_a_fix_and_out_of_reach(small, tmp_path: Path) -> None:
+    """The small session's 3-frame flight (2 s and 2 m apart) with IMG_0000 at 0/0 in
+    frames.csv, IMG_0002 moved 10 km north and a fourth frame IMG_0003 (IMG_0001's pixels but
+    one, 2 s after IMG_0002, at IMG_0001's position): IMG_0000 has no fix; IMG_0002 is 5000 m/s
+    from its neighbours and 10 km from the median of the three positioned frames."""
+    import shutil
+
+    import tifffile
+
+    session, calib = small
+    flight = tmp_path / "field"
+    shutil.copytree(session / "flights" / "field", flight)
+    rows = (flight / "frames.csv").read_text().splitlines()
+    head, r0, r1, r2 = rows
+    f0 = r0.split(",")
+    f0[4:6] = ["0", "0"]
+    f2 = r2.split(",")
+    lat2 = float(f2[4])
+    f2[4] = f"{lat2 + 10_000 / (math.pi / 180 * 6_371_008.8):.8f}"
+    img = tifffile.imread(flight / "IMG_0001.tif")
+    img[0, 0] ^= 1  # not a duplicate of IMG_0001
+    tifffile.imwrite(flight / "IMG_0003.tif", img)
+    f3 = r1.split(",")
+    f3[0], f3[3] = "IMG_0003.tif", "2017-06-14T09:50:06.000Z"
+    (flight / "frames.csv").write_text("\n".join([head, ",".join(f0), r1, ",".join(f2), ",".join(f3)]) + "\n")
+    out = tmp_path / "out"
+    assert main(["apply", str(flight), "--calibration", str(calib), "-o", str(out)]) == 0
+    run = json.loads((out / "run.json").read_text())
+    assert run["frames"] == ["IMG_0000", "IMG_0001", "IMG_0002", "IMG_0003"]
+    problems = {p["file"]: p for p in run["metadata_problems"]}
+    assert sorted(problems) == ["IMG_0000.tif", "IMG_0002.tif"]
+    assert problems["IMG_0000.tif"]["value"] == "0, 0" and problems["IMG_0000.tif"]["feature"] == "position"
+    assert problems["IMG_0002.tif"]["reason"].startswith("10.00 km from the flight's median position and 5001 m/s "
+                                                         "from IMG_0001.tif (2.0 s apart)")
+    ds = xr.open_zarr(out / "reflectance.zarr")
+    lat = ds["lat"].values
+    assert np.isnan(lat[0]) and np.isnan(lat[2]) and lat[1] == pytest.approx(47.45020045, abs=1e-9)
+    assert _gps_tags(next((out / "photogrammetry").glob("IMG_0000_*.tif"))) == {}
+    assert _gps_tags(next((out / "photogrammetry").glob("IMG_0002_*.tif"))) == {}
+    assert _gps_tags(next((out / "photogrammetry").glob("IMG_0001_*.tif")))["GPS GPSLatitudeRef"] == "N"
