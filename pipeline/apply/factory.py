@@ -495,6 +495,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     sensor = None if readings_missing(captures) else sensor_light(captures, times)
     check = None if sensor is None else sun_sensor_check(captures, sensor, times, camera.band_names)
     sensor = sensor if check is None else check.apply(sensor)  # each reading on its plausible unit rule
+    panels = panels if check is None else check.panels(panels, [c.name for c in captures])
     light, scales = _capture_light(options, reference, captures, panels, times, sensor, folder)
 
     attrs = {"calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,

@@ -53,6 +53,17 @@ class SunCheck:
                                    irradiance=sensor.irradiance * self.multiplier)
 
 
+    def panels(self, panels: Sequence[Any], names: Sequence[str]) -> list[Any]:
+        """Panel references (``factor_dls``: the sun sensor's factor on the panel capture) with
+        each reading on its chosen unit rule, so that panel and sensor compare as read."""
+        out = []
+        for p in panels:
+            m = self.multiplier[list(names).index(p.capture)]
+            dls = tuple(None if k is None else k / float(mb) for k, mb in zip(p.factor_dls, m))
+            out.append(p if dls == tuple(p.factor_dls) else dataclasses.replace(p, factor_dls=dls))
+        return out
+
+
 def unit_rules(meta: CaptureMeta) -> tuple[dict[str, float], float]:
     """A MicaSense band file's unit rules ``{rule: scale to W m-2 nm-1}`` and the scale the
     reader applied (:func:`pipeline.ingest.camera_meta._micasense_irradiance_scale`)."""

@@ -45,7 +45,7 @@ def test_choose_rule_takes_the_unit_that_fits_the_sky() -> None:
     assert plausible(0.02) and plausible(1.5) and not plausible(0.019) and not plausible(1.51)
 
 
-def _dls2(folder: Path, unit: float) -> Path:
+def _dls2(folder: Path, unit: float, captures: tuple[str, ...] = ("0001",)) -> Path:
     """IMG_0001 as a DLS 2 writes it without IrradianceScaleToSIUnits: no Camera:Irradiance, the
     DLS's SpectralIrradiance and HorizontalIrradiance (the DLS 1 reading) times ``unit`` (1: W
     m-2 nm-1, 100: uW cm-2 nm-1)."""
@@ -57,8 +57,9 @@ def _dls2(folder: Path, unit: float) -> Path:
             f"<DLS:SpectralIrradiance>{float(m[1]) * unit!r}</DLS:SpectralIrradiance>"
             f"<DLS:HorizontalIrradiance>{float(m[1]) * unit!r}</DLS:HorizontalIrradiance>"), x)
 
-    for b in range(1, 6):
-        cf.rewrite(cf.band_file("0001", b), folder / f"IMG_0001_{b}.tif", edit)
+    for cap in captures:
+        for b in range(1, 6):
+            cf.rewrite(cf.band_file(cap, b), folder / f"IMG_{cap}_{b}.tif", edit)
     return folder
 
 
@@ -109,3 +110,27 @@ def test_a_reading_fifty_times_the_sky_is_warned(tmp_path) -> None:
     # the QA report (and with it the run's summary) says it
     codes = [w["code"] for w in report_warnings(flights=[tmp_path / "out"])]
     assert "sun_sensor_implausible" in codes
+
+
+def test_the_panel_compares_with_the_sensor_read_in_the_unit_chosen(tmp_path) -> None:
+    """With the panel capture IMG_0000, run.json's panel/DLS factor ratio of a DLS 2 file written
+    in W m-2 nm-1 without a scale tag is the DLS 1 file's (0.73 at NIR to 1.01 at Blue with a
+    panel of 0.5), not 100 times lower."""
+    require_data()
+    dls1 = tmp_path / "dls1"
+    dls1.mkdir()
+    for cap in ("0000", "0001"):
+        for b in range(1, 6):
+            cf.rewrite(cf.band_file(cap, b), dls1 / f"IMG_{cap}_{b}.tif")
+    si = _dls2(tmp_path / "si", 1.0, ("0000", "0001"))
+    runs = []
+    for folder in (dls1, si):
+        out = tmp_path / f"out_{folder.name}"
+        assert main(["apply", str(folder), "--calibration", "factory", "-o", str(out), "--panel-reflectance", "0.5",
+                     "--panel", "IMG_0000"]) == 0
+        runs.append(json.loads((out / "run.json").read_text()))
+    ratio = [r["reference"]["panels"][0]["panel_over_dls"] for r in runs]
+    assert ratio[1] == pytest.approx(ratio[0], rel=1e-9)
+    assert ratio[0] == pytest.approx({"Blue": 1.0136, "Green": 0.8727, "Red": 0.9037, "NIR": 0.7266,
+                                      "Red edge": 0.9380}, abs=2e-4)
+    assert runs[1]["sun_sensor_check"]["rules"] == {AS_WRITTEN_RULE: 10}
