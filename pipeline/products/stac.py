@@ -272,13 +272,16 @@ def _frame_coords(flight: Path, panels: Sequence[str] = ()) -> tuple[np.ndarray,
         lon = np.asarray(ds["lon"].values, float) if "lon" in ds.coords else np.empty(0)
         t = np.asarray(ds["time"].values) if "time" in ds.coords else np.empty(0, "datetime64[ns]")
         names = [str(f) for f in ds["frame"].values] if "frame" in ds.coords else []
+        camera = ds.attrs.get("camera")
+    if lat.shape != lon.shape:  # one without the other: no positions
+        return np.full(len(names), np.nan), np.full(len(names), np.nan), t, camera
     none = (lat == 0) & (lon == 0)
     lat, lon = np.where(none, np.nan, lat), np.where(none, np.nan, lon)
     if panels and len(names) == lat.size:
         panel = np.isin(names, list(panels))
         if (np.isfinite(lat) & np.isfinite(lon) & ~panel).any():
             lat, lon = np.where(panel, np.nan, lat), np.where(panel, np.nan, lon)
-    return lat, lon, t, ds.attrs.get("camera")
+    return lat, lon, t, camera
 
 
 def _rel(target: Path, item_file: Path) -> str:
