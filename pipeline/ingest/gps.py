@@ -6,8 +6,8 @@ the reason is named):
 
 * latitude 0 and longitude 0: what a MicaSense RedEdge, a DJI and others write before the
   first fix (a panel capture taken on the ground at power-on);
-* EXIF ``GPSStatus`` ``V`` (void: "measurement interoperability", EXIF 2.3 table: A =
-  measurement in progress, V = measurement interrupted);
+* EXIF ``GPSStatus`` ``V`` (EXIF: A = measurement in progress, V = measurement
+  interoperability; the receiver's NMEA status "void", no valid fix);
 * a position far from the rest of the flight with no time to get there
   (:func:`unreachable_positions`: faster than :data:`MAX_SPEED_M_S` from the capture before or
   after it in time, and the farther of the two from the flight's median position).
