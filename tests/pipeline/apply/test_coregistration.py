@@ -55,13 +55,18 @@ def _scene_shift(scene: np.ndarray, band: np.ndarray) -> float:
 
 
 def test_a_wrong_dji_h_matrix_is_measured_and_refined_by_image_registration(tmp_path) -> None:
-    """DJI bands whose CalibratedHMatrix is off by 10-20 px (as firmware that writes wrong
-    matrices): the metadata alignment alone leaves each band its error against Red (measured
-    13.4-18.2 px, > 10 px); apply sees it on the pixels and refines the alignment by image
-    registration: <= 0.5 px left (measured 0.02-0.03 px), in run.json, the report and the
-    written radiance itself."""
+    """DJI bands whose H matrix is off by 10-20 px, written with firmware v01.17's spelling
+    drone-dji:DewarpHMatrix: the metadata alignment alone leaves each band its error against
+    Red (measured 13.4-18.2 px, > 10 px); apply sees it on the pixels and refines the alignment
+    by image registration: <= 0.5 px left (measured 0.02-0.03 px), in run.json, the report and
+    the written radiance itself."""
     require_data()
-    folder = cf.dji_p4m_warped(tmp_path / "wrong", H_ERRORS)
+    built = cf.dji_p4m_warped(tmp_path / "built", H_ERRORS)
+    folder = tmp_path / "wrong"
+    folder.mkdir()
+    for path in sorted(built.glob("*.TIF")):
+        cf.rewrite(path, folder / path.name, lambda x: x.replace("drone-dji:CalibratedHMatrix=", "drone-dji:DewarpHMatrix="))
+        assert b"DewarpHMatrix" in (folder / path.name).read_bytes()
     out = tmp_path / "out"
     run = _apply(folder, out)
     assert run["band_alignment"].startswith("factory metadata + image registration: the metadata alignment left ")
