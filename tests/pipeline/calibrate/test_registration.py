@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from dataclasses import replace
 from pathlib import Path
 
@@ -111,6 +112,14 @@ def test_real_rededge_flight_capture_aligns(tmp_path) -> None:
                  "--registration", str(tmp_path / "reg.zarr")]) == 0
     raw, al = (xr.open_zarr(tmp_path / d / "reflectance.zarr") for d in ("raw", "al"))
     assert al.attrs["co_registered"] == 1 and raw.attrs["co_registered"] == 0
+    # apply measures the bands on the written pixels against the store's reference band
+    measured = {d: json.loads((tmp_path / d / "run.json").read_text())["coregistration"] for d in ("raw", "al")}
+    assert measured["al"]["alignment"] == "transforms of the registration store (mscal register)"
+    assert measured["raw"]["alignment"] == "none" and measured["al"]["reference_band"] == "Red"  # the store's
+    before, after = measured["raw"]["captures"]["IMG_0001"], measured["al"]["captures"]["IMG_0001"]
+    assert after["unaligned_px"] == before["residual_px"]
+    for name in ("Blue", "Green", "NIR", "Red edge"):  # measured 2.5-14.1 px before, 0.18-0.65 px after
+        assert before["residual_px"][name] > 2 and after["residual_px"][name] < 1, name
     ra, rb = raw["reflectance"].values[0], al["reflectance"].values[0]
     ok = cv2.erode(np.isfinite(rb).all(axis=0).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
     assert ok.mean() > 0.85
