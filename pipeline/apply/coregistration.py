@@ -49,6 +49,7 @@ METHOD = ("per band against the reference band: phase correlation refined by ECC
 METADATA = "factory metadata"
 REFINED = "factory metadata + image registration"
 INSTEAD = "image registration (metadata alignment was worse than none)"
+ARTICLE = {"translation": "a", "affine": "an"}
 
 
 def multi_lens(camera: Camera, captures: Sequence[Capture]) -> bool:
@@ -89,7 +90,8 @@ def choose_alignment(camera: Camera, captures: Sequence[Capture], reference: int
     captures against no alignment, and refine it by image registration when it leaves more
     than :data:`RESIDUAL_MAX_PX` or does worse than none (the module docstring)."""
     names, _ = measured_captures(captures, panels)
-    picks = [names[k] for k in np.unique(np.linspace(0, len(names) - 1, min(len(names), REFINE_CAPTURES)).round().astype(int))]
+    spread = np.unique(np.linspace(0, len(names) - 1, min(len(names), REFINE_CAPTURES)).round().astype(int))
+    picks = [names[k] for k in spread]
     by_name = {c.name: c for c in captures}
     stacks, none_res, meta_res, used = [], [], [], []
     for name in picks:
@@ -113,8 +115,11 @@ def choose_alignment(camera: Camera, captures: Sequence[Capture], reference: int
     rec: dict[str, Any] = {"captures": used,
                            "max_side_px": REFINE_MAX_SIDE,
                            "unaligned_px": _named(bands, none_px), "metadata_px": _named(bands, meta_px)}
+    if not np.isfinite(meta_px[others]).any():
+        return AlignmentChoice(True, record={**rec, "decision": "factory metadata kept, not judged: no tile with "
+                                             "texture where the bands correlate"})
     worse = _mean(meta_px[others]) > _mean(none_px[others])
-    worst = np.nanmax(meta_px[others]) if np.isfinite(meta_px[others]).any() else np.nan
+    worst = float(np.nanmax(meta_px[others]))
     if not (worse or worst > RESIDUAL_MAX_PX):
         return AlignmentChoice(True, record={**rec, "decision": "factory metadata kept: within "
                                              f"{RESIDUAL_MAX_PX:g} px and better than no alignment"})
@@ -148,9 +153,8 @@ def choose_alignment(camera: Camera, captures: Sequence[Capture], reference: int
     rec.update({"model": model, "refined_px": _named(bands, px),
                 "transforms": {bands[b]: [round(float(v), 6) for v in h[b].ravel()] for b in range(len(bands))}})
     return AlignmentChoice(on_meta, tuple(float(v) for v in h.ravel()), label,
-                           {**rec, "decision": f"{label}: {why}; per band an {model} from the reference band, "
-                                               f"estimated on {len(stacks)} capture(s) (tiles pooled)"
-                                               .replace("an translation", "a translation")})
+                           {**rec, "decision": f"{label}: {why}; per band {ARTICLE[model]} {model} from the reference "
+                                               f"band, estimated on {len(stacks)} capture(s) (tiles pooled)"})
 
 
 def _band_px(per_capture: Sequence[Sequence[BandResidual]]) -> np.ndarray:

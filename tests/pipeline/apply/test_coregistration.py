@@ -220,3 +220,33 @@ def test_a_metadata_alignment_worse_than_none_is_replaced_by_image_registration(
     assert min(v for name, v in on_meta.items() if name != "Red") > 0.2
     h = np.asarray(choice.refine).reshape(5, 3, 3)
     assert h[0, :2, 2] == pytest.approx([-3.0, 2.0], abs=0.1)  # Blue, stored at scene(x + (3, -2)): band(x - (3, -2)) ~ Red(x)
+
+
+def test_flat_captures_leave_the_metadata_alignment_unjudged(monkeypatch) -> None:
+    """Captures without texture (a flat field of view): nothing to measure, so the files' own
+    registration is kept and run.json says it was not judged."""
+    from types import SimpleNamespace
+
+    import pipeline.apply.coregistration as coreg
+    from pipeline.ingest.catalog import load_camera
+
+    monkeypatch.setattr(coreg, "read_capture_pixels", lambda cap: ("", [np.full((480, 640), 900.0)] * 5, {}))
+    monkeypatch.setattr(coreg, "factory_align", lambda metas, stack: stack.copy())
+    camera = load_camera("dji-p4-multispectral")
+    caps = [SimpleNamespace(name="001", metas=[SimpleNamespace(path=Path(f"DJI_001{b}.TIF")) for b in range(5)])]
+    run = coreg.prepare(camera, caps, True, False, None, set())
+    assert run.alignment == coreg.METADATA and run.choice is not None and run.choice.refine is None
+    assert run.choice.factory_alignment and run.choice.record["decision"].startswith("factory metadata kept, not judged")
+    assert run.choice.record["metadata_px"]["NIR"] is None
+
+
+def test_every_nth_survey_capture_is_measured() -> None:
+    """A 100-capture flight with two panel captures: every 5th of the 98 survey captures (20 <= 24)."""
+    from types import SimpleNamespace
+
+    from pipeline.apply.coregistration import measured_captures
+
+    caps = [SimpleNamespace(name=f"IMG_{k:04d}") for k in range(100)]
+    names, step = measured_captures(caps, {"IMG_0000", "IMG_0099"})
+    assert step == 5 and len(names) == 20 and names[:3] == ["IMG_0001", "IMG_0006", "IMG_0011"]
+    assert measured_captures(caps[:1], {"IMG_0000"}) == (["IMG_0000"], 1)  # only a panel: measured all the same
