@@ -161,6 +161,21 @@ def write_board_images(folder: str | Path, truth: RigTruth, *, seed: int = 0, n_
     return folder
 
 
+def render_datasets(truth: RigTruth, seed: int, size: str) -> dict[str, RigFrames]:
+    """The session's datasets of ``size`` (:data:`SIZES`) rendered through the rig: response,
+    vignetting, reflector, check."""
+    if size not in SIZES:
+        raise ValueError(f"size must be one of {sorted(SIZES)}, got {size!r}")
+    cfg = SIZES[size]
+    return {
+        "response": response_sweep(truth, seed=seed, n_frames=cfg["n_response"], step=cfg["step"]),
+        "vignetting": marker_views(truth, seed=seed, kind="vignetting", n_views=cfg["n_vignetting"]),
+        "reflector": marker_views(truth, seed=seed, kind="reflector", n_views=cfg["n_reflector"], fixed_light=False,
+                                  time0_s=900.0),
+        "check": panel_captures(truth, seed=seed, n_frames=cfg["n_check"]),
+    }
+
+
 def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "small",
                             shape: tuple[int, int] = (240, 320), frames_csv: bool = False,
                             intrinsics_in_yaml: bool = False, board_views: int = 0,
@@ -177,7 +192,6 @@ def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "sma
     card does."""
     if size not in SIZES:
         raise ValueError(f"size must be one of {sorted(SIZES)}, got {size!r}")
-    cfg = SIZES[size]
     root = Path(path)
     root.mkdir(parents=True, exist_ok=True)
     truth = make_rig_truth(seed, shape=shape)
@@ -197,13 +211,7 @@ def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "sma
         }
     with open(root / "session.yaml", "w") as fh:
         yaml.safe_dump(data, fh, sort_keys=False)
-    sets = {
-        "response": response_sweep(truth, seed=seed, n_frames=cfg["n_response"], step=cfg["step"]),
-        "vignetting": marker_views(truth, seed=seed, kind="vignetting", n_views=cfg["n_vignetting"]),
-        "reflector": marker_views(truth, seed=seed, kind="reflector", n_views=cfg["n_reflector"], fixed_light=False,
-                                  time0_s=900.0),
-        "check": panel_captures(truth, seed=seed, n_frames=cfg["n_check"]),
-    }
+    sets = render_datasets(truth, seed, size)
     arrays = {f"camera_{k}": v for k, v in truth.arrays().items()}
     for name, fs in sets.items():
         if (root / name).exists():
@@ -228,7 +236,8 @@ def evaluate_multilens(session_dir: str | Path, calibration) -> dict:
     check on ``check/``: per capture and band ``R = U(I) / (t V S)`` on each gray panel's pure
     pixels (median), one scalar per capture from the white panel (median over bands), and
     ``panel_abs_error`` the largest ``|R - rho|`` over panels, bands and captures;
-    ``panel_abs_error_uncalibrated`` the same with raw DN above black / t instead of Eq. 15."""
+    ``panel_abs_error_uncalibrated`` the same with raw DN above black / t instead of Eq. 15.
+    The camera is session.yaml's; truth.npz's response and black level are in the files' DN."""
     import xarray as xr
 
     from pipeline.calibrate.sweep import read_stack
@@ -240,7 +249,7 @@ def evaluate_multilens(session_dir: str | Path, calibration) -> dict:
     ds = calibration if isinstance(calibration, xr.Dataset) else xr.open_zarr(calibration).load()
     out = evaluate_calibration(root, ds)
     truth = np.load(root / "truth.npz")
-    cam = load_camera(CAMERA)
+    cam = load_camera(yaml.safe_load((root / "session.yaml").read_text())["camera"])  # RedEdge or DJI (pipeline.sim.dji)
     recs = read_capture_table(root / "check", cam)
     dn = read_stack(recs, cam)
     labels, rho = truth["check_labels"], truth["check_panel_reflectance"]
