@@ -14,19 +14,23 @@ nm, the catalog's order) and writes the same datasets as
       check/     DJI_3001.TIF ...                   gray panels 0.05/0.2/0.5/0.9
       truth.npz             as the RedEdge session's, response and black level in the files' DN
 
-Band files as a P4 Multispectral writes them (catalogs/cameras/dji-p4-multispectral.yaml,
-DJI's P4 Multispectral Image Processing Guide; the tag set of ``tests/camera_files.py``
-``dji_xmp``): ``DJI_XXXn.TIF``, ``n`` the band (drone-dji:SensorIndex), 16-bit samples (the
-catalog's ``bit_depth: 16``: the rig's 12-bit DN scaled to the full 16-bit range by bit
-replication, :func:`to_file_dn`, so that a clipped pixel is 65535, the catalog's ``dn_max``;
-black level ~4096 as on the real camera); EXIF Make ``DJI``, Model ``FC6360``, ``ExposureTime`` (s), ``ISOSpeed`` **200**,
-``DateTimeOriginal``, ``BodySerialNumber``, ``BlackLevel``; XMP ``drone-dji:`` attributes
-``BandName``, ``CentralWavelength``, ``BandFreq``, ``CaptureUUID``, ``SensorIndex``,
-``SensorGain`` **1** (the gain DJI's guide divides by: ISO 200 is not a gain of 2),
-``ExposureTime`` (us), ``BlackLevel``, ``SensorGainAdjustment``, ``Irradiance``,
-``CalibratedOpticalCenterX/Y`` (the image centre), ``VignettingData`` (flat: the factory
-model is no part of a field calibration), ``DewarpData`` (the lens's true intrinsics about the
-optical centre) and an identity ``CalibratedHMatrix``. The EXIF tags sit in IFD0.
+Band files as a P4 Multispectral writes them (catalogs/cameras/dji-p4-multispectral.yaml, DJI's
+P4 Multispectral Image Processing Guide; the tag set of ``tests/camera_files.py`` ``dji_xmp``):
+``DJI_XXXn.TIF``, ``n`` the band (drone-dji:SensorIndex), 16-bit samples (the catalog's
+``bit_depth: 16``: the rig's 12-bit DN scaled to the full 16-bit range by bit replication,
+:func:`to_file_dn`, so that a clipped pixel is 65535, the catalog's ``dn_max`` and the full
+scale DJI's guide normalises by, p = DN / 65535; black level ~4096 as on the real camera.
+Written as 12-bit DN times 16, clipped pixels at 65520, the response fit took them for
+saturation hidden below the clip 65535 and raised the top of U about 4-fold, and the
+reflector's marker was then found in no frame); EXIF Make ``DJI``, Model ``FC6360``,
+``ExposureTime`` (s), ``ISOSpeed`` **200**, ``DateTimeOriginal``, ``BodySerialNumber``,
+``BlackLevel``; XMP ``drone-dji:`` attributes ``BandName``, ``CentralWavelength``,
+``BandFreq``, ``CaptureUUID``, ``SensorIndex``, ``SensorGain`` **1** (the gain DJI's guide
+divides by: ISO 200 is not a gain of 2), ``ExposureTime`` (us), ``BlackLevel``,
+``SensorGainAdjustment``, ``Irradiance``, ``CalibratedOpticalCenterX/Y`` (the image centre),
+``VignettingData`` (flat: the factory model is no part of a field calibration), ``DewarpData``
+(the lens's true intrinsics about the optical centre) and an identity ``CalibratedHMatrix``.
+The EXIF tags sit in IFD0.
 """
 
 from __future__ import annotations
