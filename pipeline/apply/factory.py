@@ -114,7 +114,14 @@ from pipeline.apply.panel_search import (
     seen_record,
 )
 from pipeline.apply.sun_check import SunCheck, sun_sensor_check
-from pipeline.apply.sunlight import PanelSensorLight, check_times, light_warnings, panel_sensor_light, readings_missing
+from pipeline.apply.sunlight import (
+    RATIO_RULES,
+    PanelSensorLight,
+    check_times,
+    light_warnings,
+    panel_sensor_light,
+    readings_missing,
+)
 from pipeline.ingest.camera_meta import (
     FACTORY_ALIGNMENT_NOTE,
     METADATA_READING,
@@ -137,7 +144,8 @@ from pipeline.ingest.targets import serial_targets_digest
 FACTORY = "factory"
 REFERENCES = ("auto", "panel", "dls", "panel-dls")  # + "none" (radiance only) when auto finds no usable sun sensor
 LIGHT_MODEL = ("sun sensor turned horizontal; panel-dls; one panel region for all bands; one fixed sun-sensor scale "
-               "per camera model; DLS 2 unit rules checked against the clear sky")
+               "per camera model; DLS 2 unit rules checked against the clear sky; diffuse ratio fitted from the "
+               "flight only where panels anchor the light")
 PANEL_GRID = 32  # cells per side of the panel grid for the S/B split (Eq. 11-14)
 FIELD_COMPONENTS = ("response", "vignetting")  # store variables: inverse_response, vignetting
 ALBEDO_SOURCE = "XMP Albedo of each panel capture's band files (the camera's reading of the panel's QR code)"
@@ -492,7 +500,9 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     unused = panels_seen(captures, options.panel_captures) if not uses_panels else []
     seen = unused if options.reference == "auto" else []
     times = capture_times(captures)
-    sensor = None if readings_missing(captures) else sensor_light(captures, times)
+    # dls: each capture's factor from its own files (the diffuse ratio never fitted from the
+    # flight); with panels the fit is part of the light's interpolation between them
+    sensor = None if readings_missing(captures) else sensor_light(captures, times, fit_ratio=reference != "dls")
     check = None if sensor is None else sun_sensor_check(captures, sensor, times, camera.band_names)
     sensor = sensor if check is None else check.apply(sensor)  # each reading on its plausible unit rule
     panels = panels if check is None else check.panels(panels, [c.name for c in captures])
@@ -739,6 +749,8 @@ def light_record(reference: str, panels: Sequence[PanelReference], captures: Seq
         out["sun_sensor_check"] = check.record
     if sensor is not None:
         out["sun_sensor"] = sensor.record(names, bands)
+        if sensor.diffuse_ratio:
+            out["sun_sensor"]["diffuse_ratio_rule"] = RATIO_RULES.get(reference, RATIO_RULES["panel"])
     return out
 
 

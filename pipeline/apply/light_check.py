@@ -29,11 +29,13 @@ def panel_prediction(folder: str | Path, panel_reflectance: str, early: str, lat
 
     - ``panel``: the early panel alone, ``k' = k_early``;
     - ``sensor``: the sun sensor alone (tilt-corrected), ``k' = k_sensor(late)`` (absolute
-      sensors only; NaN for relative ones);
+      sensors only; NaN for relative ones), as the ``dls`` route has it: the diffuse ratio the
+      clear sky's 1/6 (or a DLS 2's split), never fitted from the folder's captures;
     - ``combined_raw``: the early panel scaled by the sensor's raw readings (no sun position,
       tilt or direct/diffuse split: what mscal did before issue 22);
     - ``combined``: the early panel anchoring the sensor (the ``panel-dls`` route with only the
-      early panel), ``k' = k_early E^s(early) / E^s(late)``;
+      early panel), ``k' = k_early E^s(early) / E^s(late)``, the diffuse ratio fitted from the
+      folder's captures where the route fits it;
     - ``self``: the late panel against itself: its reflectance over its region with the split
       factor, ``k_late,split / k_late,mean - 1``.
     """
@@ -49,12 +51,13 @@ def panel_prediction(folder: str | Path, panel_reflectance: str, early: str, lat
         _, dns, ch = read_capture_pixels(cap)
         refs[name] = panel_reference(cap, dns, rho, channels=ch)
     times = capture_times(caps)
-    sensor = sensor_light(caps, times)
+    sensor = sensor_light(caps, times)  # panel-dls's
+    own = sensor_light(caps, times, fit_ratio=False)  # dls's: each capture on its own
     i_e, i_l = names.index(early), names.index(late)
     k_e, k_l = np.asarray(refs[early].factor_split), np.asarray(refs[late].factor_split)
     combined = panel_sensor_light(k_e[None], [i_e], times, sensor, mode).factor[i_l]
-    k_sensor = sensor.factor[i_l] if sun_sensor_absolute(caps[i_l].metas[0]) else np.full(k_l.shape, np.nan)
-    raw = sensor.factor * sensor.correction  # the readings' own k, before the turn to horizontal
+    k_sensor = own.factor[i_l] if sun_sensor_absolute(caps[i_l].metas[0]) else np.full(k_l.shape, np.nan)
+    raw = own.factor * own.correction  # the readings' own k, before the turn to horizontal
     bands = list(camera.band_names)
 
     def per_band(values: np.ndarray) -> dict[str, float]:

@@ -2,7 +2,7 @@
 anchored by the sensor.
 
 The sun sensor's reading of each capture and band made horizontal (tags, sun position, tilt
-model, the diffuse ratio fitted from the flight when possible) is
+model, the diffuse ratio fitted from the flight on the panel routes: :data:`RATIO_RULES`) is
 :func:`pipeline.ingest.sunsensor.sensor_light` (the vendors' tags and documents are listed
 there); here the panels anchor it: :func:`panel_sensor_light` and the warnings of
 :func:`light_warnings` (run.json ``light``).
@@ -107,5 +107,16 @@ def readings_missing(captures: Sequence[Capture]) -> bool:
     return not any(m.irradiance is not None and m.irradiance > 0 for c in captures for m in c.metas)
 
 
-__all__ = ["PanelSensorLight", "check_times", "light_warnings", "panel_sensor_light", "readings_missing", "seconds",
+#: run.json ``sun_sensor.diffuse_ratio_rule``: where the tilt model's diffuse ratio (without a
+#: measured split) may come from the flight's readings, per route.
+RATIO_RULES = {
+    "dls": "clear-sky 1/6 (or a DLS 2's measured split), never fitted from the flight: a capture's reflectance "
+           "depends on its own files only",
+    "panel-dls": "fitted per band from the flight's readings on 10+ captures at changing attitudes (else clear-sky "
+                 "1/6): part of the light's interpolation between the panels, which anchor the scale; a capture's "
+                 "factor depends on its flight",
+    "panel": "as for panel-dls; not used for reflectance (the panels alone set it)",
+}
+
+__all__ = ["RATIO_RULES", "PanelSensorLight", "check_times", "light_warnings", "panel_sensor_light", "readings_missing", "seconds",
            "RATIO_DRIFT_WARN", "TILT_WARN_DEG"]

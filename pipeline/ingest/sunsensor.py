@@ -39,9 +39,11 @@ relative sensors) and the correction ``f = E_h / E_meas``:
 
 Without a sun position (no time or GPS) or orientation the correction is 1 (the raw reading)
 or the level-sensor one, and run.json says which (``sun_sensor``). Without a measured split
-(DLS 1, Sequoia, Sentera) the diffuse ratio is the clear sky's 1/6, or, on a flight of
-at least :data:`FIT_MIN_CAPTURES` captures at changing attitudes, fitted per band so that the
-horizontal irradiance does not jump when the aircraft turns (``sun_sensor.diffuse_ratio``).
+(DLS 1, Sequoia, Sentera) the diffuse ratio is the clear sky's 1/6, or, when the caller asks
+(``fit_ratio``: the factory path's panel routes, never its ``dls`` route, whose reflectance must
+not depend on the flight) and on a flight of at least :data:`FIT_MIN_CAPTURES` captures at
+changing attitudes, fitted per band so that the horizontal irradiance does not jump when the
+aircraft turns (``sun_sensor.diffuse_ratio``).
 
 **Field path levels** (:func:`capture_levels`, :func:`record_levels`): one number per frame or
 capture, the geometric mean over its reflectance bands of ``E_meas,b f_b`` (the horizontal

@@ -9,9 +9,11 @@ Before the fixed scales, DJI and Sequoia divided by a constant that put the run'
 capture's brightest band median at 0.5: a DJI capture processed alone and after another
 differed by 14.9 % in every band.
 
-Flights here have fewer captures than :data:`pipeline.ingest.sunsensor.FIT_MIN_CAPTURES`: on
-longer flights at changing attitudes the diffuse ratio of the tilt model (MicaSense DLS 1,
-Sequoia) is fitted from the flight, which is not run-invariant.
+On flights of at least :data:`pipeline.ingest.sunsensor.FIT_MIN_CAPTURES` captures at changing
+attitudes the diffuse ratio of the tilt model (MicaSense DLS 1, Sequoia) could be fitted from
+the flight: the dls route does not fit it (the clear sky's 1/6), so a long flight keeps the
+invariance (:func:`test_long_flight_dls_reflectance_is_the_capture_alone`); the panel routes
+do, as part of the light's interpolation between panels.
 """
 
 from __future__ import annotations
@@ -197,3 +199,86 @@ def test_with_panels_only_the_interpolation_in_time_changes_a_capture(tmp_path) 
         expected = 1.0 / ((1 - w_after) + w_after * q["IMG_0002"] / q["IMG_0000"])
         assert per_band[b] == pytest.approx(expected, rel=1e-4)
     np.testing.assert_allclose(per_band, 1 / (1 - w_after + w_after / 1.1), rtol=3e-3)  # ~ +4.7 %
+
+
+# --------------------------------------------------------------------------- long flights
+# A flight of more captures than FIT_MIN_CAPTURES at changing attitudes under a sky bluer than
+# the clear sky's 1/6: the sun sensor's diffuse ratio could be fitted from the flight's readings
+# (it lowers the roughness of the horizontal light), but on the dls route it is not.
+
+LONG = 12
+SKY_RATIO = 0.12 * (550.0 / np.array([475.0, 560.0, 668.0, 840.0, 717.0])) ** 2  # IMG_0001's bands, in file order
+
+
+def _long_flight(folder: Path, seed: int = 0) -> list[str]:
+    """``LONG`` copies of IMG_0001 (its pixels, time and position), each its own capture with a
+    sun sensor tilted 10 deg rms at a random yaw, reading the light of a bluer sky through
+    MicaSense's DLS model (:func:`mscal_core.sunsensor.sensor_reading`, direct light such that
+    the level sensor would read IMG_0001's own readings)."""
+    from mscal_core.sunsensor import sensor_reading
+    from pipeline.ingest.solar import solar_position
+
+    folder.mkdir()
+    when = np.array(["2017-10-19T20:42:10.200159489"], dtype="datetime64[ns]")
+    el, az = (float(v[0]) for v in solar_position(when, np.array([36.5760815]), np.array([-119.4352604]),
+                                                   np.array([174.527])))
+    own = np.array([0.9574306607246399, 0.7664443850517273, 0.6869884729385376, 0.41153082251548767,
+                    0.631069004535675])
+    level = sensor_reading(1.0, SKY_RATIO, el, az, 0.0, 0.0, 0.0)  # a level sensor, direct light 1
+    rng = np.random.default_rng(seed)
+    ident = cf.capture_id("0001")
+    names = []
+    for i in range(LONG):
+        ypr = (rng.uniform(-np.pi, np.pi), *np.radians(rng.normal(0.0, 10.0, 2)))
+        reading = sensor_reading(own / level, SKY_RATIO * own / level, el, az, *ypr)
+        name = f"IMG_{i + 2:04d}"
+
+        def edit(x: str, b: int, ypr=ypr, reading=reading, i=i) -> str:
+            x = x.replace(ident, f"{ident[:-4]}L{i:03d}")
+            x = cf.set_element(x, "Camera:Irradiance", repr(float(reading[b])))
+            for tag, v in zip(("Yaw", "Pitch", "Roll"), ypr):
+                x = cf.set_element(x, f"DLS:{tag}", repr(float(v)))
+                x = cf.set_element(x, f"Camera:Irradiance{tag}", repr(float(np.degrees(v))))
+            return x
+
+        for b in range(5):
+            cf.rewrite(cf.band_file("0001", b + 1), folder / f"{name}_{b + 1}.tif", lambda x, b=b: edit(x, b))
+        names.append(name)
+    return names
+
+
+def test_long_flight_dls_reflectance_is_the_capture_alone(tmp_path) -> None:
+    """On the dls route the diffuse ratio is the clear sky's 1/6 however long the flight: the
+    last capture of a 12-capture flight gets the reflectance it gets alone, bit for bit. The
+    flight's readings do let the ratio be fitted (every band, within 3 % of the truth 0.05-0.16,
+    roughness 2-7000x lower than at 1/6): when the dls route fitted it, the capture's median
+    reflectance in the flight was 0.09 % (Blue) to 1.6 % (NIR) above the capture's alone."""
+    require_data()
+    from pipeline.apply.captures import capture_times, find_captures
+    from pipeline.ingest.identify import identify_camera
+    from pipeline.ingest.sunsensor import sensor_light
+
+    names = _long_flight(tmp_path / "flight")
+    x = names[-1]
+    (tmp_path / "alone").mkdir()
+    for b in range(1, 6):
+        shutil.copyfile(tmp_path / "flight" / f"{x}_{b}.tif", tmp_path / "alone" / f"{x}_{b}.tif")
+    # the flight does let the ratio be fitted (what the panel routes use)
+    caps = find_captures(tmp_path / "flight", identify_camera(tmp_path / "flight", None).camera).captures
+    fitted = sensor_light(caps, capture_times(caps))
+    assert [c.name for c in caps] == names
+    fit_bands = [b for b, src in enumerate(fitted.ratio_source) if "fitted" in src]
+    assert len(fit_bands) >= 3, fitted.ratio_source
+    for b in fit_bands:
+        assert abs(fitted.diffuse_ratio[b] / SKY_RATIO[b] - 1) < 0.3
+    run_f, ds_f = _apply(tmp_path / "flight", tmp_path / "out_flight", "--reference", "dls", "--no-align")
+    run_a, ds_a = _apply(tmp_path / "alone", tmp_path / "out_alone", "--reference", "dls", "--no-align")
+    in_flight, alone = _frame(run_f, ds_f, x), _frame(run_a, ds_a, x)
+    assert len(run_f["frames"]) == LONG and np.isfinite(alone).mean() > 0.9
+    np.testing.assert_array_equal(in_flight, alone)
+    for run in (run_f, run_a):
+        ratios = run["sun_sensor"]["diffuse_ratio"]
+        assert {r["source"] for r in ratios.values()} == {"clear-sky diffuse ratio 1/6"}
+        assert all(r["ratio"] == pytest.approx(1 / 6, abs=1e-6) for r in ratios.values())
+        assert run["sun_sensor"]["diffuse_ratio_rule"].startswith("clear-sky 1/6 (or a DLS 2's measured split), never")
+
