@@ -402,7 +402,8 @@ def dji_warp(band: int, shape: tuple[int, int] = (960, 1280)) -> tuple[np.ndarra
     return hm, k, np.array([k1, 0.3418, 0.00068, 0.00068, -0.3540])
 
 
-def dji_p4m_warped(folder: Path, h_error: dict[int, tuple[float, float]] | None = None) -> Path:
+def dji_p4m_warped(folder: Path, h_error: dict[int, tuple[float, float]] | None = None,
+                   scenes: Sequence[np.ndarray] | None = None) -> Path:
     """P4 Multispectral captures whose bands show one scene (the real RedEdge NIR frame of the
     capture, DN as stored) through each band's own lens distortion and plane: stored band
     ``I_b(q) = scene(H_b u)``, ``u`` the undistorted point of ``q`` (OpenCV's iterative
@@ -410,7 +411,8 @@ def dji_p4m_warped(folder: Path, h_error: dict[int, tuple[float, float]] | None 
     CalibratedHMatrix), so the guide's steps 2-3 put every band back onto the scene's grid.
     ``h_error``: band (1-5) -> ``(dx, dy)`` px written wrong into its CalibratedHMatrix (a
     translation after ``H_b`` on the designed plane): the guide's steps then put that band at
-    ``scene(x - (dx, dy))``, as a wrong matrix of the camera's firmware would."""
+    ``scene(x - (dx, dy))``, as a wrong matrix of the camera's firmware would. ``scenes``: one
+    capture per (960, 1280) image (ids ``dji-scene-1``, ...) instead of the RedEdge NIR frames."""
     import cv2
 
     folder.mkdir(parents=True, exist_ok=True)
@@ -424,8 +426,10 @@ def dji_p4m_warped(folder: Path, h_error: dict[int, tuple[float, float]] | None 
         u = cv2.undistortPoints(pts, k, dist, R=None, P=k, criteria=crit).reshape(-1, 2)
         x = (hm @ np.stack([u[:, 0], u[:, 1], np.ones(len(u))]))
         maps[b] = (x[0] / x[2]).reshape(h, w).astype(np.float32), (x[1] / x[2]).reshape(h, w).astype(np.float32)
-    for c, cap in enumerate(CAPTURES, start=1):
-        scene = tifffile.imread(band_file(cap, 4)).astype(np.float32)
+    shown = ([(f"dji-capture-{cap}", tifffile.imread(band_file(cap, 4))) for cap in CAPTURES] if scenes is None
+             else [(f"dji-scene-{c}", s) for c, s in enumerate(scenes, start=1)])
+    for c, (uuid, scene) in enumerate(shown, start=1):
+        scene = np.asarray(scene, np.float32)
         for b in range(1, 6):
             hm, k, dist = dji_warp(b)
             dn = cv2.remap(scene, *maps[b], cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
@@ -435,7 +439,7 @@ def dji_p4m_warped(folder: Path, h_error: dict[int, tuple[float, float]] | None 
                                                                      dist[2], dist[3], dist[4]))
             err = (h_error or {}).get(b, (0.0, 0.0))
             written = np.array([[1, 0, err[0]], [0, 1, err[1]], [0, 0, 1]]) @ hm
-            packet = dji_xmp(b, f"dji-capture-{cap}", dewarp=dewarp,
+            packet = dji_xmp(b, uuid, dewarp=dewarp,
                              hmatrix=",".join(f"{v:.12g}" for v in written.ravel())).encode("utf-8")
             tifffile.imwrite(folder / f"DJI_00{c}{b}.TIF", dn, photometric="minisblack", metadata=None, extratags=[
                 (271, "s", 0, "DJI", True), (272, "s", 0, "FC6360", True), (50714, "H", 1, int(DJI["black"]), True),

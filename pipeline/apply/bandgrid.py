@@ -2,8 +2,9 @@
 
 :func:`one_grid` puts a capture's bands (stored orientation) on one grid: each band file's own
 registration (DJI's DewarpData and CalibratedHMatrix, ``Plan.factory_alignment``), then the
-image registration that refines it (``Plan.refine``: per band a translation from the reference
-band, estimated on the run's captures by :mod:`pipeline.apply.coregistration`), then the band
+image registration that refines it (``Plan.refine``: per band a transform from the reference
+band, judged and estimated on each capture's own pixels, the flight's for a capture without
+texture: :func:`pipeline.apply.coregistration.capture_alignment`), then the band
 transforms of a registration store or ``--centre-bands``
 (:func:`pipeline.apply.executor.geometry_step`).
 
@@ -18,8 +19,8 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 from mscal_core.coregistration import stack_residuals
-from mscal_core.registration import align_bands
 
+from pipeline.apply.coregistration import capture_alignment
 from pipeline.ingest.camera_meta import factory_align, read_capture_pixels, upright_meta
 
 if TYPE_CHECKING:
@@ -27,19 +28,32 @@ if TYPE_CHECKING:
     from pipeline.ingest.catalog import Camera
 
 
-def one_grid(plan: Plan, job: Job, signal: np.ndarray) -> np.ndarray:
+def one_grid(plan: Plan, job: Job, signal: np.ndarray) -> tuple[np.ndarray, dict[str, Any] | None]:
     """A capture's bands (stored orientation) on one pixel grid (see the module docstring);
-    unchanged when the plan has none of the steps."""
+    unchanged when the plan has none of the steps. With ``plan.refine`` the capture's own
+    alignment and where it came from (run.json ``coregistration.per_capture``), else None."""
     from pipeline.apply.executor import geometry_step
 
-    if plan.factory_alignment and job.capture is not None:
-        signal = factory_align(job.capture.metas, signal)
+    own = None
     if plan.refine is not None and job.capture is not None:
-        signal = align_bands(signal, np.asarray(plan.refine, dtype=np.float64).reshape(-1, 3, 3))
+        aligned = factory_align(job.capture.metas, signal) if plan.factory_alignment else signal
+        signal, own = capture_alignment(signal, aligned, plan.refine)
+    elif plan.factory_alignment and job.capture is not None:
+        signal = factory_align(job.capture.metas, signal)
     if plan.transforms is not None or plan.band_shift is not None:
         signal = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift, job.name,
                                signal)
-    return signal
+    return signal, own
+
+
+def grid_and_residuals(plan: Plan, job: Job, signal: np.ndarray) -> tuple[np.ndarray, dict[str, Any] | None]:
+    """:func:`one_grid`, and the capture's entry of run.json ``coregistration`` (its residuals
+    when measured, :func:`grid_residuals`; its own alignment under ``refinement``), or None."""
+    after, own = one_grid(plan, job, signal)
+    residuals = grid_residuals(plan, job, signal, after)
+    if own is not None:
+        residuals = {**(residuals or {}), "refinement": own}
+    return after, residuals
 
 
 def grid_residuals(plan: Plan, job: Job, before: np.ndarray, after: np.ndarray) -> dict[str, Any] | None:

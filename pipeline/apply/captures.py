@@ -40,7 +40,7 @@ import numpy as np
 import xarray as xr
 from mscal_core.errors import FrameError, InputError
 
-from pipeline.apply.coregistration import COREGISTRATION_CHECK, RunCoregistration, prepare
+from pipeline.apply.coregistration import COREGISTRATION_CHECK, METADATA, Refinement, RunCoregistration, prepare
 from pipeline.apply.execution import Execution
 from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner
 from pipeline.apply.flight import (
@@ -306,7 +306,7 @@ class CaptureRun:
     execution: Execution = Execution()  # how the tasks run (never part of the fingerprint)
     panels: dict[str, str] = dataclasses.field(default_factory=dict)  # panel captures -> why: TIFFs in OUT/panels/
     reference_band: int | None = None  # the band a registration warps the others onto (their lens is its)
-    refine: tuple[float, ...] | None = None  # image registration on top of the files' own (coregistration.prepare)
+    refine: Refinement | None = None  # image registration on top of the files' own, per capture (coregistration)
     coreg_reference: int | None = None  # the band measured captures' residual shifts are against
 
 
@@ -410,13 +410,17 @@ def coregistered(camera: Camera, captures: Sequence[Capture], run: CaptureRun,
     (:func:`pipeline.apply.coregistration.prepare`)."""
     coreg = prepare(camera, captures, run.factory_alignment, run.transforms is not None, run.reference_band, set(panels))
     choice = coreg.choice
-    if choice is None or choice.label is None:
+    if choice is None or coreg.reference is None:
         return dataclasses.replace(run, coreg_reference=coreg.reference), coreg
+    # each capture judged on its own pixels, the flight's choice for those without texture
+    refine = Refinement(coreg.reference, tuple(camera.band_names), choice.factory_alignment, choice.refine,
+                        choice.label or METADATA)
+    if choice.label is None:
+        return dataclasses.replace(run, refine=refine, coreg_reference=coreg.reference), coreg
     attrs = {**run.attrs, "co_registered": 1, "registration": choice.label,
              "comment": f"{choice.label}: per band a transform from band {camera.band_names[coreg.reference or 0]} "
                         "(run.json coregistration); NaN where a band does not cover"}
-    return dataclasses.replace(run, factory_alignment=choice.factory_alignment, refine=choice.refine, attrs=attrs,
-                               coreg_reference=coreg.reference), coreg
+    return dataclasses.replace(run, refine=refine, attrs=attrs, coreg_reference=coreg.reference), coreg
 
 
 def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[int, int, int], indices: Sequence[Index],

@@ -10,14 +10,19 @@ pixels, the shift each band keeps against a reference band after whatever aligne
 :data:`MAX_MEASURED` per flight (:func:`measured_captures`; the executor measures them as
 it writes them, :func:`pipeline.apply.bandgrid.grid_residuals`).
 
-Before the pass, when the bands are put on one grid by the files' own registration (DJI),
-:func:`choose_alignment` measures it on up to :data:`REFINE_CAPTURES` captures against no
-alignment at all. When it leaves more than :data:`RESIDUAL_MAX_PX` or does worse than none,
-the bands are refined by image registration (DJI's Image Processing Guide, step 4): per band
-the translation from the reference band pooled over those captures' tiles (median), applied
-to every capture on top of the metadata transform, or instead of it when it did worse than
-none. run.json ``band_alignment`` says which and ``coregistration`` holds the measurements
-(:func:`coregistration_record`).
+When the bands are put on one grid by the files' own registration (DJI), each capture's is
+judged in the pass on the capture's own pixels (:func:`capture_alignment`, at :data:`MAX_SIDE`)
+against no alignment at all. When it leaves more than :data:`RESIDUAL_MAX_PX` or does worse
+than none, the capture's bands are refined by image registration (DJI's Image Processing
+Guide, step 4): per band a translation (or affine) from the reference band fitted to that
+capture's tiles, on top of the metadata transform, or instead of it when it did worse than
+none. So a capture gets the same bands, NaN borders included, alone or in any flight. A capture
+with fewer than :data:`OWN_MIN_TILES` textured tiles in a band takes the flight's choice:
+before the pass :func:`choose_alignment` does the same on up to :data:`REFINE_CAPTURES`
+survey captures with their tiles pooled, which depends on the flight (run.json
+``coregistration.per_capture`` lists such captures as not run-invariant). run.json
+``band_alignment`` gives the flight's choice and ``coregistration`` holds the measurements
+(:func:`coregistration_record`, :func:`refinement_record`).
 """
 from __future__ import annotations
 
@@ -123,24 +128,7 @@ def choose_alignment(camera: Camera, captures: Sequence[Capture], reference: int
     if not (worse or worst > RESIDUAL_MAX_PX):
         return AlignmentChoice(True, record={**rec, "decision": "factory metadata kept: within "
                                              f"{RESIDUAL_MAX_PX:g} px and better than no alignment"})
-    # image registration on top of the metadata's alignment, and (when that did worse than
-    # none) instead of it; a translation per band, and an affine where the tiles allow one
-    best: tuple[float, bool, str, np.ndarray, np.ndarray] | None = None
-    tried: dict[str, dict[str, float | None]] = {}
-    for on_meta in (True, False) if worse else (True,):
-        res = meta_res if on_meta else none_res
-        base = [a if on_meta else u for u, a in stacks]
-        models = {"translation": translation_transforms(pooled_translations(res))}
-        affine = pooled_affines(res)
-        if affine is not None:
-            models["affine"] = affine
-        for model, h in models.items():
-            px = _band_px([stack_residuals(align_bands(b, h), reference, max_side=REFINE_MAX_SIDE) for b in base])
-            key = f"{'metadata' if on_meta else 'none'} + {model}"
-            tried[key] = _named(bands, px)
-            score = _mean(px[others])
-            if np.isfinite(score) and (best is None or score < best[0]):
-                best = (score, on_meta, model, h, px)
+    best, tried = _best_refinement(stacks, meta_res, none_res, worse, reference, REFINE_MAX_SIDE, bands)
     before = min(_mean(meta_px[others]), _mean(none_px[others]))
     rec["refinements_px"] = tried
     if best is None or not best[0] < before:  # no better: the files' own registration stays
@@ -155,6 +143,96 @@ def choose_alignment(camera: Camera, captures: Sequence[Capture], reference: int
     return AlignmentChoice(on_meta, tuple(float(v) for v in h.ravel()), label,
                            {**rec, "decision": f"{label}: {why}; per band {ARTICLE[model]} {model} from the reference "
                                                f"band, estimated on {len(stacks)} capture(s) (tiles pooled)"})
+
+
+Best = tuple[float, bool, str, np.ndarray, np.ndarray]  # score, on the metadata's alignment, model, transforms, px
+
+
+def _best_refinement(stacks: Sequence[tuple[np.ndarray, np.ndarray]], meta_res: Sequence[Sequence[BandResidual]],
+                     none_res: Sequence[Sequence[BandResidual]], worse: bool, reference: int, max_side: int,
+                     bands: Sequence[str]) -> tuple[Best | None, dict[str, dict[str, float | None]]]:
+    """Image registration on top of the metadata's alignment, and (when that did worse than
+    none) instead of it; a translation per band, and an affine where the tiles allow one; each
+    estimated from the tiles of ``stacks`` (unaligned, aligned) pooled and judged on them again:
+    the one with the lowest mean residual over the other bands, and what each left."""
+    others = [b for b in range(len(bands)) if b != reference]
+    best: Best | None = None
+    tried: dict[str, dict[str, float | None]] = {}
+    for on_meta in (True, False) if worse else (True,):
+        res = meta_res if on_meta else none_res
+        base = [a if on_meta else u for u, a in stacks]
+        models = {"translation": translation_transforms(pooled_translations(res))}
+        affine = pooled_affines(res)
+        if affine is not None:
+            models["affine"] = affine
+        for model, h in models.items():
+            px = _band_px([stack_residuals(align_bands(b, h), reference, max_side=max_side) for b in base])
+            key = f"{'metadata' if on_meta else 'none'} + {model}"
+            tried[key] = _named(bands, px)
+            score = _mean(px[others])
+            if np.isfinite(score) and (best is None or score < best[0]):
+                best = (score, on_meta, model, h, px)
+    return best, tried
+
+
+OWN_MIN_TILES = 3  # tiles in every band a capture needs to be judged and refined on its own pixels
+OWN = "own pixels"
+RULE = (f"each capture judged and refined on its own pixels (tiles at {MAX_SIDE} px on the long side; metadata kept "
+        f"within {RESIDUAL_MAX_PX:g} px), so it gets the same band alignment in any flight; a capture with fewer than "
+        f"{OWN_MIN_TILES} textured tiles in a band takes the flight's choice (metadata_check), which depends on the "
+        "flight: not run-invariant")
+
+
+@dataclass(frozen=True)
+class Refinement:
+    """``Plan.refine``: how the pass puts each capture's bands on one grid after the files' own
+    registration (:func:`capture_alignment`); the flight's choice for captures without texture."""
+
+    reference: int
+    bands: tuple[str, ...]
+    flight_on_meta: bool = True
+    flight: tuple[float, ...] | None = None  # (band x 9) transforms of the flight's choice, None: metadata kept
+    flight_label: str = METADATA
+
+
+def capture_alignment(unaligned: np.ndarray, aligned: np.ndarray, plan: Refinement
+                      ) -> tuple[np.ndarray, dict[str, Any]]:
+    """One capture's bands on one grid (band, y, x) and what run.json says of it: judged on its
+    own pixels (``unaligned`` as stored, ``aligned`` by the files' own registration), like
+    :func:`choose_alignment` on one capture, at :data:`MAX_SIDE`; with fewer than
+    :data:`OWN_MIN_TILES` tiles in a band, the flight's choice (``plan``)."""
+    ref, bands = plan.reference, plan.bands
+    others = [b for b in range(len(bands)) if b != ref]
+    meta = stack_residuals(aligned, ref)
+    tiles = min(meta[b].n_tiles for b in others)
+    if tiles < OWN_MIN_TILES:
+        h = None if plan.flight is None else np.asarray(plan.flight, np.float64).reshape(-1, 3, 3)
+        base = aligned if plan.flight_on_meta else unaligned
+        return (base if h is None else align_bands(base, h)), {
+            "from": f"flight (fewest textured tiles in a band: {tiles} < {OWN_MIN_TILES})", "run_invariant": False,
+            "alignment": plan.flight_label}
+    meta_px = np.array([r.median_px for r in meta])
+    rec: dict[str, Any] = {"from": OWN, "run_invariant": True, "alignment": METADATA,
+                           "metadata_px": _named(bands, meta_px)}
+    if float(np.max(meta_px[others])) <= RESIDUAL_MAX_PX:
+        return aligned, rec
+    none = stack_residuals(unaligned, ref)
+    none_px = np.array([r.median_px for r in none])
+    worse = _mean(meta_px[others]) > _mean(none_px[others])
+    best, _ = _best_refinement([(unaligned, aligned)], [meta], [none], worse, ref, MAX_SIDE, bands)
+    if best is None or not best[0] < min(_mean(meta_px[others]), _mean(none_px[others])):
+        return aligned, {**rec, "note": "image registration did not improve on the metadata"}
+    _, on_meta, model, h, px = best
+    rec.update({"alignment": REFINED if on_meta else INSTEAD, "model": model, "refined_px": _named(bands, px)})
+    return align_bands(aligned if on_meta else unaligned, h), rec
+
+
+def refinement_record(results: dict[str, dict[str, Any]]) -> dict[str, Any]:
+    """run.json ``coregistration.per_capture``: the rule, each capture's alignment and where it
+    came from, and the captures that took the flight's (not run-invariant)."""
+    flight = sorted(n for n, r in results.items() if not r["run_invariant"])
+    return {"rule": RULE, "own_pixels": len(results) - len(flight), "from_flight": len(flight),
+            "not_run_invariant": flight, "captures": results}
 
 
 def _band_px(per_capture: Sequence[Sequence[BandResidual]]) -> np.ndarray:
@@ -227,8 +305,13 @@ class RunCoregistration:
         ``band_alignment``."""
         if self.reference is None:
             return {}
+        own = {n: r["refinement"] for n, r in results.items() if "refinement" in r}
+        measured = {n: {k: v for k, v in r.items() if k != "refinement"} for n, r in results.items()
+                    if set(r) - {"refinement"}}
         out: dict[str, Any] = {"coregistration": coregistration_record(
-            camera, self.reference, self.alignment, self.step, self.n_captures, results, self.choice)}
+            camera, self.reference, self.alignment, self.step, self.n_captures, measured, self.choice)}
+        if own:
+            out["coregistration"]["per_capture"] = refinement_record(own)
         if self.choice is not None and self.choice.label is not None:
             out["band_alignment"] = self.choice.record.get("decision", self.choice.label)
         return out
@@ -254,5 +337,7 @@ def prepare(camera: Camera, captures: Sequence[Capture], factory_alignment: bool
 
 
 #: In every apply's fingerprint: an output written before the bands were checked on the pixels
-#: (no run.json ``coregistration``, a DJI metadata alignment never refined) is not up to date.
-COREGISTRATION_CHECK = "bands measured on the pixels; DJI metadata alignment refined by image registration"
+#: (no run.json ``coregistration``, a DJI metadata alignment never refined, or refined by the
+#: flight's pooled transform for every capture) is not up to date.
+COREGISTRATION_CHECK = ("bands measured on the pixels; DJI metadata alignment judged and refined by image "
+                        "registration on each capture's own pixels")

@@ -16,7 +16,7 @@ radiometric model is one per-band chain chosen per run (``Plan.chain``):
 :func:`process_frames` reads each capture (hashing and checking it; a new one is written into
 ``raw.zarr``), runs the chain, puts the bands on one pixel grid (the band files' own
 registration, DJI's DewarpData and CalibratedHMatrix: ``Plan.factory_alignment``, refined by
-image registration: ``Plan.refine``; band transforms or ``--centre-bands``, :func:`geometry_step`;
+image registration per capture: ``Plan.refine``; band transforms or ``--centre-bands``, :func:`geometry_step`;
 :mod:`pipeline.apply.bandgrid`, which also measures what is left on sampled captures), turns a capture read from its files upright (EXIF
 Orientation: Parrot Sequoia stores its frames rotated 180 degrees; the band transforms belong
 to the stored frames, so they come first; raw.zarr is turned too), normalises, and writes its
@@ -48,7 +48,7 @@ from mscal_core.errors import FrameError, InputError, ProcessesUnavailable
 from mscal_core.reflectance import eq15_fast, eq15_tables, vegetation_mask
 from mscal_core.registration import align_bands, shift_bands
 
-from pipeline.apply.bandgrid import grid_residuals, one_grid
+from pipeline.apply.bandgrid import grid_and_residuals
 from pipeline.apply.execution import (
     Execution,
     distributed_client,
@@ -280,7 +280,7 @@ class Plan:
     transforms: Path | None = None  # a store whose band transforms put the bands on the reference band's grid
     band_shift: tuple[tuple[float, float], ...] | None = None  # --centre-bands: (dx, dy) per band
     factory_alignment: bool = False  # each band file's own registration (DJI), camera_meta.factory_align
-    refine: tuple[float, ...] | None = None  # (band x 9) transforms refining it by image registration (bandgrid)
+    refine: Any = None  # coregistration.Refinement: image registration per capture on top of it (bandgrid)
     coreg_reference: int | None = None  # the band the measured captures' residual shifts are against (bandgrid)
     raw_medians: Path | None = None  # raw.zarr's dn_median (frame, band), written with each new frame's DN
 
@@ -532,8 +532,7 @@ def start_frame(plan: Plan, job: Job) -> Outcome | _Writing:
     try:
         dn, sha, channels = capture_dn(plan, job)
         signal, factor, radiance, saturated = radiometry(plan.camera, plan.chain, job, dn, channels)
-        signal, before = one_grid(plan, job, signal), signal
-        residuals = grid_residuals(plan, job, before, signal)
+        signal, residuals = grid_and_residuals(plan, job, signal)
     except FrameError as exc:
         return _quarantined(job, exc)
     if job.capture is not None:  # as meant to be seen, after the transforms (they belong to the stored frames)
