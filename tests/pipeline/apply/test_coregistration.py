@@ -250,3 +250,34 @@ def test_every_nth_survey_capture_is_measured() -> None:
     names, step = measured_captures(caps, {"IMG_0000", "IMG_0099"})
     assert step == 5 and len(names) == 20 and names[:3] == ["IMG_0001", "IMG_0006", "IMG_0011"]
     assert measured_captures(caps[:1], {"IMG_0000"}) == (["IMG_0000"], 1)  # only a panel: measured all the same
+
+
+def test_a_capture_without_texture_takes_the_flights_alignment_and_is_marked() -> None:
+    """Per capture: a flat capture (no tile with texture) cannot be judged on its own pixels, so
+    it takes the flight's choice (here a 3 px translation of Blue) and run.json lists it as not
+    run-invariant; a textured capture whose bands the metadata left 4-5 px apart is refined on
+    its own pixels (< 0.3 px left at 640 px) whatever the flight's choice."""
+    from pipeline.apply.coregistration import REFINED, Refinement, capture_alignment, refinement_record
+    from pipeline.ingest.catalog import load_camera
+
+    bands = tuple(load_camera("dji-p4-multispectral").band_names)
+    flight = np.tile(np.eye(3), (5, 1, 1))
+    flight[0, 0, 2] = 3.0
+    plan = Refinement(2, bands, True, tuple(flight.ravel()), REFINED)
+    flat = np.full((5, 480, 640), 900.0, np.float32)
+    out, rec = capture_alignment(flat, flat, plan)
+    assert rec == {"from": "flight (fewest textured tiles in a band: 0 < 3)", "run_invariant": False,
+                   "alignment": REFINED}
+    assert np.isnan(out[0][:, -3:]).all() and not np.isnan(out[0][:, :-4]).any() and not np.isnan(out[1:]).any()
+    rng = np.random.default_rng(3)
+    scene = sum(w * cv2.GaussianBlur(rng.random((560, 720)).astype(np.float32), (0, 0), s)
+                for s, w in ((2.0, 1.0), (6.0, 2.0)))
+    offsets = [(4.0, -2.0), (-3.0, 3.0), (0.0, 0.0), (2.5, 4.0), (-4.0, -1.0)]
+    yy, xx = np.mgrid[0:480, 0:640].astype(np.float32)
+    stack = np.stack([cv2.remap(scene, xx + 40 + dx, yy + 40 + dy, cv2.INTER_CUBIC) for dx, dy in offsets])
+    out, own = capture_alignment(stack, stack, plan)
+    assert own["from"] == "own pixels" and own["run_invariant"] and own["alignment"] == REFINED
+    assert own["model"] in ("translation", "affine") and min(v for v in own["metadata_px"].values() if v) > 3.5
+    assert max(own["refined_px"].values()) < 0.3
+    record = refinement_record({"001": rec, "002": own})
+    assert (record["own_pixels"], record["from_flight"], record["not_run_invariant"]) == (1, 1, ["001"])
