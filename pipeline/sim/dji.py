@@ -45,7 +45,7 @@ import yaml
 from mscal_core.synth.rig import RigFrames, RigTruth, make_rig_truth
 from mscal_core.synth.scene import SESSION_START
 
-from pipeline.sim.multilens import SIZES, render_datasets
+from pipeline.sim.multilens import SIZES, render_datasets, session_yaml
 
 CAMERA = "dji-p4-multispectral"
 #: Name, centre wavelength (nm), FWHM (nm), file suffix (= drone-dji:SensorIndex) of the P4M's bands.
@@ -139,14 +139,8 @@ def write_dji_session(path: str | Path, *, seed: int = 0, size: str = "small", s
     root = Path(path)
     root.mkdir(parents=True, exist_ok=True)
     truth = make_rig_truth(seed, shape=shape, bands=P4M_BANDS)
-    data = {
-        "camera": CAMERA,
-        "name": f"synthetic-dji-p4m-seed{seed}-{size}",
-        "notes": "synthetic DJI P4 Multispectral session (pipeline.sim.dji); truth in truth.npz",
-        "reflector": {"reflectance": float(truth.reflector_reflectance[0]), "size_m": list(truth.reflector_size_m)},
-        "marker": {"dictionary": truth.marker.dictionary, "id": int(truth.marker.id),
-                   "size_m": float(truth.marker.size_m), "border_m": float(truth.marker.border_m)},
-    }
+    data = session_yaml(truth, CAMERA, f"synthetic-dji-p4m-seed{seed}-{size}",
+                        "synthetic DJI P4 Multispectral session (pipeline.sim.dji); truth in truth.npz")
     with open(root / "session.yaml", "w") as fh:
         yaml.safe_dump(data, fh, sort_keys=False)
     arrays = {f"camera_{k}": v for k, v in truth.arrays().items()}

@@ -176,6 +176,16 @@ def render_datasets(truth: RigTruth, seed: int, size: str) -> dict[str, RigFrame
     }
 
 
+def session_yaml(truth: RigTruth, camera: str, name: str, notes: str) -> dict:
+    """session.yaml of a synthetic rig session: the camera, the rig's reflector and marker."""
+    return {
+        "camera": camera, "name": name, "notes": notes,
+        "reflector": {"reflectance": float(truth.reflector_reflectance[0]), "size_m": list(truth.reflector_size_m)},
+        "marker": {"dictionary": truth.marker.dictionary, "id": int(truth.marker.id),
+                   "size_m": float(truth.marker.size_m), "border_m": float(truth.marker.border_m)},
+    }
+
+
 def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "small",
                             shape: tuple[int, int] = (240, 320), frames_csv: bool = False,
                             intrinsics_in_yaml: bool = False, board_views: int = 0,
@@ -195,14 +205,8 @@ def write_multilens_session(path: str | Path, *, seed: int = 0, size: str = "sma
     root = Path(path)
     root.mkdir(parents=True, exist_ok=True)
     truth = make_rig_truth(seed, shape=shape)
-    data = {
-        "camera": CAMERA,
-        "name": f"synthetic-multilens-seed{seed}-{size}",
-        "notes": "synthetic multi-lens session (pipeline.sim.multilens); truth in truth.npz",
-        "reflector": {"reflectance": float(truth.reflector_reflectance[0]), "size_m": list(truth.reflector_size_m)},
-        "marker": {"dictionary": truth.marker.dictionary, "id": int(truth.marker.id),
-                   "size_m": float(truth.marker.size_m), "border_m": float(truth.marker.border_m)},
-    }
+    data = session_yaml(truth, CAMERA, f"synthetic-multilens-seed{seed}-{size}",
+                        "synthetic multi-lens session (pipeline.sim.multilens); truth in truth.npz")
     if intrinsics_in_yaml:
         data["intrinsics"] = {
             REDEDGE_BANDS[b][0]: {"fx": float(c.fx), "fy": float(c.fy), "cx": float(c.cx), "cy": float(c.cy),
