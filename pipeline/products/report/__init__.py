@@ -32,6 +32,7 @@ from pipeline.products.report.calibration import (
     plot_spectral_factor,
     plot_vignetting,
     reflector_corrections,
+    response_residual_limit,
     sweep_coverage,
 )
 from pipeline.products.report.figures import (
@@ -148,6 +149,7 @@ __all__ = [
     "flight_warnings",
     "frame_levels",
     "frame_rows",
+    "response_residual_limit",
     "ndvi_pairs",
     "open_flight",
     "plot_brightness",

@@ -306,6 +306,14 @@ def sweep_coverage(ds: xr.Dataset) -> np.ndarray:
     return out
 
 
+def response_residual_limit(ds: xr.Dataset) -> float:
+    """:data:`RESPONSE_RESIDUAL_RMS_DN_MAX` in the store's DN: the limit is set for a 10-bit
+    sensor, and a sensor of more bits over the same signal counts 2^(bits - 10) times as many
+    DN for the same noise (a 12-bit RedEdge x 4, a 16-bit DJI P4M x 64)."""
+    levels = ds.sizes.get("dn", 2 ** int(ds.attrs.get("bit_depth", 10)))
+    return RESPONSE_RESIDUAL_RMS_DN_MAX * max(levels / 1024.0, 1.0)
+
+
 def calibration_warnings(ds: xr.Dataset) -> list[QAWarning]:
     """Every finding on a calibration store, with its number and threshold."""
     out: list[QAWarning] = []
@@ -327,9 +335,10 @@ def calibration_warnings(ds: xr.Dataset) -> list[QAWarning]:
                                  f"the sweep observed DN {lo}-{hi} at {band_name_of(ds, b)}: {cov:.0%} of the usable "
                                  f"range; U is extrapolated above and below", cov, SWEEP_COVERAGE_MIN))
         b, rms = worst_of(stage_residuals(ds, "response").get("residual_rms_dn") or [])
-        if b >= 0 and rms > RESPONSE_RESIDUAL_RMS_DN_MAX:
+        limit = response_residual_limit(ds)
+        if b >= 0 and rms > limit:
             out.append(QAWarning("response_residual", f"response fit residual {rms:.1f} DN rms at {band_name_of(ds, b)}",
-                                 rms, RESPONSE_RESIDUAL_RMS_DN_MAX))
+                                 rms, limit))
     vres = stage_residuals(ds, "vignetting")
     b, rms = worst_of(vres.get("residual_rms") or [])
     if b >= 0 and rms > VIGNETTING_RESIDUAL_RMS_MAX:

@@ -28,7 +28,7 @@ VIGNETTING_OBSERVED_MIN = 0.5
 #: Residuals: about 3x what the fits reach on sound data (synthetic demo session: response
 #: 3.0 DN rms = the sensor noise, vignetting 0.8-1.0 %, illumination 1.5 %). Above them the
 #: scene moved during the sweep, a marker pose is wrong, or the light changed between images.
-RESPONSE_RESIDUAL_RMS_DN_MAX = 9.0
+RESPONSE_RESIDUAL_RMS_DN_MAX = 9.0  # for 10-bit DN; x 2^(bits - 10) for deeper sensors (response_residual_limit)
 VIGNETTING_RESIDUAL_RMS_MAX = 0.03
 ILLUMINATION_RESIDUAL_RMS_MAX = 0.05
 #: Reflector images taken minutes apart under the same sky differ in median brightness by a

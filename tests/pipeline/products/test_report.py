@@ -243,6 +243,17 @@ def test_each_warning_fires_with_its_number(calib_ds, stage, residuals, code, va
     assert ws[0].threshold == threshold
 
 
+def test_the_response_residual_limit_scales_with_the_sensors_bits(calib_ds) -> None:
+    """9 DN rms is set for the 10-bit sensor; a 12-bit store's DN count 4x as many for the same
+    noise (12.9 DN on a sound RedEdge-style fit is no warning), a 16-bit store's 64x."""
+    ds = _edit(calib_ds, "response", residual_rms_dn=[3.0] * 24 + [12.9])
+    assert [w.code for w in report.calibration_warnings(ds)] == ["response_residual"]  # 10-bit: 12.9 > 9
+    deep = ds.isel(dn=slice(0, 1)).reindex(dn=np.arange(4096))  # the same residuals on a 12-bit DN axis
+    assert report.response_residual_limit(deep) == pytest.approx(36.0)
+    assert [w.code for w in report.calibration_warnings(deep) if w.code == "response_residual"] == []
+    assert report.response_residual_limit(ds.isel(dn=slice(0, 1)).reindex(dn=np.arange(65536))) == pytest.approx(576.0)
+
+
 def test_marker_missing_in_three_of_eight_views(calib_ds) -> None:
     ds = calib_ds.copy()
     ds.attrs = copy.deepcopy(dict(calib_ds.attrs))
