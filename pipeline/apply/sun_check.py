@@ -26,7 +26,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from pipeline.ingest.camera_meta import Capture, CaptureMeta, sun_sensor_xmp
-from pipeline.ingest.clear_sky import MODEL, PLAUSIBLE_RATIO, choose_rule, clear_sky_spectral
+from pipeline.ingest.clear_sky import MODEL, PLAUSIBLE_RATIO, choose_capture_rule, choose_rule, clear_sky_spectral
 from pipeline.ingest.sun_scale import sun_scale
 from pipeline.ingest.sunsensor import SensorLight, file_xmp
 from pipeline.ingest.xmp import TagError
@@ -100,20 +100,26 @@ def sun_sensor_check(captures: Sequence[Capture], sensor: SensorLight, times: np
     bad: list[tuple[str, str, float, float]] = []
     for c, cap in enumerate(captures):
         row: dict[str, Any] = {}
+        band_rules: dict[int, tuple[dict[str, float], float, dict[str, float]]] = {}
         for b, meta in enumerate(cap.metas):
             scale = sun_scale(meta.radiometry)
             if scale is None or not scale.absolute or not np.isfinite(sensor.irradiance[c, b]):
                 continue
             rules, used = unit_rules(meta)
             e_h = scale.constant * float(sensor.irradiance[c, b])  # W m-2 nm-1 on the reader's rule
-            rule, ratio, ok = choose_rule({r: e_h * s / used for r, s in rules.items()}, float(clear[c, b]))
+            band_rules[b] = (rules, used, {r: e_h * s / used for r, s in rules.items()})
+        # one sun sensor writes one unit: the capture's bands take one rule
+        common = choose_capture_rule([v[2] for v in band_rules.values()], [float(clear[c, b]) for b in band_rules])
+        for b, (rules, used, readings) in band_rules.items():
+            rule, ratio, ok = choose_rule({common: readings[common]} if common in readings else readings,
+                                          float(clear[c, b]))
             mult[c, b] = rules[rule] / used
             counts[rule] = counts.get(rule, 0) + 1
             row[bands[b]] = {"rule": rule, "ratio": None if not math.isfinite(ratio) else round(ratio, 4)}
             if math.isfinite(ratio):
                 ratios.append(ratio)
             if not ok:
-                bad.append((cap.name, bands[b], e_h * rules[rule] / used, ratio))
+                bad.append((cap.name, bands[b], readings[rule], ratio))
         if row:
             per_capture[cap.name] = row
     record: dict[str, Any] = {

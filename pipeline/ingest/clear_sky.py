@@ -16,7 +16,7 @@ pvlib stays in ``pipeline``; the functions take and return plain numbers and arr
 from __future__ import annotations
 
 import math
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -87,5 +87,25 @@ def choose_rule(readings: Mapping[str, float], clear_sky: float) -> tuple[str, f
     return best, ratios[best], bool(ok)
 
 
-__all__ = ["ATMOSPHERE", "MIN_ELEVATION_DEG", "MODEL", "PLAUSIBLE_RATIO", "choose_rule", "clear_sky_spectral",
-           "plausible"]
+def choose_capture_rule(readings: Sequence[Mapping[str, float]], clear_sky: Sequence[float]) -> str | None:
+    """One unit rule for all band readings of a capture (one sun sensor writes one unit): of
+    the rules every band offers, the one that makes the most bands plausible against their
+    clear sky, then the one closest to it in mean ``|log(ratio)|``. None when no band has a
+    clear sky to compare with (each band then keeps :func:`choose_rule`'s first rule)."""
+    pairs = [(r, c) for r, c in zip(readings, clear_sky) if r and math.isfinite(c) and c > 0]
+    if not pairs:
+        return None
+    common = [k for k in pairs[0][0] if all(k in r for r, _ in pairs)]
+    if not common:
+        return None
+
+    def score(rule: str) -> tuple[int, float]:
+        ratios = [r[rule] / c for r, c in pairs]
+        logs = [abs(math.log(v)) if v > 0 and math.isfinite(v) else math.inf for v in ratios]
+        return sum(plausible(v) for v in ratios), -sum(logs) / len(logs)
+
+    return max(common, key=score)
+
+
+__all__ = ["ATMOSPHERE", "MIN_ELEVATION_DEG", "MODEL", "PLAUSIBLE_RATIO", "choose_capture_rule", "choose_rule",
+           "clear_sky_spectral", "plausible"]

@@ -14,7 +14,7 @@ import pytest
 import xarray as xr
 
 from pipeline.apply.sun_check import AS_WRITTEN_RULE, LIBRARY_RULE
-from pipeline.ingest.clear_sky import choose_rule, clear_sky_spectral, plausible
+from pipeline.ingest.clear_sky import choose_capture_rule, choose_rule, clear_sky_spectral, plausible
 from pipeline.run.cli import main
 from pipeline.run.console import report_warnings
 from tests import camera_files as cf
@@ -66,6 +66,21 @@ def _dls2(folder: Path, unit: float, captures: tuple[str, ...] = ("0001",)) -> P
 def _apply(folder: Path, out: Path) -> tuple[dict, np.ndarray]:
     assert main(["apply", str(folder), "--calibration", "factory", "-o", str(out), "--reference", "dls"]) == 0
     return json.loads((out / "run.json").read_text()), xr.open_zarr(out / "reflectance.zarr")["reflectance"].values
+
+
+def test_a_capture_takes_one_unit_rule_for_all_its_bands() -> None:
+    """One sun sensor writes one unit: band by band the rules would differ (band A plausible only
+    as written, band B only by the library's x 0.01), the capture takes the one closest to the
+    sky over both (as written: |log| 0.22 and 0.88 against 4.38 and 3.73)."""
+    a = {LIBRARY_RULE: 0.005, AS_WRITTEN_RULE: 0.5}
+    b = {LIBRARY_RULE: 0.012, AS_WRITTEN_RULE: 1.2}
+    assert choose_rule(a, 0.4)[0] == AS_WRITTEN_RULE and choose_rule(b, 0.5)[0] == LIBRARY_RULE
+    assert choose_capture_rule([a, b], [0.4, 0.5]) == AS_WRITTEN_RULE
+    # more bands plausible wins over closeness: a third band plausible only by the library
+    c = {LIBRARY_RULE: 0.03, AS_WRITTEN_RULE: 3.0}
+    d = {LIBRARY_RULE: 0.04, AS_WRITTEN_RULE: 4.0}
+    assert choose_capture_rule([a, b, c, d], [0.4, 0.5, 1.0, 1.0]) == LIBRARY_RULE
+    assert choose_capture_rule([a], [float("nan")]) is None
 
 
 def test_dls2_without_scale_tag_is_read_in_the_unit_that_fits_the_sky(tmp_path) -> None:
