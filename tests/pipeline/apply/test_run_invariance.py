@@ -1,8 +1,9 @@
 """Run invariance of the sun-sensor reflectance (SPEC: one fixed scale per camera model, never a
 constant chosen from the data of a run): a capture's reflectance is bit-identical processed
 alone, within its flight, or within another flight, for every camera kind with a sun sensor
-(MicaSense, DJI, Sequoia; Sentera has none) and every light route without panels (``dls``;
-``none``: radiance only). With panels only the interpolation in time may change it, by the
+(MicaSense, DJI, Sequoia) and every light route without panels (``dls``; ``none``: radiance
+only), and so is a Sentera capture's radiance (no sun-sensor route) and a snapshot frame's
+field-calibrated reflectance (Eq. 15). With panels only the interpolation in time may change it, by the
 amount the panels' light over the sensor's changes.
 
 Before the fixed scales, DJI and Sequoia divided by a constant that put the run's first
@@ -329,3 +330,42 @@ def test_dji_refined_band_alignment_is_the_same_alone_and_in_a_flight(tmp_path) 
     assert run_f["coregistration"]["metadata_check"]["captures"] == ["001", "002", "003"]
     shift = np.abs(pooled["flight"][:, [2, 5]] - pooled["alone"][:, [2, 5]]).max()
     assert 0.005 < shift < 0.5
+
+
+# --------------------------------------------------------------------------- cameras without a sun-sensor route
+
+
+def test_sentera_radiance_is_the_capture_alone(tmp_path) -> None:
+    """Sentera Double 4K (route none: radiance only, its sun sensor has no published
+    conversion): a capture's radiance alone equals it within its flight."""
+    src = DATA.parent / "sentera-d4k" / "NDRE"
+    if not src.is_dir():
+        pytest.skip(f"no Sentera sample at {src}")
+    flight, alone = tmp_path / "flight", tmp_path / "alone"
+    shutil.copytree(src, flight)
+    alone.mkdir()
+    shutil.copy(src / "IMG_00007.jpg", alone / "IMG_00007.jpg")
+    run_f, ds_f = _apply(flight, tmp_path / "out-flight")
+    run_a, ds_a = _apply(alone, tmp_path / "out-alone")
+    assert run_f["reference"]["route"] == run_a["reference"]["route"] == "none"
+    np.testing.assert_array_equal(_frame(run_f, ds_f, "IMG_00007", "radiance"), _frame(run_a, ds_a, "IMG_00007", "radiance"))
+
+
+def test_snapshot_field_reflectance_is_the_frame_alone(small, tmp_path) -> None:
+    """A snapshot camera's frame with a field calibration (Eq. 15, relative): its reflectance
+    alone equals it within its flight."""
+    session, calib = small
+    src = session / "flights" / "field"
+    rows = (src / "frames.csv").read_text().splitlines()
+    alone = tmp_path / "alone"
+    alone.mkdir()
+    name = rows[2].split(",")[0]
+    shutil.copy(src / name, alone / name)
+    (alone / "frames.csv").write_text("\n".join([rows[0], rows[2]]) + "\n")
+    outs = {}
+    for key, folder in (("flight", src), ("alone", alone)):
+        assert main(["apply", str(folder), "--calibration", str(calib), "-o", str(tmp_path / key)]) == 0
+        outs[key] = xr.open_zarr(tmp_path / key / "reflectance.zarr")
+    stem = Path(name).stem
+    np.testing.assert_array_equal(outs["flight"]["reflectance"].sel(frame=stem).values,
+                                  outs["alone"]["reflectance"].sel(frame=stem).values)
