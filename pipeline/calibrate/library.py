@@ -35,9 +35,9 @@ from mscal_core.errors import CalibrationStoreError, FrameError, InputError, Msc
 from pipeline.ingest.camera_meta import read_file_metas
 from pipeline.ingest.captures import read_frames
 from pipeline.ingest.catalog import Camera, load_camera, read_yaml
-from pipeline.ingest.exif import EXIF_CODES, parse_iso
+from pipeline.ingest.exif import EXIF_CODES, as_utc, parse_utc
 from pipeline.ingest.intrinsics import XMP_TAG, tiff_tags
-from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES
+from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES, session_yaml_near
 from pipeline.ingest.xmp import Xmp, xmp_of_bytes
 from pipeline.storage.atomic import TMP_MARK, atomic_folder, iter_files, write_json_atomic
 from pipeline.storage.cache import default_cache_dir
@@ -173,15 +173,6 @@ def _frame_files(folders: Iterable[Path], camera: Camera) -> list[Path]:
     return sorted(out)
 
 
-def _session_yaml_near(folder: Path) -> Path | None:
-    """The session.yaml of ``folder``: in it, or one or two levels up (``SESSION/response``,
-    ``SESSION/flights/<name>``); None if there is none."""
-    for d in (folder, folder.parent, folder.parent.parent):
-        if (d / "session.yaml").is_file():
-            return d / "session.yaml"
-    return None
-
-
 def _yaml_serial(path: Path) -> str | None:
     """session.yaml's optional top-level ``serial``: the serial of a camera whose frames carry
     none (a snapshot camera's frames.csv session)."""
@@ -207,7 +198,7 @@ def _sources(folder_or_files: str | Path | Iterable[str | Path]) -> tuple[list[P
         if (p / "session.yaml").is_file():  # a field session: its calibration frames; else its own frames
             field = [p / n for n in CALIBRATION_FOLDERS if (p / n).is_dir()]
             return field or [p], p / "session.yaml", True
-        return [p], _session_yaml_near(p), True
+        return [p], session_yaml_near(p), True
     return [Path(f) for f in folder_or_files], None, False
 
 
@@ -251,22 +242,17 @@ def camera_serial(folder_or_files: str | Path | Iterable[str | Path], camera: Ca
 # --------------------------------------------------------------------------- times
 
 
-def _utc(dt: datetime) -> datetime:
-    """``dt`` in UTC; a time without a zone is taken as UTC (cameras' GPS clocks)."""
-    return dt.replace(tzinfo=timezone.utc) if dt.tzinfo is None else dt.astimezone(timezone.utc)
-
-
 def _parse_time(text: Any) -> datetime | None:
     if not text:
         return None
     try:
-        return _utc(parse_iso(str(text)))
+        return parse_utc(str(text))
     except (ValueError, OverflowError):
         return None
 
 
 def _iso(dt: datetime | None) -> str | None:
-    return None if dt is None else _utc(dt).isoformat().replace("+00:00", "Z")
+    return None if dt is None else as_utc(dt).isoformat().replace("+00:00", "Z")
 
 
 def _frame_folders(folder: Path, camera: Camera) -> list[Path]:
@@ -379,7 +365,7 @@ def lookup(camera: Camera | str, serial: str | None, flight_time: datetime | Non
     if serial is None or not serial.strip():
         return None
     name = camera if isinstance(camera, str) else camera.name
-    when = None if flight_time is None else _utc(flight_time)
+    when = None if flight_time is None else as_utc(flight_time)
     found = []
     for e in entries(library_root):
         if e.camera != name or not _same_serial(e.serial, serial) or (when is not None and e.time > when):
@@ -437,7 +423,7 @@ def record(store_path: str | Path, *, camera: Camera | str, serial: str | None, 
     source = session if session is not None else (attrs.get("session") or None)
     root = Path(library_root) if library_root is not None else default_library_root()
     rel = Path(_component(camera), _component(serial) if serial else UNKNOWN_SERIAL,
-               f"{_utc(session_time or fitted).strftime('%Y%m%dT%H%M%SZ')}-{digest[:12]}.zarr")
+               f"{as_utc(session_time or fitted).strftime('%Y%m%dT%H%M%SZ')}-{digest[:12]}.zarr")
     with FolderLock(root, name=LOCK_NAME, wait=LOCK_WAIT_S, what="another mscal process recording a calibration"):
         index = _read_index(root)
         for raw in index:

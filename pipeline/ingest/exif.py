@@ -259,6 +259,18 @@ def parse_iso(text: str) -> datetime:
     return datetime.fromisoformat(str(text).strip().replace("Z", "+00:00"))
 
 
+def as_utc(dt: datetime) -> datetime:
+    """``dt`` in UTC, aware; a time without a zone is taken as UTC (the frames' and cameras'
+    GPS clocks)."""
+    return dt.replace(tzinfo=timezone.utc) if dt.tzinfo is None else dt.astimezone(timezone.utc)
+
+
+def parse_utc(text: str) -> datetime:
+    """ISO 8601 text as an aware UTC :class:`datetime` (:func:`parse_iso`, :func:`as_utc`);
+    raises ``ValueError`` when it is not ISO 8601."""
+    return as_utc(parse_iso(text))
+
+
 def utc_naive(dt: datetime) -> tuple[datetime, bool]:
     """``(naive datetime, zone_known)``: an aware time converted to UTC, a naive one as is."""
     if dt.tzinfo is not None:

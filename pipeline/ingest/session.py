@@ -298,18 +298,26 @@ def load_session(root: str | Path) -> Session:
     )
 
 
-def panel_config_near(folder: str | Path) -> tuple[PanelConfig, Path] | None:
-    """The ``panel`` of the session.yaml in ``folder`` or up to two levels above it
-    (``SESSION/flights/<name>/``), with its path; None if no session.yaml there says one.
-    Only ``panel`` is read: a folder of factory captures needs no other session key."""
+def session_yaml_near(folder: str | Path) -> Path | None:
+    """The session.yaml of a frame folder: in ``folder`` or up to two levels above it
+    (``SESSION/response/``, ``SESSION/flights/<name>/``), the nearest; None if there is none."""
     folder = Path(folder)
     for d in (folder, folder.parent, folder.parent.parent):
-        path = d / "session.yaml"
-        if path.is_file():
-            data = read_yaml(path, SessionError)
-            if isinstance(data, dict) and data.get("panel") is not None:
-                return parse_panel(data["panel"], path), path
-            return None
+        if (d / "session.yaml").is_file():
+            return d / "session.yaml"
+    return None
+
+
+def panel_config_near(folder: str | Path) -> tuple[PanelConfig, Path] | None:
+    """The ``panel`` of the session.yaml near ``folder`` (:func:`session_yaml_near`), with its
+    path; None if that session.yaml says none, or there is none. Only ``panel`` is read: a
+    folder of factory captures needs no other session key."""
+    path = session_yaml_near(folder)
+    if path is None:
+        return None
+    data = read_yaml(path, SessionError)
+    if isinstance(data, dict) and data.get("panel") is not None:
+        return parse_panel(data["panel"], path), path
     return None
 
 
@@ -943,6 +951,7 @@ __all__ = [
     "sample_bits",
     "stored_bands",
     "read_frame_table",
+    "session_yaml_near",
     "decode_raw",
     "read_raw",
     "to_bands",

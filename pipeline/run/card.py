@@ -40,7 +40,7 @@ import numpy as np
 from mscal_core.errors import InputError, MscalError, SessionError
 
 from pipeline.ingest.catalog import Camera, check_keys, load_camera, read_yaml, reflectance_option
-from pipeline.ingest.exif import parse_iso
+from pipeline.ingest.exif import parse_utc
 
 #: Folders that make a session a field session (the paper's three fits).
 FIELD_FOLDERS = ("response", "vignetting", "reflector")
@@ -160,12 +160,6 @@ def _time(t: np.datetime64) -> str | None:
     return None if np.isnat(t) else np.datetime_as_string(t, unit="s") + "Z"
 
 
-def _utc(text: str) -> datetime:
-    """ISO 8601 text in UTC (a time without a zone is taken as UTC, as the frames' clocks)."""
-    dt = parse_iso(text)
-    return dt.replace(tzinfo=timezone.utc) if dt.tzinfo is None else dt.astimezone(timezone.utc)
-
-
 def _iso_utc(dt: datetime) -> str:
     return dt.astimezone(timezone.utc).isoformat(timespec="seconds").replace("+00:00", "Z")
 
@@ -224,7 +218,7 @@ def _calibration(settings: CardSettings, camera: Camera, serial: str | None, fac
     else:
         from pipeline.calibrate.library import default_library_root, lookup
 
-        flight_time = None if start is None else _utc(start)
+        flight_time = None if start is None else parse_utc(start)
         root = library_root if library_root is not None else default_library_root()
         entry = lookup(camera.name, serial, flight_time, root) if serial else None
         if entry is not None:
@@ -332,7 +326,7 @@ def _plan_frames(root: Path, settings: CardSettings, library_root: Path | None) 
         raise InputError(f"no frames.csv and no capture files of {camera.name} in the folder", path=root)
     flights = []
     for d in dirs:
-        times = [_utc(rec.time) for rec in read_frame_table(d, on_frame_error=lambda name, exc: None) if rec.time]
+        times = [parse_utc(rec.time) for rec in read_frame_table(d, on_frame_error=lambda name, exc: None) if rec.time]
         start = _iso_utc(min(times)) if times else None
         kind, store, why = _calibration(settings, camera, settings.serial, False, start, library_root, root)
         flights.append(CardFlight(name=d.name if d != root else "flight", folder=str(d), start=start,
