@@ -52,6 +52,7 @@ from pipeline.ingest.catalog import sample_shift
 from pipeline.ingest.exif import EXIF_CODES, exifread_tags, exposure_time, rational
 from pipeline.ingest.gps import NoPosition
 from pipeline.ingest.gps import exif_position as _gps
+from pipeline.ingest.sun_scale import sun_scale
 from pipeline.ingest.xmp import TagError, TagProblem, Xmp, jpeg_xmp_packet, legacy_properties, parse_numbers
 
 if TYPE_CHECKING:
@@ -1078,8 +1079,6 @@ def reflectance_factor(meta: CaptureMeta) -> float | None:
     model's one fixed scale (:data:`pipeline.ingest.sun_scale.SUN_SENSOR_SCALES`: MicaSense pi,
     DJI 1 as DJI's guides write it, Sequoia Parrot's K fixed at 5e-4), or None when it has no
     usable reading or its sensor gives no reflectance (Sentera's ILS counts: use a panel)."""
-    from pipeline.ingest.sun_scale import sun_scale
-
     e, scale = meta.irradiance, sun_scale(meta.radiometry)
     if e is None or not math.isfinite(e) or e <= 0 or scale is None:
         return None
@@ -1112,8 +1111,10 @@ def no_reflectance_reason(meta: CaptureMeta) -> str | None:
 
 
 def sun_sensor_absolute(meta: CaptureMeta) -> bool:
-    """Whether the sun-sensor route gives absolute reflectance (MicaSense) or relative."""
-    return meta.radiometry == "micasense"
+    """Whether the sun-sensor route gives absolute reflectance (MicaSense) or relative: what
+    the camera model's fixed scale says (:data:`pipeline.ingest.sun_scale.SUN_SENSOR_SCALES`)."""
+    scale = sun_scale(meta.radiometry)
+    return scale is not None and scale.absolute
 
 
 # --------------------------------------------------------------------------- irradiance (issue 8)
