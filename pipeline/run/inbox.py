@@ -91,48 +91,47 @@ def waiting(inbox: str | Path, settle_s: float, now: float | None = None) -> dic
 
 def record_waiting(out_root: Path, names: dict[str, str]) -> None:
     """Keep this look's :func:`waiting` in the state file (``waiting``: name -> reason, time)."""
-    path = out_root / STATE_FILE
-    sessions = load_state(out_root)
-    utc = datetime.now(timezone.utc).isoformat(timespec="seconds")
-    if not names and not path.is_file():
+    if not names and not (out_root / STATE_FILE).is_file():
         return
+    utc = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    _write_state(out_root, load_state(out_root), {n: {"reason": r, "utc": utc} for n, r in names.items()})
+
+
+def _read_state(out_root: Path) -> dict[str, Any]:
+    """The state file as written (empty if there is none yet); :class:`InputError` naming it
+    when it cannot be read."""
+    path = out_root / STATE_FILE
+    if not path.is_file():
+        return {}
+    try:
+        return dict(json.loads(path.read_text()))
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read the serve state ({exc})", path=path,
+                         hint="restore it, or delete it to process every session in the inbox again") from None
+
+
+def _write_state(out_root: Path, sessions: dict[str, Any], waiting: dict[str, Any]) -> None:
     out_root.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(path, {"format": STATE_FORMAT, "sessions": sessions,
-                             "waiting": {n: {"reason": r, "utc": utc} for n, r in names.items()}})
+    write_json_atomic(out_root / STATE_FILE, {"format": STATE_FORMAT, "sessions": sessions, "waiting": waiting})
 
 
 def load_state(out_root: Path) -> dict[str, Any]:
     """The state file's ``sessions`` mapping (empty if there is none yet)."""
-    path = out_root / STATE_FILE
-    if not path.is_file():
-        return {}
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read the serve state ({exc})", path=path,
-                         hint="restore it, or delete it to process every session in the inbox again") from None
-    return dict(data.get("sessions", {}))
-
-
-def record(out_root: Path, name: str, *, listing: str, content: str, status: str, detail: str = "") -> None:
-    """Record a processed session in the state file (read, update, atomic rewrite)."""
-    sessions = load_state(out_root)
-    sessions[name] = {"listing": listing, "content_sha256": content, "status": status, "detail": detail,
-                      "utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
-    out_root.mkdir(parents=True, exist_ok=True)
-    waiting_now = {k: v for k, v in load_waiting(out_root).items() if k != name}
-    write_json_atomic(out_root / STATE_FILE, {"format": STATE_FORMAT, "sessions": sessions, "waiting": waiting_now})
+    return dict(_read_state(out_root).get("sessions", {}))
 
 
 def load_waiting(out_root: Path) -> dict[str, Any]:
     """The state file's ``waiting`` mapping (what the last look did not process, and why)."""
-    path = out_root / STATE_FILE
-    if not path.is_file():
-        return {}
-    try:
-        return dict(json.loads(path.read_text()).get("waiting", {}))
-    except (OSError, ValueError):
-        return {}
+    return dict(_read_state(out_root).get("waiting", {}))
+
+
+def record(out_root: Path, name: str, *, listing: str, content: str, status: str, detail: str = "") -> None:
+    """Record a processed session in the state file (read, update, atomic rewrite)."""
+    state = _read_state(out_root)
+    sessions = dict(state.get("sessions", {}))
+    sessions[name] = {"listing": listing, "content_sha256": content, "status": status, "detail": detail,
+                      "utc": datetime.now(timezone.utc).isoformat(timespec="seconds")}
+    _write_state(out_root, sessions, {k: v for k, v in state.get("waiting", {}).items() if k != name})
 
 
 @dataclass(frozen=True)
