@@ -30,7 +30,6 @@ say otherwise; each flight's ``run.json`` says which was used and why the others
 from __future__ import annotations
 
 import re
-import time
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -335,58 +334,6 @@ def _plan_frames(root: Path, settings: CardSettings, library_root: Path | None) 
     return CardPlan(root=str(root), camera=camera.name, evidence=f"camera {camera.name} of {settings.source}",
                     make=None, model=None, serial=settings.serial, factory=False, flights=tuple(flights),
                     settings=settings)
-
-
-def apply_card_flight(plan: CardPlan, flight: CardFlight, out: str | Path, *, dask_address: str | None = None,
-                      scheduler: str = "auto", workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
-    """Apply one flight of a card session into ``out`` (under :func:`pipeline.run.runner.dask_client`);
-    returns its summary for the run's run.json (as :func:`pipeline.run.runner.apply_one`)."""
-    from pipeline.apply.execution import Execution
-    from pipeline.run.runner import count_frames, dask_client
-
-    t0 = time.perf_counter()
-    execution = Execution(scheduler=scheduler, workers=workers, direct_io=direct_io)
-    execution.install()
-    n = len(flight.captures) or count_frames(flight.folder, plan.camera)
-    with dask_client(dask_address, n, execution) as where:
-        if flight.calibration == "field":
-            from pipeline.apply.flight import ApplyOptions, apply_flight
-
-            res = apply_flight(flight.folder, flight.field_calibration, out,
-                               ApplyOptions(execution=execution, captures=flight.captures))
-        else:
-            from pipeline.apply.factory import FactoryOptions, apply_factory
-
-            s = plan.settings
-            res = apply_factory(flight.folder, out, FactoryOptions(
-                reference=s.reference, panel_reflectance=s.panel_reflectance, camera=plan.camera,
-                field_calibration=flight.field_calibration if flight.calibration == "factory+field" else None,
-                execution=execution, captures=flight.captures))
-    run = res.run
-    ref = run.get("reference") or {}
-    return {
-        "status": "done",
-        "kind": "card",
-        "frames_in": run["frames_in"],
-        "frames_out": run["frames_out"],
-        "quarantined": res.quarantined,
-        "skipped": run.get("skipped", []),
-        "saturated_pixels": (run.get("saturated_pixels") or {}).get("total", 0),
-        "calibration_sha256": run.get("calibration_sha256"),
-        "calibration": flight.calibration,
-        "field_calibration": flight.field_calibration,
-        "calibration_source": flight.calibration_source,
-        # the route, where the panel's reflectance came from, and why the other references were not used
-        "reference": {k: ref[k] for k in ("route", "panel_reflectance", "reason", "albedo", "albedo_panel_unusable",
-                                          "panel_serial", "panel_serial_none", "panel_serial_unknown",
-                                          "panel_serial_unusable") if k in ref},
-        "start": flight.start,
-        "end": flight.end,
-        "up_to_date": res.up_to_date,
-        "computed_on": "nothing (up to date)" if res.up_to_date else where,
-        "execution": run.get("execution"),
-        "seconds": round(time.perf_counter() - t0, 3),
-    }
 
 
 def plan_record(plan: CardPlan) -> dict[str, Any]:

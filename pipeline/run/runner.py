@@ -43,7 +43,7 @@ from pipeline.calibrate.fit import STAGES
 from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
 from pipeline.ingest.catalog import CATALOG_ROOT, load_camera
 from pipeline.ingest.session import Session, load_session, read_frame_table
-from pipeline.run.card import apply_card_flight, is_field_session, plan_card, plan_from_record, plan_record
+from pipeline.run.card import CardFlight, CardPlan, is_field_session, plan_card, plan_from_record, plan_record
 from pipeline.storage.atomic import write_json_atomic
 from pipeline.storage.cache import default_cache_dir
 from pipeline.storage.store import content_hashes, file_sha256, open_calibration, write_store
@@ -330,6 +330,13 @@ def apply_one(flight_dir: str, calibration: str, out: str, *, normalise: str = "
     with dask_client(dask_address, count_frames(flight_dir, None if camera is None else str(camera)), execution) as where:
         res = apply_flight(flight_dir, calibration, out,
                            ApplyOptions(normalise=normalise, illumination=illumination, execution=execution))
+    illumination = {k: v for k, v in res.run.get("illumination", {}).items() if k != "per_frame"}
+    return _flight_summary(res, where, t0, illumination=illumination)
+
+
+def _flight_summary(res: Any, where: str, t0: float, **extra: Any) -> dict[str, Any]:
+    """A flight's summary in the run's run.json from apply's result (``res.run``: the flight's
+    run.json): counts, calibration hash, whether it was up to date and where it was computed."""
     run = res.run
     return {
         "status": "done",
@@ -338,13 +345,47 @@ def apply_one(flight_dir: str, calibration: str, out: str, *, normalise: str = "
         "quarantined": res.quarantined,
         "skipped": run.get("skipped", []),
         "saturated_pixels": run["saturated_pixels"]["total"],
-        "calibration_sha256": run["calibration_sha256"],
+        "calibration_sha256": run.get("calibration_sha256"),
         "up_to_date": res.up_to_date,
         "computed_on": "nothing (up to date)" if res.up_to_date else where,
         "execution": run.get("execution"),
-        "illumination": {k: v for k, v in run.get("illumination", {}).items() if k != "per_frame"},
+        **extra,
         "seconds": round(time.perf_counter() - t0, 3),
     }
+
+
+#: What a card flight's summary keeps of its run.json ``reference``: the route, where the
+#: panel's reflectance came from, and why the other references were not used.
+CARD_REFERENCE_KEYS = ("route", "panel_reflectance", "reason", "albedo", "albedo_panel_unusable", "panel_serial",
+                       "panel_serial_none", "panel_serial_unknown", "panel_serial_unusable")
+
+
+def apply_card_flight(plan: CardPlan, flight: CardFlight, out: str | Path, *, dask_address: str | None = None,
+                      scheduler: str = "auto", workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
+    """Apply one flight of a card session (:mod:`pipeline.run.card`) into ``out`` under
+    :func:`dask_client`: its field calibration (Eq. 15), or the factory model (with the field
+    response and vignetting for ``factory+field``); returns its summary for the run's run.json."""
+    from pipeline.apply.factory import FactoryOptions, apply_factory
+
+    t0 = time.perf_counter()
+    execution = Execution(scheduler=scheduler, workers=workers, direct_io=direct_io)
+    execution.install()
+    n = len(flight.captures) or count_frames(flight.folder, plan.camera)
+    with dask_client(dask_address, n, execution) as where:
+        if flight.calibration == "field":
+            res = apply_flight(flight.folder, flight.field_calibration, out,
+                               ApplyOptions(execution=execution, captures=flight.captures))
+        else:
+            s = plan.settings
+            res = apply_factory(flight.folder, out, FactoryOptions(
+                reference=s.reference, panel_reflectance=s.panel_reflectance, camera=plan.camera,
+                field_calibration=flight.field_calibration if flight.calibration == "factory+field" else None,
+                execution=execution, captures=flight.captures))
+    ref = res.run.get("reference") or {}
+    return _flight_summary(
+        res, where, t0, kind="card", calibration=flight.calibration, field_calibration=flight.field_calibration,
+        calibration_source=flight.calibration_source, reference={k: ref[k] for k in CARD_REFERENCE_KEYS if k in ref},
+        start=flight.start, end=flight.end)
 
 
 def failed_flight(flight_dir: str, error: BaseException | None) -> dict[str, Any]:
@@ -625,7 +666,7 @@ def summary_markdown(record: dict[str, Any]) -> str:
 
 
 __all__ = [
-    "CalibrationPlan", "RunPaths", "StagePlan", "Timings", "apply_card", "apply_one", "card_run_record", "failed_card_flight", "check_run_inputs", "configure_prefect",
+    "CalibrationPlan", "RunPaths", "StagePlan", "Timings", "apply_card", "apply_card_flight", "apply_one", "card_run_record", "failed_card_flight", "check_run_inputs", "configure_prefect",
     "default_cache_dir", "flight_dirs", "is_remote", "is_transient", "plan_calibration", "plan_card_session", "publish_calibration", "record_calibration", "session_kind", "session_problem",
     "remove_work", "run_paths", "run_record", "update_catalog", "stage_in", "summary_markdown", "upload", "write_run_json",
 ]

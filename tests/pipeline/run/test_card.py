@@ -11,6 +11,7 @@ import pytest
 
 from mscal_core.errors import InputError, SessionError
 from pipeline.run import card
+from pipeline.run.runner import apply_card_flight
 from tests.micasense_data import require_data
 
 DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
@@ -68,7 +69,7 @@ def test_captures_further_apart_than_the_gap_are_separate_flights(tmp_path: Path
     plan = card.plan_card(root, tmp_path / "library")
     assert [(f.name, f.captures) for f in plan.flights] == [("0000SET-1", ("IMG_0000",)), ("0000SET-2", ("IMG_0001",))]
     assert plan.flights[0].calibration_source == "session.yaml field_calibration: none"
-    res = card.apply_card_flight(plan, plan.flights[1], tmp_path / "out")
+    res = apply_card_flight(plan, plan.flights[1], tmp_path / "out")
     assert (res["frames_in"], res["frames_out"], res["calibration"]) == (1, 1, "factory")
     run = json.loads((tmp_path / "out" / "run.json").read_text())
     assert run["frames_out"] == 1
@@ -129,7 +130,7 @@ def test_captures_beside_set_folders_are_a_flight_of_their_own(tmp_path: Path) -
     plan = card.plan_card(root, tmp_path / "library")
     assert [(f.name, Path(f.folder).name, f.captures) for f in plan.flights] == [
         ("flight", "ms1", ("IMG_0001",)), ("0000SET", "0000SET", ())]
-    res = card.apply_card_flight(plan, plan.flights[0], tmp_path / "out")
+    res = apply_card_flight(plan, plan.flights[0], tmp_path / "out")
     assert (res["frames_in"], res["frames_out"]) == (1, 1)  # not the SET folder's capture too
 
 
