@@ -4,12 +4,10 @@ warning."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import Any, Sequence
 
+from pipeline.products.report.table import Table
 from pipeline.products.report.thresholds import BAND_MISREGISTRATION_MAX_PX, QAWarning
-
-if TYPE_CHECKING:
-    from pipeline.products.report.sections import Table
 
 
 def coregistration_tables(run: dict[str, Any], band_names: Sequence[str] = ()) -> list[Table]:
@@ -17,8 +15,6 @@ def coregistration_tables(run: dict[str, Any], band_names: Sequence[str] = ()) -
     (median and max over the measured captures), without it, and what was measured; with the
     metadata check's numbers when the band files' own registration was judged. [] for runs
     without a measurement (single-file cameras, earlier runs)."""
-    from pipeline.products.report.sections import Table  # the report model (which imports this module)
-
     rec = run.get("coregistration")
     if not isinstance(rec, dict):
         return []

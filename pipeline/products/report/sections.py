@@ -30,6 +30,7 @@ from pipeline.products.report.calibration import (
 from pipeline.products.report.coregistration import coregistration_tables, coregistration_warnings
 from pipeline.products.report.flight import flight_warnings, frame_rows, plot_histograms, plot_ndvi, plot_track
 from pipeline.products.report.inputs import FlightResults
+from pipeline.products.report.table import Table
 from pipeline.products.report.thresholds import (
     PANEL_DLS_COLOUR_SPREAD_MAX,
     REGISTRATION_SPREAD_MAX_PX,
@@ -41,14 +42,6 @@ if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn (0.6 s of ev
     from matplotlib.figure import Figure
 
 # --------------------------------------------------------------------------- the report model
-
-
-@dataclass
-class Table:
-    title: str
-    columns: list[str]
-    rows: list[list[Any]]
-    note: str = ""
 
 
 @dataclass
