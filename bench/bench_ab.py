@@ -20,7 +20,7 @@ calibration store for both versions (the store format is a contract).
 The markdown section replaces the text between ``<!-- bench_ab:start -->`` and
 ``<!-- bench_ab:end -->`` in ``--out`` (nothing is written without ``--out``).
 
-``--factory N`` (issue 25) compares ``mscal apply --calibration factory --reference dls`` of
+``--factory N`` compares ``mscal apply --calibration factory --reference dls`` of
 both versions on ``N`` MicaSense captures (``bench_factory.make_survey``), alternating with
 ``bench_factory``'s hand-written numpy loop of the manufacturer's model (old, new, loop, then
 rotated). These runs go through ``bench_calibrate.run_measured``: CPU user+sys of the whole

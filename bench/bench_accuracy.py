@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Accuracy benchmark (issue 7): errors against known truth, swept over difficulty.
+"""Accuracy benchmark: errors against known truth, swept over difficulty.
 
 Usage::
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Light that changes during a flight (issue 8): how well the same gray panel agrees early and
+"""Light that changes during a flight: how well the same gray panel agrees early and
 late in a flight whose light drifts, per interpolation mode, with and without sun-sensor readings.
 
 Usage::
@@ -22,11 +22,11 @@ Usage::
 4. per flight and mode, the 0.5 panel's median reflectance per band in the last and middle
    frame over the first: the largest and the median |ratio - 1| over the 25 bands, corrected,
    and uncorrected (the illumination factors divided out: the first capture's S for every
-   frame, as mscal did before issue 8).
+   frame, as mscal did before it followed the light in time).
 
 Prints a markdown table. Importing this module runs nothing.
 
-``--sun-sensor`` runs the issue-22 cases instead (no calibration session): synthetic flights
+``--sun-sensor`` runs the panel + sun-sensor cases instead (no calibration session): synthetic flights
 from the real RedEdge capture (``pipeline.sim.sunlight.write_sunlight_flight``: panel at 0 and
 ``--duration`` s, the sun moving, the direct light fading, a tilted sun sensor with a direct and
 a diffuse part and a per-band calibration error), per case and ``--seeds``; the late panel is
@@ -114,7 +114,7 @@ def main() -> None:
     ap.add_argument("--size", choices=("small", "full"), default="full",
                     help="calibration session of step 1 (its response and vignetting estimates)")
     ap.add_argument("--work", type=Path, default=None, help="work folder (kept; default a temporary one)")
-    ap.add_argument("--sun-sensor", action="store_true", help="the issue-22 panel + sun-sensor cases instead")
+    ap.add_argument("--sun-sensor", action="store_true", help="the panel + sun-sensor cases instead")
     ap.add_argument("--seeds", type=int, default=3, help="--sun-sensor: seeds per case")
     ap.add_argument("--duration", type=float, default=2040.0, help="--sun-sensor: seconds between the panels")
     ap.add_argument("--template", type=Path, default=TEMPLATE, help="--sun-sensor: a RedEdge panel + flight capture")

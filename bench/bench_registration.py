@@ -1,4 +1,4 @@
-"""Band co-registration (issue 9): accuracy, effect on real data, cost.
+"""Band co-registration: accuracy, effect on real data, cost.
 
     .venv/bin/python bench/bench_registration.py [--seeds 8] [--frames 50] [--quick]
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Scale benchmark (issue 7): apply throughput and peak memory vs frames and Dask workers,
+"""Scale benchmark: apply throughput and peak memory vs frames and Dask workers,
 calibration time vs vignetting views; the I/O floor beside each.
 
 Usage::
@@ -406,7 +406,7 @@ def render(res: dict, cfg: dict, quick: bool, command: str, info: dict[str, str]
         "with its own random least-significant bits). `mscal apply FLIGHT --calibration CALIB -o OUT` writes "
         "raw.zarr, reflectance.zarr (reflectance, ndvi, ndre, mask), 8 photogrammetry TIFFs and 1 NDVI TIFF per "
         "frame. The I/O floor reads and decodes every frame and writes a float32 array of the reflectance's size. "
-        "2,400 frames (issue 25's memory check) fit on this machine's disk; 5,000 would not (4.4 MB in and 13.7 MB "
+        "2,400 frames (the memory check) fit on this machine's disk; 5,000 would not (4.4 MB in and 13.7 MB "
         "out per frame), hence the small-frame table below.",
         "",
         frame_table(full_rows, "full"),

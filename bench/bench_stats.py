@@ -1,4 +1,4 @@
-"""Benchmark of ``mscal stats`` (per-field zonal statistics, issue 10) beside a plain rasterio loop.
+"""Benchmark of ``mscal stats`` (per-field zonal statistics) beside a plain rasterio loop.
 
     .venv/bin/python bench/bench_stats.py [--mosaics 200] [--size 4000] [--fields 100] [--quick]
 
