@@ -1,5 +1,5 @@
-"""The README's command reference (the block under "## Command line") lists exactly the
-options each command's ``--help`` shows, and every command (issue 24)."""
+"""The command line reference (docs/cli.md, the block under "## Command line") lists exactly
+the options each command's ``--help`` shows, and every command."""
 
 from __future__ import annotations
 
@@ -12,16 +12,16 @@ from click.testing import CliRunner
 
 from pipeline.run.cli import cli
 
-README = Path(__file__).resolve().parents[3] / "README.md"
+REFERENCE = Path(__file__).resolve().parents[3] / "docs" / "cli.md"
 #: Options of every command, documented once on the block's ``mscal [-v|-q] [--json] COMMAND`` line.
 COMMON = {"-v", "--verbose", "-q", "--quiet", "--json", "-h", "--help", "--wait"}
 OPTION = re.compile(r"(?<![\w/-])(--?[a-z][a-z0-9-]*)")
 
 
 def _reference() -> dict[str, set[str]]:
-    """Command path (``fit response``) -> options named in the README block; ``""`` for the
+    """Command path (``fit response``) -> options named in the reference block; ``""`` for the
     common-options line."""
-    text = README.read_text()
+    text = REFERENCE.read_text()
     start = text.index("## Command line")
     block = text[text.index("```\n", start) + 4:]
     block = block[:block.index("```")]
@@ -79,9 +79,9 @@ def test_reference_options_match_help(path: str) -> None:
     shown = _help_options(path)
     assert COMMON - {"--wait"} <= shown  # every command has the common options
     shown -= COMMON
-    # the README may give the short or the long form of an option with both (-o / --output)
+    # the reference may give the short or the long form of an option with both (-o / --output)
     pairs = {"-o": "--output"}
     ref = {pairs.get(o, o) for o in ref}
     shown = {o for o in shown if not (o in pairs and pairs[o] in shown)}
-    assert ref - shown == set(), f"README lists options that 'mscal {path}' does not have"
-    assert shown - ref == set(), f"'mscal {path} --help' shows options the README does not list"
+    assert ref - shown == set(), f"docs/cli.md lists options that 'mscal {path}' does not have"
+    assert shown - ref == set(), f"'mscal {path} --help' shows options docs/cli.md does not list"
