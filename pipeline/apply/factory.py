@@ -56,7 +56,7 @@ output, raw.zarr included, after the band registration (run.json ``orientation``
 
   With ``--illumination nearest|linear`` (panel route only) each capture gets the light of its
   time instead of the panels' mean: the panel captures' ``S_c = 1 / k_c`` interpolated in time
-  and scaled by the captures' DLS readings between them (:func:`panel_light`, issue 8).
+  and scaled by the captures' DLS readings between them (:func:`panel_light`).
 
 Outputs as for every apply (SPEC "Outputs of apply"): ``reflectance.zarr`` with
 ``reflectance`` and ``radiance`` (frame, band, y, x) float32 and the indices, ``raw.zarr``
@@ -66,7 +66,7 @@ the Image Processing Guides' steps 2-3; :func:`pipeline.ingest.camera_meta.facto
 are put on the camera's designed image plane (``--no-align``: not); other cameras' bands are
 *not* co-registered here (each band keeps its own pixel grid): per-pixel indices mix
 neighbouring ground points near edges; ``reflectance.zarr`` says so in its attributes. With
-``--registration REG.zarr`` (a store from ``mscal register``, issue 9) the radiance of each
+``--registration REG.zarr`` (a store from ``mscal register``) the radiance of each
 band is warped onto the reference band's grid before the factor (the capture's own transforms
 if it was registered, else the session's; NaN where a band does not cover).
 
@@ -162,8 +162,8 @@ class FactoryOptions:
     export_bands: tuple[str, ...] | None = None
     indices: tuple[str, ...] = ("ndvi", "ndre")
     strict: bool = False
-    registration: str | None = None  # a store from 'mscal register': bands aligned to its reference (issue 9)
-    illumination: str | None = None  # nearest | linear: the light between panel captures (issue 8); None: their mean
+    registration: str | None = None  # a store from 'mscal register': bands aligned to its reference
+    illumination: str | None = None  # nearest | linear: the light between panel captures; None: their mean
     field_calibration: str | None = None  # a store from 'mscal calibrate' / 'mscal fit' of this camera
     field_components: tuple[str, ...] = ()  # of FIELD_COMPONENTS taken from it; () = all it holds
     execution: Execution = Execution()  # how the pass runs (not what it computes: not fingerprinted)
@@ -700,7 +700,7 @@ DEFAULT_LIGHT_MODE = "linear"
 
 def panel_light(captures: Sequence[Capture], panels: Sequence[PanelReference], mode: str, folder: Path,
                 sensor: SensorLight | None = None, times: np.ndarray | None = None) -> PanelSensorLight:
-    """``k_b`` of every capture from the panel captures (issue 8, and 22 for the sensor): each
+    """``k_b`` of every capture from the panel captures (and the sun sensor): each
     panel's ``1 / k_c`` (Eq. 11-14 split) interpolated to the capture's time (``nearest`` or
     ``linear``); with ``sensor``, the panel / sensor ratio per band is interpolated instead and
     multiplied by the capture's own tilt-corrected sensor reading

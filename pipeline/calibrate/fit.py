@@ -574,7 +574,7 @@ def add_vignetting(ds: xr.Dataset, fits: Sequence[vignetting.VignettingFit], rep
 
 #: Reflector frames more than this apart in time are different captures (seconds). A capture
 #: (a few images of the reflector, turned or re-framed) takes well under a minute; the
-#: captures the issue asks for (before, during, after a flight) are minutes apart. Frames of
+#: captures of a session (before, during, after a flight) are minutes apart. Frames of
 #: one folder without times are one capture; subfolders of ``reflector/`` are always one
 #: capture each, whatever their times.
 CAPTURE_GAP_S = 120.0
@@ -588,8 +588,8 @@ class ReflectorCapture:
     :func:`reflector_captures`; ``time_s`` the mean frame time (s since the epoch, UTC; NaN
     if unknown); ``irradiance`` the median sun-sensor level of its frames, None if any frame
     has none: frames.csv ``irradiance`` where given (raw), else the horizontal irradiance of the
-    files' sun sensor, the geometric mean over the bands (issue 22;
-    :func:`pipeline.ingest.sunsensor.record_levels`, the function apply uses for the flight's
+    files' sun sensor, the geometric mean over the bands
+    (:func:`pipeline.ingest.sunsensor.record_levels`, the function apply uses for the flight's
     frames and captures; the store marks it with ``sun_sensor_model``); ``irradiance_source``
     how the frames' levels were obtained (one per distinct source)."""
 
@@ -607,7 +607,7 @@ def _time_s(rec: FrameRecord) -> float:
 
 
 def reflector_captures(folder: Path, camera: Camera | None = None) -> tuple[list[FrameRecord], list[ReflectorCapture]]:
-    """The frames of ``reflector/`` and how they split into captures (issue 8).
+    """The frames of ``reflector/`` and how they split into captures.
 
     Subfolders of ``folder`` that hold frames are one capture each (named after the
     subfolder); frames directly in ``folder`` are a capture too (named ``reflector``).
@@ -691,7 +691,7 @@ class IlluminationResult:
     """The illumination fit and, for the QA report, per reflector image used: its
     brightness map ``B(x)`` on the band grid (NaN off the reflector), its DN in ``qa_band``,
     its effective exposure and file name. ``fit`` is the first capture's (its S is the store's
-    ``spectral_factor``); ``captures`` holds every capture's fit (issue 8)."""
+    ``spectral_factor``); ``captures`` holds every capture's fit."""
 
     fit: illumination.IlluminationFit
     report: StageReport
@@ -953,7 +953,7 @@ def add_illumination(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
                          if len(result.captures) > 1 else "")},
     )
     if result.brightness_maps is not None and result.qa_dn is not None:
-        # For the QA report (issue 5): B(x) of each reflector image and its DN in one band,
+        # For the QA report: B(x) of each reflector image and its DN in one band,
         # so the report can show Eq. 15 beside the Eq. 16 baseline without the session.
         ds = ds.assign_coords(
             reflector_image=np.arange(len(result.views)),
@@ -976,7 +976,7 @@ def add_illumination(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
 
 
 def add_captures(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
-    """Per reflector capture (issue 8): its S, brightness level, time and irradiance, on a
+    """Per reflector capture: its S, brightness level, time and irradiance, on a
     ``capture`` dimension, and which capture each reflector image belongs to."""
     caps = result.captures
     s = np.stack([np.asarray(c.fit.spectral_factor, dtype=np.float64) for c in caps])
@@ -1006,7 +1006,7 @@ def add_captures(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
         "capture", np.array([np.nan if c.capture.irradiance is None else c.capture.irradiance for c in caps]),
         {"long_name": "median sun-sensor level of the capture's frames (NaN: none): horizontal irradiance, "
                       "geometric mean over the bands, or frames.csv irradiance as given",
-         # apply makes the flight's levels alike only for stores that say so (issue 22)
+         # apply makes the flight's levels alike only for stores that say so
          SUN_SENSOR_MODEL_ATTR: SUN_SENSOR_MODEL},
     )
     if "reflector_image" in ds.coords:

@@ -1,4 +1,4 @@
-"""The worker processes of the per-band calibration fits (issue 25).
+"""The worker processes of the per-band calibration fits.
 
 The response (Eq. 5-7) and vignetting (Eq. 8-10) fits of one band do not depend on the other
 bands (:mod:`pipeline.calibrate.bands`). Run on threads they did not get faster on 2 cores

@@ -1,4 +1,4 @@
-"""What a band file says about its camera's optics, for the per-frame TIFFs (issue 24).
+"""What a band file says about its camera's optics, for the per-frame TIFFs.
 
 Photogrammetry software models a camera from the EXIF and XMP tags of the images it is given
 (OpenDroneMap's ``opendm/photo.py``: ``compute_focal`` from ``FocalLengthIn35mmFilm``, else

@@ -1,4 +1,4 @@
-"""Ingest a flight folder into the raw datacube ``OUT/raw.zarr`` (docs/architecture.md, issue 3).
+"""Ingest a flight folder into the raw datacube ``OUT/raw.zarr`` (docs/architecture.md).
 
 Layout (Zarr v3, consolidated, opened by ``xarray.open_zarr``):
 

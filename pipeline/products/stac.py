@@ -1,4 +1,4 @@
-"""``mscal catalog ROOT``: a static STAC catalog of everything mscal produced under ROOT (issue 10).
+"""``mscal catalog ROOT``: a static STAC catalog of everything mscal produced under ROOT.
 
 Layout (static JSON, every link relative, so the tree can be moved or served as files)::
 

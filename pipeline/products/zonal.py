@@ -1,4 +1,4 @@
-"""``mscal stats``: per-field statistics of index maps over many orthomosaics (issue 10).
+"""``mscal stats``: per-field statistics of index maps over many orthomosaics.
 
 Inputs:
 

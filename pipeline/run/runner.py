@@ -1,4 +1,4 @@
-"""The post-flight run (``mscal run``, issue 4) apart from its Prefect wiring.
+"""The post-flight run (``mscal run``) apart from its Prefect wiring.
 
 ``flows/post_flight.py`` calls these one at a time; everything that is not wiring lives
 here, free of Prefect, so that it can be tested on its own:

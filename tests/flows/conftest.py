@@ -85,12 +85,12 @@ marker: {dictionary: DICT_4X4_50, id: 0, size_m: 0.08}
 
 @pytest.fixture(scope="session")
 def multilens_session(tmp_path_factory) -> tuple[Path, Path]:
-    """A session of the multi-lens MicaSense RedEdge (issue 20): its flight ``field`` holds the
+    """A session of the multi-lens MicaSense RedEdge: its flight ``field`` holds the
     real sample captures as an SD card writes them (``0000SET/000/``), and a calibration cache
     (returned beside the session; tests point MSCAL_CACHE_DIR at it) already holds every stage's
     store, a store for the MicaSense bands from the factory model
-    (:func:`tests.micasense_data.factory_store`): the run fits nothing (the field fit of
-    multi-lens cameras is another issue's), it applies."""
+    (:func:`tests.micasense_data.factory_store`): the run fits nothing (multi-lens cameras have
+    no field fit here), it applies."""
     from pipeline.run.runner import plan_calibration
     from tests.micasense_data import factory_store, require_data
 

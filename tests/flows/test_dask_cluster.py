@@ -103,7 +103,7 @@ def test_cluster_run_computed_its_frames_on_the_cluster_workers(cluster_run: Pat
 
 @pytest.mark.long  # 27 s; the MicaSense factory apply on the cluster stays in make test
 def test_cluster_run_of_a_multilens_session(cluster: str, multilens_session, tmp_path, monkeypatch) -> None:
-    """--dask-address takes any camera (issue 20): the one-file-per-band captures of a
+    """--dask-address takes any camera: the one-file-per-band captures of a
     MicaSense session are computed on the cluster's workers, with the same outputs as a
     local ``mscal apply`` of the flight."""
     session, cache = multilens_session

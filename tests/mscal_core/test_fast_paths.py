@@ -1,4 +1,4 @@
-"""The faster forms of issue 25 give exactly the numbers of the forms they replaced.
+"""The faster forms give exactly the numbers of the forms they replaced.
 
 Each reference below is the code as it was before (a sort where a count now does, a boolean
 gather where a masked expression now does); the new form must match it bit for bit, ties,
@@ -50,7 +50,7 @@ def test_compact_matches_unique_and_searchsorted() -> None:
 
 
 def _rays_to_plane_gather(rays: np.ndarray, pose: Pose) -> np.ndarray:
-    """rays_to_plane before issue 25: the rays that meet the plane gathered first."""
+    """rays_to_plane before its faster form: the rays that meet the plane gathered first."""
     norm = np.asarray(rays, dtype=np.float64).reshape(-1, 2)
     out = np.full(norm.shape, np.nan)
     rot, t = pose.rotation, pose.tvec

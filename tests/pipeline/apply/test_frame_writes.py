@@ -1,4 +1,4 @@
-"""A frame's chunk writes run on a writer thread while the frame goes on (issue 25), and the
+"""A frame's chunk writes run on a writer thread while the frame goes on, and the
 frame is done only when they are: FrameWrites."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Issue 24: the per-frame TIFFs read back as photogrammetry software reads them, one test per
+"""The per-frame TIFFs read back as photogrammetry software reads them, one test per
 camera kind: the snapshot mosaic camera (synthetic session, its catalog's camera and the
 calibration's intrinsics), and the real MicaSense RedEdge, Parrot Sequoia and Sentera Double
 4K captures (../shared/data) through the factory chain.

@@ -1,4 +1,4 @@
-"""Per-band fits on worker processes (issue 25): the same store whichever process fits a band."""
+"""Per-band fits on worker processes: the same store whichever process fits a band."""
 
 from __future__ import annotations
 

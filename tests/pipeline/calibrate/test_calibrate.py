@@ -260,7 +260,7 @@ def test_partial_store_of_another_kind_is_named(small, tmp_path, capsys) -> None
     assert "u.zarr: store lacks vignetting needed for illumination" in line
 
 
-# --------------------------------------------------------------------------- full size (the numbers)
+# --------------------------------------------------------------------------- full size (the accuracy targets)
 
 
 @pytest.mark.slow

@@ -1,4 +1,4 @@
-"""Session band co-registration (issue 9): combination, fallbacks, store, real RedEdge data."""
+"""Session band co-registration: combination, fallbacks, store, real RedEdge data."""
 
 from __future__ import annotations
 

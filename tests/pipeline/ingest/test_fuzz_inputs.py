@@ -1,4 +1,4 @@
-"""Property-based fuzzing of the files a user hands mscal (issue 23): session.yaml, frames.csv,
+"""Property-based fuzzing of the files a user hands mscal: session.yaml, frames.csv,
 catalog YAML and XMP packets.
 
 Every strategy starts from a real, valid document (the small synthetic session, the shipped

@@ -1,4 +1,4 @@
-"""Flight discovery and ingest into OUT/raw.zarr (docs/architecture.md, "Flights (issue 3)").
+"""Flight discovery and ingest into OUT/raw.zarr (docs/architecture.md, "Flights").
 
 Layout, coordinates and CF attributes of the cube; every kind of bad frame quarantined with a
 reason naming the file while the rest go on; incremental and idempotent re-runs (nothing

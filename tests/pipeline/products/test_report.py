@@ -1,4 +1,4 @@
-"""The QA report (issue 5): plots of stored results, warnings with numbers, one
+"""The QA report: plots of stored results, warnings with numbers, one
 self-contained HTML page, and (slow) that page rendered in headless Chromium.
 
 The fast tests use a calibration store built from the synthetic camera truth (no fit: it
@@ -455,7 +455,7 @@ def test_older_and_partial_stores_still_report(calib_ds) -> None:
 
 
 def test_capture_level_table_says_how_the_sensor_level_was_obtained() -> None:
-    """Issue 22: the calibration section lists each reflector capture's sun-sensor level and
+    """The calibration section lists each reflector capture's sun-sensor level and
     the store's ``sun_sensor_model`` (raw for a store written before it); none without levels."""
     import xarray as xr
 
@@ -463,13 +463,13 @@ def test_capture_level_table_says_how_the_sensor_level_was_obtained() -> None:
 
     times = np.array(["2026-06-01T10:00:00", "2026-06-01T10:34:00"], dtype="datetime64[ns]")
     ds = xr.Dataset({"capture_level": ("capture", [1.0, 0.87]),
-                     "capture_irradiance": ("capture", [0.41, 0.356], {"sun_sensor_model": "horizontal (issue 22)"}),
+                     "capture_irradiance": ("capture", [0.41, 0.356], {"sun_sensor_model": "horizontal"}),
                      "capture_time": ("capture", times)},
                     coords={"capture_name": ("capture", ["before", "after"])})
     t = capture_level_table(ds)
     assert t is not None and [r[0] for r in t.rows] == ["before", "after"]
     assert t.rows[1] == ["after", "2026-06-01T10:34:00", 0.87, 0.356]
-    assert "horizontal (issue 22)" in t.note
+    assert "horizontal" in t.note
     old = ds.assign(capture_irradiance=("capture", [0.41, 0.356]))
     assert "raw reading" in capture_level_table(old).note
     assert capture_level_table(ds.assign(capture_irradiance=("capture", [np.nan, np.nan]))) is None

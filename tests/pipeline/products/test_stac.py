@@ -1,4 +1,4 @@
-"""The STAC catalog of an output root (issue 10): layout, items, incremental updates, offline
+"""The STAC catalog of an output root: layout, items, incremental updates, offline
 validation. Flight folders are laid out as mscal apply / mscal run write them (run.json,
 reflectance.zarr with its frame coordinates; the reflectance itself is not read)."""
 

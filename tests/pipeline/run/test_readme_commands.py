@@ -1,5 +1,5 @@
 """The README's command reference (the block under "## Command line") lists exactly the
-options each command's ``--help`` shows, and every command (issue 24)."""
+options each command's ``--help`` shows, and every command."""
 
 from __future__ import annotations
 
