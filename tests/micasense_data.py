@@ -66,7 +66,7 @@ def paint_marker(dn, band: int) -> None:
     dn[y0:y0 + img.shape[0], x0:x0 + img.shape[1]] = np.where(img > 127, 40000, 3000).astype(dn.dtype)
 
 
-def factory_store(out, capture: str = "IMG_0000"):  # noqa: ANN001, ANN201
+def factory_store(out, capture: str = "IMG_0000"):
     """A calibration store for the MicaSense bands built from the factory model of one capture
     (tests of the field chain on multi-lens flights): U linear in the stored DN above
     the black level, V the inverse of the factory vignetting polynomial scaled to max 1, and

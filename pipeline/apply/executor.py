@@ -107,7 +107,7 @@ def _stamp(path: Path) -> tuple[str, int]:
 
 
 @lru_cache(maxsize=16)
-def _zarr_array(key: tuple[str, int]):  # noqa: ANN202
+def _zarr_array(key: tuple[str, int]):
     import zarr
 
     return zarr.open_array(key[0], mode="r+").with_config({"write_empty_chunks": True})
@@ -150,7 +150,7 @@ def warm_calibration(calibration: str | Path) -> None:
     load raises the error that says what is wrong (nothing is cached for it)."""
     try:
         calibration_tables(str(calibration))
-    except Exception:  # noqa: BLE001 - raised again, with its message, by the first frame
+    except Exception:  # raised again, with its message, by the first frame
         log.debug("calibration %s not loaded ahead of the frames", calibration, exc_info=True)
 
 

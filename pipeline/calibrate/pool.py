@@ -148,7 +148,7 @@ class BandPool:
                 # another order, and the store would differ in its last bits with the workers
                 with threadpool_limits(limits=1, user_api="blas"):
                     fut.set_result(fn(*args))
-            except BaseException as exc:  # noqa: BLE001 - handed to the caller by .result()
+            except BaseException as exc:  # handed to the caller by .result()
                 fut.set_exception(exc)
             return fut
         return self._pool.submit(fn, *args)

@@ -782,7 +782,7 @@ def _jpeg_exif(data: bytes, path: Path | None = None) -> tuple[dict[str, Any], d
 
     try:
         tags = exifread_tags(io.BytesIO(data))
-    except Exception as exc:  # noqa: BLE001 (exifread raises a zoo of errors on corrupt EXIF)
+    except Exception as exc:  # exifread raises a zoo of errors on corrupt EXIF
         raise FrameError(f"EXIF unreadable ({type(exc).__name__}: {str(exc)[:80]})", path=path,
                          hint="copy the file again from the camera's card") from None
     exif: dict[str, Any] = {}

@@ -93,7 +93,7 @@ def read_yaml(path: Path, error: type[MscalError] = CatalogError) -> Any:
     except (OSError, UnicodeDecodeError) as exc:
         raise error(f"cannot read: {getattr(exc, 'strerror', None) or exc}", path=path) from None
     try:
-        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 (a SafeLoader)
+        return yaml.load(text, Loader=_StrictLoader)  # a SafeLoader
     except yaml.YAMLError as exc:
         raise error(yaml_problem(exc), path=path, hint="fix the YAML syntax") from None
     except RecursionError:
@@ -753,7 +753,7 @@ class Index:
         or outside ``valid_range`` (:func:`mscal_core.reflectance.keep_valid`)."""
         code = compile(ast.parse(self.expression, mode="eval"), "<index>", "eval")
         with np.errstate(divide="ignore", invalid="ignore"):
-            out = eval(code, {"__builtins__": {}}, {k: bands[k] for k in self.inputs})  # noqa: S307 (validated AST)
+            out = eval(code, {"__builtins__": {}}, {k: bands[k] for k in self.inputs})  # validated AST
         return keep_valid(np.asarray(out, dtype=np.float32), self.valid_range)
 
 

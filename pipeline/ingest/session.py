@@ -555,7 +555,7 @@ def exif_record(path: Path) -> FrameRecord:
             tags = exifread_tags(fh)
     except OSError as exc:
         raise FrameError(f"cannot read: {exc.strerror}", path=path) from None
-    except Exception:  # noqa: BLE001 (exifread raises a zoo of errors on corrupt files)
+    except Exception:  # exifread raises a zoo of errors on corrupt files
         tags = {}
     exp = tags.get("EXIF ExposureTime")
     if exp is None:

@@ -264,7 +264,7 @@ def _frame_coords(flight: Path, panels: Sequence[str] = ()) -> tuple[np.ndarray,
 
     try:
         ds = xr.open_zarr(flight / "reflectance.zarr", consolidated=False)
-    except Exception as exc:  # noqa: BLE001 (zarr raises many kinds)
+    except Exception as exc:  # zarr raises many kinds
         raise InputError(f"cannot open reflectance.zarr ({exc})", path=flight / "reflectance.zarr",
                          hint="re-run mscal apply on the flight, or remove the folder") from None
     with ds:
@@ -437,7 +437,7 @@ def _offline_validator_class() -> type:
     return _Offline
 
 
-def OfflineValidator() -> Any:  # noqa: N802 (a factory named as the class it returns)
+def OfflineValidator() -> Any:  # a factory named as the class it returns
     """A pystac ``STACValidator`` that never touches the network (module docstring)."""
     return _offline_validator_class()()
 

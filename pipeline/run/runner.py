@@ -413,7 +413,7 @@ def is_remote(url: str | Path) -> bool:
     return bool(m) and m.group(1).lower() not in ("file", "local")
 
 
-def _fs(url: str):  # noqa: ANN202 (fsspec file system, path)
+def _fs(url: str):  # fsspec file system, path
     import fsspec
 
     return fsspec.core.url_to_fs(url)

@@ -84,15 +84,15 @@ def stop_process_servers() -> None:
     import gc
     from multiprocessing import forkserver, resource_tracker
 
-    server = forkserver._forkserver  # noqa: SLF001 - multiprocessing has no public stop
+    server = forkserver._forkserver  # multiprocessing has no public stop
     if getattr(server, "_forkserver_pid", None) is not None:
         with contextlib.suppress(ChildProcessError):  # already reaped (a SIGCHLD handler)
-            server._stop()  # noqa: SLF001
-    tracker = resource_tracker._resource_tracker  # noqa: SLF001
+            server._stop()
+    tracker = resource_tracker._resource_tracker
     if getattr(tracker, "_pid", None) is not None:
         gc.collect()  # a pool's queues and locks: their semaphores unregistered now, not at exit
         with contextlib.suppress(ChildProcessError):
-            tracker._stop()  # noqa: SLF001
+            tracker._stop()
 
 
 def die_with_parent() -> None:

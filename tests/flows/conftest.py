@@ -23,7 +23,7 @@ os.environ.pop("PREFECT_PROFILE", None)
 os.environ["PREFECT_HOME"] = str(_HOME)
 os.environ["MSCAL_CACHE_DIR"] = str(_HOME / "cache")
 
-from pipeline.run.runner import configure_prefect  # noqa: E402
+from pipeline.run.runner import configure_prefect
 
 configure_prefect()
 
@@ -31,7 +31,7 @@ FLIGHTS = ("field", "orchard")
 REFLECTANCE_VARS = ("reflectance", "ndvi", "ndre", "vegetation_mask")
 
 
-def pytest_sessionfinish(session, exitstatus) -> None:  # noqa: ANN001
+def pytest_sessionfinish(session, exitstatus) -> None:
     """Remove the temporary PREFECT_HOME. Prefect's exit hook, which stops the embedded server,
     logs to the streams pytest has closed by then: its "prefect" logger is quietened first."""
     import logging

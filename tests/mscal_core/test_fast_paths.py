@@ -91,7 +91,7 @@ def test_bin_order_stats_several_ranks_at_once() -> None:
     np.testing.assert_array_equal(hi, _lexsort_order_stats(values, k, cnt, cnt // 2))
 
 
-def _noise_model_each_time(r, mu, lev, floor, robust, offset=None):  # noqa: ANN001, ANN202
+def _noise_model_each_time(r, mu, lev, floor, robust, offset=None):
     """_noise_model before the residuals and bins were made once per noise_update."""
     from scipy.optimize import lsq_linear
 
@@ -127,7 +127,7 @@ def _noise_model_each_time(r, mu, lev, floor, robust, offset=None):  # noqa: ANN
     return float(sol[0]), float(sol[1])
 
 
-def _gradient_noise_each_time(r, lev, base, g2):  # noqa: ANN001, ANN202
+def _gradient_noise_each_time(r, lev, base, g2):
     keep = lev < 0.9
     r2 = r[keep] ** 2 / (1.0 - lev[keep])
     g2, base = g2[keep], base[keep]

@@ -60,7 +60,7 @@ def test_no_transforms_leaves_the_pass_untouched(plain, tmp_path, monkeypatch) -
     are all the identity gives the same bytes."""
     session, calib, out = plain
 
-    def boom(*a, **k):  # noqa: ANN002, ANN003
+    def boom(*a, **k):
         raise AssertionError("geometry step called without transforms")
 
     monkeypatch.setattr(apply_mod, "geometry_step", boom)

@@ -72,7 +72,7 @@ def test_factory_and_field_chains_run_in_the_same_executor(store, tmp_path, monk
     seen: list[tuple[str, str]] = []
     real = executor.radiometry
 
-    def spy(camera, chain, job, dn, channels=None):  # noqa: ANN001, ANN202
+    def spy(camera, chain, job, dn, channels=None):
         seen.append((chain.kind, job.name))
         return real(camera, chain, job, dn, channels)
 

@@ -76,7 +76,7 @@ def snapshot(small, tmp_path_factory) -> tuple[Path, Path, Path]:
 # --------------------------------------------------------------------------- helpers
 
 
-def _f(tag) -> float:  # noqa: ANN001
+def _f(tag) -> float:
     v = tag.values[0] if isinstance(tag.values, list) else tag.values
     return float(v) if isinstance(v, (int, float)) else float(v.num) / float(v.den)
 

@@ -74,7 +74,7 @@ def read_or_error(read, *names: str):
     """``read()``'s value, or None after checking the error it raised."""
     try:
         return read()
-    except Exception as exc:  # noqa: BLE001 (the property is about which exceptions)
+    except Exception as exc:  # the property is about which exceptions
         assert_clean_error(exc, *names)
         return None
 

@@ -119,7 +119,7 @@ def calib_ds(calib) -> xr.Dataset:
     return open_calibration(calib)
 
 
-def _rewrite_csv(folder: Path, edit) -> None:  # noqa: ANN001
+def _rewrite_csv(folder: Path, edit) -> None:
     rows = list(csv.DictReader((folder / "frames.csv").open()))
     edit(rows)
     with (folder / "frames.csv").open("w", newline="") as fh:
@@ -140,7 +140,7 @@ def flights(truth, calib, tmp_path_factory) -> dict[str, Path]:
     shutil.copytree(clean, bad)
     (bad / "IMG_0004.tif").write_bytes((bad / "IMG_0000.tif").read_bytes()[:5000])
 
-    def edit(rows):  # noqa: ANN001, ANN202
+    def edit(rows):
         rows[2]["exposure_ms"] = repr(float(rows[2]["exposure_ms"]) * 4)
         rows.append({**rows[0], "file": "IMG_0004.tif"})
 
@@ -152,7 +152,7 @@ def flights(truth, calib, tmp_path_factory) -> dict[str, Path]:
     return out
 
 
-def _panels(fig) -> list:  # noqa: ANN001
+def _panels(fig) -> list:
     """Axes of a figure other than colour bars."""
     return [ax for ax in fig.axes if ax.get_label() not in ("<colorbar>", "<twin>")]
 
@@ -212,7 +212,7 @@ def test_eq15_corrects_the_reflector_and_eq16_shows_the_light(calib_ds) -> None:
 # --------------------------------------------------------------------------- calibration warnings
 
 
-def _edit(ds: xr.Dataset, stage: str, **residuals) -> xr.Dataset:  # noqa: ANN003
+def _edit(ds: xr.Dataset, stage: str, **residuals) -> xr.Dataset:
     out = ds.copy()
     out.attrs = copy.deepcopy(dict(ds.attrs))
     out.attrs[stage]["residuals"].update(residuals)
@@ -381,7 +381,7 @@ def test_report_is_written_atomically(calib_ds, tmp_path, monkeypatch) -> None:
     seen = []
     real_replace = os.replace
 
-    def failing_replace(src, dst):  # noqa: ANN001, ANN202
+    def failing_replace(src, dst):
         seen.append((Path(src), Path(dst)))
         raise OSError("disk full")
 

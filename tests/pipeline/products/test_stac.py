@@ -78,7 +78,7 @@ def root(tmp_path: Path) -> Path:
 
 
 def _no_network(monkeypatch: pytest.MonkeyPatch) -> None:
-    def refuse(*a, **k):  # noqa: ANN002, ANN003
+    def refuse(*a, **k):
         raise OSError("network disabled by the test")
 
     monkeypatch.setattr(socket.socket, "connect", refuse)

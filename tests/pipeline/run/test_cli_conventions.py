@@ -124,7 +124,7 @@ def test_fit_response_method_is_a_deprecated_alias(small, tmp_path: Path, monkey
     session, calib = small
     seen = []
 
-    def fake(directory, out, camera, method):  # noqa: ANN001, ANN202 (the fit is tested elsewhere)
+    def fake(directory, out, camera, method):  # the fit is tested elsewhere
         seen.append(method)
         return open_calibration(calib)
 
@@ -294,7 +294,7 @@ def test_calibrate_progress_bar_and_summary(small, tmp_path: Path, monkeypatch) 
     session, calib = small
     steps = []
 
-    def fake(session_dir, out, *, response_method, calibration, advance, pool, sweep):  # noqa: ANN001, ANN202
+    def fake(session_dir, out, *, response_method, calibration, advance, pool, sweep):
         # the band workers and the sweep's fits were started before the fit module was used
         assert pool.workers >= 1 and sweep.method == response_method and len(sweep.futures) == 25
         for _ in range(fit.CALIBRATE_STEPS):
@@ -385,7 +385,7 @@ def test_demo_prints_plain_lines_or_one_json_document(tmp_path: Path, monkeypatc
 
     out = tmp_path / "demo"
 
-    def fake(o, *, flow, size, seed):  # noqa: ANN001, ANN202
+    def fake(o, *, flow, size, seed):
         out.mkdir(exist_ok=True)
         (out / "run.json").write_text(json.dumps({"flights": {"field": {}}}))
         return {"session": str(out / "session"), "outputs": str(out), "run_json": str(out / "run.json"),
