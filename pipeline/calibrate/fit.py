@@ -85,12 +85,13 @@ def _map(fn: Callable[[int], Any], n: int) -> list[Any]:
 
 
 @contextmanager
-def _pool(pool: BandPool | None, n_tasks: int) -> Iterator[BandPool]:
-    """``pool``, or a pool of its own for ``n_tasks`` band fits, closed on leaving."""
+def _pool(pool: BandPool | None, n_tasks: int, workers: int | None = None) -> Iterator[BandPool]:
+    """``pool``, or a pool of its own for ``n_tasks`` band fits (``workers``:
+    :func:`pipeline.calibrate.pool.band_workers`), closed on leaving."""
     if pool is not None:
         yield pool
         return
-    with BandPool(band_workers(n_tasks)) as own:
+    with BandPool(band_workers(n_tasks, workers)) as own:
         yield own
 
 
@@ -1038,13 +1039,16 @@ CALIBRATE_STEPS = 4
 
 def calibrate_session(session_dir: str | Path, out: str | Path, *, response_method: str = "forward",
                       calibration: str | Path | None = None, advance: Callable[[], None] | None = None,
-                      pool: BandPool | None = None, sweep: SweepFits | None = None) -> xr.Dataset:
+                      pool: BandPool | None = None, sweep: SweepFits | None = None,
+                      workers: int | None = None) -> xr.Dataset:
     """``mscal calibrate``: the three fits from a session folder, written to ``out``.
     ``calibration``: a store whose ``intrinsics`` (``mscal fit intrinsics``) are used when
     session.yaml gives none (nothing else is taken from it). ``advance``: called after each
     of :data:`CALIBRATE_STEPS` steps (a progress bar). ``pool``: the band fits' workers,
-    started by the caller (a pool of its own if None; see
-    :func:`pipeline.calibrate.pool.session_pool`), closed here once the band fits are done;
+    started by the caller (a pool of its own if None, of ``workers`` processes: 0 one per
+    core, 1 none, None ``MSCAL_CALIBRATE_WORKERS`` or one per core, see
+    :func:`pipeline.calibrate.pool.band_workers`; :func:`pipeline.calibrate.pool.session_pool`
+    makes one), closed here once the band fits are done;
     ``sweep``: the response fits already submitted to it
     (:func:`pipeline.calibrate.sweep.start_sweep`)."""
     advance = advance or (lambda: None)
@@ -1054,7 +1058,7 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
     session, source = with_intrinsics(session, partial)
     # one set of workers for both per-band stages; the vignetting frames are read (and
     # hashed) on a thread while the workers fit the response
-    with _pool(pool, camera.n_bands) as pool, ThreadPoolExecutor(1) as aside:
+    with _pool(pool, camera.n_bands, workers) as pool, ThreadPoolExecutor(1) as aside:
         # what does not wait for the fits is done aside, while the workers fit: the vignetting
         # frames are read during the response fits (the marker search needs them next); the
         # response's part of the store and the reflector frames are made during the vignetting

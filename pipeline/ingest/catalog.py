@@ -34,9 +34,20 @@ LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band", "file_per_capture", "
 FACTORY_MODELS = ("micasense", "sequoia", "dji", "sentera")
 
 
-def catalog_dirs(kind: str) -> list[Path]:
-    """Folders searched for catalog entries of ``kind`` (cameras, targets, indices)."""
-    extra = [Path(p) / kind for p in os.environ.get("MSCAL_CATALOG_PATH", "").split(os.pathsep) if p]
+#: Environment variable, the default of ``search_path`` (:func:`catalog_dirs`): folders of
+#: catalog files (``os.pathsep``-separated, each with ``cameras/``, ``targets/``,
+#: ``indices/``) searched before the shipped catalogs. docs/configuration.md lists it.
+CATALOG_PATH_ENV = "MSCAL_CATALOG_PATH"
+
+
+def catalog_dirs(kind: str, search_path: str | None = None) -> list[Path]:
+    """Folders searched for catalog entries of ``kind`` (cameras, targets, indices), in order:
+    ``<folder>/<kind>`` for each folder of ``search_path`` (``os.pathsep``-separated; None: the
+    ``MSCAL_CATALOG_PATH`` environment variable, read at each search so that a long-running
+    process sees a change), then the shipped catalogs' ``<kind>``."""
+    if search_path is None:
+        search_path = os.environ.get(CATALOG_PATH_ENV, "")
+    extra = [Path(p) / kind for p in search_path.split(os.pathsep) if p]
     return [*extra, CATALOG_ROOT / kind]
 
 
