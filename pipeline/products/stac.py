@@ -46,7 +46,8 @@ description naming a catalog index, as ``mscal index`` writes) as ``index_<name>
 the session's ``run.json``, the names, sizes and modification times of the rasters and report
 it catalogues, its project and :data:`ITEM_FORMAT`); an update re-reads only flights whose
 fingerprint changed, keeps the others' JSON as it was, removes items of flights that are gone.
-Updates hold ``ROOT/.mscal-catalog.lock`` (flock), so concurrent runs do not interleave.
+Updates hold ``ROOT/.mscal-catalog.lock`` (:class:`pipeline.storage.lock.FolderLock`, waiting), so concurrent
+runs do not interleave.
 
 **Validation.** Every object written is validated against the STAC 1.1.0 JSON schemas
 (:class:`OfflineValidator`): the schemas are the copies pystac ships as package data (STAC
@@ -57,7 +58,6 @@ the ``mscal:`` prefix.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
@@ -66,7 +66,7 @@ import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from mscal_core.errors import InputError
@@ -74,6 +74,7 @@ from mscal_core.errors import InputError
 from pipeline.ingest.catalog import read_yaml
 from pipeline.ingest.exif import parse_iso
 from pipeline.storage.atomic import write_text_atomic
+from pipeline.storage.lock import FolderLock
 
 log = logging.getLogger(__name__)
 
@@ -485,17 +486,10 @@ def validate_catalog(catalog: str | Path) -> int:
 # --------------------------------------------------------------------------- the catalog
 
 
-@contextlib.contextmanager
-def _locked(root: Path) -> Iterator[None]:
-    import fcntl
-
-    root.mkdir(parents=True, exist_ok=True)
-    with open(root / LOCK_FILE, "a") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+def _locked(root: Path) -> FolderLock:
+    """The catalog's lock: updates of one ROOT wait for each other (however long), apart from
+    the output folders' own locks (a run updates the catalog of the OUT it holds)."""
+    return FolderLock(root, name=LOCK_FILE, wait=True, what="another mscal process updating the catalog")
 
 
 def _write_json(path: Path, d: dict[str, Any]) -> bool:
