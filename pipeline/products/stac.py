@@ -423,17 +423,53 @@ def flight_item(flight: Path, project: Project, project_dir: Path, item_file: Pa
 
 
 def _offline_validator_class() -> type:
-    from pystac.validation.stac_validator import GetSchemaError, JsonSchemaSTACValidator
+    import jsonschema
+    import pystac.utils
+    from pystac.errors import STACValidationError
+    from pystac.validation import GetSchemaError, STACValidator
+    from pystac.validation.local_validator import get_local_schema_cache
+    from pystac.validation.schema_uri_map import DefaultSchemaUriMap
+    from referencing import Registry, Resource
+    from referencing.exceptions import Unresolvable
 
-    class _Offline(JsonSchemaSTACValidator):
-        """pystac's JSON-schema validator restricted to the schemas pystac ships: a schema
-        that is not among them raises instead of being downloaded."""
+    def refuse(uri: str) -> Any:
+        raise GetSchemaError(uri, LookupError(f"schema {uri} is not shipped with pystac and mscal never downloads one"))
 
-        def _get_schema(self, schema_uri: str) -> dict[str, Any]:
-            if schema_uri not in self.schema_cache:
-                raise GetSchemaError(schema_uri, LookupError(
-                    f"schema {schema_uri} is not shipped with pystac and mscal never downloads one"))
-            return self.schema_cache[schema_uri]
+    class _Offline(STACValidator):
+        """pystac's validator interface (:class:`pystac.validation.STACValidator`) over the
+        schemas pystac ships (``get_local_schema_cache``), looked up by pystac's own
+        ``DefaultSchemaUriMap``: a schema that is not among them, or that one of them refers
+        to, raises :class:`pystac.validation.GetSchemaError` instead of being read from its
+        URL. Nothing reads a URL here (no ``StacIO``)."""
+
+        def __init__(self) -> None:
+            self.schema_uri_map = DefaultSchemaUriMap()
+            self.schemas = get_local_schema_cache()
+            self.registry = Registry(retrieve=refuse).with_resources(  # type: ignore[call-arg]
+                (uri, Resource.from_contents(schema)) for uri, schema in self.schemas.items())
+
+        def _check(self, stac_dict: dict[str, Any], object_type: Any, uri: str, href: str | None) -> str:
+            schema = self.schemas.get(uri) or refuse(uri)
+            check = jsonschema.validators.validator_for(schema)(schema, registry=self.registry)
+            try:
+                errors = list(check.iter_errors(stac_dict))
+            except Unresolvable as exc:  # a $ref to a schema that is not shipped
+                raise GetSchemaError(getattr(exc, "ref", uri), exc) from None
+            if errors:
+                best = jsonschema.exceptions.best_match(errors)
+                raise STACValidationError(f"Validation failed for {object_type} at {href} against schema at {uri}"
+                                          f"\n{best}", source=errors) from best
+            return uri
+
+        def validate_core(self, stac_dict: dict[str, Any], stac_object_type: Any, stac_version: str,
+                          href: str | None = None) -> str | None:
+            uri = self.schema_uri_map.get_object_schema_uri(stac_object_type, stac_version)
+            return None if uri is None else self._check(stac_dict, stac_object_type, uri, href)
+
+        def validate_extension(self, stac_dict: dict[str, Any], stac_object_type: Any, stac_version: str,
+                               extension_id: str, href: str | None = None) -> str:
+            uri = pystac.utils.make_absolute_href(extension_id, href)
+            return self._check(stac_dict, stac_object_type, uri, href)
 
     return _Offline
 
@@ -446,7 +482,7 @@ def OfflineValidator() -> Any:  # a factory named as the class it returns
 def _validate(d: dict[str, Any], href: Path, validator: Any) -> None:
     import pystac.validation
     from pystac.errors import STACValidationError
-    from pystac.validation.stac_validator import GetSchemaError
+    from pystac.validation import GetSchemaError
 
     try:
         pystac.validation.validate_dict(d, href=str(href), validator=validator)
