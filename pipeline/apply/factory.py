@@ -140,6 +140,7 @@ from pipeline.ingest.session import PanelConfig, panel_config_near
 from pipeline.ingest.sun_scale import sun_scale_constant, sun_scale_record
 from pipeline.ingest.sunsensor import SensorLight, sensor_light
 from pipeline.ingest.targets import serial_targets_digest
+from pipeline.storage.cache import code_digest
 
 FACTORY = "factory"
 REFERENCES = ("auto", "panel", "dls", "panel-dls")  # + "none" (radiance only) when auto finds no usable sun sensor
@@ -463,6 +464,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     fingerprint = {
         "inputs": stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
         "mscal_version": mscal_core.__version__,
+        "code_sha256": code_digest(),  # every source of mscal_core, pipeline and the catalogs
         "light_model": LIGHT_MODEL,  # results of earlier runs (raw sun-sensor readings) are not reused
         "metadata_reading": METADATA_READING,
         "coregistration": COREGISTRATION_CHECK,

@@ -78,6 +78,7 @@ from pipeline.storage.atomic import (
     temporary_folder_name,
     write_json_atomic,
 )
+from pipeline.storage.cache import code_digest
 from pipeline.storage.chunks import frame_encoding, unwritten_frames
 from pipeline.storage.store import FLIGHT_VARIABLES, FRAME_COORD_ATTRS, cf_annotate, check_camera, open_calibration
 
@@ -537,6 +538,7 @@ def run_fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
         "calibration_sha256": chash,
         "options": options.fingerprint(),
         "mscal_version": mscal_core.__version__,
+        "code_sha256": code_digest(),  # every source of mscal_core, pipeline and the catalogs
     }
     if illum is not None:  # light that varies in time: the mode and the factors (readings) count
         fingerprint["illumination"] = {"mode": illum.mode, "scale_sha256": illum.digest()}
