@@ -34,21 +34,11 @@ LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band", "file_per_capture", "
 FACTORY_MODELS = ("micasense", "sequoia", "dji", "sentera")
 
 
-#: Environment variable, the default of ``search_path`` (:func:`catalog_dirs`): folders of
-#: catalog files (``os.pathsep``-separated, each with ``cameras/``, ``targets/``,
-#: ``indices/``) searched before the shipped catalogs. docs/configuration.md lists it.
-CATALOG_PATH_ENV = "MSCAL_CATALOG_PATH"
-
-
 def catalog_dirs(kind: str, search_path: str | None = None) -> list[Path]:
-    """Folders searched for catalog entries of ``kind`` (cameras, targets, indices), in order:
-    ``<folder>/<kind>`` for each folder of ``search_path`` (``os.pathsep``-separated; None: the
-    ``MSCAL_CATALOG_PATH`` environment variable, read at each search so that a long-running
-    process sees a change), then the shipped catalogs' ``<kind>``."""
-    if search_path is None:
-        search_path = os.environ.get(CATALOG_PATH_ENV, "")
-    extra = [Path(p) / kind for p in search_path.split(os.pathsep) if p]
-    return [*extra, CATALOG_ROOT / kind]
+    """Folders searched for entries of ``kind``: ``<folder>/<kind>`` for each folder of ``search_path`` (os.pathsep-
+    separated; None: ``$MSCAL_CATALOG_PATH``, read at each search), then the shipped catalogs'."""
+    path = os.environ.get("MSCAL_CATALOG_PATH", "") if search_path is None else search_path
+    return [*(Path(p) / kind for p in path.split(os.pathsep) if p), CATALOG_ROOT / kind]
 
 
 # --------------------------------------------------------------------------- validation helpers
