@@ -262,7 +262,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="instead: factory apply on N MicaSense captures, old vs new vs the hand loop")
     p.add_argument("--settle", type=float, default=0.0, help="--factory: seconds of rest before each run")
     args = p.parse_args(argv)
-    uptime = lambda: subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()  # noqa: E731
+    uptime = lambda: subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     load0 = uptime()
     new_rev = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--short", "HEAD"], capture_output=True,
                              text=True).stdout.strip()

@@ -63,7 +63,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
-import bench_calibrate as bc  # noqa: E402  (shared measurement and markdown helpers)
+import bench_calibrate as bc  # shared measurement and markdown helpers
 
 SECTION_KEY = "bench_accuracy"
 DEFAULT_OUT = ROOT / "docs" / "benchmarks.md"
@@ -129,12 +129,12 @@ class Synth:
         self.seed = seed
         self._cache: dict[tuple, Any] = {}
 
-    def _get(self, key: tuple, make):  # noqa: ANN001, ANN202
+    def _get(self, key: tuple, make):
         if key not in self._cache:
             self._cache[key] = make()
         return self._cache[key]
 
-    def truth(self, noise: float):  # noqa: ANN201
+    def truth(self, noise: float):
         from mscal_core.synth.scene import make_truth
         from mscal_core.synth.sensor import SensorModel
 
@@ -142,7 +142,7 @@ class Synth:
         sensor = SensorModel(read_noise_dn=d.read_noise_dn * noise, shot_noise_dn_at_full=d.shot_noise_dn_at_full * noise)
         return self._get(("truth", noise), lambda: make_truth(self.seed, sensor=sensor))
 
-    def session(self, p: dict[str, float]):  # noqa: ANN201
+    def session(self, p: dict[str, float]):
         from mscal_core.synth.scene import (
             SyntheticSession,
             flight_frames,
@@ -166,7 +166,7 @@ class Synth:
                                 size="bench")
 
 
-def write_synthetic(session, root: Path) -> Path:  # noqa: ANN001
+def write_synthetic(session, root: Path) -> Path:
     """A session folder as ``pipeline.sim.synth.write_session`` writes it, from a built session."""
     from pipeline.sim.synth import write_synthesized
 
@@ -206,13 +206,13 @@ def calibrate(session_dir: Path, out: Path, method: str, response_cache: dict) -
     write_store(provenance(ds, session.root), out)
 
 
-def true_u8(u10):  # noqa: ANN001, ANN201
+def true_u8(u10):
     """True inverse response of the 8-bit readout ``DN8 = DN10 >> 2``: the mean of the 10-bit
     ``U`` over the four 10-bit codes of each 8-bit code."""
     return u10.reshape(256, 4).mean(axis=1)
 
 
-def fill_gaps(u):  # noqa: ANN001, ANN201
+def fill_gaps(u):
     """``u`` with its NaN entries linearly interpolated from the finite ones (Robertson leaves
     NaN at codes that never occur in the sweep; mscal's fits interpolate them themselves)."""
     import numpy as np
@@ -225,7 +225,7 @@ def fill_gaps(u):  # noqa: ANN001, ANN201
     return np.interp(k, k[ok], u[ok])
 
 
-def response_8bit(dn10, exposure, u10_true, bands: Sequence[int] = BANDS_8BIT) -> dict[str, float]:  # noqa: ANN001
+def response_8bit(dn10, exposure, u10_true, bands: Sequence[int] = BANDS_8BIT) -> dict[str, float]:
     """Worst response error (``mscal_core.metrics.response_error``) over ``bands`` of four
     estimators on the 8-bit sweep ``DN10 >> 2``: OpenCV Debevec, OpenCV Robertson, mscal
     forward, mscal alternating. ``dn10`` (frames, bands, H, W) uint16."""
@@ -259,7 +259,7 @@ def response_8bit(dn10, exposure, u10_true, bands: Sequence[int] = BANDS_8BIT) -
     return {k: float(max(v)) for k, v in errs.items()}
 
 
-def light_spread(session) -> float:  # noqa: ANN001
+def light_spread(session) -> float:
     """Max / min of the light's brightness B over the reflector (vignetting views' light)."""
     import numpy as np
 

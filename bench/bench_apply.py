@@ -50,7 +50,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-import bench_calibrate as bc  # noqa: E402  (shared measurement and markdown helpers)
+import bench_calibrate as bc  # shared measurement and markdown helpers
 
 SECTION_KEY = "bench_apply"
 ROOT = HERE.parent
@@ -244,7 +244,7 @@ def warm_files(paths: Sequence[Path]) -> int:
     return total
 
 
-def median_run(runs: list):  # noqa: ANN201 - bench_calibrate.Run
+def median_run(runs: list):  # bench_calibrate.Run
     """The run of median wall time (the lower middle one of an even count)."""
     return sorted(runs, key=lambda r: r.wall_s)[(len(runs) - 1) // 2]
 

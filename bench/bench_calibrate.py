@@ -448,7 +448,7 @@ def _flight(ev: dict[str, Any], which: str) -> dict[str, float]:
 
 
 def performance_rows(results: Sequence[SeedResult]) -> list[Row]:
-    f = lambda attr: [getattr(r, attr) for r in results]  # noqa: E731
+    f = lambda attr: [getattr(r, attr) for r in results]
     fwd, alt, floor = f("forward"), f("alternating"), f("floor")
     return [
         Row("`mscal calibrate` wall (s)", [r.wall_s for r in fwd], WALL_TARGET_S, "{:.1f}", anchor="cal-wall"),
@@ -597,7 +597,7 @@ def _scaling_lines(results: Sequence[SeedResult]) -> list[str]:
     # Amdahl from the two points: T1 = serial + par, T2 = serial + par / 2
     par = [2.0 * (t1 - t2) for t1, t2 in ones]
     serial = [t1 - p for (t1, _), p in zip(ones, par)]
-    proj = lambda n: [s_ + p / n for s_, p in zip(serial, par)]  # noqa: E731
+    proj = lambda n: [s_ + p / n for s_, p in zip(serial, par)]
     return [
         f"- Issue 25: the faster of two runs took {min(fast):.1f}-{max(fast):.1f} s wall (target "
         f"{FAST_WALL_TARGET_S:.0f} s on 2 cores: {verdict}). With one band worker (every band fitted in the main "

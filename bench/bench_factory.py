@@ -48,8 +48,8 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
-import bench_calibrate as bc  # noqa: E402  (shared measurement and markdown helpers)
-from bench_apply import median_run, output_manifest, settle, write_floor_label, write_floor_rows  # noqa: E402
+import bench_calibrate as bc  # shared measurement and markdown helpers
+from bench_apply import median_run, output_manifest, settle, write_floor_label, write_floor_rows
 
 SECTION_KEY = "bench_factory"
 ROOT = HERE.parent

@@ -38,9 +38,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mscal_core.reflectance import eq15  # noqa: E402
-from mscal_core.registration import mosaic_centre_offsets, shift_bands  # noqa: E402
-from mscal_core.synth.scene import (  # noqa: E402
+from mscal_core.reflectance import eq15
+from mscal_core.registration import mosaic_centre_offsets, shift_bands
+from mscal_core.synth.scene import (
     DEFAULT_PANELS,
     NDVI_NIR_NM,
     NDVI_RED_NM,
@@ -114,7 +114,7 @@ def vignetting_fit(seed: int) -> None:
         plain_read, plain_offsets = cal.read_bands, cal._offsets
         off = mosaic_centre_offsets((5, 5))
 
-        def centred_read(rec, camera):  # noqa: ANN001, ANN202
+        def centred_read(rec, camera):
             dn = plain_read(rec, camera)
             shifted = shift_bands(dn.astype(np.float64), off)
             return np.where(np.isfinite(shifted), np.clip(np.round(shifted), 0, camera.dn_max), dn).astype(np.uint16)

@@ -32,8 +32,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mscal_core import registration as reg  # noqa: E402
-from mscal_core.synth.multilens import REDEDGE_WAVELENGTHS_NM, multilens_capture  # noqa: E402
+from mscal_core import registration as reg
+from mscal_core.synth.multilens import REDEDGE_WAVELENGTHS_NM, multilens_capture
 
 DATA = ROOT.parent / "shared" / "data" / "micasense-rededge"
 

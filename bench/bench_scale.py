@@ -58,7 +58,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
-import bench_calibrate as bc  # noqa: E402
+import bench_calibrate as bc
 
 SECTION_KEY = "bench_scale"
 DEFAULT_OUT = ROOT / "docs" / "benchmarks.md"
@@ -497,7 +497,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     loads = {"start": bc._uptime()}
     info = bc.machine_info()
     t0 = time.perf_counter()
-    log = lambda m: print(m, flush=True)  # noqa: E731
+    log = lambda m: print(m, flush=True)
     work = Path(tempfile.mkdtemp(prefix="mscal-bench-scale-", dir=a.workdir))
     res: dict[str, Any] = {}
     try:

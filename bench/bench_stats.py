@@ -40,7 +40,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 sys.path.insert(0, str(HERE))
 sys.path.insert(0, str(ROOT))
-import bench_calibrate as bc  # noqa: E402  (shared measurement and markdown helpers)
+import bench_calibrate as bc  # shared measurement and markdown helpers
 
 SECTION_KEY = "bench_stats"
 QUICK_SECTION_KEY = "bench_stats_quick"

@@ -1,1 +1,1 @@
-"""Prefect flows: wiring only, each task one pipeline call (issue 4)."""
+"""Prefect flows: wiring only, each task one pipeline call."""

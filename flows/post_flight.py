@@ -1,4 +1,4 @@
-"""The post-flight Prefect flow (issue 4): wiring only, each task one ``pipeline`` call on paths.
+"""The post-flight Prefect flow: wiring only, each task one ``pipeline`` call on paths.
 
 ``post_flight``: stage remote inputs, calibrate the session (each stage taken from the cache
 when its inputs are unchanged), apply the calibration to every ``SESSION/flights/<name>/``,

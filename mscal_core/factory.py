@@ -14,7 +14,7 @@ the pixel row (0 at the top), ``a2, a3`` the row-gradient (rolling shutter) term
 ``V`` the vignetting correction (>= 1 away from the centre, so it *multiplies* the DN).
 Negative radiance (noise around the black level) is floored at 0, as MicaSense does.
 
-Components from the field fits may replace the factory's (issue 6), one at a time:
+Components from the field fits may replace the factory's, one at a time:
 
 - *field vignetting*: ``V(x, y)`` of the paper (Eq. 8-10, max 1, multiplies the scene) enters
   as the correction ``1 / V``;
@@ -410,7 +410,7 @@ def polygon_mask(shape: tuple[int, int], corners: Sequence[Sequence[float]]) -> 
     return mask.astype(bool)
 
 
-# --------------------------------------------------------------------------- other manufacturers (issue 21)
+# --------------------------------------------------------------------------- other manufacturers
 
 
 def sequoia_irradiance(

@@ -327,7 +327,7 @@ def eq16_reflectance(
     return np.where(np.isfinite(out) & (ref > 0), out, np.nan)
 
 
-# --------------------------------------------------------------------------- light over time (issue 8)
+# --------------------------------------------------------------------------- light over time
 
 #: Interpolation of the light between reflector captures (:func:`capture_weights`).
 INTERPOLATION_MODES = ("nearest", "linear")
@@ -564,7 +564,7 @@ def centre_brightness(uv: np.ndarray, brightness: np.ndarray, *, reject: float =
     -----
     The median-B gauge of :func:`fit_illumination` depends on which part of a non-uniformly lit
     reflector the camera sees (pose, crop); for a light that is linear over the reflector, ``a``
-    does not, so captures under different light compare by it (issue 8).
+    does not, so captures under different light compare by it.
     """
     p = np.asarray(uv, dtype=np.float64).reshape(-1, 2)
     b = np.asarray(brightness, dtype=np.float64).ravel()
@@ -586,7 +586,7 @@ def centre_brightness(uv: np.ndarray, brightness: np.ndarray, *, reject: float =
 
 
 def shared_reflector_pixels(masks, owner, min_pixels: int = 1) -> tuple[list[np.ndarray], bool]:
-    """Restrict each reflector image's pixels to sensor pixels shared by the captures (issue 8).
+    """Restrict each reflector image's pixels to sensor pixels shared by the captures.
 
     Parameters
     ----------

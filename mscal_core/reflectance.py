@@ -428,7 +428,7 @@ def eq15_fast(
     Notes
     -----
     Agrees with :func:`eq15` to float32 rounding; about 6x faster (a table lookup per band, no
-    float64). The light of a frame that differs from the calibration's S (issue 8) enters as
+    float64). The light of a frame that differs from the calibration's S enters as
     ``k_b = S(lambda_b) / S(lambda_b, tau)``: Eq. 15 with ``S(lambda, tau)`` in place of S [1]_.
 
     References

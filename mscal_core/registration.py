@@ -1,4 +1,4 @@
-"""Band co-registration of multi-lens cameras (issue 9): pure numpy + OpenCV, no I/O.
+"""Band co-registration of multi-lens cameras: pure numpy + OpenCV, no I/O.
 
 A camera with one lens per band (MicaSense, DJI P4 Multispectral / Mavic 3M, Parrot Sequoia)
 sees each band from a slightly different point. For a flat scene (the ground seen from flight

@@ -1,4 +1,4 @@
-"""Per-field (zonal) statistics of an index map: the maths, no I/O (issue 10).
+"""Per-field (zonal) statistics of an index map: the maths, no I/O.
 
 A field's statistics are computed from the index values of the pixels of one mosaic whose
 centres fall inside the field (GDAL's rasterisation rule, ``all_touched=False``):

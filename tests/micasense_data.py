@@ -43,7 +43,7 @@ def band_file(capture: str, band: int) -> Path:
     return require_data() / f"IMG_{capture}_{band}.tif"
 
 
-# A marker painted beside the sample panel (tests of the marker route, issue 6): 1 mm per pixel
+# A marker painted beside the sample panel (tests of the marker route): 1 mm per pixel
 # at the panel; the panel's bright surface is about 0.215 m (its published corners are the
 # inner 75 %), the marker's centre 0.19 m left of the panel's.
 MARKER = {"dictionary": "DICT_APRILTAG_36h11", "id": 7, "size_m": 0.08}
@@ -66,9 +66,9 @@ def paint_marker(dn, band: int) -> None:
     dn[y0:y0 + img.shape[0], x0:x0 + img.shape[1]] = np.where(img > 127, 40000, 3000).astype(dn.dtype)
 
 
-def factory_store(out, capture: str = "IMG_0000"):  # noqa: ANN001, ANN201
+def factory_store(out, capture: str = "IMG_0000"):
     """A calibration store for the MicaSense bands built from the factory model of one capture
-    (tests of the field chain on multi-lens flights, issue 20): U linear in the stored DN above
+    (tests of the field chain on multi-lens flights): U linear in the stored DN above
     the black level, V the inverse of the factory vignetting polynomial scaled to max 1, and
     S such that Eq. 15 gives the factory radiance without its row-gradient term:
     ``R = L / R(y)`` with ``R(y)`` of :func:`mscal_core.factory.row_gradient`."""

@@ -87,7 +87,7 @@ def odm_get_xmp_tag(xtags: dict, names: list[str]):
     return None
 
 
-def odm_float(tag) -> float | None:  # noqa: ANN001
+def odm_float(tag) -> float | None:
     """ODM_Photo.float_value: the first value of an exifread tag as float."""
     v = tag.values[0] if isinstance(tag.values, list) else tag.values
     if isinstance(v, (int, float)):

@@ -74,8 +74,8 @@ def test_write_section_keeps_other_sections(tmp_path: Path) -> None:
 
 
 def test_run_measured_counts_the_worker_processes_a_command_leaves_behind() -> None:
-    """A command whose worker process outlives it (as ``mscal apply``'s forkserver pool can,
-    issue 25): the worker's CPU is in the figures (the launcher is a subreaper and reaps it) and
+    """A command whose worker process outlives it (as ``mscal apply``'s forkserver pool can):
+    the worker's CPU is in the figures (the launcher is a subreaper and reaps it) and
     its memory is in the peak (the tree's summed PSS, sampled while the command runs)."""
     worker = ("import time, numpy as np\n"
               "a = np.ones(200 * 2**20, np.uint8)\n"  # 200 MiB, touched

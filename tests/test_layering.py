@@ -40,7 +40,7 @@ def test_core_does_no_file_io() -> None:
     assert offenders == []
 
 
-def _imports(path) -> set[str]:  # noqa: ANN001
+def _imports(path) -> set[str]:
     """Top-level names of the modules a source file imports (absolute imports only)."""
     import ast
 
@@ -106,7 +106,7 @@ def _sources() -> dict[str, "pathlib.Path"]:
     return out
 
 
-def _type_checking_nodes(tree) -> set[int]:  # noqa: ANN001
+def _type_checking_nodes(tree) -> set[int]:
     """ids of the nodes inside ``if TYPE_CHECKING:`` blocks (imports for annotations only)."""
     import ast
 
@@ -118,7 +118,7 @@ def _type_checking_nodes(tree) -> set[int]:  # noqa: ANN001
     return inside
 
 
-def _module_imports(name: str, path) -> list[tuple[str, list[str], int, bool]]:  # noqa: ANN001
+def _module_imports(name: str, path) -> list[tuple[str, list[str], int, bool]]:
     """``(module, imported names, line, for annotations only)`` of every absolute import of
     ``name`` (relative imports resolved against it)."""
     import ast
@@ -141,7 +141,7 @@ def _module_imports(name: str, path) -> list[tuple[str, list[str], int, bool]]: 
     return out
 
 
-def _private_uses(name: str, path, modules: set[str]) -> list[str]:  # noqa: ANN001
+def _private_uses(name: str, path, modules: set[str]) -> list[str]:
     """``module._x`` and ``from module import _x`` of another project module's private names."""
     import ast
 
@@ -186,7 +186,7 @@ def test_private_name_check_catches_both_forms(tmp_path) -> None:
     assert bad == ["pipeline.run.m:1 from pipeline.apply.flight import _x", "pipeline.run.m:3 raw._y"]
 
 
-def _upward_imports(name: str, path) -> list[str]:  # noqa: ANN001
+def _upward_imports(name: str, path) -> list[str]:
     pkg = name.split(".")[1] if name.count(".") >= 1 else None
     if pkg is None or pkg not in ALLOWED:
         return []

@@ -1,6 +1,6 @@
 """``make test`` runs ``pytest -n 2 --dist loadgroup``: tests marked with one ``xdist_group``
 must run on one worker, or their shared session fixtures (a full ``mscal run``, a dask cluster)
-are built once per worker. pytest 9.2 broke this silently (pytest-xdist issue 1386); this test
+are built once per worker. pytest 9.2 broke this silently (https://github.com/pytest-dev/pytest-xdist/issues/1386); this test
 runs a tiny suite the way the Makefile does and checks where each test ran."""
 
 from __future__ import annotations

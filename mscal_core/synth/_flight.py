@@ -105,7 +105,7 @@ def flight_frames(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 8,
     supersample : int
         Supersampling of edge pixels (:func:`render`).
     time_offset_s, frame_interval_s : float
-        Frame ``k`` is taken at ``time_offset_s + frame_interval_s k`` (issue 8).
+        Frame ``k`` is taken at ``time_offset_s + frame_interval_s k``.
     drift : LightDrift, optional
         The sun is also multiplied by ``drift.level(time)`` and ``S`` by
         ``drift.colour(time)``.

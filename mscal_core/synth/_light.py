@@ -88,7 +88,7 @@ class GradientShadowLight:
 
 @dataclass(frozen=True)
 class LightDrift:
-    """Light whose level and colour drift linearly over a flight (issue 8).
+    """Light whose level and colour drift linearly over a flight.
 
     At time ``tau`` (seconds after ``SESSION_START``) the sun's brightness is multiplied by
     ``level(tau) = 1 + (level_end - 1) f`` and its colour ``S(lambda)`` by

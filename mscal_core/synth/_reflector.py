@@ -341,7 +341,7 @@ def reflector_images(truth: SyntheticTruth, *, seed: int = 0, n_images: int = 3,
     times_s : sequence of float, optional
         Time of each image in seconds after ``SESSION_START`` (default 900 + 20 k).
     drift : LightDrift, optional
-        Light that changes over the flight (issue 8): the brightness is the sun's times
+        Light that changes over the flight: the brightness is the sun's times
         ``drift.level(time)`` (no random factor), the colour ``S`` times ``drift.colour(time)``,
         and the light has a ``gradient_ratio`` gradient but no shadow (the reflector fully in
         the sun, as a capture for the light's level should be).

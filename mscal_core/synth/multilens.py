@@ -1,7 +1,7 @@
 """Seeded synthetic captures of a multi-lens camera with known band transforms.
 
 Seeded synthetic captures of a multi-lens camera (one lens per band) with known band transforms,
-for band co-registration (issue 9). Pure arrays, no I/O.
+for band co-registration. Pure arrays, no I/O.
 
 Scene: a ground plane of soil and crop rows (with gaps, weeds and brightness texture, as
 :class:`~mscal_core.synth.scene.FieldScene`), a few bushes that stand above the ground, and

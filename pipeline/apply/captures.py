@@ -1,4 +1,4 @@
-"""Folders of captures as the camera writes them, and the apply pass over them (issue 20).
+"""Folders of captures as the camera writes them, and the apply pass over them.
 
 A one-file-per-band camera (MicaSense RedEdge, Parrot Sequoia, DJI P4 Multispectral and the
 like) writes one file per band per capture (``IMG_0000_1.tif ... IMG_0000_5.tif``), on an SD
@@ -286,7 +286,7 @@ class CaptureRun:
 
     ``scale(capture_name)``: per band factors of a capture (``Job.scale``) or None;
     ``extra_coords(captures)``: more per-frame coordinates of reflectance.zarr (the light of
-    each capture, issue 8); ``record(captures)``: keys of run.json beside the common ones."""
+    each capture); ``record(captures)``: keys of run.json beside the common ones."""
 
     chain: FieldChain | FactoryChain
     calibration: str  # run.json "calibration": a store's path or "factory"
@@ -471,7 +471,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
                          t_start: float, calib: xr.Dataset | None = None) -> ApplyResult:
     """``mscal apply FLIGHT --calibration CALIB.zarr`` for a folder of one-file-per-band
     captures: Eq. 15 with the store's U, V and S per band file (its own exposure and gain),
-    the light of each capture's time (issue 8; the captures' sun-sensor levels, horizontal for a
+    the light of each capture's time (the captures' sun-sensor levels, horizontal for a
     store that says so: :func:`pipeline.apply.light.frame_levels`), the
     store's band transforms, the normalisation of ``options`` (an ApplyOptions). ``calib``:
     the store at ``calib_path`` already opened (:func:`pipeline.storage.store.open_calibration`
@@ -549,7 +549,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
         return {"illumination_level": ("frame", illum.level[rows].astype(np.float64),
                                        {"long_name": "brightness level beta of the light at the capture's time"}),
                 "illumination_scale": (("frame", "band"), illum.scale[rows].astype(np.float64),
-                                       {"long_name": "factor on Eq. 15 reflectance: S / S(lambda, time) (issue 8)"})}
+                                       {"long_name": "factor on Eq. 15 reflectance: S / S(lambda, time)"})}
 
     def record(caps: Sequence[Capture]) -> dict[str, Any]:
         if illum is None:

@@ -150,7 +150,7 @@ def take_worker_environment(environment: dict[str, str]) -> None:
     os.environ.update(environment)
 
 
-def distributed_client():  # noqa: ANN201
+def distributed_client():
     """The active ``distributed`` client (the caller's ``with Client(...)``), if any. A caller
     with a client has imported ``distributed``; without one it is not imported here (0.2 s of
     every run's start)."""

@@ -1,4 +1,4 @@
-"""The one apply executor (issue 20): one capture in, every output of it written.
+"""The one apply executor: one capture in, every output of it written.
 
 A *capture* is one exposure of all bands: one file (a snapshot mosaic or a multichannel
 image; ``Job.rec``, or its chunk of ``raw.zarr`` when it was ingested before) or one file per
@@ -6,7 +6,7 @@ band (``Job.capture``, grouped by :func:`pipeline.ingest.camera_meta.group_captu
 radiometric model is one per-band chain chosen per run (``Plan.chain``):
 
 - :class:`FieldChain`: Eq. 15, ``R = U(I) / (t V S)``, with U, V, S of a calibration store
-  (``mscal calibrate``), the light of the capture's time folded in (``Job.scale``, issue 8);
+  (``mscal calibrate``), the light of the capture's time folded in (``Job.scale``);
 - :class:`FactoryChain`: the camera's own metadata per band file (each vendor's radiance
   model, :func:`pipeline.ingest.camera_meta.factory_radiance`; MicaSense's optionally with
   field U and/or V in place of the factory's), times one factor per band (a panel's, the
@@ -107,7 +107,7 @@ def _stamp(path: Path) -> tuple[str, int]:
 
 
 @lru_cache(maxsize=16)
-def _zarr_array(key: tuple[str, int]):  # noqa: ANN202
+def _zarr_array(key: tuple[str, int]):
     import zarr
 
     return zarr.open_array(key[0], mode="r+").with_config({"write_empty_chunks": True})
@@ -150,7 +150,7 @@ def warm_calibration(calibration: str | Path) -> None:
     load raises the error that says what is wrong (nothing is cached for it)."""
     try:
         calibration_tables(str(calibration))
-    except Exception:  # noqa: BLE001 - raised again, with its message, by the first frame
+    except Exception:  # raised again, with its message, by the first frame
         log.debug("calibration %s not loaded ahead of the frames", calibration, exc_info=True)
 
 
@@ -169,7 +169,7 @@ def _store_of(key: tuple[str, int]) -> xr.Dataset:
 
 def geometry_step(calibration: Path, align: bool, band_shift: Sequence[tuple[float, float]] | None, name: str,
                   refl: np.ndarray) -> np.ndarray:
-    """Eq. 15 reflectance (band, y, x) of frame ``name`` put on one pixel grid (issue 9): the
+    """Eq. 15 reflectance (band, y, x) of frame ``name`` put on one pixel grid: the
     bands of a multi-lens camera warped onto the reference band (``align``: the capture's own
     transforms if it was registered, else the session's; ``mscal_core.registration.align_bands``,
     NaN where a band does not cover), or a snapshot mosaic's bands resampled to the mosaic's
@@ -189,7 +189,7 @@ def geometry_step(calibration: Path, align: bool, band_shift: Sequence[tuple[flo
 
 @dataclass(frozen=True)
 class FieldChain:
-    """Eq. 15 with every component from a calibration store (U, V, S; issue 20 ``field``)."""
+    """Eq. 15 with every component from a calibration store (U, V, S; the ``field`` chain)."""
 
     calibration: Path
     sat: int  # DN (the calibration's) from which a pixel is saturated
@@ -297,7 +297,7 @@ class Job:
     t: float = 1.0  # effective exposure of a single-file capture (exposure_ms x gain); band files carry their own
     rec: FrameRecord | None = None
     capture: Capture | None = None
-    scale: tuple[float, ...] | None = None  # per band: field S / S(lambda, time) (issue 8); factory k_b
+    scale: tuple[float, ...] | None = None  # per band: field S / S(lambda, time); factory k_b
     ahead: Path | None = None  # the file of a capture a few places on, to read ahead (prefetch_file)
     panel: bool = False  # a panel capture: its band TIFFs go to OUT/panels/, apart from the survey frames
     measure: bool = False  # the bands' residual shifts are measured on its pixels (bandgrid.grid_residuals)

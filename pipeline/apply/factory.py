@@ -56,7 +56,7 @@ output, raw.zarr included, after the band registration (run.json ``orientation``
 
   With ``--illumination nearest|linear`` (panel route only) each capture gets the light of its
   time instead of the panels' mean: the panel captures' ``S_c = 1 / k_c`` interpolated in time
-  and scaled by the captures' DLS readings between them (:func:`panel_light`, issue 8).
+  and scaled by the captures' DLS readings between them (:func:`panel_light`).
 
 Outputs as for every apply (SPEC "Outputs of apply"): ``reflectance.zarr`` with
 ``reflectance`` and ``radiance`` (frame, band, y, x) float32 and the indices, ``raw.zarr``
@@ -66,7 +66,7 @@ the Image Processing Guides' steps 2-3; :func:`pipeline.ingest.camera_meta.facto
 are put on the camera's designed image plane (``--no-align``: not); other cameras' bands are
 *not* co-registered here (each band keeps its own pixel grid): per-pixel indices mix
 neighbouring ground points near edges; ``reflectance.zarr`` says so in its attributes. With
-``--registration REG.zarr`` (a store from ``mscal register``, issue 9) the radiance of each
+``--registration REG.zarr`` (a store from ``mscal register``) the radiance of each
 band is warped onto the reference band's grid before the factor (the capture's own transforms
 if it was registered, else the session's; NaN where a band does not cover).
 
@@ -140,6 +140,7 @@ from pipeline.ingest.session import PanelConfig, panel_config_near
 from pipeline.ingest.sun_scale import sun_scale_constant, sun_scale_record
 from pipeline.ingest.sunsensor import SensorLight, sensor_light
 from pipeline.ingest.targets import serial_targets_digest
+from pipeline.storage.cache import code_digest
 
 FACTORY = "factory"
 REFERENCES = ("auto", "panel", "dls", "panel-dls")  # + "none" (radiance only) when auto finds no usable sun sensor
@@ -162,8 +163,8 @@ class FactoryOptions:
     export_bands: tuple[str, ...] | None = None
     indices: tuple[str, ...] = ("ndvi", "ndre")
     strict: bool = False
-    registration: str | None = None  # a store from 'mscal register': bands aligned to its reference (issue 9)
-    illumination: str | None = None  # nearest | linear: the light between panel captures (issue 8); None: their mean
+    registration: str | None = None  # a store from 'mscal register': bands aligned to its reference
+    illumination: str | None = None  # nearest | linear: the light between panel captures; None: their mean
     field_calibration: str | None = None  # a store from 'mscal calibrate' / 'mscal fit' of this camera
     field_components: tuple[str, ...] = ()  # of FIELD_COMPONENTS taken from it; () = all it holds
     execution: Execution = Execution()  # how the pass runs (not what it computes: not fingerprinted)
@@ -463,6 +464,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     fingerprint = {
         "inputs": stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
         "mscal_version": mscal_core.__version__,
+        "code_sha256": code_digest(),  # every source of mscal_core, pipeline and the catalogs
         "light_model": LIGHT_MODEL,  # results of earlier runs (raw sun-sensor readings) are not reused
         "metadata_reading": METADATA_READING,
         "coregistration": COREGISTRATION_CHECK,
@@ -700,7 +702,7 @@ DEFAULT_LIGHT_MODE = "linear"
 
 def panel_light(captures: Sequence[Capture], panels: Sequence[PanelReference], mode: str, folder: Path,
                 sensor: SensorLight | None = None, times: np.ndarray | None = None) -> PanelSensorLight:
-    """``k_b`` of every capture from the panel captures (issue 8, and 22 for the sensor): each
+    """``k_b`` of every capture from the panel captures (and the sun sensor): each
     panel's ``1 / k_c`` (Eq. 11-14 split) interpolated to the capture's time (``nearest`` or
     ``linear``); with ``sensor``, the panel / sensor ratio per band is interpolated instead and
     multiplied by the capture's own tilt-corrected sensor reading

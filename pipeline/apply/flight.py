@@ -78,6 +78,7 @@ from pipeline.storage.atomic import (
     temporary_folder_name,
     write_json_atomic,
 )
+from pipeline.storage.cache import code_digest
 from pipeline.storage.chunks import frame_encoding, unwritten_frames
 from pipeline.storage.store import FLIGHT_VARIABLES, FRAME_COORD_ATTRS, cf_annotate, check_camera, open_calibration
 
@@ -118,8 +119,8 @@ class ApplyOptions:
     export_bands: tuple[str, ...] | None = None
     indices: tuple[str, ...] = ("ndvi", "ndre")
     strict: bool = False
-    illumination: str = DEFAULT_MODE  # nearest | linear: light between reflector captures (issue 8)
-    align: bool = True  # align bands with the store's band_transform, if it has one (issue 9)
+    illumination: str = DEFAULT_MODE  # nearest | linear: light between reflector captures
+    align: bool = True  # align bands with the store's band_transform, if it has one
     centre_bands: bool = False  # snapshot mosaics: resample every band to the mosaic's centre position
     execution: Execution = Execution()  # how the pass runs (not what it computes: not fingerprinted)
     captures: tuple[str, ...] = ()  # one-file-per-band cameras: only these captures of the folder (one flight)
@@ -131,7 +132,7 @@ class ApplyOptions:
         if not d["captures"]:  # the default: earlier runs stay up to date
             d.pop("captures")
         d.pop("illumination")  # in the fingerprint only when the light varies (see run_fingerprint)
-        for key, default in (("align", True), ("centre_bands", False)):  # runs before issue 9 stay up to date
+        for key, default in (("align", True), ("centre_bands", False)):  # runs before band alignment stay up to date
             if d[key] == default:
                 d.pop(key)
         if self.panel is not None:
@@ -157,7 +158,7 @@ class ApplyResult:
 
 def calibration_hash(ds: xr.Dataset) -> str:
     """sha256 of the calibration's arrays (U, V, S) and camera: what Eq. 15 depends on; with
-    light that varies in time (issue 8) also the captures' S, level, time and irradiance."""
+    light that varies in time also the captures' S, level, time and irradiance."""
     h = hashlib.sha256(str(ds.attrs.get("camera")).encode())
     names = ["inverse_response", "vignetting", "spectral_factor"]
     if varies_in_time(ds):
@@ -429,8 +430,8 @@ def _effective_exposure(coords: xr.Dataset) -> np.ndarray:
 def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path: Path, sat: int,
                 illum: IlluminationPlan | None = None, names: Sequence[str] = (),
                 geometry: tuple = (False, None, None)) -> Callable[[int], np.ndarray]:
-    """Eq. 15 reflectance of frame ``f`` (with its light, issue 8) on the pixel grid of the
-    outputs (``geometry_step``, issue 9)."""
+    """Eq. 15 reflectance of frame ``f`` (with its light) on the pixel grid of the
+    outputs (``geometry_step``)."""
     def reflectance(f: int) -> np.ndarray:
         lut, inv_v = calibration_tables(str(calib_path))
         scale = None if illum is None else illum.scale[f][None]
@@ -523,7 +524,7 @@ def _cube_pass(out: Path, runner: Runner, start: Callable[..., _Pass], calib_pat
 
 def _illumination_record(ps: _Pass, calib: xr.Dataset, options: ApplyOptions) -> dict[str, Any]:
     """run.json's ``illumination``: the mode and each frame's factors when the light varies
-    in time (issue 8), else that the store's S was used for every frame."""
+    in time, else that the store's S was used for every frame."""
     if ps.illum is None:
         n = calib.sizes.get("capture", 1)
         return {"varies_in_time": False, "captures": int(n)}
@@ -537,6 +538,7 @@ def run_fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
         "calibration_sha256": chash,
         "options": options.fingerprint(),
         "mscal_version": mscal_core.__version__,
+        "code_sha256": code_digest(),  # every source of mscal_core, pipeline and the catalogs
     }
     if illum is not None:  # light that varies in time: the mode and the factors (readings) count
         fingerprint["illumination"] = {"mode": illum.mode, "scale_sha256": illum.digest()}
@@ -549,7 +551,7 @@ def previous_run(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] =
     inputs and they are still whole: ``run.json``, the completion marker written last
     (:func:`write_run_record`), notes the outputs' files and sizes; a store that is missing,
     empty, has a file less or a truncated chunk does not match and the flight is redone. A
-    ``run.json`` without that note (before issue 23) is not trusted either."""
+    ``run.json`` without that note (an older run's) is not trusted either."""
     run_path = out / RUN_JSON
     if not (run_path.is_file() and all((out / s).is_dir() for s in stores)):
         return None
@@ -640,7 +642,7 @@ def apply_flight(
     calib_path = Path(calibration)
     calib = open_calibration(calib_path, need="apply")
     camera = load_camera(str(calib.attrs.get("camera")))
-    if camera.layout.kind == "file_per_band":  # one file per band: a capture is several files (issue 20)
+    if camera.layout.kind == "file_per_band":  # one file per band: a capture is several files
         from pipeline.apply.captures import apply_field_captures
 
         return replace(apply_field_captures(flight_dir, calib_path, out, camera, options, t_start, calib),

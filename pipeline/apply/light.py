@@ -1,4 +1,4 @@
-"""Light that changes during a flight (issue 8): the illumination of each flight frame.
+"""Light that changes during a flight: the illumination of each flight frame.
 
 The calibration store holds, per reflector capture, its spectral factor ``S_c(lambda)``
 (Eq. 11-14), time and sun-sensor irradiance (``capture_*`` variables, see
@@ -9,8 +9,8 @@ readings, the brightness level scaled by the sensor between the captures
 is folded into each frame's table as the factor ``k_b(tau) = S(lambda_b) / S(lambda_b, tau)``
 on the store's ``spectral_factor`` (:func:`mscal_core.reflectance.eq15_fast`).
 
-Sun-sensor level of a frame or capture (issue 22): for a store whose ``capture_irradiance``
-says ``sun_sensor_model = "horizontal (issue 22)"`` (:func:`sun_sensor_model`), the level the
+Sun-sensor level of a frame or capture: for a store whose ``capture_irradiance``
+says ``sun_sensor_model = "horizontal"`` (:func:`sun_sensor_model`), the level the
 calibration used for its reflector captures, from the same function
 (:func:`pipeline.ingest.sunsensor.record_levels` for frames, :func:`pipeline.ingest.sunsensor.
 capture_levels` for one-file-per-band captures): frames.csv ``irradiance`` as given, else the
@@ -20,7 +20,7 @@ flight's frames.csv, else the XMP ``Irradiance`` of a TIFF frame, and for a capt
 its bands' readings (:func:`pipeline.ingest.camera_meta.capture_irradiance`), so that it gives
 what it gave. run.json's ``illumination.sun_sensor_level`` says which.
 
-A store with one capture and no irradiance (every store written before issue 8) gives no
+A store with one capture and no irradiance (every store written before captures over time) gives no
 plan: apply computes exactly what it did before.
 """
 
@@ -38,7 +38,7 @@ from mscal_core.illumination import INTERPOLATION_MODES, frame_illumination
 
 from pipeline.ingest.camera_meta import Capture, capture_irradiance, xmp_irradiance
 from pipeline.ingest.session import FRAMES_CSV, FrameRecord, read_frame_table
-from pipeline.ingest.sunsensor import SUN_SENSOR_MODEL, SUN_SENSOR_MODEL_ATTR, Levels, capture_levels, record_levels
+from pipeline.ingest.sunsensor import SUN_SENSOR_MODEL, Levels, capture_levels, record_levels, stored_sun_sensor_model
 
 __all__ = ["IlluminationPlan", "INTERPOLATION_MODES", "calibration_captures", "flight_irradiance",
            "flight_levels", "frame_levels", "illumination_plan", "sun_sensor_model", "varies_in_time", "DEFAULT_MODE"]
@@ -46,8 +46,8 @@ __all__ = ["IlluminationPlan", "INTERPOLATION_MODES", "calibration_captures", "f
 #: Linear in time: a drift (the sun rising, haze building up) is followed between captures;
 #: ``nearest`` is for captures that bracket abrupt changes (a cloud bank arriving).
 DEFAULT_MODE = "linear"
-#: run.json ``illumination.sun_sensor_level`` of a store from before issue 22.
-RAW_LEVELS = ("raw readings: the store's capture_irradiance predates issue 22 (no sun_sensor_model); "
+#: run.json ``illumination.sun_sensor_level`` of a store from before horizontal levels.
+RAW_LEVELS = ("raw readings: the store's capture_irradiance predates horizontal levels (no sun_sensor_model); "
               "recalibrate for horizontal levels")
 
 
@@ -63,7 +63,7 @@ class Captures:
 
 def calibration_captures(calib: xr.Dataset) -> Captures:
     """Per-capture S, time and irradiance of a store; a store without ``capture_*`` variables
-    (written before issue 8) is one capture with the store's S, no time and no irradiance."""
+    (written before captures over time) is one capture with the store's S, no time and no irradiance."""
     if "capture_spectral_factor" not in calib:
         return Captures(np.asarray(calib["spectral_factor"].values, dtype=np.float64)[None],
                         np.array([np.nan]), np.array([np.nan]), ("reflector",))
@@ -86,11 +86,10 @@ def varies_in_time(calib: xr.Dataset) -> bool:
 
 def sun_sensor_model(calib: xr.Dataset) -> str | None:
     """How the store's ``capture_irradiance`` was computed: :data:`pipeline.ingest.sunsensor.
-    SUN_SENSOR_MODEL` for the horizontal levels of issue 22, None for an older store (raw)."""
+    SUN_SENSOR_MODEL` for the horizontal levels, None for an older store (raw)."""
     if "capture_irradiance" not in calib:
         return None
-    model = calib["capture_irradiance"].attrs.get(SUN_SENSOR_MODEL_ATTR)
-    return None if model is None else str(model)
+    return stored_sun_sensor_model(calib["capture_irradiance"].attrs)
 
 
 def _flight_records(flight_dir: Path) -> dict[str, FrameRecord] | None:
@@ -133,7 +132,7 @@ def _one_level(rec: FrameRecord) -> tuple[float, str]:
 
 def flight_irradiance(flight_dir: Path, names: Sequence[str]) -> np.ndarray:
     """Raw sun-sensor reading of each frame (by frame name = file stem; NaN where none),
-    for stores from before issue 22: frames.csv ``irradiance``, else the file's XMP
+    for stores from before horizontal levels: frames.csv ``irradiance``, else the file's XMP
     Irradiance. Frames the table cannot describe are left NaN (discovery quarantines them)."""
     records = _flight_records(flight_dir)
     if records is None:
@@ -168,7 +167,7 @@ class IlluminationPlan:
     irradiance: np.ndarray
     irradiance_used: np.ndarray
     captures: tuple[str, ...]
-    sun_sensor_level: str = RAW_LEVELS  # how the levels were computed (issue 22)
+    sun_sensor_level: str = RAW_LEVELS  # how the levels were computed
     irradiance_source: tuple[str, ...] = ()  # per frame, when known
 
     def digest(self) -> str:

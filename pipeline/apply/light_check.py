@@ -1,4 +1,4 @@
-"""How well panels and the sun sensor carry the light over time (issue 22): the late panel of
+"""How well panels and the sun sensor carry the light over time: the late panel of
 a folder predicted from its early one, per band and per method. Used by the tests and
 ``bench/bench_light.py --sun-sensor`` on synthetic flights (:mod:`pipeline.sim.sunlight`) and on
 real folders that hold a panel capture before and after a flight."""
@@ -32,7 +32,7 @@ def panel_prediction(folder: str | Path, panel_reflectance: str, early: str, lat
       sensors only; NaN for relative ones), as the ``dls`` route has it: the diffuse ratio the
       clear sky's 1/6 (or a DLS 2's split), never fitted from the folder's captures;
     - ``combined_raw``: the early panel scaled by the sensor's raw readings (no sun position,
-      tilt or direct/diffuse split: what mscal did before issue 22);
+      tilt or direct/diffuse split: what mscal did before horizontal levels);
     - ``combined``: the early panel anchoring the sensor (the ``panel-dls`` route with only the
       early panel), ``k' = k_early E^s(early) / E^s(late)``, the diffuse ratio fitted from the
       folder's captures where the route fits it;

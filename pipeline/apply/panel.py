@@ -14,7 +14,7 @@ Panel region of one band file, first that applies:
 
 Otherwise :class:`FrameError` "no reflectance panel found" naming the file.
 
-A panel capture's bands share one region (:func:`common_regions`, issue 22): when every band
+A panel capture's bands share one region (:func:`common_regions`): when every band
 detects the panel, the region is chosen once in the panel's own coordinates (the camera's
 ReflectArea of one band, else the centred inset) and mapped into each band through its own
 detection of the same square, so that every band samples the same spot of the panel.
@@ -141,7 +141,7 @@ def common_regions(
     inset: float = DEFAULT_INSET,
     config: PanelConfig | None = None,
 ) -> list[PanelRegion]:
-    """One panel region for all bands of a capture (issue 22): the same physical spot of the
+    """One panel region for all bands of a capture: the same physical spot of the
     panel in every band, so that the panel's colour is not biased by where each band looked.
 
     When every band shows the panel (:func:`mscal_core.panel.detect_panel`), the region is

@@ -1,4 +1,4 @@
-"""Panels over time and a sun sensor (issue 22): the light of every capture from panel captures
+"""Panels over time and a sun sensor: the light of every capture from panel captures
 anchored by the sensor.
 
 The sun sensor's reading of each capture and band made horizontal (tags, sun position, tilt

@@ -85,12 +85,13 @@ def _map(fn: Callable[[int], Any], n: int) -> list[Any]:
 
 
 @contextmanager
-def _pool(pool: BandPool | None, n_tasks: int) -> Iterator[BandPool]:
-    """``pool``, or a pool of its own for ``n_tasks`` band fits, closed on leaving."""
+def _pool(pool: BandPool | None, n_tasks: int, workers: int | None = None) -> Iterator[BandPool]:
+    """``pool``, or a pool of its own for ``n_tasks`` band fits (``workers``:
+    :func:`pipeline.calibrate.pool.band_workers`), closed on leaving."""
     if pool is not None:
         yield pool
         return
-    with BandPool(band_workers(n_tasks)) as own:
+    with BandPool(band_workers(n_tasks, workers)) as own:
         yield own
 
 
@@ -574,7 +575,7 @@ def add_vignetting(ds: xr.Dataset, fits: Sequence[vignetting.VignettingFit], rep
 
 #: Reflector frames more than this apart in time are different captures (seconds). A capture
 #: (a few images of the reflector, turned or re-framed) takes well under a minute; the
-#: captures the issue asks for (before, during, after a flight) are minutes apart. Frames of
+#: captures of a session (before, during, after a flight) are minutes apart. Frames of
 #: one folder without times are one capture; subfolders of ``reflector/`` are always one
 #: capture each, whatever their times.
 CAPTURE_GAP_S = 120.0
@@ -588,8 +589,8 @@ class ReflectorCapture:
     :func:`reflector_captures`; ``time_s`` the mean frame time (s since the epoch, UTC; NaN
     if unknown); ``irradiance`` the median sun-sensor level of its frames, None if any frame
     has none: frames.csv ``irradiance`` where given (raw), else the horizontal irradiance of the
-    files' sun sensor, the geometric mean over the bands (issue 22;
-    :func:`pipeline.ingest.sunsensor.record_levels`, the function apply uses for the flight's
+    files' sun sensor, the geometric mean over the bands
+    (:func:`pipeline.ingest.sunsensor.record_levels`, the function apply uses for the flight's
     frames and captures; the store marks it with ``sun_sensor_model``); ``irradiance_source``
     how the frames' levels were obtained (one per distinct source)."""
 
@@ -607,7 +608,7 @@ def _time_s(rec: FrameRecord) -> float:
 
 
 def reflector_captures(folder: Path, camera: Camera | None = None) -> tuple[list[FrameRecord], list[ReflectorCapture]]:
-    """The frames of ``reflector/`` and how they split into captures (issue 8).
+    """The frames of ``reflector/`` and how they split into captures.
 
     Subfolders of ``folder`` that hold frames are one capture each (named after the
     subfolder); frames directly in ``folder`` are a capture too (named ``reflector``).
@@ -691,7 +692,7 @@ class IlluminationResult:
     """The illumination fit and, for the QA report, per reflector image used: its
     brightness map ``B(x)`` on the band grid (NaN off the reflector), its DN in ``qa_band``,
     its effective exposure and file name. ``fit`` is the first capture's (its S is the store's
-    ``spectral_factor``); ``captures`` holds every capture's fit (issue 8)."""
+    ``spectral_factor``); ``captures`` holds every capture's fit."""
 
     fit: illumination.IlluminationFit
     report: StageReport
@@ -953,7 +954,7 @@ def add_illumination(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
                          if len(result.captures) > 1 else "")},
     )
     if result.brightness_maps is not None and result.qa_dn is not None:
-        # For the QA report (issue 5): B(x) of each reflector image and its DN in one band,
+        # For the QA report: B(x) of each reflector image and its DN in one band,
         # so the report can show Eq. 15 beside the Eq. 16 baseline without the session.
         ds = ds.assign_coords(
             reflector_image=np.arange(len(result.views)),
@@ -976,7 +977,7 @@ def add_illumination(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
 
 
 def add_captures(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
-    """Per reflector capture (issue 8): its S, brightness level, time and irradiance, on a
+    """Per reflector capture: its S, brightness level, time and irradiance, on a
     ``capture`` dimension, and which capture each reflector image belongs to."""
     caps = result.captures
     s = np.stack([np.asarray(c.fit.spectral_factor, dtype=np.float64) for c in caps])
@@ -1006,7 +1007,7 @@ def add_captures(ds: xr.Dataset, result: IlluminationResult) -> xr.Dataset:
         "capture", np.array([np.nan if c.capture.irradiance is None else c.capture.irradiance for c in caps]),
         {"long_name": "median sun-sensor level of the capture's frames (NaN: none): horizontal irradiance, "
                       "geometric mean over the bands, or frames.csv irradiance as given",
-         # apply makes the flight's levels alike only for stores that say so (issue 22)
+         # apply makes the flight's levels alike only for stores that say so
          SUN_SENSOR_MODEL_ATTR: SUN_SENSOR_MODEL},
     )
     if "reflector_image" in ds.coords:
@@ -1038,13 +1039,16 @@ CALIBRATE_STEPS = 4
 
 def calibrate_session(session_dir: str | Path, out: str | Path, *, response_method: str = "forward",
                       calibration: str | Path | None = None, advance: Callable[[], None] | None = None,
-                      pool: BandPool | None = None, sweep: SweepFits | None = None) -> xr.Dataset:
+                      pool: BandPool | None = None, sweep: SweepFits | None = None,
+                      workers: int | None = None) -> xr.Dataset:
     """``mscal calibrate``: the three fits from a session folder, written to ``out``.
     ``calibration``: a store whose ``intrinsics`` (``mscal fit intrinsics``) are used when
     session.yaml gives none (nothing else is taken from it). ``advance``: called after each
     of :data:`CALIBRATE_STEPS` steps (a progress bar). ``pool``: the band fits' workers,
-    started by the caller (a pool of its own if None; see
-    :func:`pipeline.calibrate.pool.session_pool`), closed here once the band fits are done;
+    started by the caller (a pool of its own if None, of ``workers`` processes: 0 one per
+    core, 1 none, None ``MSCAL_CALIBRATE_WORKERS`` or one per core, see
+    :func:`pipeline.calibrate.pool.band_workers`; :func:`pipeline.calibrate.pool.session_pool`
+    makes one), closed here once the band fits are done;
     ``sweep``: the response fits already submitted to it
     (:func:`pipeline.calibrate.sweep.start_sweep`)."""
     advance = advance or (lambda: None)
@@ -1054,7 +1058,7 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
     session, source = with_intrinsics(session, partial)
     # one set of workers for both per-band stages; the vignetting frames are read (and
     # hashed) on a thread while the workers fit the response
-    with _pool(pool, camera.n_bands) as pool, ThreadPoolExecutor(1) as aside:
+    with _pool(pool, camera.n_bands, workers) as pool, ThreadPoolExecutor(1) as aside:
         # what does not wait for the fits is done aside, while the workers fit: the vignetting
         # frames are read during the response fits (the marker search needs them next); the
         # response's part of the store and the reflector frames are made during the vignetting

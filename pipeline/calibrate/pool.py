@@ -1,4 +1,4 @@
-"""The worker processes of the per-band calibration fits (issue 25).
+"""The worker processes of the per-band calibration fits.
 
 The response (Eq. 5-7) and vignetting (Eq. 8-10) fits of one band do not depend on the other
 bands (:mod:`pipeline.calibrate.bands`). Run on threads they did not get faster on 2 cores
@@ -42,19 +42,23 @@ log = logging.getLogger(__name__)
 FITS_MODULE = "pipeline.calibrate.bands"
 
 
-#: Environment variable: worker processes for the per-band fits (0 or unset: one per core;
-#: 1: none, every band in the main process).
+#: Environment variable, the default of ``workers`` (:func:`band_workers`): worker processes
+#: for the per-band fits (0 or unset: one per core; 1: none, every band in the main process).
+#: docs/configuration.md lists it.
 WORKERS_ENV = "MSCAL_CALIBRATE_WORKERS"
 
 
-def band_workers(n_tasks: int) -> int:
-    """Worker processes for ``n_tasks`` band fits: ``MSCAL_CALIBRATE_WORKERS`` if set (> 0),
-    else the cores this process may run on; never more than the tasks."""
-    raw = os.environ.get(WORKERS_ENV, "").strip()
-    try:
-        asked = int(raw) if raw else 0
-    except ValueError:
-        asked = 0
+def band_workers(n_tasks: int, workers: int | None = None) -> int:
+    """Worker processes for ``n_tasks`` band fits: ``workers`` if > 0; when None, the
+    ``MSCAL_CALIBRATE_WORKERS`` environment variable if set (> 0); else (0, or an unset or
+    unreadable variable) the cores this process may run on; never more than the tasks."""
+    if workers is None:
+        raw = os.environ.get(WORKERS_ENV, "").strip()
+        try:
+            workers = int(raw) if raw else 0
+        except ValueError:
+            workers = 0
+    asked = workers
     if asked <= 0:
         try:
             asked = len(os.sched_getaffinity(0))
@@ -122,7 +126,8 @@ class BandPool:
     the main process reads the frames."""
 
     def __init__(self, workers: int | None = None, method: str | None = None):
-        """``workers`` (default: one per core); ``method``: the start method of the workers
+        """``workers`` (default: :func:`band_workers`'s, ``MSCAL_CALIBRATE_WORKERS`` or one per
+        core); ``method``: the start method of the workers
         (default :func:`start_method`; ``"fork"`` from a process with other threads can leave a
         worker waiting forever on a lock one of them held: a pytest-xdist worker did)."""
         self.workers = band_workers(64) if workers is None else max(1, int(workers))
@@ -148,7 +153,7 @@ class BandPool:
                 # another order, and the store would differ in its last bits with the workers
                 with threadpool_limits(limits=1, user_api="blas"):
                     fut.set_result(fn(*args))
-            except BaseException as exc:  # noqa: BLE001 - handed to the caller by .result()
+            except BaseException as exc:  # handed to the caller by .result()
                 fut.set_exception(exc)
             return fut
         return self._pool.submit(fn, *args)
@@ -169,8 +174,9 @@ class BandPool:
         self.close()
 
 
-def session_pool(session_dir: str | os.PathLike[str]) -> BandPool:
-    """A :class:`BandPool` for a session folder's camera (a worker per core, at most one per
+def session_pool(session_dir: str | os.PathLike[str], workers: int | None = None) -> BandPool:
+    """A :class:`BandPool` for a session folder's camera (``workers``, default
+    :func:`band_workers`'s: ``MSCAL_CALIBRATE_WORKERS`` or a worker per core; at most one per
     band), started now, with the fits' module imported first (a forked worker then has it):
     ``mscal calibrate`` makes it before it imports the rest of the calibration. Raises what
     :func:`pipeline.ingest.session.load_session` raises for a bad session folder."""
@@ -178,4 +184,4 @@ def session_pool(session_dir: str | os.PathLike[str]) -> BandPool:
 
     n_bands = load_session(session_dir).camera.n_bands
     importlib.import_module(FITS_MODULE)
-    return BandPool(band_workers(n_bands))
+    return BandPool(band_workers(n_bands, workers))

@@ -1,4 +1,4 @@
-"""Band co-registration of a session of multi-lens captures (issue 9): estimate, store, read.
+"""Band co-registration of a session of multi-lens captures: estimate, store, read.
 
 ``mscal register CAPTURES... -o CALIB.zarr`` registers every band of each capture to a
 reference band (:func:`mscal_core.registration.register_stack`), combines the captures whose

@@ -530,7 +530,8 @@ def _micasense_irradiance(ctx: _Ctx) -> float | None:
     sensor's own plane), else DLS 2's ``HorizontalIrradiance``; either times the file's
     irradiance scale (:func:`_micasense_irradiance_scale`). DLS 2 firmware still writes the
     legacy ``Irradiance`` tag beside ``HorizontalIrradiance``, in the same uW cm-2 nm-1 as its
-    other irradiance tags (micasense/imageprocessing issue #47, "DLS2 irradiance units"): read
+    other irradiance tags ("DLS2 irradiance units",
+    https://github.com/micasense/imageprocessing/issues/47): read
     unscaled it gave reflectance 100x too low."""
     ns = ("Camera", "MicaSense", "DLS")
     irr = _positive_irradiance(ctx, "Irradiance", ("Camera", "MicaSense"))
@@ -781,7 +782,7 @@ def _jpeg_exif(data: bytes, path: Path | None = None) -> tuple[dict[str, Any], d
 
     try:
         tags = exifread_tags(io.BytesIO(data))
-    except Exception as exc:  # noqa: BLE001 (exifread raises a zoo of errors on corrupt EXIF)
+    except Exception as exc:  # exifread raises a zoo of errors on corrupt EXIF
         raise FrameError(f"EXIF unreadable ({type(exc).__name__}: {str(exc)[:80]})", path=path,
                          hint="copy the file again from the camera's card") from None
     exif: dict[str, Any] = {}
@@ -975,8 +976,8 @@ def factory_align(metas: Sequence[CaptureMeta], stack: np.ndarray) -> np.ndarray
 
 @dataclass(frozen=True, eq=False)
 class FieldParts:
-    """Components of one band fitted in the field that replace the factory's (issue 6;
-    see :mod:`mscal_core.factory`): ``inverse_response`` U over the sensor DN (Eq. 5-7) and
+    """Components of one band fitted in the field that replace the factory's (see
+    :mod:`mscal_core.factory`): ``inverse_response`` U over the sensor DN (Eq. 5-7) and
     ``vignetting`` V ``(H, W)``, max 1 (Eq. 8-10); None keeps the factory's."""
 
     inverse_response: np.ndarray | None = None
@@ -1117,7 +1118,7 @@ def sun_sensor_absolute(meta: CaptureMeta) -> bool:
     return scale is not None and scale.absolute
 
 
-# --------------------------------------------------------------------------- irradiance (issue 8)
+# --------------------------------------------------------------------------- irradiance
 
 
 def xmp_irradiance(path: str | Path) -> float | None:
@@ -1162,7 +1163,7 @@ def capture_irradiance(capture: "Capture") -> float | None:
     """One raw irradiance level of a one-file-per-band capture: the mean of its bands' XMP
     Irradiance (each band's sensor reading), None unless every band has one. Only ratios of
     these levels are used (:func:`mscal_core.illumination.frame_illumination`). Kept for
-    calibration stores from before issue 22 (raw ``capture_irradiance``); newer stores use the
+    calibration stores from before horizontal levels (raw ``capture_irradiance``); newer stores use the
     horizontal level of :func:`pipeline.ingest.sunsensor.capture_levels`."""
     values = [m.irradiance for m in capture.metas]
     if not values or any(v is None or not v > 0 for v in values):

@@ -34,10 +34,11 @@ LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band", "file_per_capture", "
 FACTORY_MODELS = ("micasense", "sequoia", "dji", "sentera")
 
 
-def catalog_dirs(kind: str) -> list[Path]:
-    """Folders searched for catalog entries of ``kind`` (cameras, targets, indices)."""
-    extra = [Path(p) / kind for p in os.environ.get("MSCAL_CATALOG_PATH", "").split(os.pathsep) if p]
-    return [*extra, CATALOG_ROOT / kind]
+def catalog_dirs(kind: str, search_path: str | None = None) -> list[Path]:
+    """Folders searched for entries of ``kind``: ``<folder>/<kind>`` for each folder of ``search_path`` (os.pathsep-
+    separated; None: ``$MSCAL_CATALOG_PATH``, read at each search), then the shipped catalogs'."""
+    path = os.environ.get("MSCAL_CATALOG_PATH", "") if search_path is None else search_path
+    return [*(Path(p) / kind for p in path.split(os.pathsep) if p), CATALOG_ROOT / kind]
 
 
 # --------------------------------------------------------------------------- validation helpers
@@ -93,7 +94,7 @@ def read_yaml(path: Path, error: type[MscalError] = CatalogError) -> Any:
     except (OSError, UnicodeDecodeError) as exc:
         raise error(f"cannot read: {getattr(exc, 'strerror', None) or exc}", path=path) from None
     try:
-        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 (a SafeLoader)
+        return yaml.load(text, Loader=_StrictLoader)  # a SafeLoader
     except yaml.YAMLError as exc:
         raise error(yaml_problem(exc), path=path, hint="fix the YAML syntax") from None
     except RecursionError:
@@ -753,7 +754,7 @@ class Index:
         or outside ``valid_range`` (:func:`mscal_core.reflectance.keep_valid`)."""
         code = compile(ast.parse(self.expression, mode="eval"), "<index>", "eval")
         with np.errstate(divide="ignore", invalid="ignore"):
-            out = eval(code, {"__builtins__": {}}, {k: bands[k] for k in self.inputs})  # noqa: S307 (validated AST)
+            out = eval(code, {"__builtins__": {}}, {k: bands[k] for k in self.inputs})  # validated AST
         return keep_valid(np.asarray(out, dtype=np.float32), self.valid_range)
 
 

@@ -1,4 +1,4 @@
-"""What a band file says about its camera's optics, for the per-frame TIFFs (issue 24).
+"""What a band file says about its camera's optics, for the per-frame TIFFs.
 
 Photogrammetry software models a camera from the EXIF and XMP tags of the images it is given
 (OpenDroneMap's ``opendm/photo.py``: ``compute_focal`` from ``FocalLengthIn35mmFilm``, else
@@ -132,7 +132,7 @@ def read_optics(path: str | Path) -> CameraOptics:
                 exif = exifread_tags(fh)
     except FrameError:
         raise
-    except Exception as exc:  # noqa: BLE001 (OSError, tifffile's errors, exifread's zoo on corrupt EXIF)
+    except Exception as exc:  # OSError, tifffile's errors, exifread's zoo on corrupt EXIF
         raise FrameError(f"cannot read the file's tags ({type(exc).__name__}: {str(exc)[:80]})", path=path) from None
     unit = exif.get("EXIF FocalPlaneResolutionUnit")
     rx, ry = _positive(exif.get("EXIF FocalPlaneXResolution")), _positive(exif.get("EXIF FocalPlaneYResolution"))

@@ -1,4 +1,4 @@
-"""Ingest a flight folder into the raw datacube ``OUT/raw.zarr`` (docs/architecture.md, issue 3).
+"""Ingest a flight folder into the raw datacube ``OUT/raw.zarr`` (docs/architecture.md).
 
 Layout (Zarr v3, consolidated, opened by ``xarray.open_zarr``):
 
@@ -28,7 +28,7 @@ followed by a re-run gives the same cube as one uninterrupted run. Apply's singl
 commits while its workers write the frames after the commit point
 (:meth:`CubeWriter.commit` with ``room``): the readers' metadata shows the committed frames
 only, and chunks a kill leaves beyond the arrays' shape are deleted on open too. One process at a time:
-an advisory lock on the output folder.
+an advisory lock beside the cube (:func:`cube_lock`).
 
 Memory is flat in the number of frames: frames stream through a small thread pool with a
 bounded look-ahead (hash, read + demosaic; then the write of the frame's whole chunk, at most
@@ -42,7 +42,6 @@ wraps the functions that do them) and check that a re-run gives the same cube.
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import json
 import logging
@@ -69,9 +68,10 @@ from pipeline.ingest.exif import time_ns
 from pipeline.ingest.session import FrameRecord, stored_bands
 from pipeline.storage.atomic import TMP_MARK, atomic_folder
 from pipeline.storage.chunks import FrameChunks, frame_encoding
+from pipeline.storage.lock import FolderLock
 from pipeline.storage.store import FRAME_COORD_ATTRS, file_sha256
 
-__all__ = ["Cube", "IngestResult", "ingest_flight", "open_cube", "RAW_FORMAT", "FRAME_COORDS", "DN_MEDIAN",
+__all__ = ["Cube", "IngestResult", "cube_lock", "ingest_flight", "open_cube", "RAW_FORMAT", "FRAME_COORDS", "DN_MEDIAN",
            "DN_MEDIAN_ATTRS", "band_medians", "kept_medians", "median_uint16", "read_whole"]
 
 #: Variable of raw.zarr (frame, band): the median stored DN of each band of each frame, written
@@ -413,7 +413,7 @@ def _template(camera: Camera, shape: tuple[int, int, int]):
     return ds
 
 
-def raw_codec():  # noqa: ANN201 - zarr.codecs.BloscCodec
+def raw_codec():  # zarr.codecs.BloscCodec
     """Codec of the raw DN cubes: Blosc lz4 level 1 on bit-shuffled uint16. Measured per frame
     (one thread): full-resolution Ximea (4.4 MB) 2.3 ms for 1.86x, against 9.7 ms for 1.94x
     with zstd level 1; MicaSense RedEdge band files 1.4-1.7x, always within 6 % of zstd's
@@ -510,22 +510,12 @@ def _consolidated_matches(root: dict, arrays: dict[str, zarr.Array]) -> bool:
         return False
 
 
-class _Lock:
-    """Advisory lock on the output folder: one ingest into it at a time."""
-
-    def __init__(self, folder: Path, out: Path):
-        self.fd = os.open(folder, os.O_RDONLY)
-        try:
-            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            os.close(self.fd)
-            raise InputError(
-                "another mscal process is writing into this folder", path=out, hint="wait for it to finish"
-            ) from None
-
-    def release(self) -> None:
-        fcntl.flock(self.fd, fcntl.LOCK_UN)
-        os.close(self.fd)
+def cube_lock(out: Path) -> FolderLock:
+    """The lock of the raw datacube ``out``: one ingest into it at a time. A file beside the
+    cube (``.raw.zarr.lock``, as :func:`pipeline.storage.outputs.guarded_output` locks a
+    store), not the output folder's own ``.mscal.lock`` that ``mscal apply`` and ``run`` hold
+    while they ingest; a second process is refused at once, naming the first."""
+    return FolderLock(out.parent, name=f".{out.name}.lock", what="another mscal process", output=out)
 
 
 # --------------------------------------------------------------------------- ingest
@@ -538,7 +528,7 @@ class Cube:
     path: Path
     camera: Camera
     found: Discovery
-    lock: "_Lock"
+    lock: FolderLock
     group: zarr.Group | None
     committed: int
     shape: tuple[int, int, int] | None
@@ -557,7 +547,7 @@ def open_cube(flight_dir: str | Path, camera: Camera | str, out_zarr: str | Path
         camera = load_camera(camera)
     found = discover_flight(flight_dir, camera)
     out.parent.mkdir(parents=True, exist_ok=True)
-    lock = _Lock(out.parent, out)
+    lock = cube_lock(out).acquire()
     try:
         for p in out.parent.glob(f".{out.name}{TMP_MARK}*"):  # a killed creation
             shutil.rmtree(p, ignore_errors=True)
@@ -599,7 +589,7 @@ def ingest_flight(
     Returns counts and the frames quarantined in this run (each ``{"file", "reason"}``, the
     reason naming the file). Raises :class:`SessionError` for a flight folder or ``frames.csv``
     that cannot be read at all, :class:`InputError` for an output that is not an mscal raw
-    datacube of this camera or is being written by another process.
+    datacube of this camera, :class:`LockedError` for one another process is writing.
     """
     t_start = _time.perf_counter()
     if cube is None:

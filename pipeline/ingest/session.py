@@ -555,7 +555,7 @@ def exif_record(path: Path) -> FrameRecord:
             tags = exifread_tags(fh)
     except OSError as exc:
         raise FrameError(f"cannot read: {exc.strerror}", path=path) from None
-    except Exception:  # noqa: BLE001 (exifread raises a zoo of errors on corrupt files)
+    except Exception:  # exifread raises a zoo of errors on corrupt files
         tags = {}
     exp = tags.get("EXIF ExposureTime")
     if exp is None:
@@ -682,6 +682,9 @@ def plain_tiff_pixels(data: bytes | bytearray | memoryview, out: np.ndarray | No
     objects (about 2 ms of Python per file). None for anything else, or anything unexpected
     (other tags, tiles, compression, several images, strips past the end): then tifffile reads it.
     ``out``: an array to decode into when it has the image's shape and dtype (else a new one).
+
+    Measured against tifffile 2026.3.3 (CPU time a file, one run): 0.20 ms vs 0.40-0.52 ms a
+    RedEdge band file, 0.43 ms vs 0.56-0.63 ms a 2048x1088 session frame.
 
     References: TIFF 6.0 specification (Adobe, 1992), sections 2 (structure), 3 (baseline
     fields) and 8 (StripOffsets, StripByteCounts, RowsPerStrip)."""

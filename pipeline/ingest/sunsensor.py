@@ -1,4 +1,4 @@
-"""The sun sensor's reading made horizontal (issue 22): per capture and band the irradiance on
+"""The sun sensor's reading made horizontal: per capture and band the irradiance on
 the horizontal ground from the sensor's reading, the sun's position and the sensor's
 orientation, and one sun-sensor level per frame or capture for the field path (calibrate and
 apply both use :func:`capture_levels` / :func:`record_levels`, so that a reflector capture and a
@@ -60,7 +60,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from mscal_core.errors import FrameError
@@ -346,9 +346,22 @@ def _sentera_factor(meta: CaptureMeta) -> float | None:
 
 #: What a calibration store's ``capture_irradiance`` attribute ``sun_sensor_model`` says when
 #: its levels come from :func:`record_levels` (absent: raw readings, a store from before).
-SUN_SENSOR_MODEL = "horizontal (issue 22)"
+SUN_SENSOR_MODEL = "horizontal"
 #: The attribute's name on ``capture_irradiance``.
 SUN_SENSOR_MODEL_ATTR = "sun_sensor_model"
+#: The values earlier mscal versions wrote for :data:`SUN_SENSOR_MODEL` (the same levels, the
+#: same computation), read as it: part of the store format, not to be written again.
+SUN_SENSOR_MODEL_FORMER = ("horizontal (issue 22)",)
+
+
+def stored_sun_sensor_model(attrs: Mapping[str, Any]) -> str | None:
+    """The ``sun_sensor_model`` of a store's ``capture_irradiance`` attributes: a former value
+    (:data:`SUN_SENSOR_MODEL_FORMER`) read as :data:`SUN_SENSOR_MODEL`; None when absent (raw
+    readings, a store from before horizontal levels)."""
+    model = attrs.get(SUN_SENSOR_MODEL_ATTR)
+    if model is None:
+        return None
+    return SUN_SENSOR_MODEL if str(model) in SUN_SENSOR_MODEL_FORMER else str(model)
 
 
 @dataclass(frozen=True)
@@ -443,6 +456,7 @@ def record_levels(records: Sequence[FrameRecord]) -> Levels:
     return Levels(value, tuple(source))
 
 
-__all__ = ["FIT_GAIN_MIN", "FIT_MIN_CAPTURES", "SUN_SENSOR_MODEL", "SUN_SENSOR_MODEL_ATTR", "Levels",
-           "Orientation", "SensorLight", "capture_levels", "capture_time", "file_xmp", "orientation_or_level",
-           "raw_level", "record_capture", "record_levels", "sensor_light", "sensor_orientation"]
+__all__ = ["FIT_GAIN_MIN", "FIT_MIN_CAPTURES", "SUN_SENSOR_MODEL", "SUN_SENSOR_MODEL_ATTR",
+           "SUN_SENSOR_MODEL_FORMER", "Levels", "Orientation", "SensorLight", "capture_levels", "capture_time",
+           "file_xmp", "orientation_or_level", "raw_level", "record_capture", "record_levels", "sensor_light",
+           "sensor_orientation", "stored_sun_sensor_model"]

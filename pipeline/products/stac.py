@@ -1,4 +1,4 @@
-"""``mscal catalog ROOT``: a static STAC catalog of everything mscal produced under ROOT (issue 10).
+"""``mscal catalog ROOT``: a static STAC catalog of everything mscal produced under ROOT.
 
 Layout (static JSON, every link relative, so the tree can be moved or served as files)::
 
@@ -46,7 +46,8 @@ description naming a catalog index, as ``mscal index`` writes) as ``index_<name>
 the session's ``run.json``, the names, sizes and modification times of the rasters and report
 it catalogues, its project and :data:`ITEM_FORMAT`); an update re-reads only flights whose
 fingerprint changed, keeps the others' JSON as it was, removes items of flights that are gone.
-Updates hold ``ROOT/.mscal-catalog.lock`` (flock), so concurrent runs do not interleave.
+Updates hold ``ROOT/.mscal-catalog.lock`` (:class:`pipeline.storage.lock.FolderLock`, waiting), so concurrent
+runs do not interleave.
 
 **Validation.** Every object written is validated against the STAC 1.1.0 JSON schemas
 (:class:`OfflineValidator`): the schemas are the copies pystac ships as package data (STAC
@@ -57,7 +58,6 @@ the ``mscal:`` prefix.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
@@ -66,7 +66,7 @@ import re
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from mscal_core.errors import InputError
@@ -74,6 +74,7 @@ from mscal_core.errors import InputError
 from pipeline.ingest.catalog import read_yaml
 from pipeline.ingest.exif import parse_iso
 from pipeline.storage.atomic import write_text_atomic
+from pipeline.storage.lock import FolderLock
 
 log = logging.getLogger(__name__)
 
@@ -264,7 +265,7 @@ def _frame_coords(flight: Path, panels: Sequence[str] = ()) -> tuple[np.ndarray,
 
     try:
         ds = xr.open_zarr(flight / "reflectance.zarr", consolidated=False)
-    except Exception as exc:  # noqa: BLE001 (zarr raises many kinds)
+    except Exception as exc:  # zarr raises many kinds
         raise InputError(f"cannot open reflectance.zarr ({exc})", path=flight / "reflectance.zarr",
                          hint="re-run mscal apply on the flight, or remove the folder") from None
     with ds:
@@ -422,22 +423,58 @@ def flight_item(flight: Path, project: Project, project_dir: Path, item_file: Pa
 
 
 def _offline_validator_class() -> type:
-    from pystac.validation.stac_validator import GetSchemaError, JsonSchemaSTACValidator
+    import jsonschema
+    import pystac.utils
+    from pystac.errors import STACValidationError
+    from pystac.validation import GetSchemaError, STACValidator
+    from pystac.validation.local_validator import get_local_schema_cache
+    from pystac.validation.schema_uri_map import DefaultSchemaUriMap
+    from referencing import Registry, Resource
+    from referencing.exceptions import Unresolvable
 
-    class _Offline(JsonSchemaSTACValidator):
-        """pystac's JSON-schema validator restricted to the schemas pystac ships: a schema
-        that is not among them raises instead of being downloaded."""
+    def refuse(uri: str) -> Any:
+        raise GetSchemaError(uri, LookupError(f"schema {uri} is not shipped with pystac and mscal never downloads one"))
 
-        def _get_schema(self, schema_uri: str) -> dict[str, Any]:
-            if schema_uri not in self.schema_cache:
-                raise GetSchemaError(schema_uri, LookupError(
-                    f"schema {schema_uri} is not shipped with pystac and mscal never downloads one"))
-            return self.schema_cache[schema_uri]
+    class _Offline(STACValidator):
+        """pystac's validator interface (:class:`pystac.validation.STACValidator`) over the
+        schemas pystac ships (``get_local_schema_cache``), looked up by pystac's own
+        ``DefaultSchemaUriMap``: a schema that is not among them, or that one of them refers
+        to, raises :class:`pystac.validation.GetSchemaError` instead of being read from its
+        URL. Nothing reads a URL here (no ``StacIO``)."""
+
+        def __init__(self) -> None:
+            self.schema_uri_map = DefaultSchemaUriMap()
+            self.schemas = get_local_schema_cache()
+            self.registry = Registry(retrieve=refuse).with_resources(  # type: ignore[call-arg]
+                (uri, Resource.from_contents(schema)) for uri, schema in self.schemas.items())
+
+        def _check(self, stac_dict: dict[str, Any], object_type: Any, uri: str, href: str | None) -> str:
+            schema = self.schemas.get(uri) or refuse(uri)
+            check = jsonschema.validators.validator_for(schema)(schema, registry=self.registry)
+            try:
+                errors = list(check.iter_errors(stac_dict))
+            except Unresolvable as exc:  # a $ref to a schema that is not shipped
+                raise GetSchemaError(getattr(exc, "ref", uri), exc) from None
+            if errors:
+                best = jsonschema.exceptions.best_match(errors)
+                raise STACValidationError(f"Validation failed for {object_type} at {href} against schema at {uri}"
+                                          f"\n{best}", source=errors) from best
+            return uri
+
+        def validate_core(self, stac_dict: dict[str, Any], stac_object_type: Any, stac_version: str,
+                          href: str | None = None) -> str | None:
+            uri = self.schema_uri_map.get_object_schema_uri(stac_object_type, stac_version)
+            return None if uri is None else self._check(stac_dict, stac_object_type, uri, href)
+
+        def validate_extension(self, stac_dict: dict[str, Any], stac_object_type: Any, stac_version: str,
+                               extension_id: str, href: str | None = None) -> str:
+            uri = pystac.utils.make_absolute_href(extension_id, href)
+            return self._check(stac_dict, stac_object_type, uri, href)
 
     return _Offline
 
 
-def OfflineValidator() -> Any:  # noqa: N802 (a factory named as the class it returns)
+def OfflineValidator() -> Any:  # a factory named as the class it returns
     """A pystac ``STACValidator`` that never touches the network (module docstring)."""
     return _offline_validator_class()()
 
@@ -445,7 +482,7 @@ def OfflineValidator() -> Any:  # noqa: N802 (a factory named as the class it re
 def _validate(d: dict[str, Any], href: Path, validator: Any) -> None:
     import pystac.validation
     from pystac.errors import STACValidationError
-    from pystac.validation.stac_validator import GetSchemaError
+    from pystac.validation import GetSchemaError
 
     try:
         pystac.validation.validate_dict(d, href=str(href), validator=validator)
@@ -485,17 +522,10 @@ def validate_catalog(catalog: str | Path) -> int:
 # --------------------------------------------------------------------------- the catalog
 
 
-@contextlib.contextmanager
-def _locked(root: Path) -> Iterator[None]:
-    import fcntl
-
-    root.mkdir(parents=True, exist_ok=True)
-    with open(root / LOCK_FILE, "a") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+def _locked(root: Path) -> FolderLock:
+    """The catalog's lock: updates of one ROOT wait for each other (however long), apart from
+    the output folders' own locks (a run updates the catalog of the OUT it holds)."""
+    return FolderLock(root, name=LOCK_FILE, wait=True, what="another mscal process updating the catalog")
 
 
 def _write_json(path: Path, d: dict[str, Any]) -> bool:

@@ -1,4 +1,4 @@
-"""``mscal stats``: per-field statistics of index maps over many orthomosaics (issue 10).
+"""``mscal stats``: per-field statistics of index maps over many orthomosaics.
 
 Inputs:
 
@@ -149,7 +149,7 @@ def _check_field(geom: Any) -> str:
         return f"not_a_polygon: {geom['type']}"
     try:
         g = shape(geom)
-    except Exception as exc:  # noqa: BLE001 (malformed coordinates of any kind)
+    except Exception as exc:  # malformed coordinates of any kind
         return f"invalid_geometry: {exc}"
     if g.is_empty:
         return "empty_geometry"
@@ -433,7 +433,7 @@ def mosaic_stats(mosaic: Mosaic, fields: Fields, index_name: str, *, bands: Mapp
             try:
                 g = transform_geom(fields.crs, src.crs, f.geometry)
                 sg = shape(g)
-            except Exception as exc:  # noqa: BLE001 (GDAL/PROJ: outside the projection's domain)
+            except Exception as exc:  # GDAL/PROJ: outside the projection's domain
                 rows.append(_row(f.id, mosaic, index.name, f"reprojection_failed: {exc}"))
                 continue
             if sg.is_empty or not sg.intersects(extent):

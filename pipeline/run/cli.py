@@ -53,7 +53,7 @@ def execution_options(command: Any) -> Any:
                                "processes from 32 frames on.")(command)
 
 
-def _summary(ds) -> str:  # noqa: ANN001 (xarray Dataset)
+def _summary(ds) -> str:  # xarray Dataset
     parts = [f"camera {ds.attrs.get('camera')}", f"{ds.sizes.get('band')} bands"]
     for stage in ("response", "vignetting", "illumination"):
         rep = ds.attrs.get(stage)
@@ -63,13 +63,13 @@ def _summary(ds) -> str:  # noqa: ANN001 (xarray Dataset)
     return ", ".join(parts)
 
 
-def _report_skips(ds) -> None:  # noqa: ANN001
+def _report_skips(ds) -> None:
     for stage in ("response", "vignetting", "illumination"):
         for s in (ds.attrs.get(stage) or {}).get("skipped", []):
             note(f"skipped {stage} frame {s['file']}: {s['reason']}")
 
 
-def _store_summary(command: str, ds, out: Path, headline: str, **details: Any) -> Summary:  # noqa: ANN001
+def _store_summary(command: str, ds, out: Path, headline: str, **details: Any) -> Summary:
     """The summary of a command that wrote calibration store ``out``: its fits, the frames
     each skipped, and the report's warnings on it."""
     skipped = {st: len((ds.attrs.get(st) or {}).get("skipped", [])) for st in ("response", "vignetting", "illumination")
@@ -80,7 +80,7 @@ def _store_summary(command: str, ds, out: Path, headline: str, **details: Any) -
 
 
 
-def _writes(kind: str, what: str):  # noqa: ANN202 (a decorator)
+def _writes(kind: str, what: str):  # a decorator
     """Check the command's ``-o`` before any work and lock it while the command runs.
 
     Writable, never a file or folder mscal did not write (``pipeline.storage.outputs``);
@@ -89,7 +89,7 @@ def _writes(kind: str, what: str):  # noqa: ANN202 (a decorator)
     """
     import functools
 
-    def deco(f):  # noqa: ANN001, ANN202
+    def deco(f):
         @functools.wraps(f)
         def wrapper(*args: Any, wait: bool = False, **kwargs: Any) -> Any:
             out = kwargs.get("out")
@@ -140,7 +140,7 @@ def _version(ctx: click.Context, param: click.Parameter, value: bool) -> None:
     ctx.exit()
 
 
-def _deprecated_alias(old: str, new: str, dest: str, type: Any = RESPONSE_METHODS) -> Any:  # noqa: A002 (click's name)
+def _deprecated_alias(old: str, new: str, dest: str, type: Any = RESPONSE_METHODS) -> Any:  # `type`: click's name
     """A hidden ``old`` spelling of option ``new`` that still works and says it is deprecated."""
     def warn(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
         if value is not None:
@@ -224,7 +224,7 @@ def fit_response(directory: Path, camera: str | None, out: Path, response_method
     _store_summary("fit response", ds, out, f"wrote {out} ({_summary(ds)})").emit()
 
 
-def _stage_command(stage: str):  # noqa: ANN202
+def _stage_command(stage: str):
     @click.argument("session", type=click.Path(path_type=Path))
     @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
                   help="Calibration store (.zarr) to write.")
@@ -598,7 +598,7 @@ def stats(orthos: tuple[Path, ...], fields_path: Path, index_name: str, catalog_
 FLOW_GROUP = "mscal.flows"
 
 
-def _flow(name: str):  # noqa: ANN202 (a Prefect flow)
+def _flow(name: str):  # a Prefect flow
     """The flow registered as ``name`` in :data:`FLOW_GROUP`, loaded after Prefect's
     environment is set (runner.configure_prefect)."""
     from importlib.metadata import entry_points
@@ -616,7 +616,7 @@ def _flow(name: str):  # noqa: ANN202 (a Prefect flow)
     return found[0].load()
 
 
-def _logged(out: Any, command: str):  # noqa: ANN202 (a context manager)
+def _logged(out: Any, command: str):  # a context manager
     """Prefect's and Dask's records (and tracebacks) of the block into ``OUT/logs/<time>-<command>.log``,
     to the terminal too with -v (:func:`pipeline.run.logs.command_log`). Enter it after
     :func:`_flow` (importing Prefect installs its console handler, which is taken off here)."""

@@ -1,5 +1,5 @@
 """What the command line prints: ``-v/-q/--json`` of every command, progress bars, and the
-summary every command ends with (issue 24).
+summary every command ends with.
 
 - :class:`Console` (kept in the click context's ``meta``, so a subcommand's ``-q`` and the
   group's ``-q`` are one setting): verbosity and ``--json``.

@@ -2,7 +2,7 @@
 
 Prefect logs every flow and task run (and a full traceback for each failure) to the console,
 and Dask's ``distributed`` adds its own console handlers: 60-110 lines around the one line
-that says what went wrong (issue 23). Inside :func:`command_log` those records go to
+that says what went wrong. Inside :func:`command_log` those records go to
 ``OUT/logs/<UTC time>-<command>.log`` instead (and also to the terminal with ``-v``):
 
 * every console handler (a ``StreamHandler`` on stderr/stdout) of the root logger and of the

@@ -1,4 +1,4 @@
-"""The post-flight run (``mscal run``, issue 4) apart from its Prefect wiring.
+"""The post-flight run (``mscal run``) apart from its Prefect wiring.
 
 ``flows/post_flight.py`` calls these one at a time; everything that is not wiring lives
 here, free of Prefect, so that it can be tested on its own:
@@ -41,11 +41,11 @@ from pipeline.apply.flight import RUN_JSON, ApplyOptions, apply_flight
 from pipeline.apply.light import INTERPOLATION_MODES
 from pipeline.calibrate.fit import STAGES
 from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
-from pipeline.ingest.catalog import CATALOG_ROOT, load_camera
+from pipeline.ingest.catalog import load_camera
 from pipeline.ingest.session import Session, load_session, read_frame_table
 from pipeline.run.card import CardFlight, CardPlan, is_field_session, plan_card, plan_from_record, plan_record
 from pipeline.storage.atomic import write_json_atomic
-from pipeline.storage.cache import default_cache_dir
+from pipeline.storage.cache import code_digest, default_cache_dir
 from pipeline.storage.store import content_hashes, file_sha256, open_calibration, write_store
 
 log = logging.getLogger(__name__)
@@ -54,8 +54,6 @@ RUN_FORMAT = "mscal-run/1"
 CALIBRATION_STORE = "calibration.zarr"
 #: Inputs of each stage besides the stores of the stages before it (folders of the session).
 STAGE_FOLDERS = {"response": "response", "vignetting": "vignetting", "illumination": "reflector"}
-#: Sources whose change must invalidate cached calibrations (with every catalog YAML).
-_FIT_SOURCES = ("calibrate/fit.py", "ingest/session.py", "ingest/catalog.py", "storage/store.py")
 
 
 # --------------------------------------------------------------------------- environment
@@ -78,18 +76,6 @@ def configure_prefect(home: str | Path | None = None) -> Path:
     os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "300")
     Path(os.environ["PREFECT_HOME"]).mkdir(parents=True, exist_ok=True)
     return Path(os.environ["PREFECT_HOME"])
-
-
-def code_digest() -> str:
-    """sha256 of what the fits' results depend on besides their inputs: the sources of
-    ``mscal_core`` and of the pipeline's calibration modules, and the catalogs."""
-    here = Path(__file__).resolve().parents[1]
-    core = Path(mscal_core.__file__).resolve().parent
-    files = sorted(core.rglob("*.py")) + [here / n for n in _FIT_SOURCES] + sorted(CATALOG_ROOT.rglob("*.yaml"))
-    h = hashlib.sha256()
-    for p in files:
-        h.update(p.name.encode() + b"\0" + p.read_bytes() + b"\0")
-    return h.hexdigest()
 
 
 def versions() -> dict[str, str]:
@@ -413,7 +399,7 @@ def is_remote(url: str | Path) -> bool:
     return bool(m) and m.group(1).lower() not in ("file", "local")
 
 
-def _fs(url: str):  # noqa: ANN202 (fsspec file system, path)
+def _fs(url: str):  # fsspec file system, path
     import fsspec
 
     return fsspec.core.url_to_fs(url)

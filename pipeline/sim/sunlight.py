@@ -1,5 +1,5 @@
-"""A flight under drifting light with a tilted sun sensor, written as a real camera's files
-(issue 22); the check run on it (and on real folders) is
+"""A flight under drifting light with a tilted sun sensor, written as a real camera's files;
+the check run on it (and on real folders) is
 :func:`pipeline.apply.light_check.panel_prediction`.
 
 ``write_sunlight_flight(template, out)`` takes a MicaSense RedEdge capture folder (a panel

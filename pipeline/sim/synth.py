@@ -103,7 +103,7 @@ def write_frameset(folder: Path, frames: FrameSet) -> list[Path]:
             "alt_m": _fmt(meta.get("alt_m"), 3),
         })
     columns = FRAMES_CSV_COLUMNS
-    if any("irradiance" in m for m in frames.meta):  # a sun sensor (issue 8); otherwise no column
+    if any("irradiance" in m for m in frames.meta):  # a sun sensor; otherwise no column
         columns = (*FRAMES_CSV_COLUMNS, "irradiance")
         for row, meta in zip(rows, frames.meta):
             row["irradiance"] = _fmt(meta.get("irradiance"), 6)
@@ -160,7 +160,7 @@ def write_synthesized(session: SyntheticSession, root: Path) -> Path:
     return root
 
 
-# --------------------------------------------------------------------------- orthomosaics (issue 10)
+# --------------------------------------------------------------------------- orthomosaics
 
 
 def write_orthomosaic(path: str | Path, ndvi: np.ndarray, *, crs: str, transform: Sequence[float],
@@ -223,7 +223,7 @@ def write_light_drift(
     subfolders: bool = True,
     gradient_ratio: float = 2.0,
 ) -> dict[str, FrameSet]:
-    """A session folder whose light drifts over the flight (issue 8): ``session.yaml``,
+    """A session folder whose light drifts over the flight: ``session.yaml``,
     ``reflector/`` with one capture per time in ``capture_times_s`` (seconds after the
     session start; subfolders ``capture_0/``, ... or, with ``subfolders=False``, all frames in
     ``reflector/`` told apart by their times), each frame with a sun-sensor ``irradiance``,

@@ -10,7 +10,7 @@ temporaries, which :func:`remove_temporaries` deletes when the run restarts.
 * :func:`atomic_folder`: a temporary folder the caller fills (Zarr stores); an existing folder
   of that name is replaced by :func:`install_folder`.
 
-Durability (what survives a power loss, issue 23): a rename is atomic but not durable by
+Durability (what survives a power loss): a rename is atomic but not durable by
 itself; the file system may write the new name before the data. What marks a run complete
 (``run.json``) and the calibration stores are made durable: ``durable=True`` fsyncs the
 file, or every file of the folder, before the rename and the parent folder after it.

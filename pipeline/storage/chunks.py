@@ -46,7 +46,7 @@ FLAT_CHUNK_KEYS = {"name": "default", "separator": "."}
 _SHUFFLE = {"noshuffle": 0, "shuffle": 1, "bitshuffle": 2}
 
 
-def unwritten_frames(shape: tuple[int, ...], dtype: np.dtype | type | str):  # noqa: ANN201 - dask.array.Array
+def unwritten_frames(shape: tuple[int, ...], dtype: np.dtype | type | str):  # dask.array.Array
     """A variable of a store template (``to_zarr(..., compute=False)``: metadata and
     coordinates are written, its data never computed; the frames' chunks are written later,
     one whole chunk per frame). Lazy zeros in one dask chunk: the Zarr chunks come from the

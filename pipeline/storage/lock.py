@@ -82,15 +82,17 @@ class FolderLock:
 
     ``wait``: False refuses at once with :class:`LockedError` naming the holder; True waits
     as long as it takes; a number waits that many seconds, then refuses. ``what`` names the
-    writer in the message ("mscal run", "the raw datacube").
+    writer in the message ("mscal run", "the raw datacube"); ``output``: the path the message
+    names (what the lock guards, e.g. a store beside its lock file; default ``folder``).
     """
 
     def __init__(self, folder: str | Path, *, name: str = LOCK_NAME, wait: bool | float = False,
-                 what: str = "another mscal process") -> None:
+                 what: str = "another mscal process", output: str | Path | None = None) -> None:
         self.folder = Path(folder)
         self.path = self.folder / name
         self.wait = wait
         self.what = what
+        self.output = self.folder if output is None else Path(output)
         self._fd: int | None = None
 
     def acquire(self) -> "FolderLock":
@@ -120,7 +122,7 @@ class FolderLock:
             except BlockingIOError:
                 if deadline is not None and time.monotonic() >= deadline:
                     holder = describe_holder(_holder_text(fd))
-                    raise LockedError(f"{self.what} is writing here: {holder}", path=self.folder,
+                    raise LockedError(f"{self.what} is writing here: {holder}", path=self.output,
                                       hint="wait for it to finish, or run the same command again with --wait") from None
                 time.sleep(POLL_S)
             except OSError as exc:

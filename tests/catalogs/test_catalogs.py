@@ -231,6 +231,20 @@ def test_cache_sees_an_edited_and_a_new_file(tmp_path, monkeypatch) -> None:
     assert catalog.load_index("ndvi") is shipped
 
 
+def test_catalog_search_path_parameter_and_its_default(tmp_path, monkeypatch) -> None:
+    """``search_path`` given: its folders, then the shipped catalogs; None: MSCAL_CATALOG_PATH's."""
+    import os
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    monkeypatch.setenv("MSCAL_CATALOG_PATH", str(b))
+    assert catalog.catalog_dirs("cameras", f"{a}{os.pathsep}{b}") == [a / "cameras", b / "cameras",
+                                                                         catalog.CATALOG_ROOT / "cameras"]
+    assert catalog.catalog_dirs("targets", "") == [catalog.CATALOG_ROOT / "targets"]
+    assert catalog.catalog_dirs("indices") == [b / "indices", catalog.CATALOG_ROOT / "indices"]
+    monkeypatch.delenv("MSCAL_CATALOG_PATH")
+    assert catalog.catalog_dirs("indices") == [catalog.CATALOG_ROOT / "indices"]
+
+
 def test_catalog_root_is_the_catalogs_package() -> None:
     import catalogs
 

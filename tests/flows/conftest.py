@@ -23,7 +23,7 @@ os.environ.pop("PREFECT_PROFILE", None)
 os.environ["PREFECT_HOME"] = str(_HOME)
 os.environ["MSCAL_CACHE_DIR"] = str(_HOME / "cache")
 
-from pipeline.run.runner import configure_prefect  # noqa: E402
+from pipeline.run.runner import configure_prefect
 
 configure_prefect()
 
@@ -31,7 +31,7 @@ FLIGHTS = ("field", "orchard")
 REFLECTANCE_VARS = ("reflectance", "ndvi", "ndre", "vegetation_mask")
 
 
-def pytest_sessionfinish(session, exitstatus) -> None:  # noqa: ANN001
+def pytest_sessionfinish(session, exitstatus) -> None:
     """Remove the temporary PREFECT_HOME. Prefect's exit hook, which stops the embedded server,
     logs to the streams pytest has closed by then: its "prefect" logger is quietened first."""
     import logging
@@ -85,12 +85,12 @@ marker: {dictionary: DICT_4X4_50, id: 0, size_m: 0.08}
 
 @pytest.fixture(scope="session")
 def multilens_session(tmp_path_factory) -> tuple[Path, Path]:
-    """A session of the multi-lens MicaSense RedEdge (issue 20): its flight ``field`` holds the
+    """A session of the multi-lens MicaSense RedEdge: its flight ``field`` holds the
     real sample captures as an SD card writes them (``0000SET/000/``), and a calibration cache
     (returned beside the session; tests point MSCAL_CACHE_DIR at it) already holds every stage's
     store, a store for the MicaSense bands from the factory model
-    (:func:`tests.micasense_data.factory_store`): the run fits nothing (the field fit of
-    multi-lens cameras is another issue's), it applies."""
+    (:func:`tests.micasense_data.factory_store`): the run fits nothing (multi-lens cameras have
+    no field fit here), it applies."""
     from pipeline.run.runner import plan_calibration
     from tests.micasense_data import factory_store, require_data
 

@@ -30,7 +30,7 @@ def _wait_for(path: Path, procs: list[subprocess.Popen], timeout: float = 90) ->
 
 
 @pytest.fixture(scope="module")
-def cluster(tmp_path_factory):  # noqa: ANN201
+def cluster(tmp_path_factory):
     """``tcp://127.0.0.1:PORT`` of a scheduler with two single-threaded workers."""
     from distributed import Client
 
@@ -72,7 +72,7 @@ def _frame_compute_seconds(cluster: str) -> float:
     """Compute seconds of every ``process_frames`` task the scheduler has seen."""
     from distributed import Client
 
-    def seconds(dask_scheduler) -> float:  # noqa: ANN001
+    def seconds(dask_scheduler) -> float:
         tp = dask_scheduler.task_prefixes.get("process_frames")
         return 0.0 if tp is None else tp.all_durations["compute"]
 
@@ -103,7 +103,7 @@ def test_cluster_run_computed_its_frames_on_the_cluster_workers(cluster_run: Pat
 
 @pytest.mark.long  # 27 s; the MicaSense factory apply on the cluster stays in make test
 def test_cluster_run_of_a_multilens_session(cluster: str, multilens_session, tmp_path, monkeypatch) -> None:
-    """--dask-address takes any camera (issue 20): the one-file-per-band captures of a
+    """--dask-address takes any camera: the one-file-per-band captures of a
     MicaSense session are computed on the cluster's workers, with the same outputs as a
     local ``mscal apply`` of the flight."""
     session, cache = multilens_session

@@ -168,7 +168,7 @@ def test_demo_runs_the_whole_flow_and_says_where_the_outputs_are(first_run: Path
     """The demo's session is the flows' test session (seed 0, small, two flights): its
     calibration comes from the cache, so this checks the demo's wiring, not the fits again."""
     assert main(["demo", "-o", str(tmp_path / "demo"), "--json"]) == 0
-    doc = json.loads(capsys.readouterr().out)  # one JSON document, nothing else (issue 24)
+    doc = json.loads(capsys.readouterr().out)  # one JSON document, nothing else
     assert doc["command"] == "demo" and doc["outputs"]["outputs"] == str(tmp_path / "demo")
     assert doc["outputs"]["run record"] == str(tmp_path / "demo" / "run.json")
     assert doc["demo"]["errors_vs_truth"]["response_max_error"] < 0.02
@@ -216,7 +216,7 @@ def test_io_tasks_retry_io_errors_but_not_bad_input() -> None:
 
 
 def test_run_on_a_multilens_session_applies_its_captures(multilens_session, tmp_path, monkeypatch) -> None:
-    """``mscal run`` on a session naming a one-file-per-band camera (issue 20): the flight's
+    """``mscal run`` on a session naming a one-file-per-band camera: the flight's
     captures go through the one executor with the session's calibration, same layout as
     every flight, and the run's record and report cover it."""
     session, cache = multilens_session

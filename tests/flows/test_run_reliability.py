@@ -1,4 +1,4 @@
-"""``mscal run`` as a user sees it in a terminal (issue 23), each case in its own process:
+"""``mscal run`` as a user sees it in a terminal, each case in its own process:
 
 * two runs started together on one OUT: one completes, the other refuses at once in one line
   (exit 75) or, with --wait (every other trial of the long version), waits and then finds

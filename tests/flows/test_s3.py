@@ -19,7 +19,7 @@ BUCKET = "mscal-test"
 
 
 @pytest.fixture()
-def s3(monkeypatch: pytest.MonkeyPatch):  # noqa: ANN201
+def s3(monkeypatch: pytest.MonkeyPatch):
     """An S3 file system on a fresh moto server at 127.0.0.1, endpoint and dummy keys in the env."""
     import s3fs
     from moto.server import ThreadedMotoServer

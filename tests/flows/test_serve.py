@@ -68,7 +68,7 @@ def test_serve_processes_complete_sessions_once_and_survives_restarts(
     for p in ready.rglob("*"):
         os.utime(p, None)
     assert _serve(inbox, root) == 0
-    lines = capsys.readouterr().out.splitlines()  # the session, then its report's warnings (issue 24)
+    lines = capsys.readouterr().out.splitlines()  # the session, then its report's warnings
     assert lines[0] == f"tuesday: done -> {root / 'tuesday'}" and all(ln.startswith("  ") for ln in lines[1:])
     assert sorted(_state(root)) == ["broken", "monday", "tuesday"]
     assert (root / "monday" / "run.json").stat().st_mtime_ns == stamp

@@ -51,7 +51,7 @@ def test_radiance_formula_by_hand() -> None:
 
 
 def test_radiance_in_place_equals_the_expression_bit_for_bit() -> None:
-    """radiance() works in place on one float64 array (issue 25); every product keeps the
+    """radiance() works in place on one float64 array; every product keeps the
     order of the published expression, so the values are the expression's, bit for bit, and
     ``out`` (float32) holds them rounded once."""
     rng = np.random.default_rng(3)

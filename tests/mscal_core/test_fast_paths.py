@@ -1,4 +1,4 @@
-"""The faster forms of issue 25 give exactly the numbers of the forms they replaced.
+"""The faster forms give exactly the numbers of the forms they replaced.
 
 Each reference below is the code as it was before (a sort where a count now does, a boolean
 gather where a masked expression now does); the new form must match it bit for bit, ties,
@@ -50,7 +50,7 @@ def test_compact_matches_unique_and_searchsorted() -> None:
 
 
 def _rays_to_plane_gather(rays: np.ndarray, pose: Pose) -> np.ndarray:
-    """rays_to_plane before issue 25: the rays that meet the plane gathered first."""
+    """rays_to_plane before its faster form: the rays that meet the plane gathered first."""
     norm = np.asarray(rays, dtype=np.float64).reshape(-1, 2)
     out = np.full(norm.shape, np.nan)
     rot, t = pose.rotation, pose.tvec
@@ -91,7 +91,7 @@ def test_bin_order_stats_several_ranks_at_once() -> None:
     np.testing.assert_array_equal(hi, _lexsort_order_stats(values, k, cnt, cnt // 2))
 
 
-def _noise_model_each_time(r, mu, lev, floor, robust, offset=None):  # noqa: ANN001, ANN202
+def _noise_model_each_time(r, mu, lev, floor, robust, offset=None):
     """_noise_model before the residuals and bins were made once per noise_update."""
     from scipy.optimize import lsq_linear
 
@@ -127,7 +127,7 @@ def _noise_model_each_time(r, mu, lev, floor, robust, offset=None):  # noqa: ANN
     return float(sol[0]), float(sol[1])
 
 
-def _gradient_noise_each_time(r, lev, base, g2):  # noqa: ANN001, ANN202
+def _gradient_noise_each_time(r, lev, base, g2):
     keep = lev < 0.9
     r2 = r[keep] ** 2 / (1.0 - lev[keep])
     g2, base = g2[keep], base[keep]

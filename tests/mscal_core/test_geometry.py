@@ -288,7 +288,7 @@ def test_estimate_pose_behind_camera_rejected(monkeypatch):
         estimate_pose(np.array([[0, 0], [10, 0], [10, 10], [0, 10]], float), 0.1, K_PLAIN)
 
 
-def _window_shifted_first(pose: Pose, k: Intrinsics, size, offset) -> tuple[slice, slice]:  # noqa: ANN001
+def _window_shifted_first(pose: Pose, k: Intrinsics, size, offset) -> tuple[slice, slice]:
     """reflector_window as first written: the projection shifted by the band's offset, then boxed."""
     n = 33
     uu, vv = np.meshgrid(np.linspace(-size[0] / 2, size[0] / 2, n), np.linspace(-size[1] / 2, size[1] / 2, n))

@@ -138,7 +138,7 @@ def test_fit_errors(scene):
         fit_illumination(radiance, r_s, image_index=np.zeros(5, int))
 
 
-# --------------------------------------------------------------------------- light over time (issue 8)
+# --------------------------------------------------------------------------- light over time
 
 
 def test_split_level_is_the_geometric_mean():

@@ -1,4 +1,4 @@
-"""Band co-registration (issue 9) on synthetic multi-lens captures with known transforms."""
+"""Band co-registration on synthetic multi-lens captures with known transforms."""
 
 from __future__ import annotations
 

@@ -132,7 +132,7 @@ def _seconds(times: np.ndarray) -> np.ndarray:
 
 
 def plot_light_over_time(ds: xr.Dataset, flights: Sequence["FlightResults"] = ()) -> Figure:
-    """The light over the session (issue 8): above, S of every band at each reflector capture
+    """The light over the session: above, S of every band at each reflector capture
     relative to the first capture's; below, the brightness level of each capture and, for
     flights applied with light varying in time, of each frame; every flight frame's time is
     marked (ticks at the bottom of both panels). Time in minutes from the first capture."""

@@ -170,7 +170,7 @@ def _chunk_files(flight: FlightResults, name: str, store: str = "raw.zarr") -> F
     return chunks if ok else None
 
 
-def _qa_bands(flight: FlightResults, b: int, frames: Sequence[int]):  # noqa: ANN202 (a generator)
+def _qa_bands(flight: FlightResults, b: int, frames: Sequence[int]):  # a generator
     """``(frame, DN of band b)`` of each of ``frames``: straight from the whole-frame chunk
     files where raw.zarr's layout allows (:class:`pipeline.storage.chunks.FrameChunks`: one
     read and decode per frame, no dask graph), else a few frames per dask read."""

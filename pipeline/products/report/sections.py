@@ -12,6 +12,7 @@ import numpy as np
 import xarray as xr
 from mscal_core.registration import local_motion
 
+from pipeline.ingest.sunsensor import stored_sun_sensor_model
 from pipeline.products.report.calibration import (
     band_name_of,
     calibration_warnings,
@@ -194,14 +195,14 @@ def registration_warnings(ds: xr.Dataset) -> list[QAWarning]:
 
 def capture_level_table(ds: xr.Dataset) -> Table | None:
     """Per reflector capture: its time, brightness level and sun-sensor level, and how the
-    sensor level was obtained (store attribute ``sun_sensor_model``; issue 22). None when no
+    sensor level was obtained (store attribute ``sun_sensor_model``). None when no
     capture has a sensor level."""
     if "capture_irradiance" not in ds:
         return None
     irr = np.asarray(ds["capture_irradiance"].values, dtype=np.float64)
     if not np.isfinite(irr).any():
         return None
-    model = ds["capture_irradiance"].attrs.get("sun_sensor_model") or "raw reading (store written before issue 22)"
+    model = stored_sun_sensor_model(ds["capture_irradiance"].attrs) or "raw reading (store written before horizontal levels)"
     names = ds["capture_name"].values if "capture_name" in ds else range(irr.size)
     times = ds["capture_time"].values if "capture_time" in ds else [None] * irr.size
     levels = ds["capture_level"].values if "capture_level" in ds else [np.nan] * irr.size
@@ -348,7 +349,7 @@ def _band_order(values: dict[str, Any], band_names: Sequence[str]) -> list[str]:
 
 
 def light_tables(run: dict[str, Any], band_names: Sequence[str] = ()) -> list[Table]:
-    """The light of a factory apply over time (run.json ``light``, issue 22): per panel capture
+    """The light of a factory apply over time (run.json ``light``): per panel capture
     and band the panel's irradiance beside the sun sensor's (tilt-corrected) and their ratio;
     per frame the light it was given. [] for runs without one."""
     rec = run.get("light")

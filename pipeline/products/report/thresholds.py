@@ -40,16 +40,16 @@ REFLECTOR_BRIGHTNESS_RATIO_MAX = 1.5
 FRAME_LEVEL_RATIO_MAX = 2.0
 #: The light's colour (S with its level removed, ``mscal_core.illumination.colour_change``)
 #: may change by at most 2 % in any band between consecutive reflector captures. The light
-#: is interpolated between captures (issue 8); if a change was not linear in time, the
+#: is interpolated between captures; if a change was not linear in time, the
 #: interpolated colour can be off by up to about half of it mid-way, and mscal aims at 1 %.
 #: Above it, capture the reflector more often or re-fly in steadier light.
 CAPTURE_COLOUR_CHANGE_MAX = 0.02
-#: Panel and sun sensor (DLS) on the same capture (factory apply, issue 6): their factor ratio
+#: Panel and sun sensor (DLS) on the same capture (factory apply): their factor ratio
 #: carries the DLS's tilt and cosine error, one number for all bands; its spread across bands
 #: (max/min - 1) is a disagreement in colour that goes straight into every index. Above 5 %
 #: the two references give NDVI differing by more than about 0.02 on vegetation: keep the panel.
 PANEL_DLS_COLOUR_SPREAD_MAX = 0.05
-#: Band registration (issue 9): the median distance of the registered captures' transforms
+#: Band registration: the median distance of the registered captures' transforms
 #: to the session transform of a band. Captures of one flight at one altitude agree to a few
 #: tenths of a pixel (synthetic rigs: < 0.3 px); above 1 px the captures saw the rig from
 #: different distances (parallax: a panel capture at 1 m beside flight captures) or one

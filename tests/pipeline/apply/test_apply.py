@@ -392,7 +392,7 @@ def test_disk_full_is_one_line_and_the_same_command_then_resumes(small, tmp_path
 
 
 def test_snapshot_outputs_are_the_kernel_and_the_writers_bit_for_bit(applied, tmp_path) -> None:
-    """Locks the snapshot path of the one executor (issue 20) to what it computed before the
+    """Locks the snapshot path of the one executor to what it computed before the
     two apply paths were merged: every frame's reflectance is exactly ``eq15_fast`` with the
     store's tables on raw.zarr's DN, and every photogrammetry TIFF is byte for byte what the
     writer makes of it with the frame's tags."""

@@ -1,4 +1,4 @@
-"""The apply pass's band geometry step (issue 9): stored band transforms, --no-align,
+"""The apply pass's band geometry step: stored band transforms, --no-align,
 --centre-bands, and outputs unchanged for stores without transforms."""
 
 from __future__ import annotations
@@ -56,11 +56,11 @@ def _files(out: Path) -> dict[str, bytes]:
 
 def test_no_transforms_leaves_the_pass_untouched(plain, tmp_path, monkeypatch) -> None:
     """A store without transforms never reaches the geometry step, its hash and the run's
-    fingerprint are what they were before issue 9 (no new keys), and a store whose transforms
+    fingerprint are what they were before band alignment (no new keys), and a store whose transforms
     are all the identity gives the same bytes."""
     session, calib, out = plain
 
-    def boom(*a, **k):  # noqa: ANN002, ANN003
+    def boom(*a, **k):
         raise AssertionError("geometry step called without transforms")
 
     monkeypatch.setattr(apply_mod, "geometry_step", boom)

@@ -1,4 +1,4 @@
-"""One pipeline for every camera (issue 20): multi-lens (one-file-per-band) flights through the
+"""One pipeline for every camera: multi-lens (one-file-per-band) flights through the
 one executor with a field calibration store or the factory model, on the real MicaSense
 RedEdge captures; capture folders as the camera writes them; options refused where they do
 not apply."""
@@ -72,7 +72,7 @@ def test_factory_and_field_chains_run_in_the_same_executor(store, tmp_path, monk
     seen: list[tuple[str, str]] = []
     real = executor.radiometry
 
-    def spy(camera, chain, job, dn, channels=None):  # noqa: ANN001, ANN202
+    def spy(camera, chain, job, dn, channels=None):
         seen.append((chain.kind, job.name))
         return real(camera, chain, job, dn, channels)
 
@@ -164,7 +164,7 @@ def test_factory_refuses_options_it_would_ignore(tmp_path, capsys, extra, expect
 
 
 def test_factory_panel_light_follows_the_sun_sensor(tmp_path) -> None:
-    """Default with a panel and sun-sensor readings (``panel-dls``, issue 22): each capture's
+    """Default with a panel and sun-sensor readings (``panel-dls``): each capture's
     factor is the panel's times the sensor's change per band, E_h,b(panel) / E_h,b(capture)
     (tilt-corrected readings, run.json sun_sensor); ``--reference panel``: the panel's factor
     for every capture, as before."""
@@ -195,7 +195,7 @@ def test_factory_panel_light_follows_the_sun_sensor(tmp_path) -> None:
 
 
 def test_field_store_light_follows_the_captures_sun_sensor(store, field_run, tmp_path) -> None:
-    """A store whose reflector capture has a sun-sensor reading (issue 8): each multi-lens
+    """A store whose reflector capture has a sun-sensor reading: each multi-lens
     capture's light is scaled by its own DLS reading (the mean of its bands' XMP Irradiance),
     so reflectance is Eq. 15 x E(reflector capture) / E(capture)."""
     from pipeline.storage.store import write_store

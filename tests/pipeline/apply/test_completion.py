@@ -1,4 +1,4 @@
-"""A flight's outputs count as up to date only through its completion marker (issue 23):
+"""A flight's outputs count as up to date only through its completion marker:
 ``run.json``, written last after the outputs are flushed, notes every output file's name and
 size. A half-written or damaged store, a missing TIFF or a missing marker is redone, never
 trusted; the redone outputs equal an uninterrupted run's."""
@@ -26,7 +26,7 @@ def _truncate_chunk(out: Path) -> None:
         f.truncate(chunk.stat().st_size // 2)
 
 
-def _empty_store(out: Path) -> None:  # what two unlocked runs left in the report of issue 23
+def _empty_store(out: Path) -> None:  # what two unlocked runs left behind (a store with no arrays)
     shutil.rmtree(out / "reflectance.zarr")
     (out / "reflectance.zarr").mkdir()
 

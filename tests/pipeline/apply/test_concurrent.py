@@ -1,4 +1,4 @@
-"""Two mscal processes on one output (issue 23): one finishes with complete outputs, the
+"""Two mscal processes on one output: one finishes with complete outputs, the
 other refuses at once naming the holder (exit 75) or, with --wait, waits and then finds the
 outputs up to date. No traceback, nothing half-written, every trial. And a run SIGKILLed at a
 random (seeded) moment, then restarted by two processes at once: one completes, the other

@@ -24,7 +24,7 @@ from tests.no_processes import NoSemaphores
 
 def test_scheduler_for_and_validation(monkeypatch) -> None:
     monkeypatch.setattr("os.cpu_count", lambda: 8)
-    assert scheduler_for(100) == ("processes", 8)  # auto: a long flight on worker processes (issue 25)
+    assert scheduler_for(100) == ("processes", 8)  # auto: a long flight on worker processes
     assert scheduler_for(AUTO_PROCESS_FRAMES - 1) == ("threads", 8)  # a short one on threads
     assert scheduler_for(AUTO_PROCESS_FRAMES, Execution(workers=1)) == ("threads", 1)  # one worker: no pool
     assert scheduler_for(100, Execution("threads")) == ("threads", 8)
@@ -92,7 +92,7 @@ def _arrays(out: Path) -> dict[str, np.ndarray]:
 
 @pytest.mark.slow
 def test_one_worker_and_two_worker_processes_write_the_same_bytes(tmp_path) -> None:
-    """Issue 25: the factory pass over the MicaSense sample run by one thread and by two worker
+    """The factory pass over the MicaSense sample run by one thread and by two worker
     processes (each with its own vignetting maps, each writing whole chunks of its own frames):
     every array of reflectance.zarr and raw.zarr identical, every TIFF the same bytes, and
     run.json says how each ran."""

@@ -50,7 +50,7 @@ def dls_run(tmp_path_factory) -> Path:
 
 
 def test_radiance_is_the_factory_model_and_dls_reflectance_is_pi_l_over_e(dls_run) -> None:
-    """DLS route: R = pi L / E_h with E_h the reading turned horizontal (issue 22: sun position,
+    """DLS route: R = pi L / E_h with E_h the reading turned horizontal (sun position,
     tilt, direct/diffuse split; the correction E_h / E per capture is in run.json sun_sensor)."""
     data = require_data()
     ds = xr.open_zarr(dls_run / "reflectance.zarr")
@@ -83,7 +83,7 @@ def test_radiance_is_the_factory_model_and_dls_reflectance_is_pi_l_over_e(dls_ru
 def test_panel_route_finds_the_panel_and_gives_its_reflectance_back(panel_run) -> None:
     run = json.loads((panel_run / "run.json").read_text())
     ref = run["reference"]
-    assert ref["route"] == "panel-dls"  # the default with a panel and sun-sensor readings (issue 22)
+    assert ref["route"] == "panel-dls"  # the default with a panel and sun-sensor readings
     (panel,) = ref["panels"]
     assert panel["capture"] == "IMG_0000" and panel["region_source"] == ["detected"] * 5
     # the panel is evenly lit in this capture: the Eq. 11-14 split and the plain mean agree

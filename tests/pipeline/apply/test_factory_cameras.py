@@ -1,4 +1,4 @@
-"""Issue 21: ``mscal apply CAPTURE_DIR --calibration factory`` on every camera mscal knows.
+"""``mscal apply CAPTURE_DIR --calibration factory`` on every camera mscal knows.
 
 Real files: MicaSense RedEdge, Parrot Sequoia, Sentera Double 4K (../shared/data). Cameras
 without files here are built from the real RedEdge files with their manufacturer's tag set
@@ -173,7 +173,7 @@ def test_reflect_area_as_one_li_and_other_prefix(tmp_path) -> None:
     folder = cf.reflect_area_one_li(tmp_path / "fw", PANEL_CORNERS)
     run = _apply(folder, tmp_path / "out", "--panel-reflectance", "micasense-rp02-1603036-sc")
     assert run["frames"] == ["IMG_0000", "IMG_0001"] and run["metadata_problems"] == []
-    # one region for all bands (issue 22): band 1's area carried into each band by its detection
+    # one region for all bands: band 1's area carried into each band by its detection
     assert run["reference"]["panels"][0]["region_source"] == ["xmp:Blue"] * 5
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     for b in range(5):
@@ -190,7 +190,7 @@ def test_unreadable_reflect_area_disables_only_the_panel_area(tmp_path, capsys) 
     assert problem["file"].endswith("IMG_0000_1.tif") and problem["tag"] == "ReflectArea"
     assert problem["value"] == "622,371,574,abc" and problem["feature"] == "panel_area"
     # the panel route still works: band 2's area, carried into every band by its detection of
-    # the panel (one region for all bands, issue 22; band 1 used to take its own detected inset)
+    # the panel (one region for all bands; band 1 used to take its own detected inset)
     run = _apply(folder, tmp_path / "panel", "--panel-reflectance", "micasense-rp02-1603036-sc")
     assert run["reference"]["panels"][0]["region_source"] == ["xmp:Green"] * 5
     assert main(["cameras", str(folder)]) == 0
@@ -559,7 +559,7 @@ def test_sentera_panel_route(tmp_path) -> None:
         pytest.skip("no Sentera sample")
     folder = cf.sentera_with_panel(root, tmp_path / "ndre")
     run = _apply(folder, tmp_path / "out", "--panel-reflectance", "0.5", "--panel", "IMG_00006")
-    # ILS counts: no reflectance alone, but they carry the light's change from the panel (issue 22)
+    # ILS counts: no reflectance alone, but they carry the light's change from the panel
     assert run["camera"] == "sentera-d4k-ndre" and run["reference"]["route"] == "panel-dls"
     assert run["reference"]["panels"][0]["region_source"] == ["detected", "detected"]
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")

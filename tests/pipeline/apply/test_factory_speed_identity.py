@@ -1,4 +1,4 @@
-"""Issue 25's shortcuts in the factory path give the values of the longer way, exactly: the sun
+"""The shortcuts in the factory path give the values of the longer way, exactly: the sun
 sensor from the XMP properties kept with each band file's metadata (not a second read of the
 file), the report's frame levels straight from raw.zarr's chunk files with a counting median."""
 

@@ -1,4 +1,4 @@
-"""A frame's chunk writes run on a writer thread while the frame goes on (issue 25), and the
+"""A frame's chunk writes run on a writer thread while the frame goes on, and the
 frame is done only when they are: FrameWrites."""
 
 from __future__ import annotations
@@ -74,7 +74,7 @@ class _Frames:
         self.quarantined, self.fail_start, self.fail_write = set(quarantined), fail_start, fail_write
         self.nbytes = nbytes  # the size of the array each frame hands to its writes
 
-    def start(self, plan, job):  # noqa: ANN001, ANN202
+    def start(self, plan, job):
         from pipeline.apply import executor
 
         self.log.append(f"start {job}")
@@ -91,7 +91,7 @@ class _Frames:
         if job == self.fail_write:
             raise OSError(28, f"{job}: the disk is full")
 
-    def finish(self, plan, w):  # noqa: ANN001, ANN202
+    def finish(self, plan, w):
         from pipeline.apply import executor
 
         w.writes.wait()
@@ -175,7 +175,7 @@ def test_runner_runs_the_frames_a_few_to_a_task_in_job_order(monkeypatch) -> Non
 
     tasks: list[list[int]] = []
 
-    def frames(plan, jobs):  # noqa: ANN001, ANN202
+    def frames(plan, jobs):
         tasks.append(list(jobs))
         return [plan + j for j in jobs]
 

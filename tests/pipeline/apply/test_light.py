@@ -1,4 +1,4 @@
-"""Light that changes during a flight (issue 8): several reflector captures, the light of each
+"""Light that changes during a flight: several reflector captures, the light of each
 frame interpolated in time, sun-sensor readings between the captures.
 
 Validation: a synthetic session whose light loses 25 % of its level and turns 3 % redder over
@@ -95,8 +95,8 @@ def test_store_holds_every_capture(drifting) -> None:
     assert ds["reflector_capture"].values.tolist() == [0, 0, 1, 1]
     caps = ds.attrs["illumination"]["residuals"]["captures"]
     assert [c["images"] for c in caps] == [2, 2]
-    # issue 22: the store says how its levels were computed (here the frames.csv readings, raw)
-    assert ds["capture_irradiance"].attrs["sun_sensor_model"] == "horizontal (issue 22)"
+    # the store says how its levels were computed (here the frames.csv readings, raw)
+    assert ds["capture_irradiance"].attrs["sun_sensor_model"] == "horizontal"
     assert [c["irradiance_source"] for c in caps] == [["frames.csv irradiance (raw: orientation unknown)"]] * 2
 
 
@@ -197,7 +197,7 @@ def test_frames_without_time_cannot_be_interpolated(drifting, tmp_path, capsys) 
 
 def test_one_capture_gives_the_same_bytes_as_an_old_store(small, tmp_path) -> None:
     """Backwards compatibility: a session with one reflector capture applies exactly as before
-    issue 8. A store without the capture variables (as written before) loads and gives
+    captures over time. A store without the capture variables (as written before) loads and gives
     byte-identical outputs, with no illumination coordinates and the same fingerprint."""
     from pipeline.storage.store import open_calibration, write_store
 
@@ -340,7 +340,7 @@ def test_run_checks_the_illumination_mode_before_prefect_starts(drifting, tmp_pa
         check_run_inputs(str(root / "session"), str(tmp_path / "out"), illumination="cubic")
 
 
-# --------------------------------------------------------------------------- issue 22: horizontal sun-sensor levels
+# --------------------------------------------------------------------------- horizontal sun-sensor levels
 
 #: The flight of :func:`pipeline.sim.sunlight.write_sunlight_flight` (RedEdge band files, DLS 1
 #: tags): 6 flight captures between two panel captures 34 minutes apart, the direct light
@@ -349,7 +349,7 @@ def test_run_checks_the_illumination_mode_before_prefect_starts(drifting, tmp_pa
 SUN_FLIGHT = dict(seed=1, n_flight=6, flight_tilt_deg=10.0, panel_tilt_deg=5.0)
 #: The level beta of every capture against the truth's horizontal light: measured 0.23 % worst
 #: with the horizontal levels (seeds 0-2: 0.18-0.23 %; the sensor's 0.2 % noise), 17 % with the
-#: raw readings of a store from before issue 22 (seeds 0-2: 14-36 %).
+#: raw readings of a store from before horizontal levels (seeds 0-2: 14-36 %).
 HORIZONTAL_TOL = 0.005
 RAW_WORSE_THAN = 0.10
 
@@ -359,7 +359,7 @@ def sun_flight(tmp_path_factory):
     """The tilted-sensor flight, its first capture copied as a reflector capture (``refl/``),
     its captures, and stores whose one reflector capture is that capture: ``horizontal``
     (capture_irradiance from calibrate's reflector_captures, marked) and ``old`` (band 1's raw
-    reading, unmarked: what a store from before issue 22 holds)."""
+    reading, unmarked: what a store from before horizontal levels holds)."""
     from pipeline.apply.captures import capture_times
     from pipeline.calibrate.fit import reflector_captures
     from pipeline.ingest.camera_meta import group_captures
@@ -409,7 +409,7 @@ def _level_error(sun_flight, which: str) -> tuple[np.ndarray, object]:
 
 
 def test_tilted_sensor_level_follows_the_horizontal_light(sun_flight) -> None:
-    """Issue 22 on the field path: a multi-lens flight with a tilted sun sensor and drifting
+    """Horizontal levels on the field path: a multi-lens flight with a tilted sun sensor and drifting
     light; the reflector capture's level (calibrate) and each flight capture's (apply) are
     horizontal irradiance, so the light's level beta follows the true horizontal light within
     0.5 % at every capture; with the raw readings (a store from before) it is off by > 10 %."""
@@ -421,7 +421,7 @@ def test_tilted_sensor_level_follows_the_horizontal_light(sun_flight) -> None:
     assert truth.horizontal[-1, 0] / truth.horizontal[0, 0] < 0.95  # and the light drifts
     err, plan = _level_error(sun_flight, "horizontal")
     assert np.abs(err).max() < HORIZONTAL_TOL, err
-    assert plan.irradiance_used.all() and plan.sun_sensor_level.startswith("horizontal (issue 22)")
+    assert plan.irradiance_used.all() and plan.sun_sensor_level.startswith("horizontal")
     summary = plan.summary([str(n) for n in truth.names])
     assert summary["irradiance_sources"] == {
         "horizontal: tilt model, clear-sky diffuse ratio 1/6; orientation DLS:Yaw/Pitch/Roll": len(truth.names)}
@@ -433,7 +433,7 @@ def test_tilted_sensor_level_follows_the_horizontal_light(sun_flight) -> None:
 def test_calibrate_and_apply_levels_of_one_capture_agree(sun_flight) -> None:
     """The reflector capture's level at calibrate and the same capture's level at apply are one
     number (the bias of band 1's reading against the mean of the bands is gone); a store from
-    before issue 22 gives its plan exactly as before: the mean of the bands' raw readings."""
+    before horizontal levels gives its plan exactly as before: the mean of the bands' raw readings."""
     from mscal_core.illumination import frame_illumination
     from pipeline.apply.captures import capture_times
     from pipeline.apply.light import frame_levels
@@ -444,7 +444,7 @@ def test_calibrate_and_apply_levels_of_one_capture_agree(sun_flight) -> None:
     names = [c.name for c in captures]
     levels, how = frame_levels(stores["horizontal"], names, folder, captures)
     assert levels.value[0] == pytest.approx(reflector.irradiance, rel=1e-12)
-    assert how.startswith("horizontal (issue 22)")
+    assert how.startswith("horizontal")
     # a capture's level depends on its own files only, not on the flight it is read with
     assert capture_levels(captures[:1]).value[0] == levels.value[0]
     assert capture_levels(captures[::-1]).value[::-1].tolist() == levels.value.tolist()
@@ -460,6 +460,34 @@ def test_calibrate_and_apply_levels_of_one_capture_agree(sun_flight) -> None:
                                 capture_irradiance=calib["capture_irradiance"].values, frame_irradiance=raw)
     np.testing.assert_array_equal(plan.level, before.level)
     np.testing.assert_allclose(plan.level[0] / calib["capture_level"].values[0], old_bias, rtol=1e-12)
+
+
+def test_store_with_the_former_sun_sensor_model_name_applies_as_before(sun_flight, tmp_path) -> None:
+    """Stores written before the attribute's plain name say ``sun_sensor_model = "horizontal
+    (issue 22)"``: written to disk with that value and read back, such a store gives the plan
+    of a store marked ``horizontal``, number for number, and the report names the same model."""
+    from pipeline.apply.captures import capture_times
+    from pipeline.apply.light import illumination_plan, sun_sensor_model
+    from pipeline.products.report.sections import capture_level_table
+    from pipeline.storage.store import open_calibration, write_store
+
+    _, folder, captures, _, stores = sun_flight
+    former = stores["horizontal"].copy()
+    former["capture_irradiance"] = former["capture_irradiance"].copy()
+    former["capture_irradiance"].attrs["sun_sensor_model"] = "horizontal (issue 22)"
+    write_store(former, tmp_path / "former.zarr")
+    read = open_calibration(tmp_path / "former.zarr")
+    assert read["capture_irradiance"].attrs["sun_sensor_model"] == "horizontal (issue 22)"  # as written
+    assert sun_sensor_model(read) == sun_sensor_model(stores["horizontal"]) == "horizontal"
+    names, times = [c.name for c in captures], capture_times(captures)
+    old = illumination_plan(read, names, times, folder, "linear", captures=captures)
+    new = illumination_plan(stores["horizontal"], names, times, folder, "linear", captures=captures)
+    assert old.sun_sensor_level == new.sun_sensor_level and old.sun_sensor_level.startswith("horizontal: ")
+    assert old.irradiance_used.all()
+    np.testing.assert_array_equal(old.level, new.level)
+    np.testing.assert_array_equal(old.scale, new.scale)
+    assert old.digest() == new.digest()
+    assert capture_level_table(read).note == capture_level_table(stores["horizontal"]).note
 
 
 def test_real_rededge_band_one_against_mean_of_bands() -> None:
@@ -514,7 +542,7 @@ def test_apply_panel_late_matches_early_with_horizontal_levels(sun_flight, tmp_p
         runs[which] = (panels[1] / panels[0] - 1.0, json.loads((out / "run.json").read_text())["illumination"])
     err, ill = runs["horizontal"]
     assert np.abs(err).max() < HORIZONTAL_TOL, err
-    assert ill["sun_sensor_level"].startswith("horizontal (issue 22)")
+    assert ill["sun_sensor_level"].startswith("horizontal")
     raw_err, raw_ill = runs["old"]
     assert np.abs(raw_err).max() > 0.05, raw_err
     assert raw_ill["sun_sensor_level"] == RAW_LEVELS

@@ -75,7 +75,7 @@ def test_panel_reflectance_of_the_panel_is_rho(panel_capture, factors, band: int
 
 def test_flight_ndvi_is_bimodal_vegetation_and_soil(flight) -> None:
     _, panel, _ = flight
-    nd = capture_ndvi(panel["Red"], panel["NIR"])  # bands not co-registered (issue 9)
+    nd = capture_ndvi(panel["Red"], panel["NIR"])  # bands not co-registered
     nir = panel["NIR"]
     top = nir >= np.percentile(nir, 90)
     assert float(np.nanmedian(nd[top])) == pytest.approx(0.773, abs=0.03)
@@ -200,7 +200,7 @@ def test_light_on_the_panel_split_into_colour_and_brightness(panel_capture, fact
 
 
 def test_one_panel_region_for_all_bands(panel_capture, tmp_path) -> None:
-    """Issue 22: band 1 carries the camera's small ReflectArea in one corner of the panel, the
+    """Band 1 carries the camera's small ReflectArea in one corner of the panel, the
     other bands none. Each band used to look at its own spot (band 1 that corner, the others the
     0.75 inset of their detection); now the corner is carried into every band through its own
     detection of the same square: the same panel coordinates in all five bands."""

@@ -1,4 +1,4 @@
-"""Issue 24: the per-frame TIFFs read back as photogrammetry software reads them, one test per
+"""The per-frame TIFFs read back as photogrammetry software reads them, one test per
 camera kind: the snapshot mosaic camera (synthetic session, its catalog's camera and the
 calibration's intrinsics), and the real MicaSense RedEdge, Parrot Sequoia and Sentera Double
 4K captures (../shared/data) through the factory chain.
@@ -76,7 +76,7 @@ def snapshot(small, tmp_path_factory) -> tuple[Path, Path, Path]:
 # --------------------------------------------------------------------------- helpers
 
 
-def _f(tag) -> float:  # noqa: ANN001
+def _f(tag) -> float:
     v = tag.values[0] if isinstance(tag.values, list) else tag.values
     return float(v) if isinstance(v, (int, float)) else float(v.num) / float(v.den)
 

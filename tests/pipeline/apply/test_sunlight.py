@@ -1,4 +1,4 @@
-"""Panels anchored by the sun sensor (issue 22): warnings with their numbers, the report's
+"""Panels anchored by the sun sensor: warnings with their numbers, the report's
 tables, the panel-dls route without readings."""
 
 from __future__ import annotations

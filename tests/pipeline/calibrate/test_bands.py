@@ -1,4 +1,4 @@
-"""Per-band fits on worker processes (issue 25): the same store whichever process fits a band."""
+"""Per-band fits on worker processes: the same store whichever process fits a band."""
 
 from __future__ import annotations
 
@@ -107,6 +107,16 @@ def test_band_workers_default_is_the_cores(monkeypatch) -> None:
 
     monkeypatch.setenv(WORKERS_ENV, "junk")
     assert band_workers(1000) == len(os.sched_getaffinity(0))
+
+
+@pytest.mark.parametrize(("workers", "tasks", "expect"), [(3, 25, 3), (3, 2, 2), (1, 25, 1)])
+def test_band_workers_parameter_wins_over_the_variable(monkeypatch, workers: int, tasks: int, expect: int) -> None:
+    """``workers`` given: the variable (only its default) is not read; 0 is one per core."""
+    import os
+
+    monkeypatch.setenv(WORKERS_ENV, "7")
+    assert band_workers(tasks, workers) == expect
+    assert band_workers(1000, 0) == len(os.sched_getaffinity(0))
 
 
 def test_detection_image_table_path_matches_the_plain_one() -> None:

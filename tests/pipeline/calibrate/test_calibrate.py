@@ -148,7 +148,7 @@ def _clone(session: Path, dst: Path, copy: tuple[str, ...] = ()) -> Path:
     return dst
 
 
-def _edit_csv(path: Path, edit) -> None:  # noqa: ANN001
+def _edit_csv(path: Path, edit) -> None:
     rows = list(csv.DictReader(path.open()))
     edit(rows)
     with path.open("w", newline="") as fh:
@@ -166,7 +166,7 @@ def _one_line_error(code: int, err: str) -> str:
     return lines[0]
 
 
-def _set(rows, i, key, value):  # noqa: ANN001, ANN202
+def _set(rows, i, key, value):
     rows[i][key] = value
 
 
@@ -208,7 +208,7 @@ def test_bad_sweep_gives_one_line_naming_the_file(small, tmp_path, capsys, case,
     elif case == "one_exposure":
         _edit_csv(csv_path, lambda r: [row.update(exposure_ms="5") for row in r])
     elif case == "inconsistent":
-        def swap(rows):  # noqa: ANN001, ANN202
+        def swap(rows):
             rows[1]["exposure_ms"], rows[5]["exposure_ms"] = rows[5]["exposure_ms"], rows[1]["exposure_ms"]
         _edit_csv(csv_path, swap)
     # an existing store at the output path must survive the failed run untouched
@@ -260,7 +260,7 @@ def test_partial_store_of_another_kind_is_named(small, tmp_path, capsys) -> None
     assert "u.zarr: store lacks vignetting needed for illumination" in line
 
 
-# --------------------------------------------------------------------------- full size (the numbers)
+# --------------------------------------------------------------------------- full size (the accuracy targets)
 
 
 @pytest.mark.slow

@@ -167,7 +167,7 @@ def test_concurrent_records_all_end_up_in_the_index(tmp_path) -> None:
         try:
             library.record(stores[k], camera=CAMERA, serial=SERIAL_A, session_time=T0 + timedelta(hours=k),
                            library_root=root)
-        except BaseException as exc:  # noqa: BLE001 (reported below)
+        except BaseException as exc:  # reported below
             errors.append(exc)
 
     threads = [threading.Thread(target=rec, args=(k,)) for k in range(6)]

@@ -1,4 +1,4 @@
-"""Session band co-registration (issue 9): combination, fallbacks, store, real RedEdge data."""
+"""Session band co-registration: combination, fallbacks, store, real RedEdge data."""
 
 from __future__ import annotations
 
@@ -73,7 +73,7 @@ def test_register_refuses_a_snapshot_mosaic(tmp_path, capsys) -> None:
     assert code == 2 and "snapshot mosaic" in err and len(err.splitlines()) == 1
 
 
-def _third(path) -> np.ndarray:  # noqa: ANN001
+def _third(path) -> np.ndarray:
     img = tifffile.imread(path).astype(np.float32)
     return cv2.resize(img, (img.shape[1] // 3, img.shape[0] // 3), interpolation=cv2.INTER_AREA)
 

@@ -1,4 +1,4 @@
-"""Issue 21: XMP read the way cameras write it (pipeline.ingest.xmp), cameras recognised from
+"""XMP read the way cameras write it (pipeline.ingest.xmp), cameras recognised from
 their files (pipeline.ingest.identify), the camera catalog entries, and ``mscal cameras``."""
 
 from __future__ import annotations
@@ -164,7 +164,8 @@ def test_dls2_horizontal_irradiance_and_its_scale() -> None:
 
 def test_dls2_legacy_irradiance_takes_the_files_scale() -> None:
     """DLS 2 firmware also writes the legacy ``Camera:Irradiance`` beside HorizontalIrradiance,
-    in the same uW cm-2 nm-1 (micasense/imageprocessing issue #47): it is scaled like the other
+    in the same uW cm-2 nm-1 ("DLS2 irradiance units",
+    https://github.com/micasense/imageprocessing/issues/47): it is scaled like the other
     irradiance tags of the file (0.01 without IrradianceScaleToSIUnits), not read as W m-2 nm-1.
     A DLS 1 file (the sample: no HorizontalIrradiance) keeps its reading as it is."""
     from pipeline.ingest.camera_meta import meta_from_tags

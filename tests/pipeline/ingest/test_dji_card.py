@@ -141,7 +141,7 @@ def exif_jpegs(draw) -> tuple[bytes, str]:
 def _clean_or_value(read, name: str):
     try:
         return read()
-    except Exception as exc:  # noqa: BLE001 (the property is about which exceptions)
+    except Exception as exc:  # the property is about which exceptions
         assert isinstance(exc, MscalError), f"{type(exc).__name__} escaped: {exc!r}"
         assert exc.exit_code == 2 and len(str(exc).splitlines()) == 1 and name in str(exc), exc
         return None

@@ -1,4 +1,4 @@
-"""Property-based fuzzing of the files a user hands mscal (issue 23): session.yaml, frames.csv,
+"""Property-based fuzzing of the files a user hands mscal: session.yaml, frames.csv,
 catalog YAML and XMP packets.
 
 Every strategy starts from a real, valid document (the small synthetic session, the shipped
@@ -74,7 +74,7 @@ def read_or_error(read, *names: str):
     """``read()``'s value, or None after checking the error it raised."""
     try:
         return read()
-    except Exception as exc:  # noqa: BLE001 (the property is about which exceptions)
+    except Exception as exc:  # the property is about which exceptions
         assert_clean_error(exc, *names)
         return None
 

@@ -1,4 +1,4 @@
-"""Flight discovery and ingest into OUT/raw.zarr (docs/architecture.md, "Flights (issue 3)").
+"""Flight discovery and ingest into OUT/raw.zarr (docs/architecture.md, "Flights").
 
 Layout, coordinates and CF attributes of the cube; every kind of bad frame quarantined with a
 reason naming the file while the rest go on; incremental and idempotent re-runs (nothing
@@ -12,7 +12,6 @@ ingests take milliseconds; layout and EXIF tests use the paper's Ximea camera at
 from __future__ import annotations
 
 import csv
-import fcntl
 import hashlib
 import os
 import shutil
@@ -36,7 +35,7 @@ import pipeline.ingest.session as session_mod
 from mscal_core.errors import InputError, SessionError
 from pipeline.ingest.catalog import load_camera
 from pipeline.ingest.discover import discover_flight
-from pipeline.ingest.raw import DN_MEDIAN, ingest_flight
+from pipeline.ingest.raw import DN_MEDIAN, cube_lock, ingest_flight
 from pipeline.ingest.session import decode_raw, exif_record, read_bands
 from tests.pipeline.ingest.kill_points import KILL_CODE, arm
 
@@ -416,19 +415,17 @@ def test_output_checks(tmp_path, catalog) -> None:
     (tmp_path / "junk.zarr" / "zarr.json").write_text("{}")
     with pytest.raises(InputError, match="not an mscal raw datacube"):
         ingest_flight(d, TINY, tmp_path / "junk.zarr")
-    fd = os.open(tmp_path, os.O_RDONLY)  # another process writing into the folder
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+    with cube_lock(out):  # another process ingesting into the cube: refused at once, named
         code = (
             "import sys\nfrom pipeline.ingest.raw import ingest_flight\n"
             "try:\n    ingest_flight(sys.argv[1], sys.argv[2], sys.argv[3])\n"
-            "except Exception as e:\n    print(e)\n"
+            "except Exception as e:\n    print(type(e).__name__, e)\n"
         )
         p = subprocess.run([sys.executable, "-c", code, str(d), TINY, str(out)], cwd=ROOT,
                            capture_output=True, text=True, timeout=120)
-        assert "another mscal process is writing" in p.stdout, p.stderr
-    finally:
-        os.close(fd)
+        assert p.stdout.startswith(f"LockedError {out}: another mscal process is writing here: "
+                                   f"pid {os.getpid()} on "), (p.stdout, p.stderr)
+    assert not (tmp_path / ".raw.zarr.lock").exists()
 
 
 # --------------------------------------------------------------------------- EXIF fallback

@@ -1,4 +1,4 @@
-"""The sun sensor's tags per vendor (issue 22): orientation from the sensor's own IMU, else the
+"""The sun sensor's tags per vendor: orientation from the sensor's own IMU, else the
 aircraft's; DLS 2's measured split; no sun position without time or GPS; and the one sun-sensor
 level of a frame or capture that calibrate and apply share."""
 

@@ -1,4 +1,4 @@
-"""The QA report (issue 5): plots of stored results, warnings with numbers, one
+"""The QA report: plots of stored results, warnings with numbers, one
 self-contained HTML page, and (slow) that page rendered in headless Chromium.
 
 The fast tests use a calibration store built from the synthetic camera truth (no fit: it
@@ -119,7 +119,7 @@ def calib_ds(calib) -> xr.Dataset:
     return open_calibration(calib)
 
 
-def _rewrite_csv(folder: Path, edit) -> None:  # noqa: ANN001
+def _rewrite_csv(folder: Path, edit) -> None:
     rows = list(csv.DictReader((folder / "frames.csv").open()))
     edit(rows)
     with (folder / "frames.csv").open("w", newline="") as fh:
@@ -140,7 +140,7 @@ def flights(truth, calib, tmp_path_factory) -> dict[str, Path]:
     shutil.copytree(clean, bad)
     (bad / "IMG_0004.tif").write_bytes((bad / "IMG_0000.tif").read_bytes()[:5000])
 
-    def edit(rows):  # noqa: ANN001, ANN202
+    def edit(rows):
         rows[2]["exposure_ms"] = repr(float(rows[2]["exposure_ms"]) * 4)
         rows.append({**rows[0], "file": "IMG_0004.tif"})
 
@@ -152,7 +152,7 @@ def flights(truth, calib, tmp_path_factory) -> dict[str, Path]:
     return out
 
 
-def _panels(fig) -> list:  # noqa: ANN001
+def _panels(fig) -> list:
     """Axes of a figure other than colour bars."""
     return [ax for ax in fig.axes if ax.get_label() not in ("<colorbar>", "<twin>")]
 
@@ -212,7 +212,7 @@ def test_eq15_corrects_the_reflector_and_eq16_shows_the_light(calib_ds) -> None:
 # --------------------------------------------------------------------------- calibration warnings
 
 
-def _edit(ds: xr.Dataset, stage: str, **residuals) -> xr.Dataset:  # noqa: ANN003
+def _edit(ds: xr.Dataset, stage: str, **residuals) -> xr.Dataset:
     out = ds.copy()
     out.attrs = copy.deepcopy(dict(ds.attrs))
     out.attrs[stage]["residuals"].update(residuals)
@@ -381,7 +381,7 @@ def test_report_is_written_atomically(calib_ds, tmp_path, monkeypatch) -> None:
     seen = []
     real_replace = os.replace
 
-    def failing_replace(src, dst):  # noqa: ANN001, ANN202
+    def failing_replace(src, dst):
         seen.append((Path(src), Path(dst)))
         raise OSError("disk full")
 
@@ -455,7 +455,7 @@ def test_older_and_partial_stores_still_report(calib_ds) -> None:
 
 
 def test_capture_level_table_says_how_the_sensor_level_was_obtained() -> None:
-    """Issue 22: the calibration section lists each reflector capture's sun-sensor level and
+    """The calibration section lists each reflector capture's sun-sensor level and
     the store's ``sun_sensor_model`` (raw for a store written before it); none without levels."""
     import xarray as xr
 
@@ -463,13 +463,13 @@ def test_capture_level_table_says_how_the_sensor_level_was_obtained() -> None:
 
     times = np.array(["2026-06-01T10:00:00", "2026-06-01T10:34:00"], dtype="datetime64[ns]")
     ds = xr.Dataset({"capture_level": ("capture", [1.0, 0.87]),
-                     "capture_irradiance": ("capture", [0.41, 0.356], {"sun_sensor_model": "horizontal (issue 22)"}),
+                     "capture_irradiance": ("capture", [0.41, 0.356], {"sun_sensor_model": "horizontal"}),
                      "capture_time": ("capture", times)},
                     coords={"capture_name": ("capture", ["before", "after"])})
     t = capture_level_table(ds)
     assert t is not None and [r[0] for r in t.rows] == ["before", "after"]
     assert t.rows[1] == ["after", "2026-06-01T10:34:00", 0.87, 0.356]
-    assert "horizontal (issue 22)" in t.note
+    assert "horizontal" in t.note
     old = ds.assign(capture_irradiance=("capture", [0.41, 0.356]))
     assert "raw reading" in capture_level_table(old).note
     assert capture_level_table(ds.assign(capture_irradiance=("capture", [np.nan, np.nan]))) is None

@@ -1,4 +1,4 @@
-"""The STAC catalog of an output root (issue 10): layout, items, incremental updates, offline
+"""The STAC catalog of an output root: layout, items, incremental updates, offline
 validation. Flight folders are laid out as mscal apply / mscal run write them (run.json,
 reflectance.zarr with its frame coordinates; the reflectance itself is not read)."""
 
@@ -78,7 +78,7 @@ def root(tmp_path: Path) -> Path:
 
 
 def _no_network(monkeypatch: pytest.MonkeyPatch) -> None:
-    def refuse(*a, **k):  # noqa: ANN002, ANN003
+    def refuse(*a, **k):
         raise OSError("network disabled by the test")
 
     monkeypatch.setattr(socket.socket, "connect", refuse)

@@ -1,4 +1,4 @@
-"""Per-field statistics over synthetic orthomosaics with known per-pixel NDVI (issue 10).
+"""Per-field statistics over synthetic orthomosaics with known per-pixel NDVI.
 
 Mosaic A is in UTM 33N (EPSG:32633), mosaic B over the same ground in Web Mercator
 (EPSG:3857); the fields are WGS 84 GeoJSON. The truth of each field on each mosaic is

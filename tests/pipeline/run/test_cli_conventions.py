@@ -1,4 +1,4 @@
-"""The command line follows conventions (issue 24): --version, -v/-q/--json on every command,
+"""The command line follows conventions: --version, -v/-q/--json on every command,
 short help never cut, help on every option, one name per option, a summary with the QA
 report's own warnings (one JSON document with --json), the panel a factory apply saw but did
 not use, index without rasterio's NotGeoreferencedWarning, progress bars on stderr."""
@@ -124,7 +124,7 @@ def test_fit_response_method_is_a_deprecated_alias(small, tmp_path: Path, monkey
     session, calib = small
     seen = []
 
-    def fake(directory, out, camera, method):  # noqa: ANN001, ANN202 (the fit is tested elsewhere)
+    def fake(directory, out, camera, method):  # the fit is tested elsewhere
         seen.append(method)
         return open_calibration(calib)
 
@@ -224,7 +224,7 @@ def test_factory_apply_with_the_panel_reports_its_colour_disagreement(micasense:
     code, text, err = _run(["apply", micasense, "--calibration", "factory", "-o", out, "--panel-reflectance", PANEL,
                             "--json"])
     doc = json.loads(text)
-    assert code == 0 and doc["command"] == "apply" and doc["reference"]["route"] == "panel-dls"  # issue 22 default
+    assert code == 0 and doc["command"] == "apply" and doc["reference"]["route"] == "panel-dls"  # the default with a panel and sun-sensor readings
     w, misreg = doc["warnings"]
     assert misreg["code"] == "band_misregistration" and misreg["value"] == pytest.approx(14.06, abs=0.01)
     assert w["code"] == "panel_dls_colour" and w["threshold"] == 0.05
@@ -237,7 +237,7 @@ def test_factory_apply_with_the_panel_reports_its_colour_disagreement(micasense:
     lines = text.splitlines()
     assert code == 0 and lines[0].endswith("up to date)") and len(lines) == 4
     assert lines[2].startswith("  warning panel_dls_colour: panel IMG_0000: panel and sun sensor disagree in colour "
-                               "by 53%") and lines[2].endswith("(value 0.5322, threshold 0.05)")  # one panel region for all bands (issue 22)
+                               "by 53%") and lines[2].endswith("(value 0.5322, threshold 0.05)")  # one panel region for all bands
 
 
 def test_a_folder_without_a_panel_gets_no_panel_warning(tmp_path: Path) -> None:
@@ -294,7 +294,7 @@ def test_calibrate_progress_bar_and_summary(small, tmp_path: Path, monkeypatch) 
     session, calib = small
     steps = []
 
-    def fake(session_dir, out, *, response_method, calibration, advance, pool, sweep):  # noqa: ANN001, ANN202
+    def fake(session_dir, out, *, response_method, calibration, advance, pool, sweep):
         # the band workers and the sweep's fits were started before the fit module was used
         assert pool.workers >= 1 and sweep.method == response_method and len(sweep.futures) == 25
         for _ in range(fit.CALIBRATE_STEPS):
@@ -385,7 +385,7 @@ def test_demo_prints_plain_lines_or_one_json_document(tmp_path: Path, monkeypatc
 
     out = tmp_path / "demo"
 
-    def fake(o, *, flow, size, seed):  # noqa: ANN001, ANN202
+    def fake(o, *, flow, size, seed):
         out.mkdir(exist_ok=True)
         (out / "run.json").write_text(json.dumps({"flights": {"field": {}}}))
         return {"session": str(out / "session"), "outputs": str(out), "run_json": str(out / "run.json"),

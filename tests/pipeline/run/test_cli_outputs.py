@@ -1,5 +1,5 @@
 """-o is checked before any work, for every command that writes: one line naming the path,
-exit status 2, nothing of the user's replaced (issue: calibrate -o FILE once replaced a file)."""
+exit status 2, nothing of the user's replaced (calibrate -o FILE once replaced a file)."""
 
 from __future__ import annotations
 

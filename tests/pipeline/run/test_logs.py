@@ -1,4 +1,4 @@
-"""The log file of a command that runs Prefect or Dask (issue 23): records and tracebacks to
+"""The log file of a command that runs Prefect or Dask: records and tracebacks to
 ``OUT/logs/``, not the terminal; errors leave the block naming the file."""
 
 from __future__ import annotations

@@ -156,7 +156,7 @@ def test_a_failed_upload_leaves_no_run_json_behind(tmp_path: Path, monkeypatch: 
     (out / "a.bin").write_bytes(b"a")
     (out / "run.json").write_text("{}")
 
-    def broken(self, *a, **k):  # noqa: ANN001, ANN202
+    def broken(self, *a, **k):
         raise ConnectionError("network down")
 
     monkeypatch.setattr(type(fs), "put", broken)

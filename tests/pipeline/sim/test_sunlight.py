@@ -1,5 +1,5 @@
-"""Issue 22 done-when on a synthetic flight with drifting light and a tilted sun sensor (direct +
-diffuse; :mod:`pipeline.sim.sunlight`, built from the real RedEdge capture's pixels), and on the
+"""Horizontal sun-sensor levels on a synthetic flight with drifting light and a tilted sun
+sensor (direct + diffuse; :mod:`pipeline.sim.sunlight`, built from the real RedEdge capture's pixels), and on the
 real MicaSense capture."""
 
 from __future__ import annotations
@@ -91,7 +91,7 @@ def test_apply_anchors_the_sensor_on_the_panels_and_finds_them_mixed(flight, tmp
 
 def test_real_panel_against_itself_within_one_percent() -> None:
     """The real capture holds one panel (IMG_0000) and one flight capture 1.5 min later: no
-    second panel to predict (the issue's 34-minute pair is kept aside). The panel against
+    second panel to predict (a 34-minute pair is kept aside). The panel against
     itself, with one region for all bands, is within 1 %; the sun sensor alone (tilt-corrected)
     reads its light 4-27 % off per band: a DLS 1 calibration error the panel removes."""
     res = panel_prediction(require_data(), TARGET, "IMG_0000", "IMG_0000")

@@ -94,7 +94,7 @@ def test_install_folder_when_another_process_installs_the_same_name_at_once(tmp_
     (tmp / "zarr.json").write_text("mine")
     real_replace, raced = os.replace, []
 
-    def replace(src, dst):  # noqa: ANN001
+    def replace(src, dst):
         if str(dst) == str(final) and not raced:
             raced.append(1)
             final.mkdir()

@@ -120,7 +120,7 @@ def test_threads_each_write_their_own_bytes(tmp_path) -> None:
         try:
             for rep in range(3):
                 write_file(tmp_path / f"f{k}_{rep}.bin", [_payload(sizes[k], seed=k * 10 + rep)])
-        except BaseException as exc:  # noqa: BLE001 - reported below
+        except BaseException as exc:  # reported below
             errors.append(exc)
 
     threads = [threading.Thread(target=work, args=(k,)) for k in range(len(sizes))]
