@@ -21,7 +21,7 @@ from typing import Any, Callable, Iterator, Sequence
 import mscal_core
 import numpy as np
 import xarray as xr
-from mscal_core import geometry, illumination, response, vignetting
+from mscal_core import geometry, illumination, marker, response, vignetting
 from mscal_core.errors import FitError, MscalError, SessionError
 from mscal_core.mosaic import band_offsets
 
@@ -165,9 +165,15 @@ class View:
     record: FrameRecord
     pose: geometry.Pose
     band_poses: tuple[geometry.Pose | None, ...] | None = None
+    #: How the pose was chosen between the two IPPE solutions (of a multi-lens camera: per band).
+    choice: marker.PoseChoice | None = None
+    band_choices: tuple[marker.PoseChoice | None, ...] | None = None
 
     def pose_for(self, band: int) -> geometry.Pose | None:
         return self.pose if self.band_poses is None else self.band_poses[band]
+
+    def choice_for(self, band: int) -> marker.PoseChoice | None:
+        return self.choice if self.band_choices is None else self.band_choices[band]
 
 
 def record_files(records: Sequence[FrameRecord]) -> list[Path]:
@@ -291,13 +297,16 @@ def find_views(
     # The detection image averages all bands; its pixel (i, j) sits at the mean band offset.
     centre = _offsets(session.camera).mean(axis=0)
 
+    outlines = _pose_outlines(session)
+
     def one(i: int) -> tuple[int, View] | None:
         img = detection_image(stack[i], inverse_response)
         corners = geometry.detect_marker(img, session.marker.dictionary, session.marker.id)
         if corners is None:
             return None
-        pose = geometry.estimate_pose(corners + centre, session.marker.size_m, session.intrinsics)
-        return i, View(records[i], pose)
+        choice = marker.estimate_marker_pose(corners + centre, session.marker.size_m, session.intrinsics,
+                                             img, outlines, (float(centre[0]), float(centre[1])))
+        return i, View(records[i], choice.pose, choice=choice)
 
     for i, res in enumerate(_map(one, len(records))):
         if res is None:
@@ -306,7 +315,18 @@ def find_views(
             )
         else:
             views.append(res)
+    report.residuals["marker_poses"] = [{"file": v.record.path.name, **v.choice.as_record()}  # type: ignore[union-attr]
+                                        for _, v in views]
     return views
+
+
+def _pose_outlines(session: Session) -> list[tuple[float, float]]:
+    """Half sizes of the outlines that choose between a marker's two poses
+    (:func:`mscal_core.marker.choose_pose`): the reflector's edge, the farthest from the marker
+    and so where the two solutions differ most (the paper's edge, near the marker, tells
+    them apart far less)."""
+    w, h = geometry.size_wh(session.reflector.size_m)
+    return [(w / 2, h / 2)]
 
 
 def _find_views_per_lens(
@@ -317,22 +337,26 @@ def _find_views_per_lens(
     with that lens's intrinsics (each lens is its own camera)."""
     camera, mk = session.camera, session.marker
 
-    def one(i: int) -> tuple[geometry.Pose | None, ...]:
-        poses: list[geometry.Pose | None] = []
+    outlines = _pose_outlines(session)
+
+    def one(i: int) -> tuple[marker.PoseChoice | None, ...]:
+        choices: list[marker.PoseChoice | None] = []
         for b in range(camera.n_bands):
             img = detection_image(stack[i, b:b + 1], inverse_response[b:b + 1])
             corners = geometry.detect_marker(img, mk.dictionary, mk.id)
-            pose = None
+            choice = None
             if corners is not None:
                 try:
-                    pose = geometry.estimate_pose(corners, mk.size_m, session.intrinsics_for(b))
+                    choice = marker.estimate_marker_pose(corners, mk.size_m, session.intrinsics_for(b), img, outlines)
                 except FitError:
-                    pose = None
-            poses.append(pose)
-        return tuple(poses)
+                    choice = None
+            choices.append(choice)
+        return tuple(choices)
 
     views: list[tuple[int, View]] = []
-    for i, poses in enumerate(_map(one, len(records))):
+    records_out: list[dict[str, Any]] = []
+    for i, choices in enumerate(_map(one, len(records))):
+        poses = tuple(c.pose if c is not None else None for c in choices)
         found = [p for p in poses if p is not None]
         name = records[i].name
         if not found:
@@ -342,7 +366,9 @@ def _find_views_per_lens(
         if lost:
             report.skipped.append({"file": name, "reason": f"marker not found in band(s) {', '.join(lost)}: "
                                                            "the capture is used for the other bands only"})
-        views.append((i, View(records[i], found[0], poses)))
+        views.append((i, View(records[i], found[0], poses, band_choices=choices)))
+        records_out.append({"file": name, "bands": [c.as_record() if c is not None else None for c in choices]})
+    report.residuals["marker_poses"] = records_out
     return views
 
 
@@ -794,7 +820,10 @@ def fit_illumination_frames(
     image_brightness = np.full(len(views), np.nan)
     fits = [_fit_capture(cap, captures, views, columns, masks, plane, rho, folder, session, maps, image_brightness)
             for cap in captures]
+    poses = report.residuals.get("marker_poses")
     report.residuals = _illumination_residuals(views, masks, fits, image_brightness, n_sat, n_pixels, shared_fraction)
+    if poses is not None:
+        report.residuals["marker_poses"] = poses
     report.seconds = time.perf_counter() - t0
     qb = qa_band(camera)
     return IlluminationResult(
