@@ -529,7 +529,8 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
             report.skipped.append({
                 "file": views[k][1].record.path.name,
                 "reason": f"inconsistent with the other views ({frac[k]:.0%} of its reflector pixels off "
-                          f"by >10 %, median view {med:.1%}): marker pose likely wrong",
+                          f"by >10 %, median view {med:.1%}): marker pose likely wrong"
+                          f"{_choice_note(views[k][1].choice)}",
             })
         views = [v for k, v in enumerate(views) if k not in bad]
         for b in order:
@@ -541,6 +542,15 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
         fit, saturated[b], _ = futures[b].result()
         fits.append(fit)
     return fits, saturated, views
+
+
+def _choice_note(choice: marker.PoseChoice | None) -> str:
+    """How a skipped view's pose was chosen between its two IPPE solutions, for its reason."""
+    if choice is None:
+        return ""
+    e0, e1 = choice.reprojection_px
+    second = f", {e1:.3f} px" if np.isfinite(e1) else ""
+    return f" (IPPE solution {choice.solution} taken by {choice.by}; reprojection {e0:.3f} px{second})"
 
 
 def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[tuple[int, View]],
@@ -568,7 +578,8 @@ def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[t
             report.skipped.append({
                 "file": uses[b][k][1].record.name,
                 "reason": f"band {camera.bands[b].name}: inconsistent with the other views ({frac[k]:.0%} of its "
-                          f"reflector pixels off by >10 %, median view {med:.1%}): marker pose likely wrong",
+                          f"reflector pixels off by >10 %, median view {med:.1%}): marker pose likely wrong"
+                          f"{_choice_note(uses[b][k][1].choice_for(b))}",
             })
         fits.append(fit)
     return fits, saturated
