@@ -96,7 +96,8 @@ class PoseChoice:
     by : str
         ``"reprojection"`` (it separates them clearly), ``"outline"`` (the image's edges at the
         paper and reflector outlines), ``"single"`` (one solution) or ``"undecided"`` (neither
-        separates them: solution 0).
+        separates them: solution 0); a caller that chose again on other evidence says which
+        (:meth:`swapped`, e.g. ``"consistency"`` with the other views' vignetting fit).
     contrast : tuple of float
         :func:`outline_contrast` of solutions 0 and 1 (NaN where not measured).
     """
@@ -107,6 +108,12 @@ class PoseChoice:
     reprojection_px: tuple[float, float]
     by: str
     contrast: tuple[float, float] = (float("nan"), float("nan"))
+
+    def swapped(self, by: str) -> PoseChoice:
+        """Take the other solution instead, for the reason ``by`` (e.g. ``"consistency"``)."""
+        if self.alternative is None:
+            raise InputError("a pose with a single solution has no other to take")
+        return PoseChoice(self.alternative, self.pose, 1 - self.solution, self.reprojection_px, by, self.contrast)
 
     def as_record(self) -> dict[str, object]:
         """Plain numbers for a report: ``solution``, ``by``, ``reprojection_px``, ``contrast``."""

@@ -25,7 +25,13 @@ from mscal_core import geometry, illumination, marker, response, vignetting
 from mscal_core.errors import FitError, MscalError, SessionError
 from mscal_core.mosaic import band_offsets
 
-from pipeline.calibrate.bands import BandViews, energy, lens_vignetting_band, vignetting_band
+from pipeline.calibrate.bands import (
+    BandViews,
+    band_observations,
+    energy,
+    lens_vignetting_band,
+    vignetting_band,
+)
 from pipeline.calibrate.intrinsics import fit_intrinsics_folder, parse_board, store_intrinsics
 from pipeline.calibrate.pool import BandPool, band_workers
 from pipeline.calibrate.sweep import SweepFits, read_stack, submit_sweep
@@ -523,7 +529,12 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
             f"all kept (screening needs {MIN_VIEWS_TO_SCREEN} views left)"
         )
         bad = set()
-    if bad:
+    switched = _try_other_solutions(session, stack, views, bad, frac, ref_fit, inverse_response, saturation_dn, cells,
+                                    ref, report)
+    bad -= set(switched)
+    if switched:
+        views = [(i, switched.get(k, v)) for k, (i, v) in enumerate(views)]
+    if bad or switched:
         med = float(np.nanmedian(frac))
         for k in sorted(bad):
             report.skipped.append({
@@ -542,6 +553,37 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
         fit, saturated[b], _ = futures[b].result()
         fits.append(fit)
     return fits, saturated, views
+
+
+def _try_other_solutions(session: Session, stack: np.ndarray, views: list[tuple[int, View]], bad: set[int],
+                         frac: np.ndarray, ref_fit: vignetting.VignettingFit, inverse_response: np.ndarray,
+                         saturation_dn: np.ndarray, cells: CellCache, ref: int, report: StageReport) -> dict[int, View]:
+    """The views screened out (``bad``) that the other IPPE solution of their marker makes
+    consistent with the other views: each such view taken with that pose, by index.
+
+    A view disagrees with the reference band's fit when its pose maps lawn or paper onto the
+    reflector; if the mirrored solution (:mod:`mscal_core.marker`) brings its fraction of
+    missed observations (:func:`mscal_core.vignetting.view_inconsistency`) under the screening
+    limit (:func:`mscal_core.vignetting.inconsistent_views` of all views with its new fraction),
+    the view is kept with that pose, and its record in ``marker_poses`` says so."""
+    out: dict[int, View] = {}
+    for k in sorted(bad):
+        i, view = views[k]
+        if view.choice is None or view.choice.alternative is None:
+            continue
+        other = dataclasses.replace(view, pose=view.choice.alternative, choice=view.choice.swapped("consistency"))
+        obs, _ = band_observations(_band_views(session, stack, ref, [(i, other)], inverse_response, saturation_dn, cells))
+        trial = frac.copy()
+        trial[k] = vignetting.view_inconsistency(ref_fit, *obs[0])
+        if np.isfinite(trial[k]) and k not in set(vignetting.inconsistent_views(trial).tolist()):
+            out[k] = other
+            log.info("vignetting view %s: the other IPPE solution agrees with the other views (%.0f%% -> %.0f%% "
+                     "of its reflector pixels off)", view.record.path.name, 100 * frac[k], 100 * trial[k])
+    names = {v.record.path.name: v for v in out.values()}
+    for rec in report.residuals.get("marker_poses", []):
+        if rec.get("file") in names:
+            rec.update(names[rec["file"]].choice.as_record())  # type: ignore[union-attr]
+    return out
 
 
 def _choice_note(choice: marker.PoseChoice | None) -> str:

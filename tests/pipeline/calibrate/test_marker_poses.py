@@ -1,0 +1,53 @@
+"""Calibrate's marker poses on a full-size session: a view given the mirrored IPPE solution is
+taken back with the other one when that one agrees with the other views."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from mscal_core import marker
+from pipeline.run.cli import main
+from pipeline.sim.evaluate import evaluate_calibration
+
+
+def _tilts_deg(rvecs: np.ndarray, tvecs: np.ndarray) -> np.ndarray:
+    """Angle between each marker's normal and its line of sight."""
+    import cv2
+
+    out = []
+    for r, t in zip(rvecs, tvecs):
+        n = cv2.Rodrigues(np.asarray(r, dtype=np.float64))[0][:, 2]
+        out.append(np.degrees(np.arccos(abs(n @ t) / np.linalg.norm(t))))
+    return np.array(out)
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("full_session")
+def test_a_mirrored_pose_is_taken_back_by_consistency(full_session, tmp_path, monkeypatch) -> None:
+    session = full_session
+    truth = np.load(session / "truth.npz")
+    found = truth["vignetting_marker_in_frame"]
+    tilts = np.where(found, _tilts_deg(truth["vignetting_rvec"], truth["vignetting_tvec"]), -1.0)
+    k = int(np.argmax(tilts))  # the most oblique view: its mirror is tens of degrees off
+    assert tilts[k] > 30.0
+    name = f"{truth['vignetting_names'][k]}.tif"
+    t_true = truth["vignetting_tvec"][k]
+    original = marker.estimate_marker_pose
+
+    def mirrored_for_one_view(*args, **kwargs):
+        choice = original(*args, **kwargs)
+        if np.linalg.norm(choice.pose.tvec - t_true) < 0.05 * np.linalg.norm(t_true):
+            return choice.swapped("reprojection")  # as if the corners had chosen the mirror
+        return choice
+
+    monkeypatch.setattr(marker, "estimate_marker_pose", mirrored_for_one_view)
+    calib = tmp_path / "calib.zarr"
+    assert main(["calibrate", str(session), "-o", str(calib)]) == 0
+    attrs = xr.open_zarr(calib).attrs["vignetting"]
+    assert name not in {s["file"] for s in attrs["skipped"]}
+    record = next(p for p in attrs["residuals"]["marker_poses"] if p["file"] == name)
+    assert record["by"] == "consistency"
+    assert sum(p["by"] == "consistency" for p in attrs["residuals"]["marker_poses"]) == 1
+    assert evaluate_calibration(session, calib)["vignetting_rms_error"] < 0.015
