@@ -216,7 +216,8 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(scaled), 0, 255).astype(np.uint8)
 
 
-def _aruco_dictionary(dictionary: str) -> cv2.aruco.Dictionary:
+def aruco_dictionary(dictionary: str) -> cv2.aruco.Dictionary:
+    """OpenCV's predefined ArUco dictionary of a name such as ``"DICT_4X4_50"``; :class:`InputError` if unknown."""
     name = str(dictionary).strip()
     value = getattr(cv2.aruco, name, None) if name.startswith("DICT_") else None
     if not isinstance(value, int):
@@ -265,7 +266,7 @@ def detect_marker(image: np.ndarray, dictionary: str, marker_id: int) -> np.ndar
            for Multispectral Cameras", IEEE International Conference on Robotics and
            Automation (ICRA), 2017.
     """
-    detector_dict = _aruco_dictionary(dictionary)
+    detector_dict = aruco_dictionary(dictionary)
     gray = _to_uint8(image)
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX

@@ -310,8 +310,8 @@ def find_views(
         corners = geometry.detect_marker(img, session.marker.dictionary, session.marker.id)
         if corners is None:
             return None
-        choice = marker.estimate_marker_pose(corners + centre, session.marker.size_m, session.intrinsics,
-                                             img, outlines, (float(centre[0]), float(centre[1])))
+        choice = marker.pose_in_image(img, corners, session.marker.dictionary, session.marker.size_m,
+                                      session.intrinsics, outlines, (float(centre[0]), float(centre[1])))
         return i, View(records[i], choice.pose, choice=choice)
 
     for i, res in enumerate(_map(one, len(records))):
@@ -353,7 +353,8 @@ def _find_views_per_lens(
             choice = None
             if corners is not None:
                 try:
-                    choice = marker.estimate_marker_pose(corners, mk.size_m, session.intrinsics_for(b), img, outlines)
+                    choice = marker.pose_in_image(img, corners, mk.dictionary, mk.size_m, session.intrinsics_for(b),
+                                                  outlines)
                 except FitError:
                     choice = None
             choices.append(choice)

@@ -34,7 +34,7 @@ def test_a_mirrored_pose_is_taken_back_by_consistency(full_session, tmp_path, mo
     assert tilts[k] > 30.0
     name = f"{truth['vignetting_names'][k]}.tif"
     t_true = truth["vignetting_tvec"][k]
-    original = marker.estimate_marker_pose
+    original = marker.pose_in_image
 
     def mirrored_for_one_view(*args, **kwargs):
         choice = original(*args, **kwargs)
@@ -42,7 +42,7 @@ def test_a_mirrored_pose_is_taken_back_by_consistency(full_session, tmp_path, mo
             return choice.swapped("reprojection")  # as if the corners had chosen the mirror
         return choice
 
-    monkeypatch.setattr(marker, "estimate_marker_pose", mirrored_for_one_view)
+    monkeypatch.setattr(marker, "pose_in_image", mirrored_for_one_view)
     calib = tmp_path / "calib.zarr"
     assert main(["calibrate", str(session), "-o", str(calib)]) == 0
     attrs = xr.open_zarr(calib).attrs["vignetting"]
