@@ -21,7 +21,7 @@ from typing import Any, Callable, Iterator, Sequence
 import mscal_core
 import numpy as np
 import xarray as xr
-from mscal_core import geometry, illumination, marker, response, vignetting
+from mscal_core import charuco, geometry, illumination, marker, response, vignetting
 from mscal_core.errors import FitError, MscalError, SessionError
 from mscal_core.mosaic import band_offsets
 
@@ -43,6 +43,7 @@ from pipeline.ingest.session import (
     FRAMES_CSV,
     IMAGE_SUFFIXES,
     FrameRecord,
+    MarkerSpec,
     Session,
     load_session,
     read_frame_table,
@@ -307,23 +308,38 @@ def find_views(
 
     def one(i: int) -> tuple[int, View] | None:
         img = detection_image(stack[i], inverse_response)
-        corners = geometry.detect_marker(img, session.marker.dictionary, session.marker.id)
-        if corners is None:
-            return None
-        choice = marker.pose_in_image(img, corners, session.marker.dictionary, session.marker.size_m,
-                                      session.intrinsics, outlines, (float(centre[0]), float(centre[1])))
-        return i, View(records[i], choice.pose, choice=choice)
+        choice = marker_pose(img, session.marker, session.intrinsics, outlines, (float(centre[0]), float(centre[1])))
+        return None if choice is None else (i, View(records[i], choice.pose, choice=choice))
 
     for i, res in enumerate(_map(one, len(records))):
         if res is None:
             report.skipped.append(
-                {"file": records[i].path.name, "reason": f"marker {session.marker.dictionary} id {session.marker.id} not found"}
+                {"file": records[i].path.name, "reason": f"{session.marker.label} not found"}
             )
         else:
             views.append(res)
     report.residuals["marker_poses"] = [{"file": v.record.path.name, **v.choice.as_record()}  # type: ignore[union-attr]
                                         for _, v in views]
     return views
+
+
+def marker_pose(img: np.ndarray, mk: MarkerSpec, intrinsics: geometry.Intrinsics, outlines: list[tuple[float, float]],
+                offset: tuple[float, float] = (0.0, 0.0)) -> marker.PoseChoice | None:
+    """The pose of the session's marker, or ChArUco board, in a detection image whose pixel
+    ``(i, j)`` sees image point ``(j + dx, i + dy)`` (``offset``); None if it is not found (a
+    board: fewer than :data:`mscal_core.charuco.MIN_CORNERS` corners, or corners on a line)."""
+    if mk.board is not None:
+        found = charuco.detect_charuco(img, mk.board)
+        if found is None:
+            return None
+        try:
+            return charuco.charuco_pose(found[0] + np.asarray(offset), found[1], mk.board, intrinsics)
+        except FitError:
+            return None
+    corners = geometry.detect_marker(img, mk.dictionary, mk.id)
+    if corners is None:
+        return None
+    return marker.pose_in_image(img, corners, mk.dictionary, mk.size_m, intrinsics, outlines, offset)
 
 
 def _pose_outlines(session: Session) -> list[tuple[float, float]]:
@@ -349,14 +365,10 @@ def _find_views_per_lens(
         choices: list[marker.PoseChoice | None] = []
         for b in range(camera.n_bands):
             img = detection_image(stack[i, b:b + 1], inverse_response[b:b + 1])
-            corners = geometry.detect_marker(img, mk.dictionary, mk.id)
-            choice = None
-            if corners is not None:
-                try:
-                    choice = marker.pose_in_image(img, corners, mk.dictionary, mk.size_m, session.intrinsics_for(b),
-                                                  outlines)
-                except FitError:
-                    choice = None
+            try:
+                choice = marker_pose(img, mk, session.intrinsics_for(b), outlines)  # type: ignore[arg-type]
+            except FitError:
+                choice = None
             choices.append(choice)
         return tuple(choices)
 
@@ -367,7 +379,7 @@ def _find_views_per_lens(
         found = [p for p in poses if p is not None]
         name = records[i].name
         if not found:
-            report.skipped.append({"file": name, "reason": f"marker {mk.dictionary} id {mk.id} not found in any band"})
+            report.skipped.append({"file": name, "reason": f"{mk.label} not found in any band"})
             continue
         lost = [camera.bands[b].name for b, p in enumerate(poses) if p is None]
         if lost:
@@ -408,7 +420,7 @@ def load_marker_frames(
     views = find_views(recs, stack, session, inverse_response, report)
     if not views:
         raise FitError(
-            f"marker {session.marker.dictionary} id {session.marker.id} was not found in any of the "
+            f"{session.marker.label} was not found in any of the "
             f"{len(recs)} frames",
             path=folder,
             hint="check marker.dictionary and marker.id in session.yaml, and that the marker is in view and sharp",
@@ -825,7 +837,7 @@ def fit_illumination_frames(
     views = find_views(recs, stack, session, inverse_response, report)
     if not views:
         raise FitError(
-            f"marker {session.marker.dictionary} id {session.marker.id} was not found in any of the "
+            f"{session.marker.label} was not found in any of the "
             f"{len(recs)} frames",
             path=folder,
             hint="check marker.dictionary and marker.id in session.yaml, and that the marker is in view and sharp",
@@ -924,7 +936,7 @@ def _fit_capture(cap: Any, captures: Sequence[Any], views: list[tuple[int, View]
     label = "" if len(captures) == 1 else f"capture {cap.name}: "
     if not mine:
         raise FitError(
-            f"{label}marker {session.marker.dictionary} id {session.marker.id} was not found in any of its "
+            f"{label}{session.marker.label} was not found in any of its "
             f"{len(cap.frames)} frames",
             path=where,
             hint="check that the marker is in view and sharp, or remove the capture",
