@@ -20,6 +20,10 @@ chosen (:func:`choose_pose`):
 
 :class:`PoseChoice` records which solution was taken, why, and both reprojection errors.
 
+Before that, the corners themselves: :func:`refine_corners_by_edges` replaces each of the
+detector's corners (``cornerSubPix``, biased inward at a convex corner) by the intersection of
+lines fitted to the marker's edges; :func:`pose_in_image` chains the two.
+
 References
 ----------
 .. [1] T. Collins and A. Bartoli, "Infinitesimal Plane-Based Pose Estimation",
@@ -531,9 +535,10 @@ def refine_corners_by_edges(
     least-squares line, and each corner is the intersection of its two sides' lines.
     """
     img = np.asarray(image, dtype=np.float32)
-    quad = np.asarray(corners, dtype=np.float64).reshape(4, 2)
-    if img.ndim != 2 or not np.all(np.isfinite(quad)):
-        raise InputError("edge refinement needs a single-band image and 4 finite corners")
+    quad = np.asarray(corners, dtype=np.float64)
+    if img.ndim != 2 or quad.shape != (4, 2) or not np.all(np.isfinite(quad)):
+        raise InputError(f"edge refinement needs a single-band image and (4, 2) finite corners, got image shape "
+                         f"{img.shape} and corners shape {quad.shape}")
     side = float(np.mean(np.linalg.norm(quad - np.roll(quad, -1, axis=0), axis=1)))
     module = side / max(int(modules), 1)
     reach = min(EDGE_REACH_MODULES * module, EDGE_REACH_MAX_PX)

@@ -208,3 +208,22 @@ def test_ippe_candidates_rejects_bad_input():
         marker.ippe_candidates(np.zeros((4, 2)), -1.0, INTR)
     with pytest.raises(FitError):
         marker.ippe_candidates(np.zeros((4, 2)), 0.1, INTR)  # degenerate corners
+
+
+def test_refine_corners_by_edges_keeps_corners_it_cannot_improve():
+    corners = np.array([[100.0, 50.0], [130.0, 50.0], [130.0, 80.0], [100.0, 80.0]])
+    flat = np.full((217, 409), 300.0)
+    np.testing.assert_array_equal(marker.refine_corners_by_edges(flat, corners, 6), corners)
+    with pytest.raises(InputError):
+        marker.refine_corners_by_edges(flat, corners[:, :1], 6)
+
+
+def test_refine_corners_by_edges_on_an_ideal_blurred_square():
+    # a dark square on white, blurred: cornerSubPix-like inward bias must not appear
+    img = np.full((120, 160), 900.0, dtype=np.float32)
+    img[40:80, 60:100] = 50.0  # pixel centres 40..79: edges at 39.5 and 79.5
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    truth = np.array([[59.5, 39.5], [99.5, 39.5], [99.5, 79.5], [59.5, 79.5]])
+    start = truth + np.array([[0.4, 0.3], [-0.3, 0.4], [-0.4, -0.3], [0.3, -0.4]])  # corners a little inside
+    out = marker.refine_corners_by_edges(img, start, 6)
+    assert np.abs(out - truth).max() < 0.02
