@@ -21,11 +21,17 @@ from typing import Any, Callable, Iterator, Sequence
 import mscal_core
 import numpy as np
 import xarray as xr
-from mscal_core import geometry, illumination, response, vignetting
+from mscal_core import charuco, geometry, illumination, marker, response, vignetting
 from mscal_core.errors import FitError, MscalError, SessionError
 from mscal_core.mosaic import band_offsets
 
-from pipeline.calibrate.bands import BandViews, energy, lens_vignetting_band, vignetting_band
+from pipeline.calibrate.bands import (
+    BandViews,
+    band_observations,
+    energy,
+    lens_vignetting_band,
+    vignetting_band,
+)
 from pipeline.calibrate.intrinsics import fit_intrinsics_folder, parse_board, store_intrinsics
 from pipeline.calibrate.pool import BandPool, band_workers
 from pipeline.calibrate.sweep import SweepFits, read_stack, submit_sweep
@@ -37,6 +43,7 @@ from pipeline.ingest.session import (
     FRAMES_CSV,
     IMAGE_SUFFIXES,
     FrameRecord,
+    MarkerSpec,
     Session,
     load_session,
     read_frame_table,
@@ -166,9 +173,15 @@ class View:
     record: FrameRecord
     pose: geometry.Pose
     band_poses: tuple[geometry.Pose | None, ...] | None = None
+    #: How the pose was chosen between the two IPPE solutions (of a multi-lens camera: per band).
+    choice: marker.PoseChoice | None = None
+    band_choices: tuple[marker.PoseChoice | None, ...] | None = None
 
     def pose_for(self, band: int) -> geometry.Pose | None:
         return self.pose if self.band_poses is None else self.band_poses[band]
+
+    def choice_for(self, band: int) -> marker.PoseChoice | None:
+        return self.choice if self.band_choices is None else self.band_choices[band]
 
 
 def record_files(records: Sequence[FrameRecord]) -> list[Path]:
@@ -292,22 +305,51 @@ def find_views(
     # The detection image averages all bands; its pixel (i, j) sits at the mean band offset.
     centre = _offsets(session.camera).mean(axis=0)
 
+    outlines = _pose_outlines(session)
+
     def one(i: int) -> tuple[int, View] | None:
         img = detection_image(stack[i], inverse_response)
-        corners = geometry.detect_marker(img, session.marker.dictionary, session.marker.id)
-        if corners is None:
-            return None
-        pose = geometry.estimate_pose(corners + centre, session.marker.size_m, session.intrinsics)
-        return i, View(records[i], pose)
+        choice = marker_pose(img, session.marker, session.intrinsics, outlines, (float(centre[0]), float(centre[1])))
+        return None if choice is None else (i, View(records[i], choice.pose, choice=choice))
 
     for i, res in enumerate(_map(one, len(records))):
         if res is None:
             report.skipped.append(
-                {"file": records[i].path.name, "reason": f"marker {session.marker.dictionary} id {session.marker.id} not found"}
+                {"file": records[i].path.name, "reason": f"{session.marker.label} not found"}
             )
         else:
             views.append(res)
+    report.residuals["marker_poses"] = [{"file": v.record.path.name, **v.choice.as_record()}  # type: ignore[union-attr]
+                                        for _, v in views]
     return views
+
+
+def marker_pose(img: np.ndarray, mk: MarkerSpec, intrinsics: geometry.Intrinsics, outlines: list[tuple[float, float]],
+                offset: tuple[float, float] = (0.0, 0.0)) -> marker.PoseChoice | None:
+    """The pose of the session's marker, or ChArUco board, in a detection image whose pixel
+    ``(i, j)`` sees image point ``(j + dx, i + dy)`` (``offset``); None if it is not found (a
+    board: fewer than :data:`mscal_core.charuco.MIN_CORNERS` corners, or corners on a line)."""
+    if mk.board is not None:
+        found = charuco.detect_charuco(img, mk.board)
+        if found is None:
+            return None
+        try:
+            return charuco.charuco_pose(found[0] + np.asarray(offset), found[1], mk.board, intrinsics)
+        except FitError:
+            return None
+    corners = geometry.detect_marker(img, mk.dictionary, mk.id)
+    if corners is None:
+        return None
+    return marker.pose_in_image(img, corners, mk.dictionary, mk.size_m, intrinsics, outlines, offset)
+
+
+def _pose_outlines(session: Session) -> list[tuple[float, float]]:
+    """Half sizes of the outlines that choose between a marker's two poses
+    (:func:`mscal_core.marker.choose_pose`): the reflector's edge, the farthest from the marker
+    and so where the two solutions differ most (the paper's edge, near the marker, tells
+    them apart far less)."""
+    w, h = geometry.size_wh(session.reflector.size_m)
+    return [(w / 2, h / 2)]
 
 
 def _find_views_per_lens(
@@ -318,32 +360,35 @@ def _find_views_per_lens(
     with that lens's intrinsics (each lens is its own camera)."""
     camera, mk = session.camera, session.marker
 
-    def one(i: int) -> tuple[geometry.Pose | None, ...]:
-        poses: list[geometry.Pose | None] = []
+    outlines = _pose_outlines(session)
+
+    def one(i: int) -> tuple[marker.PoseChoice | None, ...]:
+        choices: list[marker.PoseChoice | None] = []
         for b in range(camera.n_bands):
             img = detection_image(stack[i, b:b + 1], inverse_response[b:b + 1])
-            corners = geometry.detect_marker(img, mk.dictionary, mk.id)
-            pose = None
-            if corners is not None:
-                try:
-                    pose = geometry.estimate_pose(corners, mk.size_m, session.intrinsics_for(b))
-                except FitError:
-                    pose = None
-            poses.append(pose)
-        return tuple(poses)
+            try:
+                choice = marker_pose(img, mk, session.intrinsics_for(b), outlines)  # type: ignore[arg-type]
+            except FitError:
+                choice = None
+            choices.append(choice)
+        return tuple(choices)
 
     views: list[tuple[int, View]] = []
-    for i, poses in enumerate(_map(one, len(records))):
+    records_out: list[dict[str, Any]] = []
+    for i, choices in enumerate(_map(one, len(records))):
+        poses = tuple(c.pose if c is not None else None for c in choices)
         found = [p for p in poses if p is not None]
         name = records[i].name
         if not found:
-            report.skipped.append({"file": name, "reason": f"marker {mk.dictionary} id {mk.id} not found in any band"})
+            report.skipped.append({"file": name, "reason": f"{mk.label} not found in any band"})
             continue
         lost = [camera.bands[b].name for b, p in enumerate(poses) if p is None]
         if lost:
             report.skipped.append({"file": name, "reason": f"marker not found in band(s) {', '.join(lost)}: "
                                                            "the capture is used for the other bands only"})
-        views.append((i, View(records[i], found[0], poses)))
+        views.append((i, View(records[i], found[0], poses, band_choices=choices)))
+        records_out.append({"file": name, "bands": [c.as_record() if c is not None else None for c in choices]})
+    report.residuals["marker_poses"] = records_out
     return views
 
 
@@ -376,7 +421,7 @@ def load_marker_frames(
     views = find_views(recs, stack, session, inverse_response, report)
     if not views:
         raise FitError(
-            f"marker {session.marker.dictionary} id {session.marker.id} was not found in any of the "
+            f"{session.marker.label} was not found in any of the "
             f"{len(recs)} frames",
             path=folder,
             hint="check marker.dictionary and marker.id in session.yaml, and that the marker is in view and sharp",
@@ -498,13 +543,19 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
             f"all kept (screening needs {MIN_VIEWS_TO_SCREEN} views left)"
         )
         bad = set()
-    if bad:
+    switched = _try_other_solutions(session, stack, views, bad, frac, ref_fit, inverse_response, saturation_dn, cells,
+                                    ref, report)
+    bad -= set(switched)
+    if switched:
+        views = [(i, switched.get(k, v)) for k, (i, v) in enumerate(views)]
+    if bad or switched:
         med = float(np.nanmedian(frac))
         for k in sorted(bad):
             report.skipped.append({
                 "file": views[k][1].record.path.name,
                 "reason": f"inconsistent with the other views ({frac[k]:.0%} of its reflector pixels off "
-                          f"by >10 %, median view {med:.1%}): marker pose likely wrong",
+                          f"by >10 %, median view {med:.1%}): marker pose likely wrong"
+                          f"{_choice_note(views[k][1].choice)}",
             })
         views = [v for k, v in enumerate(views) if k not in bad]
         for b in order:
@@ -516,6 +567,46 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
         fit, saturated[b], _ = futures[b].result()
         fits.append(fit)
     return fits, saturated, views
+
+
+def _try_other_solutions(session: Session, stack: np.ndarray, views: list[tuple[int, View]], bad: set[int],
+                         frac: np.ndarray, ref_fit: vignetting.VignettingFit, inverse_response: np.ndarray,
+                         saturation_dn: np.ndarray, cells: CellCache, ref: int, report: StageReport) -> dict[int, View]:
+    """The views screened out (``bad``) that the other IPPE solution of their marker makes
+    consistent with the other views: each such view taken with that pose, by index.
+
+    A view disagrees with the reference band's fit when its pose maps lawn or paper onto the
+    reflector; if the mirrored solution (:mod:`mscal_core.marker`) brings its fraction of
+    missed observations (:func:`mscal_core.vignetting.view_inconsistency`) under the screening
+    limit (:func:`mscal_core.vignetting.inconsistent_views` of all views with its new fraction),
+    the view is kept with that pose, and its record in ``marker_poses`` says so."""
+    out: dict[int, View] = {}
+    for k in sorted(bad):
+        i, view = views[k]
+        if view.choice is None or view.choice.alternative is None:
+            continue
+        other = dataclasses.replace(view, pose=view.choice.alternative, choice=view.choice.swapped("consistency"))
+        obs, _ = band_observations(_band_views(session, stack, ref, [(i, other)], inverse_response, saturation_dn, cells))
+        trial = frac.copy()
+        trial[k] = vignetting.view_inconsistency(ref_fit, *obs[0])
+        if np.isfinite(trial[k]) and k not in set(vignetting.inconsistent_views(trial).tolist()):
+            out[k] = other
+            log.info("vignetting view %s: the other IPPE solution agrees with the other views (%.0f%% -> %.0f%% "
+                     "of its reflector pixels off)", view.record.path.name, 100 * frac[k], 100 * trial[k])
+    names = {v.record.path.name: v for v in out.values()}
+    for rec in report.residuals.get("marker_poses", []):
+        if rec.get("file") in names:
+            rec.update(names[rec["file"]].choice.as_record())  # type: ignore[union-attr]
+    return out
+
+
+def _choice_note(choice: marker.PoseChoice | None) -> str:
+    """How a skipped view's pose was chosen between its two IPPE solutions, for its reason."""
+    if choice is None:
+        return ""
+    e0, e1 = choice.reprojection_px
+    second = f", {e1:.3f} px" if np.isfinite(e1) else ""
+    return f" (IPPE solution {choice.solution} taken by {choice.by}; reprojection {e0:.3f} px{second})"
 
 
 def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[tuple[int, View]],
@@ -543,7 +634,8 @@ def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[t
             report.skipped.append({
                 "file": uses[b][k][1].record.name,
                 "reason": f"band {camera.bands[b].name}: inconsistent with the other views ({frac[k]:.0%} of its "
-                          f"reflector pixels off by >10 %, median view {med:.1%}): marker pose likely wrong",
+                          f"reflector pixels off by >10 %, median view {med:.1%}): marker pose likely wrong"
+                          f"{_choice_note(uses[b][k][1].choice_for(b))}",
             })
         fits.append(fit)
     return fits, saturated
@@ -746,7 +838,7 @@ def fit_illumination_frames(
     views = find_views(recs, stack, session, inverse_response, report)
     if not views:
         raise FitError(
-            f"marker {session.marker.dictionary} id {session.marker.id} was not found in any of the "
+            f"{session.marker.label} was not found in any of the "
             f"{len(recs)} frames",
             path=folder,
             hint="check marker.dictionary and marker.id in session.yaml, and that the marker is in view and sharp",
@@ -795,7 +887,10 @@ def fit_illumination_frames(
     image_brightness = np.full(len(views), np.nan)
     fits = [_fit_capture(cap, captures, views, columns, masks, plane, rho, folder, session, maps, image_brightness)
             for cap in captures]
+    poses = report.residuals.get("marker_poses")
     report.residuals = _illumination_residuals(views, masks, fits, image_brightness, n_sat, n_pixels, shared_fraction)
+    if poses is not None:
+        report.residuals["marker_poses"] = poses
     report.seconds = time.perf_counter() - t0
     qb = qa_band(camera)
     return IlluminationResult(
@@ -842,7 +937,7 @@ def _fit_capture(cap: Any, captures: Sequence[Any], views: list[tuple[int, View]
     label = "" if len(captures) == 1 else f"capture {cap.name}: "
     if not mine:
         raise FitError(
-            f"{label}marker {session.marker.dictionary} id {session.marker.id} was not found in any of its "
+            f"{label}{session.marker.label} was not found in any of its "
             f"{len(cap.frames)} frames",
             path=where,
             hint="check that the marker is in view and sharp, or remove the capture",

@@ -37,6 +37,7 @@ from pipeline.ingest.exif import (
     utc_naive,
 )
 from pipeline.ingest.gps import placed_records
+from pipeline.ingest.markers import MarkerSpec, marker_dictionary, parse_marker
 from pipeline.ingest.xmp import TagProblem
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
@@ -46,14 +47,6 @@ MAX_NAME = 255  # the longest file name most file systems take
 
 
 # --------------------------------------------------------------------------- session.yaml
-
-
-@dataclass(frozen=True)
-class MarkerSpec:
-    dictionary: str
-    id: int
-    size_m: float
-    border_m: float  # white paper around the black square, excluded from reflector pixels
 
 
 @dataclass(frozen=True)
@@ -186,17 +179,6 @@ def parse_panel(data: Any, path: Path) -> PanelConfig:
     return PanelConfig(polygon=polygon, marker=PanelMarker(name, int(mk["id"]), msize, (w, h), (du, dv)))
 
 
-def marker_dictionary(value: Any, path: Path, where: str) -> str:
-    """The name of an OpenCV ArUco/AprilTag dictionary (``DICT_4X4_50``, ...), checked."""
-    import cv2
-
-    name = str(value)
-    if not (name.startswith("DICT_") and isinstance(getattr(cv2.aruco, name, None), int)):
-        raise SessionError(f"{where}.dictionary {name!r} is not an OpenCV ArUco/AprilTag dictionary", path=path,
-                           hint="e.g. DICT_4X4_50, DICT_5X5_100, DICT_APRILTAG_36h11")
-    return name
-
-
 def parse_panel_polygon(data: Any, path: Path) -> tuple[tuple[float, float], ...]:
     """session.yaml ``panel: {polygon: [[x, y], ...]}``: at least 3 (x, y) pixel corners."""
     if not isinstance(data, dict):
@@ -275,22 +257,7 @@ def load_session(root: str | Path) -> Session:
         ),
     )
 
-    mk = data["marker"]
-    if not isinstance(mk, dict):
-        raise SessionError("marker must be a mapping {dictionary, id, size_m}", path=path)
-    check_keys(mk, {"dictionary", "id", "size_m"}, {"border_m"}, path, "marker")
-    if not isinstance(mk["id"], int) or isinstance(mk["id"], bool) or mk["id"] < 0:
-        raise SessionError(f"marker.id must be a non-negative integer, got {mk['id']!r}", path=path)
-    msize = _number(mk["size_m"], path, "marker.size_m", positive=True)
-    border = _number(mk.get("border_m", 0.25 * msize), path, "marker.border_m")
-    marker = MarkerSpec(dictionary=marker_dictionary(mk["dictionary"], path, "marker"), id=int(mk["id"]),
-                        size_m=msize, border_m=max(border, 0.0))
-    if max(msize / 2 + border, 0) >= min(reflector.size_m) / 2:
-        raise SessionError(
-            "the marker and its border cover the whole reflector",
-            path=path,
-            hint="check marker.size_m and reflector.size_m (both in metres)",
-        )
+    marker = parse_marker(data["marker"], path, reflector.size_m)
     panel = parse_panel(data["panel"], path) if data.get("panel") is not None else PanelConfig()
     return Session(
         root=root, camera=camera, intrinsics=intr, reflector=reflector, marker=marker, panel_polygon=panel.polygon,

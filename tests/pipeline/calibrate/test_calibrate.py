@@ -65,6 +65,22 @@ def test_store_contract_and_provenance(small) -> None:
     assert all("not found" in s["reason"] for s in ds.attrs["vignetting"]["skipped"])
 
 
+def test_store_records_how_each_marker_pose_was_chosen(small) -> None:
+    session, calib = small
+    ds = xr.open_zarr(calib)
+    skipped = {s["file"] for s in ds.attrs["vignetting"]["skipped"]}
+    views = sorted(p.name for p in (session / "vignetting").glob("*.tif") if p.name not in skipped)
+    for stage in ("vignetting", "illumination"):
+        poses = ds.attrs[stage]["residuals"]["marker_poses"]
+        assert all(p["solution"] in (0, 1) and p["by"] in ("reprojection", "outline", "single", "undecided")
+                   for p in poses)
+        # both IPPE solutions' reprojection errors, the one taken first unless the outline chose
+        for p in poses:
+            e0, e1 = p["reprojection_px"]
+            assert 0 <= e0 < 0.5 and (e1 is None or e1 >= e0)
+    assert sorted(p["file"] for p in ds.attrs["vignetting"]["residuals"]["marker_poses"]) == views
+
+
 def test_store_keeps_what_the_qa_report_needs(small) -> None:
     """B(x) per reflector image, one band of its DN, exposures and saturated fractions."""
     session, calib = small
