@@ -283,6 +283,11 @@ class Plan:
     refine: Any = None  # coregistration.Refinement: image registration per capture on top of it (bandgrid)
     coreg_reference: int | None = None  # the band the measured captures' residual shifts are against (bandgrid)
     raw_medians: Path | None = None  # raw.zarr's dn_median (frame, band), written with each new frame's DN
+    tiffs: bool = True  # the per-frame TIFFs (photogrammetry, panels, thermal, NDVI); False: --no-tiffs
+
+    def indices_made(self) -> list[Index]:
+        """The indices the pass writes (run.json ``products``)."""
+        return [ix for ix, _ in self.indices]
 
 
 @dataclass(frozen=True)
@@ -540,8 +545,8 @@ def start_frame(plan: Plan, job: Job) -> Outcome | _Writing:
             signal, dn = (np.ascontiguousarray(upright_meta(job.capture.metas[0], a)) for a in (signal, dn))
         except FrameError as exc:
             return _quarantined(job, exc)
-    if radiance is not None:
-        radiance = signal
+    if radiance is not None:  # an output only when chosen (--products radiance)
+        radiance = signal if "radiance" in plan.outputs else None
     writes = FrameWrites()
     try:
         tags = _write_products(plan, job, dn, sha, signal, factor, radiance, writes)
@@ -593,10 +598,10 @@ def _write_products(plan: Plan, job: Job, dn: np.ndarray, sha: str | None, signa
             ndvi = val
     if ndvi is not None and "vegetation_mask" in plan.outputs:
         writes.submit(write_frame, store / "vegetation_mask", job.index, vegetation_mask(ndvi))
-    for b, btags in plan.bands:  # encoded here, written by the writer thread
+    for b, btags in plan.bands if plan.tiffs else ():  # encoded here, written by the writer thread
         writes.submit(write_tiff_file, band_tiff_path(plan.out, job.name, btags.name, job.panel),
                       band_tiff_parts(refl[b], tags, btags, dtype=plan.tiff_dtype))
-    if ndvi is not None and not job.panel:
+    if ndvi is not None and not job.panel and plan.tiffs:
         writes.submit(write_tiff_file, plan.out / NDVI_DIR / f"{job.name}.tif", ndvi_tiff_parts(ndvi, tags))
     return tags
 
@@ -608,7 +613,7 @@ def write_thermal(plan: Plan, job: Job, tags: FrameTags) -> tuple[dict[str, str]
     TIFF ``thermal/<capture>_<band>.tif``, upright, on the thermal band's own grid; never part
     of reflectance. One ``{file, band, written | reason}`` per thermal band file."""
     out: list[dict[str, str]] = []
-    for s in job.capture.skipped if job.capture is not None else ():
+    for s in job.capture.skipped if job.capture is not None and plan.tiffs else ():
         path = Path(s["file"])
         try:
             meta = read_capture_meta(path)
