@@ -72,6 +72,7 @@ class Session:
     panel_polygon: tuple[tuple[float, float], ...] | None = None  # session.yaml panel.polygon
     panel_marker: "PanelMarker | None" = None  # session.yaml panel.marker (+ size_m, offset_m)
     band_intrinsics: tuple[Intrinsics, ...] | None = None  # session.yaml intrinsics per band
+    products: dict[str, Any] | None = None  # session.yaml products: the keys given (pipeline.ingest.products)
 
     def intrinsics_for(self, band: int) -> Intrinsics | None:
         """session.yaml's intrinsics of band ``band`` (per band, else the one for all), or None."""
@@ -238,7 +239,8 @@ def load_session(root: str | Path) -> Session:
     if not isinstance(data, dict):
         raise SessionError("must be a YAML mapping (camera, intrinsics, reflector, marker)", path=path)
     try:
-        check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes", "panel", "serial"}, path, "session.yaml")
+        check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes", "panel", "products", "serial"}, path,
+                   "session.yaml")
     except MscalError as exc:
         raise SessionError(exc.reason, path=path, hint=exc.hint) from None
     try:
@@ -292,9 +294,11 @@ def load_session(root: str | Path) -> Session:
             hint="check marker.size_m and reflector.size_m (both in metres)",
         )
     panel = parse_panel(data["panel"], path) if data.get("panel") is not None else PanelConfig()
+    from pipeline.ingest.products import yaml_choice
+
     return Session(
         root=root, camera=camera, intrinsics=intr, reflector=reflector, marker=marker, panel_polygon=panel.polygon,
-        panel_marker=panel.marker, band_intrinsics=band_intr,
+        panel_marker=panel.marker, band_intrinsics=band_intr, products=yaml_choice(data.get("products"), path),
     )
 
 
