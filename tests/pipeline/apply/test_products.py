@@ -152,3 +152,26 @@ def test_snapshot_products(small, tmp_path, capsys) -> None:
     # a re-run into the default OUT with --no-tiffs: redone, TIFFs gone, the same chunks
     assert main(["-q", "apply", str(flight), "--calibration", str(calib), "-o", str(a), "--no-tiffs"]) == 0
     assert list(a.rglob("*.tif")) == [] and _chunks(a) == _chunks(lean)
+
+
+def test_card_session_products_from_session_yaml_and_the_command_line(tmp_path) -> None:
+    """A card session's session.yaml products reach its flights, the command line's keys over
+    them (here --tiffs over 'tiffs: false'); each flight's summary carries them."""
+    from pipeline.run.runner import apply_card, check_products, plan_card_session
+
+    card = tmp_path / "card"
+    card.mkdir()
+    for p in require_data().glob("IMG_000*_*.tif"):
+        shutil.copy(p, card / p.name)
+    (card / "session.yaml").write_text("products: {radiance: true, indices: [ndre], tiffs: false}\n")
+    assert check_products(card).record() == {"radiance": True, "indices": ["ndvi", "ndre"], "tiffs": False}
+    plan = plan_card_session(card)
+    (flight,) = plan["flights"]
+    out = tmp_path / "out"
+    summary = apply_card(plan, flight["name"], str(out), products={"tiffs": True})
+    assert summary["products"] == {"radiance": True, "indices": ["ndvi", "ndre"], "tiffs": True}
+    assert set(xr.open_zarr(out / "reflectance.zarr").data_vars) == DEFAULT_VARS | {"radiance", "ndre"}
+    assert len(list((out / "photogrammetry").glob("*.tif"))) == 5
+    lean = tmp_path / "lean"
+    assert apply_card(plan, flight["name"], str(lean))["products"]["tiffs"] is False
+    assert list(lean.rglob("*.tif")) == []
