@@ -41,7 +41,7 @@ from pipeline.apply.flight import RUN_JSON, ApplyOptions, apply_flight
 from pipeline.apply.light import INTERPOLATION_MODES
 from pipeline.calibrate.fit import STAGES
 from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
-from pipeline.ingest.catalog import CATALOG_ROOT, load_camera
+from pipeline.ingest.catalog import CATALOG_ROOT, load_camera, read_yaml
 from pipeline.ingest.products import Products, indices_for, radiance_refused, resolve
 from pipeline.ingest.session import Session, load_session, read_frame_table
 from pipeline.run.card import (
@@ -163,7 +163,7 @@ def stage_keys(session: Session, response_method: str) -> dict[str, str]:
     """Cache key of each stage: its own inputs plus the key of the stage before it, so a
     changed input changes the keys of exactly the stages that depend on it."""
     code = code_digest()
-    yaml_sha = file_sha256(session.root / "session.yaml")
+    yaml_sha = fits_yaml_digest(session.root / "session.yaml")
     keys: dict[str, str] = {}
     before = {"code": code, "method": response_method, "camera": session.camera.name,
               "camera_catalog": file_sha256(Path(session.camera.source)) if session.camera.source else ""}
@@ -175,6 +175,15 @@ def stage_keys(session: Session, response_method: str) -> dict[str, str]:
         keys[stage] = _digest(inputs)
         before = {"key": keys[stage]}
     return keys
+
+
+def fits_yaml_digest(path: Path) -> str:
+    """sha256 of session.yaml as the fits see it: its keys and values except ``products``
+    (what apply writes, no input of any fit), so that choosing other products re-fits nothing
+    (nor does a comment or a change of layout)."""
+    data = read_yaml(path, SessionError)
+    rest = {str(k): v for k, v in data.items() if k != "products"} if isinstance(data, dict) else data
+    return hashlib.sha256(json.dumps(rest, sort_keys=True, default=str).encode()).hexdigest()
 
 
 def plan_calibration(session_dir: str | Path, cache_dir: str | Path, response_method: str = "forward") -> CalibrationPlan:
