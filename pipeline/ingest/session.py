@@ -37,6 +37,7 @@ from pipeline.ingest.exif import (
     utc_naive,
 )
 from pipeline.ingest.gps import placed_records
+from pipeline.ingest.products import yaml_choice
 from pipeline.ingest.xmp import TagProblem
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
@@ -239,8 +240,7 @@ def load_session(root: str | Path) -> Session:
     if not isinstance(data, dict):
         raise SessionError("must be a YAML mapping (camera, intrinsics, reflector, marker)", path=path)
     try:
-        check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes", "panel", "products", "serial"}, path,
-                   "session.yaml")
+        check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes", "panel", "products", "serial"}, path, "session.yaml")
     except MscalError as exc:
         raise SessionError(exc.reason, path=path, hint=exc.hint) from None
     try:
@@ -294,8 +294,6 @@ def load_session(root: str | Path) -> Session:
             hint="check marker.size_m and reflector.size_m (both in metres)",
         )
     panel = parse_panel(data["panel"], path) if data.get("panel") is not None else PanelConfig()
-    from pipeline.ingest.products import yaml_choice
-
     return Session(
         root=root, camera=camera, intrinsics=intr, reflector=reflector, marker=marker, panel_polygon=panel.polygon,
         panel_marker=panel.marker, band_intrinsics=band_intr, products=yaml_choice(data.get("products"), path),
