@@ -441,7 +441,8 @@ def _report_apply(res: Any, out: Path, strict: bool, stores: list[Path]) -> None
             counts={"frames_in": res.run.get("frames_in"), "frames_out": res.run["frames_out"],
                     "quarantined": len(res.quarantined), "files_skipped": len(skipped),
                     "saturated_pixels": sat.get("total")},
-            warnings=warnings, details={"up_to_date": res.up_to_date, "reference": res.run.get("reference")}).emit()
+            warnings=warnings, details={"up_to_date": res.up_to_date, "reference": res.run.get("reference"),
+                                        "products": res.run.get("products")}).emit()
     if strict and res.quarantined:
         raise SystemExit(3)
 
