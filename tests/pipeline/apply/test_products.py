@@ -175,3 +175,18 @@ def test_card_session_products_from_session_yaml_and_the_command_line(tmp_path) 
     lean = tmp_path / "lean"
     assert apply_card(plan, flight["name"], str(lean))["products"]["tiffs"] is False
     assert list(lean.rglob("*.tif")) == []
+
+
+def test_the_missing_reflectance_warning_says_where_the_radiance_is() -> None:
+    """A band without a sun-sensor reading has NaN reflectance; its radiance is in the
+    outputs only when chosen, and the report's warning says which."""
+    from pipeline.products.report.sections import reference_warnings
+
+    missing = [{"capture": "IMG_0001", "file": "IMG_0001_3.tif", "band": "Red", "reason": "no reading"}]
+    run = {"reference": {"route": "dls"}, "reflectance_missing": missing}
+    texts = {}
+    for name, products in (("old", None), ("radiance", {"radiance": True}), ("default", {"radiance": False})):
+        (w,) = reference_warnings({**run, **({} if products is None else {"products": products})})
+        texts[name] = w.message
+    assert "are NaN, radiance kept (run.json" in texts["old"] and "radiance kept" in texts["radiance"]
+    assert "are NaN, radiance written with --products radiance (run.json" in texts["default"]
