@@ -8,11 +8,12 @@ process alone; see ``bench_calibrate.run_measured``):
 - the I/O floor: read + decode every raw frame and write a float32 reflectance-sized array
   per frame, nothing else;
 - a hand-written per-frame numpy loop: read, demosaic, LUT (U), divide by t V S, save;
-- the same loop writing what apply writes (raw DN, reflectance, NDVI, NDRE, vegetation mask,
+- the same loop writing what apply writes by default (raw DN, reflectance, NDVI, vegetation mask,
   the 8 export-band TIFFs and an NDVI TIFF per frame; plain files, no Zarr, no EXIF/XMP):
   context for the loop figure, which compares against a loop that writes 1 file per frame;
-- ``mscal apply FLIGHT --calibration CALIB -o OUT`` (ingest into raw.zarr, Eq. 15 lazily,
-  reflectance.zarr with indices, 8 photogrammetry TIFFs + 1 NDVI TIFF per frame, run.json);
+- ``mscal apply FLIGHT --calibration CALIB -o OUT``, the default products (ingest into raw.zarr,
+  Eq. 15, reflectance.zarr with NDVI and the vegetation mask, 8 photogrammetry TIFFs + 1 NDVI
+  TIFF per frame, run.json; docs/products.md);
 - ``mscal apply --workers 1`` (one worker: the scaling with cores, 1 vs the default of one
   worker per core);
 - ``mscal apply`` again on the finished OUT (nothing to do);
@@ -26,7 +27,7 @@ each is the figure. Before every measured command the previous outputs are empti
 aside (``bench_calibrate.discard``: not deleted, see there), dirty pages flushed and the machine
 left to rest ``--settle`` seconds (see :func:`settle`).
 
-Targets (issue 25, which tightened issue 3's): apply wall <= 1.2 x the I/O floor and >= 2.0 x
+Targets: apply wall <= 1.2 x the I/O floor and >= 2.0 x
 faster than the (single-threaded) loop; CPU / wall >= 0.9 x cores (every core busy); peak RSS
 <= 1 GB and flat in the number of frames (within 15 %).
 The flight is built from the frames of a small synthetic session, each copy with its own
@@ -178,8 +179,9 @@ def child_loop(flight: str, calib: str, out: str) -> None:
 
 
 def child_loop_same(flight: str, calib: str, out: str) -> None:
-    """The same loop, writing per frame what ``mscal apply`` writes, as a hand-written script
-    would: raw DN and the float products as .npy, the export bands as uint16 TIFFs
+    """The same loop, writing per frame what ``mscal apply`` writes by default (reflectance,
+    NDVI, the vegetation mask, the TIFFs), as a hand-written script would: raw DN and the
+    float products as .npy, the export bands as uint16 TIFFs
     (reflectance x 32768) and NDVI as a float32 TIFF (tifffile; no EXIF/XMP)."""
     import cv2
     import tifffile
@@ -187,20 +189,18 @@ def child_loop_same(flight: str, calib: str, out: str) -> None:
     from pipeline.ingest.catalog import load_camera
 
     cam = load_camera("ximea-mq022hg-sm5x5-nir")
-    red, nir, edge = (cam.band_for_wavelength(cam.index_bands[k]) for k in ("red", "nir", "rededge"))
+    red, nir = (cam.band_for_wavelength(cam.index_bands[k]) for k in ("red", "nir"))
     export = [cam.band_names.index(b) for b in cam.export_bands][:8]
     o = Path(out)
     o.mkdir(parents=True, exist_ok=True)
     for stem, dn, refl in _loop_frames(flight, calib):
         with np.errstate(invalid="ignore", divide="ignore"):
             ndvi = (refl[nir] - refl[red]) / (refl[nir] + refl[red])
-            ndre = (refl[nir] - refl[edge]) / (refl[nir] + refl[edge])
         u8 = np.nan_to_num((ndvi + 1) * 127.5, nan=0).clip(0, 255).astype(np.uint8)
         _, mask = cv2.threshold(u8, 0, 1, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
         np.save(o / f"{stem}_raw.npy", dn)
         np.save(o / f"{stem}.npy", refl)
         np.save(o / f"{stem}_ndvi.npy", ndvi)
-        np.save(o / f"{stem}_ndre.npy", ndre)
         np.save(o / f"{stem}_mask.npy", mask)
         for b in export:
             tifffile.imwrite(o / f"{stem}_{cam.band_names[b]}.tif",
@@ -317,7 +317,7 @@ def render(res: dict, command: str) -> str:
     rows = [  # label, measurement, HTML id of the row (README figures link to it)
         ("I/O floor (read + decode, write float32)", f, "apply-floor"),
         ("per-frame numpy loop (read, demosaic, LUT, divide, save)", lp, "apply-loop"),
-        *([("the same loop writing what apply writes (raw, reflectance, ndvi, ndre, mask as .npy; 8 band TIFFs "
+        *([("the same loop writing what apply writes (raw, reflectance, ndvi, mask as .npy; 8 band TIFFs "
             "+ NDVI TIFF, no EXIF/XMP)", res["loop_same"], "apply-loop-same")] if "loop_same" in res else []),
         ("`mscal apply`", ap, "apply-mscal"),
         ("`mscal apply` again on the finished OUT", rr, "apply-rerun"),
@@ -340,8 +340,8 @@ def render(res: dict, command: str) -> str:
         "",
         f"Flight: {n} full-resolution frames (2048 x 1088 raw mosaic, 10-bit, 25 bands of 217 x 409), built from the "
         "flight frames of a small synthetic session, each with its own random least-significant bits. Outputs of "
-        "`mscal apply`: raw.zarr, reflectance.zarr (reflectance, ndvi, ndre, vegetation_mask), 8 photogrammetry TIFFs "
-        "and 1 NDVI TIFF per frame, run.json. The frames are in the page cache for every command (read once after the "
+        "`mscal apply` (the default products): raw.zarr, reflectance.zarr (reflectance, ndvi, vegetation_mask), 8 "
+        "photogrammetry TIFFs and 1 NDVI TIFF per frame, run.json. The frames are in the page cache for every command (read once after the "
         "rest: the VM pages out memory not accessed for 60 s). Before each "
         "command: the previous command's outputs emptied and moved aside, not deleted (`discard()` in "
         "bench_calibrate.py: on ext4 every file created within 60-360 s of a deletion scans past the deleted "

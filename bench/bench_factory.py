@@ -16,16 +16,18 @@ Measured, each in its own fresh process (wall, CPU, peak RSS of that process alo
   expressions), MicaSense's model (black level, a1 / gain / exposure with the row-gradient terms
   a2, a3, the radial vignetting polynomial, map cached per band), reflectance from the sun
   sensor (``pi L / Irradiance``); one 5-band float32 ``.npy`` per capture; single-threaded;
-- ``mscal apply CAPTURES --calibration factory --reference dls -o OUT`` (its full products);
+- ``mscal apply CAPTURES --calibration factory --reference dls -o OUT`` (the default products:
+  raw.zarr, reflectance.zarr with reflectance, NDVI and the vegetation mask, the photogrammetry
+  and NDVI TIFFs, run.json; no radiance cube: docs/products.md);
 - the write floor: the files of apply's last OUT (paths, sizes, order) written again the way
   apply writes them, with nothing computed (``bench_apply.child_writes``): what the device
   and the file system cost for apply's bytes alone, beside the wall the 2.0x target allows.
 
 The loop and apply run ``--repeat`` times each, alternating, and the median of each counts.
-Target (issue 25): apply >= 2.0x faster than the loop.
+Target: apply >= 2.0x faster than the loop.
 
-Disk: a capture takes ~12 MB of band files and ~87 MB of apply outputs, so 1,000 captures need
-~100 GB. The script measures both on a 4-capture probe first and, when ``--captures`` does not
+Disk: a capture takes ~12 MB of band files and ~54 MB of apply outputs, so 1,000 captures need
+~66 GB. The script measures both on a 4-capture probe first and, when ``--captures`` does not
 fit in the work folder's free space, measures the largest count that does and says so in its
 output and in the section (fewer than 40 fitting is an error).
 """
@@ -266,7 +268,7 @@ def render(res: dict, command: str) -> str:
     for label, r, runs, aid in (
             ("hand-written numpy loop of MicaSense's model (EXIF + XMP per file, vignetting cached per band, one "
              "5-band float32 file per capture)", lp, res["loop_runs"], "factory-loop"),
-            ("`mscal apply --calibration factory --reference dls` (all its products)", ap, res["apply_runs"],
+            ("`mscal apply --calibration factory --reference dls` (the default products)", ap, res["apply_runs"],
              "factory-mscal"),
             *([(write_floor_label(res), res["writes"], [], "factory-write-floor")] if "writes" in res else [])):
         each = f" (median; runs: {', '.join(f'{x.wall_s:.1f}' for x in runs)})" if len(runs) > 1 else ""

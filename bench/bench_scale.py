@@ -182,10 +182,11 @@ def child_floor(flight: str, out: str, kind: str) -> None:
 
 
 def child_apply(flight: str, calib: str, out: str, kind: str) -> None:
-    """``apply_flight`` through the Python API (the small frames need ``indices=()``)."""
+    """``apply_flight`` through the Python API (the small frames need no indices)."""
     from pipeline.apply.flight import ApplyOptions, apply_flight
+    from pipeline.ingest.products import Products
 
-    opts = ApplyOptions(indices=()) if kind == "small" else ApplyOptions()
+    opts = ApplyOptions(products=Products(indices=())) if kind == "small" else ApplyOptions()
     res = apply_flight(flight, calib, out, opts)
     print(json.dumps({"frames_out": res.run["frames_out"], "quarantined": len(res.quarantined)}))
 
@@ -404,7 +405,7 @@ def render(res: dict, cfg: dict, quick: bool, command: str, info: dict[str, str]
         "",
         "2048 x 1088 raw mosaic, 10-bit, 25 bands of 217 x 409 (the synthetic session's flight frames cycled, each "
         "with its own random least-significant bits). `mscal apply FLIGHT --calibration CALIB -o OUT` writes "
-        "raw.zarr, reflectance.zarr (reflectance, ndvi, ndre, mask), 8 photogrammetry TIFFs and 1 NDVI TIFF per "
+        "raw.zarr, reflectance.zarr (reflectance, ndvi, mask: the default products), 8 photogrammetry TIFFs and 1 NDVI TIFF per "
         "frame. The I/O floor reads and decodes every frame and writes a float32 array of the reflectance's size. "
         "2,400 frames (the memory check) fit on this machine's disk; 5,000 would not (4.4 MB in and 13.7 MB "
         "out per frame), hence the small-frame table below.",

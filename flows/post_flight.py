@@ -65,10 +65,12 @@ def list_flights(session: str) -> dict[str, str]:
 @task(**IO, task_run_name="apply-{name}")
 def apply_flight(name: str, flight_dir: str, calibration: str, out: str, normalise: str,
                  dask_address: str | None, illumination: str = "linear", scheduler: str = "auto",
-                 workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
+                 workers: int = 0, direct_io: bool | None = None,
+                 products: dict[str, Any] | None = None) -> dict[str, Any]:
     try:
         return runner.apply_one(flight_dir, calibration, out, normalise=normalise, dask_address=dask_address,
-                                illumination=illumination, scheduler=scheduler, workers=workers, direct_io=direct_io)
+                                illumination=illumination, scheduler=scheduler, workers=workers, direct_io=direct_io,
+                                products=products)
     except Exception:  # the run goes on without this flight; its traceback goes to the run's log file
         get_run_logger().exception("flight %s could not be processed", name)
         raise
@@ -86,10 +88,11 @@ def plan_card(session: str, cache_dir: str) -> dict[str, Any]:
 
 @task(**IO, task_run_name="apply-{name}")
 def apply_card(name: str, plan: dict[str, Any], out: str, dask_address: str | None, scheduler: str = "auto",
-               workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
+               workers: int = 0, direct_io: bool | None = None,
+               products: dict[str, Any] | None = None) -> dict[str, Any]:
     try:
         return runner.apply_card(plan, name, out, dask_address=dask_address, scheduler=scheduler, workers=workers,
-                                 direct_io=direct_io)
+                                 direct_io=direct_io, products=products)
     except Exception:  # the run goes on without this flight; its traceback goes to the run's log file
         get_run_logger().exception("flight %s could not be processed", name)
         raise
@@ -129,6 +132,7 @@ def post_flight(
     scheduler: Literal["auto", "threads", "processes"] = "auto",
     workers: int = 0,
     direct_io: bool | None = None,
+    products: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Calibrate SESSION once and apply it to each of its flights; outputs in OUT.
 
@@ -142,6 +146,8 @@ def post_flight(
     frame's time (``nearest`` or ``linear``).
     ``scheduler``, ``workers``, ``direct_io``: how apply runs without ``dask_address``
     (:class:`pipeline.apply.execution.Execution`; recorded per flight in run.json).
+    ``products``: the keys of the products choice the command line gives (``radiance``,
+    ``indices``, ``tiffs``), over session.yaml's ``products`` (:func:`runner.session_products`).
     """
     log = get_run_logger()
     timings = runner.Timings()
@@ -152,7 +158,8 @@ def post_flight(
     cache = str(cache_dir or runner.default_cache_dir())
     if runner.session_kind(paths.session) == "card":
         return _card_flight(session, out, paths, cache, timings, dask_address=dask_address, catalog_root=catalog_root,
-                            scheduler=scheduler, workers=workers, direct_io=direct_io)
+                            scheduler=scheduler, workers=workers, direct_io=direct_io, products=products)
+    chosen = runner.session_products(paths.session, products).record()
     plan = plan_calibration(paths.session, cache, response_method)
     flights = list_flights(paths.session)
     summaries: dict[str, dict[str, Any]] = {}
@@ -174,7 +181,7 @@ def post_flight(
                 state = apply_flight(name, flight_dir, str(Path(published).resolve()),
                                      str(Path(paths.out) / "flights" / name),
                                      normalise, dask_address, illumination, scheduler, workers, direct_io,
-                                     return_state=True)
+                                     chosen, return_state=True)
             summaries[name] = _outcome(state, flight_dir)
             advance(1)
         qa_markdown = _report(paths.out, summaries, timings)
@@ -221,7 +228,7 @@ def _finish(record: dict[str, Any], qa_markdown: str, session: str, out: str, pa
 
 def _card_flight(session: str, out: str, paths: runner.RunPaths, cache: str, timings: runner.Timings, *,
                  dask_address: str | None, catalog_root: str | None, scheduler: str, workers: int,
-                 direct_io: bool | None) -> dict[str, Any]:
+                 direct_io: bool | None, products: dict[str, Any] | None = None) -> dict[str, Any]:
     """A card session (a flight folder as it comes off the camera): each of its flights with the
     camera's factory radiometry or the library's field calibration of its serial, no fits."""
     plan = plan_card(paths.session, cache)
@@ -231,7 +238,7 @@ def _card_flight(session: str, out: str, paths: runner.RunPaths, cache: str, tim
             name = flight["name"]
             with timings.step(f"apply_{name}"):
                 state = apply_card(name, plan, str(Path(paths.out) / "flights" / name), dask_address, scheduler,
-                                   workers, direct_io, return_state=True)
+                                   workers, direct_io, products, return_state=True)
             summaries[name] = state.result() if state.is_completed() else \
                 runner.failed_card_flight(flight, state.result(raise_on_failure=False))
             advance(1)
@@ -248,18 +255,20 @@ def _card_flight(session: str, out: str, paths: runner.RunPaths, cache: str, tim
 @flow(name="process-inbox")
 def process_inbox(inbox_dir: str, out_root: str, settle_seconds: float = 600.0,
                   response_method: Literal["forward", "alternating"] = "forward",
-                  dask_address: str | None = None, cache_dir: str | None = None) -> dict[str, str]:
+                  dask_address: str | None = None, cache_dir: str | None = None,
+                  products: dict[str, Any] | None = None) -> dict[str, str]:
     """One pass over INBOX: every complete, unprocessed session (a field session or a flight
     folder off a camera's card) through ``post_flight`` into ``OUT_ROOT/<session name>``; each
     recorded in the serve state file; one that cannot be run (no known camera, two cameras) is
     recorded as failed with the reason, and the others go on. Returns ``{name: status}`` of the
     sessions processed in this pass (done, partial, failed) and of what was not processed now
-    (``waiting``: still being copied, empty, not a folder; the reason is in the state file)."""
+    (``waiting``: still being copied, empty, not a folder; the reason is in the state file).
+    ``products``: the command line's products choice, for every session (over its session.yaml's)."""
     log = get_run_logger()
     done: dict[str, str] = {}
     for p in inbox.pending_sessions(inbox_dir, out_root, settle_seconds):
         log.info("session %s: complete and not processed yet", p.name)
-        problem = runner.session_problem(p.path, cache_dir)  # no known camera, two cameras, a bad session.yaml
+        problem = runner.session_problem(p.path, cache_dir, products)  # no known camera, a bad session.yaml, ...
         if problem is not None:
             log.warning("session %s not processed: %s", p.name, problem)
             inbox.record(Path(out_root), p.name, listing=p.listing, content=p.content, status="failed", detail=problem)
@@ -267,7 +276,7 @@ def process_inbox(inbox_dir: str, out_root: str, settle_seconds: float = 600.0,
             continue
         state = post_flight(p.path, str(Path(out_root) / p.name), response_method=response_method,
                             dask_address=dask_address, cache_dir=cache_dir, catalog_root=str(out_root),
-                            return_state=True)
+                            products=products, return_state=True)
         status = "done" if state.is_completed() else "failed"
         detail = "" if status == "done" else str(state.message or "")
         if status == "done":  # processed, but some flights could not be: said in the state file

@@ -52,6 +52,7 @@ from pipeline.apply.flight import (
     software_versions,
     write_run_record,
 )
+from pipeline.apply.products import remove_unchosen
 from pipeline.ingest.camera_meta import (
     METADATA_READING,
     Capture,
@@ -63,6 +64,7 @@ from pipeline.ingest.camera_meta import (
 from pipeline.ingest.catalog import Camera, Index
 from pipeline.ingest.gps import without_unreachable
 from pipeline.ingest.photo_tags import CameraOptics, read_optics
+from pipeline.ingest.products import Products, indices_for
 from pipeline.ingest.raw import DN_MEDIAN, DN_MEDIAN_ATTRS, raw_codec
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries
@@ -308,6 +310,7 @@ class CaptureRun:
     reference_band: int | None = None  # the band a registration warps the others onto (their lens is its)
     refine: Refinement | None = None  # image registration on top of the files' own, per capture (coregistration)
     coreg_reference: int | None = None  # the band measured captures' residual shifts are against
+    products: Products = Products()  # radiance (factory chain), indices, TIFFs (pipeline.ingest.products)
 
 
 def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder, shape: tuple[int, int, int],
@@ -324,6 +327,7 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
     forget_run(out)
     remove_temporaries(out)
+    remove_unchosen(out, run.products)
     panels = {**metadata_panels(captures), **run.panels}
     t0 = time.perf_counter()
     run, coreg = coregistered(camera, captures, run, panels)
@@ -369,8 +373,10 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
         "capture_times": capture_time_zones(captures),
         "saturated_pixels": {"total": int(sum(o.saturated for o in outcomes)),
                              "per_frame": {o.name: o.saturated for o in outcomes}},
-        "outputs": {"reflectance": "reflectance.zarr", "raw": "raw.zarr", "photogrammetry": "photogrammetry/",
-                    "panels": "panels/", "ndvi": "ndvi/"},
+        "outputs": {"reflectance": "reflectance.zarr", "raw": "raw.zarr",
+                    **({"photogrammetry": "photogrammetry/", "panels": "panels/", "ndvi": "ndvi/"}
+                       if run.products.tiffs else {})},
+        "products": run.products.record(indices),
         "panels": [{"capture": name, "reason": why} for name, why in sorted(panels.items()) if name in frames],
         "export_bands": [camera.bands[b].name for b in export],
         "versions": software_versions(),
@@ -431,7 +437,7 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
     rvars: dict[str, tuple[tuple[str, ...], Any, dict]] = {
         "reflectance": (("frame", "band", "y", "x"), np.float32, {"long_name": run.reflectance_name, "units": "1"}),
     }
-    if factory:
+    if factory and run.products.radiance:
         rvars["radiance"] = (("frame", "band", "y", "x"), np.float32,
                              {"long_name": "factory radiance", "units": run.radiance_unit})
     for ix in indices:
@@ -450,7 +456,7 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
         DN_MEDIAN: (("frame", "band"), np.float64, dict(DN_MEDIAN_ATTRS)),
     }, attrs)
     _create(raw_ds, tmp_raw, [raw_codec()])
-    for sub in ("photogrammetry", "panels", "ndvi"):
+    for sub in ("photogrammetry", "panels", "ndvi") if run.products.tiffs else ():
         (out / sub).mkdir(exist_ok=True)
     first = captures[0].metas
     optics = band_optics(captures[0], export, run.reference_band if run.transforms is not None else None)
@@ -463,6 +469,7 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
                     for i, b in enumerate(export)),
         tiff_dtype=run.tiff_dtype, out=out, norm=run.norm, transforms=run.transforms,
         factory_alignment=run.factory_alignment, refine=run.refine, coreg_reference=run.coreg_reference,
+        tiffs=run.products.tiffs,
     )
     return tmp_refl, tmp_raw, plan
 
@@ -490,7 +497,6 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     )
     from pipeline.apply.light import illumination_plan
     from pipeline.calibrate.registration import check_transforms
-    from pipeline.ingest.catalog import load_index
     from pipeline.storage.store import check_camera, open_calibration
 
     if calib is None:
@@ -516,7 +522,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     shape = (camera.n_bands, *v_shape)
     chash = calibration_hash(calib)
     export = export_band_indices(camera, options.export_bands)
-    indices = [load_index(n) for n in options.indices]
+    indices = indices_for(camera, options.products)
     roles = {ix.name: index_roles(camera, ix) for ix in indices}
     align, band_shift, reference = pass_geometry(calib, camera, options)
     if align:
@@ -562,5 +568,6 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
         scale=lambda name: scales.get(name), extra_coords=extra_coords, record=record, execution=options.execution,
         panels={options.panel.frame: "--panel names it"} if options.panel is not None else {},
         reference_band=camera.band_names.index(reference) if align and reference in camera.band_names else None,
+        products=options.products,
     )
     return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)

@@ -30,10 +30,9 @@ from __future__ import annotations
 import itertools
 import logging
 import os
-import threading
 import uuid
 from collections import deque
-from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures import wait as futures_wait
 from dataclasses import dataclass, replace
 from functools import lru_cache
@@ -57,6 +56,7 @@ from pipeline.apply.execution import (
     worker_context,
     worker_environment,
 )
+from pipeline.apply.frame_writes import WRITER_THREADS, FrameWrites  # noqa: F401  (WRITER_THREADS: re-exported)
 from pipeline.calibrate.registration import frame_transforms
 from pipeline.ingest.camera_meta import (
     Capture,
@@ -283,6 +283,11 @@ class Plan:
     refine: Any = None  # coregistration.Refinement: image registration per capture on top of it (bandgrid)
     coreg_reference: int | None = None  # the band the measured captures' residual shifts are against (bandgrid)
     raw_medians: Path | None = None  # raw.zarr's dn_median (frame, band), written with each new frame's DN
+    tiffs: bool = True  # the per-frame TIFFs (photogrammetry, panels, thermal, NDVI); False: --no-tiffs
+
+    def indices_made(self) -> list[Index]:
+        """The indices the pass writes (run.json ``products``)."""
+        return [ix for ix, _ in self.indices]
 
 
 @dataclass(frozen=True)
@@ -396,62 +401,6 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
     return rad, k, rad, int(np.count_nonzero(saturated))
 
 
-_writer_of_thread = threading.local()
-
-#: Writer threads of each computing thread (:class:`FrameWrites`). A frame hands over 15 files
-#: (its chunks and, encoded on the computing thread, its 9 TIFFs); each direct write waits for
-#: the device. One writer thread became the bottleneck once the TIFFs went to it; two kept
-#: both cores busier: 600 full-resolution frames, 3 alternating runs each, median wall 16.7 s
-#: against 17.9 s with the TIFFs written on the computing thread (docs/benchmarks.md).
-WRITER_THREADS = 2
-
-
-def _writer() -> ThreadPoolExecutor:
-    """This thread's writer threads (made on first use, kept: their direct-I/O buffers are reused)."""
-    ex = getattr(_writer_of_thread, "executor", None)
-    if ex is None:
-        ex = _writer_of_thread.executor = ThreadPoolExecutor(WRITER_THREADS, thread_name_prefix="mscal-writer")
-    return ex
-
-
-class FrameWrites:
-    """A frame's file writes (chunks and TIFFs) on writer threads, while the frame goes on
-    computing.
-
-    A frame's outputs are made one after the other (reflectance, then the indices, then the
-    TIFFs from them); each file write waits for the device (direct I/O), and the computing
-    of the next product need not wait with it. Only arrays that nothing changes afterwards
-    are handed over. :meth:`wait` returns once every write is on disk (the frame is reported
-    done only then, as before) and raises the first write's error. ``nbytes``: the bytes of
-    the arrays and parts handed over (what the frame holds in memory until written).
-    """
-
-    def __init__(self) -> None:
-        self._pending: list[Future] = []
-        self.nbytes = 0
-
-    def submit(self, fn: Callable[..., Any], *args: Any) -> None:
-        self.nbytes += sum(_held_bytes(a) for a in args)
-        self._pending.append(_writer().submit(fn, *args))
-
-    def wait(self, raise_errors: bool = True) -> None:
-        pending, self._pending = self._pending, []
-        errors = [exc for f in pending if (exc := f.exception()) is not None]
-        if errors and raise_errors:
-            raise errors[0]
-
-
-def _held_bytes(arg: Any) -> int:
-    """Bytes of an array, a bytes-like object or a list of them (a TIFF's parts); 0 for others."""
-    if isinstance(arg, np.ndarray):
-        return int(arg.nbytes)
-    if isinstance(arg, (bytes, bytearray, memoryview)):
-        return memoryview(arg).nbytes
-    if isinstance(arg, (list, tuple)):
-        return sum(_held_bytes(a) for a in arg)
-    return 0
-
-
 def write_raw(plan: Plan, index: int, dn: np.ndarray) -> None:
     """A new frame's raw.zarr chunk, and its band medians where the cube keeps them."""
     write_frame(plan.raw_dn, index, dn)
@@ -540,8 +489,8 @@ def start_frame(plan: Plan, job: Job) -> Outcome | _Writing:
             signal, dn = (np.ascontiguousarray(upright_meta(job.capture.metas[0], a)) for a in (signal, dn))
         except FrameError as exc:
             return _quarantined(job, exc)
-    if radiance is not None:
-        radiance = signal
+    if radiance is not None:  # an output only when chosen (--products radiance)
+        radiance = signal if "radiance" in plan.outputs else None
     writes = FrameWrites()
     try:
         tags = _write_products(plan, job, dn, sha, signal, factor, radiance, writes)
@@ -593,10 +542,10 @@ def _write_products(plan: Plan, job: Job, dn: np.ndarray, sha: str | None, signa
             ndvi = val
     if ndvi is not None and "vegetation_mask" in plan.outputs:
         writes.submit(write_frame, store / "vegetation_mask", job.index, vegetation_mask(ndvi))
-    for b, btags in plan.bands:  # encoded here, written by the writer thread
+    for b, btags in plan.bands if plan.tiffs else ():  # encoded here, written by the writer thread
         writes.submit(write_tiff_file, band_tiff_path(plan.out, job.name, btags.name, job.panel),
                       band_tiff_parts(refl[b], tags, btags, dtype=plan.tiff_dtype))
-    if ndvi is not None and not job.panel:
+    if ndvi is not None and not job.panel and plan.tiffs:
         writes.submit(write_tiff_file, plan.out / NDVI_DIR / f"{job.name}.tif", ndvi_tiff_parts(ndvi, tags))
     return tags
 
@@ -608,7 +557,7 @@ def write_thermal(plan: Plan, job: Job, tags: FrameTags) -> tuple[dict[str, str]
     TIFF ``thermal/<capture>_<band>.tif``, upright, on the thermal band's own grid; never part
     of reflectance. One ``{file, band, written | reason}`` per thermal band file."""
     out: list[dict[str, str]] = []
-    for s in job.capture.skipped if job.capture is not None else ():
+    for s in job.capture.skipped if job.capture is not None and plan.tiffs else ():
         path = Path(s["file"])
         try:
             meta = read_capture_meta(path)

@@ -113,6 +113,7 @@ from pipeline.apply.panel_search import (
     panels_seen,
     seen_record,
 )
+from pipeline.apply.products import factor_record
 from pipeline.apply.sun_check import SunCheck, sun_sensor_check
 from pipeline.apply.sunlight import (
     RATIO_RULES,
@@ -134,8 +135,9 @@ from pipeline.ingest.camera_meta import (
     reflectance_factor,
     sun_sensor_absolute,
 )
-from pipeline.ingest.catalog import Camera, load_index, reflectance_option
+from pipeline.ingest.catalog import Camera, reflectance_option
 from pipeline.ingest.identify import Identification, identify_camera
+from pipeline.ingest.products import Products, indices_for
 from pipeline.ingest.session import PanelConfig, panel_config_near
 from pipeline.ingest.sun_scale import sun_scale_constant, sun_scale_record
 from pipeline.ingest.sunsensor import SensorLight, sensor_light
@@ -161,7 +163,7 @@ class FactoryOptions:
     panel_reflectance: str | None = None  # a number or a reflectance target name
     tiff_dtype: str = "uint16"
     export_bands: tuple[str, ...] | None = None
-    indices: tuple[str, ...] = ("ndvi", "ndre")
+    products: Products = Products()  # what is written beyond raw.zarr and reflectance (pipeline.ingest.products)
     strict: bool = False
     registration: str | None = None  # a store from 'mscal register': bands aligned to its reference
     illumination: str | None = None  # nearest | linear: the light between panel captures; None: their mean
@@ -189,6 +191,7 @@ class FactoryOptions:
 
     def fingerprint(self) -> dict[str, Any]:
         d = {k: (list(v) if isinstance(v, tuple) else v) for k, v in self.__dict__.items() if k not in ("strict", "execution")}
+        d["products"] = self.products.fingerprint()
         for key in ("registration", "field_calibration", "illumination"):  # earlier runs stay up to date
             if d[key] is None:
                 d.pop(key)
@@ -452,9 +455,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         raise InputError(f"--reference dls, but no band of the {len(captures)} capture(s) has a usable sun-sensor "
                          f"reading; here: {no_sun[1]}", path=no_sun[0], hint=NO_SUN_SENSOR_HINT)
     export = export_band_indices(camera, options.export_bands)
-    indices = [load_index(n) for n in options.indices]
-    if options.indices == FactoryOptions.indices:  # the defaults: only the indices this camera's bands allow
-        indices = [ix for ix in indices if all(r in camera.index_bands for r in ix.inputs)]
+    indices = indices_for(camera, options.products)  # NDVI if the bands make it; the others asked for
     roles = {ix.name: index_roles(camera, ix) for ix in indices}
 
     registration = _registration(options, camera, shape)
@@ -538,19 +539,20 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
         radiance_unit=first.radiance_unit, irradiance_unit=first.irradiance_unit,
         record=lambda caps: {"components": _components_record(field),
                              "reference": {**_reference_record(reference, panels, panel_factor, camera, caps[0], no_sun,
-                                                               rho_source),
+                                                               rho_source, options.products.radiance),
                                            **({"albedo_panel_unusable": unusable}
                                               if unusable and serial is None else {}),
                                            **seen_record(seen), **notes},
                              "camera_identification": {"evidence": ident.evidence, "overridden": ident.overridden,
                                                        **ident.probe},
                              "radiance_unit": caps[0].metas[0].radiance_unit,
+                             "radiance_factor": factor_record(reference, camera.band_names, panel_factor, bool(scales)),
                              "band_alignment": _alignment_record(options, own, caps),
                              "illumination": _light_record(options.illumination, panels, caps, scales, camera),
                              **light_record(reference, panels, captures, sensor, light, camera,
                                           options.illumination or DEFAULT_LIGHT_MODE, times, check)},
         scale=lambda name: scales.get(name),
-        panels=panel_names, reference_band=_reference_band(options.registration, camera),
+        panels=panel_names, reference_band=_reference_band(options.registration, camera), products=options.products,
     )
     return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)
 
@@ -638,7 +640,8 @@ def _components_record(field: tuple[str, tuple[str, ...], str] | None) -> dict[s
 
 def _reference_record(reference: str, panels: Sequence[PanelReference], factor: tuple[float, ...] | None,
                       camera: Camera, first: Capture | None = None,
-                      no_sun: tuple[Path, str] | None = None, rho_source: str | None = None) -> dict[str, Any]:
+                      no_sun: tuple[Path, str] | None = None, rho_source: str | None = None,
+                      radiance: bool = True) -> dict[str, Any]:
     """What run.json says of the reference: the route, and for the panel route every panel
     capture's factors beside the DLS's on the same capture (their ratio compares the two);
     for no route (``none``) why the sun sensor gives none (``no_sun``: a band file and its
@@ -649,7 +652,7 @@ def _reference_record(reference: str, panels: Sequence[PanelReference], factor: 
         rec["formula"] = "no reflectance (NaN): no panel given and the sun sensor gives no usable reflectance"
         if no_sun is not None:
             rec["reason"] = f"{no_sun[0].name}: {no_sun[1]}"
-        rec["hint"] = PANEL_HINT
+        rec["hint"] = PANEL_HINT if radiance else f"{PANEL_HINT}; --products radiance writes the radiance"
         return rec
     if reference == "dls":
         return {**rec, **sun_scale_record(meta)}

@@ -55,9 +55,11 @@ from pipeline.apply.executor import (  # noqa: F401  (re-exported: the executor'
     write_frame,
 )
 from pipeline.apply.light import DEFAULT_MODE, IlluminationPlan, illumination_plan, varies_in_time
+from pipeline.apply.products import remove_unchosen
 from pipeline.calibrate.registration import check_transforms, frame_transforms
-from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
+from pipeline.ingest.catalog import Camera, Index, load_camera, reflectance_option
 from pipeline.ingest.photo_tags import CameraOptics, optics_from_intrinsics
+from pipeline.ingest.products import Products, indices_for, radiance_refused
 from pipeline.ingest.raw import (
     FRAME_COORDS,
     Cube,
@@ -117,7 +119,7 @@ class ApplyOptions:
     panel: PanelSpec | None = None
     tiff_dtype: str = "uint16"
     export_bands: tuple[str, ...] | None = None
-    indices: tuple[str, ...] = ("ndvi", "ndre")
+    products: Products = Products()  # what is written beyond raw.zarr and reflectance (pipeline.ingest.products)
     strict: bool = False
     illumination: str = DEFAULT_MODE  # nearest | linear: light between reflector captures
     align: bool = True  # align bands with the store's band_transform, if it has one
@@ -135,6 +137,7 @@ class ApplyOptions:
         for key, default in (("align", True), ("centre_bands", False)):  # runs before band alignment stay up to date
             if d[key] == default:
                 d.pop(key)
+        d["products"] = self.products.fingerprint()
         if self.panel is not None:
             d["panel"] = {"frame": self.panel.frame, "box": list(self.panel.box), "reflectance": repr(self.panel.reflectance)}
         return d
@@ -417,8 +420,9 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
             for i, b in enumerate(export)
         ),
         tiff_dtype=options.tiff_dtype, out=out, transforms=calib_path if align else None, band_shift=band_shift,
+        tiffs=options.products.tiffs,
     )
-    for sub in ("photogrammetry", "ndvi"):
+    for sub in ("photogrammetry", "ndvi") if options.products.tiffs else ():
         (out / sub).mkdir(exist_ok=True)
     return _Pass(coords, plan, tmp_store, illum)
 
@@ -638,6 +642,7 @@ def apply_flight(
     if str(calibration) == "factory":
         raise InputError("--calibration factory needs factory radiometric metadata, which this camera's files do not carry",
                          hint="fit a calibration with 'mscal calibrate SESSION -o CALIB.zarr'")
+    radiance_refused(options.products, f"the field calibration {calibration}")
     start_worker_server(options.execution, flight_size_hint(flight_dir))  # imports while the flight is read
     calib_path = Path(calibration)
     calib = open_calibration(calib_path, need="apply")
@@ -650,7 +655,7 @@ def apply_flight(
     check_camera(calib, camera, calib_path)  # the store opened once (0.1 s a load)
     chash = calibration_hash(calib)
     export = export_band_indices(camera, options.export_bands)
-    indices = [load_index(n) for n in options.indices]
+    indices = indices_for(camera, options.products)
     roles = {ix.name: index_roles(camera, ix) for ix in indices}
     sat = saturation_dn(calib, camera)
     geometry = pass_geometry(calib, camera, options)
@@ -680,6 +685,7 @@ def apply_flight(
     with Runner(n_hint, options.execution, calibration=calib_path) as runner:
         if fresh:
             forget_run(out)
+            remove_unchosen(out, options.products)
             try:
                 done = _fresh_pass(cube, runner, start, calib_path, sat, batch=FRESH_BATCH)
             finally:
@@ -701,6 +707,7 @@ def apply_flight(
                 previous["quarantined"] = quarantined
                 return ApplyResult(out, previous, up_to_date=True, quarantined=quarantined, calibration=calib)
             forget_run(out)
+            remove_unchosen(out, options.products)
             remove_frame_tiffs(out, [Path(q["file"]).stem for q in quarantined], camera, export)
             done = _cube_pass(out, runner, start, calib_path, sat, camera)
         else:
@@ -734,7 +741,9 @@ def _run_record(flight_dir: Path, calib_path: Path, chash: str, calib: xr.Datase
         "quarantined": quarantined,
         "metadata_problems": [p for p in problems if Path(str(p["file"])).stem in frames],
         "saturated_pixels": {"total": int(np.sum(sat_counts)), "per_frame": {n: int(c) for n, c in zip(frames, sat_counts)}},
-        "outputs": {"reflectance": "reflectance.zarr", "photogrammetry": "photogrammetry/", "ndvi": "ndvi/"},
+        "outputs": {"reflectance": "reflectance.zarr",
+                    **({"photogrammetry": "photogrammetry/", "ndvi": "ndvi/"} if options.products.tiffs else {})},
+        "products": options.products.record(ps.plan.indices_made()),
         "export_bands": [camera.bands[b].name for b in export],
         "versions": software_versions(),
         "scheduler": runner.scheduler,

@@ -38,6 +38,7 @@ from pipeline.ingest.exif import (
 )
 from pipeline.ingest.gps import placed_records
 from pipeline.ingest.markers import MarkerSpec, marker_dictionary, parse_marker
+from pipeline.ingest.products import yaml_choice
 from pipeline.ingest.xmp import TagProblem
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
@@ -65,6 +66,7 @@ class Session:
     panel_polygon: tuple[tuple[float, float], ...] | None = None  # session.yaml panel.polygon
     panel_marker: "PanelMarker | None" = None  # session.yaml panel.marker (+ size_m, offset_m)
     band_intrinsics: tuple[Intrinsics, ...] | None = None  # session.yaml intrinsics per band
+    products: dict[str, Any] | None = None  # session.yaml products: the keys given (pipeline.ingest.products)
 
     def intrinsics_for(self, band: int) -> Intrinsics | None:
         """session.yaml's intrinsics of band ``band`` (per band, else the one for all), or None."""
@@ -220,7 +222,7 @@ def load_session(root: str | Path) -> Session:
     if not isinstance(data, dict):
         raise SessionError("must be a YAML mapping (camera, intrinsics, reflector, marker)", path=path)
     try:
-        check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes", "panel", "serial"}, path, "session.yaml")
+        check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes", "panel", "products", "serial"}, path, "session.yaml")
     except MscalError as exc:
         raise SessionError(exc.reason, path=path, hint=exc.hint) from None
     try:
@@ -261,7 +263,7 @@ def load_session(root: str | Path) -> Session:
     panel = parse_panel(data["panel"], path) if data.get("panel") is not None else PanelConfig()
     return Session(
         root=root, camera=camera, intrinsics=intr, reflector=reflector, marker=marker, panel_polygon=panel.polygon,
-        panel_marker=panel.marker, band_intrinsics=band_intr,
+        panel_marker=panel.marker, band_intrinsics=band_intr, products=yaml_choice(data.get("products"), path),
     )
 
 

@@ -40,6 +40,7 @@ from mscal_core.errors import InputError, MscalError, SessionError
 
 from pipeline.ingest.catalog import Camera, check_keys, load_camera, read_yaml, reflectance_option
 from pipeline.ingest.exif import parse_utc
+from pipeline.ingest.products import yaml_choice
 
 #: Folders that make a session a field session (the paper's three fits).
 FIELD_FOLDERS = ("response", "vignetting", "reflector")
@@ -49,7 +50,7 @@ DEFAULT_GAP_MINUTES = 30.0
 SET_FOLDER = re.compile(r"^\d{4}SET$")
 #: ``session.yaml`` keys of a card session (all optional).
 CARD_KEYS = {"camera", "serial", "reference", "panel_reflectance", "panel", "field_calibration",
-             "flight_gap_minutes", "name", "notes"}
+             "flight_gap_minutes", "name", "notes", "products"}
 REFERENCES = ("auto", "panel", "dls", "panel-dls")
 #: ``field_calibration`` value that keeps the library's calibrations out (factory radiometry only).
 NO_FIELD = "none"
@@ -72,6 +73,7 @@ class CardSettings:
     field_calibration: str | None = None  # a store path, or NO_FIELD
     flight_gap_minutes: float = DEFAULT_GAP_MINUTES
     source: str | None = None  # the session.yaml read, if any
+    products: dict[str, Any] | None = None  # the keys of its products (pipeline.ingest.products.yaml_choice)
 
 
 def load_card_settings(folder: str | Path) -> CardSettings:
@@ -115,6 +117,7 @@ def load_card_settings(folder: str | Path) -> CardSettings:
         serial=None if data.get("serial") is None else str(data["serial"]).strip(),
         reference=reference, panel_reflectance=None if rho is None else str(rho),
         field_calibration=None if store is None else str(store), flight_gap_minutes=float(gap), source=str(path),
+        products=yaml_choice(data.get("products"), path),
     )
 
 

@@ -29,28 +29,17 @@ from pipeline.run.console import (
     progress,
     report_warnings,
 )
+from pipeline.run.options import (
+    ILLUMINATION_MODES,
+    RESPONSE_METHOD_HELP,
+    RESPONSE_METHODS,
+    deprecated_alias,
+    execution_options,
+    products_options,
+    writes,
+)
 from pipeline.run.summaries import echo_run, echo_serve, run_warnings
 from pipeline.storage.process import stop_process_servers
-
-RESPONSE_METHODS = click.Choice(["forward", "alternating"])
-RESPONSE_METHOD_HELP = "'forward' fits the response with the noise on DN; 'alternating' is the paper's Eq. 6/7."
-ILLUMINATION_MODES = click.Choice(["nearest", "linear"])  # mscal_core.illumination.INTERPOLATION_MODES
-SCHEDULERS = click.Choice(["auto", "threads", "processes"])  # pipeline.apply.execution.SCHEDULERS
-
-
-def execution_options(command: Any) -> Any:
-    """``--scheduler``, ``--workers``, ``--direct-io/--no-direct-io`` of apply and run: how the
-    per-frame pass runs (never what it computes), each defaulting to its environment variable."""
-    command = click.option(
-        "--direct-io/--no-direct-io", "direct_io", default=True, show_default=True, envvar="MSCAL_DIRECT_IO",
-        show_envvar=True, help="Write outputs past the page cache (O_DIRECT) where the file system allows it.")(command)
-    command = click.option(
-        "--workers", type=click.IntRange(min=0), default=0, show_default=True, envvar="MSCAL_APPLY_WORKERS",
-        show_envvar=True, help="Frames processed at once (0: one per core).")(command)
-    return click.option(
-        "--scheduler", type=SCHEDULERS, default="auto", show_default=True, envvar="MSCAL_APPLY_SCHEDULER",
-        show_envvar=True, help="Threads, or worker processes (they take 1-2 s to start; every core busy); auto: "
-                               "processes from 32 frames on.")(command)
 
 
 def _summary(ds) -> str:  # xarray Dataset
@@ -78,32 +67,6 @@ def _store_summary(command: str, ds, out: Path, headline: str, **details: Any) -
                    counts={"bands": int(ds.sizes.get("band", 0)), "frames_skipped": skipped},
                    warnings=report_warnings(calibration=out), details={"camera": ds.attrs.get("camera"), **details})
 
-
-
-def _writes(kind: str, what: str):  # a decorator
-    """Check the command's ``-o`` before any work and lock it while the command runs.
-
-    Writable, never a file or folder mscal did not write (``pipeline.storage.outputs``);
-    ``--wait`` waits for another process writing the same output instead of refusing (exit
-    status 75). Remote (``s3://``) outputs are staged locally and uploaded: not checked here.
-    """
-    import functools
-
-    def deco(f):
-        @functools.wraps(f)
-        def wrapper(*args: Any, wait: bool = False, **kwargs: Any) -> Any:
-            out = kwargs.get("out")
-            if out is None or "://" in str(out):
-                return f(*args, **kwargs)
-            from pipeline.storage.outputs import guarded_output
-
-            with guarded_output(out, kind=kind, wait=wait, what=what):
-                return f(*args, **kwargs)
-
-        return click.option("--wait", is_flag=True, help="If another mscal process is writing the same output, "
-                            "wait for it to finish instead of refusing.")(wrapper)
-
-    return deco
 
 
 class MscalCommand(click.Command):
@@ -140,17 +103,6 @@ def _version(ctx: click.Context, param: click.Parameter, value: bool) -> None:
     ctx.exit()
 
 
-def _deprecated_alias(old: str, new: str, dest: str, type: Any = RESPONSE_METHODS) -> Any:  # `type`: click's name
-    """A hidden ``old`` spelling of option ``new`` that still works and says it is deprecated."""
-    def warn(ctx: click.Context, param: click.Parameter, value: Any) -> Any:
-        if value is not None:
-            click.echo(f"mscal: warning: {old} is deprecated, use {new}", err=True)
-        return value
-
-    return click.option(old, dest, default=None, hidden=True, callback=warn, expose_value=True,
-                        type=type, help=f"Deprecated spelling of {new}.")
-
-
 @click.group(cls=MscalGroup, context_settings={"help_option_names": ["-h", "--help"]},
              epilog="-v/-q/--json may be given before or after the command name. "
                     "See 'mscal COMMAND --help' for each command.")
@@ -163,7 +115,7 @@ def cli() -> None:
 
 
 @cli.command(short_help="Fit response, vignetting and illumination of a session.")
-@_writes("store", "calibration store")
+@writes("store", "calibration store")
 @click.argument("session", type=click.Path(path_type=Path))
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path), help="Calibration store (.zarr) to write.")
 @click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True,
@@ -207,13 +159,13 @@ def fit() -> None:
 
 
 @fit.command("response", short_help="Inverse response U per band (Eq. 5-7).")
-@_writes("store", "calibration store")
+@writes("store", "calibration store")
 @click.argument("directory", type=click.Path(path_type=Path))
 @click.option("--camera", "camera", default=None, help="Camera catalog name (required for a plain frame folder).")
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
               help="Calibration store (.zarr) to write.")
 @click.option("--response-method", type=RESPONSE_METHODS, default=None, help=RESPONSE_METHOD_HELP + "  [default: forward]")
-@_deprecated_alias("--method", "--response-method", "method")
+@deprecated_alias("--method", "--response-method", "method")
 def fit_response(directory: Path, camera: str | None, out: Path, response_method: str | None,
                  method: str | None) -> None:
     """Inverse response U per band (Eq. 5-7) from DIRECTORY: a frame folder with frames.csv,
@@ -242,7 +194,7 @@ def _stage_command(stage: str):
         "illumination": "Spectral factor S and reflector brightness B (Eq. 11-14) from SESSION/reflector.",
     }[stage]
     return fit.command(stage, short_help={"vignetting": "Per-pixel, per-band vignetting V (Eq. 8-10).",
-                                          "illumination": "Spectral factor S and reflector brightness B (Eq. 11-14)."}[stage])(_writes("store", "calibration store")(command))
+                                          "illumination": "Spectral factor S and reflector brightness B (Eq. 11-14)."}[stage])(writes("store", "calibration store")(command))
 
 
 _stage_command("vignetting")
@@ -250,7 +202,7 @@ _stage_command("illumination")
 
 
 @fit.command("intrinsics", short_help="Camera intrinsics per band from board images (OpenCV).")
-@_writes("store", "calibration store")
+@writes("store", "calibration store")
 @click.argument("frames", type=click.Path(path_type=Path))
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
               help="Calibration store (.zarr) to write.")
@@ -285,7 +237,7 @@ def fit_intrinsics(frames: Path, out: Path, camera: str | None, kind: str | None
 
 
 @cli.command(short_help="Band co-registration of a multi-lens camera (homographies).")
-@_writes("store", "calibration store")
+@writes("store", "calibration store")
 @click.argument("captures", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
               help="Calibration store (.zarr): the registration is added to it, or a new store is created.")
@@ -293,7 +245,7 @@ def fit_intrinsics(frames: Path, out: Path, camera: str | None, kind: str | None
               "from the files as apply does).")
 @click.option("--reference-band", default=None,
               help="Band to align to (default: the lens in the middle of the rig).")
-@_deprecated_alias("--reference", "--reference-band", "reference", type=str)
+@deprecated_alias("--reference", "--reference-band", "reference", type=str)
 @click.option("--min-ecc", default=0.3, show_default=True, type=float,
               help="Reject a band's transform whose gradient correlation after alignment is lower.")
 @click.option("--max-captures", default=12, show_default=True, type=int,
@@ -328,7 +280,7 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
 
 
 @cli.command(short_help="Reflectance, indices and TIFFs of a flight's captures (Eq. 15).")
-@_writes("folder", "output folder")
+@writes("folder", "output folder")
 @click.argument("flight", type=click.Path(path_type=Path))
 @click.option("--calibration", "calibration", required=True,
               help="Calibration store (.zarr) from 'mscal calibrate', or 'factory' for cameras with factory metadata.")
@@ -367,19 +319,22 @@ def register(captures: tuple[Path, ...], out: Path, camera: str | None, referenc
 @click.option("--field-components", default=None,
               help="With --field-calibration: response and/or vignetting, comma-separated (default: those the "
                    "store holds). E.g. 'vignetting': field V (Eq. 8-10) with the factory response.")
+@products_options
 @execution_options
 def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str | None, panel_reflectance: str | None,
           reference: str, camera: str | None, float32: bool, export_bands: str | None, strict: bool,
           illumination: str, no_align: bool, registration: Path | None, centre_bands: bool,
-          field_calibration: Path | None, field_components: str | None, scheduler: str, workers: int,
-          direct_io: bool) -> None:
+          field_calibration: Path | None, field_components: str | None, products: str | None, indices: str | None,
+          tiffs: bool | None, scheduler: str, workers: int, direct_io: bool) -> None:
     """Reflectance, indices and photogrammetry TIFFs for a FLIGHT folder of captures (one file
     per capture, or one file per band: IMG_0000_1.tif ..., SD-card trees included): Eq. 15 with
     a calibration store, or with --calibration factory the band files' own metadata."""
     from mscal_core.errors import InputError
 
     from pipeline.apply.execution import Execution, flight_size_hint, start_worker_server
+    from pipeline.ingest.products import cli_choice, resolve
 
+    chosen = resolve(cli_choice(products, indices, tiffs))  # an unknown name fails before anything starts
     execution = Execution(scheduler=scheduler, workers=workers, direct_io=direct_io)
     start_worker_server(execution, flight_size_hint(flight))  # its imports run beside this process's
 
@@ -405,7 +360,7 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
             field_components=tuple(c.strip() for c in field_components.split(",") if c.strip())
             if field_components else (),
             execution=execution,
-            camera=camera, align=not no_align,
+            camera=camera, align=not no_align, products=chosen,
         )
         stores = [p for p in (registration, field_calibration) if p is not None]
         _report_apply(apply_factory(flight, out, fopts), out, strict, stores)
@@ -428,7 +383,7 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
     opts = ApplyOptions(
         normalise=normalise, panel=spec, tiff_dtype="float32" if float32 else "uint16",
         export_bands=bands, strict=strict, illumination=illumination or "linear", align=not no_align,
-        centre_bands=centre_bands, execution=execution,
+        centre_bands=centre_bands, execution=execution, products=chosen,
     )
     _report_apply(apply_flight(flight, calibration, out, opts), out, strict, [Path(calibration)])
 
@@ -486,13 +441,14 @@ def _report_apply(res: Any, out: Path, strict: bool, stores: list[Path]) -> None
             counts={"frames_in": res.run.get("frames_in"), "frames_out": res.run["frames_out"],
                     "quarantined": len(res.quarantined), "files_skipped": len(skipped),
                     "saturated_pixels": sat.get("total")},
-            warnings=warnings, details={"up_to_date": res.up_to_date, "reference": res.run.get("reference")}).emit()
+            warnings=warnings, details={"up_to_date": res.up_to_date, "reference": res.run.get("reference"),
+                                        "products": res.run.get("products")}).emit()
     if strict and res.quarantined:
         raise SystemExit(3)
 
 
 @cli.command(short_help="Index map of an orthomosaic as a Cloud Optimized GeoTIFF.")
-@_writes("file", "index map")
+@writes("file", "index map")
 @click.argument("ortho", type=click.Path(path_type=Path))
 @click.option("--index", "index_name", default="ndvi", show_default=True, help="Index name from catalogs/indices.")
 @click.option("-o", "--output", "out", required=True, type=click.Path(path_type=Path),
@@ -628,7 +584,7 @@ def _logged(out: Any, command: str):  # a context manager
 
 
 @cli.command(short_help="Calibrate a session and apply it to every flight (Prefect).")
-@_writes("folder", "output folder")
+@writes("folder", "output folder")
 @click.argument("session")
 @click.option("-o", "--output", "out", required=True, help="Output folder or fsspec URL (s3://bucket/prefix).")
 @click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True,
@@ -643,21 +599,26 @@ def _logged(out: Any, command: str):  # a context manager
               help="Local output root whose STAC catalog (ROOT/catalog.json) is updated after the run (default: OUT).")
 @click.option("--illumination", type=ILLUMINATION_MODES, default="linear", show_default=True,
               help="Light of each frame between several reflector captures: nearest or linear in time.")
+@products_options
 @execution_options
 def run(session: str, out: str, response_method: str, normalise: str, dask_address: str | None,
         cache_dir: str | None, work_dir: str | None, catalog_root: str | None,
-        illumination: str, scheduler: str, workers: int, direct_io: bool) -> None:
+        illumination: str, products: str | None, indices: str | None, tiffs: bool | None, scheduler: str,
+        workers: int, direct_io: bool) -> None:
     """The whole post-flight flow on Prefect's embedded server. SESSION is a field session
     (session.yaml with response/, vignetting/, reflector/): calibrate it (cached by content) and
     apply it to every SESSION/flights/<name>. Or SESSION is a flight folder as it comes off the
     camera's card (no session.yaml needed): camera and serial from the files, one
     OUT/flights/<name>/ per flight (SET folder, or captures more than 30 min apart), factory
     radiometry or the field calibration of that serial, the light from the panel or sun sensor.
-    SESSION and OUT may be s3:// URLs."""
+    SESSION and OUT may be s3:// URLs. --products, --indices, --tiffs/--no-tiffs apply to every
+    flight, over session.yaml's products key (docs/products.md)."""
+    from pipeline.ingest.products import cli_choice
     from pipeline.run.runner import check_run_inputs
 
+    choice = cli_choice(products, indices, tiffs)
     check_run_inputs(session, out, normalise=normalise, dask_address=dask_address, catalog_root=catalog_root,
-                     illumination=illumination, cache_dir=cache_dir)
+                     illumination=illumination, cache_dir=cache_dir, products=choice)
     if cache_dir:
         os.environ["MSCAL_CACHE_DIR"] = cache_dir  # before Prefect starts: its home follows
     post_flight = _flow("post_flight")
@@ -665,7 +626,7 @@ def run(session: str, out: str, response_method: str, normalise: str, dask_addre
         record = post_flight(session=session, out=out, response_method=response_method, normalise=normalise,
                              dask_address=dask_address, cache_dir=cache_dir, work_dir=work_dir,
                              catalog_root=catalog_root, illumination=illumination, scheduler=scheduler,
-                             workers=workers, direct_io=direct_io)
+                             workers=workers, direct_io=direct_io, products=choice)
     echo_run(record, log_file)
 
 
@@ -681,16 +642,22 @@ def run(session: str, out: str, response_method: str, normalise: str, dask_addre
 @click.option("--response-method", type=RESPONSE_METHODS, default="forward", show_default=True,
               help=RESPONSE_METHOD_HELP)
 @click.option("--dask-address", default=None, help="tcp://HOST:PORT of a running 'dask scheduler'.")
+@products_options
 def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, once: bool, response_method: str,
-          dask_address: str | None) -> None:
+          dask_address: str | None, products: str | None, indices: str | None, tiffs: bool | None) -> None:
     """Process every complete session folder of an INBOX once, now and then on a cron schedule.
 
     A session folder is a field session or a flight folder as it comes off the camera's card (no
     session.yaml needed). Complete: a READY file, or nothing modified for --settle-seconds.
-    Processed sessions are recorded in OUT_ROOT/.mscal-serve.json; a restart does not redo them."""
+    Processed sessions are recorded in OUT_ROOT/.mscal-serve.json; a restart does not redo them.
+    --products, --indices, --tiffs/--no-tiffs apply to every flight of every session, over each
+    session.yaml's products key (docs/products.md)."""
     from datetime import datetime
 
+    from pipeline.ingest.products import cli_choice
     from pipeline.run.inbox import next_time, pending_sessions
+
+    choice = cli_choice(products, indices, tiffs)  # an unknown name fails before anything runs
 
     next_time(cron, datetime.now())  # a bad expression fails before anything runs
     pending_sessions(inbox_dir, out_root, settle_seconds)  # and so does a missing inbox
@@ -698,7 +665,7 @@ def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, onc
     while True:
         with _logged(out_root, "serve") as log_file:
             done = process_inbox(str(inbox_dir), str(out_root), settle_seconds=settle_seconds,
-                                 response_method=response_method, dask_address=dask_address)
+                                 response_method=response_method, dask_address=dask_address, products=choice)
         if all(s == "waiting" for s in done.values()):  # a look that processed nothing keeps no log
             Path(log_file).unlink(missing_ok=True)
         echo_serve(done, out_root)
@@ -710,7 +677,7 @@ def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, onc
 
 
 @cli.command(short_help="Self-contained HTML QA report of calibrations and flights.")
-@_writes("file", "report")
+@writes("file", "report")
 @click.option("--calibration", "calibration", default=None, type=click.Path(path_type=Path),
               help="Calibration store (.zarr) to report on; calibration.json is written beside the report.")
 @click.option("--flight", "flights", multiple=True, type=click.Path(path_type=Path),
@@ -736,7 +703,7 @@ def report(calibration: Path | None, flights: tuple[Path, ...], out: Path, title
 
 
 @cli.command(short_help="Run the whole flow on a synthetic session and score it.")
-@_writes("folder", "demo folder")
+@writes("folder", "demo folder")
 @click.option("-o", "--output", "out", default=Path("demo-out"), show_default=True, type=click.Path(path_type=Path),
               help="Folder for the session, the outputs and evaluation.json.")
 @click.option("--size", type=click.Choice(["small", "full"]), default="small", show_default=True,

@@ -41,9 +41,18 @@ from pipeline.apply.flight import RUN_JSON, ApplyOptions, apply_flight
 from pipeline.apply.light import INTERPOLATION_MODES
 from pipeline.calibrate.fit import STAGES
 from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
-from pipeline.ingest.catalog import load_camera
+from pipeline.ingest.catalog import load_camera, read_yaml
+from pipeline.ingest.products import Products, indices_for, radiance_refused, resolve
 from pipeline.ingest.session import Session, load_session, read_frame_table
-from pipeline.run.card import CardFlight, CardPlan, is_field_session, plan_card, plan_from_record, plan_record
+from pipeline.run.card import (
+    CardFlight,
+    CardPlan,
+    is_field_session,
+    load_card_settings,
+    plan_card,
+    plan_from_record,
+    plan_record,
+)
 from pipeline.storage.atomic import write_json_atomic
 from pipeline.storage.cache import code_digest, default_cache_dir
 from pipeline.storage.store import content_hashes, file_sha256, open_calibration, write_store
@@ -140,7 +149,7 @@ def stage_keys(session: Session, response_method: str) -> dict[str, str]:
     """Cache key of each stage: its own inputs plus the key of the stage before it, so a
     changed input changes the keys of exactly the stages that depend on it."""
     code = code_digest()
-    yaml_sha = file_sha256(session.root / "session.yaml")
+    yaml_sha = fits_yaml_digest(session.root / "session.yaml")
     keys: dict[str, str] = {}
     before = {"code": code, "method": response_method, "camera": session.camera.name,
               "camera_catalog": file_sha256(Path(session.camera.source)) if session.camera.source else ""}
@@ -152,6 +161,15 @@ def stage_keys(session: Session, response_method: str) -> dict[str, str]:
         keys[stage] = _digest(inputs)
         before = {"key": keys[stage]}
     return keys
+
+
+def fits_yaml_digest(path: Path) -> str:
+    """sha256 of session.yaml as the fits see it: its keys and values except ``products``
+    (what apply writes, no input of any fit), so that choosing other products re-fits nothing
+    (nor does a comment or a change of layout)."""
+    data = read_yaml(path, SessionError)
+    rest = {str(k): v for k, v in data.items() if k != "products"} if isinstance(data, dict) else data
+    return hashlib.sha256(json.dumps(rest, sort_keys=True, default=str).encode()).hexdigest()
 
 
 def plan_calibration(session_dir: str | Path, cache_dir: str | Path, response_method: str = "forward") -> CalibrationPlan:
@@ -191,17 +209,45 @@ def flight_dirs(session_dir: str | Path) -> dict[str, str]:
     return {p.name: str(p) for p in load_session(session_dir).flight_dirs()}
 
 
-def session_problem(session_dir: str | Path, cache_dir: str | Path | None = None) -> str | None:
+def session_problem(session_dir: str | Path, cache_dir: str | Path | None = None,
+                    products: dict[str, Any] | None = None) -> str | None:
     """Why a session folder cannot be run (one line naming the file), or None: a field
-    session's session.yaml that is not valid, a card session of no known camera or of two."""
+    session's session.yaml that is not valid, a card session of no known camera or of two,
+    products (the command line's ``products``, over session.yaml's) its flights cannot make."""
     try:
-        if is_field_session(session_dir):
-            load_session(session_dir)
-        else:
-            plan_card_session(session_dir, cache_dir)
+        check_products(session_dir, products, cache_dir)
     except MscalError as exc:
         return str(exc).splitlines()[0]
     return None
+
+
+def session_products(session_dir: str | Path, products: dict[str, Any] | None = None) -> Products:
+    """The products of a session's flights: the command line's choice (``products``, the keys
+    it gives) over session.yaml's ``products`` key, over the defaults (docs/products.md)."""
+    if is_field_session(session_dir):
+        return resolve(load_session(session_dir).products, products)
+    return resolve(load_card_settings(session_dir).products, products)
+
+
+def check_products(session_dir: str | Path, products: dict[str, Any] | None = None,
+                   cache_dir: str | Path | None = None) -> Products:
+    """:func:`session_products`, checked against the session before anything runs: radiance
+    only where every flight has factory radiometry, each index asked for one the camera's
+    bands make (InputError saying which and how to fix it). Also checks the session itself
+    (session.yaml, a card session's camera and calibrations)."""
+    if is_field_session(session_dir):
+        session = load_session(session_dir)
+        chosen = resolve(session.products, products)
+        radiance_refused(chosen, "a field session's calibration (Eq. 15 with its U, V, S)")
+        indices_for(session.camera, chosen)
+        return chosen
+    plan = plan_card(session_dir, _library(cache_dir))
+    chosen = resolve(plan.settings.products, products)
+    field = [f.name for f in plan.flights if f.calibration == "field"]
+    if field:
+        radiance_refused(chosen, f"the field calibration of flight(s) {', '.join(field)}")
+    indices_for(load_camera(plan.camera), chosen)
+    return chosen
 
 
 def session_kind(session_dir: str | Path) -> str:
@@ -222,12 +268,14 @@ def _library(cache_dir: str | Path | None) -> Path:
 
 
 def apply_card(plan: dict[str, Any], name: str, out: str, *, dask_address: str | None = None,
-               scheduler: str = "auto", workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
-    """One flight ``name`` of a card session's plan (:func:`plan_card_session`) into ``out``."""
+               scheduler: str = "auto", workers: int = 0, direct_io: bool | None = None,
+               products: dict[str, Any] | None = None) -> dict[str, Any]:
+    """One flight ``name`` of a card session's plan (:func:`plan_card_session`) into ``out``;
+    ``products``: the command line's choice, over the plan's session.yaml products."""
     card = plan_from_record(plan)
     flight = next(f for f in card.flights if f.name == name)
     return apply_card_flight(card, flight, out, dask_address=dask_address, scheduler=scheduler, workers=workers,
-                             direct_io=direct_io)
+                             direct_io=direct_io, products=resolve(card.settings.products, products))
 
 
 def failed_card_flight(flight: dict[str, Any], error: BaseException | None) -> dict[str, Any]:
@@ -306,16 +354,19 @@ def count_frames(flight_dir: str | Path, camera: str | None = None) -> int:
 
 def apply_one(flight_dir: str, calibration: str, out: str, *, normalise: str = "relative",
               dask_address: str | None = None, illumination: str = "linear", scheduler: str = "auto",
-              workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
+              workers: int = 0, direct_io: bool | None = None, products: dict[str, Any] | None = None
+              ) -> dict[str, Any]:
     """``apply_flight`` under :func:`dask_client`; returns the flight's summary for run.json.
-    ``scheduler``, ``workers``, ``direct_io``: :class:`pipeline.apply.execution.Execution`."""
+    ``scheduler``, ``workers``, ``direct_io``: :class:`pipeline.apply.execution.Execution`;
+    ``products``: the session's choice (:func:`session_products`, as its ``record()``)."""
     t0 = time.perf_counter()
     camera = open_calibration(calibration, need="apply").attrs.get("camera")
     execution = Execution(scheduler=scheduler, workers=workers, direct_io=direct_io)
     execution.install()  # before a local cluster starts its worker processes
     with dask_client(dask_address, count_frames(flight_dir, None if camera is None else str(camera)), execution) as where:
         res = apply_flight(flight_dir, calibration, out,
-                           ApplyOptions(normalise=normalise, illumination=illumination, execution=execution))
+                           ApplyOptions(normalise=normalise, illumination=illumination, execution=execution,
+                                        products=resolve(products)))
     illumination = {k: v for k, v in res.run.get("illumination", {}).items() if k != "per_frame"}
     return _flight_summary(res, where, t0, illumination=illumination)
 
@@ -335,6 +386,7 @@ def _flight_summary(res: Any, where: str, t0: float, **extra: Any) -> dict[str, 
         "up_to_date": res.up_to_date,
         "computed_on": "nothing (up to date)" if res.up_to_date else where,
         "execution": run.get("execution"),
+        "products": run.get("products"),
         **extra,
         "seconds": round(time.perf_counter() - t0, 3),
     }
@@ -347,7 +399,8 @@ CARD_REFERENCE_KEYS = ("route", "panel_reflectance", "reason", "albedo", "albedo
 
 
 def apply_card_flight(plan: CardPlan, flight: CardFlight, out: str | Path, *, dask_address: str | None = None,
-                      scheduler: str = "auto", workers: int = 0, direct_io: bool | None = None) -> dict[str, Any]:
+                      scheduler: str = "auto", workers: int = 0, direct_io: bool | None = None,
+                      products: Products = Products()) -> dict[str, Any]:
     """Apply one flight of a card session (:mod:`pipeline.run.card`) into ``out`` under
     :func:`dask_client`: its field calibration (Eq. 15), or the factory model (with the field
     response and vignetting for ``factory+field``); returns its summary for the run's run.json."""
@@ -360,13 +413,13 @@ def apply_card_flight(plan: CardPlan, flight: CardFlight, out: str | Path, *, da
     with dask_client(dask_address, n, execution) as where:
         if flight.calibration == "field":
             res = apply_flight(flight.folder, flight.field_calibration, out,
-                               ApplyOptions(execution=execution, captures=flight.captures))
+                               ApplyOptions(execution=execution, captures=flight.captures, products=products))
         else:
             s = plan.settings
             res = apply_factory(flight.folder, out, FactoryOptions(
                 reference=s.reference, panel_reflectance=s.panel_reflectance, camera=plan.camera,
                 field_calibration=flight.field_calibration if flight.calibration == "factory+field" else None,
-                execution=execution, captures=flight.captures))
+                execution=execution, captures=flight.captures, products=products))
     ref = res.run.get("reference") or {}
     return _flight_summary(
         res, where, t0, kind="card", calibration=flight.calibration, field_calibration=flight.field_calibration,
@@ -473,9 +526,10 @@ def remove_work(paths: RunPaths) -> None:
 
 def check_run_inputs(session: str, out: str, *, normalise: str = "relative", dask_address: str | None = None,
                      catalog_root: str | None = None, illumination: str = "linear",
-                     cache_dir: str | None = None) -> None:
+                     cache_dir: str | None = None, products: dict[str, Any] | None = None) -> None:
     """Fail fast, before Prefect starts: a session that is not there (a field session whose
-    session.yaml is not valid, a card session of no known camera), an unusable option."""
+    session.yaml is not valid, a card session of no known camera), an unusable option,
+    products its flights cannot make (:func:`check_products`)."""
     if catalog_root is not None and is_remote(catalog_root):
         raise InputError(f"--catalog-root {catalog_root!r} must be a local folder",
                          hint="leave it out to catalogue OUT itself (uploaded with the run)")
@@ -487,10 +541,8 @@ def check_run_inputs(session: str, out: str, *, normalise: str = "relative", das
         raise SessionError("session folder not found", path=session,
                            hint="pass a field session (session.yaml, response/, vignetting/, reflector/) or a flight "
                                 "folder as it comes off the camera's card")
-    elif is_field_session(session):
-        load_session(session)
     else:
-        plan_card_session(session, cache_dir)
+        check_products(session, products, cache_dir)
     if dask_address and not DASK_ADDRESS.match(dask_address):
         raise InputError(f"--dask-address {dask_address!r} is not a scheduler address", hint="e.g. tcp://10.0.0.5:8786")
     if not (normalise == "relative" or re.fullmatch(r"band:\S+", normalise)):
@@ -654,5 +706,5 @@ def summary_markdown(record: dict[str, Any]) -> str:
 __all__ = [
     "CalibrationPlan", "RunPaths", "StagePlan", "Timings", "apply_card", "apply_card_flight", "apply_one", "card_run_record", "failed_card_flight", "check_run_inputs", "configure_prefect",
     "default_cache_dir", "flight_dirs", "is_remote", "is_transient", "plan_calibration", "plan_card_session", "publish_calibration", "record_calibration", "session_kind", "session_problem",
-    "remove_work", "run_paths", "run_record", "update_catalog", "stage_in", "summary_markdown", "upload", "write_run_json",
+    "remove_work", "run_paths", "run_record", "session_products", "check_products", "update_catalog", "stage_in", "summary_markdown", "upload", "write_run_json",
 ]

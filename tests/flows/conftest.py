@@ -28,7 +28,7 @@ from pipeline.run.runner import configure_prefect
 configure_prefect()
 
 FLIGHTS = ("field", "orchard")
-REFLECTANCE_VARS = ("reflectance", "ndvi", "ndre", "vegetation_mask")
+REFLECTANCE_VARS = ("reflectance", "ndvi", "vegetation_mask")  # the default products
 
 
 def pytest_sessionfinish(session, exitstatus) -> None:

@@ -264,3 +264,34 @@ def test_one_bad_flight_does_not_cost_the_others(flow_session: Path, first_run: 
     for name in FLIGHTS:
         assert run["flights"][name]["status"] == "done"
         assert_same_flight_outputs(first_run / "flights" / name, out / "flights" / name)
+
+
+def test_products_of_a_run_follow_session_yaml_and_the_command_line(flow_session: Path, first_run: Path,
+                                                                    tmp_path: Path) -> None:
+    """session.yaml's products reach every flight of ``mscal run`` without re-fitting the
+    calibration (products are no input of a fit); --tiffs on the command line wins over
+    session.yaml's ``tiffs: false``; the same choice again is up to date, another redoes the
+    flights. The default set's arrays are those of the first run."""
+    session = tmp_path / "session"
+    shutil.copytree(flow_session, session)
+    with (session / "session.yaml").open("a") as fh:
+        fh.write("products: {indices: [ndre], tiffs: false}\n")
+    out = tmp_path / "out"
+    assert main(["-q", "run", str(session), "-o", str(out)]) == 0
+    run = _run_json(out)
+    assert run["calibration_cached"] is True and run["fitted"] == []
+    for name in FLIGHTS:
+        flight = out / "flights" / name
+        assert run["flights"][name]["products"] == {"radiance": False, "indices": ["ndvi", "ndre"], "tiffs": False}
+        assert list(flight.rglob("*.tif")) == []
+        ds, first = xr.open_zarr(flight / "reflectance.zarr"), xr.open_zarr(first_run / "flights" / name / "reflectance.zarr")
+        assert set(ds.data_vars) == {"reflectance", "ndvi", "ndre", "vegetation_mask"}
+        for v in ("reflectance", "ndvi", "vegetation_mask"):
+            np.testing.assert_array_equal(ds[v].values, first[v].values, err_msg=v)
+    assert main(["-q", "run", str(session), "-o", str(out), "--tiffs"]) == 0
+    run = _run_json(out)
+    assert not any(run["flights"][n]["up_to_date"] for n in FLIGHTS)
+    assert all(run["flights"][n]["products"]["tiffs"] for n in FLIGHTS)
+    assert len(list((out / "flights" / "field" / "photogrammetry").glob("*.tif"))) == 3 * 8
+    assert main(["-q", "run", str(session), "-o", str(out), "--tiffs"]) == 0
+    assert all(_run_json(out)["flights"][n]["up_to_date"] for n in FLIGHTS)

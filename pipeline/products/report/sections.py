@@ -312,9 +312,12 @@ def reference_warnings(run: dict[str, Any]) -> list[QAWarning]:
     if missing:
         first = missing[0]
         captures = len({m.get("capture") for m in missing})
+        # runs before the products choice wrote the radiance always
+        kept = "radiance kept" if (run.get("products") or {"radiance": True}).get("radiance") else \
+            "radiance written with --products radiance"
         out.append(QAWarning(
             "reflectance_missing", f"{len(missing)} band file(s) of {captures} capture(s) have no usable sun-sensor "
-            f"reading: their reflectance and the indices using them are NaN, radiance kept (run.json "
+            f"reading: their reflectance and the indices using them are NaN, {kept} (run.json "
             f"reflectance_missing; first {first.get('file')}: {first.get('reason')}); a panel capture with "
             "--panel-reflectance TARGET gives every band reflectance", float(len(missing)), 0.0))
     if rec.get("albedo_panel_unusable"):

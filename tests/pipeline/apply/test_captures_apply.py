@@ -56,8 +56,8 @@ def test_field_store_on_a_multilens_flight_is_eq15_per_band_file(field_run) -> N
     run = json.loads((field_run / "run.json").read_text())
     assert run["saturated_pixels"]["total"] == sum(
         int(np.count_nonzero(read_raw(require_data() / f"IMG_000{c}_{b}.tif") >= 65520)) for c in (0, 1) for b in range(1, 6))
-    # one layout for all cameras: the same outputs as a snapshot flight
-    assert {"reflectance", "ndvi", "ndre", "vegetation_mask"} <= set(ds.data_vars)
+    # one layout for all cameras: the same outputs as a snapshot flight (the default products)
+    assert set(ds.data_vars) == {"reflectance", "ndvi", "vegetation_mask"}
     assert sorted(p.name for p in (field_run / "photogrammetry").glob("IMG_0001_*.tif")) == sorted(
         f"IMG_0001_{b.replace(' e', 'E')}.tif" for b in BANDS)  # "Red edge" -> RedEdge: no spaces
     assert sorted(p.name for p in (field_run / "ndvi").glob("*.tif")) == ["IMG_0000.tif", "IMG_0001.tif"]
@@ -79,7 +79,8 @@ def test_factory_and_field_chains_run_in_the_same_executor(store, tmp_path, monk
     monkeypatch.setattr(executor, "radiometry", spy)
     monkeypatch.setenv("MSCAL_APPLY_SCHEDULER", "threads")
     assert main(["apply", str(require_data()), "--calibration", str(store), "-o", str(tmp_path / "field")]) == 0
-    assert main(["apply", str(require_data()), "--calibration", "factory", "-o", str(tmp_path / "factory")]) == 0
+    assert main(["apply", str(require_data()), "--calibration", "factory", "-o", str(tmp_path / "factory"),
+                 "--products", "radiance"]) == 0
     assert sorted(seen) == [("factory", "IMG_0000"), ("factory", "IMG_0001"), ("field", "IMG_0000"), ("field", "IMG_0001")]
     a = xr.open_zarr(tmp_path / "field" / "reflectance.zarr")
     f = xr.open_zarr(tmp_path / "factory" / "reflectance.zarr")
@@ -170,7 +171,7 @@ def test_factory_panel_light_follows_the_sun_sensor(tmp_path) -> None:
     for every capture, as before."""
     args = ["apply", str(require_data()), "--calibration", "factory", "--panel-reflectance",
             "micasense-rp02-1603036-sc", "--panel", "IMG_0000"]
-    assert main([*args, "-o", str(tmp_path / "lit")]) == 0
+    assert main([*args, "-o", str(tmp_path / "lit"), "--products", "radiance"]) == 0
     assert main([*args, "-o", str(tmp_path / "flat"), "--reference", "panel"]) == 0
     lit = json.loads((tmp_path / "lit" / "run.json").read_text())
     flat = json.loads((tmp_path / "flat" / "run.json").read_text())

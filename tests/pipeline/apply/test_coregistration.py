@@ -25,7 +25,7 @@ H_ERRORS = {1: (12.0, -6.0), 2: (-15.0, 4.0), 4: (10.0, 10.0), 5: (18.0, -3.0)}
 
 
 def _apply(folder: Path, out: Path, *extra: str) -> dict:
-    assert main(["-q", "apply", str(folder), "--calibration", "factory", "-o", str(out), *extra]) == 0
+    assert main(["-q", "apply", str(folder), "--calibration", "factory", "-o", str(out), "--products", "radiance", *extra]) == 0
     return json.loads((out / "run.json").read_text())
 
 

@@ -98,7 +98,7 @@ def test_one_worker_and_two_worker_processes_write_the_same_bytes(tmp_path) -> N
     run.json says how each ran."""
     data = require_data()
     one, two = tmp_path / "one", tmp_path / "two"
-    args = ["apply", str(data), "--calibration", "factory", "--reference", "dls"]
+    args = ["apply", str(data), "--calibration", "factory", "--reference", "dls", "--products", "radiance"]
     assert main([*args, "-o", str(one), "--workers", "1"]) == 0
     assert main([*args, "-o", str(two), "--workers", "2", "--scheduler", "processes"]) == 0
     assert _run(one)["execution"]["scheduler"] == "threads" and _run(one)["execution"]["workers"] == 1

@@ -30,7 +30,7 @@ SERIAL_SOURCE = f"panel serial RP02-1603036-SC (QR code of IMG_0000) -> target {
 
 
 def _apply(folder: Path, out: Path, *extra: str) -> int:
-    return main(["apply", str(folder), "--calibration", "factory", "-o", str(out), *extra])
+    return main(["apply", str(folder), "--calibration", "factory", "-o", str(out), "--products", "radiance", *extra])
 
 
 @pytest.fixture(scope="module")

@@ -30,7 +30,7 @@ CORNERS = ((0, 0), (1279, 0), (0, 959), (1279, 959), (3, 5), (1270, 950))  # (x,
 
 
 def _apply(folder: Path, out: Path, *extra: str) -> dict:
-    assert main(["apply", str(folder), "--calibration", "factory", "-o", str(out), *extra]) == 0
+    assert main(["apply", str(folder), "--calibration", "factory", "-o", str(out), "--products", "radiance", *extra]) == 0
     return json.loads((out / "run.json").read_text())
 
 

@@ -52,7 +52,7 @@ def _factory(folder: Path, out: Path, *extra: str) -> Path:
 @pytest.fixture(scope="module")
 def micasense(tmp_path_factory) -> Path:
     return _factory(_data("micasense-rededge"), tmp_path_factory.mktemp("rb") / "micasense",
-                    "--panel-reflectance", "micasense-rp02-1603036-sc")
+                    "--panel-reflectance", "micasense-rp02-1603036-sc", "--products", "radiance")
 
 
 @pytest.fixture(scope="module")

@@ -38,7 +38,7 @@ SEQ = "IMG_180413_080658_0000"
 
 
 def _apply(folder: Path, out: Path, *extra: str) -> tuple[dict, xr.Dataset]:
-    assert main(["apply", str(folder), "--calibration", "factory", "-o", str(out), *extra]) == 0
+    assert main(["apply", str(folder), "--calibration", "factory", "-o", str(out), "--products", "radiance", *extra]) == 0
     return json.loads((out / "run.json").read_text()), xr.open_zarr(out / "reflectance.zarr")
 
 

@@ -332,6 +332,7 @@ def test_a_later_flight_of_the_same_camera_body_gets_its_field_calibration(tmp_p
     response and vignetting, as ``mscal apply --field-calibration`` gives; the same flight
     from another camera body gets the factory model alone."""
     from pipeline.calibrate.library import default_library_root, store_digest
+    from pipeline.ingest.products import Products
     from pipeline.run import card
     from pipeline.run.runner import apply_card_flight
 
@@ -346,16 +347,17 @@ def test_a_later_flight_of_the_same_camera_body_gets_its_field_calibration(tmp_p
     f = plan.flights[0]
     assert f.calibration == "factory+field" and f.calibration_source.startswith("calibration library")
     assert store_digest(f.field_calibration) == store_digest(calib)
-    res = apply_card_flight(plan, f, tmp_path / "out")
+    radiance = Products(radiance=True)
+    res = apply_card_flight(plan, f, tmp_path / "out", products=radiance)
     assert (res["frames_out"], res["calibration"]) == (2, "factory+field")
     assert main(["apply", str(session / "check"), "--calibration", "factory", "--field-calibration", str(calib),
-                 "-o", str(tmp_path / "alone")]) == 0
+                 "-o", str(tmp_path / "alone"), "--products", "radiance"]) == 0
     np.testing.assert_array_equal(_radiance(tmp_path / "out"), _radiance(tmp_path / "alone"))
 
     _set_serial(flight, "RE0000008")
     other = card.plan_card(flight, default_library_root())
     assert other.serial == "RE0000008" and other.flights[0].calibration == "factory"
     assert "no field calibration of micasense-rededge serial RE0000008" in other.flights[0].calibration_source
-    apply_card_flight(other, other.flights[0], tmp_path / "other")
+    apply_card_flight(other, other.flights[0], tmp_path / "other", products=radiance)
     ratio = np.nanmedian(_radiance(tmp_path / "out") / _radiance(tmp_path / "other"))
     assert abs(ratio - 1) > 0.05  # the field response and vignetting did change the radiance

@@ -209,8 +209,8 @@ def test_factory_apply_without_any_reflectance_warns_why_and_how(tmp_path: Path)
         "and the sun sensor gives no usable reflectance (IMG_180413_080658_0000_GRE.TIF: XMP "
         "IrradianceSensitivitiesGolden = '(missing)': not in the file (older firmware?): the bands' sunshine readings "
         "cannot be put on one scale without it (sun_sensor disabled)): give --panel-reflectance TARGET (a number, or "
-        "a target of catalogs/targets) with a panel capture in the folder (--panel IMG_XXXX names it) "
-        "(value 1, threshold 0)")
+        "a target of catalogs/targets) with a panel capture in the folder (--panel IMG_XXXX names it); "
+        "--products radiance writes the radiance (value 1, threshold 0)")
     assert _codes_values(_report_warnings(flights=[out])) == [("no_reflectance", 1.0, 0.0),
                                                               ("band_misregistration", 82.028, 1.0)]
     code, text, _ = _run(["apply", folder, "--calibration", "factory", "-o", out, "--json"])  # up to date

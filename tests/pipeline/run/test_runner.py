@@ -62,6 +62,14 @@ def test_session_yaml_and_method_enter_the_keys_where_they_matter(session: Path)
     assert all(a != b for a, b in zip(_keys(session), _keys(session, "alternating")))
 
 
+def test_products_in_session_yaml_change_no_key(session: Path) -> None:
+    """What apply writes is no input of a fit: session.yaml's products key (or a comment)
+    leaves every stage's key as it was."""
+    before = _keys(session)
+    (session / "session.yaml").write_text(SESSION_YAML + "# apply's choice\nproducts: {indices: [ndre], tiffs: false}\n")
+    assert _keys(session) == before
+
+
 def test_plan_finds_cached_stores_and_chains_partials(session: Path, tmp_path: Path) -> None:
     cache = tmp_path / "cache"
     plan = runner.plan_calibration(session, cache)
