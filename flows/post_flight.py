@@ -285,9 +285,10 @@ def process_inbox(inbox_dir: str, out_root: str, settle_seconds: float = 600.0,
                 status, detail = "partial", "; ".join(f"{n}: {r}" for n, r in failed.items())
         inbox.record(Path(out_root), p.name, listing=p.listing, content=p.content, status=status, detail=detail)
         done[p.name] = status
-    waits = inbox.waiting(inbox_dir, settle_seconds)  # named in the state file and the summary, each look
+    waits = inbox.waiting(inbox_dir, settle_seconds)  # every look: in the state file
+    news = inbox.newly_waiting(inbox.load_waiting(Path(out_root)), waits)  # the summary: what changed
     inbox.record_waiting(Path(out_root), waits)
     for name, why in waits.items():
         log.info("%s not processed now: %s", name, why)
-    done.update({name: "waiting" for name in waits})
+    done.update({name: "waiting" for name in news})
     return done

@@ -89,6 +89,21 @@ def waiting(inbox: str | Path, settle_s: float, now: float | None = None) -> dic
     return out
 
 
+def reason_kind(reason: str) -> str:
+    """The kind of a :func:`waiting` reason, without its figures: the text before the first
+    colon ("still being copied", "empty folder", "a file, not a folder")."""
+    return reason.split(":", 1)[0].strip()
+
+
+def newly_waiting(before: dict[str, Any], now: dict[str, str]) -> dict[str, str]:
+    """The part of this look's :func:`waiting` to name in serve's summary: folders that were
+    not waiting at the last look, or were for another kind of reason (``before`` is the state
+    file's ``waiting``, :func:`load_waiting`). A scheduled serve prints a folder still being
+    copied once, not at every look; the state file keeps every waiting folder each look."""
+    return {n: r for n, r in now.items()
+            if reason_kind(str((before.get(n) or {}).get("reason", ""))) != reason_kind(r)}
+
+
 def record_waiting(out_root: Path, names: dict[str, str]) -> None:
     """Keep this look's :func:`waiting` in the state file (``waiting``: name -> reason, time)."""
     if not names and not (out_root / STATE_FILE).is_file():

@@ -91,8 +91,9 @@ def _card_line(flight: dict[str, Any]) -> str:
 
 def echo_serve(done: dict[str, str], out_root: Path) -> None:
     """One line per session processed, each followed by its report's warnings, and one per
-    folder or file not processed now with the reason (still being copied, empty, not a
-    folder; failed: why); with --json one JSON document per look at the inbox (one in all with
+    folder or file newly not processed with the reason (still being copied, empty, not a
+    folder: named once, not at every look, :func:`pipeline.run.inbox.newly_waiting`; failed:
+    why); with --json one JSON document per look at the inbox (one in all with
     --once); nothing when the inbox holds nothing new."""
     if not done:
         return
