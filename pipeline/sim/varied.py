@@ -26,6 +26,7 @@ import numpy as np
 from mscal_core.synth.scene import (
     MarkerSpec,
     SyntheticSession,
+    SyntheticTruth,
     flight_frames,
     make_truth,
     reflector_images,
@@ -36,7 +37,7 @@ from mscal_core.synth.sensor import SensorModel
 
 from .synth import write_synthesized
 
-__all__ = ["VariedParams", "draw_params", "synthesize_varied", "write_varied_session"]
+__all__ = ["VariedParams", "draw_params", "synthesize_varied", "varied_truth", "write_varied_session"]
 
 #: Seed streams of :func:`draw_params` start here, apart from the seeds of ``write_session``
 #: (0, 1, 2 in the benchmark), so a varied session never repeats a benchmark session's draws.
@@ -162,16 +163,23 @@ def draw_params(seed: int) -> VariedParams:
     )
 
 
+def varied_truth(params: VariedParams) -> SyntheticTruth:
+    """The camera truth of ``params``: its sensor (noise, response shape), marker and
+    vignetting (no rendering)."""
+    p = params
+    sensor = SensorModel(read_noise_dn=p.read_noise_dn, shot_noise_dn_at_full=p.shot_noise_dn_at_full,
+                         shoulder_start=p.shoulder_start, curvature=p.curvature)
+    marker = MarkerSpec(size_m=p.marker_size_m, border_m=p.marker_border_m)
+    return make_truth(p.seed, sensor=sensor, marker=marker, vignetting_falloff=p.vignetting_falloff,
+                      vignetting_shift_px=p.vignetting_shift_px)
+
+
 def synthesize_varied(params: VariedParams, *, n_flight_frames: int = 8,
                       flight: str = "field") -> SyntheticSession:
     """Render a full-size session with ``params`` (no I/O): the truth and its four datasets,
     drawn as :func:`mscal_core.synth.scene.synthesize_session` draws them."""
     p = params
-    sensor = SensorModel(read_noise_dn=p.read_noise_dn, shot_noise_dn_at_full=p.shot_noise_dn_at_full,
-                         shoulder_start=p.shoulder_start, curvature=p.curvature)
-    marker = MarkerSpec(size_m=p.marker_size_m, border_m=p.marker_border_m)
-    truth = make_truth(p.seed, sensor=sensor, marker=marker, vignetting_falloff=p.vignetting_falloff,
-                       vignetting_shift_px=p.vignetting_shift_px)
+    truth = varied_truth(p)
     gdir = None if p.light_gradient_deg is None else math.radians(p.light_gradient_deg)
     resp = response_sweep(truth, seed=p.seed, n_frames=p.sweep_frames, step=p.sweep_step,
                           start_fraction=p.sweep_start)
