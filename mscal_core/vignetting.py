@@ -379,8 +379,8 @@ def fit_vignetting(
     start : numpy.ndarray, optional
         (H, W) V of an earlier fit of the same band (e.g. on more views) to start the Eq.
         9'/10' alternation from instead of the log-domain initialisation; the fit converges to
-        the same V (within ``tol``) in fewer sweeps. Ignored where not finite and positive on
-        the fit's pixels.
+        the same V (within ``tol``) without the cost of that start (a few more sweeps, fewer
+        sparse products in all). Ignored where not finite and positive on the fit's pixels.
 
     Returns
     -------
@@ -408,7 +408,8 @@ def fit_vignetting(
        pixels (a cell seen by one pixel only fixes its own L and says nothing about V), in the
        largest connected part of the pixel/cell graph (a separate part would have its own
        unknown scale).
-    2. Initialisation: log-domain sparse least squares ``log y = log V(x) + log L(p)``
+    2. Initialisation: log-domain sparse least squares ``log y = log V(x) + log L(p)``,
+       weighted by ``w y^2`` so that its minimum is Eq. 8's to first order in the noise
        (preconditioned CGLS, the method of ``scipy.sparse.linalg.lsqr``, matrix-free; at most
        ``init_iter`` iterations, 0 = start from V = 1; the plane cells are eliminated
        exactly, see :func:`mscal_core.vignetting_solver.log_init`). It solves the slow, smooth
@@ -454,7 +455,9 @@ def fit_vignetting(
     structure = incidence(cp, cc, act_p.size, act_c.size)
     v = _start_values(start, act_p, n_pix)
     if v is None:
-        v, lum = log_init(cp, cc, fy, act_p.size, act_c.size, int(init_iter), structure)
+        # weighted w y^2: the log fit with Eq. 8's minimum to first order (see log_init)
+        v, lum = log_init(cp, cc, fy, act_p.size, act_c.size, int(init_iter), structure,
+                          fw * (fy / float(np.median(fy))) ** 2)
     v, lum, iterations, converged = alternate(fy, fw, v, act_c.size, int(max_iter), tol, structure)
     resid = fy / (v[cp] * lum[cc]) - 1.0
     residual_rms = float(np.sqrt(np.mean(resid * resid)))

@@ -97,38 +97,48 @@ def informative(pix: np.ndarray, cell: np.ndarray, n_pix: int, n_cells: int) -> 
 
 def log_init(
     pix: np.ndarray, cell: np.ndarray, y: np.ndarray, n_pix: int, n_cell: int, max_iter: int,
-    structure: Structure,
+    structure: Structure, weights: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Start V, L from ``log y = log V(x) + log L(p)`` by sparse linear least squares.
 
-    With ``A`` the pixel x cell incidence matrix of the observations (:func:`incidence`) and
-    ``D_p``, ``D_c`` the observation counts, the normal equations of ``a = log V``,
-    ``b = log L`` are ``[[D_p, A], [A', D_c]] [a; b] = [r_p; r_c]`` (``r`` the sums of
-    ``log y`` per pixel and per cell). ``D_c`` is diagonal, so the cells are eliminated
-    exactly: ``b = D_c^-1 (r_c - A' a)`` and ``a`` solves the pixels' Schur complement
+    Weights. Eq. 8 is a least-squares problem in ``y`` itself (weighted by ``w``: module
+    docstring of :mod:`mscal_core.vignetting`); to first order its residual is
+    ``y - V L = y (log y - log V - log L)``, so the log system weighted by ``w y^2`` has Eq. 8's
+    minimum to first order in the noise, and the Eq. 9/10 alternation that follows starts next
+    to it (the unweighted log fit gives every observation the same say, a dim cell in the
+    shadow as much as a bright one, and leaves the alternation more to do where the light is
+    uneven). ``weights`` are those ``w y^2`` (any common scale; default 1: unweighted).
+
+    With ``A`` the weighted pixel x cell incidence matrix of the observations
+    (:func:`incidence`) and ``D_p``, ``D_c`` the weight sums per pixel and per cell, the
+    normal equations of ``a = log V``, ``b = log L`` are ``[[D_p, A], [A', D_c]] [a; b] =
+    [r_p; r_c]`` (``r`` the weighted sums of ``log y`` per pixel and per cell). ``D_c`` is
+    diagonal, so the cells are eliminated exactly: ``b = D_c^-1 (r_c - A' a)`` and ``a``
+    solves the pixels' Schur complement
 
         ``(D_p - A D_c^-1 A') a = r_p - A D_c^-1 r_c``
 
     by conjugate gradients preconditioned with ``D_p`` (matrix-free: one product with ``A'``
     and one with ``A`` per iteration, no (observation,) temporaries, and no threaded-BLAS dot
-    products, slow on a busy 2-core machine). On this bipartite
-    structure CG on the Schur complement reaches a given accuracy in about half the
-    iterations that the same CG on the whole system with its block-Jacobi preconditioner
-    ``diag(D_p, D_c)`` needs (the iterates of the latter at even steps are those of the
-    former; each iteration costs the same two products), so the start costs half as much.
-    The consistent system's one-dimensional null space (``a + c``, ``b - c``) does not
-    disturb CG from a zero start; the scale is fixed later (``max V = 1``). Stops when the
-    preconditioned residual has fallen by 1e-14 (squared) or after ``max_iter`` iterations.
+    products, slow on a busy 2-core machine). On this bipartite structure CG on the Schur
+    complement reaches a given accuracy in about half the iterations that the same CG on the
+    whole system with its block-Jacobi preconditioner ``diag(D_p, D_c)`` needs (the iterates
+    of the latter at even steps are those of the former; each iteration costs the same two
+    products), so the start costs half as much. The consistent system's one-dimensional null
+    space (``a + c``, ``b - c``) does not disturb CG from a zero start; the scale is fixed
+    later (``max V = 1``). Stops when the preconditioned residual has fallen by 1e-7 (1e-14
+    squared) or after ``max_iter`` iterations.
     """
     z = np.log(y)
     z0 = float(np.median(z))
     z = z - z0
-    deg_p = np.bincount(pix, minlength=n_pix).astype(np.float64)
-    deg_c = np.bincount(cell, minlength=n_cell).astype(np.float64)
-    inc = csr(np.ones(pix.size), structure, (n_pix, n_cell))
+    wt = np.ones(pix.size) if weights is None else np.asarray(weights, dtype=np.float64)
+    deg_p = np.bincount(pix, weights=wt, minlength=n_pix)
+    deg_c = np.bincount(cell, weights=wt, minlength=n_cell)
+    inc = csr(wt, structure, (n_pix, n_cell))
     inc_t = inc.T
-    rp = np.bincount(pix, weights=z, minlength=n_pix)
-    rc = np.bincount(cell, weights=z, minlength=n_cell)
+    rp = np.bincount(pix, weights=wt * z, minlength=n_pix)
+    rc = np.bincount(cell, weights=wt * z, minlength=n_cell)
 
     def schur(d: np.ndarray) -> np.ndarray:
         return deg_p * d - inc @ ((inc_t @ d) / deg_c)
