@@ -35,7 +35,7 @@ demo: setup
 # its baseline measured in the same run; < 30 min on the 2-core machine when it is quiet.
 # Memory vs frames (formerly bench_apply --large) is in bench_scale's tables.
 bench: setup
-	$(BIN)/python bench/bench_calibrate.py --seeds 0 1 2
+	$(BIN)/python bench/bench_calibrate.py --seeds 0 1 2 --varied 5
 	$(BIN)/python bench/bench_apply.py --frames 600 --large 0
 	$(BIN)/python bench/bench_factory.py --captures 1000
 	$(BIN)/python bench/bench_accuracy.py

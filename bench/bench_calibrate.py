@@ -1,9 +1,9 @@
 #!/usr/bin/env python
-"""Calibration benchmark (issue 2): ``mscal calibrate`` on full-size synthetic sessions.
+"""Calibration benchmark: ``mscal calibrate`` on full-size synthetic sessions.
 
 Usage::
 
-    .venv/bin/python bench/bench_calibrate.py [--quick] [--seeds 0 1 2] [--out docs/benchmarks.md]
+    .venv/bin/python bench/bench_calibrate.py [--quick] [--seeds 0 1 2] [--varied 5] [--out docs/benchmarks.md]
 
 Per seed:
 
@@ -16,6 +16,9 @@ Per seed:
 4. ``mscal calibrate ... --response-method alternating`` (the paper's plain Eq. 6/7) as an
    accuracy baseline;
 5. ``pipeline.sim.evaluate.evaluate_calibration`` on both stores (in this process, not timed).
+
+``--varied N`` adds N sessions of ``pipeline.sim.varied``, measured the same way and tabled per
+session with their spread (``bench/calibrate_varied.py``, which says how they are drawn).
 
 Wall time and peak RSS are those of each child alone: every measured command is started by a
 tiny fresh launcher process (:data:`LAUNCHER`) that reaps it with ``os.wait4`` and reports that
@@ -34,6 +37,7 @@ Importing this module runs nothing.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import math
 import os
@@ -55,9 +59,9 @@ SECTION_KEY = "bench_calibrate"
 QUICK_SECTION_KEY = "bench_calibrate_quick"
 CHILD_TIMEOUT_S = 1800.0
 
-#: Issue 2 targets. ``upper`` means the figure must be <= the target.
+#: The calibration's targets. ``upper`` means the figure must be <= the target.
 WALL_TARGET_S = 60.0
-#: Issue 25: ``mscal calibrate`` of a full session within this wall time on 2 cores (the faster
+#: ``mscal calibrate`` of a full session within this wall time on 2 cores (the faster
 #: of two runs of the default command: the machine is shared and its load moves).
 FAST_WALL_TARGET_S = 10.0
 #: The band workers' setting (pipeline.calibrate.pool.WORKERS_ENV; not imported: importing this
@@ -140,7 +144,7 @@ class Run:
 #: high-water mark), so spawning the measured command straight from this (large) process would
 #: inflate its peak RSS; the launcher is a bare interpreter of ~10 MiB.
 #:
-#: A command may run worker processes (``mscal apply``'s forkserver pool, issue 25): their CPU
+#: A command may run worker processes (``mscal apply``'s forkserver pool): their CPU
 #: counts too. The launcher is a child subreaper (Linux ``PR_SET_CHILD_SUBREAPER``): the
 #: processes the command leaves behind (a forkserver that outlives the command by a moment,
 #: with the workers it reaped) come to it and are reaped too, so the CPU reported is that of
@@ -243,9 +247,7 @@ def run_measured(cmd: Sequence[str], timeout: float = CHILD_TIMEOUT_S) -> Run:
 
 def _check(run: Run, what: str) -> Run:
     if run.returncode != 0:
-        raise RuntimeError(
-            f"{what} failed (exit {run.returncode}): {shlex.join(run.cmd)}\n{run.stderr[-4000:]}"
-        )
+        raise RuntimeError(f"{what} failed (exit {run.returncode}): {shlex.join(run.cmd)}\n{run.stderr[-4000:]}")
     return run
 
 
@@ -281,12 +283,8 @@ def discard(path: Path) -> None:
 
 def mscal_command() -> list[str]:
     exe = Path(sys.executable).parent / "mscal"
-    if exe.exists():
-        return [str(exe)]
-    found = shutil.which("mscal")
-    if found:
-        return [found]
-    return [sys.executable, "-m", "pipeline.run.cli"]
+    found = str(exe) if exe.exists() else shutil.which("mscal")
+    return [found] if found else [sys.executable, "-m", "pipeline.run.cli"]
 
 
 # --------------------------------------------------------------------------- child modes
@@ -461,7 +459,7 @@ def performance_rows(results: Sequence[SeedResult]) -> list[Row]:
         Row("stage: response (s)", [r.stage_seconds.get("response", float("nan")) for r in results], None, "{:.1f}"),
         Row("stage: vignetting (s)", [r.stage_seconds.get("vignetting", float("nan")) for r in results], None, "{:.1f}"),
         Row("stage: illumination (s)", [r.stage_seconds.get("illumination", float("nan")) for r in results], None, "{:.1f}"),
-        Row("`mscal calibrate` wall, faster of two runs (s; issue 25)", [r.fastest.wall_s for r in results],
+        Row("`mscal calibrate` wall, faster of two runs (s)", [r.fastest.wall_s for r in results],
             FAST_WALL_TARGET_S, "{:.1f}", anchor="cal-wall-fast"),
         Row("`mscal calibrate` CPU user+sys of that run (s)", [r.fastest.cpu_s for r in results], None, "{:.1f}"),
         Row(f"`{WORKERS_ENV}=1` (no band workers) wall (s)",
@@ -537,33 +535,27 @@ def _cmd(args: Sequence[str]) -> str:
         return ""
 
 
+def _proc_field(path: str, key: str) -> str:
+    """The value after ``key:`` on the first such line of a /proc file ("" if none)."""
+    try:
+        return next((line.split(":", 1)[1].strip() for line in Path(path).read_text().splitlines()
+                     if line.startswith(key)), "")
+    except OSError:
+        return ""
+
+
 def machine_info() -> dict[str, str]:
     import cv2
     import numpy
 
-    cpu = ""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    mem = ""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemTotal"):
-                mem = f"{int(line.split()[1]) / 2**20:.1f} GiB"
-                break
-    except OSError:
-        pass
+    mem_kib = _proc_field("/proc/meminfo", "MemTotal").split()
     sha = _cmd(["git", "rev-parse", "--short", "HEAD"])
     changed = [line.strip().split(None, 1)[-1]
                for line in _cmd(["git", "status", "--porcelain", "--untracked-files=no"]).splitlines() if line.strip()]
     return {
         "nproc": str(os.cpu_count()),
-        "memory": mem,
-        "cpu": cpu,
+        "memory": f"{int(mem_kib[0]) / 2**20:.1f} GiB" if mem_kib else "",
+        "cpu": _proc_field("/proc/cpuinfo", "model name"),
         "os": f"{platform.system()} {platform.release()}",
         "python": platform.python_version(),
         "numpy": numpy.__version__,
@@ -588,7 +580,7 @@ def failures(perf: Sequence[Row], acc: Sequence[tuple[str, list[Row]]], seeds: S
 
 
 def _scaling_lines(results: Sequence[SeedResult]) -> list[str]:
-    """Issue 25's wall target and the expected scaling with cores, from the 1- and 2-worker runs."""
+    """The 10 s wall target and the expected scaling with cores, from the 1- and 2-worker runs."""
     ones = [(r.one_worker.wall_s, r.fastest.wall_s) for r in results if r.one_worker is not None]
     if not ones:
         return []
@@ -599,7 +591,7 @@ def _scaling_lines(results: Sequence[SeedResult]) -> list[str]:
     serial = [t1 - p for (t1, _), p in zip(ones, par)]
     proj = lambda n: [s_ + p / n for s_, p in zip(serial, par)]
     return [
-        f"- Issue 25: the faster of two runs took {min(fast):.1f}-{max(fast):.1f} s wall (target "
+        f"- The faster of two runs took {min(fast):.1f}-{max(fast):.1f} s wall (target "
         f"{FAST_WALL_TARGET_S:.0f} s on 2 cores: {verdict}). With one band worker (every band fitted in the main "
         f"process) {min(t for t, _ in ones):.1f}-{max(t for t, _ in ones):.1f} s: 2 workers are "
         f"{min(a / b for a, b in ones):.2f}-{max(a / b for a, b in ones):.2f}x faster. Read as Amdahl's law, "
@@ -648,7 +640,7 @@ def reading(results: Sequence[SeedResult], perf: list[Row], acc: list[tuple[str,
         lines.append("- Targets FAILED (default calibration):")
         lines += [f"  - {f}" for f in fails]
     else:
-        lines.append("- Every target of issue 2 passes with the default calibration, on every seed.")
+        lines.append("- Every target passes with the default calibration, on every seed.")
     alt_resp = acc[1][1][0]
     lines.append(f"- The paper's plain alternation (`--response-method alternating`) gives a worst response error "
                  f"of {alt_resp.worst:.4f} against {acc[0][1][0].worst:.4f} for the default (worst vignetting RMS "
@@ -730,22 +722,34 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                    help=f"markdown file to update (default {DEFAULT_OUT.relative_to(ROOT)}; --quick: none)")
     p.add_argument("--workdir", type=Path, default=None, help="where sessions are written (default: a temp dir)")
     p.add_argument("--keep", action="store_true", help="keep the sessions and stores")
+    p.add_argument("--varied", type=int, default=0, metavar="N",
+                   help="also N varied full-size sessions (pipeline.sim.varied, sessions 0..N-1)")
     p.add_argument("--json", type=Path, default=None, help="also write the raw figures as JSON")
     p.add_argument("--_child", nargs="+", help=argparse.SUPPRESS)
     return p.parse_args(argv)
+
+
+def _varied():  # noqa: ANN202 - bench/calibrate_varied.py, imported only when asked for
+    return importlib.import_module("calibrate_varied")
+
+
+def _run_child(mode: str, rest: Sequence[str]) -> None:
+    """One measured child's work (``--_child MODE ...``)."""
+    if mode == "synth":
+        _child_synth(rest[0], int(rest[1]), rest[2])
+    elif mode == "io-floor":
+        _child_io_floor(rest[0])
+    elif mode == "synth-varied":
+        _varied().child_synth(rest[0], int(rest[1]))
+    else:
+        raise SystemExit(f"unknown child mode {mode}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     raw_argv = list(sys.argv[1:] if argv is None else argv)
     args = parse_args(raw_argv)
     if args._child:
-        mode, *rest = args._child
-        if mode == "synth":
-            _child_synth(rest[0], int(rest[1]), rest[2])
-        elif mode == "io-floor":
-            _child_io_floor(rest[0])
-        else:
-            raise SystemExit(f"unknown child mode {mode}")
+        _run_child(args._child[0], args._child[1:])
         return 0
 
     sys.path.insert(0, str(ROOT))
@@ -768,6 +772,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         for s in seeds:
             results.append(run_seed(s, size, workdir, args.keep, log=lambda m: print(m, flush=True)))
+        varied = [_varied().run_varied_session(k, workdir, args.keep, log=lambda m: print(m, flush=True))
+                  for k in range(args.varied)]
     finally:
         if args.workdir is None and not args.keep:
             shutil.rmtree(workdir, ignore_errors=True)
@@ -777,6 +783,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if git_end != info["git"]:
         info["git"] += f" at the start; {git_end} at the end (the tree changed during the run)"
     md = render(results, command, info, loads, args.quick, started, launcher_floor)
+    md += ("\n" + _varied().render(varied)) if varied else ""
     print()
     print(md)
     if args.json:

@@ -44,12 +44,14 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-import scipy.sparse as sp
 from scipy.optimize import least_squares
-from scipy.sparse.csgraph import connected_components
 
 from .errors import FitError, InputError
 from .geometry import size_wh
+from .vignetting_solver import alternate, compact, incidence, informative, log_init
+
+#: The solver's helper under its former private name (kept for the callers that import it).
+_compact = compact
 
 __all__ = [
     "DEFAULT_CELLS_ALONG",
@@ -273,79 +275,6 @@ def view_observations(
 # --------------------------------------------------------------------------- the fit
 
 
-def _incidence(rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Return one sparse incidence structure for all the fit's sums.
-
-    ``(order, indices, indptr)`` of the CSR matrix with one entry per observation (row = pixel,
-    column = cell), the entries of a row in observation order (a stable sort).
-    ``csr(data[order], indices, indptr)`` then sums ``data`` times a vector per pixel (``@``)
-    or per cell (``.T @``), as ``np.bincount`` of the gathered products does, in one sparse
-    product each, without the (observation,) temporaries.
-    """
-    order = np.argsort(rows, kind="stable")
-    indptr = np.zeros(n_rows + 1, dtype=np.int64)
-    np.cumsum(np.bincount(rows, minlength=n_rows), out=indptr[1:])
-    small = max(n_cols, int(indptr[-1])) < np.iinfo(np.int32).max
-    idx_type = np.int32 if small else np.int64
-    return order, cols[order].astype(idx_type), indptr.astype(idx_type)
-
-
-def _csr(data: np.ndarray, structure: tuple[np.ndarray, np.ndarray, np.ndarray], shape: tuple[int, int]) -> sp.csr_matrix:
-    order, indices, indptr = structure
-    return sp.csr_matrix((data[order], indices, indptr), shape=shape)
-
-
-def _log_init(
-    pix: np.ndarray, cell: np.ndarray, y: np.ndarray, n_pix: int, n_cell: int, max_iter: int,
-    structure: tuple[np.ndarray, np.ndarray, np.ndarray],
-) -> tuple[np.ndarray, np.ndarray]:
-    """Start V, L from ``log y = log V(x) + log L(p)`` by sparse linear least squares.
-
-    Solved by Jacobi-preconditioned conjugate gradients on the normal equations (CGLS, the
-    method behind ``scipy.sparse.linalg.lsqr``). With ``A`` the pixel x cell incidence matrix
-    of the observations (:func:`_incidence`), the normal matrix is ``[[D_p, A], [A', D_c]]``
-    (``D`` the observation counts): a product is two sparse products, no (observation,)
-    temporaries and no threaded-BLAS dot products over all observations (slow on a busy
-    2-core machine). The one-dimensional null space (log V + c, log L - c) does not disturb
-    CG on this consistent system; the scale is fixed later.
-    """
-    z = np.log(y)
-    z = z - float(np.median(z))
-    deg_p = np.bincount(pix, minlength=n_pix).astype(np.float64)
-    deg_c = np.bincount(cell, minlength=n_cell).astype(np.float64)
-    inc = _csr(np.ones(pix.size), structure, (n_pix, n_cell))
-    inc_t = inc.T
-
-    def normal(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        return deg_p * a + inc @ b, inc_t @ a + deg_c * b
-
-    a = np.zeros(n_pix)
-    b = np.zeros(n_cell)
-    rp = np.bincount(pix, weights=z, minlength=n_pix)
-    rc = np.bincount(cell, weights=z, minlength=n_cell)
-    zp, zc = rp / deg_p, rc / deg_c
-    dp, dc = zp.copy(), zc.copy()
-    rho = float(np.sum(rp * zp) + np.sum(rc * zc))
-    rho0 = rho
-    for _ in range(max(0, int(max_iter))):
-        if rho <= 1e-14 * rho0 or rho <= 0:
-            break
-        qp, qc = normal(dp, dc)
-        alpha = rho / float(np.sum(dp * qp) + np.sum(dc * qc))
-        a += alpha * dp
-        b += alpha * dc
-        rp -= alpha * qp
-        rc -= alpha * qc
-        zp, zc = rp / deg_p, rc / deg_c
-        rho_new = float(np.sum(rp * zp) + np.sum(rc * zc))
-        beta = rho_new / rho
-        rho = rho_new
-        dp = zp + beta * dp
-        dc = zc + beta * dc
-    off = float(np.max(a))
-    return np.exp(a - off), np.exp(b + off + float(np.median(np.log(y))))
-
-
 def _radial_design(x: np.ndarray, y: np.ndarray, centre: np.ndarray, scale: float) -> np.ndarray:
     r2 = ((x - centre[0]) ** 2 + (y - centre[1]) ** 2) / (scale * scale)
     return np.stack([np.ones_like(r2), r2, r2 * r2, r2 * r2 * r2], axis=1)
@@ -417,6 +346,7 @@ def fit_vignetting(
     min_count: int = 3,
     smooth_sigma: float = 0.0,
     init_iter: int = 200,
+    start: np.ndarray | None = None,
 ) -> VignettingFit:
     """Fit V(x) and L(p) of one band from all its reflector observations (Eq. 8-10).
 
@@ -446,6 +376,11 @@ def fit_vignetting(
         Pixels; > 0 smooths the residual ``V - model`` of the well-observed V (default 0: off).
     init_iter : int
         Iterations of the log-domain initialisation at most (0: start from V = 1).
+    start : numpy.ndarray, optional
+        (H, W) V of an earlier fit of the same band (e.g. on more views) to start the Eq.
+        9'/10' alternation from instead of the log-domain initialisation; the fit converges to
+        the same V (within ``tol``) without the cost of that start (a few more sweeps, fewer
+        sparse products in all). Ignored where not finite and positive on the fit's pixels.
 
     Returns
     -------
@@ -473,10 +408,13 @@ def fit_vignetting(
        pixels (a cell seen by one pixel only fixes its own L and says nothing about V), in the
        largest connected part of the pixel/cell graph (a separate part would have its own
        unknown scale).
-    2. Initialisation: log-domain sparse least squares ``log y = log V(x) + log L(p)``
+    2. Initialisation: log-domain sparse least squares ``log y = log V(x) + log L(p)``,
+       weighted by ``w y^2`` so that its minimum is Eq. 8's to first order in the noise
        (preconditioned CGLS, the method of ``scipy.sparse.linalg.lsqr``, matrix-free; at most
-       ``init_iter`` iterations, 0 = start from V = 1). It solves the slow, smooth modes that
-       the plain alternation takes many sweeps to move.
+       ``init_iter`` iterations, 0 = start from V = 1; the plane cells are eliminated
+       exactly, see :func:`mscal_core.vignetting_solver.log_init`). It solves the slow, smooth
+       modes that the plain alternation takes many sweeps to move. With ``start``, the
+       alternation starts from that V instead.
     3. Alternate Eq. 10' (L from V) and Eq. 9' (V from L), vectorised with ``np.bincount``,
        until the largest relative change of V is below ``tol`` or ``max_iter`` sweeps.
     4. Gauge (V is known up to scale, paper: max V = 1): the 99.9th percentile over the
@@ -509,14 +447,18 @@ def fit_vignetting(
         pixel_index, cell_index, values, shape, n_cells, weights, min_count
     )
     # 1. informative observations, 2. log-domain start, 3. Eq. 10' / Eq. 9' alternation
-    use = _informative(pix, cell, n_pix, n_cells)
+    use = informative(pix, cell, n_pix, n_cells)
     fp, fc, fy, fw = pix[use], cell[use], y[use], wt[use]
     # compact indices of the active unknowns
-    act_p, cp = _compact(fp, n_pix)
-    act_c, cc = _compact(fc, n_cells)
-    structure = _incidence(cp, cc, act_p.size, act_c.size)
-    v, lum = _log_init(cp, cc, fy, act_p.size, act_c.size, int(init_iter), structure)
-    v, lum, iterations, converged = _alternate(fy, fw, v, act_c.size, int(max_iter), tol, structure)
+    act_p, cp = compact(fp, n_pix)
+    act_c, cc = compact(fc, n_cells)
+    structure = incidence(cp, cc, act_p.size, act_c.size)
+    v = _start_values(start, act_p, n_pix)
+    if v is None:
+        # weighted w y^2: the log fit with Eq. 8's minimum to first order (see log_init)
+        v, lum = log_init(cp, cc, fy, act_p.size, act_c.size, int(init_iter), structure,
+                          fw * (fy / float(np.median(fy))) ** 2)
+    v, lum, iterations, converged = alternate(fy, fw, v, act_c.size, int(max_iter), tol, structure)
     resid = fy / (v[cp] * lum[cc]) - 1.0
     residual_rms = float(np.sqrt(np.mean(resid * resid)))
 
@@ -551,15 +493,18 @@ def fit_vignetting(
     )
 
 
-def _compact(index: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """Return ``(np.unique(index), position of each index in it)``.
+def _start_values(start: np.ndarray | None, active: np.ndarray, n_pix: int) -> np.ndarray | None:
+    """Return V of ``start`` on the active pixels.
 
-    For indices in ``[0, size)``, by counting instead of sorting (O(n + size)).
+    None without a start or where one of its values there is not finite and positive.
     """
-    seen = np.bincount(index, minlength=size) > 0
-    active = np.flatnonzero(seen)
-    rank = np.cumsum(seen) - 1
-    return active, rank[index]
+    if start is None:
+        return None
+    flat = np.asarray(start, dtype=np.float64).ravel()
+    if flat.size != n_pix:
+        raise InputError(f"start must have the band's {n_pix} pixels, got {flat.size}")
+    v = flat[active]
+    return v.copy() if bool(np.all(np.isfinite(v) & (v > 0))) else None
 
 
 def _checked_observations(
@@ -609,68 +554,6 @@ def _checked_observations(
     with np.errstate(invalid="ignore"):
         good = np.isfinite(y) & (y > 0) & np.isfinite(wt) & (wt > 0)
     return pix[good], cell[good], y[good], wt[good]
-
-
-def _informative(pix: np.ndarray, cell: np.ndarray, n_pix: int, n_cells: int) -> np.ndarray:
-    """Step 1 of :func:`fit_vignetting`.
-
-    Mask of the observations in cells seen by >= 2 different pixels, within the largest
-    connected part of the pixel/cell graph.
-    """
-    # exact integer test n * sum(p^2) - (sum p)^2 > 0 in float64: all terms are integers
-    # below 2**53 here
-    nc = np.bincount(cell, minlength=n_cells).astype(np.float64)
-    s1 = np.bincount(cell, weights=pix.astype(np.float64), minlength=n_cells)
-    s2 = np.bincount(cell, weights=pix.astype(np.float64) ** 2, minlength=n_cells)
-    multi = nc * s2 - s1 * s1 > 0.5
-    use = multi[cell]
-    if not use.any():
-        raise FitError(
-            "no reflector point was seen by two different pixels: the views do not constrain "
-            "the vignetting",
-            hint="take reflector images from many viewpoints, moving the reflector across the "
-            "image",
-        )
-    # largest connected part of the bipartite pixel/cell graph
-    up, uc = pix[use], cell[use]
-    graph = sp.coo_matrix(
-        (np.ones(up.size, dtype=np.int8), (up, n_pix + uc)), shape=(n_pix + n_cells,) * 2
-    ).tocsr()
-    n_comp, labels = connected_components(graph, directed=False)
-    if n_comp > 1:
-        sizes = np.bincount(labels[up], minlength=n_comp)
-        use[np.flatnonzero(use)[labels[up] != int(np.argmax(sizes))]] = False
-    return use
-
-
-def _alternate(
-    fy: np.ndarray, fw: np.ndarray, v: np.ndarray, nca: int, max_iter: int, tol: float,
-    structure: tuple[np.ndarray, np.ndarray, np.ndarray],
-) -> tuple[np.ndarray, np.ndarray, int, bool]:
-    """Step 3 of :func:`fit_vignetting`.
-
-    Alternate Eq. 10' (L from V) and Eq. 9' (V from L) from ``v``; returns
-    ``(V, L consistent with V, sweeps, converged)``. The sums over a cell's and a pixel's
-    observations are sparse products with the incidence matrix weighted by ``w y`` and ``w``
-    (:func:`_incidence`): ``L = (W_y' V) / (W' V^2)``, ``V = (W_y L) / (W L^2)``.
-    """
-    npa = v.size
-    wy_m = _csr(fw * fy, structure, (npa, nca))
-    w_m = _csr(fw, structure, (npa, nca))
-    wy_t, w_t = wy_m.T, w_m.T
-    iterations = 0
-    converged = False
-    for iterations in range(1, max_iter + 1):
-        lum = (wy_t @ v) / (w_t @ (v * v))
-        v_new = (wy_m @ lum) / (w_m @ (lum * lum))
-        change = float(np.max(np.abs(v_new - v) / v_new))
-        v = v_new
-        if change < tol:
-            converged = True
-            break
-    # final L consistent with the final V
-    lum = (wy_t @ v) / (w_t @ (v * v))
-    return v, lum, iterations, converged
 
 
 def _gauge(

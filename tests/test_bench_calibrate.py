@@ -108,3 +108,18 @@ def test_scaling_lines_read_the_two_worker_counts_as_amdahl() -> None:
     (ok,) = bench._scaling_lines([seed(18.0, 9.5)])
     assert "target 10 s on 2 cores: PASS" in ok
     assert bench._scaling_lines([SimpleNamespace(one_worker=None, fastest=SimpleNamespace(wall_s=9.0))]) == []
+
+
+def test_varied_table_gives_each_session_and_the_spread() -> None:
+    """``--varied``: one column per session, then min / median / max over them, and the verdict
+    against the target on the worst."""
+    spec = importlib.util.spec_from_file_location("calibrate_varied_under_test", SCRIPT.parent / "calibrate_varied.py")
+    varied = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = varied
+    spec.loader.exec_module(varied)
+    rows = [varied.bc.Row("wall (s)", [9.1, 12.0, 8.0], 10.0, "{:.1f}"),
+            varied.bc.Row("CPU (s)", [14.0, float("nan"), 13.0], None, "{:.1f}")]
+    lines = varied.table(rows, [0, 1, 2]).splitlines()
+    assert lines[0] == "| figure | session 0 | session 1 | session 2 | min | median | max | target | result |"
+    assert lines[2] == "| wall (s) | 9.1 | 12.0 | 8.0 | 8.0 | 9.1 | 12.0 | <= 10.0 | FAIL |"
+    assert lines[3] == "| CPU (s) | 14.0 | nan | 13.0 | 13.0 | 13.5 | 14.0 |  |  |"

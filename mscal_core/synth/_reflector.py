@@ -28,23 +28,28 @@ def _plane_grid(size_m, step_m=0.0025):
 
 
 def random_light(rng, brightness: float, size_m, shadow: bool = True,
-                  nonuniformity: float = 1.0) -> GradientShadowLight:
+                  nonuniformity: float = 1.0, gradient_dir: float | None = None) -> GradientShadowLight:
     """Random 2:1 gradient + soft shadow (35-50 % deep) on the reflector.
 
     ``nonuniformity`` ``a`` scales how uneven the light is, with the same random draws:
     gradient ratio ``2**a`` and shadow transmission ``(1 - depth)**a`` (``a = 0``: uniform
     light; ``1``: the default; ``2``: a 4:1 gradient and a 58-75 % deep shadow).
+    ``gradient_dir`` (radians in the plane) replaces the random direction of the gradient
+    (drawn all the same, so the other draws do not move).
     """
     if nonuniformity < 0:
         raise ValueError(f"light nonuniformity must be >= 0, got {nonuniformity}")
     ratio = 2.0 if nonuniformity == 1.0 else 2.0**nonuniformity
     if not shadow:
-        return GradientShadowLight(brightness=brightness, gradient_dir=rng.uniform(0, 2 * np.pi),
-                                   extent_m=size_m, gradient_ratio=ratio)
+        gdir = rng.uniform(0, 2 * np.pi)
+        return GradientShadowLight(brightness=brightness, extent_m=size_m, gradient_ratio=ratio,
+                                   gradient_dir=gdir if gradient_dir is None else float(gradient_dir))
     sdir = rng.uniform(0, 2 * np.pi)
     # the shadow edge crosses the reflector so that 20-35 % of it is in shadow
     half = 0.5 * size_m[0] * abs(math.cos(sdir)) + 0.5 * size_m[1] * abs(math.sin(sdir))
     gdir = rng.uniform(0, 2 * np.pi)
+    if gradient_dir is not None:
+        gdir = float(gradient_dir)
     depth = rng.uniform(0.35, 0.5)
     if nonuniformity != 1.0:
         depth = 1.0 - (1.0 - depth) ** nonuniformity
@@ -139,15 +144,23 @@ def _random_view_pose(rng, cam: SnapshotCamera, t_px: np.ndarray, half_in: float
     return pose_through(cam, R, t_px, q, depth)
 
 
-def _view_geometry_ok(cam: SnapshotCamera, pose: Pose, mk: MarkerSpec, missing: bool) -> bool:
+def _view_geometry_ok(cam: SnapshotCamera, pose: Pose, mk: MarkerSpec, missing: bool,
+                      partial: bool = False) -> bool:
     """Check that a planned view sees the marker as intended.
 
     The camera faces the reflector and the marker is fully in frame (or, for a view meant to
-    miss it, clearly out of frame and not behind the camera).
+    miss it, clearly out of frame and not behind the camera; for a view meant to cut it, one
+    to three of its corners in frame).
     """
     if not _facing(pose, 60.0):
         return False
     ok, px = frame_marker_ok(cam, pose, mk, margin_px=4.0, min_side_px=16.0)
+    if partial:
+        h, w = cam.grid_shape
+        if pose.to_camera(np.zeros((1, 3)))[0, 2] <= 0.05:
+            return False
+        inside = (px[:, 0] >= 0) & (px[:, 0] <= w - 1) & (px[:, 1] >= 0) & (px[:, 1] <= h - 1)
+        return 1 <= int(inside.sum()) <= 3
     if missing:
         centre = px.mean(axis=0)
         h, w = cam.grid_shape
@@ -158,7 +171,8 @@ def _view_geometry_ok(cam: SnapshotCamera, pose: Pose, mk: MarkerSpec, missing: 
 
 
 def _shoot_view(truth: SyntheticTruth, scene: ReflectorScene, pose: Pose, rng, missing: bool,
-                supersample: int, detect_bands: list[int]):
+                supersample: int, detect_bands: list[int],
+                exposure_fraction: tuple[float, float] = (0.70, 0.85)):
     """Render and expose one planned view.
 
     ``(gray mask, exposure, DN)``, or None when too little of the gray reflector is in view or
@@ -173,7 +187,7 @@ def _shoot_view(truth: SyntheticTruth, scene: ReflectorScene, pose: Pose, rng, m
         return None
     energy = (truth.vignetting * truth.spectral_factor[:, None, None]
               * rend.light_times_reflectance(scene.reflectance)).astype(np.float32)
-    t = exposure_for(truth, float(energy[:, gray].max()), rng.uniform(0.70, 0.85))
+    t = exposure_for(truth, float(energy[:, gray].max()), rng.uniform(*exposure_fraction))
     dn = expose_frame(truth, energy, t, rng)
     found = [detect_marker_corners(dn[b], truth.marker) is not None for b in detect_bands]
     if missing and any(found):
@@ -186,7 +200,9 @@ def _shoot_view(truth: SyntheticTruth, scene: ReflectorScene, pose: Pose, rng, m
 def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
                      n_missing: int = 1, max_tilt_deg: float = 35.0,
                      distance_m: tuple[float, float] = (0.8, 1.6), supersample: int = 4,
-                     max_attempts: int = 400, light_nonuniformity: float = 1.0) -> FrameSet:
+                     max_attempts: int = 400, light_nonuniformity: float = 1.0,
+                     light_gradient_dir: float | None = None, n_partial: int = 0,
+                     exposure_fraction: tuple[float, float] = (0.70, 0.85)) -> FrameSet:
     """Render the gray reflector + marker from many viewpoints under fixed non-uniform light (Eq. 8-10).
 
     The light ``B(p)`` (2:1 gradient + soft shadow) is fixed on the plane, so the radiance
@@ -219,6 +235,14 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
     light_nonuniformity : float
         How uneven the light is (0 uniform, 1 default, 2 a 4:1 gradient and a deeper shadow;
         see :func:`random_light`).
+    light_gradient_dir : float, optional
+        Direction of the light's gradient on the reflector (radians; default random).
+    n_partial : int
+        Further views (counted in ``n_views``) with the marker cut by the frame's border (one
+        to three corners in frame, so ArUco does not find it) while the reflector is partly in
+        view; spread over the sequence like the missing ones. Default 0.
+    exposure_fraction : tuple of float
+        Range of the brightest gray-reflector pixel's share of the DN range.
 
     Returns
     -------
@@ -248,7 +272,7 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
     h, w = cam.grid_shape
     rng = np.random.default_rng([seed, 3])
     light = random_light(rng, 0.8 * truth.sun_brightness, truth.reflector_size_m,
-                          nonuniformity=light_nonuniformity)
+                          nonuniformity=light_nonuniformity, gradient_dir=light_gradient_dir)
     scene = ReflectorScene(cam.wavelengths, truth.reflector_reflectance, truth.reflector_size_m,
                            truth.marker, light, ground_seed=seed)
     mk = truth.marker
@@ -257,18 +281,31 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
     missing_at = set(
         np.linspace(0, n_views - 1, n_missing + 2)[1:-1].round().astype(int).tolist()
     ) if n_missing else set()
+    partial_at: set[int] = set()
+    if n_partial:  # missing and partial views alternate over the sequence
+        spread = np.linspace(0, n_views - 1, n_missing + n_partial + 2)[1:-1].round().astype(int).tolist()
+        picks = ([i for i in range(len(spread)) if i % 2 == 1]
+                 + [i for i in range(len(spread)) if i % 2 == 0])[:n_partial]
+        partial_at = {spread[i] for i in picks}
+        missing_at = set(spread) - partial_at
     coverage = np.zeros((h, w), dtype=np.int32)
     out_dn, exposures, rvecs, tvecs, in_frame, masks = [], [], [], [], [], []
     pose_err, default_ok = [], []
     detect_bands = sorted({0, cam.n_bands // 2, cam.n_bands - 1})
     for k in range(n_views):
-        missing = k in missing_at
+        partial = k in partial_at
+        missing = k in missing_at or partial
         for _attempt in range(max_attempts):
             t_px = _aim_at_border(rng, h, w) if missing else _aim_least_covered(rng, coverage)
-            pose = _random_view_pose(rng, cam, t_px, half_in, half_out, max_tilt_deg, distance_m)
-            if not _view_geometry_ok(cam, pose, mk, missing):
+            if partial:  # the marker's centre near the border: part of it out of frame
+                R = random_tilt(rng, max_tilt_deg) @ FRONTAL @ rot([0, 0, 1], rng.uniform(0, 2 * np.pi))
+                pose = pose_through(cam, R, t_px, np.zeros(2), rng.uniform(*distance_m))
+            else:
+                pose = _random_view_pose(rng, cam, t_px, half_in, half_out, max_tilt_deg, distance_m)
+            if not _view_geometry_ok(cam, pose, mk, missing and not partial, partial):
                 continue
-            view = _shoot_view(truth, scene, pose, rng, missing, supersample, detect_bands)
+            view = _shoot_view(truth, scene, pose, rng, missing, supersample, detect_bands,
+                               exposure_fraction)
             if view is not None:
                 gray, t, dn = view
                 break
@@ -304,6 +341,7 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
             "pose_error_rel": np.array([e[1] for e in pose_err]),
             "found_default_detector": np.array(default_ok), "light": light.params(),
             "plane_u": uu, "plane_v": vv, "B_plane": light(U, Vg),
+            **({"marker_partial": np.array([k in partial_at for k in range(n)])} if n_partial else {}),
         },
         camera=cam, black_level=int(round(truth.black_level)),
     )
@@ -314,7 +352,9 @@ def reflector_images(truth: SyntheticTruth, *, seed: int = 0, n_images: int = 3,
                      supersample: int = 4, max_attempts: int = 200,
                      times_s: Sequence[float] | None = None, drift: LightDrift | None = None,
                      irradiance: bool = False, name_prefix: str = "reflector_",
-                     gradient_ratio: float = 2.0, light_nonuniformity: float = 1.0) -> FrameSet:
+                     gradient_ratio: float = 2.0, light_nonuniformity: float = 1.0,
+                     light_gradient_dir: float | None = None,
+                     exposure_fraction: tuple[float, float] = (0.70, 0.85)) -> FrameSet:
     """Render the gray reflector under the illumination of the flight (input of Eq. 11-14).
 
     Near-nadir views from 0.55-0.75 m, the reflector filling much of the frame. Each image has
@@ -352,7 +392,7 @@ def reflector_images(truth: SyntheticTruth, *, seed: int = 0, n_images: int = 3,
         Prefix of the frame names.
     gradient_ratio : float
         Gradient of the light with ``drift``.
-    light_nonuniformity : float
+    light_nonuniformity, light_gradient_dir, exposure_fraction
         As in :func:`vignetting_views`.
 
     Returns
@@ -383,7 +423,7 @@ def reflector_images(truth: SyntheticTruth, *, seed: int = 0, n_images: int = 3,
         jitter = rng.uniform(0.9, 1.1)  # drawn in every case: the seeded stream stays the same
         if drift is None:
             light = random_light(rng, truth.sun_brightness * jitter, truth.reflector_size_m,
-                                  nonuniformity=light_nonuniformity)
+                                  nonuniformity=light_nonuniformity, gradient_dir=light_gradient_dir)
         else:
             light = GradientShadowLight(brightness=truth.sun_brightness * drift.level(times[k]),
                                         gradient_dir=rng.uniform(0, 2 * np.pi), gradient_ratio=gradient_ratio,
@@ -402,7 +442,7 @@ def reflector_images(truth: SyntheticTruth, *, seed: int = 0, n_images: int = 3,
             gray = rend.pure(ReflectorScene.GRAY)
             energy = (truth.vignetting * S[:, None, None]
                       * rend.light_times_reflectance(scene.reflectance)).astype(np.float32)
-            t = exposure_for(truth, float(energy[:, gray].max()), rng.uniform(0.70, 0.85))
+            t = exposure_for(truth, float(energy[:, gray].max()), rng.uniform(*exposure_fraction))
             dn = expose_frame(truth, energy, t, rng)
             if detect_marker_corners(dn[0], mk) is None:
                 continue

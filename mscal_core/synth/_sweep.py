@@ -9,7 +9,8 @@ from ._truth import FrameSet, SyntheticTruth, expose_frame, exposure_for, round_
 
 
 def response_sweep(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 14,
-                   step: float = 1.66, decades: float = 2.5) -> FrameSet:
+                   step: float = 1.66, decades: float = 2.5,
+                   start_fraction: tuple[float, float] = (0.30, 0.40)) -> FrameSet:
     """Render an exposure sweep of a static scene with a fixed camera (input of Eq. 5-7).
 
     The scene is a smooth random texture whose radiance spans ``decades`` decades (log-uniform
@@ -29,6 +30,8 @@ def response_sweep(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 14,
         Ratio of consecutive exposures.
     decades : float
         Span of the scene's radiance in decades.
+    start_fraction : tuple of float
+        Range of the brightest pixel's share of the DN range in the shortest exposure.
 
     Returns
     -------
@@ -59,7 +62,7 @@ def response_sweep(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 14,
     # brightest pixel 1000 linear DN / ms: the shortest exposure is then ~0.3-0.4 ms, so the
     # 0.1 us rounding of the exposures is negligible
     energy = (energy * 1000.0 / energy.max()).astype(np.float32)
-    t0 = exposure_for(truth, float(energy.max()), rng.uniform(0.30, 0.40))
+    t0 = exposure_for(truth, float(energy.max()), rng.uniform(*start_fraction))
     exposures = np.array([round_ms(t0 * step**i) for i in range(n_frames)])
     dn = [expose_frame(truth, energy, t, rng) for t in exposures]
     return FrameSet(

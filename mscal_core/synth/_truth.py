@@ -20,12 +20,15 @@ def _make_sensor(bits: int) -> SensorModel:
     return SensorModel(bits=int(bits))
 
 
-def _vignetting(camera: SnapshotCamera, rng: np.random.Generator):
+def _vignetting(camera: SnapshotCamera, rng: np.random.Generator, falloff_min: float = 0.37,
+                centre_shift_px: tuple[float, float] = (0.0, 0.0)):
     """Per-band off-centre radial vignetting ``V = (1 + k rho^2)^-2`` (cos^4-like), max 1.
 
     Centre offset per band: a smooth function of wavelength (lateral chromatic shift) plus
-    filter-to-filter jitter, within (+-15, +-8) band-grid pixels of the image centre. Strength:
-    mean falloff at the four corners 37-44 %, smooth in wavelength plus jitter.
+    filter-to-filter jitter, within (+-15, +-8) band-grid pixels of the image centre, plus a
+    common ``centre_shift_px`` (the optical axis off the sensor centre; default none).
+    Strength: mean falloff at the four corners ``falloff_min`` to ``falloff_min + 0.07``
+    (default 37-44 %), smooth in wavelength plus jitter.
     """
     h, w = camera.grid_shape
     wl = camera.wavelengths
@@ -34,12 +37,13 @@ def _vignetting(camera: SnapshotCamera, rng: np.random.Generator):
     dx = 9.0 * np.sin(2.5 * x01 + phase[0]) + rng.normal(0, 3.0, wl.size)
     dy = 5.0 * np.sin(2.0 * x01 + phase[1]) + rng.normal(0, 1.5, wl.size)
     dx, dy = np.clip(dx, -15, 15), np.clip(dy, -8, 8)
-    falloff = 0.37 + 0.05 * x01 + rng.normal(0, 0.01, wl.size)
-    falloff = np.clip(falloff, 0.37, 0.44)
+    falloff = falloff_min + 0.05 * x01 + rng.normal(0, 0.01, wl.size)
+    falloff = np.clip(falloff, falloff_min, falloff_min + 0.07)
     offs = camera.band_offsets
     jj, ii = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     V = np.empty((wl.size, h, w))
-    centres = np.stack([camera.cx + dx, camera.cy + dy], axis=1)
+    centres = np.stack([camera.cx + dx + float(centre_shift_px[0]),
+                        camera.cy + dy + float(centre_shift_px[1])], axis=1)
     corners = np.array([[0, 0], [w - 1, 0], [0, h - 1], [w - 1, h - 1]], dtype=np.float64)
     for b in range(wl.size):
         cxb, cyb = centres[b]
@@ -129,6 +133,8 @@ def make_truth(
     reflector_reflectance: float | Sequence[float] = 0.5,
     reflector_size_m: tuple[float, float] = (0.5, 0.5),
     marker: MarkerSpec | None = None,
+    vignetting_falloff: float = 0.37,
+    vignetting_shift_px: tuple[float, float] = (0.0, 0.0),
 ) -> SyntheticTruth:
     """Draw a seeded camera truth: V_true (off-centre, per band), S_true, sensor (U_true).
 
@@ -146,6 +152,10 @@ def make_truth(
         ``(w, h)`` of the reflector.
     marker : MarkerSpec, optional
         Default marker on the reflector.
+    vignetting_falloff : float
+        Smallest mean corner falloff of V over the bands (the bands span it to +0.07).
+    vignetting_shift_px : tuple of float
+        Common shift (x, y) of every band's vignetting centre, band-grid pixels.
 
     Returns
     -------
@@ -156,7 +166,7 @@ def make_truth(
     marker = marker or MarkerSpec()
     sensor = sensor if sensor is not None else _make_sensor(camera.bits)
     rng = np.random.default_rng([seed, 1])
-    V, centres = _vignetting(camera, rng)
+    V, centres = _vignetting(camera, rng, vignetting_falloff, vignetting_shift_px)
     S = _spectral_factor(camera.wavelengths, rng)
     rho = np.broadcast_to(np.asarray(reflector_reflectance, dtype=np.float64),
                           (camera.n_bands,)).copy()

@@ -92,16 +92,21 @@ def band_observations(bv: BandViews) -> tuple[list[Observations], float]:
     return obs, n_sat / max(n_pix, 1)
 
 
-def fit_observations(obs: Sequence[Observations], shape: tuple[int, int], n_cells: int) -> vignetting.VignettingFit:
-    """:func:`mscal_core.vignetting.fit_vignetting` of the views' observations together."""
-    return vignetting.fit_vignetting(*(np.concatenate([o[k] for o in obs]) for k in range(3)), shape, n_cells)
+def fit_observations(obs: Sequence[Observations], shape: tuple[int, int], n_cells: int,
+                     start: np.ndarray | None = None) -> vignetting.VignettingFit:
+    """:func:`mscal_core.vignetting.fit_vignetting` of the views' observations together
+    (``start``: V of an earlier fit of the band to start from)."""
+    return vignetting.fit_vignetting(*(np.concatenate([o[k] for o in obs]) for k in range(3)), shape, n_cells,
+                                     start=start)
 
 
-def vignetting_band(bv: BandViews, screen: bool = False) -> tuple[vignetting.VignettingFit, float, np.ndarray | None]:
+def vignetting_band(bv: BandViews, screen: bool = False,
+                    start: np.ndarray | None = None) -> tuple[vignetting.VignettingFit, float, np.ndarray | None]:
     """Eq. 8-10 of one band: the fit, the saturated fraction and, with ``screen``, each
-    view's :func:`mscal_core.vignetting.view_inconsistency` with that fit."""
+    view's :func:`mscal_core.vignetting.view_inconsistency` with that fit. ``start``: V of
+    an earlier fit of the band (on more views) to start from."""
     obs, saturated = band_observations(bv)
-    fit = fit_observations(obs, bv.shape, bv.grid[0] * bv.grid[1])
+    fit = fit_observations(obs, bv.shape, bv.grid[0] * bv.grid[1], start)
     frac = np.array([vignetting.view_inconsistency(fit, *o) for o in obs]) if screen else None
     return fit, saturated, frac
 
@@ -119,4 +124,5 @@ def lens_vignetting_band(bv: BandViews, min_views_to_screen: int) -> tuple[vigne
     bad = sorted(set(vignetting.inconsistent_views(frac).tolist()))
     if not bad or len(obs) - len(bad) < min_views_to_screen:
         return fit, saturated, frac, []
-    return fit_observations([o for k, o in enumerate(obs) if k not in bad], shape, n_cells), saturated, frac, bad
+    kept = [o for k, o in enumerate(obs) if k not in bad]
+    return fit_observations(kept, shape, n_cells, fit.vignetting), saturated, frac, bad

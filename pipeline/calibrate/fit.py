@@ -520,17 +520,28 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
                          pool: BandPool, started: Callable[[], None]
                          ) -> tuple[list[vignetting.VignettingFit], dict[int, float], list[tuple[int, View]]]:
     """Eq. 8-10 of a band-grid camera (one pose per view for all bands): the views are
-    screened on one band first, then every band is fitted on the views kept, on ``pool``."""
+    screened on one band first, then every band is fitted on the views kept, on ``pool``.
+
+    Only the workers that would otherwise idle while the reference band is screened start
+    other bands on all views (none with one worker); the rest wait for the screening. A band
+    fitted on all views is fitted again if a view is dropped, from its first fit's V (the
+    alternation then needs a few sweeps, no log-domain start): a session with a wrong marker
+    pose costs a few band fits more, not every band twice."""
     camera = session.camera
     saturated: dict[int, float] = {}  # band -> saturated fraction of its reflector pixels (QA report)
     # Screen the views on one band first: a view whose marker pose is wrong (planar-pose
-    # ambiguity, a mis-detected corner) disagrees with all the others and is dropped. The
-    # other bands start meanwhile on all views, and are fitted again if a view is dropped.
+    # ambiguity, a mis-detected corner) disagrees with all the others and is dropped.
     ref = camera.n_bands // 2
     order = [ref] + [b for b in range(camera.n_bands) if b != ref]
+    ahead = order[1:max(1, pool.workers)]  # the workers that would idle during the screening
     cells: CellCache = {}
-    futures = {b: pool.submit(vignetting_band, _band_views(session, stack, b, views, inverse_response, saturation_dn,
-                                                           cells), b == ref) for b in order}
+
+    def submit(b: int, use: list[tuple[int, View]], screen: bool = False,
+               start: np.ndarray | None = None) -> Future:
+        return pool.submit(vignetting_band, _band_views(session, stack, b, use, inverse_response, saturation_dn,
+                                                        cells), screen, start)
+
+    futures = {b: submit(b, views, b == ref) for b in [ref, *ahead]}
     started()
     ref_fit, saturated[ref], frac = futures[ref].result()
     bad = set(vignetting.inconsistent_views(frac).tolist())
@@ -558,10 +569,13 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
                           f"{_choice_note(views[k][1].choice)}",
             })
         views = [v for k, v in enumerate(views) if k not in bad]
-        for b in order:
-            futures[b].cancel()
-            futures[b] = pool.submit(vignetting_band,
-                                     _band_views(session, stack, b, views, inverse_response, saturation_dn, cells))
+        futures[ref] = submit(ref, views, start=ref_fit.vignetting)
+    for b in order[len(ahead) + 1:]:
+        futures[b] = submit(b, views)
+    if bad:  # the bands started ahead on all views, again on the views kept
+        for b in ahead:
+            first = futures[b].result()[0]
+            futures[b] = submit(b, views, start=first.vignetting)
     fits = []
     for b in range(camera.n_bands):
         fit, saturated[b], _ = futures[b].result()
