@@ -729,7 +729,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     return p.parse_args(argv)
 
 
-def _varied():  # noqa: ANN202 - bench/calibrate_varied.py, imported only when asked for
+def _varied():
     return importlib.import_module("calibrate_varied")
 
 

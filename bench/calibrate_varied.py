@@ -28,7 +28,7 @@ from typing import Any, Callable, Sequence
 HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:
     sys.path.insert(0, str(HERE))
-import bench_calibrate as bc  # noqa: E402  (measurement and markdown helpers)
+import bench_calibrate as bc
 
 #: Speed and memory targets on every varied session (all processes counted).
 VARIED_WALL_TARGET_S = 10.0

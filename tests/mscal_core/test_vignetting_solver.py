@@ -81,7 +81,7 @@ def test_weighted_log_init_starts_next_to_the_least_squares_of_y() -> None:
     weighted, _ = log_init(pix, cell, y, n_pix, n_cells, 200, structure, (y / np.median(y)) ** 2)
     end, _, _, converged = alternate(y, np.ones_like(y), plain, n_cells, 500, 1e-12, structure)
     assert converged
-    gap = lambda v: float(np.max(np.abs(np.log(v / end) - np.median(np.log(v / end)))))  # noqa: E731
+    gap = lambda v: float(np.max(np.abs(np.log(v / end) - np.median(np.log(v / end)))))
     assert gap(weighted) < 0.5 * gap(plain)
 
 
