@@ -7,7 +7,7 @@ Usage::
                                              [--img-dir docs/img]
 
 One synthetic session per point, built from the seeded forward model of
-``mscal_core.synth`` (the camera truth U, V, S is the same at every point of a seed; only
+``pipeline.sim.world`` (the camera truth U, V, S is the same at every point of a seed; only
 the difficulty changes). The base point is the ``small`` session preset of
 ``pipeline.sim.synth.write_session`` (10-bit, 7-frame sweep with a 729x exposure span, 8
 viewpoints of which 1 without the marker, 2 reflector images, 3 flight frames) with the
@@ -15,11 +15,11 @@ default sensor noise and light. Each axis moves one setting away from the base, 
 held at the base:
 
 - ``noise``: read and shot noise multiplied by k (default 1.5 DN read + 9 DN rms shot noise
-  at full scale, ``mscal_core.synth.sensor.SensorModel``);
+  at full scale, ``pipeline.sim.world.sensor.SensorModel``);
 - ``exposures``: frames in the sweep, same 729x span of exposure times;
 - ``views``: vignetting viewpoints (1 without the marker in every case);
 - ``light``: non-uniformity ``a`` of the light on the reflector (gradient ``2**a``:1, shadow
-  transmission ``(1 - depth)**a``; ``mscal_core.synth.scene._random_light``).
+  transmission ``(1 - depth)**a``; ``pipeline.sim.world.scene._random_light``).
 
 At each point, against the session's truth (``pipeline.sim.evaluate.evaluate_calibration``):
 
@@ -135,15 +135,15 @@ class Synth:
         return self._cache[key]
 
     def truth(self, noise: float):
-        from mscal_core.synth.scene import make_truth
-        from mscal_core.synth.sensor import SensorModel
+        from pipeline.sim.world.scene import make_truth
+        from pipeline.sim.world.sensor import SensorModel
 
         d = SensorModel()
         sensor = SensorModel(read_noise_dn=d.read_noise_dn * noise, shot_noise_dn_at_full=d.shot_noise_dn_at_full * noise)
         return self._get(("truth", noise), lambda: make_truth(self.seed, sensor=sensor))
 
     def session(self, p: dict[str, float]):
-        from mscal_core.synth.scene import (
+        from pipeline.sim.world.scene import (
             SyntheticSession,
             flight_frames,
             reflector_images,
@@ -430,7 +430,7 @@ def render(results: dict[tuple, dict[str, Any]], quick: bool, command: str, info
                                   f"Python {info['python']}", f"numpy {info['numpy']}", f"OpenCV {info['opencv']}"])
         + f". Code: git {info['git']}. Load (`uptime`): at start `{loads['start']}`; at end `{loads['end']}`.",
         "",
-        f"Sessions: seed {seed}, synthesized with `mscal_core.synth` (same camera truth at every point). Base point: "
+        f"Sessions: seed {seed}, synthesized with `pipeline.sim.world` (same camera truth at every point). Base point: "
         "10-bit sensor, 7-frame sweep spanning 729x in exposure, 8 vignetting viewpoints (1 without the marker), "
         "2 reflector images, 3 flight frames, default noise and light. Each axis changes one setting; the rest stay "
         "at the base. All figures of a row come from the same session. Errors (`pipeline.sim.evaluate`, "

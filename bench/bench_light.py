@@ -101,9 +101,9 @@ def sun_sensor_bench(seeds: int, duration_s: float, work: Path, template: Path =
 
 
 def main() -> None:
-    from mscal_core.synth.scene import LightDrift
     from pipeline.run.cli import main as mscal
     from pipeline.sim.synth import write_light_drift, write_session
+    from pipeline.sim.world.scene import LightDrift
 
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seed", type=int, default=0)

@@ -6,7 +6,7 @@ The Ximea 5 x 5 camera's band at mosaic (r, c) samples its pixel (i, j) at band-
 ``(j + c/5, i + r/5)``: up to 0.4 band-grid pixels (~2.3 cm at 25 m) from the centre band
 (2, 2). NDVI mixes 670 nm (mosaic (4, 4)) and 803 nm ((1, 2)), 0.4 px apart in y and x.
 
-For synthetic flight frames (``mscal_core.synth.scene.flight_frames``, noise and 10-bit
+For synthetic flight frames (``pipeline.sim.world.scene.flight_frames``, noise and 10-bit
 quantisation included) the Eq. 15 reflectance is computed with the TRUE calibration (so only
 the band geometry differs), then NDVI
 
@@ -40,7 +40,7 @@ sys.path.insert(0, str(ROOT))
 
 from mscal_core.reflectance import eq15
 from mscal_core.registration import mosaic_centre_offsets, shift_bands
-from mscal_core.synth.scene import (
+from pipeline.sim.world.scene import (
     DEFAULT_PANELS,
     NDVI_NIR_NM,
     NDVI_RED_NM,

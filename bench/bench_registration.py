@@ -4,7 +4,7 @@
 
 Prints (Markdown) the figures of docs/registration.md:
 
-1. synthetic multi-lens captures (``mscal_core.synth.multilens``, 240 x 320, 5 RedEdge bands,
+1. synthetic multi-lens captures (``pipeline.sim.world.multilens``, 240 x 320, 5 RedEdge bands,
    shifts up to 20 px, rotation up to 1 deg, 1 % scale, perspective, 0.5 px bush parallax;
    textured and low-texture fields): residual misalignment of every band against the known
    homography over a 9 x 12 grid of points (rms and max, px);
@@ -33,7 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from mscal_core import registration as reg
-from mscal_core.synth.multilens import REDEDGE_WAVELENGTHS_NM, multilens_capture
+from pipeline.sim.world.multilens import REDEDGE_WAVELENGTHS_NM, multilens_capture
 
 DATA = ROOT.parent / "shared" / "data" / "micasense-rededge"
 

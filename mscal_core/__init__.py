@@ -3,7 +3,8 @@
 numpy + OpenCV only: no file I/O, no dask, xarray, zarr, rasterio or prefect. One module per
 model stage: ``mosaic`` (band layout), ``response`` (Eq. 5-7), ``geometry`` (marker pose and
 plane mapping), ``vignetting`` (Eq. 8-10), ``illumination`` (Eq. 11-14, Eq. 16),
-``reflectance`` (Eq. 15), ``synth`` (a seeded physical forward model used by tests and the demo).
+``reflectance`` (Eq. 15), and the makers' factory models (``factory``, ``sunsensor``). The
+seeded physical forward model the tests check against lives in :mod:`pipeline.sim.world`.
 """
 
 __version__ = "0.1.0"

@@ -54,7 +54,7 @@ def test_true_u8_is_the_mean_of_the_four_10bit_codes() -> None:
 def test_response_8bit_on_a_tiny_linear_sweep() -> None:
     """A noisy 10-bit sweep of a linear sensor: every estimator returns a finite error and
     mscal's forward fit is within 3 % of the truth (the metric of the tables)."""
-    from mscal_core.synth.sensor import SensorModel
+    from pipeline.sim.world.sensor import SensorModel
 
     sensor = SensorModel(curvature=0.0)
     rng = np.random.default_rng(0)

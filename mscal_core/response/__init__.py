@@ -30,7 +30,7 @@ Gauss-Newton step on E alone. Finally ``U = C^{-1}`` on the DN grid; ``C(0)`` is
 estimated black level, so ``U = 0`` there.
 
 Photographs (8-bit JPEG brackets, handheld) break the clean-sweep assumptions of Eq. 5 in
-ways the fit handles explicitly (measured on ``mscal_core.synth.photo``):
+ways the fit handles explicitly (measured on ``pipeline.sim.world.photo``):
 
 - noise model ``var``: read + shot noise ``a + b mu`` plus ``c g^2``, ``g`` the sample's local
   DN gradient (neighbours in the band): a camera shifted by ``s`` pixels between frames moves

@@ -1,6 +1,6 @@
 """Write a synthetic DJI P4 Multispectral calibration session with known truth.
 
-``write_dji_session(path)`` renders the multi-lens rig of :mod:`mscal_core.synth.rig` (the
+``write_dji_session(path)`` renders the multi-lens rig of :mod:`pipeline.sim.world.rig` (the
 lenses on the P4 Multispectral's bands: Blue 450, Green 560, Red 650, RedEdge 730, NIR 840
 nm, the catalog's order) and writes the same datasets as
 :func:`pipeline.sim.multilens.write_multilens_session`::
@@ -42,10 +42,10 @@ from pathlib import Path
 import numpy as np
 import tifffile
 import yaml
-from mscal_core.synth.rig import RigFrames, RigTruth, make_rig_truth
-from mscal_core.synth.scene import SESSION_START
 
 from pipeline.sim.multilens import SIZES, render_datasets, session_yaml
+from pipeline.sim.world.rig import RigFrames, RigTruth, make_rig_truth
+from pipeline.sim.world.scene import SESSION_START
 
 CAMERA = "dji-p4-multispectral"
 #: Name, centre wavelength (nm), FWHM (nm), file suffix (= drone-dji:SensorIndex) of the P4M's bands.

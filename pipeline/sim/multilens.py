@@ -1,6 +1,6 @@
 """Write a synthetic multi-lens (MicaSense RedEdge-style) calibration session with known truth.
 
-``write_multilens_session(path)`` renders :mod:`mscal_core.synth.rig` and writes::
+``write_multilens_session(path)`` renders :mod:`pipeline.sim.world.rig` and writes::
 
     path/
       session.yaml          camera micasense-rededge, reflector, marker; no intrinsics (the
@@ -32,7 +32,8 @@ from pathlib import Path
 import numpy as np
 import tifffile
 import yaml
-from mscal_core.synth.rig import (
+
+from pipeline.sim.world.rig import (
     REDEDGE_BANDS,
     REDEDGE_PX_PER_MM,
     REDEDGE_SHAPE,
@@ -43,7 +44,7 @@ from mscal_core.synth.rig import (
     panel_captures,
     response_sweep,
 )
-from mscal_core.synth.scene import SESSION_START
+from pipeline.sim.world.scene import SESSION_START
 
 CAMERA = "micasense-rededge"
 #: The serial number the synthetic camera writes unless told another.
@@ -144,10 +145,11 @@ BOARD = {"kind": "charuco", "squares": [7, 5], "square_m": 0.06, "marker_m": 0.0
 
 def write_board_images(folder: str | Path, truth: RigTruth, *, seed: int = 0, n_views: int = 12,
                        serial: str = SERIAL) -> Path:
-    """``folder/`` with ChArUco board captures of the rig (:func:`mscal_core.synth.rig.board_views`)
+    """``folder/`` with ChArUco board captures of the rig (:func:`pipeline.sim.world.rig.board_views`)
     and its ``board.yaml``."""
     from mscal_core.intrinsics import Board
-    from mscal_core.synth.rig import board_views
+
+    from pipeline.sim.world.rig import board_views
 
     folder = Path(folder)
     board = Board(BOARD["kind"], tuple(BOARD["squares"]), BOARD["square_m"], BOARD["marker_m"], BOARD["dictionary"])

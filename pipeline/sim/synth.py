@@ -1,7 +1,7 @@
 """Write a complete synthetic session folder (SPEC.md layout) from the seeded forward model.
 
-``write_session(path)`` renders every dataset with :mod:`mscal_core.synth.scene` (camera,
-targets, light) and :mod:`mscal_core.synth.sensor` (response and noise), then writes::
+``write_session(path)`` renders every dataset with :mod:`pipeline.sim.world.scene` (camera,
+targets, light) and :mod:`pipeline.sim.world.sensor` (response and noise), then writes::
 
     path/
       session.yaml            camera, intrinsics, reflector, marker (+ border_m), name, notes
@@ -15,7 +15,7 @@ Frames are single-channel 16-bit TIFFs of the raw 2048 x 1088 mosaic, DN (10 bit
 bits. ``frames.csv`` columns: ``file,exposure_ms,gain,time,lat,lon,alt_m`` (gain 1, time ISO
 8601 UTC; lat/lon/alt_m only for flight frames, empty otherwise).
 
-``truth.npz`` holds :meth:`mscal_core.synth.scene.SyntheticSession.truth_arrays`: camera truth
+``truth.npz`` holds :meth:`pipeline.sim.world.scene.SyntheticSession.truth_arrays`: camera truth
 (``inverse_response`` (25, 1024), ``vignetting`` (25, 217, 409), ``spectral_factor`` (25,),
 ``wavelength_nm``, ``reflector_reflectance``, ...) and per dataset its truth with the prefixes
 ``response_``, ``vignetting_``, ``reflector_``, ``flight_<name>_``. Units: ``U_true(I) = t E``
@@ -32,7 +32,8 @@ from pathlib import Path
 import numpy as np
 import tifffile
 import yaml
-from mscal_core.synth.scene import (
+
+from pipeline.sim.world.scene import (
     FrameSet,
     LightDrift,
     SyntheticSession,
@@ -228,7 +229,7 @@ def write_light_drift(
     session start; subfolders ``capture_0/``, ... or, with ``subfolders=False``, all frames in
     ``reflector/`` told apart by their times), each frame with a sun-sensor ``irradiance``,
     and ``flights/<name>/`` for each entry of ``flights`` (keyword arguments of
-    :func:`mscal_core.synth.scene.flight_frames`, e.g. ``n_frames``, ``time_offset_s``,
+    :func:`pipeline.sim.world.scene.flight_frames`, e.g. ``n_frames``, ``time_offset_s``,
     ``frame_interval_s``, ``clouds``, ``irradiance``; default one 3-frame flight ``drift``
     from 1200 s every 900 s without clouds).
 

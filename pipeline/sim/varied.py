@@ -23,7 +23,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-from mscal_core.synth.scene import (
+
+from pipeline.sim.world.scene import (
     MarkerSpec,
     SyntheticSession,
     SyntheticTruth,
@@ -33,7 +34,7 @@ from mscal_core.synth.scene import (
     response_sweep,
     vignetting_views,
 )
-from mscal_core.synth.sensor import SensorModel
+from pipeline.sim.world.sensor import SensorModel
 
 from .synth import write_synthesized
 
@@ -54,7 +55,7 @@ class VariedParams:
     seed : int
         Seed of every random draw inside the datasets (poses, noise, textures).
     light_nonuniformity : float
-        ``a`` of :func:`mscal_core.synth._reflector.random_light`: gradient ``2**a`` : 1
+        ``a`` of :func:`pipeline.sim.world._reflector.random_light`: gradient ``2**a`` : 1
         across the reflector and a shadow ``1 - (1 - d)**a`` deep (d 35-50 %); 0 is uniform.
     light_gradient_deg : float or None
         Direction of the gradient on the reflector (degrees; None: drawn per light).
@@ -177,7 +178,7 @@ def varied_truth(params: VariedParams) -> SyntheticTruth:
 def synthesize_varied(params: VariedParams, *, n_flight_frames: int = 8,
                       flight: str = "field") -> SyntheticSession:
     """Render a full-size session with ``params`` (no I/O): the truth and its four datasets,
-    drawn as :func:`mscal_core.synth.scene.synthesize_session` draws them."""
+    drawn as :func:`pipeline.sim.world.scene.synthesize_session` draws them."""
     p = params
     truth = varied_truth(p)
     gdir = None if p.light_gradient_deg is None else math.radians(p.light_gradient_deg)

@@ -1,6 +1,6 @@
 """Tests of mscal_core.marker: both IPPE solutions, the choice between them, on oblique views.
 
-The views are rendered by the synthetic camera (``mscal_core.synth``: real ArUco on white paper
+The views are rendered by the synthetic camera (``pipeline.sim.world``: real ArUco on white paper
 on the gray reflector on a lawn, distorted pinhole, lens PSF, supersampled edges) as one band
 on the band grid, with the reflector's light of the vignetting views (gradient + soft shadow)
 and read noise. "Before" is the path calibrate took until now, which the simulator keeps for
@@ -21,7 +21,7 @@ import pytest
 
 from mscal_core import geometry, marker
 from mscal_core.errors import FitError, InputError
-from mscal_core.synth.scene import (
+from pipeline.sim.world.scene import (
     FRONTAL,
     MarkerSpec,
     ReflectorScene,
@@ -34,7 +34,7 @@ from mscal_core.synth.scene import (
     render,
     rot,
 )
-from mscal_core.synth.scene import (
+from pipeline.sim.world.scene import (
     Pose as SynthPose,
 )
 

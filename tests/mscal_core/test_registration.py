@@ -9,7 +9,7 @@ import pytest
 
 from mscal_core import registration as reg
 from mscal_core.errors import InputError
-from mscal_core.synth.multilens import REDEDGE_WAVELENGTHS_NM, multilens_capture
+from pipeline.sim.world.multilens import REDEDGE_WAVELENGTHS_NM, multilens_capture
 
 
 @lru_cache(maxsize=None)

@@ -22,8 +22,8 @@ from mscal_core.response import (
     predict_dn,
     predict_heldout_rms,
 )
-from mscal_core.synth.photo import PhotoSet, make_photo_set
-from mscal_core.synth.sensor import SensorModel
+from pipeline.sim.world.photo import PhotoSet, make_photo_set
+from pipeline.sim.world.sensor import SensorModel
 
 # name -> (sensor, n_frames, exposure step)
 SETTINGS: dict[str, tuple[SensorModel, int, float]] = {

@@ -20,9 +20,9 @@ import tifffile
 import xarray as xr
 
 from mscal_core.errors import InputError, SessionError
-from mscal_core.synth.scene import LightDrift
 from pipeline.run.cli import main
 from pipeline.sim.synth import write_light_drift
+from pipeline.sim.world.scene import LightDrift
 from tests.micasense_data import require_data
 
 #: 25 % less light and a 3 % colour tilt between 1200 s and 3000 s (a cloud bank building up

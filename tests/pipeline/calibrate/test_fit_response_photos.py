@@ -1,6 +1,6 @@
 """``mscal fit response`` on bracketed 8-bit JPEG photographs, scored like the acceptance check.
 
-The photographs come from ``mscal_core.synth.photo`` (handheld shifts, a moving region, JPEG,
+The photographs come from ``pipeline.sim.world.photo`` (handheld shifts, a moving region, JPEG,
 sharpening, tone curve with toe and shoulder, nominal EXIF-style exposures such as 1/60 s for
 a real 1/64 s). One interior frame is held out: the response is fitted through the command
 line on the other files, OpenCV's ``CalibrateDebevec`` on the same files, and both predict
@@ -22,8 +22,8 @@ import pytest
 import xarray as xr
 
 from mscal_core.response import predict_heldout_rms
-from mscal_core.synth.photo import PhotoSet, make_photo_set
 from pipeline.run.cli import main
+from pipeline.sim.world.photo import PhotoSet, make_photo_set
 
 #: A handheld bracket: JPEG q90, 0.5-3 px shifts, small rotation, foliage and a walking
 #: figure, unsharp mask, nominal exposures (the generator's defaults).

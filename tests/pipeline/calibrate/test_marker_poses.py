@@ -11,10 +11,10 @@ import pytest
 import xarray as xr
 
 from mscal_core import marker
-from mscal_core.synth.scene import synthesize_session, vignetting_views
 from pipeline.run.cli import main
 from pipeline.sim.evaluate import evaluate_calibration
 from pipeline.sim.synth import write_synthesized
+from pipeline.sim.world.scene import synthesize_session, vignetting_views
 
 
 def _tilts_deg(rvecs: np.ndarray, tvecs: np.ndarray) -> np.ndarray:

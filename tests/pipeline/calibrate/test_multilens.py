@@ -236,8 +236,8 @@ def test_fit_intrinsics_of_the_snapshot_band_grid(tmp_path, capsys) -> None:
     import tifffile
 
     from mscal_core.intrinsics import Board
-    from mscal_core.synth.rig import snapshot_board_views
-    from mscal_core.synth.scene import make_truth
+    from pipeline.sim.world.rig import snapshot_board_views
+    from pipeline.sim.world.scene import make_truth
 
     truth = make_truth(0)
     board = Board("charuco", (7, 5), 0.06, 0.045)

@@ -13,10 +13,10 @@ import tifffile
 
 from mscal_core import registration as reg
 from mscal_core.errors import InputError
-from mscal_core.synth.multilens import multilens_capture
 from pipeline.calibrate.registration import frame_transforms, register_session, with_registration
 from pipeline.ingest.catalog import load_camera
 from pipeline.run.cli import main
+from pipeline.sim.world.multilens import multilens_capture
 from pipeline.storage.store import new_dataset, open_calibration, write_store
 from tests.micasense_data import band_file
 

@@ -24,11 +24,11 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from mscal_core.synth.scene import flight_frames, make_truth
 from pipeline.ingest.catalog import load_camera
 from pipeline.products import report
 from pipeline.run.cli import main
 from pipeline.sim.synth import write_frameset
+from pipeline.sim.world.scene import flight_frames, make_truth
 from pipeline.storage.atomic import TMP_MARK
 from pipeline.storage.store import new_dataset, open_calibration, write_store
 

@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 import pytest
 
-from mscal_core.synth.scene import GradientShadowLight, detect_marker_corners, vignetting_views
 from pipeline.sim.synth import write_session
 from pipeline.sim.varied import VariedParams, draw_params, varied_truth, write_varied_session
+from pipeline.sim.world.scene import GradientShadowLight, detect_marker_corners, vignetting_views
 
 #: sha256 over the relative paths and bytes of every file of ``write_session(seed=0,
 #: size="small")``, taken before the generator's parameters were threaded through the forward

@@ -1,5 +1,5 @@
 """The synthetic sensor: response shape, true inverse response in the project gauge, noise
-levels and clipping (mscal_core.synth.sensor)."""
+levels and clipping (pipeline.sim.world.sensor)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mscal_core.errors import InputError
-from mscal_core.synth.sensor import SensorModel
+from pipeline.sim.world.sensor import SensorModel
 
 SENSOR = SensorModel()  # 10-bit, black 32, read 1.5 DN, shot 9 DN at full scale
 

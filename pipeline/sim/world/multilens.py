@@ -4,9 +4,9 @@ Seeded synthetic captures of a multi-lens camera (one lens per band) with known 
 for band co-registration. Pure arrays, no I/O.
 
 Scene: a ground plane of soil and crop rows (with gaps, weeds and brightness texture, as
-:class:`~mscal_core.synth.scene.FieldScene`), a few bushes that stand above the ground, and
-gray panels. Reflectance per band from :func:`~mscal_core.synth.scene.vegetation_reflectance`
-and :func:`~mscal_core.synth.scene.soil_reflectance`: vegetation is dark in red and bright in
+:class:`~pipeline.sim.world.scene.FieldScene`), a few bushes that stand above the ground, and
+gray panels. Reflectance per band from :func:`~pipeline.sim.world.scene.vegetation_reflectance`
+and :func:`~pipeline.sim.world.scene.soil_reflectance`: vegetation is dark in red and bright in
 NIR, soil the other way round, so the bands' edges have opposite signs.
 
 Geometry: band b sees the ground through the homography ``H_b`` (reference pixels -> band

@@ -1,4 +1,4 @@
-"""The synthetic snapshot camera: distorted pinhole, band mosaic, poses (see :mod:`mscal_core.synth.scene`)."""
+"""The synthetic snapshot camera: distorted pinhole, band mosaic, poses (see :mod:`pipeline.sim.world.scene`)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,7 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-
-from ..mosaic import band_offsets, remosaic
+from mscal_core.mosaic import band_offsets, remosaic
 
 CAMERA_NAME = "ximea-mq022hg-sm5x5-nir"
 

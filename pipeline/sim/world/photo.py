@@ -37,8 +37,7 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-
-from ..errors import InputError
+from mscal_core.errors import InputError
 
 __all__ = ["NOMINAL_SHUTTER_S", "PhotoSet", "ToneCurve", "bracket", "make_photo_set"]
 

@@ -9,7 +9,7 @@ Each lens is its own camera (the paper fits "each band as its own camera"):
   drawn around RedEdge's published values, scaled to the image size) and its own pose in the
   rig (a few centimetres of offset and up to ~0.7 deg of rotation from the reference lens), so
   the marker is seen from a slightly different point, at a different place, by every band;
-- sensor: its own :class:`~mscal_core.synth.sensor.SensorModel` (12 bit, black level 250-330
+- sensor: its own :class:`~pipeline.sim.world.sensor.SensorModel` (12 bit, black level 250-330
   DN, mild non-linearity, a soft shoulder from 82-90 % of range, shot + read noise);
 - optics: its own off-centre radial vignetting (corner falloff 35-45 %, centre off the
   principal point by up to 4 % of the image);
@@ -17,9 +17,9 @@ Each lens is its own camera (the paper fits "each band as its own camera"):
 - exposure: each lens exposes on its own (auto exposure per lens, as MicaSense does), except
   in the response sweep (one manual exposure for all).
 
-Scenes and light come from :mod:`mscal_core.synth.scene` (the gray reflector with its ArUco
+Scenes and light come from :mod:`pipeline.sim.world.scene` (the gray reflector with its ArUco
 marker on a lawn, non-uniform light with a gradient and a soft shadow, gray panels on a
-field), rendered by :func:`~mscal_core.synth.scene.render` through each lens as a one-band
+field), rendered by :func:`~pipeline.sim.world.scene.render` through each lens as a one-band
 camera. Units as in the scene module: ``E = V S B R`` in linear DN per ms of each lens's own
 ``U`` gauge (``U(k_ref) = k_ref - black``), so ``U_true(I) = t E`` up to noise.
 """
@@ -504,7 +504,7 @@ def snapshot_board_views(truth, board_image: np.ndarray, board_size_m: tuple[flo
                          max_tilt_deg: float = 40.0, blur_px: float = 1.2) -> list[np.ndarray]:
     """Simulate the board of :func:`board_views` seen by a snapshot camera.
 
-    The camera of a :class:`~mscal_core.synth.scene.SyntheticTruth` (one lens, the 5 x 5
+    The camera of a :class:`~pipeline.sim.world.scene.SyntheticTruth` (one lens, the 5 x 5
     mosaic): raw sensor frames (uint16, DN in the low bits), rendered on the sensor grid, with
     the truth's vignetting, S, response and noise per band.
     """

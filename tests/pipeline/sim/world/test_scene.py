@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from mscal_core.mosaic import demosaic
-from mscal_core.synth import scene as S
+from pipeline.sim.world import scene as S
 
 
 @pytest.fixture(scope="module")

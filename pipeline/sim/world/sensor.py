@@ -28,8 +28,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from ..errors import InputError
+from mscal_core.errors import InputError
 
 SHOULDER_HEADROOM = 1.5
 """Asymptote of the shoulder exponential relative to the DN span from its start to dn_max."""
