@@ -16,7 +16,8 @@ from mscal_core.factory import (
     vignetting_2d,
     vignetting_map,
 )
-from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta
+from pipeline.ingest.camera_meta import read_capture_meta
+from pipeline.ingest.cameras.dispatch import factory_radiance
 from pipeline.ingest.session import read_raw
 from tests.micasense_data import PANEL_CORNERS, PANEL_RADIANCE, PANEL_RAW_DN, band_file
 
@@ -76,7 +77,7 @@ def test_radiance_in_place_equals_the_expression_bit_for_bit() -> None:
 def test_factory_vignetting_is_computed_once_and_read_only() -> None:
     """The map depends on the band's tags only: one computation per process and tags, shared
     by every capture, and read-only so that no caller can change it for the next capture."""
-    from pipeline.ingest.camera_meta import factory_vignetting
+    from pipeline.ingest.meta import factory_vignetting
 
     meta = read_capture_meta(band_file("0000", 2))
     v = factory_vignetting(meta)

@@ -11,8 +11,10 @@ import pytest
 from mscal_core.errors import CatalogError, InputError
 from mscal_core.factory import sunshine_irradiance, thermal_kelvin, upright
 from pipeline.ingest import catalog
-from pipeline.ingest.camera_meta import factory_radiance, no_reflectance_reason, read_capture_meta, read_file_metas
+from pipeline.ingest.camera_meta import read_capture_meta, read_file_metas
+from pipeline.ingest.cameras.dispatch import factory_radiance
 from pipeline.ingest.identify import identify_camera
+from pipeline.ingest.meta import no_reflectance_reason
 from pipeline.ingest.xmp import TagError, Xmp, jpeg_xmp_packet, parse_numbers
 from pipeline.run.cli import main
 from tests import camera_files as cf
@@ -222,7 +224,7 @@ def test_dual_is_not_taken_for_a_rededge_from_one_file(tmp_path) -> None:
 
 def test_altum_family_by_model_and_band_count(tmp_path) -> None:
     require_data()
-    from pipeline.ingest.camera_meta import group_captures
+    from pipeline.ingest.grouping import group_captures
 
     ident = identify_camera(cf.altum(tmp_path / "altum"))
     assert ident.camera.name == "micasense-altum" and "6 band(s) per capture" in ident.evidence
@@ -328,7 +330,7 @@ def test_sentera_6x_session_grouping(tmp_path) -> None:
     """A 6X session: the files of one name in the band folders are one capture, each band by
     its XMP BandName, EXIF read from IFD0; a truncated band file quarantines its capture only,
     naming the file; a band in two folders is named too."""
-    from pipeline.ingest.camera_meta import group_captures
+    from pipeline.ingest.grouping import group_captures
 
     if not cf.SENTERA_D4K.is_dir():
         pytest.skip("no Sentera sample")
@@ -362,7 +364,7 @@ def test_sentera_6x_thermal_folder_is_named_and_kept_out(tmp_path) -> None:
     capture, instead of every capture being quarantined for an unexpected band."""
     import tifffile
 
-    from pipeline.ingest.camera_meta import group_captures
+    from pipeline.ingest.grouping import group_captures
 
     if not cf.SENTERA_D4K.is_dir():
         pytest.skip("no Sentera sample")
@@ -476,7 +478,8 @@ def test_legacy_rededge_exposure_is_corrected_as_micasense_does() -> None:
     """Some legacy RedEdge firmware wrote ExposureTime 1/6329 s for an exposure of 0.274 ms
     (micasense/imageprocessing metadata.py ``exposure()``, every model but Altum): radiance
     would be 1.73x too high. Other exposures, and Altum's 1/6329 s, are kept."""
-    from pipeline.ingest.camera_meta import meta_from_tags, micasense_exposure
+    from pipeline.ingest.camera_meta import meta_from_tags
+    from pipeline.ingest.cameras.micasense import micasense_exposure
 
     require_data()
     path = cf.band_file("0000", 2)
@@ -516,7 +519,7 @@ def _sequoia_with_rgb(folder: Path, gps: dict | None) -> Path:
 def test_sequoia_position_from_the_captures_rgb_jpeg(tmp_path) -> None:
     """Sequoia writes GPS only into the capture's RGB JPEG (OpenDroneMap contrib/sequoia): the
     band files, which have none, take its position; without a fix there, they stay unplaced."""
-    from pipeline.ingest.camera_meta import group_captures
+    from pipeline.ingest.grouping import group_captures
 
     camera = catalog.load_camera("parrot-sequoia")
     folder = _sequoia_with_rgb(tmp_path / "a", {1: "S", 2: (47.0, 30.0, 0.0), 3: "W", 4: (7.0, 36.0, 0.0), 5: 0, 6: 420.0})
@@ -551,7 +554,7 @@ def test_sentera_6x_cal_captures_are_captures(tmp_path) -> None:
     """Sentera names the 6X's panel captures CAL_NNNNN.tif (py-radiometric-corrections
     sensor_defs: "calibration images are all named CAL_...tif"): they are captures of the
     session (panel candidates), not files skipped as foreign."""
-    from pipeline.ingest.camera_meta import group_captures
+    from pipeline.ingest.grouping import group_captures
 
     if not cf.SENTERA_D4K.is_dir():
         pytest.skip("no Sentera sample")
