@@ -56,8 +56,9 @@ from pipeline.ingest.camera_meta import METADATA_READING
 from pipeline.ingest.catalog import Camera, Index
 from pipeline.ingest.gps import without_unreachable
 from pipeline.ingest.grouping import Capture, capture_folder_of, capture_pattern, companion_images, group_captures
+from pipeline.ingest.medians import DN_MEDIAN, DN_MEDIAN_ATTRS
 from pipeline.ingest.photo_tags import CameraOptics, read_optics
-from pipeline.ingest.raw import DN_MEDIAN, DN_MEDIAN_ATTRS, raw_codec
+from pipeline.ingest.raw import raw_codec
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries
 from pipeline.storage.chunks import frame_encoding, unwritten_frames

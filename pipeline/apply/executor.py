@@ -63,9 +63,11 @@ from pipeline.ingest.cameras.dispatch import factory_radiance
 from pipeline.ingest.catalog import Camera, Index, load_camera
 from pipeline.ingest.discover import quarantine_entry
 from pipeline.ingest.grouping import Capture, read_capture_pixels
+from pipeline.ingest.medians import band_medians
 from pipeline.ingest.meta import FieldParts, no_reflectance_reason, reflectance_factor, upright_meta
-from pipeline.ingest.raw import band_medians, prefetch_file, read_frame, shape_problem
-from pipeline.ingest.session import FrameRecord, decode_raw
+from pipeline.ingest.raw import prefetch_file, read_frame, shape_problem
+from pipeline.ingest.session import FrameRecord
+from pipeline.ingest.tiff import decode_raw
 from pipeline.products.writers import (
     BandTags,
     FrameTags,

@@ -57,6 +57,7 @@ from pipeline.apply.executor import (  # noqa: F401  (re-exported: the executor'
 from pipeline.apply.light import DEFAULT_MODE, IlluminationPlan, illumination_plan, varies_in_time
 from pipeline.calibrate.registration import check_transforms, frame_transforms
 from pipeline.ingest.catalog import Camera, Index, load_camera, load_index, reflectance_option
+from pipeline.ingest.medians import kept_medians
 from pipeline.ingest.photo_tags import CameraOptics, optics_from_intrinsics
 from pipeline.ingest.raw import (
     FRAME_COORDS,
@@ -65,7 +66,6 @@ from pipeline.ingest.raw import (
     frame_coords,
     frame_row,
     ingest_flight,
-    kept_medians,
     open_cube,
     read_frame,
 )

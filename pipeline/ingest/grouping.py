@@ -276,7 +276,7 @@ def read_capture_pixels(capture: Capture, out: np.ndarray | None = None
     from hashlib import sha256
 
     from pipeline.ingest.raw import read_whole
-    from pipeline.ingest.session import decode_raw
+    from pipeline.ingest.tiff import decode_raw
 
     h = sha256()
     decoded: dict[Path, np.ndarray] = {}

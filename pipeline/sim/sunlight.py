@@ -74,7 +74,7 @@ def _template_light(template: Path, rho: str) -> tuple[list[_Template], np.ndarr
     from pipeline.ingest.camera_meta import read_capture_meta
     from pipeline.ingest.cameras.dispatch import factory_radiance
     from pipeline.ingest.catalog import reflectance_option
-    from pipeline.ingest.session import read_raw
+    from pipeline.ingest.tiff import read_raw
 
     caps = []
     for name in ("IMG_0000", "IMG_0001"):

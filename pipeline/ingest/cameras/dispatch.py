@@ -21,7 +21,7 @@ import numpy as np
 from mscal_core.errors import FrameError
 
 import pipeline.ingest.cameras as _cameras
-from pipeline.ingest.cameras.registry import MAKERS, Maker, by_order, maker_of
+from pipeline.ingest.cameras.registry import Maker, by_order, maker_of
 from pipeline.ingest.meta import CaptureMeta, FieldParts, TagContext
 
 for _module in pkgutil.iter_modules(_cameras.__path__):
@@ -36,7 +36,7 @@ def factory_models() -> tuple[str, ...]:
 
 def maker_for_model(model: str) -> Maker:
     """The maker of a catalog camera's ``factory_model``."""
-    for maker in MAKERS.values():
+    for maker in by_order():
         if maker.model == model:
             return maker
     raise KeyError(model)

@@ -20,7 +20,7 @@ from mscal_core.factory import polygon_mask
 from pipeline.ingest.camera_meta import read_capture_meta
 from pipeline.ingest.cameras.dispatch import factory_radiance
 from pipeline.ingest.catalog import load_target
-from pipeline.ingest.session import read_raw
+from pipeline.ingest.tiff import read_raw
 from pipeline.products.writers import file_band_name
 from pipeline.run.cli import main
 from tests import camera_files as cf

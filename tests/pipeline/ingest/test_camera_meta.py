@@ -15,7 +15,8 @@ from mscal_core.errors import FrameError
 from pipeline.ingest import catalog
 from pipeline.ingest.camera_meta import meta_from_tags, read_capture_meta, xmp_properties
 from pipeline.ingest.grouping import group_captures
-from pipeline.ingest.session import read_bands, read_raw
+from pipeline.ingest.session import read_bands
+from pipeline.ingest.tiff import read_raw
 from pipeline.products.writers import build_xmp
 from tests.micasense_data import BANDS, FWHM_NM, WAVELENGTHS_NM, band_file
 

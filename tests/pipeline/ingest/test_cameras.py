@@ -304,7 +304,7 @@ def test_rededge_12bit_band_file_is_read_and_clips_at_4095(tmp_path) -> None:
     radiance is the 16-bit file's wherever neither is clipped, and it clips at 4095 (its own
     depth's top), the 16-bit file at the catalog's 65520."""
     from pipeline.apply.factory import saturation_dn
-    from pipeline.ingest.session import plain_tiff_pixels, read_raw
+    from pipeline.ingest.tiff import plain_tiff_pixels, read_raw
 
     require_data()
     src = cf.band_file("0001", 1)
@@ -571,7 +571,8 @@ def test_rededge_12bit_files_reach_the_field_fits_in_sensor_dn(tmp_path) -> None
     band file by what it stores: a 16-bit RedEdge file by the catalog's 4, a packed 12-bit one
     not at all; both give the same sensor DN. Shifting the 12-bit file by 4 too (the catalog's
     shift for every file) gave DN / 16, silently: a 4095 highlight became 255."""
-    from pipeline.ingest.session import FrameRecord, read_bands, sample_bits, stored_bands
+    from pipeline.ingest.session import FrameRecord, read_bands, stored_bands
+    from pipeline.ingest.tiff import sample_bits
 
     require_data()
     cam = catalog.load_camera("micasense-rededge")

@@ -1,4 +1,4 @@
-"""The strip reader of plain camera TIFFs (session.plain_tiff_pixels) gives exactly what
+"""The strip reader of plain camera TIFFs (tiff.plain_tiff_pixels) gives exactly what
 tifffile gives, and declines every file it does not fully understand (tifffile reads those)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from pipeline.ingest.session import decode_raw, plain_tiff_pixels
+from pipeline.ingest.tiff import decode_raw, plain_tiff_pixels
 
 DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
 
