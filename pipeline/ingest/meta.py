@@ -196,7 +196,7 @@ def exposure_and_gain(exif: dict[str, Any], path: Path) -> tuple[float, float]:
 
 @dataclass
 class TagContext:
-    """What a vendor reader gets: the file's tags and a list to record feature problems in."""
+    """What a camera maker's reader gets: the file's tags and a list to record feature problems in."""
 
     path: Path
     xmp: Xmp
