@@ -68,7 +68,7 @@ class SunCheck:
 
 def unit_rules(meta: CaptureMeta) -> tuple[dict[str, float], float]:
     """A MicaSense band file's unit rules ``{rule: scale to W m-2 nm-1}`` and the scale the
-    reader applied (:func:`pipeline.ingest.cameras.micasense._micasense_irradiance_scale`)."""
+    reader applied (:func:`pipeline.ingest.cameras.micasense.irradiance_scale`)."""
     x = sun_sensor_xmp(meta) or file_xmp(meta.path)
     try:
         v = x.numbers("IrradianceScaleToSIUnits", MICASENSE_NS)

@@ -98,7 +98,7 @@ def _micasense(ctx: TagContext, panchro: bool = False) -> CaptureMeta:
             path=path,
             hint=FIRMWARE_HINT,
         )
-    irr = _micasense_irradiance(ctx)
+    irr = dls_irradiance(ctx)
     return CaptureMeta(
         path=path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=name, wavelength_nm=wl, fwhm_nm=fwhm,
         exposure_s=exposure, gain=gain, black_levels=black, dark_row_values=dark,
@@ -125,10 +125,10 @@ def micasense_exposure(exposure_s: float, model: str | None) -> float:
     return exposure_s
 
 
-def _micasense_irradiance(ctx: TagContext) -> float | None:
+def dls_irradiance(ctx: TagContext) -> float | None:
     """Spectral irradiance on the DLS, W m-2 nm-1: ``Camera:Irradiance`` (the reading on the
     sensor's own plane), else DLS 2's ``HorizontalIrradiance``; either times the file's
-    irradiance scale (:func:`_micasense_irradiance_scale`). DLS 2 firmware still writes the
+    irradiance scale (:func:`irradiance_scale`). DLS 2 firmware still writes the
     legacy ``Irradiance`` tag beside ``HorizontalIrradiance``, in the same uW cm-2 nm-1 as its
     other irradiance tags ("DLS2 irradiance units",
     https://github.com/micasense/imageprocessing/issues/47): read
@@ -139,11 +139,11 @@ def _micasense_irradiance(ctx: TagContext) -> float | None:
         irr = positive_irradiance(ctx, "HorizontalIrradiance", ns)
     if irr is None:
         return None
-    scale = _micasense_irradiance_scale(ctx)
+    scale = irradiance_scale(ctx)
     return None if scale is None else irr * scale
 
 
-def _micasense_irradiance_scale(ctx: TagContext) -> float | None:
+def irradiance_scale(ctx: TagContext) -> float | None:
     """The factor to W m-2 nm-1 of a MicaSense file's irradiance tags, as micasense/imageprocessing
     ``metadata.py`` ``irradiance_scale_factor()`` takes it: ``IrradianceScaleToSIUnits`` when the
     file has it; else 0.01 when it has DLS 2's ``HorizontalIrradiance`` (uW cm-2 nm-1); else 1
