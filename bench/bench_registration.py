@@ -68,7 +68,7 @@ def real(frames: int) -> np.ndarray | None:
     import cv2
 
     from pipeline.ingest.camera_meta import read_capture_meta
-    from pipeline.ingest.session import read_raw
+    from pipeline.ingest.tiff import read_raw
 
     if not (DATA / "IMG_0000_1.tif").is_file():
         print(f"(real data not found in {DATA})")

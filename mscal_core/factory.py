@@ -24,7 +24,8 @@ Components from the field fits may replace the factory's, one at a time:
   of the sensor range, where the sensor is linear by design: the radiance keeps its unit and
   only the *shape* (black level, shoulder) comes from the field.
 
-Pure numpy (OpenCV for the polygon mask): the metadata is read by ``pipeline.ingest.camera_meta``.
+Pure numpy (OpenCV for the polygon mask): the metadata is read by each camera maker's module,
+``pipeline.ingest.cameras``.
 
 References
 ----------
@@ -582,6 +583,71 @@ def color_transform(channels: np.ndarray, matrix: Sequence[float], rows: Sequenc
     c = ch.shape[2]
     m = np.asarray(matrix, dtype=np.float64).reshape(c, c)
     return np.einsum("kc,hwc->khw", m[list(rows)], ch)
+
+
+def sentera_relative_radiance(
+    dn: np.ndarray,
+    *,
+    black_level: float,
+    gain: float,
+    exposure_s: float,
+    bits_per_sample: int,
+    channels: np.ndarray | None = None,
+    matrix: Sequence[float] | None = None,
+    channel: int | None = None,
+) -> np.ndarray:
+    """Relative radiance of one Sentera band (Double 4K, 6X).
+
+    Parameters
+    ----------
+    dn : ndarray
+        The band's stored DN ``(H, W)`` (its channel of a multi-channel file).
+    black_level : float
+        Black level in DN (0 for the Double 4K's JPEGs).
+    gain : float
+        ``ISO / 100``.
+    exposure_s : float
+        Exposure time in seconds.
+    bits_per_sample : int
+        The file's bits per sample: a DN of ``2**bits - 1`` is clipped.
+    channels, matrix, channel : optional
+        The whole ``(H, W, C)`` image, the ``C x C`` XMP ``Camera:ColorTransform`` and the
+        band's row of it: with all three the band is first crosstalk-corrected
+        (:func:`color_transform`).
+
+    Returns
+    -------
+    ndarray
+        ``(H, W)`` float64, relative (unit 1), NaN where a channel that enters the band is
+        clipped.
+
+    Notes
+    -----
+    Sentera's "autoexposure" normalisation::
+
+        L = max((sum_j M[b, j] DN_j - p_BL) / (g t_e), 0)
+
+    with ``M`` the colour transform (the identity when the file writes none: ``L`` from the
+    band's own DN), ``g = ISO / 100`` and ``t_e`` the exposure. A pixel where any channel
+    with a non-zero weight in row ``b`` (or the band's own DN) is at ``2**bits - 1`` is NaN:
+    the band is unknown there (Sentera excludes saturated pixels).
+
+    References
+    ----------
+    SenteraLLC, py-radiometric-corrections (autoexposure correction);
+    Sentera, "Double 4K multispectral NDVI and NDRE calculations", support.senterasensors.com.
+    """
+    if matrix is not None and channel is not None and channels is not None:
+        mixed = color_transform(channels, matrix, [channel])[0]
+        n = channels.shape[2]
+        used = [j for j in range(n) if matrix[n * channel + j] != 0]
+        clipped = np.any(channels[:, :, used] >= 2**bits_per_sample - 1, axis=2)
+    else:
+        mixed = np.asarray(dn, dtype=np.float64)
+        clipped = np.asarray(dn) >= 2**bits_per_sample - 1
+    out = np.maximum((mixed - black_level) / (gain * exposure_s), 0.0)
+    out[clipped] = np.nan
+    return out
 
 
 def thermal_kelvin(dn: np.ndarray) -> np.ndarray:

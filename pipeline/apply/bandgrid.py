@@ -21,7 +21,9 @@ import numpy as np
 from mscal_core.coregistration import stack_residuals
 
 from pipeline.apply.coregistration import capture_alignment
-from pipeline.ingest.camera_meta import factory_align, read_capture_pixels, upright_meta
+from pipeline.ingest.cameras.dji import factory_align
+from pipeline.ingest.grouping import read_capture_pixels
+from pipeline.ingest.meta import upright_meta
 
 if TYPE_CHECKING:
     from pipeline.apply.executor import FactoryChain, FieldChain, Job, Plan

@@ -5,7 +5,7 @@ like) writes one file per band per capture (``IMG_0000_1.tif ... IMG_0000_5.tif`
 card in a tree of sets and sub-folders (``0000SET/000/IMG_0000_1.tif``); a Sentera Double 4K
 one multi-channel JPEG per capture. :func:`find_captures` finds every capture in such a tree
 (grouped by name and XMP capture id in each folder by
-:func:`pipeline.ingest.camera_meta.group_captures`, the one grouping of captures), quarantines
+:func:`pipeline.ingest.grouping.group_captures`, the one grouping of captures), quarantines
 incomplete or duplicated ones, and names the other files it skips (logs, ``diag.dat``, the
 camera's ``.bin`` files).
 
@@ -53,19 +53,14 @@ from pipeline.apply.flight import (
     write_run_record,
 )
 from pipeline.apply.products import remove_unchosen
-from pipeline.ingest.camera_meta import (
-    METADATA_READING,
-    Capture,
-    capture_folder_of,
-    capture_pattern,
-    companion_images,
-    group_captures,
-)
+from pipeline.ingest.camera_meta import METADATA_READING
 from pipeline.ingest.catalog import Camera, Index
 from pipeline.ingest.gps import without_unreachable
+from pipeline.ingest.grouping import Capture, capture_folder_of, capture_pattern, companion_images, group_captures
+from pipeline.ingest.medians import DN_MEDIAN, DN_MEDIAN_ATTRS
 from pipeline.ingest.photo_tags import CameraOptics, read_optics
 from pipeline.ingest.products import Products, indices_for
-from pipeline.ingest.raw import DN_MEDIAN, DN_MEDIAN_ATTRS, raw_codec
+from pipeline.ingest.raw import raw_codec
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries
 from pipeline.storage.chunks import frame_encoding, unwritten_frames

@@ -41,8 +41,9 @@ from mscal_core.coregistration import (
 )
 from mscal_core.registration import align_bands
 
-from pipeline.ingest.camera_meta import Capture, factory_align, read_capture_pixels
+from pipeline.ingest.cameras.dji import factory_align
 from pipeline.ingest.catalog import Camera
+from pipeline.ingest.grouping import Capture, read_capture_pixels
 
 MAX_MEASURED = 24  # captures measured per flight (every Nth)
 REFINE_CAPTURES = 4  # captures the metadata alignment is judged and refined on (pooled)

@@ -2,13 +2,13 @@
 
 A *capture* is one exposure of all bands: one file (a snapshot mosaic or a multichannel
 image; ``Job.rec``, or its chunk of ``raw.zarr`` when it was ingested before) or one file per
-band (``Job.capture``, grouped by :func:`pipeline.ingest.camera_meta.group_captures`). The
+band (``Job.capture``, grouped by :func:`pipeline.ingest.grouping.group_captures`). The
 radiometric model is one per-band chain chosen per run (``Plan.chain``):
 
 - :class:`FieldChain`: Eq. 15, ``R = U(I) / (t V S)``, with U, V, S of a calibration store
   (``mscal calibrate``), the light of the capture's time folded in (``Job.scale``);
 - :class:`FactoryChain`: the camera's own metadata per band file (each vendor's radiance
-  model, :func:`pipeline.ingest.camera_meta.factory_radiance`; MicaSense's optionally with
+  model, :func:`pipeline.ingest.cameras.dispatch.factory_radiance`; MicaSense's optionally with
   field U and/or V in place of the factory's), times one factor per band (a panel's, the
   capture's sun sensor's -- NaN for a band without a usable reading, its radiance is kept --,
   or NaN for a radiance-only run; ``Job.scale`` overrides it).
@@ -58,20 +58,16 @@ from pipeline.apply.execution import (
 )
 from pipeline.apply.frame_writes import WRITER_THREADS, FrameWrites  # noqa: F401  (WRITER_THREADS: re-exported)
 from pipeline.calibrate.registration import frame_transforms
-from pipeline.ingest.camera_meta import (
-    Capture,
-    FieldParts,
-    factory_radiance,
-    no_reflectance_reason,
-    read_capture_meta,
-    read_capture_pixels,
-    reflectance_factor,
-    upright_meta,
-)
+from pipeline.ingest.camera_meta import read_capture_meta
+from pipeline.ingest.cameras.dispatch import factory_radiance
 from pipeline.ingest.catalog import Camera, Index, load_camera
 from pipeline.ingest.discover import quarantine_entry
-from pipeline.ingest.raw import band_medians, prefetch_file, read_frame, shape_problem
-from pipeline.ingest.session import FrameRecord, decode_raw
+from pipeline.ingest.grouping import Capture, read_capture_pixels
+from pipeline.ingest.medians import band_medians
+from pipeline.ingest.meta import FieldParts, no_reflectance_reason, reflectance_factor, upright_meta
+from pipeline.ingest.raw import prefetch_file, read_frame, shape_problem
+from pipeline.ingest.session import FrameRecord
+from pipeline.ingest.tiff import decode_raw
 from pipeline.products.writers import (
     BandTags,
     FrameTags,
@@ -226,7 +222,7 @@ def field_parts(store: str, components: tuple[str, ...], camera_name: str) -> tu
 
 def capture_factors(chain: FactoryChain, capture: Capture) -> np.ndarray:
     """``k_b`` of one capture: the panel's; or its own sun sensor's
-    (:func:`pipeline.ingest.camera_meta.reflectance_factor`: ``c / E_b``, ``c`` the camera
+    (:func:`pipeline.ingest.meta.reflectance_factor`: ``c / E_b``, ``c`` the camera
     model's fixed scale, :mod:`pipeline.ingest.sun_scale`), NaN for a band without
     a usable reading (:func:`missing_reflectance` names it); NaN for every band when the run
     has no reference (radiance only)."""
@@ -279,7 +275,7 @@ class Plan:
     norm: tuple[str, float | int | None] = ("none", None)
     transforms: Path | None = None  # a store whose band transforms put the bands on the reference band's grid
     band_shift: tuple[tuple[float, float], ...] | None = None  # --centre-bands: (dx, dy) per band
-    factory_alignment: bool = False  # each band file's own registration (DJI), camera_meta.factory_align
+    factory_alignment: bool = False  # each band file's own registration (DJI), cameras.dji.factory_align
     refine: Any = None  # coregistration.Refinement: image registration per capture on top of it (bandgrid)
     coreg_reference: int | None = None  # the band the measured captures' residual shifts are against (bandgrid)
     raw_medians: Path | None = None  # raw.zarr's dn_median (frame, band), written with each new frame's DN
@@ -334,7 +330,7 @@ def capture_dn(plan: Plan, job: Job) -> tuple[np.ndarray, str | None, dict[Path,
     """DN (band, y, x) of a job's capture, as stored: from its file(s) (checked; FrameError) or
     from raw.zarr; its content hash (None from raw.zarr); the whole ``(H, W, C)`` image of each
     multi-channel file (Sentera's colour transform needs every channel;
-    :func:`pipeline.ingest.camera_meta.read_capture_pixels`)."""
+    :func:`pipeline.ingest.grouping.read_capture_pixels`)."""
     if job.capture is not None:
         return _capture_files(job.capture, plan.cube_shape)
     if job.rec is None:
@@ -553,7 +549,7 @@ def _write_products(plan: Plan, job: Job, dn: np.ndarray, sha: str | None, signa
 def write_thermal(plan: Plan, job: Job, tags: FrameTags) -> tuple[dict[str, str], ...]:
     """The thermal bands of a capture (band files kept out of reflectance whose reader says
     ``thermal``: MicaSense Altum / Altum-PT LWIR) as temperature in kelvin with the camera's own
-    conversion (:func:`pipeline.ingest.camera_meta.factory_radiance`), each in its own float32
+    conversion (:func:`pipeline.ingest.cameras.dispatch.factory_radiance`), each in its own float32
     TIFF ``thermal/<capture>_<band>.tif``, upright, on the thermal band's own grid; never part
     of reflectance. One ``{file, band, written | reason}`` per thermal band file."""
     out: list[dict[str, str]] = []

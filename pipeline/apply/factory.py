@@ -15,7 +15,7 @@ The factory chain runs in the one apply executor (:mod:`pipeline.apply.executor`
 
 - radiance ``L_b`` with the file's own factory model (MicaSense: black level,
   ``a1/gain/exposure`` with the row-gradient terms, vignetting polynomial; the other vendors'
-  models in :func:`pipeline.ingest.camera_meta.factory_radiance`; the unit, in run.json
+  models in :func:`pipeline.ingest.cameras.dispatch.factory_radiance`; the unit, in run.json
   ``radiance_unit``, is the vendor's);
 - reflectance ``R_b = k_b L_b`` with one factor per band from the *reference*:
 
@@ -62,7 +62,7 @@ Outputs as for every apply (SPEC "Outputs of apply"): ``reflectance.zarr`` with
 ``reflectance`` and ``radiance`` (frame, band, y, x) float32 and the indices, ``raw.zarr``
 (the stored DN, frame x band x y x x), photogrammetry and NDVI TIFFs, ``run.json``. Bands whose
 files carry their own registration (DJI: ``drone-dji:DewarpData`` and ``CalibratedHMatrix``,
-the Image Processing Guides' steps 2-3; :func:`pipeline.ingest.camera_meta.factory_align`)
+the Image Processing Guides' steps 2-3; :func:`pipeline.ingest.cameras.dji.factory_align`)
 are put on the camera's designed image plane (``--no-align``: not); other cameras' bands are
 *not* co-registered here (each band keeps its own pixel grid): per-pixel indices mix
 neighbouring ground points near edges; ``reflectance.zarr`` says so in its attributes. With
@@ -72,7 +72,7 @@ if it was registered, else the session's; NaN where a band does not cover).
 
 With ``--field-calibration CALIB.zarr`` components of a field calibration of the same camera
 replace the factory's (``--field-components``: ``response`` = U of Eq. 5-7 on the factory's
-scale, ``vignetting`` = V of Eq. 8-10; :func:`pipeline.ingest.camera_meta.factory_radiance`); run.json
+scale, ``vignetting`` = V of Eq. 8-10; :func:`pipeline.ingest.cameras.dispatch.factory_radiance`); run.json
 ``components`` records where each came from.
 
 Every output is written under a temporary name and renamed; a run that finds ``run.json``
@@ -123,20 +123,13 @@ from pipeline.apply.sunlight import (
     panel_sensor_light,
     readings_missing,
 )
-from pipeline.ingest.camera_meta import (
-    FACTORY_ALIGNMENT_NOTE,
-    METADATA_READING,
-    Capture,
-    FieldParts,
-    factory_radiance,
-    has_factory_alignment,
-    no_reflectance_reason,
-    read_capture_pixels,
-    reflectance_factor,
-    sun_sensor_absolute,
-)
+from pipeline.ingest.camera_meta import METADATA_READING
+from pipeline.ingest.cameras.dispatch import factory_radiance
+from pipeline.ingest.cameras.dji import FACTORY_ALIGNMENT_NOTE, has_factory_alignment
 from pipeline.ingest.catalog import Camera, reflectance_option
+from pipeline.ingest.grouping import Capture, read_capture_pixels
 from pipeline.ingest.identify import Identification, identify_camera
+from pipeline.ingest.meta import FieldParts, no_reflectance_reason, reflectance_factor, sun_sensor_absolute
 from pipeline.ingest.products import Products, indices_for
 from pipeline.ingest.session import PanelConfig, panel_config_near
 from pipeline.ingest.sun_scale import sun_scale_constant, sun_scale_record
@@ -600,7 +593,7 @@ NO_SUN_SENSOR_HINT = f"{PANEL_HINT}; or leave out --reference dls for radiance o
 
 def sun_sensor_missing(captures: Sequence[Capture]) -> tuple[Path, str] | None:
     """None when a band of some capture has a usable sun-sensor reflectance factor; else the
-    first band file and why it has none (the tag, :func:`pipeline.ingest.camera_meta.
+    first band file and why it has none (the tag, :func:`pipeline.ingest.meta.
     no_reflectance_reason`): the sun-sensor route would give no reflectance at all."""
     for c in captures:
         if any(reflectance_factor(m) is not None for m in c.metas):
@@ -629,7 +622,7 @@ def saturation_dn(camera: Camera) -> int:
     """Stored value at and above which a pixel is clipped: the sensor's largest DN in the
     container's high bits (65520 for 12-bit data in 16-bit samples). A file whose own
     BitsPerSample holds less (12-bit packed) clips lower:
-    :meth:`pipeline.ingest.camera_meta.CaptureMeta.clipped_from`."""
+    :meth:`pipeline.ingest.meta.CaptureMeta.clipped_from`."""
     return ((1 << camera.bit_depth) - 1) << camera.dn_shift
 
 

@@ -58,6 +58,7 @@ from pipeline.apply.light import DEFAULT_MODE, IlluminationPlan, illumination_pl
 from pipeline.apply.products import remove_unchosen
 from pipeline.calibrate.registration import check_transforms, frame_transforms
 from pipeline.ingest.catalog import Camera, Index, load_camera, reflectance_option
+from pipeline.ingest.medians import kept_medians
 from pipeline.ingest.photo_tags import CameraOptics, optics_from_intrinsics
 from pipeline.ingest.products import Products, indices_for, radiance_refused
 from pipeline.ingest.raw import (
@@ -67,7 +68,6 @@ from pipeline.ingest.raw import (
     frame_coords,
     frame_row,
     ingest_flight,
-    kept_medians,
     open_cube,
     read_frame,
 )

@@ -17,7 +17,7 @@ capture_levels` for one-file-per-band captures): frames.csv ``irradiance`` as gi
 sun sensor's horizontal irradiance (sun position, sensor tilt), the geometric mean over the
 bands. For an older store, the raw readings it was made with: the ``irradiance`` column of the
 flight's frames.csv, else the XMP ``Irradiance`` of a TIFF frame, and for a capture the mean of
-its bands' readings (:func:`pipeline.ingest.camera_meta.capture_irradiance`), so that it gives
+its bands' readings (:func:`pipeline.ingest.grouping.capture_irradiance`), so that it gives
 what it gave. run.json's ``illumination.sun_sensor_level`` says which.
 
 A store with one capture and no irradiance (every store written before captures over time) gives no
@@ -36,7 +36,8 @@ import xarray as xr
 from mscal_core.errors import FrameError, InputError
 from mscal_core.illumination import INTERPOLATION_MODES, frame_illumination
 
-from pipeline.ingest.camera_meta import Capture, capture_irradiance, xmp_irradiance
+from pipeline.ingest.camera_meta import xmp_irradiance
+from pipeline.ingest.grouping import Capture, capture_irradiance
 from pipeline.ingest.session import FRAMES_CSV, FrameRecord, read_frame_table
 from pipeline.ingest.sunsensor import SUN_SENSOR_MODEL, Levels, capture_levels, record_levels, stored_sun_sensor_model
 

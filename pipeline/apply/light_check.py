@@ -13,9 +13,10 @@ import numpy as np
 from pipeline.apply.captures import capture_times, find_captures
 from pipeline.apply.factory import panel_reference
 from pipeline.apply.sunlight import panel_sensor_light
-from pipeline.ingest.camera_meta import read_capture_pixels, sun_sensor_absolute
 from pipeline.ingest.catalog import reflectance_option
+from pipeline.ingest.grouping import read_capture_pixels
 from pipeline.ingest.identify import identify_camera
+from pipeline.ingest.meta import sun_sensor_absolute
 from pipeline.ingest.sunsensor import sensor_light
 
 

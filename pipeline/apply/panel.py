@@ -53,7 +53,8 @@ from mscal_core.panel import (
 )
 from mscal_core.reflectance import ndvi
 
-from pipeline.ingest.camera_meta import CaptureMeta, FieldParts, factory_radiance
+from pipeline.ingest.cameras.dispatch import factory_radiance
+from pipeline.ingest.meta import CaptureMeta, FieldParts
 from pipeline.ingest.session import PanelConfig
 
 SATURATION_DN = 65000  # 16-bit container: above this a RedEdge pixel is clipped

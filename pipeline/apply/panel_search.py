@@ -18,8 +18,8 @@ from typing import Any, Sequence
 
 from mscal_core.errors import FrameError
 
-from pipeline.ingest.camera_meta import Capture, read_capture_pixels
 from pipeline.ingest.catalog import Target
+from pipeline.ingest.grouping import Capture, read_capture_pixels
 from pipeline.ingest.sunsensor import file_xmp
 from pipeline.ingest.targets import target_for_serial
 

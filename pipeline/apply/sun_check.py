@@ -25,8 +25,10 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from pipeline.ingest.camera_meta import Capture, CaptureMeta, sun_sensor_xmp
+from pipeline.ingest.camera_meta import sun_sensor_xmp
 from pipeline.ingest.clear_sky import MODEL, PLAUSIBLE_RATIO, choose_capture_rule, choose_rule, clear_sky_spectral
+from pipeline.ingest.grouping import Capture
+from pipeline.ingest.meta import CaptureMeta
 from pipeline.ingest.sun_scale import sun_scale
 from pipeline.ingest.sunsensor import SensorLight, file_xmp
 from pipeline.ingest.xmp import TagError
@@ -66,7 +68,7 @@ class SunCheck:
 
 def unit_rules(meta: CaptureMeta) -> tuple[dict[str, float], float]:
     """A MicaSense band file's unit rules ``{rule: scale to W m-2 nm-1}`` and the scale the
-    reader applied (:func:`pipeline.ingest.camera_meta._micasense_irradiance_scale`)."""
+    reader applied (:func:`pipeline.ingest.cameras.micasense.irradiance_scale`)."""
     x = sun_sensor_xmp(meta) or file_xmp(meta.path)
     try:
         v = x.numbers("IrradianceScaleToSIUnits", MICASENSE_NS)

@@ -18,7 +18,7 @@ import numpy as np
 from mscal_core.illumination import capture_weights
 from mscal_core.sunsensor import anchored_irradiance, ratio_drift
 
-from pipeline.ingest.camera_meta import Capture
+from pipeline.ingest.grouping import Capture
 from pipeline.ingest.sunsensor import SensorLight
 
 #: Above this tilt of the sensor against the vertical, or with the sun behind it, the reading

@@ -31,9 +31,9 @@ from mscal_core.errors import InputError, MscalError, SessionError
 from mscal_core.geometry import Intrinsics
 from mscal_core.mosaic import band_offsets
 
-from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
 from pipeline.ingest.captures import is_multilens
 from pipeline.ingest.catalog import Camera, load_camera
+from pipeline.ingest.grouping import DEFAULT_CAPTURE_PATTERN
 from pipeline.ingest.intrinsics import INTRINSICS_PARAMS, intrinsics_array
 from pipeline.ingest.session import IMAGE_SUFFIXES, stored_bands
 from pipeline.storage.store import content_hashes, new_dataset, write_store

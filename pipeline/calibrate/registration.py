@@ -45,8 +45,8 @@ from mscal_core.registration import (
     transform_distance,
 )
 
-from pipeline.ingest.camera_meta import Capture, capture_folder_of, group_captures, read_capture_pixels
 from pipeline.ingest.catalog import Camera, load_camera
+from pipeline.ingest.grouping import Capture, capture_folder_of, group_captures, read_capture_pixels
 from pipeline.storage.store import new_dataset, open_calibration, write_store
 
 log = logging.getLogger(__name__)
@@ -89,7 +89,7 @@ class SessionRegistration:
 def read_capture(capture: Capture) -> np.ndarray:
     """Band stack ``(band, H, W)`` float32 of one capture's files, as stored (the scale does not
     matter to registration), read as apply reads them
-    (:func:`pipeline.ingest.camera_meta.read_capture_pixels`: TIFF band files, or each band's
+    (:func:`pipeline.ingest.grouping.read_capture_pixels`: TIFF band files, or each band's
     channel of a multi-channel JPEG)."""
     try:
         _, bands, _ = read_capture_pixels(capture)

@@ -9,7 +9,7 @@ EXIF ``ExposureTime`` (s), ``ISOSpeed``/``ISOSpeedRatings`` (gain = ISO / 100) a
 ``DateTimeOriginal`` -- of a file with factory metadata the exposure and gain apply reads
 (:func:`band_file_record`: DJI's XMP SensorGain, not its ISO). A multi-lens camera exposes
 each lens on its own, so each band keeps its own exposure (:meth:`FrameRecord.band_exposure`). Unlike the factory route
-(:func:`pipeline.ingest.camera_meta.group_captures`), no radiometric calibration tags are
+(:func:`pipeline.ingest.grouping.group_captures`), no radiometric calibration tags are
 needed: the field calibration replaces them.
 """
 
@@ -21,9 +21,10 @@ from pathlib import Path
 
 from mscal_core.errors import FrameError, SessionError
 
-from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN, read_file_metas
+from pipeline.ingest.camera_meta import read_file_metas
 from pipeline.ingest.catalog import Camera
 from pipeline.ingest.exif import exposure_time, rational
+from pipeline.ingest.grouping import DEFAULT_CAPTURE_PATTERN
 from pipeline.ingest.intrinsics import EXIF_CODES, XMP_TAG, tiff_tags
 from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES, FrameRecord, read_frame_table
 from pipeline.ingest.xmp import Xmp
@@ -46,7 +47,7 @@ def read_frames(folder: str | Path, camera: Camera, *, recursive: bool = True) -
 
 def band_file_record(path: Path) -> FrameRecord:
     """Exposure, gain and time of one band file: those apply takes (the
-    :class:`pipeline.ingest.camera_meta.CaptureMeta` of
+    :class:`pipeline.ingest.meta.CaptureMeta` of
     :func:`pipeline.ingest.camera_meta.read_file_metas`: a DJI file's XMP ExposureTime x
     SensorGain, a MicaSense file's EXIF ExposureTime x ISO / 100) when the file has factory
     metadata, so that a field calibration and its apply see one effective exposure; else

@@ -28,10 +28,11 @@ import yaml
 from mscal_core.errors import CatalogError, MscalError
 from mscal_core.reflectance import keep_valid
 
+from pipeline.ingest.meta import sample_shift
+
 #: The catalogs shipped with mscal (the ``catalogs`` package's folder).
 CATALOG_ROOT = Path(str(importlib.resources.files("catalogs")))
 LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band", "file_per_capture", "folder_per_band")
-FACTORY_MODELS = ("micasense", "sequoia", "dji", "sentera")
 
 
 def catalog_dirs(kind: str, search_path: str | None = None) -> list[Path]:
@@ -214,16 +215,6 @@ class Identify:
     bands_per_capture: int | None = None  # every band file of one capture id, skipped ones included
 
 
-def sample_shift(dn_shift: int, bit_depth: int, stored_bits: int | None) -> int:
-    """Right shift from one file's samples to sensor DN: ``dn_shift`` (the catalog's, for data
-    in the high bits of a wider container), less for a file with fewer bits per sample than
-    that container, 0 for one holding the ``bit_depth``-bit DN as they are; ``stored_bits``
-    None (not known): ``dn_shift``."""
-    if stored_bits is None:
-        return dn_shift
-    return min(dn_shift, max(0, int(stored_bits) - bit_depth))
-
-
 @dataclass(frozen=True)
 class CameraExif:
     """``exif: {make, model, pixel_um}``: the EXIF ``Make`` and ``Model`` of a camera whose
@@ -251,7 +242,7 @@ class Camera:
     source: str = ""
     container_bits: int | None = None  # bits per stored sample when the data sit in its high bits
     identify: Identify | None = None
-    factory_model: str | None = None  # radiometric model of the files' own metadata (FACTORY_MODELS)
+    factory_model: str | None = None  # radiometric model of the files' own metadata (a camera maker's, pipeline.ingest.cameras)
     skip_bands: tuple[SkipBand, ...] = ()
     sources: tuple[str, ...] = ()  # the manufacturer's documents the entry is taken from
     exif: "CameraExif | None" = None  # what per-frame TIFFs say of a camera whose frames carry no EXIF
@@ -513,8 +504,11 @@ def _parse_factory(data: Mapping[str, Any], names: list[str], path: Path
     """``identify``, ``factory_model`` (cited in ``sources``), ``skip_bands`` and ``sources``."""
     identify = _parse_identify(data.get("identify"), path)
     model = data.get("factory_model")
-    if model is not None and model not in FACTORY_MODELS:
-        raise CatalogError(f"factory_model must be one of {', '.join(FACTORY_MODELS)}, got {model!r}", path=path)
+    if model is not None:
+        from pipeline.ingest.cameras.dispatch import factory_models  # the registered makers' models
+
+        if model not in factory_models():
+            raise CatalogError(f"factory_model must be one of {', '.join(factory_models())}, got {model!r}", path=path)
     skip = _parse_skip_bands(data.get("skip_bands"), path, names)
     sources = data.get("sources") or []
     if not isinstance(sources, list) or not all(isinstance(x, str) and x.strip() for x in sources):

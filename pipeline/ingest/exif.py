@@ -24,9 +24,11 @@ import re
 from datetime import datetime, timedelta, timezone
 from fractions import Fraction
 from functools import lru_cache
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+from mscal_core.errors import FrameError
 
 #: EXIF tags by the names tifffile gives the EXIF IFD's entries, and their codes (EXIF 2.32).
 #: Some cameras (Sentera 6X: "EXIF (IFD0)" in its tag table) write them into IFD0 instead of
@@ -284,3 +286,25 @@ def time_ns(text: str | None) -> int:
         return NAT
     dt, _ = utc_naive(parse_iso(text))
     return int(np.datetime64(dt, "ns").astype(np.int64))
+
+
+def jpeg_exif(data: bytes, path: Path | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """A JPEG's EXIF and GPS tags, named and shaped as tifffile gives a TIFF's
+    (:func:`pipeline.ingest.exif.exifread_tags`: what is not a value -- the thumbnail, a maker
+    note, an empty field, a zero denominator -- is left out). IFD0 and the EXIF IFD make one
+    dict (the EXIF IFD's tag wins), the GPS IFD the other. EXIF that exifread cannot parse
+    raises :class:`FrameError`; a JPEG without EXIF gives two empty dicts."""
+    import io
+
+    try:
+        tags = exifread_tags(io.BytesIO(data))
+    except Exception as exc:  # exifread raises a zoo of errors on corrupt EXIF
+        raise FrameError(f"EXIF unreadable ({type(exc).__name__}: {str(exc)[:80]})", path=path,
+                         hint="copy the file again from the camera's card") from None
+    exif: dict[str, Any] = {}
+    gps: dict[str, Any] = {}
+    for key, value in tags.items():  # IFD0's, then the EXIF IFD's, then the GPS IFD's
+        group, _, name = key.partition(" ")
+        name = name.replace("SubSecTime", "SubsecTime")  # exifread's spelling -> tifffile's
+        (gps if group == "GPS" else exif)[name] = value
+    return exif, gps

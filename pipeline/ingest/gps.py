@@ -26,7 +26,7 @@ import numpy as np
 from pipeline.ingest.exif import NAT, dms_to_degrees, rational, signed_gps, time_ns
 
 if TYPE_CHECKING:
-    from pipeline.ingest.camera_meta import Capture
+    from pipeline.ingest.grouping import Capture
 
 #: A survey UAV flies at 10-30 m/s; a position reached faster than this from the capture
 #: before or after it is a receiver's jump, not a flight.

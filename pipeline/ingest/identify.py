@@ -17,8 +17,10 @@ from pathlib import Path
 
 from mscal_core.errors import FrameError, InputError
 
-from pipeline.ingest.camera_meta import COMPANION_IMAGES, CaptureMeta, companion_images, read_file_metas
+from pipeline.ingest.camera_meta import read_file_metas
 from pipeline.ingest.catalog import Camera, list_entries, load_camera
+from pipeline.ingest.grouping import COMPANION_IMAGES, companion_images
+from pipeline.ingest.meta import CaptureMeta
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".jpg", ".jpeg")
 PROBE_FILES = 24  # band files read to recognise a camera (metadata only)
@@ -260,7 +262,7 @@ def _other_images(d: Path, camera: Camera) -> list[str]:
 def describe_folders(folder: str | Path, camera: str | None = None) -> list[str]:
     """Lines for ``mscal cameras FOLDER``: per folder holding image files (FOLDER and its
     subfolders), the camera and why, the captures, bands, features, and problems."""
-    from pipeline.ingest.camera_meta import group_captures
+    from pipeline.ingest.grouping import group_captures
 
     folder = Path(folder)
     if not folder.is_dir():

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from pipeline.ingest.camera_meta import CaptureMeta
+    from pipeline.ingest.meta import CaptureMeta
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ flight capture are measured alike).
 The maths is :mod:`mscal_core.sunsensor`; here the tags are read and the sun placed. The
 panel part (panels anchored by the sensor, warnings) is :mod:`pipeline.apply.sunlight`.
 
-Per band file, the reading ``E_meas`` is the camera's own (:func:`pipeline.ingest.camera_meta.
+Per band file, the reading ``E_meas`` is the camera's own (:func:`pipeline.ingest.meta.
 reflectance_factor` gives ``k = c / E_meas``: ``pi / E`` for MicaSense, ``1 / E`` for the
 relative sensors) and the correction ``f = E_h / E_meas``:
 
@@ -66,16 +66,11 @@ import numpy as np
 from mscal_core.errors import FrameError
 from mscal_core.sunsensor import CLEAR_SKY_DIFFUSE_RATIO, dls2_horizontal, fit_diffuse_ratio, horizontal_irradiance
 
-from pipeline.ingest.camera_meta import (
-    Capture,
-    CaptureMeta,
-    read_file_metas,
-    reflectance_factor,
-    sun_sensor_xmp,
-    sunshine_records,
-    xmp_irradiance,
-)
+from pipeline.ingest.camera_meta import read_file_metas, sun_sensor_xmp, xmp_irradiance
+from pipeline.ingest.cameras.parrot import sunshine_records
 from pipeline.ingest.exif import NAT, time_ns
+from pipeline.ingest.grouping import Capture
+from pipeline.ingest.meta import CaptureMeta, reflectance_factor
 from pipeline.ingest.session import FrameRecord
 from pipeline.ingest.solar import solar_position
 from pipeline.ingest.xmp import TagError, Xmp, jpeg_xmp_packet

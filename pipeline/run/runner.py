@@ -40,8 +40,8 @@ from pipeline.apply.execution import Execution, scheduler_for
 from pipeline.apply.flight import RUN_JSON, ApplyOptions, apply_flight
 from pipeline.apply.light import INTERPOLATION_MODES
 from pipeline.calibrate.fit import STAGES
-from pipeline.ingest.camera_meta import DEFAULT_CAPTURE_PATTERN
 from pipeline.ingest.catalog import load_camera, read_yaml
+from pipeline.ingest.grouping import DEFAULT_CAPTURE_PATTERN
 from pipeline.ingest.products import Products, indices_for, radiance_refused, resolve
 from pipeline.ingest.session import Session, load_session, read_frame_table
 from pipeline.run.card import (

@@ -71,9 +71,10 @@ def _template_light(template: Path, rho: str) -> tuple[list[_Template], np.ndarr
     from mscal_core.factory import polygon_mask
     from mscal_core.panel import DEFAULT_INSET, detect_panel, shrink_polygon
 
-    from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta
+    from pipeline.ingest.camera_meta import read_capture_meta
+    from pipeline.ingest.cameras.dispatch import factory_radiance
     from pipeline.ingest.catalog import reflectance_option
-    from pipeline.ingest.session import read_raw
+    from pipeline.ingest.tiff import read_raw
 
     caps = []
     for name in ("IMG_0000", "IMG_0001"):

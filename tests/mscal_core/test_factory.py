@@ -16,8 +16,9 @@ from mscal_core.factory import (
     vignetting_2d,
     vignetting_map,
 )
-from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta
-from pipeline.ingest.session import read_raw
+from pipeline.ingest.camera_meta import read_capture_meta
+from pipeline.ingest.cameras.dispatch import factory_radiance
+from pipeline.ingest.tiff import read_raw
 from tests.micasense_data import PANEL_CORNERS, PANEL_RADIANCE, PANEL_RAW_DN, band_file
 
 
@@ -76,7 +77,7 @@ def test_radiance_in_place_equals_the_expression_bit_for_bit() -> None:
 def test_factory_vignetting_is_computed_once_and_read_only() -> None:
     """The map depends on the band's tags only: one computation per process and tags, shared
     by every capture, and read-only so that no caller can change it for the next capture."""
-    from pipeline.ingest.camera_meta import factory_vignetting
+    from pipeline.ingest.meta import factory_vignetting
 
     meta = read_capture_meta(band_file("0000", 2))
     v = factory_vignetting(meta)
@@ -181,3 +182,18 @@ def test_dji_alignment_map_is_the_guides_undistort_then_warp() -> None:
     # step 3 alone (no DewarpData): the homography's inverse, a pure shift here
     shift = remap_band(img, dji_alignment_map((h, w), center, None, [1, 0, 3, 0, 1, -2, 0, 0, 1]))
     np.testing.assert_allclose(shift[10:-10, 10:-10], img[12:-8, 7:-13], atol=1e-3)
+
+
+def test_sentera_relative_radiance_by_hand() -> None:
+    """(sum_j M[b, j] DN_j - black) / (g t), floored at 0, NaN where a channel in the mix clips."""
+    from mscal_core.factory import sentera_relative_radiance
+
+    channels = np.array([[[100, 40, 7], [255, 10, 0]], [[20, 60, 255], [50, 50, 50]]], np.uint8)
+    matrix = (1.0, -0.5, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)  # band 0 = R - G/2; channel 2 not in it
+    got = sentera_relative_radiance(channels[:, :, 0], black_level=0.0, gain=2.0, exposure_s=0.01, bits_per_sample=8,
+                                    channels=channels, matrix=matrix, channel=0)
+    # (100 - 20) / 0.02 = 4000; R clipped -> NaN; 20 - 30 < 0 -> 0; (50 - 25) / 0.02 = 1250
+    np.testing.assert_array_equal(got, [[4000.0, np.nan], [0.0, 1250.0]])
+    own = sentera_relative_radiance(np.array([[10, 4095]], np.uint16), black_level=2.0, gain=1.0, exposure_s=0.5,
+                                    bits_per_sample=12)
+    np.testing.assert_array_equal(own, [[16.0, np.nan]])

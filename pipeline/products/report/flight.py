@@ -14,7 +14,7 @@ import numpy as np
 import xarray as xr
 from mscal_core.reflectance import ndvi, otsu_ndvi_threshold, vegetation_mask
 
-from pipeline.ingest.raw import DN_MEDIAN, median_uint16
+from pipeline.ingest.medians import DN_MEDIAN, median_uint16
 from pipeline.products.report.calibration import band_name_of, stage_residuals
 from pipeline.products.report.figures import band_titles, few_ticks, image_axes, panel_figure
 from pipeline.products.report.inputs import FlightResults

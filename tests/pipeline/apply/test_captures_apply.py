@@ -16,8 +16,9 @@ import xarray as xr
 
 import pipeline.apply.executor as executor
 from mscal_core.factory import row_gradient
-from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta
-from pipeline.ingest.session import read_raw
+from pipeline.ingest.camera_meta import read_capture_meta
+from pipeline.ingest.cameras.dispatch import factory_radiance
+from pipeline.ingest.tiff import read_raw
 from pipeline.run.cli import main
 from tests.micasense_data import BANDS, factory_store, require_data
 

@@ -17,9 +17,10 @@ import tifffile
 import xarray as xr
 
 from mscal_core.factory import polygon_mask
-from pipeline.ingest.camera_meta import factory_radiance, read_capture_meta
+from pipeline.ingest.camera_meta import read_capture_meta
+from pipeline.ingest.cameras.dispatch import factory_radiance
 from pipeline.ingest.catalog import load_target
-from pipeline.ingest.session import read_raw
+from pipeline.ingest.tiff import read_raw
 from pipeline.products.writers import file_band_name
 from pipeline.run.cli import main
 from tests import camera_files as cf
@@ -313,8 +314,8 @@ def _field_store(path: Path, capture: str, *, response: str, vignetting: str) ->
     """A field calibration store for the RedEdge: ``response`` 'factory' (U linear with the
     capture's black level, arbitrary scale) or 'square'; ``vignetting`` 'factory' (V = 1 /
     the factory correction) or 'flat'."""
-    from pipeline.ingest.camera_meta import factory_vignetting
     from pipeline.ingest.catalog import load_camera
+    from pipeline.ingest.meta import factory_vignetting
     from pipeline.storage.store import new_dataset, write_store
 
     data = require_data()
@@ -352,7 +353,7 @@ def test_field_components_replace_the_factory_ones(tmp_path) -> None:
         "response": "factory", "vignetting": "factory"}
     for b in range(5):
         meta = read_capture_meta(folder / f"IMG_0001_{b + 1}.tif")
-        from pipeline.ingest.camera_meta import factory_vignetting
+        from pipeline.ingest.meta import factory_vignetting
 
         corr = factory_vignetting(meta)
         # flat field V: the factory radiance without its vignetting correction

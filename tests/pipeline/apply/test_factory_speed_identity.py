@@ -14,7 +14,7 @@ from pipeline.apply.captures import capture_times, find_captures
 from pipeline.ingest import sunsensor as sunlight
 from pipeline.ingest.camera_meta import SUN_SENSOR_XMP, read_file_metas, sun_sensor_xmp
 from pipeline.ingest.identify import identify_camera
-from pipeline.ingest.raw import DN_MEDIAN, band_medians, median_uint16
+from pipeline.ingest.medians import DN_MEDIAN, band_medians, median_uint16
 from pipeline.products.report import flight as report_flight
 from pipeline.products.report.flight import frame_levels
 from pipeline.products.report.inputs import open_flight
@@ -78,7 +78,7 @@ def test_counting_median_of_wide_values_in_two_steps(monkeypatch) -> None:
     middle values' high byte: np.median's value, wherever the middle ranks fall (across two
     high bytes, at a bin's first or last value, on a constant band, 12-bit DN in the high
     bits), and the same as one count per value."""
-    import pipeline.ingest.raw as raw
+    import pipeline.ingest.medians as medians
 
     rng = np.random.default_rng(12)
     cases = [rng.integers(0, 65536, n).astype(np.uint16) for n in (1, 2, 3, 4, 255, 256, 257, 4097)]
@@ -90,13 +90,13 @@ def test_counting_median_of_wide_values_in_two_steps(monkeypatch) -> None:
     band = rng.integers(4000, 4300, (217, 409)).astype(np.uint16)
     cases += [band, band[::2, 1::3], band.T]
     calls = []
-    real = raw._ranked_wide
-    monkeypatch.setattr(raw, "_ranked_wide", lambda *a: calls.append(1) or real(*a))
+    real = medians._ranked_wide
+    monkeypatch.setattr(medians, "_ranked_wide", lambda *a: calls.append(1) or real(*a))
     for v in cases:
         want = np.median(v.astype(np.float64))
         assert median_uint16(v) == want, v.shape
     assert len(calls) == len(cases)  # every case reaches 4096: the two-step count
-    monkeypatch.setattr(raw, "_WIDE_HISTOGRAM", 1 << 16)  # one count per value: the same medians
+    monkeypatch.setattr(medians, "_WIDE_HISTOGRAM", 1 << 16)  # one count per value: the same medians
     assert [median_uint16(v) for v in cases] == [np.median(v.astype(np.float64)) for v in cases]
     assert len(calls) == len(cases)
 
@@ -106,7 +106,7 @@ def test_counting_median_of_more_values_than_float32_counts_exactly(monkeypatch)
     numpy (the limit lowered here so the test stays small)."""
     import cv2
 
-    import pipeline.ingest.raw as raw
+    import pipeline.ingest.medians as medians
 
     v = np.random.default_rng(6).integers(0, 300, 5_001).astype(np.uint16)
     want = np.median(v.astype(np.float64))
@@ -115,9 +115,9 @@ def test_counting_median_of_more_values_than_float32_counts_exactly(monkeypatch)
         raise AssertionError("OpenCV's float32 counts used past the exact limit")
 
     monkeypatch.setattr(cv2, "calcHist", not_here)
-    monkeypatch.setattr(raw, "_EXACT_HISTOGRAM", 5_001)
+    monkeypatch.setattr(medians, "_EXACT_HISTOGRAM", 5_001)
     assert median_uint16(v) == want  # numpy's count
-    monkeypatch.setattr(raw, "_EXACT_HISTOGRAM", 5_002)
+    monkeypatch.setattr(medians, "_EXACT_HISTOGRAM", 5_002)
     with pytest.raises(AssertionError, match="exact limit"):
         median_uint16(v)  # below the limit: OpenCV's
 

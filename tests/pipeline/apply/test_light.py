@@ -272,8 +272,9 @@ def test_micasense_sun_sensor_readings() -> None:
     a capture and for frames, and scales the level between a capture and a later frame."""
     from mscal_core.illumination import frame_illumination
     from pipeline.apply.light import flight_irradiance
-    from pipeline.ingest.camera_meta import capture_irradiance, group_captures, read_capture_meta, xmp_irradiance
+    from pipeline.ingest.camera_meta import read_capture_meta, xmp_irradiance
     from pipeline.ingest.catalog import load_camera
+    from pipeline.ingest.grouping import capture_irradiance, group_captures
 
     data = require_data()
     captures, problems = group_captures(data, load_camera("micasense-rededge"))
@@ -362,8 +363,8 @@ def sun_flight(tmp_path_factory):
     reading, unmarked: what a store from before horizontal levels holds)."""
     from pipeline.apply.captures import capture_times
     from pipeline.calibrate.fit import reflector_captures
-    from pipeline.ingest.camera_meta import group_captures
     from pipeline.ingest.catalog import load_camera
+    from pipeline.ingest.grouping import group_captures
     from pipeline.ingest.sunsensor import SUN_SENSOR_MODEL, SUN_SENSOR_MODEL_ATTR
     from pipeline.sim.sunlight import write_sunlight_flight
     from tests.micasense_data import factory_store
@@ -437,7 +438,7 @@ def test_calibrate_and_apply_levels_of_one_capture_agree(sun_flight) -> None:
     from mscal_core.illumination import frame_illumination
     from pipeline.apply.captures import capture_times
     from pipeline.apply.light import frame_levels
-    from pipeline.ingest.camera_meta import capture_irradiance
+    from pipeline.ingest.grouping import capture_irradiance
     from pipeline.ingest.sunsensor import capture_levels
 
     truth, folder, captures, reflector, stores = sun_flight
@@ -494,9 +495,9 @@ def test_real_rededge_band_one_against_mean_of_bands() -> None:
     """On the real RedEdge captures the old bias was 0.78 (IMG_0000) and 0.72 (IMG_0001): the mean
     of the bands' DLS readings against band 1's. The horizontal level of a capture is one number
     whether read as frame records (calibrate's reflector frames) or as a capture (apply)."""
-    from pipeline.ingest.camera_meta import capture_irradiance, group_captures
     from pipeline.ingest.captures import read_capture_table
     from pipeline.ingest.catalog import load_camera
+    from pipeline.ingest.grouping import capture_irradiance, group_captures
     from pipeline.ingest.sunsensor import capture_levels, record_levels
 
     camera = load_camera("micasense-rededge")

@@ -24,7 +24,8 @@ from pipeline.apply.panel import (
 )
 from pipeline.ingest.camera_meta import read_capture_meta
 from pipeline.ingest.catalog import load_target
-from pipeline.ingest.session import parse_panel, parse_panel_polygon, read_raw
+from pipeline.ingest.session import parse_panel, parse_panel_polygon
+from pipeline.ingest.tiff import read_raw
 from tests.micasense_data import MARKER_PANEL, PANEL_CORNERS, PANEL_RAW_DN, band_file, paint_marker
 
 BANDS = range(1, 6)

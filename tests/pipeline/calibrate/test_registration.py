@@ -218,7 +218,7 @@ SENTERA_NDRE = Path(__file__).resolve().parents[4] / "shared" / "data" / "senter
 
 
 def test_register_reads_captures_as_apply_does() -> None:
-    """The registration's band reader is apply's (camera_meta.read_capture_pixels): a
+    """The registration's band reader is apply's (grouping.read_capture_pixels): a
     Sentera JPEG capture is its bands' channels (RedEdge = R, NIR = B), not one 3-channel
     image refused as 'not single-band'."""
     from pipeline.calibrate.registration import collect_captures, read_capture

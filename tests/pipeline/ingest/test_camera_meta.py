@@ -13,8 +13,10 @@ import tifffile
 
 from mscal_core.errors import FrameError
 from pipeline.ingest import catalog
-from pipeline.ingest.camera_meta import group_captures, meta_from_tags, read_capture_meta, xmp_properties
-from pipeline.ingest.session import read_bands, read_raw
+from pipeline.ingest.camera_meta import meta_from_tags, read_capture_meta, xmp_properties
+from pipeline.ingest.grouping import group_captures
+from pipeline.ingest.session import read_bands
+from pipeline.ingest.tiff import read_raw
 from pipeline.products.writers import build_xmp
 from tests.micasense_data import BANDS, FWHM_NM, WAVELENGTHS_NM, band_file
 
@@ -215,7 +217,7 @@ def test_damaged_vignetting_polynomial_names_the_file(poly) -> None:
     """A VignettingPolynomial whose denominator crosses zero (k1 = -0.01: 1 - 0.01 r < 0 past
     100 px) or overflows (found by the long fuzz profile: a silent map of zeros) is a
     FrameError naming the band file, not a map with negative or zero corrections."""
-    from pipeline.ingest.camera_meta import factory_vignetting
+    from pipeline.ingest.meta import factory_vignetting
 
     meta = read_capture_meta(band_file("0001", 1))
     v = factory_vignetting(meta)

@@ -20,9 +20,12 @@ from hypothesis import strategies as st
 from mscal_core.errors import FrameError, MscalError
 from pipeline.apply.captures import find_captures
 from pipeline.apply.factory import FactoryOptions, apply_factory
-from pipeline.ingest import camera_meta as cm
-from pipeline.ingest.camera_meta import COMPANION_IMAGES, read_file_metas, sibling_position
+from pipeline.ingest.camera_meta import read_file_metas
+from pipeline.ingest.cameras.parrot import sibling_position
 from pipeline.ingest.catalog import load_camera
+from pipeline.ingest.exif import jpeg_exif
+from pipeline.ingest.gps import exif_position
+from pipeline.ingest.grouping import COMPANION_IMAGES
 from pipeline.ingest.identify import describe_folders, identify_camera, probe_folder
 from pipeline.ingest.intrinsics import intrinsics_from_file
 from pipeline.ingest.photo_tags import read_optics
@@ -49,11 +52,11 @@ def test_rgb_jpeg_exif_with_thumbnail_and_maker_note(tmp_path) -> None:
     assert isinstance(raw["JPEGThumbnail"], bytes) and raw["JPEGThumbnail"][:2] == b"\xff\xd8"
     with path.open("rb") as f:  # the maker note is there (exifread leaves it out without details)
         assert "EXIF MakerNote" in exifread.process_file(f, details=True)
-    exif, gps = cm._jpeg_exif(path.read_bytes())
+    exif, gps = jpeg_exif(path.read_bytes())
     assert exif["Make"] == "DJI" and exif["Model"] == "FC6360" and exif["DateTimeOriginal"] == "2024:05:20 10:12:34"
     assert exif["ExifImageWidth"] == 64 and exif["ExifImageLength"] == 48 and exif["ExifVersion"] == b"0230"
     assert not any(k.endswith("Thumbnail") or k == "MakerNote" for k in exif)
-    lat, lon, alt = cm._gps(gps)
+    lat, lon, alt = exif_position(gps)
     assert (lat, lon, alt) == pytest.approx((cf.DJI_RGB["lat"], cf.DJI_RGB["lon"], cf.DJI_RGB["alt_m"]), abs=1e-6)
     # not a band file: a clean error naming the file, not a crash
     with pytest.raises(FrameError, match="DJI_0010.JPG"):
@@ -69,15 +72,15 @@ def test_zero_denominators_and_empty_fields_are_left_out(tmp_path) -> None:
     path = cf.dji_rgb_jpeg(tmp_path / "DJI_0010.JPG", exif_extra=[
         (0x829D, "RATIONAL", (0, 0)), (0x829A, "RATIONAL", (1, 0)), (0x8827, "SHORT", []),
         (0x9290, "ASCII", ""), (0xA002, "LONG", []), (0x9286, "UNDEFINED", b"ASCII\x00\x00\x00hello")])
-    exif, _ = cm._jpeg_exif(path.read_bytes())
+    exif, _ = jpeg_exif(path.read_bytes())
     assert {"FNumber", "ExposureTime", "ISOSpeedRatings", "SubsecTime", "ExifImageWidth"}.isdisjoint(exif)
     assert exif["Make"] == "DJI" and exif["ExifImageLength"] == 48
     # a GPS latitude with a zero denominator: the tag is dropped, the position unknown
     app1 = cf.exif_app1([(0x010F, "ASCII", "DJI")], [(0x9003, "ASCII", "2024:05:20 10:12:34")],
                         [(0x0001, "ASCII", "N"), (0x0002, "RATIONAL", [(47, 1), (22, 0), (0, 0)]),
                          (0x0003, "ASCII", "E"), (0x0004, "RATIONAL", [(8, 1), (32, 1), (3, 1)])])
-    _, gps = cm._jpeg_exif(cf.with_app1(cf.encode_jpeg(np.zeros((8, 8, 3), np.uint8)), app1))
-    assert "GPSLatitude" not in gps and gps["GPSLongitude"] and cm._gps(gps) == (None, None, None)
+    _, gps = jpeg_exif(cf.with_app1(cf.encode_jpeg(np.zeros((8, 8, 3), np.uint8)), app1))
+    assert "GPSLatitude" not in gps and gps["GPSLongitude"] and exif_position(gps) == (None, None, None)
 
 
 # forms an EXIF field takes in the wild, for a tag whose proper type is ``kind``
@@ -158,7 +161,7 @@ def test_jpeg_exif_fuzz(fuzz_settings, tmp_path) -> None:
         data, name = drawn
         path = tmp_path / name
         path.write_bytes(data)
-        exif, gps = cm._jpeg_exif(data)
+        exif, gps = jpeg_exif(data)
         for value in (*exif.values(), *gps.values()):
             assert value is not None and value != [] and value != ""
             assert not hasattr(value, "values")  # no exifread tag

@@ -37,7 +37,7 @@ from hypothesis import HealthCheck, Phase, assume, given, settings
 from hypothesis import strategies as st
 
 from mscal_core.errors import MscalError
-from pipeline.ingest.camera_meta import factory_vignetting, meta_from_tags, read_file_metas
+from pipeline.ingest.camera_meta import meta_from_tags, read_file_metas
 from pipeline.ingest.catalog import (
     CATALOG_ROOT,
     Camera,
@@ -50,6 +50,7 @@ from pipeline.ingest.catalog import (
 )
 from pipeline.ingest.exif import time_ns
 from pipeline.ingest.intrinsics import intrinsics_from_tags, tiff_tags
+from pipeline.ingest.meta import factory_vignetting
 from pipeline.ingest.session import Session, load_session, read_frame_table
 from pipeline.ingest.xmp import RDF_NS, Xmp, jpeg_xmp_packet
 from tests.camera_files import dji_xmp, jpeg_segments

@@ -35,8 +35,10 @@ import pipeline.ingest.session as session_mod
 from mscal_core.errors import InputError, SessionError
 from pipeline.ingest.catalog import load_camera
 from pipeline.ingest.discover import discover_flight
-from pipeline.ingest.raw import DN_MEDIAN, cube_lock, ingest_flight
-from pipeline.ingest.session import decode_raw, exif_record, read_bands
+from pipeline.ingest.medians import DN_MEDIAN
+from pipeline.ingest.raw import cube_lock, ingest_flight
+from pipeline.ingest.session import exif_record, read_bands
+from pipeline.ingest.tiff import decode_raw
 from tests.pipeline.ingest.kill_points import KILL_CODE, arm
 
 ROOT = Path(__file__).resolve().parents[3]

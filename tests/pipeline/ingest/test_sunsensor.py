@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.ingest.camera_meta import group_captures
+from pipeline.ingest.grouping import group_captures
 from pipeline.ingest.identify import identify_camera
 from pipeline.ingest.sunsensor import capture_time, file_xmp, sensor_light, sensor_orientation
 from pipeline.ingest.xmp import Xmp
@@ -91,9 +91,9 @@ def test_frames_csv_irradiance_wins_and_unknown_files_stay_raw(tmp_path) -> None
     a RedEdge capture: the horizontal level (geometric mean of the bands' ``E_meas f``)."""
     import tifffile
 
-    from pipeline.ingest.camera_meta import group_captures
     from pipeline.ingest.captures import read_capture_table
     from pipeline.ingest.catalog import load_camera
+    from pipeline.ingest.grouping import group_captures
     from pipeline.ingest.session import FrameRecord
     from pipeline.ingest.sunsensor import capture_levels, record_levels
 

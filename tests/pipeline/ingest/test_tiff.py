@@ -1,4 +1,4 @@
-"""The strip reader of plain camera TIFFs (session.plain_tiff_pixels) gives exactly what
+"""The strip reader of plain camera TIFFs (tiff.plain_tiff_pixels) gives exactly what
 tifffile gives, and declines every file it does not fully understand (tifffile reads those)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from pipeline.ingest.session import decode_raw, plain_tiff_pixels
+from pipeline.ingest.tiff import decode_raw, plain_tiff_pixels
 
 DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
 
@@ -115,7 +115,7 @@ def test_decoded_into_the_given_array_when_it_fits() -> None:
 
 def test_capture_decoded_into_its_cube() -> None:
     from pipeline.apply.captures import find_captures
-    from pipeline.ingest.camera_meta import read_capture_pixels
+    from pipeline.ingest.grouping import read_capture_pixels
     from pipeline.ingest.identify import identify_camera
 
     folder = DATA / "micasense-rededge"
@@ -141,7 +141,7 @@ def test_capture_read_once_per_file_hash_and_a_file_cut_short(monkeypatch) -> No
 
     from mscal_core.errors import FrameError
     from pipeline.apply.captures import find_captures
-    from pipeline.ingest.camera_meta import read_capture_pixels
+    from pipeline.ingest.grouping import read_capture_pixels
     from pipeline.ingest.identify import identify_camera
 
     folder = DATA / "micasense-rededge"

@@ -1,0 +1,81 @@
+"""The small dispatcher that picks a camera maker's module.
+
+Each maker's module (``micasense``, ``parrot``, ``dji``, ``sentera``, ...) holds that maker's
+tag reading (which XMP/EXIF tags, how they become :class:`~pipeline.ingest.meta.CaptureMeta`
+fields), its radiance model (calling the pure formulas of :mod:`mscal_core.factory`), its
+sun-sensor reading and its quirks, and registers itself with
+:func:`pipeline.ingest.cameras.registry.register`. Every module of this package is imported
+here, so adding a camera maker is adding one module (and its cameras' catalog files).
+
+A file's maker is the first whose ``claims`` its tags satisfy (MicaSense's when none does);
+a band's radiance model is the maker of its ``CaptureMeta.radiometry``; a catalog camera's
+``factory_model`` names the maker its files follow (:func:`factory_models`).
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+
+import numpy as np
+from mscal_core.errors import FrameError
+
+import pipeline.ingest.cameras as _cameras
+from pipeline.ingest.cameras.registry import Maker, by_order, maker_of
+from pipeline.ingest.meta import CaptureMeta, FieldParts, TagContext
+
+for _module in pkgutil.iter_modules(_cameras.__path__):
+    if _module.name not in ("registry", "dispatch"):
+        importlib.import_module(f"{_cameras.__name__}.{_module.name}")
+
+
+def factory_models() -> tuple[str, ...]:
+    """The catalog ``factory_model`` names of the registered makers."""
+    return tuple(m.model for m in by_order())
+
+
+def maker_for_model(model: str) -> Maker:
+    """The maker of a catalog camera's ``factory_model``."""
+    for maker in by_order():
+        if maker.model == model:
+            return maker
+    raise KeyError(model)
+
+
+def read_tags(ctx: TagContext) -> list[CaptureMeta]:
+    """The bands of one file, read by the maker whose tags the file carries."""
+    makers = by_order()
+    for maker in makers:
+        if maker.claims(ctx):
+            return maker.read(ctx)
+    return next(m for m in makers if m.fallback).read(ctx)
+
+
+def companion_image_patterns() -> dict[str, tuple[str, str]]:
+    """Every maker's images saved beside band files that are no band files, by catalog camera
+    (:attr:`Maker.companion_images`)."""
+    out: dict[str, tuple[str, str]] = {}
+    for maker in by_order():
+        out.update(maker.companion_images)
+    return out
+
+
+def factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None = None,
+                     channels: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
+    """Radiance of one band's DN with its maker's factory model (unit: ``meta.radiance_unit``;
+    kelvin for a thermal band), or with the field-fitted ``parts`` in place of the factory's
+    response and/or vignetting (MicaSense model only). ``channels``: the whole ``(H, W, C)``
+    image of a multi-channel file (Sentera), which the colour transform needs. The result is
+    in the stored orientation (see :func:`pipeline.ingest.meta.upright_meta`); with ``out``
+    (e.g. a float32 band of the capture's cube) it is written there and ``out`` returned."""
+    if dn.shape != meta.shape:
+        raise FrameError(f"image {dn.shape} does not match its metadata {meta.shape}", path=meta.path)
+    if parts is not None and (parts.vignetting is not None or parts.inverse_response is not None) and \
+            meta.radiometry != "micasense":
+        raise FrameError(f"field components replace parts of MicaSense's model only, not {meta.radiometry}'s",
+                         path=meta.path, hint="leave out --field-calibration for this camera")
+    rad = maker_of(meta.radiometry).radiance(meta, dn, parts, channels, out)
+    if out is not None and rad is not out:
+        out[...] = rad
+        return out
+    return rad
