@@ -180,15 +180,10 @@ def write_synthetic(session, root: Path) -> Path:
 
 def calibrate(session_dir: Path, out: Path, method: str, response_cache: dict) -> None:
     """``pipeline.calibrate.fit.calibrate_session`` with the response stage cached by sweep."""
-    from pipeline.calibrate.fit import (
-        add_illumination,
-        add_vignetting,
-        fit_illumination_frames,
-        fit_response_frames,
-        fit_vignetting_frames,
-        provenance,
-        response_dataset,
-    )
+    from pipeline.calibrate.fit import provenance
+    from pipeline.calibrate.illumination_stage import add_illumination, fit_illumination_frames
+    from pipeline.calibrate.response_stage import fit_response_frames, response_dataset
+    from pipeline.calibrate.vignetting_stage import add_vignetting, fit_vignetting_frames
     from pipeline.ingest.session import load_session
     from pipeline.storage.store import write_store
 

@@ -99,7 +99,9 @@ def measure(seeds: int, frames: int) -> None:
 def vignetting_fit(seed: int) -> None:
     import tempfile
 
-    import pipeline.calibrate.fit as cal
+    import pipeline.calibrate.sweep as sweep
+    import pipeline.calibrate.views as views
+    import pipeline.calibrate.vignetting_stage as vstage
     from mscal_core import metrics
     from pipeline.ingest.session import load_session
     from pipeline.sim.synth import write_session
@@ -111,7 +113,9 @@ def vignetting_fit(seed: int) -> None:
         U = truth["inverse_response"]
         sat = np.full(U.shape[0], 2 ** int(truth["bits"]) - 1)
         results = {}
-        plain_read, plain_offsets = cal.read_bands, cal._offsets
+        # the frames are read by sweep.read_stack; the band offsets are used by the marker
+        # search (views) and by the vignetting fit's band views (vignetting_stage)
+        plain_read, plain_offsets = sweep.read_bands, views.camera_offsets
         off = mosaic_centre_offsets((5, 5))
 
         def centred_read(rec, camera):
@@ -121,12 +125,14 @@ def vignetting_fit(seed: int) -> None:
 
         for name in ("as is", "centred"):
             if name == "centred":
-                cal.read_bands = centred_read
-                cal._offsets = lambda camera: np.tile(plain_offsets(camera)[12], (camera.n_bands, 1))
+                sweep.read_bands = centred_read
+                views.camera_offsets = vstage.camera_offsets = (
+                    lambda camera: np.tile(plain_offsets(camera)[12], (camera.n_bands, 1)))
             try:
-                fits, _ = cal.fit_vignetting_frames(session, U, sat)
+                fits, _ = vstage.fit_vignetting_frames(session, U, sat)
             finally:
-                cal.read_bands, cal._offsets = plain_read, plain_offsets
+                sweep.read_bands = plain_read
+                views.camera_offsets = vstage.camera_offsets = plain_offsets
             errs = [metrics.vignetting_rms(f.vignetting, truth["vignetting"][b], f.observed) for b, f in enumerate(fits)]
             results[name] = errs
         print("| vignetting rms error vs truth (observed pixels) | max over bands | median over bands |")

@@ -14,10 +14,15 @@ The store holds ``intrinsics (band, intrinsics_param)`` (``fx, fy, cx, cy, k1, k
 k3``; pixels of each band's image) and the attribute ``intrinsics`` (images used and the
 reprojection rms per band, images without the board). ``mscal calibrate --calibration`` and
 ``mscal fit vignetting|illumination --calibration`` use them when session.yaml gives none.
+
+Which intrinsics a session's fits use (:func:`with_intrinsics`): session.yaml's, else a
+store's, else the board images of ``SESSION/intrinsics/``, else the band files' metadata.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import re
 import time
 from pathlib import Path
@@ -31,11 +36,16 @@ from mscal_core.errors import InputError, MscalError, SessionError
 from mscal_core.geometry import Intrinsics
 from mscal_core.mosaic import band_offsets
 
-from pipeline.ingest.captures import is_multilens
+from pipeline.ingest.captures import is_multilens, read_frames
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.grouping import DEFAULT_CAPTURE_PATTERN
-from pipeline.ingest.intrinsics import INTRINSICS_PARAMS, intrinsics_array
-from pipeline.ingest.session import IMAGE_SUFFIXES, stored_bands
+from pipeline.ingest.intrinsics import (
+    INTRINSICS_PARAMS,
+    band_intrinsics_from_files,
+    intrinsics_array,
+    intrinsics_from_array,
+)
+from pipeline.ingest.session import IMAGE_SUFFIXES, FrameRecord, Session, stored_bands
 from pipeline.storage.store import content_hashes, new_dataset, write_store
 
 BOARD_EXAMPLE = "board.yaml: {kind: charuco, squares: [7, 5], square_m: 0.04, marker_m: 0.03, dictionary: DICT_4X4_50}"
@@ -183,3 +193,72 @@ def fit_intrinsics_cli(frames: str | Path, out: str | Path, *, camera_name: str 
 
 
 __all__ = ["fit_intrinsics_cli", "fit_intrinsics_folder", "parse_board", "store_intrinsics"]
+
+
+def with_intrinsics(session: Session, store: xr.Dataset | None = None,
+                    records: Sequence[FrameRecord] | None = None) -> tuple[Session, str]:
+    """The session with its intrinsics per band resolved, and where they came from:
+    session.yaml (one for all bands, or per band) first, else the store's ``intrinsics``
+    (``mscal fit intrinsics``), else board images in ``SESSION/intrinsics/`` (with its
+    ``board.yaml``, fitted as ``mscal fit intrinsics`` does), else the band files' own
+    metadata (MicaSense and Sentera perspective XMP, DJI DewarpData; the first capture of
+    ``records``, else of ``vignetting/``).
+    :class:`SessionError` if none gives them."""
+    if session.intrinsics is not None or session.band_intrinsics is not None:
+        return session, "session.yaml"
+    camera = session.camera
+    if store is not None and "intrinsics" in store:
+        intr = intrinsics_from_array(store["intrinsics"].values)
+        if len(intr) != camera.n_bands:
+            raise SessionError(f"the store's intrinsics have {len(intr)} bands, camera {camera.name} {camera.n_bands}",
+                               path=session.root / "session.yaml")
+        return _set_intrinsics(session, intr), "calibration store"
+    board_dir = session.root / "intrinsics"
+    if (board_dir / "board.yaml").is_file():
+        return _set_intrinsics(session, board_intrinsics(board_dir, camera)), "board images in intrinsics/"
+    if records is None:
+        try:
+            records = read_frames(session.vignetting_dir, camera) if session.vignetting_dir.is_dir() else []
+        except MscalError:  # a folder that cannot be read as frames: no metadata to take them from
+            records = []
+    for rec in list(records)[:1]:  # band files (multi-lens), or one file of all bands (Sentera JPEG)
+        intr = band_intrinsics_from_files(rec.files, camera.n_bands)
+        if intr is not None:
+            return _set_intrinsics(session, intr), f"metadata of {rec.name}"
+    raise SessionError(
+        "intrinsics are missing",
+        path=session.root / "session.yaml",
+        hint="add intrinsics: {fx, fy, cx, cy, dist} (or one such mapping per band name), or pass "
+             "--calibration with a store from 'mscal fit intrinsics'",
+    )
+
+
+def board_intrinsics(folder: Path, camera: Camera) -> tuple[Intrinsics, ...]:
+    """:func:`pipeline.calibrate.intrinsics.fit_intrinsics_folder` of a session's board folder,
+    fitted once per content (every stage of a calibration asks)."""
+    stamp = tuple((p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(folder.rglob("*")) if p.is_file())
+    return _board_intrinsics(str(folder), camera.name, stamp)
+
+
+@functools.lru_cache(maxsize=8)
+def _board_intrinsics(folder: str, camera_name: str, stamp: tuple) -> tuple[Intrinsics, ...]:
+    import yaml
+
+    path = Path(folder) / "board.yaml"
+    board = parse_board(yaml.safe_load(path.read_text()), path)
+    intr, _ = fit_intrinsics_folder(folder, load_camera(camera_name), board)
+    return tuple(intr)
+
+
+def _set_intrinsics(session: Session, intr: Sequence[Intrinsics]) -> Session:
+    if is_multilens(session.camera):
+        return dataclasses.replace(session, band_intrinsics=tuple(intr))
+    return dataclasses.replace(session, intrinsics=intr[0])  # the band grid's, one for all bands
+
+
+def add_intrinsics(ds: xr.Dataset, session: Session, source: str) -> xr.Dataset:
+    """The intrinsics the fits used, per band: ``intrinsics (band, intrinsics_param)``."""
+    intr = [session.intrinsics_for(b) for b in range(session.camera.n_bands)]
+    if any(i is None for i in intr):
+        return ds
+    return store_intrinsics(ds, intr, source)  # type: ignore[arg-type]

@@ -185,3 +185,14 @@ def session_pool(session_dir: str | os.PathLike[str], workers: int | None = None
     n_bands = load_session(session_dir).camera.n_bands
     importlib.import_module(FITS_MODULE)
     return BandPool(band_workers(n_bands, workers))
+
+
+@contextlib.contextmanager
+def pool_or_own(pool: BandPool | None, n_tasks: int, workers: int | None = None) -> Iterator[BandPool]:
+    """``pool``, or a pool of its own for ``n_tasks`` band fits (``workers``:
+    :func:`band_workers`), closed on leaving."""
+    if pool is not None:
+        yield pool
+        return
+    with BandPool(band_workers(n_tasks, workers)) as own:
+        yield own

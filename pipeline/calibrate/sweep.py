@@ -3,7 +3,7 @@ to the band workers, with light imports only (numpy, the session reader, the poo
 
 ``mscal calibrate`` starts the sweep's fits here, before it imports the rest of the
 calibration (xarray, zarr: about a second on one core), so the workers fit while the main
-process imports; :func:`pipeline.calibrate.fit.fit_response_frames` collects them (or
+process imports; :func:`pipeline.calibrate.response_stage.fit_response_frames` collects them (or
 submits them itself when nothing was started).
 """
 

@@ -231,7 +231,7 @@ def _frames(folder: Path, rows: list[dict]) -> None:
 
 
 def test_reflector_frames_split_into_captures_by_time_or_subfolder(tmp_path) -> None:
-    from pipeline.calibrate.fit import CAPTURE_GAP_S, reflector_captures
+    from pipeline.calibrate.captures import CAPTURE_GAP_S, reflector_captures
 
     flat = tmp_path / "flat"
     _frames(flat, [
@@ -362,7 +362,7 @@ def sun_flight(tmp_path_factory):
     (capture_irradiance from calibrate's reflector_captures, marked) and ``old`` (band 1's raw
     reading, unmarked: what a store from before horizontal levels holds)."""
     from pipeline.apply.captures import capture_times
-    from pipeline.calibrate.fit import reflector_captures
+    from pipeline.calibrate.captures import reflector_captures
     from pipeline.ingest.catalog import load_camera
     from pipeline.ingest.grouping import group_captures
     from pipeline.ingest.sunsensor import SUN_SENSOR_MODEL, SUN_SENSOR_MODEL_ATTR

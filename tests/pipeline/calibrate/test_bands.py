@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from pipeline.calibrate.fit import detection_image
 from pipeline.calibrate.pool import WORKERS_ENV, BandPool, band_workers
+from pipeline.calibrate.views import detection_image
 from tests.no_processes import NoSemaphores
 
 

@@ -11,8 +11,7 @@ import pytest
 
 from mscal_core import charuco, geometry
 from mscal_core.errors import MscalError
-from pipeline.calibrate import fit
-from pipeline.calibrate.fit import marker_pose
+from pipeline.calibrate.views import exclude_half, marker_pose
 from pipeline.ingest.session import load_session
 
 SESSION_YAML = """\
@@ -35,7 +34,7 @@ def test_charuco_marker_key(tmp_path) -> None:
     assert s.marker.size_m == pytest.approx(0.28) and s.marker.border_m == 0.0
     assert s.marker.label == "ChArUco board 7x5 DICT_4X4_50"
     # the board (its larger side) is the reflector's excluded centre, with the margin
-    assert fit._exclude_half(s) == pytest.approx(0.14 + 0.005)
+    assert exclude_half(s) == pytest.approx(0.14 + 0.005)
     # the single marker reads as before, with or without type: aruco
     s = _session(tmp_path, SESSION_YAML.replace(
         "{type: charuco, squares_x: 7, squares_y: 5, square_mm: 40, marker_mm: 30, dictionary: DICT_4X4_50}",

@@ -16,7 +16,7 @@ import yaml
 
 from mscal_core.errors import FrameError, SessionError
 from mscal_core.geometry import Intrinsics
-from pipeline.calibrate.fit import with_intrinsics
+from pipeline.calibrate.intrinsics import with_intrinsics
 from pipeline.ingest.captures import read_capture_table
 from pipeline.ingest.catalog import load_camera
 from pipeline.ingest.intrinsics import intrinsics_from_file

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.calibrate.fit import fit_response_frames
 from pipeline.calibrate.pool import BandPool
+from pipeline.calibrate.response_stage import fit_response_frames
 from pipeline.calibrate.sweep import start_sweep
 from pipeline.ingest.session import load_session
 

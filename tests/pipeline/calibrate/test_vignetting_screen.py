@@ -9,8 +9,11 @@ import xarray as xr
 
 from mscal_core import vignetting
 from pipeline.calibrate import bands
-from pipeline.calibrate import fit as cfit
+from pipeline.calibrate import vignetting_stage as vstage
+from pipeline.calibrate.intrinsics import with_intrinsics
 from pipeline.calibrate.pool import BandPool
+from pipeline.calibrate.stage import StageReport
+from pipeline.calibrate.views import load_marker_frames
 from pipeline.ingest.session import load_session
 
 
@@ -18,13 +21,13 @@ def test_a_dropped_view_refits_one_band_not_all(small, monkeypatch) -> None:
     session_dir, calib = small
     store = xr.open_zarr(calib).load()
     U, sat = store["inverse_response"].values, store["saturation_dn"].values
-    session, _ = cfit.with_intrinsics(load_session(session_dir))
-    report = cfit.StageReport("vignetting")
-    _, stack, views = cfit.load_marker_frames(session, session.vignetting_dir, U, report)
+    session, _ = with_intrinsics(load_session(session_dir))
+    report = StageReport("vignetting")
+    _, stack, views = load_marker_frames(session, session.vignetting_dir, U, report)
     assert len(views) == 7
     # the screening finds view 2 wrong (the small session has 7 views, below the default
     # minimum for screening)
-    monkeypatch.setattr(cfit, "MIN_VIEWS_TO_SCREEN", 3)
+    monkeypatch.setattr(vstage, "MIN_VIEWS_TO_SCREEN", 3)
     monkeypatch.setattr(vignetting, "inconsistent_views", lambda frac, *a, **k: np.array([2]))
     calls: list[bool] = []
     fit_vignetting = vignetting.fit_vignetting
@@ -35,7 +38,7 @@ def test_a_dropped_view_refits_one_band_not_all(small, monkeypatch) -> None:
 
     monkeypatch.setattr(vignetting, "fit_vignetting", counted)
     with BandPool(1) as pool:
-        fits, _, kept = cfit._fit_band_vignetting(session, stack, views, U, sat, report, pool, lambda: None)
+        fits, _, kept = vstage._fit_band_vignetting(session, stack, views, U, sat, report, pool, lambda: None)
     n_bands = session.camera.n_bands
     # one worker: the reference band on all views, then again from its V, then the others once
     assert len(calls) == n_bands + 1 and calls[1] and sum(calls) == 1
@@ -46,6 +49,6 @@ def test_a_dropped_view_refits_one_band_not_all(small, monkeypatch) -> None:
     # the alternation's stopping tolerance
     ref = n_bands // 2
     monkeypatch.setattr(vignetting, "fit_vignetting", fit_vignetting)
-    scratch = bands.vignetting_band(cfit._band_views(session, stack, ref, kept, U, sat, {}))[0]
+    scratch = bands.vignetting_band(vstage._band_views(session, stack, ref, kept, U, sat, {}))[0]
     np.testing.assert_array_equal(fits[ref].observed, scratch.observed)
     assert np.max(np.abs(fits[ref].vignetting - scratch.vignetting)) < 2e-4
