@@ -278,7 +278,7 @@ def test_report_progress_bar_summary_and_json(small, tmp_path: Path, monkeypatch
     assert code == 0 and "report" in err and "100%" in err
     assert doc["counts"]["figures"] >= 5 and doc["outputs"]["QA report"] == str(tmp_path / "r.html")
     assert _codes_values(doc["warnings"]) == _codes_values(_report_warnings(calib))
-    assert ("vignetting_coverage", pytest.approx(0.21, abs=0.01)) in [(w["code"], w["value"]) for w in doc["warnings"]]
+    assert ("vignetting_coverage", pytest.approx(0.22, abs=0.01)) in [(w["code"], w["value"]) for w in doc["warnings"]]
     code, _, err = _main_tty(["report", "--calibration", calib, "-o", tmp_path / "r.html", "-q"], monkeypatch)
     assert code == 0 and err == ""  # -q: no bar
     code, _, err = _run(["report", "--calibration", calib, "-o", tmp_path / "r.html"])
