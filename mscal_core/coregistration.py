@@ -24,7 +24,7 @@ pixels, per band against a reference band:
 A translation pooled over several captures (the median of every tile's ``d``,
 :func:`pooled_translations`) is the image registration that refines a metadata alignment
 (DJI's Image Processing Guide, step 4): :func:`translation_transforms` gives it as the
-(band, 3, 3) transforms of :func:`mscal_core.registration.align_bands`.
+(band, 3, 3) transforms of :func:`mscal_core.alignment.align_bands`.
 """
 
 from __future__ import annotations
@@ -224,7 +224,7 @@ def pooled_translations(per_capture: Sequence[Sequence[BandResidual]]) -> np.nda
 def translation_transforms(shifts: np.ndarray) -> np.ndarray:
     """Turn per-band shifts into (band, 3, 3) transforms ``[[1, 0, dx], [0, 1, dy], [0, 0, 1]]``.
 
-    :func:`mscal_core.registration.align_bands` aligns with them; NaN shifts become 0.
+    :func:`mscal_core.alignment.align_bands` aligns with them; NaN shifts become 0.
     """
     d = np.nan_to_num(np.asarray(shifts, dtype=np.float64).reshape(-1, 2))
     h = np.tile(np.eye(3), (len(d), 1, 1))
@@ -247,7 +247,7 @@ def pooled_affines(per_capture: Sequence[Sequence[BandResidual]]) -> np.ndarray 
     affine ``A`` with ``A p ~ p + d`` over every tile of every capture is fitted by least
     median of squares (``cv2.estimateAffine2D``, ``LMEDS``): rotation, scale and shear between
     lenses that one translation leaves. Returns (band, 3, 3) transforms (reference pixels to
-    band pixels, :func:`mscal_core.registration.align_bands`), or None when a band other than
+    band pixels, :func:`mscal_core.alignment.align_bands`), or None when a band other than
     the reference has fewer than :data:`MIN_AFFINE_TILES` tiles or the fit fails.
     """
     if not per_capture:
