@@ -19,9 +19,30 @@ from .homography import map_points
 
 def warp_to_reference(band: np.ndarray, homography: np.ndarray, shape: tuple[int, int],
                       interpolation: int = cv2.INTER_LINEAR, fill: float = float("nan")) -> np.ndarray:
-    """``aligned(x) = band(H x)`` on a reference grid of ``shape`` (H, W).
+    """Resample a band onto the reference grid: ``aligned(x) = band(H x)``.
 
-    Pixels whose source lies outside the band are ``fill``. float32 unless ``band`` is float64.
+    Parameters
+    ----------
+    band : numpy.ndarray
+        ``(h, w)`` band image.
+    homography : numpy.ndarray
+        (3, 3) reference pixels -> band pixels.
+    shape : tuple of int
+        ``(H, W)`` of the reference grid.
+    interpolation : int
+        OpenCV interpolation flag (bilinear by default).
+    fill : float
+        Value of the pixels whose source lies outside the band.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)``, float32 unless ``band`` is float64.
+
+    Notes
+    -----
+    ``cv2.warpPerspective`` with ``WARP_INVERSE_MAP`` (``H`` maps the output grid to the band)
+    and a constant border of ``fill``.
     """
     src = band if band.dtype in (np.float32, np.float64) else band.astype(np.float32)
     return cv2.warpPerspective(src, np.asarray(homography, dtype=np.float64), (shape[1], shape[0]),
@@ -31,7 +52,24 @@ def warp_to_reference(band: np.ndarray, homography: np.ndarray, shape: tuple[int
 
 def valid_mask(homography: np.ndarray, band_shape: tuple[int, int], shape: tuple[int, int],
                margin: float = 1.0) -> np.ndarray:
-    """Mask the reference pixels ``x`` whose band pixel ``H x`` lies at least ``margin`` px inside the band."""
+    """Mask the reference pixels whose band pixel lies inside the band.
+
+    Parameters
+    ----------
+    homography : numpy.ndarray
+        (3, 3) reference pixels -> band pixels.
+    band_shape : tuple of int
+        ``(h, w)`` of the band.
+    shape : tuple of int
+        ``(H, W)`` of the reference grid.
+    margin : float
+        How far (px) inside the band's outermost pixel centres ``H x`` must lie.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` bool: ``margin <= (H x)_x <= w - 1 - margin`` and the same for the rows.
+    """
     h, w = shape
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
     p = map_points(homography, np.stack([xs.ravel(), ys.ravel()], axis=1))
@@ -118,8 +156,27 @@ def mosaic_centre_offsets(pattern_shape: tuple[int, int]) -> np.ndarray:
 def cubic_weights(t: float, a: float = -0.5) -> np.ndarray:
     """Return Keys' cubic convolution weights of four neighbouring samples.
 
-    Keys' cubic convolution weights (a = -0.5: exact for quadratics) of the samples at offsets
-    -1, 0, 1, 2 for a point a fraction ``t`` in [0, 1) past sample 0.
+    Parameters
+    ----------
+    t : float
+        Position of the point, a fraction in [0, 1) past sample 0.
+    a : float
+        Keys' parameter; -0.5 makes the interpolation exact for quadratics.
+
+    Returns
+    -------
+    numpy.ndarray
+        (4,) float64 weights of the samples at offsets -1, 0, 1, 2.
+
+    Notes
+    -----
+    With ``d`` the distance to a sample: ``(a + 2) d^3 - (a + 3) d^2 + 1`` for ``d <= 1``,
+    ``a d^3 - 5 a d^2 + 8 a d - 4 a`` for ``1 < d < 2``, 0 beyond.
+
+    References
+    ----------
+    Keys, R. G., "Cubic convolution interpolation for digital image processing", IEEE Trans.
+    Acoustics, Speech, and Signal Processing 29(6), 1981.
     """
     d = np.abs(np.array([-1.0, 0.0, 1.0, 2.0]) - t)
     return np.where(d <= 1, (a + 2) * d**3 - (a + 3) * d**2 + 1,
@@ -180,6 +237,11 @@ def shift_bands(stack: np.ndarray, offsets: np.ndarray, *, fill: float = float("
     ------
     InputError
         When the number of offsets does not match the stack.
+
+    References
+    ----------
+    Keys, R. G., "Cubic convolution interpolation for digital image processing", IEEE Trans.
+    Acoustics, Speech, and Signal Processing 29(6), 1981.
     """
     offsets = np.asarray(offsets, dtype=np.float64)
     if offsets.shape != (stack.shape[0], 2):

@@ -24,7 +24,20 @@ from .errors import FitError
 
 
 def map_points(homography: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """``H x`` for (N, 2) points (x, y), dehomogenised; (N, 2) float64."""
+    """Map points through a homography.
+
+    Parameters
+    ----------
+    homography : numpy.ndarray
+        (3, 3).
+    points : numpy.ndarray
+        Points (x, y), any shape that reshapes to (N, 2).
+
+    Returns
+    -------
+    numpy.ndarray
+        (N, 2) float64 ``H x`` dehomogenised: ``(u / w, v / w)`` for ``(u, v, w) = H (x, y, 1)``.
+    """
     p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
     q = np.c_[p, np.ones(len(p))] @ np.asarray(homography, dtype=np.float64).T
     return q[:, :2] / q[:, 2:3]
@@ -33,9 +46,26 @@ def map_points(homography: np.ndarray, points: np.ndarray) -> np.ndarray:
 def local_motion(homography: np.ndarray, point: tuple[float, float]) -> tuple[float, float, float, float]:
     """Describe what ``H`` does near ``point`` (x, y) of the reference image, for people to read.
 
-    The shift ``H x - x`` (dx, dy, px), the rotation (degrees, counter-clockwise in image
-    coordinates) and the scale of its Jacobian ``J = d(H x)/dx`` there, with rotation =
-    atan2(J10 - J01, J00 + J11) and scale = sqrt(|det J|).
+    Parameters
+    ----------
+    homography : numpy.ndarray
+        (3, 3) reference pixels -> band pixels; its overall scale does not matter.
+    point : tuple of float
+        ``(x, y)`` in reference pixels.
+
+    Returns
+    -------
+    dx, dy : float
+        The shift ``H x - x`` (px).
+    rotation : float
+        Degrees, counter-clockwise in image coordinates.
+    scale : float
+        The local scale factor.
+
+    Notes
+    -----
+    With the Jacobian ``J = d(H x)/dx`` at ``point``: rotation = ``atan2(J10 - J01, J00 + J11)``
+    and scale = ``sqrt(|det J|)``.
     """
     h = normalise_homography(homography)
     x, y = float(point[0]), float(point[1])
@@ -51,8 +81,19 @@ def local_motion(homography: np.ndarray, point: tuple[float, float]) -> tuple[fl
 def grid_points(shape: tuple[int, int], n: tuple[int, int] = (9, 12), margin: float = 0.05) -> np.ndarray:
     """Return an evenly spaced grid of points over an image.
 
-    An ``n = (rows, cols)`` grid of points (x, y) over an image of ``shape`` (H, W), inset by
-    ``margin`` of the size on each side; (rows * cols, 2) float64.
+    Parameters
+    ----------
+    shape : tuple of int
+        ``(H, W)`` of the image.
+    n : tuple of int
+        ``(rows, cols)`` of the grid.
+    margin : float
+        Inset on each side, as a fraction of the image's size.
+
+    Returns
+    -------
+    numpy.ndarray
+        (rows * cols, 2) float64 points (x, y), row by row.
     """
     h, w = shape
     ys = np.linspace(margin * (h - 1), (1 - margin) * (h - 1), n[0])
@@ -65,7 +106,21 @@ def transform_distance(h_a: np.ndarray, h_b: np.ndarray, shape: tuple[int, int],
                        n: tuple[int, int] = (9, 12)) -> np.ndarray:
     """Distances (px) between ``H_a x`` and ``H_b x`` over :func:`grid_points` of ``shape``.
 
-    The misalignment one transform leaves against the other. (N,) float64.
+    The misalignment one transform leaves against the other.
+
+    Parameters
+    ----------
+    h_a, h_b : numpy.ndarray
+        (3, 3) transforms of the same reference grid.
+    shape : tuple of int
+        ``(H, W)`` of the reference grid.
+    n : tuple of int
+        ``(rows, cols)`` of the grid of points.
+
+    Returns
+    -------
+    numpy.ndarray
+        (rows * cols,) float64 distances.
     """
     pts = grid_points(shape, n)
     return np.linalg.norm(map_points(h_a, pts) - map_points(h_b, pts), axis=1)
@@ -74,7 +129,17 @@ def transform_distance(h_a: np.ndarray, h_b: np.ndarray, shape: tuple[int, int],
 def scale_homography(homography: np.ndarray, factor: float) -> np.ndarray:
     """Return the same mapping on images scaled by ``factor`` (coordinates ``x' = factor x``).
 
-    ``S H S^-1`` with ``S = diag(f, f, 1)``.
+    Parameters
+    ----------
+    homography : numpy.ndarray
+        (3, 3) on the unscaled images.
+    factor : float
+        Scale of the images (0.5: one pyramid level down).
+
+    Returns
+    -------
+    numpy.ndarray
+        (3, 3) float64 ``S H S^-1`` with ``S = diag(factor, factor, 1)``.
     """
     s = np.diag([factor, factor, 1.0])
     return s @ np.asarray(homography, dtype=np.float64) @ np.diag([1.0 / factor, 1.0 / factor, 1.0])
@@ -82,7 +147,18 @@ def scale_homography(homography: np.ndarray, factor: float) -> np.ndarray:
 
 
 def normalise_homography(h: np.ndarray) -> np.ndarray:
-    """Scale a homography so that ``H[2, 2] = 1`` (float64)."""
+    """Scale a homography so that ``H[2, 2] = 1``.
+
+    Parameters
+    ----------
+    h : numpy.ndarray
+        (3, 3) homography (any overall scale, ``H[2, 2]`` not 0).
+
+    Returns
+    -------
+    numpy.ndarray
+        (3, 3) float64 ``H / H[2, 2]``: the same mapping.
+    """
     h = np.asarray(h, dtype=np.float64)
     return h / h[2, 2]
 
@@ -91,11 +167,34 @@ def combine_homographies(homographies: Sequence[np.ndarray], shape: tuple[int, i
                          n: tuple[int, int] = (9, 12)) -> tuple[np.ndarray, float]:
     """Robust combination of several estimates of one transform.
 
+    Parameters
+    ----------
+    homographies : sequence of numpy.ndarray
+        (3, 3) estimates of the same transform (e.g. one per capture).
+    shape : tuple of int
+        ``(H, W)`` of the reference grid.
+    n : tuple of int
+        ``(rows, cols)`` of the grid of points (:func:`grid_points`).
+
+    Returns
+    -------
+    homography : numpy.ndarray
+        (3, 3) float64 combined transform (``H[2, 2] = 1``); the estimate itself when there is
+        one.
+    spread : float
+        The median over grid points of the median distance of the estimates to it (px); 0 for
+        one estimate.
+
+    Raises
+    ------
+    FitError
+        With no estimates, or when the median points admit no homography.
+
+    Notes
+    -----
     Every estimate maps the :func:`grid_points` of ``shape``; the coordinate-wise median of the
     mapped points is fitted by a least-squares homography (``cv2.findHomography``, method 0).
-    Half of the estimates may be arbitrarily wrong (breakdown point of the median). Returns the
-    homography and the spread: the median over grid points of the median distance of the
-    estimates to it (px).
+    Half of the estimates may be arbitrarily wrong (breakdown point of the median).
     """
     hs = [np.asarray(h, dtype=np.float64) for h in homographies]
     if not hs:
@@ -119,7 +218,7 @@ def centre_reference(homographies: np.ndarray, shape: tuple[int, int]) -> int:
     Parameters
     ----------
     homographies : numpy.ndarray
-        (band, 3, 3) transforms to any one band.
+        (band, 3, 3) transforms from the pixels of any one band to each band's.
     shape : tuple of int
         ``(H, W)`` of the bands.
 
@@ -147,7 +246,7 @@ def rebase(homographies: np.ndarray, reference: int) -> np.ndarray:
     Parameters
     ----------
     homographies : numpy.ndarray
-        (band, 3, 3) transforms to the old reference.
+        (band, 3, 3) transforms from the old reference's pixels to each band's.
     reference : int
         The new reference band.
 
@@ -155,7 +254,7 @@ def rebase(homographies: np.ndarray, reference: int) -> np.ndarray:
     -------
     numpy.ndarray
         ``H'_b = H_b H_ref^-1`` (band ``reference``'s pixels -> old reference pixels -> band b
-        pixels); ``H'_reference`` is the identity.
+        pixels), each scaled to ``H[2, 2] = 1``; ``H'_reference`` is the identity.
     """
     inv = np.linalg.inv(homographies[reference])
     return np.stack([normalise_homography(h @ inv) for h in homographies])

@@ -92,7 +92,9 @@ class BandRegistration:
     homography : numpy.ndarray
         (3, 3) float64, maps reference pixels to band pixels.
     method : str
-        ``"identity"`` (the reference itself), ``"ecc"`` or ``"features"``.
+        ``"identity"`` (the reference itself), ``"ecc"``, ``"features"``, ``"failed"`` (no
+        estimate: the identity), or the methods of a composed transform joined by ``+``
+        (:func:`register_stack`).
     ecc : float
         The gradient correlation after warping (nan if not computable).
     n_matches : int
@@ -123,8 +125,21 @@ class BandRegistration:
 def normalise(image: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """Image scaled to about [0, 1] by its 1st and 99th percentiles (float32).
 
-    DN of any bit depth and exposure look alike to the next steps. ``mask`` (bool) selects the
-    pixels used for the percentiles.
+    DN of any bit depth and exposure look alike to the next steps.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        Image of any numeric dtype.
+    mask : numpy.ndarray, optional
+        Bool, the pixels used for the percentiles (every pixel by default); non-finite pixels
+        are never used.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 of the image's shape, ``(I - p1) / (p99 - p1)`` (divided by 1 when the two
+        percentiles are equal), NaN as 0 and +/-inf as 1/0; all zeros when no pixel is finite.
     """
     a = np.asarray(image, dtype=np.float32)
     vals = a[mask] if mask is not None else a
@@ -140,11 +155,23 @@ def normalise(image: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
 def gradient_image(image: np.ndarray, sigma: float = 1.0) -> np.ndarray:
     """Return the gradient magnitude of the normalised image.
 
-    Gradient magnitude ``|grad(G_sigma * I)|`` (3x3 Sobel after a Gaussian of ``sigma`` px) of
-    the percentile-normalised image (:func:`normalise`), float32.
+    Parameters
+    ----------
+    image : numpy.ndarray
+        ``(H, W)`` image of any numeric dtype.
+    sigma : float
+        Standard deviation (px) of the Gaussian applied before the gradient; 0 applies none.
 
-    The magnitude is blind to the sign of an edge, so vegetation that is dark in red and
-    bright in NIR gives the same edges in both bands.
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` float32 gradient magnitude.
+
+    Notes
+    -----
+    ``|grad(G_sigma * I)|`` (3x3 Sobel after a Gaussian of ``sigma`` px) of the
+    percentile-normalised image (:func:`normalise`). The magnitude is blind to the sign of an
+    edge, so vegetation that is dark in red and bright in NIR gives the same edges in both bands.
     """
     a = normalise(image)
     if sigma > 0:
@@ -157,8 +184,22 @@ def gradient_image(image: np.ndarray, sigma: float = 1.0) -> np.ndarray:
 def correlation(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Pearson correlation coefficient of two images over ``mask`` (and finite pixels).
 
-    Nan with fewer than 100 pixels or a constant image. This is ECC's criterion (the zero-mean
-    normalised correlation) evaluated once.
+    Parameters
+    ----------
+    a, b : numpy.ndarray
+        Images of the same shape.
+    mask : numpy.ndarray, optional
+        Bool, the pixels compared (besides the finite ones).
+
+    Returns
+    -------
+    float
+        The correlation in [-1, 1]; NaN with fewer than 100 pixels or a constant image.
+
+    Notes
+    -----
+    ``sum(x' y') / sqrt(sum(x'^2) sum(y'^2))`` with ``x' = x - mean(x)``: ECC's criterion (the
+    zero-mean normalised correlation) evaluated once.
     """
     ok = np.isfinite(a) & np.isfinite(b)
     if mask is not None:
@@ -177,8 +218,21 @@ def gradient_correlation(ref: np.ndarray, band: np.ndarray, mask: np.ndarray | N
                          sigma: float = 1.0) -> float:
     """Correlate the gradient magnitudes of two images.
 
-    Correlation of the gradient magnitudes of two images of the same grid (the figure used to
-    judge band-to-band alignment: high where edges coincide).
+    The figure used to judge band-to-band alignment: high where edges coincide.
+
+    Parameters
+    ----------
+    ref, band : numpy.ndarray
+        Images of the same grid.
+    mask : numpy.ndarray, optional
+        Bool, the pixels compared.
+    sigma : float
+        Gaussian of :func:`gradient_image`.
+
+    Returns
+    -------
+    float
+        :func:`correlation` of the two :func:`gradient_image`; NaN as there.
     """
     return correlation(gradient_image(ref, sigma), gradient_image(band, sigma), mask)
 
@@ -194,15 +248,42 @@ def _pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
 
 
 def pyramid_levels(shape: tuple[int, int], coarsest_px: int = COARSEST_PX) -> int:
-    """Count the halvings until the shorter side is about ``coarsest_px``."""
+    """Count the halvings until the shorter side is about ``coarsest_px``.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        ``(H, W)`` of the full-resolution image.
+    coarsest_px : int
+        Wanted shorter side (px) of the coarsest level.
+
+    Returns
+    -------
+    int
+        ``max(0, floor(log2(min(H, W) / coarsest_px)))``.
+    """
     return max(0, int(math.floor(math.log2(max(1.0, min(shape) / coarsest_px)))))
 
 
 def phase_shift(ref: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, float]:
     """Estimate a translation by phase correlation.
 
-    Translation ``d`` with ``band(x + d) ~ ref(x)`` by phase correlation (Hanning window) and
-    its peak response (0-1). Returns the homography ``[[1, 0, dx], [0, 1, dy], [0, 0, 1]]``.
+    Parameters
+    ----------
+    ref, band : numpy.ndarray
+        Images of the same shape.
+
+    Returns
+    -------
+    homography : numpy.ndarray
+        ``[[1, 0, dx], [0, 1, dy], [0, 0, 1]]`` float64.
+    response : float
+        The phase correlation's peak response (0-1).
+
+    Notes
+    -----
+    The translation ``d = (dx, dy)`` with ``band(x + d) ~ ref(x)`` from ``cv2.phaseCorrelate``
+    with a Hanning window.
     """
     win = cv2.createHanningWindow((ref.shape[1], ref.shape[0]), cv2.CV_32F)
     (dx, dy), response = cv2.phaseCorrelate(ref.astype(np.float32), band.astype(np.float32), win)
@@ -239,6 +320,20 @@ def ecc_homography(ref_grad: np.ndarray, band_grad: np.ndarray, init: np.ndarray
     numpy.ndarray or None
         The homography mapping reference pixels to band pixels, or None if ECC fails to
         converge at the finest level.
+
+    Notes
+    -----
+    ECC maximises the zero-mean normalised correlation of ``ref(x)`` and ``band(H x)`` over the
+    8 parameters of ``H``. The pyramid halves the images ``levels`` times; the estimate of a
+    level starts the next finer one as ``S H S^-1`` with ``S = diag(2, 2, 1)``
+    (:func:`~mscal_core.homography.scale_homography`). A coarser level that fails keeps the
+    previous estimate (unless ``min_cc`` is given).
+
+    References
+    ----------
+    Evangelidis, G. D. and Psarakis, E. Z., "Parametric image alignment using enhanced
+    correlation coefficient maximization", IEEE Trans. Pattern Analysis and Machine
+    Intelligence 30(10), 2008.
     """
     if levels is None:
         levels = pyramid_levels(ref_grad.shape)
@@ -279,7 +374,26 @@ class Features:
 def detect_features(grad: np.ndarray) -> Features:
     """Keypoints of a gradient image (scaled to 8 bits at its 99.5th percentile).
 
-    SIFT (OpenCV 5's main modules have no AKAZE), ORB when SIFT finds fewer than 50.
+    Parameters
+    ----------
+    grad : numpy.ndarray
+        Gradient image (:func:`gradient_image`).
+
+    Returns
+    -------
+    Features
+        Keypoints (N, 2) (x, y), their descriptors (None when none were found) and the norm
+        that compares the descriptors.
+
+    Notes
+    -----
+    SIFT (OpenCV 5's main modules have no AKAZE), at most :data:`MAX_FEATURES` keypoints; ORB
+    when SIFT finds fewer than 50.
+
+    References
+    ----------
+    Lowe, D. G., "Distinctive image features from scale-invariant keypoints",
+    International Journal of Computer Vision 60(2), 2004.
     """
     hi = float(np.percentile(grad, 99.5)) or 1.0
     image8 = np.clip(grad * (255.0 / hi), 0, 255).astype(np.uint8)
@@ -293,9 +407,30 @@ def detect_features(grad: np.ndarray) -> Features:
 
 
 def feature_matches(ref: Features, band: Features, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
-    """Match keypoints ``(ref_xy, band_xy)`` (N, 2) of two images' :func:`detect_features`.
+    """Match the keypoints of two images' :func:`detect_features`.
 
-    Lowe's ratio test ``ratio`` and mutual best matches only.
+    Parameters
+    ----------
+    ref, band : Features
+        Keypoints of the reference and of the band.
+    ratio : float
+        Lowe's ratio test: a match is kept if its descriptor distance is below ``ratio`` times
+        that of the second best.
+
+    Returns
+    -------
+    ref_xy, band_xy : numpy.ndarray
+        (N, 2) float64 matched points (x, y); (0, 2) when either image has fewer than two
+        keypoints, no descriptors, or the two use different descriptor norms.
+
+    Notes
+    -----
+    Brute-force matching; only mutual best matches that pass the ratio test are kept.
+
+    References
+    ----------
+    Lowe, D. G., "Distinctive image features from scale-invariant keypoints",
+    International Journal of Computer Vision 60(2), 2004.
     """
     empty = (np.zeros((0, 2)), np.zeros((0, 2)))
     if (ref.descriptors is None or band.descriptors is None or len(ref.points) < 2 or len(band.points) < 2
@@ -314,9 +449,21 @@ def feature_matches(ref: Features, band: Features, ratio: float = 0.8) -> tuple[
 def feature_homography(ref_xy: np.ndarray, band_xy: np.ndarray) -> np.ndarray | None:
     """Fit a RANSAC homography to matched points.
 
-    RANSAC homography (``cv2.findHomography``, reprojection threshold :data:`INLIER_PX`) of
-    matched points, refined on its inliers (Levenberg-Marquardt inside OpenCV); None with fewer
-    than 8 matches or no consensus.
+    Parameters
+    ----------
+    ref_xy, band_xy : numpy.ndarray
+        (N, 2) matched points (x, y) of the reference and of the band (:func:`feature_matches`).
+
+    Returns
+    -------
+    numpy.ndarray or None
+        (3, 3) float64 homography mapping reference pixels to band pixels, scaled to
+        ``H[2, 2] = 1``; None with fewer than 8 matches or no consensus.
+
+    Notes
+    -----
+    ``cv2.findHomography`` with RANSAC (reprojection threshold :data:`INLIER_PX`, 5000
+    iterations, confidence 0.999), refined on its inliers (Levenberg-Marquardt inside OpenCV).
     """
     if len(ref_xy) < 8:
         return None
@@ -325,10 +472,23 @@ def feature_homography(ref_xy: np.ndarray, band_xy: np.ndarray) -> np.ndarray | 
 
 
 def match_quality(homography: np.ndarray, ref_xy: np.ndarray, band_xy: np.ndarray) -> tuple[int, float, float]:
-    """``(n_inliers, inlier_ratio, residual_px)`` of matches against a homography.
+    """Count and measure the matches that agree with a homography.
 
-    Matches with ``|H x_ref - x_band| <= INLIER_PX`` are inliers; the residual is their rms
-    distance.
+    Parameters
+    ----------
+    homography : numpy.ndarray
+        (3, 3) reference pixels -> band pixels.
+    ref_xy, band_xy : numpy.ndarray
+        (N, 2) matched points (x, y).
+
+    Returns
+    -------
+    n_inliers : int
+        Matches with ``|H x_ref - x_band| <= INLIER_PX``.
+    inlier_ratio : float
+        ``n_inliers / N`` (NaN without matches).
+    residual_px : float
+        RMS distance of the inliers (NaN without inliers).
     """
     if len(ref_xy) == 0:
         return 0, float("nan"), float("nan")
@@ -341,7 +501,26 @@ def match_quality(homography: np.ndarray, ref_xy: np.ndarray, band_xy: np.ndarra
 
 def evaluate(homography: np.ndarray, method: str, ref_grad: np.ndarray, band_grad: np.ndarray,
              matches: tuple[np.ndarray, np.ndarray]) -> BandRegistration:
-    """Quality figures of one homography (see :class:`BandRegistration`)."""
+    """Quality figures of one homography (see :class:`BandRegistration`).
+
+    Parameters
+    ----------
+    homography : numpy.ndarray
+        (3, 3) reference pixels -> band pixels.
+    method : str
+        How it was estimated (``"ecc"``, ``"features"``), kept in the result.
+    ref_grad, band_grad : numpy.ndarray
+        Gradient images of the reference and of the band.
+    matches : tuple of numpy.ndarray
+        ``(ref_xy, band_xy)`` from :func:`feature_matches`.
+
+    Returns
+    -------
+    BandRegistration
+        The homography (``H[2, 2] = 1``), ``ecc`` the :func:`correlation` of the reference's
+        gradient image with the band's warped onto it (pixels the band covers), and the
+        :func:`match_quality` of the matches.
+    """
     warped = warp_to_reference(band_grad, homography, ref_grad.shape)
     ecc = correlation(ref_grad, warped)
     n_in, ratio, res = match_quality(homography, *matches)
@@ -349,7 +528,23 @@ def evaluate(homography: np.ndarray, method: str, ref_grad: np.ndarray, band_gra
 
 
 def accept(reg: BandRegistration, thresholds: Thresholds = Thresholds()) -> bool:
-    """Whether a band's transform passes the reject thresholds (:class:`Thresholds`)."""
+    """Whether a band's transform passes the reject thresholds (:class:`Thresholds`).
+
+    Parameters
+    ----------
+    reg : BandRegistration
+        The transform and its quality figures.
+    thresholds : Thresholds
+        The reject thresholds.
+
+    Returns
+    -------
+    bool
+        True for the reference itself (``method == "identity"``); otherwise the ECC correlation
+        must be finite and at least ``min_ecc`` and, when at least ``min_inliers`` matches were
+        found at all, the inliers must number ``min_inliers`` and their residual be finite and at
+        most ``max_residual_px``.
+    """
     if reg.method == "identity":
         return True
     if not (np.isfinite(reg.ecc) and reg.ecc >= thresholds.min_ecc):
@@ -395,8 +590,9 @@ def register_band(ref_grad: np.ndarray, band_grad: np.ndarray, *, init: np.ndarr
 
     Notes
     -----
-    Pyramid ECC; if ECC fails or does not pass ``thresholds``, features + RANSAC, keeping the
-    estimate with the higher gradient correlation.
+    Pyramid ECC; if ECC fails or does not pass ``thresholds``, features + RANSAC refined by
+    ECC at full resolution, keeping the estimate with the higher gradient correlation (then
+    more inliers). With no estimate at all, the identity with ``method="failed"``.
     """
     if ref_grad.shape != band_grad.shape:
         raise InputError(f"bands of one capture differ in size: {ref_grad.shape} vs {band_grad.shape}",
