@@ -81,19 +81,12 @@ def radial_vignetting(shape: tuple[int, int], center: Sequence[float], poly: Seq
     Returns
     -------
     numpy.ndarray
-        ``(H, W)`` float64, 1 at the centre.
-
-    Notes
-    -----
-    ``V(x, y) = 1 / (1 + sum_i k_i r^i)`` with ``r = sqrt((x - cx)^2 + (y - cy)^2)`` the distance
-    in pixels of the pixel centre grid point ``(x, y)`` (x = column, y = row, integer
-    coordinates) from the centre. ``V`` multiplies the DN in :func:`radiance`.
+        ``(H, W)`` float64, 1 at the centre. ``r`` is the distance in pixels of the pixel centre
+        grid point ``(x, y)`` (x = column, y = row, integer coordinates) from the centre.
 
     References
     ----------
-    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py`` and
-           ``micasense/metadata.py``: the RedEdge / Altum radiometric calibration model and its
-           XMP tags.
+    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub): ``image.py``, ``metadata.py``.
     """
     h, w = shape
     cx, cy = float(center[0]), float(center[1])
@@ -123,23 +116,16 @@ def vignetting_2d(
     Returns
     -------
     numpy.ndarray
-        ``(H, W)`` float64 correction map.
+        ``(H, W)`` float64; ``u = x / W`` and ``v = y / H`` are the normalised column and row.
 
     Raises
     ------
     ValueError
         When the exponents are not two per coefficient.
 
-    Notes
-    -----
-    ``V(x, y) = 1 / sum_i c_i u^ex_i v^ey_i`` with ``u = x / W`` and ``v = y / H`` the
-    normalised column and row.
-
     References
     ----------
-    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py`` and
-           ``micasense/metadata.py``: the RedEdge / Altum radiometric calibration model and its
-           XMP tags.
+    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub): ``image.py``, ``metadata.py``.
     """
     if len(exponents) != 2 * len(coefficients):
         raise ValueError(
@@ -212,18 +198,12 @@ def row_gradient(height: int, exposure_s: float, a2: float, a3: float) -> np.nda
     Returns
     -------
     numpy.ndarray
-        Shape ``(H, 1)`` float64, ``y = 0`` the top row.
-
-    Notes
-    -----
-    ``R(y) = t_e / (t_e + a2 y - a3 t_e y)``: the factor that turns ``1 / t_e`` of a global
-    shutter into the denominator of :func:`radiance`.
+        Shape ``(H, 1)`` float64, ``y = 0`` the top row: ``1 / t_e`` times it is the rolling
+        shutter's ``1 / (t_e + a2 y - a3 t_e y)`` of :func:`radiance`.
 
     References
     ----------
-    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py`` and
-           ``micasense/metadata.py``: the RedEdge / Altum radiometric calibration model and its
-           XMP tags.
+    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub): ``image.py``, ``metadata.py``.
     """
     y = np.arange(height, dtype=np.float64)[:, None]
     return exposure_s / (exposure_s + a2 * y - a3 * exposure_s * y)
@@ -278,22 +258,16 @@ def radiance(
 
     Notes
     -----
-    MicaSense's model [1]_: ``L(x, y) = V(x, y) a1 / g (p - p_BL) / (t_e + a2 y - a3 t_e y)`` with
-    ``p = DN / 2**bits_per_sample`` and ``p_BL = black_level / 2**bits_per_sample``, computed as
-    ``V (p - p_BL) R(y) a1 / (g t_e)`` (:func:`row_gradient`). The paper's field parts [2]_ may
-    replace the factory's: its vignetting (Eq. 8-10) as ``vignetting = 1 / V``, its inverse
-    response (Eq. 5-7) as ``signal = c U(I)`` (:func:`field_response_signal`). With both, the
-    result is the paper's ``L = U(I) / (t V)`` (Eq. 2 and 4) times ``c a1 / g`` and the row
-    gradient: the field model in the factory's units.
+    MicaSense's model [1]_, ``p = DN / 2**bits_per_sample``, ``p_BL = black_level / 2**bits_per_sample``.
+    The paper's field parts [2]_ may replace the factory's: ``vignetting = 1 / V`` (Eq. 8-10),
+    ``signal = c U(I)`` (Eq. 5-7, :func:`field_response_signal`); with both, the result is
+    ``L = U(I) / (t V)`` (Eq. 2 and 4) times ``c a1 / g`` and the row gradient.
 
     References
     ----------
-    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py`` and
-           ``micasense/metadata.py``: the RedEdge / Altum radiometric calibration model and its
-           XMP tags.
-    .. [2] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
-           for Multispectral Cameras", IEEE International Conference on Robotics and
-           Automation (ICRA), 2017.
+    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub): ``image.py``, ``metadata.py``.
+    .. [2] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration for
+           Multispectral Cameras", ICRA 2017.
     """
     if exposure_s <= 0 or gain <= 0:
         raise ValueError(f"exposure ({exposure_s}) and gain ({gain}) must be positive")
@@ -350,17 +324,15 @@ def field_response_scale(
 
     Notes
     -----
-    ``U`` is known only up to scale (Eq. 5 of [1]_). ``c`` minimises
-    ``sum_k (c U(k) - f(k))**2`` with ``f(k) = (k 2**dn_shift - p_BL) / 2**bits_per_sample`` the
-    factory's ``p - p_BL``, over the DN ``k`` whose stored value is above the black level, up
-    to half of the sensor's range (where the factory model, linear, holds) and where ``U`` is
-    finite.
+    ``U`` is known only up to scale (Eq. 5 of [1]_). ``c`` minimises ``sum_k (c U(k) - f(k))**2``,
+    ``f(k) = (k 2**dn_shift - p_BL) / 2**bits_per_sample`` the factory's ``p - p_BL``, over the
+    finite ``U(k)`` whose stored value is above the black level, up to half of the sensor's
+    range (where the factory model, linear, holds).
 
     References
     ----------
-    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
-           for Multispectral Cameras", IEEE International Conference on Robotics and
-           Automation (ICRA), 2017.
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration for
+           Multispectral Cameras", ICRA 2017.
     """
     u = np.asarray(inverse_response, dtype=np.float64)
     k = np.arange(u.size, dtype=np.float64)
@@ -390,18 +362,13 @@ def field_response_signal(dn: np.ndarray, inverse_response: np.ndarray, *, dn_sh
     Returns
     -------
     numpy.ndarray
-        float64, the shape of ``dn``.
-
-    Notes
-    -----
-    ``U(I)`` of Eq. 4 of [1]_ (``U(I(x)) = t E(x)``), ``I = DN >> dn_shift`` clipped to the table,
-    times ``c``: it replaces ``p - p_BL`` in :func:`radiance`.
+        float64, the shape of ``dn``: ``c U(I)``, ``I = DN >> dn_shift`` clipped to the table,
+        with ``U(I(x)) = t E(x)`` of Eq. 4 of [1]_; it replaces ``p - p_BL`` in :func:`radiance`.
 
     References
     ----------
-    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
-           for Multispectral Cameras", IEEE International Conference on Robotics and
-           Automation (ICRA), 2017.
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration for
+           Multispectral Cameras", ICRA 2017.
     """
     k = np.right_shift(np.asarray(dn).astype(np.int64), dn_shift)
     k = np.clip(k, 0, inverse_response.size - 1)
@@ -473,7 +440,7 @@ def sequoia_irradiance(
     sensor_model: Sequence[float],
     vignetting: np.ndarray,
 ) -> np.ndarray:
-    """Parrot Sequoia: irradiance on the sensor ``I = f^2 (p - B) / (A e g + C)``.
+    """Parrot Sequoia: irradiance on the sensor ``I = f^2 (p - B) / (A e g + C)`` [1]_.
 
     Parameters
     ----------
@@ -488,31 +455,24 @@ def sequoia_irradiance(
     sensor_model : sequence of float
         ``A, B, C`` = XMP ``Camera:SensorModel`` of the band (firmware >= 1.2.1).
     vignetting : numpy.ndarray
-        The correction that multiplies ``p`` (``1 / V``, ``V`` the 2-D polynomial of
+        ``1 / V``, which multiplies the stored value into ``p`` (``V`` the 2-D polynomial of
         :func:`vignetting_polynomial_2d`).
 
     Returns
     -------
     numpy.ndarray
-        float64 irradiance, the shape of ``dn``; negative values are floored at 0. Units:
-        "homogeneous to SI units but with an arbitrary scaling factor" (Parrot): a relative
-        radiance.
+        float64, the shape of ``dn``, floored at 0; "homogeneous to SI units but with an
+        arbitrary scaling factor" (Parrot): a relative radiance.
 
     Raises
     ------
     ValueError
         On a non-positive exposure, ISO or f-number.
 
-    Notes
-    -----
-    ``I = f^2 (p - B) / (A e g + C)`` [1]_ with ``p`` the stored pixel value corrected for
-    vignetting (``p / V``).
-
     References
     ----------
-    .. [1] Parrot, application note SEQ AN 01, "Sequoia: pixel value to irradiance", as quoted
-           by Parrot staff on the Parrot developer forum, thread "Details of Irradiance List tag
-           for Sunshine sensor", posts 83-85.
+    .. [1] Parrot, application note SEQ AN 01, "Sequoia: pixel value to irradiance", quoted on
+           Parrot's developer forum, "Details of Irradiance List tag for Sunshine sensor", 83-85.
     """
     a, b, c = (float(x) for x in sensor_model)
     if exposure_s <= 0 or iso <= 0 or f_number <= 0:
@@ -532,12 +492,8 @@ def vignetting_polynomial_2d(
 
     Parameters
     ----------
-    shape : tuple of int
-        ``(H, W)`` of the band.
-    coefficients : sequence of float
-        ``c_i``.
-    exponents : sequence of float
-        The flat ``[ex_0, ey_0, ex_1, ey_1, ...]`` list.
+    shape, coefficients, exponents
+        As in :func:`vignetting_2d`.
 
     Returns
     -------
@@ -551,17 +507,14 @@ def vignetting_polynomial_2d(
 
     References
     ----------
-    .. [1] Parrot, application note SEQ AN 01, "Sequoia: pixel value to irradiance", as quoted
-           by Parrot staff on the Parrot developer forum, thread "Details of Irradiance List tag
-           for Sunshine sensor", posts 83-85.
+    .. [1] Parrot, application note SEQ AN 01, "Sequoia: pixel value to irradiance", quoted on
+           Parrot's developer forum, "Details of Irradiance List tag for Sunshine sensor", 83-85.
     """
     return 1.0 / vignetting_2d(shape, coefficients, exponents)
 
 
 def dji_vignetting_correction(shape: tuple[int, int], center: Sequence[float], k: Sequence[float]) -> np.ndarray:
-    """Return the DJI P4 Multispectral / Mavic 3M vignetting correction.
-
-    It *multiplies* the image.
+    """Return the DJI P4 Multispectral / Mavic 3M vignetting correction, which *multiplies* the image.
 
     Parameters
     ----------
@@ -575,12 +528,8 @@ def dji_vignetting_correction(shape: tuple[int, int], center: Sequence[float], k
     Returns
     -------
     numpy.ndarray
-        ``(H, W)`` float64, 1 at the centre.
-
-    Notes
-    -----
-    ``1 + k0 r + k1 r^2 + k2 r^3 + k3 r^4 + k4 r^5 + k5 r^6`` with ``r`` the distance in pixels of
-    pixel (x, y) from ``center`` ([1]_ Eq. 8-9, [2]_).
+        ``(H, W)`` float64 ``1 + k0 r + k1 r^2 + ... + k5 r^6`` ([1]_ Eq. 8-9, [2]_), ``r`` the
+        distance in pixels of pixel (x, y) from ``center``.
 
     References
     ----------
@@ -623,7 +572,8 @@ def dji_camera_value(
     gain_adjustment : float
         ``pCam`` = ``drone-dji:SensorGainAdjustment`` ("individual difference correction").
     full_scale : float
-        The value ``p`` and ``p_BL`` are divided by.
+        ``p = DN / full_scale``, ``p_BL = BlackLevel / full_scale`` ([1]_ Eq. 6-9, [2]_ Eq. 4-9:
+        "divide the original number by 65535").
 
     Returns
     -------
@@ -637,9 +587,8 @@ def dji_camera_value(
 
     Notes
     -----
-    [1]_ Eq. 6-9 ([2]_ Eq. 4-9): ``p = DN / 65535`` and ``p_BL = BlackLevel / 65535`` ("divide the
-    original number by 65535"). Reflectance is ``X / E`` with ``E`` = ``drone-dji:Irradiance`` up
-    to one constant common to all bands (the guide's NDVI uses only ratios).
+    Reflectance is ``X / E`` with ``E`` = ``drone-dji:Irradiance`` up to one constant common to
+    all bands (the guide's NDVI uses only ratios).
 
     References
     ----------
@@ -687,11 +636,6 @@ def dji_alignment_map(shape: tuple[int, int], center: Sequence[float], dewarp: S
     -------
     map_x, map_y : numpy.ndarray
         float32 ``(height, width)`` source coordinates for ``cv2.remap``.
-
-    References
-    ----------
-    .. [1] DJI, "Mavic 3M Image Processing Guide" v1.0 (2023.08), section II.
-    .. [2] DJI, "P4 Multispectral Image Processing Guide" v1.0 (2020.07).
     """
     h, w = shape
     hm = np.asarray(hmatrix, dtype=np.float64).reshape(3, 3)
@@ -738,7 +682,7 @@ def color_transform(channels: np.ndarray, matrix: Sequence[float], rows: Sequenc
         ``(H, W, C)`` as stored (R, G, B for a JPEG).
     matrix : sequence of float
         The ``C x C`` row-major XMP ``Camera:ColorTransform`` (rows = output bands in
-        ``Camera:BandName`` order, columns = channels).
+        ``Camera:BandName`` order, columns = channels: checked against [1]_).
     rows : sequence of int
         The output bands wanted.
 
@@ -747,15 +691,9 @@ def color_transform(channels: np.ndarray, matrix: Sequence[float], rows: Sequenc
     numpy.ndarray
         ``(len(rows), H, W)`` float64.
 
-    Notes
-    -----
-    The matrix's orientation was checked against Sentera's published Double 4K NDVI/NDRE
-    equations [1]_.
-
     References
     ----------
-    .. [1] Sentera, "Double 4K multispectral NDVI and NDRE calculations",
-           support.senterasensors.com.
+    .. [1] Sentera, "Double 4K multispectral NDVI and NDRE calculations" (support.senterasensors.com).
     """
     ch = np.asarray(channels, dtype=np.float64)
     c = ch.shape[2]
@@ -774,11 +712,7 @@ def thermal_kelvin(dn: np.ndarray) -> np.ndarray:
     Returns
     -------
     numpy.ndarray
-        float64 ``T = DN / 100`` K.
-
-    Notes
-    -----
-    [1]_ converts ``(DN - 27315) * 0.01`` to degrees C: the same scale.
+        float64 ``T = DN / 100`` K ([1]_: ``(DN - 27315) * 0.01`` in degrees C).
 
     References
     ----------
@@ -821,7 +755,7 @@ def upright(image: np.ndarray, orientation: int) -> np.ndarray:
 
 def sunshine_irradiance(ch0: Sequence[float], gain_index: Sequence[int], integration_ms: Sequence[float],
                         calibration: dict[int, float]) -> float:
-    """Parrot Sequoia sunshine sensor: relative irradiance ``mean(CH0 / (g(i) t))``.
+    """Parrot Sequoia sunshine sensor: relative irradiance ``mean(CH0 / (g(i) t))`` [1]_.
 
     Parameters
     ----------
@@ -832,29 +766,24 @@ def sunshine_irradiance(ch0: Sequence[float], gain_index: Sequence[int], integra
     integration_ms : sequence of float
         Each reading's integration time ``t`` (ms).
     calibration : dict of int to float
-        ``{i: CH0_i / t_i}`` from ``IrradianceCalibrationMeasurement``, counts taken under one
-        light at each gain index.
+        ``{i: CH0_i / t_i}`` from ``IrradianceCalibrationMeasurement`` (one light, each gain
+        index): ``g(i) = calibration[i] / calibration[1]``, relative to gain index 1.
 
     Returns
     -------
     float
-        The mean over the usable readings of ``CH0 / (g(i) t)``: relative units.
+        The mean of ``CH0 / (g(i) t)`` (relative units: the sensor is linear with no black
+        level, ``count ~ gain(i) t E``) over the readings whose gain index the table holds,
+        with a positive time, not saturated (65535).
 
     Raises
     ------
     ValueError
         When no reading is usable.
 
-    Notes
-    -----
-    The sensor is linear with no black level, ``count ~ gain(i) t E`` [1]_; the effective gain
-    ``g(i) = calibration[i] / calibration[1]`` is relative to gain index 1. Readings at a gain
-    index the table does not hold, with no positive time, or saturated (65535) are left out.
-
     References
     ----------
-    .. [1] Parrot, developer forum thread "Details of Irradiance List tag for Sunshine sensor",
-           post 2.
+    .. [1] Parrot, developer forum, "Details of Irradiance List tag for Sunshine sensor", post 2.
     """
     ref = calibration.get(1)
     values = []
