@@ -11,7 +11,7 @@ quantisation included) the Eq. 15 reflectance is computed with the TRUE calibrat
 the band geometry differs), then NDVI
 
 - as the pipeline gives it (each band at its own sample positions), and
-- after ``mscal_core.registration.shift_bands`` (bicubic, exact for quadratics) to the centre,
+- after ``mscal_core.alignment.shift_bands`` (bicubic, exact for quadratics) to the centre,
 
 against the true NDVI of the scene AT THE CENTRE POSITION (the footprint of the centre band's
 sensor pixel, rendered from the same pose). Reported: median and 95th percentile of
@@ -38,8 +38,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from mscal_core.alignment import mosaic_centre_offsets, shift_bands
 from mscal_core.reflectance import eq15
-from mscal_core.registration import mosaic_centre_offsets, shift_bands
 from pipeline.sim.world.scene import (
     DEFAULT_PANELS,
     NDVI_NIR_NM,

@@ -32,6 +32,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from mscal_core import alignment, homography
 from mscal_core import registration as reg
 from pipeline.sim.world.multilens import REDEDGE_WAVELENGTHS_NM, multilens_capture
 
@@ -49,7 +50,7 @@ def synthetic(seeds: int) -> None:
             for b, r in enumerate(regs):
                 if b == cap.reference:
                     continue
-                d = reg.transform_distance(r.homography, cap.homographies[b], cap.dn.shape[1:])
+                d = homography.transform_distance(r.homography, cap.homographies[b], cap.dn.shape[1:])
                 rms.append(float(np.sqrt(np.mean(d**2))))
                 mx.append(float(d.max()))
                 ok &= reg.accept(r)
@@ -85,7 +86,7 @@ def real(frames: int) -> np.ndarray | None:
         regs = reg.register_stack(stack, 3, wavelengths=REDEDGE_WAVELENGTHS_NM)
         dt = time.perf_counter() - t0
         hs = np.stack([r.homography for r in regs])
-        al = reg.align_bands(stack, hs)
+        al = alignment.align_bands(stack, hs)
         ok = cv2.erode(np.isfinite(al).all(axis=0).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         gc = []
         for b in (0, 1, 2, 4):
@@ -103,7 +104,7 @@ def real(frames: int) -> np.ndarray | None:
             times = []
             for _ in range(frames):
                 t0 = time.perf_counter()
-                reg.align_bands(stack, hs)
+                alignment.align_bands(stack, hs)
                 times.append(time.perf_counter() - t0)
             print(f"\nalign_bands, 5 x 960 x 1280 float32, transforms of IMG_0001: "
                   f"median {1e3 * np.median(times):.1f} ms/frame over {frames} frames "

@@ -24,7 +24,7 @@ pixels, per band against a reference band:
 A translation pooled over several captures (the median of every tile's ``d``,
 :func:`pooled_translations`) is the image registration that refines a metadata alignment
 (DJI's Image Processing Guide, step 4): :func:`translation_transforms` gives it as the
-(band, 3, 3) transforms of :func:`mscal_core.registration.align_bands`.
+(band, 3, 3) transforms of :func:`mscal_core.alignment.align_bands`.
 """
 
 from __future__ import annotations
@@ -75,15 +75,42 @@ class BandResidual:
 
 
 def decimation(shape: tuple[int, int], max_side: int = MAX_SIDE) -> float:
-    """Scale factor (<= 1) that brings the long side of ``shape`` to at most ``max_side``."""
+    """Scale factor (<= 1) that brings the long side of ``shape`` to at most ``max_side``.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        ``(H, W)`` of the image.
+    max_side : int
+        Largest long side (px) wanted.
+
+    Returns
+    -------
+    float
+        ``min(1, max_side / max(H, W))``.
+    """
     return min(1.0, float(max_side) / float(max(shape)))
 
 
 def decimate(image: np.ndarray, max_side: int = MAX_SIDE) -> tuple[np.ndarray, np.ndarray, float]:
     """Image decimated to at most ``max_side`` px on its long side (``INTER_AREA``).
 
-    Returns the float32 image (NaN filled with the median of the finite pixels), the fraction
-    of finite full-resolution pixels under each decimated pixel, and the scale factor.
+    Parameters
+    ----------
+    image : numpy.ndarray
+        ``(H, W)`` image; NaN pixels allowed.
+    max_side : int
+        Largest long side (px) of the result.
+
+    Returns
+    -------
+    image : numpy.ndarray
+        float32, NaN filled with the median of the finite pixels (of every 4th row and column;
+        0 if none) before decimating.
+    cover : numpy.ndarray
+        float32, the fraction of finite full-resolution pixels under each decimated pixel.
+    scale : float
+        The scale factor (:func:`decimation`); 1 when the image is small enough as it is.
     """
     a = np.asarray(image, dtype=np.float32)
     ok = np.isfinite(a)
@@ -101,7 +128,22 @@ def decimate(image: np.ndarray, max_side: int = MAX_SIDE) -> tuple[np.ndarray, n
 
 def tile_boxes(shape: tuple[int, int], tiles: tuple[int, int] = TILES,
                border: float = BORDER) -> list[tuple[int, int, int, int]]:
-    """``(y0, y1, x0, x1)`` of a ``tiles`` grid over ``shape`` less ``border`` of each side."""
+    """Cut a grid of tiles over an image less a border.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        ``(H, W)`` of the image.
+    tiles : tuple of int
+        ``(rows, columns)`` of tiles.
+    border : float
+        Fraction of each side left out.
+
+    Returns
+    -------
+    list of tuple of int
+        ``(y0, y1, x0, x1)`` (end exclusive) of each tile, row by row.
+    """
     h, w = shape
     ys = np.linspace(border * h, (1 - border) * h, tiles[0] + 1).round().astype(int)
     xs = np.linspace(border * w, (1 - border) * w, tiles[1] + 1).round().astype(int)
@@ -112,9 +154,29 @@ def tile_boxes(shape: tuple[int, int], tiles: tuple[int, int] = TILES,
 def tile_shift(ref_grad: np.ndarray, band_grad: np.ndarray) -> tuple[float, float, float]:
     """Measure the translation between two gradient tiles.
 
-    Returns ``(dx, dy)`` with ``band(x + d) ~ ref(x)`` and the ECC correlation after it: phase
-    correlation (Hanning window), refined by ECC (``MOTION_TRANSLATION``); the phase estimate
-    with its correlation when ECC fails.
+    Parameters
+    ----------
+    ref_grad, band_grad : numpy.ndarray
+        Gradient tiles (:func:`mscal_core.registration.gradient_image`) of the same shape.
+
+    Returns
+    -------
+    dx, dy : float
+        The translation ``d`` with ``band(x + d) ~ ref(x)`` (tile px).
+    cc : float
+        The ECC correlation of the tiles after it.
+
+    Notes
+    -----
+    Phase correlation (Hanning window) refined by ECC (``MOTION_TRANSLATION``); the phase
+    estimate, with its own correlation, when ECC fails or moves further than a quarter of the
+    tile's shorter side from it.
+
+    References
+    ----------
+    Evangelidis, G. D. and Psarakis, E. Z., "Parametric image alignment using enhanced
+    correlation coefficient maximization", IEEE Trans. Pattern Analysis and Machine
+    Intelligence 30(10), 2008.
     """
     r = np.ascontiguousarray(ref_grad, dtype=np.float32)
     b = np.ascontiguousarray(band_grad, dtype=np.float32)
@@ -146,6 +208,32 @@ def band_residual(ref: np.ndarray, band: np.ndarray, *, max_side: int = MAX_SIDE
                   border: float = BORDER, min_cc: float = MIN_CC) -> BandResidual:
     """Measure the residual shift of ``band`` against ``ref`` (two images of one grid).
 
+    Parameters
+    ----------
+    ref, band : numpy.ndarray
+        ``(H, W)`` images of the reference band and of the band; NaN pixels allowed.
+    max_side : int
+        Long side (px) the bands are decimated to (:func:`decimate`).
+    tiles : tuple of int
+        ``(rows, columns)`` of tiles (:func:`tile_boxes`).
+    border : float
+        Fraction of each side left out.
+    min_cc : float
+        ECC correlation a tile's gradients must reach after the shift to be used.
+
+    Returns
+    -------
+    BandResidual
+        Median shift magnitude and components over the tiles used (full-resolution px), and
+        each used tile's shift and centre.
+
+    Raises
+    ------
+    InputError
+        When the two images differ in size.
+
+    Notes
+    -----
     Measured in tiles on decimated gradient images (the module docstring's steps 1-5).
     """
     if ref.shape != band.shape:
@@ -179,7 +267,21 @@ def _residual(ref: tuple[np.ndarray, np.ndarray, float], band: tuple[np.ndarray,
 
 def summarise(shifts: Sequence[tuple[float, float]],
               points: Sequence[tuple[float, float]] = ()) -> BandResidual:
-    """Summarise tile shifts (px): median magnitude, median components and count."""
+    """Summarise tile shifts (px): median magnitude, median components and count.
+
+    Parameters
+    ----------
+    shifts : sequence of (float, float)
+        Each tile's ``(dx, dy)``.
+    points : sequence of (float, float)
+        Each tile's centre ``(x, y)``, kept in the result.
+
+    Returns
+    -------
+    BandResidual
+        ``median(|d|)``, ``median(dx)``, ``median(dy)``, the count, the shifts and the points;
+        NaN figures and no tiles when ``shifts`` is empty.
+    """
     if not shifts:
         nan = float("nan")
         return BandResidual(nan, nan, nan, 0, ())
@@ -193,7 +295,31 @@ def stack_residuals(stack: np.ndarray, reference: int, *, max_side: int = MAX_SI
                     border: float = BORDER, min_cc: float = MIN_CC) -> list[BandResidual]:
     """Measure every band of a ``(band, H, W)`` capture against band ``reference``.
 
-    :func:`band_residual` per band; the reference band's own entry is zero, with no tiles.
+    Parameters
+    ----------
+    stack : numpy.ndarray
+        ``(band, H, W)`` capture, its bands on one grid.
+    reference : int
+        The reference band.
+    max_side : int
+        Long side (px) the bands are decimated to (:func:`decimate`).
+    tiles : tuple of int
+        ``(rows, columns)`` of tiles (:func:`tile_boxes`).
+    border : float
+        Fraction of each side left out.
+    min_cc : float
+        ECC correlation a tile's gradients must reach after the shift to be used.
+
+    Returns
+    -------
+    list of BandResidual
+        One per band (:func:`band_residual`); the reference band's own entry is zero, with no
+        tiles.
+
+    Raises
+    ------
+    InputError
+        Unless ``stack`` is ``(band, H, W)`` and ``reference`` one of its bands.
     """
     if stack.ndim != 3 or not 0 <= reference < stack.shape[0]:
         raise InputError(f"reference band {reference} of a stack of shape {stack.shape}")
@@ -205,8 +331,21 @@ def stack_residuals(stack: np.ndarray, reference: int, *, max_side: int = MAX_SI
 def pooled_translations(per_capture: Sequence[Sequence[BandResidual]]) -> np.ndarray:
     """Pool the tile shifts of several captures into one translation per band.
 
-    Per band the median ``(dx, dy)`` over every used tile of every capture (NaN for a band no
-    tile measured, 0 for the reference band); (band, 2) float64.
+    Parameters
+    ----------
+    per_capture : sequence of sequence of BandResidual
+        Per capture, per band (:func:`stack_residuals`).
+
+    Returns
+    -------
+    numpy.ndarray
+        (band, 2) float64: per band the median ``(dx, dy)`` over every used tile of every capture,
+        NaN for a band no tile measured, 0 for the reference band; (0, 2) without captures.
+
+    References
+    ----------
+    DJI, "P4 Multispectral Image Processing Guide" v1.0 (2020.07), step 4: image registration
+    on top of the metadata's alignment.
     """
     if not per_capture:
         return np.zeros((0, 2))
@@ -224,7 +363,16 @@ def pooled_translations(per_capture: Sequence[Sequence[BandResidual]]) -> np.nda
 def translation_transforms(shifts: np.ndarray) -> np.ndarray:
     """Turn per-band shifts into (band, 3, 3) transforms ``[[1, 0, dx], [0, 1, dy], [0, 0, 1]]``.
 
-    :func:`mscal_core.registration.align_bands` aligns with them; NaN shifts become 0.
+    Parameters
+    ----------
+    shifts : numpy.ndarray
+        (band, 2) ``(dx, dy)`` (:func:`pooled_translations`).
+
+    Returns
+    -------
+    numpy.ndarray
+        (band, 3, 3) float64 reference pixels -> band pixels, for
+        :func:`mscal_core.alignment.align_bands`; NaN shifts become 0.
     """
     d = np.nan_to_num(np.asarray(shifts, dtype=np.float64).reshape(-1, 2))
     h = np.tile(np.eye(3), (len(d), 1, 1))
@@ -233,7 +381,20 @@ def translation_transforms(shifts: np.ndarray) -> np.ndarray:
 
 
 def sample_every(n: int, limit: int) -> int:
-    """Step ``N`` of an every-Nth sample of ``n`` captures that keeps at most ``limit``."""
+    """Step ``N`` of an every-Nth sample of ``n`` captures that keeps at most ``limit``.
+
+    Parameters
+    ----------
+    n : int
+        Captures.
+    limit : int
+        Most captures wanted (below 1 counts as 1).
+
+    Returns
+    -------
+    int
+        ``max(1, ceil(n / limit))``.
+    """
     return max(1, math.ceil(n / max(1, limit)))
 
 
@@ -243,12 +404,25 @@ MIN_AFFINE_TILES = 6  # tiles (pooled) below which a band's affine is not estima
 def pooled_affines(per_capture: Sequence[Sequence[BandResidual]]) -> np.ndarray | None:
     """Fit one affine transform per band to the tile shifts of several captures.
 
+    Parameters
+    ----------
+    per_capture : sequence of sequence of BandResidual
+        Per capture, per band (:func:`stack_residuals`).
+
+    Returns
+    -------
+    numpy.ndarray or None
+        (band, 3, 3) float64 transforms (reference pixels to band pixels, identity for the
+        reference band, :func:`mscal_core.alignment.align_bands`); None without captures, when
+        a band other than the reference has fewer than :data:`MIN_AFFINE_TILES` tiles, or when a
+        fit fails.
+
+    Notes
+    -----
     Each used tile says that reference pixel ``p`` (its centre) is band pixel ``p + d``; the
-    affine ``A`` with ``A p ~ p + d`` over every tile of every capture is fitted by least
-    median of squares (``cv2.estimateAffine2D``, ``LMEDS``): rotation, scale and shear between
-    lenses that one translation leaves. Returns (band, 3, 3) transforms (reference pixels to
-    band pixels, :func:`mscal_core.registration.align_bands`), or None when a band other than
-    the reference has fewer than :data:`MIN_AFFINE_TILES` tiles or the fit fails.
+    affine ``A`` with ``A p ~ p + d`` over every tile of every capture is fitted by least median
+    of squares (``cv2.estimateAffine2D``, ``LMEDS``): rotation, scale and shear between lenses
+    that one translation leaves.
     """
     if not per_capture:
         return None

@@ -87,9 +87,7 @@ def radial_vignetting(shape: tuple[int, int], center: Sequence[float], poly: Seq
 
     References
     ----------
-    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py`` and
-           ``micasense/metadata.py``: the RedEdge / Altum radiometric calibration model and its
-           XMP tags.
+    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub): ``image.py``, ``metadata.py``.
     """
     h, w = shape
     cx, cy = float(center[0]), float(center[1])
@@ -128,9 +126,7 @@ def vignetting_2d(
 
     References
     ----------
-    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py`` and
-           ``micasense/metadata.py``: the RedEdge / Altum radiometric calibration model and its
-           XMP tags.
+    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub): ``image.py``, ``metadata.py``.
     """
     if len(exponents) != 2 * len(coefficients):
         raise ValueError(
@@ -203,13 +199,12 @@ def row_gradient(height: int, exposure_s: float, a2: float, a3: float) -> np.nda
     Returns
     -------
     numpy.ndarray
-        Shape ``(H, 1)``.
+        Shape ``(H, 1)`` float64, ``y = 0`` the top row: ``1 / t_e`` times it is the rolling
+        shutter's ``1 / (t_e + a2 y - a3 t_e y)`` of :func:`radiance`.
 
     References
     ----------
-    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py`` and
-           ``micasense/metadata.py``: the RedEdge / Altum radiometric calibration model and its
-           XMP tags.
+    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub): ``image.py``, ``metadata.py``.
     """
     y = np.arange(height, dtype=np.float64)[:, None]
     return exposure_s / (exposure_s + a2 * y - a3 * exposure_s * y)
@@ -262,11 +257,18 @@ def radiance(
         On a non-positive exposure or gain, or a vignetting map or signal that does not match
         the image.
 
+    Notes
+    -----
+    MicaSense's model [1]_, ``p = DN / 2**bits_per_sample``, ``p_BL = black_level / 2**bits_per_sample``.
+    The paper's field parts [2]_ may replace the factory's: ``vignetting = 1 / V`` (Eq. 8-10),
+    ``signal = c U(I)`` (Eq. 5-7, :func:`field_response_signal`); with both, the result is
+    ``L = U(I) / (t V)`` (Eq. 2 and 4) times ``c a1 / g`` and the row gradient.
+
     References
     ----------
-    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py`` and
-           ``micasense/metadata.py``: the RedEdge / Altum radiometric calibration model and its
-           XMP tags.
+    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub): ``image.py``, ``metadata.py``.
+    .. [2] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration for
+           Multispectral Cameras", ICRA 2017.
     """
     if exposure_s <= 0 or gain <= 0:
         raise ValueError(f"exposure ({exposure_s}) and gain ({gain}) must be positive")
@@ -314,14 +316,24 @@ def field_response_scale(
     Returns
     -------
     float
-        ``c = sum U f / sum U**2`` with ``f`` the factory's ``p - p_BL``: it minimises
-        ``sum_k (c U(k) - (k 2**dn_shift - p_BL) / 2**bits_per_sample)**2`` over the DN from the
-        black level to half of full scale, where the factory model (linear) holds.
+        ``c = sum U f / sum U**2`` over the DN used.
 
     Raises
     ------
     ValueError
         When U is zero over the lower half of the DN range.
+
+    Notes
+    -----
+    ``U`` is known only up to scale (Eq. 5 of [1]_). ``c`` minimises ``sum_k (c U(k) - f(k))**2``,
+    ``f(k) = (k 2**dn_shift - p_BL) / 2**bits_per_sample`` the factory's ``p - p_BL``, over the
+    finite ``U(k)`` whose stored value is above the black level, up to half of the sensor's
+    range (where the factory model, linear, holds).
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration for
+           Multispectral Cameras", ICRA 2017.
     """
     u = np.asarray(inverse_response, dtype=np.float64)
     k = np.arange(u.size, dtype=np.float64)
@@ -351,7 +363,13 @@ def field_response_signal(dn: np.ndarray, inverse_response: np.ndarray, *, dn_sh
     Returns
     -------
     numpy.ndarray
-        float64, the shape of ``dn``.
+        float64, the shape of ``dn``: ``c U(I)``, ``I = DN >> dn_shift`` clipped to the table,
+        with ``U(I(x)) = t E(x)`` of Eq. 4 of [1]_; it replaces ``p - p_BL`` in :func:`radiance`.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration for
+           Multispectral Cameras", ICRA 2017.
     """
     k = np.right_shift(np.asarray(dn).astype(np.int64), dn_shift)
     k = np.clip(k, 0, inverse_response.size - 1)
@@ -373,12 +391,12 @@ def panel_stats(image: np.ndarray, mask: np.ndarray, saturation: float | None = 
     Returns
     -------
     PanelStats
-        The statistics.
+        The statistics (population standard deviation).
 
     Raises
     ------
     ValueError
-        When the mask does not match the image.
+        When the mask does not match the image, or selects no pixel.
     """
     mask = np.asarray(mask, dtype=bool)
     if mask.shape != image.shape:
@@ -423,17 +441,39 @@ def sequoia_irradiance(
     sensor_model: Sequence[float],
     vignetting: np.ndarray,
 ) -> np.ndarray:
-    """Parrot Sequoia: irradiance on the sensor ``I = f^2 (p - B) / (A e g + C)``.
+    """Parrot Sequoia: irradiance on the sensor ``I = f^2 (p - B) / (A e g + C)`` [1]_.
 
-    Parrot application note SEQ AN 01 ("Sequoia: pixel value to irradiance", as quoted by
-    Parrot staff on the Parrot developer forum, thread "Details of Irradiance List tag for
-    Sunshine sensor", posts 83-85): ``p`` the stored pixel value corrected for vignetting
-    (``p / V``, ``V`` the 2-D polynomial of :func:`vignetting_polynomial_2d`), ``f`` the
-    f-number (EXIF FNumber), ``e`` the exposure in seconds (EXIF ExposureTime), ``g`` the ISO
-    value itself (EXIF ISOSpeedRatings, not ISO/100), ``A, B, C`` = XMP ``Camera:SensorModel``
-    of the band (firmware >= 1.2.1). Units: "homogeneous to SI units but with an arbitrary
-    scaling factor" (Parrot): a relative radiance. ``vignetting`` is the correction that
-    multiplies ``p`` (``1 / V``). Negative values are floored at 0.
+    Parameters
+    ----------
+    dn : numpy.ndarray
+        One band as stored.
+    f_number : float
+        ``f``, EXIF FNumber.
+    exposure_s : float
+        ``e``, EXIF ExposureTime in seconds.
+    iso : float
+        ``g``, the ISO value itself (EXIF ISOSpeedRatings, not ISO/100).
+    sensor_model : sequence of float
+        ``A, B, C`` = XMP ``Camera:SensorModel`` of the band (firmware >= 1.2.1).
+    vignetting : numpy.ndarray
+        ``1 / V``, which multiplies the stored value into ``p`` (``V`` the 2-D polynomial of
+        :func:`vignetting_polynomial_2d`).
+
+    Returns
+    -------
+    numpy.ndarray
+        float64, the shape of ``dn``, floored at 0; "homogeneous to SI units but with an
+        arbitrary scaling factor" (Parrot): a relative radiance.
+
+    Raises
+    ------
+    ValueError
+        On a non-positive exposure, ISO or f-number.
+
+    References
+    ----------
+    .. [1] Parrot, application note SEQ AN 01, "Sequoia: pixel value to irradiance", quoted on
+           Parrot's developer forum, "Details of Irradiance List tag for Sunshine sensor", 83-85.
     """
     a, b, c = (float(x) for x in sensor_model)
     if exposure_s <= 0 or iso <= 0 or f_number <= 0:
@@ -448,20 +488,54 @@ def vignetting_polynomial_2d(
 ) -> np.ndarray:
     """Return the 2-D polynomial ``P(x, y) = sum_i c_i (x/W)^ex_i (y/H)^ey_i`` itself.
 
-    The relative illumination, Parrot's ``V``; :func:`vignetting_2d` is its reciprocal, the
+    The relative illumination, Parrot's ``V`` [1]_; :func:`vignetting_2d` is its reciprocal, the
     correction.
+
+    Parameters
+    ----------
+    shape, coefficients, exponents
+        As in :func:`vignetting_2d`.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` float64.
+
+    Raises
+    ------
+    ValueError
+        When the exponents are not two per coefficient.
+
+    References
+    ----------
+    .. [1] Parrot, application note SEQ AN 01, "Sequoia: pixel value to irradiance", quoted on
+           Parrot's developer forum, "Details of Irradiance List tag for Sunshine sensor", 83-85.
     """
     return 1.0 / vignetting_2d(shape, coefficients, exponents)
 
 
 def dji_vignetting_correction(shape: tuple[int, int], center: Sequence[float], k: Sequence[float]) -> np.ndarray:
-    """Return the DJI P4 Multispectral / Mavic 3M vignetting correction.
+    """Return the DJI P4 Multispectral / Mavic 3M vignetting correction, which *multiplies* the image.
 
-    It *multiplies* the image: ``1 + k0 r + k1 r^2 + k2 r^3 + k3 r^4 + k4 r^5 + k5 r^6``.
+    Parameters
+    ----------
+    shape : tuple of int
+        ``(H, W)`` of the band.
+    center : sequence of float
+        ``(CenterX, CenterY)`` = ``drone-dji:CalibratedOpticalCenterX/Y`` in pixels.
+    k : sequence of float
+        XMP ``drone-dji:VignettingData`` (k[0]..k[5]).
 
-    DJI "P4 Multispectral Image Processing Guide" v1.0 (2020.07) Eq. 8-9 and "Mavic 3M Image
-    Processing Guide" v1.0 (2023.08): ``k`` = XMP ``drone-dji:VignettingData`` (k[0]..k[5]),
-    ``r`` the distance in pixels of pixel (x, y) from ``center`` = ``drone-dji:CalibratedOpticalCenterX/Y``.
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` float64 ``1 + k0 r + k1 r^2 + ... + k5 r^6`` ([1]_ Eq. 8-9, [2]_), ``r`` the
+        distance in pixels of pixel (x, y) from ``center``.
+
+    References
+    ----------
+    .. [1] DJI, "P4 Multispectral Image Processing Guide" v1.0 (2020.07).
+    .. [2] DJI, "Mavic 3M Image Processing Guide" v1.0 (2023.08).
     """
     h, w = shape
     y, x = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -484,13 +558,43 @@ def dji_camera_value(
 ) -> np.ndarray:
     """DJI multispectral camera value ``X = pCam (p - p_BL) V / (g t)``.
 
-    DJI P4 Multispectral Image Processing Guide Eq. 6-9 (Mavic 3M guide Eq. 4-9): ``p = DN /
-    65535`` and ``p_BL = BlackLevel / 65535`` ("divide the original number by 65535"), ``V``
-    the vignetting correction (:func:`dji_vignetting_correction`), ``g`` =
-    ``drone-dji:SensorGain``, ``t`` = ``drone-dji:ExposureTime`` in microseconds (converted
-    to seconds), ``pCam`` = ``drone-dji:SensorGainAdjustment`` ("individual difference
-    correction"). Reflectance is ``X / E`` with ``E`` = ``drone-dji:Irradiance`` up to one
-    constant common to all bands (the guide's NDVI uses only ratios). Floored at 0.
+    Parameters
+    ----------
+    dn : numpy.ndarray
+        One band as stored.
+    black_level : float
+        ``BlackLevel`` in stored DN.
+    sensor_gain : float
+        ``g`` = ``drone-dji:SensorGain``.
+    exposure_us : float
+        ``t`` = ``drone-dji:ExposureTime`` in microseconds (converted to seconds).
+    vignetting : numpy.ndarray
+        ``V``, the correction (:func:`dji_vignetting_correction`).
+    gain_adjustment : float
+        ``pCam`` = ``drone-dji:SensorGainAdjustment`` ("individual difference correction").
+    full_scale : float
+        ``p = DN / full_scale``, ``p_BL = BlackLevel / full_scale`` ([1]_ Eq. 6-9, [2]_ Eq. 4-9:
+        "divide the original number by 65535").
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 camera value, the shape of ``dn``; floored at 0.
+
+    Raises
+    ------
+    ValueError
+        On a non-positive exposure or gain.
+
+    Notes
+    -----
+    Reflectance is ``X / E`` with ``E`` = ``drone-dji:Irradiance`` up to one constant common to
+    all bands (the guide's NDVI uses only ratios).
+
+    References
+    ----------
+    .. [1] DJI, "P4 Multispectral Image Processing Guide" v1.0 (2020.07).
+    .. [2] DJI, "Mavic 3M Image Processing Guide" v1.0 (2023.08).
     """
     if exposure_us <= 0 or sensor_gain <= 0:
         raise ValueError(f"exposure ({exposure_us} us) and gain ({sensor_gain}) must be positive")
@@ -573,11 +677,24 @@ def remap_band(image: np.ndarray, maps: tuple[np.ndarray, np.ndarray]) -> np.nda
 def color_transform(channels: np.ndarray, matrix: Sequence[float], rows: Sequence[int]) -> np.ndarray:
     """Sentera crosstalk removal: band ``i`` = ``sum_j M[i, j] DN_j`` over the image channels.
 
-    ``channels`` is ``(H, W, C)`` as stored (R, G, B for a JPEG); ``matrix`` the ``C x C``
-    row-major XMP ``Camera:ColorTransform`` (rows = output bands in ``Camera:BandName`` order,
-    columns = channels; checked against Sentera's published Double 4K NDVI/NDRE equations,
-    support.senterasensors.com "Double 4K multispectral NDVI and NDRE calculations");
-    ``rows`` the output bands wanted. Returns ``(len(rows), H, W)`` float64.
+    Parameters
+    ----------
+    channels : numpy.ndarray
+        ``(H, W, C)`` as stored (R, G, B for a JPEG).
+    matrix : sequence of float
+        The ``C x C`` row-major XMP ``Camera:ColorTransform`` (rows = output bands in
+        ``Camera:BandName`` order, columns = channels: checked against [1]_).
+    rows : sequence of int
+        The output bands wanted.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(len(rows), H, W)`` float64.
+
+    References
+    ----------
+    .. [1] Sentera, "Double 4K multispectral NDVI and NDRE calculations" (support.senterasensors.com).
     """
     ch = np.asarray(channels, dtype=np.float64)
     c = ch.shape[2]
@@ -653,8 +770,19 @@ def sentera_relative_radiance(
 def thermal_kelvin(dn: np.ndarray) -> np.ndarray:
     """Convert a MicaSense Altum / Altum-PT LWIR band to kelvin.
 
-    The stored DN are centi-kelvin, ``T = DN / 100`` K (micasense/imageprocessing
-    ``image.py``: ``(DN - 27315) * 0.01`` in degrees C).
+    Parameters
+    ----------
+    dn : numpy.ndarray
+        The band as stored: centi-kelvin.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 ``T = DN / 100`` K ([1]_: ``(DN - 27315) * 0.01`` in degrees C).
+
+    References
+    ----------
+    .. [1] MicaSense, ``micasense/imageprocessing`` (GitHub), ``micasense/image.py``.
     """
     return np.asarray(dn, dtype=np.float64) / 100.0
 
@@ -662,8 +790,23 @@ def thermal_kelvin(dn: np.ndarray) -> np.ndarray:
 def upright(image: np.ndarray, orientation: int) -> np.ndarray:
     """Turn an image stored with EXIF ``orientation`` to how it is meant to be seen.
 
-    1: as stored, 3: rotated 180 degrees, as Parrot Sequoia writes; 2, 4: mirrored.
-    Orientations 5-8 swap the axes and are refused (ValueError).
+    Parameters
+    ----------
+    image : numpy.ndarray
+        ``(..., H, W)``: the last two axes are rows and columns.
+    orientation : int
+        EXIF Orientation: 0 or 1 as stored, 3 rotated 180 degrees (as Parrot Sequoia writes),
+        2 mirrored left-right, 4 mirrored top-bottom.
+
+    Returns
+    -------
+    numpy.ndarray
+        A view of ``image`` turned upright (``image`` itself for 0 and 1).
+
+    Raises
+    ------
+    ValueError
+        For orientations 5-8, which swap the axes (not supported), and any other value.
     """
     if orientation in (0, 1):
         return image
@@ -678,13 +821,35 @@ def upright(image: np.ndarray, orientation: int) -> np.ndarray:
 
 def sunshine_irradiance(ch0: Sequence[float], gain_index: Sequence[int], integration_ms: Sequence[float],
                         calibration: dict[int, float]) -> float:
-    """Parrot Sequoia sunshine sensor: relative irradiance ``mean(CH0 / (g(i) t))``.
+    """Parrot Sequoia sunshine sensor: relative irradiance ``mean(CH0 / (g(i) t))`` [1]_.
 
-    The sensor is linear with no black level, ``count ~ gain(i) t E`` (Parrot, developer
-    forum thread "Details of Irradiance List tag...", post 2); the effective gain ``g(i)`` of
-    gain index ``i`` is the ratio of ``IrradianceCalibrationMeasurement`` counts taken under
-    one light, ``calibration = {i: CH0_i / t_i}``, relative to gain index 1. Readings at a
-    gain index the table does not hold, or saturated (65535), are left out.
+    Parameters
+    ----------
+    ch0 : sequence of float
+        The readings' ``CH0`` counts.
+    gain_index : sequence of int
+        Each reading's gain index ``i``.
+    integration_ms : sequence of float
+        Each reading's integration time ``t`` (ms).
+    calibration : dict of int to float
+        ``{i: CH0_i / t_i}`` from ``IrradianceCalibrationMeasurement`` (one light, each gain
+        index): ``g(i) = calibration[i] / calibration[1]``, relative to gain index 1.
+
+    Returns
+    -------
+    float
+        The mean of ``CH0 / (g(i) t)`` (relative units: the sensor is linear with no black
+        level, ``count ~ gain(i) t E``) over the readings whose gain index the table holds,
+        with a positive time, not saturated (65535).
+
+    Raises
+    ------
+    ValueError
+        When no reading is usable.
+
+    References
+    ----------
+    .. [1] Parrot, developer forum, "Details of Irradiance List tag for Sunshine sensor", post 2.
     """
     ref = calibration.get(1)
     values = []

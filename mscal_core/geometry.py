@@ -321,6 +321,17 @@ def estimate_pose(corners: np.ndarray, marker_size_m: float, intrinsics: Intrins
         On bad arguments.
     FitError
         If no pose is found or the marker plane would lie (partly) behind the camera.
+
+    Notes
+    -----
+    The pose of the marker in image ``i`` fixes the map ``pi_i: p -> x`` from the reflector plane
+    to the pixels that Eq. 8-10 of [1]_ need (:func:`project_to_pixels`).
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     pts = np.asarray(corners, dtype=np.float64)
     if pts.shape != (4, 2) or not np.all(np.isfinite(pts)):
@@ -440,6 +451,18 @@ def image_points_to_plane(points_xy: np.ndarray, pose: Pose, intrinsics: Intrins
     numpy.ndarray
         (N, 2) plane points (u, v): :func:`undistorted_rays` then :func:`rays_to_plane`; NaN
         where the ray misses the plane.
+
+    Notes
+    -----
+    ``pi_i^-1`` of Eq. 8-10 [1]_ for arbitrary image points: the undistorted viewing ray
+    ``d = (x', y', 1)`` meets the marker plane ``n . X = n . t`` at ``X = s d``,
+    ``s = (n . t) / (n . d)``, and ``(u, v, 0) = R^T (X - t)`` (:func:`rays_to_plane`).
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     return rays_to_plane(undistorted_rays(points_xy, intrinsics), pose)
 
@@ -734,6 +757,17 @@ def reflector_mask(
         Bool array of ``uv.shape[:-1]``: True where ``|u| <= w/2 - edge_margin_m`` and
         ``|v| <= h/2 - edge_margin_m`` and NOT ``|u| <= exclude_half_m and |v| <=
         exclude_half_m``. NaN plane points are False.
+
+    Notes
+    -----
+    These pixels are the reflector pixels of the vignetting fit (the region ``P`` of Eq. 8-10)
+    and of the illumination fit (``Omega`` of Eq. 12-14) [1]_.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     w, h = size_wh(size_m)
     excl = float(exclude_half_m)

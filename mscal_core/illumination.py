@@ -378,6 +378,18 @@ def split_level(spectral_factor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ------
     InputError
         Unless every S is positive and finite.
+
+    Notes
+    -----
+    ``S`` of Eq. 11-13 [1]_ is known only together with ``B``: a common factor moves between them.
+    ``beta`` is the part of it that a change of brightness alone (a passing cloud) changes, ``s``
+    the light's colour.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     s = np.asarray(spectral_factor, dtype=np.float64)
     if s.ndim not in (1, 2) or s.shape[-1] < 1 or not np.all(np.isfinite(s) & (s > 0)):
@@ -408,6 +420,18 @@ def capture_weights(capture_times: np.ndarray, frame_times: np.ndarray, mode: st
     ------
     InputError
         For an unknown mode, no capture, NaN times, or two captures at the same time.
+
+    Notes
+    -----
+    The paper assumes the light constant during a calibration dataset [1]_; over a flight the
+    reflector captures' ``S(lambda)`` of Eq. 13 are interpolated in time with these weights
+    (:func:`frame_illumination`).
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     if mode not in INTERPOLATION_MODES:
         raise InputError(f"illumination interpolation {mode!r}: use one of {', '.join(INTERPOLATION_MODES)}")
@@ -532,6 +556,17 @@ def colour_change(capture_spectral_factor: np.ndarray) -> np.ndarray:
     numpy.ndarray
         (n_captures - 1,) ``max_lambda |s_{c+1}(lambda) / s_c(lambda) - 1|``, with ``s`` the
         colour of :func:`split_level` (the level removed, so a passing cloud does not count).
+
+    Notes
+    -----
+    Eq. 11 of [1]_ takes the light's colour ``S(lambda)`` as one per dataset; this measures how
+    much it changed between the captures of a flight.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     _, colour = split_level(np.atleast_2d(np.asarray(capture_spectral_factor, dtype=np.float64)))
     if colour.shape[0] < 2:

@@ -63,8 +63,30 @@ def _to_uint8(image: np.ndarray) -> np.ndarray:
 def detect_board(image: np.ndarray, board: Board) -> tuple[np.ndarray, np.ndarray] | None:
     """Find the board corners in one image.
 
-    Returns ``(object points (N, 3) metres, image points (N, 2) px)``, or None when fewer than
-    :data:`MIN_CORNERS` are found. Any dtype (stretched to 8 bits).
+    Parameters
+    ----------
+    image : numpy.ndarray
+        ``(H, W)`` single-band image of any dtype (stretched to 8 bits between its 0.5th and
+        99.5th percentiles).
+    board : Board
+        The board looked for.
+
+    Returns
+    -------
+    tuple of numpy.ndarray or None
+        ``(object points (N, 3) metres on the board, image points (N, 2) px)``, float64; None
+        when the board is not found or (ChArUco) fewer than :data:`MIN_CORNERS` corners are.
+
+    Raises
+    ------
+    InputError
+        When the image is not single-band.
+
+    Notes
+    -----
+    ChArUco: ``cv2.aruco.CharucoDetector`` (partly visible boards count); checkerboard:
+    ``cv2.findChessboardCornersSB`` on the ``(columns - 1, rows - 1)`` inner corners (the whole
+    board must be in view).
     """
     if np.ndim(image) != 2:
         raise InputError(f"expected a single-band image, got shape {np.shape(image)}")
@@ -98,10 +120,35 @@ def calibrate(views: Sequence[tuple[np.ndarray, np.ndarray]], shape: tuple[int, 
               guess: Intrinsics | None = None, fix_k3: bool = False) -> IntrinsicsFit:
     """Fit the intrinsics with ``cv2.calibrateCamera`` on board views.
 
-    Views ``[(object (N, 3), image (N, 2)), ...]`` of an image ``shape`` (H, W). ``fix_k3``
-    keeps ``k3 = 0`` (few or small views: ``k2`` and ``k3`` trade off and extrapolate badly to
-    the image corners). :class:`FitError` with fewer than 3 views (the principal point and
-    distortion are not constrained by fewer).
+    Parameters
+    ----------
+    views : sequence of tuple of numpy.ndarray
+        ``[(object (N, 3), image (N, 2)), ...]`` as from :func:`detect_board`; views with fewer
+        than :data:`MIN_CORNERS` corners are left out.
+    shape : tuple of int
+        ``(H, W)`` of the images.
+    guess : Intrinsics, optional
+        Starting intrinsics (``CALIB_USE_INTRINSIC_GUESS``).
+    fix_k3 : bool
+        Keep ``k3 = 0`` (few or small views: ``k2`` and ``k3`` trade off and extrapolate badly to
+        the image corners).
+
+    Returns
+    -------
+    IntrinsicsFit
+        The intrinsics (OpenCV's 5-coefficient model ``[k1, k2, p1, p2, k3]``), the reprojection
+        rms (px) and the number of views used.
+
+    Raises
+    ------
+    FitError
+        With fewer than 3 usable views (the principal point and distortion are not constrained
+        by fewer), or when the fit does not converge to finite values.
+
+    References
+    ----------
+    .. [1] Z. Zhang, "A flexible new technique for camera calibration", IEEE Trans. Pattern
+           Analysis and Machine Intelligence 22(11), 2000 (the method of ``cv2.calibrateCamera``).
     """
     views = [(o, i) for o, i in views if len(o) >= MIN_CORNERS]
     if len(views) < 3:

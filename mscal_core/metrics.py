@@ -25,6 +25,17 @@ def response_error(u_est: np.ndarray, u_true: np.ndarray, lo_frac: float = 0.05,
         Max ``|s U_est(k) - U_true(k)|`` over ``k`` in ``[lo, hi]``, divided by ``U_true(hi)``;
         ``s`` is the least-squares scale aligning the two over that range (U is known up to a
         scale: Eq. 5 is invariant to it).
+
+    Notes
+    -----
+    ``s = sum U_est U_true / sum U_est^2`` over ``[lo, hi]``: the scale of Eq. 5-7 of [1]_ fixed
+    the way the truth fixes it.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     n = u_true.shape[-1]
     dn_max = n - 1
@@ -48,6 +59,17 @@ def vignetting_rms(v_est: np.ndarray, v_true: np.ndarray, mask: np.ndarray | Non
     -------
     float
         The relative RMS error.
+
+    Notes
+    -----
+    ``sqrt(mean((V_est / V_true - 1)^2))`` over the finite ratios of ``mask``; both ``V`` carry the
+    max-1 scale of Eq. 8-10 of [1]_.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     r = np.asarray(v_est, float) / np.asarray(v_true, float) - 1.0
     if mask is not None:
@@ -68,6 +90,17 @@ def spectral_factor_error(s_est: np.ndarray, s_true: np.ndarray) -> float:
     -------
     float
         Max over bands of ``|a S_est / S_true - 1|``, ``a`` the least-squares scale.
+
+    Notes
+    -----
+    ``a = sum S_est S_true / sum S_est^2``: ``S`` of Eq. 12-13 of [1]_ is known up to a common
+    scale (it trades with ``B``).
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     a, b = np.asarray(s_est, float), np.asarray(s_true, float)
     s = float(a @ b / (a @ a))

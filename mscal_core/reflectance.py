@@ -250,6 +250,18 @@ def keep_valid(values: np.ndarray, valid_range: tuple[float, float] | None = Non
 
     The edge rule of every spectral index: the catalog's ``valid_range``
     (``catalogs/indices/*.yaml``, inclusive) and :func:`ndvi`.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        Floating-point values of an index.
+    valid_range : tuple of float, optional
+        ``(lo, hi)``, inclusive; None keeps every finite value.
+
+    Returns
+    -------
+    numpy.ndarray
+        The dtype and shape of ``values``.
     """
     out = np.asarray(values)
     bad = ~np.isfinite(out)
@@ -299,9 +311,30 @@ def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
 def vegetation_mask(ndvi: np.ndarray) -> np.ndarray:
     """Return the paper's vegetation segmentation: Otsu's threshold of the NDVI of one frame.
 
-    uint8: 1 vegetation, 0 not, 255 where NDVI is not defined. NDVI is quantised to 256
-    levels (``uint8((ndvi + 1) * 127.5)``) and OpenCV's Otsu picks the level; a pixel is
-    vegetation above it, i.e. from :func:`otsu_ndvi_threshold` up.
+    Parameters
+    ----------
+    ndvi : numpy.ndarray
+        NDVI of one frame (:func:`ndvi`), NaN where not defined.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 the shape of ``ndvi``: 1 vegetation, 0 not, 255 where NDVI is not defined (every
+        pixel 255 when fewer than two are defined).
+
+    Notes
+    -----
+    NDVI is quantised to 256 levels (``uint8((ndvi + 1) * 127.5)``) and OpenCV's Otsu [2]_ picks
+    the level; a pixel is vegetation above it, i.e. from :func:`otsu_ndvi_threshold` up. The
+    paper segments plants this way to compare calibrated and raw NDVI [1]_.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
+    .. [2] N. Otsu, "A threshold selection method from gray-level histograms", IEEE Trans.
+           Systems, Man, and Cybernetics 9(1), 1979.
     """
     ok = np.isfinite(ndvi)
     out = np.full(ndvi.shape, 255, dtype=np.uint8)
@@ -315,7 +348,21 @@ def vegetation_mask(ndvi: np.ndarray) -> np.ndarray:
 def otsu_ndvi_threshold(ndvi: np.ndarray) -> float:
     """Return the NDVI from which :func:`vegetation_mask` calls a pixel vegetation.
 
-    ``ndvi >= t`` on the 256 levels; NaN when fewer than two pixels are defined.
+    Parameters
+    ----------
+    ndvi : numpy.ndarray
+        NDVI of one frame, NaN where not defined.
+
+    Returns
+    -------
+    float
+        ``t`` with vegetation where ``ndvi >= t`` on the 256 levels, ``(level + 1) / 127.5 - 1``
+        for Otsu's level; NaN when fewer than two pixels are defined.
+
+    References
+    ----------
+    .. [1] N. Otsu, "A threshold selection method from gray-level histograms", IEEE Trans.
+           Systems, Man, and Cybernetics 9(1), 1979.
     """
     v = np.asarray(ndvi)
     v = v[np.isfinite(v)]
@@ -361,7 +408,15 @@ def eq15_tables(
 
     Notes
     -----
-    Computed once per calibration, reused for every frame.
+    Eq. 15 of [1]_, ``R = U(I) / (t V S B)`` with ``B = 1``, regrouped as
+    ``(U(I) / S) * (1 / V) / t``: the two tables are computed once per calibration and reused
+    for every frame.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
     """
     u = np.asarray(inverse_response, dtype=np.float64)
     s = np.asarray(spectral_factor, dtype=np.float64).reshape(-1, 1)

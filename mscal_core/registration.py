@@ -41,7 +41,9 @@ from typing import Sequence
 import cv2
 import numpy as np
 
+from .alignment import warp_to_reference
 from .errors import FitError, InputError
+from .homography import map_points, normalise_homography, scale_homography
 
 INLIER_PX = 2.0  # a feature match agrees with a homography within this (px), see feature_homography
 # Pyramid levels until the coarsest image is this small (px, shorter side): phase correlation
@@ -90,7 +92,9 @@ class BandRegistration:
     homography : numpy.ndarray
         (3, 3) float64, maps reference pixels to band pixels.
     method : str
-        ``"identity"`` (the reference itself), ``"ecc"`` or ``"features"``.
+        ``"identity"`` (the reference itself), ``"ecc"``, ``"features"``, ``"failed"`` (no
+        estimate: the identity), or the methods of a composed transform joined by ``+``
+        (:func:`register_stack`).
     ecc : float
         The gradient correlation after warping (nan if not computable).
     n_matches : int
@@ -121,8 +125,21 @@ class BandRegistration:
 def normalise(image: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """Image scaled to about [0, 1] by its 1st and 99th percentiles (float32).
 
-    DN of any bit depth and exposure look alike to the next steps. ``mask`` (bool) selects the
-    pixels used for the percentiles.
+    DN of any bit depth and exposure look alike to the next steps.
+
+    Parameters
+    ----------
+    image : numpy.ndarray
+        Image of any numeric dtype.
+    mask : numpy.ndarray, optional
+        Bool, the pixels used for the percentiles (every pixel by default); non-finite pixels
+        are never used.
+
+    Returns
+    -------
+    numpy.ndarray
+        float32 of the image's shape, ``(I - p1) / (p99 - p1)`` (divided by 1 when the two
+        percentiles are equal), NaN as 0 and +/-inf as 1/0; all zeros when no pixel is finite.
     """
     a = np.asarray(image, dtype=np.float32)
     vals = a[mask] if mask is not None else a
@@ -138,11 +155,23 @@ def normalise(image: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
 def gradient_image(image: np.ndarray, sigma: float = 1.0) -> np.ndarray:
     """Return the gradient magnitude of the normalised image.
 
-    Gradient magnitude ``|grad(G_sigma * I)|`` (3x3 Sobel after a Gaussian of ``sigma`` px) of
-    the percentile-normalised image (:func:`normalise`), float32.
+    Parameters
+    ----------
+    image : numpy.ndarray
+        ``(H, W)`` image of any numeric dtype.
+    sigma : float
+        Standard deviation (px) of the Gaussian applied before the gradient; 0 applies none.
 
-    The magnitude is blind to the sign of an edge, so vegetation that is dark in red and
-    bright in NIR gives the same edges in both bands.
+    Returns
+    -------
+    numpy.ndarray
+        ``(H, W)`` float32 gradient magnitude.
+
+    Notes
+    -----
+    ``|grad(G_sigma * I)|`` (3x3 Sobel after a Gaussian of ``sigma`` px) of the
+    percentile-normalised image (:func:`normalise`). The magnitude is blind to the sign of an
+    edge, so vegetation that is dark in red and bright in NIR gives the same edges in both bands.
     """
     a = normalise(image)
     if sigma > 0:
@@ -155,8 +184,22 @@ def gradient_image(image: np.ndarray, sigma: float = 1.0) -> np.ndarray:
 def correlation(a: np.ndarray, b: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Pearson correlation coefficient of two images over ``mask`` (and finite pixels).
 
-    Nan with fewer than 100 pixels or a constant image. This is ECC's criterion (the zero-mean
-    normalised correlation) evaluated once.
+    Parameters
+    ----------
+    a, b : numpy.ndarray
+        Images of the same shape.
+    mask : numpy.ndarray, optional
+        Bool, the pixels compared (besides the finite ones).
+
+    Returns
+    -------
+    float
+        The correlation in [-1, 1]; NaN with fewer than 100 pixels or a constant image.
+
+    Notes
+    -----
+    ``sum(x' y') / sqrt(sum(x'^2) sum(y'^2))`` with ``x' = x - mean(x)``: ECC's criterion (the
+    zero-mean normalised correlation) evaluated once.
     """
     ok = np.isfinite(a) & np.isfinite(b)
     if mask is not None:
@@ -175,123 +218,23 @@ def gradient_correlation(ref: np.ndarray, band: np.ndarray, mask: np.ndarray | N
                          sigma: float = 1.0) -> float:
     """Correlate the gradient magnitudes of two images.
 
-    Correlation of the gradient magnitudes of two images of the same grid (the figure used to
-    judge band-to-band alignment: high where edges coincide).
+    The figure used to judge band-to-band alignment: high where edges coincide.
+
+    Parameters
+    ----------
+    ref, band : numpy.ndarray
+        Images of the same grid.
+    mask : numpy.ndarray, optional
+        Bool, the pixels compared.
+    sigma : float
+        Gaussian of :func:`gradient_image`.
+
+    Returns
+    -------
+    float
+        :func:`correlation` of the two :func:`gradient_image`; NaN as there.
     """
     return correlation(gradient_image(ref, sigma), gradient_image(band, sigma), mask)
-
-
-def warp_to_reference(band: np.ndarray, homography: np.ndarray, shape: tuple[int, int],
-                      interpolation: int = cv2.INTER_LINEAR, fill: float = float("nan")) -> np.ndarray:
-    """``aligned(x) = band(H x)`` on a reference grid of ``shape`` (H, W).
-
-    Pixels whose source lies outside the band are ``fill``. float32 unless ``band`` is float64.
-    """
-    src = band if band.dtype in (np.float32, np.float64) else band.astype(np.float32)
-    return cv2.warpPerspective(src, np.asarray(homography, dtype=np.float64), (shape[1], shape[0]),
-                               flags=interpolation | cv2.WARP_INVERSE_MAP,
-                               borderMode=cv2.BORDER_CONSTANT, borderValue=fill)
-
-
-def valid_mask(homography: np.ndarray, band_shape: tuple[int, int], shape: tuple[int, int],
-               margin: float = 1.0) -> np.ndarray:
-    """Mask the reference pixels ``x`` whose band pixel ``H x`` lies at least ``margin`` px inside the band."""
-    h, w = shape
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float64)
-    p = map_points(homography, np.stack([xs.ravel(), ys.ravel()], axis=1))
-    bh, bw = band_shape
-    ok = (p[:, 0] >= margin) & (p[:, 0] <= bw - 1 - margin) & (p[:, 1] >= margin) & (p[:, 1] <= bh - 1 - margin)
-    return ok.reshape(h, w)
-
-
-# --------------------------------------------------------------------------- geometry
-
-
-def map_points(homography: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """``H x`` for (N, 2) points (x, y), dehomogenised; (N, 2) float64."""
-    p = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    q = np.c_[p, np.ones(len(p))] @ np.asarray(homography, dtype=np.float64).T
-    return q[:, :2] / q[:, 2:3]
-
-
-def local_motion(homography: np.ndarray, point: tuple[float, float]) -> tuple[float, float, float, float]:
-    """Describe what ``H`` does near ``point`` (x, y) of the reference image, for people to read.
-
-    The shift ``H x - x`` (dx, dy, px), the rotation (degrees, counter-clockwise in image
-    coordinates) and the scale of its Jacobian ``J = d(H x)/dx`` there, with rotation =
-    atan2(J10 - J01, J00 + J11) and scale = sqrt(|det J|).
-    """
-    h = _normalised(homography)
-    x, y = float(point[0]), float(point[1])
-    w = h[2, 0] * x + h[2, 1] * y + 1.0
-    u = (h[0, 0] * x + h[0, 1] * y + h[0, 2]) / w
-    v = (h[1, 0] * x + h[1, 1] * y + h[1, 2]) / w
-    j = np.array([[h[0, 0] - u * h[2, 0], h[0, 1] - u * h[2, 1]],
-                  [h[1, 0] - v * h[2, 0], h[1, 1] - v * h[2, 1]]]) / w
-    rotation = float(np.degrees(np.arctan2(j[1, 0] - j[0, 1], j[0, 0] + j[1, 1])))
-    return u - x, v - y, rotation, float(np.sqrt(abs(np.linalg.det(j))))
-
-
-def grid_points(shape: tuple[int, int], n: tuple[int, int] = (9, 12), margin: float = 0.05) -> np.ndarray:
-    """Return an evenly spaced grid of points over an image.
-
-    An ``n = (rows, cols)`` grid of points (x, y) over an image of ``shape`` (H, W), inset by
-    ``margin`` of the size on each side; (rows * cols, 2) float64.
-    """
-    h, w = shape
-    ys = np.linspace(margin * (h - 1), (1 - margin) * (h - 1), n[0])
-    xs = np.linspace(margin * (w - 1), (1 - margin) * (w - 1), n[1])
-    gx, gy = np.meshgrid(xs, ys)
-    return np.stack([gx.ravel(), gy.ravel()], axis=1)
-
-
-def transform_distance(h_a: np.ndarray, h_b: np.ndarray, shape: tuple[int, int],
-                       n: tuple[int, int] = (9, 12)) -> np.ndarray:
-    """Distances (px) between ``H_a x`` and ``H_b x`` over :func:`grid_points` of ``shape``.
-
-    The misalignment one transform leaves against the other. (N,) float64.
-    """
-    pts = grid_points(shape, n)
-    return np.linalg.norm(map_points(h_a, pts) - map_points(h_b, pts), axis=1)
-
-
-def scale_homography(homography: np.ndarray, factor: float) -> np.ndarray:
-    """Return the same mapping on images scaled by ``factor`` (coordinates ``x' = factor x``).
-
-    ``S H S^-1`` with ``S = diag(f, f, 1)``.
-    """
-    s = np.diag([factor, factor, 1.0])
-    return s @ np.asarray(homography, dtype=np.float64) @ np.diag([1.0 / factor, 1.0 / factor, 1.0])
-
-
-def _normalised(h: np.ndarray) -> np.ndarray:
-    h = np.asarray(h, dtype=np.float64)
-    return h / h[2, 2]
-
-
-def combine_homographies(homographies: Sequence[np.ndarray], shape: tuple[int, int],
-                         n: tuple[int, int] = (9, 12)) -> tuple[np.ndarray, float]:
-    """Robust combination of several estimates of one transform.
-
-    Every estimate maps the :func:`grid_points` of ``shape``; the coordinate-wise median of the
-    mapped points is fitted by a least-squares homography (``cv2.findHomography``, method 0).
-    Half of the estimates may be arbitrarily wrong (breakdown point of the median). Returns the
-    homography and the spread: the median over grid points of the median distance of the
-    estimates to it (px).
-    """
-    hs = [np.asarray(h, dtype=np.float64) for h in homographies]
-    if not hs:
-        raise FitError("no transform estimates to combine", hint="register at least one capture")
-    if len(hs) == 1:
-        return _normalised(hs[0]), 0.0
-    pts = grid_points(shape, n)
-    mapped = np.stack([map_points(h, pts) for h in hs])  # (k, N, 2)
-    med = np.median(mapped, axis=0)
-    h, _ = cv2.findHomography(pts, med, 0)
-    if h is None:
-        raise FitError("the median of the transforms is degenerate", hint="check the captures' registrations")
-    spread = float(np.median(np.median(np.linalg.norm(mapped - med[None], axis=2), axis=0)))
-    return _normalised(h), spread
 
 
 # --------------------------------------------------------------------------- estimation
@@ -305,15 +248,42 @@ def _pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
 
 
 def pyramid_levels(shape: tuple[int, int], coarsest_px: int = COARSEST_PX) -> int:
-    """Count the halvings until the shorter side is about ``coarsest_px``."""
+    """Count the halvings until the shorter side is about ``coarsest_px``.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        ``(H, W)`` of the full-resolution image.
+    coarsest_px : int
+        Wanted shorter side (px) of the coarsest level.
+
+    Returns
+    -------
+    int
+        ``max(0, floor(log2(min(H, W) / coarsest_px)))``.
+    """
     return max(0, int(math.floor(math.log2(max(1.0, min(shape) / coarsest_px)))))
 
 
 def phase_shift(ref: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, float]:
     """Estimate a translation by phase correlation.
 
-    Translation ``d`` with ``band(x + d) ~ ref(x)`` by phase correlation (Hanning window) and
-    its peak response (0-1). Returns the homography ``[[1, 0, dx], [0, 1, dy], [0, 0, 1]]``.
+    Parameters
+    ----------
+    ref, band : numpy.ndarray
+        Images of the same shape.
+
+    Returns
+    -------
+    homography : numpy.ndarray
+        ``[[1, 0, dx], [0, 1, dy], [0, 0, 1]]`` float64.
+    response : float
+        The phase correlation's peak response (0-1).
+
+    Notes
+    -----
+    The translation ``d = (dx, dy)`` with ``band(x + d) ~ ref(x)`` from ``cv2.phaseCorrelate``
+    with a Hanning window.
     """
     win = cv2.createHanningWindow((ref.shape[1], ref.shape[0]), cv2.CV_32F)
     (dx, dy), response = cv2.phaseCorrelate(ref.astype(np.float32), band.astype(np.float32), win)
@@ -350,6 +320,20 @@ def ecc_homography(ref_grad: np.ndarray, band_grad: np.ndarray, init: np.ndarray
     numpy.ndarray or None
         The homography mapping reference pixels to band pixels, or None if ECC fails to
         converge at the finest level.
+
+    Notes
+    -----
+    ECC maximises the zero-mean normalised correlation of ``ref(x)`` and ``band(H x)`` over the
+    8 parameters of ``H``. The pyramid halves the images ``levels`` times; the estimate of a
+    level starts the next finer one as ``S H S^-1`` with ``S = diag(2, 2, 1)``
+    (:func:`~mscal_core.homography.scale_homography`). A coarser level that fails keeps the
+    previous estimate (unless ``min_cc`` is given).
+
+    References
+    ----------
+    Evangelidis, G. D. and Psarakis, E. Z., "Parametric image alignment using enhanced
+    correlation coefficient maximization", IEEE Trans. Pattern Analysis and Machine
+    Intelligence 30(10), 2008.
     """
     if levels is None:
         levels = pyramid_levels(ref_grad.shape)
@@ -374,7 +358,7 @@ def ecc_homography(ref_grad: np.ndarray, band_grad: np.ndarray, init: np.ndarray
             continue  # keep the estimate and try the finer level
         if min_cc is not None and level > 0 and cc < min_cc:
             return None
-        h = _normalised(warp.astype(np.float64))
+        h = normalise_homography(warp.astype(np.float64))
     return h
 
 
@@ -390,7 +374,26 @@ class Features:
 def detect_features(grad: np.ndarray) -> Features:
     """Keypoints of a gradient image (scaled to 8 bits at its 99.5th percentile).
 
-    SIFT (OpenCV 5's main modules have no AKAZE), ORB when SIFT finds fewer than 50.
+    Parameters
+    ----------
+    grad : numpy.ndarray
+        Gradient image (:func:`gradient_image`).
+
+    Returns
+    -------
+    Features
+        Keypoints (N, 2) (x, y), their descriptors (None when none were found) and the norm
+        that compares the descriptors.
+
+    Notes
+    -----
+    SIFT (OpenCV 5's main modules have no AKAZE), at most :data:`MAX_FEATURES` keypoints; ORB
+    when SIFT finds fewer than 50.
+
+    References
+    ----------
+    Lowe, D. G., "Distinctive image features from scale-invariant keypoints",
+    International Journal of Computer Vision 60(2), 2004.
     """
     hi = float(np.percentile(grad, 99.5)) or 1.0
     image8 = np.clip(grad * (255.0 / hi), 0, 255).astype(np.uint8)
@@ -404,9 +407,30 @@ def detect_features(grad: np.ndarray) -> Features:
 
 
 def feature_matches(ref: Features, band: Features, ratio: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
-    """Match keypoints ``(ref_xy, band_xy)`` (N, 2) of two images' :func:`detect_features`.
+    """Match the keypoints of two images' :func:`detect_features`.
 
-    Lowe's ratio test ``ratio`` and mutual best matches only.
+    Parameters
+    ----------
+    ref, band : Features
+        Keypoints of the reference and of the band.
+    ratio : float
+        Lowe's ratio test: a match is kept if its descriptor distance is below ``ratio`` times
+        that of the second best.
+
+    Returns
+    -------
+    ref_xy, band_xy : numpy.ndarray
+        (N, 2) float64 matched points (x, y); (0, 2) when either image has fewer than two
+        keypoints, no descriptors, or the two use different descriptor norms.
+
+    Notes
+    -----
+    Brute-force matching; only mutual best matches that pass the ratio test are kept.
+
+    References
+    ----------
+    Lowe, D. G., "Distinctive image features from scale-invariant keypoints",
+    International Journal of Computer Vision 60(2), 2004.
     """
     empty = (np.zeros((0, 2)), np.zeros((0, 2)))
     if (ref.descriptors is None or band.descriptors is None or len(ref.points) < 2 or len(band.points) < 2
@@ -425,21 +449,46 @@ def feature_matches(ref: Features, band: Features, ratio: float = 0.8) -> tuple[
 def feature_homography(ref_xy: np.ndarray, band_xy: np.ndarray) -> np.ndarray | None:
     """Fit a RANSAC homography to matched points.
 
-    RANSAC homography (``cv2.findHomography``, reprojection threshold :data:`INLIER_PX`) of
-    matched points, refined on its inliers (Levenberg-Marquardt inside OpenCV); None with fewer
-    than 8 matches or no consensus.
+    Parameters
+    ----------
+    ref_xy, band_xy : numpy.ndarray
+        (N, 2) matched points (x, y) of the reference and of the band (:func:`feature_matches`).
+
+    Returns
+    -------
+    numpy.ndarray or None
+        (3, 3) float64 homography mapping reference pixels to band pixels, scaled to
+        ``H[2, 2] = 1``; None with fewer than 8 matches or no consensus.
+
+    Notes
+    -----
+    ``cv2.findHomography`` with RANSAC (reprojection threshold :data:`INLIER_PX`, 5000
+    iterations, confidence 0.999), refined on its inliers (Levenberg-Marquardt inside OpenCV).
     """
     if len(ref_xy) < 8:
         return None
     h, _ = cv2.findHomography(ref_xy, band_xy, cv2.RANSAC, INLIER_PX, maxIters=5000, confidence=0.999)
-    return None if h is None else _normalised(h)
+    return None if h is None else normalise_homography(h)
 
 
 def match_quality(homography: np.ndarray, ref_xy: np.ndarray, band_xy: np.ndarray) -> tuple[int, float, float]:
-    """``(n_inliers, inlier_ratio, residual_px)`` of matches against a homography.
+    """Count and measure the matches that agree with a homography.
 
-    Matches with ``|H x_ref - x_band| <= INLIER_PX`` are inliers; the residual is their rms
-    distance.
+    Parameters
+    ----------
+    homography : numpy.ndarray
+        (3, 3) reference pixels -> band pixels.
+    ref_xy, band_xy : numpy.ndarray
+        (N, 2) matched points (x, y).
+
+    Returns
+    -------
+    n_inliers : int
+        Matches with ``|H x_ref - x_band| <= INLIER_PX``.
+    inlier_ratio : float
+        ``n_inliers / N`` (NaN without matches).
+    residual_px : float
+        RMS distance of the inliers (NaN without inliers).
     """
     if len(ref_xy) == 0:
         return 0, float("nan"), float("nan")
@@ -452,15 +501,50 @@ def match_quality(homography: np.ndarray, ref_xy: np.ndarray, band_xy: np.ndarra
 
 def evaluate(homography: np.ndarray, method: str, ref_grad: np.ndarray, band_grad: np.ndarray,
              matches: tuple[np.ndarray, np.ndarray]) -> BandRegistration:
-    """Quality figures of one homography (see :class:`BandRegistration`)."""
+    """Quality figures of one homography (see :class:`BandRegistration`).
+
+    Parameters
+    ----------
+    homography : numpy.ndarray
+        (3, 3) reference pixels -> band pixels.
+    method : str
+        How it was estimated (``"ecc"``, ``"features"``), kept in the result.
+    ref_grad, band_grad : numpy.ndarray
+        Gradient images of the reference and of the band.
+    matches : tuple of numpy.ndarray
+        ``(ref_xy, band_xy)`` from :func:`feature_matches`.
+
+    Returns
+    -------
+    BandRegistration
+        The homography (``H[2, 2] = 1``), ``ecc`` the :func:`correlation` of the reference's
+        gradient image with the band's warped onto it (pixels the band covers), and the
+        :func:`match_quality` of the matches.
+    """
     warped = warp_to_reference(band_grad, homography, ref_grad.shape)
     ecc = correlation(ref_grad, warped)
     n_in, ratio, res = match_quality(homography, *matches)
-    return BandRegistration(_normalised(homography), method, ecc, len(matches[0]), n_in, ratio, res)
+    return BandRegistration(normalise_homography(homography), method, ecc, len(matches[0]), n_in, ratio, res)
 
 
 def accept(reg: BandRegistration, thresholds: Thresholds = Thresholds()) -> bool:
-    """Whether a band's transform passes the reject thresholds (:class:`Thresholds`)."""
+    """Whether a band's transform passes the reject thresholds (:class:`Thresholds`).
+
+    Parameters
+    ----------
+    reg : BandRegistration
+        The transform and its quality figures.
+    thresholds : Thresholds
+        The reject thresholds.
+
+    Returns
+    -------
+    bool
+        True for the reference itself (``method == "identity"``); otherwise the ECC correlation
+        must be finite and at least ``min_ecc`` and, when at least ``min_inliers`` matches were
+        found at all, the inliers must number ``min_inliers`` and their residual be finite and at
+        most ``max_residual_px``.
+    """
     if reg.method == "identity":
         return True
     if not (np.isfinite(reg.ecc) and reg.ecc >= thresholds.min_ecc):
@@ -506,8 +590,9 @@ def register_band(ref_grad: np.ndarray, band_grad: np.ndarray, *, init: np.ndarr
 
     Notes
     -----
-    Pyramid ECC; if ECC fails or does not pass ``thresholds``, features + RANSAC, keeping the
-    estimate with the higher gradient correlation.
+    Pyramid ECC; if ECC fails or does not pass ``thresholds``, features + RANSAC refined by
+    ECC at full resolution, keeping the estimate with the higher gradient correlation (then
+    more inliers). With no estimate at all, the identity with ``method="failed"``.
     """
     if ref_grad.shape != band_grad.shape:
         raise InputError(f"bands of one capture differ in size: {ref_grad.shape} vs {band_grad.shape}",
@@ -556,7 +641,7 @@ def _compose(edges: Sequence[BandRegistration], path: tuple[int, ...]) -> BandRe
     if len(edges) == 1:
         return replace(edges[0], path=path)
     return BandRegistration(
-        _normalised(h), "+".join(sorted({e.method for e in edges})),
+        normalise_homography(h), "+".join(sorted({e.method for e in edges})),
         float(np.min([e.ecc for e in edges])), min(e.n_matches for e in edges), min(e.n_inliers for e in edges),
         float(np.min([e.inlier_ratio for e in edges])), float(np.max([e.residual_px for e in edges])), path,
     )
@@ -616,7 +701,7 @@ def register_stack(stack: np.ndarray, reference: int, *, wavelengths: Sequence[f
     for a, b in _pairs(n, reference, wavelengths, neighbours):
         reg = register_band(grads[a], grads[b], thresholds=thresholds, ref_features=feats[a], band_features=feats[b])
         edge[(a, b)] = reg  # a -> b
-        inv = _normalised(np.linalg.inv(reg.homography))
+        inv = normalise_homography(np.linalg.inv(reg.homography))
         edge[(b, a)] = replace(reg, homography=inv)
     out: dict[int, BandRegistration] = {
         reference: BandRegistration(np.eye(3), "identity", 1.0, 0, 0, float("nan"), 0.0, (reference,))}
@@ -634,209 +719,3 @@ def register_stack(stack: np.ndarray, reference: int, *, wavelengths: Sequence[f
         chain[b] = chain[a] + [reg]
         out[b] = _compose(chain[b], out[a].path + (b,))
     return [out[b] for b in range(n)]
-
-
-def centre_reference(homographies: np.ndarray, shape: tuple[int, int]) -> int:
-    """Choose the reference band whose warps to the others are smallest.
-
-    Parameters
-    ----------
-    homographies : numpy.ndarray
-        (band, 3, 3) transforms to any one band.
-    shape : tuple of int
-        ``(H, W)`` of the bands.
-
-    Returns
-    -------
-    int
-        The band whose transforms to all other bands move the grid least (sum over bands of the
-        median grid displacement), i.e. the lens in the middle of the rig: aligning to it keeps
-        the warps and the lost border smallest.
-    """
-    n = len(homographies)
-    pts = grid_points(shape)
-    cost = np.zeros(n)
-    for c in range(n):
-        inv_c = np.linalg.inv(homographies[c])
-        for b in range(n):
-            h = homographies[b] @ inv_c
-            cost[c] += float(np.median(np.linalg.norm(map_points(h, pts) - pts, axis=1)))
-    return int(np.argmin(cost))
-
-
-def rebase(homographies: np.ndarray, reference: int) -> np.ndarray:
-    """Re-express the transforms relative to another reference band.
-
-    Parameters
-    ----------
-    homographies : numpy.ndarray
-        (band, 3, 3) transforms to the old reference.
-    reference : int
-        The new reference band.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``H'_b = H_b H_ref^-1`` (band ``reference``'s pixels -> old reference pixels -> band b
-        pixels); ``H'_reference`` is the identity.
-    """
-    inv = np.linalg.inv(homographies[reference])
-    return np.stack([_normalised(h @ inv) for h in homographies])
-
-
-# --------------------------------------------------------------------------- applying
-
-
-def align_bands(stack: np.ndarray, transforms: np.ndarray, *, interpolation: int = cv2.INTER_LINEAR,
-                fill: float = float("nan")) -> np.ndarray:
-    """Resample a band stack ``(band, H, W)`` onto the reference band's grid.
-
-    Parameters
-    ----------
-    stack : numpy.ndarray
-        ``(band, H, W)``.
-    transforms : numpy.ndarray
-        (band, 3, 3) as stored by the registration.
-    interpolation : int
-        OpenCV interpolation flag (bilinear by default).
-    fill : float
-        Value of the pixels that no band b sample covers.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``aligned_b(x) = stack_b(H_b x)``, float32 (float64 for a float64 stack). A NaN pixel
-        makes NaN the aligned pixels it contributes to (weight above 1e-3); an aligned pixel
-        needing any sample outside the band is ``fill``.
-
-    Raises
-    ------
-    InputError
-        When the number of transforms does not match the stack.
-    """
-    transforms = np.asarray(transforms, dtype=np.float64)
-    if transforms.shape != (stack.shape[0], 3, 3):
-        raise InputError(f"{transforms.shape[0]} band transforms for a {stack.shape[0]}-band stack",
-                         hint="use a registration of this camera")
-    dtype = np.float64 if stack.dtype == np.float64 else np.float32
-    out = np.empty(stack.shape, dtype=dtype)
-    shape = stack.shape[1:]
-    for b in range(stack.shape[0]):
-        if np.allclose(transforms[b], np.eye(3), atol=0.0, rtol=0.0):
-            out[b] = stack[b]
-            continue
-        band = stack[b].astype(dtype, copy=False)
-        bad = ~np.isfinite(band)
-        # warped with zeros outside; coverage and NaN by warping masks: OpenCV multiplies a
-        # NaN border or NaN pixel into its neighbours even where the weight is 0
-        h = transforms[b]
-        val = warp_to_reference(np.where(bad, 0, band).astype(dtype) if bad.any() else band, h, shape,
-                                interpolation, 0.0)
-        inside = warp_to_reference(np.ones(shape, np.float32), h, shape, interpolation, 0.0)
-        if bad.any():
-            good = warp_to_reference((~bad).astype(np.float32), h, shape, interpolation, 0.0)
-            val[good < inside - 1e-3] = np.nan
-        val[inside < 1.0 - 1e-3] = fill
-        out[b] = val
-    return out
-
-
-# --------------------------------------------------------------------------- snapshot mosaics
-
-
-def mosaic_centre_offsets(pattern_shape: tuple[int, int]) -> np.ndarray:
-    """Return the offsets ``(dx, dy)`` (band-grid pixels) of each band's samples from the mosaic's centre position.
-
-    Parameters
-    ----------
-    pattern_shape : tuple of int
-        ``(R, C)`` of the filter pattern.
-
-    Returns
-    -------
-    numpy.ndarray
-        (R*C, 2) float64 ``((c - (C-1)/2)/C, (r - (R-1)/2)/R)``, i.e. ``((c-2)/5, (r-2)/5)`` for
-        a 5 x 5 mosaic: band (r, c) pixel (i, j) samples band-grid point ``(j + c/C, i + r/R)``
-        (docs/architecture.md), the centre band ``((R-1)/2, (C-1)/2)`` samples
-        ``(j + ((C-1)/2)/C, ...)``.
-    """
-    rows, cols = pattern_shape
-    rr, cc = np.meshgrid(np.arange(rows), np.arange(cols), indexing="ij")
-    return np.stack([(cc.ravel() - (cols - 1) / 2) / cols, (rr.ravel() - (rows - 1) / 2) / rows], axis=1)
-
-
-def cubic_weights(t: float, a: float = -0.5) -> np.ndarray:
-    """Return Keys' cubic convolution weights of four neighbouring samples.
-
-    Keys' cubic convolution weights (a = -0.5: exact for quadratics) of the samples at offsets
-    -1, 0, 1, 2 for a point a fraction ``t`` in [0, 1) past sample 0.
-    """
-    d = np.abs(np.array([-1.0, 0.0, 1.0, 2.0]) - t)
-    return np.where(d <= 1, (a + 2) * d**3 - (a + 3) * d**2 + 1,
-                    np.where(d < 2, a * d**3 - 5 * a * d**2 + 8 * a * d - 4 * a, 0.0))
-
-
-def _shift_axis(band: np.ndarray, shift: float, axis: int, fill: float) -> np.ndarray:
-    """Shift bands along an axis by cubic convolution.
-
-    ``out[..., j] = band(j - shift)`` along ``axis`` by cubic convolution (four shifted copies
-    and scalar weights: no fixed-point rounding of the position as in cv2.remap); ``fill`` where
-    a needed sample is outside.
-    """
-    if shift == 0:
-        return band
-    pos0 = -shift
-    k0 = int(np.floor(pos0))
-    w = cubic_weights(pos0 - k0)
-    n = band.shape[axis]
-    out = np.zeros_like(band)
-    valid = np.ones(n, dtype=bool)
-    for m, wm in zip(range(-1, 3), w):
-        k = k0 + m  # out[j] uses band[j + k]
-        lo, hi = max(0, -k), min(n, n - k)
-        if wm != 0.0:
-            dst = [slice(None)] * band.ndim
-            src = [slice(None)] * band.ndim
-            dst[axis], src[axis] = slice(lo, hi), slice(lo + k, hi + k)
-            out[tuple(dst)] += wm * band[tuple(src)]
-            valid[:lo] = False
-            valid[hi:] = False
-    shape = [1] * band.ndim
-    shape[axis] = n
-    return np.where(valid.reshape(shape), out, fill)
-
-
-def shift_bands(stack: np.ndarray, offsets: np.ndarray, *, fill: float = float("nan")) -> np.ndarray:
-    """Resample each band of ``stack`` (band, H, W) to the common centre position.
-
-    Parameters
-    ----------
-    stack : numpy.ndarray
-        ``(band, H, W)``.
-    offsets : numpy.ndarray
-        (band, 2): band b's samples sit ``offsets[b] = (dx, dy)`` px from the centre position
-        (:func:`mosaic_centre_offsets`).
-    fill : float
-        Value of the pixels that need a sample outside the band.
-
-    Returns
-    -------
-    numpy.ndarray
-        float32 (float64 for a float64 stack): the value at the centre position of pixel (i, j)
-        is band b at ``(j - dx, i - dy)`` of its own grid, by separable cubic convolution
-        (:func:`cubic_weights`), exact for quadratic images.
-
-    Raises
-    ------
-    InputError
-        When the number of offsets does not match the stack.
-    """
-    offsets = np.asarray(offsets, dtype=np.float64)
-    if offsets.shape != (stack.shape[0], 2):
-        raise InputError(f"{len(offsets)} offsets for a {stack.shape[0]}-band stack")
-    dtype = np.float64 if stack.dtype == np.float64 else np.float32
-    out = np.empty(stack.shape, dtype=dtype)
-    for b, (dx, dy) in enumerate(offsets):
-        band = stack[b].astype(dtype, copy=False)
-        out[b] = _shift_axis(_shift_axis(band, float(dx), 1, fill), float(dy), 0, fill)
-    return out

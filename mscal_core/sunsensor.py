@@ -86,13 +86,37 @@ def sensor_normal(yaw: ArrayLike, pitch: ArrayLike, roll: ArrayLike) -> FloatArr
 
 
 def incidence_angle(sun: ArrayLike, normal: ArrayLike) -> FloatArray:
-    """Return the angle between the sun and the sensor's normal, radians, in ``[0, pi]``."""
+    """Return the angle between the sun and the sensor's normal, radians, in ``[0, pi]``.
+
+    Parameters
+    ----------
+    sun : array_like, shape (..., 3)
+        Unit vector towards the sun (:func:`sun_vector`).
+    normal : array_like, shape (..., 3)
+        Unit normal of the sensor (:func:`sensor_normal`).
+
+    Returns
+    -------
+    ndarray
+        ``theta = arccos(sun . normal)`` (the dot product clipped to [-1, 1]).
+    """
     c = np.sum(np.asarray(sun, np.float64) * np.asarray(normal, np.float64), axis=-1)
     return np.arccos(np.clip(c, -1.0, 1.0))
 
 
 def tilt_angle(normal: ArrayLike) -> FloatArray:
-    """Return the angle between the sensor's normal and straight up, radians."""
+    """Return the angle between the sensor's normal and straight up, radians.
+
+    Parameters
+    ----------
+    normal : array_like, shape (..., 3)
+        Unit normal of the sensor in North-East-Down (:func:`sensor_normal`).
+
+    Returns
+    -------
+    ndarray
+        ``arccos(-n_down)`` in ``[0, pi]``: 0 when level.
+    """
     return np.arccos(np.clip(-np.asarray(normal, np.float64)[..., 2], -1.0, 1.0))
 
 
@@ -117,6 +141,10 @@ def fresnel_transmission(theta: ArrayLike, layers: tuple[float, ...] = DIFFUSER_
     -----
     ``R_s = ((n1 cos a - n2 cos b) / (n1 cos a + n2 cos b))^2``,
     ``R_p = ((n1 cos b - n2 cos a) / (n1 cos b + n2 cos a))^2``, ``n1 sin a = n2 sin b``.
+
+    References
+    ----------
+    E. Hecht, *Optics*: the Fresnel equations.
     """
     a = np.clip(np.abs(np.asarray(theta, np.float64)), 0.0, np.pi / 2)
     t = np.ones_like(a)
@@ -134,16 +162,42 @@ def fresnel_transmission(theta: ArrayLike, layers: tuple[float, ...] = DIFFUSER_
 
 
 def relative_transmission(theta: ArrayLike, layers: tuple[float, ...] = DIFFUSER_LAYERS) -> FloatArray:
-    """Return ``tau(theta) = T(theta) / T(0)``, the diffuser's angular response (1 at normal incidence)."""
+    """Return ``tau(theta) = T(theta) / T(0)``, the diffuser's angular response (1 at normal incidence).
+
+    Parameters
+    ----------
+    theta : array_like
+        Angle of incidence, radians.
+    layers : tuple of float
+        Refractive indices from outside in (:func:`fresnel_transmission`).
+
+    Returns
+    -------
+    ndarray
+        ``tau(theta)``, 0 at and beyond grazing incidence.
+    """
     return fresnel_transmission(theta, layers) / fresnel_transmission(0.0, layers)
 
 
 def diffuse_transmission(layers: tuple[float, ...] = DIFFUSER_LAYERS, n: int = 2048) -> float:
     """Return ``tau_d``, the diffuser's response to isotropic light.
 
-    :func:`relative_transmission` averaged over the hemisphere, weighted by ``cos(theta)``
-    (``2 int tau cos sin dtheta``, midpoint rule over ``n`` steps). Computed once per
-    ``(layers, n)``: every :func:`horizontal_irradiance` needs it, and
+    Parameters
+    ----------
+    layers : tuple of float
+        Refractive indices from outside in.
+    n : int
+        Steps of the midpoint rule over ``[0, pi / 2]``.
+
+    Returns
+    -------
+    float
+        ``tau_d = 2 int_0^(pi/2) tau(theta) cos(theta) sin(theta) dtheta``.
+
+    Notes
+    -----
+    :func:`relative_transmission` averaged over the hemisphere, weighted by ``cos(theta)``.
+    Computed once per ``(layers, n)``: every :func:`horizontal_irradiance` needs it, and
     :func:`fit_diffuse_ratio` calls that 82 times per band (0.14 s of a factory apply's five
     bands otherwise).
     """
@@ -198,12 +252,22 @@ def horizontal_irradiance(reading: ArrayLike, elevation: ArrayLike, azimuth: Arr
     Returns
     -------
     HorizontalIrradiance
+        ``E_h``, ``E_dir``, ``E_dif``, ``E_h / E_meas``, the incidence and tilt angles and
+        whether the sun was above the sensor's horizon.
 
     Notes
     -----
     ``E_h = E_meas (sin el + r) / (tau(theta) max(cos theta, 0) + r tau_d (1 + cos tilt) / 2)``.
     With the sun behind the sensor only the diffuse light reaches it and ``E_h`` rests on
     ``r`` alone: such readings are flagged (``sun_visible`` False) for the caller to weigh.
+
+    References
+    ----------
+    MicaSense, "Reading DLS Irradiance Metadata" and the DLS model of
+    ``micasense/imageprocessing`` (``dls.py``).
+    W. F. Holmgren, C. W. Hansen and M. A. Mikofski, "pvlib python: a python package for
+    modeling solar energy systems", Journal of Open Source Software 3(29), 2018 (the isotropic
+    sky model).
     """
     e = np.asarray(reading, np.float64)
     r = np.asarray(diffuse_ratio, np.float64)
@@ -226,9 +290,34 @@ def sensor_reading(direct: ArrayLike, diffuse: ArrayLike, elevation: ArrayLike, 
                    pitch: ArrayLike, roll: ArrayLike, layers: tuple[float, ...] = DIFFUSER_LAYERS) -> FloatArray:
     """Return what a tilted sensor reads: the forward model of :func:`horizontal_irradiance`.
 
-    Under direct light ``direct`` (on a plane facing the sun) and isotropic diffuse light
-    ``diffuse`` (horizontal); :func:`horizontal_irradiance` with ``diffuse_ratio = diffuse /
-    direct`` inverts it. Used to simulate sun sensors with known truth.
+    Used to simulate sun sensors with known truth; :func:`horizontal_irradiance` with
+    ``diffuse_ratio = diffuse / direct`` inverts it.
+
+    Parameters
+    ----------
+    direct : array_like
+        ``E_dir``, direct light on a plane facing the sun.
+    diffuse : array_like
+        ``E_dif``, isotropic diffuse light on a horizontal plane.
+    elevation, azimuth : array_like
+        The sun's position, radians (azimuth clockwise from north).
+    yaw, pitch, roll : array_like
+        The sensor's orientation, radians, ZYX to North-East-Down.
+    layers : tuple of float
+        Refractive indices of the diffuser's layers.
+
+    Returns
+    -------
+    ndarray
+        ``E_meas = tau(theta) max(cos theta, 0) E_dir + tau_d (1 + cos tilt) / 2 E_dif``.
+
+    References
+    ----------
+    MicaSense, "Reading DLS Irradiance Metadata" and the DLS model of
+    ``micasense/imageprocessing`` (``dls.py``).
+    W. F. Holmgren, C. W. Hansen and M. A. Mikofski, "pvlib python: a python package for
+    modeling solar energy systems", Journal of Open Source Software 3(29), 2018 (the isotropic
+    sky model).
     """
     n = sensor_normal(yaw, pitch, roll)
     theta = incidence_angle(sun_vector(elevation, azimuth), n)
@@ -256,6 +345,11 @@ def dls2_horizontal(direct: ArrayLike, scattered: ArrayLike, elevation: ArrayLik
     ndarray
         ``E_h = E_dir max(sin el, 0) + E_dif`` (the model of the module docstring with the
         split measured instead of assumed).
+
+    References
+    ----------
+    MicaSense, "Reading DLS Irradiance Metadata" and the DLS model of
+    ``micasense/imageprocessing`` (``dls.py``).
     """
     el = np.asarray(elevation, np.float64)
     return np.asarray(direct, np.float64) * np.maximum(np.sin(el), 0.0) + np.asarray(scattered, np.float64)
@@ -295,6 +389,13 @@ def anchored_irradiance(panel_irradiance: ArrayLike, panel_sensor: ArrayLike, we
     Returns
     -------
     AnchoredLight
+        ``E_b(tau)``, ``q_b(tau)`` and whether the frame's sensor reading was used, each
+        (n_frames, n_bands).
+
+    Raises
+    ------
+    ValueError
+        When the shapes disagree.
 
     Notes
     -----
@@ -383,6 +484,8 @@ def fit_diffuse_ratio(reading: ArrayLike, elevation: ArrayLike, azimuth: ArrayLi
     Returns
     -------
     DiffuseFit
+        The best ratio of the grid, its roughness, the roughness at ``reference`` and the
+        readings used; ``reference`` with NaN roughness when fewer than 3 readings are usable.
 
     Notes
     -----

@@ -37,6 +37,31 @@ def incidence(rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int) -> S
     ``csr(data[order], indices, indptr)`` then sums ``data`` times a vector per pixel (``@``)
     or per cell (``.T @``), as ``np.bincount`` of the gathered products does, in one sparse
     product each, without the (observation,) temporaries.
+
+    Parameters
+    ----------
+    rows : numpy.ndarray
+        (n_obs,) integer row (pixel) index of each observation, in ``[0, n_rows)``.
+    cols : numpy.ndarray
+        (n_obs,) integer column (cell) index of each observation, in ``[0, n_cols)``.
+    n_rows, n_cols : int
+        Number of pixels and of cells.
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        ``(order, indices, indptr)``: the stable sort of the observations by row, their
+        column indices in that order and the CSR row pointers (int32 where they fit).
+
+    Notes
+    -----
+    The sums of Eq. 9 and 10 of [1]_ over a pixel's or a cell's observations are products
+    with this matrix (pixels) or its transpose (cells).
+
+    References
+    ----------
+    .. [1] R. Khanna et al., "On Field Radiometric Calibration for Multispectral Cameras",
+           ICRA 2017.
     """
     order = np.argsort(rows, kind="stable")
     indptr = np.zeros(n_rows + 1, dtype=np.int64)
@@ -47,7 +72,22 @@ def incidence(rows: np.ndarray, cols: np.ndarray, n_rows: int, n_cols: int) -> S
 
 
 def csr(data: np.ndarray, structure: Structure, shape: tuple[int, int]) -> sp.csr_matrix:
-    """Return the CSR matrix of ``data`` (one value per observation) on an :func:`incidence` structure."""
+    """Return the CSR matrix of ``data`` (one value per observation) on an :func:`incidence` structure.
+
+    Parameters
+    ----------
+    data : numpy.ndarray
+        (n_obs,) value of each observation, in observation order.
+    structure : tuple of numpy.ndarray
+        ``(order, indices, indptr)`` from :func:`incidence`.
+    shape : tuple of int
+        ``(n_rows, n_cols)`` of the matrix.
+
+    Returns
+    -------
+    scipy.sparse.csr_matrix
+        Entry ``(row, col)`` is the sum of ``data`` over the observations joining them.
+    """
     order, indices, indptr = structure
     return sp.csr_matrix((data[order], indices, indptr), shape=shape)
 
@@ -56,6 +96,20 @@ def compact(index: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     """Return ``(np.unique(index), position of each index in it)``.
 
     For indices in ``[0, size)``, by counting instead of sorting (O(n + size)).
+
+    Parameters
+    ----------
+    index : numpy.ndarray
+        (n,) non-negative integers below ``size``.
+    size : int
+        Upper bound (exclusive) of the indices.
+
+    Returns
+    -------
+    active : numpy.ndarray
+        The distinct indices in increasing order.
+    rank : numpy.ndarray
+        (n,) position of each element of ``index`` in ``active``.
     """
     seen = np.bincount(index, minlength=size) > 0
     active = np.flatnonzero(seen)
@@ -68,6 +122,36 @@ def informative(pix: np.ndarray, cell: np.ndarray, n_pix: int, n_cells: int) -> 
 
     Mask of the observations in cells seen by >= 2 different pixels, within the largest
     connected part of the pixel/cell graph.
+
+    Parameters
+    ----------
+    pix : numpy.ndarray
+        (n_obs,) pixel index of each observation, in ``[0, n_pix)``.
+    cell : numpy.ndarray
+        (n_obs,) plane-cell index of each observation, in ``[0, n_cells)``.
+    n_pix, n_cells : int
+        Number of pixels and of plane cells.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n_obs,) bool: the observations that constrain V.
+
+    Raises
+    ------
+    FitError
+        When no cell was seen by two different pixels (the views do not constrain V).
+
+    Notes
+    -----
+    Eq. 8 of [1]_ determines ``V(x)`` and ``L(p)`` only up to one common scale on each
+    connected part of the bipartite graph joining pixels to the cells they saw; a cell seen
+    by one pixel only adds an unknown for each equation and constrains nothing.
+
+    References
+    ----------
+    .. [1] R. Khanna et al., "On Field Radiometric Calibration for Multispectral Cameras",
+           ICRA 2017.
     """
     # exact integer test n * sum(p^2) - (sum p)^2 > 0 in float64: all terms are integers
     # below 2**53 here
@@ -128,6 +212,39 @@ def log_init(
     space (``a + c``, ``b - c``) does not disturb CG from a zero start; the scale is fixed
     later (``max V = 1``). Stops when the preconditioned residual has fallen by 1e-7 (1e-14
     squared) or after ``max_iter`` iterations.
+
+    Parameters
+    ----------
+    pix : numpy.ndarray
+        (n_obs,) pixel index of each observation.
+    cell : numpy.ndarray
+        (n_obs,) plane-cell index of each observation.
+    y : numpy.ndarray
+        (n_obs,) positive observed values ``U(I) / t``.
+    n_pix, n_cell : int
+        Number of pixels and of cells.
+    max_iter : int
+        Most conjugate-gradient iterations.
+    structure : tuple of numpy.ndarray
+        :func:`incidence` of ``(pix, cell)``.
+    weights : numpy.ndarray, optional
+        (n_obs,) weights ``w y^2`` of the log system; ``None``: unweighted.
+
+    Returns
+    -------
+    v : numpy.ndarray
+        (n_pix,) start of V, maximum 1.
+    lum : numpy.ndarray
+        (n_cell,) start of L on the same scale.
+
+    Notes
+    -----
+    Taking logarithms of Eq. 8 of [1]_, ``y = V(x) L(p)``, gives the linear system above.
+
+    References
+    ----------
+    .. [1] R. Khanna et al., "On Field Radiometric Calibration for Multispectral Cameras",
+           ICRA 2017.
     """
     z = np.log(y)
     z0 = float(np.median(z))
@@ -175,6 +292,40 @@ def alternate(
     ``(V, L consistent with V, sweeps, converged)``. The sums over a cell's and a pixel's
     observations are sparse products with the incidence matrix weighted by ``w y`` and ``w``
     (:func:`incidence`): ``L = (W_y' V) / (W' V^2)``, ``V = (W_y L) / (W L^2)``.
+
+    Parameters
+    ----------
+    fy : numpy.ndarray
+        (n_obs,) observed values ``y``.
+    fw : numpy.ndarray
+        (n_obs,) weights ``w`` of Eq. 8's least squares.
+    v : numpy.ndarray
+        (n_pix,) start of V.
+    nca : int
+        Number of cells.
+    max_iter : int
+        Most sweeps.
+    tol : float
+        Converged when the largest relative change of V in a sweep is below it.
+    structure : tuple of numpy.ndarray
+        :func:`incidence` of the observations.
+
+    Returns
+    -------
+    tuple
+        ``(V, L, sweeps, converged)``: V per pixel, L per cell consistent with V, the
+        number of sweeps done and whether ``tol`` was reached.
+
+    Notes
+    -----
+    Eq. 9 of [1]_, ``V(x) = sum_p w y L(p) / sum_p w L(p)^2`` (over the cells ``x`` saw), and
+    Eq. 10, ``L(p) = sum_x w y V(x) / sum_x w V(x)^2`` (over the pixels that saw ``p``), each
+    the exact minimiser of Eq. 8 with the other factor held.
+
+    References
+    ----------
+    .. [1] R. Khanna et al., "On Field Radiometric Calibration for Multispectral Cameras",
+           ICRA 2017.
     """
     npa = v.size
     wy_m = csr(fw * fy, structure, (npa, nca))

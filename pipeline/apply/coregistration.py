@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
+from mscal_core.alignment import align_bands
 from mscal_core.coregistration import (
     MAX_SIDE,
     BandResidual,
@@ -39,7 +40,6 @@ from mscal_core.coregistration import (
     stack_residuals,
     translation_transforms,
 )
-from mscal_core.registration import align_bands
 
 from pipeline.ingest.cameras.dji import factory_align
 from pipeline.ingest.catalog import Camera

@@ -43,9 +43,9 @@ import dask
 import dask.threaded
 import numpy as np
 import xarray as xr
+from mscal_core.alignment import align_bands, shift_bands
 from mscal_core.errors import FrameError, InputError, ProcessesUnavailable
 from mscal_core.reflectance import eq15_fast, eq15_tables, vegetation_mask
-from mscal_core.registration import align_bands, shift_bands
 
 from pipeline.apply.bandgrid import grid_and_residuals
 from pipeline.apply.execution import (
@@ -167,7 +167,7 @@ def geometry_step(calibration: Path, align: bool, band_shift: Sequence[tuple[flo
                   refl: np.ndarray) -> np.ndarray:
     """Eq. 15 reflectance (band, y, x) of frame ``name`` put on one pixel grid: the
     bands of a multi-lens camera warped onto the reference band (``align``: the capture's own
-    transforms if it was registered, else the session's; ``mscal_core.registration.align_bands``,
+    transforms if it was registered, else the session's; ``mscal_core.alignment.align_bands``,
     NaN where a band does not cover), or a snapshot mosaic's bands resampled to the mosaic's
     centre position (``band_shift``). Unchanged otherwise. Eq. 15 runs before: U, V and S
     belong to each band's own pixels."""

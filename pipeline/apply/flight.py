@@ -35,9 +35,9 @@ import dask.array as da
 import mscal_core
 import numpy as np
 import xarray as xr
+from mscal_core.alignment import align_bands, mosaic_centre_offsets
 from mscal_core.errors import FrameError, InputError
 from mscal_core.reflectance import eq15_fast, eq15_tables
-from mscal_core.registration import align_bands, mosaic_centre_offsets
 
 from pipeline.apply.execution import Execution, flight_size_hint, start_worker_server
 from pipeline.apply.executor import (  # noqa: F401  (re-exported: the executor's pieces were here before)

@@ -3,7 +3,7 @@
 ``mscal register CAPTURES... -o CALIB.zarr`` registers every band of each capture to a
 reference band (:func:`mscal_core.registration.register_stack`), combines the captures whose
 transforms pass the quality thresholds into one session transform per band (coordinate-wise
-median of mapped grid points, :func:`mscal_core.registration.combine_homographies`), and
+median of mapped grid points, :func:`mscal_core.homography.combine_homographies`), and
 gives captures whose band failed the threshold the session transform for that band, naming
 them. The result goes into the calibration store (new variables; stores without them load and
 apply as before):
@@ -34,16 +34,8 @@ from typing import Any, Callable, Iterator, Sequence
 import numpy as np
 import xarray as xr
 from mscal_core.errors import CalibrationStoreError, FitError, FrameError, InputError
-from mscal_core.registration import (
-    BandRegistration,
-    Thresholds,
-    accept,
-    centre_reference,
-    combine_homographies,
-    rebase,
-    register_stack,
-    transform_distance,
-)
+from mscal_core.homography import centre_reference, combine_homographies, rebase, transform_distance
+from mscal_core.registration import BandRegistration, Thresholds, accept, register_stack
 
 from pipeline.ingest.catalog import Camera, load_camera
 from pipeline.ingest.grouping import Capture, capture_folder_of, group_captures, read_capture_pixels
@@ -130,7 +122,7 @@ def register_session(stacks: Sequence[tuple[str, np.ndarray]], camera: Camera, *
 
     The captures are registered to ``reference`` if given, else to the band of median
     wavelength, and then (``reference`` None) rebased onto the band in the middle of the rig
-    (:func:`mscal_core.registration.centre_reference`: smallest warps, smallest lost border).
+    (:func:`mscal_core.homography.centre_reference`: smallest warps, smallest lost border).
     :class:`FitError` if some band passes the thresholds in no capture."""
     if not stacks:
         raise InputError("no captures to register", hint="give capture folders or band files of the session")

@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from mscal_core.alignment import align_bands
 from mscal_core.coregistration import (
     band_residual,
     pooled_affines,
@@ -15,7 +16,6 @@ from mscal_core.coregistration import (
     tile_boxes,
     translation_transforms,
 )
-from mscal_core.registration import align_bands
 
 
 def _scene(shape: tuple[int, int] = (1100, 1500), seed: int = 3) -> np.ndarray:

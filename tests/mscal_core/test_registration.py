@@ -7,6 +7,7 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
+from mscal_core import alignment, homography
 from mscal_core import registration as reg
 from mscal_core.errors import InputError
 from pipeline.sim.world.multilens import REDEDGE_WAVELENGTHS_NM, multilens_capture
@@ -32,11 +33,11 @@ def test_residual_misalignment_below_0_3_px(seed: int, texture: float) -> None:
     regs = _registered(seed, texture)
     shape = cap.dn.shape[1:]
     for b, r in enumerate(regs):
-        d = reg.transform_distance(r.homography, cap.homographies[b], shape)
+        d = homography.transform_distance(r.homography, cap.homographies[b], shape)
         assert np.sqrt(np.mean(d**2)) < 0.3, (b, r)
         assert d.max() < 0.5, (b, r)
         assert reg.accept(r), (b, r)
-        shift = np.linalg.norm(reg.map_points(cap.homographies[b], [[160, 120]]) - [[160, 120]])
+        shift = np.linalg.norm(homography.map_points(cap.homographies[b], [[160, 120]]) - [[160, 120]])
         if b != cap.reference:
             assert shift > 2.0  # the test is not trivially satisfied by the identity
             assert r.ecc > 0.5 and r.n_inliers >= 12 and r.residual_px < 1.0
@@ -46,7 +47,7 @@ def test_residual_misalignment_below_0_3_px(seed: int, texture: float) -> None:
 def test_alignment_restores_band_to_band_gradient_correlation() -> None:
     cap = _capture(0, 0.12)
     regs = _registered(0, 0.12)
-    aligned = reg.align_bands(cap.dn.astype(np.float32), np.stack([r.homography for r in regs]))
+    aligned = alignment.align_bands(cap.dn.astype(np.float32), np.stack([r.homography for r in regs]))
     ok = np.isfinite(aligned).all(axis=0)
     assert 0.6 < ok.mean() < 1.0  # the border no band covers is NaN, the rest kept
     ref = cap.reference
@@ -75,7 +76,7 @@ def test_aligned_ndvi_matches_the_truth_at_edges() -> None:
         err = np.abs((n - r) / (n + r) - true)[20:-20, 20:-20]
         return float(np.nanpercentile(err, 95))
 
-    aligned = reg.align_bands(dn, np.stack([r.homography for r in regs]))
+    aligned = alignment.align_bands(dn, np.stack([r.homography for r in regs]))
     before, after = ndvi_error(dn), ndvi_error(aligned)
     assert before > 0.3
     assert after < 0.5 * before and after < 0.2, (before, after)
@@ -97,7 +98,7 @@ def test_feature_route_alone_locates_the_band() -> None:
     f = [reg.detect_features(x) for x in g]
     h = reg.feature_homography(*reg.feature_matches(f[cap.reference], f[4]))
     assert h is not None
-    d = reg.transform_distance(h, cap.homographies[4], g[0].shape)
+    d = homography.transform_distance(h, cap.homographies[4], g[0].shape)
     assert d.max() < 1.5
 
 
@@ -111,18 +112,18 @@ def test_combine_is_robust_to_a_wrong_estimate() -> None:
         h[:2, 2] += rng.normal(0, 0.1, 2)
         est.append(h)
     est.append(np.array([[1.0, 0.0, 40.0], [0.0, 1.0, 30.0], [0.0, 0.0, 1.0]]))  # an outlier
-    h, spread = reg.combine_homographies(est, shape)
-    assert reg.transform_distance(h, truth, shape).max() < 0.15
+    h, spread = homography.combine_homographies(est, shape)
+    assert homography.transform_distance(h, truth, shape).max() < 0.15
     assert spread < 0.3
     mean = np.mean(est, axis=0)
-    assert reg.transform_distance(mean, truth, shape).max() > 5  # a mean would not do
+    assert homography.transform_distance(mean, truth, shape).max() > 5  # a mean would not do
 
 
 def test_rebase_and_centre_reference() -> None:
     shape = (240, 320)
     hs = np.stack([np.array([[1.0, 0.0, dx], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]) for dx in (0.0, 10.0, 20.0)])
-    assert reg.centre_reference(hs, shape) == 1
-    rb = reg.rebase(hs, 1)
+    assert homography.centre_reference(hs, shape) == 1
+    rb = homography.rebase(hs, 1)
     np.testing.assert_allclose(rb[1], np.eye(3), atol=1e-12)
     np.testing.assert_allclose(rb[0][:2, 2], [-10.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(rb[2][:2, 2], [10.0, 0.0], atol=1e-12)
@@ -130,11 +131,11 @@ def test_rebase_and_centre_reference() -> None:
 
 def test_align_bands_checks_the_band_count() -> None:
     with pytest.raises(InputError, match="2 band transforms for a 3-band stack"):
-        reg.align_bands(np.zeros((3, 8, 8), np.float32), np.tile(np.eye(3), (2, 1, 1)))
+        alignment.align_bands(np.zeros((3, 8, 8), np.float32), np.tile(np.eye(3), (2, 1, 1)))
 
 
 def test_mosaic_centre_offsets_and_shift() -> None:
-    off = reg.mosaic_centre_offsets((5, 5))
+    off = alignment.mosaic_centre_offsets((5, 5))
     np.testing.assert_allclose(off[0], [-0.4, -0.4])
     np.testing.assert_allclose(off[12], [0.0, 0.0])
     np.testing.assert_allclose(off[5 * 4 + 1], [(1 - 2) / 5, (4 - 2) / 5])
@@ -145,7 +146,7 @@ def test_mosaic_centre_offsets_and_shift() -> None:
         return 0.5 * x - 0.25 * y + 0.01 * x * y - 0.02 * y**2 + 3
 
     stack = np.stack([f(xs + dx, ys + dy) for dx, dy in off])
-    out = reg.shift_bands(stack, off)
+    out = alignment.shift_bands(stack, off)
     centre = f(xs, ys)
     inner = np.s_[2:-2, 2:-2]
     for b in range(25):
@@ -154,7 +155,7 @@ def test_mosaic_centre_offsets_and_shift() -> None:
 
 
 def test_local_motion_reads_shift_rotation_and_scale() -> None:
-    from mscal_core.registration import local_motion
+    from mscal_core.homography import local_motion
 
     a, s, t = np.radians(0.8), 1.01, (3.5, -2.0)
     c, n = np.cos(a) * s, np.sin(a) * s

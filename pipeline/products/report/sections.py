@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 import xarray as xr
-from mscal_core.registration import local_motion
+from mscal_core.homography import local_motion
 
 from pipeline.ingest.sunsensor import stored_sun_sensor_model
 from pipeline.products.report.calibration import (
@@ -113,7 +113,7 @@ def _registration(ds: xr.Dataset) -> dict[str, Any]:
 
 def registration_table(ds: xr.Dataset) -> Table | None:
     """Per band of a registered store (``mscal register``): what the session transform does
-    at the image centre (shift, rotation, scale; :func:`mscal_core.registration.local_motion`),
+    at the image centre (shift, rotation, scale; :func:`mscal_core.homography.local_motion`),
     how many captures passed the thresholds and their weakest figures, and the captures'
     spread about the session transform. None for stores without a registration."""
     if "band_transform" not in ds:

@@ -12,7 +12,7 @@ import xarray as xr
 
 import pipeline.apply.executor as executor
 import pipeline.apply.flight as apply_mod
-from mscal_core.registration import mosaic_centre_offsets, shift_bands
+from mscal_core.alignment import mosaic_centre_offsets, shift_bands
 from pipeline.run.cli import main
 from pipeline.storage.store import open_calibration, write_store
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import tifffile
 
+from mscal_core import homography
 from mscal_core import registration as reg
 from mscal_core.errors import InputError
 from pipeline.calibrate.registration import frame_transforms, register_session, with_registration
@@ -42,9 +43,9 @@ def test_session_transform_and_fallback(session_reg) -> None:
     camera, truth, r = session_reg
     shape = r.shape
     # transforms are rebased onto the rig's middle lens; compare in that frame
-    truth_ref = reg.rebase(truth, r.reference)
+    truth_ref = homography.rebase(truth, r.reference)
     for b in range(camera.n_bands):
-        d = reg.transform_distance(r.transforms[b], truth_ref[b], shape)
+        d = homography.transform_distance(r.transforms[b], truth_ref[b], shape)
         assert np.sqrt(np.mean(d**2)) < 0.3, (b, d.max())
     assert [f["capture"] for f in r.fallbacks] == ["IMG_0012"]
     assert r.fallbacks[0]["bands"] == ["Blue"] and "gradient correlation" in r.fallbacks[0]["reason"]
@@ -100,7 +101,7 @@ def test_real_rededge_flight_capture_aligns(tmp_path) -> None:
     stack = np.stack([_third(band_file("0001", b)) for b in range(1, 6)])
     r = register_session([("IMG_0001", stack)], camera)
     assert r.fallbacks == () and all(all(c.accepted) for c in r.captures)
-    full = [reg.scale_homography(h, 3.0) for h in r.transforms]
+    full = [homography.scale_homography(h, 3.0) for h in r.transforms]
     r_full = replace(r, transforms=np.stack(full), capture_transforms=np.stack(full)[None], shape=(960, 1280))
     write_store(with_registration(new_dataset(camera), r_full, camera), tmp_path / "reg.zarr")
     flight = tmp_path / "flight"
@@ -174,10 +175,10 @@ def test_report_shows_the_session_transform_passes_and_fallbacks(session_reg, tm
     table = registration_table(ds)
     assert table is not None and len(table.rows) == camera.n_bands
     cols = table.columns
-    truth_ref = reg.rebase(truth, r.reference)
+    truth_ref = homography.rebase(truth, r.reference)
     h, w = r.shape
     for b, row in enumerate(table.rows):
-        dx, dy, rot, scale = reg.local_motion(truth_ref[b], ((w - 1) / 2, (h - 1) / 2))
+        dx, dy, rot, scale = homography.local_motion(truth_ref[b], ((w - 1) / 2, (h - 1) / 2))
         assert abs(row[cols.index("shift x px")] - dx) < 0.3 and abs(row[cols.index("shift y px")] - dy) < 0.3, (b, row)
         assert abs(row[cols.index("rotation deg")] - rot) < 0.05 and abs(row[cols.index("scale")] - scale) < 2e-3
         assert row[cols.index("captures passed")] == ("2/3" if camera.band_names[b] == "Blue" else "3/3")
@@ -246,7 +247,7 @@ def test_register_sentera_jpegs(tmp_path) -> None:
     ds = open_calibration(out)
     assert ds.attrs["camera"] == "sentera-d4k-ndre" and ds.attrs["registration"]["reference_band"] == "NIR"
     for h in ds["band_transform"].values:
-        assert np.max(reg.transform_distance(h, np.eye(3), (3000, 4000))) < 1.0
+        assert np.max(homography.transform_distance(h, np.eye(3), (3000, 4000))) < 1.0
     assert float(ds["registration_ecc"].values.min()) > 0.8
 
 
