@@ -12,12 +12,14 @@ from tests.no_processes import NoSemaphores
 
 #: In a fresh process: whether transparent huge pages are off for it (``PR_GET_THP_DISABLE``)
 #: before and after the workers' memory settings, whether a process it starts after has them
-#: off too, and the huge pages behind 64 MB of new, touched arrays.
+#: off too, and the huge pages behind 64 MB of new, touched arrays. The probe first clears the
+#: setting: the test's own process may hold it from an earlier test (children inherit it).
 PROBE = (
     "import ctypes, subprocess, sys\n"
     "import numpy as np\n"
     "from pipeline.storage.process import reuse_freed_memory\n"
     "get = 'import ctypes; print(ctypes.CDLL(\"libc.so.6\").prctl(42, 0, 0, 0, 0))'\n"
+    "ctypes.CDLL('libc.so.6').prctl(41, 0, 0, 0, 0)\n"  # PR_SET_THP_DISABLE 0: not inherited from this test's process
     "before = ctypes.CDLL('libc.so.6').prctl(42, 0, 0, 0, 0)\n"
     "reuse_freed_memory()\n"
     "after = ctypes.CDLL('libc.so.6').prctl(42, 0, 0, 0, 0)\n"
