@@ -58,7 +58,7 @@ def test_a_mirrored_pose_is_taken_back_by_consistency(full_session, tmp_path, mo
     assert evaluate_calibration(session, calib)["vignetting_rms_error"] < 0.015
 
 
-@pytest.mark.slow
+@pytest.mark.long  # a full-size oblique session written and calibrated, ~65 s: make test-long
 def test_oblique_far_views_meet_the_vignetting_target(tmp_path) -> None:
     # the full-size session of seed 2 with its 40 vignetting views drawn tilted up to 50 deg
     # (35 by default) at 1.3-2.0 m (0.8-1.6): markers of 20-35 px. Before both IPPE solutions

@@ -139,7 +139,7 @@ def test_views_with_the_marker_cut_by_the_border(tmp_path) -> None:
     assert full.size == 3 and all(detect_marker_corners(fs.dn[k][0], mk) is not None for k in full)
 
 
-@pytest.mark.slow
+@pytest.mark.long  # a full-size varied session written, calibrated and scored, ~55 s: make test-long
 def test_a_varied_session_is_written_and_scored(tmp_path) -> None:
     """A full-size varied session: params.json, truth.npz, and the evaluation of a calibration
     of it (``mscal calibrate``) gives every figure."""
