@@ -38,21 +38,32 @@ from typing import Any, Callable, Sequence
 import mscal_core
 import numpy as np
 import xarray as xr
-from mscal_core.errors import FrameError, InputError
+from mscal_core.errors import CalibrationStoreError, FrameError, InputError
 
 from pipeline.apply.coregistration import COREGISTRATION_CHECK, METADATA, Refinement, RunCoregistration, prepare
 from pipeline.apply.execution import Execution
-from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner
-from pipeline.apply.flight import (
-    RUN_JSON,
+from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner, capture_reflectance
+from pipeline.apply.light import illumination_plan
+from pipeline.apply.options import (
     ApplyResult,
+    calibration_clip_dn,
+    calibration_hash,
+    export_band_indices,
+    index_roles,
+    normalisation,
+    pass_geometry,
+)
+from pipeline.apply.products import remove_unchosen
+from pipeline.apply.record import (
+    RUN_JSON,
     forget_run,
     previous_run,
     remove_frame_tiffs,
+    run_fingerprint,
     software_versions,
     write_run_record,
 )
-from pipeline.apply.products import remove_unchosen
+from pipeline.calibrate.registration import check_transforms
 from pipeline.ingest.camera_meta import (
     METADATA_READING,
     Capture,
@@ -69,7 +80,14 @@ from pipeline.ingest.raw import DN_MEDIAN, DN_MEDIAN_ATTRS, raw_codec
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries
 from pipeline.storage.chunks import frame_encoding, unwritten_frames
-from pipeline.storage.store import CF_VARIABLES, FLIGHT_VARIABLES, FRAME_COORD_ATTRS, cf_annotate
+from pipeline.storage.store import (
+    CF_VARIABLES,
+    FLIGHT_VARIABLES,
+    FRAME_COORD_ATTRS,
+    cf_annotate,
+    check_camera,
+    open_calibration,
+)
 
 __all__ = ["CaptureFolder", "CaptureRun", "apply_captures", "capture_tags", "find_captures", "is_capture_folder"]
 
@@ -483,22 +501,6 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     store's band transforms, the normalisation of ``options`` (an ApplyOptions). ``calib``:
     the store at ``calib_path`` already opened (:func:`pipeline.storage.store.open_calibration`
     with ``need="apply"``), checked here against ``camera``; None: opened here."""
-    from mscal_core.errors import CalibrationStoreError, InputError
-
-    from pipeline.apply.bandgrid import capture_reflectance
-    from pipeline.apply.flight import (
-        calibration_hash,
-        export_band_indices,
-        index_roles,
-        normalisation,
-        pass_geometry,
-        run_fingerprint,
-        saturation_dn,
-    )
-    from pipeline.apply.light import illumination_plan
-    from pipeline.calibrate.registration import check_transforms
-    from pipeline.storage.store import check_camera, open_calibration
-
     if calib is None:
         calib = open_calibration(calib_path, camera, need="apply")
     else:
@@ -527,7 +529,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     align, band_shift, reference = pass_geometry(calib, camera, options)
     if align:
         check_transforms(calib, camera.n_bands, v_shape, calib_path)
-    chain = FieldChain(calib_path, saturation_dn(calib, camera))
+    chain = FieldChain(calib_path, calibration_clip_dn(calib, camera))
     names = [c.name for c in captures]
     illum = illumination_plan(calib, names, capture_times(captures), folder, options.illumination, captures=captures)
     scales = {} if illum is None else {n: tuple(float(v) for v in illum.scale[f]) for f, n in enumerate(names)}

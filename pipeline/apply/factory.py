@@ -97,12 +97,7 @@ from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, f
 from pipeline.apply.coregistration import COREGISTRATION_CHECK
 from pipeline.apply.execution import Execution, flight_size_hint, start_worker_server
 from pipeline.apply.executor import FactoryChain, field_parts
-from pipeline.apply.flight import (
-    ApplyResult,
-    export_band_indices,
-    index_roles,
-    previous_run,
-)
+from pipeline.apply.options import ApplyResult, export_band_indices, index_roles
 from pipeline.apply.panel import PanelBand, panel_factors
 from pipeline.apply.panel_search import (
     PANEL_SCAN_ALL,
@@ -114,6 +109,7 @@ from pipeline.apply.panel_search import (
     seen_record,
 )
 from pipeline.apply.products import factor_record
+from pipeline.apply.record import previous_run
 from pipeline.apply.sun_check import SunCheck, sun_sensor_check
 from pipeline.apply.sunlight import (
     RATIO_RULES,
@@ -530,7 +526,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     panel_names.update({name: "a reflectance panel (camera's panel flag, --panel, or detected); not used: "
                               "no --panel-reflectance" for name in unused})
     run = CaptureRun(
-        chain=FactoryChain(saturation_dn(camera), "panel" if reference == "panel-dls" else reference, panel_factor,
+        chain=FactoryChain(camera_clip_dn(camera), "panel" if reference == "panel-dls" else reference, panel_factor,
                            None if field is None else field[:2]),
         calibration=FACTORY, calibration_sha256=None, fingerprint=fingerprint, attrs=attrs,
         reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
@@ -625,7 +621,7 @@ def _route(options: FactoryOptions, captures: Sequence[Capture], serial: PanelSe
     return "none" if sun_sensor_missing(captures) is not None else "dls"
 
 
-def saturation_dn(camera: Camera) -> int:
+def camera_clip_dn(camera: Camera) -> int:
     """Stored value at and above which a pixel is clipped: the sensor's largest DN in the
     container's high bits (65520 for 12-bit data in 16-bit samples). A file whose own
     BitsPerSample holds less (12-bit packed) clips lower:
