@@ -57,10 +57,11 @@ from pipeline.apply.products import remove_unchosen
 from pipeline.apply.record import (
     RUN_JSON,
     forget_run,
+    frames_digest,
     previous_run,
     remove_frame_tiffs,
     run_fingerprint,
-    software_versions,
+    run_record,
     write_run_record,
 )
 from pipeline.calibrate.registration import check_transforms
@@ -89,7 +90,8 @@ from pipeline.storage.store import (
     open_calibration,
 )
 
-__all__ = ["CaptureFolder", "CaptureRun", "apply_captures", "capture_tags", "find_captures", "is_capture_folder"]
+__all__ = ["CaptureFolder", "CaptureRun", "apply_captures", "capture_tags", "find_captures", "is_capture_folder",
+           "unchanged_run"]
 
 # Files left out without a word (every other file that is not a capture is named in run.json's
 # ``skipped``): the file systems' own, the uploader's READY marker (mscal serve) and a card
@@ -169,14 +171,42 @@ def find_captures(folder: str | Path, camera: Camera, only: Sequence[str] = ()) 
     return CaptureFolder(captures, sorted(quarantined, key=lambda q: q["file"]), skipped)
 
 
-def stat_fingerprint(captures: Sequence[Capture]) -> str:
-    """sha256 of the band files' names, sizes and modification times (a re-run's check)."""
+def inputs_listing(captures: Sequence[Capture]) -> str:
+    """sha256 of the band files' names and sizes: run.json ``inputs_listing``, the quick check
+    of :func:`unchanged_run` (a file of another name or size has other content)."""
     h = hashlib.sha256()
     for c in captures:
         for p in c.files:
-            st = p.stat()
-            h.update(f"{c.name}/{p.name}:{st.st_size}:{st.st_mtime_ns};".encode())
+            h.update(f"{c.name}/{p.name}:{p.stat().st_size};".encode())
     return h.hexdigest()
+
+
+def capture_digest(capture: Capture) -> str:
+    """Content hash of a capture: sha256 over its files in band order, the hash the pass
+    computes as it reads them (:func:`pipeline.ingest.camera_meta.read_capture_pixels`)."""
+    h = hashlib.sha256()
+    for path in capture.files:
+        with open(path, "rb") as f:
+            while chunk := f.read(1 << 22):
+                h.update(chunk)
+    return h.hexdigest()
+
+
+def unchanged_run(out: Path, captures: Sequence[Capture], fingerprint: dict[str, Any]) -> dict[str, Any] | None:
+    """The previous run's record if it made the outputs of exactly these captures' content
+    and ``fingerprint`` (everything but the frames): by content, as for every apply
+    (:func:`pipeline.apply.record.previous_run`). The listing of names and sizes short-cuts
+    only to "changed": when it differs from the record's no file is read; when it is the same
+    the files are hashed and their content decides (a copy with new times is up to date, a
+    file rewritten with its size and time kept is not)."""
+    try:
+        recorded = json.loads((out / RUN_JSON).read_text()).get("inputs_listing")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if recorded != inputs_listing(captures):
+        return None
+    full = {**fingerprint, "frames_sha256": frames_digest([capture_digest(c) for c in captures])}
+    return previous_run(out, json.loads(json.dumps(full)), ("reflectance.zarr", "raw.zarr"))
 
 
 _UUID_HEX = re.compile(r"^[0-9A-Fa-f]{32}$")
@@ -337,12 +367,9 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
     """The pass of the one executor over a folder's captures with ``run.chain``, every output
     (see the module docstring)."""
     captures = list(found.captures)
+    listed = list(captures)  # every capture found: the fingerprint's frames (one quarantined in the pass too)
     quarantined = list(found.quarantined)
-    fingerprint = json.loads(json.dumps(run.fingerprint))
     out.mkdir(parents=True, exist_ok=True)
-    previous = previous_run(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
-    if previous is not None:
-        return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
     forget_run(out)
     remove_temporaries(out)
     remove_unchosen(out, run.products)
@@ -373,45 +400,36 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
     install_folder(tmp_refl, out / "reflectance.zarr")
     frames = [o.name for o in outcomes]
     quarantined.sort(key=lambda q: q["file"])
-    record = {
-        "flight": str(folder),
-        "calibration": run.calibration,
-        "calibration_sha256": run.calibration_sha256,
-        "camera": camera.name,
+    shas = {o.name: o.sha256 for o in outcomes if o.sha256 is not None}
+    fingerprint = {**run.fingerprint, "frames_sha256": frames_digest([shas.get(c.name) or capture_digest(c)
+                                                                      for c in listed])}
+    outputs = {"reflectance": "reflectance.zarr", "raw": "raw.zarr",
+               **({"photogrammetry": "photogrammetry/", "panels": "panels/", "ndvi": "ndvi/"}
+                  if run.products.tiffs else {})}
+    parts: dict[str, Any] = {
         **run.record(captures),
-        "frames_in": len(frames) + len(quarantined),
-        "frames_out": len(frames),
-        "frames": frames,
-        "frames_sha256": {o.name: o.sha256 for o in outcomes},
-        "quarantined": quarantined,
+        "inputs_listing": inputs_listing(listed),
         "skipped": found.skipped,
         "skipped_bands": [{**s, "file": _relative(s["file"], folder)} for c in captures for s in c.skipped],
-        "metadata_problems": [p.as_dict() for c in captures for p in c.problems],
         "orientation": _orientation_record(captures[0]),
         "capture_times": capture_time_zones(captures),
-        "saturated_pixels": {"total": int(sum(o.saturated for o in outcomes)),
-                             "per_frame": {o.name: o.saturated for o in outcomes}},
-        "outputs": {"reflectance": "reflectance.zarr", "raw": "raw.zarr",
-                    **({"photogrammetry": "photogrammetry/", "panels": "panels/", "ndvi": "ndvi/"}
-                       if run.products.tiffs else {})},
-        "products": run.products.record(indices),
         "panels": [{"capture": name, "reason": why} for name, why in sorted(panels.items()) if name in frames],
-        "export_bands": [camera.bands[b].name for b in export],
-        "versions": software_versions(),
-        "scheduler": runner.scheduler,
-        "execution": runner.execution,
-        "timings_s": {"apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
-        "fingerprint": fingerprint,
         **coreg.record(camera, {o.name: o.coregistration for o in outcomes if o.coregistration}),
     }
     if isinstance(run.chain, FactoryChain):
-        record["reflectance_missing"] = [m for o in outcomes for m in o.no_reflectance]
+        parts["reflectance_missing"] = [m for o in outcomes for m in o.no_reflectance]
     thermal = [{"capture": o.name, **t} for o in outcomes for t in o.thermal]
     if thermal:
-        record["thermal"] = {"unit": "K", "formula": "the camera's own conversion of its thermal band (MicaSense "
-                                                     "LWIR: K = DN / 100); never mixed into reflectance",
-                             "files": thermal}
-        record["outputs"]["thermal"] = "thermal/"
+        parts["thermal"] = {"unit": "K", "formula": "the camera's own conversion of its thermal band (MicaSense "
+                                                    "LWIR: K = DN / 100); never mixed into reflectance",
+                            "files": thermal}
+        outputs["thermal"] = "thermal/"
+    record = run_record(
+        flight=folder, camera=camera, calibration=run.calibration, calibration_sha256=run.calibration_sha256,
+        outcomes=outcomes, frames_sha256={o.name: str(o.sha256) for o in outcomes}, quarantined=quarantined,
+        metadata_problems=[p.as_dict() for c in captures for p in c.problems], outputs=outputs,
+        products=run.products.record(indices), export=export, runner=runner, t_pass=t_pass, t_start=t_start,
+        fingerprint=json.loads(json.dumps(fingerprint)), parts=parts)
     write_run_record(out, record)  # last: the completion marker
     return ApplyResult(out, record, up_to_date=False, quarantined=quarantined)
 
@@ -544,8 +562,13 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
             raise InputError(f"--panel capture {c.name} cannot be used: {exc.reason}", path=exc.path) from None
 
     norm = normalisation(options, camera, names, panel_reflectance)
-    fingerprint = {**run_fingerprint([stat_fingerprint(captures)], chash, options, illum), "layout": "captures",
+    fingerprint = {**run_fingerprint([], chash, options, illum), "layout": "captures",
                    "metadata_reading": METADATA_READING, "coregistration": COREGISTRATION_CHECK}
+    fingerprint.pop("frames_sha256")  # the captures' content: unchanged_run, apply_captures
+    out.mkdir(parents=True, exist_ok=True)
+    previous = unchanged_run(out, captures, fingerprint)
+    if previous is not None:
+        return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
     attrs = {"calibration_sha256": chash, "source": str(folder), "calibration": str(calib_path)}
     if align:
         attrs["aligned_to_band"] = reference

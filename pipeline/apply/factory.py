@@ -76,7 +76,7 @@ scale, ``vignetting`` = V of Eq. 8-10; :func:`pipeline.ingest.camera_meta.factor
 ``components`` records where each came from.
 
 Every output is written under a temporary name and renamed; a run that finds ``run.json``
-matching its inputs (file names, sizes and modification times) and options does nothing.
+matching its inputs (the band files' content) and options does nothing.
 """
 from __future__ import annotations
 
@@ -93,7 +93,7 @@ from mscal_core.errors import CalibrationStoreError, FrameError, InputError
 from mscal_core.illumination import INTERPOLATION_MODES, fit_illumination
 from mscal_core.panel import sample_quad
 
-from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, stat_fingerprint
+from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, unchanged_run
 from pipeline.apply.coregistration import COREGISTRATION_CHECK
 from pipeline.apply.execution import Execution, flight_size_hint, start_worker_server
 from pipeline.apply.executor import FactoryChain, field_parts
@@ -109,7 +109,6 @@ from pipeline.apply.panel_search import (
     seen_record,
 )
 from pipeline.apply.products import factor_record
-from pipeline.apply.record import previous_run
 from pipeline.apply.sun_check import SunCheck, sun_sensor_check
 from pipeline.apply.sunlight import (
     RATIO_RULES,
@@ -459,7 +458,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     near = panel_config_near(folder)
     parts = field_parts(field[0], field[1], camera.name) if field else None
     fingerprint = {
-        "inputs": stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
+        "options": options.fingerprint(), "calibration": FACTORY,
         "mscal_version": mscal_core.__version__,
         "code_sha256": code_digest(),  # every source of mscal_core, pipeline and the catalogs
         "light_model": LIGHT_MODEL,  # results of earlier runs (raw sun-sensor readings) are not reused
@@ -475,7 +474,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     wanted = serial_wanted(options, captures)
     if wanted:  # the serial is read from the inputs; what its target says is in the catalog
         fingerprint["panel_serial_targets"] = serial_targets_digest()
-    previous = previous_run(Path(out), json.loads(json.dumps(fingerprint)), ("reflectance.zarr", "raw.zarr"))
+    previous = unchanged_run(out, captures, fingerprint)  # by the captures' content
     if previous is not None:  # before the panels are searched: an up-to-date run reads no pixels
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
 

@@ -57,7 +57,7 @@ from pipeline.apply.record import (
     previous_run,
     remove_frame_tiffs,
     run_fingerprint,
-    software_versions,
+    run_record,
     write_run_record,
 )
 from pipeline.apply.stores import calibration_tables, geometry_step, read_frame_chunk
@@ -426,40 +426,27 @@ def apply_flight(
     t_pass = time.perf_counter() - t0
     install_folder(ps.tmp_store, out / "reflectance.zarr")
     run = _run_record(flight_dir, calib_path, chash, calib, camera, export, options, ps, outcomes, quarantined, runner,
-                      single, {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
-                      cube.found.metadata_problems)
+                      single, t_pass, t_start, cube.found.metadata_problems)
     write_run_record(out, run)  # last: a run.json names a finished pass
     return ApplyResult(out, run, up_to_date=False, quarantined=quarantined, calibration=calib)
 
 
 def _run_record(flight_dir: Path, calib_path: Path, chash: str, calib: xr.Dataset, camera: Camera,
                 export: Sequence[int], options: ApplyOptions, ps: "_Pass", outcomes: Sequence[Outcome],
-                quarantined: list[dict[str, str]], runner: Runner, single: bool,
-                timings: dict[str, float], problems: Sequence[dict[str, Any]] = ()) -> dict[str, Any]:
-    """The flight's ``run.json`` after a pass (SPEC.md, Outputs of apply); ``problems``: the
-    frames' metadata problems (:class:`pipeline.ingest.discover.Discovery`)."""
+                quarantined: list[dict[str, str]], runner: Runner, single: bool, t_pass: float, t_start: float,
+                problems: Sequence[dict[str, Any]] = ()) -> dict[str, Any]:
+    """The flight's ``run.json`` after a pass (:func:`pipeline.apply.record.run_record`);
+    ``problems``: the frames' metadata problems (:class:`pipeline.ingest.discover.Discovery`)."""
     frames = [o.name for o in outcomes]
-    sat_counts = [o.saturated for o in outcomes]
     shas = [str(s) for s in ps.coords["sha256"].values]  # the pass's frames, in cube order
-    return {
-        "flight": str(flight_dir),
-        "calibration": str(calib_path),
-        "calibration_sha256": chash,
-        "frames_in": len(frames) + len(quarantined),
-        "frames_out": len(frames),
-        "frames": frames,
-        "quarantined": quarantined,
-        "metadata_problems": [p for p in problems if Path(str(p["file"])).stem in frames],
-        "saturated_pixels": {"total": int(np.sum(sat_counts)), "per_frame": {n: int(c) for n, c in zip(frames, sat_counts)}},
-        "outputs": {"reflectance": "reflectance.zarr",
-                    **({"photogrammetry": "photogrammetry/", "ndvi": "ndvi/"} if options.products.tiffs else {})},
-        "products": options.products.record(ps.plan.indices_made()),
-        "export_bands": [camera.bands[b].name for b in export],
-        "versions": software_versions(),
-        "scheduler": runner.scheduler,
-        "execution": runner.execution,
-        "single_pass": single,
-        "timings_s": timings,
-        "illumination": _illumination_record(ps, calib, options),
-        "fingerprint": run_fingerprint(shas, chash, options, ps.illum),
-    }
+    names = [str(f) for f in ps.coords["frame"].values]
+    return run_record(
+        flight=flight_dir, camera=camera, calibration=str(calib_path), calibration_sha256=chash, outcomes=outcomes,
+        frames_sha256=dict(zip(names, shas)), quarantined=quarantined,
+        metadata_problems=[p for p in problems if Path(str(p["file"])).stem in frames],
+        outputs={"reflectance": "reflectance.zarr",
+                 **({"photogrammetry": "photogrammetry/", "ndvi": "ndvi/"} if options.products.tiffs else {})},
+        products=options.products.record(ps.plan.indices_made()), export=export, runner=runner,
+        t_pass=t_pass, t_start=t_start, fingerprint=run_fingerprint(shas, chash, options, ps.illum),
+        parts={"illumination": _illumination_record(ps, calib, options), "snapshot": {"single_pass": single}},
+    )

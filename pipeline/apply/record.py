@@ -7,6 +7,7 @@ import hashlib
 import json
 import logging
 import platform
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any, Sequence
@@ -17,7 +18,7 @@ import mscal_core
 import numpy as np
 import xarray as xr
 
-from pipeline.apply.executor import band_tiff_path
+from pipeline.apply.executor import Outcome, Runner, band_tiff_path
 from pipeline.apply.light import IlluminationPlan
 from pipeline.apply.options import ApplyOptions
 from pipeline.ingest.catalog import Camera
@@ -34,7 +35,7 @@ MANIFEST_KEY = "outputs_manifest"
 def run_fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
                  illum: IlluminationPlan | None = None) -> dict[str, Any]:
     fingerprint = {
-        "frames_sha256": hashlib.sha256("".join(map(str, shas)).encode()).hexdigest(),
+        "frames_sha256": frames_digest(shas),
         "calibration_sha256": chash,
         "options": options.fingerprint(),
         "mscal_version": mscal_core.__version__,
@@ -112,3 +113,45 @@ def remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export: 
                 band_tiff_path(out, name, band, panel).unlink(missing_ok=True)
             (out / "photogrammetry" / f"{name}_{band}.tif").unlink(missing_ok=True)
         (out / "ndvi" / f"{name}.tif").unlink(missing_ok=True)
+
+
+def frames_digest(shas: Sequence[str]) -> str:
+    """sha256 of the frames' content hashes in frame order: run.json ``fingerprint.frames_sha256``
+    for every camera (a snapshot frame's file, a capture's band files in band order)."""
+    return hashlib.sha256("".join(map(str, shas)).encode()).hexdigest()
+
+
+def run_record(*, flight: Path, camera: Camera, calibration: str, calibration_sha256: str | None,
+               outcomes: Sequence[Outcome], frames_sha256: dict[str, str], quarantined: list[dict[str, str]],
+               metadata_problems: Sequence[dict[str, Any]], outputs: dict[str, str], products: dict[str, Any],
+               export: Sequence[int], runner: Runner, t_pass: float, t_start: float, fingerprint: dict[str, Any],
+               parts: dict[str, Any]) -> dict[str, Any]:
+    """``run.json`` of every apply (SPEC.md, Outputs of apply), one schema for every camera: the
+    common keys, the same in name and meaning whatever the camera, then ``parts``, the keys of
+    one kind of input (a snapshot flight's ``snapshot``, a capture folder's, the factory
+    chain's). ``t_pass``: seconds of the pass over the frames (ingest and Eq. 15: a capture is
+    read in its task); ``t_start``: ``time.perf_counter()`` when the apply began."""
+    frames = [o.name for o in outcomes]
+    return {
+        "flight": str(flight),
+        "camera": camera.name,
+        "calibration": calibration,
+        "calibration_sha256": calibration_sha256,
+        "frames_in": len(frames) + len(quarantined),
+        "frames_out": len(frames),
+        "frames": frames,
+        "frames_sha256": frames_sha256,
+        "quarantined": quarantined,
+        "metadata_problems": list(metadata_problems),
+        "saturated_pixels": {"total": int(sum(o.saturated for o in outcomes)),
+                             "per_frame": {o.name: int(o.saturated) for o in outcomes}},
+        "outputs": outputs,
+        "products": products,
+        "export_bands": [camera.bands[b].name for b in export],
+        "versions": software_versions(),
+        "scheduler": runner.scheduler,
+        "execution": runner.execution,
+        "timings_s": {"pass": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
+        **parts,
+        "fingerprint": fingerprint,
+    }

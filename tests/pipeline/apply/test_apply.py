@@ -260,11 +260,11 @@ def test_single_pass_equals_ingest_then_apply(applied, tmp_path) -> None:
     from pipeline.ingest.raw import ingest_flight
 
     session, calib, out = applied
-    assert json.loads((out / "run.json").read_text())["single_pass"] is True
+    assert json.loads((out / "run.json").read_text())["snapshot"]["single_pass"] is True
     cubed = tmp_path / "cubed"
     ingest_flight(session / "flights" / "field", load_camera("ximea-mq022hg-sm5x5-nir"), cubed / "raw.zarr")
     assert _apply(session / "flights" / "field", calib, cubed) == 0
-    assert json.loads((cubed / "run.json").read_text())["single_pass"] is False
+    assert json.loads((cubed / "run.json").read_text())["snapshot"]["single_pass"] is False
     _assert_same_outputs(_outputs(out), _outputs(cubed))
     a, b = (xr.open_zarr(p / "raw.zarr") for p in (out, cubed))
     np.testing.assert_array_equal(a["dn"].values, b["dn"].values)
@@ -318,7 +318,7 @@ def test_duplicate_frame_in_a_fresh_flight(small, tmp_path, monkeypatch, schedul
     run = json.loads((out / "run.json").read_text())
     assert run["execution"]["scheduler"] == scheduler
     assert [q["file"] for q in run["quarantined"]] == [name]
-    assert "duplicate" in run["quarantined"][0]["reason"] and run["single_pass"] is False
+    assert "duplicate" in run["quarantined"][0]["reason"] and run["snapshot"]["single_pass"] is False
     stem = Path(name).stem
     assert not list((out / "photogrammetry").glob(f"{stem}_*")) and not (out / "ndvi" / f"{stem}.tif").exists()
     _assert_same_outputs(_outputs(clean), _outputs(out))
