@@ -30,7 +30,6 @@ import re
 import shutil
 import time
 import uuid
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -64,6 +63,7 @@ from pipeline.apply.record import (
     run_record,
     write_run_record,
 )
+from pipeline.apply.template import create_store, frame_template, product_variables
 from pipeline.calibrate.registration import check_transforms
 from pipeline.ingest.camera_meta import (
     METADATA_READING,
@@ -80,12 +80,10 @@ from pipeline.ingest.products import Products, indices_for
 from pipeline.ingest.raw import DN_MEDIAN, DN_MEDIAN_ATTRS, raw_codec
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries
-from pipeline.storage.chunks import frame_encoding, unwritten_frames
 from pipeline.storage.store import (
     CF_VARIABLES,
     FLIGHT_VARIABLES,
     FRAME_COORD_ATTRS,
-    cf_annotate,
     check_camera,
     open_calibration,
 )
@@ -308,24 +306,6 @@ def capture_coords(camera: Camera, captures: Sequence[Capture], irradiance_unit:
     }
 
 
-def _template(coords: dict[str, Any], shape: tuple[int, int, int], variables: dict[str, tuple[tuple[str, ...], Any, dict]],
-              attrs: dict[str, Any]) -> xr.Dataset:
-    ds = xr.Dataset(coords=coords)
-    n = ds.sizes["frame"]
-    for name, (dims, dtype, vattrs) in variables.items():
-        full = (n, *shape) if len(dims) == 4 else (n, shape[0]) if dims == ("frame", "band") else (n, *shape[1:])
-        ds[name] = (dims, unwritten_frames(full, dtype), vattrs)
-    ds.attrs.update(attrs)
-    return cf_annotate(ds, FLIGHT_VARIABLES)
-
-
-def _create(ds: xr.Dataset, path: Path, compressors: Any) -> None:
-    encoding = {v: frame_encoding(ds[v].shape, compressors) for v in ds.data_vars}
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Consolidated metadata")
-        ds.to_zarr(path, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
-
-
 def _tmp(out: Path, name: str) -> Path:
     return out / f".{name}{TMP_MARK}{uuid.uuid4().hex[:8]}"
 
@@ -470,28 +450,17 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
     """The pass's output stores under temporary names, and its plan."""
     coords = {**capture_coords(camera, captures, run.irradiance_unit), **run.extra_coords(captures)}
     factory = isinstance(run.chain, FactoryChain)
-    rvars: dict[str, tuple[tuple[str, ...], Any, dict]] = {
-        "reflectance": (("frame", "band", "y", "x"), np.float32, {"long_name": run.reflectance_name, "units": "1"}),
-    }
-    if factory and run.products.radiance:
-        rvars["radiance"] = (("frame", "band", "y", "x"), np.float32,
-                             {"long_name": "factory radiance", "units": run.radiance_unit})
-    for ix in indices:
-        rvars[ix.name] = (("frame", "y", "x"), np.float32,
-                          {"long_name": ix.description, "expression": ix.expression, "units": "1"})
-    if any(ix.name == "ndvi" for ix in indices):
-        rvars["vegetation_mask"] = (("frame", "y", "x"), np.uint8,
-                                    {"long_name": "vegetation (Otsu threshold of NDVI per frame)",
-                                     "flag_values": [0, 1, 255], "flag_meanings": "other vegetation undefined"})
+    rvars = product_variables(indices, run.reflectance_name,
+                              radiance_unit=run.radiance_unit if factory and run.products.radiance else None)
     attrs = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__, **run.attrs}
     tmp_refl, tmp_raw = _tmp(out, "reflectance.zarr"), _tmp(out, "raw.zarr")
-    refl_ds = _template(coords, shape, rvars, attrs)
-    _create(refl_ds, tmp_refl, OUTPUT_COMPRESSORS)
-    raw_ds = _template(coords, shape, {
+    refl_ds = frame_template(coords, shape, rvars, attrs)
+    create_store(refl_ds, tmp_refl, OUTPUT_COMPRESSORS)
+    raw_ds = frame_template(coords, shape, {
         "dn": (("frame", "band", "y", "x"), np.uint16, {"long_name": "stored DN of each band file", "units": "1"}),
         DN_MEDIAN: (("frame", "band"), np.float64, dict(DN_MEDIAN_ATTRS)),
     }, attrs)
-    _create(raw_ds, tmp_raw, [raw_codec()])
+    create_store(raw_ds, tmp_raw, [raw_codec()])
     for sub in ("photogrammetry", "panels", "ndvi") if run.products.tiffs else ():
         (out / sub).mkdir(exist_ok=True)
     first = captures[0].metas

@@ -19,7 +19,6 @@ from __future__ import annotations
 import logging
 import shutil
 import time
-import warnings
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -61,6 +60,7 @@ from pipeline.apply.record import (
     write_run_record,
 )
 from pipeline.apply.stores import calibration_tables, geometry_step, read_frame_chunk
+from pipeline.apply.template import create_store, frame_template, product_variables
 from pipeline.calibrate.registration import check_transforms
 from pipeline.ingest.catalog import Camera, Index, load_camera
 from pipeline.ingest.photo_tags import CameraOptics, optics_from_intrinsics
@@ -82,8 +82,7 @@ from pipeline.storage.atomic import (
     remove_temporaries,
     temporary_folder_name,
 )
-from pipeline.storage.chunks import frame_encoding, unwritten_frames
-from pipeline.storage.store import FLIGHT_VARIABLES, FRAME_COORD_ATTRS, cf_annotate, check_camera, open_calibration
+from pipeline.storage.store import FLIGHT_VARIABLES, FRAME_COORD_ATTRS, check_camera, open_calibration
 
 log = logging.getLogger(__name__)
 FRESH_BATCH = 64  # frames per commit of the single pass (a kill loses at most this much ingest)
@@ -140,10 +139,10 @@ def snapshot_optics(camera: Camera, calib: xr.Dataset, shape: tuple[int, int]) -
 
 def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, int], indices: Sequence[Index],
                     options: ApplyOptions, illum: IlluminationPlan | None = None) -> xr.Dataset:
-    """``reflectance.zarr`` as a lazy dataset (coordinates, attributes, variables of zeros
-    one chunk per frame); the apply pass writes its data frame by frame."""
-    n = coords.sizes.get("frame", 0)
-    out_coords = {
+    """``reflectance.zarr`` of a snapshot flight as a lazy dataset (coordinates, attributes,
+    variables of zeros one chunk per frame: :func:`pipeline.apply.template.frame_template`);
+    the apply pass writes its data frame by frame."""
+    out_coords: dict[str, Any] = {
         "frame": coords["frame"].values.astype(object),
         "band": ("band", np.arange(shape[0]), dict(FRAME_COORD_ATTRS["band"])),
         "wavelength": ("band", camera.wavelengths, dict(FLIGHT_VARIABLES["wavelength"])),
@@ -151,21 +150,9 @@ def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, i
     }
     for c in ("exposure_ms", "gain", "time", "lat", "lon", "alt_m"):
         out_coords[c] = ("frame", coords[c].values, dict(coords[c].attrs))
-    ds = xr.Dataset(coords=out_coords)
-    cube = unwritten_frames((n, *shape), np.float32)
-    ds["reflectance"] = (("frame", "band", "y", "x"), cube,
-                         {"long_name": "reflectance (Eq. 15)", "units": "1", "normalisation": options.normalise})
-    plane = unwritten_frames((n, *shape[1:]), np.float32)
-    for ix in indices:
-        ds[ix.name] = (("frame", "y", "x"), plane, {"long_name": ix.description, "expression": ix.expression,
-                                                     "units": "1"})
-    if any(ix.name == "ndvi" for ix in indices):
-        ds["vegetation_mask"] = (("frame", "y", "x"), plane.astype(np.uint8),
-                                 {"long_name": "vegetation (Otsu threshold of NDVI per frame)",
-                                  "flag_values": [0, 1, 255], "flag_meanings": "other vegetation undefined"})
-    ds.attrs.update({"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__})
+    attrs: dict[str, Any] = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__}
     if illum is not None:
-        ds = ds.assign_coords(
+        out_coords.update(
             illumination_level=("frame", illum.level.astype(np.float64),
                                 {"long_name": "brightness level beta of the light at the frame's time"}),
             illumination_scale=(("frame", "band"), illum.scale.astype(np.float64),
@@ -173,9 +160,9 @@ def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, i
             irradiance=("frame", illum.irradiance.astype(np.float64),
                         {"long_name": "sun-sensor irradiance of the frame (NaN: none)"}),
         )
-        ds.attrs["illumination_mode"] = illum.mode
-        ds.attrs["illumination_captures"] = list(illum.captures)
-    return cf_annotate(ds, FLIGHT_VARIABLES)
+        attrs.update(illumination_mode=illum.mode, illumination_captures=list(illum.captures))
+    variables = product_variables(indices, "reflectance (Eq. 15)", normalisation=options.normalise)
+    return frame_template(out_coords, shape, variables, attrs)
 
 
 # --------------------------------------------------------------------------- apply
@@ -215,10 +202,7 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
     if band_shift is not None:
         ds["reflectance"].attrs["band_positions"] = "resampled to the mosaic's centre position (--centre-bands)"
     tmp_store = temporary_folder_name(out / "reflectance.zarr")
-    encoding = {v: frame_encoding(ds[v].shape, OUTPUT_COMPRESSORS) for v in ds.data_vars}
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Consolidated metadata")
-        ds.to_zarr(tmp_store, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
+    create_store(ds, tmp_store, OUTPUT_COMPRESSORS)
     optics = snapshot_optics(camera, calib, tuple(cube_shape[1:]))
     plan = Plan(
         camera=camera, chain=FieldChain(calib_path, sat), raw_dn=raw_dn, cube_shape=tuple(cube_shape),
