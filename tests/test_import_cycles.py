@@ -16,7 +16,8 @@ PACKAGES = ("pipeline", "mscal_core", "flows")
 #: Cycles known and left for now, each with why. pipeline.ingest's readers import each other
 #: (camera_meta -> raw, session; session -> intrinsics -> camera_meta; raw -> discover ->
 #: session): the package is being split into one module per camera maker, which is where
-#: this group comes apart; until then it is held here so that no new cycle joins it.
+#: this group comes apart; until then it is held here so that no new cycle (and no new module
+#: of this group) appears.
 KNOWN = [
     ["pipeline.ingest.camera_meta", "pipeline.ingest.discover", "pipeline.ingest.intrinsics", "pipeline.ingest.raw",
      "pipeline.ingest.session"],
@@ -122,7 +123,8 @@ def cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 def test_no_import_cycle_between_modules() -> None:
     graph = import_graph()
     assert "pipeline.apply.executor" in graph["pipeline.apply.flight"]  # the walk sees real imports
-    assert cycles(graph) == KNOWN
+    new = [c for c in cycles(graph) if not any(set(c) <= set(k) for k in KNOWN)]  # a known group may shrink
+    assert new == []
 
 
 def test_the_walk_finds_cycles_through_function_local_imports(tmp_path: Path) -> None:
