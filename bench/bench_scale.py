@@ -183,7 +183,8 @@ def child_floor(flight: str, out: str, kind: str) -> None:
 
 def child_apply(flight: str, calib: str, out: str, kind: str) -> None:
     """``apply_flight`` through the Python API (the small frames need no indices)."""
-    from pipeline.apply.flight import ApplyOptions, apply_flight
+    from pipeline.apply.flight import apply_flight
+    from pipeline.apply.options import ApplyOptions
     from pipeline.ingest.products import Products
 
     opts = ApplyOptions(products=Products(indices=())) if kind == "small" else ApplyOptions()

@@ -6,7 +6,7 @@ image registration that refines it (``Plan.refine``: per band a transform from t
 band, judged and estimated on each capture's own pixels, the flight's for a capture without
 texture: :func:`pipeline.apply.coregistration.capture_alignment`), then the band
 transforms of a registration store or ``--centre-bands``
-(:func:`pipeline.apply.executor.geometry_step`).
+(:func:`pipeline.apply.stores.geometry_step`).
 
 :func:`grid_residuals` measures, on a sampled capture's pixels, the shift of each band against
 the reference band left after that grid and without it
@@ -15,27 +15,23 @@ the reference band left after that grid and without it
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from mscal_core.coregistration import stack_residuals
 
 from pipeline.apply.coregistration import capture_alignment
+from pipeline.apply.stores import geometry_step
 from pipeline.ingest.cameras.dji import factory_align
-from pipeline.ingest.grouping import read_capture_pixels
-from pipeline.ingest.meta import upright_meta
 
 if TYPE_CHECKING:
-    from pipeline.apply.executor import FactoryChain, FieldChain, Job, Plan
-    from pipeline.ingest.catalog import Camera
+    from pipeline.apply.executor import Job, Plan
 
 
 def one_grid(plan: Plan, job: Job, signal: np.ndarray) -> tuple[np.ndarray, dict[str, Any] | None]:
     """A capture's bands (stored orientation) on one pixel grid (see the module docstring);
     unchanged when the plan has none of the steps. With ``plan.refine`` the capture's own
     alignment and where it came from (run.json ``coregistration.per_capture``), else None."""
-    from pipeline.apply.executor import geometry_step
-
     own = None
     if plan.refine is not None and job.capture is not None:
         aligned = factory_align(job.capture.metas, signal) if plan.factory_alignment else signal
@@ -76,18 +72,3 @@ def grid_residuals(plan: Plan, job: Job, before: np.ndarray, after: np.ndarray) 
 
 def _px(v: float) -> float | None:
     return round(float(v), 3) if np.isfinite(v) else None
-
-
-def capture_reflectance(camera: Camera, chain: FieldChain | FactoryChain, job: Job, transforms: Path | None = None,
-                        band_shift: Sequence[tuple[float, float]] | None = None) -> np.ndarray:
-    """Reflectance (band, y, x) of one capture read from its band files, on the outputs' pixel
-    grid, before normalisation (a panel's region is measured on it); writes nothing."""
-    from pipeline.apply.executor import geometry_step, radiometry
-
-    assert job.capture is not None
-    sha, dns, channels = read_capture_pixels(job.capture)
-    signal, factor, _, _ = radiometry(camera, chain, job, np.stack(dns), channels)
-    if transforms is not None or band_shift is not None:
-        signal = geometry_step(transforms or Path(), transforms is not None, band_shift, job.name, signal)
-    signal = upright_meta(job.capture.metas[0], signal)
-    return signal if factor is None else signal * factor.astype(np.float32)[:, None, None]

@@ -30,7 +30,6 @@ import re
 import shutil
 import time
 import uuid
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -38,21 +37,34 @@ from typing import Any, Callable, Sequence
 import mscal_core
 import numpy as np
 import xarray as xr
-from mscal_core.errors import FrameError, InputError
+from mscal_core.errors import CalibrationStoreError, FrameError, InputError
 
 from pipeline.apply.coregistration import COREGISTRATION_CHECK, METADATA, Refinement, RunCoregistration, prepare
 from pipeline.apply.execution import Execution
-from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner
-from pipeline.apply.flight import (
-    RUN_JSON,
+from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner, capture_reflectance
+from pipeline.apply.light import illumination_plan
+from pipeline.apply.options import (
     ApplyResult,
-    forget_run,
-    previous_run,
-    remove_frame_tiffs,
-    software_versions,
-    write_run_record,
+    calibration_clip_dn,
+    calibration_hash,
+    export_band_indices,
+    index_roles,
+    normalisation,
+    pass_geometry,
 )
 from pipeline.apply.products import remove_unchosen
+from pipeline.apply.record import (
+    RUN_JSON,
+    forget_run,
+    frames_digest,
+    previous_run,
+    remove_frame_tiffs,
+    run_fingerprint,
+    run_record,
+    write_run_record,
+)
+from pipeline.apply.template import create_store, frame_template, product_variables
+from pipeline.calibrate.registration import check_transforms
 from pipeline.ingest.camera_meta import METADATA_READING
 from pipeline.ingest.catalog import Camera, Index
 from pipeline.ingest.gps import without_unreachable
@@ -63,10 +75,16 @@ from pipeline.ingest.products import Products, indices_for
 from pipeline.ingest.raw import raw_codec
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries
-from pipeline.storage.chunks import frame_encoding, unwritten_frames
-from pipeline.storage.store import CF_VARIABLES, FLIGHT_VARIABLES, FRAME_COORD_ATTRS, cf_annotate
+from pipeline.storage.store import (
+    CF_VARIABLES,
+    FLIGHT_VARIABLES,
+    FRAME_COORD_ATTRS,
+    check_camera,
+    open_calibration,
+)
 
-__all__ = ["CaptureFolder", "CaptureRun", "apply_captures", "capture_tags", "find_captures", "is_capture_folder"]
+__all__ = ["CaptureFolder", "CaptureRun", "apply_captures", "capture_tags", "find_captures", "is_capture_folder",
+           "unchanged_run"]
 
 # Files left out without a word (every other file that is not a capture is named in run.json's
 # ``skipped``): the file systems' own, the uploader's READY marker (mscal serve) and a card
@@ -146,14 +164,42 @@ def find_captures(folder: str | Path, camera: Camera, only: Sequence[str] = ()) 
     return CaptureFolder(captures, sorted(quarantined, key=lambda q: q["file"]), skipped)
 
 
-def stat_fingerprint(captures: Sequence[Capture]) -> str:
-    """sha256 of the band files' names, sizes and modification times (a re-run's check)."""
+def inputs_listing(captures: Sequence[Capture]) -> str:
+    """sha256 of the band files' names and sizes: run.json ``inputs_listing``, the quick check
+    of :func:`unchanged_run` (a file of another name or size has other content)."""
     h = hashlib.sha256()
     for c in captures:
         for p in c.files:
-            st = p.stat()
-            h.update(f"{c.name}/{p.name}:{st.st_size}:{st.st_mtime_ns};".encode())
+            h.update(f"{c.name}/{p.name}:{p.stat().st_size};".encode())
     return h.hexdigest()
+
+
+def capture_digest(capture: Capture) -> str:
+    """Content hash of a capture: sha256 over its files in band order, the hash the pass
+    computes as it reads them (:func:`pipeline.ingest.camera_meta.read_capture_pixels`)."""
+    h = hashlib.sha256()
+    for path in capture.files:
+        with open(path, "rb") as f:
+            while chunk := f.read(1 << 22):
+                h.update(chunk)
+    return h.hexdigest()
+
+
+def unchanged_run(out: Path, captures: Sequence[Capture], fingerprint: dict[str, Any]) -> dict[str, Any] | None:
+    """The previous run's record if it made the outputs of exactly these captures' content
+    and ``fingerprint`` (everything but the frames): by content, as for every apply
+    (:func:`pipeline.apply.record.previous_run`). The listing of names and sizes short-cuts
+    only to "changed": when it differs from the record's no file is read; when it is the same
+    the files are hashed and their content decides (a copy with new times is up to date, a
+    file rewritten with its size and time kept is not)."""
+    try:
+        recorded = json.loads((out / RUN_JSON).read_text()).get("inputs_listing")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if recorded != inputs_listing(captures):
+        return None
+    full = {**fingerprint, "frames_sha256": frames_digest([capture_digest(c) for c in captures])}
+    return previous_run(out, json.loads(json.dumps(full)), ("reflectance.zarr", "raw.zarr"))
 
 
 _UUID_HEX = re.compile(r"^[0-9A-Fa-f]{32}$")
@@ -255,24 +301,6 @@ def capture_coords(camera: Camera, captures: Sequence[Capture], irradiance_unit:
     }
 
 
-def _template(coords: dict[str, Any], shape: tuple[int, int, int], variables: dict[str, tuple[tuple[str, ...], Any, dict]],
-              attrs: dict[str, Any]) -> xr.Dataset:
-    ds = xr.Dataset(coords=coords)
-    n = ds.sizes["frame"]
-    for name, (dims, dtype, vattrs) in variables.items():
-        full = (n, *shape) if len(dims) == 4 else (n, shape[0]) if dims == ("frame", "band") else (n, *shape[1:])
-        ds[name] = (dims, unwritten_frames(full, dtype), vattrs)
-    ds.attrs.update(attrs)
-    return cf_annotate(ds, FLIGHT_VARIABLES)
-
-
-def _create(ds: xr.Dataset, path: Path, compressors: Any) -> None:
-    encoding = {v: frame_encoding(ds[v].shape, compressors) for v in ds.data_vars}
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Consolidated metadata")
-        ds.to_zarr(path, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
-
-
 def _tmp(out: Path, name: str) -> Path:
     return out / f".{name}{TMP_MARK}{uuid.uuid4().hex[:8]}"
 
@@ -314,12 +342,9 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
     """The pass of the one executor over a folder's captures with ``run.chain``, every output
     (see the module docstring)."""
     captures = list(found.captures)
+    listed = list(captures)  # every capture found: the fingerprint's frames (one quarantined in the pass too)
     quarantined = list(found.quarantined)
-    fingerprint = json.loads(json.dumps(run.fingerprint))
     out.mkdir(parents=True, exist_ok=True)
-    previous = previous_run(out, fingerprint, ("reflectance.zarr", "raw.zarr"))
-    if previous is not None:
-        return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
     forget_run(out)
     remove_temporaries(out)
     remove_unchosen(out, run.products)
@@ -350,45 +375,36 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
     install_folder(tmp_refl, out / "reflectance.zarr")
     frames = [o.name for o in outcomes]
     quarantined.sort(key=lambda q: q["file"])
-    record = {
-        "flight": str(folder),
-        "calibration": run.calibration,
-        "calibration_sha256": run.calibration_sha256,
-        "camera": camera.name,
+    shas = {o.name: o.sha256 for o in outcomes if o.sha256 is not None}
+    fingerprint = {**run.fingerprint, "frames_sha256": frames_digest([shas.get(c.name) or capture_digest(c)
+                                                                      for c in listed])}
+    outputs = {"reflectance": "reflectance.zarr", "raw": "raw.zarr",
+               **({"photogrammetry": "photogrammetry/", "panels": "panels/", "ndvi": "ndvi/"}
+                  if run.products.tiffs else {})}
+    parts: dict[str, Any] = {
         **run.record(captures),
-        "frames_in": len(frames) + len(quarantined),
-        "frames_out": len(frames),
-        "frames": frames,
-        "frames_sha256": {o.name: o.sha256 for o in outcomes},
-        "quarantined": quarantined,
+        "inputs_listing": inputs_listing(listed),
         "skipped": found.skipped,
         "skipped_bands": [{**s, "file": _relative(s["file"], folder)} for c in captures for s in c.skipped],
-        "metadata_problems": [p.as_dict() for c in captures for p in c.problems],
         "orientation": _orientation_record(captures[0]),
         "capture_times": capture_time_zones(captures),
-        "saturated_pixels": {"total": int(sum(o.saturated for o in outcomes)),
-                             "per_frame": {o.name: o.saturated for o in outcomes}},
-        "outputs": {"reflectance": "reflectance.zarr", "raw": "raw.zarr",
-                    **({"photogrammetry": "photogrammetry/", "panels": "panels/", "ndvi": "ndvi/"}
-                       if run.products.tiffs else {})},
-        "products": run.products.record(indices),
         "panels": [{"capture": name, "reason": why} for name, why in sorted(panels.items()) if name in frames],
-        "export_bands": [camera.bands[b].name for b in export],
-        "versions": software_versions(),
-        "scheduler": runner.scheduler,
-        "execution": runner.execution,
-        "timings_s": {"apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
-        "fingerprint": fingerprint,
         **coreg.record(camera, {o.name: o.coregistration for o in outcomes if o.coregistration}),
     }
     if isinstance(run.chain, FactoryChain):
-        record["reflectance_missing"] = [m for o in outcomes for m in o.no_reflectance]
+        parts["reflectance_missing"] = [m for o in outcomes for m in o.no_reflectance]
     thermal = [{"capture": o.name, **t} for o in outcomes for t in o.thermal]
     if thermal:
-        record["thermal"] = {"unit": "K", "formula": "the camera's own conversion of its thermal band (MicaSense "
-                                                     "LWIR: K = DN / 100); never mixed into reflectance",
-                             "files": thermal}
-        record["outputs"]["thermal"] = "thermal/"
+        parts["thermal"] = {"unit": "K", "formula": "the camera's own conversion of its thermal band (MicaSense "
+                                                    "LWIR: K = DN / 100); never mixed into reflectance",
+                            "files": thermal}
+        outputs["thermal"] = "thermal/"
+    record = run_record(
+        flight=folder, camera=camera, calibration=run.calibration, calibration_sha256=run.calibration_sha256,
+        outcomes=outcomes, frames_sha256={o.name: str(o.sha256) for o in outcomes}, quarantined=quarantined,
+        metadata_problems=[p.as_dict() for c in captures for p in c.problems], outputs=outputs,
+        products=run.products.record(indices), export=export, runner=runner, t_pass=t_pass, t_start=t_start,
+        fingerprint=json.loads(json.dumps(fingerprint)), parts=parts)
     write_run_record(out, record)  # last: the completion marker
     return ApplyResult(out, record, up_to_date=False, quarantined=quarantined)
 
@@ -429,28 +445,17 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
     """The pass's output stores under temporary names, and its plan."""
     coords = {**capture_coords(camera, captures, run.irradiance_unit), **run.extra_coords(captures)}
     factory = isinstance(run.chain, FactoryChain)
-    rvars: dict[str, tuple[tuple[str, ...], Any, dict]] = {
-        "reflectance": (("frame", "band", "y", "x"), np.float32, {"long_name": run.reflectance_name, "units": "1"}),
-    }
-    if factory and run.products.radiance:
-        rvars["radiance"] = (("frame", "band", "y", "x"), np.float32,
-                             {"long_name": "factory radiance", "units": run.radiance_unit})
-    for ix in indices:
-        rvars[ix.name] = (("frame", "y", "x"), np.float32,
-                          {"long_name": ix.description, "expression": ix.expression, "units": "1"})
-    if any(ix.name == "ndvi" for ix in indices):
-        rvars["vegetation_mask"] = (("frame", "y", "x"), np.uint8,
-                                    {"long_name": "vegetation (Otsu threshold of NDVI per frame)",
-                                     "flag_values": [0, 1, 255], "flag_meanings": "other vegetation undefined"})
+    rvars = product_variables(indices, run.reflectance_name,
+                              radiance_unit=run.radiance_unit if factory and run.products.radiance else None)
     attrs = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__, **run.attrs}
     tmp_refl, tmp_raw = _tmp(out, "reflectance.zarr"), _tmp(out, "raw.zarr")
-    refl_ds = _template(coords, shape, rvars, attrs)
-    _create(refl_ds, tmp_refl, OUTPUT_COMPRESSORS)
-    raw_ds = _template(coords, shape, {
+    refl_ds = frame_template(coords, shape, rvars, attrs)
+    create_store(refl_ds, tmp_refl, OUTPUT_COMPRESSORS)
+    raw_ds = frame_template(coords, shape, {
         "dn": (("frame", "band", "y", "x"), np.uint16, {"long_name": "stored DN of each band file", "units": "1"}),
         DN_MEDIAN: (("frame", "band"), np.float64, dict(DN_MEDIAN_ATTRS)),
     }, attrs)
-    _create(raw_ds, tmp_raw, [raw_codec()])
+    create_store(raw_ds, tmp_raw, [raw_codec()])
     for sub in ("photogrammetry", "panels", "ndvi") if run.products.tiffs else ():
         (out / sub).mkdir(exist_ok=True)
     first = captures[0].metas
@@ -478,22 +483,6 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     store's band transforms, the normalisation of ``options`` (an ApplyOptions). ``calib``:
     the store at ``calib_path`` already opened (:func:`pipeline.storage.store.open_calibration`
     with ``need="apply"``), checked here against ``camera``; None: opened here."""
-    from mscal_core.errors import CalibrationStoreError, InputError
-
-    from pipeline.apply.bandgrid import capture_reflectance
-    from pipeline.apply.flight import (
-        calibration_hash,
-        export_band_indices,
-        index_roles,
-        normalisation,
-        pass_geometry,
-        run_fingerprint,
-        saturation_dn,
-    )
-    from pipeline.apply.light import illumination_plan
-    from pipeline.calibrate.registration import check_transforms
-    from pipeline.storage.store import check_camera, open_calibration
-
     if calib is None:
         calib = open_calibration(calib_path, camera, need="apply")
     else:
@@ -522,7 +511,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     align, band_shift, reference = pass_geometry(calib, camera, options)
     if align:
         check_transforms(calib, camera.n_bands, v_shape, calib_path)
-    chain = FieldChain(calib_path, saturation_dn(calib, camera))
+    chain = FieldChain(calib_path, calibration_clip_dn(calib, camera))
     names = [c.name for c in captures]
     illum = illumination_plan(calib, names, capture_times(captures), folder, options.illumination, captures=captures)
     scales = {} if illum is None else {n: tuple(float(v) for v in illum.scale[f]) for f, n in enumerate(names)}
@@ -537,8 +526,13 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
             raise InputError(f"--panel capture {c.name} cannot be used: {exc.reason}", path=exc.path) from None
 
     norm = normalisation(options, camera, names, panel_reflectance)
-    fingerprint = {**run_fingerprint([stat_fingerprint(captures)], chash, options, illum), "layout": "captures",
+    fingerprint = {**run_fingerprint([], chash, options, illum), "layout": "captures",
                    "metadata_reading": METADATA_READING, "coregistration": COREGISTRATION_CHECK}
+    fingerprint.pop("frames_sha256")  # the captures' content: unchanged_run, apply_captures
+    out.mkdir(parents=True, exist_ok=True)
+    previous = unchanged_run(out, captures, fingerprint)
+    if previous is not None:
+        return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
     attrs = {"calibration_sha256": chash, "source": str(folder), "calibration": str(calib_path)}
     if align:
         attrs["aligned_to_band"] = reference

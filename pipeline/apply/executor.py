@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-import os
 import uuid
 from collections import deque
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -42,10 +41,8 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 import dask
 import dask.threaded
 import numpy as np
-import xarray as xr
-from mscal_core.alignment import align_bands, shift_bands
 from mscal_core.errors import FrameError, InputError, ProcessesUnavailable
-from mscal_core.reflectance import eq15_fast, eq15_tables, vegetation_mask
+from mscal_core.reflectance import eq15_fast, vegetation_mask
 
 from pipeline.apply.bandgrid import grid_and_residuals
 from pipeline.apply.execution import (
@@ -57,7 +54,7 @@ from pipeline.apply.execution import (
     worker_environment,
 )
 from pipeline.apply.frame_writes import WRITER_THREADS, FrameWrites  # noqa: F401  (WRITER_THREADS: re-exported)
-from pipeline.calibrate.registration import frame_transforms
+from pipeline.apply.stores import calibration_tables, geometry_step, read_frame_chunk, warm_calibration, write_frame
 from pipeline.ingest.camera_meta import read_capture_meta
 from pipeline.ingest.cameras.dispatch import factory_radiance
 from pipeline.ingest.catalog import Camera, Index, load_camera
@@ -77,7 +74,6 @@ from pipeline.products.writers import (
     write_band_tiff,
     write_tiff_file,
 )
-from pipeline.storage.chunks import FrameChunks
 from pipeline.storage.directio import aligned_empty
 from pipeline.storage.process import die_with_parent, reuse_freed_memory, start_pool
 
@@ -94,90 +90,6 @@ def capture_uuid(camera: Camera, sha256: str) -> str:
 # Output variables are written uncompressed: lz4 gains only 1.24x on float32 reflectance for
 # 5.8 ms of CPU per full-resolution frame, more than writing the bytes it saves costs.
 OUTPUT_COMPRESSORS: tuple = ()
-
-
-def _stamp(path: Path) -> tuple[str, int]:
-    """Cache key of a Zarr node: its path and the time its metadata was written (a store
-    replaced at the same path is not mistaken for the old one)."""
-    return str(path), os.stat(path / "zarr.json").st_mtime_ns
-
-
-@lru_cache(maxsize=16)
-def _zarr_array(key: tuple[str, int]):
-    import zarr
-
-    return zarr.open_array(key[0], mode="r+").with_config({"write_empty_chunks": True})
-
-
-@lru_cache(maxsize=16)
-def _frame_chunks(key: tuple[str, int]) -> FrameChunks | None:
-    return FrameChunks.open(key[0])
-
-
-def write_frame(array: Path, f: int, data: np.ndarray) -> None:
-    """Frame ``f``'s whole chunk of the Zarr array at ``array`` (direct when the layout allows)."""
-    key = _stamp(array)
-    fc = _frame_chunks(key)
-    if fc is not None:
-        fc.write(f, data)
-    else:
-        _zarr_array(key)[f] = data
-
-
-def read_frame_chunk(array: Path, f: int) -> np.ndarray:
-    key = _stamp(array)
-    fc = _frame_chunks(key)
-    return fc.read(f) if fc is not None else np.asarray(_zarr_array(key)[f])
-
-
-def calibration_tables(calibration: str) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 15 tables of a calibration store, once per process and store."""
-    return _tables_of(_stamp(Path(calibration)))
-
-
-def loaded_calibrations() -> int:
-    """How many calibration stores' Eq. 15 tables this process holds (:func:`calibration_tables`)."""
-    return _tables_of.cache_info().currsize
-
-
-def warm_calibration(calibration: str | Path) -> None:
-    """Load the Eq. 15 tables of ``calibration`` now (:func:`calibration_tables`), so the first
-    frame does not wait for them. A store that cannot be read is left to the frames, whose own
-    load raises the error that says what is wrong (nothing is cached for it)."""
-    try:
-        calibration_tables(str(calibration))
-    except Exception:  # raised again, with its message, by the first frame
-        log.debug("calibration %s not loaded ahead of the frames", calibration, exc_info=True)
-
-
-@lru_cache(maxsize=2)
-def _tables_of(key: tuple[str, int]) -> tuple[np.ndarray, np.ndarray]:
-    ds = _store_of(key)  # the process's one in-memory copy of the store (also read for band transforms)
-    return eq15_tables(ds["inverse_response"].values, ds["vignetting"].values, ds["spectral_factor"].values)
-
-
-@lru_cache(maxsize=2)
-def _store_of(key: tuple[str, int]) -> xr.Dataset:
-    """A calibration store in memory, once per process and store (read straight into numpy:
-    no dask for a small store)."""
-    return xr.open_zarr(key[0], chunks=None).load()
-
-
-def geometry_step(calibration: Path, align: bool, band_shift: Sequence[tuple[float, float]] | None, name: str,
-                  refl: np.ndarray) -> np.ndarray:
-    """Eq. 15 reflectance (band, y, x) of frame ``name`` put on one pixel grid: the
-    bands of a multi-lens camera warped onto the reference band (``align``: the capture's own
-    transforms if it was registered, else the session's; ``mscal_core.alignment.align_bands``,
-    NaN where a band does not cover), or a snapshot mosaic's bands resampled to the mosaic's
-    centre position (``band_shift``). Unchanged otherwise. Eq. 15 runs before: U, V and S
-    belong to each band's own pixels."""
-    if align:
-        H = frame_transforms(_store_of(_stamp(Path(calibration))), name)
-        if H is not None:
-            refl = align_bands(refl, H)
-    if band_shift is not None:
-        refl = shift_bands(refl, np.asarray(band_shift, dtype=np.float64))
-    return refl
 
 
 # --------------------------------------------------------------------------- radiometric chains
@@ -395,6 +307,19 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
         np.greater_equal(dn[b], meta.clipped_from(chain.sat), out=saturated[b])
     np.copyto(rad, np.float32(np.nan), where=saturated)
     return rad, k, rad, int(np.count_nonzero(saturated))
+
+
+def capture_reflectance(camera: Camera, chain: FieldChain | FactoryChain, job: Job, transforms: Path | None = None,
+                        band_shift: Sequence[tuple[float, float]] | None = None) -> np.ndarray:
+    """Reflectance (band, y, x) of one capture read from its band files, on the outputs' pixel
+    grid, before normalisation (a panel's region is measured on it); writes nothing."""
+    assert job.capture is not None
+    sha, dns, channels = read_capture_pixels(job.capture)
+    signal, factor, _, _ = radiometry(camera, chain, job, np.stack(dns), channels)
+    if transforms is not None or band_shift is not None:
+        signal = geometry_step(transforms or Path(), transforms is not None, band_shift, job.name, signal)
+    signal = upright_meta(job.capture.metas[0], signal)
+    return signal if factor is None else signal * factor.astype(np.float32)[:, None, None]
 
 
 def write_raw(plan: Plan, index: int, dn: np.ndarray) -> None:

@@ -76,7 +76,7 @@ scale, ``vignetting`` = V of Eq. 8-10; :func:`pipeline.ingest.cameras.dispatch.f
 ``components`` records where each came from.
 
 Every output is written under a temporary name and renamed; a run that finds ``run.json``
-matching its inputs (file names, sizes and modification times) and options does nothing.
+matching its inputs (the band files' content) and options does nothing.
 """
 from __future__ import annotations
 
@@ -93,16 +93,11 @@ from mscal_core.errors import CalibrationStoreError, FrameError, InputError
 from mscal_core.illumination import INTERPOLATION_MODES, fit_illumination
 from mscal_core.panel import sample_quad
 
-from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, stat_fingerprint
+from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, unchanged_run
 from pipeline.apply.coregistration import COREGISTRATION_CHECK
 from pipeline.apply.execution import Execution, flight_size_hint, start_worker_server
 from pipeline.apply.executor import FactoryChain, field_parts
-from pipeline.apply.flight import (
-    ApplyResult,
-    export_band_indices,
-    index_roles,
-    previous_run,
-)
+from pipeline.apply.options import ApplyResult, export_band_indices, index_roles
 from pipeline.apply.panel import PanelBand, panel_factors
 from pipeline.apply.panel_search import (
     PANEL_SCAN_ALL,
@@ -456,7 +451,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     near = panel_config_near(folder)
     parts = field_parts(field[0], field[1], camera.name) if field else None
     fingerprint = {
-        "inputs": stat_fingerprint(captures), "options": options.fingerprint(), "calibration": FACTORY,
+        "options": options.fingerprint(), "calibration": FACTORY,
         "mscal_version": mscal_core.__version__,
         "code_sha256": code_digest(),  # every source of mscal_core, pipeline and the catalogs
         "light_model": LIGHT_MODEL,  # results of earlier runs (raw sun-sensor readings) are not reused
@@ -472,7 +467,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     wanted = serial_wanted(options, captures)
     if wanted:  # the serial is read from the inputs; what its target says is in the catalog
         fingerprint["panel_serial_targets"] = serial_targets_digest()
-    previous = previous_run(Path(out), json.loads(json.dumps(fingerprint)), ("reflectance.zarr", "raw.zarr"))
+    previous = unchanged_run(out, captures, fingerprint)  # by the captures' content
     if previous is not None:  # before the panels are searched: an up-to-date run reads no pixels
         return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
 
@@ -523,7 +518,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     panel_names.update({name: "a reflectance panel (camera's panel flag, --panel, or detected); not used: "
                               "no --panel-reflectance" for name in unused})
     run = CaptureRun(
-        chain=FactoryChain(saturation_dn(camera), "panel" if reference == "panel-dls" else reference, panel_factor,
+        chain=FactoryChain(camera_clip_dn(camera), "panel" if reference == "panel-dls" else reference, panel_factor,
                            None if field is None else field[:2]),
         calibration=FACTORY, calibration_sha256=None, fingerprint=fingerprint, attrs=attrs,
         reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
@@ -618,7 +613,7 @@ def _route(options: FactoryOptions, captures: Sequence[Capture], serial: PanelSe
     return "none" if sun_sensor_missing(captures) is not None else "dls"
 
 
-def saturation_dn(camera: Camera) -> int:
+def camera_clip_dn(camera: Camera) -> int:
     """Stored value at and above which a pixel is clipped: the sensor's largest DN in the
     container's high bits (65520 for 12-bit data in 16-bit samples). A file whose own
     BitsPerSample holds less (12-bit packed) clips lower:

@@ -16,51 +16,56 @@
 """
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
-import platform
-import re
 import shutil
 import time
-import warnings
-from concurrent.futures import ThreadPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-import cv2
-import dask
-import dask.array as da
 import mscal_core
 import numpy as np
 import xarray as xr
-from mscal_core.alignment import align_bands, mosaic_centre_offsets
 from mscal_core.errors import FrameError, InputError
-from mscal_core.reflectance import eq15_fast, eq15_tables
+from mscal_core.reflectance import eq15_fast
 
-from pipeline.apply.execution import Execution, flight_size_hint, start_worker_server
-from pipeline.apply.executor import (  # noqa: F401  (re-exported: the executor's pieces were here before)
+from pipeline.apply.execution import flight_size_hint, start_worker_server
+from pipeline.apply.executor import (
     OUTPUT_COMPRESSORS,
     FieldChain,
     Job,
     Outcome,
     Plan,
     Runner,
-    band_tiff_path,
-    calibration_tables,
     capture_uuid,
-    geometry_step,
-    read_frame_chunk,
-    write_frame,
 )
-from pipeline.apply.light import DEFAULT_MODE, IlluminationPlan, illumination_plan, varies_in_time
+from pipeline.apply.light import IlluminationPlan, illumination_plan
+from pipeline.apply.options import (
+    ApplyOptions,
+    ApplyResult,
+    calibration_clip_dn,
+    calibration_hash,
+    export_band_indices,
+    index_roles,
+    normalisation,
+    pass_geometry,
+)
 from pipeline.apply.products import remove_unchosen
-from pipeline.calibrate.registration import check_transforms, frame_transforms
-from pipeline.ingest.catalog import Camera, Index, load_camera, reflectance_option
+from pipeline.apply.record import (
+    forget_run,
+    previous_run,
+    remove_frame_tiffs,
+    run_fingerprint,
+    run_record,
+    write_run_record,
+)
+from pipeline.apply.stores import calibration_tables, geometry_step, read_frame_chunk
+from pipeline.apply.template import create_store, frame_template, product_variables
+from pipeline.calibrate.registration import check_transforms
+from pipeline.ingest.catalog import Camera, Index, load_camera
 from pipeline.ingest.medians import kept_medians
 from pipeline.ingest.photo_tags import CameraOptics, optics_from_intrinsics
-from pipeline.ingest.products import Products, indices_for, radiance_refused
+from pipeline.ingest.products import indices_for, radiance_refused
 from pipeline.ingest.raw import (
     FRAME_COORDS,
     Cube,
@@ -74,212 +79,17 @@ from pipeline.ingest.raw import (
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import (
     install_folder,
-    outputs_manifest,
     remove_temporaries,
-    sync_file_system,
     temporary_folder_name,
-    write_json_atomic,
 )
-from pipeline.storage.cache import code_digest
-from pipeline.storage.chunks import frame_encoding, unwritten_frames
-from pipeline.storage.store import FLIGHT_VARIABLES, FRAME_COORD_ATTRS, cf_annotate, check_camera, open_calibration
+from pipeline.storage.store import FLIGHT_VARIABLES, FRAME_COORD_ATTRS, check_camera, open_calibration
 
-RUN_JSON = "run.json"
 log = logging.getLogger(__name__)
-MAX_EXPORT_BANDS = 8
 FRESH_BATCH = 64  # frames per commit of the single pass (a kill loses at most this much ingest)
 READ_AHEAD = 4  # a frame's task starts reading the file this many frames on (prefetch_file)
 
 
-@dataclass(frozen=True)
-class PanelSpec:
-    """A region of known reflectance in one frame: ``FRAME:x0,y0,x1,y1`` (band-grid pixels)."""
-
-    frame: str
-    box: tuple[int, int, int, int]
-    reflectance: Any  # catalog.ReflectanceSpec
-
-    @staticmethod
-    def parse(text: str, reflectance: str) -> "PanelSpec":
-        m = re.fullmatch(r"\s*([^:]+):\s*(\d+),\s*(\d+),\s*(\d+),\s*(\d+)\s*", text or "")
-        if not m:
-            raise InputError(
-                f"--panel {text!r} is not FRAME:x0,y0,x1,y1",
-                hint="e.g. --panel IMG_0003:120,80,140,95 (band-grid pixel columns and rows, end exclusive)",
-            )
-        x0, y0, x1, y1 = (int(m[i]) for i in range(2, 6))
-        if x1 <= x0 or y1 <= y0:
-            raise InputError(f"--panel {text!r}: empty box (need x1 > x0 and y1 > y0)")
-        return PanelSpec(m[1], (x0, y0, x1, y1), reflectance_option(reflectance))
-
-
-@dataclass(frozen=True)
-class ApplyOptions:
-    normalise: str = "relative"  # relative | band:<name or nm> | panel
-    panel: PanelSpec | None = None
-    tiff_dtype: str = "uint16"
-    export_bands: tuple[str, ...] | None = None
-    products: Products = Products()  # what is written beyond raw.zarr and reflectance (pipeline.ingest.products)
-    strict: bool = False
-    illumination: str = DEFAULT_MODE  # nearest | linear: light between reflector captures
-    align: bool = True  # align bands with the store's band_transform, if it has one
-    centre_bands: bool = False  # snapshot mosaics: resample every band to the mosaic's centre position
-    execution: Execution = Execution()  # how the pass runs (not what it computes: not fingerprinted)
-    captures: tuple[str, ...] = ()  # one-file-per-band cameras: only these captures of the folder (one flight)
-
-    def fingerprint(self) -> dict[str, Any]:
-        d = asdict(self)
-        d.pop("strict")
-        d.pop("execution")
-        if not d["captures"]:  # the default: earlier runs stay up to date
-            d.pop("captures")
-        d.pop("illumination")  # in the fingerprint only when the light varies (see run_fingerprint)
-        for key, default in (("align", True), ("centre_bands", False)):  # runs before band alignment stay up to date
-            if d[key] == default:
-                d.pop(key)
-        d["products"] = self.products.fingerprint()
-        if self.panel is not None:
-            d["panel"] = {"frame": self.panel.frame, "box": list(self.panel.box), "reflectance": repr(self.panel.reflectance)}
-        return d
-
-
-@dataclass
-class ApplyResult:
-    """What one apply did: ``run`` is ``OUT/run.json``'s record. ``calibration``: the
-    calibration store as apply read it (in memory), for the caller's summary to use instead of
-    reading the store again; None for ``--calibration factory``."""
-
-    out: Path
-    run: dict[str, Any]
-    up_to_date: bool = False
-    quarantined: list[dict[str, str]] = field(default_factory=list)
-    calibration: xr.Dataset | None = field(default=None, repr=False, compare=False)
-
-
 # --------------------------------------------------------------------------- helpers
-
-
-def calibration_hash(ds: xr.Dataset) -> str:
-    """sha256 of the calibration's arrays (U, V, S) and camera: what Eq. 15 depends on; with
-    light that varies in time also the captures' S, level, time and irradiance."""
-    h = hashlib.sha256(str(ds.attrs.get("camera")).encode())
-    names = ["inverse_response", "vignetting", "spectral_factor"]
-    if varies_in_time(ds):
-        names += ["capture_spectral_factor", "capture_level", "capture_time", "capture_irradiance"]
-    names += [n for n in ("band_transform", "capture_transform") if n in ds]  # only stores that have them
-    for name in names:
-        arr = np.ascontiguousarray(ds[name].values)
-        h.update(name.encode())
-        h.update(str(arr.dtype).encode() + str(arr.shape).encode())
-        h.update(arr.tobytes())
-    return h.hexdigest()
-
-
-def export_band_indices(camera: Camera, names: Sequence[str] | None) -> list[int]:
-    names = list(names) if names else list(camera.export_bands) or camera.band_names[:MAX_EXPORT_BANDS]
-    unknown = [n for n in names if n not in camera.band_names]
-    if unknown:
-        raise InputError(
-            f"--export-bands names unknown band(s) {', '.join(unknown)}",
-            hint=f"bands of {camera.name}: {', '.join(camera.band_names)}",
-        )
-    return [camera.band_names.index(n) for n in names]
-
-
-def _band_index(camera: Camera, text: str) -> int:
-    if text in camera.band_names:
-        return camera.band_names.index(text)
-    try:
-        return camera.band_for_wavelength(float(text))
-    except ValueError:
-        raise InputError(f"--normalise band:{text}: no such band name or wavelength",
-                         hint=f"bands: {', '.join(camera.band_names)}") from None
-
-
-def index_roles(camera: Camera, index: Index) -> dict[str, int]:
-    missing = [r for r in index.inputs if r not in camera.index_bands]
-    if missing:
-        raise InputError(
-            f"index {index.name} needs band role(s) {', '.join(missing)} that camera {camera.name} does not define",
-            hint=f"add them under index_bands in {camera.source}",
-        )
-    return {r: camera.band_for_wavelength(camera.index_bands[r]) for r in index.inputs}
-
-
-# --------------------------------------------------------------------------- the lazy graph
-
-
-def saturation_dn(calib: xr.Dataset, camera: Camera) -> int:
-    """DN from which pixels are saturated (NaN in reflectance): the calibration's lowest, else
-    the camera's full scale."""
-    return int(calib["saturation_dn"].values.min()) if "saturation_dn" in calib else camera.dn_max
-
-
-def _eq15_block(dn: np.ndarray, t: np.ndarray, lut: np.ndarray, inv_v: np.ndarray, sat: int) -> np.ndarray:
-    return eq15_fast(dn, lut, inv_v, t.reshape(-1), sat)
-
-
-def _aligned_block(refl: np.ndarray, names: np.ndarray, calib: xr.Dataset, block_info: dict | None = None) -> np.ndarray:
-    f0 = block_info[0]["array-location"][0][0] if block_info else 0
-    out = np.empty_like(refl)
-    for k in range(refl.shape[0]):
-        H = frame_transforms(calib, str(names[f0 + k]))
-        out[k] = refl[k] if H is None else align_bands(refl[k], H)
-    return out
-
-
-def lazy_reflectance(raw: xr.Dataset, calib: xr.Dataset, camera: Camera, *, align: bool = False) -> xr.DataArray:
-    """Eq. 15, ``R = U(I) / (t V S)``, as a dask-backed DataArray (frame, band, y, x); with
-    ``align`` and a calibration holding band transforms, each frame's bands warped onto the
-    reference band as the apply pass does (:func:`geometry_step`)."""
-    dn = raw["dn"].data
-    t = (raw["exposure_ms"] * raw["gain"]).values.astype(np.float64)
-    t_da = da.from_array(t.reshape(-1, 1, 1, 1), chunks=(dn.chunks[0], 1, 1, 1))
-    U = calib["inverse_response"].values
-    V = calib["vignetting"].values
-    S = calib["spectral_factor"].values
-    if V.shape[1:] != dn.shape[2:]:
-        raise InputError(
-            f"calibration vignetting is {V.shape[2]}x{V.shape[1]} but frames are {dn.shape[3]}x{dn.shape[2]}",
-            hint="use a calibration of this camera",
-        )
-    sat = saturation_dn(calib, camera)
-    lut, inv_v = eq15_tables(U, V, S)
-    refl = da.map_blocks(_eq15_block, dn, t_da, lut=lut, inv_v=inv_v, sat=sat, dtype=np.float32)
-    if align and "band_transform" in calib:
-        refl = da.map_blocks(_aligned_block, refl, names=raw["frame"].values, calib=calib, dtype=np.float32)
-    return xr.DataArray(refl, dims=("frame", "band", "y", "x"), coords=raw["dn"].coords, name="reflectance")
-
-
-def normalisation(
-    options: ApplyOptions, camera: Camera, frames: Sequence[str],
-    panel_reflectance: Callable[[int], np.ndarray],
-) -> tuple[str, float | int | None]:
-    """How relative reflectance is scaled: ``("none", None)``, ``("band", b)`` (per frame,
-    that band's median becomes 1) or ``("scalar", k)`` (one factor from a panel of known
-    reflectance, for every frame: Eq. 15's R is relative up to one scalar).
-
-    ``panel_reflectance(f)`` gives Eq. 15 reflectance (band, y, x) of frame ``f``."""
-    mode = options.normalise
-    if mode == "relative":
-        return "none", None
-    if mode.startswith("band:"):
-        return "band", _band_index(camera, mode.split(":", 1)[1])
-    if mode == "panel":
-        p = options.panel
-        if p is None:
-            raise InputError("--normalise panel needs --panel FRAME:x0,y0,x1,y1 and --panel-reflectance")
-        frames = list(frames)
-        if p.frame not in frames:
-            raise InputError(f"--panel frame {p.frame!r} is not in the flight", hint=f"frames: {', '.join(frames[:5])}, ...")
-        x0, y0, x1, y1 = p.box
-        region = panel_reflectance(frames.index(p.frame))[:, y0:y1, x0:x1]
-        rho = p.reflectance.at(camera.wavelengths)
-        med = np.nanmedian(region.reshape(region.shape[0], -1), axis=1) if region.size else np.array([np.nan])
-        if not np.any(np.isfinite(med) & (med > 0)):
-            raise InputError(f"--panel region of {p.frame} has no valid pixels (saturated or outside the frame)")
-        return "scalar", float(np.nanmedian(rho / med))
-    raise InputError(f"--normalise {mode!r}: use relative, band:<name or nm>, or panel")
 
 
 # --------------------------------------------------------------------------- outputs
@@ -329,10 +139,10 @@ def snapshot_optics(camera: Camera, calib: xr.Dataset, shape: tuple[int, int]) -
 
 def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, int], indices: Sequence[Index],
                     options: ApplyOptions, illum: IlluminationPlan | None = None) -> xr.Dataset:
-    """``reflectance.zarr`` as a lazy dataset (coordinates, attributes, variables of zeros
-    one chunk per frame); the apply pass writes its data frame by frame."""
-    n = coords.sizes.get("frame", 0)
-    out_coords = {
+    """``reflectance.zarr`` of a snapshot flight as a lazy dataset (coordinates, attributes,
+    variables of zeros one chunk per frame: :func:`pipeline.apply.template.frame_template`);
+    the apply pass writes its data frame by frame."""
+    out_coords: dict[str, Any] = {
         "frame": coords["frame"].values.astype(object),
         "band": ("band", np.arange(shape[0]), dict(FRAME_COORD_ATTRS["band"])),
         "wavelength": ("band", camera.wavelengths, dict(FLIGHT_VARIABLES["wavelength"])),
@@ -340,21 +150,9 @@ def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, i
     }
     for c in ("exposure_ms", "gain", "time", "lat", "lon", "alt_m"):
         out_coords[c] = ("frame", coords[c].values, dict(coords[c].attrs))
-    ds = xr.Dataset(coords=out_coords)
-    cube = unwritten_frames((n, *shape), np.float32)
-    ds["reflectance"] = (("frame", "band", "y", "x"), cube,
-                         {"long_name": "reflectance (Eq. 15)", "units": "1", "normalisation": options.normalise})
-    plane = unwritten_frames((n, *shape[1:]), np.float32)
-    for ix in indices:
-        ds[ix.name] = (("frame", "y", "x"), plane, {"long_name": ix.description, "expression": ix.expression,
-                                                     "units": "1"})
-    if any(ix.name == "ndvi" for ix in indices):
-        ds["vegetation_mask"] = (("frame", "y", "x"), plane.astype(np.uint8),
-                                 {"long_name": "vegetation (Otsu threshold of NDVI per frame)",
-                                  "flag_values": [0, 1, 255], "flag_meanings": "other vegetation undefined"})
-    ds.attrs.update({"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__})
+    attrs: dict[str, Any] = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__}
     if illum is not None:
-        ds = ds.assign_coords(
+        out_coords.update(
             illumination_level=("frame", illum.level.astype(np.float64),
                                 {"long_name": "brightness level beta of the light at the frame's time"}),
             illumination_scale=(("frame", "band"), illum.scale.astype(np.float64),
@@ -362,9 +160,9 @@ def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, i
             irradiance=("frame", illum.irradiance.astype(np.float64),
                         {"long_name": "sun-sensor irradiance of the frame (NaN: none)"}),
         )
-        ds.attrs["illumination_mode"] = illum.mode
-        ds.attrs["illumination_captures"] = list(illum.captures)
-    return cf_annotate(ds, FLIGHT_VARIABLES)
+        attrs.update(illumination_mode=illum.mode, illumination_captures=list(illum.captures))
+    variables = product_variables(indices, "reflectance (Eq. 15)", normalisation=options.normalise)
+    return frame_template(out_coords, shape, variables, attrs)
 
 
 # --------------------------------------------------------------------------- apply
@@ -404,10 +202,7 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
     if band_shift is not None:
         ds["reflectance"].attrs["band_positions"] = "resampled to the mosaic's centre position (--centre-bands)"
     tmp_store = temporary_folder_name(out / "reflectance.zarr")
-    encoding = {v: frame_encoding(ds[v].shape, OUTPUT_COMPRESSORS) for v in ds.data_vars}
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message="Consolidated metadata")
-        ds.to_zarr(tmp_store, mode="w", compute=False, consolidated=True, zarr_format=3, encoding=encoding)
+    create_store(ds, tmp_store, OUTPUT_COMPRESSORS)
     optics = snapshot_optics(camera, calib, tuple(cube_shape[1:]))
     plan = Plan(
         camera=camera, chain=FieldChain(calib_path, sat), raw_dn=raw_dn, cube_shape=tuple(cube_shape),
@@ -445,18 +240,6 @@ def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path:
             refl = geometry_step(calib_path, align, band_shift, str(names[f]), refl)
         return refl
     return reflectance
-
-
-def remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export: Sequence[int]) -> None:
-    """Remove the TIFFs of frames ``names`` (survey or panel; also under the names of runs
-    before band names lost their spaces)."""
-    for name in names:
-        for b in export:
-            band = camera.bands[b].name
-            for panel in (False, True):
-                band_tiff_path(out, name, band, panel).unlink(missing_ok=True)
-            (out / "photogrammetry" / f"{name}_{band}.tif").unlink(missing_ok=True)
-        (out / "ndvi" / f"{name}.tif").unlink(missing_ok=True)
 
 
 def _fresh_pass(cube: Cube, runner: Runner, start: Callable[..., _Pass], calib_path: Path, sat: int,
@@ -535,95 +318,6 @@ def _illumination_record(ps: _Pass, calib: xr.Dataset, options: ApplyOptions) ->
     return {"varies_in_time": True, **ps.illum.summary([str(f) for f in ps.coords["frame"].values])}
 
 
-def run_fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
-                 illum: IlluminationPlan | None = None) -> dict[str, Any]:
-    fingerprint = {
-        "frames_sha256": hashlib.sha256("".join(map(str, shas)).encode()).hexdigest(),
-        "calibration_sha256": chash,
-        "options": options.fingerprint(),
-        "mscal_version": mscal_core.__version__,
-        "code_sha256": code_digest(),  # every source of mscal_core, pipeline and the catalogs
-    }
-    if illum is not None:  # light that varies in time: the mode and the factors (readings) count
-        fingerprint["illumination"] = {"mode": illum.mode, "scale_sha256": illum.digest()}
-    return json.loads(json.dumps(fingerprint))  # as it reads back from run.json
-
-
-def previous_run(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = ("reflectance.zarr",)
-                ) -> dict[str, Any] | None:
-    """The previous run's record if it made the outputs (``stores`` in ``out``) of exactly these
-    inputs and they are still whole: ``run.json``, the completion marker written last
-    (:func:`write_run_record`), notes the outputs' files and sizes; a store that is missing,
-    empty, has a file less or a truncated chunk does not match and the flight is redone. A
-    ``run.json`` without that note (an older run's) is not trusted either."""
-    run_path = out / RUN_JSON
-    if not (run_path.is_file() and all((out / s).is_dir() for s in stores)):
-        return None
-    try:
-        previous = json.loads(run_path.read_text())
-    except (OSError, ValueError):
-        return None
-    if not isinstance(previous, dict) or previous.get("fingerprint") != fingerprint:
-        return None
-    manifest = previous.get(MANIFEST_KEY)
-    if not manifest or manifest != outputs_manifest(out, (previous.get("outputs") or {}).values()):
-        log.warning("%s: outputs changed since run.json was written (incomplete or damaged): redoing them", out)
-        return None
-    return previous
-
-
-#: run.json's note of the outputs it completes (:func:`pipeline.storage.atomic.outputs_manifest`).
-MANIFEST_KEY = "outputs_manifest"
-
-
-def forget_run(out: Path) -> None:
-    """Remove ``out/run.json`` before outputs are (re)written: until the new one is written
-    last, nothing in ``out`` claims to be complete."""
-    path = out / RUN_JSON
-    if path.exists():
-        path.unlink()
-        sync_file_system(out)
-
-
-def write_run_record(out: Path, record: dict[str, Any]) -> None:
-    """Write ``out/run.json``, the completion marker of a flight, last: the outputs are flushed
-    to the disk first (one ``syncfs``), their manifest goes into the record, and the record is
-    written atomically and fsynced (file and folder). The manifest (a ``stat`` per file, 0.04 s
-    of CPU for a 600-frame OUT) is taken while ``syncfs`` waits for the disk (0.1 s): it reads
-    sizes, which flushing does not change; run.json is written only after both."""
-    with ThreadPoolExecutor(1) as pool:
-        synced = pool.submit(sync_file_system, out)
-        record[MANIFEST_KEY] = outputs_manifest(out, (record.get("outputs") or {}).values())
-        synced.result()  # its error, if any, before anything claims the outputs complete
-    write_json_atomic(out / RUN_JSON, record)
-
-
-def software_versions() -> dict[str, str]:
-    versions = {"mscal": mscal_core.__version__, "python": platform.python_version(), "numpy": np.__version__,
-                "dask": dask.__version__, "xarray": xr.__version__, "opencv": cv2.__version__}
-    try:
-        import zarr
-
-        versions["zarr"] = zarr.__version__
-    except ImportError:  # pragma: no cover
-        pass
-    return versions
-
-
-def pass_geometry(calib: xr.Dataset, camera: Camera, options: ApplyOptions
-              ) -> tuple[bool, tuple[tuple[float, float], ...] | None, str | None]:
-    """``(align, band_shift, reference band)`` of the pass (``geometry_step``)."""
-    align = bool(options.align and "band_transform" in calib)
-    reference = (calib.attrs.get("registration") or {}).get("reference_band") if align else None
-    band_shift = None
-    if options.centre_bands:
-        if camera.layout.kind != "mosaic" or camera.layout.pattern is None:
-            raise InputError(f"--centre-bands is for snapshot mosaic cameras; {camera.name} is {camera.layout.kind}",
-                             hint="multi-lens cameras are aligned with 'mscal register' transforms instead")
-        band_shift = tuple((float(dx), float(dy)) for dx, dy in mosaic_centre_offsets(camera.layout.pattern))
-    return align, band_shift, reference
-
-
 def apply_flight(
     flight_dir: str | Path, calibration: str | Path, out: str | Path, options: ApplyOptions = ApplyOptions()
 ) -> ApplyResult:
@@ -657,7 +351,7 @@ def apply_flight(
     export = export_band_indices(camera, options.export_bands)
     indices = indices_for(camera, options.products)
     roles = {ix.name: index_roles(camera, ix) for ix in indices}
-    sat = saturation_dn(calib, camera)
+    sat = calibration_clip_dn(calib, camera)
     geometry = pass_geometry(calib, camera, options)
     out.mkdir(parents=True, exist_ok=True)
     remove_temporaries(out)
@@ -716,40 +410,27 @@ def apply_flight(
     t_pass = time.perf_counter() - t0
     install_folder(ps.tmp_store, out / "reflectance.zarr")
     run = _run_record(flight_dir, calib_path, chash, calib, camera, export, options, ps, outcomes, quarantined, runner,
-                      single, {"ingest_and_apply": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
-                      cube.found.metadata_problems)
+                      single, t_pass, t_start, cube.found.metadata_problems)
     write_run_record(out, run)  # last: a run.json names a finished pass
     return ApplyResult(out, run, up_to_date=False, quarantined=quarantined, calibration=calib)
 
 
 def _run_record(flight_dir: Path, calib_path: Path, chash: str, calib: xr.Dataset, camera: Camera,
                 export: Sequence[int], options: ApplyOptions, ps: "_Pass", outcomes: Sequence[Outcome],
-                quarantined: list[dict[str, str]], runner: Runner, single: bool,
-                timings: dict[str, float], problems: Sequence[dict[str, Any]] = ()) -> dict[str, Any]:
-    """The flight's ``run.json`` after a pass (SPEC.md, Outputs of apply); ``problems``: the
-    frames' metadata problems (:class:`pipeline.ingest.discover.Discovery`)."""
+                quarantined: list[dict[str, str]], runner: Runner, single: bool, t_pass: float, t_start: float,
+                problems: Sequence[dict[str, Any]] = ()) -> dict[str, Any]:
+    """The flight's ``run.json`` after a pass (:func:`pipeline.apply.record.run_record`);
+    ``problems``: the frames' metadata problems (:class:`pipeline.ingest.discover.Discovery`)."""
     frames = [o.name for o in outcomes]
-    sat_counts = [o.saturated for o in outcomes]
     shas = [str(s) for s in ps.coords["sha256"].values]  # the pass's frames, in cube order
-    return {
-        "flight": str(flight_dir),
-        "calibration": str(calib_path),
-        "calibration_sha256": chash,
-        "frames_in": len(frames) + len(quarantined),
-        "frames_out": len(frames),
-        "frames": frames,
-        "quarantined": quarantined,
-        "metadata_problems": [p for p in problems if Path(str(p["file"])).stem in frames],
-        "saturated_pixels": {"total": int(np.sum(sat_counts)), "per_frame": {n: int(c) for n, c in zip(frames, sat_counts)}},
-        "outputs": {"reflectance": "reflectance.zarr",
-                    **({"photogrammetry": "photogrammetry/", "ndvi": "ndvi/"} if options.products.tiffs else {})},
-        "products": options.products.record(ps.plan.indices_made()),
-        "export_bands": [camera.bands[b].name for b in export],
-        "versions": software_versions(),
-        "scheduler": runner.scheduler,
-        "execution": runner.execution,
-        "single_pass": single,
-        "timings_s": timings,
-        "illumination": _illumination_record(ps, calib, options),
-        "fingerprint": run_fingerprint(shas, chash, options, ps.illum),
-    }
+    names = [str(f) for f in ps.coords["frame"].values]
+    return run_record(
+        flight=flight_dir, camera=camera, calibration=str(calib_path), calibration_sha256=chash, outcomes=outcomes,
+        frames_sha256=dict(zip(names, shas)), quarantined=quarantined,
+        metadata_problems=[p for p in problems if Path(str(p["file"])).stem in frames],
+        outputs={"reflectance": "reflectance.zarr",
+                 **({"photogrammetry": "photogrammetry/", "ndvi": "ndvi/"} if options.products.tiffs else {})},
+        products=options.products.record(ps.plan.indices_made()), export=export, runner=runner,
+        t_pass=t_pass, t_start=t_start, fingerprint=run_fingerprint(shas, chash, options, ps.illum),
+        parts={"illumination": _illumination_record(ps, calib, options), "snapshot": {"single_pass": single}},
+    )

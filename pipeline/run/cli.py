@@ -338,7 +338,8 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
     execution = Execution(scheduler=scheduler, workers=workers, direct_io=direct_io)
     start_worker_server(execution, flight_size_hint(flight))  # its imports run beside this process's
 
-    from pipeline.apply.flight import ApplyOptions, PanelSpec, apply_flight
+    from pipeline.apply.flight import apply_flight
+    from pipeline.apply.options import ApplyOptions, PanelSpec
 
     bands = tuple(b.strip() for b in export_bands.split(",")) if export_bands else None
     if calibration == "factory":

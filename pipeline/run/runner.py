@@ -37,8 +37,10 @@ import mscal_core
 from mscal_core.errors import InputError, MscalError, SessionError
 
 from pipeline.apply.execution import Execution, scheduler_for
-from pipeline.apply.flight import RUN_JSON, ApplyOptions, apply_flight
+from pipeline.apply.flight import apply_flight
 from pipeline.apply.light import INTERPOLATION_MODES
+from pipeline.apply.options import ApplyOptions
+from pipeline.apply.record import RUN_JSON
 from pipeline.calibrate.fit import STAGES
 from pipeline.ingest.catalog import load_camera, read_yaml
 from pipeline.ingest.grouping import DEFAULT_CAPTURE_PATTERN

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from pipeline.apply.flight import calibration_hash
+from pipeline.apply.options import calibration_hash
 from pipeline.products.report import report_dict
 from pipeline.run.cli import main
 from pipeline.sim.evaluate import evaluate_calibration

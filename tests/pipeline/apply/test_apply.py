@@ -260,11 +260,11 @@ def test_single_pass_equals_ingest_then_apply(applied, tmp_path) -> None:
     from pipeline.ingest.raw import ingest_flight
 
     session, calib, out = applied
-    assert json.loads((out / "run.json").read_text())["single_pass"] is True
+    assert json.loads((out / "run.json").read_text())["snapshot"]["single_pass"] is True
     cubed = tmp_path / "cubed"
     ingest_flight(session / "flights" / "field", load_camera("ximea-mq022hg-sm5x5-nir"), cubed / "raw.zarr")
     assert _apply(session / "flights" / "field", calib, cubed) == 0
-    assert json.loads((cubed / "run.json").read_text())["single_pass"] is False
+    assert json.loads((cubed / "run.json").read_text())["snapshot"]["single_pass"] is False
     _assert_same_outputs(_outputs(out), _outputs(cubed))
     a, b = (xr.open_zarr(p / "raw.zarr") for p in (out, cubed))
     np.testing.assert_array_equal(a["dn"].values, b["dn"].values)
@@ -318,7 +318,7 @@ def test_duplicate_frame_in_a_fresh_flight(small, tmp_path, monkeypatch, schedul
     run = json.loads((out / "run.json").read_text())
     assert run["execution"]["scheduler"] == scheduler
     assert [q["file"] for q in run["quarantined"]] == [name]
-    assert "duplicate" in run["quarantined"][0]["reason"] and run["single_pass"] is False
+    assert "duplicate" in run["quarantined"][0]["reason"] and run["snapshot"]["single_pass"] is False
     stem = Path(name).stem
     assert not list((out / "photogrammetry").glob(f"{stem}_*")) and not (out / "ndvi" / f"{stem}.tif").exists()
     _assert_same_outputs(_outputs(clean), _outputs(out))
@@ -328,17 +328,30 @@ def test_duplicate_frame_in_a_fresh_flight(small, tmp_path, monkeypatch, schedul
         sorted(p.name for p in (clean / "raw.zarr" / "dn").iterdir() if p.name.startswith("c"))
 
 
-def test_lazy_reflectance_of_the_cube_equals_the_pass(applied) -> None:
-    from pipeline.apply.flight import lazy_reflectance
-    from pipeline.ingest.catalog import load_camera
+def eq15_numpy(raw: xr.Dataset, calib: xr.Dataset) -> np.ndarray:
+    """Eq. 15 written out here, independently of the apply code: ``R = U(I) / (t V S)`` in
+    float64 with t = exposure x gain, NaN from the calibration's lowest saturation DN up."""
+    dn = raw["dn"].values.astype(np.int64)
+    t = (raw["exposure_ms"] * raw["gain"]).values.astype(np.float64)
+    U = calib["inverse_response"].values.astype(np.float64)
+    V = calib["vignetting"].values.astype(np.float64)
+    S = calib["spectral_factor"].values.astype(np.float64)
+    sat = int(calib["saturation_dn"].values.min())
+    bands = np.arange(U.shape[0])[None, :, None, None]
+    refl = np.maximum(U[bands, dn], 0.0) / (t[:, None, None, None] * V[None] * S[None, :, None, None])
+    return np.where(dn >= sat, np.nan, refl)
+
+
+def test_the_pass_equals_eq15_of_the_cube(applied) -> None:
+    """reflectance.zarr is Eq. 15 of raw.zarr's DN, to float32 rounding."""
     from pipeline.storage.store import open_calibration
 
     _, calib_path, out = applied
-    camera = load_camera("ximea-mq022hg-sm5x5-nir")
-    lazy = lazy_reflectance(xr.open_zarr(out / "raw.zarr"), open_calibration(calib_path, camera), camera)
-    assert lazy.chunks is not None  # dask-backed, nothing computed yet
+    expected = eq15_numpy(xr.open_zarr(out / "raw.zarr"), open_calibration(calib_path))
     stored = xr.open_zarr(out / "reflectance.zarr")["reflectance"].values
-    np.testing.assert_array_equal(lazy.values, stored)
+    assert stored.dtype == np.float32 and stored.shape == expected.shape == (3, 25, 217, 409)
+    assert int(np.isnan(expected).sum()) == int(np.isnan(stored).sum()) == 0  # the small flight saturates nowhere
+    np.testing.assert_allclose(stored, expected, rtol=2e-6, equal_nan=True)
 
 
 def test_each_frame_reads_ahead_a_later_frame(small, tmp_path, monkeypatch) -> None:

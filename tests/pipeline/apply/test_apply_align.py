@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 import xarray as xr
 
-import pipeline.apply.executor as executor
+import pipeline.apply.bandgrid as bandgrid
 import pipeline.apply.flight as apply_mod
 from mscal_core.alignment import mosaic_centre_offsets, shift_bands
+from pipeline.apply.options import calibration_hash
 from pipeline.run.cli import main
 from pipeline.storage.store import open_calibration, write_store
 
@@ -64,7 +65,7 @@ def test_no_transforms_leaves_the_pass_untouched(plain, tmp_path, monkeypatch) -
         raise AssertionError("geometry step called without transforms")
 
     monkeypatch.setattr(apply_mod, "geometry_step", boom)
-    monkeypatch.setattr(executor, "geometry_step", boom)
+    monkeypatch.setattr(bandgrid, "geometry_step", boom)
     again = tmp_path / "again"
     assert _apply(session / "flights" / "field", calib, again) == 0
     monkeypatch.undo()
@@ -78,7 +79,7 @@ def test_no_transforms_leaves_the_pass_untouched(plain, tmp_path, monkeypatch) -
     for name in ("inverse_response", "vignetting", "spectral_factor"):
         arr = np.ascontiguousarray(ds[name].values)
         h.update(name.encode() + str(arr.dtype).encode() + str(arr.shape).encode() + arr.tobytes())
-    assert apply_mod.calibration_hash(ds) == h.hexdigest() == fp["calibration_sha256"]
+    assert calibration_hash(ds) == h.hexdigest() == fp["calibration_sha256"]
     n = ds.sizes["band"]
     ident = _with_transforms(calib, tmp_path / "ident.zarr", np.tile(np.eye(3), (n, 1, 1)), {})
     out_i = tmp_path / "ident"
@@ -107,12 +108,11 @@ def test_stored_transforms_align_each_frame(plain, tmp_path) -> None:
         assert np.isnan(a[:, -1]).all()
         np.testing.assert_array_equal(al["reflectance"].values[f, 0], ref["reflectance"].values[f, 0])
     assert "IMG_0001" in frames
-    from pipeline.apply.flight import lazy_reflectance
-    from pipeline.ingest.catalog import load_camera
-
-    lazy = lazy_reflectance(xr.open_zarr(aligned / "raw.zarr"), open_calibration(store),
-                            load_camera("ximea-mq022hg-sm5x5-nir"), align=True)
-    np.testing.assert_array_equal(lazy.values, al["reflectance"].values)
+    # band 3 is the reference pass's band 3 moved by the frame's own shift (above); every
+    # other band is left as it was: the aligned pass differs from the plain one nowhere else
+    for b in range(n):
+        if b != 3:
+            np.testing.assert_array_equal(al["reflectance"].values[:, b], ref["reflectance"].values[:, b])
     raw = tmp_path / "raw"
     assert _apply(session / "flights" / "field", store, raw, "--no-align") == 0
     np.testing.assert_array_equal(xr.open_zarr(raw / "reflectance.zarr")["reflectance"].values, ref["reflectance"].values)

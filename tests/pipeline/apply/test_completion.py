@@ -89,7 +89,7 @@ def test_the_manifest_sees_a_changed_size_and_a_missing_output(tmp_path: Path) -
 def test_run_json_is_written_only_after_the_outputs_are_flushed(tmp_path: Path, monkeypatch) -> None:
     """The manifest is taken while ``syncfs`` runs, but run.json waits for both: a flush that
     fails leaves no completion marker, and one that succeeds writes the manifest of the files."""
-    from pipeline.apply import flight
+    from pipeline.apply import record as record_mod
 
     (tmp_path / "a.zarr").mkdir()
     (tmp_path / "a.zarr" / "c.0").write_bytes(b"x" * 10)
@@ -98,13 +98,13 @@ def test_run_json_is_written_only_after_the_outputs_are_flushed(tmp_path: Path, 
     def failing(path: Path) -> None:
         raise OSError(5, "Input/output error")
 
-    monkeypatch.setattr(flight, "sync_file_system", failing)
+    monkeypatch.setattr(record_mod, "sync_file_system", failing)
     with pytest.raises(OSError, match="Input/output"):
-        flight.write_run_record(tmp_path, dict(record))
+        record_mod.write_run_record(tmp_path, dict(record))
     assert not (tmp_path / "run.json").exists()
     order = []
-    monkeypatch.setattr(flight, "sync_file_system", lambda path: order.append(("sync", path)))
-    flight.write_run_record(tmp_path, dict(record))
+    monkeypatch.setattr(record_mod, "sync_file_system", lambda path: order.append(("sync", path)))
+    record_mod.write_run_record(tmp_path, dict(record))
     assert order == [("sync", tmp_path)]
     written = json.loads((tmp_path / "run.json").read_text())
     assert written["outputs_manifest"] == outputs_manifest(tmp_path, ["a.zarr"]) and written["outputs_manifest"]["files"] == 1

@@ -14,7 +14,7 @@ import pytest
 from mscal_core.errors import InputError
 from pipeline.apply.execution import AUTO_PROCESS_FRAMES, Execution, scheduler_for
 from pipeline.apply.factory import FactoryOptions
-from pipeline.apply.flight import ApplyOptions
+from pipeline.apply.options import ApplyOptions
 from pipeline.run.cli import main
 from pipeline.run.runner import apply_one
 from pipeline.storage.directio import direct_io_enabled
@@ -242,7 +242,7 @@ def test_worker_processes_take_the_settings_of_the_pass_not_of_their_server(monk
 
 
 def _tables_held(plan, job) -> int:
-    from pipeline.apply.executor import loaded_calibrations
+    from pipeline.apply.stores import loaded_calibrations
 
     return loaded_calibrations()
 

@@ -227,6 +227,41 @@ def test_rerun_is_up_to_date(panel_run, capsys) -> None:
     assert (panel_run / "run.json").read_bytes() == before
 
 
+def test_up_to_date_is_decided_by_the_files_content(tmp_path, capsys) -> None:
+    """A copy of the folder with new modification times is up to date; a band file rewritten
+    with its size and time kept (one DN changed) is not: the content decides, as for a
+    snapshot flight."""
+    import os
+
+    data = require_data()
+    folder = tmp_path / "caps"
+    folder.mkdir()
+    for p in sorted(data.glob("IMG_000[01]_*.tif")):
+        shutil.copy(p, folder / p.name)  # new modification times
+    out = tmp_path / "out"
+    assert _apply(folder, out, "--reference", "dls", "--no-tiffs") == 0
+    run = json.loads((out / "run.json").read_text())
+    assert run["frames_out"] == 2 and len(run["fingerprint"]["frames_sha256"]) == 64
+    assert set(run["frames_sha256"]) == {"IMG_0000", "IMG_0001"}
+    for p in folder.iterdir():
+        os.utime(p, ns=(p.stat().st_atime_ns, p.stat().st_mtime_ns + 10**9))
+    capsys.readouterr()
+    assert _apply(folder, out, "--reference", "dls", "--no-tiffs") == 0
+    assert "up to date" in capsys.readouterr().out
+    band = folder / "IMG_0001_3.tif"
+    st = band.stat()
+    raw = bytearray(band.read_bytes())
+    raw[len(raw) // 2] ^= 0x01  # a pixel in the middle of the image: same size, other content
+    band.write_bytes(bytes(raw))
+    os.utime(band, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert band.stat().st_size == st.st_size and band.stat().st_mtime_ns == st.st_mtime_ns
+    assert _apply(folder, out, "--reference", "dls", "--no-tiffs") == 0
+    assert "up to date" not in capsys.readouterr().out
+    again = json.loads((out / "run.json").read_text())
+    assert again["frames_sha256"]["IMG_0000"] == run["frames_sha256"]["IMG_0000"]
+    assert again["frames_sha256"]["IMG_0001"] != run["frames_sha256"]["IMG_0001"]
+
+
 def test_incomplete_and_truncated_captures_are_quarantined(tmp_path, capsys) -> None:
     data = require_data()
     folder = tmp_path / "caps"

@@ -21,7 +21,8 @@ ROOT = Path(pipeline.__file__).resolve().parents[1]
 PROBE = (
     "import json, pipeline\n"
     "from pipeline.storage.cache import code_digest\n"
-    "from pipeline.apply.flight import ApplyOptions, run_fingerprint\n"
+    "from pipeline.apply.options import ApplyOptions\n"
+    "from pipeline.apply.record import run_fingerprint\n"
     "fp = run_fingerprint(['a' * 64], 'b' * 64, ApplyOptions())\n"
     "print(json.dumps({'file': pipeline.__file__, 'digest': code_digest(), 'fingerprint': fp}))\n"
 )

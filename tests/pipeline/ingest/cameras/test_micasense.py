@@ -79,7 +79,7 @@ def test_rededge_12bit_band_file_is_read_and_clips_at_4095(tmp_path) -> None:
     "12-bit or 16-bit format") decodes to the sensor's DN, the 16-bit file's >> 4; its factory
     radiance is the 16-bit file's wherever neither is clipped, and it clips at 4095 (its own
     depth's top), the 16-bit file at the catalog's 65520."""
-    from pipeline.apply.factory import saturation_dn
+    from pipeline.apply.factory import camera_clip_dn
     from pipeline.ingest.tiff import plain_tiff_pixels, read_raw
 
     require_data()
@@ -92,7 +92,7 @@ def test_rededge_12bit_band_file_is_read_and_clips_at_4095(tmp_path) -> None:
     dn16, dn12 = read_raw(src), read_raw(dst)
     assert dn12.dtype == np.uint16 and int(dn12.max()) == 4095
     np.testing.assert_array_equal(dn12, dn16 >> 4)
-    sat = saturation_dn(catalog.load_camera("micasense-rededge"))
+    sat = camera_clip_dn(catalog.load_camera("micasense-rededge"))
     assert (sat, m16.clipped_from(sat), m12.clipped_from(sat)) == (65520, 65520, 4095)
     clipped16, clipped12 = dn16 >= m16.clipped_from(sat), dn12 >= m12.clipped_from(sat)
     assert int(clipped12.sum()) == int(clipped16.sum()) == 1829  # IMG_0001 Blue: sky glint

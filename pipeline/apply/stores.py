@@ -1,0 +1,106 @@
+"""Zarr stores as a process of the apply pass holds them: a frame's whole chunk written or read
+(direct when the layout allows), and each calibration store read once per process and store
+(its Eq. 15 tables, its band transforms for :func:`geometry_step`). Every cache is keyed by the
+store's path and the time its metadata was written, so a store replaced at the same path is
+read again."""
+from __future__ import annotations
+
+import logging
+import os
+from functools import lru_cache
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import xarray as xr
+from mscal_core.alignment import align_bands, shift_bands
+from mscal_core.reflectance import eq15_tables
+
+from pipeline.calibrate.registration import frame_transforms
+from pipeline.storage.chunks import FrameChunks
+
+log = logging.getLogger(__name__)
+
+
+def _stamp(path: Path) -> tuple[str, int]:
+    """Cache key of a Zarr node: its path and the time its metadata was written (a store
+    replaced at the same path is not mistaken for the old one)."""
+    return str(path), os.stat(path / "zarr.json").st_mtime_ns
+
+
+@lru_cache(maxsize=16)
+def _zarr_array(key: tuple[str, int]):
+    import zarr
+
+    return zarr.open_array(key[0], mode="r+").with_config({"write_empty_chunks": True})
+
+
+@lru_cache(maxsize=16)
+def _frame_chunks(key: tuple[str, int]) -> FrameChunks | None:
+    return FrameChunks.open(key[0])
+
+
+def write_frame(array: Path, f: int, data: np.ndarray) -> None:
+    """Frame ``f``'s whole chunk of the Zarr array at ``array`` (direct when the layout allows)."""
+    key = _stamp(array)
+    fc = _frame_chunks(key)
+    if fc is not None:
+        fc.write(f, data)
+    else:
+        _zarr_array(key)[f] = data
+
+
+def read_frame_chunk(array: Path, f: int) -> np.ndarray:
+    key = _stamp(array)
+    fc = _frame_chunks(key)
+    return fc.read(f) if fc is not None else np.asarray(_zarr_array(key)[f])
+
+
+def calibration_tables(calibration: str) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 15 tables of a calibration store, once per process and store."""
+    return _tables_of(_stamp(Path(calibration)))
+
+
+def loaded_calibrations() -> int:
+    """How many calibration stores' Eq. 15 tables this process holds (:func:`calibration_tables`)."""
+    return _tables_of.cache_info().currsize
+
+
+def warm_calibration(calibration: str | Path) -> None:
+    """Load the Eq. 15 tables of ``calibration`` now (:func:`calibration_tables`), so the first
+    frame does not wait for them. A store that cannot be read is left to the frames, whose own
+    load raises the error that says what is wrong (nothing is cached for it)."""
+    try:
+        calibration_tables(str(calibration))
+    except Exception:  # raised again, with its message, by the first frame
+        log.debug("calibration %s not loaded ahead of the frames", calibration, exc_info=True)
+
+
+@lru_cache(maxsize=2)
+def _tables_of(key: tuple[str, int]) -> tuple[np.ndarray, np.ndarray]:
+    ds = _store_of(key)  # the process's one in-memory copy of the store (also read for band transforms)
+    return eq15_tables(ds["inverse_response"].values, ds["vignetting"].values, ds["spectral_factor"].values)
+
+
+@lru_cache(maxsize=2)
+def _store_of(key: tuple[str, int]) -> xr.Dataset:
+    """A calibration store in memory, once per process and store (read straight into numpy:
+    no dask for a small store)."""
+    return xr.open_zarr(key[0], chunks=None).load()
+
+
+def geometry_step(calibration: Path, align: bool, band_shift: Sequence[tuple[float, float]] | None, name: str,
+                  refl: np.ndarray) -> np.ndarray:
+    """Eq. 15 reflectance (band, y, x) of frame ``name`` put on one pixel grid: the
+    bands of a multi-lens camera warped onto the reference band (``align``: the capture's own
+    transforms if it was registered, else the session's; ``mscal_core.alignment.align_bands``,
+    NaN where a band does not cover), or a snapshot mosaic's bands resampled to the mosaic's
+    centre position (``band_shift``). Unchanged otherwise. Eq. 15 runs before: U, V and S
+    belong to each band's own pixels."""
+    if align:
+        H = frame_transforms(_store_of(_stamp(Path(calibration))), name)
+        if H is not None:
+            refl = align_bands(refl, H)
+    if band_shift is not None:
+        refl = shift_bands(refl, np.asarray(band_shift, dtype=np.float64))
+    return refl
