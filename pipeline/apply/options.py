@@ -12,8 +12,8 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 import xarray as xr
-from mscal_core.errors import InputError
 from mscal_core.alignment import mosaic_centre_offsets
+from mscal_core.errors import InputError
 
 from pipeline.apply.execution import Execution
 from pipeline.apply.light import DEFAULT_MODE, varies_in_time
