@@ -3,7 +3,7 @@
 numpy + OpenCV only: no file I/O, no dask, xarray, zarr, rasterio or prefect. One module per
 model stage: ``mosaic`` (band layout), ``response`` (Eq. 5-7), ``geometry`` (marker pose and
 plane mapping), ``vignetting`` (Eq. 8-10), ``illumination`` (Eq. 11-14, Eq. 16),
-``reflectance`` (Eq. 15), and the makers' factory models (``factory``, ``sunsensor``). The
+``reflectance`` (Eq. 15), and the makers' factory models (``factory``, ``vendors``, ``sunsensor``). The
 seeded physical forward model the tests check against lives in :mod:`pipeline.sim.world`.
 """
 

@@ -9,15 +9,15 @@ reflectance alone, in any flight, on any day).
 - **DJI** P4 Multispectral and Mavic 3M (``c = 1``): the guides' reflectance of a band is the
   camera value times ``pCam`` over the sunlight sensor's value, ``X pCam / (X_LS pLS)``, with
   ``pCam`` = ``drone-dji:SensorGainAdjustment`` (already in the camera value,
-  :func:`mscal_core.factory.dji_camera_value`) and ``X_LS pLS`` = ``drone-dji:Irradiance``
+  :func:`mscal_core.vendors.dji_camera_value`) and ``X_LS pLS`` = ``drone-dji:Irradiance``
   ("calibrated sunlight sensor value"; DJI, P4 Multispectral Image Processing Guide v1.0,
   2020.07, and Mavic 3M Image Processing Guide v1.0, 2023.08, the NDVI section). The guides
   write no further constant (no pi, no panel): their reflectance is used as written, ``c = 1``.
   Neither guide says whether that ratio is absolute (its NDVI needs only ratios of bands):
   absolute values need a panel.
 - **Parrot Sequoia** (``c = 5e-4``): Parrot's sensor model gives the irradiance on the imager
-  ``I`` (SEQ AN 01, :func:`mscal_core.factory.sequoia_irradiance`) and on the sunshine sensor
-  ``E`` (:func:`mscal_core.factory.sunshine_irradiance`), both "homogeneous to SI units but with
+  ``I`` (SEQ AN 01, :func:`mscal_core.vendors.sequoia_irradiance`) and on the sunshine sensor
+  ``E`` (:func:`mscal_core.vendors.sunshine_irradiance`), both "homogeneous to SI units but with
   an arbitrary scaling factor"; reflectance is ``R = K I / E`` with ``K`` a constant of the
   sensors' responses (Parrot developer forum, "Reflectance estimation" and "About radiometric
   calibration": "K is a constant that depends on sensors responses", found once with a target of

@@ -163,7 +163,7 @@ def test_dji_alignment_map_is_the_guides_undistort_then_warp() -> None:
     against one differ only by interpolation)."""
     import cv2
 
-    from mscal_core.factory import dji_alignment_map, remap_band
+    from mscal_core.vendors import dji_alignment_map, remap_band
 
     h, w = 240, 320
     y, x = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -186,7 +186,7 @@ def test_dji_alignment_map_is_the_guides_undistort_then_warp() -> None:
 
 def test_sentera_relative_radiance_by_hand() -> None:
     """(sum_j M[b, j] DN_j - black) / (g t), floored at 0, NaN where a channel in the mix clips."""
-    from mscal_core.factory import sentera_relative_radiance
+    from mscal_core.vendors import sentera_relative_radiance
 
     channels = np.array([[[100, 40, 7], [255, 10, 0]], [[20, 60, 255], [50, 50, 50]]], np.uint8)
     matrix = (1.0, -0.5, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0)  # band 0 = R - G/2; channel 2 not in it

@@ -4,8 +4,8 @@
   Mavic 3M), SensorGainAdjustment, VignettingData k0..k5, CalibratedOpticalCenterX/Y,
   BandName + BandFreq (``840(+/-26)nm``) or CentralWavelength.
 - **Radiance**: the camera value of DJI's Image Processing Guides
-  (:func:`mscal_core.factory.dji_camera_value`, relative), with DJI's radial vignetting
-  (:func:`mscal_core.factory.dji_vignetting_correction`).
+  (:func:`mscal_core.vendors.dji_camera_value`, relative), with DJI's radial vignetting
+  (:func:`mscal_core.vendors.dji_vignetting_correction`).
 - **Sun sensor**: ``drone-dji:Irradiance`` (calibrated sunlight sensor value).
 - **Quirks**: each band file's own registration (DewarpData, CalibratedHMatrix:
   :func:`factory_align`); the P4 Multispectral's RGB image numbered as the capture's
@@ -21,7 +21,7 @@ from typing import Sequence
 
 import numpy as np
 from mscal_core.errors import FrameError
-from mscal_core.factory import dji_alignment_map, dji_camera_value, dji_vignetting_correction, remap_band
+from mscal_core.vendors import dji_alignment_map, dji_camera_value, dji_vignetting_correction, remap_band
 
 from pipeline.ingest.cameras.registry import Maker, register
 from pipeline.ingest.meta import (
@@ -142,7 +142,7 @@ def _alignment_map(shape: tuple[int, int], center: tuple[float, float], dewarp: 
 def factory_align(metas: Sequence[CaptureMeta], stack: np.ndarray) -> np.ndarray:
     """Bands ``(band, H, W)`` of one capture (stored orientation) on the camera's common image
     plane with each band file's own registration (:func:`has_factory_alignment`;
-    :func:`mscal_core.factory.dji_alignment_map`); FrameError naming a band file without it."""
+    :func:`mscal_core.vendors.dji_alignment_map`); FrameError naming a band file without it."""
     out = np.empty(stack.shape, np.float32)
     for b, meta in enumerate(metas):
         if not has_factory_alignment(meta):
@@ -155,7 +155,7 @@ def factory_align(metas: Sequence[CaptureMeta], stack: np.ndarray) -> np.ndarray
 
 def band_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None, channels: np.ndarray | None,
                   out: np.ndarray | None) -> np.ndarray:
-    """DJI's camera value (:func:`mscal_core.factory.dji_camera_value`)."""
+    """DJI's camera value (:func:`mscal_core.vendors.dji_camera_value`)."""
     return dji_camera_value(dn, black_level=meta.black_level, sensor_gain=meta.gain,
                             exposure_us=meta.exposure_s * 1e6, vignetting=factory_vignetting(meta),
                             gain_adjustment=meta.gain_adjustment or 1.0)
@@ -163,7 +163,7 @@ def band_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None, c
 
 def band_vignetting(radiometry: str, shape: tuple[int, int], tags: VignettingTags) -> np.ndarray:
     """DJI's radial vignetting about the calibrated optical centre
-    (:func:`mscal_core.factory.dji_vignetting_correction`)."""
+    (:func:`mscal_core.vendors.dji_vignetting_correction`)."""
     assert tags.dji_center is not None and tags.dji_vignetting is not None
     return dji_vignetting_correction(shape, tags.dji_center, tags.dji_vignetting)
 

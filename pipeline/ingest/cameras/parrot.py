@@ -3,10 +3,10 @@
 - **Tags**: EXIF ExposureTime, ISO, FNumber; XMP ``Camera:`` BandName, CentralWavelength,
   SensorModel (A, B, C), VignettingPolynomial2D + VignettingPolynomial2DName.
 - **Radiance**: Parrot's sensor model (SEQ AN 01,
-  :func:`mscal_core.factory.sequoia_irradiance`): irradiance on the imager, SI-homogeneous
+  :func:`mscal_core.vendors.sequoia_irradiance`): irradiance on the imager, SI-homogeneous
   with an arbitrary scale.
 - **Sun sensor**: the sunshine sensor's ``Camera:IrradianceList`` records
-  (:func:`sunshine_records`, :func:`mscal_core.factory.sunshine_irradiance`).
+  (:func:`sunshine_records`, :func:`mscal_core.vendors.sunshine_irradiance`).
 - **Quirks**: frames stored rotated 180 degrees (EXIF Orientation 3,
   :func:`pipeline.ingest.meta.upright_meta`); the position only in the capture's RGB JPEG
   (:func:`sibling_position`).
@@ -22,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 from mscal_core.errors import FrameError
-from mscal_core.factory import sequoia_irradiance, sunshine_irradiance, vignetting_2d
+from mscal_core.factory import vignetting_2d
+from mscal_core.vendors import sequoia_irradiance, sunshine_irradiance
 
 from pipeline.ingest.cameras.registry import Maker, register
 from pipeline.ingest.exif import jpeg_exif
@@ -108,7 +109,7 @@ def sunshine_records(x: Xmp, path: Path | None = None) -> list[tuple] | None:
 def _sequoia_sunshine(x: Xmp, path: Path) -> float | None:
     """Relative irradiance of the band's sunshine sensor from ``Camera:IrradianceList``
     (base64 of 28-byte records) and ``IrradianceCalibrationMeasurement`` (gain index,
-    exposure ms, CH0, CH1 rows); :func:`mscal_core.factory.sunshine_irradiance`, divided by
+    exposure ms, CH0, CH1 rows); :func:`mscal_core.vendors.sunshine_irradiance`, divided by
     the band's CH0 sensitivity ``IrradianceSensitivitiesGolden[0]`` so that the four bands'
     readings share one scale. That division is inferred from the tag's name (no Parrot text
     found): on the real capture in ../shared/data it turns an implausible spectrum (red edge
@@ -169,7 +170,7 @@ def sibling_position(folder: Path, capture: str) -> tuple[float, float, float | 
 
 def band_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None, channels: np.ndarray | None,
                   out: np.ndarray | None) -> np.ndarray:
-    """Irradiance on the imager by Parrot's sensor model (:func:`mscal_core.factory.sequoia_irradiance`)."""
+    """Irradiance on the imager by Parrot's sensor model (:func:`mscal_core.vendors.sequoia_irradiance`)."""
     assert meta.sensor_model is not None and meta.f_number is not None and meta.iso is not None
     return sequoia_irradiance(dn, f_number=meta.f_number, exposure_s=meta.exposure_s, iso=meta.iso,
                               sensor_model=meta.sensor_model, vignetting=factory_vignetting(meta))

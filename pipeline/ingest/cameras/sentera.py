@@ -5,7 +5,7 @@ sun sensor and quirks.
   CentralWavelength (one per channel of a multi-channel file), WavelengthFWHM,
   ColorTransform (the crosstalk matrix).
 - **Radiance**: crosstalk-corrected DN / (ISO/100 x exposure), relative
-  (:func:`mscal_core.factory.sentera_relative_radiance`); no vignetting model.
+  (:func:`mscal_core.vendors.sentera_relative_radiance`); no vignetting model.
 - **Sun sensor**: the ILS ``Camera:SunSensor`` counts, kept as the band's reading; they have
   no published conversion to reflectance (a panel gives it).
 - **Quirks**: a ``Garbage`` channel (wavelength 0) written for the crosstalk only, skipped;
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 from mscal_core.errors import FrameError
-from mscal_core.factory import sentera_relative_radiance
+from mscal_core.vendors import sentera_relative_radiance
 
 from pipeline.ingest.cameras.registry import Maker, register
 from pipeline.ingest.meta import (
@@ -83,7 +83,7 @@ def read(ctx: TagContext) -> list[CaptureMeta]:
 
 def band_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None, channels: np.ndarray | None,
                   out: np.ndarray | None) -> np.ndarray:
-    """Relative radiance of a Sentera band (:func:`mscal_core.factory.sentera_relative_radiance`),
+    """Relative radiance of a Sentera band (:func:`mscal_core.vendors.sentera_relative_radiance`),
     crosstalk-corrected with the whole image ``channels`` of a multi-channel file."""
     mixing = meta.channel_mix is not None and meta.channel is not None
     if mixing and channels is None:

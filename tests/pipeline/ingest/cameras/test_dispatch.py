@@ -12,7 +12,7 @@ import pytest
 import tifffile
 import yaml
 
-from mscal_core.factory import sentera_relative_radiance
+from mscal_core.vendors import sentera_relative_radiance
 from pipeline.ingest.camera_meta import meta_from_tags, read_capture_meta, read_file_metas
 from pipeline.ingest.cameras import registry
 from pipeline.ingest.cameras.dispatch import factory_models, factory_radiance, maker_for_model

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mscal_core.factory import sunshine_irradiance
+from mscal_core.vendors import sunshine_irradiance
 from pipeline.ingest import catalog
 from pipeline.ingest.camera_meta import read_capture_meta
 from pipeline.ingest.cameras.dispatch import factory_radiance
