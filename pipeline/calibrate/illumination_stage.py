@@ -22,7 +22,14 @@ from pipeline.calibrate.captures import ReflectorCapture, reflector_captures
 from pipeline.calibrate.intrinsics import with_intrinsics
 from pipeline.calibrate.stage import StageReport, record_files
 from pipeline.calibrate.sweep import read_stack
-from pipeline.calibrate.views import FolderFrames, View, camera_offsets, edge_margin, exclude_half, find_views
+from pipeline.calibrate.views import (
+    FolderFrames,
+    View,
+    camera_offsets,
+    edge_margin,
+    exclude_half,
+    load_marker_frames,
+)
 from pipeline.ingest.captures import is_multilens
 from pipeline.ingest.catalog import Camera
 from pipeline.ingest.session import Session
@@ -97,16 +104,7 @@ def fit_illumination_frames(
     session, _ = with_intrinsics(session)
     folder = session.reflector_dir
     captures, read = frames() if frames is not None else read_reflector_frames(session)
-    recs, stack = read.records, read.stack
-    report.inputs = read.inputs
-    views = find_views(recs, stack, session, inverse_response, report)
-    if not views:
-        raise FitError(
-            f"{session.marker.label} was not found in any of the "
-            f"{len(recs)} frames",
-            path=folder,
-            hint="check marker.dictionary and marker.id in session.yaml, and that the marker is in view and sharp",
-        )
+    recs, stack, views = load_marker_frames(session, folder, inverse_response, report, frames=read)
     rho = session.reflector.reflectance.at(camera.wavelengths)
     shape = stack.shape[2:]
     columns, plane = [], []
