@@ -506,6 +506,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p.add_argument("--img-dir", type=Path, default=None, help="plots (default docs/img; --quick: build/bench-quick/img)")
     p.add_argument("--workdir", type=Path, default=None)
     p.add_argument("--json", type=Path, default=None, help="also write the raw figures as JSON")
+    p.add_argument("--varied", type=int, default=0, metavar="N",
+                   help="also run N varied full-size sessions end to end (calibrate + apply; accuracy_varied.py)")
+    p.add_argument("--no-sweep", action="store_true", help="skip the difficulty sweep (with --varied: only those)")
     return p.parse_args(argv)
 
 
@@ -522,6 +525,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     t0 = time.perf_counter()
     work = Path(tempfile.mkdtemp(prefix="mscal-bench-acc-", dir=a.workdir))
     try:
+        if a.varied:
+            import accuracy_varied
+
+            varied = accuracy_varied.run(a.varied, work, log=lambda m: print(m, flush=True))
+            vmd = accuracy_varied.render(varied, command)
+            print(vmd)
+            bc.write_section(out, vmd, accuracy_varied.SECTION_KEY)
+            print(f"wrote section {accuracy_varied.SECTION_KEY} of {out}")
+            if a.no_sweep:
+                return 0
         results = run_sweep(a.seed, a.quick, work, log=lambda m: print(m, flush=True))
     finally:
         shutil.rmtree(work, ignore_errors=True)

@@ -281,3 +281,40 @@ def test_factory_render_puts_the_write_floor_beside_the_loop_target() -> None:
     assert "| 30.0 s vs 40.0 s | | |" in md  # the 2.0x target allows half the loop's 60 s
     del res["writes"]
     assert "write floor" not in fac.render(res, "cmd")
+
+
+# --------------------------------------------------------------------------- accuracy_varied
+
+varied_acc = _load("accuracy_varied")
+
+
+def test_varied_flag_counts_see_flagged_pixels_left_with_a_value() -> None:
+    refl = np.ones((2, 3, 4, 5), np.float32)
+    quality = np.zeros(refl.shape, np.uint8)
+    labels = np.zeros((2, 4, 5), np.int32)
+    labels[:, :2, :] = 7  # panel 7: 10 pixels of 20 per frame
+    quality[0, 1, 0, :] = 2  # 5 panel pixels of band 1 flagged ...
+    refl[0, 1, 0, :4] = np.nan  # ... of which 4 NaN: one flagged pixel still has a value
+    c = varied_acc.flag_counts(refl, quality, labels, [7])
+    assert c["flagged_share"] == pytest.approx(5 / refl.size)
+    assert c["panel_flagged_share"] == pytest.approx(5 / (2 * 3 * 10))
+    assert c["flagged_with_value"] == 1
+    assert c["nan_share"] == pytest.approx(4 / refl.size)
+    assert np.isnan(varied_acc.flag_counts(refl, None, labels, [7])["flagged_share"])
+
+
+def test_varied_render_puts_the_eq16_row_under_each_flight_row_and_names_misses() -> None:
+    def one(k: int, panel: float) -> object:
+        return varied_acc.VariedAccuracy(
+            k, {}, {"response_max_error": 0.01, "vignetting_rms_error": 0.01, "spectral_factor_max_error": 0.005},
+            {"panel_abs_error": panel, "panel_cv_across_frames": 0.005, "vegetation_ndvi_error": 0.002},
+            {"panel_abs_error": 0.06, "panel_cv_across_frames": 0.02, "vegetation_ndvi_error": 0.13},
+            {"flagged_share": 0.001, "panel_flagged_share": 0.01, "flagged_with_value": 0.0, "nan_share": 0.002})
+
+    md = varied_acc.render([one(0, 0.004), one(1, 0.012)], "bench")
+    lines = md.splitlines()
+    i = next(k for k, line in enumerate(lines) if line.startswith("| flight (apply's output): gray panels"))
+    assert lines[i + 1].startswith("| Eq. 16 baseline: gray panels")
+    assert "| 0.0040 | 0.0120 |" in lines[i] and lines[i].endswith("FAIL |")
+    assert "Targets missed: flight (apply's output): gray panels, abs error (worst 0.0120)" in md
+    assert varied_acc.render([one(0, 0.004)], "bench").rstrip().endswith("Every target holds on every session.")

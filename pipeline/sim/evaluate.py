@@ -7,6 +7,7 @@ beside it, the Eq. 16 baseline (divide by the reflector's DN, exposure-normalise
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +21,8 @@ from pipeline.calibrate.sweep import read_stack
 from pipeline.ingest.session import load_session, read_frame_table
 
 
-def _panel_labels(names: np.ndarray) -> list[int]:
+def panel_labels(names: np.ndarray) -> list[int]:
+    """Labels of a synthetic flight's gray panels (material names starting with ``panel``)."""
     return [i for i, n in enumerate(names) if str(n).startswith("panel")]
 
 
@@ -54,9 +56,14 @@ def evaluate_calibration(session_dir: str | Path, calibration: str | Path | xr.D
     return out
 
 
-def evaluate_flight(session_dir: Path, ds: xr.Dataset, truth: Any, flight: str) -> dict[str, Any]:
-    """Eq. 15 vs Eq. 16 on one synthetic flight: panel reflectance after white-panel
-    normalisation (one scalar per frame), NDVI of vegetation, panel consistency across frames."""
+def evaluate_flight(session_dir: Path, ds: xr.Dataset, truth: Any, flight: str,
+                    reflectance: np.ndarray | None = None) -> dict[str, Any]:
+    """Eq. 15 vs Eq. 16 on one synthetic flight: panel reflectance after panel normalisation
+    (one scalar per frame), NDVI of vegetation, panel consistency across frames.
+
+    ``reflectance`` (frame, band, y, x) in the order of the flight's frames.csv: score that
+    (e.g. apply's own output, NaN where a pixel is flagged) as the Eq. 15 figure instead of
+    Eq. 15 computed here from the calibration; only finite pixels count."""
     session = load_session(session_dir)
     cam = session.camera
     recs = read_frame_table(session_dir / "flights" / flight)
@@ -64,15 +71,16 @@ def evaluate_flight(session_dir: Path, ds: xr.Dataset, truth: Any, flight: str) 
     t = np.array([r.effective_exposure for r in recs])
     labels = truth[f"flight_{flight}_labels"]
     names = truth[f"flight_{flight}_material_names"]
-    panel_rho = truth[f"flight_{flight}_panel_reflectance"]
-    sun = truth[f"flight_{flight}_sun"]
-    panels = _panel_labels(names)
-    white = panels[int(np.argmax(panel_rho))]
-    veg = [i for i, n in enumerate(names) if str(n).startswith("veg")][0]
-    red, nir = cam.band_for_wavelength(cam.index_bands["red"]), cam.band_for_wavelength(cam.index_bands["nir"])
-
-    r15 = eq15(dn, ds["inverse_response"].values, t, ds["vignetting"].values, ds["spectral_factor"].values,
-               saturation_dn=int(ds["saturation_dn"].values.min()) if "saturation_dn" in ds else None)
+    scene = FlightScene(labels=labels, panels=panel_labels(names),
+                        panel_rho=np.asarray(truth[f"flight_{flight}_panel_reflectance"], dtype=np.float64),
+                        sun=np.asarray(truth[f"flight_{flight}_sun"], dtype=np.float64),
+                        vegetation=[i for i, n in enumerate(names) if str(n).startswith("veg")][0],
+                        ndvi=truth[f"flight_{flight}_ndvi"],
+                        red=cam.band_for_wavelength(cam.index_bands["red"]),
+                        nir=cam.band_for_wavelength(cam.index_bands["nir"]))
+    if reflectance is None:
+        reflectance = eq15(dn, ds["inverse_response"].values, t, ds["vignetting"].values, ds["spectral_factor"].values,
+                           saturation_dn=int(ds["saturation_dn"].values.min()) if "saturation_dn" in ds else None)
     # Eq. 16 baseline: exposure-normalised DN divided by the reflector's mean exposure-normalised
     # DN per band (the reflector image does not fill the frame, so a per-pixel ratio is not possible).
     rrecs = read_frame_table(session.reflector_dir)
@@ -81,42 +89,79 @@ def evaluate_flight(session_dir: Path, ds: xr.Dataset, truth: Any, flight: str) 
     refl_level = np.array([np.median(rdn[b][rmask]) for b in range(cam.n_bands)])
     rho_s = session.reflector.reflectance.at(cam.wavelengths)
     r16 = np.stack([eq16_reflectance(dn[f] / t[f], refl_level, rho_s) for f in range(len(recs))]).astype(np.float32)
+    return {"frames": len(recs), "eq15": score_flight(reflectance, scene), "eq16": score_flight(r16, scene)}
 
-    def score(r: np.ndarray) -> dict[str, float]:
-        panel_err, cv, veg_ndvi_err = [], [], []
-        per_frame_k = []
-        for f in range(len(recs)):
-            m = labels[f] == white
-            if m.sum() < 5:
-                per_frame_k.append(np.nan)
-                continue
-            per_band = np.array([np.nanmedian(r[f, b][m]) for b in range(cam.n_bands)])
-            per_frame_k.append(float(np.nanmedian(panel_rho.max() / per_band)))
-        k = np.array(per_frame_k)
-        for p, rho in zip(panels, panel_rho):
-            means = []
-            for f in range(len(recs)):
-                m = labels[f] == p
-                if m.sum() < 5 or not np.isfinite(k[f]):
-                    continue
-                vals = np.array([np.nanmedian(r[f, b][m]) for b in range(cam.n_bands)])
-                panel_err.append(np.max(np.abs(vals * k[f] - rho)))
-                means.append(vals / sun[f])
-            if len(means) >= 2:
-                means = np.array(means)
-                cv.append(max(metrics.coefficient_of_variation(means[:, b]) for b in range(cam.n_bands)))
-        for f in range(len(recs)):
-            m = labels[f] == veg
-            if m.sum() < 20:
-                continue
-            with np.errstate(divide="ignore", invalid="ignore"):
-                nd = (r[f, nir] - r[f, red]) / (r[f, nir] + r[f, red])
-            true_nd = truth[f"flight_{flight}_ndvi"][f]
-            veg_ndvi_err.append(abs(float(np.nanmean(nd[m]) - np.nanmean(true_nd[m]))))
-        return {
-            "panel_abs_error": float(max(panel_err)) if panel_err else float("nan"),
-            "panel_cv_across_frames": float(max(cv)) if cv else float("nan"),
-            "vegetation_ndvi_error": float(max(veg_ndvi_err)) if veg_ndvi_err else float("nan"),
-        }
 
-    return {"frames": len(recs), "eq15": score(r15), "eq16": score(r16)}
+@dataclass(frozen=True)
+class FlightScene:
+    """What a synthetic flight's truth says about its frames: material label per pixel
+    (frame, y, x), which labels are gray panels and their reflectance, the sun's relative
+    brightness per frame, the vegetation label with its true NDVI (frame, y, x), and the
+    camera's red and NIR bands."""
+
+    labels: np.ndarray
+    panels: list[int]
+    panel_rho: np.ndarray
+    sun: np.ndarray
+    vegetation: int
+    ndvi: np.ndarray
+    red: int
+    nir: int
+
+
+#: A panel or the vegetation counts in a frame only with at least this many finite pixels.
+MIN_PANEL_PIXELS, MIN_VEGETATION_PIXELS = 5, 20
+
+
+def _panel_medians(r: np.ndarray, mask: np.ndarray) -> np.ndarray | None:
+    """Per-band median of the finite pixels of ``r`` (band, y, x) under ``mask``; None when a
+    band has fewer than :data:`MIN_PANEL_PIXELS` finite pixels there."""
+    vals = r[:, mask]
+    if mask.sum() < MIN_PANEL_PIXELS or np.any(np.isfinite(vals).sum(axis=1) < MIN_PANEL_PIXELS):
+        return None
+    return np.nanmedian(vals, axis=1)
+
+
+def score_flight(r: np.ndarray, scene: FlightScene) -> dict[str, float]:
+    """Panel error, cross-frame CV and vegetation NDVI error of reflectance ``r`` (frame,
+    band, y, x) against ``scene``.
+
+    Each frame is first normalised by one scalar: true / measured reflectance of the
+    brightest panel with enough finite pixels in every band (the white panel unless its
+    pixels are flagged), median over bands: the light's brightness B, which Eq. 15 leaves
+    out. Pixels that are not finite (flagged, saturated) do not count."""
+    n = r.shape[0]
+    order = [p for _, p in sorted(zip(scene.panel_rho, scene.panels), reverse=True)]
+    rho_of = dict(zip(scene.panels, scene.panel_rho))
+    k = np.full(n, np.nan)
+    for f in range(n):
+        for p in order:
+            med = _panel_medians(r[f], scene.labels[f] == p)
+            if med is not None:
+                k[f] = float(np.nanmedian(rho_of[p] / med))
+                break
+    panel_err, cv, veg_ndvi_err = [], [], []
+    for p in scene.panels:
+        means = []
+        for f in range(n):
+            med = _panel_medians(r[f], scene.labels[f] == p)
+            if med is None or not np.isfinite(k[f]):
+                continue
+            panel_err.append(float(np.max(np.abs(med * k[f] - rho_of[p]))))
+            means.append(med / scene.sun[f])
+        if len(means) >= 2:
+            arr = np.array(means)
+            cv.append(max(metrics.coefficient_of_variation(arr[:, b]) for b in range(arr.shape[1])))
+    for f in range(n):
+        m = scene.labels[f] == scene.vegetation
+        with np.errstate(divide="ignore", invalid="ignore"):
+            nd = (r[f, scene.nir] - r[f, scene.red]) / (r[f, scene.nir] + r[f, scene.red])
+        ok = m & np.isfinite(nd)
+        if ok.sum() < MIN_VEGETATION_PIXELS:
+            continue
+        veg_ndvi_err.append(abs(float(np.mean(nd[ok]) - np.nanmean(scene.ndvi[f][ok]))))
+    return {
+        "panel_abs_error": float(max(panel_err)) if panel_err else float("nan"),
+        "panel_cv_across_frames": float(max(cv)) if cv else float("nan"),
+        "vegetation_ndvi_error": float(max(veg_ndvi_err)) if veg_ndvi_err else float("nan"),
+    }

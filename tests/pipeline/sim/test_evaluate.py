@@ -1,0 +1,69 @@
+"""pipeline.sim.evaluate.score_flight on small hand-made flights: the per-frame panel
+normalisation, NaN (flagged) pixels left out, and the figures it reports."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.sim.evaluate import FlightScene, score_flight
+
+
+def _scene(n_frames: int = 3) -> tuple[FlightScene, np.ndarray]:
+    """Two gray panels (rho 0.9 and 0.3) and vegetation in a 3-band, 6x6 frame; the truth
+    reflectance of every frame (frame, band, y, x) with the light ``sun`` in it."""
+    labels = np.zeros((n_frames, 6, 8), np.int32)
+    labels[:, :, :2] = 1  # panel 0.9
+    labels[:, :, 2:4] = 2  # panel 0.3
+    labels[:, :, 4:] = 3  # vegetation
+    sun = np.linspace(1.0, 1.4, n_frames)
+    rho = {1: 0.9, 2: 0.3}
+    veg = np.array([0.05, 0.08, 0.5])  # red = band 1, nir = band 2
+    r = np.zeros((n_frames, 3, 6, 8), np.float32)
+    for f in range(n_frames):
+        for p, v in rho.items():
+            r[f][:, labels[f] == p] = v * sun[f]
+        r[f][:, labels[f] == 3] = (veg * sun[f])[:, None]
+    true_ndvi = np.full((n_frames, 6, 8), (0.5 - 0.08) / (0.5 + 0.08))
+    scene = FlightScene(labels=labels, panels=[1, 2], panel_rho=np.array([0.9, 0.3]), sun=sun, vegetation=3,
+                        ndvi=true_ndvi, red=1, nir=2)
+    return scene, r
+
+
+def test_exact_reflectance_scores_zero_and_a_biased_band_shows() -> None:
+    scene, r = _scene()
+    s = score_flight(r, scene)
+    assert s["panel_abs_error"] < 1e-6 and s["panel_cv_across_frames"] < 1e-6 and s["vegetation_ndvi_error"] < 1e-6
+    r2 = r.copy()
+    r2[1, 0] *= 1.05  # band 0 of frame 1 reads 5 % high: the median over bands normalises it away
+    s2 = score_flight(r2, scene)
+    # frame 1's scalar is the median over bands (1 / sun): the 0.9 panel in band 0 reads 0.9 x 1.05
+    assert s2["panel_abs_error"] == pytest.approx(0.9 * 0.05, rel=1e-4)
+    assert s2["panel_cv_across_frames"] > 0.02
+
+
+def test_flagged_white_panel_falls_back_to_the_next_panel_and_nan_pixels_do_not_count() -> None:
+    scene, r = _scene()
+    r2 = r.copy()
+    r2[0][:, scene.labels[0] == 1] = np.nan  # the white panel flagged in frame 0
+    r2[1][0, 0, 4] = 50.0  # one vegetation pixel far off ...
+    r2[1][0, 1, 4] = np.nan  # ... and one flagged
+    s = score_flight(r2, scene)
+    assert s["panel_abs_error"] < 1e-6  # frame 0 normalised by the 0.3 panel, still exact
+    assert s["panel_cv_across_frames"] < 1e-6
+    assert s["vegetation_ndvi_error"] < 1e-6  # band 0 is neither red nor NIR
+    r3 = r.copy()
+    r3[:, :, :, 4:] = np.nan  # no vegetation pixel left
+    assert np.isnan(score_flight(r3, scene)["vegetation_ndvi_error"])
+
+
+def test_a_panel_with_too_few_finite_pixels_is_left_out_of_its_frame() -> None:
+    scene, r = _scene()
+    r2 = r.copy()
+    keep = np.zeros((6, 8), bool)
+    keep[0, :2] = True  # 2 finite pixels of the 0.3 panel's 12 ... (panel 2 is columns 2-3)
+    m = (scene.labels[2] == 2) & ~np.roll(keep, 2, axis=1)
+    r2[2][:, m] = np.nan
+    r2[2][:, (scene.labels[2] == 2) & np.roll(keep, 2, axis=1)] = 7.0  # ... and those wrong
+    s = score_flight(r2, scene)
+    assert s["panel_abs_error"] < 1e-6
