@@ -38,7 +38,7 @@ bench: setup
 	$(BIN)/python bench/bench_calibrate.py --seeds 0 1 2 --varied 5
 	$(BIN)/python bench/bench_apply.py --frames 600 --large 0
 	$(BIN)/python bench/bench_factory.py --captures 1000
-	$(BIN)/python bench/bench_accuracy.py
+	$(BIN)/python bench/bench_accuracy.py --varied 10
 	$(BIN)/python bench/bench_scale.py
 
 # Smoke run of the same scripts at small sizes (< 5 min), into build/bench-quick/ so the
