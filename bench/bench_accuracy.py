@@ -3,7 +3,7 @@
 
 Usage::
 
-    .venv/bin/python bench/bench_accuracy.py [--quick] [--seed 0] [--out docs/benchmarks.md]
+    .venv/bin/python bench/bench_accuracy.py [--quick] [--seed 0] [--out docs/accuracy.md] [--varied N [--no-sweep]]
                                              [--img-dir docs/img]
 
 One synthetic session per point, built from the seeded forward model of
@@ -66,7 +66,7 @@ if str(HERE) not in sys.path:
 import bench_calibrate as bc  # shared measurement and markdown helpers
 
 SECTION_KEY = "bench_accuracy"
-DEFAULT_OUT = ROOT / "docs" / "benchmarks.md"
+DEFAULT_OUT = ROOT / "docs" / "accuracy.md"
 DEFAULT_IMG = ROOT / "docs" / "img"
 QUICK_DIR = ROOT / "build" / "bench-quick"
 
@@ -501,7 +501,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="two points (base, 4x noise); output under build/bench-quick")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=None, help="markdown file to update (default docs/benchmarks.md; "
+    p.add_argument("--out", type=Path, default=None, help="markdown file to update (default docs/accuracy.md; "
                                                           "--quick: build/bench-quick/benchmarks.md)")
     p.add_argument("--img-dir", type=Path, default=None, help="plots (default docs/img; --quick: build/bench-quick/img)")
     p.add_argument("--workdir", type=Path, default=None)
