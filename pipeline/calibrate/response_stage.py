@@ -89,7 +89,7 @@ def response_dataset(camera: Camera, fits: Sequence[response.ResponseFit], repor
                                    {"long_name": "rms of the sweep's fit residual I - C(t E) per DN bin (Eq. 5)",
                                     "units": "DN"})
     if all(f.fitted_dn is not None for f in fits):
-        ds.coords["end"] = ("end", np.array(["low", "high"]))
+        ds.coords["end"] = ("end", np.array(["low", "high"], dtype=object))
         ds["response_dn_range"] = (
             ("band", "end"), np.array([f.fitted_dn for f in fits], dtype=np.int32),
             {"long_name": "lowest and highest DN of the sweep samples the response fit used (the range U was "
