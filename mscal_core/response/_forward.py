@@ -151,13 +151,13 @@ def forward_fit(
         u_raw = hidden_saturation_top(u_curve, d, t, e, curve, noise, sat, lo, hi)
     U = finalise(u_raw, black, hi, bits)
     # where the top was raised, U is the curve's or Eq. 6's: their difference is part of U's uncertainty
-    raised = None if u_raw is u_curve else finalise(u_curve, black, hi, bits)
+    u_curve_gauged = None if u_raw is u_curve else finalise(u_curve, black, hi, bits)
     mu, _ = curve.at(t, e)
     rms = float(np.sqrt(np.mean((d - mu)[m] ** 2)))
     fitted = (int(d[m].min()), int(d[m].max()))
     # the last step's matrix, unless it was not a joint one (then it does not marginalise E)
     fit_std, unc = _uncertainty(U, curve, info if info is not None else normal_information(dw, w, t, e, curve, quad),
-                                fitted, (a_var, b_var), bits, raised)
+                                fitted, (a_var, b_var), bits, u_curve_gauged)
     return ResponseFit(U, black, sat, observed, rms, "forward", it, int(m.sum()), residual_profile(d, mu, m, bits),
                        fitted, (a_var, b_var), fit_std, unc)
 
