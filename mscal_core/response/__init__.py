@@ -77,6 +77,9 @@ Layout of the package (a newcomer reads them in this order):
 - ``_forward``: the default errors-in-DN fit and :func:`exposure_period`, built on
   ``_curve`` (the forward response C and its least-squares steps) and ``_noise`` (noise
   model, outlier weights, censored and hidden-saturated samples).
+- ``_uncertainty``: how far U can be trusted at each DN (:func:`response_uncertainty`: one
+  reading's noise through U's slope and the fit's own standard deviation of ``log U``, from
+  its information matrix with E marginalised), given by the forward method.
 
 References
 ----------
@@ -92,6 +95,7 @@ from ._consistency import check_exposure_consistency
 from ._fit import CENSOR_LOW_MAX_GRADIENT, METHODS, PRIORS, fit_response, fit_response_alternating
 from ._forward import ADAPT_FROM, PERIOD_POW, PERIOD_REF, SIGMA_MAX, SIGMA_POW, SIGMA_REF, exposure_period
 from ._noise import HIDDEN_FRACTION, HIDDEN_FROM, OUTLIER_Z
+from ._uncertainty import response_uncertainty
 
 __all__ = [
     "ADAPT_FROM",
@@ -116,4 +120,5 @@ __all__ = [
     "predict_dn",
     "predict_heldout_rms",
     "residual_profile",
+    "response_uncertainty",
 ]

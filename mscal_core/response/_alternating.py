@@ -56,8 +56,10 @@ def alternating_fit(
     e = (mf * t[:, None] * U_fin[di]).sum(0) / np.where(tt > 0, tt, 1.0)
     mu = predict_dn(U_fin, t[:, None] * e[None, :])
     rms = float(np.sqrt(np.mean((d - mu)[m] ** 2)))
+    # no uncertainty: the plain alternation's bias (PAPER.md) is not modelled, and a noise-only
+    # figure would claim more than the fit can back
     return ResponseFit(U_fin, black, sat, observed, rms, "alternating", it, int(m.sum()),
-                       residual_profile(d, mu, m, bits))
+                       residual_profile(d, mu, m, bits), (int(d[m].min()), int(d[m].max())))
 
 
 def _zero_crossing(k: np.ndarray, u: np.ndarray) -> float:

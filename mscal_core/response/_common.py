@@ -38,6 +38,18 @@ class ResponseFit:
         Unsaturated samples used.
     residual_by_dn : numpy.ndarray or None
         RMS of ``I - C(t E)`` per DN bin (see :func:`residual_profile`).
+    fitted_dn : tuple of int or None
+        Lowest and highest DN of the samples the fit used: the range U was fitted on.
+    noise_variance : tuple of float or None
+        ``(a, b)`` of the fit's DN noise model ``var(I) = a + b (I - black)`` (read + shot).
+    fit_uncertainty : numpy.ndarray or None
+        ``(2**bits,)`` relative standard uncertainty of U from the fit alone (how well the
+        sweep determines U at each DN); NaN outside ``fitted_dn``.
+    uncertainty : numpy.ndarray or None
+        ``(2**bits,)`` relative standard uncertainty of U at each DN: ``fit_uncertainty`` and
+        one reading's noise through U's slope in quadrature (:func:`response_uncertainty`).
+        ``noise_variance``, ``fit_uncertainty`` and ``uncertainty`` are given by the forward
+        method only (None for the plain alternation, whose bias is not modelled).
     """
 
     inverse_response: np.ndarray  # U(k), (2**bits,) float64, monotone, gauge of the module
@@ -49,6 +61,10 @@ class ResponseFit:
     iterations: int
     n_samples: int  # unsaturated samples used
     residual_by_dn: np.ndarray | None = None  # rms of I - C(t E) per DN bin (see residual_profile)
+    fitted_dn: tuple[int, int] | None = None  # lowest and highest DN of the samples used
+    noise_variance: tuple[float, float] | None = None  # (a, b): var(I) = a + b (I - black)
+    fit_uncertainty: np.ndarray | None = None  # relative std of U from the fit alone, per DN
+    uncertainty: np.ndarray | None = None  # relative std of U per DN (response_uncertainty)
 
 
 RESIDUAL_BINS = 32  # DN bins of ResponseFit.residual_by_dn over 0 .. 2**bits

@@ -224,7 +224,7 @@ def _curve_of(theta: np.ndarray, xk: np.ndarray) -> Curve:
 def joint_step(
     d: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
     prior: tuple[np.ndarray, np.ndarray], s_min: float, joint: bool = True,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Take one Gauss-Newton step on (C, E) jointly.
 
     One Gauss-Newton step on (C, E) jointly, E eliminated by its Schur complement
@@ -235,7 +235,9 @@ def joint_step(
     ``dE_x = sum_i w J (I - phi' theta) / h_x``, ``h_x = sum_i w J^2``, which leaves the
     reduced problem ``theta' (M - sum_x g_x g_x' / h_x + P) theta - 2 theta' (b - sum_x g_x
     q_x / h_x)`` with ``g_x = sum_i w J phi``, ``q_x = sum_i w J I``: solved with slopes
-    ``>= s_min``. Returns the proposed ``(theta, E)``.
+    ``>= s_min``. Returns the proposed ``(theta, E)`` and the reduced normal matrix (with
+    ``joint``: the information matrix of ``theta`` at the current (C, E), see
+    :func:`normal_information`).
     """
     xk = curve.xk
     n_f, n_p = d.shape
@@ -261,7 +263,46 @@ def joint_step(
     theta = _solve_bounded(M, b, lb)
     c, _ = _curve_of(theta, xk)(x)
     de = np.where(ok, np.bincount(pix, ws * Js * (ds - c[on]), n_p) / np.where(ok, h, 1.0), 0.0)
-    return theta, np.maximum(e + de, 0.0)
+    return theta, np.maximum(e + de, 0.0), M
+
+
+def normal_information(
+    d: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
+    prior: tuple[np.ndarray, np.ndarray],
+) -> np.ndarray:
+    """Return the information matrix of C's parameters with every pixel's E marginalised.
+
+    ``theta = [C(0), s_0 .. s_{K-1}]``: the Schur complement ``M - sum_x g_x g_x' / h_x + P``
+    of :func:`joint_step` (the Gauss-Newton normal matrix of (C, E) with E eliminated) plus
+    the prior's quadratic ``P``. With ``w = 1 / var`` its inverse is the covariance of
+    ``theta`` (the linearised posterior: samples' noise as modelled, the prior as a Gaussian).
+    """
+    xk = curve.xk
+    n_p = d.shape[1]
+    x = t[:, None] * e[None, :]
+    _, s = curve.at(t, e)
+    J = t[:, None] * s
+    on = w > 0
+    xs, ws, Js = x[on], w[on], J[on]
+    pix = np.broadcast_to(np.arange(n_p), d.shape)[on]
+    h = np.bincount(pix, ws * Js * Js, n_p)
+    seg = curve.segment(xs)
+    G = _ramp_stats(xs, seg, ws * Js, xk, pix, n_p)
+    ok = h > 1e-12 * max(h.max(), 1e-300)
+    Go = G[ok]
+    return _normal_matrix(xs, seg, ws, xk) - Go.T @ (Go / h[ok, None]) + prior[0]
+
+
+def ramp_basis(x: np.ndarray, xk: np.ndarray) -> np.ndarray:
+    """``phi(x) = [1, ramp_0(x), ..., ramp_{K-1}(x)]`` of every ``x``: ``C(x) = phi(x)' theta``.
+
+    ``ramp_k = min(max(x - x_k, 0), Δ_k)``, the last ramp unbounded (see :func:`_ramp_stats`).
+    """
+    x = np.asarray(x, dtype=np.float64)
+    dx = np.diff(xk)
+    r = np.clip(x[:, None] - xk[None, :-1], 0.0, dx[None, :])
+    r[:, -1] = np.maximum(x - xk[-2], 0.0)
+    return np.concatenate([np.ones((x.size, 1)), r], axis=1)
 
 
 def _cost(d: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,

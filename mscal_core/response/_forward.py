@@ -5,8 +5,18 @@ from __future__ import annotations
 import numpy as np
 
 from ._common import ResponseFit, finalise, linear_init, residual_profile
-from ._curve import Curve, fit_energy, joint_step, line_search, prior_quadratic, reknot, relative_u
+from ._curve import (
+    Curve,
+    fit_energy,
+    joint_step,
+    line_search,
+    normal_information,
+    prior_quadratic,
+    reknot,
+    relative_u,
+)
 from ._noise import censored_outlier_weights, censored_terms, hidden_saturation_top, noise_update, outlier_weights
+from ._uncertainty import fit_log_std, response_uncertainty
 
 #: Adaptive prior weight (see :func:`fit_response`): ``smoothness * (sigma / SIGMA_REF)^SIGMA_POW
 #: * (period / PERIOD_REF)^PERIOD_POW`` with ``sigma`` the robust DN noise relative to the DN
@@ -104,6 +114,7 @@ def forward_fit(
     settle = 7  # last re-knot / noise-model update; weights frozen afterwards
     it = 0
     dw = d  # working samples: observed, and censored ones as pseudo-observations
+    info = None  # information matrix of C's parameters, E marginalised (from the last joint step)
     for it in range(1, max_iter + 1):
         if it in reknot_at:
             curve, e = reknot(curve, e, t, m, hi, n_seg)
@@ -120,7 +131,7 @@ def forward_fit(
         if cen is not None and it >= 2:  # refreshed every iteration (a Newton step on them)
             dw, wc = censored_terms(d, cen, t, e, curve, noise, sat)
             w = w_obs + wc * rob
-        curve, e, gain = _step(dw, w, t, e, curve, quad, s_min)
+        curve, e, gain, info = _step(dw, w, t, e, curve, quad, s_min)
         e = fit_energy(dw, w, t, e, curve, steps=1)
         if it <= 3 or it in (5, settle):
             a_var, b_var, c_var = noise_update(d, m, w, t, e, curve, robust, g2)
@@ -133,14 +144,42 @@ def forward_fit(
         if it > settle and (change < tol or gain < 2e-5 * float(mf.sum())):
             break
     black = float(curve.c[0])
-    u_raw = curve.inverse(np.arange(dn_max + 1, dtype=np.float64))
+    u_curve = curve.inverse(np.arange(dn_max + 1, dtype=np.float64))
+    u_raw = u_curve
     if robust:
         noise = (a_var, b_var, c_var * g2)
-        u_raw = hidden_saturation_top(u_raw, d, t, e, curve, noise, sat, lo, hi)
+        u_raw = hidden_saturation_top(u_curve, d, t, e, curve, noise, sat, lo, hi)
     U = finalise(u_raw, black, hi, bits)
+    # where the top was raised, U is the curve's or Eq. 6's: their difference is part of U's uncertainty
+    u_curve_gauged = None if u_raw is u_curve else finalise(u_curve, black, hi, bits)
     mu, _ = curve.at(t, e)
     rms = float(np.sqrt(np.mean((d - mu)[m] ** 2)))
-    return ResponseFit(U, black, sat, observed, rms, "forward", it, int(m.sum()), residual_profile(d, mu, m, bits))
+    fitted = (int(d[m].min()), int(d[m].max()))
+    # the last step's matrix, unless it was not a joint one (then it does not marginalise E)
+    fit_std, unc = _uncertainty(U, curve, info if info is not None else normal_information(dw, w, t, e, curve, quad),
+                                fitted, (a_var, b_var), bits, u_curve_gauged)
+    return ResponseFit(U, black, sat, observed, rms, "forward", it, int(m.sum()), residual_profile(d, mu, m, bits),
+                       fitted, (a_var, b_var), fit_std, unc)
+
+
+def _uncertainty(U: np.ndarray, curve: Curve, info: np.ndarray, fitted: tuple[int, int],
+                 noise: tuple[float, float], bits: int, u_curve: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """``(fit_std, uncertainty)`` of U on every DN (:func:`fit_log_std`, :func:`response_uncertainty`).
+
+    ``info``: the information matrix of C's parameters with E marginalised. ``u_curve``: U of
+    the curve alone where :func:`hidden_saturation_top` raised U's top (its relative difference
+    from U is added in quadrature to ``fit_std``).
+    """
+    dn_max = 2**bits - 1
+    fit_std = np.full(dn_max + 1, np.nan)
+    k = np.arange(fitted[0], fitted[1] + 1)
+    fit_std[k] = fit_log_std(curve, info, k, dn_max // 2)
+    if u_curve is not None:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            moved = np.where(U > 0, np.abs(U - u_curve) / U, 0.0)
+        fit_std[k] = np.hypot(fit_std[k], moved[k])
+    return fit_std, response_uncertainty(U, float(curve.c[0]), noise, fitted, np.nan_to_num(fit_std))
 
 
 def _adaptive_smoothness(
@@ -165,18 +204,20 @@ def _adaptive_smoothness(
 def _step(
     dw: np.ndarray, w: np.ndarray, t: np.ndarray, e: np.ndarray, curve: Curve,
     quad: tuple[np.ndarray, np.ndarray], s_min: float,
-) -> tuple[Curve, np.ndarray, float]:
+) -> tuple[Curve, np.ndarray, float, np.ndarray | None]:
     """One joint Gauss-Newton step on (C, E) with backtracking.
 
     Where it stalls (on a kink of C), an exact block step on C for fixed E instead. Returns
-    ``(C, E, cost decrease)``.
+    ``(C, E, cost decrease, information)``: the information matrix of C's parameters with E
+    marginalised (:func:`normal_information`) at the start of the step, None after a block step.
     """
-    theta_new, e_new = joint_step(dw, w, t, e, curve, quad, s_min)
+    theta_new, e_new, info = joint_step(dw, w, t, e, curve, quad, s_min)
     curve, e, gain = line_search(dw, w, t, e, curve, quad, theta_new, e_new)
     if gain == 0.0:
-        theta_new, e_new = joint_step(dw, w, t, e, curve, quad, s_min, joint=False)
+        theta_new, e_new, _ = joint_step(dw, w, t, e, curve, quad, s_min, joint=False)
         curve, e, gain = line_search(dw, w, t, e, curve, quad, theta_new, e_new)
-    return curve, e, gain
+        info = None
+    return curve, e, gain, info
 
 
 def _robust_weights(

@@ -100,29 +100,45 @@ def fit_observations(obs: Sequence[Observations], shape: tuple[int, int], n_cell
                                      start=start)
 
 
-def vignetting_band(bv: BandViews, screen: bool = False,
-                    start: np.ndarray | None = None) -> tuple[vignetting.VignettingFit, float, np.ndarray | None]:
-    """Eq. 8-10 of one band: the fit, the saturated fraction and, with ``screen``, each
-    view's :func:`mscal_core.vignetting.view_inconsistency` with that fit. ``start``: V of
-    an earlier fit of the band (on more views) to start from."""
+def view_coverage(obs: Sequence[Observations], shape: tuple[int, int]) -> np.ndarray:
+    """How many of the views observed each pixel: ``(H, W)`` uint16 (saturating at 65535).
+
+    A view observes a pixel when the pixel sees the reflector (inside its mask: off the marker
+    and the edge margin) unsaturated, i.e. gives V an observation there
+    (:func:`mscal_core.vignetting.view_observations`, one per pixel and view); 0 where no view
+    did (V is extrapolated there)."""
+    n_pix = int(shape[0]) * int(shape[1])
+    count = np.zeros(n_pix, dtype=np.int64)
+    for pix, _, _ in obs:  # one view at a time: no temporary the size of all observations
+        count += np.bincount(pix, minlength=n_pix)
+    return np.minimum(count, 65535).astype(np.uint16).reshape(shape)
+
+
+def vignetting_band(bv: BandViews, screen: bool = False, start: np.ndarray | None = None
+                    ) -> tuple[vignetting.VignettingFit, float, np.ndarray | None, np.ndarray]:
+    """Eq. 8-10 of one band: the fit, the saturated fraction, with ``screen`` each view's
+    :func:`mscal_core.vignetting.view_inconsistency` with that fit (else None), and the
+    views' :func:`view_coverage`. ``start``: V of an earlier fit of the band (on more views)
+    to start from."""
     obs, saturated = band_observations(bv)
     fit = fit_observations(obs, bv.shape, bv.grid[0] * bv.grid[1], start)
     frac = np.array([vignetting.view_inconsistency(fit, *o) for o in obs]) if screen else None
-    return fit, saturated, frac
+    return fit, saturated, frac, view_coverage(obs, bv.shape)
 
 
-def lens_vignetting_band(bv: BandViews, min_views_to_screen: int) -> tuple[vignetting.VignettingFit, float, np.ndarray,
-                                                                          list[int]]:
+def lens_vignetting_band(bv: BandViews, min_views_to_screen: int
+                         ) -> tuple[vignetting.VignettingFit, float, np.ndarray, list[int], np.ndarray]:
     """Eq. 8-10 of one lens of a multi-lens camera on its own views, screened on its own fit:
     views that disagree with it (:func:`mscal_core.vignetting.inconsistent_views`) are dropped
     and the lens fitted again when at least ``min_views_to_screen`` remain. Returns the fit,
-    the saturated fraction (of all its views), each view's inconsistency and the views dropped."""
+    the saturated fraction (of all its views), each view's inconsistency, the views dropped
+    and the :func:`view_coverage` of the views kept."""
     obs, saturated = band_observations(bv)
     shape, n_cells = bv.shape, bv.grid[0] * bv.grid[1]
     fit = fit_observations(obs, shape, n_cells)
     frac = np.array([vignetting.view_inconsistency(fit, *o) for o in obs])
     bad = sorted(set(vignetting.inconsistent_views(frac).tolist()))
     if not bad or len(obs) - len(bad) < min_views_to_screen:
-        return fit, saturated, frac, []
+        return fit, saturated, frac, [], view_coverage(obs, shape)
     kept = [o for k, o in enumerate(obs) if k not in bad]
-    return fit_observations(kept, shape, n_cells, fit.vignetting), saturated, frac, bad
+    return fit_observations(kept, shape, n_cells, fit.vignetting), saturated, frac, bad, view_coverage(kept, shape)

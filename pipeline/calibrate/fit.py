@@ -148,7 +148,9 @@ def fit_stage_cli(stage: str, session_dir: str | Path, out: str | Path, partial:
     if partial is not None:
         ds = open_calibration(partial, camera, need=stage)
         session, source = with_intrinsics(session, ds)
-        keep = ["inverse_response", "black_level", "saturation_dn"] + (["vignetting", "vignetting_count", "vignetting_observed"] if stage == "illumination" else [])
+        keep = ["inverse_response", "black_level", "saturation_dn", "response_uncertainty", "response_dn_range"] + (
+            ["vignetting", "vignetting_count", "vignetting_observed", "vignetting_coverage"]
+            if stage == "illumination" else [])
         ds = ds[[v for v in keep if v in ds]]
     else:
         rfits, rrep = fit_response_frames(session.response_dir, camera, response_method, session.root)

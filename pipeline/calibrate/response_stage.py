@@ -54,6 +54,23 @@ def fit_response_frames(
     return fits, report
 
 
+#: What ``response_uncertainty`` is (its attributes in the store).
+UNCERTAINTY_ATTRS = {
+    "long_name": "relative standard uncertainty of U(k) (Eq. 5-7), a fraction of U(k)",
+    "units": "1",
+    "description": (
+        "sqrt((U'(k) sigma_I(k) / U(k))^2 + s_fit(k)^2): one reading's DN noise through U's slope (U' the "
+        "difference quotient of U over k +- sigma_I(k)), "
+        "sigma_I(k)^2 = a + b (k - black_level) the response fit's read + shot noise model (per band: "
+        "noise_variance [a, b], DN^2 and DN^2 per DN), and s_fit(k) the standard deviation of log U(k) "
+        "of the fit itself (its information matrix, every pixel's E marginalised, the prior included: "
+        "large where few samples reach, and the step where the top of U was raised for saturated pixels "
+        "hidden below the clip). NaN outside response_dn_range; inf where U(k) = 0 (at or below black). "
+        "Written by the forward response fit only (the plain alternation's bias is not modelled)."
+    ),
+}
+
+
 def response_dataset(camera: Camera, fits: Sequence[response.ResponseFit], report: StageReport) -> xr.Dataset:
     ds = new_dataset(camera)
     ds["inverse_response"] = (
@@ -71,5 +88,15 @@ def response_dataset(camera: Camera, fits: Sequence[response.ResponseFit], repor
         ds["response_residual"] = (("band", "dn_bin"), np.stack([f.residual_by_dn for f in fits]),
                                    {"long_name": "rms of the sweep's fit residual I - C(t E) per DN bin (Eq. 5)",
                                     "units": "DN"})
+    if all(f.fitted_dn is not None for f in fits):
+        ds.coords["end"] = ("end", np.array(["low", "high"], dtype=object))
+        ds["response_dn_range"] = (
+            ("band", "end"), np.array([f.fitted_dn for f in fits], dtype=np.int32),
+            {"long_name": "lowest and highest DN of the sweep samples the response fit used (the range U was "
+                          "fitted on; outside it U is extrapolated)", "units": "DN"})
+    if all(f.uncertainty is not None and f.noise_variance is not None for f in fits):
+        ds["response_uncertainty"] = (
+            ("band", "dn"), np.stack([f.uncertainty for f in fits]).astype(np.float32),
+            {**UNCERTAINTY_ATTRS, "noise_variance": [[float(v) for v in f.noise_variance] for f in fits]})
     ds.attrs["response"] = report.as_attrs()
     return ds

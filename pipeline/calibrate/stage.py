@@ -15,13 +15,16 @@ from pipeline.ingest.session import FrameRecord
 class StageReport:
     """What a stage read and found: ``inputs`` (file -> content hash), ``skipped`` frames
     (file and reason), ``residuals`` (the fit's numbers) and its wall time in ``seconds``;
-    :meth:`as_attrs` is its entry in the store's attributes."""
+    :meth:`as_attrs` is its entry in the store's attributes. ``arrays``: per-band arrays the
+    stage found besides its fits, for its part of the store (not attributes; e.g. the
+    vignetting stage's ``coverage``)."""
 
     stage: str
     inputs: dict[str, str] = field(default_factory=dict)
     skipped: list[dict[str, str]] = field(default_factory=list)
     residuals: dict[str, Any] = field(default_factory=dict)
     seconds: float = 0.0
+    arrays: dict[str, Any] = field(default_factory=dict)
 
     def as_attrs(self) -> dict[str, Any]:
         return {

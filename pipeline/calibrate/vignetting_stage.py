@@ -134,7 +134,7 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
 
     futures = {b: submit(b, views, b == ref) for b in [ref, *ahead]}
     started()
-    ref_fit, saturated[ref], frac = futures[ref].result()
+    ref_fit, saturated[ref], frac, _ = futures[ref].result()
     bad = set(vignetting.inconsistent_views(frac).tolist())
     if bad and len(views) - len(bad) < MIN_VIEWS_TO_SCREEN:
         # With few views the overlap is thin and a sound view that alone covers part of the
@@ -167,10 +167,12 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
         for b in ahead:
             first = futures[b].result()[0]
             futures[b] = submit(b, views, start=first.vignetting)
-    fits = []
+    fits, coverage = [], []
     for b in range(camera.n_bands):
-        fit, saturated[b], _ = futures[b].result()
+        fit, saturated[b], _, cov = futures[b].result()
         fits.append(fit)
+        coverage.append(cov)
+    report.arrays["coverage"] = np.stack(coverage)
     return fits, saturated, views
 
 
@@ -233,7 +235,8 @@ def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[t
     started()
     results = [f.result() for f in futures]
     fits, saturated = [], {}
-    for b, (fit, saturated[b], frac, dropped) in enumerate(results):
+    report.arrays["coverage"] = np.stack([r[4] for r in results])
+    for b, (fit, saturated[b], frac, dropped, _) in enumerate(results):
         med = float(np.nanmedian(frac)) if dropped else 0.0
         for k in dropped:
             report.skipped.append({
@@ -263,5 +266,16 @@ def add_vignetting(ds: xr.Dataset, fits: Sequence[vignetting.VignettingFit], rep
         np.stack([f.observed for f in fits]).astype(bool),
         {"long_name": "False where V was filled smoothly (too few observations)"},
     )
+    coverage = report.arrays.get("coverage")
+    if coverage is not None:
+        ds["vignetting_coverage"] = (
+            ("band", "y", "x"),
+            np.asarray(coverage, dtype=np.uint16),
+            {"long_name": "vignetting views that observed each pixel (Eq. 8-10)",
+             "description": "number of the vignetting views kept for the fit in which the pixel saw the "
+                            "reflector (inside its mask: off the marker and the edge margin) unsaturated; "
+                            "0: V there is extrapolated, never observed",
+             "units": "1"},
+        )
     ds.attrs["vignetting"] = report.as_attrs()
     return ds

@@ -131,6 +131,9 @@ def test_fit_stages_one_at_a_time_match_calibrate(small, tmp_path, capsys) -> No
     assert "vignetting" not in xr.open_zarr(u)
     for name in ("inverse_response", "vignetting", "spectral_factor"):
         np.testing.assert_allclose(a[name].values, b[name].values, rtol=1e-6)
+    # what says how far U and V can be trusted survives the stores in between
+    for name in ("response_uncertainty", "response_dn_range", "vignetting_coverage"):
+        np.testing.assert_array_equal(a[name].values, b[name].values, err_msg=name)
 
 
 def test_fit_response_on_a_plain_folder_needs_a_camera(small, tmp_path, capsys) -> None:

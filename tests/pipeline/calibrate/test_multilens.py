@@ -60,6 +60,11 @@ def test_small_multilens_session_round_trip(small_ml) -> None:
     assert err["spectral_factor_max_error"] < 0.02
     assert err["check"]["panel_abs_error"] < 0.015
     assert err["check"]["panel_abs_error_uncalibrated"] > 3 * err["check"]["panel_abs_error"]
+    # each lens's coverage counts its own views (14), the fit's informative observations a subset
+    ds = xr.open_zarr(calib).load()
+    cov = ds["vignetting_coverage"].values
+    assert cov.shape == ds["vignetting"].shape and 0 < cov.max() <= 14
+    assert np.all(cov >= ds["vignetting_count"].values)
 
 
 def test_store_keeps_each_lens_intrinsics_from_the_band_files(small_ml) -> None:
