@@ -178,10 +178,10 @@ def message(exc: ValidationError, model: Any, prefix: str = "", label: str = ""
         if found:
             parent = found[0]["loc"][:-1]
             path, tp = _trail(model, parent)
-            at = _join(prefix, path) or label or "the file"
+            at = f"{_join(prefix, path) or label}: " if _join(prefix, path) or label else ""
             keys = [show_key(e["input"] if e["type"] == "invalid_key" else e["loc"][-1])
                     for e in found if e["loc"][:-1] == parent]
-            return f"{at}: {kind} key(s) {', '.join(keys)}", (f"allowed keys: {_keys(tp)}" if _keys(tp) else None)
+            return f"{at}{kind} key(s) {', '.join(keys)}", (f"allowed keys: {_keys(tp)}" if _keys(tp) else None)
     e = errors[0]
     path, tp = _trail(model, e["loc"])
     at = _join(prefix, path)
