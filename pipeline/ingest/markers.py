@@ -62,7 +62,7 @@ class _Aruco(Strict):
     dictionary: Dictionary
     id: MarkerId  # type: ignore[valid-type]
     size_m: number(positive=True)  # type: ignore[valid-type]
-    border_m: number() | None = None  # type: ignore[valid-type]  # default: a quarter of size_m
+    border_m: number() = None  # type: ignore[valid-type, assignment]  # not given: a quarter of size_m
 
 
 class _Charuco(Strict):
