@@ -1,7 +1,8 @@
 """Catalogs: cameras, reflectance targets and indices as YAML data.
 
-Each file is read with ``yaml.safe_load`` and validated into frozen dataclasses; unknown keys
-are rejected with a message naming the file and the keys that are allowed. The catalog folder
+Each file is read with ``yaml.safe_load`` and validated by a pydantic model (unknown keys
+refused, :mod:`pipeline.ingest.schema`), then built into frozen dataclasses; a problem is one
+line naming the file, the key and how to fix it (the keys that are allowed). The catalog folder
 is the ``catalogs`` package (``catalogs/`` at the top of the project, installed with mscal as
 package data and found with ``importlib.resources``), after the folders listed in
 ``MSCAL_CATALOG_PATH`` (``os.pathsep``-separated), which are searched first.
@@ -14,25 +15,38 @@ from __future__ import annotations
 
 import ast
 import importlib.resources
-import math
 import os
 import re
 import warnings
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Annotated, Any, Literal, Mapping
 
 import numpy as np
 import yaml
 from mscal_core.errors import CatalogError, MscalError
 from mscal_core.reflectance import keep_valid
+from pydantic import Field
 
 from pipeline.ingest.meta import sample_shift
+from pipeline.ingest.schema import (
+    MAX_PIXELS,
+    PositiveNumber,
+    Strict,
+    Text,
+    check,
+    finite_number,
+    integer,
+    is_int,
+    items,
+    pair,
+    show_key,
+    validate,
+)
 
 #: The catalogs shipped with mscal (the ``catalogs`` package's folder).
 CATALOG_ROOT = Path(str(importlib.resources.files("catalogs")))
-LAYOUT_KINDS = ("mosaic", "multichannel", "file_per_band", "file_per_capture", "folder_per_band")
 
 
 def catalog_dirs(kind: str, search_path: str | None = None) -> list[Path]:
@@ -42,7 +56,7 @@ def catalog_dirs(kind: str, search_path: str | None = None) -> list[Path]:
     return [*(Path(p) / kind for p in path.split(os.pathsep) if p), CATALOG_ROOT / kind]
 
 
-# --------------------------------------------------------------------------- validation helpers
+# --------------------------------------------------------------------------- reading YAML
 
 
 def yaml_problem(exc: yaml.YAMLError) -> str:
@@ -105,66 +119,9 @@ def read_yaml(path: Path, error: type[MscalError] = CatalogError) -> Any:
                     hint="quote a text that looks like a date or a number") from None
 
 
-def show_key(key: Any) -> str:
-    """A mapping key as it reads in a one-line message (repr unless plain printable text)."""
-    return key if isinstance(key, str) and key.isprintable() and key.strip() == key and key else repr(key)
-
-
-def _load_yaml(path: Path) -> dict[str, Any]:
-    data = read_yaml(path)
-    if not isinstance(data, dict):
-        raise CatalogError("must be a YAML mapping of keys to values", path=path)
-    return data
-
-
-def check_keys(
-    data: Mapping[str, Any], required: set[str], optional: set[str], path: Path | str, where: str
-) -> None:
-    """Reject missing and unknown keys with a message that lists the allowed ones."""
-    missing = sorted(required - set(data))
-    if missing:
-        raise CatalogError(f"{where}: missing key(s) {', '.join(missing)}", path=path)
-    unknown = sorted(set(data) - required - optional, key=repr)  # keys of any type (YAML: 1, null, ...)
-    if unknown:
-        allowed = ", ".join(sorted(required | optional))
-        raise CatalogError(
-            f"{where}: unknown key(s) {', '.join(map(show_key, unknown))}",
-            path=path,
-            hint=f"allowed keys: {allowed}",
-        )
-
-
-MAX_PIXELS = 100_000
 MAX_CHANNELS = 1024  # no sensor, mosaic or band grid is larger: a bigger number is a typo
-
-
-def _int_pair(value: Any, path: Path, where: str) -> tuple[int, int]:
-    if (
-        not isinstance(value, (list, tuple))
-        or len(value) != 2
-        or not all(isinstance(v, int) and not isinstance(v, bool) and 0 <= v <= MAX_PIXELS for v in value)
-    ):
-        raise CatalogError(f"{where} must be a pair of integers 0..{MAX_PIXELS}, got {value!r}", path=path)
-    return int(value[0]), int(value[1])
-
-
-def finite_number(value: Any) -> float | None:
-    """``value`` as a finite float, None if it is not a number (bools are not) or not finite
-    (NaN, inf, an integer too large for a float)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        return None
-    try:
-        v = float(value)
-    except OverflowError:
-        return None
-    return v if math.isfinite(v) else None
-
-
-def _positive_number(value: Any, path: Path, where: str) -> float:
-    v = finite_number(value)
-    if v is None or not v > 0:
-        raise CatalogError(f"{where} must be a positive number, got {value!r}", path=path)
-    return v
+Pair = pair()  # (row, column), (rows, columns): integers 0..MAX_PIXELS
+_Strings = items(lambda v: isinstance(v, str), "a list of strings")
 
 
 # --------------------------------------------------------------------------- cameras
@@ -287,52 +244,121 @@ class Camera:
         return i
 
 
-_CAMERA_REQUIRED = {"name", "description", "bit_depth", "layout", "bands"}
-_CAMERA_OPTIONAL = {"sensor", "index_bands", "export_bands", "container_bits", "identify", "factory_model",
-                    "skip_bands", "sources", "exif"}
-_BAND_REQUIRED = {"name", "wavelength_nm"}
-_BAND_OPTIONAL = {"fwhm_nm", "mosaic", "channel", "file_suffix"}
-_LAYOUT_KEYS = {
-    "mosaic": ({"kind", "pattern", "grid"}, {"origin"}),
-    "multichannel": ({"kind", "channels"}, set()),
-    "file_per_band": ({"kind", "capture_pattern"}, set()),
-    "file_per_capture": ({"kind", "capture_pattern"}, set()),
-    # one folder per band in a session folder, the band files of a capture share one name
-    # (Sentera 6X: session/<band folder>/IMG_00001.tif); bands found by their XMP BandName
-    "folder_per_band": ({"kind", "capture_pattern"}, set()),
-}
+_MAX_CH = MAX_CHANNELS - 1
 
 
-def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
-    """Validate a camera mapping into a :class:`Camera` (checks in this order: keys, bit
-    depths, layout, bands, bands against the layout, sensor, index and export bands)."""
-    check_keys(data, _CAMERA_REQUIRED, _CAMERA_OPTIONAL, path, "camera")
-    bits, container = _parse_bit_depths(data, path)
-    layout = _parse_layout(data["layout"], path)
-    bands = _parse_bands(data["bands"], path)
+class _BandModel(Strict):
+    name: Text
+    wavelength_nm: PositiveNumber
+    fwhm_nm: PositiveNumber | None = None
+    mosaic: Pair | None = None
+    channel: integer(0, _MAX_CH) | None = None  # type: ignore[valid-type]
+    file_suffix: Text | None = None
+
+
+class _MosaicLayout(Strict):
+    TAGS = ("mosaic",)
+    kind: Literal["mosaic"]
+    pattern: Pair
+    grid: Pair
+    origin: Pair = (0, 0)
+
+
+class _ChannelLayout(Strict):
+    TAGS = ("multichannel",)
+    kind: Literal["multichannel"]
+    channels: integer(1, MAX_CHANNELS, "a positive integer")  # type: ignore[valid-type]
+
+
+class _FileLayout(Strict):
+    # folder_per_band: one folder per band in a session folder, the band files of a capture
+    # share one name (Sentera 6X: session/<band folder>/IMG_00001.tif); bands found by their XMP BandName
+    TAGS = ("file_per_band", "file_per_capture", "folder_per_band")
+    kind: Literal["file_per_band", "file_per_capture", "folder_per_band"]
+    capture_pattern: Text
+
+
+_Layout = Annotated[_MosaicLayout | _ChannelLayout | _FileLayout, Field(discriminator="kind")]
+
+
+class _Sensor(Strict):
+    width: integer(1, MAX_PIXELS, f"an integer 1..{MAX_PIXELS} (pixels)")  # type: ignore[valid-type]
+    height: integer(1, MAX_PIXELS, f"an integer 1..{MAX_PIXELS} (pixels)")  # type: ignore[valid-type]
+
+
+class _Identify(Strict):
+    make: Text
+    models: _Strings | None = None
+    rig_names: _Strings | None = None
+    bands_per_capture: integer(1, text="a positive integer") | None = None  # type: ignore[valid-type]
+
+
+class _SkipBand(Strict):
+    name: Text
+    reason: Text
+    file_suffix: Text | None = None
+
+
+class _Exif(Strict):
+    make: Text
+    model: Text
+    pixel_um: PositiveNumber | None = None
+
+
+class _CameraModel(Strict):
+    name: Text
+    description: Text
+    bit_depth: integer(1, 16)  # type: ignore[valid-type]
+    container_bits: Any = None  # checked against bit_depth
+    layout: _Layout
+    bands: Annotated[tuple[_BandModel, ...], Field(min_length=1)]
+    sensor: _Sensor | None = None
+    index_bands: dict[Any, PositiveNumber] | None = None
+    export_bands: items(lambda v: True, "a list of band names", str) | None = None  # type: ignore[valid-type]
+    identify: _Identify | None = None
+    factory_model: Any = None  # one of the registered makers' models
+    skip_bands: tuple[_SkipBand, ...] | None = None
+    sources: items(lambda v: isinstance(v, str) and bool(v.strip()),  # type: ignore[valid-type]
+                   "a list of citations (text)") | None = None
+    exif: _Exif | None = None
+
+
+def parse_camera(data: Any, path: Path) -> Camera:
+    """Validate a camera mapping into a :class:`Camera`: keys and values (:class:`_CameraModel`),
+    then what ties them together: bit depths, the capture pattern, bands against the layout,
+    the sensor, index, export and skipped bands, the factory model."""
+    m = validate(_CameraModel, data, path, CatalogError, label="camera")
+    container = m.container_bits
+    if container is not None and not (is_int(container) and m.bit_depth <= container <= 16):
+        raise CatalogError(f"container_bits must be an integer from bit_depth ({m.bit_depth}) to 16, got {container!r}",
+                           path=path, hint="container_bits is the stored sample size when the DN sit in its high bits")
+    layout = _layout(m.layout, path)
+    bands = tuple(Band(**b.model_dump()) for b in m.bands)
+    names = [b.name for b in bands]
+    if len(set(names)) != len(names):
+        raise CatalogError("band names must be unique", path=path)
     _check_bands_fit_layout(bands, layout, path)
-    sensor = _parse_sensor(data.get("sensor"), layout, path)
-    index_bands, export = _parse_index_and_export_bands(data, [b.name for b in bands], path)
-    identify, model, skip, sources = _parse_factory(data, [b.name for b in bands], path)
+    sensor = None if m.sensor is None else (m.sensor.height, m.sensor.width)
+    _check_sensor(sensor, layout, path)
+    unknown_export = [x for x in m.export_bands or () if x not in names]
+    if unknown_export:
+        raise CatalogError(f"export_bands names unknown band(s) {', '.join(map(show_key, unknown_export))}", path=path)
+    skip = tuple(SkipBand(s.name, s.file_suffix, s.reason) for s in m.skip_bands or ())
+    for k, s in enumerate(skip):
+        if s.name in names:
+            raise CatalogError(f"skip_bands[{k}] {s.name!r} is also in bands", path=path)
     if layout.kind == "file_per_band" and any(s.file_suffix is None for s in skip):
         raise CatalogError("skip_bands of a one-file-per-band camera need their file_suffix", path=path,
                            hint="add file_suffix: the band's number in the file name, as in bands")
+    _check_factory_model(m.factory_model, m.sources, path)
+    ident = m.identify
     camera = Camera(
-        name=str(data["name"]),
-        description=str(data["description"]),
-        bit_depth=bits,
-        layout=layout,
-        bands=tuple(bands),
-        sensor=sensor,
-        index_bands=index_bands,
-        export_bands=export,
-        source=str(path),
-        container_bits=container,
-        identify=identify,
-        factory_model=model,
-        skip_bands=skip,
-        sources=sources,
-        exif=_parse_exif(data.get("exif"), path),
+        name=m.name, description=m.description, bit_depth=m.bit_depth, layout=layout, bands=bands, sensor=sensor,
+        index_bands={str(k): v for k, v in (m.index_bands or {}).items()}, export_bands=m.export_bands or (),
+        source=str(path), container_bits=container, factory_model=m.factory_model, skip_bands=skip,
+        sources=m.sources or (), exif=None if m.exif is None else CameraExif(**m.exif.model_dump()),
+        identify=None if ident is None else Identify(ident.make, ident.models or (), ident.rig_names or (),
+                                                     ident.bands_per_capture),
     )
     for role, wl in camera.index_bands.items():
         try:
@@ -344,88 +370,39 @@ def parse_camera(data: Mapping[str, Any], path: Path) -> Camera:
     return camera
 
 
-def _parse_bit_depths(data: Mapping[str, Any], path: Path) -> tuple[int, int | None]:
-    """``bit_depth`` (1..16) and ``container_bits`` (bit_depth..16, or None)."""
-    bits = data["bit_depth"]
-    if not isinstance(bits, int) or isinstance(bits, bool) or not 1 <= bits <= 16:
-        raise CatalogError(f"bit_depth must be an integer 1..16, got {bits!r}", path=path)
-    container = data.get("container_bits")
-    if container is not None and (
-        not isinstance(container, int) or isinstance(container, bool) or not bits <= container <= 16
-    ):
-        raise CatalogError(
-            f"container_bits must be an integer from bit_depth ({bits}) to 16, got {container!r}",
-            path=path,
-            hint="container_bits is the stored sample size when the DN sit in its high bits",
-        )
-    return bits, container
-
-
-def _parse_layout(lay: Any, path: Path) -> Layout:
-    """The ``layout`` mapping: a mosaic, a multichannel image, one file per band or per capture."""
-    if not isinstance(lay, dict) or lay.get("kind") not in LAYOUT_KINDS:
-        raise CatalogError(
-            f"layout.kind must be one of {', '.join(LAYOUT_KINDS)}",
-            path=path,
-        )
-    req, opt = _LAYOUT_KEYS[lay["kind"]]
-    check_keys(lay, req, opt, path, f"layout ({lay['kind']})")
-    if lay["kind"] == "mosaic":
-        return Layout(
-            kind="mosaic",
-            pattern=_int_pair(lay["pattern"], path, "layout.pattern"),
-            origin=_int_pair(lay.get("origin", [0, 0]), path, "layout.origin"),
-            grid=_int_pair(lay["grid"], path, "layout.grid"),
-        )
-    if lay["kind"] == "multichannel":
-        ch = lay["channels"]
-        if not isinstance(ch, int) or isinstance(ch, bool) or not 1 <= ch <= MAX_CHANNELS:
-            raise CatalogError(f"layout.channels must be a positive integer, got {ch!r}", path=path)
-        return Layout(kind="multichannel", channels=ch)
+def _layout(lay: Any, path: Path) -> Layout:
+    """The :class:`Layout` of a validated layout; a capture pattern must compile with its groups."""
+    if not isinstance(lay, _FileLayout):
+        return Layout(**lay.model_dump())
     try:
         with warnings.catch_warnings():  # "possible nested set": a warning on stderr would break the one line
             warnings.simplefilter("ignore", FutureWarning)
-            rx = re.compile(str(lay["capture_pattern"]))
+            rx = re.compile(lay.capture_pattern)
     except (re.error, OverflowError, RecursionError, ValueError) as exc:  # OverflowError: a{99999999999}
         raise CatalogError(f"layout.capture_pattern is not a valid regex: {exc}", path=path) from None
-    need = {"capture", "band"} if lay["kind"] == "file_per_band" else {"capture"}  # others: one name
+    need = {"capture", "band"} if lay.kind == "file_per_band" else {"capture"}  # others: one name
     if not need <= set(rx.groupindex):
         raise CatalogError(
             f"layout.capture_pattern needs named groups {', '.join(f'(?P<{g}>...)' for g in sorted(need))}",
             path=path,
         )
-    return Layout(kind=lay["kind"], capture_pattern=rx.pattern)
+    return Layout(kind=lay.kind, capture_pattern=rx.pattern)
 
 
-def _parse_bands(raw_bands: Any, path: Path) -> list[Band]:
-    """The ``bands`` list, each band's keys checked; names unique."""
-    if not isinstance(raw_bands, list) or not raw_bands:
-        raise CatalogError("bands must be a non-empty list", path=path)
-    bands: list[Band] = []
-    for k, b in enumerate(raw_bands):
-        where = f"bands[{k}]"
-        if not isinstance(b, dict):
-            raise CatalogError(f"{where} must be a mapping", path=path)
-        check_keys(b, _BAND_REQUIRED, _BAND_OPTIONAL, path, where)
-        ch = b.get("channel")
-        if ch is not None and (not isinstance(ch, int) or isinstance(ch, bool) or not 0 <= ch < MAX_CHANNELS):
-            raise CatalogError(f"{where}.channel must be an integer 0..{MAX_CHANNELS - 1}, got {ch!r}", path=path)
-        band = Band(
-            name=str(b["name"]),
-            wavelength_nm=_positive_number(b["wavelength_nm"], path, f"{where}.wavelength_nm"),
-            fwhm_nm=None if b.get("fwhm_nm") is None else _positive_number(b["fwhm_nm"], path, f"{where}.fwhm_nm"),
-            mosaic=None if b.get("mosaic") is None else _int_pair(b["mosaic"], path, f"{where}.mosaic"),
-            channel=ch,
-            file_suffix=None if b.get("file_suffix") is None else str(b["file_suffix"]),
-        )
-        bands.append(band)
-    names = [b.name for b in bands]
-    if len(set(names)) != len(names):
-        raise CatalogError("band names must be unique", path=path)
-    return bands
+def _check_factory_model(model: Any, sources: tuple[str, ...] | None, path: Path) -> None:
+    """``factory_model``: a registered maker's model, cited in ``sources``."""
+    if model is None:
+        return
+    from pipeline.ingest.cameras.dispatch import factory_models  # the registered makers' models
+
+    if model not in factory_models():
+        raise CatalogError(f"factory_model must be one of {', '.join(factory_models())}, got {model!r}", path=path)
+    if not sources:
+        raise CatalogError("a camera with a factory_model must cite the manufacturer's documents in 'sources'",
+                           path=path)
 
 
-def _check_bands_fit_layout(bands: list[Band], layout: Layout, path: Path) -> None:
+def _check_bands_fit_layout(bands: tuple[Band, ...], layout: Layout, path: Path) -> None:
     """Every mosaic position, channel or file suffix is given once, in the layout's order."""
     if layout.kind == "mosaic":
         assert layout.pattern is not None
@@ -457,19 +434,9 @@ def _check_bands_fit_layout(bands: list[Band], layout: Layout, path: Path) -> No
             raise CatalogError("one-file-per-band cameras need a unique 'file_suffix' per band", path=path)
 
 
-def _parse_sensor(s: Any, layout: Layout, path: Path) -> tuple[int, int] | None:
-    """``sensor: {width, height}`` as ``(height, width)``; a mosaic's grid must fit it."""
-    if s is None:
-        return None
-    if not isinstance(s, dict):
-        raise CatalogError("sensor must be a mapping {width, height}", path=path)
-    check_keys(s, {"width", "height"}, set(), path, "sensor")
-    for key in ("height", "width"):
-        v = s[key]
-        if not isinstance(v, int) or isinstance(v, bool) or not 1 <= v <= MAX_PIXELS:
-            raise CatalogError(f"sensor.{key} must be an integer 1..{MAX_PIXELS} (pixels), got {v!r}", path=path)
-    sensor = (int(s["height"]), int(s["width"]))
-    if layout.kind == "mosaic":
+def _check_sensor(sensor: tuple[int, int] | None, layout: Layout, path: Path) -> None:
+    """A mosaic's band grid must fit the sensor ``(height, width)``."""
+    if sensor is not None and layout.kind == "mosaic":
         assert layout.pattern and layout.grid
         need = (layout.origin[0] + layout.pattern[0] * layout.grid[0],
                 layout.origin[1] + layout.pattern[1] * layout.grid[1])
@@ -478,94 +445,6 @@ def _parse_sensor(s: Any, layout: Layout, path: Path) -> tuple[int, int] | None:
                 f"layout.grid {list(layout.grid)} does not fit the {sensor[1]}x{sensor[0]} sensor",
                 path=path,
             )
-    return sensor
-
-
-def _parse_index_and_export_bands(data: Mapping[str, Any], names: list[str], path: Path
-                                  ) -> tuple[dict[str, float], tuple[str, ...]]:
-    """``index_bands`` (role -> wavelength) and ``export_bands`` (names of known bands)."""
-    index_bands = data.get("index_bands") or {}
-    if not isinstance(index_bands, dict):
-        raise CatalogError("index_bands must map a role (red, nir, ...) to a wavelength", path=path)
-    for role, wl in index_bands.items():
-        _positive_number(wl, path, f"index_bands.{show_key(role)}")
-    raw_export = data.get("export_bands") or []
-    if not isinstance(raw_export, list):
-        raise CatalogError(f"export_bands must be a list of band names, got {raw_export!r}", path=path)
-    export = tuple(str(x) for x in raw_export)
-    unknown_export = [x for x in export if x not in names]
-    if unknown_export:
-        raise CatalogError(f"export_bands names unknown band(s) {', '.join(map(show_key, unknown_export))}", path=path)
-    return {str(k): float(v) for k, v in index_bands.items()}, export
-
-
-def _parse_factory(data: Mapping[str, Any], names: list[str], path: Path
-                   ) -> tuple["Identify | None", str | None, tuple["SkipBand", ...], tuple[str, ...]]:
-    """``identify``, ``factory_model`` (cited in ``sources``), ``skip_bands`` and ``sources``."""
-    identify = _parse_identify(data.get("identify"), path)
-    model = data.get("factory_model")
-    if model is not None:
-        from pipeline.ingest.cameras.dispatch import factory_models  # the registered makers' models
-
-        if model not in factory_models():
-            raise CatalogError(f"factory_model must be one of {', '.join(factory_models())}, got {model!r}", path=path)
-    skip = _parse_skip_bands(data.get("skip_bands"), path, names)
-    sources = data.get("sources") or []
-    if not isinstance(sources, list) or not all(isinstance(x, str) and x.strip() for x in sources):
-        raise CatalogError("sources must be a list of citations (text)", path=path)
-    if model is not None and not sources:
-        raise CatalogError("a camera with a factory_model must cite the manufacturer's documents in 'sources'",
-                           path=path)
-    return identify, model, skip, tuple(sources)
-
-
-def _parse_exif(value: Any, path: Path) -> CameraExif | None:
-    if value is None:
-        return None
-    if not isinstance(value, dict):
-        raise CatalogError("exif must be a mapping {make, model, pixel_um}", path=path)
-    check_keys(value, {"make", "model"}, {"pixel_um"}, path, "exif")
-    pitch = value.get("pixel_um")
-    return CameraExif(make=str(value["make"]), model=str(value["model"]),
-                      pixel_um=None if pitch is None else _positive_number(pitch, path, "exif.pixel_um"))
-
-
-def _parse_identify(value: Any, path: Path) -> Identify | None:
-    if value is None:
-        return None
-    if not isinstance(value, dict):
-        raise CatalogError("identify must be a mapping {make, models, rig_names, bands_per_capture}",
-                           path=path)
-    check_keys(value, {"make"}, {"models", "rig_names", "bands_per_capture"}, path, "identify")
-
-    def texts(key: str) -> tuple[str, ...]:
-        v = value.get(key) or []
-        if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
-            raise CatalogError(f"identify.{key} must be a list of strings", path=path)
-        return tuple(v)
-
-    n = value.get("bands_per_capture")
-    if n is not None and (not isinstance(n, int) or isinstance(n, bool) or n < 1):
-        raise CatalogError(f"identify.bands_per_capture must be a positive integer, got {n!r}", path=path)
-    return Identify(make=str(value["make"]), models=texts("models"), rig_names=texts("rig_names"),
-                    bands_per_capture=n)
-
-
-def _parse_skip_bands(value: Any, path: Path, names: list[str]) -> tuple[SkipBand, ...]:
-    if value is None:
-        return ()
-    if not isinstance(value, list):
-        raise CatalogError("skip_bands must be a list of {name, reason, file_suffix (one file per band)}", path=path)
-    out = []
-    for k, v in enumerate(value):
-        if not isinstance(v, dict):
-            raise CatalogError(f"skip_bands[{k}] must be a mapping", path=path)
-        check_keys(v, {"name", "reason"}, {"file_suffix"}, path, f"skip_bands[{k}]")
-        if str(v["name"]) in names:
-            raise CatalogError(f"skip_bands[{k}] {v['name']!r} is also in bands", path=path)
-        suffix = v.get("file_suffix")
-        out.append(SkipBand(str(v["name"]), None if suffix is None else str(suffix), str(v["reason"])))
-    return tuple(out)
 
 
 _NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._+-]{0,127}")
@@ -620,7 +499,7 @@ def _load(kind: str, name: str) -> Any:
 def _parsed(kind: str, path: str, mtime_ns: int, size: int) -> Any:
     """Parse one catalog file; cached on (path, mtime, size), so an edit is a new key."""
     p = Path(path)
-    return _PARSERS[kind](_load_yaml(p), p)
+    return _PARSERS[kind](read_yaml(p), p)
 
 
 def clear_cache() -> None:
@@ -649,6 +528,12 @@ class ReflectanceSpec:
         return np.interp(wl, t[:, 0], t[:, 1])
 
 
+#: A row of a reflectance table.
+_Row = Annotated[tuple[float, float], check(
+    lambda r: isinstance(r, list) and len(r) == 2 and None not in map(finite_number, r) and r[0] > 0 and 0 < r[1] <= 1,
+    "must be [wavelength_nm, reflectance]: finite numbers, nm > 0, 0 < reflectance <= 1", lambda r: (float(r[0]), float(r[1])))]
+
+
 def reflectance_option(text: str, option: str = "--panel-reflectance") -> ReflectanceSpec:
     """A command-line reflectance: a number in (0, 1] or a reflectance target's name."""
     try:
@@ -672,15 +557,7 @@ def parse_reflectance(value: Any, path: Path | str, where: str) -> ReflectanceSp
             raise CatalogError(f"{where} must be in (0, 1], got {value!r}", path=path)
         return ReflectanceSpec(scalar=float(value))
     if isinstance(value, list) and value:
-        rows: list[tuple[float, float]] = []
-        for row in value:
-            nums = [finite_number(v) for v in row] if isinstance(row, (list, tuple)) else []
-            if len(nums) != 2 or None in nums:
-                raise CatalogError(f"{where}: each row must be [wavelength_nm, reflectance] (finite numbers), "
-                                   f"got {row!r}", path=path)
-            if not 0 < nums[1] <= 1 or nums[0] <= 0:
-                raise CatalogError(f"{where}: row {row!r} out of range (nm > 0, 0 < rho <= 1)", path=path)
-            rows.append((nums[0], nums[1]))
+        rows = validate(tuple[_Row, ...], value, path, CatalogError, prefix=where)
         wl = [r[0] for r in rows]
         if wl != sorted(wl) or len(set(wl)) != len(wl):
             raise CatalogError(f"{where}: wavelengths must be strictly increasing", path=path)
@@ -704,8 +581,17 @@ def load_target(name: str) -> Target:
     return _load("targets", name)
 
 
-def parse_target(data: Mapping[str, Any], path: Path) -> Target:
-    check_keys(data, {"name", "description", "reflectance"}, {"serial", "serials"}, path, "target")
+class _TargetModel(Strict):
+    name: Text
+    description: Text
+    reflectance: Any  # a number or a table: parse_reflectance
+    serial: Any = None  # serial: TEXT, serials: [TEXT, ...]: _parse_serials
+    serials: Any = None
+
+
+def parse_target(data: Any, path: Path) -> Target:
+    """Validate a target mapping into a :class:`Target`."""
+    validate(_TargetModel, data, path, CatalogError, label="target")
     if isinstance(data["reflectance"], str):
         raise CatalogError("a target's reflectance must be a number or a table", path=path)
     spec = parse_reflectance(data["reflectance"], path, "reflectance")
@@ -752,9 +638,19 @@ class Index:
         return keep_valid(np.asarray(out, dtype=np.float32), self.valid_range)
 
 
-def parse_index(data: Mapping[str, Any], path: Path) -> Index:
-    check_keys(data, {"name", "description", "expression"}, {"valid_range"}, path, "index")
-    expr = str(data["expression"])
+class _IndexModel(Strict):
+    name: Text
+    description: Text
+    expression: Text
+    valid_range: Annotated[tuple[float, float], check(
+        lambda v: isinstance(v, list) and len(v) == 2 and None not in map(finite_number, v) and v[0] < v[1],
+        "must be [low, high] (finite numbers, low < high)", lambda v: (float(v[0]), float(v[1])))] | None = None
+
+
+def parse_index(data: Any, path: Path) -> Index:
+    """Validate an index mapping into an :class:`Index`: its expression is arithmetic of band roles."""
+    m = validate(_IndexModel, data, path, CatalogError, label="index")
+    expr = m.expression
     try:
         tree = ast.parse(expr, mode="eval")
         nodes = list(ast.walk(tree))
@@ -774,16 +670,9 @@ def parse_index(data: Mapping[str, Any], path: Path) -> Index:
             hint="only band roles, numbers and + - * / are allowed, and ** with a number from -8 to 8",
         )
     inputs = tuple(sorted({n.id for n in nodes if isinstance(n, ast.Name)}))
-    vr = data.get("valid_range")
-    valid = None
-    if vr is not None:
-        lims = [finite_number(v) for v in vr] if isinstance(vr, list) else []
-        if len(lims) != 2 or None in lims or not lims[0] < lims[1]:
-            raise CatalogError(f"valid_range must be [low, high] (finite numbers, low < high), got {vr!r}", path=path)
-        valid = (lims[0], lims[1])
-    if str(data["name"]) != path.stem:
-        raise CatalogError(f"name {data['name']!r} must match the file name {path.stem!r}", path=path)
-    return Index(str(data["name"]), str(data["description"]), expr, inputs, valid)
+    if m.name != path.stem:
+        raise CatalogError(f"name {m.name!r} must match the file name {path.stem!r}", path=path)
+    return Index(m.name, m.description, expr, inputs, m.valid_range)
 
 
 def load_index(name: str) -> Index:

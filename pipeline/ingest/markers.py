@@ -12,12 +12,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal, Union
 
 from mscal_core.charuco import CharucoSpec
 from mscal_core.errors import InputError, SessionError
+from pydantic import BeforeValidator, Discriminator, Tag
 
-from pipeline.ingest.catalog import check_keys, finite_number
+from pipeline.ingest.schema import Problem, Strict, integer, number, validate
 
 MARKER_EXAMPLE = ("marker: {dictionary: DICT_4X4_50, id: 3, size_m: 0.1}, or marker: {type: charuco, squares_x: 7, "
                   "squares_y: 5, square_mm: 40, marker_mm: 30, dictionary: DICT_4X4_50}")
@@ -39,60 +40,64 @@ class MarkerSpec:
         return f"marker {self.dictionary} id {self.id}"
 
 
-def marker_dictionary(value: Any, path: Path, where: str) -> str:
+def _dictionary(value: Any) -> str:
     """The name of an OpenCV ArUco/AprilTag dictionary (``DICT_4X4_50``, ...), checked."""
     import cv2
 
     name = str(value)
     if not (name.startswith("DICT_") and isinstance(getattr(cv2.aruco, name, None), int)):
-        raise SessionError(f"{where}.dictionary {name!r} is not an OpenCV ArUco/AprilTag dictionary", path=path,
-                           hint="e.g. DICT_4X4_50, DICT_5X5_100, DICT_APRILTAG_36h11")
+        raise Problem("is not an OpenCV ArUco/AprilTag dictionary", value_first=True,
+                      hint="e.g. DICT_4X4_50, DICT_5X5_100, DICT_APRILTAG_36h11")
     return name
 
 
-def _number(value: Any, path: Path, where: str, *, positive: bool = False) -> float:
-    v = finite_number(value)
-    if v is None:
-        raise SessionError(f"{where} must be a number, got {value!r}", path=path)
-    if positive and v <= 0:
-        raise SessionError(f"{where} must be positive, got {value!r}", path=path)
-    return v
+#: session.yaml's name of an OpenCV ArUco/AprilTag dictionary.
+Dictionary = Annotated[str, BeforeValidator(_dictionary)]
+MarkerId = integer(0, text="a non-negative integer")
 
 
-def _count(value: Any, path: Path, where: str) -> int:
-    if not isinstance(value, int) or isinstance(value, bool) or value < 2:
-        raise SessionError(f"{where} must be an integer of at least 2, got {value!r}", path=path)
-    return int(value)
+class _Aruco(Strict):
+    TAGS, KEY = ("aruco",), "type"
+    type: Literal["aruco"] = "aruco"
+    dictionary: Dictionary
+    id: MarkerId  # type: ignore[valid-type]
+    size_m: number(positive=True)  # type: ignore[valid-type]
+    border_m: number() = None  # type: ignore[valid-type, assignment]  # not given: a quarter of size_m
+
+
+class _Charuco(Strict):
+    TAGS, KEY = ("charuco",), "type"
+    type: Literal["charuco"]
+    squares_x: integer(2)  # type: ignore[valid-type]
+    squares_y: integer(2)  # type: ignore[valid-type]
+    square_mm: number(positive=True)  # type: ignore[valid-type]
+    marker_mm: number(positive=True)  # type: ignore[valid-type]
+    dictionary: Dictionary
+    border_mm: number() = 0.0  # type: ignore[valid-type]
+
+
+def _marker_type(value: Any) -> str:
+    kind = value.get("type", "aruco") if isinstance(value, dict) else "aruco"  # not a mapping: aruco's message
+    return kind if isinstance(kind, str) else repr(kind)
+
+
+_Marker = Annotated[Union[Annotated[_Aruco, Tag("aruco")], Annotated[_Charuco, Tag("charuco")]],
+                    Discriminator(_marker_type)]
 
 
 def parse_marker(mk: Any, path: Path, reflector_size_m: tuple[float, float]) -> MarkerSpec:
     """session.yaml ``marker`` (see the module), checked against the reflector's size."""
-    if not isinstance(mk, dict):
-        raise SessionError("marker must be a mapping {dictionary, id, size_m}", path=path, hint=MARKER_EXAMPLE)
-    kind = mk.get("type", "aruco")
-    if kind == "charuco":
-        check_keys(mk, {"type", "squares_x", "squares_y", "square_mm", "marker_mm", "dictionary"}, {"border_mm"},
-                   path, "marker")
-        name = marker_dictionary(mk["dictionary"], path, "marker")
+    m = validate(_Marker, mk, path, SessionError, prefix="marker")
+    if isinstance(m, _Charuco):
         try:
-            board = CharucoSpec(_count(mk["squares_x"], path, "marker.squares_x"),
-                                _count(mk["squares_y"], path, "marker.squares_y"),
-                                _number(mk["square_mm"], path, "marker.square_mm", positive=True) / 1000,
-                                _number(mk["marker_mm"], path, "marker.marker_mm", positive=True) / 1000, name)
+            board = CharucoSpec(m.squares_x, m.squares_y, m.square_mm / 1000, m.marker_mm / 1000, m.dictionary)
         except InputError as exc:
             raise SessionError(f"marker: {exc.reason}", path=path, hint=MARKER_EXAMPLE) from None
-        border = _number(mk.get("border_mm", 0.0), path, "marker.border_mm") / 1000
-        marker = MarkerSpec(dictionary=name, id=-1, size_m=max(board.size_m), border_m=max(border, 0.0), board=board)
-    elif kind == "aruco":
-        check_keys(mk, {"dictionary", "id", "size_m"}, {"border_m", "type"}, path, "marker")
-        if not isinstance(mk["id"], int) or isinstance(mk["id"], bool) or mk["id"] < 0:
-            raise SessionError(f"marker.id must be a non-negative integer, got {mk['id']!r}", path=path)
-        msize = _number(mk["size_m"], path, "marker.size_m", positive=True)
-        border = _number(mk.get("border_m", 0.25 * msize), path, "marker.border_m")
-        marker = MarkerSpec(dictionary=marker_dictionary(mk["dictionary"], path, "marker"), id=int(mk["id"]),
-                            size_m=msize, border_m=max(border, 0.0))
+        marker = MarkerSpec(dictionary=m.dictionary, id=-1, size_m=max(board.size_m),
+                            border_m=max(m.border_mm / 1000, 0.0), board=board)
     else:
-        raise SessionError(f"marker.type must be aruco or charuco, got {kind!r}", path=path, hint=MARKER_EXAMPLE)
+        border = 0.25 * m.size_m if m.border_m is None else m.border_m
+        marker = MarkerSpec(dictionary=m.dictionary, id=m.id, size_m=m.size_m, border_m=max(border, 0.0))
     if marker.size_m / 2 + marker.border_m >= min(reflector_size_m) / 2:
         raise SessionError(
             f"the {'board' if marker.board is not None else 'marker'} and its border cover the whole reflector",

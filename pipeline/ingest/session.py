@@ -10,23 +10,15 @@ import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Annotated, Any, Callable
 
 import numpy as np
-from mscal_core.errors import CatalogError, FrameError, InputError, MscalError, SessionError
+from mscal_core.errors import CatalogError, FrameError, InputError, SessionError
 from mscal_core.geometry import Intrinsics
 from mscal_core.mosaic import demosaic
+from pydantic import BeforeValidator, Field
 
-from pipeline.ingest.catalog import (
-    Camera,
-    ReflectanceSpec,
-    check_keys,
-    finite_number,
-    load_camera,
-    parse_reflectance,
-    read_yaml,
-    show_key,
-)
+from pipeline.ingest.catalog import Camera, ReflectanceSpec, load_camera, parse_reflectance, read_yaml
 from pipeline.ingest.exif import (
     dms_to_degrees,
     exif_time_utc,
@@ -37,8 +29,9 @@ from pipeline.ingest.exif import (
     utc_naive,
 )
 from pipeline.ingest.gps import placed_records
-from pipeline.ingest.markers import MarkerSpec, marker_dictionary, parse_marker
+from pipeline.ingest.markers import Dictionary, MarkerId, MarkerSpec, parse_marker
 from pipeline.ingest.products import yaml_choice
+from pipeline.ingest.schema import Strict, Text, finite_number, items, number, show_key, validate
 from pipeline.ingest.tiff import decode_raw, sample_bits
 from pipeline.ingest.xmp import TagProblem
 
@@ -92,30 +85,19 @@ class Session:
         return sorted(p for p in d.iterdir() if p.is_dir()) if d.is_dir() else []
 
 
-def _number(value: Any, path: Path, where: str, *, positive: bool = False) -> float:
-    v = finite_number(value)  # NaN, inf and integers too large for a float are not numbers here
-    if v is None:
-        raise SessionError(f"{where} must be a number, got {value!r}", path=path)
-    if positive and v <= 0:
-        raise SessionError(f"{where} must be positive, got {value!r}", path=path)
-    return v
+class _Intrinsics(Strict):
+    fx: number(positive=True)  # type: ignore[valid-type]
+    fy: number(positive=True)  # type: ignore[valid-type]
+    cx: number()  # type: ignore[valid-type]
+    cy: number()  # type: ignore[valid-type]
+    dist: items(lambda v: finite_number(v) is not None,  # type: ignore[valid-type]
+                "[k1, k2, p1, p2, k3] (OpenCV order; 4, 5 or 8 numbers)", float, lambda n: n in (4, 5, 8)) = (0.0,) * 5
 
 
 def parse_intrinsics(data: Any, path: Path) -> Intrinsics:
-    if not isinstance(data, dict):
-        raise SessionError("intrinsics must be a mapping {fx, fy, cx, cy, dist}", path=path)
-    check_keys(data, {"fx", "fy", "cx", "cy"}, {"dist"}, path, "intrinsics")
-    dist = data.get("dist", [0, 0, 0, 0, 0])
-    if not isinstance(dist, list) or len(dist) not in (4, 5, 8):
-        raise SessionError("intrinsics.dist must be [k1, k2, p1, p2, k3] (OpenCV order)", path=path)
-    d = [_number(v, path, "intrinsics.dist") for v in dist] + [0.0] * (5 - len(dist))
-    return Intrinsics(
-        fx=_number(data["fx"], path, "intrinsics.fx", positive=True),
-        fy=_number(data["fy"], path, "intrinsics.fy", positive=True),
-        cx=_number(data["cx"], path, "intrinsics.cx"),
-        cy=_number(data["cy"], path, "intrinsics.cy"),
-        dist=tuple(d[:5]) if len(d) <= 5 else tuple(d),
-    )
+    """session.yaml ``intrinsics: {fx, fy, cx, cy, dist}`` (one band's, or all bands')."""
+    m = validate(_Intrinsics, data, path, SessionError, prefix="intrinsics")
+    return Intrinsics(fx=m.fx, fy=m.fy, cx=m.cx, cy=m.cy, dist=m.dist + (0.0,) * (5 - len(m.dist)))
 
 
 @dataclass(frozen=True)
@@ -143,72 +125,83 @@ PANEL_EXAMPLE = ("panel: {marker: {dictionary: DICT_APRILTAG_36h11, id: 7, size_
                  "size_m: [0.15, 0.15], offset_m: [0.12, 0.0]}  or  panel: {polygon: [[x, y], ...]}")
 
 
+#: A panel corner ``[x, y]`` in pixels.
+_Corner = items(lambda v: finite_number(v) is not None and 0 <= v <= 1e6, "[x, y]: pixel coordinates from 0 to 1e6",
+                float, lambda n: n == 2)
+_Polygon = Annotated[tuple[_Corner, ...], Field(min_length=3)]  # type: ignore[valid-type]
+
+
+class _PanelMarker(Strict):
+    dictionary: Dictionary
+    id: MarkerId  # type: ignore[valid-type]
+    size_m: number(positive=True)  # type: ignore[valid-type]
+
+
+class _Panel(Strict):  # a key given as null is no value: no "| None"
+    polygon: _Polygon = None  # type: ignore[assignment]
+    marker: _PanelMarker = None  # type: ignore[assignment]
+    size_m: Annotated[items(lambda v: finite_number(v) is not None and v > 0,  # type: ignore[valid-type]
+                            "[w, h] in metres (or one side), positive numbers", float, lambda n: n == 2),
+                      BeforeValidator(lambda v: v if isinstance(v, list) else [v, v])] = None
+    offset_m: items(lambda v: finite_number(v) is not None,  # type: ignore[valid-type]
+                    "[du, dv] in metres (two numbers)", float, lambda n: n == 2) = (0.0, 0.0)
+
+
 def parse_panel(data: Any, path: Path) -> PanelConfig:
     """session.yaml ``panel``: ``polygon`` (pixel corners, :func:`parse_panel_polygon`) and/or
     ``marker: {dictionary, id, size_m}`` with the panel's ``size_m`` (``[w, h]`` or one side)
     and ``offset_m`` (``[du, dv]`` of its centre from the marker's, default ``[0, 0]``); the
     panel rectangle must not cover the marker."""
-    if not isinstance(data, dict):
-        raise SessionError(f"panel must be a mapping, got {data!r}", path=path, hint=PANEL_EXAMPLE)
-    check_keys(data, set(), {"polygon", "marker", "size_m", "offset_m"}, path, "panel")
-    if "polygon" not in data and "marker" not in data:
+    m = validate(_Panel, data, path, SessionError, prefix="panel")
+    if m.polygon is None and m.marker is None:
         raise SessionError("panel needs a polygon or a marker", path=path, hint=PANEL_EXAMPLE)
-    polygon = parse_panel_polygon({"polygon": data["polygon"]}, path) if "polygon" in data else None
-    if "marker" not in data:
-        if "size_m" in data or "offset_m" in data:
+    polygon = None if m.polygon is None else _enclosing(m.polygon, path)
+    if m.marker is None:
+        if {"size_m", "offset_m"} & m.model_fields_set:
             raise SessionError("panel.size_m and panel.offset_m go with panel.marker", path=path, hint=PANEL_EXAMPLE)
         return PanelConfig(polygon=polygon)
-    mk = data["marker"]
-    if not isinstance(mk, dict):
-        raise SessionError("panel.marker must be a mapping {dictionary, id, size_m}", path=path, hint=PANEL_EXAMPLE)
-    check_keys(mk, {"dictionary", "id", "size_m"}, set(), path, "panel.marker")
-    name = marker_dictionary(mk["dictionary"], path, "panel.marker")
-    if not isinstance(mk["id"], int) or isinstance(mk["id"], bool) or mk["id"] < 0:
-        raise SessionError(f"panel.marker.id must be a non-negative integer, got {mk['id']!r}", path=path)
-    msize = _number(mk["size_m"], path, "panel.marker.size_m", positive=True)
-    if "size_m" not in data:
+    if m.size_m is None:
         raise SessionError("panel.marker needs the panel's size_m ([w, h] in metres)", path=path, hint=PANEL_EXAMPLE)
-    size = data["size_m"]
-    size = [size, size] if not isinstance(size, list) else size
-    off = data.get("offset_m", [0.0, 0.0])
-    if len(size) != 2 or not isinstance(off, list) or len(off) != 2:
-        raise SessionError("panel.size_m must be [w, h] (or one side) and panel.offset_m [du, dv]", path=path,
-                           hint=PANEL_EXAMPLE)
-    w, h = (_number(v, path, "panel.size_m", positive=True) for v in size)
-    du, dv = (_number(v, path, "panel.offset_m") for v in off)
+    (w, h), (du, dv), msize = m.size_m, m.offset_m, m.marker.size_m
     if abs(du) < (w + msize) / 2 and abs(dv) < (h + msize) / 2:
         raise SessionError("the panel rectangle covers the marker", path=path,
                            hint="give panel.offset_m: where the panel's centre is from the marker's, in metres")
-    return PanelConfig(polygon=polygon, marker=PanelMarker(name, int(mk["id"]), msize, (w, h), (du, dv)))
+    return PanelConfig(polygon=polygon, marker=PanelMarker(m.marker.dictionary, m.marker.id, msize, (w, h), (du, dv)))
+
+
+class _PanelPolygon(Strict):
+    polygon: _Polygon  # type: ignore[valid-type]
 
 
 def parse_panel_polygon(data: Any, path: Path) -> tuple[tuple[float, float], ...]:
     """session.yaml ``panel: {polygon: [[x, y], ...]}``: at least 3 (x, y) pixel corners."""
-    if not isinstance(data, dict):
-        raise SessionError(f"panel must be a mapping {{polygon: [[x, y], ...]}}, got {data!r}", path=path)
-    check_keys(data, {"polygon"}, set(), path, "panel")
-    poly = data["polygon"]
-    if not isinstance(poly, list) or len(poly) < 3:
-        raise SessionError(
-            f"panel.polygon must be a list of at least 3 [x, y] pixel corners, got {poly!r}",
-            path=path,
-            hint="e.g. polygon: [[646, 454], [808, 452], [809, 613], [648, 615]]",
-        )
-    corners = []
-    for pt in poly:
-        if not isinstance(pt, list) or len(pt) != 2:
-            raise SessionError(f"panel.polygon: each corner must be [x, y], got {pt!r}", path=path)
-        x, y = (_number(v, path, "panel.polygon corner") for v in pt)
-        if x < 0 or y < 0:
-            raise SessionError(f"panel.polygon: corner {pt!r} has a negative pixel coordinate", path=path)
-        corners.append((x, y))
+    return _enclosing(validate(_PanelPolygon, data, path, SessionError, prefix="panel").polygon, path)
+
+
+def _enclosing(corners: tuple[tuple[float, float], ...], path: Path) -> tuple[tuple[float, float], ...]:
+    """``corners``, which must enclose an area."""
     xs, ys = zip(*corners)
-    area2 = sum(xs[i] * ys[i - 1] - xs[i - 1] * ys[i] for i in range(len(corners)))
-    if not math.isfinite(area2) or max(xs + ys) > 1e6:
-        raise SessionError(f"panel.polygon {poly!r}: pixel coordinates must be below 1e6", path=path)
-    if abs(area2) < 2.0:
-        raise SessionError(f"panel.polygon {poly!r} encloses no area", path=path)
-    return tuple(corners)
+    if abs(sum(xs[i] * ys[i - 1] - xs[i - 1] * ys[i] for i in range(len(corners)))) < 2.0:
+        raise SessionError(f"panel.polygon {[list(c) for c in corners]} encloses no area", path=path)
+    return corners
+
+
+class _Reflector(Strict):
+    reflectance: Any  # a number, a table or a target's name: parse_reflectance
+    size_m: items(lambda v: finite_number(v) is not None and v > 0,  # type: ignore[valid-type]
+                  "[width_m, height_m] (positive numbers)", float, lambda n: n == 2)
+
+
+class _SessionYaml(Strict):
+    camera: Text
+    reflector: _Reflector
+    marker: Any  # parse_marker
+    intrinsics: Any = None  # parse_intrinsics, or per band: parse_band_intrinsics
+    panel: Any = None  # parse_panel
+    products: Any = None  # pipeline.ingest.products.yaml_choice
+    name: Any = None
+    notes: Any = None
+    serial: Any = None
 
 
 def load_session(root: str | Path) -> Session:
@@ -220,23 +213,18 @@ def load_session(root: str | Path) -> Session:
     if not path.is_file():
         raise SessionError("session.yaml is missing", path=path, hint="see SPEC.md for its keys")
     data = read_yaml(path, SessionError)
-    if not isinstance(data, dict):
-        raise SessionError("must be a YAML mapping (camera, intrinsics, reflector, marker)", path=path)
+    m = validate(_SessionYaml, data, path, SessionError, label="session.yaml")
     try:
-        check_keys(data, {"camera", "reflector", "marker"}, {"intrinsics", "name", "notes", "panel", "products", "serial"}, path, "session.yaml")
-    except MscalError as exc:
-        raise SessionError(exc.reason, path=path, hint=exc.hint) from None
-    try:
-        camera = load_camera(str(data["camera"]))
+        camera = load_camera(m.camera)
     except CatalogError as exc:  # say which file named it, and which catalog file is at fault
         if exc.path is not None:
-            raise SessionError(f"camera {str(data['camera'])!r}: its catalog entry {exc.path} is invalid: "
+            raise SessionError(f"camera {m.camera!r}: its catalog entry {exc.path} is invalid: "
                                f"{exc.reason}", path=path, hint=exc.hint or "fix that catalog file") from None
         raise SessionError(f"camera: {exc.reason}", path=path,
                            hint=exc.hint or "name a camera of catalogs/cameras/, or add its entry there") from None
     intr: Intrinsics | None = None
     band_intr: tuple[Intrinsics, ...] | None = None
-    raw_intr = data.get("intrinsics")
+    raw_intr = m.intrinsics
     if isinstance(raw_intr, dict) and raw_intr and not {"fx", "fy", "cx", "cy"} & set(raw_intr):
         from pipeline.ingest.intrinsics import parse_band_intrinsics
 
@@ -244,27 +232,14 @@ def load_session(root: str | Path) -> Session:
         band_intr = parse_band_intrinsics(raw_intr, keys, path, parse_intrinsics)
     elif raw_intr is not None:
         intr = parse_intrinsics(raw_intr, path)
-
-    refl = data["reflector"]
-    if not isinstance(refl, dict):
-        raise SessionError("reflector must be a mapping {reflectance, size_m}", path=path)
-    check_keys(refl, {"reflectance", "size_m"}, set(), path, "reflector")
-    size = refl["size_m"]
-    if not isinstance(size, list) or len(size) != 2:
-        raise SessionError("reflector.size_m must be [width_m, height_m]", path=path)
-    reflector = ReflectorSpec(
-        reflectance=parse_reflectance(refl["reflectance"], path, "reflector.reflectance"),
-        size_m=(
-            _number(size[0], path, "reflector.size_m", positive=True),
-            _number(size[1], path, "reflector.size_m", positive=True),
-        ),
-    )
-
-    marker = parse_marker(data["marker"], path, reflector.size_m)
-    panel = parse_panel(data["panel"], path) if data.get("panel") is not None else PanelConfig()
+    w, h = m.reflector.size_m
+    reflector = ReflectorSpec(reflectance=parse_reflectance(m.reflector.reflectance, path, "reflector.reflectance"),
+                              size_m=(w, h))
+    marker = parse_marker(m.marker, path, reflector.size_m)
+    panel = parse_panel(m.panel, path) if m.panel is not None else PanelConfig()
     return Session(
         root=root, camera=camera, intrinsics=intr, reflector=reflector, marker=marker, panel_polygon=panel.polygon,
-        panel_marker=panel.marker, band_intrinsics=band_intr, products=yaml_choice(data.get("products"), path),
+        panel_marker=panel.marker, band_intrinsics=band_intr, products=yaml_choice(m.products, path),
     )
 
 

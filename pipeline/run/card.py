@@ -33,14 +33,15 @@ import re
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 from mscal_core.errors import InputError, MscalError, SessionError
 
-from pipeline.ingest.catalog import Camera, check_keys, load_camera, read_yaml, reflectance_option
+from pipeline.ingest.catalog import Camera, load_camera, read_yaml, reflectance_option
 from pipeline.ingest.exif import parse_utc
 from pipeline.ingest.products import yaml_choice
+from pipeline.ingest.schema import Strict, Text, check, finite_number, validate
 
 #: Folders that make a session a field session (the paper's three fits).
 FIELD_FOLDERS = ("response", "vignetting", "reflector")
@@ -48,9 +49,6 @@ FIELD_FOLDERS = ("response", "vignetting", "reflector")
 DEFAULT_GAP_MINUTES = 30.0
 #: A MicaSense SD card's folder of one power-up (``0000SET``, ``0001SET``, ...).
 SET_FOLDER = re.compile(r"^\d{4}SET$")
-#: ``session.yaml`` keys of a card session (all optional).
-CARD_KEYS = {"camera", "serial", "reference", "panel_reflectance", "panel", "field_calibration",
-             "flight_gap_minutes", "name", "notes", "products"}
 REFERENCES = ("auto", "panel", "dls", "panel-dls")
 #: ``field_calibration`` value that keeps the library's calibrations out (factory radiometry only).
 NO_FIELD = "none"
@@ -76,28 +74,32 @@ class CardSettings:
     products: dict[str, Any] | None = None  # the keys of its products (pipeline.ingest.products.yaml_choice)
 
 
+class _CardYaml(Strict):
+    """``session.yaml`` of a card session (every key optional)."""
+
+    camera: Text | None = None
+    serial: Text | None = None
+    reference: Annotated[str, check(lambda v: str(v) in REFERENCES, f"is not one of {', '.join(REFERENCES)}", str,
+                                    value_first=True)] = "auto"
+    panel_reflectance: Any = None  # a number or a target's name: reflectance_option
+    panel: Any = None  # pipeline.ingest.session.panel_config_near
+    field_calibration: Any = None  # a store, or NO_FIELD
+    flight_gap_minutes: Annotated[float, check(lambda v: finite_number(v) is not None and v > 0 or v == float("inf"),
+                                               "must be a positive number", float)] = DEFAULT_GAP_MINUTES
+    name: Any = None
+    notes: Any = None
+    products: Any = None  # pipeline.ingest.products.yaml_choice
+
+
 def load_card_settings(folder: str | Path) -> CardSettings:
     """:class:`CardSettings` of ``folder/session.yaml`` (defaults when there is none)."""
     path = Path(folder) / "session.yaml"
     if not path.is_file():
         return CardSettings()
     data = read_yaml(path, SessionError)
-    if data is None:
-        data = {}
-    if not isinstance(data, dict):
-        raise SessionError("must be a YAML mapping", path=path,
-                           hint=f"a flight folder's session.yaml may hold: {', '.join(sorted(CARD_KEYS))}")
-    try:
-        check_keys(data, set(), CARD_KEYS, path, "session.yaml of a flight folder (no response/, vignetting/, reflector/)")
-    except MscalError as exc:
-        raise SessionError(exc.reason, path=path, hint=exc.hint) from None
-    reference = str(data.get("reference", "auto"))
-    if reference not in REFERENCES:
-        raise SessionError(f"reference {reference!r} is not one of {', '.join(REFERENCES)}", path=path)
-    gap = data.get("flight_gap_minutes", DEFAULT_GAP_MINUTES)
-    if isinstance(gap, bool) or not isinstance(gap, (int, float)) or not gap > 0:
-        raise SessionError(f"flight_gap_minutes must be a positive number, got {gap!r}", path=path)
-    store = data.get("field_calibration")
+    m = validate(_CardYaml, {} if data is None else data, path, SessionError,
+                 label="session.yaml of a flight folder (no response/, vignetting/, reflector/)")
+    store = m.field_calibration
     if store is not None and str(store) != NO_FIELD:
         p = Path(str(store))
         p = p if p.is_absolute() else (path.parent / p)
@@ -105,7 +107,7 @@ def load_card_settings(folder: str | Path) -> CardSettings:
             raise SessionError(f"field_calibration {store!r}: no such store", path=path,
                                hint=f"give a store from 'mscal calibrate', or '{NO_FIELD}' for factory radiometry")
         store = str(p.resolve())
-    rho = data.get("panel_reflectance")
+    rho = m.panel_reflectance
     if rho is not None:
         try:
             reflectance_option(str(rho), "panel_reflectance")
@@ -113,11 +115,9 @@ def load_card_settings(folder: str | Path) -> CardSettings:
             raise SessionError(exc.reason, path=path, hint=exc.hint or "a number in (0, 1] or a catalogs/targets name"
                                ) from None
     return CardSettings(
-        camera=None if data.get("camera") is None else str(data["camera"]),
-        serial=None if data.get("serial") is None else str(data["serial"]).strip(),
-        reference=reference, panel_reflectance=None if rho is None else str(rho),
-        field_calibration=None if store is None else str(store), flight_gap_minutes=float(gap), source=str(path),
-        products=yaml_choice(data.get("products"), path),
+        camera=m.camera, serial=None if m.serial is None else m.serial.strip(), reference=m.reference,
+        panel_reflectance=None if rho is None else str(rho), field_calibration=None if store is None else str(store),
+        flight_gap_minutes=m.flight_gap_minutes, source=str(path), products=yaml_choice(m.products, path),
     )
 
 

@@ -170,6 +170,32 @@ def _base_camera() -> dict:
         (lambda d: d.update(exif={"make": "X", "model": "Y", "pixel_um": -5.5}), "exif.pixel_um"),
         (lambda d: d.update(exif={"make": "X", "model": "Y", "lens": 5}), "unknown key(s) lens"),
         (lambda d: d.update(exif={"make": "X"}), "missing key(s) model"),
+        # unknown keys (the allowed ones said), of any YAML type
+        (lambda d: d.update(colour="blue"), "camera: unknown key(s) colour (allowed keys: bands, bit_depth,"),
+        (lambda d: d.update({1: 2}), "camera: unknown key(s) 1 (allowed keys:"),
+        (lambda d: d["layout"].update(grid=[1, 2]), "layout (kind multichannel): unknown key(s) grid "
+                                                    "(allowed keys: channels, kind)"),
+        (lambda d: d.update(sensor={"width": 10, "height": 5, "depth": 3}), "sensor: unknown key(s) depth"),
+        # missing keys
+        (lambda d: d["layout"].pop("channels"), "layout (kind multichannel): missing key(s) channels"),
+        (lambda d: d["bands"][2].pop("wavelength_nm"), "bands[2]: missing key(s) wavelength_nm"),
+        (lambda d: d.update(skip_bands=[{"name": "x"}]), "skip_bands[0]: missing key(s) reason"),
+        # wrong types
+        (lambda d: d.update(bit_depth="8"), "bit_depth must be an integer 1..16, got '8'"),
+        (lambda d: d.update(bands="rgb"), "bands must be a list, got 'rgb'"),
+        (lambda d: d.update(layout=5), "layout must be a mapping, got 5"),
+        (lambda d: d["bands"].__setitem__(1, "green"), "bands[1] must be a mapping, got 'green'"),
+        (lambda d: d.update(index_bands={"red": "x"}), "index_bands.red must be a positive number, got 'x'"),
+        (lambda d: d.update(identify={"make": "X", "models": "A"}), "identify.models must be a list of strings, got 'A'"),
+        (lambda d: d.update(export_bands="Red"), "export_bands must be a list of band names, got 'Red'"),
+        (lambda d: d["layout"].update(kind=None), "layout.kind must be one of mosaic, multichannel, file_per_band"),
+        # out of range
+        (lambda d: d["bands"][0].update(wavelength_nm=-5), "bands[0].wavelength_nm must be a positive number, got -5"),
+        (lambda d: d["bands"][0].update(wavelength_nm=float("nan")), "bands[0].wavelength_nm must be a positive number"),
+        (lambda d: d["bands"][0].update(channel=5000), "bands[0].channel must be an integer 0..1023, got 5000"),
+        (lambda d: d["layout"].update(channels=0), "layout.channels must be a positive integer, got 0"),
+        (lambda d: d.update(sensor={"width": 0, "height": 5}), "sensor.width must be an integer 1..100000 (pixels), got 0"),
+        (lambda d: d.update(bands=[]), "bands must have at least 1 item(s), got []"),
     ],
 )
 def test_bad_camera_rejected_naming_file(tmp_path, monkeypatch, mutate, message) -> None:
@@ -184,7 +210,41 @@ def test_bad_camera_rejected_naming_file(tmp_path, monkeypatch, mutate, message)
     finally:
         catalog.clear_cache()
     assert message in str(err.value)
-    assert str(p) in str(err.value)
+    assert str(err.value).startswith(f"{p}: ") and "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize(
+    "kind, data, message",
+    [
+        ("targets", {"name": "t-x", "description": "d"}, "target: missing key(s) reflectance (allowed keys:"),
+        ("targets", {"name": "t-x", "description": "d", "reflectance": 1.5}, "reflectance must be in (0, 1], got 1.5"),
+        ("targets", {"name": "t-x", "description": "d", "reflectance": [[400, 0.5], [500, "x"]]},
+         "reflectance[1] must be [wavelength_nm, reflectance]: finite numbers, nm > 0, 0 < reflectance <= 1, "
+         "got [500, 'x']"),
+        ("targets", {"name": "t-x", "description": "d", "reflectance": [[500, 0.5], [400, 0.5]]},
+         "reflectance: wavelengths must be strictly increasing"),
+        ("targets", ["t-x"], "must be a YAML mapping of keys to values, got ['t-x']"),
+        ("indices", {"name": "t-x", "description": "d"}, "index: missing key(s) expression"),
+        ("indices", {"name": "t-x", "description": "d", "expression": "nir", "scale": 2},
+         "index: unknown key(s) scale (allowed keys: description, expression, name, valid_range)"),
+        ("indices", {"name": "t-x", "description": "d", "expression": "nir", "valid_range": [1, -1]},
+         "valid_range must be [low, high] (finite numbers, low < high), got [1, -1]"),
+        ("indices", {"name": "t-x", "description": "d", "expression": "nir", "valid_range": "all"},
+         "valid_range must be [low, high]"),
+    ],
+)
+def test_bad_target_or_index_rejected_naming_file_and_key(tmp_path, monkeypatch, kind, data, message) -> None:
+    (tmp_path / kind).mkdir()
+    p = tmp_path / kind / "t-x.yaml"
+    p.write_text(yaml.safe_dump(data))
+    monkeypatch.setenv("MSCAL_CATALOG_PATH", str(tmp_path))
+    catalog.clear_cache()
+    try:
+        with pytest.raises(CatalogError) as err:
+            (catalog.load_target if kind == "targets" else catalog.load_index)("t-x")
+    finally:
+        catalog.clear_cache()
+    assert str(err.value).startswith(f"{p}: {message}") and "\n" not in str(err.value)
 
 
 def test_unknown_camera_lists_known() -> None:

@@ -142,9 +142,11 @@ def test_session_panel_polygon_parsing(tmp_path) -> None:
     for bad, msg in [
         ([[1, 2]], "must be a mapping"),
         ({"polygon": [[1, 2], [3, 4]]}, "at least 3"),
-        ({"polygon": [[1, 2], [3, 4], [5]]}, "each corner must be"),
-        ({"polygon": [[1, 2], [3, "x"], [5, 6]]}, "must be a number"),
-        ({"polygon": [[-1, 2], [3, 4], [5, 9]]}, "negative"),
+        ({"polygon": [[1, 2], [3, 4], [5]]}, r"panel\.polygon\[2\] must be \[x, y\]: pixel coordinates from 0 to 1e6, "
+                                              r"got \[5\]"),
+        ({"polygon": [[1, 2], [3, "x"], [5, 6]]}, r"panel\.polygon\[1\] must be \[x, y\].*got \[3, 'x'\]"),
+        ({"polygon": [[-1, 2], [3, 4], [5, 9]]}, r"panel\.polygon\[0\] must be \[x, y\]: pixel coordinates from 0"),
+        ({"polygon": [[0, 0], [5, 0], [5, 2e6]]}, r"panel\.polygon\[2\] must be .* to 1e6"),
         ({"polygon": [[0, 0], [5, 5], [10, 10]]}, "encloses no area"),
         ({"polygon": [[0, 0], [5, 0], [5, 5]], "corners": 4}, "unknown key"),
     ]:

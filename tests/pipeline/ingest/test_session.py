@@ -54,6 +54,37 @@ def test_reflectance_table(tmp_path) -> None:
         (SESSION_YAML.replace("fx: 436.0", "fx: -1"), SessionError, "intrinsics.fx must be positive"),
         (SESSION_YAML.replace("reflectance: 0.5", "reflectance: 5"), CatalogError, "reflector.reflectance must be in (0, 1]"),
         (SESSION_YAML.replace("id: 3", "id: three"), SessionError, "marker.id must be a non-negative integer"),
+        # unknown keys, with the allowed ones
+        (SESSION_YAML + "colour: red\n", SessionError, "session.yaml: unknown key(s) colour (allowed keys: camera, "
+                                                        "marker, reflector, intrinsics, name, notes, panel, products"),
+        (SESSION_YAML.replace("fx: 436.0", "skew: 0, fx: 436.0"), SessionError, "intrinsics: unknown key(s) skew"),
+        (SESSION_YAML.replace("id: 3", "id: 3, colour: red"), SessionError,
+         "marker (type aruco): unknown key(s) colour (allowed keys: dictionary, id, size_m, border_m, type)"),
+        # missing keys
+        (SESSION_YAML.replace("marker:", "mark:"), SessionError, "session.yaml: missing key(s) marker"),
+        (SESSION_YAML.replace("reflectance: 0.5, ", ""), SessionError, "reflector: missing key(s) reflectance"),
+        (SESSION_YAML.replace("id: 3", "type: charuco"), SessionError,
+         "marker (type charuco): missing key(s) squares_x, squares_y, square_mm, marker_mm"),
+        # wrong types
+        ("- camera\n", SessionError, "must be a YAML mapping of keys to values, got ['camera']"),
+        (SESSION_YAML.replace("size_m: [0.5, 0.5]", "size_m: big"), SessionError,
+         "reflector.size_m must be [width_m, height_m] (positive numbers), got 'big'"),
+        (SESSION_YAML.replace("reflector: {reflectance: 0.5, size_m: [0.5, 0.5]}", "reflector: 0.5"), SessionError,
+         "reflector must be a mapping, got 0.5"),
+        (SESSION_YAML.replace("id: 3", "id: 3, type: april"), SessionError,
+         "marker.type must be one of aruco, charuco, got 'april'"),
+        (SESSION_YAML.replace("DICT_4X4_50", "DICT_9X9_1"), SessionError,
+         "marker.dictionary 'DICT_9X9_1' is not an OpenCV ArUco/AprilTag dictionary"),
+        (SESSION_YAML.replace("dist: [-0.1, 0.02, 0.0, 0.0, 0.0]", "dist: [-0.1, x]"), SessionError,
+         "intrinsics.dist must be [k1, k2, p1, p2, k3] (OpenCV order; 4, 5 or 8 numbers), got [-0.1, 'x']"),
+        # out of range
+        (SESSION_YAML.replace("size_m: [0.5, 0.5]", "size_m: [0.5, -0.5]"), SessionError,
+         "reflector.size_m must be [width_m, height_m] (positive numbers), got [0.5, -0.5]"),
+        (SESSION_YAML.replace("size_m: 0.10", "size_m: .nan"), SessionError, "marker.size_m must be a number, got nan"),
+        (SESSION_YAML.replace("reflectance: 0.5", "reflectance: [[600, 0.4], [900, 1.6]]"), CatalogError,
+         "reflector.reflectance[1] must be [wavelength_nm, reflectance]: finite numbers, nm > 0, 0 < reflectance <= 1"),
+        (SESSION_YAML + "panel: {marker: {dictionary: DICT_4X4_50, id: 7, size_m: 0.06}, size_m: [0.15, 0]}\n",
+         SessionError, "panel.size_m must be [w, h] in metres (or one side), positive numbers, got [0.15, 0]"),
     ],
 )
 def test_bad_session_yaml(tmp_path, text, error, message) -> None:

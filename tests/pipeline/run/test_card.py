@@ -89,6 +89,13 @@ def test_card_session_yaml_is_checked_and_named(tmp_path: Path) -> None:
     (root / "session.yaml").write_text("flight_gap_minutes: 0\n")
     with pytest.raises(SessionError, match="flight_gap_minutes must be a positive number"):
         card.load_card_settings(root)
+    for text, message in [("camera: micasense-rededge\nmarker_id: 3\n", "allowed keys: camera, field_calibration, "),
+                          ("flight_gap_minutes: soon\n", "flight_gap_minutes must be a positive number, got 'soon'"),
+                          ("- camera\n", "must be a YAML mapping of keys to values, got ['camera']")]:
+        (root / "session.yaml").write_text(text)
+        with pytest.raises(SessionError) as err:
+            card.load_card_settings(root)
+        assert str(err.value).startswith(f"{root / 'session.yaml'}: ") and message in str(err.value)
 
 
 def test_folders_that_are_not_one_cameras_card_are_refused_with_the_reason(tmp_path: Path) -> None:
