@@ -107,7 +107,8 @@ def board_points(spec: CharucoSpec, ids: np.ndarray | None = None) -> np.ndarray
     return np.stack([xyz[:, 0] - w / 2, h / 2 - xyz[:, 1], np.zeros(len(xyz))], axis=1)
 
 
-def detect_charuco(image: np.ndarray, spec: CharucoSpec) -> tuple[np.ndarray, np.ndarray] | None:
+def detect_charuco(image: np.ndarray, spec: CharucoSpec,
+                   min_corners: int = MIN_CORNERS) -> tuple[np.ndarray, np.ndarray] | None:
     """Find the board's chessboard corners in an image.
 
     Parameters
@@ -116,12 +117,15 @@ def detect_charuco(image: np.ndarray, spec: CharucoSpec) -> tuple[np.ndarray, np
         2-D image of any dtype (stretched to 8 bits as for a single marker).
     spec : CharucoSpec
         The board.
+    min_corners : int
+        Fewest corners returned (default :data:`MIN_CORNERS`, what a pose needs; 1 to count
+        the corners of a view that has too few).
 
     Returns
     -------
     tuple or None
         ``(corners (N, 2) float64 pixels, ids (N,) int)`` of the interpolated corners, or None
-        when fewer than :data:`MIN_CORNERS` are found.
+        when fewer than ``min_corners`` are found.
 
     Notes
     -----
@@ -134,7 +138,7 @@ def detect_charuco(image: np.ndarray, spec: CharucoSpec) -> tuple[np.ndarray, np
     params.minMarkerDistanceRate = 0.05
     detector = cv2.aruco.CharucoDetector(spec.board(), cv2.aruco.CharucoParameters(), params)
     corners, ids, _, _ = detector.detectBoard(gray)
-    if ids is None or corners is None or len(ids) < MIN_CORNERS:
+    if ids is None or corners is None or len(ids) < max(int(min_corners), 1):
         return None
     return np.asarray(corners, dtype=np.float64).reshape(-1, 2), np.asarray(ids, dtype=np.int64).ravel()
 
