@@ -15,6 +15,9 @@ from pipeline.run.cli import main
 from pipeline.sim.evaluate import evaluate_calibration
 from pipeline.sim.synth import write_session
 
+#: A small ChArUco session written (~40 s) and calibrated (~20 s) once: both tests on one worker.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("charuco_session")]
+
 
 @pytest.fixture(scope="module")
 def charuco_small(tmp_path_factory) -> tuple[Path, Path]:
@@ -25,7 +28,6 @@ def charuco_small(tmp_path_factory) -> tuple[Path, Path]:
     return session, calib
 
 
-@pytest.mark.slow  # a small ChArUco session written (~40 s) and calibrated (~20 s)
 def test_charuco_session_calibrates_within_targets(charuco_small) -> None:
     session, calib = charuco_small
     assert yaml.safe_load((session / "session.yaml").read_text())["marker"]["type"] == "charuco"
@@ -36,7 +38,6 @@ def test_charuco_session_calibrates_within_targets(charuco_small) -> None:
     assert err["spectral_factor_max_error"] <= 0.01
 
 
-@pytest.mark.slow
 def test_views_were_found_through_the_charuco_path(charuco_small) -> None:
     """The vignetting stage's report names the board and every view's corners; the view
     planned with the board out of frame is skipped, all the others are used."""
