@@ -32,7 +32,7 @@ def test_charuco_session_calibrates_within_targets(charuco_small) -> None:
     session, calib = charuco_small
     assert yaml.safe_load((session / "session.yaml").read_text())["marker"]["type"] == "charuco"
     err = evaluate_calibration(session, calib)
-    # measured on seed 0: U 0.0053, V 0.0052 (0.0108 where observed), S 0.0080
+    # measured on seed 0: U 0.0053, V 0.0073 (0.0106 where observed), S 0.0082
     assert err["response_max_error"] <= 0.02
     assert err["vignetting_rms_error"] <= 0.015
     assert err["spectral_factor_max_error"] <= 0.01
