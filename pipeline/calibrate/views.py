@@ -116,7 +116,7 @@ def find_views(
     corners: dict[int, int] = {}
     for i, (res, n) in enumerate(_map(one, len(records))):
         if res is None:
-            found = f" (only {n} corners)" if session.marker.board is not None and n else ""
+            found = f" (only {n} corner{'s' if n > 1 else ''})" if session.marker.board is not None and n else ""
             report.skipped.append(
                 {"file": records[i].path.name, "reason": f"{session.marker.label} not found{found}"}
             )
