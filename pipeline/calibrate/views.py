@@ -107,21 +107,31 @@ def find_views(
 
     outlines = _pose_outlines(session)
 
-    def one(i: int) -> tuple[int, View] | None:
+    def one(i: int) -> tuple[tuple[int, View] | None, int]:
         img = detection_image(stack[i], inverse_response)
-        choice = marker_pose(img, session.marker, session.intrinsics, outlines, (float(centre[0]), float(centre[1])))
-        return None if choice is None else (i, View(records[i], choice.pose, choice=choice))
+        choice, n = marker_pose_corners(img, session.marker, session.intrinsics, outlines,
+                                        (float(centre[0]), float(centre[1])))
+        return (None if choice is None else (i, View(records[i], choice.pose, choice=choice))), n
 
-    for i, res in enumerate(_map(one, len(records))):
+    corners: dict[int, int] = {}
+    for i, (res, n) in enumerate(_map(one, len(records))):
         if res is None:
+            found = f" (only {n} corner{'s' if n > 1 else ''})" if session.marker.board is not None and n else ""
             report.skipped.append(
-                {"file": records[i].path.name, "reason": f"{session.marker.label} not found"}
+                {"file": records[i].path.name, "reason": f"{session.marker.label} not found{found}"}
             )
         else:
             views.append(res)
-    report.residuals["marker_poses"] = [{"file": v.record.path.name, **v.choice.as_record()}  # type: ignore[union-attr]
-                                        for _, v in views]
+            corners[i] = n
+    report.residuals["marker"] = marker_record(session.marker)
+    report.residuals["marker_poses"] = [{"file": v.record.path.name, **v.choice.as_record(),  # type: ignore[union-attr]
+                                         "corners": corners[i]} for i, v in views]
     return views
+
+
+def marker_record(mk: MarkerSpec) -> dict[str, Any]:
+    """The stage report's ``marker``: ``type`` (``aruco`` or ``charuco``) and ``label``."""
+    return {"type": "aruco" if mk.board is None else "charuco", "label": mk.label}
 
 
 def marker_pose(img: np.ndarray, mk: MarkerSpec, intrinsics: geometry.Intrinsics, outlines: list[tuple[float, float]],
@@ -129,18 +139,29 @@ def marker_pose(img: np.ndarray, mk: MarkerSpec, intrinsics: geometry.Intrinsics
     """The pose of the session's marker, or ChArUco board, in a detection image whose pixel
     ``(i, j)`` sees image point ``(j + dx, i + dy)`` (``offset``); None if it is not found (a
     board: fewer than :data:`mscal_core.charuco.MIN_CORNERS` corners, or corners on a line)."""
+    return marker_pose_corners(img, mk, intrinsics, outlines, offset)[0]
+
+
+def marker_pose_corners(img: np.ndarray, mk: MarkerSpec, intrinsics: geometry.Intrinsics,
+                        outlines: list[tuple[float, float]], offset: tuple[float, float] = (0.0, 0.0)
+                        ) -> tuple[marker.PoseChoice | None, int]:
+    """:func:`marker_pose` and the corners it was found from (a marker: 4; a board: its
+    chessboard corners, also when too few; 0 when nothing was found)."""
     if mk.board is not None:
-        found = charuco.detect_charuco(img, mk.board)
+        found = charuco.detect_charuco(img, mk.board, min_corners=1)
         if found is None:
-            return None
+            return None, 0
+        n = len(found[1])
+        if n < charuco.MIN_CORNERS:
+            return None, n
         try:
-            return charuco.charuco_pose(found[0] + np.asarray(offset), found[1], mk.board, intrinsics)
+            return charuco.charuco_pose(found[0] + np.asarray(offset), found[1], mk.board, intrinsics), n
         except FitError:
-            return None
+            return None, n
     corners = geometry.detect_marker(img, mk.dictionary, mk.id)
     if corners is None:
-        return None
-    return marker.pose_in_image(img, corners, mk.dictionary, mk.size_m, intrinsics, outlines, offset)
+        return None, 0
+    return marker.pose_in_image(img, corners, mk.dictionary, mk.size_m, intrinsics, outlines, offset), 4
 
 
 def _pose_outlines(session: Session) -> list[tuple[float, float]]:
@@ -188,6 +209,7 @@ def _find_views_per_lens(
                                                            "the capture is used for the other bands only"})
         views.append((i, View(records[i], found[0], poses, band_choices=choices)))
         records_out.append({"file": name, "bands": [c.as_record() if c is not None else None for c in choices]})
+    report.residuals["marker"] = marker_record(mk)
     report.residuals["marker_poses"] = records_out
     return views
 

@@ -34,6 +34,7 @@ import tifffile
 import yaml
 
 from pipeline.sim.world.scene import (
+    CharucoBoardSpec,
     FrameSet,
     LightDrift,
     SyntheticSession,
@@ -70,12 +71,30 @@ def session_yaml(session: SyntheticSession) -> dict:
             "reflectance": reflectance,
             "size_m": [float(t.reflector_size_m[0]), float(t.reflector_size_m[1])],
         },
-        "marker": {
-            "dictionary": t.marker.dictionary,
-            "id": int(t.marker.id),
-            "size_m": float(t.marker.size_m),
-            "border_m": float(t.marker.border_m),
-        },
+        "marker": marker_yaml(t.marker),
+    }
+
+
+def marker_yaml(marker) -> dict:
+    """session.yaml ``marker`` of the truth's marker: ``{dictionary, id, size_m, border_m}``,
+    or for a :class:`~pipeline.sim.world.scene.CharucoBoardSpec` ``{type: charuco, squares_x,
+    squares_y, square_mm, marker_mm, dictionary, border_mm}`` (the board centred on the
+    reflector, as ``pipeline.ingest.markers`` reads it)."""
+    if isinstance(marker, CharucoBoardSpec):
+        return {
+            "type": "charuco",
+            "squares_x": int(marker.squares_x),
+            "squares_y": int(marker.squares_y),
+            "square_mm": round(float(marker.square_m) * 1000, 6),
+            "marker_mm": round(float(marker.marker_m) * 1000, 6),
+            "dictionary": marker.dictionary,
+            "border_mm": round(float(marker.border_m) * 1000, 6),
+        }
+    return {
+        "dictionary": marker.dictionary,
+        "id": int(marker.id),
+        "size_m": float(marker.size_m),
+        "border_m": float(marker.border_m),
     }
 
 
@@ -124,6 +143,7 @@ def write_session(
     flights: Sequence[str] = ("field",),
     reflector_reflectance: float | Sequence[float] = 0.5,
     overwrite: bool = True,
+    marker: str | CharucoBoardSpec = "aruco",
 ) -> Path:
     """Render and write a synthetic session folder; returns its path.
 
@@ -132,15 +152,30 @@ def write_session(
     viewpoints (1 without marker), 2 reflector images, 3 frames per flight.
     ``n_flight_frames`` overrides the flight length. With ``overwrite`` (default) the dataset
     folders of an existing session at ``path`` are replaced; otherwise an existing
-    ``session.yaml`` there is an error.
+    ``session.yaml`` there is an error. ``marker="charuco"`` (or a ``CharucoBoardSpec``) puts
+    a ChArUco board (default 4 x 4 squares of 60 mm) at the reflector's centre in place of the
+    ArUco marker and writes its ``marker: {type: charuco, ...}`` block.
     """
     root = Path(path)
+    board = session_marker(marker)
     if (root / "session.yaml").exists() and not overwrite:
         raise FileExistsError(f"{root}: a session is already there (pass overwrite=True)")
     session = synthesize_session(seed, size=size, n_flight_frames=n_flight_frames,
                                  flights=tuple(flights),
-                                 reflector_reflectance=reflector_reflectance)
+                                 reflector_reflectance=reflector_reflectance, marker=board)
     return write_synthesized(session, root)
+
+
+def session_marker(marker: str | CharucoBoardSpec) -> CharucoBoardSpec | None:
+    """The board of ``marker`` (``"aruco"``: None, the default marker; ``"charuco"``: the
+    default board; a ``CharucoBoardSpec``: itself)."""
+    if isinstance(marker, CharucoBoardSpec):
+        return marker
+    if marker == "aruco":
+        return None
+    if marker == "charuco":
+        return CharucoBoardSpec()
+    raise ValueError(f"marker must be 'aruco', 'charuco' or a CharucoBoardSpec, got {marker!r}")
 
 
 def write_synthesized(session: SyntheticSession, root: Path) -> Path:

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.sim.world.scene import (
+    CharucoBoardSpec,
     MarkerSpec,
     SyntheticSession,
     SyntheticTruth,
@@ -36,9 +37,10 @@ from pipeline.sim.world.scene import (
 )
 from pipeline.sim.world.sensor import SensorModel
 
-from .synth import write_synthesized
+from .synth import session_marker, write_synthesized
 
-__all__ = ["VariedParams", "draw_params", "synthesize_varied", "varied_truth", "write_varied_session"]
+__all__ = ["VariedParams", "draw_params", "params_record", "synthesize_varied", "varied_truth",
+           "write_varied_session"]
 
 #: Seed streams of :func:`draw_params` start here, apart from the seeds of ``write_session``
 #: (0, 1, 2 in the benchmark), so a varied session never repeats a benchmark session's draws.
@@ -86,6 +88,11 @@ class VariedParams:
         Smallest mean corner falloff of V over the bands (bands span it to +0.07).
     vignetting_shift_px : tuple of float
         Common shift (x, y) of the vignetting centres, band-grid pixels.
+    marker : str or CharucoBoardSpec
+        ``"aruco"``: the single marker of ``marker_size_m``; ``"charuco"`` (or a
+        ``CharucoBoardSpec``): a ChArUco board in its place (default 4 x 4 squares of 60 mm,
+        ``marker_size_m`` and ``marker_border_m`` unused). ``params.json`` lists it only when
+        it is not ``"aruco"``.
     """
 
     seed: int = 0
@@ -108,6 +115,7 @@ class VariedParams:
     sweep_start: tuple[float, float] = (0.30, 0.40)
     vignetting_falloff: float = 0.37
     vignetting_shift_px: tuple[float, float] = (0.0, 0.0)
+    marker: str | CharucoBoardSpec = "aruco"
 
 
 def draw_params(seed: int) -> VariedParams:
@@ -170,7 +178,8 @@ def varied_truth(params: VariedParams) -> SyntheticTruth:
     p = params
     sensor = SensorModel(read_noise_dn=p.read_noise_dn, shot_noise_dn_at_full=p.shot_noise_dn_at_full,
                          shoulder_start=p.shoulder_start, curvature=p.curvature)
-    marker = MarkerSpec(size_m=p.marker_size_m, border_m=p.marker_border_m)
+    board = session_marker(p.marker)
+    marker = MarkerSpec(size_m=p.marker_size_m, border_m=p.marker_border_m) if board is None else board
     return make_truth(p.seed, sensor=sensor, marker=marker, vignetting_falloff=p.vignetting_falloff,
                       vignetting_shift_px=p.vignetting_shift_px)
 
@@ -201,5 +210,14 @@ def write_varied_session(path: str | Path, params: VariedParams | int, *,
     seed) with ``truth.npz`` and ``params.json``; returns its path."""
     p = draw_params(params) if isinstance(params, int) else params
     root = write_synthesized(synthesize_varied(p, n_flight_frames=n_flight_frames), Path(path))
-    (root / "params.json").write_text(json.dumps(asdict(p), indent=1) + "\n")
+    (root / "params.json").write_text(json.dumps(params_record(p), indent=1) + "\n")
     return root
+
+
+def params_record(params: VariedParams) -> dict:
+    """``params.json`` of a varied session: the fields of ``params``, ``marker`` only when it
+    is not ``"aruco"`` (the ArUco sessions' file as before the field existed)."""
+    record = asdict(params)
+    if params.marker == "aruco":
+        del record["marker"]
+    return record

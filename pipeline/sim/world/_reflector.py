@@ -10,7 +10,7 @@ import numpy as np
 from ._camera import FAR, FRONTAL, Pose, SnapshotCamera, rot
 from ._light import GradientShadowLight, LightDrift
 from ._render import detect_marker_corners, marker_pose_from_image, pose_error, render
-from ._targets import MarkerSpec, ReflectorScene
+from ._targets import CharucoBoardSpec, MarkerSpec, ReflectorScene
 from ._truth import FrameSet, SyntheticTruth, expose_frame, exposure_for, session_time
 
 
@@ -60,10 +60,10 @@ def random_light(rng, brightness: float, size_m, shadow: bool = True,
     )
 
 
-def frame_marker_ok(cam: SnapshotCamera, pose: Pose, marker: MarkerSpec, margin_px: float,
+def frame_marker_ok(cam: SnapshotCamera, pose: Pose, marker: MarkerSpec | CharucoBoardSpec, margin_px: float,
                      min_side_px: float) -> tuple[bool, np.ndarray]:
-    s = 0.5 * marker.size_m
-    pts = np.array([[-s, s, 0], [s, s, 0], [s, -s, 0], [-s, -s, 0]])
+    su, sv = marker.half_extent()  # a board: its outline
+    pts = np.array([[-su, sv, 0], [su, sv, 0], [su, -sv, 0], [-su, -sv, 0]])
     pc = pose.to_camera(pts)
     if np.any(pc[:, 2] <= 0.05):
         return False, np.zeros((4, 2))
@@ -144,13 +144,13 @@ def _random_view_pose(rng, cam: SnapshotCamera, t_px: np.ndarray, half_in: float
     return pose_through(cam, R, t_px, q, depth)
 
 
-def _view_geometry_ok(cam: SnapshotCamera, pose: Pose, mk: MarkerSpec, missing: bool,
+def _view_geometry_ok(cam: SnapshotCamera, pose: Pose, mk: MarkerSpec | CharucoBoardSpec, missing: bool,
                       partial: bool = False) -> bool:
     """Check that a planned view sees the marker as intended.
 
     The camera faces the reflector and the marker is fully in frame (or, for a view meant to
     miss it, clearly out of frame and not behind the camera; for a view meant to cut it, one
-    to three of its corners in frame).
+    to three of its corners in frame). A ChArUco board: its outline's corners.
     """
     if not _facing(pose, 60.0):
         return False
@@ -172,12 +172,13 @@ def _view_geometry_ok(cam: SnapshotCamera, pose: Pose, mk: MarkerSpec, missing: 
 
 def _shoot_view(truth: SyntheticTruth, scene: ReflectorScene, pose: Pose, rng, missing: bool,
                 supersample: int, detect_bands: list[int],
-                exposure_fraction: tuple[float, float] = (0.70, 0.85)):
+                exposure_fraction: tuple[float, float] = (0.70, 0.85), partial: bool = False):
     """Render and expose one planned view.
 
     ``(gray mask, exposure, DN)``, or None when too little of the gray reflector is in view or
     ArUco does not behave as planned (found in every detection band, or, for a view meant to
-    miss it, in none).
+    miss it, in none). A ChArUco board cut by the frame's border (``partial``) is kept whether
+    or not its corners in view are found: finding part of a board is what it is for.
     """
     cam = truth.camera
     h, w = cam.grid_shape
@@ -189,6 +190,8 @@ def _shoot_view(truth: SyntheticTruth, scene: ReflectorScene, pose: Pose, rng, m
               * rend.light_times_reflectance(scene.reflectance)).astype(np.float32)
     t = exposure_for(truth, float(energy[:, gray].max()), rng.uniform(*exposure_fraction))
     dn = expose_frame(truth, energy, t, rng)
+    if partial and isinstance(truth.marker, CharucoBoardSpec):
+        return gray, t, dn
     found = [detect_marker_corners(dn[b], truth.marker) is not None for b in detect_bands]
     if missing and any(found):
         return None
@@ -247,7 +250,8 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
     Returns
     -------
     FrameSet
-        ``kind="vignetting"``; truth: ``rvec``, ``tvec`` (n, 3); ``marker_in_frame`` (n,) bool;
+        ``kind="vignetting"``; truth: ``rvec``, ``tvec`` (n, 3); ``marker_in_frame`` (n,) bool
+        (the whole marker, or board, in frame);
         ``pose_error_deg``, ``pose_error_rel`` (n,) error of the pose from ArUco + IPPE on band
         0 (NaN if missing); ``found_default_detector`` (n,) the marker is also found with
         OpenCV's default ``minMarkerDistanceRate`` (see :func:`detect_marker_corners`);
@@ -255,7 +259,10 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
         paper); ``coverage`` (H, W) number of views with the pixel on the gray reflector;
         ``light`` (9,) light parameters (``GradientShadowLight.from_params`` rebuilds it);
         ``plane_u`` (Nu,), ``plane_v`` (Nv,), ``B_plane`` (Nv, Nu) the brightness on a 2.5 mm
-        grid of the reflector (L = S B R_s).
+        grid of the reflector (L = S B R_s). With a ChArUco board (``truth.marker`` a
+        :class:`CharucoBoardSpec`), also ``board_corners`` (n,) the chessboard corners found in
+        band 0 (0: not found) and ``rejected_renders`` (n,) rendered views thrown away before
+        each was kept (the board not found in a detection band, too little gray in view).
 
     Raises
     ------
@@ -290,11 +297,13 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
         missing_at = set(spread) - partial_at
     coverage = np.zeros((h, w), dtype=np.int32)
     out_dn, exposures, rvecs, tvecs, in_frame, masks = [], [], [], [], [], []
-    pose_err, default_ok = [], []
+    pose_err, default_ok, n_corners, n_rejected = [], [], [], []
+    board = isinstance(truth.marker, CharucoBoardSpec)
     detect_bands = sorted({0, cam.n_bands // 2, cam.n_bands - 1})
     for k in range(n_views):
         partial = k in partial_at
         missing = k in missing_at or partial
+        rejected = 0
         for _attempt in range(max_attempts):
             t_px = _aim_at_border(rng, h, w) if missing else _aim_least_covered(rng, coverage)
             if partial:  # the marker's centre near the border: part of it out of frame
@@ -305,10 +314,11 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
             if not _view_geometry_ok(cam, pose, mk, missing and not partial, partial):
                 continue
             view = _shoot_view(truth, scene, pose, rng, missing, supersample, detect_bands,
-                               exposure_fraction)
+                               exposure_fraction, partial)
             if view is not None:
                 gray, t, dn = view
                 break
+            rejected += 1
         else:  # pragma: no cover - planning is seeded; this would be a bug in the planner
             raise RuntimeError(f"could not plan vignetting view {k} in {max_attempts} attempts")
         if not missing:
@@ -320,6 +330,10 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
             perr, default_found = (np.nan, np.nan), False
         pose_err.append(perr)
         default_ok.append(default_found)
+        if board:
+            found = detect_marker_corners(dn[0], mk)
+            n_corners.append(0 if found is None else len(found))
+            n_rejected.append(rejected)
         out_dn.append(dn)
         exposures.append(t)
         rvecs.append(pose.rvec)
@@ -342,6 +356,7 @@ def vignetting_views(truth: SyntheticTruth, *, seed: int = 0, n_views: int = 40,
             "found_default_detector": np.array(default_ok), "light": light.params(),
             "plane_u": uu, "plane_v": vv, "B_plane": light(U, Vg),
             **({"marker_partial": np.array([k in partial_at for k in range(n)])} if n_partial else {}),
+            **({"board_corners": np.array(n_corners), "rejected_renders": np.array(n_rejected)} if board else {}),
         },
         camera=cam, black_level=int(round(truth.black_level)),
     )

@@ -1,4 +1,5 @@
-"""Rendering a scene through the synthetic camera, and reading its ArUco marker back."""
+"""Rendering a scene through the synthetic camera, and reading its ArUco marker (or ChArUco
+board) back."""
 
 from __future__ import annotations
 
@@ -9,7 +10,10 @@ import cv2
 import numpy as np
 
 from ._camera import Pose, SnapshotCamera, intersect_plane
-from ._targets import MarkerSpec
+from ._targets import CharucoBoardSpec, MarkerSpec
+
+#: Chessboard corners a ChArUco view needs to count as found (as calibrate's pose needs).
+MIN_BOARD_CORNERS = 6
 
 
 @dataclass
@@ -126,7 +130,7 @@ def disk_kernel(radius: int) -> np.ndarray:
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
-def detect_marker_corners(image: np.ndarray, marker: MarkerSpec,
+def detect_marker_corners(image: np.ndarray, marker: MarkerSpec | CharucoBoardSpec,
                           min_marker_distance_rate: float = 0.05) -> np.ndarray | None:
     """Find the ArUco corners of ``marker`` in a band image (any dtype), for checks.
 
@@ -134,15 +138,16 @@ def detect_marker_corners(image: np.ndarray, marker: MarkerSpec,
     ----------
     image : numpy.ndarray
         One band.
-    marker : MarkerSpec
-        The marker.
+    marker : MarkerSpec or CharucoBoardSpec
+        The marker (or board: :func:`detect_board_corners`, its corners without their ids).
     min_marker_distance_rate : float
         OpenCV's ``minMarkerDistanceRate``.
 
     Returns
     -------
     numpy.ndarray or None
-        (4, 2) corners, or None.
+        (4, 2) corners (a board: (N, 2) chessboard corners, N >= ``MIN_BOARD_CORNERS``), or
+        None.
 
     Notes
     -----
@@ -151,9 +156,10 @@ def detect_marker_corners(image: np.ndarray, marker: MarkerSpec,
     the paper border is narrower than ~0.35 marker sides, and then keeps the paper outline
     (which does not decode): the marker is lost in some views. 0.05 avoids that.
     """
-    img = np.asarray(image, dtype=np.float64)
-    lo, hi = np.percentile(img, [0.5, 99.5])
-    img8 = np.clip(np.rint((img - lo) / max(hi - lo, 1e-9) * 255.0), 0, 255).astype(np.uint8)
+    if isinstance(marker, CharucoBoardSpec):
+        found = detect_board_corners(image, marker, min_marker_distance_rate)
+        return None if found is None else found[0]
+    img8 = _stretch(image)
     d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, marker.dictionary))
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
@@ -171,8 +177,35 @@ def detect_marker_corners(image: np.ndarray, marker: MarkerSpec,
     return None
 
 
+def _stretch(image: np.ndarray) -> np.ndarray:
+    """0.5-99.5 percentile stretch of a band image to 8 bits."""
+    img = np.asarray(image, dtype=np.float64)
+    lo, hi = np.percentile(img, [0.5, 99.5])
+    return np.clip(np.rint((img - lo) / max(hi - lo, 1e-9) * 255.0), 0, 255).astype(np.uint8)
+
+
+def detect_board_corners(image: np.ndarray, board: CharucoBoardSpec,
+                         min_marker_distance_rate: float = 0.05) -> tuple[np.ndarray, np.ndarray] | None:
+    """Find a ChArUco board's chessboard corners in a band image (any dtype), for checks.
+
+    Returns
+    -------
+    tuple or None
+        ``(corners (N, 2), ids (N,))`` from ``cv2.aruco.CharucoDetector`` (markers found, the
+        corners between them interpolated and refined on the saddle points), or None with
+        fewer than ``MIN_BOARD_CORNERS``.
+    """
+    params = cv2.aruco.DetectorParameters()
+    params.minMarkerDistanceRate = float(min_marker_distance_rate)
+    det = cv2.aruco.CharucoDetector(board.board(), cv2.aruco.CharucoParameters(), params)
+    corners, ids, _, _ = det.detectBoard(_stretch(image))
+    if ids is None or corners is None or len(ids) < MIN_BOARD_CORNERS:
+        return None
+    return corners.reshape(-1, 2).astype(np.float64), ids.ravel().astype(np.int64)
+
+
 def marker_pose_from_image(image: np.ndarray, band: int, camera: SnapshotCamera,
-                           marker: MarkerSpec) -> Pose | None:
+                           marker: MarkerSpec | CharucoBoardSpec) -> Pose | None:
     """Estimate the pose of the marker seen in one band image.
 
     Parameters
@@ -183,16 +216,25 @@ def marker_pose_from_image(image: np.ndarray, band: int, camera: SnapshotCamera,
         Its index (for the band's offset on the band grid).
     camera : SnapshotCamera
         The camera.
-    marker : MarkerSpec
-        The marker.
+    marker : MarkerSpec or CharucoBoardSpec
+        The marker (or board).
 
     Returns
     -------
     Pose or None
         ArUco corners (+ the band's offset) and ``cv2.solvePnP(SOLVEPNP_IPPE_SQUARE)`` with
         corners TL, TR, BR, BL = (-s/2, +s/2), (+s/2, +s/2), (+s/2, -s/2), (-s/2, -s/2). None if
-        the marker is not found.
+        the marker is not found. A board: its chessboard corners and ``SOLVEPNP_IPPE`` (the
+        solution of smaller reprojection error).
     """
+    if isinstance(marker, CharucoBoardSpec):
+        found = detect_board_corners(image, marker)
+        if found is None:
+            return None
+        obj = marker.corners_m()[found[1]]
+        ok, rvec, tvec = cv2.solvePnP(obj, (found[0] + camera.band_offsets[band]).reshape(-1, 1, 2),
+                                      camera.matrix, camera.dist_coeffs, flags=cv2.SOLVEPNP_IPPE)
+        return Pose(rvec.reshape(3), tvec.reshape(3)) if ok else None
     c = detect_marker_corners(image, marker)
     if c is None:
         return None

@@ -10,6 +10,7 @@ import numpy as np
 from ._flight import flight_frames
 from ._reflector import reflector_images, vignetting_views
 from ._sweep import response_sweep
+from ._targets import CharucoBoardSpec, MarkerSpec
 from ._truth import FrameSet, SyntheticTruth, make_truth
 
 SIZES = {
@@ -85,7 +86,8 @@ class SyntheticSession:
 
 def synthesize_session(seed: int = 0, *, size: str = "full", n_flight_frames: int | None = None,
                        flights: Sequence[str] = ("field",),
-                       reflector_reflectance: float | Sequence[float] = 0.5) -> SyntheticSession:
+                       reflector_reflectance: float | Sequence[float] = 0.5,
+                       marker: MarkerSpec | CharucoBoardSpec | None = None) -> SyntheticSession:
     """Render all datasets of a session.
 
     Parameters
@@ -100,6 +102,8 @@ def synthesize_session(seed: int = 0, *, size: str = "full", n_flight_frames: in
         Names of the flights.
     reflector_reflectance : float or sequence of float
         R_s of the reflector.
+    marker : MarkerSpec or CharucoBoardSpec, optional
+        What is printed at the reflector's centre (default the ArUco ``MarkerSpec()``).
 
     Returns
     -------
@@ -109,7 +113,7 @@ def synthesize_session(seed: int = 0, *, size: str = "full", n_flight_frames: in
     if size not in SIZES:
         raise ValueError(f"size must be one of {sorted(SIZES)}, got {size!r}")
     cfg = SIZES[size]
-    truth = make_truth(seed, reflector_reflectance=reflector_reflectance)
+    truth = make_truth(seed, reflector_reflectance=reflector_reflectance, marker=marker)
     resp = response_sweep(truth, seed=seed, n_frames=cfg["n_response"], step=cfg["step"])
     vig = vignetting_views(truth, seed=seed, n_views=cfg["n_views"], n_missing=cfg["n_missing"])
     refl = reflector_images(truth, seed=seed, n_images=cfg["n_reflector"])

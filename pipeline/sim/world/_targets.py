@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -77,6 +78,12 @@ class MarkerSpec:
     border_m: float = 0.025
     paper_reflectance: float = 0.85
     ink_reflectance: float = 0.04
+    #: session.yaml ``marker.type``.
+    kind: ClassVar[str] = "aruco"
+
+    def half_extent(self) -> tuple[float, float]:
+        """Half width and half height of the black square (metres)."""
+        return 0.5 * self.size_m, 0.5 * self.size_m
 
     def bits(self) -> np.ndarray:
         """(n, n) cells incl. the black border, 1 = white, row 0 at the top (+y) as printed."""
@@ -86,11 +93,72 @@ class MarkerSpec:
         return (img > 127).astype(np.uint8)
 
 
-class ReflectorScene:
-    """Gray reflector with the ArUco marker, lying on a lawn.
+@dataclass(frozen=True)
+class CharucoBoardSpec:
+    """ChArUco board printed on white paper at the centre of the gray reflector, in place of
+    the single marker (``mscal_core.charuco``'s board frame: the board's centre at the origin,
+    ``u`` right, ``v`` up as printed, OpenCV's top-left square at ``(-W/2, +H/2)``).
 
-    Gray reflector (``size_m``, reflectance ``rho``) with the marker on white paper at its
-    centre, lying on a lawn (grass/soil mix) in the plane z = 0, lit by ``light``.
+    ``squares_x x squares_y`` squares of ``square_m``, markers of ``marker_m`` in the white
+    squares, ``border_m`` of white paper around the board. The default, 4 x 4 squares of 60 mm
+    with 45 mm markers (7.5 mm cells of ``DICT_4X4_50``), fits on an A3 sheet (260 mm with its
+    border) and keeps >= 2 band-grid pixels per marker cell up to ~1.6 m from the Ximea's
+    band grid (fx 436 px); its 9 inner corners clear ``mscal_core.charuco.MIN_CORNERS``.
+    """
+
+    squares_x: int = 4
+    squares_y: int = 4
+    square_m: float = 0.06
+    marker_m: float = 0.045
+    dictionary: str = "DICT_4X4_50"
+    border_m: float = 0.01
+    paper_reflectance: float = 0.85
+    ink_reflectance: float = 0.04
+    #: session.yaml ``marker.type``.
+    kind: ClassVar[str] = "charuco"
+    #: Printed image resolution (pixels per square) the renderer looks the ink up in.
+    px_per_square: ClassVar[int] = 240
+
+    @property
+    def board_size_m(self) -> tuple[float, float]:
+        """``(W, H)`` of the board (metres, without its paper border)."""
+        return self.squares_x * self.square_m, self.squares_y * self.square_m
+
+    @property
+    def size_m(self) -> float:
+        """The board's larger side: calibrate excludes a square of this side (plus the
+        border) around the reflector's centre, as for a single marker of this size."""
+        return max(self.board_size_m)
+
+    def half_extent(self) -> tuple[float, float]:
+        """Half width and half height of the board (metres)."""
+        w, h = self.board_size_m
+        return 0.5 * w, 0.5 * h
+
+    def board(self) -> cv2.aruco.CharucoBoard:
+        """OpenCV's board."""
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
+        return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_m, self.marker_m, d)
+
+    def image(self) -> np.ndarray:
+        """The printed board (uint8, 255 white, row 0 at the top (+v)), ``px_per_square``
+        pixels per square (``CharucoBoard.generateImage``, no margin)."""
+        n = self.px_per_square
+        return self.board().generateImage((self.squares_x * n, self.squares_y * n), marginSize=0, borderBits=1)
+
+    def corners_m(self) -> np.ndarray:
+        """(N, 3) inner chessboard corners in the plane frame (OpenCV's corner order)."""
+        xyz = np.asarray(self.board().getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+        w, h = self.board_size_m
+        return np.stack([xyz[:, 0] - w / 2, h / 2 - xyz[:, 1], np.zeros(len(xyz))], axis=1)
+
+
+class ReflectorScene:
+    """Gray reflector with the ArUco marker (or ChArUco board), lying on a lawn.
+
+    Gray reflector (``size_m``, reflectance ``rho``) with the marker (a :class:`MarkerSpec` or
+    a :class:`CharucoBoardSpec`) on white paper at its centre, lying on a lawn (grass/soil mix)
+    in the plane z = 0, lit by ``light``.
 
     Hard labels (for edge supersampling and pure-pixel masks): 0 ground, 1 gray reflector,
     2 white paper, 3 black ink.
@@ -99,7 +167,7 @@ class ReflectorScene:
     material_names = ("soil", "vegetation", "gray_reflector", "white_paper", "black_ink")
     GROUND, GRAY, PAPER, INK = 0, 1, 2, 3
 
-    def __init__(self, wavelengths, reflector_reflectance, size_m, marker: MarkerSpec, light,
+    def __init__(self, wavelengths, reflector_reflectance, size_m, marker: MarkerSpec | CharucoBoardSpec, light,
                  ground_seed: int):
         wl = np.asarray(wavelengths, dtype=np.float64)
         n = wl.size
@@ -111,7 +179,8 @@ class ReflectorScene:
         self.size_m = (float(size_m[0]), float(size_m[1]))
         self.marker = marker
         self.light = light
-        self._bits = marker.bits()
+        self._board = marker.image() if isinstance(marker, CharucoBoardSpec) else None
+        self._bits = marker.bits() if self._board is None else None
         rng = np.random.default_rng([ground_seed, 7])
         self._cover = PeriodicNoise(rng, 0.01, 3.0)
         self._tex_v = PeriodicNoise(rng, 0.005, 2.0)
@@ -127,19 +196,22 @@ class ReflectorScene:
         v = np.asarray(v, dtype=np.float32)
         B = self.light(u, v)
         au, av = np.abs(u), np.abs(v)
-        s = self.marker.size_m
-        half_p = 0.5 * s + self.marker.border_m
         lab = ((au <= 0.5 * self.size_m[0]) & (av <= 0.5 * self.size_m[1])).astype(np.uint8)
-        idx = np.flatnonzero((au <= half_p) & (av <= half_p))  # paper: a small subset
-        if idx.size:
-            pu, pv = u.ravel()[idx], v.ravel()[idx]
-            sub = np.full(idx.size, self.PAPER, dtype=np.uint8)
-            in_mark = (np.abs(pu) < 0.5 * s) & (np.abs(pv) < 0.5 * s)
-            nb = self._bits.shape[0]
-            col = np.clip(np.floor((pu + 0.5 * s) / s * nb), 0, nb - 1).astype(np.intp)
-            row = np.clip(np.floor((0.5 * s - pv) / s * nb), 0, nb - 1).astype(np.intp)
-            sub[in_mark & (self._bits[row, col] == 0)] = self.INK
-            lab.ravel()[idx] = sub
+        if self._board is not None:
+            self._paint_board(u, v, au, av, lab)
+        else:
+            s = self.marker.size_m
+            half_p = 0.5 * s + self.marker.border_m
+            idx = np.flatnonzero((au <= half_p) & (av <= half_p))  # paper: a small subset
+            if idx.size:
+                pu, pv = u.ravel()[idx], v.ravel()[idx]
+                sub = np.full(idx.size, self.PAPER, dtype=np.uint8)
+                in_mark = (np.abs(pu) < 0.5 * s) & (np.abs(pv) < 0.5 * s)
+                nb = self._bits.shape[0]
+                col = np.clip(np.floor((pu + 0.5 * s) / s * nb), 0, nb - 1).astype(np.intp)
+                row = np.clip(np.floor((0.5 * s - pv) / s * nb), 0, nb - 1).astype(np.intp)
+                sub[in_mark & (self._bits[row, col] == 0)] = self.INK
+                lab.ravel()[idx] = sub
         ground = lab == self.GROUND
         cover = np.clip(0.6 + 0.45 * self._cover(u, v), 0.0, 1.0)
         w = np.zeros((5,) + u.shape, dtype=np.float32)
@@ -149,6 +221,23 @@ class ReflectorScene:
         for k in (self.GRAY, self.PAPER, self.INK):
             w[k + 1] = np.where(lab == k, B, np.float32(0.0))
         return w, lab
+
+    def _paint_board(self, u, v, au, av, lab) -> None:
+        """Label the ChArUco board's paper and ink in ``lab`` (in place): the printed image
+        looked up at each plane point (nearest pixel, 0.25 mm for 60 mm squares)."""
+        hu, hv = self.marker.half_extent()
+        border = self.marker.border_m
+        idx = np.flatnonzero((au <= hu + border) & (av <= hv + border))
+        if not idx.size:
+            return
+        pu, pv = u.ravel()[idx], v.ravel()[idx]
+        sub = np.full(idx.size, self.PAPER, dtype=np.uint8)
+        inside = (np.abs(pu) < hu) & (np.abs(pv) < hv)
+        rows, cols = self._board.shape
+        col = np.clip(np.floor((pu + hu) / (2 * hu) * cols), 0, cols - 1).astype(np.intp)
+        row = np.clip(np.floor((hv - pv) / (2 * hv) * rows), 0, rows - 1).astype(np.intp)
+        sub[inside & (self._board[row, col] < 128)] = self.INK
+        lab.ravel()[idx] = sub
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._camera import SnapshotCamera
-from ._targets import MarkerSpec
+from ._targets import CharucoBoardSpec, MarkerSpec
 from .sensor import SensorModel
 
 # Default session start (UTC) for the frame time stamps; the field near Zurich.
@@ -91,8 +91,8 @@ class SyntheticTruth:
         (n_bands,) R_s.
     reflector_size_m : tuple of float
         ``(w, h)`` of the reflector.
-    marker : MarkerSpec
-        The ArUco marker on the reflector.
+    marker : MarkerSpec or CharucoBoardSpec
+        The ArUco marker (or ChArUco board) on the reflector.
     sun_brightness : float
         Brightness of the sun in the energy units of the module docstring.
     """
@@ -105,7 +105,7 @@ class SyntheticTruth:
     spectral_factor: np.ndarray
     reflector_reflectance: np.ndarray
     reflector_size_m: tuple[float, float]
-    marker: MarkerSpec
+    marker: MarkerSpec | CharucoBoardSpec
     sun_brightness: float
 
     @property
@@ -132,7 +132,7 @@ def make_truth(
     sensor=None,
     reflector_reflectance: float | Sequence[float] = 0.5,
     reflector_size_m: tuple[float, float] = (0.5, 0.5),
-    marker: MarkerSpec | None = None,
+    marker: MarkerSpec | CharucoBoardSpec | None = None,
     vignetting_falloff: float = 0.37,
     vignetting_shift_px: tuple[float, float] = (0.0, 0.0),
 ) -> SyntheticTruth:
@@ -150,8 +150,8 @@ def make_truth(
         R_s, one value (gray) or one per band.
     reflector_size_m : tuple of float
         ``(w, h)`` of the reflector.
-    marker : MarkerSpec, optional
-        Default marker on the reflector.
+    marker : MarkerSpec or CharucoBoardSpec, optional
+        Marker (or ChArUco board) on the reflector; default ``MarkerSpec()``.
     vignetting_falloff : float
         Smallest mean corner falloff of V over the bands (the bands span it to +0.07).
     vignetting_shift_px : tuple of float

@@ -36,8 +36,8 @@ part of the model or per dataset of a session:
 
 - ``_camera`` (:class:`SnapshotCamera`, :class:`Pose`), ``_light`` (:class:`UniformLight`,
   :class:`GradientShadowLight`, :class:`LightDrift`), ``_targets`` (materials,
-  :class:`ReflectorScene`, :class:`FieldScene`), ``_render`` (:func:`render`, the marker
-  read back);
+  :class:`ReflectorScene` with its :class:`MarkerSpec` or :class:`CharucoBoardSpec`,
+  :class:`FieldScene`), ``_render`` (:func:`render`, the marker or board read back);
 - ``_truth`` (:class:`SyntheticTruth`, :func:`make_truth`, :class:`FrameSet`);
 - the datasets: ``_sweep`` (:func:`response_sweep`), ``_reflector``
   (:func:`vignetting_views`, :func:`reflector_images`), ``_flight`` (:func:`flight_frames`);
@@ -54,10 +54,11 @@ from ._camera import CAMERA_NAME, FRONTAL, XIMEA_WAVELENGTHS_NM, Pose, SnapshotC
 from ._flight import DEFAULT_PANELS, FIELD_GROUND_ALT_M, FIELD_LAT_LON, NDVI_NIR_NM, NDVI_RED_NM, flight_frames
 from ._light import GradientShadowLight, LightDrift, UniformLight
 from ._reflector import frame_marker_ok, pose_through, random_light, random_tilt, reflector_images, vignetting_views
-from ._render import Render, detect_marker_corners, marker_pose_from_image, pose_error, render
+from ._render import Render, detect_board_corners, detect_marker_corners, marker_pose_from_image, pose_error, render
 from ._session import SIZES, SyntheticSession, synthesize_session
 from ._sweep import response_sweep
 from ._targets import (
+    CharucoBoardSpec,
     FieldScene,
     MarkerSpec,
     Panel,
@@ -76,6 +77,7 @@ RIG_HELPERS = (random_tilt,)
 
 __all__ = [
     "CAMERA_NAME",
+    "CharucoBoardSpec",
     "XIMEA_WAVELENGTHS_NM",
     "DEFAULT_PANELS",
     "FIELD_GROUND_ALT_M",
@@ -98,6 +100,7 @@ __all__ = [
     "SyntheticSession",
     "SyntheticTruth",
     "UniformLight",
+    "detect_board_corners",
     "detect_marker_corners",
     "marker_pose_from_image",
     "pose_error",
