@@ -43,11 +43,11 @@ def test_charuco_marker_key(tmp_path) -> None:
 
 
 @pytest.mark.parametrize("edit, message", [
-    (("marker_mm: 30", "marker_mm: 30, id: 3"), "marker: unknown key(s) id"),
-    (("square_mm: 40, ", ""), "marker: missing key(s) square_mm"),
+    (("marker_mm: 30", "marker_mm: 30, id: 3"), "marker (type charuco): unknown key(s) id"),
+    (("square_mm: 40, ", ""), "marker (type charuco): missing key(s) square_mm"),
     (("marker_mm: 30", "marker_mm: 45"), "0 < marker < square"),
     (("squares_x: 7", "squares_x: 1"), "marker.squares_x must be an integer of at least 2"),
-    (("type: charuco", "type: april"), "marker.type must be aruco or charuco"),
+    (("type: charuco", "type: april"), "marker.type must be one of aruco, charuco, got 'april'"),
     (("square_mm: 40", "square_mm: 80"), "the board and its border cover the whole reflector"),
     (("DICT_4X4_50}", "DICT_NOPE}"), "marker.dictionary 'DICT_NOPE' is not an OpenCV"),
 ])
