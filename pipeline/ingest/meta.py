@@ -424,7 +424,7 @@ def upright_meta(meta: CaptureMeta, image: np.ndarray) -> np.ndarray:
 
 def reflectance_factor(meta: CaptureMeta) -> float | None:
     """``k = c / E`` with reflectance ``R = k L`` from the band's own sun sensor, ``c`` the camera
-    model's one fixed scale (:data:`pipeline.ingest.sun_scale.SUN_SENSOR_SCALES`: MicaSense pi,
+    model's one fixed scale (:func:`pipeline.ingest.sun_scale.sun_sensor_scales`: MicaSense pi,
     DJI 1 as DJI's guides write it, Sequoia Parrot's K fixed at 5e-4), or None when it has no
     usable reading or its sensor gives no reflectance (Sentera's ILS counts: use a panel)."""
     e, scale = meta.irradiance, sun_scale(meta.radiometry)
@@ -452,7 +452,7 @@ def no_reflectance_reason(meta: CaptureMeta) -> str | None:
 
 def sun_sensor_absolute(meta: CaptureMeta) -> bool:
     """Whether the sun-sensor route gives absolute reflectance (MicaSense) or relative: what
-    the camera model's fixed scale says (:data:`pipeline.ingest.sun_scale.SUN_SENSOR_SCALES`)."""
+    the camera model's fixed scale says (:func:`pipeline.ingest.sun_scale.sun_sensor_scales`)."""
     scale = sun_scale(meta.radiometry)
     return scale is not None and scale.absolute
 

@@ -32,7 +32,7 @@ from pipeline.ingest.gps import placed_records
 from pipeline.ingest.markers import Dictionary, MarkerId, MarkerSpec, parse_marker
 from pipeline.ingest.products import yaml_choice
 from pipeline.ingest.schema import Strict, Text, finite_number, items, number, show_key, validate
-from pipeline.ingest.tiff import decode_raw, sample_bits
+from pipeline.ingest.tiff import decode_frame
 from pipeline.ingest.xmp import TagProblem
 
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png", ".jpg", ".jpeg")  # JPEG: ordinary cameras (generic-rgb8)
@@ -543,13 +543,13 @@ def exif_record(path: Path) -> FrameRecord:
 
 
 def stored_bands(source: bytes | bytearray | memoryview | Path, path: Path | str, camera: Camera) -> np.ndarray:
-    """One frame file's band stack in sensor DN (:func:`to_bands` of :func:`decode_raw`), shifted
-    by what the file itself stores (:func:`sample_bits`): a 16-bit RedEdge file by 4, a 12-bit
-    one not at all."""
+    """One frame file's band stack in sensor DN (:func:`to_bands` of :func:`decode_frame`), shifted
+    by what the file itself stores (its BitsPerSample): a 16-bit RedEdge file by 4, a 12-bit one
+    not at all."""
     if isinstance(source, Path) and not source.is_file():
         raise FrameError("frame file does not exist", path=path)
-    bits = sample_bits(source) if camera.dn_shift and Path(path).suffix.lower() in (".tif", ".tiff") else None
-    return to_bands(decode_raw(source, path), camera, path, stored_bits=bits)
+    img, bits = decode_frame(source, path)
+    return to_bands(img, camera, path, stored_bits=bits if camera.dn_shift else None)
 
 
 def to_bands(img: np.ndarray, camera: Camera, path: Path | str = "", stored_bits: int | None = None) -> np.ndarray:

@@ -9,33 +9,17 @@ panel part (panels anchored by the sensor, warnings) is :mod:`pipeline.apply.sun
 
 Per band file, the reading ``E_meas`` is the camera's own (:func:`pipeline.ingest.meta.
 reflectance_factor` gives ``k = c / E_meas``: ``pi / E`` for MicaSense, ``1 / E`` for the
-relative sensors) and the correction ``f = E_h / E_meas``:
-
-- **MicaSense DLS 1** (``Camera:Irradiance``): the tilted-sensor model with the clear-sky
-  diffuse ratio 1/6 (MicaSense, "Tutorial 3 - DLS Sensor Basic Usage" and ``micasense/dls.py``
-  of micasense/imageprocessing: sun-sensor angle from ``compute_sun_angle``, the diffuser's
-  Fresnel transmission, ``dir_dif_ratio = 6``); orientation ``DLS:Yaw/Pitch/Roll`` (radians,
-  the DLS's own IMU), else ``Camera:IrradianceYaw/Pitch/Roll`` (degrees).
-- **MicaSense DLS 2** (``DLS:DirectIrradiance`` and ``DLS:ScatteredIrradiance``): the sensor
-  measures the split; ``E_h = E_dir sin(el) + E_scattered`` with the elevation recomputed from
-  time and position (micasense/imageprocessing ``image.py``
-  ``compute_horizontal_irradiance_dls2``: "for cases where the camera system did not do it
-  correctly"). When the file holds the tilted reading ``Irradiance`` as well, the measured
-  ratio ``r = Scattered / Direct`` replaces 1/6 in the tilt model.
-- **Parrot Sequoia** sunshine sensor (``Camera:IrradianceList``: records of time, CH0, CH1,
-  gain index, integration time, yaw, pitch, roll; Parrot developer forum "Details of
-  Irradiance List tag for Sunshine sensor", Parrot's answer: "a linear irradiance sensor with
-  no black level"): the tilt model with the sensor's own angles of its last record (degrees),
-  else ``Camera:Yaw/Pitch/Roll``.
-- **DJI** (``drone-dji:Irradiance`` with ``SensorGainAdjustment``): used as the camera wrote
-  it, correction 1. The P4 Multispectral Image Processing Guide calls it the "calibrated
-  sunlight sensor value" and divides the camera value by it with no angle term; the Mavic 3M
-  User Manual ("Photo File") says it is the "solar irradiance value after compensation by
-  built-in algorithm" (``SunSensor`` is the one before). A tilt model on top of it corrected
-  the aircraft's attitude twice (lines flown in opposite directions 14 % apart).
-- **Sentera** ILS counts (``ILS:*``, Sentera radiometric-corrections repository): the tilt
-  model with ``Camera:Yaw/Pitch/Roll``; Sentera's sun sensor gives no reflectance on its own
-  (no published conversion), only the change between panels.
+relative sensors) and the correction ``f = E_h / E_meas``: the tilted-sensor model
+(:func:`mscal_core.sunsensor.horizontal_irradiance`) with the sensor's orientation and the
+diffuse ratio, unless the camera compensated the reading itself (correction 1) or its sensor
+measured the direct/scattered split. What is maker's lives in the maker's module and is
+registered on its ``pipeline.ingest.cameras.registry.Maker``: the orientation tags
+(``attitude``: MicaSense's DLS, Parrot's sunshine sensor, DJI's aircraft; tried lowest rank
+first across makers, then the aircraft's ``Camera:Yaw/Pitch/Roll`` every maker shares), the
+measured split and its horizontal reading (``sun_split``, ``split_correction``: MicaSense
+DLS 2), the self-compensated reading (``compensated``: DJI) and the factor of a reading with
+no fixed scale (``sun_factor``: Sentera's ILS counts, which serve only the change between
+panels).
 
 Without a sun position (no time or GPS) or orientation the correction is 1 (the raw reading)
 or the level-sensor one, and run.json says which (``sun_sensor``). Without a measured split
@@ -64,16 +48,16 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 from mscal_core.errors import FrameError
-from mscal_core.sunsensor import CLEAR_SKY_DIFFUSE_RATIO, dls2_horizontal, fit_diffuse_ratio, horizontal_irradiance
+from mscal_core.sunsensor import CLEAR_SKY_DIFFUSE_RATIO, fit_diffuse_ratio, horizontal_irradiance
 
 from pipeline.ingest.camera_meta import read_file_metas, sun_sensor_xmp, xmp_irradiance
-from pipeline.ingest.cameras.parrot import sunshine_records
+from pipeline.ingest.cameras.registry import AttitudeSource, SunSplit, attitude_sources, by_order, maker_of
 from pipeline.ingest.exif import NAT, time_ns
 from pipeline.ingest.grouping import Capture
 from pipeline.ingest.meta import CaptureMeta, reflectance_factor
 from pipeline.ingest.session import FrameRecord
 from pipeline.ingest.solar import solar_position
-from pipeline.ingest.xmp import TagError, Xmp, jpeg_xmp_packet
+from pipeline.ingest.xmp import Xmp, jpeg_xmp_packet
 
 #: The sky's diffuse ratio is fitted per band from the flight's readings
 #: (:func:`mscal_core.sunsensor.fit_diffuse_ratio`) when at least this many captures have a
@@ -108,54 +92,40 @@ def file_xmp(path: Path) -> Xmp:
         return Xmp.empty(path)
 
 
-def _angles(x: Xmp, tags: tuple[str, str, str], ns: tuple[str, ...], degrees: bool) -> tuple[float, float, float] | None:
-    vals = [x.number(t, ns) for t in tags]
-    if any(v is None or not math.isfinite(v) for v in vals):
-        return None
-    y, p, r = (float(v) for v in vals)  # type: ignore[arg-type]
-    return (math.radians(y), math.radians(p), math.radians(r)) if degrees else (y, p, r)
-
-
-def _sunshine_angles(x: Xmp) -> tuple[float, float, float] | None:
-    try:
-        recs = sunshine_records(x)
-    except TagError:  # named where the reading itself is read (camera_meta); no angles here
-        return None
-    if not recs:
-        return None
-    last = recs[-1]
-    return math.radians(last[5]), math.radians(last[6]), math.radians(last[7])
+#: The aircraft's attitude in the XMP ``Camera`` namespace (degrees) that several makers write
+#: (Parrot, Sentera): tried after every maker's own :class:`AttitudeSource`.
+AIRCRAFT_ATTITUDE = AttitudeSource(
+    90, "Camera:Yaw/Pitch/Roll", lambda x: x.angles(("Yaw", "Pitch", "Roll"), ("Camera",), degrees=True))
 
 
 def sensor_orientation(x: Xmp) -> Orientation | None:
-    """The sun sensor's orientation from its own tags, else the aircraft's (module docstring)."""
-    found = _angles(x, ("Yaw", "Pitch", "Roll"), ("DLS",), degrees=False)
-    if found is not None:
-        return Orientation(*found, "DLS:Yaw/Pitch/Roll")
-    found = _angles(x, ("IrradianceYaw", "IrradiancePitch", "IrradianceRoll"), ("Camera", "MicaSense"), degrees=True)
-    if found is not None:
-        return Orientation(*found, "Camera:IrradianceYaw/Pitch/Roll")
-    found = _sunshine_angles(x)
-    if found is not None:
-        return Orientation(*found, "Camera:IrradianceList (sunshine sensor)")
-    found = _angles(x, ("FlightYawDegree", "FlightPitchDegree", "FlightRollDegree"), ("drone-dji",), degrees=True)
-    if found is not None:
-        return Orientation(*found, "drone-dji:FlightYaw/Pitch/RollDegree")
-    found = _angles(x, ("Yaw", "Pitch", "Roll"), ("Camera",), degrees=True)
-    if found is not None:
-        return Orientation(*found, "Camera:Yaw/Pitch/Roll")
+    """The sun sensor's orientation from its own tags, else the aircraft's: the first of the
+    makers' attitude sources (:func:`pipeline.ingest.cameras.registry.attitude_sources`), then
+    :data:`AIRCRAFT_ATTITUDE`, that the file holds."""
+    for source in (*attitude_sources(), AIRCRAFT_ATTITUDE):
+        found = source.read(x)
+        if found is not None:
+            return Orientation(*found, source.name)
     return None
 
 
-def _dls2_split(x: Xmp) -> tuple[float, float, float | None] | None:
-    """DLS 2 ``DirectIrradiance``, ``ScatteredIrradiance`` and ``HorizontalIrradiance`` (one
-    unit: their scale cancels in the ratios used), or None."""
-    ns = ("DLS", "Camera", "MicaSense")
-    d, s = x.number("DirectIrradiance", ns), x.number("ScatteredIrradiance", ns)
-    if d is None or s is None or not (d > 0 and s >= 0):
-        return None
-    h = x.number("HorizontalIrradiance", ns)
-    return float(d), float(s), (float(h) if h is not None and h > 0 else None)
+def measured_split(x: Xmp) -> SunSplit | None:
+    """A sun sensor's own direct/scattered split (the first maker's ``sun_split`` that finds one), or None."""
+    for maker in by_order():
+        split = maker.sun_split(x) if maker.sun_split is not None else None
+        if split is not None:
+            return split
+    return None
+
+
+def _split_correction(x: Xmp, split: SunSplit, el: float) -> float | None:
+    """The correction of a reading that is the split's own horizontal irradiance (the makers'
+    ``split_correction``), None for a tilted reading."""
+    for maker in by_order():
+        corr = maker.split_correction(x, split, el) if maker.split_correction is not None else None
+        if corr is not None:
+            return corr
+    return None
 
 
 @dataclass(frozen=True)
@@ -216,29 +186,34 @@ def band_correction(x: Xmp, el: float, az: float, orient: Orientation | None,
     """``E_h / E_meas`` of one band file, the tilt and incidence (radians) and the model used
     (``sky_ratio``: the diffuse ratio without a measured split, named ``sky``); for the tilt
     model, what it needs (:func:`_tilt_corrections` computes them all at once)."""
-    if camera_compensated(x):
-        return 1.0, float("nan"), float("nan"), DJI_COMPENSATED
-    split = _dls2_split(x)
+    compensated = compensated_model(x)
+    if compensated is not None:
+        return 1.0, float("nan"), float("nan"), compensated
+    split = measured_split(x)
     has_sun = math.isfinite(el) and math.isfinite(az)
-    if split is not None and has_sun and x.number("Irradiance", ("Camera", "MicaSense")) is None:
-        d, s, h = split  # the reading is DLS 2's HorizontalIrradiance: recompute it with the right sun
-        return (float(dls2_horizontal(d, s, el)) / h if h else 1.0), float("nan"), float("nan"), "dls2 direct+scattered"
+    corr = _split_correction(x, split, el) if split is not None and has_sun else None
+    if corr is not None:  # the reading is the split's horizontal value: recomputed with the right sun
+        return corr, float("nan"), float("nan"), "dls2 direct+scattered"
     if not has_sun:
         return 1.0, float("nan"), float("nan"), "raw reading (no sun position: time or GPS missing)"
-    ratio = sky_ratio if split is None else split[1] / split[0]
+    ratio = sky_ratio if split is None else split.scattered / split.direct
     o = orientation_or_level(orient)
     name = "tilt model, measured diffuse ratio" if split is not None else f"tilt model, {sky}"
     return _TiltCase(el, az, o, ratio, f"{name}; orientation {o.source}")
 
 
-#: run.json's ``sun_sensor`` model of a reading the camera compensated itself (DJI).
-DJI_COMPENSATED = "DJI Irradiance as written (compensated by the camera's built-in algorithm)"
+def compensated_model(x: Xmp) -> str | None:
+    """run.json's ``sun_sensor`` model of a reading the camera already made independent of its
+    attitude (a maker's ``compensated``: DJI's ``drone-dji:Irradiance``), None for any other."""
+    for maker in by_order():
+        if maker.compensated is not None and maker.compensated(x):
+            return maker.compensated_model
+    return None
 
 
 def camera_compensated(x: Xmp) -> bool:
-    """True for a reading the camera already made independent of its attitude: DJI's
-    ``drone-dji:Irradiance`` (module docstring)."""
-    return x.has("Irradiance", ("drone-dji",))
+    """True for a reading the camera already made independent of its attitude (:func:`compensated_model`)."""
+    return compensated_model(x) is not None
 
 
 def _tilt_corrections(cases: Sequence[_TiltCase]) -> list[tuple[float, float, float, str]]:
@@ -273,7 +248,7 @@ def sensor_light(captures: Sequence[Capture], times: np.ndarray, *, fit_ratio: b
     ypr = np.full((n_c, 3), np.nan)
     for c, cap in enumerate(captures):
         for b, meta in enumerate(cap.metas):
-            kb = reflectance_factor(meta) if meta.radiometry != "sentera" else _sentera_factor(meta)
+            kb = band_factor(meta)
             if kb is None:
                 continue
             k[c, b] = kb
@@ -315,7 +290,7 @@ def _sky_ratios(k: np.ndarray, el: np.ndarray, az: np.ndarray, ypr: np.ndarray,
     n_b = k.shape[1]
     ratios = [CLEAR_SKY_DIFFUSE_RATIO] * n_b
     sources = ["clear-sky diffuse ratio 1/6"] * n_b
-    split = any(_dls2_split(x) is not None for x in xmps.values())
+    split = any(measured_split(x) is not None for x in xmps.values())
     for b in range(n_b):
         usable = np.isfinite(k[:, b]) & np.isfinite(el) & np.isfinite(ypr[:, 0])
         if not fit or split or np.count_nonzero(usable) < FIT_MIN_CAPTURES:
@@ -329,12 +304,15 @@ def _sky_ratios(k: np.ndarray, el: np.ndarray, az: np.ndarray, ypr: np.ndarray,
     return ratios, sources
 
 
-def _sentera_factor(meta: CaptureMeta) -> float | None:
-    """Sentera ILS counts: no reflectance on their own, but proportional to the light: ``1 / E``
-    serves the panel-anchored route (the panel sets the scale)."""
-    e = meta.irradiance
-    return None if e is None or not math.isfinite(e) or e <= 0 else 1.0 / e
-
+def band_factor(meta: CaptureMeta) -> float | None:
+    """``k_b`` of a band's own reading before the correction: its maker's ``sun_factor`` for a
+    reading with no fixed scale (Sentera's ILS counts: ``1 / E``, the panel sets the scale), else
+    :func:`pipeline.ingest.meta.reflectance_factor`; None without a usable reading."""
+    try:
+        factor = maker_of(meta.radiometry).sun_factor
+    except KeyError:
+        factor = None
+    return (factor or reflectance_factor)(meta)
 
 
 # --------------------------------------------------------------------------- field path levels
@@ -451,7 +429,8 @@ def record_levels(records: Sequence[FrameRecord]) -> Levels:
     return Levels(value, tuple(source))
 
 
-__all__ = ["FIT_GAIN_MIN", "FIT_MIN_CAPTURES", "SUN_SENSOR_MODEL", "SUN_SENSOR_MODEL_ATTR",
-           "SUN_SENSOR_MODEL_FORMER", "Levels", "Orientation", "SensorLight", "capture_levels", "capture_time",
-           "file_xmp", "orientation_or_level", "raw_level", "record_capture", "record_levels", "sensor_light",
-           "sensor_orientation", "stored_sun_sensor_model"]
+__all__ = ["AIRCRAFT_ATTITUDE", "FIT_GAIN_MIN", "FIT_MIN_CAPTURES", "SUN_SENSOR_MODEL", "SUN_SENSOR_MODEL_ATTR",
+           "SUN_SENSOR_MODEL_FORMER", "Levels", "Orientation", "SensorLight", "band_factor", "camera_compensated",
+           "capture_levels", "capture_time", "compensated_model", "file_xmp", "measured_split", "orientation_or_level",
+           "raw_level", "record_capture", "record_levels", "sensor_light", "sensor_orientation",
+           "stored_sun_sensor_model"]

@@ -1,13 +1,12 @@
-"""Decoding one frame file's pixels: a plain camera TIFF straight from its strips
-(:func:`plain_tiff_pixels`, the measured fast path), any other TIFF with tifffile, PNG and
-JPEG with OpenCV (:func:`decode_raw`); and the BitsPerSample of a TIFF from its first IFD
-(:func:`sample_bits`).
+"""Decoding one frame file's pixels: TIFF with tifffile (from the bytes in memory without copying
+them, into an array the caller passes), PNG and JPEG with OpenCV (:func:`decode_raw`); and the
+BitsPerSample of a TIFF's first image from its header alone (:func:`sample_bits`).
 """
 
 from __future__ import annotations
 
+import io
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from mscal_core.errors import FrameError
@@ -21,129 +20,78 @@ def read_raw(path: str | Path) -> np.ndarray:
     return decode_raw(path, path)
 
 
-#: IFD0 tags :func:`plain_tiff_pixels` accepts: baseline TIFF, XMP, EXIF and GPS IFDs, DNG
-#: black level, GDAL metadata, MicaSense's private tags and opcode list (none changes how
-#: tifffile reads the pixels), and an ImageDescription (270) that is tifffile's own shape
-#: record of this very image (:func:`_shape_description_fits`). A file with any other tag is
-#: left to tifffile.
-_PLAIN_TIFF_TAGS = frozenset({
-    254, 256, 257, 258, 259, 262, 270, 271, 272, 273, 274, 277, 278, 279, 280, 281, 282, 283, 284, 296, 305, 306,
-    339, 700, 34665, 34853, 42112, 42113, 48020, 48021, 48022, 50713, 50714, 50735, 51022,
-})
-_TIFF_TYPES = {3: "H", 4: "I"}  # SHORT, LONG: the types of the tags read here
+class BufferStream(io.RawIOBase):
+    """A read-only, seekable binary stream over bytes already in memory, for tifffile.
+
+    ``io.BytesIO`` copies every buffer but ``bytes`` on construction: a 4.4 MB snapshot frame in
+    the thread's read buffer (:func:`pipeline.ingest.raw.read_whole`, a memoryview) cost about
+    0.4 ms more a file that way. Here tifffile's ``readinto`` copies the pixels once, from the
+    buffer into the array it decodes into.
+    """
+
+    def __init__(self, data: bytes | bytearray | memoryview) -> None:
+        super().__init__()
+        self._view = memoryview(data).cast("B")
+        self._pos = 0
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def tell(self) -> int:
+        return self._pos
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        base = {io.SEEK_SET: 0, io.SEEK_CUR: self._pos, io.SEEK_END: len(self._view)}[whence]
+        if base + offset < 0:
+            raise ValueError(f"negative seek position {base + offset}")
+        self._pos = base + offset
+        return self._pos
+
+    def readinto(self, buffer) -> int:  # any writable buffer: a bytearray, a numpy array
+        into = memoryview(buffer).cast("B")
+        n = max(0, min(len(into), len(self._view) - self._pos))
+        into[:n] = self._view[self._pos:self._pos + n]
+        self._pos += n
+        return n
 
 
-def _shape_description_fits(text: bytes, height: int, width: int) -> bool:
-    """Whether an ImageDescription leaves the pixels as they are: only the JSON shape record
-    that tifffile writes into the files it makes (``{"shape": [H, W], ...}``), for this
-    image's own height and width. Every other description (ImageJ, OME-XML, a shape that
-    reshapes the image, free text a reader might interpret) is left to tifffile."""
-    import json
+def _tiff_file(source: bytes | bytearray | memoryview | Path):
+    """A ``tifffile.TiffFile`` of a file or of its bytes in memory (:class:`BufferStream`)."""
+    import tifffile
 
-    body = text.rstrip(b"\0").strip()
-    if not body.startswith(b"{"):
-        return False
-    try:
-        record = json.loads(body.decode("ascii"))
-    except (UnicodeDecodeError, ValueError):
-        return False
-    return isinstance(record, dict) and record.get("shape") == [height, width]
+    return tifffile.TiffFile(BufferStream(source) if isinstance(source, (bytes, bytearray, memoryview)) else source)
 
 
-def _plain_ifd(data: bytes | bytearray | memoryview, e: str, ifd: int
-               ) -> tuple[dict[int, tuple[int, ...]], bytes | None] | None:
-    """The only IFD of a plain TIFF at offset ``ifd`` (byte order ``e``): the values of the
-    tags that say how the pixels are stored, and the ImageDescription's bytes (None: no
-    description); None if it is not the only image or has a tag or value
-    :func:`plain_tiff_pixels` does not read."""
-    import struct
+def tiff_pixels(source: bytes | bytearray | memoryview | Path, out: np.ndarray | None = None
+                ) -> tuple[np.ndarray, int]:
+    """The pixels of a TIFF and its first image's BitsPerSample, from one parse of the file's
+    header. A file of one image (every camera's band or frame file) gives that image, as
+    ``TiffFile.pages[0].asarray`` reads it; a file of several gives what ``tifffile.imread``
+    gives (its first series, e.g. a stack), which the callers' shape checks then refuse.
+    ``out``: an array to decode one image into when it has the image's shape and native dtype
+    and is C-contiguous and writable (else a new one is made); the array returned is ``out``
+    when it was used.
 
-    n = len(data)
-    count = struct.unpack_from(e + "H", data, ifd)[0]
-    end = ifd + 2 + 12 * count
-    if end + 4 > n or struct.unpack_from(e + "I", data, end)[0] != 0:  # one image only
-        return None
-    tags: dict[int, tuple[int, ...]] = {}
-    description = None
-    for k in range(count):
-        tag, typ, cnt, value = struct.unpack_from(e + "HHI4s", data, ifd + 2 + 12 * k)
-        if tag not in _PLAIN_TIFF_TAGS:
-            return None
-        if tag == 270:  # ASCII, checked once the image's size is known
-            at = ifd + 2 + 12 * k + 8 if cnt <= 4 else struct.unpack_from(e + "I", value)[0]
-            if typ != 2 or at + cnt > n:
-                return None
-            description = bytes(data[at:at + cnt])
-            continue
-        if tag not in (256, 257, 258, 259, 273, 277, 278, 279, 284, 339):
-            continue
-        if typ not in _TIFF_TYPES or cnt < 1:
-            return None
-        fmt = f"{e}{cnt}{_TIFF_TYPES[typ]}"
-        size = struct.calcsize(fmt)
-        if size <= 4:
-            tags[tag] = struct.unpack_from(fmt, value)
-        else:
-            at = struct.unpack_from(e + "I", value)[0]
-            if at + size > n:
-                return None
-            tags[tag] = struct.unpack_from(fmt, data, at)
-    return tags, description
+    One thread decodes (``maxworkers=1``): the callers already decode files in parallel, and an
+    uncompressed camera file is one ``readinto``. The first page rather than the first series:
+    tifffile's series detection (ImageJ, OME, shaped and a dozen other flavours) cost about
+    0.06 ms of the 0.25-0.3 ms a 2.5-4.5 MB file takes (CPU time, tifffile 2026.3.3), and for one
+    image it can only add length-1 axes.
 
-
-def plain_tiff_pixels(data: bytes | bytearray | memoryview, out: np.ndarray | None = None) -> np.ndarray | None:
-    """The pixels of a single-image, uncompressed, stripped, one-sample 8- or 16-bit unsigned
-    classic TIFF (camera band files such as MicaSense's), straight from its strips: the array
-    ``tifffile.imread`` returns for such a file, without building tifffile's page and tag
-    objects (about 2 ms of Python per file). None for anything else, or anything unexpected
-    (other tags, tiles, compression, several images, strips past the end): then tifffile reads it.
-    ``out``: an array to decode into when it has the image's shape and dtype (else a new one).
-
-    Measured against tifffile 2026.3.3 (CPU time a file, one run): 0.20 ms vs 0.40-0.52 ms a
-    RedEdge band file, 0.43 ms vs 0.56-0.63 ms a 2048x1088 session frame.
-
-    References: TIFF 6.0 specification (Adobe, 1992), sections 2 (structure), 3 (baseline
-    fields) and 8 (StripOffsets, StripByteCounts, RowsPerStrip)."""
-    import struct
-
-    n = len(data)
-    if n < 8 or data[:4] not in (b"II*\0", b"MM\0*"):
-        return None
-    e = "<" if data[0] == 0x49 else ">"
-    ifd = struct.unpack_from(e + "I", data, 4)[0]
-    if ifd < 8 or ifd + 2 > n:
-        return None
-    read = _plain_ifd(data, e, ifd)
-    if read is None:
-        return None
-    tags, description = read
-    try:
-        (width,), (height,), (bits,) = tags[256], tags[257], tags[258]
-        offsets, counts = tags[273], tags[279]
-    except (KeyError, ValueError):
-        return None
-    if tags.get(259, (1,)) != (1,) or tags.get(277, (1,)) != (1,) or tags.get(339, (1,)) != (1,) \
-            or tags.get(284, (1,)) not in ((1,), (2,)) or bits not in (8, 16) or not (width and height):
-        return None
-    if description is not None and not _shape_description_fits(description, height, width):
-        return None
-    rows = min(tags.get(278, (height,))[0] or height, height)
-    strips = -(-height // rows)
-    row_bytes = width * bits // 8
-    if len(offsets) != strips or len(counts) != strips:
-        return None
-    dtype = np.dtype(f"{e}u{bits // 8}")
-    for i, (at, nbytes) in enumerate(zip(offsets, counts)):
-        if nbytes != min(rows, height - i * rows) * row_bytes or at + nbytes > n:
-            return None
-    native = dtype.newbyteorder("=")
-    if out is None or out.shape != (height, width) or out.dtype != native or not out.flags.c_contiguous:
-        out = np.empty((height, width), native)
-    flat = out.reshape(-1)
-    for i, at in enumerate(offsets):
-        r = min(rows, height - i * rows)
-        flat[i * rows * width:(i * rows + r) * width] = np.frombuffer(data, dtype, r * width, at)
-    return out
+    Raises whatever tifffile raises on a corrupt, truncated or unsupported file (:func:`decode_raw`
+    turns it into a :class:`FrameError` naming the file).
+    """
+    with _tiff_file(source) as tif:
+        page = tif.pages.first
+        if len(tif.pages) != 1:
+            return tif.asarray(maxworkers=1), int(page.bitspersample)
+        if out is not None and not (out.shape == page.shape and out.dtype == page.dtype
+                                    and out.flags.c_contiguous and out.flags.writeable):
+            out = None
+        return page.asarray(out=out, maxworkers=1), int(page.bitspersample)
 
 
 #: What tifffile says when a TIFF is intact but stored in a way it cannot decode here: a codec
@@ -161,15 +109,10 @@ def _unsupported_tiff(exc: Exception, source: bytes | bytearray | memoryview | P
     text = str(exc)
     if not (isinstance(exc, NotImplementedError) or any(s in text for s in _UNSUPPORTED_TIFF)):
         return None
-    import io
-
-    import tifffile
-
     stored = "a pixel format"
-    in_memory = isinstance(source, (bytes, bytearray, memoryview))
     try:
-        with tifffile.TiffFile(io.BytesIO(source) if in_memory else source) as tif:
-            page = tif.pages[0]
+        with _tiff_file(source) as tif:
+            page = tif.pages.first
             name = getattr(page.compression, "name", None)  # a plain int: a code tifffile does not know
             stored = (f"BitsPerSample {page.bitspersample}, Compression {int(page.compression)}"
                       f"{f' ({name})' if name else ''}")
@@ -193,26 +136,29 @@ def _unsupported_tiff(exc: Exception, source: bytes | bytearray | memoryview | P
 
 def decode_raw(source: bytes | bytearray | memoryview | Path, path: str | Path, out: np.ndarray | None = None
                ) -> np.ndarray:
-    """Pixels of a frame file, from its bytes or (``source`` a path) from the file itself;
-    ``path`` names the format by its suffix and the file in errors. ``out``: where a plain
-    camera TIFF of that shape and dtype is decoded (:func:`plain_tiff_pixels`); the array
-    returned is ``out`` when it was used.
+    """Pixels of a frame file (:func:`decode_frame` without the BitsPerSample)."""
+    return decode_frame(source, path, out)[0]
+
+
+def decode_frame(source: bytes | bytearray | memoryview | Path, path: str | Path, out: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, int | None]:
+    """Pixels of a frame file, from its bytes or (``source`` a path) from the file itself, and
+    the BitsPerSample of a TIFF's first image (None for PNG and JPEG) from the same parse;
+    ``path`` names the format by its suffix and the file in errors. ``out``: where a TIFF of that
+    shape and dtype is decoded (:func:`tiff_pixels`); the array returned is ``out`` when it was used.
 
     A JPEG without its end-of-image marker is truncated: libjpeg would silently return the
     decoded part padded with gray, so it is rejected here.
+
+    :class:`FrameError` naming the file when it cannot be decoded: truncated or corrupt (re-copy
+    it), stored in a format this installation does not decode (convert it), or not integer DN.
     """
     path = Path(path)
     suffix = path.suffix.lower()
+    bits = None
     try:
         if suffix in (".tif", ".tiff"):
-            import io
-
-            import tifffile
-
-            in_memory = isinstance(source, (bytes, bytearray, memoryview))
-            img = plain_tiff_pixels(source, out) if in_memory else None
-            if img is None:
-                img = tifffile.imread(io.BytesIO(source) if in_memory else source)
+            img, bits = tiff_pixels(source, out)
         else:
             import cv2
 
@@ -238,53 +184,17 @@ def decode_raw(source: bytes | bytearray | memoryview | Path, path: str | Path, 
     img = np.asarray(img)
     if not np.issubdtype(img.dtype, np.integer):
         raise FrameError(f"pixel type {img.dtype} is not integer DN", path=path)
-    return img
+    return img, bits
 
 
 def sample_bits(source: bytes | bytearray | memoryview | Path) -> int | None:
-    """BitsPerSample of a classic TIFF's first image, from its bytes or its file, read from the
-    header and the first IFD alone (TIFF 6.0 section 2); None when it is not a classic TIFF,
-    has no such tag or is cut short (:func:`decode_raw` then says why). A RedEdge writes its
-    12-bit DN in the high bits of 16-bit samples, or, set to its 12-bit format, as they are in
-    packed 12-bit samples: the decoded arrays are both uint16, only the file says which
-    (:meth:`Camera.shift_for`)."""
-    import struct
-
-    if isinstance(source, (bytes, bytearray, memoryview)):
-        view = memoryview(source)
-        return _ifd0_bits(lambda at, n: bytes(view[at:at + n]))
+    """BitsPerSample of a TIFF's first image, from its bytes or its file, read from its header
+    (tifffile's first page; no pixels read); None when it is not a readable TIFF (:func:`decode_raw`
+    then says why). A RedEdge writes its 12-bit DN in the high bits of 16-bit samples, or, set to
+    its 12-bit format, as they are in packed 12-bit samples: the decoded arrays are both uint16,
+    only the file says which (:meth:`Camera.shift_for`)."""
     try:
-        with open(source, "rb") as fh:
-            def read(at: int, n: int) -> bytes:
-                fh.seek(at)
-                return fh.read(n)
-
-            return _ifd0_bits(read)
-    except (OSError, struct.error):
+        with _tiff_file(source) as tif:
+            return int(tif.pages.first.bitspersample)
+    except Exception:  # tifffile raises many types on what is not a TIFF or is cut short
         return None
-
-
-def _ifd0_bits(read: Callable[[int, int], bytes]) -> int | None:
-    import struct
-
-    head = read(0, 8)
-    if len(head) < 8 or head[:4] not in (b"II*\0", b"MM\0*"):
-        return None
-    e = "<" if head[0] == 0x49 else ">"
-    ifd = struct.unpack(e + "I", head[4:])[0]
-    count = read(ifd, 2)
-    if len(count) < 2:
-        return None
-    n = struct.unpack(e + "H", count)[0]
-    entries = read(ifd + 2, 12 * n)
-    for i in range(len(entries) // 12):
-        tag, kind, items = struct.unpack_from(e + "HHI", entries, 12 * i)
-        if tag != 258:
-            continue
-        if kind != 3 or items < 1:  # SHORT, one per sample
-            return None
-        if items <= 2:
-            return int(struct.unpack_from(e + "H", entries, 12 * i + 8)[0])
-        value = read(struct.unpack_from(e + "I", entries, 12 * i + 8)[0], 2)
-        return int(struct.unpack(e + "H", value)[0]) if len(value) == 2 else None
-    return None

@@ -174,6 +174,15 @@ class Xmp:
         n = self.numbers(tag, ns, 1)
         return None if n is None else n[0]
 
+    def angles(self, tags: tuple[str, str, str], ns: Iterable[str], degrees: bool) -> tuple[float, float, float] | None:
+        """Three angles (yaw, pitch, roll) in radians from ``tags`` (``degrees``: written in
+        degrees), or None unless all three are finite numbers."""
+        vals = [self.number(t, ns) for t in tags]
+        if any(v is None or not math.isfinite(v) for v in vals):
+            return None
+        y, p, r = (float(v) for v in vals)  # type: ignore[arg-type]
+        return (math.radians(y), math.radians(p), math.radians(r)) if degrees else (y, p, r)
+
 
 def parse_numbers(value: str | list[str]) -> tuple[float, ...] | None:
     """Numbers of a list value or of a comma/space/semicolon separated text; None if any item

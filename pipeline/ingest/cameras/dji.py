@@ -6,7 +6,9 @@
 - **Radiance**: the camera value of DJI's Image Processing Guides
   (:func:`mscal_core.vendors.dji_camera_value`, relative), with DJI's radial vignetting
   (:func:`mscal_core.vendors.dji_vignetting_correction`).
-- **Sun sensor**: ``drone-dji:Irradiance`` (calibrated sunlight sensor value).
+- **Sun sensor**: ``drone-dji:Irradiance`` (calibrated sunlight sensor value), used as the
+  camera wrote it (:func:`compensated`), with the guides' scale 1 (:data:`SUN_SCALES`); the
+  aircraft's attitude ``drone-dji:FlightYaw/Pitch/RollDegree`` (:data:`ATTITUDE`).
 - **Quirks**: each band file's own registration (DewarpData, CalibratedHMatrix:
   :func:`factory_align`); the P4 Multispectral's RGB image numbered as the capture's
   first file (a companion image, not a band file).
@@ -23,7 +25,7 @@ import numpy as np
 from mscal_core.errors import FrameError
 from mscal_core.vendors import dji_alignment_map, dji_camera_value, dji_vignetting_correction, remap_band
 
-from pipeline.ingest.cameras.registry import Maker, register
+from pipeline.ingest.cameras.registry import AttitudeSource, Maker, register
 from pipeline.ingest.meta import (
     FIRMWARE_HINT,
     CaptureMeta,
@@ -38,6 +40,7 @@ from pipeline.ingest.meta import (
     meta_fields,
     positive_irradiance,
 )
+from pipeline.ingest.sun_scale import SunScale
 from pipeline.ingest.xmp import TagError, Xmp, parse_numbers
 
 UNITS = {"dji": "1 (DJI camera value pCam (p - p_BL) V / (g t), relative)"}
@@ -179,8 +182,48 @@ COMPANION_IMAGES: dict[str, tuple[str, str]] = {
 }
 
 
+DJI_GUIDES = ("DJI, P4 Multispectral Image Processing Guide v1.0 (2020.07) and Mavic 3M Image Processing Guide v1.0 "
+              "(2023.08): reflectance = camera value x pCam (drone-dji:SensorGainAdjustment) / (X_LS x pLS) = "
+              "drone-dji:Irradiance; the guides write no further constant (no pi): 1")
+
+#: The fixed sun-sensor scale (:mod:`pipeline.ingest.sun_scale`), P4 Multispectral and Mavic 3M
+#: (``c = 1``): the guides' reflectance of a band is the camera value times ``pCam`` over the
+#: sunlight sensor's value, ``X pCam / (X_LS pLS)``, with ``pCam`` = ``drone-dji:SensorGainAdjustment``
+#: (already in the camera value, :func:`mscal_core.vendors.dji_camera_value`) and ``X_LS pLS`` =
+#: ``drone-dji:Irradiance`` ("calibrated sunlight sensor value"; the NDVI section of both guides).
+#: The guides write no further constant (no pi, no panel): their reflectance is used as written.
+#: Neither guide says whether that ratio is absolute (its NDVI needs only ratios of bands):
+#: absolute values need a panel.
+SUN_SCALES = {
+    "dji": SunScale(1.0, "R = X pCam / Irradiance (X pCam: the camera value, Irradiance: drone-dji:Irradiance)",
+                    DJI_GUIDES, False),
+}
+
+#: The aircraft's attitude, when the file has no sensor's own (a DJI reading needs none: it is
+#: compensated, :func:`compensated`).
+ATTITUDE = (
+    AttitudeSource(40, "drone-dji:FlightYaw/Pitch/RollDegree",
+                   lambda x: x.angles(("FlightYawDegree", "FlightPitchDegree", "FlightRollDegree"), ("drone-dji",),
+                                      degrees=True)),
+)
+
+#: run.json's ``sun_sensor`` model of a reading the camera compensated itself.
+DJI_COMPENSATED = "DJI Irradiance as written (compensated by the camera's built-in algorithm)"
+
+
+def compensated(x: Xmp) -> bool:
+    """True for ``drone-dji:Irradiance``: used as the camera wrote it, correction 1. The P4
+    Multispectral Image Processing Guide calls it the "calibrated sunlight sensor value" and
+    divides the camera value by it with no angle term; the Mavic 3M User Manual ("Photo File")
+    says it is the "solar irradiance value after compensation by built-in algorithm"
+    (``SunSensor`` is the one before). A tilt model on top of it corrected the aircraft's
+    attitude twice (lines flown in opposite directions 14 % apart)."""
+    return x.has("Irradiance", ("drone-dji",))
+
+
 MAKER = register(Maker(
     name="dji", model="dji", units=UNITS, claims=claims, read=read, radiance=band_radiance,
     vignetting=band_vignetting, order=10, sun_sensor_tag="XMP drone-dji:Irradiance",
-    companion_images=COMPANION_IMAGES,
+    companion_images=COMPANION_IMAGES, sun_scales=SUN_SCALES, attitude=ATTITUDE, compensated=compensated,
+    compensated_model=DJI_COMPENSATED,
 ))

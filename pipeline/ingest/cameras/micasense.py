@@ -8,7 +8,10 @@ model, DLS sun sensor and quirks.
 - **Radiance**: micasense/imageprocessing ``image.py`` ``radiance()``
   (:func:`mscal_core.factory.radiance`, W m-2 sr-1 nm-1); a field calibration may replace the
   response and/or vignetting (:class:`~pipeline.ingest.meta.FieldParts`).
-- **Sun sensor**: DLS 1 ``Camera:Irradiance``, DLS 2 ``HorizontalIrradiance`` with its scale.
+- **Sun sensor**: DLS 1 ``Camera:Irradiance``, DLS 2 ``HorizontalIrradiance`` with its scale;
+  the fixed scale ``R = pi L / E`` (:data:`SUN_SCALES`), the DLS's orientation
+  (:data:`ATTITUDE`) and DLS 2's measured direct/scattered split (:func:`dls2_split`,
+  :func:`dls2_correction`), for :mod:`pipeline.ingest.sunsensor`.
 - **Quirks**: legacy RedEdge firmware's wrong shortest exposure; Altum's LWIR band (thermal,
   centi-kelvin DN) and a panchromatic band, read but kept out of reflectance.
 
@@ -22,8 +25,9 @@ import math
 import numpy as np
 from mscal_core.errors import FrameError
 from mscal_core.factory import field_response_scale, field_response_signal, radiance, thermal_kelvin, vignetting_map
+from mscal_core.sunsensor import dls2_horizontal
 
-from pipeline.ingest.cameras.registry import Maker, register
+from pipeline.ingest.cameras.registry import AttitudeSource, Maker, SunSplit, register
 from pipeline.ingest.meta import (
     FIRMWARE_HINT,
     CaptureMeta,
@@ -39,7 +43,8 @@ from pipeline.ingest.meta import (
     radiance_tag,
     tag_number,
 )
-from pipeline.ingest.xmp import TagError
+from pipeline.ingest.sun_scale import SunScale
+from pipeline.ingest.xmp import TagError, Xmp
 
 UNITS = {
     "micasense": "W m-2 sr-1 nm-1",
@@ -220,8 +225,53 @@ def band_vignetting(radiometry: str, shape: tuple[int, int], tags: VignettingTag
     return vignetting_map(shape, tags.center, tags.poly, poly_2d=tags.poly_2d, exponents_2d=tags.exponents_2d)
 
 
+#: The fixed sun-sensor scale (:mod:`pipeline.ingest.sun_scale`): ``R = pi L / E`` with ``L`` in
+#: W m-2 sr-1 nm-1 and ``E`` in W m-2 nm-1 (micasense/imageprocessing ``image.py``
+#: ``reflectance()``; MicaSense "Tutorial 3 - DLS Sensor Basic Usage"): absolute.
+SUN_SCALES = {
+    "micasense": SunScale(math.pi, "R = pi L / E (L W m-2 sr-1 nm-1, E W m-2 nm-1)",
+                          "MicaSense, micasense/imageprocessing image.py reflectance() and Tutorial 3 (DLS): pi", True),
+}
+
+#: The DLS's orientation for the tilt model (MicaSense, "Tutorial 3 - DLS Sensor Basic Usage" and
+#: ``micasense/dls.py`` of micasense/imageprocessing): ``DLS:Yaw/Pitch/Roll`` (radians, the DLS's
+#: own IMU), else ``Camera:IrradianceYaw/Pitch/Roll`` (degrees); DLS 1 readings use the clear-sky
+#: diffuse ratio 1/6 (``dir_dif_ratio = 6``).
+ATTITUDE = (
+    AttitudeSource(10, "DLS:Yaw/Pitch/Roll", lambda x: x.angles(("Yaw", "Pitch", "Roll"), ("DLS",), degrees=False)),
+    AttitudeSource(20, "Camera:IrradianceYaw/Pitch/Roll",
+                   lambda x: x.angles(("IrradianceYaw", "IrradiancePitch", "IrradianceRoll"), ("Camera", "MicaSense"),
+                                      degrees=True)),
+)
+
+
+def dls2_split(x: Xmp) -> SunSplit | None:
+    """DLS 2 ``DirectIrradiance``, ``ScatteredIrradiance`` and ``HorizontalIrradiance``, or None
+    (the sensor measures the split; its ratio replaces 1/6 in the tilt model)."""
+    ns = ("DLS", "Camera", "MicaSense")
+    d, s = x.number("DirectIrradiance", ns), x.number("ScatteredIrradiance", ns)
+    if d is None or s is None or not (d > 0 and s >= 0):
+        return None
+    h = x.number("HorizontalIrradiance", ns)
+    return SunSplit(float(d), float(s), (float(h) if h is not None and h > 0 else None))
+
+
+def dls2_correction(x: Xmp, split: SunSplit, elevation: float) -> float | None:
+    """``E_h / E_meas`` of a DLS 2 reading that is its ``HorizontalIrradiance`` (the file holds
+    no tilted ``Irradiance``): ``E_h = E_dir sin(el) + E_scattered`` with the elevation
+    recomputed from time and position (micasense/imageprocessing ``image.py``
+    ``compute_horizontal_irradiance_dls2``: "for cases where the camera system did not do it
+    correctly"); 1 without a horizontal value. None when the file holds the tilted reading as
+    well: the tilt model runs with the measured ratio."""
+    if x.number("Irradiance", ("Camera", "MicaSense")) is not None:
+        return None
+    h = split.horizontal
+    return float(dls2_horizontal(split.direct, split.scattered, elevation)) / h if h else 1.0
+
+
 MAKER = register(Maker(
     name="micasense", model="micasense", units=UNITS, claims=lambda ctx: _kept_out(ctx) is not None, read=read,
     radiance=band_radiance, vignetting=band_vignetting, order=0, fallback=True,
     sun_sensor_tag="XMP Camera:Irradiance (DLS 1) or DLS:HorizontalIrradiance (DLS 2)",
+    sun_scales=SUN_SCALES, attitude=ATTITUDE, sun_split=dls2_split, split_correction=dls2_correction,
 ))

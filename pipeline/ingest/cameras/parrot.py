@@ -6,7 +6,8 @@
   :func:`mscal_core.vendors.sequoia_irradiance`): irradiance on the imager, SI-homogeneous
   with an arbitrary scale.
 - **Sun sensor**: the sunshine sensor's ``Camera:IrradianceList`` records
-  (:func:`sunshine_records`, :func:`mscal_core.vendors.sunshine_irradiance`).
+  (:func:`sunshine_records`, :func:`mscal_core.vendors.sunshine_irradiance`), its fixed
+  scale ``K`` (:data:`SUN_SCALES`) and its own angles (:data:`ATTITUDE`).
 - **Quirks**: frames stored rotated 180 degrees (EXIF Orientation 3,
   :func:`pipeline.ingest.meta.upright_meta`); the position only in the capture's RGB JPEG
   (:func:`sibling_position`).
@@ -25,7 +26,7 @@ from mscal_core.errors import FrameError
 from mscal_core.factory import vignetting_2d
 from mscal_core.vendors import sequoia_irradiance, sunshine_irradiance
 
-from pipeline.ingest.cameras.registry import Maker, register
+from pipeline.ingest.cameras.registry import AttitudeSource, Maker, register
 from pipeline.ingest.exif import jpeg_exif
 from pipeline.ingest.gps import exif_position as _gps
 from pipeline.ingest.meta import (
@@ -43,6 +44,7 @@ from pipeline.ingest.meta import (
     radiance_tag,
     tag_number,
 )
+from pipeline.ingest.sun_scale import SunScale
 from pipeline.ingest.xmp import TagError, Xmp
 
 UNITS = {"sequoia": "1 (Parrot SEQ AN 01 irradiance on the sensor, SI-homogeneous with an arbitrary scale)"}
@@ -182,7 +184,48 @@ def band_vignetting(radiometry: str, shape: tuple[int, int], tags: VignettingTag
     return vignetting_2d(shape, tags.poly_2d, tags.exponents_2d)
 
 
+#: The fixed sun-sensor scale (:mod:`pipeline.ingest.sun_scale`, ``c = 5e-4``): Parrot's sensor
+#: model gives the irradiance on the imager ``I`` (SEQ AN 01, :func:`mscal_core.vendors.sequoia_irradiance`)
+#: and on the sunshine sensor ``E`` (:func:`mscal_core.vendors.sunshine_irradiance`), both
+#: "homogeneous to SI units but with an arbitrary scaling factor"; reflectance is ``R = K I / E``
+#: with ``K`` a constant of the sensors' responses (Parrot developer forum, "Reflectance
+#: estimation" and "About radiometric calibration": "K is a constant that depends on sensors
+#: responses", found once with a target of known reflectance). Parrot publishes no K: mscal fixes
+#: ``K = 5e-4`` for the camera model, chosen once (2026-12) so that the one real capture in
+#: ../shared/data lies in the uint16 TIFFs' range (its band medians 0.15 .. 0.41, NIR 99th
+#: percentile 1.2): the same for every Sequoia and run; absolute values need a panel.
+SUN_SCALES = {
+    "sequoia": SunScale(5e-4, "R = K I / E, K = 5e-4 (I: SEQ AN 01 irradiance on the imager, E: sunshine sensor "
+                              "CH0 / (gain x ms x golden sensitivity))",
+                        "Parrot SEQ AN 01 and developer forum ('Reflectance estimation', 'About radiometric "
+                        "calibration': R = K I / E, K a constant of the sensors' responses); Parrot publishes no K: "
+                        "mscal fixes K = 5e-4 for the camera model (chosen once so that the real sample capture "
+                        "lies in 0..2), never from a run's data", False),
+}
+
+
+def sunshine_angles(x: Xmp) -> tuple[float, float, float] | None:
+    """The sunshine sensor's own yaw, pitch, roll (radians) of its last ``IrradianceList``
+    record (Parrot developer forum "Details of Irradiance List tag for Sunshine sensor"; a
+    linear sensor with no black level), None without one. A list that cannot be decoded gives
+    none here: it is named where the reading itself is read."""
+    try:
+        recs = sunshine_records(x)
+    except TagError:
+        return None
+    if not recs:
+        return None
+    last = recs[-1]
+    return math.radians(last[5]), math.radians(last[6]), math.radians(last[7])
+
+
+#: The sunshine sensor's angles; else the aircraft's ``Camera:Yaw/Pitch/Roll``
+#: (:mod:`pipeline.ingest.sunsensor`, every maker's fallback).
+ATTITUDE = (AttitudeSource(30, "Camera:IrradianceList (sunshine sensor)", sunshine_angles),)
+
+
 MAKER = register(Maker(
     name="parrot", model="sequoia", units=UNITS, claims=claims, read=read, radiance=band_radiance,
     vignetting=band_vignetting, order=20, sun_sensor_tag="XMP Camera:IrradianceList (sunshine sensor)",
+    sun_scales=SUN_SCALES, attitude=ATTITUDE,
 ))

@@ -1,7 +1,9 @@
 """The camera makers mscal reads factory metadata of: each maker's module registers one
-:class:`Maker` here (its tag reading, radiance model, vignetting, sun-sensor tag and the
-units of its radiance); :mod:`pipeline.ingest.cameras` picks one by a file's tags or by a
-band's ``CaptureMeta.radiometry``.
+:class:`Maker` here (its tag reading, radiance model, vignetting, the units of its radiance and
+its sun sensor: tag, fixed reflectance scale, attitude tags, measured direct/diffuse split,
+self-compensated reading); :mod:`pipeline.ingest.cameras` picks one by a file's tags or by a
+band's ``CaptureMeta.radiometry``, and the shared sun-sensor modules
+(:mod:`pipeline.ingest.sun_scale`, :mod:`pipeline.ingest.sunsensor`) ask every maker here.
 
 This module imports no other module of mscal at run time, so that the shared modules
 (:mod:`pipeline.ingest.meta`) can look up what a maker registered without a cycle.
@@ -16,11 +18,36 @@ if TYPE_CHECKING:
     import numpy as np
 
     from pipeline.ingest.meta import CaptureMeta, FieldParts, TagContext, VignettingTags
+    from pipeline.ingest.sun_scale import SunScale
+    from pipeline.ingest.xmp import Xmp
 
 #: ``radiance(meta, dn, parts, channels, out)``: a band's radiance from its stored DN
 #: (:func:`pipeline.ingest.cameras.factory_radiance` checks the shapes and field parts first).
 Radiance = Callable[["CaptureMeta", "np.ndarray", "FieldParts | None", "np.ndarray | None", "np.ndarray | None"],
                     "np.ndarray"]
+
+
+@dataclass(frozen=True)
+class AttitudeSource:
+    """Where a maker's files keep the sun sensor's (or, failing that, the aircraft's) yaw,
+    pitch and roll: ``read(xmp)`` gives them in radians, or None when the file has none.
+    Every maker's sources are tried for every file, lowest ``rank`` first
+    (:func:`attitude_sources`): a sensor's own angles before an aircraft's."""
+
+    rank: int
+    name: str  # what run.json's sun_sensor model says the orientation came from
+    read: Callable[["Xmp"], "tuple[float, float, float] | None"]
+
+
+@dataclass(frozen=True)
+class SunSplit:
+    """A sun sensor's own measured direct/scattered split (MicaSense DLS 2): ``direct``,
+    ``scattered`` and ``horizontal`` (None: not written), in one unit (their scale cancels in
+    the ratios used)."""
+
+    direct: float
+    scattered: float
+    horizontal: float | None
 
 
 @dataclass(frozen=True)
@@ -36,6 +63,18 @@ class Maker:
     the tag its sun-sensor reading comes from (named when a band has none), and
     ``companion_images`` the catalog cameras' images saved beside the band files that are no
     band files (camera name: (file-name pattern with group ``capture``, why it is left out)).
+
+    The sun sensor (:mod:`pipeline.ingest.sun_scale`, :mod:`pipeline.ingest.sunsensor`):
+    ``sun_scales`` the fixed reflectance scale ``c`` of ``R = c L / E`` per radiometry (none:
+    its sensor gives no reflectance on its own); ``sun_factor(meta)`` the factor ``1 / E`` of a
+    reading with no such scale that is still proportional to the light (a panel sets the
+    scale); ``attitude`` the :class:`AttitudeSource` entries of its files' orientation tags;
+    ``sun_split(xmp)`` a measured direct/scattered split (:class:`SunSplit`) and
+    ``split_correction(xmp, split, elevation)`` the correction ``E_h / E_meas`` of a reading
+    that is the split's own horizontal irradiance, recomputed with the sun's elevation
+    (radians; None: the reading is the tilted total, for the tilt model with the measured
+    ratio); ``compensated(xmp)`` whether the reading is already independent of the attitude (no tilt
+    model on top), named ``compensated_model`` in run.json.
     """
 
     name: str
@@ -49,6 +88,13 @@ class Maker:
     fallback: bool = False
     sun_sensor_tag: str | None = None
     companion_images: dict[str, tuple[str, str]] = field(default_factory=dict)
+    sun_scales: "dict[str, SunScale]" = field(default_factory=dict)
+    sun_factor: "Callable[[CaptureMeta], float | None] | None" = None
+    attitude: tuple[AttitudeSource, ...] = ()
+    sun_split: "Callable[[Xmp], SunSplit | None] | None" = None
+    split_correction: "Callable[[Xmp, SunSplit, float], float | None] | None" = None
+    compensated: "Callable[[Xmp], bool] | None" = None
+    compensated_model: str = ""
 
 
 MAKERS: dict[str, Maker] = {}
@@ -92,3 +138,13 @@ def sun_sensor_tag(radiometry: str) -> str | None:
         return maker_of(radiometry).sun_sensor_tag
     except KeyError:
         return None
+
+
+def fallback() -> Maker:
+    """The maker that reads every file no other claims."""
+    return next(m for m in by_order() if m.fallback)
+
+
+def attitude_sources() -> list[AttitudeSource]:
+    """Every maker's :class:`AttitudeSource`, in the order they are tried (rank, then name)."""
+    return sorted((a for m in MAKERS.values() for a in m.attitude), key=lambda a: (a.rank, a.name))

@@ -7,12 +7,16 @@ sun sensor and quirks.
 - **Radiance**: crosstalk-corrected DN / (ISO/100 x exposure), relative
   (:func:`mscal_core.vendors.sentera_relative_radiance`); no vignetting model.
 - **Sun sensor**: the ILS ``Camera:SunSensor`` counts, kept as the band's reading; they have
-  no published conversion to reflectance (a panel gives it).
+  no published conversion to reflectance (no fixed scale: a panel gives it), but are
+  proportional to the light (:func:`sun_factor`); the tilt model with ``Camera:Yaw/Pitch/Roll``
+  (the shared fallback of :mod:`pipeline.ingest.sunsensor`).
 - **Quirks**: a ``Garbage`` channel (wavelength 0) written for the crosstalk only, skipped;
   the 6X's capture id in EXIF ImageUniqueID.
 """
 
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from mscal_core.errors import FrameError
@@ -99,7 +103,14 @@ def band_vignetting(radiometry: str, shape: tuple[int, int], tags: VignettingTag
     return np.ones(shape)
 
 
+def sun_factor(meta: CaptureMeta) -> float | None:
+    """ILS counts: no reflectance on their own, but proportional to the light: ``1 / E`` serves
+    the panel-anchored route (the panel sets the scale)."""
+    e = meta.irradiance
+    return None if e is None or not math.isfinite(e) or e <= 0 else 1.0 / e
+
+
 MAKER = register(Maker(
     name="sentera", model="sentera", units=UNITS, claims=claims, read=read, radiance=band_radiance,
-    vignetting=band_vignetting, order=30,
+    vignetting=band_vignetting, order=30, sun_factor=sun_factor,
 ))

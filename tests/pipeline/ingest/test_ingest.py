@@ -38,7 +38,7 @@ from pipeline.ingest.discover import discover_flight
 from pipeline.ingest.medians import DN_MEDIAN
 from pipeline.ingest.raw import cube_lock, ingest_flight
 from pipeline.ingest.session import exif_record, read_bands
-from pipeline.ingest.tiff import decode_raw
+from pipeline.ingest.tiff import decode_frame, decode_raw
 from tests.pipeline.ingest.kill_points import KILL_CODE, arm
 
 ROOT = Path(__file__).resolve().parents[3]
@@ -140,7 +140,7 @@ def _assert_same(a: dict, b: dict) -> None:
 
 
 class _Spy:
-    """Records which files ingest decodes (decode_raw runs in worker threads)."""
+    """Records which files ingest decodes (decode_frame runs in worker threads)."""
 
     def __init__(self) -> None:
         self.names: list[str] = []
@@ -149,13 +149,13 @@ class _Spy:
     def __call__(self, data, path):
         with self.lock:
             self.names.append(Path(path).name)
-        return decode_raw(data, path)
+        return decode_frame(data, path)
 
 
 @pytest.fixture
 def spy(monkeypatch) -> _Spy:
     s = _Spy()
-    monkeypatch.setattr(session_mod, "decode_raw", s)  # ingest decodes through session.stored_bands
+    monkeypatch.setattr(session_mod, "decode_frame", s)  # ingest decodes through session.stored_bands
     return s
 
 

@@ -122,7 +122,8 @@ def test_dji_irradiance_is_used_as_the_camera_compensated_it() -> None:
     (Mavic 3M User Manual; the P4 Multispectral guide's "calibrated sunlight sensor value",
     divided by with no angle term): no tilt model on top of it, whatever the aircraft's
     attitude, while a MicaSense DLS 1 reading at that attitude is corrected."""
-    from pipeline.ingest.sunsensor import DJI_COMPENSATED, band_correction, camera_compensated
+    from pipeline.ingest.cameras.dji import DJI_COMPENSATED
+    from pipeline.ingest.sunsensor import band_correction, camera_compensated
 
     el, az = math.radians(40.0), math.radians(150.0)
     dji = _xmp('drone-dji:Irradiance="1210.5" drone-dji:FlightYawDegree="180" drone-dji:FlightPitchDegree="15" '

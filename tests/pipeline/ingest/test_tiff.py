@@ -1,5 +1,6 @@
-"""The strip reader of plain camera TIFFs (tiff.plain_tiff_pixels) gives exactly what
-tifffile gives, and declines every file it does not fully understand (tifffile reads those)."""
+"""TIFF decoding through tifffile (tiff.tiff_pixels, decode_frame): the pixels tifffile gives,
+from the bytes in memory (tiff.BufferStream, no copy of them), into the caller's array
+where it fits, with the BitsPerSample of the same parse; files cut short refused, naming them."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from pipeline.ingest.tiff import decode_raw, plain_tiff_pixels
+from pipeline.ingest.tiff import BufferStream, decode_frame, decode_raw, sample_bits, tiff_pixels
 
 DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data"
 
@@ -30,63 +31,54 @@ def test_same_pixels_as_tifffile(dtype: str, rowsperstrip: int | None) -> None:
     arr = rng.integers(0, np.iinfo(np.dtype(dtype)).max, size=(61, 37)).astype(dtype)
     data = _tiff(arr, byteorder=np.dtype(dtype).byteorder if dtype != "u1" else "<", rowsperstrip=rowsperstrip,
                  photometric="minisblack")
-    got = plain_tiff_pixels(data)
     ref = tifffile.imread(io.BytesIO(data))
-    assert got is not None
-    assert got.dtype == ref.dtype and got.dtype.isnative and got.shape == ref.shape == (61, 37)
-    np.testing.assert_array_equal(got, ref)
-    np.testing.assert_array_equal(got, arr)
-    got[0, 0] = 1  # a writable array of its own, as tifffile's
+    for source in (data, memoryview(bytearray(data))):  # bytes, and a view of the thread's read buffer
+        got, bits = tiff_pixels(source)
+        assert bits == 8 * np.dtype(dtype).itemsize
+        assert got.dtype == ref.dtype and got.dtype.isnative and got.shape == ref.shape == (61, 37)
+        np.testing.assert_array_equal(got, ref)
+        np.testing.assert_array_equal(got, arr)
+        got[0, 0] = 1  # a writable array of its own, as tifffile's
+    assert data == _tiff(arr, byteorder=np.dtype(dtype).byteorder if dtype != "u1" else "<",
+                         rowsperstrip=rowsperstrip, photometric="minisblack")  # the source left as it was
 
 
 def test_real_band_files_match_tifffile() -> None:
-    files = sorted((DATA / "micasense-rededge").glob("*.tif"))
+    files = sorted((DATA / "micasense-rededge").glob("*.tif")) + sorted((DATA / "parrot-sequoia").glob("*.TIF"))
     if not files:
-        pytest.skip("no MicaSense sample")
+        pytest.skip("no MicaSense or Sequoia sample")
     for f in files:
-        data = f.read_bytes()
-        got = plain_tiff_pixels(data)
-        assert got is not None, f
+        got, bits = tiff_pixels(memoryview(bytearray(f.read_bytes())))
         np.testing.assert_array_equal(got, tifffile.imread(f))
-        assert got.dtype == np.uint16 and got.shape == (960, 1280)
+        assert got.dtype == np.uint16 and bits == sample_bits(f) == 16
+        assert got.shape == (960, 1280)  # both cameras: 1280 x 960 band files
 
 
-@pytest.mark.parametrize("rowsperstrip", [None, 5])
-def test_tifffile_shape_record_is_read(rowsperstrip: int | None) -> None:
-    """Files written by tifffile carry an ImageDescription with its JSON shape record (the
-    frames of a Python capture script, the synthetic sessions): for a single 2-D image it
-    changes nothing tifffile returns, so they take the strip reader too, with the same pixels."""
-    rng = np.random.default_rng(8)
-    arr = rng.integers(0, 1024, size=(40, 23)).astype(np.uint16)
-    for kw in ({"metadata": {}}, {"metadata": {"exposure_ms": 2.5}}):
-        data = _tiff(arr, rowsperstrip=rowsperstrip, **kw)
-        assert b'"shape": [40, 23]' in data
-        got = plain_tiff_pixels(data)
-        assert got is not None
-        np.testing.assert_array_equal(got, tifffile.imread(io.BytesIO(data)))
-        np.testing.assert_array_equal(plain_tiff_pixels(memoryview(bytearray(data))), arr)  # from a buffer view
-
-
-def test_declines_what_it_does_not_read() -> None:
+@pytest.mark.parametrize("kw", [
+    {"metadata": {}}, {"metadata": {"exposure_ms": 2.5}}, {"description": '{"shape": [1, 64, 32]}'},
+    {"description": "a camera's free text"}, {"imagej": True, "metadata": {"axes": "YX"}}, {"bigtiff": True},
+    {"compression": "zlib"}, {"tile": (16, 16)}, {"rowsperstrip": 5},
+])
+def test_what_tifffile_imread_gives_for_every_kind_of_tiff(kw: dict) -> None:
+    """Shape records, ImageJ and free-text descriptions, BigTIFF, compression, tiles: the
+    values and dtype tifffile.imread gives, and the image's own 2-D shape (a shape record's
+    length-1 axes are not added)."""
     arr = np.arange(64 * 32, dtype=np.uint16).reshape(64, 32)
-    assert plain_tiff_pixels(_tiff(arr, compression="zlib")) is None
-    assert plain_tiff_pixels(_tiff(arr, tile=(16, 16))) is None
-    assert plain_tiff_pixels(_tiff(np.stack([arr, arr]))) is None  # two images
-    assert plain_tiff_pixels(_tiff(arr.astype(np.float32))) is None
-    assert plain_tiff_pixels(_tiff(arr.astype(np.int16))) is None
-    assert plain_tiff_pixels(_tiff(np.dstack([arr, arr, arr]).astype(np.uint8), photometric="rgb")) is None
-    # an ImageDescription other than tifffile's shape record of this very image: tifffile's call
-    assert plain_tiff_pixels(_tiff(arr, description='{"shape": [1, 64, 32]}')) is None
-    assert plain_tiff_pixels(_tiff(arr, description='{"shape": [32, 64]}')) is None
-    assert plain_tiff_pixels(_tiff(arr, description="a camera's free text")) is None
-    assert plain_tiff_pixels(_tiff(arr, description="{not json")) is None
-    assert plain_tiff_pixels(_tiff(arr, imagej=True, metadata={"axes": "YX"})) is None
-    assert plain_tiff_pixels(_tiff(arr, bigtiff=True)) is None
-    assert plain_tiff_pixels(b"not a tiff at all") is None
-    full = _tiff(arr, rowsperstrip=16)
-    assert plain_tiff_pixels(full) is not None
-    assert plain_tiff_pixels(full[:-10]) is None  # a strip past the end of a truncated file
-    assert plain_tiff_pixels(full[:40]) is None
+    data = _tiff(arr, **kw)
+    ref = tifffile.imread(io.BytesIO(data))
+    got = decode_raw(memoryview(bytearray(data)), "a.tif")
+    assert got.shape == (64, 32) and got.dtype == ref.dtype == np.uint16
+    np.testing.assert_array_equal(got, ref.reshape(64, 32))
+    np.testing.assert_array_equal(got, arr)
+
+
+def test_several_images_stack_as_imread_does() -> None:
+    arr = np.arange(2 * 8 * 6, dtype=np.uint16).reshape(2, 8, 6)
+    data = _tiff(arr)
+    into = np.zeros((8, 6), np.uint16)  # one image's shape: not the series', so not used
+    got, bits = tiff_pixels(data, into)
+    assert got.shape == (2, 8, 6) and bits == 16 and not into.any()
+    np.testing.assert_array_equal(got, tifffile.imread(io.BytesIO(data)))
 
 
 def test_decode_raw_truncated_file_still_refused(tmp_path: Path) -> None:
@@ -95,22 +87,64 @@ def test_decode_raw_truncated_file_still_refused(tmp_path: Path) -> None:
     np.testing.assert_array_equal(decode_raw(data, tmp_path / "a.tif"), arr)
     from mscal_core.errors import FrameError
 
-    with pytest.raises(FrameError, match="a.tif|unreadable"):
-        decode_raw(data[:300], tmp_path / "a.tif")
+    for cut in (data[:300], data[:-10], data[:40], b"not a tiff at all"):
+        with pytest.raises(FrameError, match="a.tif: unreadable or truncated image") as err:
+            decode_raw(memoryview(bytearray(cut)), tmp_path / "a.tif")
+        assert "re-copy the file" in str(err.value)
+    assert sample_bits(data[:6]) is None and sample_bits(tmp_path / "missing.tif") is None
+
+
+def test_bits_from_tiffs_only() -> None:
+    """decode_frame gives a TIFF's BitsPerSample from its own parse, and None for PNG and JPEG
+    (their depth is the decoded dtype's)."""
+    import cv2
+
+    arr = (np.arange(12 * 10, dtype=np.uint16).reshape(12, 10) * 500)
+    ok, png = cv2.imencode(".png", arr)
+    assert ok
+    got, bits = decode_frame(png.tobytes(), "a.png")
+    assert bits is None and got.dtype == np.uint16
+    np.testing.assert_array_equal(got, arr)
+    got, bits = decode_frame(_tiff(arr.astype(np.uint8)), "a.TIF")
+    assert bits == 8 and got.dtype == np.uint8
 
 
 def test_decoded_into_the_given_array_when_it_fits() -> None:
     arr = np.arange(61 * 37, dtype=np.uint16).reshape(61, 37)
     data = _tiff(arr, rowsperstrip=8)
     into = np.zeros((61, 37), np.uint16)
-    assert plain_tiff_pixels(data, into) is into
+    got, bits = tiff_pixels(memoryview(bytearray(data)), into)
+    assert got is into and bits == 16
     np.testing.assert_array_equal(into, arr)
-    other = np.zeros((37, 61), np.uint16)  # wrong shape: a new array, the given one untouched
-    got = plain_tiff_pixels(data, other)
-    assert got is not other and not other.any()
-    np.testing.assert_array_equal(got, arr)
-    wrong_type = np.zeros((61, 37), np.uint8)
-    assert plain_tiff_pixels(data, wrong_type) is not wrong_type and not wrong_type.any()
+    assert decode_raw(data, "a.tif", into) is into
+    for other in (np.zeros((37, 61), np.uint16), np.zeros((61, 37), np.uint8),  # wrong shape, wrong type
+                  np.zeros((61, 74), np.uint16)[:, ::2]):  # not contiguous
+        got, _ = tiff_pixels(data, other)
+        assert got is not other and not other.any()  # a new array, the given one untouched
+        np.testing.assert_array_equal(got, arr)
+    read_only = np.zeros((61, 37), np.uint16)
+    read_only.flags.writeable = False
+    assert tiff_pixels(data, read_only)[0] is not read_only and not read_only.any()
+
+
+def test_buffer_stream_reads_and_seeks_like_bytesio() -> None:
+    data = bytes(range(256)) * 3
+    buf = bytearray(data)
+    ours, ref = BufferStream(memoryview(buf)), io.BytesIO(data)
+    for whence, offset in ((io.SEEK_SET, 10), (io.SEEK_CUR, 5), (io.SEEK_END, -7), (io.SEEK_END, 20)):
+        assert ours.seek(offset, whence) == ref.seek(offset, whence)
+        assert ours.tell() == ref.tell()
+        assert ours.read(12) == ref.read(12)
+    ours.seek(700)
+    into = np.zeros(40, np.uint16)  # 80 bytes asked, 68 left
+    assert ours.readinto(into) == 68 and ours.tell() == 768
+    np.testing.assert_array_equal(into.view(np.uint8)[:68], np.frombuffer(data[700:], np.uint8))
+    assert ours.read(5) == b""
+    with pytest.raises(ValueError, match="negative seek position"):
+        ours.seek(-1)
+    buf[0] = 255  # a view of the buffer, not a copy of it
+    ours.seek(0)
+    assert ours.read(1) == b"\xff"
 
 
 def test_capture_decoded_into_its_cube() -> None:
@@ -210,7 +244,7 @@ def test_12bit_without_imagecodecs_says_to_install_it(tmp_path: Path, monkeypatc
     def without_imagecodecs(*args, **kwargs):  # what tifffile raises when imagecodecs is not installed
         raise NotImplementedError("packints_decode of 12-bit integers requires the 'imagecodecs' package")
 
-    monkeypatch.setattr(tifffile, "imread", without_imagecodecs)
+    monkeypatch.setattr(tifffile.TiffPage, "asarray", without_imagecodecs)
     monkeypatch.setitem(sys.modules, "imagecodecs", None)
     with pytest.raises(FrameError) as err:
         decode_raw(path.read_bytes(), path)

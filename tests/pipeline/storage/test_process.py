@@ -93,3 +93,44 @@ def test_environment_is_set_for_the_block_and_restored_after(monkeypatch) -> Non
         assert (os.environ["MSCAL_TEST_HAD"], os.environ["MSCAL_TEST_NEW"]) == ("in", "in")
         raise RuntimeError("restored on an error too")
     assert os.environ["MSCAL_TEST_HAD"] == "before" and "MSCAL_TEST_NEW" not in os.environ
+
+
+#: In a fresh process: two rounds of a forkserver pool (as the apply executor's) shut down and
+#: stop_process_servers called; the live and dead children left after each round, and each
+#: round's result (the second pool starts the servers again).
+ROUNDS = (
+    "import json, multiprocessing, psutil\n"
+    "from pipeline.storage.process import start_pool, stop_process_servers\n"
+    "def kids():\n"
+    "    return sorted(c.status() for c in psutil.Process().children(recursive=True))\n"
+    "if __name__ == '__main__':\n"
+    "    out = []\n"
+    "    for k in (1, 2):\n"
+    "        pool = start_pool(2, lambda: multiprocessing.get_context('forkserver'), int)\n"
+    "        during = len(psutil.Process().children(recursive=True))\n"
+    "        got = sum(pool.map(abs, range(-k * 10, 0)))\n"
+    "        pool.shutdown(wait=True)\n"
+    "        stop_process_servers()\n"
+    "        out.append({'during': during, 'result': got, 'after': kids()})\n"
+    "    print(json.dumps(out))\n"
+)
+
+
+def test_stopped_servers_leave_no_process_and_start_again(tmp_path) -> None:
+    """After a forkserver pool is shut down, stop_process_servers ends the forkserver and the
+    resource tracker and reaps them (no live or dead child left); a later pool in the same
+    process starts them again and runs. (Two workers, a server and a tracker while it runs.)"""
+    import json
+
+    import pipeline
+
+    (tmp_path / "rounds.py").write_text(ROUNDS)
+    env = {**os.environ, "PYTHONPATH": os.path.dirname(os.path.dirname(pipeline.__file__))}
+    done = subprocess.run([sys.executable, str(tmp_path / "rounds.py")], capture_output=True, text=True,
+                          timeout=300, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    rounds = json.loads(done.stdout.strip().splitlines()[-1])
+    assert [r["result"] for r in rounds] == [55, 210]
+    assert [r["during"] for r in rounds] == [4, 4]
+    assert [r["after"] for r in rounds] == [[], []]
+    assert "leaked" not in done.stderr and "relaunching" not in done.stderr

@@ -94,3 +94,50 @@ def test_a_new_maker_is_one_registered_module(monkeypatch) -> None:
         register(acme)
     with pytest.raises(ValueError, match="claim one model or radiometry"):
         register(replace(acme, name="acme2"))
+
+
+def test_each_makers_sun_sensor_is_registered_with_it(monkeypatch) -> None:
+    """The sun sensor's maker-specific parts live in the makers' modules: the fixed scales (pi
+    MicaSense, 1 DJI, 5e-4 Sequoia, none for Sentera, whose ILS reading is only proportional to
+    the light), the attitude tags in the order they are tried, and for a new maker its own
+    scale, attitude and self-compensated reading are what sun_scale and sunsensor use."""
+    import math
+
+    from pipeline.ingest.cameras.registry import AttitudeSource, attitude_sources
+    from pipeline.ingest.sun_scale import SunScale, sun_scale, sun_scale_record, sun_sensor_scales
+    from pipeline.ingest.sunsensor import band_correction, band_factor, compensated_model, sensor_orientation
+    from pipeline.ingest.xmp import Xmp
+
+    assert {r: s.constant for r, s in sun_sensor_scales().items()} == pytest.approx(
+        {"micasense": math.pi, "dji": 1.0, "sequoia": 5e-4})
+    assert sun_scale("sentera") is None and sun_scale("thermal") is None
+    assert sun_scale_record(None)["sun_sensor_scale"]["constant"] == pytest.approx(math.pi)  # the fallback maker's
+    assert [a.name for a in attitude_sources()] == [
+        "DLS:Yaw/Pitch/Roll", "Camera:IrradianceYaw/Pitch/Roll", "Camera:IrradianceList (sunshine sensor)",
+        "drone-dji:FlightYaw/Pitch/RollDegree"]
+    require_data()
+    sentera = read_file_metas(DATA_ROOT / "sentera-d4k" / "NDRE" / "IMG_00006.jpg")[0]
+    assert sentera.radiometry == "sentera"
+    assert band_factor(replace(sentera, irradiance=250.0)) == pytest.approx(1 / 250.0)  # its maker's sun_factor
+    assert band_factor(replace(sentera, irradiance=None)) is None
+
+    acme = Maker(name="acme", model="acme", units={"acme": "1"}, claims=lambda ctx: False, read=lambda ctx: [],
+                 radiance=lambda meta, dn, parts, channels, out: dn,
+                 vignetting=lambda radiometry, shape, vtags: np.ones(shape),
+                 sun_scales={"acme": SunScale(2.0, "R = 2 L / E", "a test maker", False)},
+                 attitude=(AttitudeSource(25, "Acme:Y/P/R", lambda x: x.angles(("Y", "P", "R"), ("Acme",), True)),),
+                 compensated=lambda x: x.has("Done", ("Acme",)), compensated_model="Acme reading as written")
+    monkeypatch.setattr(registry, "MAKERS", dict(registry.MAKERS))
+    register(acme)
+    assert sun_scale("acme").constant == 2.0 and sun_sensor_scales()["acme"].source == "a test maker"
+    aircraft = {("Camera", "Yaw"): "10", ("Camera", "Pitch"): "1", ("Camera", "Roll"): "2"}
+    assert sensor_orientation(Xmp(aircraft, "a.tif")).source == "Camera:Yaw/Pitch/Roll"  # the shared fallback
+    o = sensor_orientation(Xmp({**aircraft, ("Acme", "Y"): "90", ("Acme", "P"): "0", ("Acme", "R"): "0"}, "a.tif"))
+    assert o.source == "Acme:Y/P/R" and o.yaw == pytest.approx(math.pi / 2)  # rank 25: before the aircraft's 90
+    o = sensor_orientation(Xmp({("Acme", "Y"): "90", ("Acme", "P"): "0", ("Acme", "R"): "0",
+                                ("DLS", "Yaw"): "0.5", ("DLS", "Pitch"): "0", ("DLS", "Roll"): "0"}, "a.tif"))
+    assert o.source == "DLS:Yaw/Pitch/Roll" and o.yaw == 0.5  # MicaSense's rank 10 first
+    done = Xmp({("Acme", "Done"): "1"}, "a.tif")
+    assert compensated_model(done) == "Acme reading as written"
+    corr, tilt, inc, model = band_correction(done, 0.6, 1.0, sensor_orientation(done))
+    assert (corr, model) == (1.0, "Acme reading as written") and math.isnan(tilt) and math.isnan(inc)

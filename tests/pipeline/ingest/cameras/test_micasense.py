@@ -80,7 +80,7 @@ def test_rededge_12bit_band_file_is_read_and_clips_at_4095(tmp_path) -> None:
     radiance is the 16-bit file's wherever neither is clipped, and it clips at 4095 (its own
     depth's top), the 16-bit file at the catalog's 65520."""
     from pipeline.apply.factory import camera_clip_dn
-    from pipeline.ingest.tiff import plain_tiff_pixels, read_raw
+    from pipeline.ingest.tiff import decode_frame, read_raw
 
     require_data()
     src = cf.band_file("0001", 1)
@@ -88,7 +88,7 @@ def test_rededge_12bit_band_file_is_read_and_clips_at_4095(tmp_path) -> None:
     m16, m12 = read_capture_meta(src), read_capture_meta(dst)
     assert (m16.bits_per_sample, m12.bits_per_sample) == (16, 12)
     assert (m16.black_level, m12.black_level) == (4800.0, 300.0)
-    assert plain_tiff_pixels(dst.read_bytes()) is None  # the strip reader leaves 12-bit to tifffile
+    assert decode_frame(dst.read_bytes(), dst)[1] == 12  # the BitsPerSample from the decode's own parse
     dn16, dn12 = read_raw(src), read_raw(dst)
     assert dn12.dtype == np.uint16 and int(dn12.max()) == 4095
     np.testing.assert_array_equal(dn12, dn16 >> 4)
