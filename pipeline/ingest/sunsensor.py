@@ -42,6 +42,7 @@ the factory reader does not understand give their raw XMP ``Irradiance``.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -322,9 +323,10 @@ def band_factor(meta: CaptureMeta) -> float | None:
 SUN_SENSOR_MODEL = "horizontal"
 #: The attribute's name on ``capture_irradiance``.
 SUN_SENSOR_MODEL_ATTR = "sun_sensor_model"
-#: The values earlier mscal versions wrote for :data:`SUN_SENSOR_MODEL` (the same levels, the
-#: same computation), read as it: part of the store format, not to be written again.
-SUN_SENSOR_MODEL_FORMER = ("horizontal (issue 22)",)
+#: Earlier mscal versions wrote :data:`SUN_SENSOR_MODEL` followed by a note in parentheses
+#: (the same levels, the same computation): a value of this form reads as it. Part of the store
+#: format, not to be written again.
+SUN_SENSOR_MODEL_FORMER = re.compile(r"horizontal \([^()]*\)")
 
 
 def stored_sun_sensor_model(attrs: Mapping[str, Any]) -> str | None:
@@ -334,7 +336,7 @@ def stored_sun_sensor_model(attrs: Mapping[str, Any]) -> str | None:
     model = attrs.get(SUN_SENSOR_MODEL_ATTR)
     if model is None:
         return None
-    return SUN_SENSOR_MODEL if str(model) in SUN_SENSOR_MODEL_FORMER else str(model)
+    return SUN_SENSOR_MODEL if SUN_SENSOR_MODEL_FORMER.fullmatch(str(model)) else str(model)
 
 
 @dataclass(frozen=True)

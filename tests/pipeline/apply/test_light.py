@@ -463,10 +463,15 @@ def test_calibrate_and_apply_levels_of_one_capture_agree(sun_flight) -> None:
     np.testing.assert_allclose(plan.level[0] / calib["capture_level"].values[0], old_bias, rtol=1e-12)
 
 
+#: The form of the value earlier versions wrote: the plain name and a note in parentheses.
+FORMER = "horizontal (see the release notes)"
+
+
 def test_store_with_the_former_sun_sensor_model_name_applies_as_before(sun_flight, tmp_path) -> None:
-    """Stores written before the attribute's plain name say ``sun_sensor_model = "horizontal
-    (issue 22)"``: written to disk with that value and read back, such a store gives the plan
-    of a store marked ``horizontal``, number for number, and the report names the same model."""
+    """Stores written before the attribute's plain name say ``horizontal`` followed by a note in
+    parentheses: written to disk with such a value and read back, the store gives the plan of a
+    store marked ``horizontal``, number for number, and the report names the same model; another
+    value is kept as it is."""
     from pipeline.apply.captures import capture_times
     from pipeline.apply.light import illumination_plan, sun_sensor_model
     from pipeline.products.report.sections import capture_level_table
@@ -475,10 +480,10 @@ def test_store_with_the_former_sun_sensor_model_name_applies_as_before(sun_fligh
     _, folder, captures, _, stores = sun_flight
     former = stores["horizontal"].copy()
     former["capture_irradiance"] = former["capture_irradiance"].copy()
-    former["capture_irradiance"].attrs["sun_sensor_model"] = "horizontal (issue 22)"
+    former["capture_irradiance"].attrs["sun_sensor_model"] = FORMER
     write_store(former, tmp_path / "former.zarr")
     read = open_calibration(tmp_path / "former.zarr")
-    assert read["capture_irradiance"].attrs["sun_sensor_model"] == "horizontal (issue 22)"  # as written
+    assert read["capture_irradiance"].attrs["sun_sensor_model"] == FORMER  # as written
     assert sun_sensor_model(read) == sun_sensor_model(stores["horizontal"]) == "horizontal"
     names, times = [c.name for c in captures], capture_times(captures)
     old = illumination_plan(read, names, times, folder, "linear", captures=captures)
