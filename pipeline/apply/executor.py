@@ -292,7 +292,7 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
             eq15_fast(dn[None], lut, inv_v, job.t, chain.sat,
                       None if job.scale is None else np.asarray(job.scale)[None], out=refl)
             if flagging is not None:
-                q = sensor_flags(flagging, chain.calibration, chain.sat, dn)
+                q = sensor_flags(flagging, chain.calibration, chain.sat, dn, refl[0])
             return refl[0], None, None, int(np.count_nonzero(dn >= chain.sat)), q
         # band files to sensor DN, each by what it stores (Camera.shift_for): a RedEdge's 16-bit
         # file by 4, its 12-bit file not at all; snapshot DN are sensor DN already
@@ -304,7 +304,7 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
         k = (np.ones(dn.shape[0]) if job.scale is None else np.asarray(job.scale, dtype=np.float64))
         eq15_fast(d[None], lut, inv_v, 1.0, chain.sat, (k / band_exposures(job.capture))[None], out=refl)
         if flagging is not None:
-            q = sensor_flags(flagging, chain.calibration, chain.sat, d)
+            q = sensor_flags(flagging, chain.calibration, chain.sat, d, refl[0])
         return refl[0], None, None, int(np.count_nonzero(d >= chain.sat)), q
     cap = job.capture
     if cap is None:

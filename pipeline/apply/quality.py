@@ -35,17 +35,6 @@ if TYPE_CHECKING:
 
 #: Flags the factory chain can check (no field store: no U uncertainty, sweep or V coverage).
 FACTORY_CHECKS = ("saturated", "not_coregistered", "no_value")
-#: At most this many per-frame warning lines (console summary, report), then "and N more".
-MAX_WARNINGS = 20
-#: What each flag's warning says of the pixels.
-WHAT = {
-    "saturated": "saturated (DN at the clip)",
-    "response_shoulder": "on the response's shoulder",
-    "outside_sweep": "outside the response sweep's DN range",
-    "vignetting_unobserved": "where no view observed the vignetting",
-    "not_coregistered": "of a band that failed the co-registration check",
-    "no_value": "without a value",
-}
 #: ``reflectance.zarr/quality``'s attributes (CF flag conventions).
 ATTRS = {
     "long_name": "quality of reflectance: 0 trusted, else the OR of the flags",
@@ -83,12 +72,14 @@ def run_flagging(products: Any, calib: Any = None) -> Flagging:
     return Flagging(float(products.shoulder_bound), bool(products.keep_flagged), checked)
 
 
-def sensor_flags(flagging: Flagging, calibration: Path, sat: int, dn: np.ndarray) -> np.ndarray:
+def sensor_flags(flagging: Flagging, calibration: Path, sat: int, dn: np.ndarray, refl: np.ndarray) -> np.ndarray:
     """A capture's mask on its sensor grid from its sensor DN (band, y, x) with the tables of a
-    field ``calibration`` (:func:`pipeline.apply.stores.quality_tables`); the factory chain's
-    is its saturated pixels (:func:`pipeline.apply.executor.radiometry`)."""
+    field ``calibration`` (:func:`pipeline.apply.stores.quality_tables`); ``refl``: its Eq. 15
+    reflectance, NaN wherever a flag is set unless flagged values are kept (then only its NaN
+    pixels are looked up). The factory chain's mask is its saturated pixels
+    (:func:`pipeline.apply.executor.radiometry`)."""
     dn_flags, pixel, _ = quality_tables(str(calibration), int(sat), flagging.bound)
-    return frame_flags(dn, dn_flags, pixel)
+    return frame_flags(dn, dn_flags, pixel, reflectance=None if flagging.keep_flagged else refl)
 
 
 def on_grid(plan: Plan, job: Job, q: np.ndarray) -> np.ndarray:
@@ -162,20 +153,3 @@ def quality_record(flagging: Flagging, frames: Mapping[str, Mapping[str, Mapping
                 row[flag] = row.get(flag, 0) + int(n)
     return {**flagging.record(), "totals": totals,
             "frames": {f: {b: dict(c) for b, c in bands.items()} for f, bands in frames.items() if bands}}
-
-
-def quality_warnings(run: Mapping[str, Any], limit: int = MAX_WARNINGS) -> list[str]:
-    """Lines naming each frame and band with flagged pixels (run.json ``quality``), at most
-    ``limit`` then ``and N more``: "frame IMG_0003, band 670 nm: 1,234 pixels on the
-    response's shoulder, set to NaN"."""
-    q = run.get("quality") or {}
-    kept = bool(q.get("keep_flagged"))
-    lines = []
-    for frame, bands in (q.get("frames") or {}).items():
-        for band, flags in bands.items():
-            for flag, n in flags.items():
-                fate = "NaN" if flag == "no_value" else "kept" if kept and flag != "saturated" else "set to NaN"
-                lines.append(f"frame {frame}, band {band}: {n:,} pixels {WHAT.get(flag, flag)}, {fate}")
-    if len(lines) > limit:
-        lines = lines[:limit] + [f"and {len(lines) - limit} more"]
-    return lines
