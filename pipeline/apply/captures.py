@@ -53,7 +53,7 @@ from pipeline.apply.options import (
     pass_geometry,
 )
 from pipeline.apply.products import remove_unchosen
-from pipeline.apply.quality import run_flagging
+from pipeline.apply.quality import checked, run_flagging
 from pipeline.apply.record import (
     RUN_JSON,
     forget_run,
@@ -405,7 +405,8 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
         outcomes=outcomes, frames_sha256={o.name: str(o.sha256) for o in outcomes}, quarantined=quarantined,
         metadata_problems=[p.as_dict() for c in captures for p in c.problems], outputs=outputs,
         products=run.products.record(indices), export=export, runner=runner, t_pass=t_pass, t_start=t_start,
-        fingerprint=json.loads(json.dumps(fingerprint)), parts=parts, flagging=run.chain.flagging)
+        fingerprint=json.loads(json.dumps(fingerprint)), parts=parts,
+        flagging=None if run.chain.flagging is None else checked(run.chain.flagging, plan))
     write_run_record(out, record)  # last: the completion marker
     return ApplyResult(out, record, up_to_date=False, quarantined=quarantined)
 

@@ -51,7 +51,7 @@ from pipeline.apply.options import (
     pass_geometry,
 )
 from pipeline.apply.products import remove_unchosen
-from pipeline.apply.quality import Flagging, run_flagging
+from pipeline.apply.quality import Flagging, checked, run_flagging
 from pipeline.apply.record import (
     forget_run,
     previous_run,
@@ -437,6 +437,6 @@ def _run_record(flight_dir: Path, calib_path: Path, chash: str, calib: xr.Datase
                  **({"photogrammetry": "photogrammetry/", "ndvi": "ndvi/"} if options.products.tiffs else {})},
         products=options.products.record(ps.plan.indices_made()), export=export, runner=runner,
         t_pass=t_pass, t_start=t_start, fingerprint=run_fingerprint(shas, chash, options, ps.illum),
-        flagging=ps.plan.chain.flagging,
+        flagging=None if ps.plan.chain.flagging is None else checked(ps.plan.chain.flagging, ps.plan),
         parts={"illumination": _illumination_record(ps, calib, options), "snapshot": {"single_pass": single}},
     )

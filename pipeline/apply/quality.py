@@ -19,7 +19,7 @@ grid, carried onto the outputs' grid by the same warps as the reflectance (:func
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
@@ -110,9 +110,30 @@ def on_grid(plan: Plan, job: Job, q: np.ndarray) -> np.ndarray:
     return out
 
 
+def coregistration_checked(plan: Plan) -> bool:
+    """Whether the pass checks its bands' co-registration: a multi-lens camera's captures
+    measured (``plan.coreg_reference``) whose bands the run puts on one grid (a registration
+    store, the files' own registration, image registration). Bands left on their own grids
+    (no alignment: ``--no-align``, or nothing to align with) make no claim to fail, and a
+    single-file camera is not measured."""
+    return plan.coreg_reference is not None and (plan.transforms is not None or plan.factory_alignment
+                                                 or plan.refine is not None)
+
+
+def checked(flagging: Flagging, plan: Plan) -> Flagging:
+    """``flagging`` with ``not_coregistered`` left out of its checked flags when the pass does
+    not check it (:func:`coregistration_checked`): run.json ``quality.checked``."""
+    if coregistration_checked(plan):
+        return flagging
+    return replace(flagging, checked=tuple(f for f in flagging.checked if f != "not_coregistered"))
+
+
 def not_coregistered(plan: Plan, residuals: Mapping[str, Any] | None) -> list[int]:
     """The bands of a measured capture further than the co-registration threshold from the
-    reference band after the alignment (run.json ``coregistration``)."""
+    reference band after the alignment (run.json ``coregistration``); none when the pass does
+    not check (:func:`coregistration_checked`)."""
+    if not coregistration_checked(plan):
+        return []
     shifts = (residuals or {}).get("residual_px") or {}
     names = [b.name for b in plan.camera.bands]
     return [names.index(n) for n, px in shifts.items() if px is not None and px > RESIDUAL_MAX_PX and n in names]

@@ -61,8 +61,10 @@ def frame_template(coords: dict[str, Any], shape: tuple[int, int, int], variable
 
 def quality_compressors() -> tuple:  # (zarr.codecs.BloscCodec,)
     """Codec of ``reflectance.zarr/quality``: Blosc lz4 level 1 on bit-shuffled uint8. The mask is
-    mostly zeros: written uncompressed it is a quarter of the reflectance chunk's bytes, and
-    the apply pass is bound by the bytes it writes (docs/benchmarks.md)."""
+    mostly zeros: uncompressed it is a quarter of the reflectance chunk's bytes (2.2 MB a
+    full-resolution snapshot frame), and the apply pass is bound by the bytes it writes; with
+    17 % of its pixels flagged the chunk took 62 KB for 0.8 ms of encoding. (The other
+    variables, ``vegetation_mask`` included, are uncompressed: ``OUTPUT_COMPRESSORS``.)"""
     from zarr.codecs import BloscCodec
 
     return (BloscCodec(cname="lz4", clevel=1, shuffle="bitshuffle", typesize=1),)

@@ -56,6 +56,16 @@ def test_default_run_writes_the_survey_set(micasense) -> None:
     assert sorted(p.name for p in (out / "ndvi").glob("*.tif")) == ["IMG_0001.tif"]  # IMG_0000 is the panel
     assert len(list((out / "photogrammetry").glob("*.tif"))) == 5 and len(list((out / "panels").glob("*.tif"))) == 5
     assert set(run["outputs"]) == {"reflectance", "raw", "photogrammetry", "panels", "ndvi"}
+    # the factory chain checks the flags it can without a field store (bands not aligned: no
+    # co-registration to fail); run.json counts the array's
+    assert run["quality"]["checked"] == ["saturated", "no_value"]
+    q = ds["quality"].values
+    names = [str(b) for b in ds["band_name"].values]
+    bits = run["quality"]["flags"]
+    want = {names[b]: {f: int(np.count_nonzero(q[:, b] & bit)) for f, bit in bits.items()
+                       if np.count_nonzero(q[:, b] & bit)} for b in range(q.shape[1])}
+    assert run["quality"]["totals"] == {b: c for b, c in want.items() if c}
+    assert np.array_equal(np.isnan(ds["reflectance"].values), q != 0)  # NaN: flagged (saturated or no value)
     # the factor from radiance to reflectance stays in run.json without the radiance cube
     assert run["radiance_factor"]["route"] == "panel-dls"
     assert set(run["illumination"]["per_frame"]["IMG_0001"]) == {"Blue", "Green", "Red", "NIR", "Red edge"}

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -14,7 +15,9 @@ import tifffile
 import xarray as xr
 
 from mscal_core.quality import FLAGS
-from pipeline.apply.quality import FACTORY_CHECKS
+from pipeline.apply.coregistration import RESIDUAL_MAX_PX
+from pipeline.apply.quality import FACTORY_CHECKS, Flagging, checked, finish, not_coregistered, on_grid
+from pipeline.apply.stores import geometry_step
 from pipeline.products.report.flight import MAX_FLAGGED_LINES
 from pipeline.run.cli import main
 from pipeline.run.console import report_warnings
@@ -83,7 +86,9 @@ def test_shoulder_pixels_get_their_bit_and_are_nan(flagged) -> None:
     # NaN exactly where flagged (nothing else is NaN in this flight)
     assert np.array_equal(np.isnan(refl), q != 0)
     run = _run(flagged["default"])["quality"]
-    assert run["checked"] == list(FLAGS) and run["bound"] == 0.03 and run["keep_flagged"] is False
+    # a snapshot camera's bands are not measured for co-registration: that flag is not checked
+    assert run["checked"] == [f for f in FLAGS if f != "not_coregistered"]
+    assert run["bound"] == 0.03 and run["keep_flagged"] is False
     assert run["flags"] == FLAGS
 
 
@@ -121,7 +126,7 @@ def test_a_store_without_the_optional_variables_applies_as_before(flagged) -> No
     assert not np.isnan(a).any()
     assert not plain["quality"].values.any()
     run = _run(flagged["plain"])["quality"]
-    assert run["checked"] == ["saturated", "not_coregistered", "no_value"] == list(FACTORY_CHECKS)
+    assert run["checked"] == ["saturated", "no_value"]
     assert run["totals"] == {} and run["frames"] == {}
 
 
@@ -151,3 +156,53 @@ def test_tiffs_carry_the_nan(flagged) -> None:
         b = names.index(path.stem.split("_", 2)[2])
         data = tifffile.imread(path)
         assert np.array_equal(data == 65535, q[0, b] != 0)  # uint16 TIFFs: NaN is 65535
+
+
+def _plan(**kw) -> SimpleNamespace:
+    bands = [SimpleNamespace(name=n) for n in ("blue", "green", "red")]
+    return SimpleNamespace(**{"camera": SimpleNamespace(bands=bands), "factory_alignment": False, "transforms": None,
+                              "band_shift": None, "refine": None, "coreg_reference": None, **kw})
+
+
+def test_a_band_that_failed_coregistration_is_flagged_whole_and_nan() -> None:
+    plan = _plan(coreg_reference=0, factory_alignment=True)  # aligned by the files' registration, measured
+    residuals = {"residual_px": {"blue": 0.4, "green": None, "red": RESIDUAL_MAX_PX + 0.5}}
+    assert not_coregistered(plan, residuals) == [2]
+    assert not_coregistered(plan, None) == []
+    # bands left on their own grids (no alignment), or not measured: nothing to fail
+    assert not_coregistered(_plan(coreg_reference=0), residuals) == []
+    assert checked(Flagging(checked=FACTORY_CHECKS), _plan(coreg_reference=0)).checked == ("saturated", "no_value")
+    assert checked(Flagging(checked=FACTORY_CHECKS), plan).checked == FACTORY_CHECKS
+    refl = np.ones((3, 4, 5), np.float32)
+    refl[0, 0, 0] = np.nan
+    q = np.zeros((3, 4, 5), np.uint8)
+    q[1, 1, 1] = FLAGS["response_shoulder"]  # kept: its value stays
+    out = finish(Flagging(keep_flagged=False), q.copy(), refl.copy(), [2], moved=False)
+    assert (out[2] == FLAGS["not_coregistered"]).all() and out[0, 0, 0] == FLAGS["no_value"]
+    assert out[1, 1, 1] == FLAGS["response_shoulder"] and np.count_nonzero(out) == 20 + 2
+    r = refl.copy()
+    finish(Flagging(keep_flagged=False), q.copy(), r, [2], moved=False)
+    assert np.isnan(r[2]).all() and np.isfinite(r[1]).all()  # the field tables made the shoulder NaN already
+    r = refl.copy()
+    finish(Flagging(keep_flagged=True), q.copy(), r, [2], moved=True)
+    assert np.isfinite(r[1:]).all()  # kept
+    r = refl.copy()
+    finish(Flagging(keep_flagged=False), q.copy(), r, [], moved=True)
+    assert np.isnan(r[1, 1, 1]) and np.count_nonzero(np.isnan(r)) == 2  # moved by the grid: NaN made here
+
+
+def test_the_mask_moves_with_the_bands(tmp_path) -> None:
+    """--centre-bands: each bit goes where the band's pixels go, flagged where a flagged pixel
+    contributes (as NaN spreads through the resampling)."""
+    plan = _plan(band_shift=((0.0, 0.0), (2.0, 0.0), (0.0, -1.0)))
+    job = SimpleNamespace(capture=None, name="IMG_0000")
+    q = np.zeros((3, 12, 12), np.uint8)
+    q[:, 6, 6] = FLAGS["response_shoulder"] | FLAGS["vignetting_unobserved"]
+    refl = np.where(q != 0, np.nan, 1.0).astype(np.float32)
+    moved = geometry_step(Path(), False, plan.band_shift, job.name, refl)
+    out = on_grid(plan, job, q)
+    assert set(np.unique(out)) == {0, FLAGS["response_shoulder"] | FLAGS["vignetting_unobserved"]}
+    assert out[0, 6, 6] and np.count_nonzero(out[0]) == 1  # not moved
+    assert np.array_equal(out != 0, np.isnan(moved) & (np.abs(np.arange(12) - 6)[None, :, None] < 4)
+                          & (np.abs(np.arange(12) - 6)[None, None, :] < 4))
+    assert out[1, 6, 8] and out[2, 5, 6] and not out[1, 6, 6]
