@@ -38,6 +38,7 @@ FACTORY_CHECKS = ("saturated", "not_coregistered", "no_value")
 #: ``reflectance.zarr/quality``'s attributes (CF flag conventions).
 ATTRS = {
     "long_name": "quality of reflectance: 0 trusted, else the OR of the flags",
+    "units": "1",
     "flag_masks": list(FLAGS.values()),
     "flag_meanings": " ".join(FLAGS),
     "description": "bits: 1 DN at or above the clip; 2 relative uncertainty of the response U at the DN above the "
