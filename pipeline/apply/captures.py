@@ -53,6 +53,7 @@ from pipeline.apply.options import (
     pass_geometry,
 )
 from pipeline.apply.products import remove_unchosen
+from pipeline.apply.quality import checked, run_flagging
 from pipeline.apply.record import (
     RUN_JSON,
     forget_run,
@@ -404,7 +405,8 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
         outcomes=outcomes, frames_sha256={o.name: str(o.sha256) for o in outcomes}, quarantined=quarantined,
         metadata_problems=[p.as_dict() for c in captures for p in c.problems], outputs=outputs,
         products=run.products.record(indices), export=export, runner=runner, t_pass=t_pass, t_start=t_start,
-        fingerprint=json.loads(json.dumps(fingerprint)), parts=parts)
+        fingerprint=json.loads(json.dumps(fingerprint)), parts=parts,
+        flagging=None if run.chain.flagging is None else checked(run.chain.flagging, plan))
     write_run_record(out, record)  # last: the completion marker
     return ApplyResult(out, record, up_to_date=False, quarantined=quarantined)
 
@@ -446,7 +448,8 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
     coords = {**capture_coords(camera, captures, run.irradiance_unit), **run.extra_coords(captures)}
     factory = isinstance(run.chain, FactoryChain)
     rvars = product_variables(indices, run.reflectance_name,
-                              radiance_unit=run.radiance_unit if factory and run.products.radiance else None)
+                              radiance_unit=run.radiance_unit if factory and run.products.radiance else None,
+                              quality=run.chain.flagging is not None)
     attrs = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__, **run.attrs}
     tmp_refl, tmp_raw = _tmp(out, "reflectance.zarr"), _tmp(out, "raw.zarr")
     refl_ds = frame_template(coords, shape, rvars, attrs)
@@ -511,7 +514,7 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     align, band_shift, reference = pass_geometry(calib, camera, options)
     if align:
         check_transforms(calib, camera.n_bands, v_shape, calib_path)
-    chain = FieldChain(calib_path, calibration_clip_dn(calib, camera))
+    chain = FieldChain(calib_path, calibration_clip_dn(calib, camera), run_flagging(options.products, calib))
     names = [c.name for c in captures]
     illum = illumination_plan(calib, names, capture_times(captures), folder, options.illumination, captures=captures)
     scales = {} if illum is None else {n: tuple(float(v) for v in illum.scale[f]) for f, n in enumerate(names)}

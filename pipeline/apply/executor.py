@@ -54,6 +54,7 @@ from pipeline.apply.execution import (
     worker_environment,
 )
 from pipeline.apply.frame_writes import WRITER_THREADS, FrameWrites  # noqa: F401  (WRITER_THREADS: re-exported)
+from pipeline.apply.quality import Flagging, counts, finish, not_coregistered, on_grid, sensor_flags
 from pipeline.apply.stores import calibration_tables, geometry_step, read_frame_chunk, warm_calibration, write_frame
 from pipeline.ingest.camera_meta import read_capture_meta
 from pipeline.ingest.cameras.dispatch import factory_radiance
@@ -101,6 +102,7 @@ class FieldChain:
 
     calibration: Path
     sat: int  # DN (the calibration's) from which a pixel is saturated
+    flagging: Flagging | None = None  # the quality mask (pipeline.apply.quality); None: none made
 
     kind = "field"
 
@@ -115,6 +117,7 @@ class FactoryChain:
     reference: str = "dls"  # panel | dls | none (radiance only)
     panel_factor: tuple[float, ...] | None = None
     field: tuple[str, tuple[str, ...]] | None = None  # (store, components) replacing the factory's
+    flagging: Flagging | None = None  # the quality mask (pipeline.apply.quality); None: none made
 
     kind = "factory"
 
@@ -236,6 +239,7 @@ class Outcome:
     no_reflectance: tuple[dict[str, str], ...] = ()  # bands written as radiance only, and why (missing_reflectance)
     thermal: tuple[dict[str, str], ...] = ()  # thermal bands written in kelvin (write_thermal), or why not
     coregistration: dict[str, Any] | None = None  # residual shifts of a measured capture (bandgrid.grid_residuals)
+    quality: dict[str, dict[str, int]] | None = None  # per band the pixels of each flag (pipeline.apply.quality)
 
 
 def capture_dn(plan: Plan, job: Job) -> tuple[np.ndarray, str | None, dict[Path, np.ndarray]]:
@@ -270,20 +274,26 @@ def _capture_files(capture: Capture, shape: tuple[int, int, int]) -> tuple[np.nd
 
 def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: np.ndarray,
                channels: dict[Path, np.ndarray] | None = None
-               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, int]:
-    """The chain on one capture's DN: ``(signal, factor, radiance, saturated pixels)``.
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, int, np.ndarray | None]:
+    """The chain on one capture's DN: ``(signal, factor, radiance, saturated pixels, quality)``.
     ``signal`` goes onto the common pixel grid before the per-band ``factor`` (None: 1);
     ``radiance`` (factory chain) is the signal kept as an output; ``channels``: the whole image
-    of each multi-channel band file (:func:`capture_dn`). FrameError: unusable."""
+    of each multi-channel band file (:func:`capture_dn`); ``quality``: the mask on the stored grid
+    (:mod:`pipeline.apply.quality`; None without ``chain.flagging``). FrameError: unusable."""
+    flagging = chain.flagging
     if isinstance(chain, FieldChain):
-        lut, inv_v = calibration_tables(str(chain.calibration))
+        lut, inv_v = calibration_tables(str(chain.calibration), None if flagging is None else
+                                        (chain.sat, flagging.bound, flagging.keep_flagged))
+        q = None
         # into a page-aligned array: its reflectance.zarr chunk goes to the device straight from
         # it (write_file), without an 8.9 MB copy per full-resolution snapshot frame
         refl = aligned_empty((1, *dn.shape), np.float32)
         if job.capture is None:
             eq15_fast(dn[None], lut, inv_v, job.t, chain.sat,
                       None if job.scale is None else np.asarray(job.scale)[None], out=refl)
-            return refl[0], None, None, int(np.count_nonzero(dn >= chain.sat))
+            if flagging is not None:
+                q = sensor_flags(flagging, chain.calibration, chain.sat, dn, refl[0])
+            return refl[0], None, None, int(np.count_nonzero(dn >= chain.sat)), q
         # band files to sensor DN, each by what it stores (Camera.shift_for): a RedEdge's 16-bit
         # file by 4, its 12-bit file not at all; snapshot DN are sensor DN already
         shifts = [camera.shift_for(m.bits_per_sample) for m in job.capture.metas]
@@ -293,7 +303,9 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
             d = np.stack([np.right_shift(dn[b], s) for b, s in enumerate(shifts)])
         k = (np.ones(dn.shape[0]) if job.scale is None else np.asarray(job.scale, dtype=np.float64))
         eq15_fast(d[None], lut, inv_v, 1.0, chain.sat, (k / band_exposures(job.capture))[None], out=refl)
-        return refl[0], None, None, int(np.count_nonzero(d >= chain.sat))
+        if flagging is not None:
+            q = sensor_flags(flagging, chain.calibration, chain.sat, d, refl[0])
+        return refl[0], None, None, int(np.count_nonzero(d >= chain.sat)), q
     cap = job.capture
     if cap is None:
         raise InputError("the factory chain needs the band files' own metadata (one-file-per-band captures)")
@@ -306,7 +318,8 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
     for b, meta in enumerate(cap.metas):  # each file clips at its own depth's top (12-bit: 4095)
         np.greater_equal(dn[b], meta.clipped_from(chain.sat), out=saturated[b])
     np.copyto(rad, np.float32(np.nan), where=saturated)
-    return rad, k, rad, int(np.count_nonzero(saturated))
+    q = None if flagging is None else saturated.view(np.uint8)  # FLAGS["saturated"] == 1
+    return rad, k, rad, int(np.count_nonzero(saturated)), q
 
 
 def capture_reflectance(camera: Camera, chain: FieldChain | FactoryChain, job: Job, transforms: Path | None = None,
@@ -315,7 +328,7 @@ def capture_reflectance(camera: Camera, chain: FieldChain | FactoryChain, job: J
     grid, before normalisation (a panel's region is measured on it); writes nothing."""
     assert job.capture is not None
     sha, dns, channels = read_capture_pixels(job.capture)
-    signal, factor, _, _ = radiometry(camera, chain, job, np.stack(dns), channels)
+    signal, factor, _, _, _ = radiometry(camera, chain, job, np.stack(dns), channels)
     if transforms is not None or band_shift is not None:
         signal = geometry_step(transforms or Path(), transforms is not None, band_shift, job.name, signal)
     signal = upright_meta(job.capture.metas[0], signal)
@@ -339,6 +352,7 @@ class _Writing:
     tags: FrameTags
     writes: FrameWrites
     coregistration: dict[str, Any] | None = None
+    quality: dict[str, dict[str, int]] | None = None
 
 
 #: At most this many frames of a task have their files on the way to disk while the next
@@ -401,24 +415,30 @@ def start_frame(plan: Plan, job: Job) -> Outcome | _Writing:
         prefetch_file(job.ahead)
     try:
         dn, sha, channels = capture_dn(plan, job)
-        signal, factor, radiance, saturated = radiometry(plan.camera, plan.chain, job, dn, channels)
+        signal, factor, radiance, saturated, q = radiometry(plan.camera, plan.chain, job, dn, channels)
+        stored = signal
         signal, residuals = grid_and_residuals(plan, job, signal)
+        if q is not None:
+            q = on_grid(plan, job, q)
     except FrameError as exc:
         return _quarantined(job, exc)
+    moved = signal is not stored
     if job.capture is not None:  # as meant to be seen, after the transforms (they belong to the stored frames)
         try:
             signal, dn = (np.ascontiguousarray(upright_meta(job.capture.metas[0], a)) for a in (signal, dn))
+            if q is not None:
+                q = np.ascontiguousarray(upright_meta(job.capture.metas[0], q))
         except FrameError as exc:
             return _quarantined(job, exc)
     if radiance is not None:  # an output only when chosen (--products radiance)
         radiance = signal if "radiance" in plan.outputs else None
     writes = FrameWrites()
     try:
-        tags = _write_products(plan, job, dn, sha, signal, factor, radiance, writes)
+        tags, flagged = _write_products(plan, job, dn, sha, signal, factor, radiance, writes, (q, residuals, moved))
     except BaseException:
         writes.wait(raise_errors=False)  # nothing of this frame is left writing behind the error
         raise
-    return _Writing(job, sha, saturated, tags, writes, residuals)
+    return _Writing(job, sha, saturated, tags, writes, residuals, flagged)
 
 
 def finish_frame(plan: Plan, w: _Writing) -> Outcome:
@@ -428,15 +448,19 @@ def finish_frame(plan: Plan, w: _Writing) -> Outcome:
     job = w.job
     missing = () if job.capture is None else missing_reflectance(plan.chain, job.capture)
     return Outcome(job.name, w.sha256, w.saturated, no_reflectance=missing, thermal=write_thermal(plan, job, w.tags),
-                   coregistration=w.coregistration)
+                   coregistration=w.coregistration, quality=w.quality)
 
 
 def _write_products(plan: Plan, job: Job, dn: np.ndarray, sha: str | None, signal: np.ndarray,
-                    factor: np.ndarray | None, radiance: np.ndarray | None, writes: FrameWrites) -> FrameTags:
+                    factor: np.ndarray | None, radiance: np.ndarray | None, writes: FrameWrites,
+                    quality: tuple[np.ndarray | None, dict[str, Any] | None, bool] = (None, None, False)
+                    ) -> tuple[FrameTags, dict[str, dict[str, int]] | None]:
     """:func:`start_frame`'s outputs of one capture: the raw chunk (a new capture), radiance,
-    reflectance (``signal`` times ``factor``, normalised, in place), indices, mask, TIFFs.
+    reflectance (``signal`` times ``factor``, normalised, in place), its quality mask
+    (``quality``: the mask on the grid, the capture's residuals, whether the grid moved its
+    pixels; :func:`pipeline.apply.quality.finish`), indices, mask, TIFFs.
     Chunks go to ``writes`` once nothing changes them; the TIFFs are made here meanwhile.
-    Returns the frame's tags (with its CaptureUUID)."""
+    Returns the frame's tags (with its CaptureUUID) and its flagged pixels per band and flag."""
     tags = job.tags
     if sha is not None:
         writes.submit(write_raw, plan, job.index, dn)
@@ -454,6 +478,13 @@ def _write_products(plan: Plan, job: Job, dn: np.ndarray, sha: str | None, signa
     elif kind == "band":
         med = np.nanmedian(refl[int(value)])
         refl *= np.float32(1.0 / med) if np.isfinite(med) and med > 0 else np.float32(np.nan)
+    q, residuals, moved = quality
+    flagged = None
+    if q is not None and plan.chain.flagging is not None:
+        q = finish(plan.chain.flagging, q, refl, not_coregistered(plan, residuals), moved)
+        flagged = counts(q, [b.name for b in plan.camera.bands])
+        if "quality" in plan.outputs:
+            writes.submit(write_frame, store / "quality", job.index, q)
     writes.submit(write_frame, store / "reflectance", job.index, refl)  # only read from here on
     ndvi = None
     for ix, roles in plan.indices:
@@ -468,7 +499,7 @@ def _write_products(plan: Plan, job: Job, dn: np.ndarray, sha: str | None, signa
                       band_tiff_parts(refl[b], tags, btags, dtype=plan.tiff_dtype))
     if ndvi is not None and not job.panel and plan.tiffs:
         writes.submit(write_tiff_file, plan.out / NDVI_DIR / f"{job.name}.tif", ndvi_tiff_parts(ndvi, tags))
-    return tags
+    return tags, flagged
 
 
 def write_thermal(plan: Plan, job: Job, tags: FrameTags) -> tuple[dict[str, str], ...]:

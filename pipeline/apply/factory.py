@@ -109,6 +109,7 @@ from pipeline.apply.panel_search import (
     seen_record,
 )
 from pipeline.apply.products import factor_record
+from pipeline.apply.quality import run_flagging
 from pipeline.apply.sun_check import SunCheck, sun_sensor_check
 from pipeline.apply.sunlight import (
     RATIO_RULES,
@@ -519,7 +520,7 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                               "no --panel-reflectance" for name in unused})
     run = CaptureRun(
         chain=FactoryChain(camera_clip_dn(camera), "panel" if reference == "panel-dls" else reference, panel_factor,
-                           None if field is None else field[:2]),
+                           None if field is None else field[:2], run_flagging(options.products)),
         calibration=FACTORY, calibration_sha256=None, fingerprint=fingerprint, attrs=attrs,
         reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
         execution=options.execution,

@@ -51,6 +51,7 @@ from pipeline.apply.options import (
     pass_geometry,
 )
 from pipeline.apply.products import remove_unchosen
+from pipeline.apply.quality import Flagging, checked, run_flagging
 from pipeline.apply.record import (
     forget_run,
     previous_run,
@@ -161,7 +162,7 @@ def output_template(coords: xr.Dataset, camera: Camera, shape: tuple[int, int, i
                         {"long_name": "sun-sensor irradiance of the frame (NaN: none)"}),
         )
         attrs.update(illumination_mode=illum.mode, illumination_captures=list(illum.captures))
-    variables = product_variables(indices, "reflectance (Eq. 15)", normalisation=options.normalise)
+    variables = product_variables(indices, "reflectance (Eq. 15)", normalisation=options.normalise, quality=True)
     return frame_template(out_coords, shape, variables, attrs)
 
 
@@ -192,7 +193,9 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
     tasks."""
     frames = [str(f) for f in coords["frame"].values]
     illum = illumination_plan(calib, frames, coords["time"].values, flight_dir, options.illumination)
-    panel_reflectance = _panel_from(frame_dn, _effective_exposure(coords), calib_path, sat, illum, frames, geometry)
+    flagging = run_flagging(options.products, calib)
+    panel_reflectance = _panel_from(frame_dn, _effective_exposure(coords), calib_path, sat, illum, frames, geometry,
+                                    flagging)
     norm = normalisation(options, camera, frames, panel_reflectance)
     ds = output_template(coords, camera, cube_shape, indices, options, illum)
     ds.attrs.update({"calibration_sha256": chash, "source": str(flight_dir)})
@@ -205,7 +208,7 @@ def _start_pass(out: Path, flight_dir: Path, coords: xr.Dataset, cube_shape: tup
     create_store(ds, tmp_store, OUTPUT_COMPRESSORS)
     optics = snapshot_optics(camera, calib, tuple(cube_shape[1:]))
     plan = Plan(
-        camera=camera, chain=FieldChain(calib_path, sat), raw_dn=raw_dn, cube_shape=tuple(cube_shape),
+        camera=camera, chain=FieldChain(calib_path, sat, flagging), raw_dn=raw_dn, cube_shape=tuple(cube_shape),
         raw_medians=kept_medians(raw_dn.parent),
         out_store=tmp_store, outputs=tuple(str(v) for v in ds.data_vars), norm=norm,
         indices=tuple((ix, roles[ix.name]) for ix in indices),
@@ -228,11 +231,13 @@ def _effective_exposure(coords: xr.Dataset) -> np.ndarray:
 
 def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path: Path, sat: int,
                 illum: IlluminationPlan | None = None, names: Sequence[str] = (),
-                geometry: tuple = (False, None, None)) -> Callable[[int], np.ndarray]:
+                geometry: tuple = (False, None, None), flagging: Flagging | None = None
+                ) -> Callable[[int], np.ndarray]:
     """Eq. 15 reflectance of frame ``f`` (with its light) on the pixel grid of the
-    outputs (``geometry_step``)."""
+    outputs (``geometry_step``), NaN where the run's quality mask flags a pixel unless kept."""
     def reflectance(f: int) -> np.ndarray:
-        lut, inv_v = calibration_tables(str(calib_path))
+        lut, inv_v = calibration_tables(str(calib_path), None if flagging is None else
+                                        (sat, flagging.bound, flagging.keep_flagged))
         scale = None if illum is None else illum.scale[f][None]
         refl = eq15_fast(plan_dn(f)[None], lut, inv_v, float(t[f]), sat, scale)[0]
         align, band_shift, _ = geometry
@@ -432,5 +437,6 @@ def _run_record(flight_dir: Path, calib_path: Path, chash: str, calib: xr.Datase
                  **({"photogrammetry": "photogrammetry/", "ndvi": "ndvi/"} if options.products.tiffs else {})},
         products=options.products.record(ps.plan.indices_made()), export=export, runner=runner,
         t_pass=t_pass, t_start=t_start, fingerprint=run_fingerprint(shas, chash, options, ps.illum),
+        flagging=None if ps.plan.chain.flagging is None else checked(ps.plan.chain.flagging, ps.plan),
         parts={"illumination": _illumination_record(ps, calib, options), "snapshot": {"single_pass": single}},
     )

@@ -21,6 +21,7 @@ import xarray as xr
 from pipeline.apply.executor import Outcome, Runner, band_tiff_path
 from pipeline.apply.light import IlluminationPlan
 from pipeline.apply.options import ApplyOptions
+from pipeline.apply.quality import Flagging, quality_record
 from pipeline.ingest.catalog import Camera
 from pipeline.storage.atomic import outputs_manifest, sync_file_system, write_json_atomic
 from pipeline.storage.cache import code_digest
@@ -125,12 +126,13 @@ def run_record(*, flight: Path, camera: Camera, calibration: str, calibration_sh
                outcomes: Sequence[Outcome], frames_sha256: dict[str, str], quarantined: list[dict[str, str]],
                metadata_problems: Sequence[dict[str, Any]], outputs: dict[str, str], products: dict[str, Any],
                export: Sequence[int], runner: Runner, t_pass: float, t_start: float, fingerprint: dict[str, Any],
-               parts: dict[str, Any]) -> dict[str, Any]:
+               parts: dict[str, Any], flagging: Flagging | None = None) -> dict[str, Any]:
     """``run.json`` of every apply (SPEC.md, Outputs of apply), one schema for every camera: the
     common keys, the same in name and meaning whatever the camera, then ``parts``, the keys of
     one kind of input (a snapshot flight's ``snapshot``, a capture folder's, the factory
     chain's). ``t_pass``: seconds of the pass over the frames (ingest and Eq. 15: a capture is
-    read in its task); ``t_start``: ``time.perf_counter()`` when the apply began."""
+    read in its task); ``t_start``: ``time.perf_counter()`` when the apply began; ``flagging``:
+    the run's quality mask (run.json ``quality``, :func:`pipeline.apply.quality.quality_record`)."""
     frames = [o.name for o in outcomes]
     return {
         "flight": str(flight),
@@ -145,6 +147,7 @@ def run_record(*, flight: Path, camera: Camera, calibration: str, calibration_sh
         "metadata_problems": list(metadata_problems),
         "saturated_pixels": {"total": int(sum(o.saturated for o in outcomes)),
                              "per_frame": {o.name: int(o.saturated) for o in outcomes}},
+        **({} if flagging is None else {"quality": quality_record(flagging, {o.name: o.quality or {} for o in outcomes})}),
         "outputs": outputs,
         "products": products,
         "export_bands": [camera.bands[b].name for b in export],

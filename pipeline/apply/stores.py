@@ -14,6 +14,7 @@ from typing import Sequence
 import numpy as np
 import xarray as xr
 from mscal_core.alignment import align_bands, shift_bands
+from mscal_core.quality import dn_flag_table, mask_tables, pixel_flag_table
 from mscal_core.reflectance import eq15_tables
 
 from pipeline.calibrate.registration import frame_transforms
@@ -56,9 +57,54 @@ def read_frame_chunk(array: Path, f: int) -> np.ndarray:
     return fc.read(f) if fc is not None else np.asarray(_zarr_array(key)[f])
 
 
-def calibration_tables(calibration: str) -> tuple[np.ndarray, np.ndarray]:
-    """Eq. 15 tables of a calibration store, once per process and store."""
-    return _tables_of(_stamp(Path(calibration)))
+def calibration_tables(calibration: str, flags: tuple[int, float, bool] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 15 tables of a calibration store, once per process and store. ``flags``:
+    ``(saturation DN, bound, keep_flagged)`` of the quality mask (:func:`quality_tables`); unless
+    ``keep_flagged``, the tables are NaN where a DN or a pixel is flagged
+    (:func:`mscal_core.quality.mask_tables`)."""
+    key = _stamp(Path(calibration))
+    if flags is None or flags[2]:
+        return _tables_of(key)
+    return _masked_tables(key, *flags[:2])
+
+
+def quality_tables(calibration: str, sat: int, bound: float) -> tuple[np.ndarray, np.ndarray | None, tuple[str, ...]]:
+    """The quality mask's tables of a calibration store, once per process and store: per band
+    and DN (:func:`mscal_core.quality.dn_flag_table`), per band and pixel
+    (:func:`mscal_core.quality.pixel_flag_table`; None without ``vignetting_coverage``), and
+    the flags the store lets one check (its optional ``response_uncertainty``,
+    ``response_dn_range``, ``vignetting_coverage``)."""
+    return _quality_of(_stamp(Path(calibration)), int(sat), float(bound))
+
+
+def quality_checks(ds: xr.Dataset) -> tuple[str, ...]:
+    """The flags of the quality mask a calibration store lets one check (field chain): the
+    clip, no value and co-registration always, the others with the store's optional variables."""
+    out = ["saturated"]
+    for name, var in (("response_shoulder", "response_uncertainty"), ("outside_sweep", "response_dn_range"),
+                      ("vignetting_unobserved", "vignetting_coverage")):
+        if var in ds:
+            out.append(name)
+    return (*out, "not_coregistered", "no_value")
+
+
+@lru_cache(maxsize=2)
+def _quality_of(key: tuple[str, int], sat: int, bound: float) -> tuple[np.ndarray, np.ndarray | None, tuple[str, ...]]:
+    ds = _store_of(key)
+    n_bands, n_dn = ds["inverse_response"].shape
+    unc = ds["response_uncertainty"].values if "response_uncertainty" in ds else None
+    rng = ds["response_dn_range"].transpose("band", "end").sel(end=["low", "high"]).values \
+        if "response_dn_range" in ds else None
+    dn_flags = dn_flag_table(n_bands, n_dn, sat, unc, bound, rng)
+    pixel = pixel_flag_table(ds["vignetting_coverage"].values) if "vignetting_coverage" in ds else None
+    return dn_flags, pixel, quality_checks(ds)
+
+
+@lru_cache(maxsize=2)
+def _masked_tables(key: tuple[str, int], sat: int, bound: float) -> tuple[np.ndarray, np.ndarray]:
+    lut, inv_v = _tables_of(key)
+    dn_flags, pixel, _ = _quality_of(key, sat, bound)
+    return mask_tables(lut, inv_v, dn_flags, pixel)
 
 
 def loaded_calibrations() -> int:

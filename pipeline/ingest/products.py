@@ -10,10 +10,14 @@ and ``vegetation_mask``; ``raw.zarr``; the per-band photogrammetry TIFFs (``phot
 - further indices of ``catalogs/indices`` (``--indices ndre,...``); NDVI is always made when
   the camera's bands allow it;
 - and out of the TIFFs (``--no-tiffs``): an analytics-only run writes the two stores and
-  run.json.
+  run.json;
+- the values of flagged pixels (``--keep-flagged``): reflectance is NaN where
+  ``reflectance.zarr/quality`` flags a pixel unless kept (:mod:`pipeline.apply.quality`);
+  ``--shoulder-bound`` sets the relative uncertainty of the response above which a DN is on
+  its shoulder (default 0.03).
 
 A choice is given as a partial mapping ``{"radiance": bool, "indices": [names], "tiffs":
-bool}`` (any key may be missing): from the command line (:func:`cli_choice`) and from
+bool, "keep_flagged": bool, "shoulder_bound": float}`` (any key may be missing): from the command line (:func:`cli_choice`) and from
 ``session.yaml``'s ``products`` key (:func:`yaml_choice`); :func:`resolve` lays them over the
 defaults, the command line over session.yaml, key by key. The resolved :class:`Products` is
 part of the run's fingerprint (a different choice redoes the flight) and is recorded in
@@ -27,6 +31,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from mscal_core.errors import InputError, SessionError
+from mscal_core.quality import DEFAULT_BOUND
 
 from pipeline.ingest.catalog import Camera, Index, list_entries, load_index
 
@@ -35,7 +40,7 @@ OPT_IN = ("radiance",)
 #: The index always made (when the camera's bands allow it).
 BASE_INDEX = "ndvi"
 #: Keys of a products choice (session.yaml ``products``; run.json ``products``).
-CHOICE_KEYS = ("radiance", "indices", "tiffs")
+CHOICE_KEYS = ("radiance", "indices", "tiffs", "keep_flagged", "shoulder_bound")
 #: The word that clears a list option (``--products none``, ``--indices none``).
 NONE = "none"
 
@@ -62,17 +67,22 @@ def _index_names(names: Sequence[str], where: str) -> tuple[str, ...]:
 class Products:
     """The outputs a run writes beyond raw.zarr and reflectance (module docstring).
     ``indices``: the indices asked for, NDVI first (``()``: none at all, for the Python API
-    only); ``radiance``: the factory radiance cube; ``tiffs``: the per-frame TIFFs."""
+    only); ``radiance``: the factory radiance cube; ``tiffs``: the per-frame TIFFs;
+    ``keep_flagged``: the values of pixels the quality mask flags (else NaN);
+    ``shoulder_bound``: the relative uncertainty of U above which a DN is on the shoulder."""
 
     radiance: bool = False
     indices: tuple[str, ...] = (BASE_INDEX,)
     tiffs: bool = True
+    keep_flagged: bool = False
+    shoulder_bound: float = DEFAULT_BOUND
 
     def record(self, made: Sequence[Index] | None = None) -> dict[str, Any]:
         """run.json ``products``; ``made``: the indices written (NDVI is left out for a camera
         whose bands cannot make it), else those asked for."""
         names = list(self.indices) if made is None else [ix.name for ix in made]
-        return {"radiance": self.radiance, "indices": names, "tiffs": self.tiffs}
+        return {"radiance": self.radiance, "indices": names, "tiffs": self.tiffs, "keep_flagged": self.keep_flagged,
+                "shoulder_bound": self.shoulder_bound}
 
     def fingerprint(self) -> dict[str, Any]:
         """What a re-run compares: the choice as asked."""
@@ -82,11 +92,12 @@ class Products:
 DEFAULT = Products()
 
 
-def cli_choice(products: str | None = None, indices: str | None = None, tiffs: bool | None = None
-               ) -> dict[str, Any]:
+def cli_choice(products: str | None = None, indices: str | None = None, tiffs: bool | None = None,
+               keep_flagged: bool | None = None, shoulder_bound: float | None = None) -> dict[str, Any]:
     """The keys the command line gives (None: not given): ``--products radiance`` (comma
     list of :data:`OPT_IN`, ``none`` for none), ``--indices ndre,...`` (``none``: NDVI only),
-    ``--tiffs/--no-tiffs``. InputError for an unknown product or index."""
+    ``--tiffs/--no-tiffs``, ``--keep-flagged``, ``--shoulder-bound``. InputError for an unknown
+    product or index, or a bound that is not positive."""
     choice: dict[str, Any] = {}
     if products is not None:
         names = [p.strip() for p in products.split(",") if p.strip()]
@@ -102,6 +113,12 @@ def cli_choice(products: str | None = None, indices: str | None = None, tiffs: b
         choice["indices"] = list(_index_names([] if names == [NONE] else names, "--indices"))
     if tiffs is not None:
         choice["tiffs"] = bool(tiffs)
+    if keep_flagged:
+        choice["keep_flagged"] = True
+    if shoulder_bound is not None:
+        if not shoulder_bound > 0:
+            raise InputError(f"--shoulder-bound {shoulder_bound}: must be positive (a relative uncertainty, e.g. 0.03)")
+        choice["shoulder_bound"] = float(shoulder_bound)
     return choice
 
 
@@ -119,11 +136,17 @@ def yaml_choice(value: Any, path: str | Path) -> dict[str, Any]:
         raise SessionError(f"products: unknown key(s) {', '.join(unknown)}", path=path,
                            hint=f"allowed keys: {', '.join(CHOICE_KEYS)}")
     choice: dict[str, Any] = {}
-    for key in ("radiance", "tiffs"):
+    for key in ("radiance", "tiffs", "keep_flagged"):
         if key in value:
             if not isinstance(value[key], bool):
                 raise SessionError(f"products.{key} must be true or false, got {value[key]!r}", path=path)
             choice[key] = value[key]
+    if "shoulder_bound" in value:
+        bound = value["shoulder_bound"]
+        if isinstance(bound, bool) or not isinstance(bound, (int, float)) or not bound > 0:
+            raise SessionError(f"products.shoulder_bound must be a positive number, got {bound!r}", path=path,
+                               hint="e.g. shoulder_bound: 0.03 (relative uncertainty of the response)")
+        choice["shoulder_bound"] = float(bound)
     if "indices" in value:
         names = value["indices"]
         if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
@@ -144,7 +167,9 @@ def resolve(*choices: Mapping[str, Any] | None) -> Products:
         merged.update(choice or {})
     return Products(radiance=bool(merged.get("radiance", DEFAULT.radiance)),
                     indices=tuple(merged.get("indices", DEFAULT.indices)),
-                    tiffs=bool(merged.get("tiffs", DEFAULT.tiffs)))
+                    tiffs=bool(merged.get("tiffs", DEFAULT.tiffs)),
+                    keep_flagged=bool(merged.get("keep_flagged", DEFAULT.keep_flagged)),
+                    shoulder_bound=float(merged.get("shoulder_bound", DEFAULT.shoulder_bound)))
 
 
 def radiance_refused(products: Products, what: str) -> None:

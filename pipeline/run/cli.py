@@ -325,7 +325,8 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
           reference: str, camera: str | None, float32: bool, export_bands: str | None, strict: bool,
           illumination: str, no_align: bool, registration: Path | None, centre_bands: bool,
           field_calibration: Path | None, field_components: str | None, products: str | None, indices: str | None,
-          tiffs: bool | None, scheduler: str, workers: int, direct_io: bool) -> None:
+          tiffs: bool | None, scheduler: str, workers: int, direct_io: bool, keep_flagged: bool | None = None,
+          shoulder_bound: float | None = None) -> None:
     """Reflectance, indices and photogrammetry TIFFs for a FLIGHT folder of captures (one file
     per capture, or one file per band: IMG_0000_1.tif ..., SD-card trees included): Eq. 15 with
     a calibration store, or with --calibration factory the band files' own metadata."""
@@ -334,7 +335,7 @@ def apply(flight: Path, calibration: str, out: Path, normalise: str, panel: str 
     from pipeline.apply.execution import Execution, flight_size_hint, start_worker_server
     from pipeline.ingest.products import cli_choice, resolve
 
-    chosen = resolve(cli_choice(products, indices, tiffs))  # an unknown name fails before anything starts
+    chosen = resolve(cli_choice(products, indices, tiffs, keep_flagged, shoulder_bound))  # bad ones fail first
     execution = Execution(scheduler=scheduler, workers=workers, direct_io=direct_io)
     start_worker_server(execution, flight_size_hint(flight))  # its imports run beside this process's
 
@@ -605,7 +606,7 @@ def _logged(out: Any, command: str):  # a context manager
 def run(session: str, out: str, response_method: str, normalise: str, dask_address: str | None,
         cache_dir: str | None, work_dir: str | None, catalog_root: str | None,
         illumination: str, products: str | None, indices: str | None, tiffs: bool | None, scheduler: str,
-        workers: int, direct_io: bool) -> None:
+        workers: int, direct_io: bool, keep_flagged: bool | None = None, shoulder_bound: float | None = None) -> None:
     """The whole post-flight flow on Prefect's embedded server. SESSION is a field session
     (session.yaml with response/, vignetting/, reflector/): calibrate it (cached by content) and
     apply it to every SESSION/flights/<name>. Or SESSION is a flight folder as it comes off the
@@ -617,7 +618,7 @@ def run(session: str, out: str, response_method: str, normalise: str, dask_addre
     from pipeline.ingest.products import cli_choice
     from pipeline.run.runner import check_run_inputs
 
-    choice = cli_choice(products, indices, tiffs)
+    choice = cli_choice(products, indices, tiffs, keep_flagged, shoulder_bound)
     check_run_inputs(session, out, normalise=normalise, dask_address=dask_address, catalog_root=catalog_root,
                      illumination=illumination, cache_dir=cache_dir, products=choice)
     if cache_dir:
@@ -645,7 +646,8 @@ def run(session: str, out: str, response_method: str, normalise: str, dask_addre
 @click.option("--dask-address", default=None, help="tcp://HOST:PORT of a running 'dask scheduler'.")
 @products_options
 def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, once: bool, response_method: str,
-          dask_address: str | None, products: str | None, indices: str | None, tiffs: bool | None) -> None:
+          dask_address: str | None, products: str | None, indices: str | None, tiffs: bool | None,
+          keep_flagged: bool | None = None, shoulder_bound: float | None = None) -> None:
     """Process every complete session folder of an INBOX once, now and then on a cron schedule.
 
     A session folder is a field session or a flight folder as it comes off the camera's card (no
@@ -658,7 +660,7 @@ def serve(inbox_dir: Path, out_root: Path, cron: str, settle_seconds: float, onc
     from pipeline.ingest.products import cli_choice
     from pipeline.run.inbox import next_time, pending_sessions
 
-    choice = cli_choice(products, indices, tiffs)  # an unknown name fails before anything runs
+    choice = cli_choice(products, indices, tiffs, keep_flagged, shoulder_bound)  # bad ones fail before anything runs
 
     next_time(cron, datetime.now())  # a bad expression fails before anything runs
     pending_sessions(inbox_dir, out_root, settle_seconds)  # and so does a missing inbox

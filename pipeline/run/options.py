@@ -30,10 +30,20 @@ def execution_options(command: Any) -> Any:
 
 
 def products_options(command: Any) -> Any:
-    """``--products``, ``--indices``, ``--tiffs/--no-tiffs`` of apply, run and serve: which
-    outputs apply writes beyond raw.zarr and reflectance (:mod:`pipeline.ingest.products`,
-    docs/products.md). Each is None when not given: run and serve then take session.yaml's
-    ``products`` key for it, else the default."""
+    """``--products``, ``--indices``, ``--tiffs/--no-tiffs``, ``--keep-flagged``,
+    ``--shoulder-bound`` of apply, run and serve: which outputs apply writes beyond raw.zarr and
+    reflectance, and whether the pixels the quality mask flags keep their values
+    (:mod:`pipeline.ingest.products`, docs/products.md). Each is None when not given: run and
+    serve then take session.yaml's ``products`` key for it, else the default."""
+    command = click.option(
+        "--shoulder-bound", "shoulder_bound", type=float, default=None, metavar="REL",
+        help="Relative uncertainty of the response U (the calibration's response_uncertainty) above which a DN "
+             "is on the response's shoulder: flagged in reflectance.zarr/quality.  [default: 0.03]")(command)
+    command = click.option(
+        "--keep-flagged", "keep_flagged", is_flag=True, default=None,
+        help="Keep the reflectance of pixels reflectance.zarr/quality flags (the response's shoulder, outside "
+             "the sweep, vignetting unobserved, band not co-registered) instead of NaN; saturated pixels stay NaN.")(
+        command)
     command = click.option(
         "--tiffs/--no-tiffs", "tiffs", default=None,
         help="Write the per-frame TIFFs (photogrammetry/, panels/, thermal/, ndvi/), or not: an analytics-only run "

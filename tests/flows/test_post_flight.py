@@ -282,10 +282,10 @@ def test_products_of_a_run_follow_session_yaml_and_the_command_line(flow_session
     assert run["calibration_cached"] is True and run["fitted"] == []
     for name in FLIGHTS:
         flight = out / "flights" / name
-        assert run["flights"][name]["products"] == {"radiance": False, "indices": ["ndvi", "ndre"], "tiffs": False}
+        assert run["flights"][name]["products"] == {"radiance": False, "indices": ["ndvi", "ndre"], "tiffs": False, "keep_flagged": False, "shoulder_bound": 0.03}
         assert list(flight.rglob("*.tif")) == []
         ds, first = xr.open_zarr(flight / "reflectance.zarr"), xr.open_zarr(first_run / "flights" / name / "reflectance.zarr")
-        assert set(ds.data_vars) == {"reflectance", "ndvi", "ndre", "vegetation_mask"}
+        assert set(ds.data_vars) == {"reflectance", "quality", "ndvi", "ndre", "vegetation_mask"}
         for v in ("reflectance", "ndvi", "vegetation_mask"):
             np.testing.assert_array_equal(ds[v].values, first[v].values, err_msg=v)
     assert main(["-q", "run", str(session), "-o", str(out), "--tiffs"]) == 0

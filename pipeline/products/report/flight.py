@@ -214,9 +214,45 @@ def dn_outside_sweep(flight: FlightResults, calibration: xr.Dataset) -> tuple[fl
     return float(frac[b]), b
 
 
+#: At most this many per-frame lines on flagged pixels (:func:`flagged_pixels`), then "and N more".
+MAX_FLAGGED_LINES = 20
+#: What each flag of ``reflectance.zarr/quality`` (run.json ``quality``) warned of says of its
+#: pixels. Not warned of per frame: ``saturated`` (its own warning, ``saturated_fraction``) and
+#: ``no_value`` (it holds the borders the bands' alignment leaves on every frame).
+FLAGGED = {
+    "response_shoulder": "on the response's shoulder",
+    "outside_sweep": "outside the response sweep's DN range",
+    "vignetting_unobserved": "where no view observed the vignetting",
+    "not_coregistered": "of a band that failed the co-registration check",
+}
+
+
+def flagged_pixels(run: dict[str, Any], limit: int = MAX_FLAGGED_LINES) -> list[QAWarning]:
+    """One warning per frame, band and flag of :data:`FLAGGED` in run.json ``quality`` ("frame
+    IMG_0003, band 670: 1,234 pixels on the response's shoulder, set to NaN"), at most ``limit``
+    then one saying how many more; the value is the pixels."""
+    q = run.get("quality") or {}
+    kept = bool(q.get("keep_flagged"))
+    out = []
+    for frame, bands in (q.get("frames") or {}).items():
+        for band, flags in bands.items():
+            for flag, n in flags.items():
+                if flag in FLAGGED:
+                    out.append(QAWarning(f"flagged_{flag}", f"frame {frame}, band {band}: {int(n):,} pixels "
+                                                            f"{FLAGGED[flag]}, {'kept' if kept else 'set to NaN'}",
+                                         float(n), 0.0))
+    if len(out) > limit:
+        more = out[limit:]
+        out = out[:limit] + [QAWarning("flagged_more", f"and {len(more)} more frame/band/flag counts of flagged "
+                                                       "pixels (run.json quality.frames)",
+                                       float(sum(w.value for w in more)), 0.0)]
+    return out
+
+
 def flight_warnings(flight: FlightResults, calibration: xr.Dataset | None = None) -> list[QAWarning]:
     """Findings on one flight: quarantined frames, saturation, DN beyond the sweep,
-    frames whose exposure contradicts their brightness."""
+    frames whose exposure contradicts their brightness, pixels the quality mask flags
+    (:func:`flagged_pixels`)."""
     out: list[QAWarning] = []
     run = flight.run
     q = run.get("quarantined") or []
@@ -249,7 +285,7 @@ def flight_warnings(flight: FlightResults, calibration: xr.Dataset | None = None
                                  f"{len(bad)} frame(s) off the flight's exposure-normalised level by up to "
                                  f"{worst:.1f}x: {', '.join(bad[:5])}; check their exposure_ms and gain",
                                  worst, FRAME_LEVEL_RATIO_MAX))
-    return out
+    return out + flagged_pixels(run)
 
 
 # --------------------------------------------------------------------------- flight plots

@@ -58,7 +58,7 @@ def test_field_store_on_a_multilens_flight_is_eq15_per_band_file(field_run) -> N
     assert run["saturated_pixels"]["total"] == sum(
         int(np.count_nonzero(read_raw(require_data() / f"IMG_000{c}_{b}.tif") >= 65520)) for c in (0, 1) for b in range(1, 6))
     # one layout for all cameras: the same outputs as a snapshot flight (the default products)
-    assert set(ds.data_vars) == {"reflectance", "ndvi", "vegetation_mask"}
+    assert set(ds.data_vars) == {"reflectance", "quality", "ndvi", "vegetation_mask"}
     assert sorted(p.name for p in (field_run / "photogrammetry").glob("IMG_0001_*.tif")) == sorted(
         f"IMG_0001_{b.replace(' e', 'E')}.tif" for b in BANDS)  # "Red edge" -> RedEdge: no spaces
     assert sorted(p.name for p in (field_run / "ndvi").glob("*.tif")) == ["IMG_0000.tif", "IMG_0001.tif"]

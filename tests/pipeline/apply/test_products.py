@@ -18,7 +18,7 @@ from pipeline.run.cli import main
 from tests.micasense_data import require_data
 
 TIFF_DIRS = ("photogrammetry", "panels", "thermal", "ndvi")
-DEFAULT_VARS = {"reflectance", "ndvi", "vegetation_mask"}
+DEFAULT_VARS = {"reflectance", "quality", "ndvi", "vegetation_mask"}
 
 
 def _files(out: Path, top: tuple[str, ...]) -> dict[str, bytes]:
@@ -51,11 +51,21 @@ def test_default_run_writes_the_survey_set(micasense) -> None:
     ds = xr.open_zarr(out / "reflectance.zarr")
     assert set(ds.data_vars) == DEFAULT_VARS  # no radiance, no ndre
     run = _run(out)
-    assert run["products"] == {"radiance": False, "indices": ["ndvi"], "tiffs": True}
+    assert run["products"] == {"radiance": False, "indices": ["ndvi"], "tiffs": True, "keep_flagged": False, "shoulder_bound": 0.03}
     assert run["fingerprint"]["options"]["products"] == run["products"]
     assert sorted(p.name for p in (out / "ndvi").glob("*.tif")) == ["IMG_0001.tif"]  # IMG_0000 is the panel
     assert len(list((out / "photogrammetry").glob("*.tif"))) == 5 and len(list((out / "panels").glob("*.tif"))) == 5
     assert set(run["outputs"]) == {"reflectance", "raw", "photogrammetry", "panels", "ndvi"}
+    # the factory chain checks the flags it can without a field store (bands not aligned: no
+    # co-registration to fail); run.json counts the array's
+    assert run["quality"]["checked"] == ["saturated", "no_value"]
+    q = ds["quality"].values
+    names = [str(b) for b in ds["band_name"].values]
+    bits = run["quality"]["flags"]
+    want = {names[b]: {f: int(np.count_nonzero(q[:, b] & bit)) for f, bit in bits.items()
+                       if np.count_nonzero(q[:, b] & bit)} for b in range(q.shape[1])}
+    assert run["quality"]["totals"] == {b: c for b, c in want.items() if c}
+    assert np.array_equal(np.isnan(ds["reflectance"].values), q != 0)  # NaN: flagged (saturated or no value)
     # the factor from radiance to reflectance stays in run.json without the radiance cube
     assert run["radiance_factor"]["route"] == "panel-dls"
     assert set(run["illumination"]["per_frame"]["IMG_0001"]) == {"Blue", "Green", "Red", "NIR", "Red edge"}
@@ -77,7 +87,7 @@ def test_opt_in_products_add_files_and_change_none(micasense) -> None:
     ds = xr.open_zarr(b / "reflectance.zarr")
     assert set(ds.data_vars) == DEFAULT_VARS | {"radiance", "ndre"}
     run = _run(b)
-    assert run["products"] == {"radiance": True, "indices": ["ndvi", "ndre"], "tiffs": True}
+    assert run["products"] == {"radiance": True, "indices": ["ndvi", "ndre"], "tiffs": True, "keep_flagged": False, "shoulder_bound": 0.03}
     k = run["illumination"]["per_frame"]["IMG_0001"]
     refl, rad = ds["reflectance"].isel(frame=1).values, ds["radiance"].isel(frame=1).values
     for b_idx, band in enumerate(ds["band_name"].values):
@@ -93,7 +103,7 @@ def test_no_tiffs_writes_the_same_stores_and_no_tiff(micasense) -> None:
     assert list(lean.rglob("*.tif")) == []
     assert _chunks(a) == _chunks(lean)
     run = _run(lean)
-    assert run["products"] == {"radiance": False, "indices": ["ndvi"], "tiffs": False}
+    assert run["products"] == {"radiance": False, "indices": ["ndvi"], "tiffs": False, "keep_flagged": False, "shoulder_bound": 0.03}
     assert set(run["outputs"]) == {"reflectance", "raw"}
 
 
@@ -144,7 +154,7 @@ def test_snapshot_products(small, tmp_path, capsys) -> None:
     assert _chunks(a) == _chunks(b) == _chunks(lean) and len(_chunks(a)) > 0
     assert _files(a, TIFF_DIRS) == _files(b, TIFF_DIRS) and len(_files(a, TIFF_DIRS)) == 3 * 9  # 8 bands + NDVI
     assert list(lean.rglob("*.tif")) == [] and _run(lean)["products"]["tiffs"] is False
-    assert _run(b)["products"] == {"radiance": False, "indices": ["ndvi", "ndre"], "tiffs": True}
+    assert _run(b)["products"] == {"radiance": False, "indices": ["ndvi", "ndre"], "tiffs": True, "keep_flagged": False, "shoulder_bound": 0.03}
     assert main(["apply", str(flight), "--calibration", str(calib), "-o", str(tmp_path / "r"),
                  "--products", "radiance"]) == 2
     err = capsys.readouterr().err.strip()
@@ -164,12 +174,12 @@ def test_card_session_products_from_session_yaml_and_the_command_line(tmp_path) 
     for p in require_data().glob("IMG_000*_*.tif"):
         shutil.copy(p, card / p.name)
     (card / "session.yaml").write_text("products: {radiance: true, indices: [ndre], tiffs: false}\n")
-    assert check_products(card).record() == {"radiance": True, "indices": ["ndvi", "ndre"], "tiffs": False}
+    assert check_products(card).record() == {"radiance": True, "indices": ["ndvi", "ndre"], "tiffs": False, "keep_flagged": False, "shoulder_bound": 0.03}
     plan = plan_card_session(card)
     (flight,) = plan["flights"]
     out = tmp_path / "out"
     summary = apply_card(plan, flight["name"], str(out), products={"tiffs": True})
-    assert summary["products"] == {"radiance": True, "indices": ["ndvi", "ndre"], "tiffs": True}
+    assert summary["products"] == {"radiance": True, "indices": ["ndvi", "ndre"], "tiffs": True, "keep_flagged": False, "shoulder_bound": 0.03}
     assert set(xr.open_zarr(out / "reflectance.zarr").data_vars) == DEFAULT_VARS | {"radiance", "ndre"}
     assert len(list((out / "photogrammetry").glob("*.tif"))) == 5
     lean = tmp_path / "lean"

@@ -20,7 +20,8 @@ marker: {dictionary: DICT_4X4_50, id: 3, size_m: 0.1}
 
 
 def test_default_products_are_the_survey_set() -> None:
-    assert resolve().record() == {"radiance": False, "indices": ["ndvi"], "tiffs": True}
+    assert resolve().record() == {"radiance": False, "indices": ["ndvi"], "tiffs": True, "keep_flagged": False,
+                                  "shoulder_bound": 0.03}
     assert resolve() == Products()
 
 
@@ -29,6 +30,10 @@ def test_command_line_choice() -> None:
     assert cli_choice("radiance", "ndre", False) == {"radiance": True, "indices": ["ndvi", "ndre"], "tiffs": False}
     assert cli_choice("none", "none", True) == {"radiance": False, "indices": ["ndvi"], "tiffs": True}
     assert cli_choice(indices="ndre,ndvi,ndre") == {"indices": ["ndvi", "ndre"]}  # NDVI first, each once
+    assert cli_choice(keep_flagged=True, shoulder_bound=0.05) == {"keep_flagged": True, "shoulder_bound": 0.05}
+    assert cli_choice(keep_flagged=False) == {}  # the flag's absence is no choice: session.yaml's stands
+    with pytest.raises(InputError, match=r"--shoulder-bound -0.1: must be positive"):
+        cli_choice(shoulder_bound=-0.1)
     with pytest.raises(InputError, match=r"--products 'ndre': not an opt-in product \(opt-in products: radiance"):
         cli_choice("ndre")
     with pytest.raises(InputError, match=r"--indices: no index 'gndvi' in catalogs/indices \(available: ndre, ndvi;"):
@@ -41,12 +46,17 @@ def test_yaml_choice_is_strict(tmp_path) -> None:
     assert yaml_choice({"tiffs": False}, path) == {"tiffs": False}
     assert yaml_choice({"radiance": True, "indices": ["ndre"]}, path) == {"radiance": True,
                                                                            "indices": ["ndvi", "ndre"]}
-    bad = [({"extra": ["radiance"]}, "products: unknown key(s) extra (allowed keys: radiance, indices, tiffs)"),
+    assert yaml_choice({"keep_flagged": True, "shoulder_bound": 0.05}, path) == {"keep_flagged": True,
+                                                                                  "shoulder_bound": 0.05}
+    keys = "radiance, indices, tiffs, keep_flagged, shoulder_bound"
+    bad = [({"extra": ["radiance"]}, f"products: unknown key(s) extra (allowed keys: {keys})"),
+           ({"keep_flagged": "yes"}, "products.keep_flagged must be true or false, got 'yes'"),
+           ({"shoulder_bound": 0}, "products.shoulder_bound must be a positive number, got 0"),
            ({"tiffs": "no"}, "products.tiffs must be true or false, got 'no'"),
            ({"radiance": 1}, "products.radiance must be true or false, got 1"),
            ({"indices": "ndre"}, "products.indices must be a list of index names, got 'ndre'"),
            ({"indices": ["gndvi"]}, "products.indices: no index 'gndvi' in catalogs/indices"),
-           (["radiance"], "products must be a mapping of radiance, indices, tiffs")]
+           (["radiance"], f"products must be a mapping of {keys}")]
     for value, message in bad:
         with pytest.raises(SessionError) as err:
             yaml_choice(value, path)
@@ -55,10 +65,13 @@ def test_yaml_choice_is_strict(tmp_path) -> None:
 
 def test_command_line_wins_over_session_yaml_key_by_key() -> None:
     yaml = {"radiance": True, "indices": ["ndvi", "ndre"], "tiffs": False}
-    assert resolve(yaml, {}).record() == yaml
-    assert resolve(yaml, {"tiffs": True}).record() == {"radiance": True, "indices": ["ndvi", "ndre"], "tiffs": True}
+    assert resolve(yaml, {}).record() == {**yaml, "keep_flagged": False, "shoulder_bound": 0.03}
+    assert resolve(yaml, {"tiffs": True}).record() == {"radiance": True, "indices": ["ndvi", "ndre"], "tiffs": True,
+                                                       "keep_flagged": False, "shoulder_bound": 0.03}
+    assert resolve({"keep_flagged": True, "shoulder_bound": 0.05}, {"shoulder_bound": 0.1}).record() == {
+        "radiance": False, "indices": ["ndvi"], "tiffs": True, "keep_flagged": True, "shoulder_bound": 0.1}
     assert resolve(yaml, {"radiance": False, "indices": ["ndvi"]}).record() == {
-        "radiance": False, "indices": ["ndvi"], "tiffs": False}
+        "radiance": False, "indices": ["ndvi"], "tiffs": False, "keep_flagged": False, "shoulder_bound": 0.03}
 
 
 def _field_session(root: Path, products: str = "") -> Path:

@@ -1,0 +1,302 @@
+"""Per-pixel quality of Eq. 15 reflectance: which pixels to trust (no I/O).
+
+Eq. 15, ``R = U(I) / (t V S B)``, is only as good as its parts at each pixel: U where the
+response was fitted and is well determined, V where the vignetting was observed. A pixel whose
+DN lies on the response's shoulder (U steep and poorly determined near the clip), outside the
+DN range the response sweep covered, or where no view observed the vignetting, gets a value
+that nothing marks. This module gives each such pixel a bit of a uint8 mask (0 = trusted;
+:data:`FLAGS`), folded into tables the way :func:`mscal_core.reflectance.eq15_fast` folds
+saturation: a uint8 flag per band and DN (:func:`dn_flag_table`), a uint8 flag per band and
+pixel (:func:`pixel_flag_table`), NaN in the reflectance tables where flagged
+(:func:`mask_tables`), so a frame costs one uint8 lookup per pixel (:func:`frame_flags`).
+
+References
+----------
+.. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+       for Multispectral Cameras", IEEE International Conference on Robotics and
+       Automation (ICRA), 2017.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from .errors import InputError
+
+__all__ = [
+    "DEFAULT_BOUND", "FLAGS", "dn_flag_table", "flag_counts", "frame_flags", "mask_tables", "pixel_flag_table",
+]
+
+#: The bits of the quality mask, in bit order (CF ``flag_masks`` / ``flag_meanings``).
+FLAGS = {
+    "saturated": 1,  # DN >= the clip
+    "response_shoulder": 2,  # relative uncertainty of U(DN) above the bound
+    "outside_sweep": 4,  # DN outside the range the response sweep covered
+    "vignetting_unobserved": 8,  # no view observed V at the pixel
+    "not_coregistered": 16,  # the band failed the co-registration check of the frame
+    "no_value": 32,  # NaN for any other reason
+}
+
+#: :func:`frame_flags` looks up only the NaN pixels of a band when they are fewer than one in
+#: this many (a gather per NaN pixel costs several times a lookup of the whole band's pixel).
+SPARSE = 8
+
+#: Default bound on the relative uncertainty of U (``response_uncertainty``) above which a DN
+#: is on the response's shoulder.
+DEFAULT_BOUND = 0.03
+
+
+def dn_flag_table(n_bands: int, n_dn: int, saturation_dn: int, response_uncertainty: np.ndarray | None = None,
+                  bound: float = DEFAULT_BOUND, dn_range: np.ndarray | None = None) -> np.ndarray:
+    """Return the flags of every DN of every band: ``saturated``, ``response_shoulder``, ``outside_sweep``.
+
+    Parameters
+    ----------
+    n_bands : int
+        Bands.
+    n_dn : int
+        Entries of the response table (``2**bits``).
+    saturation_dn : int
+        DN at or above it are ``saturated`` (the rule of :func:`mscal_core.reflectance.eq15_fast`).
+    response_uncertainty : numpy.ndarray, optional
+        (n_bands, n_dn) relative uncertainty of U, NaN outside the fitted range; a DN whose
+        value is above ``bound`` is ``response_shoulder`` (NaN is not: ``dn_range`` says where
+        the fit is). None: not checked.
+    bound : float
+        Largest relative uncertainty of U that is trusted (> 0).
+    dn_range : numpy.ndarray, optional
+        (n_bands, 2) inclusive ``(low, high)`` DN the response sweep covered; a DN outside is
+        ``outside_sweep``. None: not checked.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 (n_bands, n_dn): the OR of the bits of :data:`FLAGS` that apply to band b at DN.
+
+    Raises
+    ------
+    InputError
+        For tables that do not have ``n_bands`` rows of ``n_dn`` entries, or a bound that is
+        not positive.
+
+    Notes
+    -----
+    U of Eq. 15 of [1]_, ``R = U(I) / (t V S B)``, enters the reflectance linearly, so its
+    relative uncertainty is that of R at the pixel: a bound on it is a bound on R's error from U.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
+    """
+    if not (np.isfinite(bound) and bound > 0):
+        raise InputError(f"the response uncertainty bound must be positive, got {bound!r}")
+    out = np.zeros((n_bands, n_dn), np.uint8)
+    out[:, max(0, min(int(saturation_dn), n_dn)):] |= FLAGS["saturated"]
+    if response_uncertainty is not None:
+        unc = np.asarray(response_uncertainty, dtype=np.float64)
+        if unc.shape != (n_bands, n_dn):
+            raise InputError(f"response uncertainty of shape {unc.shape} does not fit {n_bands} bands x {n_dn} DN")
+        with np.errstate(invalid="ignore"):
+            out[unc > bound] |= FLAGS["response_shoulder"]
+    if dn_range is not None:
+        rng = np.asarray(dn_range).reshape(-1, 2)
+        if rng.shape[0] != n_bands:
+            raise InputError(f"response DN range of shape {np.shape(dn_range)} does not fit {n_bands} bands")
+        dn = np.arange(n_dn)
+        out[(dn[None, :] < rng[:, :1]) | (dn[None, :] > rng[:, 1:])] |= FLAGS["outside_sweep"]
+    return out
+
+
+def pixel_flag_table(coverage: np.ndarray) -> np.ndarray:
+    """Return the ``vignetting_unobserved`` flag of every pixel of every band.
+
+    Parameters
+    ----------
+    coverage : numpy.ndarray
+        (n_bands, H, W) views that observed V at each pixel.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 (n_bands, H, W): ``FLAGS["vignetting_unobserved"]`` where ``coverage == 0``, else 0.
+
+    Notes
+    -----
+    V of Eq. 15 of [1]_ (fitted by Eq. 8-10) is interpolated or extrapolated where no view of
+    the reflector fell: R there rests on no measurement of V.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
+    """
+    c = np.asarray(coverage)
+    return np.where(c == 0, np.uint8(FLAGS["vignetting_unobserved"]), np.uint8(0)).astype(np.uint8)
+
+
+def mask_tables(lut: np.ndarray, inv_v: np.ndarray, dn_flags: np.ndarray, pixel_flags: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Return the tables of :func:`mscal_core.reflectance.eq15_tables` with NaN where flagged.
+
+    Parameters
+    ----------
+    lut : numpy.ndarray
+        (n_bands, n_dn) float32 ``U / S``.
+    inv_v : numpy.ndarray
+        (n_bands, H, W) float32 ``1 / V``.
+    dn_flags : numpy.ndarray
+        (n_bands, n_dn) uint8 of :func:`dn_flag_table`.
+    pixel_flags : numpy.ndarray, optional
+        (n_bands, H, W) uint8 of :func:`pixel_flag_table`; None: ``inv_v`` unchanged.
+
+    Returns
+    -------
+    lut : numpy.ndarray
+        float32 copy of ``lut``, NaN where ``dn_flags`` is not 0.
+    inv_v : numpy.ndarray
+        float32 copy of ``inv_v``, NaN where ``pixel_flags`` is not 0 (``inv_v`` itself when None).
+
+    Raises
+    ------
+    InputError
+        When the shapes do not fit.
+
+    Notes
+    -----
+    Eq. 15 of [1]_ as :func:`mscal_core.reflectance.eq15_fast` computes it,
+    ``R = lut[b][I] / t * inv_v[b]``: NaN in either factor makes R NaN, so the flagged pixels
+    are NaN at no extra cost per pixel.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
+    """
+    if np.shape(dn_flags) != np.shape(lut):
+        raise InputError(f"DN flags {np.shape(dn_flags)} do not fit the response table {np.shape(lut)}")
+    table = np.where(np.asarray(dn_flags) != 0, np.float32(np.nan), lut).astype(np.float32)
+    if pixel_flags is None:
+        return table, inv_v
+    if np.shape(pixel_flags) != np.shape(inv_v):
+        raise InputError(f"pixel flags {np.shape(pixel_flags)} do not fit the vignetting {np.shape(inv_v)}")
+    return table, np.where(np.asarray(pixel_flags) != 0, np.float32(np.nan), inv_v).astype(np.float32)
+
+
+def frame_flags(dn: np.ndarray, dn_flags: np.ndarray, pixel_flags: np.ndarray | None = None,
+                out: np.ndarray | None = None, reflectance: np.ndarray | None = None) -> np.ndarray:
+    """Return the quality mask of one frame: ``q[b] = dn_flags[b][I_b] | pixel_flags[b]``.
+
+    Parameters
+    ----------
+    dn : numpy.ndarray
+        (n_bands, H, W) unsigned integer DN, below ``dn_flags.shape[1]``.
+    dn_flags : numpy.ndarray
+        (n_bands, n_dn) uint8 of :func:`dn_flag_table`.
+    pixel_flags : numpy.ndarray, optional
+        (n_bands, H, W) uint8 of :func:`pixel_flag_table`; None: none.
+    out : numpy.ndarray, optional
+        C-contiguous uint8 array the shape of ``dn`` to write into.
+    reflectance : numpy.ndarray, optional
+        (n_bands, H, W) Eq. 15 of ``dn`` with the tables of :func:`mask_tables` (NaN wherever a
+        flag is set): in a band with few NaN pixels (fewer than one in :data:`SPARSE`) the
+        flags are looked up only there, 0 elsewhere (the same mask at a cost that follows the
+        NaN pixels). None: looked up everywhere.
+
+    Returns
+    -------
+    numpy.ndarray
+        uint8 (n_bands, H, W), ``out`` if given.
+
+    Raises
+    ------
+    InputError
+        For DN that are not unsigned integers (n_bands, H, W), DN beyond the table, or tables
+        that do not fit.
+
+    Notes
+    -----
+    One uint8 lookup per pixel (and an OR with the per-pixel flags): the flags of Eq. 15's U
+    and V of [1]_ per DN and per pixel, computed once per calibration.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
+    """
+    d = np.asarray(dn)
+    if d.ndim != 3 or not np.issubdtype(d.dtype, np.unsignedinteger) or d.shape[0] != dn_flags.shape[0]:
+        raise InputError(f"DN must be unsigned integers ({dn_flags.shape[0]}, H, W), got {d.dtype} {d.shape}")
+    if pixel_flags is not None and pixel_flags.shape != d.shape:
+        raise InputError(f"pixel flags {pixel_flags.shape} do not fit DN {d.shape}")
+    top = int(d.max(initial=0))
+    if top >= dn_flags.shape[1]:
+        raise InputError(f"DN {top} outside the flag table 0..{dn_flags.shape[1] - 1}",
+                         hint="is the calibration for this camera's bit depth?")
+    if reflectance is not None and np.shape(reflectance) != d.shape:
+        raise InputError(f"reflectance {np.shape(reflectance)} does not fit DN {d.shape}")
+    if out is None:
+        out = np.empty(d.shape, np.uint8)
+    for b in range(d.shape[0]):
+        pix = None if pixel_flags is None else pixel_flags[b]
+        if reflectance is None or not _sparse_lookup(d[b], dn_flags[b], pix, np.isnan(reflectance[b]), out[b]):
+            np.take(dn_flags[b], d[b], out=out[b], mode="clip")  # bounds checked above
+            if pix is not None:
+                np.bitwise_or(out[b], pix, out=out[b])
+    return out
+
+
+def _sparse_lookup(dn: np.ndarray, dn_flags: np.ndarray, pixel_flags: np.ndarray | None, nan: np.ndarray,
+                   out: np.ndarray) -> bool:
+    """Look one band's flags up at its ``nan`` pixels only (0 elsewhere) if they are few.
+
+    Few: fewer than one in :data:`SPARSE` (a gather per pixel costs several times a whole-band
+    lookup). Returns False, nothing written, otherwise.
+    """
+    n_nan = np.count_nonzero(nan)
+    if n_nan * SPARSE >= nan.size:
+        return False
+    out[...] = 0
+    if n_nan:
+        at = np.flatnonzero(nan)
+        flags = dn_flags[dn.ravel()[at]]
+        if pixel_flags is not None:
+            flags |= pixel_flags.ravel()[at]
+        out.ravel()[at] = flags
+    return True
+
+
+def flag_counts(quality: np.ndarray) -> list[dict[str, int]]:
+    """Return, per band, the pixels that carry each flag (flags of no pixel left out).
+
+    Parameters
+    ----------
+    quality : numpy.ndarray
+        (n_bands, H, W) uint8 mask of :data:`FLAGS` bits.
+
+    Returns
+    -------
+    list of dict
+        One ``{flag name: pixels}`` per band; a pixel with several bits counts under each.
+
+    Notes
+    -----
+    One histogram of the 256 values per band with a flagged pixel (OpenCV's ``calcHist``, 3-4x
+    numpy's ``bincount``), none for a band without.
+    """
+    q = np.ascontiguousarray(quality, dtype=np.uint8)
+    out: list[dict[str, int]] = []
+    for b in range(q.shape[0]):
+        if not np.count_nonzero(q[b]):
+            out.append({})
+            continue
+        hist = cv2.calcHist([q[b]], [0], None, [256], [0, 256]).ravel().astype(np.int64)
+        codes = np.nonzero(hist)[0]
+        counts = {name: int(hist[codes[(codes & bit) != 0]].sum()) for name, bit in FLAGS.items()}
+        out.append({k: v for k, v in counts.items() if v})
+    return out

@@ -1,0 +1,177 @@
+"""Which pixels of reflectance to trust: ``reflectance.zarr``'s ``quality`` mask, written by
+the apply pass with each frame, and run.json ``quality``.
+
+A bit per reason (:data:`mscal_core.quality.FLAGS`): ``saturated`` (DN at or above the clip),
+``response_shoulder`` (the calibration's ``response_uncertainty`` of U at the DN above the
+bound), ``outside_sweep`` (DN outside its ``response_dn_range``), ``vignetting_unobserved``
+(its ``vignetting_coverage`` is 0), ``not_coregistered`` (the band failed the co-registration
+check of a measured capture: :mod:`pipeline.apply.coregistration`), ``no_value`` (NaN for any
+other reason). The three store variables are optional: a store without them is applied as
+before and run.json ``quality.checked`` lists the flags that were checked. The factory chain
+checks ``saturated``, ``not_coregistered`` and ``no_value`` (the others need a field store).
+
+Flagged pixels are NaN unless the run keeps them (``--keep-flagged``, session.yaml
+``products: {keep_flagged: true}``); saturated pixels are NaN either way (no value to keep).
+The field chain folds the flags into its Eq. 15 tables
+(:func:`pipeline.apply.stores.calibration_tables`): no extra float work per pixel; the mask
+itself is one uint8 lookup per pixel (:func:`mscal_core.quality.frame_flags`) on the sensor
+grid, carried onto the outputs' grid by the same warps as the reflectance (:func:`on_grid`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Mapping, Sequence
+
+import numpy as np
+from mscal_core.quality import DEFAULT_BOUND, FLAGS, flag_counts, frame_flags
+
+from pipeline.apply.coregistration import RESIDUAL_MAX_PX
+from pipeline.apply.stores import geometry_step, quality_checks, quality_tables
+from pipeline.ingest.cameras.dji import factory_align
+
+if TYPE_CHECKING:
+    from pipeline.apply.executor import Job, Plan
+
+#: Flags the factory chain can check (no field store: no U uncertainty, sweep or V coverage).
+FACTORY_CHECKS = ("saturated", "not_coregistered", "no_value")
+#: ``reflectance.zarr/quality``'s attributes (CF flag conventions).
+ATTRS = {
+    "long_name": "quality of reflectance: 0 trusted, else the OR of the flags",
+    "units": "1",
+    "flag_masks": list(FLAGS.values()),
+    "flag_meanings": " ".join(FLAGS),
+    "description": "bits: 1 DN at or above the clip; 2 relative uncertainty of the response U at the DN above the "
+                   "bound (run.json quality.bound); 4 DN outside the response sweep's range; 8 vignetting observed "
+                   "by no view; 16 the band failed the frame's co-registration check; 32 NaN for any other reason. "
+                   "Flagged pixels are NaN in reflectance unless the run kept them (run.json quality.keep_flagged); "
+                   "run.json quality.checked lists the flags checked",
+}
+
+
+@dataclass(frozen=True)
+class Flagging:
+    """The quality mask of a run: the bound on U's relative uncertainty, whether flagged
+    values are kept, and the flags that can be checked."""
+
+    bound: float = DEFAULT_BOUND
+    keep_flagged: bool = False
+    checked: tuple[str, ...] = FACTORY_CHECKS
+
+    def record(self) -> dict[str, Any]:
+        """run.json ``quality``'s keys of the run (:func:`quality_record` adds the counts)."""
+        return {"bound": self.bound, "keep_flagged": self.keep_flagged, "checked": list(self.checked),
+                "flags": dict(FLAGS)}
+
+
+def run_flagging(products: Any, calib: Any = None) -> Flagging:
+    """The quality mask of a run of ``products`` (:class:`pipeline.ingest.products.Products`:
+    ``keep_flagged``, ``shoulder_bound``) with the field calibration ``calib`` (the flags its
+    optional variables let one check, :func:`pipeline.apply.stores.quality_checks`), or
+    without (None: the factory chain's flags)."""
+    checked = FACTORY_CHECKS if calib is None else quality_checks(calib)
+    return Flagging(float(products.shoulder_bound), bool(products.keep_flagged), checked)
+
+
+def sensor_flags(flagging: Flagging, calibration: Path, sat: int, dn: np.ndarray, refl: np.ndarray) -> np.ndarray:
+    """A capture's mask on its sensor grid from its sensor DN (band, y, x) with the tables of a
+    field ``calibration`` (:func:`pipeline.apply.stores.quality_tables`); ``refl``: its Eq. 15
+    reflectance, NaN wherever a flag is set unless flagged values are kept (then only its NaN
+    pixels are looked up). The factory chain's mask is its saturated pixels
+    (:func:`pipeline.apply.executor.radiometry`)."""
+    dn_flags, pixel, _ = quality_tables(str(calibration), int(sat), flagging.bound)
+    return frame_flags(dn, dn_flags, pixel, reflectance=None if flagging.keep_flagged else refl)
+
+
+def on_grid(plan: Plan, job: Job, q: np.ndarray) -> np.ndarray:
+    """The mask of a capture's stored grid on the outputs' grid: each bit carried by the warps
+    the reflectance takes (:func:`pipeline.apply.bandgrid.one_grid`), a pixel flagged where a
+    flagged pixel contributes to it (as NaN does). The image registration that refines a DJI
+    capture's own (``Plan.refine``) is not replayed: its bits follow the files' registration."""
+    moves = (plan.factory_alignment and job.capture is not None) or plan.transforms is not None \
+        or plan.band_shift is not None
+    if not moves or not q.any():
+        return q
+
+    def warp(stack: np.ndarray) -> np.ndarray:
+        if plan.factory_alignment and job.capture is not None:
+            stack = factory_align(job.capture.metas, stack)
+        if plan.transforms is not None or plan.band_shift is not None:
+            stack = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift,
+                                  job.name, stack)
+        return stack
+
+    out = np.zeros(q.shape, np.uint8)
+    for bit in FLAGS.values():
+        has = np.bitwise_and(q, bit)
+        if not has.any():
+            continue
+        with np.errstate(invalid="ignore"):
+            out[warp(has.astype(np.float32)) > 1e-3 * bit] |= bit
+    return out
+
+
+def coregistration_checked(plan: Plan) -> bool:
+    """Whether the pass checks its bands' co-registration: a multi-lens camera's captures
+    measured (``plan.coreg_reference``) whose bands the run puts on one grid (a registration
+    store, the files' own registration, image registration). Bands left on their own grids
+    (no alignment: ``--no-align``, or nothing to align with) make no claim to fail, and a
+    single-file camera is not measured."""
+    return plan.coreg_reference is not None and (plan.transforms is not None or plan.factory_alignment
+                                                 or plan.refine is not None)
+
+
+def checked(flagging: Flagging, plan: Plan) -> Flagging:
+    """``flagging`` with ``not_coregistered`` left out of its checked flags when the pass does
+    not check it (:func:`coregistration_checked`): run.json ``quality.checked``."""
+    if coregistration_checked(plan):
+        return flagging
+    return replace(flagging, checked=tuple(f for f in flagging.checked if f != "not_coregistered"))
+
+
+def not_coregistered(plan: Plan, residuals: Mapping[str, Any] | None) -> list[int]:
+    """The bands of a measured capture further than the co-registration threshold from the
+    reference band after the alignment (run.json ``coregistration``); none when the pass does
+    not check (:func:`coregistration_checked`)."""
+    if not coregistration_checked(plan):
+        return []
+    shifts = (residuals or {}).get("residual_px") or {}
+    names = [b.name for b in plan.camera.bands]
+    return [names.index(n) for n, px in shifts.items() if px is not None and px > RESIDUAL_MAX_PX and n in names]
+
+
+def finish(flagging: Flagging, q: np.ndarray, refl: np.ndarray, bad_bands: Sequence[int], moved: bool
+           ) -> np.ndarray:
+    """The frame's mask with ``not_coregistered`` on ``bad_bands`` and ``no_value`` where the
+    reflectance is NaN and nothing else is flagged; unless flagged values are kept, every
+    flagged pixel of ``refl`` NaN (in place; already so for the field chain's flags unless the
+    grid ``moved`` them)."""
+    for b in bad_bands:
+        q[b] |= FLAGS["not_coregistered"]
+        if not flagging.keep_flagged:
+            refl[b] = np.nan
+    if moved and not flagging.keep_flagged and q.any():
+        refl[q != 0] = np.nan
+    nan = np.isnan(refl)
+    if nan.any():
+        nan &= q == 0
+        q[nan] = FLAGS["no_value"]
+    return q
+
+
+def counts(q: np.ndarray, band_names: Sequence[str]) -> dict[str, dict[str, int]]:
+    """Per band the pixels of each flag, bands and flags without any left out (an Outcome's)."""
+    return {n: c for n, c in zip(band_names, flag_counts(q)) if c}
+
+
+def quality_record(flagging: Flagging, frames: Mapping[str, Mapping[str, Mapping[str, int]]]) -> dict[str, Any]:
+    """run.json ``quality``: the run's keys (:meth:`Flagging.record`), the totals per band and
+    flag, and per frame the counts of its flagged bands; zero counts left out."""
+    totals: dict[str, dict[str, int]] = {}
+    for bands in frames.values():
+        for band, flags in bands.items():
+            row = totals.setdefault(band, {})
+            for flag, n in flags.items():
+                row[flag] = row.get(flag, 0) + int(n)
+    return {**flagging.record(), "totals": totals,
+            "frames": {f: {b: dict(c) for b, c in bands.items()} for f, bands in frames.items() if bands}}

@@ -1,0 +1,75 @@
+"""Per-pixel quality flags of Eq. 15 (mscal_core.quality): the tables, their fold into the
+reflectance tables, one frame's mask and its counts."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mscal_core.errors import InputError
+from mscal_core.quality import FLAGS, dn_flag_table, flag_counts, frame_flags, mask_tables, pixel_flag_table
+from mscal_core.reflectance import eq15_fast, eq15_tables
+
+SAT, SHOULDER, OUT, UNSEEN = (FLAGS[k] for k in ("saturated", "response_shoulder", "outside_sweep",
+                                                  "vignetting_unobserved"))
+
+
+def _uncertainty(n_bands: int = 2, n_dn: int = 16) -> np.ndarray:
+    unc = np.full((n_bands, n_dn), 0.01)
+    unc[:, 12:] = 0.05  # the shoulder below the clip
+    unc[1, 10] = 0.031  # just above the bound
+    unc[:, :2] = np.nan  # outside the fit: no uncertainty, not a shoulder
+    return unc
+
+
+def test_dn_flag_table_sets_each_bit_where_its_rule_says() -> None:
+    t = dn_flag_table(2, 16, 15, _uncertainty(), 0.03, np.array([[2, 13], [3, 14]]))
+    assert t.dtype == np.uint8 and t.shape == (2, 16)
+    assert t[0].tolist() == [OUT, OUT, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, SHOULDER, SHOULDER, SHOULDER | OUT,
+                             SAT | SHOULDER | OUT]
+    assert t[1, 10] == SHOULDER and t[1, 2] == OUT and t[1, 14] == SHOULDER and t[1, 15] == SAT | SHOULDER | OUT
+    # a looser bound: 0.031 trusted, 0.05 not
+    assert dn_flag_table(2, 16, 15, _uncertainty(), 0.04)[1, 10] == 0
+    # without the optional tables only the clip is checked
+    assert np.flatnonzero(dn_flag_table(1, 16, 14)[0]).tolist() == [14, 15]
+
+
+def test_dn_flag_table_refuses_what_does_not_fit() -> None:
+    with pytest.raises(InputError, match="does not fit 2 bands x 16 DN"):
+        dn_flag_table(2, 16, 15, np.zeros((2, 8)))
+    with pytest.raises(InputError, match="bound must be positive"):
+        dn_flag_table(2, 16, 15, _uncertainty(), 0.0)
+    with pytest.raises(InputError, match="does not fit 2 bands"):
+        dn_flag_table(2, 16, 15, dn_range=np.array([[1, 2]]))
+
+
+def test_masked_tables_give_eq15_with_nan_where_flagged() -> None:
+    rng = np.random.default_rng(3)
+    u = np.cumsum(rng.uniform(0.5, 1.0, (2, 16)), axis=1)
+    v = rng.uniform(0.5, 1.0, (2, 5, 6))
+    s = np.array([2.0, 4.0])
+    cov = np.ones((2, 5, 6), np.uint16)
+    cov[1, 0, :3] = 0
+    lut, inv_v = eq15_tables(u, v, s)
+    dn_flags = dn_flag_table(2, 16, 15, _uncertainty(), 0.03, np.array([[2, 13], [3, 14]]))
+    pixel = pixel_flag_table(cov)
+    assert pixel.dtype == np.uint8 and pixel.sum() == 3 * UNSEEN
+    mlut, minv = mask_tables(lut, inv_v, dn_flags, pixel)
+    dn = rng.integers(0, 16, (1, 2, 5, 6)).astype(np.uint16)
+    plain = eq15_fast(dn, lut, inv_v, 2.0, 15)[0]
+    masked = eq15_fast(dn, mlut, minv, 2.0, 15)[0]
+    q = frame_flags(dn[0], dn_flags, pixel)
+    assert np.array_equal(np.isnan(masked), q != 0)  # NaN exactly where flagged
+    assert np.array_equal(masked[q == 0], plain[q == 0])  # and the unflagged values unchanged
+    # looking up only the NaN pixels gives the same mask
+    assert np.array_equal(frame_flags(dn[0], dn_flags, pixel, reflectance=masked), q)
+    with pytest.raises(InputError, match="outside the flag table"):
+        frame_flags(np.full((2, 5, 6), 16, np.uint16), dn_flags, pixel)
+
+
+def test_flag_counts_count_each_bit_per_band() -> None:
+    q = np.zeros((3, 4, 5), np.uint8)
+    q[0, 0, :3] = SHOULDER
+    q[0, 1, 0] = SHOULDER | UNSEEN
+    q[2, 3, :] = FLAGS["no_value"]
+    assert flag_counts(q) == [{"response_shoulder": 4, "vignetting_unobserved": 1}, {}, {"no_value": 5}]

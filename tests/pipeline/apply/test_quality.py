@@ -1,0 +1,208 @@
+"""reflectance.zarr's ``quality`` mask (pipeline.apply.quality): a flight whose pixels reach the
+response's shoulder gets the bits, NaN by default and its values with --keep-flagged, per-frame
+warnings naming the band, run.json counts equal to the array's; a store without the optional
+variables applies as before and says which flags it checked."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import tifffile
+import xarray as xr
+
+from mscal_core.quality import FLAGS
+from pipeline.apply.coregistration import RESIDUAL_MAX_PX
+from pipeline.apply.quality import FACTORY_CHECKS, Flagging, checked, finish, not_coregistered, on_grid
+from pipeline.apply.stores import geometry_step
+from pipeline.products.report.flight import MAX_FLAGGED_LINES
+from pipeline.run.cli import main
+from pipeline.run.console import report_warnings
+
+SHOULDER_FROM = 400  # DN from which U's relative uncertainty passes 0.03 (0.01 + 1e-3 per DN above 400)
+LOW = 50  # the sweep's lowest DN
+
+
+def _with_quality_variables(calib: Path, dst: Path) -> Path:
+    """The calibration store with ``response_uncertainty``, ``response_dn_range`` and
+    ``vignetting_coverage`` (as a calibration that writes them would: NaN outside the fit)."""
+    ds = xr.open_zarr(calib).load()
+    nb, ndn = ds.sizes["band"], ds.sizes["dn"]
+    dn = np.arange(ndn)
+    unc = np.where(dn < SHOULDER_FROM, 0.01, 0.01 + (dn - SHOULDER_FROM) * 1e-3)
+    unc = np.broadcast_to(unc, (nb, ndn)).astype(np.float32).copy()
+    unc[:, :LOW] = np.nan
+    ds["response_uncertainty"] = (("band", "dn"), unc)
+    ds["response_dn_range"] = (("band", "end"), np.tile(np.array([[LOW, ndn - 2]], np.int32), (nb, 1)))
+    ds = ds.assign_coords(end=["low", "high"])
+    cov = np.full(ds["vignetting"].shape, 3, np.uint16)
+    cov[:, :6, :10] = 0
+    ds["vignetting_coverage"] = (("band", "y", "x"), cov)
+    for v in ds.variables.values():
+        v.encoding = {}
+    ds.to_zarr(dst, mode="w", zarr_format=3, consolidated=True)
+    return dst
+
+
+@pytest.fixture(scope="module")
+def flagged(small, tmp_path_factory) -> dict[str, Path]:
+    """The small flight applied with the store of every variable (default and --keep-flagged)
+    and with the store as calibrate writes it today."""
+    session, calib = small
+    root = tmp_path_factory.mktemp("quality")
+    store = _with_quality_variables(calib, root / "calib_q.zarr")
+    flight = session / "flights" / "field"
+    outs = {"default": (store, []), "keep": (store, ["--keep-flagged"]), "plain": (calib, [])}
+    for name, (c, extra) in outs.items():
+        assert main(["-q", "apply", str(flight), "--calibration", str(c), "-o", str(root / name), *extra]) == 0
+    return {**{name: root / name for name in outs}, "store": store}
+
+
+def _run(out: Path) -> dict:
+    return json.loads((out / "run.json").read_text())
+
+
+def _counts(q: np.ndarray) -> dict[str, int]:
+    return {name: int(np.count_nonzero(q & bit)) for name, bit in FLAGS.items() if np.count_nonzero(q & bit)}
+
+
+def test_shoulder_pixels_get_their_bit_and_are_nan(flagged) -> None:
+    ds = xr.open_zarr(flagged["default"] / "reflectance.zarr")
+    raw = xr.open_zarr(flagged["default"] / "raw.zarr")["dn"].values
+    q, refl = ds["quality"].values, ds["reflectance"].values
+    assert q.dtype == np.uint8 and q.shape == refl.shape
+    assert ds["quality"].attrs["flag_masks"] == [1, 2, 4, 8, 16, 32]
+    assert ds["quality"].attrs["flag_meanings"].split() == list(FLAGS)
+    shoulder = (q & FLAGS["response_shoulder"]) != 0
+    # the bit follows the DN: above the bound from DN 421 on, below the clip
+    assert np.array_equal(shoulder, (raw > SHOULDER_FROM + 20) & (raw < 1023))
+    assert 1e-4 < shoulder.mean() < 0.2  # the flight reaches the shoulder, not everywhere
+    assert np.array_equal((q & FLAGS["outside_sweep"]) != 0, (raw < LOW) | (raw > 1022))
+    unseen = (q & FLAGS["vignetting_unobserved"]) != 0
+    assert unseen[:, :, :6, :10].all() and unseen.sum() == refl.shape[0] * refl.shape[1] * 60
+    # NaN exactly where flagged (nothing else is NaN in this flight)
+    assert np.array_equal(np.isnan(refl), q != 0)
+    run = _run(flagged["default"])["quality"]
+    # a snapshot camera's bands are not measured for co-registration: that flag is not checked
+    assert run["checked"] == [f for f in FLAGS if f != "not_coregistered"]
+    assert run["bound"] == 0.03 and run["keep_flagged"] is False
+    assert run["flags"] == FLAGS
+
+
+def test_run_json_counts_equal_the_array(flagged) -> None:
+    ds = xr.open_zarr(flagged["default"] / "reflectance.zarr")
+    q = ds["quality"].values
+    run = _run(flagged["default"])["quality"]
+    names = [str(b) for b in ds["band_name"].values]
+    for f, frame in enumerate(str(x) for x in ds["frame"].values):
+        want = {names[b]: c for b in range(q.shape[1]) if (c := _counts(q[f, b]))}
+        assert run["frames"][frame] == want
+    assert run["totals"] == {names[b]: _counts(q[:, b]) for b in range(q.shape[1]) if _counts(q[:, b])}
+
+
+def test_keep_flagged_keeps_the_values_and_redoes_the_flight(flagged) -> None:
+    keep = xr.open_zarr(flagged["keep"] / "reflectance.zarr")
+    plain = xr.open_zarr(flagged["plain"] / "reflectance.zarr")["reflectance"].values
+    q = keep["quality"].values
+    assert np.array_equal(q, xr.open_zarr(flagged["default"] / "reflectance.zarr")["quality"].values)
+    refl = keep["reflectance"].values
+    assert np.isfinite(refl[q != 0]).all()  # nothing saturated in this flight: every flagged value kept
+    np.testing.assert_array_equal(refl, plain)  # what the store without the flags gives
+    run = _run(flagged["keep"])
+    assert run["quality"]["keep_flagged"] is True and run["products"]["keep_flagged"] is True
+    assert run["fingerprint"] != _run(flagged["default"])["fingerprint"]
+    assert run["fingerprint"]["options"]["products"]["keep_flagged"] is True
+
+
+def test_a_store_without_the_optional_variables_applies_as_before(flagged) -> None:
+    plain = xr.open_zarr(flagged["plain"] / "reflectance.zarr")
+    default = xr.open_zarr(flagged["default"] / "reflectance.zarr")
+    q = default["quality"].values
+    a, b = plain["reflectance"].values, default["reflectance"].values
+    np.testing.assert_array_equal(a[q == 0], b[q == 0])  # unflagged pixels: the same reflectance
+    assert not np.isnan(a).any()
+    assert not plain["quality"].values.any()
+    run = _run(flagged["plain"])["quality"]
+    assert run["checked"] == ["saturated", "no_value"]
+    assert run["totals"] == {} and run["frames"] == {}
+
+
+def test_warnings_name_frame_and_band(flagged) -> None:
+    warnings = report_warnings(flights=[flagged["default"]])
+    lines = [w["message"] for w in warnings if w["code"].startswith("flagged_")]
+    run = _run(flagged["default"])["quality"]
+    frame = next(iter(run["frames"]))
+    band, flags = next(iter(run["frames"][frame].items()))
+    n = flags.get("response_shoulder") or next(iter(flags.values()))
+    assert len(lines) == MAX_FLAGGED_LINES + 1 and lines[-1].startswith("and ")
+    shoulder = [m for m in lines if "on the response's shoulder, set to NaN" in m]
+    assert shoulder and shoulder[0].startswith("frame IMG_")
+    assert any(m.startswith(f"frame {frame}, band {band}: {n:,} pixels ") for m in lines)
+    kept = [w["message"] for w in report_warnings(flights=[flagged["keep"]]) if w["code"].startswith("flagged_")]
+    assert kept and all(m.endswith(", kept") for m in kept[:-1])
+    assert not [w for w in report_warnings(flights=[flagged["plain"]]) if w["code"].startswith("flagged_")]
+
+
+def test_tiffs_carry_the_nan(flagged) -> None:
+    ds = xr.open_zarr(flagged["default"] / "reflectance.zarr")
+    q = ds["quality"].values
+    names = [str(b) for b in ds["band_name"].values]
+    tiffs = sorted((flagged["default"] / "photogrammetry").glob("IMG_0000_*.tif"))
+    assert tiffs
+    for path in tiffs:
+        b = names.index(path.stem.split("_", 2)[2])
+        data = tifffile.imread(path)
+        assert np.array_equal(data == 65535, q[0, b] != 0)  # uint16 TIFFs: NaN is 65535
+
+
+def _plan(**kw) -> SimpleNamespace:
+    bands = [SimpleNamespace(name=n) for n in ("blue", "green", "red")]
+    return SimpleNamespace(**{"camera": SimpleNamespace(bands=bands), "factory_alignment": False, "transforms": None,
+                              "band_shift": None, "refine": None, "coreg_reference": None, **kw})
+
+
+def test_a_band_that_failed_coregistration_is_flagged_whole_and_nan() -> None:
+    plan = _plan(coreg_reference=0, factory_alignment=True)  # aligned by the files' registration, measured
+    residuals = {"residual_px": {"blue": 0.4, "green": None, "red": RESIDUAL_MAX_PX + 0.5}}
+    assert not_coregistered(plan, residuals) == [2]
+    assert not_coregistered(plan, None) == []
+    # bands left on their own grids (no alignment), or not measured: nothing to fail
+    assert not_coregistered(_plan(coreg_reference=0), residuals) == []
+    assert checked(Flagging(checked=FACTORY_CHECKS), _plan(coreg_reference=0)).checked == ("saturated", "no_value")
+    assert checked(Flagging(checked=FACTORY_CHECKS), plan).checked == FACTORY_CHECKS
+    refl = np.ones((3, 4, 5), np.float32)
+    refl[0, 0, 0] = np.nan
+    q = np.zeros((3, 4, 5), np.uint8)
+    q[1, 1, 1] = FLAGS["response_shoulder"]  # kept: its value stays
+    out = finish(Flagging(keep_flagged=False), q.copy(), refl.copy(), [2], moved=False)
+    assert (out[2] == FLAGS["not_coregistered"]).all() and out[0, 0, 0] == FLAGS["no_value"]
+    assert out[1, 1, 1] == FLAGS["response_shoulder"] and np.count_nonzero(out) == 20 + 2
+    r = refl.copy()
+    finish(Flagging(keep_flagged=False), q.copy(), r, [2], moved=False)
+    assert np.isnan(r[2]).all() and np.isfinite(r[1]).all()  # the field tables made the shoulder NaN already
+    r = refl.copy()
+    finish(Flagging(keep_flagged=True), q.copy(), r, [2], moved=True)
+    assert np.isfinite(r[1:]).all()  # kept
+    r = refl.copy()
+    finish(Flagging(keep_flagged=False), q.copy(), r, [], moved=True)
+    assert np.isnan(r[1, 1, 1]) and np.count_nonzero(np.isnan(r)) == 2  # moved by the grid: NaN made here
+
+
+def test_the_mask_moves_with_the_bands(tmp_path) -> None:
+    """--centre-bands: each bit goes where the band's pixels go, flagged where a flagged pixel
+    contributes (as NaN spreads through the resampling)."""
+    plan = _plan(band_shift=((0.0, 0.0), (2.0, 0.0), (0.0, -1.0)))
+    job = SimpleNamespace(capture=None, name="IMG_0000")
+    q = np.zeros((3, 12, 12), np.uint8)
+    q[:, 6, 6] = FLAGS["response_shoulder"] | FLAGS["vignetting_unobserved"]
+    refl = np.where(q != 0, np.nan, 1.0).astype(np.float32)
+    moved = geometry_step(Path(), False, plan.band_shift, job.name, refl)
+    out = on_grid(plan, job, q)
+    assert set(np.unique(out)) == {0, FLAGS["response_shoulder"] | FLAGS["vignetting_unobserved"]}
+    assert out[0, 6, 6] and np.count_nonzero(out[0]) == 1  # not moved
+    assert np.array_equal(out != 0, np.isnan(moved) & (np.abs(np.arange(12) - 6)[None, :, None] < 4)
+                          & (np.abs(np.arange(12) - 6)[None, None, :] < 4))
+    assert out[1, 6, 8] and out[2, 5, 6] and not out[1, 6, 6]
