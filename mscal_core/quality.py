@@ -26,6 +26,7 @@ from .errors import InputError
 
 __all__ = [
     "DEFAULT_BOUND", "FLAGS", "dn_flag_table", "flag_counts", "frame_flags", "mask_tables", "pixel_flag_table",
+    "shoulder_mask",
 ]
 
 #: The bits of the quality mask, in bit order (CF ``flag_masks`` / ``flag_meanings``).
@@ -60,9 +61,10 @@ def dn_flag_table(n_bands: int, n_dn: int, saturation_dn: int, response_uncertai
     saturation_dn : int
         DN at or above it are ``saturated`` (the rule of :func:`mscal_core.reflectance.eq15_fast`).
     response_uncertainty : numpy.ndarray, optional
-        (n_bands, n_dn) relative uncertainty of U, NaN outside the fitted range; a DN whose
-        value is above ``bound`` is ``response_shoulder`` (NaN is not: ``dn_range`` says where
-        the fit is). None: not checked.
+        (n_bands, n_dn) relative uncertainty of U, NaN outside the fitted range; a DN on the
+        response's upper branch whose value is above ``bound`` is ``response_shoulder``
+        (:func:`shoulder_mask`; NaN is not: ``dn_range`` says where the fit is). None: not
+        checked.
     bound : float
         Largest relative uncertainty of U that is trusted (> 0).
     dn_range : numpy.ndarray, optional
@@ -99,14 +101,59 @@ def dn_flag_table(n_bands: int, n_dn: int, saturation_dn: int, response_uncertai
         unc = np.asarray(response_uncertainty, dtype=np.float64)
         if unc.shape != (n_bands, n_dn):
             raise InputError(f"response uncertainty of shape {unc.shape} does not fit {n_bands} bands x {n_dn} DN")
-        with np.errstate(invalid="ignore"):
-            out[unc > bound] |= FLAGS["response_shoulder"]
+        out[shoulder_mask(unc, bound)] |= FLAGS["response_shoulder"]
     if dn_range is not None:
         rng = np.asarray(dn_range).reshape(-1, 2)
         if rng.shape[0] != n_bands:
             raise InputError(f"response DN range of shape {np.shape(dn_range)} does not fit {n_bands} bands")
         dn = np.arange(n_dn)
         out[(dn[None, :] < rng[:, :1]) | (dn[None, :] > rng[:, 1:])] |= FLAGS["outside_sweep"]
+    return out
+
+
+def shoulder_mask(response_uncertainty: np.ndarray, bound: float = DEFAULT_BOUND) -> np.ndarray:
+    """Return where each band's DN is on the response's shoulder.
+
+    A DN is on the shoulder when it lies above the DN of least relative uncertainty of U and
+    that uncertainty is above ``bound``.
+
+    Parameters
+    ----------
+    response_uncertainty : numpy.ndarray
+        (n_bands, n_dn) relative uncertainty of U per DN, NaN outside the fitted range
+        (``inf`` where U is 0).
+    bound : float
+        Largest relative uncertainty of U that is trusted.
+
+    Returns
+    -------
+    numpy.ndarray
+        bool (n_bands, n_dn); all False for a band with no finite uncertainty.
+
+    Notes
+    -----
+    The relative uncertainty of U(I) in Eq. 15 of [1]_, ``R = U(I) / (t V S B)``, is large at
+    both ends of the DN range: at dim readings because U(I) is small beside the noise of one
+    reading (an absolute error of R that stays small, passed on by Eq. 15 as it is), and on
+    the shoulder near the clip because U is steep there and poorly determined, so a small
+    error of the DN or of the fit is a large error of R. Only the upper branch, the DN above
+    the one where the relative uncertainty is least, is the shoulder; a dim pixel is not
+    flagged for its noise.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
+    """
+    unc = np.asarray(response_uncertainty, dtype=np.float64)
+    out = np.zeros(unc.shape, bool)
+    for b in range(unc.shape[0]):
+        finite = np.isfinite(unc[b])
+        if not finite.any():
+            continue
+        least = int(np.argmin(np.where(finite, unc[b], np.inf)))
+        out[b, least:] = finite[least:] & (unc[b, least:] > bound)
     return out
 
 

@@ -7,7 +7,15 @@ import numpy as np
 import pytest
 
 from mscal_core.errors import InputError
-from mscal_core.quality import FLAGS, dn_flag_table, flag_counts, frame_flags, mask_tables, pixel_flag_table
+from mscal_core.quality import (
+    FLAGS,
+    dn_flag_table,
+    flag_counts,
+    frame_flags,
+    mask_tables,
+    pixel_flag_table,
+    shoulder_mask,
+)
 from mscal_core.reflectance import eq15_fast, eq15_tables
 
 SAT, SHOULDER, OUT, UNSEEN = (FLAGS[k] for k in ("saturated", "response_shoulder", "outside_sweep",
@@ -32,6 +40,23 @@ def test_dn_flag_table_sets_each_bit_where_its_rule_says() -> None:
     assert dn_flag_table(2, 16, 15, _uncertainty(), 0.04)[1, 10] == 0
     # without the optional tables only the clip is checked
     assert np.flatnonzero(dn_flag_table(1, 16, 14)[0]).tolist() == [14, 15]
+
+
+def test_dim_readings_are_not_the_shoulder() -> None:
+    """The relative uncertainty of U is U-shaped: large at dim readings (the noise of one
+    reading beside a small U) and on the shoulder. Only the upper branch is flagged."""
+    k = np.arange(1024, dtype=np.float64)
+    unc = np.where(k < 30, np.nan, 0.3 * np.exp(-(k - 30) / 40) + 0.012 + 0.04 * np.clip((k - 980) / 40, 0, None))
+    unc = np.stack([unc, unc])
+    unc[1, 30:60] = np.inf  # U = 0 at and below black: no relative uncertainty, not flagged either
+    m = shoulder_mask(unc, 0.03)
+    low = np.flatnonzero(unc[0] > 0.03)
+    assert low.min() == 30 and m[0, 30:900].sum() == 0  # dim and above the bound, not flagged
+    first = int(np.flatnonzero(m[0]).min())
+    assert 997 <= first <= 999 and m[0, first:].all()  # 0.012 + 0.04 (k - 980) / 40 passes 0.03 at 998
+    assert np.array_equal(m[0, first:], unc[0, first:] > 0.03)
+    assert m[1, :60].sum() == 0 and np.array_equal(m[1], m[0])
+    assert not shoulder_mask(np.full((1, 8), np.nan)).any()
 
 
 def test_dn_flag_table_refuses_what_does_not_fit() -> None:
