@@ -89,3 +89,18 @@ def test_log_init_without_iterations_starts_flat() -> None:
     pix, cell, y, n_pix, n_cells = problem()
     v, _ = log_init(pix, cell, y, n_pix, n_cells, 0, incidence(pix, cell, n_pix, n_cells))
     assert v == pytest.approx(np.ones(n_pix))
+
+
+def test_robust_weights_and_scale() -> None:
+    """Huber: weight 1 within k = 1.345 scales, k s / |r| beyond; Cauchy: 1 / (1 + (r / 2.385 s)^2);
+    the scale is 1.4826 x the median |r| (the standard deviation of Gaussian residuals)."""
+    from mscal_core.vignetting_solver import robust_scale, robust_weights
+
+    r = np.array([0.0, 0.01, -0.0134, 0.02, -0.1])
+    np.testing.assert_allclose(robust_weights(r, "huber", 0.01), [1.0, 1.0, 1.0, 0.6725, 0.1345])
+    np.testing.assert_allclose(robust_weights(r, "cauchy", 0.01),
+                               1.0 / (1.0 + (r / 0.023849) ** 2))
+    noise = np.random.default_rng(0).normal(0.0, 0.02, 200000)
+    noise[:20000] = 0.5  # a tenth gross outliers barely move the MAD scale
+    assert robust_scale(noise) == pytest.approx(0.0225, abs=0.0008)
+    assert robust_scale(np.zeros(100)) == 1e-3  # floor: noise-free data keep weight 1
