@@ -58,6 +58,7 @@ from .vignetting_solver import (
     reweighted,
     robust_scale,
     robust_weights,
+    view_offset_weights,
 )
 
 #: The solver's helper under its former private name (kept for the callers that import it).
@@ -452,9 +453,15 @@ def fit_vignetting(
        ``k = 1.345``) or ``rho = 1 / (1 + (r / (c s))^2)`` (Cauchy, ``c = 2.385``) of the
        current fit. A patch of pixels or a whole view that disagrees with the others (a
        shadow, a glint, a wrong marker pose) then counts less, instead of pulling L, and
-       through L the V of every pixel that saw those cells. It runs only when more than
-       0.5 % of the residuals are beyond 4 scales
-       (:func:`mscal_core.vignetting_solver.has_outliers`); otherwise every weight is 1.
+       through L the V of every pixel that saw those cells. The observations' own weights
+       apply only when more than 0.5 % of the residuals are beyond 4 scales
+       (:func:`mscal_core.vignetting_solver.has_outliers`). With ``view_index`` each
+       observation's weight is also multiplied by its view's Huber weight for the view's
+       mean offset ``m`` (clipped residuals), ``min(1, k s / |m|)``
+       (:func:`mscal_core.vignetting_solver.view_offset_weights`): a view dark by more than
+       one pixel's noise counts less although none of its pixels is an outlier. Nothing to
+       down-weight (no tails, no view offset beyond ``k s``): the least-squares fit is kept
+       and every weight is 1.
     4. Gauge (V is known up to scale, paper: max V = 1): the 99.9th percentile over the
        well-observed pixels (``count >= min_count``) of a denoised V (the radial model of step
        5 plus the residual smoothed over 2 px) is set to 1 and L scaled inversely. A single
@@ -504,14 +511,16 @@ def fit_vignetting(
     if robust is not None:
         # 3b. reweighted from the least-squares fit, when something disagrees
         rscale, rho = robust_scale(resid), np.ones_like(fy)
-        if has_outliers(resid, rscale):
+        fv = None if view is None else view[use]
+        tails = has_outliers(resid, rscale)
+        if tails or (fv is not None and bool(np.any(view_offset_weights(resid, fv, fw, rscale) < 1.0))):
             v, lum, sweeps, converged, rho, rscale = reweighted(
-                fy, fw, v, cp, cc, act_c.size, robust, int(max_iter), tol, structure
+                fy, fw, v, cp, cc, act_c.size, robust, int(max_iter), tol, structure, fv, tails
             )
             iterations += sweeps
             resid = fy / (v[cp] * lum[cc]) - 1.0
         if view is not None:
-            view_weights = _view_weights(view[use], fw, rho)
+            view_weights = _view_weights(fv, fw, rho)
     residual_rms = float(np.sqrt(np.mean(resid * resid)))
 
     count = np.bincount(fp, minlength=n_pix).astype(np.int64).reshape(h, w)

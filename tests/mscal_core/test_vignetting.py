@@ -411,8 +411,8 @@ def corrupted_obs(truth):
 def test_robust_fit_recovers_v_despite_a_corrupted_view(truth, corrupted_obs, loss) -> None:
     """One view of 40 at 0.85 x its intensity: the plain least squares is pulled to 0.98 %
     rms (6.1 % at worst) of V over the observed pixels, the robust fit stays at the clean
-    data's level (0.43 % plain, 0.45 % robust: the robust loss's ~95 % efficiency) and
-    gives the corrupted view a small weight, the clean views ~1."""
+    data's level (0.43 % plain on clean data) and gives the corrupted view a small weight
+    (0.04 Huber, 0.01 Cauchy), the clean views ~1."""
     grid = cell_grid(SIZE)
     pix, cell, y, view = corrupted_obs["scale"]
     plain = fit_vignetting(pix, cell, y, SHAPE, grid[0] * grid[1], view_index=view)
@@ -423,7 +423,7 @@ def test_robust_fit_recovers_v_despite_a_corrupted_view(truth, corrupted_obs, lo
     assert v_errors(robust, truth)[1] < 0.032
     w = robust.view_weights
     assert w.shape == (40,)
-    assert w[3] < 0.12
+    assert w[3] < 0.07
     assert np.all(np.abs(np.delete(w, 3) - 1.0) < 0.035)
     # the scale is the 1 % noise of the observations
     assert robust.robust_scale == pytest.approx(0.01, abs=0.0008)
