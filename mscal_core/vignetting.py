@@ -454,7 +454,7 @@ def fit_vignetting(
        current fit. A patch of pixels or a whole view that disagrees with the others (a
        shadow, a glint, a wrong marker pose) then counts less, instead of pulling L, and
        through L the V of every pixel that saw those cells. The observations' own weights
-       apply only when more than 0.5 % of the residuals are beyond 4 scales
+       apply only when more than 0.2 % of the residuals are beyond 6 scales
        (:func:`mscal_core.vignetting_solver.has_outliers`). With ``view_index`` each
        observation's weight is also multiplied by its view's Huber weight for the view's
        mean offset ``m`` (clipped residuals), ``min(1, k s / |m|)``

@@ -60,16 +60,16 @@ MIN_ROBUST_SCALE = 1e-3
 #: after the rest has settled to 1e-7 (measured on a 33-view band of a varied session).
 ROBUST_STOP_PERCENTILE = 99.0
 
-#: The reweighting runs only when more than this fraction of the observations miss by more
-#: than :data:`OUTLIER_SCALES` robust scales at the start. Gaussian noise puts 6e-5 of them
-#: there; the clean bands of the varied sessions measured 0.1-0.2 % (the pose and cell
-#: errors' tails), a view of 40 off by 15 % 2.4 %, a 25 % shadow over a third of one view
-#: 1.3 %. Below it the robust loss would only trade the noise's tails for efficiency (about
-#: 4 % more V error on clean sessions) and cost about twice the sweeps.
-ROBUST_MIN_OUTLIERS = 0.005
+#: The observations' own robust weights apply only when more than this fraction of them miss
+#: by more than :data:`OUTLIER_SCALES` robust scales in the least-squares fit. Measured
+#: beyond 6 scales: clean bands of the varied sessions 0.00-0.04 % (their shot noise makes
+#: the dim pixels' relative residuals heavy-tailed: 0.6-0.7 % beyond 4 scales on sessions 5
+#: and 6, where the per-observation loss then cost 3-5 % of V error), a view of 40 off by
+#: 15 % 2.1 %, a 25 % shadow over a third of one view 0.6 %. Gaussian noise: 2e-9.
+ROBUST_MIN_OUTLIERS = 0.002
 
 #: Misses beyond this many robust scales count as outliers for :data:`ROBUST_MIN_OUTLIERS`.
-OUTLIER_SCALES = 4.0
+OUTLIER_SCALES = 6.0
 
 Structure = tuple[np.ndarray, np.ndarray, np.ndarray]
 
