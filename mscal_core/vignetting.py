@@ -48,7 +48,18 @@ from scipy.optimize import least_squares
 
 from .errors import FitError, InputError
 from .geometry import size_wh
-from .vignetting_solver import alternate, compact, incidence, informative, log_init
+from .vignetting_solver import (
+    alternate,
+    compact,
+    has_outliers,
+    incidence,
+    informative,
+    log_init,
+    reweighted,
+    robust_scale,
+    robust_weights,
+    view_offset_weights,
+)
 
 #: The solver's helper under its former private name (kept for the callers that import it).
 _compact = compact
@@ -110,6 +121,14 @@ class VignettingFit:
         Eq. 9/10 alternations done.
     converged : bool
         Whether ``tol`` was reached.
+    view_weights : numpy.ndarray or None
+        (n_views,) with ``robust`` and ``view_index``: each view's mean robust weight over its
+        informative observations, relative to the median view (1: trusted as much as a typical
+        view; a view that disagrees is well below 1); NaN for a view with no informative
+        observation. None otherwise.
+    robust_scale : float
+        The robust scale ``1.4826 median |r|`` of the relative residuals in the last
+        reweighting round (NaN without ``robust``).
     """
 
     vignetting: np.ndarray
@@ -119,6 +138,8 @@ class VignettingFit:
     residual_rms: float
     iterations: int
     converged: bool
+    view_weights: np.ndarray | None = None
+    robust_scale: float = float("nan")
 
 
 # --------------------------------------------------------------------------- plane cells
@@ -347,6 +368,8 @@ def fit_vignetting(
     smooth_sigma: float = 0.0,
     init_iter: int = 200,
     start: np.ndarray | None = None,
+    robust: str | None = None,
+    view_index: np.ndarray | None = None,
 ) -> VignettingFit:
     """Fit V(x) and L(p) of one band from all its reflector observations (Eq. 8-10).
 
@@ -381,6 +404,12 @@ def fit_vignetting(
         9'/10' alternation from instead of the log-domain initialisation; the fit converges to
         the same V (within ``tol``) without the cost of that start (a few more sweeps, fewer
         sparse products in all). Ignored where not finite and positive on the fit's pixels.
+    robust : {None, "huber", "cauchy"}
+        Robust loss of the iteratively reweighted refinement (step 3b); None: plain least
+        squares (Eq. 8 as in the paper).
+    view_index : numpy.ndarray, optional
+        (n_obs,) non-negative integer view of each observation; with ``robust`` the fit
+        reports each view's robust weight (``VignettingFit.view_weights``).
 
     Returns
     -------
@@ -391,7 +420,7 @@ def fit_vignetting(
     Raises
     ------
     InputError
-        On inconsistent inputs.
+        On inconsistent inputs or an unknown ``robust`` loss.
     FitError
         When no informative observation is left (e.g. every view saw the reflector at the same
         place), no pixel has ``min_count`` of them, or the fitted V is not positive.
@@ -417,6 +446,22 @@ def fit_vignetting(
        alternation starts from that V instead.
     3. Alternate Eq. 10' (L from V) and Eq. 9' (V from L), vectorised with ``np.bincount``,
        until the largest relative change of V is below ``tol`` or ``max_iter`` sweeps.
+       3b. With ``robust``, iteratively reweighted least squares from that fit
+       (:func:`mscal_core.vignetting_solver.reweighted`): with ``r = y / (V L) - 1`` the
+       relative residual of an observation and ``s = 1.4826 median |r|`` their scale (the
+       MAD), each sweep multiplies ``w`` by ``rho = min(1, k s / |r|)`` (Huber,
+       ``k = 1.345``) or ``rho = 1 / (1 + (r / (c s))^2)`` (Cauchy, ``c = 2.385``) of the
+       current fit. A patch of pixels or a whole view that disagrees with the others (a
+       shadow, a glint, a wrong marker pose) then counts less, instead of pulling L, and
+       through L the V of every pixel that saw those cells. The observations' own weights
+       apply only when more than 0.2 % of the residuals are beyond 6 scales
+       (:func:`mscal_core.vignetting_solver.has_outliers`). With ``view_index`` each
+       observation's weight is also multiplied by its view's Huber weight for the view's
+       mean offset ``m`` (clipped residuals), ``min(1, k s / |m|)``
+       (:func:`mscal_core.vignetting_solver.view_offset_weights`): a view dark by more than
+       one pixel's noise counts less although none of its pixels is an outlier. Nothing to
+       down-weight (no tails, no view offset beyond ``k s``): the least-squares fit is kept
+       and every weight is 1.
     4. Gauge (V is known up to scale, paper: max V = 1): the 99.9th percentile over the
        well-observed pixels (``count >= min_count``) of a denoised V (the radial model of step
        5 plus the residual smoothed over 2 px) is set to 1 and L scaled inversely. A single
@@ -443,8 +488,10 @@ def fit_vignetting(
     h, w = int(shape[0]), int(shape[1])
     n_pix = h * w
     n_cells = int(n_cells)
-    pix, cell, y, wt = _checked_observations(
-        pixel_index, cell_index, values, shape, n_cells, weights, min_count
+    if robust is not None:
+        robust_weights(np.zeros(0), robust, 1.0)  # an unknown loss fails here, before the work
+    pix, cell, y, wt, view = _checked_observations(
+        pixel_index, cell_index, values, shape, n_cells, weights, min_count, view_index
     )
     # 1. informative observations, 2. log-domain start, 3. Eq. 10' / Eq. 9' alternation
     use = informative(pix, cell, n_pix, n_cells)
@@ -460,6 +507,20 @@ def fit_vignetting(
                           fw * (fy / float(np.median(fy))) ** 2)
     v, lum, iterations, converged = alternate(fy, fw, v, act_c.size, int(max_iter), tol, structure)
     resid = fy / (v[cp] * lum[cc]) - 1.0
+    view_weights, rscale = None, float("nan")
+    if robust is not None:
+        # 3b. reweighted from the least-squares fit, when something disagrees
+        rscale, rho = robust_scale(resid), np.ones_like(fy)
+        fv = None if view is None else view[use]
+        tails = has_outliers(resid, rscale)
+        if tails or (fv is not None and bool(np.any(view_offset_weights(resid, fv, fw, rscale) < 1.0))):
+            v, lum, sweeps, converged, rho, rscale = reweighted(
+                fy, fw, v, cp, cc, act_c.size, robust, int(max_iter), tol, structure, fv, tails
+            )
+            iterations += sweeps
+            resid = fy / (v[cp] * lum[cc]) - 1.0
+        if view is not None:
+            view_weights = _view_weights(fv, fw, rho)
     residual_rms = float(np.sqrt(np.mean(resid * resid)))
 
     count = np.bincount(fp, minlength=n_pix).astype(np.int64).reshape(h, w)
@@ -490,7 +551,20 @@ def fit_vignetting(
         residual_rms=residual_rms,
         iterations=iterations,
         converged=converged,
+        view_weights=view_weights,
+        robust_scale=rscale,
     )
+
+
+def _view_weights(view: np.ndarray, fw: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """Each view's ``w``-weighted mean robust weight, relative to the median view."""
+    n_views = int(view.max()) + 1 if view.size else 0
+    den = np.bincount(view, weights=fw, minlength=n_views)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.bincount(view, weights=fw * rho, minlength=n_views) / den
+    mean[den <= 0] = np.nan
+    typical = float(np.nanmedian(mean)) if np.isfinite(mean).any() else 1.0
+    return mean / typical
 
 
 def _start_values(start: np.ndarray | None, active: np.ndarray, n_pix: int) -> np.ndarray | None:
@@ -509,12 +583,12 @@ def _start_values(start: np.ndarray | None, active: np.ndarray, n_pix: int) -> n
 
 def _checked_observations(
     pixel_index: np.ndarray, cell_index: np.ndarray, values: np.ndarray, shape: tuple[int, int],
-    n_cells: int, weights: np.ndarray | None, min_count: int,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    n_cells: int, weights: np.ndarray | None, min_count: int, view_index: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
     """Check the inputs of :func:`fit_vignetting`.
 
-    Return ``(pixel, cell, y, weight)`` of the usable observations (finite, positive value and
-    weight), indices as int64.
+    Return ``(pixel, cell, y, weight, view)`` of the usable observations (finite, positive
+    value and weight), indices as int64 (``view`` None without ``view_index``).
     """
     h, w = int(shape[0]), int(shape[1])
     n_pix = h * w
@@ -551,9 +625,23 @@ def _checked_observations(
             )
     if int(min_count) < 1:
         raise InputError(f"min_count must be at least 1, got {min_count}")
+    view = None if view_index is None else _checked_views(view_index, y.size)
     with np.errstate(invalid="ignore"):
         good = np.isfinite(y) & (y > 0) & np.isfinite(wt) & (wt > 0)
-    return pix[good], cell[good], y[good], wt[good]
+    return pix[good], cell[good], y[good], wt[good], None if view is None else view[good]
+
+
+def _checked_views(view_index: np.ndarray, n_obs: int) -> np.ndarray:
+    """``view_index`` of :func:`fit_vignetting` as int64, checked."""
+    view = np.asarray(view_index).ravel()
+    if view.size != n_obs or (view.size and not np.issubdtype(view.dtype, np.integer)):
+        raise InputError(
+            f"view_index must be one integer per observation, got {view.size} {view.dtype} "
+            f"values for {n_obs}"
+        )
+    if view.size and view.min() < 0:
+        raise InputError(f"view_index must be non-negative, got {view.min()}")
+    return view.astype(np.int64)
 
 
 def _gauge(

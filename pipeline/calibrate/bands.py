@@ -42,7 +42,8 @@ class BandViews:
     (``windows``: :func:`mscal_core.geometry.reflector_window`, found by the main process, which
     projects the reflector once per view for every band), its exposure time and marker pose;
     the band's shape, U table, saturation and intrinsics, its offset on the band grid
-    ``(dx, dy)`` and the reflector geometry (size, excluded centre, edge margin, cell grid)."""
+    ``(dx, dy)`` and the reflector geometry (size, excluded centre, edge margin, cell grid);
+    ``robust``: the robust loss of the fit (``robust`` of :func:`mscal_core.vignetting.fit_vignetting`)."""
 
     dn: tuple[np.ndarray, ...]
     windows: tuple[tuple[slice, slice], ...]
@@ -57,6 +58,7 @@ class BandViews:
     exclude_half_m: float
     edge_margin_m: float
     grid: tuple[int, int]
+    robust: str | None = None
 
 
 Observations = tuple[np.ndarray, np.ndarray, np.ndarray]
@@ -93,11 +95,13 @@ def band_observations(bv: BandViews) -> tuple[list[Observations], float]:
 
 
 def fit_observations(obs: Sequence[Observations], shape: tuple[int, int], n_cells: int,
-                     start: np.ndarray | None = None) -> vignetting.VignettingFit:
+                     start: np.ndarray | None = None, robust: str | None = None) -> vignetting.VignettingFit:
     """:func:`mscal_core.vignetting.fit_vignetting` of the views' observations together
-    (``start``: V of an earlier fit of the band to start from)."""
+    (``start``: V of an earlier fit of the band to start from; ``robust``: its robust loss, the
+    fit's ``view_weights`` then in the order of ``obs``)."""
+    views = np.repeat(np.arange(len(obs)), [o[0].size for o in obs])
     return vignetting.fit_vignetting(*(np.concatenate([o[k] for o in obs]) for k in range(3)), shape, n_cells,
-                                     start=start)
+                                     start=start, robust=robust, view_index=views)
 
 
 def view_coverage(obs: Sequence[Observations], shape: tuple[int, int]) -> np.ndarray:
@@ -121,7 +125,7 @@ def vignetting_band(bv: BandViews, screen: bool = False, start: np.ndarray | Non
     views' :func:`view_coverage`. ``start``: V of an earlier fit of the band (on more views)
     to start from."""
     obs, saturated = band_observations(bv)
-    fit = fit_observations(obs, bv.shape, bv.grid[0] * bv.grid[1], start)
+    fit = fit_observations(obs, bv.shape, bv.grid[0] * bv.grid[1], start, bv.robust)
     frac = np.array([vignetting.view_inconsistency(fit, *o) for o in obs]) if screen else None
     return fit, saturated, frac, view_coverage(obs, bv.shape)
 
@@ -135,10 +139,11 @@ def lens_vignetting_band(bv: BandViews, min_views_to_screen: int
     and the :func:`view_coverage` of the views kept."""
     obs, saturated = band_observations(bv)
     shape, n_cells = bv.shape, bv.grid[0] * bv.grid[1]
-    fit = fit_observations(obs, shape, n_cells)
+    fit = fit_observations(obs, shape, n_cells, robust=bv.robust)
     frac = np.array([vignetting.view_inconsistency(fit, *o) for o in obs])
     bad = sorted(set(vignetting.inconsistent_views(frac).tolist()))
     if not bad or len(obs) - len(bad) < min_views_to_screen:
         return fit, saturated, frac, [], view_coverage(obs, shape)
     kept = [o for k, o in enumerate(obs) if k not in bad]
-    return fit_observations(kept, shape, n_cells, fit.vignetting), saturated, frac, bad, view_coverage(kept, shape)
+    return (fit_observations(kept, shape, n_cells, fit.vignetting, bv.robust), saturated, frac, bad,
+            view_coverage(kept, shape))

@@ -36,6 +36,11 @@ log = logging.getLogger("mscal.calibrate")
 #: Views are only screened for a wrong marker pose when at least this many remain.
 MIN_VIEWS_TO_SCREEN = 12
 
+#: Robust loss of the band fits (``robust`` of :func:`mscal_core.vignetting.fit_vignetting`):
+#: what still disagrees after the screening (a shadow, a glint, a pose a little off) counts
+#: less instead of pulling V; None fits Eq. 8's plain least squares.
+ROBUST_LOSS: str | None = "huber"
+
 
 def fit_vignetting_frames(
     session: Session, inverse_response: np.ndarray, saturation_dn: np.ndarray, pool: BandPool | None = None,
@@ -102,7 +107,7 @@ def _band_views(session: Session, stack: np.ndarray, b: int, use: Sequence[tuple
         inverse_response=inverse_response[b], saturation_dn=int(saturation_dn[b]),
         intrinsics=intr, offset=offset, size_m=size,  # type: ignore[arg-type]
         exclude_half_m=exclude_half(session), edge_margin_m=edge_margin(session),
-        grid=vignetting.cell_grid(session.reflector.size_m),
+        grid=vignetting.cell_grid(session.reflector.size_m), robust=ROBUST_LOSS,
     )
 
 
@@ -173,7 +178,23 @@ def _fit_band_vignetting(session: Session, stack: np.ndarray, views: list[tuple[
         fits.append(fit)
         coverage.append(cov)
     report.arrays["coverage"] = np.stack(coverage)
+    _record_view_weights(report, [[v.record.path.name for _, v in views]] * camera.n_bands, fits)
     return fits, saturated, views
+
+
+def _record_view_weights(report: StageReport, names: Sequence[Sequence[str]],
+                         fits: Sequence[vignetting.VignettingFit]) -> None:
+    """Each view's robust weight per band (``VignettingFit.view_weights``, 1 = a typical view)
+    as ``robust_weight`` in its ``marker_poses`` record: None for a band that did not use it."""
+    weights: dict[str, list[float | None]] = {}
+    for b, (band_names, fit) in enumerate(zip(names, fits)):
+        if fit.view_weights is None:
+            continue
+        for name, w in zip(band_names, fit.view_weights):
+            weights.setdefault(name, [None] * len(fits))[b] = round(float(w), 4) if np.isfinite(w) else None
+    for rec in report.residuals.get("marker_poses", []):
+        if rec.get("file") in weights:
+            rec["robust_weight"] = weights[rec["file"]]
 
 
 def _try_other_solutions(session: Session, stack: np.ndarray, views: list[tuple[int, View]], bad: set[int],
@@ -234,9 +255,10 @@ def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[t
                for b in range(camera.n_bands)]
     started()
     results = [f.result() for f in futures]
-    fits, saturated = [], {}
+    fits, saturated, names = [], {}, []
     report.arrays["coverage"] = np.stack([r[4] for r in results])
     for b, (fit, saturated[b], frac, dropped, _) in enumerate(results):
+        names.append([v.record.name for k, (_, v) in enumerate(uses[b]) if k not in dropped])
         med = float(np.nanmedian(frac)) if dropped else 0.0
         for k in dropped:
             report.skipped.append({
@@ -246,6 +268,7 @@ def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[t
                           f"{_choice_note(uses[b][k][1].choice_for(b))}",
             })
         fits.append(fit)
+    _record_view_weights(report, names, fits)
     return fits, saturated
 
 

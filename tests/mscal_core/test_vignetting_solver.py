@@ -89,3 +89,39 @@ def test_log_init_without_iterations_starts_flat() -> None:
     pix, cell, y, n_pix, n_cells = problem()
     v, _ = log_init(pix, cell, y, n_pix, n_cells, 0, incidence(pix, cell, n_pix, n_cells))
     assert v == pytest.approx(np.ones(n_pix))
+
+
+def test_robust_weights_and_scale() -> None:
+    """Huber: weight 1 within k = 1.345 scales, k s / |r| beyond; Cauchy: 1 / (1 + (r / 2.385 s)^2);
+    the scale is 1.4826 x the median |r| (the standard deviation of Gaussian residuals)."""
+    from mscal_core.vignetting_solver import robust_scale, robust_weights
+
+    r = np.array([0.0, 0.01, -0.0134, 0.02, -0.1])
+    np.testing.assert_allclose(robust_weights(r, "huber", 0.01), [1.0, 1.0, 1.0, 0.6725, 0.1345])
+    np.testing.assert_allclose(robust_weights(r, "cauchy", 0.01),
+                               1.0 / (1.0 + (r / 0.023849) ** 2))
+    noise = np.random.default_rng(0).normal(0.0, 0.02, 200000)
+    noise[:20000] = 0.5  # a tenth gross outliers barely move the MAD scale
+    assert robust_scale(noise) == pytest.approx(0.0225, abs=0.0008)
+    assert robust_scale(np.zeros(100)) == 1e-3  # floor: noise-free data keep weight 1
+
+
+def test_a_view_offset_by_more_than_the_noise_is_down_weighted() -> None:
+    """Views whose mean residual is within k s keep weight 1 (whatever their noise); a view
+    3 % off with 1 % noise per pixel gets Huber's k s / |m| with m its mean residual clipped
+    to 3 s (2.6 %: 0.51); a tenth of gross outliers in a view move its clipped mean by 0.3 %
+    only."""
+    from mscal_core.vignetting_solver import view_offset_weights
+
+    rng = np.random.default_rng(2)
+    view = np.repeat(np.arange(5), 1000)
+    resid = rng.normal(0.0, 0.01, view.size)
+    resid[view == 1] *= 2.0  # noisier, not offset
+    resid[view == 2] += 0.03  # offset
+    resid[(view == 3) & (np.arange(view.size) % 10 == 0)] = 0.5  # a tenth gross outliers
+    w = view_offset_weights(resid, view, np.ones(view.size), 0.01)
+    np.testing.assert_array_equal(w[[0, 1, 4]], 1.0)
+    m = np.mean(np.clip(resid[view == 2], -0.03, 0.03))
+    assert m == pytest.approx(0.026, abs=0.001)
+    assert w[2] == pytest.approx(1.345 * 0.01 / m, rel=1e-9)
+    assert w[3] == 1.0  # 0.1 x 0.03 = 0.3 % < 1.345 %

@@ -52,3 +52,31 @@ def test_a_dropped_view_refits_one_band_not_all(small, monkeypatch) -> None:
     scratch = bands.vignetting_band(vstage._band_views(session, stack, ref, kept, U, sat, {}))[0]
     np.testing.assert_array_equal(fits[ref].observed, scratch.observed)
     assert np.max(np.abs(fits[ref].vignetting - scratch.vignetting)) < 2e-4
+
+
+def test_each_views_robust_weight_is_recorded(small) -> None:
+    """The band fits' robust weights land in the views' ``marker_poses`` records, one per
+    band: ~1 for the clean views, less for a view made 20 % darker in DN (7 views: too few
+    to screen, so only the robust loss keeps it from pulling V; with 7 views it also pulls
+    the fit, so its own residual, and weight, is not as far off as with 40)."""
+    session_dir, calib = small
+    store = xr.open_zarr(calib).load()
+    U, sat = store["inverse_response"].values, store["saturation_dn"].values
+    session, _ = with_intrinsics(load_session(session_dir))
+    report = StageReport("vignetting")
+    _, stack, views = load_marker_frames(session, session.vignetting_dir, U, report)
+    dark = views[4][0]
+    stack = stack.copy()
+    stack[dark] = np.round(stack[dark] * 0.8).astype(stack.dtype)
+    with BandPool(1) as pool:
+        fits, _, kept = vstage._fit_band_vignetting(session, stack, views, U, sat, report, pool, lambda: None)
+    assert len(kept) == len(views) == 7
+    assert not any("likely wrong" in s["reason"] for s in report.skipped)
+    records = {r["file"]: r["robust_weight"] for r in report.residuals["marker_poses"]}
+    n_bands = session.camera.n_bands
+    assert set(records) == {v.record.path.name for _, v in views}
+    assert all(len(w) == n_bands for w in records.values())
+    bad = records.pop(views[4][1].record.path.name)
+    assert max(bad) < 0.7  # measured 0.64-0.66
+    assert min(min(w) for w in records.values()) > 0.95  # measured 1.0 (no view offset, no tails)
+    assert max(max(w) for w in records.values()) < 1.1
