@@ -67,3 +67,23 @@ def test_a_panel_with_too_few_finite_pixels_is_left_out_of_its_frame() -> None:
     r2[2][:, (scene.labels[2] == 2) & np.roll(keep, 2, axis=1)] = 7.0  # ... and those wrong
     s = score_flight(r2, scene)
     assert s["panel_abs_error"] < 1e-6
+
+
+def test_a_panel_cut_by_the_frame_to_a_few_pixels_is_left_out() -> None:
+    """A panel with less than half its pixels in a frame measures those pixels' noise: left out
+    of that frame, it changes neither the error nor the cross-frame CV."""
+    scene, r = _scene()
+    labels = scene.labels.copy()
+    labels[0][:, 2:4] = 0  # the 0.3 panel cut to 5 of its 12 pixels in frame 0 ...
+    labels[0][:5, 2] = 2
+    r2 = r.copy()
+    r2[0][:, labels[0] == 2] *= 1.2  # ... where they read 20 % high
+    from dataclasses import replace
+
+    s = score_flight(r2, replace(scene, labels=labels))
+    assert s["panel_abs_error"] < 1e-6 and s["panel_cv_across_frames"] < 1e-6
+    labels[0][:, 2] = 2  # 6 of 12: half of it, counted
+    labels[0][:, 3] = 0
+    r3 = r.copy()
+    r3[0][:, labels[0] == 2] *= 1.2
+    assert score_flight(r3, replace(scene, labels=labels))["panel_abs_error"] == pytest.approx(0.3 * 0.2, rel=1e-4)
