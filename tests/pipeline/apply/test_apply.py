@@ -55,10 +55,13 @@ def test_reflectance_store_contract(applied) -> None:
     # the lazily written store equals Eq. 15 computed eagerly, frame by frame, from raw.zarr
     raw = xr.open_zarr(out / "raw.zarr")
     cal = xr.open_zarr(applied[1])
+    q = ds["quality"].values  # flagged pixels are NaN (the default)
+    assert q.dtype == np.uint8 and q.shape == r.shape
     for f in range(r.shape[0]):
         t = float(raw["exposure_ms"][f] * raw["gain"][f])
         expect = eq15(raw["dn"][f].values, cal["inverse_response"].values, t, cal["vignetting"].values,
                       cal["spectral_factor"].values)
+        expect[q[f] != 0] = np.nan
         np.testing.assert_allclose(r[f], expect, rtol=2e-6, equal_nan=True)
     assert ds["vegetation_mask"].dtype == np.uint8
 
@@ -79,10 +82,11 @@ def test_calibrated_reflectance_and_ndvi_match_truth(applied) -> None:
         g = labels[f] == gray
         if g.sum() > 10:
             np.testing.assert_allclose(np.nanmedian(r[f][:, g], axis=1) * k, 0.20, atol=0.015)
-        v = labels[f] == veg
+        valued = np.isfinite(ds["ndvi"].values[f])  # flagged pixels have no NDVI
+        v = (labels[f] == veg) & valued
         assert abs(np.nanmean(ds["ndvi"].values[f][v]) - np.nanmean(truth["flight_field_ndvi"][f][v])) < 0.01
         mask = ds["vegetation_mask"].values[f]
-        assert (mask[v] == 1).mean() > 0.95 and (mask[labels[f] == names.index("soil")] == 0).mean() > 0.95
+        assert (mask[v] == 1).mean() > 0.95 and (mask[(labels[f] == names.index("soil")) & valued] == 0).mean() > 0.95
 
 
 def test_run_json(applied) -> None:
@@ -179,9 +183,12 @@ def test_saturated_pixels_are_nan_and_counted(small, tmp_path) -> None:
     run = json.loads((out / "run.json").read_text())
     n_sat = int((raw >= 1023).sum())
     assert run["saturated_pixels"]["per_frame"][first.stem] == n_sat
-    r = xr.open_zarr(out / "reflectance.zarr")["reflectance"].isel(frame=0).values
-    assert int(np.isnan(r).sum()) == n_sat
-    assert np.isnan(r[:, 100:104, 200:210]).all()
+    ds = xr.open_zarr(out / "reflectance.zarr")
+    r, q = ds["reflectance"].isel(frame=0).values, ds["quality"].isel(frame=0).values
+    saturated = (q & 1) != 0  # the quality mask's saturated bit
+    assert int(saturated.sum()) == n_sat and np.isnan(r[saturated]).all()
+    assert np.array_equal(np.isnan(r), q != 0)
+    assert np.isnan(r[:, 100:104, 200:210]).all() and saturated[:, 100:104, 200:210].all()
 
 
 def test_normalisation_options(small, tmp_path) -> None:
@@ -348,10 +355,12 @@ def test_the_pass_equals_eq15_of_the_cube(applied) -> None:
 
     _, calib_path, out = applied
     expected = eq15_numpy(xr.open_zarr(out / "raw.zarr"), open_calibration(calib_path))
-    stored = xr.open_zarr(out / "reflectance.zarr")["reflectance"].values
+    ds = xr.open_zarr(out / "reflectance.zarr")
+    stored, q = ds["reflectance"].values, ds["quality"].values
     assert stored.dtype == np.float32 and stored.shape == expected.shape == (3, 25, 217, 409)
-    assert int(np.isnan(expected).sum()) == int(np.isnan(stored).sum()) == 0  # the small flight saturates nowhere
-    np.testing.assert_allclose(stored, expected, rtol=2e-6, equal_nan=True)
+    assert int(np.isnan(expected).sum()) == 0  # the small flight saturates nowhere ...
+    assert not np.any(q & 1) and np.array_equal(np.isnan(stored), q != 0)  # ... NaN only where flagged
+    np.testing.assert_allclose(stored[q == 0], expected[q == 0], rtol=2e-6)
 
 
 def test_each_frame_reads_ahead_a_later_frame(small, tmp_path, monkeypatch) -> None:
@@ -433,6 +442,7 @@ def test_snapshot_outputs_are_the_kernel_and_the_writers_bit_for_bit(applied, tm
     for f, name in enumerate(raw["frame"].values):
         t = float(raw["exposure_ms"].values[f] * raw["gain"].values[f])
         refl = eq15_fast(raw["dn"][f].values[None], lut, inv_v, t, sat)[0]
+        refl[ds["quality"][f].values != 0] = np.nan  # flagged pixels are NaN (the default)
         np.testing.assert_array_equal(ds["reflectance"][f].values, refl)
         tags = FrameTags(
             time=np.datetime_as_string(raw["time"].values[f], unit="ms") + "Z",

@@ -218,7 +218,7 @@ def test_sampled_frames_from_chunk_files_equal_the_xarray_read(applied) -> None:
         assert fast.dtype == slow.dtype == da.dtype and fast.shape == slow.shape
         assert fast.shape[0] == len(frames) and fast.shape[-1] < da.shape[-1]  # strided
         np.testing.assert_array_equal(fast, slow)
-    assert fast.dtype == np.float32 and np.isfinite(fast).mean() > 0.9
+    assert fast.dtype == np.float32 and np.isfinite(fast).mean() > 0.75  # flagged pixels (V unobserved) are NaN
 
 
 def test_sampled_frames_fall_back_to_xarray_where_the_files_differ(applied, tmp_path: Path) -> None:

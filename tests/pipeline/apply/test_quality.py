@@ -47,15 +47,28 @@ def _with_quality_variables(calib: Path, dst: Path) -> Path:
     return dst
 
 
+def _without_quality_variables(calib: Path, dst: Path) -> Path:
+    """The calibration store without the optional variables (as another tool, or an mscal
+    before them, writes it)."""
+    ds = xr.open_zarr(calib).load().drop_vars(["response_uncertainty", "response_dn_range", "vignetting_coverage"],
+                                               errors="ignore")
+    ds = ds.drop_dims([d for d in ("end",) if d in ds.dims])
+    for v in ds.variables.values():
+        v.encoding = {}
+    ds.to_zarr(dst, mode="w", zarr_format=3, consolidated=True)
+    return dst
+
+
 @pytest.fixture(scope="module")
 def flagged(small, tmp_path_factory) -> dict[str, Path]:
     """The small flight applied with the store of every variable (default and --keep-flagged)
-    and with the store as calibrate writes it today."""
+    and with a store without the optional variables."""
     session, calib = small
     root = tmp_path_factory.mktemp("quality")
     store = _with_quality_variables(calib, root / "calib_q.zarr")
+    plain = _without_quality_variables(calib, root / "calib_plain.zarr")
     flight = session / "flights" / "field"
-    outs = {"default": (store, []), "keep": (store, ["--keep-flagged"]), "plain": (calib, [])}
+    outs = {"default": (store, []), "keep": (store, ["--keep-flagged"]), "plain": (plain, [])}
     for name, (c, extra) in outs.items():
         assert main(["-q", "apply", str(flight), "--calibration", str(c), "-o", str(root / name), *extra]) == 0
     return {**{name: root / name for name in outs}, "store": store}
