@@ -205,7 +205,7 @@ def harsh_params(seed: int, *, size: str = "small") -> VariedParams:
 
     - **Shoulder**: starts at 0.85-0.95 of the DN range with a headroom of 1.002-1.05 (slope
       1/500 to 1/21 of the linear one at the clip): the last 5-15 % of the DN span an energy
-      3-6 times their width, U at the clip 1.25-2.2 times U at the knee (a sensor whose full
+      3-6 times their width, U at the clip 1.15-2.2 times U at the knee (a sensor whose full
       well compresses hard, or a sensor read through an in-camera knee).
     - **Sweep**: its longest exposure puts the brightest pixel at 0.88-0.995 of the range (an
       operator who stops the sweep before the clip): few samples, or none, on the shoulder.
