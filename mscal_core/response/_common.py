@@ -39,7 +39,8 @@ class ResponseFit:
     residual_by_dn : numpy.ndarray or None
         RMS of ``I - C(t E)`` per DN bin (see :func:`residual_profile`).
     fitted_dn : tuple of int or None
-        Lowest and highest DN of the samples the fit used: the range U was fitted on.
+        Lowest and highest DN of the samples the fit used, the highest at most the mean DN of
+        the samples of highest energy (the forward fit): the range U was fitted on.
     noise_variance : tuple of float or None
         ``(a, b)`` of the fit's DN noise model ``var(I) = a + b (I - black)`` (read + shot).
     fit_uncertainty : numpy.ndarray or None

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -39,7 +39,7 @@ from pipeline.sim.world.sensor import SensorModel
 
 from .synth import session_marker, write_synthesized
 
-__all__ = ["VariedParams", "draw_params", "params_record", "synthesize_varied", "varied_truth",
+__all__ = ["VariedParams", "draw_params", "harsh_params", "params_record", "synthesize_varied", "varied_truth",
            "write_varied_session"]
 
 #: Seed streams of :func:`draw_params` start here, apart from the seeds of ``write_session``
@@ -93,6 +93,21 @@ class VariedParams:
         ``CharucoBoardSpec``): a ChArUco board in its place (default 4 x 4 squares of 60 mm,
         ``marker_size_m`` and ``marker_border_m`` unused). ``params.json`` lists it only when
         it is not ``"aruco"``.
+    shoulder_headroom : float
+        ``SensorModel.shoulder_headroom``: close to 1, a harsh shoulder (a wide energy range
+        in the last DN below the clip).
+    sweep_stop : float or None
+        The sweep's brightest pixel's share of the DN range in its *longest* exposure (the
+        sweep ends there, sparse near it; below ~0.95 the flight can read DN above the sweep);
+        None: ``sweep_start`` sets the exposures.
+    n_reflector : int
+        Reflector images.
+    flight_exposure : tuple of float
+        Range of the flight frames' brightest pixel's share of the DN range (auto exposure;
+        near 1 the bright panel lies on the shoulder).
+
+    The last four are listed in ``params.json`` only when not at their defaults (the
+    sessions' files as before they existed).
     """
 
     seed: int = 0
@@ -116,6 +131,17 @@ class VariedParams:
     vignetting_falloff: float = 0.37
     vignetting_shift_px: tuple[float, float] = (0.0, 0.0)
     marker: str | CharucoBoardSpec = "aruco"
+    shoulder_headroom: float = 1.5
+    sweep_stop: float | None = None
+    n_reflector: int = 3
+    flight_exposure: tuple[float, float] = (0.72, 0.82)
+
+
+#: Fields of :class:`VariedParams` that ``params.json`` lists only away from their defaults.
+_OPTIONAL = ("marker", "shoulder_headroom", "sweep_stop", "n_reflector", "flight_exposure")
+
+#: Seed streams of :func:`harsh_params` (apart from those of :func:`draw_params`).
+HARSH_SEED_BASE = 2000
 
 
 def draw_params(seed: int) -> VariedParams:
@@ -172,12 +198,44 @@ def draw_params(seed: int) -> VariedParams:
     )
 
 
+def harsh_params(seed: int, *, size: str = "small") -> VariedParams:
+    """Draw a session whose response is hard to fit where the flight reads it: the settings of
+    :func:`draw_params` with a harsh shoulder, a sweep that ends near or short of the top and
+    flights exposed onto the shoulder.
+
+    - **Shoulder**: starts at 0.85-0.95 of the DN range with a headroom of 1.002-1.05 (slope
+      1/500 to 1/21 of the linear one at the clip): the last 5-15 % of the DN span an energy
+      3-6 times their width, U at the clip 1.15-2.2 times U at the knee (a sensor whose full
+      well compresses hard, or a sensor read through an in-camera knee).
+    - **Sweep**: its longest exposure puts the brightest pixel at 0.88-0.995 of the range (an
+      operator who stops the sweep before the clip): few samples, or none, on the shoulder.
+    - **Flight**: brightest pixel at 0.96-0.99 (auto exposure metered on the dark crop), so the
+      0.9 panel lies on the shoulder, or above the sweep.
+
+    ``size="small"``: a 7-frame sweep in steps of 3, 8 views (1 without the marker), 2
+    reflector images (``write_varied_session(..., n_flight_frames=3)`` for a small flight);
+    ``"full"``: the sizes of :func:`draw_params`.
+    """
+    rng = np.random.default_rng(HARSH_SEED_BASE + int(seed))
+    p = replace(draw_params(seed),
+                shoulder_start=round(float(rng.uniform(0.85, 0.95)), 3),
+                shoulder_headroom=round(float(rng.uniform(1.002, 1.05)), 4),
+                sweep_stop=round(float(rng.uniform(0.88, 0.995)), 3),
+                flight_exposure=(0.96, 0.99))
+    if size == "small":
+        p = replace(p, sweep_frames=7, sweep_step=3.0, n_views=8, n_missing=1, n_partial=0, n_reflector=2)
+    elif size != "full":
+        raise ValueError(f"size must be 'small' or 'full', got {size!r}")
+    return p
+
+
 def varied_truth(params: VariedParams) -> SyntheticTruth:
     """The camera truth of ``params``: its sensor (noise, response shape), marker and
     vignetting (no rendering)."""
     p = params
     sensor = SensorModel(read_noise_dn=p.read_noise_dn, shot_noise_dn_at_full=p.shot_noise_dn_at_full,
-                         shoulder_start=p.shoulder_start, curvature=p.curvature)
+                         shoulder_start=p.shoulder_start, curvature=p.curvature,
+                         shoulder_headroom=p.shoulder_headroom)
     board = session_marker(p.marker)
     marker = MarkerSpec(size_m=p.marker_size_m, border_m=p.marker_border_m) if board is None else board
     return make_truth(p.seed, sensor=sensor, marker=marker, vignetting_falloff=p.vignetting_falloff,
@@ -192,14 +250,15 @@ def synthesize_varied(params: VariedParams, *, n_flight_frames: int = 8,
     truth = varied_truth(p)
     gdir = None if p.light_gradient_deg is None else math.radians(p.light_gradient_deg)
     resp = response_sweep(truth, seed=p.seed, n_frames=p.sweep_frames, step=p.sweep_step,
-                          start_fraction=p.sweep_start)
+                          start_fraction=p.sweep_start, stop_fraction=p.sweep_stop)
     vig = vignetting_views(truth, seed=p.seed, n_views=p.n_views, n_missing=p.n_missing,
                            n_partial=p.n_partial, max_tilt_deg=p.max_tilt_deg, distance_m=p.distance_m,
                            light_nonuniformity=p.light_nonuniformity, light_gradient_dir=gdir,
                            exposure_fraction=p.view_exposure)
-    refl = reflector_images(truth, seed=p.seed, n_images=3, light_nonuniformity=p.light_nonuniformity,
+    refl = reflector_images(truth, seed=p.seed, n_images=p.n_reflector, light_nonuniformity=p.light_nonuniformity,
                             light_gradient_dir=gdir, exposure_fraction=p.view_exposure)
-    fl = {flight: flight_frames(truth, seed=p.seed, n_frames=n_flight_frames, name=flight)}
+    fl = {flight: flight_frames(truth, seed=p.seed, n_frames=n_flight_frames, name=flight,
+                                exposure_fraction=p.flight_exposure)}
     return SyntheticSession(truth=truth, response=resp, vignetting=vig, reflector=refl, flights=fl,
                             size="full")
 
@@ -215,9 +274,11 @@ def write_varied_session(path: str | Path, params: VariedParams | int, *,
 
 
 def params_record(params: VariedParams) -> dict:
-    """``params.json`` of a varied session: the fields of ``params``, ``marker`` only when it
-    is not ``"aruco"`` (the ArUco sessions' file as before the field existed)."""
+    """``params.json`` of a varied session: the fields of ``params``, those of ``_OPTIONAL``
+    (``marker``, ...) only away from their defaults (the files as before the fields existed)."""
     record = asdict(params)
-    if params.marker == "aruco":
-        del record["marker"]
+    defaults = {f.name: f.default for f in fields(VariedParams)}
+    for name in _OPTIONAL:
+        if getattr(params, name) == defaults[name]:
+            del record[name]
     return record

@@ -75,14 +75,16 @@ def flight_frames(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 8,
                   name: str = "field", altitude_m: float = 25.0, spacing_m: float = 1.8,
                   panels: Sequence[Panel] = DEFAULT_PANELS, supersample: int = 3,
                   time_offset_s: float = 1200.0, frame_interval_s: float = 2.0,
-                  drift: LightDrift | None = None, clouds: bool = True, irradiance: bool = False) -> FrameSet:
+                  drift: LightDrift | None = None, clouds: bool = True, irradiance: bool = False,
+                  exposure_fraction: tuple[float, float] = (0.72, 0.82)) -> FrameSet:
     """Render nadir-ish survey frames of a crop field with gray panels (target of Eq. 15).
 
     Frames are taken along a north-going line at ~``altitude_m`` (GSD ~5.7 cm per band-grid
     pixel at 25 m), ``spacing_m`` apart, with small roll/pitch/yaw, so the panel row (v = 0) is
     seen in several frames at different image rows. Light is uniform within a frame,
     ``B = sun_k`` with ``sun_k`` (clouds) unknown to the fit; its colour ``S`` is the one of the
-    reflector images. Exposure per frame (auto exposure): brightest pixel at 72-82 %.
+    reflector images. Exposure per frame (auto exposure): brightest pixel at 72-82 %
+    (``exposure_fraction``).
     Reflectance: soil and a green crop (rows 0.75 m apart, gaps, weeds; brightness textures that
     scale all bands alike), panels spectrally flat.
 
@@ -113,6 +115,9 @@ def flight_frames(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 8,
         False drops the random per-frame factor 0.75-1.15.
     irradiance : bool
         Write the frame's sun brightness into its ``meta`` as a sun-sensor reading.
+    exposure_fraction : tuple of float
+        Range of the brightest pixel's share of the DN range (auto exposure); above the
+        response's shoulder start it puts the bright panel on the shoulder.
 
     Returns
     -------
@@ -153,7 +158,7 @@ def flight_frames(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 8,
         rend = render(cam, pose, scene, supersample=supersample)
         br = rend.light_times_reflectance(scene.reflectance)
         energy = (truth.vignetting * S[:, None, None] * br).astype(np.float32)
-        t = exposure_for(truth, float(energy.max()), rng.uniform(0.72, 0.82))
+        t = exposure_for(truth, float(energy.max()), rng.uniform(*exposure_fraction))
         dn = expose_frame(truth, energy, t, rng)
         refl = br / sun
         labels = _material_labels(cam, scene, rend, len(panels))

@@ -7,10 +7,15 @@ import numpy as np
 from ._targets import PeriodicNoise
 from ._truth import FrameSet, SyntheticTruth, expose_frame, exposure_for, round_ms, session_time
 
+#: ``stop_fraction`` places this quantile of the sweep's energy (all bands and pixels): the
+#: brightest 0.5 % go above it (to the clip), so the DN near the top are sparse.
+STOP_QUANTILE = 0.995
+
 
 def response_sweep(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 14,
                    step: float = 1.66, decades: float = 2.5,
-                   start_fraction: tuple[float, float] = (0.30, 0.40)) -> FrameSet:
+                   start_fraction: tuple[float, float] = (0.30, 0.40),
+                   stop_fraction: float | None = None) -> FrameSet:
     """Render an exposure sweep of a static scene with a fixed camera (input of Eq. 5-7).
 
     The scene is a smooth random texture whose radiance spans ``decades`` decades (log-uniform
@@ -32,6 +37,10 @@ def response_sweep(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 14,
         Span of the scene's radiance in decades.
     start_fraction : tuple of float
         Range of the brightest pixel's share of the DN range in the shortest exposure.
+    stop_fraction : float, optional
+        Instead, the share of the DN range of the sweep's :data:`STOP_QUANTILE` energy in the
+        *longest* exposure (the sweep then ends there: few samples above it, the brightest
+        0.5 %); None: as ``start_fraction`` says.
 
     Returns
     -------
@@ -63,6 +72,13 @@ def response_sweep(truth: SyntheticTruth, *, seed: int = 0, n_frames: int = 14,
     # 0.1 us rounding of the exposures is negligible
     energy = (energy * 1000.0 / energy.max()).astype(np.float32)
     t0 = exposure_for(truth, float(energy.max()), rng.uniform(*start_fraction))
+    if stop_fraction is not None:  # t0 drawn all the same: the noise stream stays the same
+        # the scene dimmed so that the shortest exposure is again ~0.3 ms (0.1 us rounding)
+        top = float(np.quantile(energy, STOP_QUANTILE))
+        t_first = exposure_for(truth, top, float(stop_fraction)) / step ** (n_frames - 1)
+        energy = (energy * min(t_first / 0.3, 1.0)).astype(np.float32)
+        top = float(np.quantile(energy, STOP_QUANTILE))
+        t0 = exposure_for(truth, top, float(stop_fraction)) / step ** (n_frames - 1)
     exposures = np.array([round_ms(t0 * step**i) for i in range(n_frames)])
     dn = [expose_frame(truth, energy, t, rng) for t in exposures]
     return FrameSet(

@@ -11,7 +11,7 @@ response ``C(x) ~ black + x``. The forward response is built from three monotone
     C(x) = min(mu(x), dn_max)                           expected DN, clipped by the ADC
 
 with ``dn_max = 2**bits - 1``, ``R = dn_max - black`` (the DN range above black),
-``y_s = shoulder_start * dn_max - black`` and ``H = 1.5 * (R - y_s)``: the shoulder reaches
+``y_s = shoulder_start * dn_max - black`` and ``H = 1.5 * (R - y_s)`` (``shoulder_headroom``): the shoulder reaches
 ``dn_max`` at ``y = y_s + H ln 3`` with a third of the linear slope (a soft knee) and tends to
 ``dn_max + (R - y_s) / 2``, so far beyond saturation every noisy sample clips to ``dn_max``.
 Every piece has a closed-form inverse, so the true inverse response ``U = C^{-1}`` is exact.
@@ -56,6 +56,11 @@ class SensorModel:
         ``y = R (f / R)^(1/gamma)``; 1 = linear raw sensor (default). An addition to the basic
         sensor that bends the response like an 8-bit display-referred camera (e.g.
         ``bits=8, gamma=2.2, black_level=0``).
+    shoulder_headroom : float
+        ``H / (R - y_s)``, > 1 (default :data:`SHOULDER_HEADROOM`): the shoulder reaches
+        ``dn_max`` at ``y = y_s + H ln(h / (h - 1))`` with ``(h - 1) / h`` of the linear slope; close to 1, a harsh shoulder that compresses a wide energy range into the
+        last DN below the clip (e.g. 1.02: ~4 H of energy into
+        ``R - y_s`` DN, slope 1/51 at the clip).
 
     Raises
     ------
@@ -71,6 +76,7 @@ class SensorModel:
     shoulder_start: float = 0.85  # fraction of the DN range where a soft shoulder begins
     curvature: float = 0.05  # c in f(x) = x (1 - c x / (x + R)): slope 1 at 0, 1 - 3c/4 at R
     gamma: float = 1.0  # y = R (f / R)^(1/gamma); 1 = linear raw sensor
+    shoulder_headroom: float = SHOULDER_HEADROOM  # asymptote / (dn_max - shoulder start), > 1
 
     def __post_init__(self) -> None:
         """Validate the bit depth, black level and shoulder."""
@@ -85,6 +91,9 @@ class SensorModel:
             raise InputError(f"shoulder_start must be in (0, 1], got {self.shoulder_start}")
         if not 0 <= self.curvature < 1:
             raise InputError(f"curvature must be in [0, 1), got {self.curvature}")
+        if not self.shoulder_headroom > 1:
+            raise InputError(f"shoulder_headroom must be > 1 (the shoulder must reach the clip), "
+                             f"got {self.shoulder_headroom}")
         if self.gamma <= 0 or self.read_noise_dn < 0 or self.shot_noise_dn_at_full < 0:
             raise InputError("gamma must be > 0 and noise levels >= 0")
 
@@ -109,7 +118,7 @@ class SensorModel:
 
     @property
     def _headroom(self) -> float:
-        return SHOULDER_HEADROOM * (self._range - self._y_shoulder)
+        return self.shoulder_headroom * (self._range - self._y_shoulder)
 
     # ------------------------------------------------------------------ pieces
     def _f(self, x: np.ndarray) -> np.ndarray:

@@ -1,0 +1,116 @@
+"""End to end on a session drawn to be hard where the flight reads it (pipeline.sim.varied.harsh_params):
+a harsh response shoulder, a sweep that ends near the top, a flight exposed so that the 0.9 panel
+lies on the shoulder or above the sweep. ``mscal calibrate`` + ``mscal apply`` must flag those
+pixels (bit 2 and/or 4), make them NaN (values kept with --keep-flagged), count them in run.json
+per frame and band as in the array, warn naming frame and band, and leave the panels on the
+pixels still valid within 0.01 of the truth."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from mscal_core.quality import FLAGS
+from pipeline.run.cli import main
+from pipeline.run.console import report_warnings
+from pipeline.sim.evaluate import evaluate_flight
+from pipeline.sim.varied import harsh_params, write_varied_session
+
+pytestmark = pytest.mark.slow
+
+ON_SHOULDER = FLAGS["response_shoulder"] | FLAGS["outside_sweep"]
+
+
+@pytest.fixture(scope="module")
+def harsh(tmp_path_factory) -> dict[str, Path]:
+    """Harsh small session 0 (shoulder from 0.908 of the range, headroom 1.034: U at the clip
+    1.4 x U at the knee; the sweep's 99.5 % energy at 0.883 of the range in its longest frame),
+    calibrated and applied (default and --keep-flagged)."""
+    root = tmp_path_factory.mktemp("harsh")
+    session = write_varied_session(root / "session", harsh_params(0), n_flight_frames=3)
+    calib = root / "calib.zarr"
+    assert main(["-q", "calibrate", str(session), "-o", str(calib)]) == 0
+    out = {"session": session, "calib": calib}
+    for name, extra in (("default", []), ("keep", ["--keep-flagged"])):
+        out[name] = root / name
+        assert main(["-q", "apply", str(session / "flights" / "field"), "--calibration", str(calib),
+                     "-o", str(out[name]), *extra]) == 0
+    return out
+
+
+def _white(session: Path) -> np.ndarray:
+    """(frame, y, x) pure pixels of the 0.9 panel."""
+    truth = np.load(session / "truth.npz")
+    names = [str(n) for n in truth["flight_field_material_names"]]
+    return truth["flight_field_labels"] == names.index("panel_0.90")
+
+
+def test_the_bright_panel_on_the_shoulder_is_flagged_and_nan(harsh) -> None:
+    ds = xr.open_zarr(harsh["default"] / "reflectance.zarr")
+    q, refl = ds["quality"].values, ds["reflectance"].values
+    raw = xr.open_zarr(harsh["default"] / "raw.zarr")["dn"].values
+    white = _white(harsh["session"])
+    qw = q.transpose(1, 0, 2, 3)[:, white]  # (band, pixels of the panel in every frame)
+    flagged = (qw & ON_SHOULDER) != 0
+    # the flight put the panel on the shoulder: a good share of it is flagged, in many bands
+    assert flagged.mean() > 0.2
+    assert (flagged.mean(axis=1) > 0.05).sum() >= 10
+    # the flags follow the DN: every flagged panel pixel reads above the bulk of the unflagged ones
+    rw = raw.transpose(1, 0, 2, 3)[:, white]
+    for b in np.flatnonzero(flagged.any(axis=1) & (~flagged).any(axis=1)):
+        assert rw[b][flagged[b] & (rw[b] < 1023)].min() > np.percentile(rw[b][~flagged[b]], 50)
+    # NaN by default wherever flagged, finite on the valid panel pixels
+    rwv = refl.transpose(1, 0, 2, 3)[:, white]
+    assert np.isnan(rwv[qw != 0]).all() and np.isfinite(rwv[qw == 0]).all()
+    # ... and kept with --keep-flagged (except saturated pixels, which have no value)
+    keep = xr.open_zarr(harsh["keep"] / "reflectance.zarr")
+    np.testing.assert_array_equal(keep["quality"].values, q)
+    kw = keep["reflectance"].values.transpose(1, 0, 2, 3)[:, white]
+    sat = (qw & FLAGS["saturated"]) != 0
+    assert np.isfinite(kw[flagged & ~sat]).all()
+    np.testing.assert_array_equal(kw[qw == 0], rwv[qw == 0])
+
+
+def test_run_json_counts_the_flags_per_frame_and_band_as_the_array(harsh) -> None:
+    ds = xr.open_zarr(harsh["default"] / "reflectance.zarr")
+    q = ds["quality"].values
+    names = [str(b) for b in ds["band_name"].values]
+    run = json.loads((harsh["default"] / "run.json").read_text())["quality"]
+    assert "response_shoulder" in run["checked"] and "outside_sweep" in run["checked"]
+    seen_shoulder = 0
+    for f, frame in enumerate(str(x) for x in ds["frame"].values):
+        for b, band in enumerate(names):
+            want = {name: int(np.count_nonzero(q[f, b] & bit)) for name, bit in FLAGS.items()
+                    if np.count_nonzero(q[f, b] & bit)}
+            assert run["frames"].get(frame, {}).get(band, {}) == want
+            seen_shoulder += want.get("response_shoulder", 0) + want.get("outside_sweep", 0)
+    assert seen_shoulder > 1000
+
+
+def test_the_summary_warns_naming_frame_and_band(harsh) -> None:
+    run = json.loads((harsh["default"] / "run.json").read_text())["quality"]
+    lines = [w["message"] for w in report_warnings(flights=[harsh["default"]]) if w["code"].startswith("flagged_")]
+    on_shoulder = [m for m in lines if "on the response's shoulder" in m or "outside the response sweep" in m]
+    assert on_shoulder
+    for m in on_shoulder:
+        frame, band = m.split(":")[0].removeprefix("frame ").split(", band ")
+        n = int(m.split(": ")[1].split(" pixels")[0].replace(",", ""))
+        flag = "response_shoulder" if "shoulder" in m else "outside_sweep"
+        assert run["frames"][frame][band][flag] == n
+        assert m.endswith("set to NaN")
+
+
+def test_the_panels_on_the_valid_pixels_are_within_0_01(harsh) -> None:
+    session = harsh["session"]
+    ds = xr.open_zarr(harsh["calib"]).load()
+    truth = np.load(session / "truth.npz")
+    valid = evaluate_flight(session, ds, truth, "field",
+                            reflectance=xr.open_zarr(harsh["default"] / "reflectance.zarr")["reflectance"].values)
+    kept = evaluate_flight(session, ds, truth, "field",
+                           reflectance=xr.open_zarr(harsh["keep"] / "reflectance.zarr")["reflectance"].values)
+    assert valid["eq15"]["panel_abs_error"] < 0.01
+    assert kept["eq15"]["panel_abs_error"] > 0.02  # what the flags kept out
