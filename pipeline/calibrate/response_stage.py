@@ -92,8 +92,10 @@ def response_dataset(camera: Camera, fits: Sequence[response.ResponseFit], repor
         ds.coords["end"] = ("end", np.array(["low", "high"], dtype=object))
         ds["response_dn_range"] = (
             ("band", "end"), np.array([f.fitted_dn for f in fits], dtype=np.int32),
-            {"long_name": "lowest and highest DN of the sweep samples the response fit used (the range U was "
-                          "fitted on; outside it U is extrapolated)", "units": "DN"})
+            {"long_name": "lowest and highest DN the response fit has data for: the lowest DN of its sweep "
+                          "samples, the high end at most the mean DN of its 10 samples of highest energy (above "
+                          "it, on a sweep short of the clip, DN are noise draws); outside it U is extrapolated",
+             "units": "DN"})
     if all(f.uncertainty is not None and f.noise_variance is not None for f in fits):
         ds["response_uncertainty"] = (
             ("band", "dn"), np.stack([f.uncertainty for f in fits]).astype(np.float32),
