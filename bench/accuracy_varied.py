@@ -25,7 +25,6 @@ from __future__ import annotations
 import json
 import math
 import shutil
-import statistics
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -129,13 +128,6 @@ def run_session(index: int, workdir: Path, keep: bool = False, log: Callable[[st
             shutil.rmtree(sdir, ignore_errors=True)
 
 
-def _spread(values: Sequence[float], fmt: str) -> list[str]:
-    finite = [v for v in values if v is not None and math.isfinite(v)]
-    if not finite:
-        return ["nan"] * 3
-    return [bc._fmt(fmt, min(finite)), bc._fmt(fmt, statistics.median(finite)), bc._fmt(fmt, max(finite))]
-
-
 def rows(results: Sequence[VariedAccuracy]) -> list[tuple[bc.Row, ...]]:
     """Each mscal row with its baseline rows after it (Eq. 16, the true calibration)."""
     T = bc.ACCURACY_TARGETS
@@ -186,7 +178,7 @@ def render(results: Sequence[VariedAccuracy], command: str) -> str:
             verdict = r.verdict()
             if verdict.startswith("FAIL"):
                 fails.append(f"{r.label} (worst {bc._fmt(r.fmt, r.worst)})")
-            cells = [r.label] + [bc._fmt(r.fmt, v) for v in r.values] + _spread(r.values, r.fmt) + [tgt, verdict]
+            cells = [r.label] + [bc._fmt(r.fmt, v) for v in r.values] + bc.spread(r.values, r.fmt) + [tgt, verdict]
             lines.append("| " + " | ".join(cells) + " |")
     lines.append("")
     lines.append(("Targets missed: " + "; ".join(fails) + ".") if fails else "Every target holds on every session.")

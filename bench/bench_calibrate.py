@@ -45,6 +45,7 @@ import platform
 import shlex
 import shutil
 import stat
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -512,6 +513,14 @@ def _fmt(fmt: str, v: float) -> str:
     if v is None or not math.isfinite(v):
         return "nan"
     return fmt.format(v)
+
+
+def spread(values: Sequence[float], fmt: str) -> list[str]:
+    """Min, median and max of the finite ``values``, formatted (``nan`` when none is finite)."""
+    finite = [v for v in values if v is not None and math.isfinite(v)]
+    if not finite:
+        return ["nan"] * 3
+    return [_fmt(fmt, min(finite)), _fmt(fmt, statistics.median(finite)), _fmt(fmt, max(finite))]
 
 
 def table(rows: Sequence[Row], seeds: Sequence[int]) -> str:

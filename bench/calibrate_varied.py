@@ -17,9 +17,7 @@ Importing this module runs nothing; it is imported by ``bench_calibrate.py`` onl
 from __future__ import annotations
 
 import json
-import math
 import shutil
-import statistics
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -98,13 +96,6 @@ def run_varied_session(index: int, workdir: Path, keep: bool, log: Callable[[str
             shutil.rmtree(sdir, ignore_errors=True)
 
 
-def _spread(values: Sequence[float], fmt: str) -> list[str]:
-    finite = [v for v in values if v is not None and math.isfinite(v)]
-    if not finite:
-        return ["nan"] * 3
-    return [bc._fmt(fmt, min(finite)), bc._fmt(fmt, statistics.median(finite)), bc._fmt(fmt, max(finite))]
-
-
 def _rows(results: Sequence[VariedResult]) -> list[bc.Row]:
     T = bc.ACCURACY_TARGETS
     fl = [bc._flight(r.evaluation, "eq15") for r in results]
@@ -147,7 +138,7 @@ def table(rows: Sequence[bc.Row], indices: Sequence[int]) -> str:
     for r in rows:
         tgt = ("<= " + bc._fmt(r.fmt, r.target)) if r.target is not None else ""
         label = (f'<a id="{r.anchor}"></a>' if r.anchor else "") + r.label
-        cells = [label] + [bc._fmt(r.fmt, v) for v in r.values] + _spread(r.values, r.fmt) + [tgt, r.verdict()]
+        cells = [label] + [bc._fmt(r.fmt, v) for v in r.values] + bc.spread(r.values, r.fmt) + [tgt, r.verdict()]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
