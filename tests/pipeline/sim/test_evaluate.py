@@ -3,6 +3,8 @@ normalisation, NaN (flagged) pixels left out, and the figures it reports."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -78,8 +80,6 @@ def test_a_panel_cut_by_the_frame_to_a_few_pixels_is_left_out() -> None:
     labels[0][:5, 2] = 2
     r2 = r.copy()
     r2[0][:, labels[0] == 2] *= 1.2  # ... where they read 20 % high
-    from dataclasses import replace
-
     s = score_flight(r2, replace(scene, labels=labels))
     assert s["panel_abs_error"] < 1e-6 and s["panel_cv_across_frames"] < 1e-6
     labels[0][:, 2] = 2  # 6 of 12: half of it, counted
