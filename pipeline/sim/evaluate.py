@@ -26,8 +26,9 @@ def panel_labels(names: np.ndarray) -> list[int]:
     return [i for i, n in enumerate(names) if str(n).startswith("panel")]
 
 
-def evaluate_calibration(session_dir: str | Path, calibration: str | Path | xr.Dataset) -> dict[str, Any]:
-    """Errors of each fit and of the flight reflectance against the session's truth."""
+def evaluate_calibration(session_dir: str | Path, calibration: str | Path | xr.Dataset,
+                         flights: bool = True) -> dict[str, Any]:
+    """Errors of each fit and (``flights``) of the flight reflectance against the session's truth."""
     session_dir = Path(session_dir)
     truth = np.load(session_dir / "truth.npz")
     ds = calibration if isinstance(calibration, xr.Dataset) else xr.open_zarr(calibration).load()
@@ -49,9 +50,9 @@ def evaluate_calibration(session_dir: str | Path, calibration: str | Path | xr.D
         out["spectral_factor_max_error"] = metrics.spectral_factor_error(
             ds["spectral_factor"].values, truth["spectral_factor"]
         )
-        flights = [k[len("flight_"):-len("_exposure_ms")] for k in truth.files
-                   if k.startswith("flight_") and k.endswith("_exposure_ms")]
-        for flight in flights:
+        names = [k[len("flight_"):-len("_exposure_ms")] for k in truth.files
+                 if flights and k.startswith("flight_") and k.endswith("_exposure_ms")]
+        for flight in names:
             out[f"flight_{flight}"] = evaluate_flight(session_dir, ds, truth, flight)
     return out
 
