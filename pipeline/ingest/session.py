@@ -18,7 +18,7 @@ from mscal_core.geometry import Intrinsics
 from mscal_core.mosaic import demosaic
 from pydantic import BeforeValidator, Field
 
-from pipeline.ingest.catalog import Camera, ReflectanceSpec, load_camera, parse_reflectance, read_yaml
+from pipeline.ingest.catalog import Camera, Reflectance, ReflectanceSpec, load_camera, read_yaml, reflectance_spec
 from pipeline.ingest.exif import (
     dms_to_degrees,
     exif_time_utc,
@@ -85,7 +85,9 @@ class Session:
         return sorted(p for p in d.iterdir() if p.is_dir()) if d.is_dir() else []
 
 
-class _Intrinsics(Strict):
+class IntrinsicsModel(Strict):
+    """session.yaml's ``{fx, fy, cx, cy, dist}`` of one lens (pixels; OpenCV's distortion order)."""
+
     fx: number(positive=True)  # type: ignore[valid-type]
     fy: number(positive=True)  # type: ignore[valid-type]
     cx: number()  # type: ignore[valid-type]
@@ -96,7 +98,11 @@ class _Intrinsics(Strict):
 
 def parse_intrinsics(data: Any, path: Path) -> Intrinsics:
     """session.yaml ``intrinsics: {fx, fy, cx, cy, dist}`` (one band's, or all bands')."""
-    m = validate(_Intrinsics, data, path, SessionError, prefix="intrinsics")
+    return intrinsics_of(validate(IntrinsicsModel, data, path, SessionError, prefix="intrinsics"))
+
+
+def intrinsics_of(m: IntrinsicsModel) -> Intrinsics:
+    """The :class:`Intrinsics` of a validated ``{fx, fy, cx, cy, dist}``."""
     return Intrinsics(fx=m.fx, fy=m.fy, cx=m.cx, cy=m.cy, dist=m.dist + (0.0,) * (5 - len(m.dist)))
 
 
@@ -187,7 +193,7 @@ def _enclosing(corners: tuple[tuple[float, float], ...], path: Path) -> tuple[tu
 
 
 class _Reflector(Strict):
-    reflectance: Any  # a number, a table or a target's name: parse_reflectance
+    reflectance: Reflectance
     size_m: items(lambda v: finite_number(v) is not None and v > 0,  # type: ignore[valid-type]
                   "[width_m, height_m] (positive numbers)", float, lambda n: n == 2)
 
@@ -229,11 +235,11 @@ def load_session(root: str | Path) -> Session:
         from pipeline.ingest.intrinsics import parse_band_intrinsics
 
         keys = [[b.name] + ([str(b.file_suffix)] if b.file_suffix is not None else []) for b in camera.bands]
-        band_intr = parse_band_intrinsics(raw_intr, keys, path, parse_intrinsics)
+        band_intr = parse_band_intrinsics(raw_intr, keys, path, IntrinsicsModel, intrinsics_of)
     elif raw_intr is not None:
         intr = parse_intrinsics(raw_intr, path)
     w, h = m.reflector.size_m
-    reflector = ReflectorSpec(reflectance=parse_reflectance(m.reflector.reflectance, path, "reflector.reflectance"),
+    reflector = ReflectorSpec(reflectance=reflectance_spec(m.reflector.reflectance, path, "reflector.reflectance"),
                               size_m=(w, h))
     marker = parse_marker(m.marker, path, reflector.size_m)
     panel = parse_panel(m.panel, path) if m.panel is not None else PanelConfig()
