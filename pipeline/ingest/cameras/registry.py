@@ -89,7 +89,11 @@ class Maker:
     time (every maker's are tried for every file, in maker order, before the shared ones);
     ``intrinsics(xmp, path)`` the lens of a file without the shared Pix4D perspective tags
     (None: it has none); ``vignetting_tags`` the tags its vignetting comes from (named when they
-    give an unusable correction).
+    give an unusable correction); ``field_parts`` whether its ``radiance`` takes a field
+    calibration's response and/or vignetting (:class:`~pipeline.ingest.meta.FieldParts`) in
+    place of the factory's; ``namespaces`` its own XMP namespaces (key: URIs, compared without a
+    trailing slash), which files are parsed with once it is registered
+    (:func:`pipeline.ingest.xmp.namespace_key`).
     """
 
     name: str
@@ -117,9 +121,13 @@ class Maker:
     time_tags: tuple[tuple[str, str], ...] = ()
     intrinsics: "Callable[[Xmp, Path], Intrinsics | None] | None" = None
     vignetting_tags: str = ""
+    field_parts: bool = False
+    namespaces: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
 
 MAKERS: dict[str, Maker] = {}
+#: The registered makers' own XMP namespaces: URI (no trailing slash) -> key (:attr:`Maker.namespaces`).
+NAMESPACE_KEYS: dict[str, str] = {}
 
 
 def register(maker: Maker) -> Maker:
@@ -132,7 +140,13 @@ def register(maker: Maker) -> Maker:
             raise ValueError(f"camera makers {other.name!r} and {maker.name!r} claim one model or radiometry")
         if other.fallback and maker.fallback:
             raise ValueError(f"camera makers {other.name!r} and {maker.name!r} are both the fallback")
+    for key, uris in maker.namespaces.items():
+        for uri in uris:
+            if NAMESPACE_KEYS.get(uri.rstrip("/"), key) != key:
+                raise ValueError(f"camera maker {maker.name!r}: XMP namespace {uri} is already "
+                                 f"{NAMESPACE_KEYS[uri.rstrip('/')]!r}")
     MAKERS[maker.name] = maker
+    NAMESPACE_KEYS.update({uri.rstrip("/"): key for key, uris in maker.namespaces.items() for uri in uris})
     return maker
 
 
