@@ -92,7 +92,7 @@ class CaptureMeta:
     panel_albedo: float | None = None
     calibration_picture: int | None = None  # XMP Camera:CalibrationPicture (Pix4D: 2, a valid panel capture)
     problems: tuple[TagProblem, ...] = ()
-    # the file's XMP properties the sun-sensor model reads (SUN_SENSOR_XMP; sun_sensor_xmp)
+    # the file's XMP properties the sun-sensor model reads (camera_meta.sun_sensor_xmp_names; sun_sensor_xmp)
     sun_sensor_props: tuple[tuple[str, str, str | tuple[str, ...]], ...] | None = field(
         default=None, compare=False, repr=False)
 
