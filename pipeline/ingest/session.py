@@ -31,7 +31,7 @@ from pipeline.ingest.exif import (
 from pipeline.ingest.gps import placed_records
 from pipeline.ingest.markers import Dictionary, MarkerId, MarkerSpec, parse_marker
 from pipeline.ingest.products import yaml_choice
-from pipeline.ingest.schema import Strict, Text, finite_number, items, number, show_key, validate
+from pipeline.ingest.schema import Strict, Text, check, finite_number, items, number, show_key, validate
 from pipeline.ingest.tiff import decode_frame
 from pipeline.ingest.xmp import TagProblem
 
@@ -198,6 +198,13 @@ class _Reflector(Strict):
                   "[width_m, height_m] (positive numbers)", float, lambda n: n == 2)
 
 
+#: session.yaml's ``serial``: the serial number of a camera whose frames carry none (text, or
+#: a number YAML read from an unquoted serial).
+CameraSerial = Annotated[str, check(lambda v: isinstance(v, (str, int)) and not isinstance(v, bool) and bool(str(v).strip()),
+                                    "must be the camera's serial number as text", lambda v: str(v).strip(),
+                                    hint='e.g. serial: "RE02-1234567" (quoted)')]
+
+
 class _SessionYaml(Strict):
     camera: Text
     reflector: _Reflector
@@ -207,7 +214,7 @@ class _SessionYaml(Strict):
     products: Any = None  # pipeline.ingest.products.yaml_choice
     name: Any = None
     notes: Any = None
-    serial: Any = None
+    serial: CameraSerial | None = None  # read by pipeline.calibrate.library
 
 
 def load_session(root: str | Path) -> Session:

@@ -83,6 +83,10 @@ def test_reflectance_table(tmp_path) -> None:
         (SESSION_YAML.replace("size_m: 0.10", "size_m: .nan"), SessionError, "marker.size_m must be a number, got nan"),
         (SESSION_YAML.replace("reflectance: 0.5", "reflectance: [[600, 0.4], [900, 1.6]]"), SessionError,
          "reflector.reflectance[1] must be [wavelength_nm, reflectance]: finite numbers, nm > 0, 0 < reflectance <= 1"),
+        (SESSION_YAML + "serial: true\n", SessionError, "serial must be the camera's serial number as text, got True "
+         '(e.g. serial: "RE02-1234567" (quoted))'),
+        (SESSION_YAML + "serial: ' '\n", SessionError, "serial must be the camera's serial number as text, got ' '"),
+        (SESSION_YAML + "serial: [RE02-1]\n", SessionError, "serial must be the camera's serial number as text"),
         (SESSION_YAML + "panel: {marker: {dictionary: DICT_4X4_50, id: 7, size_m: 0.06}, size_m: [0.15, 0]}\n",
          SessionError, "panel.size_m must be [w, h] in metres (or one side), positive numbers, got [0.15, 0]"),
     ],
