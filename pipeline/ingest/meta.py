@@ -92,9 +92,16 @@ class CaptureMeta:
     panel_albedo: float | None = None
     calibration_picture: int | None = None  # XMP Camera:CalibrationPicture (Pix4D: 2, a valid panel capture)
     problems: tuple[TagProblem, ...] = ()
+    # a maker's own per-band values its radiance or vignetting needs, as (name, value) pairs
+    # (hashable values: numbers, text, tuples): a new maker needs no new field here (maker_tag)
+    maker_tags: tuple[tuple[str, Any], ...] = ()
     # the file's XMP properties the sun-sensor model reads (camera_meta.sun_sensor_xmp_names; sun_sensor_xmp)
     sun_sensor_props: tuple[tuple[str, str, str | tuple[str, ...]], ...] | None = field(
         default=None, compare=False, repr=False)
+
+    def maker_tag(self, name: str, default: Any = None) -> Any:
+        """The value ``name`` of :attr:`maker_tags`, else ``default``."""
+        return next((v for k, v in self.maker_tags if k == name), default)
 
     @property
     def black_level(self) -> float:
@@ -370,11 +377,12 @@ class VignettingTags(NamedTuple):
     poly: tuple[float, ...] | None
     poly_2d: tuple[float, ...] | None
     exponents_2d: tuple[float, ...] | None
+    maker: tuple[tuple[str, Any], ...] = ()  # CaptureMeta.maker_tags: a maker's own vignetting values
 
     @classmethod
     def of(cls, meta: CaptureMeta) -> VignettingTags:
         return cls(meta.dji_center, meta.dji_vignetting, meta.vignetting_center, meta.vignetting_polynomial,
-                   meta.vignetting_polynomial_2d, meta.vignetting_polynomial_2d_exponents)
+                   meta.vignetting_polynomial_2d, meta.vignetting_polynomial_2d_exponents, meta.maker_tags)
 
 
 def sample_shift(dn_shift: int, bit_depth: int, stored_bits: int | None) -> int:

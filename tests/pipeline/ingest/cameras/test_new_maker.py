@@ -31,8 +31,9 @@ ROOT = Path(__file__).parents[4]
 
 #: The whole of the Acme maker, as ``pipeline/ingest/cameras/acme.py`` would hold it.
 ACME_MODULE = '''
-"""Acme Duo (a toy maker): tags XMP Acme:Gain, Acme:Shot, Acme:Utc, Acme:Lens, EXIF ExposureTime;
-radiance (DN - black) / (gain t); sun sensor Acme:Sun (W m-2 nm-1) with R = pi L / E and its own
+"""Acme Duo (a toy maker): tags XMP Acme:Gain, Acme:Shot, Acme:Utc, Acme:Lens, Acme:Falloff, EXIF
+ExposureTime; radiance (DN - black) V / (gain t), V = 1 + falloff r^2 (r from the centre, in
+half-diagonals); sun sensor Acme:Sun (W m-2 nm-1) with R = pi L / E and its own
 angles Acme:Yaw/Pitch/Roll; quirk: a Dark band read but kept out of reflectance."""
 import math
 
@@ -40,7 +41,8 @@ import numpy as np
 from mscal_core.geometry import Intrinsics
 
 from pipeline.ingest.cameras.registry import AttitudeSource, Maker, register
-from pipeline.ingest.meta import CaptureMeta, band_of, black_levels, exif_exposure, meta_fields, positive_irradiance
+from pipeline.ingest.meta import (CaptureMeta, band_of, black_levels, exif_exposure, factory_vignetting, meta_fields,
+                                  positive_irradiance)
 from pipeline.ingest.sun_scale import SunScale
 
 NS = ("Acme",)
@@ -54,11 +56,18 @@ def read(ctx):
         black_levels=black_levels(ctx), dark_row_values=None, radiometric_calibration=None, vignetting_center=None,
         vignetting_polynomial=None, vignetting_polynomial_2d=None, vignetting_polynomial_2d_exponents=None,
         irradiance=positive_irradiance(ctx, "Sun", NS), radiometry="acme-dark" if name == "Dark" else "acme",
-        **meta_fields(ctx))]
+        maker_tags=(("falloff", ctx.required("Falloff", NS, 1)[0]),), **meta_fields(ctx))]
 
 
 def radiance(meta, dn, parts, channels, out):
-    return (np.asarray(dn, np.float64) - meta.black_level) / (meta.gain * meta.exposure_s)
+    return (np.asarray(dn, np.float64) - meta.black_level) * factory_vignetting(meta) / (meta.gain * meta.exposure_s)
+
+
+def vignetting(radiometry, shape, tags):
+    h, w = shape
+    y, x = np.mgrid[0:h, 0:w]
+    r2 = ((x - (w - 1) / 2) ** 2 + (y - (h - 1) / 2) ** 2) / (((w - 1) / 2) ** 2 + ((h - 1) / 2) ** 2)
+    return 1.0 + dict(tags.maker)["falloff"] * r2
 
 
 def lens(x, path):
@@ -69,7 +78,7 @@ def lens(x, path):
 register(Maker(
     name="acme", model="acme", units={"acme": "W m-2 sr-1 nm-1", "acme-dark": "DN"},
     claims=lambda ctx: ctx.xmp.has("Gain", NS), read=read, radiance=radiance,
-    vignetting=lambda radiometry, shape, tags: np.ones(shape), order=40, sun_sensor_tag="XMP Acme:Sun",
+    vignetting=vignetting, order=40, sun_sensor_tag="XMP Acme:Sun",
     sun_scales={"acme": SunScale(math.pi, "R = pi L / E", "Acme manual (a toy)", True)},
     attitude=(AttitudeSource(35, "Acme:Yaw/Pitch/Roll",
                              lambda x: x.angles(("Yaw", "Pitch", "Roll"), NS, degrees=True)),),
@@ -96,7 +105,7 @@ sources: ["Acme Duo manual (a toy)"]
 index_bands: {green: 560, nir: 840}
 """
 
-GAIN, EXPOSURE_S, SUN, BLACK = 2.0, 0.004, 2.0e7, 64
+GAIN, EXPOSURE_S, SUN, BLACK, FALLOFF = 2.0, 0.004, 2.0e7, 64, 0.5
 
 
 def _band_file(path: Path, band: str, wavelength: float, dn: int, capture: int, sun: bool = True) -> Path:
@@ -105,7 +114,7 @@ def _band_file(path: Path, band: str, wavelength: float, dn: int, capture: int, 
         '<rdf:Description xmlns:Acme="http://acme.example/camera/1.0/" xmlns:Camera="http://pix4d.com/camera/1.0">'
         f"<Camera:BandName>{band}</Camera:BandName><Camera:CentralWavelength>{wavelength}</Camera:CentralWavelength>"
         f"<Acme:Gain>{GAIN}</Acme:Gain><Acme:Shot>shot-{capture}</Acme:Shot>"
-        "<Acme:Utc>2025:05:20 10:12:54.5</Acme:Utc><Acme:Lens>900,900,32,24</Acme:Lens>"
+        f"<Acme:Utc>2025:05:20 10:12:54.5</Acme:Utc><Acme:Lens>900,900,32,24</Acme:Lens><Acme:Falloff>{FALLOFF}</Acme:Falloff>"
         + (f"<Acme:Sun>{SUN}</Acme:Sun><Acme:Yaw>90</Acme:Yaw><Acme:Pitch>0</Acme:Pitch><Acme:Roll>0</Acme:Roll>"
            if sun else "")
         + "</rdf:Description></rdf:RDF></x:xmpmeta>").encode()
@@ -157,8 +166,11 @@ def test_a_new_maker_is_one_module_and_one_catalog_file(acme) -> None:
     assert (green.capture_id, green.radiance_unit, green.reflectance_band) == ("shot-1", "W m-2 sr-1 nm-1", True)
     assert green.time is not None and green.time.startswith("2025-05-20T10:12:54.5")
     dn = np.full((48, 64), 2064 << 4, np.uint16)
-    # (DN - black) / (gain t), black = 64 << 4: (33024 - 1024) / (2 x 0.004) = 4.0e6
-    np.testing.assert_allclose(factory_radiance(nir, dn), 4.0e6, rtol=1e-12)
+    # (DN - black) V / (gain t), black = 64 << 4: (33024 - 1024) / (2 x 0.004) = 4.0e6 times V, which is
+    # 1 + 0.5 = 1.5 in the corners (its own tag, through CaptureMeta.maker_tags) and about 1 in the middle
+    assert nir.maker_tag("falloff") == FALLOFF
+    rad = factory_radiance(nir, dn)
+    assert rad[0, 0] == pytest.approx(6.0e6, rel=1e-12) and rad[24, 32] == pytest.approx(4.0e6, rel=1e-3)
     assert reflectance_factor(green) == pytest.approx(math.pi / SUN) and no_reflectance_reason(green) is None
     assert green.features()["sun_sensor_absolute"] is True
     kept = sun_sensor_xmp(green)
@@ -190,8 +202,9 @@ def test_a_new_makers_flight_is_applied_with_its_sun_sensor(acme, tmp_path) -> N
     with xr.open_zarr(out / "reflectance.zarr") as ds:
         assert list(ds["band_name"].values) == ["Green", "NIR"]
         refl = ds["reflectance"].values
-    # L = (DN - 64) x 16 / (2 x 0.004): Green 1000 x 16 / 0.008 = 2e6, NIR 4e6; R = pi L / 2e7
-    np.testing.assert_allclose(np.nanmedian(refl, axis=(2, 3)), [[0.314159, 0.628319]] * 2, rtol=1e-4)
+    # L = (DN - 64) x 16 V / (2 x 0.004): Green 1000 x 16 / 0.008 = 2e6, NIR 4e6 (x V); R = pi L / 2e7
+    np.testing.assert_allclose(refl[:, :, 24, 32], [[0.314159, 0.628319]] * 2, rtol=2e-3)
+    np.testing.assert_allclose(refl[:, :, 0, 0], [[0.314159 * 1.5, 0.628319 * 1.5]] * 2, rtol=1e-4)
 
 
 #: What a module outside pipeline/ingest/cameras may not compare a value with: a maker's name,
