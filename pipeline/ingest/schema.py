@@ -117,15 +117,16 @@ def pair(low: int = 0, high: int = MAX_PIXELS) -> Any:
         f"must be a pair of integers {low}..{high}", lambda v: (int(v[0]), int(v[1])))]
 
 
+#: The pydantic error type of a value of none of a :func:`one_of`'s forms.
+ONE_OF = "mscal_one_of"
+
+
 def one_of(kind: Callable[[Any], str | None], text: str, **members: Any) -> Any:
     """A value of one of several forms, chosen by ``kind(value)`` (a name of ``members``, None:
     none of them) before it is validated: an error inside a form is named by the key path
     alone (the form's name is no key); a value of no form ``must be TEXT``."""
     union = typing.Union[tuple(Annotated[tp, Tag(name)] for name, tp in members.items())]
     return Annotated[union, Discriminator(kind, custom_error_type=ONE_OF, custom_error_message=text)]
-
-
-ONE_OF = "mscal_one_of"
 
 
 def is_number(value: Any) -> bool:
@@ -149,7 +150,7 @@ def _tag(tp: Any) -> str | None:
 
 
 def _aliases(field: Any) -> list[str]:
-    """The keys a model's field is given by (its validation aliases, else its name: None)."""
+    """The keys a model's field is given by: its validation aliases (none: by its name)."""
     alias = field.validation_alias
     if isinstance(alias, AliasChoices):
         return [a for a in alias.choices if isinstance(a, str)]
