@@ -286,5 +286,5 @@ MAKER = register(Maker(
     sun_sensor_tag="XMP Camera:Irradiance (DLS 1) or DLS:HorizontalIrradiance (DLS 2)",
     sun_scales=SUN_SCALES, attitude=ATTITUDE, sun_split=dls2_split, split_correction=dls2_correction,
     sun_sensor_xmp=SUN_SENSOR_XMP, kept_out=KEPT_OUT, capture_id_tags=(("MicaSense", "CaptureId"),),
-    vignetting_tags="XMP VignettingCenter/VignettingPolynomial or VignettingPolynomial2D",
+    vignetting_tags="XMP VignettingCenter/VignettingPolynomial or VignettingPolynomial2D", field_parts=True,
 ))

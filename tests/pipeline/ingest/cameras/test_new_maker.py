@@ -17,14 +17,15 @@ import numpy as np
 import pytest
 import tifffile
 
+from mscal_core.errors import FrameError
 from pipeline.ingest import catalog
 from pipeline.ingest.camera_meta import read_file_metas, sun_sensor_xmp
 from pipeline.ingest.cameras import registry
-from pipeline.ingest.cameras.dispatch import factory_models, factory_radiance
+from pipeline.ingest.cameras.dispatch import factory_models, factory_radiance, takes_field_parts
 from pipeline.ingest.grouping import group_captures
 from pipeline.ingest.identify import identify_camera
 from pipeline.ingest.intrinsics import intrinsics_from_file
-from pipeline.ingest.meta import no_reflectance_reason, reflectance_factor
+from pipeline.ingest.meta import FieldParts, no_reflectance_reason, reflectance_factor
 from pipeline.ingest.sunsensor import sensor_orientation
 
 ROOT = Path(__file__).parents[4]
@@ -184,6 +185,11 @@ def test_a_new_maker_is_one_module_and_one_catalog_file(acme) -> None:
     assert no_reflectance_reason(bare) == "no sun-sensor reading: no XMP Acme:Sun in the file"
     lens = intrinsics_from_file(acme / "ACME_0001_1.tif")
     assert (lens.fx, lens.fy, lens.cx, lens.cy) == (900.0, 900.0, 32.0, 24.0)
+    # its model takes no field calibration's parts (field_parts left out): refused naming the file
+    assert (takes_field_parts("acme"), takes_field_parts("micasense"), takes_field_parts(None)) == (False, True, True)
+    with pytest.raises(FrameError, match=r"takes them \(micasense\), not acme's") as err:
+        factory_radiance(nir, dn, FieldParts(vignetting=np.ones((48, 64))))
+    assert str(err.value.path) == str(nir.path)
 
 
 def test_a_new_makers_flight_is_applied_with_its_sun_sensor(acme, tmp_path) -> None:
