@@ -5,10 +5,8 @@ A TIFF's EXIF (Make, Model, ExposureTime, ISO, FNumber, BlackLevel, Orientation,
 DateTimeOriginal + SubsecTime) is read with tifffile, a JPEG's with exifread; the XMP packet
 with :mod:`pipeline.ingest.xmp` (attributes, elements, rdf:Seq/Bag/Alt, numbers in one
 ``rdf:li``, namespaces by URI). Which maker reads a file, and so which radiometric model it
-gets (``CaptureMeta.radiometry``), follows from its tags
-(:func:`pipeline.ingest.cameras.dispatch.read_tags`): ``drone-dji:`` calibration tags -> DJI;
-``Camera:SensorModel`` -> Parrot; ``Camera:ColorTransform`` -> Sentera; else MicaSense (an
-``LWIR`` band: thermal; a ``Panchro`` band is read but marked).
+gets (``CaptureMeta.radiometry``), follows from its tags: the first maker whose ``claims``
+holds (:func:`pipeline.ingest.cameras.dispatch.read_tags`).
 """
 
 from __future__ import annotations
@@ -21,6 +19,7 @@ from typing import Any
 import numpy as np
 from mscal_core.errors import FrameError
 
+from pipeline.ingest.cameras import registry
 from pipeline.ingest.cameras.dispatch import read_tags
 from pipeline.ingest.exif import EXIF_CODES, jpeg_exif
 from pipeline.ingest.meta import FIRMWARE_HINT, CaptureMeta, TagContext, clean_text, int_tag
@@ -85,25 +84,30 @@ def meta_from_tags(path: Path, tags: dict[int, Any], shape: tuple[int, int], bit
     return metas[0]
 
 
-#: Local names of the XMP properties read by the sun-sensor model
-#: (:mod:`pipeline.apply.sunlight`: orientation, DLS 2 split, Sequoia's IrradianceList): kept
-#: on each band's metadata, so the sun sensor reads no file a second time.
-SUN_SENSOR_XMP = frozenset({
-    "Yaw", "Pitch", "Roll", "IrradianceYaw", "IrradiancePitch", "IrradianceRoll", "Irradiance",
-    "DirectIrradiance", "ScatteredIrradiance", "HorizontalIrradiance", "IrradianceList", "IrradianceScaleToSIUnits",
-    "FlightYawDegree", "FlightPitchDegree", "FlightRollDegree",  # DJI: the aircraft's, when no sensor's own
-})
+#: Local names of the XMP properties the shared sun-sensor model reads whatever the maker: the
+#: aircraft's ``Camera:Yaw/Pitch/Roll`` (:data:`pipeline.ingest.sunsensor.AIRCRAFT_ATTITUDE`).
+SHARED_SUN_SENSOR_XMP = frozenset({"Yaw", "Pitch", "Roll"})
+
+
+def sun_sensor_xmp_names() -> frozenset[str]:
+    """Local names of the XMP properties read by the sun-sensor model (orientation, a measured
+    split, a maker's own reading): every maker's
+    (:attr:`pipeline.ingest.cameras.registry.Maker.sun_sensor_xmp`) and the shared ones
+    (:data:`SHARED_SUN_SENSOR_XMP`). They are kept on each band's metadata, so the sun sensor
+    reads no file a second time."""
+    return registry.sun_sensor_xmp_names() | SHARED_SUN_SENSOR_XMP
 
 
 def _with_sun_sensor_props(ctx: TagContext, metas: list[CaptureMeta]) -> list[CaptureMeta]:
+    names = sun_sensor_xmp_names()
     props = tuple((ns, name, tuple(v) if isinstance(v, list) else v)
-                  for (ns, name), v in ctx.xmp.props.items() if name in SUN_SENSOR_XMP)
+                  for (ns, name), v in ctx.xmp.props.items() if name in names)
     return [replace(m, sun_sensor_props=props) for m in metas]
 
 
 def sun_sensor_xmp(meta: CaptureMeta) -> Xmp | None:
     """The XMP properties of ``meta``'s file that the sun-sensor model reads
-    (:data:`SUN_SENSOR_XMP`), as kept when the file was read; None for metadata made
+    (:func:`sun_sensor_xmp_names`), as kept when the file was read; None for metadata made
     otherwise (read the file's XMP then)."""
     if meta.sun_sensor_props is None:
         return None

@@ -26,6 +26,7 @@ from pipeline.ingest.catalog import Camera
 from pipeline.ingest.exif import exposure_time, rational
 from pipeline.ingest.grouping import DEFAULT_CAPTURE_PATTERN
 from pipeline.ingest.intrinsics import EXIF_CODES, XMP_TAG, tiff_tags
+from pipeline.ingest.meta import xmp_utc_time
 from pipeline.ingest.session import FRAMES_CSV, IMAGE_SUFFIXES, FrameRecord, read_frame_table
 from pipeline.ingest.xmp import Xmp
 
@@ -78,7 +79,7 @@ def exif_band_record(path: Path) -> FrameRecord:
     utc = None
     if packet is not None:
         try:
-            utc = Xmp.parse(packet, path).text("UTCAtExposure", ("drone-dji",))
+            utc = xmp_utc_time(Xmp.parse(packet, path))
         except FrameError:  # a damaged packet: the EXIF time stands
             utc = None
     time = exposure_time(tags.get(DATE_TIME_ORIGINAL),

@@ -27,19 +27,22 @@ import numpy as np
 import yaml
 from mscal_core.errors import CatalogError, MscalError
 from mscal_core.reflectance import keep_valid
-from pydantic import Field
+from pydantic import AfterValidator, Field
 
 from pipeline.ingest.meta import sample_shift
 from pipeline.ingest.schema import (
     MAX_PIXELS,
     PositiveNumber,
+    Problem,
     Strict,
     Text,
     check,
     finite_number,
     integer,
     is_int,
+    is_number,
     items,
+    one_of,
     pair,
     show_key,
     validate,
@@ -534,6 +537,35 @@ _Row = Annotated[tuple[float, float], check(
     "must be [wavelength_nm, reflectance]: finite numbers, nm > 0, 0 < reflectance <= 1", lambda r: (float(r[0]), float(r[1])))]
 
 
+def _increasing(rows: tuple[tuple[float, float], ...]) -> tuple[tuple[float, float], ...]:
+    wl = [r[0] for r in rows]
+    if any(b <= a for a, b in zip(wl, wl[1:])):
+        raise Problem("must list its wavelengths strictly increasing")
+    return rows
+
+
+#: A reflectance in (0, 1].
+_Scalar = Annotated[float, check(lambda v: 0 < v <= 1, "must be in (0, 1]", float)]
+#: A reflectance table: ``[[wavelength_nm, reflectance], ...]``, wavelengths increasing.
+_Table = Annotated[tuple[_Row, ...], Field(min_length=1), AfterValidator(_increasing)]
+
+
+def _reflectance_kind(value: Any) -> str | None:
+    if is_number(value):
+        return "number"
+    if isinstance(value, list):
+        return "table"
+    return "name" if isinstance(value, str) else None
+
+
+#: A reflectance as a file gives it: a number in (0, 1], a table or a reflectance target's name.
+Reflectance = one_of(_reflectance_kind, "a number, a table of [wavelength_nm, reflectance] rows or a target name",
+                     number=_Scalar, table=_Table, name=str)
+#: A reflectance target's own reflectance: a number in (0, 1] or a table (no other target's name).
+TargetReflectance = one_of(lambda v: None if isinstance(v, str) else _reflectance_kind(v),
+                           "a number or a table of [wavelength_nm, reflectance] rows", number=_Scalar, table=_Table)
+
+
 def reflectance_option(text: str, option: str = "--panel-reflectance") -> ReflectanceSpec:
     """A command-line reflectance: a number in (0, 1] or a reflectance target's name."""
     try:
@@ -544,28 +576,26 @@ def reflectance_option(text: str, option: str = "--panel-reflectance") -> Reflec
 
 
 def parse_reflectance(value: Any, path: Path | str, where: str) -> ReflectanceSpec:
-    """Validate a reflectance: a number in (0, 1], a [[nm, rho], ...] table, or a target name.
-    An unknown or broken target is reported against ``path`` (the file that names it) too."""
+    """Validate a reflectance (:data:`Reflectance`: a number in (0, 1], a [[nm, rho], ...]
+    table, or a target name) into a :class:`ReflectanceSpec`. An unknown or broken target is
+    reported against ``path`` (the file that names it) too."""
+    value = validate(Reflectance, value, path, CatalogError, prefix=where)
+    return reflectance_spec(value, path, where)
+
+
+def reflectance_spec(value: float | tuple[tuple[float, float], ...] | str, path: Path | str,
+                     where: str) -> ReflectanceSpec:
+    """The :class:`ReflectanceSpec` of a validated :data:`Reflectance` (a target's name: its
+    catalog entry's, an unknown or broken one reported against ``path`` too)."""
     if isinstance(value, str):
         try:
             return load_target(value).reflectance
         except CatalogError as exc:
             at = f"its catalog entry {exc.path}: " if exc.path else ""
             raise CatalogError(f"{where} {value!r}: {at}{exc.reason}", path=path, hint=exc.hint) from None
-    if isinstance(value, (int, float)) and not isinstance(value, bool):
-        if not 0 < value <= 1:
-            raise CatalogError(f"{where} must be in (0, 1], got {value!r}", path=path)
-        return ReflectanceSpec(scalar=float(value))
-    if isinstance(value, list) and value:
-        rows = validate(tuple[_Row, ...], value, path, CatalogError, prefix=where)
-        wl = [r[0] for r in rows]
-        if wl != sorted(wl) or len(set(wl)) != len(wl):
-            raise CatalogError(f"{where}: wavelengths must be strictly increasing", path=path)
-        return ReflectanceSpec(table=tuple(rows))
-    raise CatalogError(
-        f"{where} must be a number, a table of [wavelength_nm, reflectance] rows or a target name, got {value!r}",
-        path=path,
-    )
+    if isinstance(value, float):
+        return ReflectanceSpec(scalar=value)
+    return ReflectanceSpec(table=tuple(value))
 
 
 @dataclass(frozen=True)
@@ -581,34 +611,31 @@ def load_target(name: str) -> Target:
     return _load("targets", name)
 
 
+#: A panel's serial number: text, not empty (surrounding spaces dropped).
+_Serial = Annotated[str, check(lambda v: isinstance(v, str) and bool(v.strip()), "must be text, not empty",
+                               lambda v: v.strip(), hint="quote a serial YAML reads as a number")]
+
+
 class _TargetModel(Strict):
     name: Text
     description: Text
-    reflectance: Any  # a number or a table: parse_reflectance
-    serial: Any = None  # serial: TEXT, serials: [TEXT, ...]: _parse_serials
-    serials: Any = None
+    reflectance: TargetReflectance
+    serial: _Serial | None = None
+    serials: items(lambda v: isinstance(v, str) and bool(v.strip()),  # type: ignore[valid-type]
+                   "a list of serial numbers (text, not empty)", lambda v: v.strip()) | None = None
 
 
 def parse_target(data: Any, path: Path) -> Target:
-    """Validate a target mapping into a :class:`Target`."""
-    validate(_TargetModel, data, path, CatalogError, label="target")
-    if isinstance(data["reflectance"], str):
-        raise CatalogError("a target's reflectance must be a number or a table", path=path)
-    spec = parse_reflectance(data["reflectance"], path, "reflectance")
-    serials = _parse_serials(data, path)
-    if serials and str(data["name"]) != path.stem:  # found by its serial, used by its file name
-        raise CatalogError(f"name {data['name']!r} must match the file name {path.stem!r}", path=path)
-    return Target(name=str(data["name"]), description=str(data["description"]), reflectance=spec, serials=serials)
-
-
-def _parse_serials(data: Mapping[str, Any], path: Path) -> tuple[str, ...]:  # serial: A / serials: [A, B]
-    many = data.get("serials", [])
-    raw = ([data["serial"]] if "serial" in data else []) + (many if isinstance(many, list) else [None])
-    if not all(isinstance(v, str) and v.strip() for v in raw):
-        raise CatalogError(f"serial {data.get('serial')!r}, serials {data.get('serials')!r}: give serial: TEXT or "
-                           "serials: [TEXT, ...] (non-empty text)", path=path, hint="quote a serial YAML reads as a number")
-    seen: dict[str, str] = {}  # the first spelling of each serial
-    return tuple(seen.setdefault(v.strip().casefold(), v.strip()) for v in raw if v.strip().casefold() not in seen)
+    """Validate a target mapping into a :class:`Target` (:class:`_TargetModel`); a target listing
+    serials is found by them and used by its file name, which its name must be."""
+    m = validate(_TargetModel, data, path, CatalogError, label="target")
+    spec = reflectance_spec(m.reflectance, path, "reflectance")
+    seen: dict[str, str] = {}  # the first spelling of each serial: serial, then serials
+    serials = tuple(seen.setdefault(v.casefold(), v) for v in ([m.serial] if m.serial else []) + list(m.serials or ())
+                    if v.casefold() not in seen)
+    if serials and m.name != path.stem:
+        raise CatalogError(f"name {m.name!r} must match the file name {path.stem!r}", path=path)
+    return Target(name=m.name, description=m.description, reflectance=spec, serials=serials)
 
 
 # --------------------------------------------------------------------------- indices

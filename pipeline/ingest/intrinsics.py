@@ -19,23 +19,29 @@ Metadata (MicaSense RedEdge/Altum, see /tmp/research/cameras.md 1.5 and MicaSens
   ``[k1, k2, p1, p2, k3]``;
 - the same tags in a Sentera Double 4K JPEG (exifread for its EXIF, XMP from APP1), one lens
   for the file's bands;
-- DJI: ``drone-dji:DewarpData`` and ``CalibratedOpticalCenterX/Y`` (:func:`_dji_intrinsics`).
+- a maker's own lens tags in a file without them (DJI: ``drone-dji:DewarpData`` and
+  ``CalibratedOpticalCenterX/Y``, :func:`pipeline.ingest.cameras.dji.dewarp_intrinsics`): the
+  ``intrinsics`` hook of :class:`pipeline.ingest.cameras.registry.Maker`.
 """
 
 from __future__ import annotations
 
 import io
 import math
+from functools import lru_cache
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
-from mscal_core.errors import FrameError, InputError, SessionError
+from mscal_core.errors import FrameError, SessionError
 from mscal_core.geometry import Intrinsics
+from pydantic import AliasChoices, BaseModel, Field, create_model
 
 from pipeline.ingest.camera_meta import xmp_properties
-from pipeline.ingest.catalog import show_key
+from pipeline.ingest.cameras.registry import by_order
 from pipeline.ingest.exif import EXIF_CODES, rational
+from pipeline.ingest.schema import Strict, validate
+from pipeline.ingest.xmp import Xmp, jpeg_xmp_packet
 
 #: Parameter order of the store's ``intrinsics (band, intrinsics_param)`` variable.
 INTRINSICS_PARAMS = ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
@@ -71,7 +77,7 @@ def tiff_tags(path: Path) -> dict[int, Any]:
 
 def intrinsics_from_tags(tags: dict[int, Any], path: Path) -> Intrinsics | None:
     """Intrinsics from a band file's tags (see the module docstring): the Pix4D perspective
-    tags, else DJI's ``DewarpData``; None when the file carries neither."""
+    tags, else a maker's own (:func:`maker_intrinsics`); None when the file carries neither."""
     packet = tags.get(XMP_TAG)
     if packet is None:
         return None
@@ -80,7 +86,7 @@ def intrinsics_from_tags(tags: dict[int, Any], path: Path) -> Intrinsics | None:
     except FrameError:
         return None
     if "PerspectiveFocalLength" not in props or "PrincipalPoint" not in props:
-        return _dji_intrinsics(packet, path)
+        return maker_intrinsics(packet, path)
     unit_mm = _UNIT_MM.get(int(_first(tags.get(FOCAL_PLANE_UNIT, 4)) or 4), 1.0)
     try:
         rx = rational(tags[FOCAL_PLANE_X_RES]) / unit_mm
@@ -136,39 +142,21 @@ def _focal_in_mm(props: dict[str, Any], f: float, tags: dict[int, Any]) -> bool:
     return f < 100
 
 
-def _dji_intrinsics(packet: Any, path: Path) -> Intrinsics | None:
-    """DJI P4 Multispectral / Mavic 3M: ``drone-dji:DewarpData`` ``date;fx,fy,cx,cy,k1,k2,p1,p2,k3``
-    with the principal point at ``CalibratedOpticalCenterX/Y + (cx, cy)`` (DJI Mavic 3M Image
-    Processing Guide, section II step 2; OpenCV's distortion order already)."""
-    from pipeline.ingest.xmp import TagError, Xmp
-
+def maker_intrinsics(packet: Any, path: Path) -> Intrinsics | None:
+    """The lens of a file without the Pix4D perspective tags, from the first maker whose own
+    lens tags it holds (:attr:`pipeline.ingest.cameras.registry.Maker.intrinsics`), or None."""
     x = Xmp.parse(packet, path)
-    raw = x.text("DewarpData", ("drone-dji",))
-    if raw is None:
-        return None
-    try:
-        nums = [float(v) for v in raw.split(";", 1)[-1].replace(",", " ").split()]
-        centre = (x.numbers("CalibratedOpticalCenterX", ("drone-dji",), 1),
-                  x.numbers("CalibratedOpticalCenterY", ("drone-dji",), 1))
-    except (ValueError, TagError):
-        nums, centre = [], (None, None)
-    if len(nums) != 9 or centre[0] is None or centre[1] is None:
-        raise FrameError(f"XMP drone-dji:DewarpData {raw!r} (or CalibratedOpticalCenterX/Y) is unusable: expected "
-                         "'date;fx,fy,cx,cy,k1,k2,p1,p2,k3'", path=path, hint="give the intrinsics in session.yaml instead")
-    fx, fy, cx, cy, *dist = nums
-    try:
-        return Intrinsics(fx=fx, fy=fy, cx=centre[0][0] + cx, cy=centre[1][0] + cy, dist=tuple(dist))
-    except InputError as exc:  # NaN, inf, a non-positive focal length: name the file and the tag
-        raise FrameError(f"XMP drone-dji:DewarpData {raw!r} gives unusable intrinsics: {exc.reason}", path=path,
-                         hint="give the intrinsics in session.yaml instead") from None
+    for maker in by_order():
+        found = maker.intrinsics(x, path) if maker.intrinsics is not None else None
+        if found is not None:
+            return found
+    return None
 
 
 def jpeg_tags(path: Path) -> dict[int, Any]:
     """The EXIF tags of a JPEG by code (exifread) with its XMP packet as tag 700, the form
     :func:`intrinsics_from_tags` reads."""
     import exifread
-
-    from pipeline.ingest.xmp import jpeg_xmp_packet
 
     data = path.read_bytes()
     tags: dict[int, Any] = {}
@@ -212,31 +200,31 @@ def band_intrinsics_from_files(files: Sequence[Path], n_bands: int | None = None
 # --------------------------------------------------------------------------- session.yaml
 
 
-def parse_band_intrinsics(data: Any, band_keys: Sequence[Sequence[str]], path: Path,
-                          parse_one) -> tuple[Intrinsics, ...]:
+def parse_band_intrinsics(data: Any, band_keys: Sequence[Sequence[str]], path: Path, entry: type[BaseModel],
+                          build: Callable[[Any], Intrinsics]) -> tuple[Intrinsics, ...]:
     """session.yaml ``intrinsics`` given per band: a mapping from each band's name (or file
     suffix, ``band_keys[b]`` lists the accepted keys of band ``b``) to ``{fx, fy, cx, cy,
-    dist}``; every band must be given exactly once. ``parse_one(mapping, path)`` parses one
-    band's entry."""
-    if not isinstance(data, dict):
-        raise SessionError("intrinsics must be a mapping", path=path)
-    out = []
-    used: set[str] = set()
-    for keys in band_keys:
-        hits = [k for k in keys if k in data]
-        if len(hits) != 1:
-            raise SessionError(
-                f"intrinsics: band {keys[0]!r} is {'missing' if not hits else 'given twice'}",
-                path=path,
-                hint="give intrinsics per band: {BAND_NAME: {fx, fy, cx, cy, dist}, ...} for every band, "
-                     "or one {fx, fy, cx, cy, dist} for all",
-            )
-        used.add(hits[0])
-        out.append(parse_one(data[hits[0]], path))
-    extra = sorted((k for k in data if str(k) not in used and k not in used), key=repr)
-    if extra:
-        raise SessionError(f"intrinsics: unknown band(s) {', '.join(map(show_key, extra))}", path=path)
-    return tuple(out)
+    dist}``, validated by :func:`band_intrinsics_model` (every band exactly once, no other key;
+    one line naming the key path, :func:`pipeline.ingest.schema.validate`). ``entry``: the
+    model of one band's mapping, ``build(model)`` its :class:`Intrinsics`."""
+    keys = tuple(tuple(str(k) for k in ks) for ks in band_keys)
+    if isinstance(data, dict):  # one band by its name and its suffix: which was meant?
+        for ks in keys:
+            hits = [k for k in ks if k in data]
+            if len(hits) > 1:
+                raise SessionError(f"intrinsics: band {ks[0]!r} is given twice (as {' and '.join(hits)})", path=path,
+                                   hint="give each band once, by its name or its file suffix")
+    m = validate(band_intrinsics_model(keys, entry), data, path, SessionError, prefix="intrinsics")
+    return tuple(build(getattr(m, f"band_{b}")) for b in range(len(keys)))
+
+
+@lru_cache(maxsize=32)
+def band_intrinsics_model(band_keys: tuple[tuple[str, ...], ...], entry: type[BaseModel]) -> type[BaseModel]:
+    """The pydantic model of per-band intrinsics: one required ``entry`` per band, given by any
+    of its keys (``band_keys[b]``: its name, its file suffix)."""
+    fields: dict[str, Any] = {f"band_{b}": (entry, Field(validation_alias=AliasChoices(*ks)))
+                              for b, ks in enumerate(band_keys)}
+    return create_model("BandIntrinsics", __base__=Strict, **fields)
 
 
 # --------------------------------------------------------------------------- store

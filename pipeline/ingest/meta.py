@@ -23,7 +23,14 @@ import numpy as np
 from mscal_core.errors import FrameError
 from mscal_core.factory import upright
 
-from pipeline.ingest.cameras.registry import maker_of, radiance_unit, sun_sensor_tag
+from pipeline.ingest.cameras.registry import (
+    capture_id_tags,
+    kept_out,
+    maker_of,
+    radiance_unit,
+    sun_sensor_tag,
+    time_tags,
+)
 from pipeline.ingest.exif import exposure_time, rational
 from pipeline.ingest.gps import NoPosition
 from pipeline.ingest.gps import exif_position as _gps
@@ -85,9 +92,16 @@ class CaptureMeta:
     panel_albedo: float | None = None
     calibration_picture: int | None = None  # XMP Camera:CalibrationPicture (Pix4D: 2, a valid panel capture)
     problems: tuple[TagProblem, ...] = ()
-    # the file's XMP properties the sun-sensor model reads (SUN_SENSOR_XMP; sun_sensor_xmp)
+    # a maker's own per-band values its radiance or vignetting needs, as (name, value) pairs
+    # (hashable values: numbers, text, tuples): a new maker needs no new field here (maker_tag)
+    maker_tags: tuple[tuple[str, Any], ...] = ()
+    # the file's XMP properties the sun-sensor model reads (camera_meta.sun_sensor_xmp_names; sun_sensor_xmp)
     sun_sensor_props: tuple[tuple[str, str, str | tuple[str, ...]], ...] | None = field(
         default=None, compare=False, repr=False)
+
+    def maker_tag(self, name: str, default: Any = None) -> Any:
+        """The value ``name`` of :attr:`maker_tags`, else ``default``."""
+        return next((v for k, v in self.maker_tags if k == name), default)
 
     @property
     def black_level(self) -> float:
@@ -111,8 +125,9 @@ class CaptureMeta:
 
     @property
     def reflectance_band(self) -> bool:
-        """True for a band that goes into reflectance (not thermal, not panchromatic)."""
-        return self.radiometry not in ("thermal", "panchro")
+        """True for a band that goes into reflectance (not one its maker keeps out: thermal,
+        panchromatic; :attr:`pipeline.ingest.cameras.registry.Maker.kept_out`)."""
+        return not kept_out(self.radiometry)
 
     def features(self) -> dict[str, bool]:
         """Which features this band file's metadata allows (radiance: always, or there would
@@ -145,10 +160,16 @@ def int_tag(value: Any, default: int) -> int:
     return int(value)
 
 
+def xmp_utc_time(xmp: Xmp) -> str | None:
+    """The exposure's UTC time as a maker's XMP writes it (the first of every maker's
+    :attr:`~pipeline.ingest.cameras.registry.Maker.time_tags` the file holds), else None."""
+    return next((t for ns, name in time_tags() if (t := xmp.text(name, (ns,))) is not None), None)
+
+
 def _time(exif: dict[str, Any], xmp: Xmp) -> str | None:
     """The exposure's time: :func:`pipeline.ingest.exif.exposure_time` of the file's tags."""
     return exposure_time(exif.get("DateTimeOriginal"), exif.get("SubsecTimeOriginal") or exif.get("SubsecTime"),
-                         exif.get("OffsetTimeOriginal"), xmp.text("UTCAtExposure", ("drone-dji",)))
+                         exif.get("OffsetTimeOriginal"), xmp_utc_time(xmp))
 
 
 def exif_exposure(exif: dict[str, Any], path: Path) -> float:
@@ -241,10 +262,11 @@ def clean_text(value: Any) -> str | None:
 
 
 
-def band_of(ctx: TagContext) -> tuple[str, float, float | None]:
-    """Band name, centre wavelength and FWHM (nm) of a single-band file, units checked."""
+def band_of(ctx: TagContext, name_ns: Sequence[str] = ()) -> tuple[str, float, float | None]:
+    """Band name, centre wavelength and FWHM (nm) of a single-band file, units checked; the
+    band name in ``Camera:``/``MicaSense:``, else in a maker's own namespaces ``name_ns``."""
     x = ctx.xmp
-    name = x.text("BandName") or x.text("BandName", ("drone-dji",))
+    name = x.text("BandName") or (x.text("BandName", name_ns) if name_ns else None)
     if name is None:
         if x.has("BandName"):
             raise FrameError(f"XMP BandName is {x.raw('BandName')!r}, expected one name", path=ctx.path,
@@ -261,6 +283,11 @@ def check_wavelength(wl: float, path: Path) -> None:
     if not lo <= wl <= hi:
         raise FrameError(f"XMP CentralWavelength {wl:g} is outside {lo:g}-{hi:g} nm", path=path,
                          hint="the wavelength must be in nanometres")
+
+
+#: The capture-id tags of the Pix4D camera schema, which several makers write: tried after
+#: every maker's own (:attr:`pipeline.ingest.cameras.registry.Maker.capture_id_tags`).
+SHARED_CAPTURE_ID_TAGS = (("Camera", "CaptureUUID"), ("Camera", "ImageUniqueID"))
 
 
 def _common(ctx: TagContext) -> dict[str, Any]:
@@ -295,8 +322,8 @@ def _common(ctx: TagContext) -> dict[str, Any]:
                                        "panel_albedo"))
         albedo = None
     picture = ctx.optional("panel_albedo", lambda: x.number("CalibrationPicture", ("Camera",)))
-    capture_id = (x.text("CaptureId", ("MicaSense",)) or x.text("CaptureUUID", ("drone-dji",))
-                  or x.text("CaptureUUID", ("Camera",)) or x.text("ImageUniqueID", ("Camera",)))
+    capture_id = next((v for ns, name in (*capture_id_tags(), *SHARED_CAPTURE_ID_TAGS)
+                       if (v := x.text(name, (ns,))) is not None), None)
     return dict(
         capture_id=capture_id, rig_camera_index=None if rig is None else int(rig), reflect_area=area,
         lat=lat, lon=lon, alt_m=alt, time=_time(ctx.exif, x), make=ctx.make, model=ctx.model,
@@ -350,11 +377,12 @@ class VignettingTags(NamedTuple):
     poly: tuple[float, ...] | None
     poly_2d: tuple[float, ...] | None
     exponents_2d: tuple[float, ...] | None
+    maker: tuple[tuple[str, Any], ...] = ()  # CaptureMeta.maker_tags: a maker's own vignetting values
 
     @classmethod
     def of(cls, meta: CaptureMeta) -> VignettingTags:
         return cls(meta.dji_center, meta.dji_vignetting, meta.vignetting_center, meta.vignetting_polynomial,
-                   meta.vignetting_polynomial_2d, meta.vignetting_polynomial_2d_exponents)
+                   meta.vignetting_polynomial_2d, meta.vignetting_polynomial_2d_exponents, meta.maker_tags)
 
 
 def sample_shift(dn_shift: int, bit_depth: int, stored_bits: int | None) -> int:
@@ -397,9 +425,9 @@ def factory_vignetting(meta: CaptureMeta) -> np.ndarray:
     naming the file."""
     v, ok = _vignetting_of(meta.radiometry, meta.shape, VignettingTags.of(meta))
     if not ok:
-        raise FrameError("the vignetting tags give a correction that is not finite and positive over the image "
-                         "(XMP VignettingCenter/VignettingPolynomial, VignettingPolynomial2D or DJI "
-                         "VignettingData damaged)", path=meta.path,
+        tags = maker_of(meta.radiometry).vignetting_tags or "the vignetting tags"
+        raise FrameError(f"the vignetting tags give a correction that is not finite and positive over the image "
+                         f"({tags} damaged)", path=meta.path,
                          hint="copy the band file again from the camera's card; a file with damaged calibration "
                               "tags cannot be used with --calibration factory")
     return v
@@ -436,16 +464,24 @@ def reflectance_factor(meta: CaptureMeta) -> float | None:
 def no_reflectance_reason(meta: CaptureMeta) -> str | None:
     """Why the band's own sun sensor gives no reflectance factor (:func:`reflectance_factor`
     is None), naming the tag: the problem recorded when a sun-sensor tag was present but
-    unusable, else the tag that is missing; None when the band has a usable reading."""
+    unusable; for a band its maker keeps out of reflectance, that; the maker's own reason
+    (:attr:`pipeline.ingest.cameras.registry.Maker.no_reflectance`: a sensor with no
+    conversion to reflectance); else the tag that is missing. None when the band has a usable
+    reading."""
     if reflectance_factor(meta) is not None:
         return None
     why = [p.message() for p in meta.problems if p.feature == "sun_sensor"]
     if why:
         return why[0]
-    if meta.radiometry == "sentera":
-        return "Sentera's sun sensor (ILS) counts have no published conversion to reflectance"
-    if meta.radiometry in ("thermal", "panchro"):
+    if kept_out(meta.radiometry):
         return f"a {meta.radiometry} band has no sun-sensor reflectance"
+    try:
+        own = maker_of(meta.radiometry).no_reflectance
+    except KeyError:
+        own = None
+    reason = own(meta) if own is not None else None
+    if reason:
+        return reason
     tag = sun_sensor_tag(meta.radiometry) or "XMP Irradiance"
     return f"no sun-sensor reading: no {tag} in the file"
 

@@ -18,7 +18,16 @@ import typing
 from typing import Annotated, Any, Callable, ClassVar
 
 from mscal_core.errors import MscalError
-from pydantic import BaseModel, BeforeValidator, ConfigDict, TypeAdapter, ValidationError
+from pydantic import (
+    AliasChoices,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Discriminator,
+    Tag,
+    TypeAdapter,
+    ValidationError,
+)
 
 MAX_PIXELS = 100_000
 
@@ -108,12 +117,44 @@ def pair(low: int = 0, high: int = MAX_PIXELS) -> Any:
         f"must be a pair of integers {low}..{high}", lambda v: (int(v[0]), int(v[1])))]
 
 
+#: The pydantic error type of a value of none of a :func:`one_of`'s forms.
+ONE_OF = "mscal_one_of"
+
+
+def one_of(kind: Callable[[Any], str | None], text: str, **members: Any) -> Any:
+    """A value of one of several forms, chosen by ``kind(value)`` (a name of ``members``, None:
+    none of them) before it is validated: an error inside a form is named by the key path
+    alone (the form's name is no key); a value of no form ``must be TEXT``."""
+    union = typing.Union[tuple(Annotated[tp, Tag(name)] for name, tp in members.items())]
+    return Annotated[union, Discriminator(kind, custom_error_type=ONE_OF, custom_error_message=text)]
+
+
+def is_number(value: Any) -> bool:
+    """A YAML number (an int or a float, not a bool)."""
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
 #: Free text: whatever YAML gives, as text (a description may read as a number).
 Text = Annotated[str, BeforeValidator(str)]
 PositiveNumber = number(positive=True, text="a positive number")
 
 
 # --------------------------------------------------------------------------- the one-line error
+
+
+def _tag(tp: Any) -> str | None:
+    """The :func:`one_of` form name of a union member (``Annotated[X, Tag(name)]``), else None."""
+    if typing.get_origin(tp) is Annotated:
+        return next((m.tag for m in typing.get_args(tp)[1:] if isinstance(m, Tag)), None)
+    return None
+
+
+def _aliases(field: Any) -> list[str]:
+    """The keys a model's field is given by: its validation aliases (none: by its name)."""
+    alias = field.validation_alias
+    if isinstance(alias, AliasChoices):
+        return [a for a in alias.choices if isinstance(a, str)]
+    return [alias] if isinstance(alias, str) else []
 
 
 def _unwrap(tp: Any) -> Any:
@@ -137,6 +178,11 @@ def _trail(model: Any, loc: tuple[Any, ...]) -> tuple[str, Any]:
     text, tp = "", model
     for i, part in enumerate(loc):
         tp = _unwrap(tp)
+        form = next((m for m in tp if _tag(m) == part and not getattr(_unwrap(m), "TAGS", ())), None) \
+            if isinstance(tp, list) else None
+        if form is not None:  # a one_of form: no key
+            tp = form
+            continue
         if isinstance(tp, list):  # a union of models chosen by their TAGS
             tp = next((m for m in map(_unwrap, tp) if part in getattr(m, "TAGS", ())), None)
             text += f" ({tp.KEY} {part})" if tp is not None and i == len(loc) - 1 else ""
@@ -153,6 +199,7 @@ def _trail(model: Any, loc: tuple[Any, ...]) -> tuple[str, Any]:
         text += f"{'.' if text else ''}{show_key(part)}"
         if isinstance(tp, type) and issubclass(tp, BaseModel):
             field = tp.model_fields.get(part) if isinstance(part, str) else None
+            field = field or next((f for f in tp.model_fields.values() if part in _aliases(f)), None)
             tp = None if field is None else field.annotation
         else:
             tp = None
@@ -164,6 +211,8 @@ def _keys(tp: Any) -> str:
     if not (isinstance(tp, type) and issubclass(tp, BaseModel)):
         return ""
     fields = tp.model_fields
+    if any(_aliases(f) for f in fields.values()):  # keys given by their aliases, in the model's order
+        return ", ".join(" or ".join(map(show_key, _aliases(f) or [k])) for k, f in fields.items())
     return ", ".join(sorted(fields, key=lambda k: (not fields[k].is_required(), k)))
 
 
@@ -201,6 +250,8 @@ def message(exc: ValidationError, model: Any, prefix: str = "", label: str = ""
         key = getattr(members[0], "KEY", "kind") if members else "kind"
         value = e["input"].get(key) if isinstance(e["input"], dict) else e["input"]
         return f"{at}.{key} must be one of {', '.join(tags)}, got {value!r}", None
+    if e["type"] == ONE_OF:
+        return f"{at} must be {e['msg']}, got {got}", None
     if e["type"] in ("list_type", "tuple_type"):
         return f"{at} must be a list, got {got}", None
     if e["type"] == "too_short":

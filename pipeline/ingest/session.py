@@ -18,7 +18,7 @@ from mscal_core.geometry import Intrinsics
 from mscal_core.mosaic import demosaic
 from pydantic import BeforeValidator, Field
 
-from pipeline.ingest.catalog import Camera, ReflectanceSpec, load_camera, parse_reflectance, read_yaml
+from pipeline.ingest.catalog import Camera, Reflectance, ReflectanceSpec, load_camera, read_yaml, reflectance_spec
 from pipeline.ingest.exif import (
     dms_to_degrees,
     exif_time_utc,
@@ -31,7 +31,7 @@ from pipeline.ingest.exif import (
 from pipeline.ingest.gps import placed_records
 from pipeline.ingest.markers import Dictionary, MarkerId, MarkerSpec, parse_marker
 from pipeline.ingest.products import yaml_choice
-from pipeline.ingest.schema import Strict, Text, finite_number, items, number, show_key, validate
+from pipeline.ingest.schema import Strict, Text, check, finite_number, items, number, show_key, validate
 from pipeline.ingest.tiff import decode_frame
 from pipeline.ingest.xmp import TagProblem
 
@@ -85,7 +85,9 @@ class Session:
         return sorted(p for p in d.iterdir() if p.is_dir()) if d.is_dir() else []
 
 
-class _Intrinsics(Strict):
+class IntrinsicsModel(Strict):
+    """session.yaml's ``{fx, fy, cx, cy, dist}`` of one lens (pixels; OpenCV's distortion order)."""
+
     fx: number(positive=True)  # type: ignore[valid-type]
     fy: number(positive=True)  # type: ignore[valid-type]
     cx: number()  # type: ignore[valid-type]
@@ -96,7 +98,11 @@ class _Intrinsics(Strict):
 
 def parse_intrinsics(data: Any, path: Path) -> Intrinsics:
     """session.yaml ``intrinsics: {fx, fy, cx, cy, dist}`` (one band's, or all bands')."""
-    m = validate(_Intrinsics, data, path, SessionError, prefix="intrinsics")
+    return intrinsics_of(validate(IntrinsicsModel, data, path, SessionError, prefix="intrinsics"))
+
+
+def intrinsics_of(m: IntrinsicsModel) -> Intrinsics:
+    """The :class:`Intrinsics` of a validated ``{fx, fy, cx, cy, dist}``."""
     return Intrinsics(fx=m.fx, fy=m.fy, cx=m.cx, cy=m.cy, dist=m.dist + (0.0,) * (5 - len(m.dist)))
 
 
@@ -187,9 +193,16 @@ def _enclosing(corners: tuple[tuple[float, float], ...], path: Path) -> tuple[tu
 
 
 class _Reflector(Strict):
-    reflectance: Any  # a number, a table or a target's name: parse_reflectance
+    reflectance: Reflectance
     size_m: items(lambda v: finite_number(v) is not None and v > 0,  # type: ignore[valid-type]
                   "[width_m, height_m] (positive numbers)", float, lambda n: n == 2)
+
+
+#: session.yaml's ``serial``: the serial number of a camera whose frames carry none (text, or
+#: a number YAML read from an unquoted serial).
+CameraSerial = Annotated[str, check(lambda v: isinstance(v, (str, int)) and not isinstance(v, bool) and bool(str(v).strip()),
+                                    "must be the camera's serial number as text", lambda v: str(v).strip(),
+                                    hint='e.g. serial: "RE02-1234567" (quoted)')]
 
 
 class _SessionYaml(Strict):
@@ -201,7 +214,7 @@ class _SessionYaml(Strict):
     products: Any = None  # pipeline.ingest.products.yaml_choice
     name: Any = None
     notes: Any = None
-    serial: Any = None
+    serial: CameraSerial | None = None  # read by pipeline.calibrate.library
 
 
 def load_session(root: str | Path) -> Session:
@@ -229,11 +242,11 @@ def load_session(root: str | Path) -> Session:
         from pipeline.ingest.intrinsics import parse_band_intrinsics
 
         keys = [[b.name] + ([str(b.file_suffix)] if b.file_suffix is not None else []) for b in camera.bands]
-        band_intr = parse_band_intrinsics(raw_intr, keys, path, parse_intrinsics)
+        band_intr = parse_band_intrinsics(raw_intr, keys, path, IntrinsicsModel, intrinsics_of)
     elif raw_intr is not None:
         intr = parse_intrinsics(raw_intr, path)
     w, h = m.reflector.size_m
-    reflector = ReflectorSpec(reflectance=parse_reflectance(m.reflector.reflectance, path, "reflector.reflectance"),
+    reflector = ReflectorSpec(reflectance=reflectance_spec(m.reflector.reflectance, path, "reflector.reflectance"),
                               size_m=(w, h))
     marker = parse_marker(m.marker, path, reflector.size_m)
     panel = parse_panel(m.panel, path) if m.panel is not None else PanelConfig()

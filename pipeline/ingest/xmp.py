@@ -29,9 +29,13 @@ from typing import Any, Iterable
 
 from mscal_core.errors import FrameError
 
+from pipeline.ingest.cameras import registry
+
 RDF_NS = "http://www.w3.org/1999/02/22-rdf-syntax-ns#"
 
-# Canonical namespace key -> URIs (compared without a trailing slash).
+# Canonical namespace key -> URIs (compared without a trailing slash): the shared schemas and the
+# namespaces of the makers shipped with mscal, known to every parse; a new maker declares its own
+# (pipeline.ingest.cameras.registry.Maker.namespaces).
 NAMESPACES: dict[str, tuple[str, ...]] = {
     "Camera": ("http://pix4d.com/camera/1.0", "http://pix4d.com/1.0"),  # Pix4D camera schema, old and new URI
     "MicaSense": ("http://micasense.com/MicaSense/1.0",),
@@ -41,6 +45,9 @@ NAMESPACES: dict[str, tuple[str, ...]] = {
     "exif": ("http://ns.adobe.com/exif/1.0",),
     "ILS": ("http://sentera.com/ILS/1.0",),  # Sentera incident light sensor (seen in the D4K files)
 }
+#: The namespaces a tag is looked up in when none is named: Pix4D's camera schema, and MicaSense's,
+#: which its files use beside it.
+DEFAULT_NAMESPACES = ("Camera", "MicaSense")
 _BY_URI = {uri: key for key, uris in NAMESPACES.items() for uri in uris}
 JPEG_XMP_HEADER = b"http://ns.adobe.com/xap/1.0/\x00"
 
@@ -82,8 +89,10 @@ def _short(value: Any) -> str:
 
 
 def namespace_key(uri: str) -> str | None:
-    """The canonical key of a namespace URI (trailing slash ignored), None if unknown."""
-    return _BY_URI.get(uri.rstrip("/"))
+    """The canonical key of a namespace URI (trailing slash ignored): :data:`NAMESPACES`, else a
+    registered maker's own (:data:`pipeline.ingest.cameras.registry.NAMESPACE_KEYS`); None if unknown."""
+    uri = uri.rstrip("/")
+    return _BY_URI.get(uri) or registry.NAMESPACE_KEYS.get(uri)
 
 
 class Xmp:
@@ -265,6 +274,6 @@ def legacy_properties(packet: bytes | str, path: Path | str) -> dict[str, Any]:
     x = Xmp.parse(packet, path)
     out: dict[str, Any] = {}
     for (key, local), value in x.props.items():
-        if key in ("Camera", "MicaSense"):
+        if key in DEFAULT_NAMESPACES:
             out[local] = value
     return out

@@ -45,10 +45,10 @@ def test_the_micasense_panel_target_carries_its_serial() -> None:
 @pytest.mark.parametrize(
     "extra, message",
     [
-        ({"serial": 1603036}, "serial 1603036, serials None: give serial: TEXT or serials: [TEXT, ...]"),
-        ({"serial": " "}, "give serial: TEXT"),
-        ({"serials": "RP02-1"}, "serial None, serials 'RP02-1'"),
-        ({"serials": ["RP02-1", None]}, "serials ['RP02-1', None]"),
+        ({"serial": 1603036}, "serial must be text, not empty, got 1603036 (quote a serial YAML reads as a number)"),
+        ({"serial": " "}, "serial must be text, not empty, got ' '"),
+        ({"serials": "RP02-1"}, "serials must be a list of serial numbers (text, not empty), got 'RP02-1'"),
+        ({"serials": ["RP02-1", None]}, "serials must be a list of serial numbers (text, not empty), got ['RP02-1', None]"),
         ({"serial": "RP02-1", "name": "other"}, "name 'other' must match the file name 't-x'"),
         ({"serail": "RP02-1"}, "unknown key(s) serail"),
     ],
@@ -142,6 +142,12 @@ def test_reflectance_option_takes_a_number_or_a_target_name() -> None:
     assert table.at(np.array([668.0]))[0] == pytest.approx(0.68)
     with pytest.raises(CatalogError, match=r"--panel-reflectance must be in \(0, 1\], got 1.5"):
         catalog.reflectance_option("1.5")
+    with pytest.raises(CatalogError, match=r"^--panel-reflectance: --panel-reflectance 'nope': unknown target 'nope'"):
+        catalog.reflectance_option("nope")
+    with pytest.raises(CatalogError) as err:
+        catalog.parse_reflectance({"x": 1}, Path("s.yaml"), "reflector.reflectance")
+    assert str(err.value) == ("s.yaml: reflector.reflectance must be a number, a table of [wavelength_nm, reflectance] "
+                              "rows or a target name, got {'x': 1}")
 
 
 def _write_camera(tmp_path: Path, data: dict) -> Path:
@@ -222,8 +228,16 @@ def test_bad_camera_rejected_naming_file(tmp_path, monkeypatch, mutate, message)
          "reflectance[1] must be [wavelength_nm, reflectance]: finite numbers, nm > 0, 0 < reflectance <= 1, "
          "got [500, 'x']"),
         ("targets", {"name": "t-x", "description": "d", "reflectance": [[500, 0.5], [400, 0.5]]},
-         "reflectance: wavelengths must be strictly increasing"),
+         "reflectance must list its wavelengths strictly increasing, got [[500, 0.5], [400, 0.5]]"),
         ("targets", ["t-x"], "must be a YAML mapping of keys to values, got ['t-x']"),
+        ("targets", {"name": "t-x", "description": "d", "reflectance": "gray-50"},
+         "reflectance must be a number or a table of [wavelength_nm, reflectance] rows, got 'gray-50'"),
+        ("targets", {"name": "t-x", "description": "d", "reflectance": []},
+         "reflectance must have at least 1 item(s), got []"),
+        ("targets", {"name": "t-x", "description": "d", "reflectance": True},
+         "reflectance must be a number or a table of [wavelength_nm, reflectance] rows, got True"),
+        ("targets", {"name": "t-x", "description": "d", "reflectance": [[400, 0.5], [400, 0.6]]},
+         "reflectance must list its wavelengths strictly increasing, got [[400, 0.5], [400, 0.6]]"),
         ("indices", {"name": "t-x", "description": "d"}, "index: missing key(s) expression"),
         ("indices", {"name": "t-x", "description": "d", "expression": "nir", "scale": 2},
          "index: unknown key(s) scale (allowed keys: description, expression, name, valid_range)"),

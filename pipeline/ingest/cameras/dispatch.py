@@ -42,6 +42,18 @@ def maker_for_model(model: str) -> Maker:
     raise KeyError(model)
 
 
+def takes_field_parts(model: str | None) -> bool:
+    """Whether the radiance model of a catalog camera's ``factory_model`` takes a field
+    calibration's parts (:attr:`Maker.field_parts`); a camera without one (None) has no
+    factory model to replace parts of: its radiance is the field calibration's whole."""
+    if model is None:
+        return True
+    try:
+        return maker_for_model(model).field_parts
+    except KeyError:
+        return False
+
+
 def read_tags(ctx: TagContext) -> list[CaptureMeta]:
     """The bands of one file, read by the maker whose tags the file carries."""
     makers = by_order()
@@ -64,17 +76,19 @@ def factory_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None
                      channels: np.ndarray | None = None, out: np.ndarray | None = None) -> np.ndarray:
     """Radiance of one band's DN with its maker's factory model (unit: ``meta.radiance_unit``;
     kelvin for a thermal band), or with the field-fitted ``parts`` in place of the factory's
-    response and/or vignetting (MicaSense model only). ``channels``: the whole ``(H, W, C)``
+    response and/or vignetting (a maker whose model takes them, :attr:`Maker.field_parts`). ``channels``: the whole ``(H, W, C)``
     image of a multi-channel file (Sentera), which the colour transform needs. The result is
     in the stored orientation (see :func:`pipeline.ingest.meta.upright_meta`); with ``out``
     (e.g. a float32 band of the capture's cube) it is written there and ``out`` returned."""
     if dn.shape != meta.shape:
         raise FrameError(f"image {dn.shape} does not match its metadata {meta.shape}", path=meta.path)
+    maker = maker_of(meta.radiometry)
     if parts is not None and (parts.vignetting is not None or parts.inverse_response is not None) and \
-            meta.radiometry != "micasense":
-        raise FrameError(f"field components replace parts of MicaSense's model only, not {meta.radiometry}'s",
-                         path=meta.path, hint="leave out --field-calibration for this camera")
-    rad = maker_of(meta.radiometry).radiance(meta, dn, parts, channels, out)
+            not (maker.field_parts and meta.radiometry not in maker.kept_out):
+        takes = ", ".join(m.model for m in by_order() if m.field_parts) or "none"
+        raise FrameError(f"field components replace parts of a factory radiance model that takes them ({takes}), "
+                         f"not {meta.radiometry}'s", path=meta.path, hint="leave out --field-calibration for this camera")
+    rad = maker.radiance(meta, dn, parts, channels, out)
     if out is not None and rad is not out:
         out[...] = rad
         return out

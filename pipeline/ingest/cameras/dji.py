@@ -22,7 +22,8 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-from mscal_core.errors import FrameError
+from mscal_core.errors import FrameError, InputError
+from mscal_core.geometry import Intrinsics
 from mscal_core.vendors import dji_alignment_map, dji_camera_value, dji_vignetting_correction, remap_band
 
 from pipeline.ingest.cameras.registry import AttitudeSource, Maker, register
@@ -95,7 +96,7 @@ def _dji_band(ctx: TagContext) -> tuple[str, float, float | None]:
     and BandFreq ``840(+/-26)nm``."""
     x = ctx.xmp
     if x.has("CentralWavelength"):
-        return band_of(ctx)
+        return band_of(ctx, ("drone-dji",))
     name = x.text("BandName", ("drone-dji",)) or x.text("BandName")
     freq = x.text("BandFreq", ("drone-dji",))
     m = _DJI_BAND_FREQ.match(freq or "")
@@ -123,6 +124,31 @@ def _dji_dewarp(x: Xmp, path: Path) -> tuple[float, ...] | None:
         raise TagError("XMP drone-dji:DewarpData", raw, "expected 'date;fx,fy,cx,cy,k1,k2,p1,p2,k3'", path)
     return tuple(nums)
 
+
+
+def dewarp_intrinsics(x: Xmp, path: Path) -> Intrinsics | None:
+    """The lens of a P4 Multispectral / Mavic 3M band file: ``drone-dji:DewarpData``
+    ``date;fx,fy,cx,cy,k1,k2,p1,p2,k3`` with the principal point at
+    ``CalibratedOpticalCenterX/Y + (cx, cy)`` (DJI Mavic 3M Image Processing Guide, section II
+    step 2; OpenCV's distortion order already); None without DewarpData."""
+    raw = x.text("DewarpData", ("drone-dji",))
+    if raw is None:
+        return None
+    try:
+        nums = [float(v) for v in raw.split(";", 1)[-1].replace(",", " ").split()]
+        centre = (x.numbers("CalibratedOpticalCenterX", ("drone-dji",), 1),
+                  x.numbers("CalibratedOpticalCenterY", ("drone-dji",), 1))
+    except (ValueError, TagError):
+        nums, centre = [], (None, None)
+    if len(nums) != 9 or centre[0] is None or centre[1] is None:
+        raise FrameError(f"XMP drone-dji:DewarpData {raw!r} (or CalibratedOpticalCenterX/Y) is unusable: expected "
+                         "'date;fx,fy,cx,cy,k1,k2,p1,p2,k3'", path=path, hint="give the intrinsics in session.yaml instead")
+    fx, fy, cx, cy, *dist = nums
+    try:
+        return Intrinsics(fx=fx, fy=fy, cx=centre[0][0] + cx, cy=centre[1][0] + cy, dist=tuple(dist))
+    except InputError as exc:  # NaN, inf, a non-positive focal length: name the file and the tag
+        raise FrameError(f"XMP drone-dji:DewarpData {raw!r} gives unusable intrinsics: {exc.reason}", path=path,
+                         hint="give the intrinsics in session.yaml instead") from None
 
 
 FACTORY_ALIGNMENT_NOTE = ("each band's drone-dji:DewarpData (distortion, camera matrix about CalibratedOpticalCenterX/Y) "
@@ -226,4 +252,9 @@ MAKER = register(Maker(
     vignetting=band_vignetting, order=10, sun_sensor_tag="XMP drone-dji:Irradiance",
     companion_images=COMPANION_IMAGES, sun_scales=SUN_SCALES, attitude=ATTITUDE, compensated=compensated,
     compensated_model=DJI_COMPENSATED,
+    # the reading (compensated) and the aircraft's attitude (ATTITUDE), kept on each band's metadata
+    sun_sensor_xmp=frozenset({"Irradiance", "FlightYawDegree", "FlightPitchDegree", "FlightRollDegree"}),
+    capture_id_tags=(("drone-dji", "CaptureUUID"),),
+    time_tags=(("drone-dji", "UTCAtExposure"),),  # UTC, more precise than EXIF DateTimeOriginal (pipeline.ingest.exif)
+    intrinsics=dewarp_intrinsics, vignetting_tags="XMP drone-dji:VignettingData",
 ))

@@ -81,7 +81,7 @@ def _micasense(ctx: TagContext, panchro: bool = False) -> CaptureMeta:
     x, path = ctx.xmp, ctx.path
     exposure, gain = exposure_and_gain(ctx.exif, path)
     exposure = micasense_exposure(exposure, ctx.model)
-    name, wl, fwhm = band_of(ctx)
+    name, wl, fwhm = band_of(ctx, ("drone-dji",))  # as _kept_out reads it
     black = black_levels(ctx)
     dark = ctx.optional(None, lambda: x.numbers("DarkRowValue"))
     if not black and not dark:
@@ -269,9 +269,22 @@ def dls2_correction(x: Xmp, split: SunSplit, elevation: float) -> float | None:
     return float(dls2_horizontal(split.direct, split.scattered, elevation)) / h if h else 1.0
 
 
+#: The XMP properties the DLS hooks read (:data:`ATTITUDE`, :func:`dls2_split`,
+#: :func:`dls2_correction`) and the unit check of its readings
+#: (:func:`irradiance_scale`'s tags), kept on each band's metadata.
+SUN_SENSOR_XMP = frozenset({
+    "Yaw", "Pitch", "Roll", "IrradianceYaw", "IrradiancePitch", "IrradianceRoll", "Irradiance",
+    "DirectIrradiance", "ScatteredIrradiance", "HorizontalIrradiance", "IrradianceScaleToSIUnits",
+})
+
+#: Radiometries of bands read but never part of reflectance: Altum's LWIR band, a panchromatic band.
+KEPT_OUT = frozenset({"thermal", "panchro"})
+
 MAKER = register(Maker(
     name="micasense", model="micasense", units=UNITS, claims=lambda ctx: _kept_out(ctx) is not None, read=read,
     radiance=band_radiance, vignetting=band_vignetting, order=0, fallback=True,
     sun_sensor_tag="XMP Camera:Irradiance (DLS 1) or DLS:HorizontalIrradiance (DLS 2)",
     sun_scales=SUN_SCALES, attitude=ATTITUDE, sun_split=dls2_split, split_correction=dls2_correction,
+    sun_sensor_xmp=SUN_SENSOR_XMP, kept_out=KEPT_OUT, capture_id_tags=(("MicaSense", "CaptureId"),),
+    vignetting_tags="XMP VignettingCenter/VignettingPolynomial or VignettingPolynomial2D", field_parts=True,
 ))

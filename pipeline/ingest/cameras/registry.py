@@ -15,7 +15,10 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     import numpy as np
+    from mscal_core.geometry import Intrinsics
 
     from pipeline.ingest.meta import CaptureMeta, FieldParts, TagContext, VignettingTags
     from pipeline.ingest.sun_scale import SunScale
@@ -74,7 +77,23 @@ class Maker:
     that is the split's own horizontal irradiance, recomputed with the sun's elevation
     (radians; None: the reading is the tilted total, for the tilt model with the measured
     ratio); ``compensated(xmp)`` whether the reading is already independent of the attitude (no tilt
-    model on top), named ``compensated_model`` in run.json.
+    model on top), named ``compensated_model`` in run.json; ``sun_sensor_xmp`` the local names of
+    the XMP properties these hooks read (kept on each band's metadata when its file is read, so
+    the sun sensor reads no file twice: :func:`sun_sensor_xmp_names`); ``no_reflectance(meta)``
+    the maker's own reason why a band's sun sensor gives no reflectance (None: the shared reason,
+    :func:`pipeline.ingest.meta.no_reflectance_reason`).
+
+    Other tags: ``kept_out`` the radiometries of bands read but never part of reflectance
+    (thermal, panchromatic); ``capture_id_tags`` the ``(namespace, name)`` XMP tags holding a
+    capture's id, ``time_tags`` the ``(namespace, name)`` XMP tags holding the exposure's UTC
+    time (every maker's are tried for every file, in maker order, before the shared ones);
+    ``intrinsics(xmp, path)`` the lens of a file without the shared Pix4D perspective tags
+    (None: it has none); ``vignetting_tags`` the tags its vignetting comes from (named when they
+    give an unusable correction); ``field_parts`` whether its ``radiance`` takes a field
+    calibration's response and/or vignetting (:class:`~pipeline.ingest.meta.FieldParts`) in
+    place of the factory's; ``namespaces`` its own XMP namespaces (key: URIs, compared without a
+    trailing slash), which files are parsed with once it is registered
+    (:func:`pipeline.ingest.xmp.namespace_key`).
     """
 
     name: str
@@ -95,9 +114,20 @@ class Maker:
     split_correction: "Callable[[Xmp, SunSplit, float], float | None] | None" = None
     compensated: "Callable[[Xmp], bool] | None" = None
     compensated_model: str = ""
+    sun_sensor_xmp: frozenset[str] = frozenset()
+    no_reflectance: "Callable[[CaptureMeta], str | None] | None" = None
+    kept_out: frozenset[str] = frozenset()
+    capture_id_tags: tuple[tuple[str, str], ...] = ()
+    time_tags: tuple[tuple[str, str], ...] = ()
+    intrinsics: "Callable[[Xmp, Path], Intrinsics | None] | None" = None
+    vignetting_tags: str = ""
+    field_parts: bool = False
+    namespaces: dict[str, tuple[str, ...]] = field(default_factory=dict)
 
 
 MAKERS: dict[str, Maker] = {}
+#: The registered makers' own XMP namespaces: URI (no trailing slash) -> key (:attr:`Maker.namespaces`).
+NAMESPACE_KEYS: dict[str, str] = {}
 
 
 def register(maker: Maker) -> Maker:
@@ -110,7 +140,13 @@ def register(maker: Maker) -> Maker:
             raise ValueError(f"camera makers {other.name!r} and {maker.name!r} claim one model or radiometry")
         if other.fallback and maker.fallback:
             raise ValueError(f"camera makers {other.name!r} and {maker.name!r} are both the fallback")
+    for key, uris in maker.namespaces.items():
+        for uri in uris:
+            if NAMESPACE_KEYS.get(uri.rstrip("/"), key) != key:
+                raise ValueError(f"camera maker {maker.name!r}: XMP namespace {uri} is already "
+                                 f"{NAMESPACE_KEYS[uri.rstrip('/')]!r}")
     MAKERS[maker.name] = maker
+    NAMESPACE_KEYS.update({uri.rstrip("/"): key for key, uris in maker.namespaces.items() for uri in uris})
     return maker
 
 
@@ -148,3 +184,24 @@ def fallback() -> Maker:
 def attitude_sources() -> list[AttitudeSource]:
     """Every maker's :class:`AttitudeSource`, in the order they are tried (rank, then name)."""
     return sorted((a for m in MAKERS.values() for a in m.attitude), key=lambda a: (a.rank, a.name))
+
+
+def sun_sensor_xmp_names() -> frozenset[str]:
+    """The local names of the XMP properties every maker's sun-sensor hooks read
+    (:attr:`Maker.sun_sensor_xmp`)."""
+    return frozenset(name for m in MAKERS.values() for name in m.sun_sensor_xmp)
+
+
+def kept_out(radiometry: str) -> bool:
+    """Whether bands of ``radiometry`` are read but never part of reflectance (:attr:`Maker.kept_out`)."""
+    return any(radiometry in m.kept_out for m in MAKERS.values())
+
+
+def capture_id_tags() -> list[tuple[str, str]]:
+    """Every maker's ``(namespace, name)`` capture-id tags, in maker order (:func:`by_order`)."""
+    return [t for m in by_order() for t in m.capture_id_tags]
+
+
+def time_tags() -> list[tuple[str, str]]:
+    """Every maker's ``(namespace, name)`` UTC exposure-time tags, in maker order."""
+    return [t for m in by_order() for t in m.time_tags]

@@ -110,7 +110,12 @@ def sun_factor(meta: CaptureMeta) -> float | None:
     return None if e is None or not math.isfinite(e) or e <= 0 else 1.0 / e
 
 
+def no_reflectance(meta: CaptureMeta) -> str:
+    """Why the ILS gives no reflectance on its own: its counts have no published conversion."""
+    return "Sentera's sun sensor (ILS) counts have no published conversion to reflectance"
+
+
 MAKER = register(Maker(
     name="sentera", model="sentera", units=UNITS, claims=claims, read=read, radiance=band_radiance,
-    vignetting=band_vignetting, order=30, sun_factor=sun_factor,
+    vignetting=band_vignetting, order=30, sun_factor=sun_factor, no_reflectance=no_reflectance,
 ))

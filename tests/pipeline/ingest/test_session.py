@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from mscal_core.errors import CatalogError, FrameError, SessionError
+from mscal_core.errors import FrameError, SessionError
 from pipeline.ingest.catalog import load_camera
 from pipeline.ingest.session import exif_record, load_session, read_bands, read_frame_table
 
@@ -52,7 +52,7 @@ def test_reflectance_table(tmp_path) -> None:
          "at line 4, column 9"),
         (SESSION_YAML + "colour: red\n", SessionError, "unknown key(s) colour"),
         (SESSION_YAML.replace("fx: 436.0", "fx: -1"), SessionError, "intrinsics.fx must be positive"),
-        (SESSION_YAML.replace("reflectance: 0.5", "reflectance: 5"), CatalogError, "reflector.reflectance must be in (0, 1]"),
+        (SESSION_YAML.replace("reflectance: 0.5", "reflectance: 5"), SessionError, "reflector.reflectance must be in (0, 1]"),
         (SESSION_YAML.replace("id: 3", "id: three"), SessionError, "marker.id must be a non-negative integer"),
         # unknown keys, with the allowed ones
         (SESSION_YAML + "colour: red\n", SessionError, "session.yaml: unknown key(s) colour (allowed keys: camera, "
@@ -81,8 +81,12 @@ def test_reflectance_table(tmp_path) -> None:
         (SESSION_YAML.replace("size_m: [0.5, 0.5]", "size_m: [0.5, -0.5]"), SessionError,
          "reflector.size_m must be [width_m, height_m] (positive numbers), got [0.5, -0.5]"),
         (SESSION_YAML.replace("size_m: 0.10", "size_m: .nan"), SessionError, "marker.size_m must be a number, got nan"),
-        (SESSION_YAML.replace("reflectance: 0.5", "reflectance: [[600, 0.4], [900, 1.6]]"), CatalogError,
+        (SESSION_YAML.replace("reflectance: 0.5", "reflectance: [[600, 0.4], [900, 1.6]]"), SessionError,
          "reflector.reflectance[1] must be [wavelength_nm, reflectance]: finite numbers, nm > 0, 0 < reflectance <= 1"),
+        (SESSION_YAML + "serial: true\n", SessionError, "serial must be the camera's serial number as text, got True "
+         '(e.g. serial: "RE02-1234567" (quoted))'),
+        (SESSION_YAML + "serial: ' '\n", SessionError, "serial must be the camera's serial number as text, got ' '"),
+        (SESSION_YAML + "serial: [RE02-1]\n", SessionError, "serial must be the camera's serial number as text"),
         (SESSION_YAML + "panel: {marker: {dictionary: DICT_4X4_50, id: 7, size_m: 0.06}, size_m: [0.15, 0]}\n",
          SessionError, "panel.size_m must be [w, h] in metres (or one side), positive numbers, got [0.15, 0]"),
     ],
@@ -94,6 +98,40 @@ def test_bad_session_yaml(tmp_path, text, error, message) -> None:
         load_session(tmp_path)
     assert message in str(err.value)
     assert "session.yaml" in str(err.value) and "\n" not in str(err.value)
+
+
+_LENS = {"fx": 1400.0, "fy": 1400.0, "cx": 640.0, "cy": 480.0}
+
+
+@pytest.mark.parametrize(
+    "data, message",
+    [
+        ({"Blue": _LENS}, "intrinsics: missing key(s) Red Edge (allowed keys: Blue or 1, Red Edge or 5)"),
+        ({"Blue": _LENS, "1": _LENS, "5": _LENS}, "intrinsics: band 'Blue' is given twice (as Blue and 1)"),
+        ({"Blue": _LENS, "5": _LENS, "NIR": _LENS}, "intrinsics: unknown key(s) NIR (allowed keys: Blue or 1, Red Edge"),
+        ({"Blue": {**_LENS, "fx": -1}, "5": _LENS}, "intrinsics.Blue.fx must be positive, got -1"),
+        ({"Blue": _LENS, "Red Edge": {"fx": 1.0}}, "intrinsics.Red Edge: missing key(s) fy, cx, cy"),
+        ({"Blue": _LENS, "5": {**_LENS, "dist": [1, 2]}}, "intrinsics.5.dist must be [k1, k2, p1, p2, k3]"),
+        ([_LENS, _LENS], "intrinsics must be a mapping, got [{"),
+    ],
+)
+def test_bad_band_intrinsics_named_by_key_path(data, message) -> None:
+    from pipeline.ingest.intrinsics import parse_band_intrinsics
+    from pipeline.ingest.session import IntrinsicsModel, intrinsics_of
+
+    path = Path("session.yaml")
+    with pytest.raises(SessionError) as err:
+        parse_band_intrinsics(data, [["Blue", "1"], ["Red Edge", "5"]], path, IntrinsicsModel, intrinsics_of)
+    assert str(err.value).startswith(f"session.yaml: {message}") and "\n" not in str(err.value)
+
+
+def test_band_intrinsics_by_name_or_suffix() -> None:
+    from pipeline.ingest.intrinsics import parse_band_intrinsics
+    from pipeline.ingest.session import IntrinsicsModel, intrinsics_of
+
+    out = parse_band_intrinsics({"5": {**_LENS, "cx": 600.0}, "Blue": _LENS}, [["Blue", "1"], ["Red Edge", "5"]],
+                                Path("s.yaml"), IntrinsicsModel, intrinsics_of)
+    assert [(i.fx, i.cx) for i in out] == [(1400.0, 640.0), (1400.0, 600.0)]
 
 
 def test_intrinsics_may_come_later(tmp_path) -> None:
