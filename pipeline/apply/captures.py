@@ -9,10 +9,10 @@ one multi-channel JPEG per capture. :func:`find_captures` finds every capture in
 incomplete or duplicated ones, and names the other files it skips (logs, ``diag.dat``, the
 camera's ``.bin`` files).
 
-:func:`apply_captures` is the driver of the one executor (:mod:`pipeline.apply.executor`)
-for such a folder, whatever the radiometric chain: the factory's
-(:mod:`pipeline.apply.factory`) or a field calibration store's
-(:func:`pipeline.apply.flight.apply_flight`). It writes the outputs every apply writes
+:class:`CaptureSource` is such a folder as a source of the one apply driver
+(:func:`pipeline.apply.driver.drive`), whatever the radiometric chain: the factory's
+(:mod:`pipeline.apply.factory`) or a field calibration store's (:func:`field_captures`). Its
+pass writes the outputs every apply writes
 (``reflectance.zarr``, ``raw.zarr``, photogrammetry and NDVI TIFFs, ``run.json`` with the
 bands the camera wrote but reflectance leaves out (``skipped_bands``), the tag problems that
 disabled a feature (``metadata_problems``), the orientation of the outputs and, for the
@@ -65,7 +65,7 @@ from pipeline.ingest.photo_tags import CameraOptics, read_optics
 from pipeline.ingest.products import Products, indices_for
 from pipeline.ingest.raw import raw_codec
 from pipeline.products.writers import BandTags, FrameTags
-from pipeline.storage.atomic import TMP_MARK
+from pipeline.storage.atomic import temporary_folder_name
 from pipeline.storage.store import (
     CF_VARIABLES,
     FLIGHT_VARIABLES,
@@ -291,10 +291,6 @@ def capture_coords(camera: Camera, captures: Sequence[Capture], irradiance_unit:
     }
 
 
-def _tmp(out: Path, name: str) -> Path:
-    return out / f".{name}{TMP_MARK}{uuid.uuid4().hex[:8]}"
-
-
 @dataclass
 class CaptureRun:
     """What a driver decides before the pass: the chain, and what the outputs record.
@@ -451,7 +447,7 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
                               radiance_unit=run.radiance_unit if factory and products.radiance else None,
                               quality=run.chain.flagging is not None)
     attrs = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__, **run.attrs}
-    tmp_refl, tmp_raw = _tmp(out, "reflectance.zarr"), _tmp(out, "raw.zarr")
+    tmp_refl, tmp_raw = temporary_folder_name(out / "reflectance.zarr"), temporary_folder_name(out / "raw.zarr")
     refl_ds = frame_template(coords, shape, rvars, attrs)
     create_store(refl_ds, tmp_refl, OUTPUT_COMPRESSORS)
     raw_ds = frame_template(coords, shape, {

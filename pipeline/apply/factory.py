@@ -422,7 +422,8 @@ def _field(options: FactoryOptions, camera: Camera, shape: tuple[int, int, int]
 
 def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOptions = FactoryOptions()) -> ApplyResult:
     """``mscal apply CAPTURE_DIR --calibration factory -o OUT`` (see the module docstring):
-    the factory chain through the one executor (:func:`pipeline.apply.captures.apply_captures`)."""
+    the factory chain on the folder's captures (:class:`pipeline.apply.captures.CaptureSource`)
+    through the one apply driver (:func:`pipeline.apply.driver.drive`)."""
     t_start = time.perf_counter()
     folder, out = Path(capture_dir), Path(out)
     if not folder.is_dir():

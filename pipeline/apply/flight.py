@@ -13,6 +13,9 @@
    reflectance.zarr is renamed into place;
 4. write ``OUT/run.json`` last. Every output is written under a temporary name and renamed;
    a run that finds ``run.json`` matching its inputs, calibration and options does nothing.
+
+Steps 1 and 2 are :class:`SnapshotFlight`'s, a source of the one apply driver
+(:func:`pipeline.apply.driver.drive`), which runs the pass and does step 4 as for every camera.
 """
 from __future__ import annotations
 
