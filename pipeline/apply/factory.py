@@ -84,6 +84,7 @@ import hashlib
 import json
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -470,82 +471,88 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     if wanted:  # the serial is read from the inputs; what its target says is in the catalog
         fingerprint["panel_serial_targets"] = serial_targets_digest()
 
-    def make_run() -> CaptureRun:
-        """The light reference (panels, sun sensor) and the chain: only when the outputs are
-        not up to date (an up-to-date run reads no pixels)."""
-        serial = find_panel_serial(captures, options.panel_captures) if wanted else None
-        reference, panels, rho_source, unusable = _reference_panels(
-            options, _route(options, captures, serial), captures, folder, parts, None if near is None else near[0], serial)
-        by_serial = serial is not None and serial.target is not None and rho_source == serial.rho_source
-        notes = {} if serial is None or options.reference != "auto" else {
-            "albedo": f"no {'--panel ' if options.panel_captures else ''}capture carries XMP Albedo with CalibrationPicture 2",
-            **serial.record(by_serial, unusable)}
-        panel_factor = None
-        if panels:
-            panel_factor = tuple(float(np.mean([p.factor_split[b] for p in panels])) for b in range(camera.n_bands))
-
-        if options.illumination is not None and reference not in ("panel", "panel-dls"):
-            raise InputError("--illumination is for the panel route: with the sun sensor (DLS) each capture already "
-                             "has its own light", hint="leave --illumination out, or give --panel-reflectance")
-        uses_panels = reference in ("panel", "panel-dls")
-        # One search for panel captures the run does not use: they go to OUT/panels/, and with
-        # --reference auto the summary and report say how to use them.
-        unused = panels_seen(captures, options.panel_captures) if not uses_panels else []
-        seen = unused if options.reference == "auto" else []
-        times = capture_times(captures)
-        # dls: each capture's factor from its own files (the diffuse ratio never fitted from the
-        # flight); with panels the fit is part of the light's interpolation between them
-        sensor = None if readings_missing(captures) else sensor_light(captures, times, fit_ratio=reference != "dls")
-        check = None if sensor is None else sun_sensor_check(captures, sensor, times, camera.band_names)
-        sensor = sensor if check is None else check.apply(sensor)  # each reading on its plausible unit rule
-        panels = panels if check is None else check.panels(panels, [c.name for c in captures])
-        light, scales = _capture_light(options, reference, captures, panels, times, sensor, folder)
-
-        attrs = {"calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
-                 "comment": "bands are not co-registered: each band keeps its own pixel grid",
-                 "components": json.dumps(_components_record(None if field is None else (*field[:2], "")))}
-        own = options.align and options.registration is None and all(
-            has_factory_alignment(m) for c in captures for m in c.metas)
-        if own:
-            attrs.update({"co_registered": 1, "registration": "factory metadata",
-                          "comment": f"bands on the camera's designed image plane: {FACTORY_ALIGNMENT_NOTE}"})
-        if options.registration is not None:
-            attrs.update({"co_registered": 1, "registration": str(options.registration),
-                          "comment": "bands aligned to the reference band of the registration store "
-                                     "(mscal register); NaN where a band does not cover the reference grid"})
-        first = captures[0].metas[0]
-        used = {ALBEDO_SOURCE: "the camera's XMP Albedo"}.get(rho_source or "", "the panel's serial" if by_serial
-                                                              else "--panel-reflectance")
-        panel_names = {p.capture: f"reflectance panel of the panel route ({used})" for p in panels}
-        panel_names.update({name: "a reflectance panel (camera's panel flag, --panel, or detected); not used: "
-                                  "no --panel-reflectance" for name in unused})
-        return CaptureRun(
-            chain=FactoryChain(camera_clip_dn(camera), "panel" if reference == "panel-dls" else reference, panel_factor,
-                               None if field is None else field[:2], run_flagging(options.products)),
-            calibration=FACTORY, calibration_sha256=None, attrs=attrs,
-            reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
-            transforms=None if options.registration is None else Path(options.registration), factory_alignment=own,
-            radiance_unit=first.radiance_unit, irradiance_unit=first.irradiance_unit,
-            record=lambda caps: {"components": _components_record(field),
-                                 "reference": {**_reference_record(reference, panels, panel_factor, camera, caps[0], no_sun,
-                                                                   rho_source, options.products.radiance),
-                                               **({"albedo_panel_unusable": unusable}
-                                                  if unusable and serial is None else {}),
-                                               **seen_record(seen), **notes},
-                                 "camera_identification": {"evidence": ident.evidence, "overridden": ident.overridden,
-                                                           **ident.probe},
-                                 "radiance_unit": caps[0].metas[0].radiance_unit,
-                                 "radiance_factor": factor_record(reference, camera.band_names, panel_factor, bool(scales)),
-                                 "band_alignment": _alignment_record(options, own, caps),
-                                 "illumination": _light_record(options.illumination, panels, caps, scales, camera),
-                                 **light_record(reference, panels, captures, sensor, light, camera,
-                                              options.illumination or DEFAULT_LIGHT_MODE, times, check)},
-            scale=lambda name: scales.get(name),
-            panels=panel_names, reference_band=_reference_band(options.registration, camera),
-        )
-
+    make_run = partial(_factory_run, options, folder, camera, captures, ident, field, near, parts, wanted, no_sun)
     return drive(CaptureSource(folder, camera, found, shape, indices, export, fingerprint, make_run,
                                options.products, options.execution), out, t_start)
+
+
+def _factory_run(options: FactoryOptions, folder: Path, camera: Camera, captures: Sequence[Capture],
+                 ident: Identification, field: tuple[str, tuple[str, ...], str] | None,
+                 near: tuple[PanelConfig, Path] | None, parts: Sequence[FieldParts | None] | None, wanted: bool,
+                 no_sun: tuple[Path, str] | None) -> CaptureRun:
+    """The factory chain of a run that is not up to date: the light reference (the panel's
+    serial when ``wanted``, the panels, the sun sensor and its check against the clear sky),
+    each capture's factors, the stores' attributes and run.json's factory keys."""
+    serial = find_panel_serial(captures, options.panel_captures) if wanted else None
+    reference, panels, rho_source, unusable = _reference_panels(
+        options, _route(options, captures, serial), captures, folder, parts, None if near is None else near[0], serial)
+    by_serial = serial is not None and serial.target is not None and rho_source == serial.rho_source
+    notes = {} if serial is None or options.reference != "auto" else {
+        "albedo": f"no {'--panel ' if options.panel_captures else ''}capture carries XMP Albedo with CalibrationPicture 2",
+        **serial.record(by_serial, unusable)}
+    panel_factor = None
+    if panels:
+        panel_factor = tuple(float(np.mean([p.factor_split[b] for p in panels])) for b in range(camera.n_bands))
+
+    if options.illumination is not None and reference not in ("panel", "panel-dls"):
+        raise InputError("--illumination is for the panel route: with the sun sensor (DLS) each capture already "
+                         "has its own light", hint="leave --illumination out, or give --panel-reflectance")
+    uses_panels = reference in ("panel", "panel-dls")
+    # One search for panel captures the run does not use: they go to OUT/panels/, and with
+    # --reference auto the summary and report say how to use them.
+    unused = panels_seen(captures, options.panel_captures) if not uses_panels else []
+    seen = unused if options.reference == "auto" else []
+    times = capture_times(captures)
+    # dls: each capture's factor from its own files (the diffuse ratio never fitted from the
+    # flight); with panels the fit is part of the light's interpolation between them
+    sensor = None if readings_missing(captures) else sensor_light(captures, times, fit_ratio=reference != "dls")
+    check = None if sensor is None else sun_sensor_check(captures, sensor, times, camera.band_names)
+    sensor = sensor if check is None else check.apply(sensor)  # each reading on its plausible unit rule
+    panels = panels if check is None else check.panels(panels, [c.name for c in captures])
+    light, scales = _capture_light(options, reference, captures, panels, times, sensor, folder)
+
+    attrs = {"calibration": FACTORY, "reference": reference, "source": str(folder), "co_registered": 0,
+             "comment": "bands are not co-registered: each band keeps its own pixel grid",
+             "components": json.dumps(_components_record(None if field is None else (*field[:2], "")))}
+    own = options.align and options.registration is None and all(
+        has_factory_alignment(m) for c in captures for m in c.metas)
+    if own:
+        attrs.update({"co_registered": 1, "registration": "factory metadata",
+                      "comment": f"bands on the camera's designed image plane: {FACTORY_ALIGNMENT_NOTE}"})
+    if options.registration is not None:
+        attrs.update({"co_registered": 1, "registration": str(options.registration),
+                      "comment": "bands aligned to the reference band of the registration store "
+                                 "(mscal register); NaN where a band does not cover the reference grid"})
+    first = captures[0].metas[0]
+    used = {ALBEDO_SOURCE: "the camera's XMP Albedo"}.get(rho_source or "", "the panel's serial" if by_serial
+                                                          else "--panel-reflectance")
+    panel_names = {p.capture: f"reflectance panel of the panel route ({used})" for p in panels}
+    panel_names.update({name: "a reflectance panel (camera's panel flag, --panel, or detected); not used: "
+                              "no --panel-reflectance" for name in unused})
+    return CaptureRun(
+        chain=FactoryChain(camera_clip_dn(camera), "panel" if reference == "panel-dls" else reference, panel_factor,
+                           None if field is None else field[:2], run_flagging(options.products)),
+        calibration=FACTORY, calibration_sha256=None, attrs=attrs,
+        reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
+        transforms=None if options.registration is None else Path(options.registration), factory_alignment=own,
+        radiance_unit=first.radiance_unit, irradiance_unit=first.irradiance_unit,
+        record=lambda caps: {"components": _components_record(field),
+                             "reference": {**_reference_record(reference, panels, panel_factor, camera, caps[0], no_sun,
+                                                               rho_source, options.products.radiance),
+                                           **({"albedo_panel_unusable": unusable}
+                                              if unusable and serial is None else {}),
+                                           **seen_record(seen), **notes},
+                             "camera_identification": {"evidence": ident.evidence, "overridden": ident.overridden,
+                                                       **ident.probe},
+                             "radiance_unit": caps[0].metas[0].radiance_unit,
+                             "radiance_factor": factor_record(reference, camera.band_names, panel_factor, bool(scales)),
+                             "band_alignment": _alignment_record(options, own, caps),
+                             "illumination": _light_record(options.illumination, panels, caps, scales, camera),
+                             **light_record(reference, panels, captures, sensor, light, camera,
+                                          options.illumination or DEFAULT_LIGHT_MODE, times, check)},
+        scale=lambda name: scales.get(name),
+        panels=panel_names, reference_band=_reference_band(options.registration, camera),
+    )
 
 
 def _reference_band(registration: str | None, camera: Camera) -> int | None:
