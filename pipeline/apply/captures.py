@@ -53,7 +53,14 @@ from pipeline.apply.options import (
     pass_geometry,
 )
 from pipeline.apply.quality import checked, run_flagging
-from pipeline.apply.record import RUN_JSON, content_fingerprint, remove_frame_tiffs, run_fingerprint, up_to_date
+from pipeline.apply.record import (
+    RUN_JSON,
+    content_fingerprint,
+    illumination_record,
+    remove_frame_tiffs,
+    run_fingerprint,
+    up_to_date,
+)
 from pipeline.apply.template import create_store, frame_template, product_variables
 from pipeline.calibrate.registration import check_transforms
 from pipeline.ingest.camera_meta import METADATA_READING
@@ -539,9 +546,7 @@ def field_captures(folder: Path, calib_path: Path, camera: Camera, options: Appl
                                        {"long_name": "factor on Eq. 15 reflectance: S / S(lambda, time)"})}
 
     def record(caps: Sequence[Capture]) -> dict[str, Any]:
-        if illum is None:
-            return {"illumination": {"varies_in_time": False, "captures": int(calib.sizes.get("capture", 1))}}
-        return {"illumination": {"varies_in_time": True, **illum.summary([c.name for c in caps])}}
+        return {"illumination": illumination_record(illum, calib, [c.name for c in caps])}
 
     def make_run() -> CaptureRun:
         return CaptureRun(

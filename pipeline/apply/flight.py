@@ -57,7 +57,7 @@ from pipeline.apply.options import (
     pass_geometry,
 )
 from pipeline.apply.quality import Flagging, checked, run_flagging
-from pipeline.apply.record import remove_frame_tiffs, run_fingerprint, up_to_date
+from pipeline.apply.record import illumination_record, remove_frame_tiffs, run_fingerprint, up_to_date
 from pipeline.apply.stores import calibration_tables, geometry_step, read_frame_chunk
 from pipeline.apply.template import create_store, frame_template, product_variables
 from pipeline.calibrate.registration import check_transforms
@@ -308,15 +308,6 @@ def _cube_pass(out: Path, runner: Runner, start: Callable[..., _Pass], calib_pat
     return ps, runner.run(ps.plan, jobs)
 
 
-def _illumination_record(ps: _Pass, calib: xr.Dataset) -> dict[str, Any]:
-    """run.json's ``illumination``: the mode and each frame's factors when the light varies
-    in time, else that the store's S was used for every frame."""
-    if ps.illum is None:
-        n = calib.sizes.get("capture", 1)
-        return {"varies_in_time": False, "captures": int(n)}
-    return {"varies_in_time": True, **ps.illum.summary([str(f) for f in ps.coords["frame"].values])}
-
-
 def apply_flight(
     flight_dir: str | Path, calibration: str | Path, out: str | Path, options: ApplyOptions = ApplyOptions()
 ) -> ApplyResult:
@@ -448,6 +439,6 @@ class SnapshotFlight:
                      **({"photogrammetry": "photogrammetry/", "ndvi": "ndvi/"} if self.products.tiffs else {})},
             products=self.products.record(ps.plan.indices_made()), export=self.export,
             metadata_problems=[p for p in cube.found.metadata_problems if Path(str(p["file"])).stem in frames],
-            parts={"illumination": _illumination_record(ps, self.calib), "snapshot": {"single_pass": single}},
+            parts={"illumination": illumination_record(ps.illum, self.calib, names), "snapshot": {"single_pass": single}},
             flagging=None if flagging is None else checked(flagging, ps.plan),
         )

@@ -134,6 +134,15 @@ def remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export: 
         (out / "ndvi" / f"{name}.tif").unlink(missing_ok=True)
 
 
+def illumination_record(illum: IlluminationPlan | None, calib: xr.Dataset, frames: Sequence[str]) -> dict[str, Any]:
+    """run.json ``illumination`` of a run with a field calibration store: the mode and each
+    frame's factors when the light varies in time, else that the store's S was used for every
+    frame (and how many captures the store's S was fitted on)."""
+    if illum is None:
+        return {"varies_in_time": False, "captures": int(calib.sizes.get("capture", 1))}
+    return {"varies_in_time": True, **illum.summary(list(frames))}
+
+
 def frames_digest(shas: Sequence[str]) -> str:
     """sha256 of the frames' content hashes in frame order: run.json ``fingerprint.frames_sha256``
     for every camera (a snapshot frame's file, a capture's band files in band order)."""
