@@ -9,10 +9,10 @@ one multi-channel JPEG per capture. :func:`find_captures` finds every capture in
 incomplete or duplicated ones, and names the other files it skips (logs, ``diag.dat``, the
 camera's ``.bin`` files).
 
-:func:`apply_captures` is the driver of the one executor (:mod:`pipeline.apply.executor`)
-for such a folder, whatever the radiometric chain: the factory's
-(:mod:`pipeline.apply.factory`) or a field calibration store's
-(:func:`pipeline.apply.flight.apply_flight`). It writes the outputs every apply writes
+:class:`CaptureSource` is such a folder as a source of the one apply driver
+(:func:`pipeline.apply.driver.drive`), whatever the radiometric chain: the factory's
+(:mod:`pipeline.apply.factory`) or a field calibration store's (:func:`field_captures`). Its
+pass writes the outputs every apply writes
 (``reflectance.zarr``, ``raw.zarr``, photogrammetry and NDVI TIFFs, ``run.json`` with the
 bands the camera wrote but reflectance leaves out (``skipped_bands``), the tag problems that
 disabled a feature (``metadata_problems``), the orientation of the outputs and, for the
@@ -28,7 +28,6 @@ import hashlib
 import json
 import re
 import shutil
-import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,11 +39,12 @@ import xarray as xr
 from mscal_core.errors import CalibrationStoreError, FrameError, InputError
 
 from pipeline.apply.coregistration import COREGISTRATION_CHECK, METADATA, Refinement, RunCoregistration, prepare
+from pipeline.apply.driver import Done
 from pipeline.apply.execution import Execution
 from pipeline.apply.executor import OUTPUT_COMPRESSORS, FactoryChain, FieldChain, Job, Plan, Runner, capture_reflectance
 from pipeline.apply.light import illumination_plan
 from pipeline.apply.options import (
-    ApplyResult,
+    ApplyOptions,
     calibration_clip_dn,
     calibration_hash,
     export_band_indices,
@@ -52,17 +52,14 @@ from pipeline.apply.options import (
     normalisation,
     pass_geometry,
 )
-from pipeline.apply.products import remove_unchosen
 from pipeline.apply.quality import checked, run_flagging
 from pipeline.apply.record import (
     RUN_JSON,
-    forget_run,
-    frames_digest,
-    previous_run,
+    content_fingerprint,
+    illumination_record,
     remove_frame_tiffs,
     run_fingerprint,
-    run_record,
-    write_run_record,
+    up_to_date,
 )
 from pipeline.apply.template import create_store, frame_template, product_variables
 from pipeline.calibrate.registration import check_transforms
@@ -75,7 +72,7 @@ from pipeline.ingest.photo_tags import CameraOptics, read_optics
 from pipeline.ingest.products import Products, indices_for
 from pipeline.ingest.raw import raw_codec
 from pipeline.products.writers import BandTags, FrameTags
-from pipeline.storage.atomic import TMP_MARK, install_folder, remove_temporaries
+from pipeline.storage.atomic import temporary_folder_name
 from pipeline.storage.store import (
     CF_VARIABLES,
     FLIGHT_VARIABLES,
@@ -84,8 +81,8 @@ from pipeline.storage.store import (
     open_calibration,
 )
 
-__all__ = ["CaptureFolder", "CaptureRun", "apply_captures", "capture_tags", "find_captures", "is_capture_folder",
-           "unchanged_run"]
+__all__ = ["CaptureFolder", "CaptureRun", "CaptureSource", "capture_tags", "field_captures", "find_captures",
+           "is_capture_folder", "unchanged_run"]
 
 # Files left out without a word (every other file that is not a capture is named in run.json's
 # ``skipped``): the file systems' own, the uploader's READY marker (mscal serve) and a card
@@ -199,8 +196,7 @@ def unchanged_run(out: Path, captures: Sequence[Capture], fingerprint: dict[str,
         return None
     if recorded != inputs_listing(captures):
         return None
-    full = {**fingerprint, "frames_sha256": frames_digest([capture_digest(c) for c in captures])}
-    return previous_run(out, json.loads(json.dumps(full)), ("reflectance.zarr", "raw.zarr"))
+    return up_to_date(out, fingerprint, [capture_digest(c) for c in captures], ("reflectance.zarr", "raw.zarr"))
 
 
 _UUID_HEX = re.compile(r"^[0-9A-Fa-f]{32}$")
@@ -302,10 +298,6 @@ def capture_coords(camera: Camera, captures: Sequence[Capture], irradiance_unit:
     }
 
 
-def _tmp(out: Path, name: str) -> Path:
-    return out / f".{name}{TMP_MARK}{uuid.uuid4().hex[:8]}"
-
-
 @dataclass
 class CaptureRun:
     """What a driver decides before the pass: the chain, and what the outputs record.
@@ -317,7 +309,6 @@ class CaptureRun:
     chain: FieldChain | FactoryChain
     calibration: str  # run.json "calibration": a store's path or "factory"
     calibration_sha256: str | None
-    fingerprint: dict[str, Any]
     attrs: dict[str, Any]
     reflectance_name: str
     tiff_dtype: str = "uint16"
@@ -329,33 +320,50 @@ class CaptureRun:
     scale: Callable[[str], tuple[float, ...] | None] = lambda name: None
     extra_coords: Callable[[Sequence[Capture]], dict[str, Any]] = lambda captures: {}
     record: Callable[[Sequence[Capture]], dict[str, Any]] = lambda captures: {}
-    execution: Execution = Execution()  # how the tasks run (never part of the fingerprint)
     panels: dict[str, str] = dataclasses.field(default_factory=dict)  # panel captures -> why: TIFFs in OUT/panels/
     reference_band: int | None = None  # the band a registration warps the others onto (their lens is its)
     refine: Refinement | None = None  # image registration on top of the files' own, per capture (coregistration)
     coreg_reference: int | None = None  # the band measured captures' residual shifts are against
-    products: Products = Products()  # radiance (factory chain), indices, TIFFs (pipeline.ingest.products)
 
 
-def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder, shape: tuple[int, int, int],
-                   run: CaptureRun, indices: Sequence[Index], roles: dict[str, dict[str, int]], export: Sequence[int],
-                   t_start: float) -> ApplyResult:
-    """The pass of the one executor over a folder's captures with ``run.chain``, every output
-    (see the module docstring)."""
-    captures = list(found.captures)
-    listed = list(captures)  # every capture found: the fingerprint's frames (one quarantined in the pass too)
-    quarantined = list(found.quarantined)
-    out.mkdir(parents=True, exist_ok=True)
-    forget_run(out)
-    remove_temporaries(out)
-    remove_unchosen(out, run.products)
-    panels = {**metadata_panels(captures), **run.panels}
-    t0 = time.perf_counter()
-    run, coreg = coregistered(camera, captures, run, panels)
-    warm = run.chain.calibration if isinstance(run.chain, FieldChain) else None
-    with Runner(len(captures), run.execution, calibration=warm) as runner:
-        while True:  # a capture found unusable in the pass is quarantined and the pass redone without it
-            tmp_refl, tmp_raw, plan = _start(out, camera, captures, shape, indices, roles, export, run)
+class CaptureSource:
+    """A folder of captures (one file per band, or one multi-channel file) with the chain of
+    the run that ``make_run`` builds (a field calibration store's, :func:`field_captures`, or
+    the factory's, :func:`pipeline.apply.factory.apply_factory`): a source of
+    :func:`pipeline.apply.driver.drive`. ``fingerprint``: everything but the captures'
+    content that the outputs depend on; ``make_run`` is called only when the outputs are not
+    up to date (an up-to-date run reads no pixels)."""
+
+    def __init__(self, folder: Path, camera: Camera, found: CaptureFolder, shape: tuple[int, int, int],
+                 indices: Sequence[Index], export: Sequence[int], fingerprint: dict[str, Any],
+                 make_run: Callable[[], CaptureRun], products: Products, execution: Execution,
+                 calib: xr.Dataset | None = None) -> None:
+        self.folder, self.camera, self.found, self.shape = folder, camera, found, shape
+        self.indices, self.export, self.fingerprint, self.make_run = indices, export, fingerprint, make_run
+        self.roles = {ix.name: index_roles(camera, ix) for ix in indices}
+        self.products, self.execution, self.calib = products, execution, calib
+
+    def up_to_date(self, out: Path) -> dict[str, Any] | None:
+        return unchanged_run(out, self.found.captures, self.fingerprint)
+
+    def prepare(self, out: Path) -> tuple[int, Path | None]:
+        """The run (its light reference), the panel captures and the bands' alignment."""
+        captures = self.found.captures
+        run = self.make_run()
+        self.panels = {**metadata_panels(captures), **run.panels}
+        self.run, self.coreg = coregistered(self.camera, captures, run, self.panels)
+        return len(captures), run.chain.calibration if isinstance(run.chain, FieldChain) else None
+
+    def run_pass(self, out: Path, runner: Runner) -> Done:
+        """The pass of the one executor over the captures; a capture found unusable in it is
+        quarantined and the pass redone without it."""
+        camera, export, run, coreg, panels = self.camera, self.export, self.run, self.coreg, self.panels
+        captures = list(self.found.captures)
+        listed = list(captures)  # every capture found: the fingerprint's frames (one quarantined in the pass too)
+        quarantined = list(self.found.quarantined)
+        while True:
+            tmp_refl, tmp_raw, plan = _start(out, camera, captures, self.shape, self.indices, self.roles, export, run,
+                                             self.products)
             jobs = [Job(f, c.name, capture_tags(camera, c), capture=c, scale=run.scale(c.name), panel=c.name in panels,
                         measure=c.name in coreg.measured) for f, c in enumerate(captures)]
             outcomes = runner.run(plan, jobs)
@@ -369,46 +377,40 @@ def apply_captures(folder: Path, out: Path, camera: Camera, found: CaptureFolder
                 quarantined.append(q)
             captures = [c for c in captures if c.name not in bad]
             if not captures:
-                raise FrameError("no usable capture in the folder (all quarantined)", path=folder,
+                raise FrameError("no usable capture in the folder (all quarantined)", path=self.folder,
                                  hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
-    t_pass = time.perf_counter() - t0
-    install_folder(tmp_raw, out / "raw.zarr")
-    install_folder(tmp_refl, out / "reflectance.zarr")
-    frames = [o.name for o in outcomes]
-    quarantined.sort(key=lambda q: q["file"])
-    shas = {o.name: o.sha256 for o in outcomes if o.sha256 is not None}
-    fingerprint = {**run.fingerprint, "frames_sha256": frames_digest([shas.get(c.name) or capture_digest(c)
-                                                                      for c in listed])}
-    outputs = {"reflectance": "reflectance.zarr", "raw": "raw.zarr",
-               **({"photogrammetry": "photogrammetry/", "panels": "panels/", "ndvi": "ndvi/"}
-                  if run.products.tiffs else {})}
-    parts: dict[str, Any] = {
-        **run.record(captures),
-        "inputs_listing": inputs_listing(listed),
-        "skipped": found.skipped,
-        "skipped_bands": [{**s, "file": _relative(s["file"], folder)} for c in captures for s in c.skipped],
-        "orientation": _orientation_record(captures[0]),
-        "capture_times": capture_time_zones(captures),
-        "panels": [{"capture": name, "reason": why} for name, why in sorted(panels.items()) if name in frames],
-        **coreg.record(camera, {o.name: o.coregistration for o in outcomes if o.coregistration}),
-    }
-    if isinstance(run.chain, FactoryChain):
-        parts["reflectance_missing"] = [m for o in outcomes for m in o.no_reflectance]
-    thermal = [{"capture": o.name, **t} for o in outcomes for t in o.thermal]
-    if thermal:
-        parts["thermal"] = {"unit": "K", "formula": "the camera's own conversion of its thermal band (MicaSense "
-                                                    "LWIR: K = DN / 100); never mixed into reflectance",
-                            "files": thermal}
-        outputs["thermal"] = "thermal/"
-    record = run_record(
-        flight=folder, camera=camera, calibration=run.calibration, calibration_sha256=run.calibration_sha256,
-        outcomes=outcomes, frames_sha256={o.name: str(o.sha256) for o in outcomes}, quarantined=quarantined,
-        metadata_problems=[p.as_dict() for c in captures for p in c.problems], outputs=outputs,
-        products=run.products.record(indices), export=export, runner=runner, t_pass=t_pass, t_start=t_start,
-        fingerprint=json.loads(json.dumps(fingerprint)), parts=parts,
-        flagging=None if run.chain.flagging is None else checked(run.chain.flagging, plan))
-    write_run_record(out, record)  # last: the completion marker
-    return ApplyResult(out, record, up_to_date=False, quarantined=quarantined)
+        frames = [o.name for o in outcomes]
+        quarantined.sort(key=lambda q: q["file"])
+        shas = {o.name: o.sha256 for o in outcomes if o.sha256 is not None}
+        outputs = {"reflectance": "reflectance.zarr", "raw": "raw.zarr",
+                   **({"photogrammetry": "photogrammetry/", "panels": "panels/", "ndvi": "ndvi/"}
+                      if self.products.tiffs else {})}
+        parts: dict[str, Any] = {
+            **run.record(captures),
+            "inputs_listing": inputs_listing(listed),
+            "skipped": self.found.skipped,
+            "skipped_bands": [{**s, "file": _relative(s["file"], self.folder)} for c in captures for s in c.skipped],
+            "orientation": _orientation_record(captures[0]),
+            "capture_times": capture_time_zones(captures),
+            "panels": [{"capture": name, "reason": why} for name, why in sorted(panels.items()) if name in frames],
+            **coreg.record(camera, {o.name: o.coregistration for o in outcomes if o.coregistration}),
+        }
+        if isinstance(run.chain, FactoryChain):
+            parts["reflectance_missing"] = [m for o in outcomes for m in o.no_reflectance]
+        thermal = [{"capture": o.name, **t} for o in outcomes for t in o.thermal]
+        if thermal:
+            parts["thermal"] = {"unit": "K", "formula": "the camera's own conversion of its thermal band (MicaSense "
+                                                        "LWIR: K = DN / 100); never mixed into reflectance",
+                                "files": thermal}
+            outputs["thermal"] = "thermal/"
+        return Done(
+            outcomes=outcomes, stores=((tmp_raw, "raw.zarr"), (tmp_refl, "reflectance.zarr")), quarantined=quarantined,
+            calibration=run.calibration, calibration_sha256=run.calibration_sha256,
+            frames_sha256={o.name: str(o.sha256) for o in outcomes},
+            fingerprint=content_fingerprint(self.fingerprint, [shas.get(c.name) or capture_digest(c) for c in listed]),
+            outputs=outputs, products=self.products.record(self.indices), export=export,
+            metadata_problems=[p.as_dict() for c in captures for p in c.problems], parts=parts,
+            flagging=None if run.chain.flagging is None else checked(run.chain.flagging, plan))
 
 
 def _relative(file: str, folder: Path) -> str:
@@ -443,15 +445,16 @@ def coregistered(camera: Camera, captures: Sequence[Capture], run: CaptureRun,
 
 
 def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[int, int, int], indices: Sequence[Index],
-           roles: dict[str, dict[str, int]], export: Sequence[int], run: CaptureRun) -> tuple[Path, Path, Plan]:
+           roles: dict[str, dict[str, int]], export: Sequence[int], run: CaptureRun,
+           products: Products) -> tuple[Path, Path, Plan]:
     """The pass's output stores under temporary names, and its plan."""
     coords = {**capture_coords(camera, captures, run.irradiance_unit), **run.extra_coords(captures)}
     factory = isinstance(run.chain, FactoryChain)
     rvars = product_variables(indices, run.reflectance_name,
-                              radiance_unit=run.radiance_unit if factory and run.products.radiance else None,
+                              radiance_unit=run.radiance_unit if factory and products.radiance else None,
                               quality=run.chain.flagging is not None)
     attrs = {"Conventions": "CF-1.10", "camera": camera.name, "mscal_version": mscal_core.__version__, **run.attrs}
-    tmp_refl, tmp_raw = _tmp(out, "reflectance.zarr"), _tmp(out, "raw.zarr")
+    tmp_refl, tmp_raw = temporary_folder_name(out / "reflectance.zarr"), temporary_folder_name(out / "raw.zarr")
     refl_ds = frame_template(coords, shape, rvars, attrs)
     create_store(refl_ds, tmp_refl, OUTPUT_COMPRESSORS)
     raw_ds = frame_template(coords, shape, {
@@ -459,7 +462,7 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
         DN_MEDIAN: (("frame", "band"), np.float64, dict(DN_MEDIAN_ATTRS)),
     }, attrs)
     create_store(raw_ds, tmp_raw, [raw_codec()])
-    for sub in ("photogrammetry", "panels", "ndvi") if run.products.tiffs else ():
+    for sub in ("photogrammetry", "panels", "ndvi") if products.tiffs else ():
         (out / sub).mkdir(exist_ok=True)
     first = captures[0].metas
     optics = band_optics(captures[0], export, run.reference_band if run.transforms is not None else None)
@@ -472,20 +475,21 @@ def _start(out: Path, camera: Camera, captures: Sequence[Capture], shape: tuple[
                     for i, b in enumerate(export)),
         tiff_dtype=run.tiff_dtype, out=out, norm=run.norm, transforms=run.transforms,
         factory_alignment=run.factory_alignment, refine=run.refine, coreg_reference=run.coreg_reference,
-        tiffs=run.products.tiffs,
+        tiffs=products.tiffs,
     )
     return tmp_refl, tmp_raw, plan
 
 
-def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Camera, options: Any,
-                         t_start: float, calib: xr.Dataset | None = None) -> ApplyResult:
+def field_captures(folder: Path, calib_path: Path, camera: Camera, options: ApplyOptions,
+                   calib: xr.Dataset | None = None) -> CaptureSource:
     """``mscal apply FLIGHT --calibration CALIB.zarr`` for a folder of one-file-per-band
-    captures: Eq. 15 with the store's U, V and S per band file (its own exposure and gain),
-    the light of each capture's time (the captures' sun-sensor levels, horizontal for a
-    store that says so: :func:`pipeline.apply.light.frame_levels`), the
-    store's band transforms, the normalisation of ``options`` (an ApplyOptions). ``calib``:
-    the store at ``calib_path`` already opened (:func:`pipeline.storage.store.open_calibration`
-    with ``need="apply"``), checked here against ``camera``; None: opened here."""
+    captures, as a source of :func:`pipeline.apply.driver.drive`: Eq. 15 with the store's U,
+    V and S per band file (its own exposure and gain), the light of each capture's time (the
+    captures' sun-sensor levels, horizontal for a store that says so:
+    :func:`pipeline.apply.light.frame_levels`), the store's band transforms, the
+    normalisation of ``options``. ``calib``: the store at ``calib_path`` already opened
+    (:func:`pipeline.storage.store.open_calibration` with ``need="apply"``), checked here
+    against ``camera``; None: opened here."""
     if calib is None:
         calib = open_calibration(calib_path, camera, need="apply")
     else:
@@ -510,7 +514,6 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     chash = calibration_hash(calib)
     export = export_band_indices(camera, options.export_bands)
     indices = indices_for(camera, options.products)
-    roles = {ix.name: index_roles(camera, ix) for ix in indices}
     align, band_shift, reference = pass_geometry(calib, camera, options)
     if align:
         check_transforms(calib, camera.n_bands, v_shape, calib_path)
@@ -519,6 +522,11 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
     illum = illumination_plan(calib, names, capture_times(captures), folder, options.illumination, captures=captures)
     scales = {} if illum is None else {n: tuple(float(v) for v in illum.scale[f]) for f, n in enumerate(names)}
     transforms = calib_path if align else None
+    fingerprint = {**run_fingerprint([], chash, options, illum), "layout": "captures",
+                   "metadata_reading": METADATA_READING, "coregistration": COREGISTRATION_CHECK}
+    attrs = {"calibration_sha256": chash, "source": str(folder), "calibration": str(calib_path)}
+    if align:
+        attrs["aligned_to_band"] = reference
 
     def panel_reflectance(f: int) -> np.ndarray:
         c = captures[f]
@@ -527,18 +535,6 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
             return capture_reflectance(camera, chain, job, transforms, band_shift)
         except FrameError as exc:
             raise InputError(f"--panel capture {c.name} cannot be used: {exc.reason}", path=exc.path) from None
-
-    norm = normalisation(options, camera, names, panel_reflectance)
-    fingerprint = {**run_fingerprint([], chash, options, illum), "layout": "captures",
-                   "metadata_reading": METADATA_READING, "coregistration": COREGISTRATION_CHECK}
-    fingerprint.pop("frames_sha256")  # the captures' content: unchanged_run, apply_captures
-    out.mkdir(parents=True, exist_ok=True)
-    previous = unchanged_run(out, captures, fingerprint)
-    if previous is not None:
-        return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
-    attrs = {"calibration_sha256": chash, "source": str(folder), "calibration": str(calib_path)}
-    if align:
-        attrs["aligned_to_band"] = reference
 
     def extra_coords(caps: Sequence[Capture]) -> dict[str, Any]:
         if illum is None:
@@ -550,16 +546,17 @@ def apply_field_captures(folder: Path, calib_path: Path, out: Path, camera: Came
                                        {"long_name": "factor on Eq. 15 reflectance: S / S(lambda, time)"})}
 
     def record(caps: Sequence[Capture]) -> dict[str, Any]:
-        if illum is None:
-            return {"illumination": {"varies_in_time": False, "captures": int(calib.sizes.get("capture", 1))}}
-        return {"illumination": {"varies_in_time": True, **illum.summary([c.name for c in caps])}}
+        return {"illumination": illumination_record(illum, calib, [c.name for c in caps])}
 
-    run = CaptureRun(
-        chain=chain, calibration=str(calib_path), calibration_sha256=chash, fingerprint=fingerprint, attrs=attrs,
-        reflectance_name="reflectance (Eq. 15)", tiff_dtype=options.tiff_dtype, norm=norm, transforms=transforms,
-        scale=lambda name: scales.get(name), extra_coords=extra_coords, record=record, execution=options.execution,
-        panels={options.panel.frame: "--panel names it"} if options.panel is not None else {},
-        reference_band=camera.band_names.index(reference) if align and reference in camera.band_names else None,
-        products=options.products,
-    )
-    return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)
+    def make_run() -> CaptureRun:
+        return CaptureRun(
+            chain=chain, calibration=str(calib_path), calibration_sha256=chash, attrs=attrs,
+            reflectance_name="reflectance (Eq. 15)", tiff_dtype=options.tiff_dtype,
+            norm=normalisation(options, camera, names, panel_reflectance), transforms=transforms,
+            scale=lambda name: scales.get(name), extra_coords=extra_coords, record=record,
+            panels={options.panel.frame: "--panel names it"} if options.panel is not None else {},
+            reference_band=camera.band_names.index(reference) if align and reference in camera.band_names else None,
+        )
+
+    return CaptureSource(folder, camera, found, shape, indices, export, fingerprint, make_run,
+                         options.products, options.execution, calib)

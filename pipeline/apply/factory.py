@@ -84,6 +84,7 @@ import hashlib
 import json
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -93,11 +94,12 @@ from mscal_core.errors import CalibrationStoreError, FrameError, InputError
 from mscal_core.illumination import INTERPOLATION_MODES, fit_illumination
 from mscal_core.panel import sample_quad
 
-from pipeline.apply.captures import CaptureRun, apply_captures, capture_times, find_captures, unchanged_run
+from pipeline.apply.captures import CaptureRun, CaptureSource, capture_times, find_captures
 from pipeline.apply.coregistration import COREGISTRATION_CHECK
+from pipeline.apply.driver import drive
 from pipeline.apply.execution import Execution, flight_size_hint, start_worker_server
 from pipeline.apply.executor import FactoryChain, field_parts
-from pipeline.apply.options import ApplyResult, export_band_indices, index_roles
+from pipeline.apply.options import ApplyResult, export_band_indices
 from pipeline.apply.panel import PanelBand, panel_factors
 from pipeline.apply.panel_search import (
     PANEL_SCAN_ALL,
@@ -421,7 +423,8 @@ def _field(options: FactoryOptions, camera: Camera, shape: tuple[int, int, int]
 
 def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOptions = FactoryOptions()) -> ApplyResult:
     """``mscal apply CAPTURE_DIR --calibration factory -o OUT`` (see the module docstring):
-    the factory chain through the one executor (:func:`pipeline.apply.captures.apply_captures`)."""
+    the factory chain on the folder's captures (:class:`pipeline.apply.captures.CaptureSource`)
+    through the one apply driver (:func:`pipeline.apply.driver.drive`)."""
     t_start = time.perf_counter()
     folder, out = Path(capture_dir), Path(out)
     if not folder.is_dir():
@@ -445,7 +448,6 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                          f"reading; here: {no_sun[1]}", path=no_sun[0], hint=NO_SUN_SENSOR_HINT)
     export = export_band_indices(camera, options.export_bands)
     indices = indices_for(camera, options.products)  # NDVI if the bands make it; the others asked for
-    roles = {ix.name: index_roles(camera, ix) for ix in indices}
 
     registration = _registration(options, camera, shape)
     field = _field(options, camera, shape)
@@ -468,10 +470,19 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     wanted = serial_wanted(options, captures)
     if wanted:  # the serial is read from the inputs; what its target says is in the catalog
         fingerprint["panel_serial_targets"] = serial_targets_digest()
-    previous = unchanged_run(out, captures, fingerprint)  # by the captures' content
-    if previous is not None:  # before the panels are searched: an up-to-date run reads no pixels
-        return ApplyResult(out, previous, up_to_date=True, quarantined=previous.get("quarantined", []))
 
+    make_run = partial(_factory_run, options, folder, camera, captures, ident, field, near, parts, wanted, no_sun)
+    return drive(CaptureSource(folder, camera, found, shape, indices, export, fingerprint, make_run,
+                               options.products, options.execution), out, t_start)
+
+
+def _factory_run(options: FactoryOptions, folder: Path, camera: Camera, captures: Sequence[Capture],
+                 ident: Identification, field: tuple[str, tuple[str, ...], str] | None,
+                 near: tuple[PanelConfig, Path] | None, parts: Sequence[FieldParts | None] | None, wanted: bool,
+                 no_sun: tuple[Path, str] | None) -> CaptureRun:
+    """The factory chain of a run that is not up to date: the light reference (the panel's
+    serial when ``wanted``, the panels, the sun sensor and its check against the clear sky),
+    each capture's factors, the stores' attributes and run.json's factory keys."""
     serial = find_panel_serial(captures, options.panel_captures) if wanted else None
     reference, panels, rho_source, unusable = _reference_panels(
         options, _route(options, captures, serial), captures, folder, parts, None if near is None else near[0], serial)
@@ -518,12 +529,11 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
     panel_names = {p.capture: f"reflectance panel of the panel route ({used})" for p in panels}
     panel_names.update({name: "a reflectance panel (camera's panel flag, --panel, or detected); not used: "
                               "no --panel-reflectance" for name in unused})
-    run = CaptureRun(
+    return CaptureRun(
         chain=FactoryChain(camera_clip_dn(camera), "panel" if reference == "panel-dls" else reference, panel_factor,
                            None if field is None else field[:2], run_flagging(options.products)),
-        calibration=FACTORY, calibration_sha256=None, fingerprint=fingerprint, attrs=attrs,
+        calibration=FACTORY, calibration_sha256=None, attrs=attrs,
         reflectance_name=f"reflectance (factory radiance x {reference} factor)", tiff_dtype=options.tiff_dtype,
-        execution=options.execution,
         transforms=None if options.registration is None else Path(options.registration), factory_alignment=own,
         radiance_unit=first.radiance_unit, irradiance_unit=first.irradiance_unit,
         record=lambda caps: {"components": _components_record(field),
@@ -541,9 +551,8 @@ def apply_factory(capture_dir: str | Path, out: str | Path, options: FactoryOpti
                              **light_record(reference, panels, captures, sensor, light, camera,
                                           options.illumination or DEFAULT_LIGHT_MODE, times, check)},
         scale=lambda name: scales.get(name),
-        panels=panel_names, reference_band=_reference_band(options.registration, camera), products=options.products,
+        panels=panel_names, reference_band=_reference_band(options.registration, camera),
     )
-    return apply_captures(folder, out, camera, found, shape, run, indices, roles, export, t_start)
 
 
 def _reference_band(registration: str | None, camera: Camera) -> int | None:

@@ -13,13 +13,17 @@
    reflectance.zarr is renamed into place;
 4. write ``OUT/run.json`` last. Every output is written under a temporary name and renamed;
    a run that finds ``run.json`` matching its inputs, calibration and options does nothing.
+
+Steps 1 and 2 are :class:`SnapshotFlight`'s, a source of the one apply driver
+(:func:`pipeline.apply.driver.drive`), which runs the pass and does step 4 as for every camera.
 """
 from __future__ import annotations
 
 import logging
 import shutil
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -29,6 +33,8 @@ import xarray as xr
 from mscal_core.errors import FrameError, InputError
 from mscal_core.reflectance import eq15_fast
 
+from pipeline.apply.captures import field_captures
+from pipeline.apply.driver import Done, drive
 from pipeline.apply.execution import flight_size_hint, start_worker_server
 from pipeline.apply.executor import (
     OUTPUT_COMPRESSORS,
@@ -50,16 +56,8 @@ from pipeline.apply.options import (
     normalisation,
     pass_geometry,
 )
-from pipeline.apply.products import remove_unchosen
 from pipeline.apply.quality import Flagging, checked, run_flagging
-from pipeline.apply.record import (
-    forget_run,
-    previous_run,
-    remove_frame_tiffs,
-    run_fingerprint,
-    run_record,
-    write_run_record,
-)
+from pipeline.apply.record import illumination_record, remove_frame_tiffs, run_fingerprint, up_to_date
 from pipeline.apply.stores import calibration_tables, geometry_step, read_frame_chunk
 from pipeline.apply.template import create_store, frame_template, product_variables
 from pipeline.calibrate.registration import check_transforms
@@ -78,11 +76,7 @@ from pipeline.ingest.raw import (
     read_frame,
 )
 from pipeline.products.writers import BandTags, FrameTags
-from pipeline.storage.atomic import (
-    install_folder,
-    remove_temporaries,
-    temporary_folder_name,
-)
+from pipeline.storage.atomic import temporary_folder_name
 from pipeline.storage.store import FLIGHT_VARIABLES, FRAME_COORD_ATTRS, check_camera, open_calibration
 
 log = logging.getLogger(__name__)
@@ -314,19 +308,13 @@ def _cube_pass(out: Path, runner: Runner, start: Callable[..., _Pass], calib_pat
     return ps, runner.run(ps.plan, jobs)
 
 
-def _illumination_record(ps: _Pass, calib: xr.Dataset, options: ApplyOptions) -> dict[str, Any]:
-    """run.json's ``illumination``: the mode and each frame's factors when the light varies
-    in time, else that the store's S was used for every frame."""
-    if ps.illum is None:
-        n = calib.sizes.get("capture", 1)
-        return {"varies_in_time": False, "captures": int(n)}
-    return {"varies_in_time": True, **ps.illum.summary([str(f) for f in ps.coords["frame"].values])}
-
-
 def apply_flight(
     flight_dir: str | Path, calibration: str | Path, out: str | Path, options: ApplyOptions = ApplyOptions()
 ) -> ApplyResult:
-    """``mscal apply FLIGHT_DIR --calibration CALIB.zarr -o OUT``.
+    """``mscal apply FLIGHT_DIR --calibration CALIB.zarr -o OUT``: the one driver
+    (:func:`pipeline.apply.driver.drive`) over the flight's snapshot frames
+    (:class:`SnapshotFlight`), or over its captures for a one-file-per-band camera
+    (:func:`pipeline.apply.captures.field_captures`).
 
     A flight whose ``OUT/raw.zarr`` holds no frames yet is ingested and calibrated in one pass
     over its files (each read once); otherwise new frames are ingested first and the pass
@@ -347,96 +335,110 @@ def apply_flight(
     calib = open_calibration(calib_path, need="apply")
     camera = load_camera(str(calib.attrs.get("camera")))
     if camera.layout.kind == "file_per_band":  # one file per band: a capture is several files
-        from pipeline.apply.captures import apply_field_captures
+        return drive(field_captures(flight_dir, calib_path, camera, options, calib), out, t_start)
+    return drive(SnapshotFlight(flight_dir, calib_path, calib, camera, options), out, t_start)
 
-        return replace(apply_field_captures(flight_dir, calib_path, out, camera, options, t_start, calib),
-                       calibration=calib)
-    check_camera(calib, camera, calib_path)  # the store opened once (0.1 s a load)
-    chash = calibration_hash(calib)
-    export = export_band_indices(camera, options.export_bands)
-    indices = indices_for(camera, options.products)
-    roles = {ix.name: index_roles(camera, ix) for ix in indices}
-    sat = calibration_clip_dn(calib, camera)
-    geometry = pass_geometry(calib, camera, options)
-    out.mkdir(parents=True, exist_ok=True)
-    remove_temporaries(out)
-    raw_path = out / "raw.zarr"
 
-    def start(coords: xr.Dataset, frame_dn: Callable[[int], np.ndarray]) -> _Pass:
+class SnapshotFlight:
+    """A flight of snapshot frames (one file a frame), ingested into ``OUT/raw.zarr`` and
+    applied with a field calibration store: a source of :func:`pipeline.apply.driver.drive`."""
+
+    def __init__(self, flight_dir: Path, calib_path: Path, calib: xr.Dataset, camera: Camera,
+                 options: ApplyOptions) -> None:
+        check_camera(calib, camera, calib_path)  # the store opened once (0.1 s a load)
+        self.folder, self.calib_path, self.calib, self.camera, self.options = (
+            flight_dir, calib_path, calib, camera, options)
+        self.products, self.execution = options.products, options.execution
+        self.chash = calibration_hash(calib)
+        self.export = export_band_indices(camera, options.export_bands)
+        self.indices = indices_for(camera, options.products)
+        self.roles = {ix.name: index_roles(camera, ix) for ix in self.indices}
+        self.sat = calibration_clip_dn(calib, camera)
+        self.geometry = pass_geometry(calib, camera, options)
+        self.cube: Cube | None = None
+        self.fresh = False
+        self.quarantined: list[dict[str, str]] = []
+
+    def up_to_date(self, out: Path) -> dict[str, Any] | None:
+        """A flight whose raw.zarr holds no frame yet is never up to date; otherwise the new
+        frames are ingested and the frames' content hashes decide."""
+        self.cube = cube = open_cube(self.folder, self.camera, out / "raw.zarr")
+        self.fresh = cube.group is not None and cube.committed == 0 and len(cube.found.frames) > 0
+        self.quarantined = list(cube.found.quarantined)
+        if self.fresh:
+            return None
+        shas, illum = self._ingest(out, cube)
+        previous = up_to_date(out, run_fingerprint([], self.chash, self.options, illum), shas)
+        if previous is not None:
+            previous["quarantined"] = self.quarantined
+        return previous
+
+    def _ingest(self, out: Path, cube: Cube | None) -> tuple[list[str], IlluminationPlan | None]:
+        """Ingest what is new into raw.zarr: the frames' content hashes and light."""
+        raw_path = out / "raw.zarr"
+        ing = ingest_flight(self.folder, self.camera, raw_path, cube=cube)
+        self.quarantined = list(ing.quarantined)
+        raw = xr.open_zarr(raw_path)
+        shas = [str(s) for s in raw["sha256"].values]
+        if not shas:
+            raise FrameError("no usable frames in the flight (all quarantined)", path=self.folder,
+                             hint="; ".join(f"{q['file']}: {q['reason']}" for q in self.quarantined[:3]))
+        illum = illumination_plan(self.calib, [str(f) for f in raw["frame"].values], raw["time"].values,
+                                  self.folder, self.options.illumination)
+        return shas, illum
+
+    def prepare(self, out: Path) -> tuple[int, Path | None]:
+        assert self.cube is not None
+        return len(self.cube.found.frames), self.calib_path
+
+    def _start(self, out: Path, coords: xr.Dataset, frame_dn: Callable[[int], np.ndarray]) -> _Pass:
+        raw_path = out / "raw.zarr"
         shape = tuple(xr.open_zarr(raw_path)["dn"].shape[1:])
-        v_shape = calib["vignetting"].shape[1:]
+        v_shape = self.calib["vignetting"].shape[1:]
         if tuple(v_shape) != shape[1:]:
             raise InputError(
                 f"calibration vignetting is {v_shape[1]}x{v_shape[0]} but frames are {shape[2]}x{shape[1]}",
                 hint="use a calibration of this camera",
             )
-        if geometry[0]:
-            check_transforms(calib, shape[0], shape[1:], calib_path)
-        return _start_pass(out, flight_dir, coords, shape, camera, calib_path, raw_path / "dn", indices,
-                           roles, export, options, chash, sat, frame_dn, calib, geometry)
+        if self.geometry[0]:
+            check_transforms(self.calib, shape[0], shape[1:], self.calib_path)
+        return _start_pass(out, self.folder, coords, shape, self.camera, self.calib_path, raw_path / "dn",
+                           self.indices, self.roles, self.export, self.options, self.chash, self.sat, frame_dn,
+                           self.calib, self.geometry)
 
-    t0 = time.perf_counter()
-    cube = open_cube(flight_dir, camera, raw_path)
-    n_hint = len(cube.found.frames)
-    fresh = cube.group is not None and cube.committed == 0 and n_hint > 0
-    quarantined = list(cube.found.quarantined)
-    done: tuple[_Pass, list[Outcome]] | None = None
-    with Runner(n_hint, options.execution, calibration=calib_path) as runner:
-        if fresh:
-            forget_run(out)
-            remove_unchosen(out, options.products)
+    def run_pass(self, out: Path, runner: Runner) -> Done:
+        """The single pass over the files for a fresh flight (:func:`_fresh_pass`), else (or
+        when a frame cannot be used in it) the general way: ingest, then a pass over raw.zarr."""
+        cube = self.cube
+        assert cube is not None
+        done: tuple[_Pass, list[Outcome]] | None = None
+        start = partial(self._start, out)
+        if self.fresh:
             try:
-                done = _fresh_pass(cube, runner, start, calib_path, sat, batch=FRESH_BATCH)
+                done = _fresh_pass(cube, runner, start, self.calib_path, self.sat, batch=FRESH_BATCH)
             finally:
                 cube.release()
         single = done is not None
-        if done is None:  # the general way: ingest what is new, then a pass over the cube
-            ing = ingest_flight(flight_dir, camera, raw_path, cube=None if fresh else cube)
-            quarantined = list(ing.quarantined)
-            raw = xr.open_zarr(raw_path)
-            shas = [str(s) for s in raw["sha256"].values]
-            if not shas:
-                raise FrameError("no usable frames in the flight (all quarantined)", path=flight_dir,
-                                 hint="; ".join(f"{q['file']}: {q['reason']}" for q in quarantined[:3]))
-            illum = illumination_plan(calib, [str(f) for f in raw["frame"].values], raw["time"].values,
-                                      flight_dir, options.illumination)
-            fingerprint = run_fingerprint(shas, chash, options, illum)
-            previous = previous_run(out, fingerprint)
-            if previous is not None:
-                previous["quarantined"] = quarantined
-                return ApplyResult(out, previous, up_to_date=True, quarantined=quarantined, calibration=calib)
-            forget_run(out)
-            remove_unchosen(out, options.products)
-            remove_frame_tiffs(out, [Path(q["file"]).stem for q in quarantined], camera, export)
-            done = _cube_pass(out, runner, start, calib_path, sat, camera)
+        if done is None:
+            if self.fresh:  # a frame the single pass could not use: the general way
+                self._ingest(out, None)
+            remove_frame_tiffs(out, [Path(q["file"]).stem for q in self.quarantined], self.camera, self.export)
+            done = _cube_pass(out, runner, start, self.calib_path, self.sat, self.camera)
         else:
-            quarantined = sorted(quarantined, key=lambda q: q["file"])
-    ps, outcomes = done
-    t_pass = time.perf_counter() - t0
-    install_folder(ps.tmp_store, out / "reflectance.zarr")
-    run = _run_record(flight_dir, calib_path, chash, calib, camera, export, options, ps, outcomes, quarantined, runner,
-                      single, t_pass, t_start, cube.found.metadata_problems)
-    write_run_record(out, run)  # last: a run.json names a finished pass
-    return ApplyResult(out, run, up_to_date=False, quarantined=quarantined, calibration=calib)
-
-
-def _run_record(flight_dir: Path, calib_path: Path, chash: str, calib: xr.Dataset, camera: Camera,
-                export: Sequence[int], options: ApplyOptions, ps: "_Pass", outcomes: Sequence[Outcome],
-                quarantined: list[dict[str, str]], runner: Runner, single: bool, t_pass: float, t_start: float,
-                problems: Sequence[dict[str, Any]] = ()) -> dict[str, Any]:
-    """The flight's ``run.json`` after a pass (:func:`pipeline.apply.record.run_record`);
-    ``problems``: the frames' metadata problems (:class:`pipeline.ingest.discover.Discovery`)."""
-    frames = [o.name for o in outcomes]
-    shas = [str(s) for s in ps.coords["sha256"].values]  # the pass's frames, in cube order
-    names = [str(f) for f in ps.coords["frame"].values]
-    return run_record(
-        flight=flight_dir, camera=camera, calibration=str(calib_path), calibration_sha256=chash, outcomes=outcomes,
-        frames_sha256=dict(zip(names, shas)), quarantined=quarantined,
-        metadata_problems=[p for p in problems if Path(str(p["file"])).stem in frames],
-        outputs={"reflectance": "reflectance.zarr",
-                 **({"photogrammetry": "photogrammetry/", "ndvi": "ndvi/"} if options.products.tiffs else {})},
-        products=options.products.record(ps.plan.indices_made()), export=export, runner=runner,
-        t_pass=t_pass, t_start=t_start, fingerprint=run_fingerprint(shas, chash, options, ps.illum),
-        flagging=None if ps.plan.chain.flagging is None else checked(ps.plan.chain.flagging, ps.plan),
-        parts={"illumination": _illumination_record(ps, calib, options), "snapshot": {"single_pass": single}},
-    )
+            self.quarantined = sorted(self.quarantined, key=lambda q: q["file"])
+        ps, outcomes = done
+        frames = [o.name for o in outcomes]
+        shas = [str(s) for s in ps.coords["sha256"].values]  # the pass's frames, in cube order
+        names = [str(f) for f in ps.coords["frame"].values]
+        flagging = ps.plan.chain.flagging
+        return Done(
+            outcomes=outcomes, stores=((ps.tmp_store, "reflectance.zarr"),), quarantined=self.quarantined,
+            calibration=str(self.calib_path), calibration_sha256=self.chash, frames_sha256=dict(zip(names, shas)),
+            fingerprint=run_fingerprint(shas, self.chash, self.options, ps.illum),
+            outputs={"reflectance": "reflectance.zarr",
+                     **({"photogrammetry": "photogrammetry/", "ndvi": "ndvi/"} if self.products.tiffs else {})},
+            products=self.products.record(ps.plan.indices_made()), export=self.export,
+            metadata_problems=[p for p in cube.found.metadata_problems if Path(str(p["file"])).stem in frames],
+            parts={"illumination": illumination_record(ps.illum, self.calib, names), "snapshot": {"single_pass": single}},
+            flagging=None if flagging is None else checked(flagging, ps.plan),
+        )

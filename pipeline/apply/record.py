@@ -34,9 +34,10 @@ MANIFEST_KEY = "outputs_manifest"
 
 
 def run_fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
-                 illum: IlluminationPlan | None = None) -> dict[str, Any]:
+                    illum: IlluminationPlan | None = None) -> dict[str, Any]:
+    """The fingerprint of a run with a field calibration store: the frames' content
+    (``shas``), the store's hash, the options, the code, and the light when it varies in time."""
     fingerprint = {
-        "frames_sha256": frames_digest(shas),
         "calibration_sha256": chash,
         "options": options.fingerprint(),
         "mscal_version": mscal_core.__version__,
@@ -44,7 +45,24 @@ def run_fingerprint(shas: Sequence[str], chash: str, options: ApplyOptions,
     }
     if illum is not None:  # light that varies in time: the mode and the factors (readings) count
         fingerprint["illumination"] = {"mode": illum.mode, "scale_sha256": illum.digest()}
-    return json.loads(json.dumps(fingerprint))  # as it reads back from run.json
+    return content_fingerprint(fingerprint, shas)
+
+
+def content_fingerprint(base: dict[str, Any], shas: Sequence[str]) -> dict[str, Any]:
+    """run.json ``fingerprint`` of every apply: ``frames_sha256``, the digest of the frames'
+    content hashes in frame order (:func:`frames_digest`: a snapshot frame's file, a capture's
+    band files in band order), then ``base``, everything else the outputs depend on; as it
+    reads back from run.json."""
+    rest = {k: v for k, v in base.items() if k != "frames_sha256"}
+    return json.loads(json.dumps({"frames_sha256": frames_digest(shas), **rest}))
+
+
+def up_to_date(out: Path, base: dict[str, Any], shas: Sequence[str], stores: Sequence[str] = ("reflectance.zarr",)
+               ) -> dict[str, Any] | None:
+    """The one up-to-date rule of apply: the previous run's record when its fingerprint is
+    this run's (:func:`content_fingerprint`: the frames' content, not their names or times)
+    and its outputs are whole (:func:`previous_run`); else None."""
+    return previous_run(out, content_fingerprint(base, shas), stores)
 
 
 def previous_run(out: Path, fingerprint: dict[str, Any], stores: Sequence[str] = ("reflectance.zarr",)
@@ -114,6 +132,15 @@ def remove_frame_tiffs(out: Path, names: Sequence[str], camera: Camera, export: 
                 band_tiff_path(out, name, band, panel).unlink(missing_ok=True)
             (out / "photogrammetry" / f"{name}_{band}.tif").unlink(missing_ok=True)
         (out / "ndvi" / f"{name}.tif").unlink(missing_ok=True)
+
+
+def illumination_record(illum: IlluminationPlan | None, calib: xr.Dataset, frames: Sequence[str]) -> dict[str, Any]:
+    """run.json ``illumination`` of a run with a field calibration store: the mode and each
+    frame's factors when the light varies in time, else that the store's S was used for every
+    frame (and how many captures the store's S was fitted on)."""
+    if illum is None:
+        return {"varies_in_time": False, "captures": int(calib.sizes.get("capture", 1))}
+    return {"varies_in_time": True, **illum.summary(list(frames))}
 
 
 def frames_digest(shas: Sequence[str]) -> str:
