@@ -16,6 +16,8 @@ References
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -264,11 +266,34 @@ def keep_valid(values: np.ndarray, valid_range: tuple[float, float] | None = Non
         The dtype and shape of ``values``.
     """
     out = np.asarray(values)
-    bad = ~np.isfinite(out)
-    if valid_range is not None:
+    if valid_range is None:
+        keep = np.isfinite(out)
+    else:  # lo <= v <= hi is false for NaN, and for +-inf within finite bounds: 3 passes, not 6
         lo, hi = valid_range
-        bad |= (out < lo) | (out > hi)
-    return np.where(bad, np.nan, out).astype(out.dtype, copy=False)
+        keep = out >= lo
+        keep &= out <= hi
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            keep &= np.isfinite(out)
+    return _nan_where_not(out, keep)
+
+
+def _nan_where_not(values: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Return ``np.where(keep, values, nan)`` in the dtype of ``values``, byte for byte.
+
+    NaN is the dtype's own ``nan``. For float32 / float64 by bit masks (keep the bits, or put NaN's): numpy's ``where`` with a
+    scalar is no SIMD loop, 1.4 against 0.5 ms for a 1280x960 float32 band.
+    """
+    dt = values.dtype
+    if values.ndim == 0 or dt.kind != "f" or dt.itemsize not in (4, 8) or not dt.isnative:
+        return np.where(keep, values, np.nan).astype(dt, copy=False)
+    bits = np.dtype(f"u{dt.itemsize}")
+    mask = keep.astype(bits)
+    np.negative(mask, out=mask)  # every bit set where kept
+    out = np.bitwise_and(values.view(bits), mask)
+    np.invert(mask, out=mask)
+    mask &= np.array(np.nan, dt).view(bits)
+    out |= mask
+    return out.view(dt)
 
 
 def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
