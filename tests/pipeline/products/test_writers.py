@@ -260,7 +260,7 @@ def test_encode_uint16_equals_the_numpy_steps_on_ties_edges_and_nan_payloads() -
     edges = np.array([65533.5, 65534.0, 65534.49, 65534.5, 65535.0, 65536.0, 1e30, -0.5, -0.49, -1e30],
                      np.float32) / np.float32(32768)
     odd_nans = np.array([0x7FC00000, 0xFFC00000, 0x7F800001, 0xFFFFFFFF], np.uint32).view(np.float32)
-    r = np.concatenate([ties, edges, odd_nans, [np.inf, -np.inf, -0.0, 0.0]]).astype(np.float32)  # even length
+    r = np.concatenate([ties, edges, odd_nans, np.array([np.inf, -np.inf, -0.0, 0.0], np.float32)])  # even length
     got = encode_reflectance_uint16(r.reshape(2, -1))
     np.testing.assert_array_equal(got.ravel(), _encode_by_steps(r))
     assert got[0, :4].tolist() == [0, 2, 2, 4]  # 0.5 -> 0, 1.5 -> 2, 2.5 -> 2, 3.5 -> 4
