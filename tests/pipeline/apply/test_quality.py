@@ -241,6 +241,37 @@ def test_finish_counted_is_finish_then_counts(share) -> None:
                                                                            False).tobytes()
 
 
+def test_sensor_flags_is_frame_flags(monkeypatch) -> None:
+    """The pixel table's flagged positions found once: the same mask as frame_flags, band by
+    band, whether a band's NaN pixels are exactly the pixel table's or not (a saturated pixel,
+    a flagged DN elsewhere), and with flagged values kept."""
+    import pipeline.apply.quality as quality
+    from mscal_core.quality import frame_flags, mask_tables
+    from mscal_core.reflectance import eq15_fast, eq15_tables
+
+    rng = np.random.default_rng(7)
+    n, h, w, n_dn = 4, 20, 30, 256
+    dn_flags = np.zeros((n, n_dn), np.uint8)
+    dn_flags[:, 250:] = FLAGS["response_shoulder"]
+    pixel = np.zeros((n, h, w), np.uint8)
+    pixel[:, :3, :] = FLAGS["vignetting_unobserved"]
+    pixel[2] = 0  # a band without flagged pixels
+    lut, inv_v = eq15_tables(np.tile(np.linspace(0, 1, n_dn), (n, 1)), np.ones((n, h, w)), np.ones(n))
+    lut, inv_v = mask_tables(lut, inv_v, dn_flags, pixel)
+    monkeypatch.setattr(quality, "quality_tables", lambda *a: (dn_flags, pixel, ()))
+    dn = rng.integers(0, 240, (n, h, w)).astype(np.uint16)
+    dn[1, 10, 10] = 252  # a flagged DN outside the pixel table's pixels: band 1 the general way
+    dn[3, 0, 0] = 255  # a flagged DN on a flagged pixel: both bits
+    refl = eq15_fast(dn[None], lut, inv_v, 1.0, n_dn)[0]
+    got = quality.sensor_flags(Flagging(), Path("calib"), n_dn, dn, refl)
+    want = frame_flags(dn, dn_flags, pixel, reflectance=refl)
+    assert got.tobytes() == want.tobytes()
+    assert got[3, 0, 0] == FLAGS["response_shoulder"] | FLAGS["vignetting_unobserved"] and got[1, 10, 10] == 2
+    assert np.count_nonzero(got[2]) == 0 and np.count_nonzero(got[0]) == 3 * w
+    kept = quality.sensor_flags(Flagging(keep_flagged=True), Path("calib"), n_dn, dn, refl)
+    assert kept.tobytes() == frame_flags(dn, dn_flags, pixel).tobytes()
+
+
 def test_the_mask_moves_with_the_bands(tmp_path) -> None:
     """--centre-bands: each bit goes where the band's pixels go, flagged where a flagged pixel
     contributes (as NaN spreads through the resampling)."""
