@@ -362,8 +362,12 @@ def vegetation_mask(ndvi: np.ndarray) -> np.ndarray:
            Systems, Man, and Cybernetics 9(1), 1979.
     """
     ok = np.isfinite(ndvi)
+    n_ok = np.count_nonzero(ok)
+    if n_ok == ok.size and n_ok >= 2:  # every pixel defined: no gather into, nor scatter out of, a copy
+        scaled = _ndvi_levels(np.asarray(ndvi))
+        return (scaled > _otsu_level(scaled)).view(np.uint8)
     out = np.full(ndvi.shape, 255, dtype=np.uint8)
-    if ok.sum() < 2:
+    if n_ok < 2:
         return out
     scaled = _ndvi_levels(ndvi[ok])
     out[ok] = (scaled > _otsu_level(scaled)).astype(np.uint8)
