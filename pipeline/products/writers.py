@@ -75,7 +75,6 @@ from datetime import datetime
 from pathlib import Path
 from xml.sax.saxutils import escape, quoteattr
 
-import cv2
 import mscal_core
 import numpy as np
 from mscal_core.errors import CatalogError
@@ -161,24 +160,15 @@ def encode_reflectance_uint16(reflectance: np.ndarray) -> np.ndarray:
     """``round(R * 32768)`` clipped to 0 .. 65534, NaN -> 65535 (:data:`NODATA_UINT16`).
 
     In float32 throughout: scaling by a power of two and rounding to an integer are exact in
-    float32 for every value the clip keeps, so this equals the float64 computation. Three
-    passes: the top clip in reflectance (``65534 / 32768``, exact; NaN stays NaN), NaN patched
-    to ``65535 / 32768`` in place, then OpenCV's scale, round half to even and saturating cast
-    to uint16 in one (below 0: 0). Checked equal, on every float32 bit pattern, to the
-    numpy steps it replaces (scale, ``rint``, clip, cast, NaN set after), 1.7 -> 1.2 ms of CPU
-    on a 1280x960 band."""
+    float32 for every value the clip keeps, so this equals the float64 computation."""
     r = np.asarray(reflectance, dtype=np.float32)
-    if r.size == 0:
-        return np.zeros(r.shape, np.uint16)
-    v = np.minimum(r, _TOP_VALID).reshape(1, -1)  # a new contiguous array: the caller's is untouched
-    cv2.patchNaNs(v, float(_NODATA_VALUE))  # (one row: a Mat whatever the input's shape)
-    return cv2.multiply(v, REFLECTANCE_SCALE, dtype=cv2.CV_16U).reshape(r.shape)
-
-
-#: The reflectances that encode to 65534 (the top of valid data) and to :data:`NODATA_UINT16`,
-#: both exact in float32.
-_TOP_VALID = np.float32((NODATA_UINT16 - 1) / REFLECTANCE_SCALE)
-_NODATA_VALUE = np.float32(NODATA_UINT16 / REFLECTANCE_SCALE)
+    v = r * np.float32(REFLECTANCE_SCALE)
+    np.rint(v, out=v)
+    np.clip(v, 0.0, float(NODATA_UINT16 - 1), out=v)  # NaN stays NaN
+    with np.errstate(invalid="ignore"):
+        out = v.astype(np.uint16)
+    out[np.isnan(v)] = NODATA_UINT16
+    return out
 
 
 # --------------------------------------------------------------------------- TIFF writing
