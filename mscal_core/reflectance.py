@@ -280,8 +280,9 @@ def keep_valid(values: np.ndarray, valid_range: tuple[float, float] | None = Non
 def _nan_where_not(values: np.ndarray, keep: np.ndarray) -> np.ndarray:
     """Return ``np.where(keep, values, nan)`` in the dtype of ``values``, byte for byte.
 
-    NaN is the dtype's own ``nan``. For float32 / float64 by bit masks (keep the bits, or put NaN's): numpy's ``where`` with a
-    scalar is no SIMD loop, 1.4 against 0.5 ms for a 1280x960 float32 band.
+    NaN is the dtype's own ``nan``. For float32 / float64 by bit masks (keep the bits, or put
+    NaN's) instead of numpy's ``where`` with a scalar: :func:`keep_valid` of a 1280x960 float32
+    NDVI 0.88 -> 0.63 ms of CPU (1.31 -> 0.63 with 5 % of it NaN).
     """
     dt = values.dtype
     if values.ndim == 0 or dt.kind != "f" or dt.itemsize not in (4, 8) or not dt.isnative:
@@ -363,14 +364,16 @@ def vegetation_mask(ndvi: np.ndarray) -> np.ndarray:
     """
     ok = np.isfinite(ndvi)
     n_ok = np.count_nonzero(ok)
-    if n_ok == ok.size and n_ok >= 2:  # every pixel defined: no gather into, nor scatter out of, a copy
-        scaled = _ndvi_levels(np.asarray(ndvi))
-        return (scaled > _otsu_level(scaled)).view(np.uint8)
-    out = np.full(ndvi.shape, 255, dtype=np.uint8)
     if n_ok < 2:
-        return out
-    scaled = _ndvi_levels(ndvi[ok])
-    out[ok] = (scaled > _otsu_level(scaled)).astype(np.uint8)
+        return np.full(np.shape(ndvi), 255, dtype=np.uint8)
+    # the levels of every pixel (an undefined one's is overwritten below): the defined pixels
+    # are gathered only as levels, for Otsu, and nothing is scattered back
+    with np.errstate(invalid="ignore"):
+        scaled = _ndvi_levels(np.asarray(ndvi))
+    if n_ok == ok.size:
+        return (scaled > _otsu_level(scaled)).view(np.uint8)
+    out = (scaled > _otsu_level(scaled[ok])).view(np.uint8)
+    out |= np.logical_not(ok).view(np.uint8) * np.uint8(255)
     return out
 
 
