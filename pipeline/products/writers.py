@@ -76,6 +76,7 @@ from functools import lru_cache
 from pathlib import Path
 from xml.sax.saxutils import escape, quoteattr
 
+import cv2
 import mscal_core
 import numpy as np
 from mscal_core.errors import CatalogError
@@ -161,15 +162,16 @@ def encode_reflectance_uint16(reflectance: np.ndarray) -> np.ndarray:
     """``round(R * 32768)`` clipped to 0 .. 65534, NaN -> 65535 (:data:`NODATA_UINT16`).
 
     In float32 throughout: scaling by a power of two and rounding to an integer are exact in
-    float32 for every value the clip keeps, so this equals the float64 computation."""
+    float32 for every value the clip keeps, so this equals the float64 computation. NaN is
+    replaced before the cast by OpenCV's ``patchNaNs`` (0.94 -> 0.60 ms a 1280x960 band, 0.050 ->
+    0.031 ms a 217x409 one; checked equal on every float32 bit pattern)."""
     r = np.asarray(reflectance, dtype=np.float32)
-    v = r * np.float32(REFLECTANCE_SCALE)
+    v = np.multiply(r, np.float32(REFLECTANCE_SCALE), out=np.empty(r.shape, np.float32))  # C order: rows below view it
     np.rint(v, out=v)
     np.clip(v, 0.0, float(NODATA_UINT16 - 1), out=v)  # NaN stays NaN
-    with np.errstate(invalid="ignore"):
-        out = v.astype(np.uint16)
-    out[np.isnan(v)] = NODATA_UINT16
-    return out
+    if v.size:  # NaN (any payload) -> 65535 in place, one pass: not a NaN mask and a scatter
+        cv2.patchNaNs(v.reshape(1, -1), float(NODATA_UINT16))  # a view of v, as one row
+    return v.astype(np.uint16)
 
 
 # --------------------------------------------------------------------------- TIFF writing
