@@ -16,6 +16,8 @@ References
 
 from __future__ import annotations
 
+import math
+
 import cv2
 import numpy as np
 
@@ -264,11 +266,35 @@ def keep_valid(values: np.ndarray, valid_range: tuple[float, float] | None = Non
         The dtype and shape of ``values``.
     """
     out = np.asarray(values)
-    bad = ~np.isfinite(out)
-    if valid_range is not None:
+    if valid_range is None:
+        keep = np.isfinite(out)
+    else:  # lo <= v <= hi is false for NaN, and for +-inf within finite bounds: 3 passes, not 6
         lo, hi = valid_range
-        bad |= (out < lo) | (out > hi)
-    return np.where(bad, np.nan, out).astype(out.dtype, copy=False)
+        keep = out >= lo
+        keep &= out <= hi
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            keep &= np.isfinite(out)
+    return _nan_where_not(out, keep)
+
+
+def _nan_where_not(values: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Return ``np.where(keep, values, nan)`` in the dtype of ``values``, byte for byte.
+
+    NaN is the dtype's own ``nan``. For float32 / float64 by bit masks (keep the bits, or put
+    NaN's) instead of numpy's ``where`` with a scalar: :func:`keep_valid` of a 1280x960 float32
+    NDVI 0.88 -> 0.63 ms of CPU (1.31 -> 0.63 with 5 % of it NaN).
+    """
+    dt = values.dtype
+    if values.ndim == 0 or dt.kind != "f" or dt.itemsize not in (4, 8) or not dt.isnative:
+        return np.where(keep, values, np.nan).astype(dt, copy=False)
+    bits = np.dtype(f"u{dt.itemsize}")
+    mask = keep.astype(bits)
+    np.negative(mask, out=mask)  # every bit set where kept
+    out = np.bitwise_and(values.view(bits), mask)
+    np.invert(mask, out=mask)
+    mask &= np.array(np.nan, dt).view(bits)
+    out |= mask
+    return out.view(dt)
 
 
 def ndvi(red: np.ndarray, nir: np.ndarray) -> np.ndarray:
@@ -337,11 +363,17 @@ def vegetation_mask(ndvi: np.ndarray) -> np.ndarray:
            Systems, Man, and Cybernetics 9(1), 1979.
     """
     ok = np.isfinite(ndvi)
-    out = np.full(ndvi.shape, 255, dtype=np.uint8)
-    if ok.sum() < 2:
-        return out
-    scaled = _ndvi_levels(ndvi[ok])
-    out[ok] = (scaled > _otsu_level(scaled)).astype(np.uint8)
+    n_ok = np.count_nonzero(ok)
+    if n_ok < 2:
+        return np.full(np.shape(ndvi), 255, dtype=np.uint8)
+    # the levels of every pixel (an undefined one's is overwritten below): the defined pixels
+    # are gathered only as levels, for Otsu, and nothing is scattered back
+    with np.errstate(invalid="ignore"):
+        scaled = _ndvi_levels(np.asarray(ndvi))
+    if n_ok == ok.size:
+        return (scaled > _otsu_level(scaled)).view(np.uint8)
+    out = (scaled > _otsu_level(scaled[ok])).view(np.uint8)
+    out |= np.logical_not(ok).view(np.uint8) * np.uint8(255)
     return out
 
 

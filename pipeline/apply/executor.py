@@ -54,7 +54,7 @@ from pipeline.apply.execution import (
     worker_environment,
 )
 from pipeline.apply.frame_writes import WRITER_THREADS, FrameWrites  # noqa: F401  (WRITER_THREADS: re-exported)
-from pipeline.apply.quality import Flagging, counts, finish, not_coregistered, on_grid, sensor_flags
+from pipeline.apply.quality import Flagging, finish_counted, not_coregistered, on_grid, sensor_flags
 from pipeline.apply.stores import calibration_tables, geometry_step, read_frame_chunk, warm_calibration, write_frame
 from pipeline.ingest.camera_meta import read_capture_meta
 from pipeline.ingest.cameras.dispatch import factory_radiance
@@ -458,7 +458,7 @@ def _write_products(plan: Plan, job: Job, dn: np.ndarray, sha: str | None, signa
     """:func:`start_frame`'s outputs of one capture: the raw chunk (a new capture), radiance,
     reflectance (``signal`` times ``factor``, normalised, in place), its quality mask
     (``quality``: the mask on the grid, the capture's residuals, whether the grid moved its
-    pixels; :func:`pipeline.apply.quality.finish`), indices, mask, TIFFs.
+    pixels; :func:`pipeline.apply.quality.finish_counted`), indices, mask, TIFFs.
     Chunks go to ``writes`` once nothing changes them; the TIFFs are made here meanwhile.
     Returns the frame's tags (with its CaptureUUID) and its flagged pixels per band and flag."""
     tags = job.tags
@@ -481,8 +481,8 @@ def _write_products(plan: Plan, job: Job, dn: np.ndarray, sha: str | None, signa
     q, residuals, moved = quality
     flagged = None
     if q is not None and plan.chain.flagging is not None:
-        q = finish(plan.chain.flagging, q, refl, not_coregistered(plan, residuals), moved)
-        flagged = counts(q, [b.name for b in plan.camera.bands])
+        q, flagged = finish_counted(plan.chain.flagging, q, refl, not_coregistered(plan, residuals), moved,
+                                    [b.name for b in plan.camera.bands])
         if "quality" in plan.outputs:
             writes.submit(write_frame, store / "quality", job.index, q)
     writes.submit(write_frame, store / "reflectance", job.index, refl)  # only read from here on

@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping, Sequence
 
 import numpy as np
-from mscal_core.quality import DEFAULT_BOUND, FLAGS, flag_counts, frame_flags
+from mscal_core.quality import DEFAULT_BOUND, FLAGS, SPARSE, flag_counts, frame_flags
 
 from pipeline.apply.coregistration import RESIDUAL_MAX_PX
 from pipeline.apply.stores import geometry_step, quality_checks, quality_tables
@@ -78,9 +78,52 @@ def sensor_flags(flagging: Flagging, calibration: Path, sat: int, dn: np.ndarray
     field ``calibration`` (:func:`pipeline.apply.stores.quality_tables`); ``refl``: its Eq. 15
     reflectance, NaN wherever a flag is set unless flagged values are kept (then only its NaN
     pixels are looked up). The factory chain's mask is its saturated pixels
-    (:func:`pipeline.apply.executor.radiometry`)."""
+    (:func:`pipeline.apply.executor.radiometry`).
+
+    The same mask as :func:`mscal_core.quality.frame_flags`, faster where it can be: a band
+    whose NaN pixels are exactly those the calibration's pixel table flags (a flagged pixel is
+    NaN: the tables are :func:`mscal_core.quality.mask_tables`') has its DN flags looked up at
+    those pixels, whose positions are found once per calibration, not per frame (a 25-band
+    217x409 snapshot frame with 8.5 % of its pixels flagged: 1.99 -> 1.22 ms of CPU); any other
+    band goes through ``frame_flags``."""
     dn_flags, pixel, _ = quality_tables(str(calibration), int(sat), flagging.bound)
-    return frame_flags(dn, dn_flags, pixel, reflectance=None if flagging.keep_flagged else refl)
+    d = np.asarray(dn)
+    if (flagging.keep_flagged or pixel is None or d.ndim != 3 or d.dtype.kind != "u" or d.shape != pixel.shape
+            or np.shape(refl) != d.shape or int(d.max(initial=0)) >= dn_flags.shape[1]):
+        return frame_flags(dn, dn_flags, pixel, reflectance=None if flagging.keep_flagged else refl)
+    out = np.empty(d.shape, np.uint8)
+    for b, (at, flags) in enumerate(_pixel_sets(pixel)):
+        nan = np.isnan(refl[b])
+        if np.count_nonzero(nan) == len(at) and (not len(at) or nan.ravel()[at].all()):
+            # NaN exactly at the pixels the pixel table flags: the DN flags only there
+            # (frame_flags' sparse lookup, without finding the NaN pixels first)
+            out[b] = 0
+            if len(at):
+                out[b].ravel()[at] = np.take(dn_flags[b], d[b].ravel()[at]) | flags
+        else:
+            frame_flags(d[b:b + 1], dn_flags[b:b + 1], pixel[b:b + 1], out=out[b:b + 1], reflectance=refl[b:b + 1])
+    return out
+
+
+#: Per pixel table (by identity, the table held with it): per band the flat positions of the
+#: pixels it flags and their flags (:func:`_pixel_sets`).
+_PIXEL_SETS: dict[int, tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]] = {}
+
+
+def _pixel_sets(pixel: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per band of a calibration's pixel flag table (the same for every frame), the flat
+    positions of its flagged pixels and their flags; found once per table and process."""
+    held = _PIXEL_SETS.get(id(pixel))
+    if held is not None and held[0] is pixel:
+        return held[1]
+    sets = []
+    for b in range(pixel.shape[0]):
+        at = np.flatnonzero(pixel[b])
+        sets.append((at, pixel[b].ravel()[at]))
+    if len(_PIXEL_SETS) >= 4:  # a process applies one or two calibrations
+        _PIXEL_SETS.clear()
+    _PIXEL_SETS[id(pixel)] = (pixel, sets)
+    return sets
 
 
 def on_grid(plan: Plan, job: Job, q: np.ndarray) -> np.ndarray:
@@ -146,12 +189,75 @@ def finish(flagging: Flagging, q: np.ndarray, refl: np.ndarray, bad_bands: Seque
     reflectance is NaN and nothing else is flagged; unless flagged values are kept, every
     flagged pixel of ``refl`` NaN (in place; already so for the field chain's flags unless the
     grid ``moved`` them)."""
+    _flag_bands_and_moved(flagging, q, refl, bad_bands, moved)
+    return _finish_tail(q, refl)
+
+
+def _flag_bands_and_moved(flagging: Flagging, q: np.ndarray, refl: np.ndarray, bad_bands: Sequence[int],
+                          moved: bool) -> None:
     for b in bad_bands:
         q[b] |= FLAGS["not_coregistered"]
         if not flagging.keep_flagged:
             refl[b] = np.nan
     if moved and not flagging.keep_flagged and q.any():
         refl[q != 0] = np.nan
+
+
+def finish_counted(flagging: Flagging, q: np.ndarray, refl: np.ndarray, bad_bands: Sequence[int], moved: bool,
+                   band_names: Sequence[str]) -> tuple[np.ndarray, dict[str, dict[str, int]]]:
+    """:func:`finish`, and :func:`counts` of its mask: the same mask and counts.
+
+    Unless flagged values are kept, a flagged pixel is NaN, so after :func:`finish` the flagged
+    pixels are exactly the NaN ones: their flags are gathered at those positions once
+    (``no_value`` set where a NaN pixel has none) and counted there, per band, instead of a
+    pass over the whole mask for ``no_value`` and a histogram of every band's whole mask. Kept
+    flagged values, a mask with a flag on a pixel that is not NaN, or NaN on more than
+    one pixel in :data:`mscal_core.quality.SPARSE`: the two passes as before. CPU per frame
+    (medians over real frames, old and new interleaved): a 25-band 217x409 snapshot frame with
+    8.5 % of its pixels flagged 1.95 -> 1.57 ms, a 5-band 1280x960 MicaSense capture (0.1 %
+    saturated) 3.19 -> 2.00 ms.
+    """
+    _flag_bands_and_moved(flagging, q, refl, bad_bands, moved)
+    flat = q.reshape(-1)
+    if flagging.keep_flagged or not flat.flags.c_contiguous:
+        return _finish_tail(q, refl), counts(q, band_names)
+    at = np.flatnonzero(np.isnan(refl))
+    if len(at) * SPARSE >= flat.size:
+        return _finish_tail(q, refl), counts(q, band_names)
+    codes = flat[at]
+    n_flagged = np.count_nonzero(codes)
+    if n_flagged != np.count_nonzero(flat):  # a flagged pixel that is not NaN: not this shortcut's case
+        return _finish_tail(q, refl), counts(q, band_names)
+    if n_flagged < len(codes):
+        none = codes == 0
+        codes[none] = FLAGS["no_value"]
+        flat[at[none]] = FLAGS["no_value"]
+    plane = flat.size // max(1, q.shape[0])
+    bounds = np.searchsorted(at, np.arange(q.shape[0] + 1, dtype=np.int64) * plane)
+    out: dict[str, dict[str, int]] = {}
+    for b, name in enumerate(band_names):
+        if bounds[b + 1] == bounds[b]:
+            continue
+        hist = np.bincount(codes[bounds[b]:bounds[b + 1]], minlength=256)
+        c = _hist_counts(hist)
+        if c:
+            out[name] = c
+    return q, out
+
+
+def _hist_counts(hist: np.ndarray) -> dict[str, int]:
+    """``{flag: pixels}`` of one band from the histogram of its mask values (flags of no pixel
+    left out), as :func:`mscal_core.quality.flag_counts` counts a band."""
+    per_flag = dict.fromkeys(FLAGS, 0)
+    for code in np.flatnonzero(hist).tolist():  # a few codes: plain Python beats numpy calls per flag
+        n = int(hist[code])
+        for name, bit in FLAGS.items():
+            if code & bit:
+                per_flag[name] += n
+    return {k: v for k, v in per_flag.items() if v}
+
+
+def _finish_tail(q: np.ndarray, refl: np.ndarray) -> np.ndarray:
     nan = np.isnan(refl)
     if nan.any():
         nan &= q == 0

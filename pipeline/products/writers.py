@@ -72,9 +72,11 @@ import re
 import struct
 from dataclasses import dataclass
 from datetime import datetime
+from functools import lru_cache
 from pathlib import Path
 from xml.sax.saxutils import escape, quoteattr
 
+import cv2
 import mscal_core
 import numpy as np
 from mscal_core.errors import CatalogError
@@ -160,15 +162,16 @@ def encode_reflectance_uint16(reflectance: np.ndarray) -> np.ndarray:
     """``round(R * 32768)`` clipped to 0 .. 65534, NaN -> 65535 (:data:`NODATA_UINT16`).
 
     In float32 throughout: scaling by a power of two and rounding to an integer are exact in
-    float32 for every value the clip keeps, so this equals the float64 computation."""
+    float32 for every value the clip keeps, so this equals the float64 computation. NaN is
+    replaced before the cast by OpenCV's ``patchNaNs`` (0.94 -> 0.60 ms a 1280x960 band, 0.050 ->
+    0.031 ms a 217x409 one; checked equal on every float32 bit pattern)."""
     r = np.asarray(reflectance, dtype=np.float32)
-    v = r * np.float32(REFLECTANCE_SCALE)
+    v = np.multiply(r, np.float32(REFLECTANCE_SCALE), out=np.empty(r.shape, np.float32))  # C order: rows below view it
     np.rint(v, out=v)
     np.clip(v, 0.0, float(NODATA_UINT16 - 1), out=v)  # NaN stays NaN
-    with np.errstate(invalid="ignore"):
-        out = v.astype(np.uint16)
-    out[np.isnan(v)] = NODATA_UINT16
-    return out
+    if v.size:  # NaN (any payload) -> 65535 in place, one pass: not a NaN mask and a scatter
+        cv2.patchNaNs(v.reshape(1, -1), float(NODATA_UINT16))  # a view of v, as one row
+    return v.astype(np.uint16)
 
 
 # --------------------------------------------------------------------------- TIFF writing
@@ -186,6 +189,7 @@ class _IFD:
 
     def __init__(self) -> None:
         self.entries: dict[int, tuple[int, int, bytes]] = {}
+        self._serialized: dict[int, bytes] = {}  # by base; an IFD shared by a frame's TIFFs (_frame_ifds)
 
     def add(self, tag: int, typ: int, values) -> None:
         if typ == _ASCII:
@@ -209,6 +213,7 @@ class _IFD:
         else:  # pragma: no cover - programming error
             raise ValueError(f"unsupported TIFF type {typ}")
         self.entries[tag] = (typ, count, data)
+        self._serialized.clear()
 
     def size(self) -> int:
         """``len(self.serialize(base))`` for any 4-aligned ``base`` (the padding depends on
@@ -222,6 +227,12 @@ class _IFD:
     def serialize(self, base: int) -> bytes:
         """The IFD at absolute file offset ``base`` (4-aligned), followed by its large values."""
         assert base % 4 == 0
+        done = self._serialized.get(base)
+        if done is None:
+            done = self._serialized[base] = self._serialize(base)
+        return done
+
+    def _serialize(self, base: int) -> bytes:
         n = len(self.entries)
         head = 2 + 12 * n + 4
         overflow = bytearray()
@@ -329,6 +340,7 @@ def _num(v: float) -> str:
     return str(int(v)) if v.is_integer() else repr(v)
 
 
+@lru_cache(maxsize=256)
 def _gdal_metadata(description: str, *, scale: float | None, wavelength_nm: float | None,
                    fwhm_nm: float | None) -> str:
     items = [f'  <Item name="DESCRIPTION" sample="0" role="description">{escape(description)}</Item>']
@@ -352,13 +364,23 @@ def _tiff_parts(
 
     Layout: header | IFD0 (+ its values) | EXIF IFD | GPS IFD | pixel strips."""
     strips = _strips(data)
-    tparsed = _parse_time(frame.time)
-    exif, date_text = _exif_ifd(strips, tparsed, optics)
-    gps = _gps_ifd(frame, tparsed)
+    exif, date_text, gps = _frame_ifds(frame.time, frame.lat, frame.lon, frame.alt_m, strips.width, strips.height,
+                                       optics)
     ifd0 = _ifd0(frame, strips, date_text, xmp=xmp, gdal_metadata=gdal_metadata, nodata=nodata,
                  has_gps=gps is not None, description=description)
     head = _tiff_head(ifd0, exif, gps, strips)
     return [head, np.ascontiguousarray(strips.pixels)]
+
+
+@lru_cache(maxsize=64)
+def _frame_ifds(time: str | None, lat: float | None, lon: float | None, alt_m: float | None, width: int, height: int,
+                optics: CameraOptics | None) -> tuple[_IFD, str | None, _IFD | None]:
+    """The EXIF IFD, the capture time as EXIF text and the GPS IFD of a frame's TIFFs: the same
+    for each of its band TIFFs of one size and lens (made once, and each serialised once per
+    position; never changed after: only IFD0 is completed per file)."""
+    tparsed = _parse_time(time)
+    exif, date_text = _exif_ifd(width, height, tparsed, optics)
+    return exif, date_text, _gps_ifd(lat, lon, alt_m, tparsed)
 
 
 @dataclass(frozen=True)
@@ -415,13 +437,13 @@ def _optics_entries(exif: _IFD, optics: CameraOptics | None) -> None:
         exif.add(41989, _SHORT, [int(optics.focal_length_35mm)])  # FocalLengthIn35mmFilm
 
 
-def _exif_ifd(strips: _Strips, tparsed: tuple[datetime, bool] | None,
+def _exif_ifd(width: int, height: int, tparsed: tuple[datetime, bool] | None,
               optics: CameraOptics | None = None) -> tuple[_IFD, str | None]:
     """The EXIF IFD, and the capture time as EXIF text (also IFD0's DateTime), if known."""
     exif = _IFD()
     exif.add(36864, _UNDEFINED, b"0232")  # ExifVersion 2.32
-    exif.add(40962, _LONG, [strips.width])  # PixelXDimension
-    exif.add(40963, _LONG, [strips.height])  # PixelYDimension
+    exif.add(40962, _LONG, [width])  # PixelXDimension
+    exif.add(40963, _LONG, [height])  # PixelYDimension
     _optics_entries(exif, optics)
     date_text = None
     if tparsed is not None:
@@ -440,10 +462,11 @@ def _exif_ifd(strips: _Strips, tparsed: tuple[datetime, bool] | None,
     return exif, date_text
 
 
-def _gps_ifd(frame: FrameTags, tparsed: tuple[datetime, bool] | None) -> _IFD | None:
+def _gps_ifd(lat: float | None, lon: float | None, alt_m: float | None, tparsed: tuple[datetime, bool] | None
+             ) -> _IFD | None:
     """The GPS IFD of a frame with a position (None without one, or with latitude and
     longitude 0: no fix, :mod:`pipeline.ingest.gps`)."""
-    lat, lon, alt = _finite(frame.lat), _finite(frame.lon), _finite(frame.alt_m)
+    lat, lon, alt = _finite(lat), _finite(lon), _finite(alt_m)
     if lat is None or lon is None or (lat == 0 and lon == 0):
         return None
     if not (-90 <= lat <= 90 and -180 <= lon <= 180):

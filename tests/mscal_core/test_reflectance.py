@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mscal_core.errors import InputError
-from mscal_core.reflectance import eq15, ndvi, normalise_to_panel
+from mscal_core.reflectance import eq15, keep_valid, ndvi, normalise_to_panel, otsu_ndvi_threshold, vegetation_mask
 
 BITS = 10
 N_DN = 2**BITS
@@ -167,6 +167,39 @@ def test_ndvi():
     finite = out[np.isfinite(out)]
     assert (finite >= -1).all() and (finite <= 1).all()
     assert ndvi(np.array([0.1]), np.array([0.3])).dtype == np.float64
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_keep_valid_bytes_equal_where_with_canonical_nan(dtype) -> None:
+    odd_nan = np.array([0xFFC00000], np.uint32).view(np.float32)[0]  # the sign-set NaN 0/0 makes on x86
+    v = np.array([-1.0, 1.0, -1.0000001, 1.0000001, 0.25, -0.0, np.inf, -np.inf, np.nan, odd_nan], dtype)
+    for valid_range in (None, (-1.0, 1.0), (-np.inf, 1.0)):
+        bad = ~np.isfinite(v)
+        if valid_range is not None:
+            bad |= (v < valid_range[0]) | (v > valid_range[1])
+        want = np.where(bad, np.nan, v).astype(dtype)
+        got = keep_valid(v.reshape(2, 5), valid_range)
+        assert got.dtype == dtype and got.tobytes() == want.tobytes()  # every NaN the canonical one
+    kept = keep_valid(v, (-1.0, 1.0))
+    assert kept[[0, 1, 4]].tolist() == [-1.0, 1.0, 0.25] and np.isnan(kept[[2, 3, 6, 7, 8, 9]]).all()
+    assert np.signbit(kept[5])  # -0.0 kept as it is
+
+
+def test_vegetation_mask_every_pixel_defined_or_not() -> None:
+    """The same mask whether every pixel is defined (no gather, no scatter) or some are NaN."""
+    rng = np.random.default_rng(11)
+    v = np.concatenate([rng.normal(-0.2, 0.05, 600), rng.normal(0.6, 0.05, 400)]).astype(np.float32).reshape(25, 40)
+    full = vegetation_mask(v)
+    thr = otsu_ndvi_threshold(v)
+    assert full.dtype == np.uint8 and full.shape == v.shape and full.flags.writeable
+    assert -0.1 < thr < 0.4 and full.sum() == 400 and (full[v >= thr] == 1).all() and (full[v < thr] == 0).all()
+    holed = v.copy()
+    holed[0, :3] = np.nan  # three background pixels undefined: the rest split at the same level
+    m = vegetation_mask(holed)
+    assert (m[0, :3] == 255).all() and np.array_equal(m[1:], full[1:]) and np.array_equal(m[0, 3:], full[0, 3:])
+    flat, holed_flat = np.full((3, 3), 0.3, np.float32), np.full((3, 3), 0.3, np.float32)
+    holed_flat[0, 0] = np.nan  # one level either way: the same answer for the defined pixels
+    assert np.array_equal(vegetation_mask(flat)[1:], vegetation_mask(holed_flat)[1:])
 
 
 def test_ndvi_matches_the_catalog_index() -> None:

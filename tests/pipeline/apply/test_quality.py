@@ -16,7 +16,16 @@ import xarray as xr
 
 from mscal_core.quality import FLAGS
 from pipeline.apply.coregistration import RESIDUAL_MAX_PX
-from pipeline.apply.quality import FACTORY_CHECKS, Flagging, checked, finish, not_coregistered, on_grid
+from pipeline.apply.quality import (
+    FACTORY_CHECKS,
+    Flagging,
+    checked,
+    counts,
+    finish,
+    finish_counted,
+    not_coregistered,
+    on_grid,
+)
 from pipeline.apply.stores import geometry_step
 from pipeline.products.report.flight import MAX_FLAGGED_LINES
 from pipeline.run.cli import main
@@ -202,6 +211,65 @@ def test_a_band_that_failed_coregistration_is_flagged_whole_and_nan() -> None:
     r = refl.copy()
     finish(Flagging(keep_flagged=False), q.copy(), r, [], moved=True)
     assert np.isnan(r[1, 1, 1]) and np.count_nonzero(np.isnan(r)) == 2  # moved by the grid: NaN made here
+
+
+@pytest.mark.parametrize("share", [0.01, 0.3])  # the gathered way, and (dense NaN) the two passes
+def test_finish_counted_is_finish_then_counts(share) -> None:
+    rng = np.random.default_rng(5)
+    names = ["a", "b", "c", "d"]
+    refl = rng.uniform(0, 1, (4, 30, 40)).astype(np.float32)
+    q = np.zeros(refl.shape, np.uint8)
+    hit = rng.random(refl.shape) < share
+    q[hit] = rng.choice([1, 2, 4, 8, 6, 9], size=int(hit.sum())).astype(np.uint8)
+    q[3] = 0  # a band with nothing flagged
+    refl[q != 0] = np.nan  # the field tables make flagged pixels NaN
+    refl[0, 0, :3] = np.nan  # NaN for no flagged reason: no_value
+    cases = [(Flagging(), [], False), (Flagging(), [2], False), (Flagging(keep_flagged=True), [1], True)]
+    for flagging, bad, moved in cases:
+        r1, r2 = refl.copy(), refl.copy()
+        want = finish(flagging, q.copy(), r1, bad, moved)
+        got, got_counts = finish_counted(flagging, q.copy(), r2, bad, moved, names)
+        assert got.tobytes() == want.tobytes() and r2.tobytes() == r1.tobytes()
+        assert got_counts == counts(want, names) and list(got_counts) == list(counts(want, names))
+    got, c = finish_counted(Flagging(), q.copy(), refl.copy(), [], False, names)
+    assert c["a"]["no_value"] == 3 and "d" not in c
+    assert sum(c["b"].values()) >= np.count_nonzero(q[1])  # a pixel with two bits counts under both
+    stray = q.copy()
+    stray[3, 5, 5] = FLAGS["response_shoulder"]  # flagged but not NaN (kept): counted all the same
+    got, c = finish_counted(Flagging(), stray.copy(), refl.copy(), [], False, names)
+    assert c["d"] == {"response_shoulder": 1} and got.tobytes() == finish(Flagging(), stray.copy(), refl.copy(), [],
+                                                                           False).tobytes()
+
+
+def test_sensor_flags_is_frame_flags(monkeypatch) -> None:
+    """The pixel table's flagged positions found once: the same mask as frame_flags, band by
+    band, whether a band's NaN pixels are exactly the pixel table's or not (a saturated pixel,
+    a flagged DN elsewhere), and with flagged values kept."""
+    import pipeline.apply.quality as quality
+    from mscal_core.quality import frame_flags, mask_tables
+    from mscal_core.reflectance import eq15_fast, eq15_tables
+
+    rng = np.random.default_rng(7)
+    n, h, w, n_dn = 4, 20, 30, 256
+    dn_flags = np.zeros((n, n_dn), np.uint8)
+    dn_flags[:, 250:] = FLAGS["response_shoulder"]
+    pixel = np.zeros((n, h, w), np.uint8)
+    pixel[:, :3, :] = FLAGS["vignetting_unobserved"]
+    pixel[2] = 0  # a band without flagged pixels
+    lut, inv_v = eq15_tables(np.tile(np.linspace(0, 1, n_dn), (n, 1)), np.ones((n, h, w)), np.ones(n))
+    lut, inv_v = mask_tables(lut, inv_v, dn_flags, pixel)
+    monkeypatch.setattr(quality, "quality_tables", lambda *a: (dn_flags, pixel, ()))
+    dn = rng.integers(0, 240, (n, h, w)).astype(np.uint16)
+    dn[1, 10, 10] = 252  # a flagged DN outside the pixel table's pixels: band 1 the general way
+    dn[3, 0, 0] = 255  # a flagged DN on a flagged pixel: both bits
+    refl = eq15_fast(dn[None], lut, inv_v, 1.0, n_dn)[0]
+    got = quality.sensor_flags(Flagging(), Path("calib"), n_dn, dn, refl)
+    want = frame_flags(dn, dn_flags, pixel, reflectance=refl)
+    assert got.tobytes() == want.tobytes()
+    assert got[3, 0, 0] == FLAGS["response_shoulder"] | FLAGS["vignetting_unobserved"] and got[1, 10, 10] == 2
+    assert np.count_nonzero(got[2]) == 0 and np.count_nonzero(got[0]) == 3 * w
+    kept = quality.sensor_flags(Flagging(keep_flagged=True), Path("calib"), n_dn, dn, refl)
+    assert kept.tobytes() == frame_flags(dn, dn_flags, pixel).tobytes()
 
 
 def test_the_mask_moves_with_the_bands(tmp_path) -> None:

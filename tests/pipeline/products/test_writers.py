@@ -245,6 +245,30 @@ def test_encode_uint16_clips_and_marks_nan() -> None:
     assert v.tolist() == [0, 0, 16384, 32768, 65534, 65534, 65534, 65535]
 
 
+def _encode_by_steps(r: np.ndarray) -> np.ndarray:
+    """The encoding spelled out in numpy (scale, round half to even, clip, NaN marked)."""
+    v = np.rint(r.astype(np.float32) * np.float32(32768))  # (the encoding as it was before patchNaNs)
+    np.clip(v, 0.0, 65534.0, out=v)
+    with np.errstate(invalid="ignore"):
+        out = v.astype(np.uint16)
+    out[np.isnan(v)] = 65535
+    return out
+
+
+def test_encode_uint16_equals_the_numpy_steps_on_ties_edges_and_nan_payloads() -> None:
+    ties = (np.arange(0, 65536, dtype=np.float32) + np.float32(0.5)) / np.float32(32768)  # x.5: to even
+    edges = np.array([65533.5, 65534.0, 65534.49, 65534.5, 65535.0, 65536.0, 1e30, -0.5, -0.49, -1e30],
+                     np.float32) / np.float32(32768)
+    odd_nans = np.array([0x7FC00000, 0xFFC00000, 0x7F800001, 0xFFFFFFFF], np.uint32).view(np.float32)
+    r = np.concatenate([ties, edges, odd_nans, np.array([np.inf, -np.inf, -0.0, 0.0], np.float32)])  # even length
+    with np.errstate(invalid="ignore"):  # a signalling NaN among the payloads
+        got = encode_reflectance_uint16(r.reshape(2, -1))
+        want = _encode_by_steps(r)
+    np.testing.assert_array_equal(got.ravel(), want)
+    np.testing.assert_array_equal(encode_reflectance_uint16(r.reshape(2, -1).T), want.reshape(2, -1).T)  # F order
+    assert got[0, :4].tolist() == [0, 2, 2, 4]  # 0.5 -> 0, 1.5 -> 2, 2.5 -> 2, 3.5 -> 4
+
+
 def test_southern_western_below_sea_level_naive_time(tmp_path) -> None:
     fr = FrameTags(time="2023-12-31T23:59:59.05", lat=-33.8568, lon=-70.6483, alt_m=-12.0,
                    capture_uuid="u1", exposure_ms=0.8, camera_make="mscal", camera_model="m")
