@@ -130,7 +130,8 @@ def shoulder_mask(response_uncertainty: np.ndarray, bound: float = DEFAULT_BOUND
     ----------
     response_uncertainty : numpy.ndarray
         (n_bands, n_dn) relative uncertainty of U per DN, NaN outside the fitted range
-        (``inf`` where U is 0).
+        (``inf`` where U is 0, and where U is not determined near the top of the range: on the
+        upper branch, ``inf`` is above any bound).
     bound : float
         Largest relative uncertainty of U that is trusted.
 
@@ -162,7 +163,7 @@ def shoulder_mask(response_uncertainty: np.ndarray, bound: float = DEFAULT_BOUND
         if not finite.any():
             continue
         least = int(np.argmin(np.where(finite, unc[b], np.inf)))
-        out[b, least:] = finite[least:] & (unc[b, least:] > bound)
+        out[b, least:] = ~np.isnan(unc[b, least:]) & (unc[b, least:] > bound)  # inf: not determined
     return out
 
 
