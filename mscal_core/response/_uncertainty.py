@@ -64,6 +64,7 @@ def response_uncertainty(
     only, so a shoulder that steepens within ``sigma_I`` of ``h`` is not resolved (on harsh
     shoulders U there was 3-10 % off while ``U' sigma_I / U`` said 1.5-2.4 %). The
     uncertainty is ``inf`` there, not a number that would understate it.
+
     References
     ----------
     .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
