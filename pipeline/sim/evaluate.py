@@ -126,38 +126,40 @@ MIN_PANEL_PIXELS, MIN_VEGETATION_PIXELS = 5, 20
 MIN_PANEL_SHARE = 0.5
 
 
-def _panel_medians(r: np.ndarray, q: np.ndarray, mask: np.ndarray, full: int = 0) -> tuple[np.ndarray | None, str]:
+def _panel_medians(r: np.ndarray, q: np.ndarray, mask: np.ndarray, full: int = 0) -> tuple[np.ndarray | None, np.ndarray]:
     """Per-band median of the panel under ``mask`` in ``r`` (band, y, x) with its quality ``q``
-    (:func:`mscal_core.quality.region_median`: pixels flagged high count as above the median)
-    and how it was taken: ``(None, "cut")`` when the mask has fewer than
-    :data:`MIN_PANEL_PIXELS` pixels or :data:`MIN_PANEL_SHARE` of ``full`` (the panel cut by
-    the frame); ``(None, "flagged")`` when in a band half of it or more is flagged or fewer
-    than :data:`MIN_PANEL_PIXELS` pixels are valid; else the medians and ``"censored"`` (some
-    pixels counted as above) or ``"valid"``."""
+    (:func:`mscal_core.quality.region_median`: pixels flagged high count as above the median),
+    NaN in a band where half of it or more is flagged or fewer than :data:`MIN_PANEL_PIXELS`
+    pixels are valid; and per band how it was taken: 0 valid, 1 censored (some pixels counted
+    as above), 2 flagged. ``(None, ...)`` when the mask has fewer than :data:`MIN_PANEL_PIXELS`
+    pixels or :data:`MIN_PANEL_SHARE` of ``full`` (the panel cut by the frame: not counted) or
+    every band is flagged."""
+    nb = r.shape[0]
     n = int(mask.sum())
     if n < max(MIN_PANEL_PIXELS, MIN_PANEL_SHARE * full):
-        return None, "cut"
+        return None, np.full(nb, -1)
     vals, qs = r[:, mask], q[:, mask]
     med = region_median(vals, qs)
-    if np.any(~np.isfinite(med)) or np.any(np.count_nonzero((qs == 0) & np.isfinite(vals), axis=1) < MIN_PANEL_PIXELS):
-        return None, "flagged"
-    return med, ("censored" if np.any(qs & CENSOR_HIGH) else "valid")
+    med[np.count_nonzero((qs == 0) & np.isfinite(vals), axis=1) < MIN_PANEL_PIXELS] = np.nan
+    state = np.where(np.isfinite(med), np.where(np.any(qs & CENSOR_HIGH, axis=1), 1, 0), 2)
+    return (None if np.isnan(med).all() else med), state
 
 
 def score_flight(r: np.ndarray, scene: FlightScene, quality: np.ndarray | None = None) -> dict[str, float]:
     """Panel error, cross-frame CV and vegetation NDVI error of reflectance ``r`` (frame,
-    band, y, x) against ``scene``, and how many panels (one per panel and frame) were scored on
-    a censored median or not at all because they are flagged.
+    band, y, x) against ``scene``, and how many panel medians (one per panel, frame and band)
+    were taken on a censored median or not at all because the panel is flagged in that band.
 
-    A panel's value is its median over the pixels left valid with those flagged high
+    A panel's value in a band is its median over the pixels left valid with those flagged high
     (``quality`` bits of :data:`mscal_core.quality.CENSOR_HIGH`: saturated, shoulder, above the
-    sweep) counted as above it; a panel half flagged or more counts as flagged and is not
-    scored (:func:`mscal_core.quality.region_median`: the valid pixels alone of a panel the
-    shoulder flag cuts are those whose noise read low). ``quality`` None: NaN pixels are left
-    out (flagged, not censored). Each frame is first normalised by one scalar: true / measured
-    reflectance of the brightest panel not flagged in any band (the white panel unless it is
-    flagged), median over bands: the light's brightness B, which Eq. 15 leaves out. Nor does a
-    panel the frame cuts to less than :data:`MIN_PANEL_SHARE` of it count."""
+    sweep) counted as above it; a panel half flagged or more in a band counts as flagged there
+    and is not scored in that band (:func:`mscal_core.quality.region_median`: the valid pixels
+    alone of a panel the shoulder flag cuts are those whose noise read low). ``quality`` None:
+    NaN pixels are left out (flagged, not censored). Each frame is first normalised by one
+    scalar: true / measured reflectance of the brightest panel flagged in no band (the white
+    panel unless it is flagged), median over bands: the light's brightness B, which Eq. 15
+    leaves out. Nor does a panel the frame cuts to less than :data:`MIN_PANEL_SHARE` of it
+    count."""
     n = r.shape[0]
     if quality is None:
         quality = np.where(np.isfinite(r), np.uint8(0), np.uint8(FLAGS["no_value"]))
@@ -168,24 +170,27 @@ def score_flight(r: np.ndarray, scene: FlightScene, quality: np.ndarray | None =
     for f in range(n):
         for p in order:
             med, _ = _panel_medians(r[f], quality[f], scene.labels[f] == p, full[p])
-            if med is not None:
-                k[f] = float(np.nanmedian(rho_of[p] / med))
+            if med is not None and np.isfinite(med).all():
+                k[f] = float(np.median(rho_of[p] / med))
                 break
     panel_err, cv, veg_ndvi_err = [], [], []
-    states = {"censored": 0, "flagged": 0}
+    censored = flagged = 0
     for p in scene.panels:
         means = []
         for f in range(n):
             med, state = _panel_medians(r[f], quality[f], scene.labels[f] == p, full[p])
-            if state in states:
-                states[state] += 1
+            censored += int(np.count_nonzero(state == 1))
+            flagged += int(np.count_nonzero(state == 2))
             if med is None or not np.isfinite(k[f]):
                 continue
-            panel_err.append(float(np.max(np.abs(med * k[f] - rho_of[p]))))
+            panel_err.append(float(np.nanmax(np.abs(med * k[f] - rho_of[p]))))
             means.append(med / scene.sun[f])
         if len(means) >= 2:
             arr = np.array(means)
-            cv.append(max(metrics.coefficient_of_variation(arr[:, b]) for b in range(arr.shape[1])))
+            per_band = [metrics.coefficient_of_variation(arr[:, b]) for b in range(arr.shape[1])
+                        if np.isfinite(arr[:, b]).sum() >= 2]
+            if per_band:
+                cv.append(max(per_band))
     for f in range(n):
         m = scene.labels[f] == scene.vegetation
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -198,6 +203,6 @@ def score_flight(r: np.ndarray, scene: FlightScene, quality: np.ndarray | None =
         "panel_abs_error": float(max(panel_err)) if panel_err else float("nan"),
         "panel_cv_across_frames": float(max(cv)) if cv else float("nan"),
         "vegetation_ndvi_error": float(max(veg_ndvi_err)) if veg_ndvi_err else float("nan"),
-        "panels_censored": float(states["censored"]),
-        "panels_flagged": float(states["flagged"]),
+        "panels_censored": float(censored),
+        "panels_flagged": float(flagged),
     }
