@@ -9,7 +9,10 @@ session's truth:
 - the fits: U (5-95 % of the DN range, as the seeds are scored), V (RMS, worst band), S;
 - the flight as apply wrote it (``OUT/reflectance.zarr``): gray panels after one scalar per
   frame, the same panel across frames (CV) and vegetation NDVI, on the pixels apply left a
-  value (flagged pixels are NaN by default);
+  value (flagged pixels are NaN by default); a panel's median counts its pixels flagged high
+  as above it, and a panel half flagged or more is not scored
+  (:func:`mscal_core.quality.region_median`): how many panels (per frame) were scored on such
+  a censored median and how many were not scored are reported;
 - beside it, the Eq. 16 baseline (divide by the reflector's DN) on the same frames, and the
   floor: Eq. 15 with the session's true U, V and S (what a perfect calibration scores; the
   panels' own pixel noise, e.g. of a 0.05 panel at ~60 DN, is in it);
@@ -121,7 +124,7 @@ def run_session(index: int, workdir: Path, keep: bool = False, log: Callable[[st
         truth = np.load(session / "truth.npz")
         fits = evaluate_calibration(session, ds, flights=False)  # the flight is scored on apply's output below
         refl, quality = product_reflectance(out, flight_dir)
-        flight = evaluate_flight(session, ds, truth, FLIGHT, reflectance=refl)
+        flight = evaluate_flight(session, ds, truth, FLIGHT, reflectance=refl, quality=quality)
         exact = xr.Dataset({"inverse_response": (("band", "dn"), truth["inverse_response"]),
                             "vignetting": (("band", "y", "x"), truth["vignetting"]),
                             "spectral_factor": (("band",), truth["spectral_factor"])})
@@ -155,6 +158,9 @@ def rows(results: Sequence[VariedAccuracy]) -> list[tuple[bc.Row, ...]]:
                             ("panel_flagged_share", "panel pixels flagged", "{:.3%}"),
                             ("nan_share", "pixels without a value (NaN)", "{:.3%}")):
         pair.append((bc.Row(label, [r.flags.get(key, math.nan) for r in results], None, fmt),))
+    for key, label in (("panels_censored", "panels scored on a censored median (per frame)"),
+                       ("panels_flagged", "panels half flagged or more, not scored (per frame)")):
+        pair.append((bc.Row(label, [r.eq15.get(key, math.nan) for r in results], None, "{:.0f}"),))
     pair.append((bc.Row("flagged pixels left with a value", [r.flags.get("flagged_with_value", math.nan) for r in results],
                         0.0, "{:.0f}"),))
     return pair

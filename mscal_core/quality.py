@@ -25,8 +25,8 @@ import numpy as np
 from .errors import InputError
 
 __all__ = [
-    "DEFAULT_BOUND", "FLAGS", "dn_flag_table", "flag_counts", "frame_flags", "mask_tables", "pixel_flag_table",
-    "shoulder_mask",
+    "CENSOR_HIGH", "DEFAULT_BOUND", "FLAGS", "MAX_FLAGGED_SHARE", "dn_flag_table", "flag_counts", "frame_flags",
+    "mask_tables", "pixel_flag_table", "region_median", "shoulder_mask",
 ]
 
 #: The bits of the quality mask, in bit order (CF ``flag_masks`` / ``flag_meanings``).
@@ -38,6 +38,15 @@ FLAGS = {
     "not_coregistered": 16,  # the band failed the co-registration check of the frame
     "no_value": 32,  # NaN for any other reason
 }
+
+#: The flags that censor a pixel from above: its true value lies above those of the region's
+#: valid pixels (it read at or beyond the top of what U is trusted for), so a region's median
+#: counts it as +inf (:func:`region_median`).
+CENSOR_HIGH = FLAGS["saturated"] | FLAGS["response_shoulder"] | FLAGS["outside_sweep"]
+
+#: A region with this share of its pixels flagged or more is flagged as a whole
+#: (:func:`region_median`).
+MAX_FLAGGED_SHARE = 0.5
 
 #: :func:`frame_flags` looks up only the NaN pixels of a band when they are fewer than one in
 #: this many (a gather per NaN pixel costs several times a lookup of the whole band's pixel).
@@ -121,7 +130,8 @@ def shoulder_mask(response_uncertainty: np.ndarray, bound: float = DEFAULT_BOUND
     ----------
     response_uncertainty : numpy.ndarray
         (n_bands, n_dn) relative uncertainty of U per DN, NaN outside the fitted range
-        (``inf`` where U is 0).
+        (``inf`` where U is 0, and where U is not determined near the top of the range: on the
+        upper branch, ``inf`` is above any bound).
     bound : float
         Largest relative uncertainty of U that is trusted.
 
@@ -153,7 +163,7 @@ def shoulder_mask(response_uncertainty: np.ndarray, bound: float = DEFAULT_BOUND
         if not finite.any():
             continue
         least = int(np.argmin(np.where(finite, unc[b], np.inf)))
-        out[b, least:] = finite[least:] & (unc[b, least:] > bound)
+        out[b, least:] = ~np.isnan(unc[b, least:]) & (unc[b, least:] > bound)  # inf: not determined
     return out
 
 
@@ -347,3 +357,81 @@ def flag_counts(quality: np.ndarray) -> list[dict[str, int]]:
         counts = {name: int(hist[codes[(codes & bit) != 0]].sum()) for name, bit in FLAGS.items()}
         out.append({k: v for k, v in counts.items() if v})
     return out
+
+
+def region_median(values: np.ndarray, quality: np.ndarray, max_flagged_share: float = MAX_FLAGGED_SHARE
+                  ) -> np.ndarray:
+    """Return the median of a region's reflectance that the quality flags do not bias.
+
+    A pixel flagged by a bit of :data:`CENSOR_HIGH` (saturated, on the response's shoulder,
+    above the sweep) counts as +inf, a pixel with another flag (or without a finite value) is
+    left out; the region is flagged as a whole (NaN) when ``max_flagged_share`` of its pixels
+    or more carry a flag.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        ``(..., n)`` reflectance of the region's ``n`` pixels (e.g. one row per band); the
+        values of flagged pixels are not read (NaN or kept, as ``--keep-flagged`` keeps them).
+    quality : numpy.ndarray
+        uint8 mask of :data:`FLAGS` bits, the shape of ``values`` (or broadcastable to it).
+    max_flagged_share : float
+        Share of flagged pixels (any bit, or not finite) from which the region is flagged, in
+        ``(0, 1]``.
+
+    Returns
+    -------
+    numpy.ndarray
+        float64 of shape ``values.shape[:-1]`` (a 0-d array for 1-d ``values``): the median,
+        NaN where the region is flagged or empty.
+
+    Raises
+    ------
+    InputError
+        When ``quality`` does not broadcast to ``values`` or ``max_flagged_share`` is not in
+        ``(0, 1]``.
+
+    Notes
+    -----
+    The shoulder flag of Eq. 15 of [1]_, ``R = U(I) / (t V S B)``, cuts a region's DN
+    distribution at a DN: of a uniform panel whose readings straddle it, the pixels left
+    valid are those whose noise read low, and the median of the valid pixels alone is biased
+    low. Their true values are not known but are above the cut, so the median of the ``m``
+    counted pixels (``v`` valid values sorted, ``c`` censored high, ``m = v + c``) is the
+    order statistic of ``v`` it would be with the censored pixels in place:
+
+    ``median = (x_(floor((m-1)/2)) + x_(floor(m/2))) / 2``, with ``x`` the sorted valid values
+    (0-based) followed by ``c`` times +inf,
+
+    unbiased as long as the censored pixels lie above the median, which holds while fewer than
+    half are censored. With ``f`` flagged pixels of ``n`` (``c`` of them censored, the rest
+    left out), the region is flagged when ``f >= max_flagged_share * n``; below the default
+    0.5, ``c < m / 2`` and the median is finite.
+
+    References
+    ----------
+    .. [1] R. Khanna, I. Sa, J. Nieto and R. Siegwart, "On Field Radiometric Calibration
+           for Multispectral Cameras", IEEE International Conference on Robotics and
+           Automation (ICRA), 2017.
+    """
+    if not 0 < max_flagged_share <= 1:
+        raise InputError(f"the flagged share of a region must be in (0, 1], got {max_flagged_share!r}")
+    v = np.asarray(values, dtype=np.float64)
+    try:
+        q = np.broadcast_to(np.asarray(quality), v.shape)
+    except ValueError:
+        raise InputError(f"quality of shape {np.shape(quality)} does not fit the values {v.shape}") from None
+    n = v.shape[-1]
+    if n == 0:
+        return np.full(v.shape[:-1], np.nan)
+    censored = (q & CENSOR_HIGH) != 0
+    valid = (q == 0) & np.isfinite(v)
+    flagged = n - np.count_nonzero(valid, axis=-1)
+    c = np.count_nonzero(censored, axis=-1)
+    m = np.count_nonzero(valid, axis=-1) + c
+    x = np.sort(np.where(valid, v, np.inf), axis=-1)  # valid values, then +inf (censored and left out)
+    lo = np.clip((m - 1) // 2, 0, n - 1)[..., None]
+    hi = np.clip(m // 2, 0, n - 1)[..., None]
+    with np.errstate(invalid="ignore"):
+        med = 0.5 * (np.take_along_axis(x, lo, -1) + np.take_along_axis(x, hi, -1))[..., 0]
+    return np.where((m > 0) & (flagged < max_flagged_share * n) & np.isfinite(med), med, np.nan)

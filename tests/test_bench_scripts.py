@@ -318,3 +318,12 @@ def test_varied_render_puts_the_eq16_row_under_each_flight_row_and_names_misses(
     assert "| 0.0040 | 0.0120 |" in lines[i] and lines[i].endswith("FAIL |")
     assert "Targets missed: flight (apply's output): gray panels, abs error (worst 0.0120)" in md
     assert varied_acc.render([one(0, 0.004)], "bench").rstrip().endswith("Every target holds on every session.")
+
+
+def test_varied_render_counts_the_panels_scored_on_a_censored_median_and_those_flagged() -> None:
+    flight = {"panel_abs_error": 0.004, "panel_cv_across_frames": 0.005, "vegetation_ndvi_error": 0.002,
+              "panels_censored": 3.0, "panels_flagged": 1.0}
+    res = varied_acc.VariedAccuracy(0, {}, {"response_max_error": 0.01}, flight, dict(flight))
+    md = varied_acc.render([res], "bench")
+    assert "| panels scored on a censored median (per frame) | 3 |" in md
+    assert "| panels half flagged or more, not scored (per frame) | 1 |" in md

@@ -14,6 +14,7 @@ import numpy as np
 import xarray as xr
 from mscal_core.alignment import mosaic_centre_offsets
 from mscal_core.errors import InputError
+from mscal_core.quality import region_median
 
 from pipeline.apply.execution import Execution
 from pipeline.apply.light import DEFAULT_MODE, varies_in_time
@@ -143,13 +144,17 @@ def index_roles(camera: Camera, index: Index) -> dict[str, int]:
 
 def normalisation(
     options: ApplyOptions, camera: Camera, frames: Sequence[str],
-    panel_reflectance: Callable[[int], np.ndarray],
+    panel_reflectance: Callable[[int], np.ndarray | tuple[np.ndarray, np.ndarray]],
 ) -> tuple[str, float | int | None]:
     """How relative reflectance is scaled: ``("none", None)``, ``("band", b)`` (per frame,
     that band's median becomes 1) or ``("scalar", k)`` (one factor from a panel of known
     reflectance, for every frame: Eq. 15's R is relative up to one scalar).
 
-    ``panel_reflectance(f)`` gives Eq. 15 reflectance (band, y, x) of frame ``f``."""
+    ``panel_reflectance(f)`` gives Eq. 15 reflectance (band, y, x) of frame ``f``, or that and
+    its quality mask: then the panel's median per band counts the pixels flagged high
+    (shoulder, saturated, above the sweep) as above it and a band half flagged or more has
+    none (:func:`mscal_core.quality.region_median`; the valid pixels alone of a panel the
+    shoulder flag cuts read low). Without the mask, the median of the finite pixels."""
     mode = options.normalise
     if mode == "relative":
         return "none", None
@@ -163,11 +168,19 @@ def normalisation(
         if p.frame not in frames:
             raise InputError(f"--panel frame {p.frame!r} is not in the flight", hint=f"frames: {', '.join(frames[:5])}, ...")
         x0, y0, x1, y1 = p.box
-        region = panel_reflectance(frames.index(p.frame))[:, y0:y1, x0:x1]
+        got = panel_reflectance(frames.index(p.frame))
+        refl, quality = got if isinstance(got, tuple) else (got, None)
+        region = refl[:, y0:y1, x0:x1]
         rho = p.reflectance.at(camera.wavelengths)
-        med = np.nanmedian(region.reshape(region.shape[0], -1), axis=1) if region.size else np.array([np.nan])
+        flat = region.reshape(region.shape[0], -1)
+        if not region.size:
+            med = np.array([np.nan])
+        elif quality is None:
+            med = np.nanmedian(flat, axis=1)
+        else:
+            med = region_median(flat, quality[:, y0:y1, x0:x1].reshape(flat.shape))
         if not np.any(np.isfinite(med) & (med > 0)):
-            raise InputError(f"--panel region of {p.frame} has no valid pixels (saturated or outside the frame)")
+            raise InputError(f"--panel region of {p.frame} has no valid pixels (saturated, flagged, or outside the frame)")
         return "scalar", float(np.nanmedian(rho / med))
     raise InputError(f"--normalise {mode!r}: use relative, band:<name or nm>, or panel")
 

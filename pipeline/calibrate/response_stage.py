@@ -65,7 +65,8 @@ UNCERTAINTY_ATTRS = {
         "noise_variance [a, b], DN^2 and DN^2 per DN), and s_fit(k) the standard deviation of log U(k) "
         "of the fit itself (its information matrix, every pixel's E marginalised, the prior included: "
         "large where few samples reach, and the step where the top of U was raised for saturated pixels "
-        "hidden below the clip). NaN outside response_dn_range; inf where U(k) = 0 (at or below black). "
+        "hidden below the clip). NaN outside response_dn_range; inf where U(k) = 0 (at or below black) and "
+        "where k + sigma_I(k) passes the top of response_dn_range (the sweep's data do not determine U there). "
         "Written by the forward response fit only (the plain alternation's bias is not modelled)."
     ),
 }

@@ -15,6 +15,7 @@ import numpy as np
 import xarray as xr
 from mscal_core import metrics
 from mscal_core.illumination import eq16_reflectance
+from mscal_core.quality import CENSOR_HIGH, FLAGS, region_median
 from mscal_core.reflectance import eq15
 
 from pipeline.calibrate.sweep import read_stack
@@ -58,13 +59,16 @@ def evaluate_calibration(session_dir: str | Path, calibration: str | Path | xr.D
 
 
 def evaluate_flight(session_dir: Path, ds: xr.Dataset, truth: Any, flight: str,
-                    reflectance: np.ndarray | None = None) -> dict[str, Any]:
+                    reflectance: np.ndarray | None = None, quality: np.ndarray | None = None) -> dict[str, Any]:
     """Eq. 15 vs Eq. 16 on one synthetic flight: panel reflectance after panel normalisation
     (one scalar per frame), NDVI of vegetation, panel consistency across frames.
 
     ``reflectance`` (frame, band, y, x) in the order of the flight's frames.csv: score that
     (e.g. apply's own output, NaN where a pixel is flagged) as the Eq. 15 figure instead of
-    Eq. 15 computed here from the calibration; only finite pixels count."""
+    Eq. 15 computed here from the calibration; only finite pixels count. ``quality``: its
+    mask (apply's ``quality``), so that a panel's median counts the pixels flagged high as
+    above it (:func:`score_flight`); None: a NaN pixel is left out, except where the DN is
+    saturated (Eq. 15 computed here)."""
     session = load_session(session_dir)
     cam = session.camera
     recs = read_frame_table(session_dir / "flights" / flight)
@@ -80,8 +84,11 @@ def evaluate_flight(session_dir: Path, ds: xr.Dataset, truth: Any, flight: str,
                         red=cam.band_for_wavelength(cam.index_bands["red"]),
                         nir=cam.band_for_wavelength(cam.index_bands["nir"]))
     if reflectance is None:
+        sat = int(ds["saturation_dn"].values.min()) if "saturation_dn" in ds else None
         reflectance = eq15(dn, ds["inverse_response"].values, t, ds["vignetting"].values, ds["spectral_factor"].values,
-                           saturation_dn=int(ds["saturation_dn"].values.min()) if "saturation_dn" in ds else None)
+                           saturation_dn=sat)
+        if quality is None and sat is not None:
+            quality = np.where(dn >= sat, np.uint8(FLAGS["saturated"]), np.uint8(0))
     # Eq. 16 baseline: exposure-normalised DN divided by the reflector's mean exposure-normalised
     # DN per band (the reflector image does not fill the frame, so a per-pixel ratio is not possible).
     rrecs = read_frame_table(session.reflector_dir)
@@ -90,7 +97,7 @@ def evaluate_flight(session_dir: Path, ds: xr.Dataset, truth: Any, flight: str,
     refl_level = np.array([np.median(rdn[b][rmask]) for b in range(cam.n_bands)])
     rho_s = session.reflector.reflectance.at(cam.wavelengths)
     r16 = np.stack([eq16_reflectance(dn[f] / t[f], refl_level, rho_s) for f in range(len(recs))]).astype(np.float32)
-    return {"frames": len(recs), "eq15": score_flight(reflectance, scene), "eq16": score_flight(r16, scene)}
+    return {"frames": len(recs), "eq15": score_flight(reflectance, scene, quality), "eq16": score_flight(r16, scene)}
 
 
 @dataclass(frozen=True)
@@ -119,51 +126,71 @@ MIN_PANEL_PIXELS, MIN_VEGETATION_PIXELS = 5, 20
 MIN_PANEL_SHARE = 0.5
 
 
-def _panel_medians(r: np.ndarray, mask: np.ndarray, full: int = 0) -> np.ndarray | None:
-    """Per-band median of the finite pixels of ``r`` (band, y, x) under ``mask``; None when a
-    band has fewer than :data:`MIN_PANEL_PIXELS` finite pixels there, or the mask has fewer
-    than :data:`MIN_PANEL_SHARE` of ``full`` pixels (the panel cut by the frame)."""
+def _panel_medians(r: np.ndarray, q: np.ndarray, mask: np.ndarray, full: int = 0) -> tuple[np.ndarray | None, np.ndarray]:
+    """Per-band median of the panel under ``mask`` in ``r`` (band, y, x) with its quality ``q``
+    (:func:`mscal_core.quality.region_median`: pixels flagged high count as above the median),
+    NaN in a band where half of it or more is flagged or fewer than :data:`MIN_PANEL_PIXELS`
+    pixels are valid; and per band how it was taken: 0 valid, 1 censored (some pixels counted
+    as above), 2 flagged. ``(None, ...)`` when the mask has fewer than :data:`MIN_PANEL_PIXELS`
+    pixels or :data:`MIN_PANEL_SHARE` of ``full`` (the panel cut by the frame: not counted) or
+    every band is flagged."""
+    nb = r.shape[0]
     n = int(mask.sum())
     if n < max(MIN_PANEL_PIXELS, MIN_PANEL_SHARE * full):
-        return None
-    vals = r[:, mask]
-    if np.any(np.isfinite(vals).sum(axis=1) < MIN_PANEL_PIXELS):
-        return None
-    return np.nanmedian(vals, axis=1)
+        return None, np.full(nb, -1)
+    vals, qs = r[:, mask], q[:, mask]
+    med = region_median(vals, qs)
+    med[np.count_nonzero((qs == 0) & np.isfinite(vals), axis=1) < MIN_PANEL_PIXELS] = np.nan
+    state = np.where(np.isfinite(med), np.where(np.any(qs & CENSOR_HIGH, axis=1), 1, 0), 2)
+    return (None if np.isnan(med).all() else med), state
 
 
-def score_flight(r: np.ndarray, scene: FlightScene) -> dict[str, float]:
+def score_flight(r: np.ndarray, scene: FlightScene, quality: np.ndarray | None = None) -> dict[str, float]:
     """Panel error, cross-frame CV and vegetation NDVI error of reflectance ``r`` (frame,
-    band, y, x) against ``scene``.
+    band, y, x) against ``scene``, and how many panel medians (one per panel, frame and band)
+    were taken on a censored median or not at all because the panel is flagged in that band.
 
-    Each frame is first normalised by one scalar: true / measured reflectance of the
-    brightest panel with enough finite pixels in every band (the white panel unless its
-    pixels are flagged), median over bands: the light's brightness B, which Eq. 15 leaves
-    out. Pixels that are not finite (flagged, saturated) do not count, nor a panel the frame
-    cuts to less than :data:`MIN_PANEL_SHARE` of it."""
+    A panel's value in a band is its median over the pixels left valid with those flagged high
+    (``quality`` bits of :data:`mscal_core.quality.CENSOR_HIGH`: saturated, shoulder, above the
+    sweep) counted as above it; a panel half flagged or more in a band counts as flagged there
+    and is not scored in that band (:func:`mscal_core.quality.region_median`: the valid pixels
+    alone of a panel the shoulder flag cuts are those whose noise read low). ``quality`` None:
+    NaN pixels are left out (flagged, not censored). Each frame is first normalised by one
+    scalar: true / measured reflectance of the brightest panel flagged in no band (the white
+    panel unless it is flagged), median over bands: the light's brightness B, which Eq. 15
+    leaves out. Nor does a panel the frame cuts to less than :data:`MIN_PANEL_SHARE` of it
+    count."""
     n = r.shape[0]
+    if quality is None:
+        quality = np.where(np.isfinite(r), np.uint8(0), np.uint8(FLAGS["no_value"]))
     order = [p for _, p in sorted(zip(scene.panel_rho, scene.panels), reverse=True)]
     rho_of = dict(zip(scene.panels, scene.panel_rho))
     full = {p: max(int(np.count_nonzero(scene.labels[f] == p)) for f in range(n)) for p in scene.panels}
     k = np.full(n, np.nan)
     for f in range(n):
         for p in order:
-            med = _panel_medians(r[f], scene.labels[f] == p, full[p])
-            if med is not None:
-                k[f] = float(np.nanmedian(rho_of[p] / med))
+            med, _ = _panel_medians(r[f], quality[f], scene.labels[f] == p, full[p])
+            if med is not None and np.isfinite(med).all():
+                k[f] = float(np.median(rho_of[p] / med))
                 break
     panel_err, cv, veg_ndvi_err = [], [], []
+    censored = flagged = 0
     for p in scene.panels:
         means = []
         for f in range(n):
-            med = _panel_medians(r[f], scene.labels[f] == p, full[p])
+            med, state = _panel_medians(r[f], quality[f], scene.labels[f] == p, full[p])
+            censored += int(np.count_nonzero(state == 1))
+            flagged += int(np.count_nonzero(state == 2))
             if med is None or not np.isfinite(k[f]):
                 continue
-            panel_err.append(float(np.max(np.abs(med * k[f] - rho_of[p]))))
+            panel_err.append(float(np.nanmax(np.abs(med * k[f] - rho_of[p]))))
             means.append(med / scene.sun[f])
         if len(means) >= 2:
             arr = np.array(means)
-            cv.append(max(metrics.coefficient_of_variation(arr[:, b]) for b in range(arr.shape[1])))
+            per_band = [metrics.coefficient_of_variation(arr[:, b]) for b in range(arr.shape[1])
+                        if np.isfinite(arr[:, b]).sum() >= 2]
+            if per_band:
+                cv.append(max(per_band))
     for f in range(n):
         m = scene.labels[f] == scene.vegetation
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -176,4 +203,6 @@ def score_flight(r: np.ndarray, scene: FlightScene) -> dict[str, float]:
         "panel_abs_error": float(max(panel_err)) if panel_err else float("nan"),
         "panel_cv_across_frames": float(max(cv)) if cv else float("nan"),
         "vegetation_ndvi_error": float(max(veg_ndvi_err)) if veg_ndvi_err else float("nan"),
+        "panels_censored": float(censored),
+        "panels_flagged": float(flagged),
     }

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from mscal_core.errors import InputError
+from mscal_core.quality import shoulder_mask
 from mscal_core.response import ResponseFit, fit_response, response_uncertainty
 from pipeline.sim.world.sensor import SensorModel
 from tests.mscal_core.test_response import make_sweep
@@ -162,3 +163,16 @@ def test_a_sweep_that_stops_short_of_the_clip_is_fitted_only_up_to_its_energies(
     unc = fit.uncertainty[k]
     assert err[unc <= 0.03].max() < 0.03
     assert np.max(err / unc) < 2.5
+
+
+def test_u_within_the_noise_of_the_data_top_is_not_determined() -> None:
+    """A reading whose noise reaches past the top of the fitted range is not trusted: inf from
+    the first DN k with k + sigma_I(k) > top (sigma 4 DN, top 1000: from DN 997), finite below."""
+    U = np.arange(1024.0)
+    u = response_uncertainty(U, 0.0, (16.0, 0.0), (0, 1000))
+    assert np.all(np.isinf(u[997:1001])) and np.all(np.isnan(u[1001:]))
+    assert u[996] == pytest.approx(4.0 / 996.0, rel=1e-9)
+    # the shoulder flag takes it as above any bound; the dim end (U = 0) is still not flagged
+    u0 = response_uncertainty(np.maximum(np.arange(1024.0) - 30.0, 0.0), 30.0, (16.0, 0.0), (0, 1000))
+    m = shoulder_mask(u0[None], 0.03)[0]
+    assert m[997:1001].all() and not m[990:997].any() and not m[:200].any()
