@@ -54,7 +54,7 @@ from pipeline.apply.execution import (
     worker_environment,
 )
 from pipeline.apply.frame_writes import WRITER_THREADS, FrameWrites  # noqa: F401  (WRITER_THREADS: re-exported)
-from pipeline.apply.quality import Flagging, finish_counted, not_coregistered, on_grid, sensor_flags
+from pipeline.apply.quality import Flagging, finish_counted, not_coregistered, on_grid, sensor_flags, warp_bits
 from pipeline.apply.stores import calibration_tables, geometry_step, read_frame_chunk, warm_calibration, write_frame
 from pipeline.ingest.camera_meta import read_capture_meta
 from pipeline.ingest.cameras.dispatch import factory_radiance
@@ -323,16 +323,24 @@ def radiometry(camera: Camera, chain: FieldChain | FactoryChain, job: Job, dn: n
 
 
 def capture_reflectance(camera: Camera, chain: FieldChain | FactoryChain, job: Job, transforms: Path | None = None,
-                        band_shift: Sequence[tuple[float, float]] | None = None) -> np.ndarray:
+                        band_shift: Sequence[tuple[float, float]] | None = None
+                        ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Reflectance (band, y, x) of one capture read from its band files, on the outputs' pixel
-    grid, before normalisation (a panel's region is measured on it); writes nothing."""
+    grid, before normalisation (a panel's region is measured on it); writes nothing. With a
+    quality mask in the chain (``chain.flagging``), that and the mask on the same grid."""
     assert job.capture is not None
     sha, dns, channels = read_capture_pixels(job.capture)
-    signal, factor, _, _, _ = radiometry(camera, chain, job, np.stack(dns), channels)
-    if transforms is not None or band_shift is not None:
-        signal = geometry_step(transforms or Path(), transforms is not None, band_shift, job.name, signal)
-    signal = upright_meta(job.capture.metas[0], signal)
-    return signal if factor is None else signal * factor.astype(np.float32)[:, None, None]
+    signal, factor, _, _, q = radiometry(camera, chain, job, np.stack(dns), channels)
+    meta = job.capture.metas[0]
+
+    def warp(stack: np.ndarray) -> np.ndarray:
+        if transforms is not None or band_shift is not None:
+            stack = geometry_step(transforms or Path(), transforms is not None, band_shift, job.name, stack)
+        return upright_meta(meta, stack)
+
+    signal = warp(signal)
+    signal = signal if factor is None else signal * factor.astype(np.float32)[:, None, None]
+    return signal if q is None else (signal, warp_bits(q, warp))
 
 
 def write_raw(plan: Plan, index: int, dn: np.ndarray) -> None:

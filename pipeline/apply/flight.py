@@ -56,7 +56,7 @@ from pipeline.apply.options import (
     normalisation,
     pass_geometry,
 )
-from pipeline.apply.quality import Flagging, checked, run_flagging
+from pipeline.apply.quality import Flagging, checked, run_flagging, sensor_flags, warp_bits
 from pipeline.apply.record import illumination_record, remove_frame_tiffs, run_fingerprint, up_to_date
 from pipeline.apply.stores import calibration_tables, geometry_step, read_frame_chunk
 from pipeline.apply.template import create_store, frame_template, product_variables
@@ -226,18 +226,25 @@ def _effective_exposure(coords: xr.Dataset) -> np.ndarray:
 def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path: Path, sat: int,
                 illum: IlluminationPlan | None = None, names: Sequence[str] = (),
                 geometry: tuple = (False, None, None), flagging: Flagging | None = None
-                ) -> Callable[[int], np.ndarray]:
+                ) -> Callable[[int], np.ndarray | tuple[np.ndarray, np.ndarray]]:
     """Eq. 15 reflectance of frame ``f`` (with its light) on the pixel grid of the
-    outputs (``geometry_step``), NaN where the run's quality mask flags a pixel unless kept."""
-    def reflectance(f: int) -> np.ndarray:
+    outputs (``geometry_step``), NaN where the run's quality mask flags a pixel unless kept;
+    with a ``flagging``, that and the frame's quality mask on the same grid (a panel's median
+    counts its pixels flagged high as above it: :func:`pipeline.apply.options.normalisation`)."""
+    def reflectance(f: int) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
         lut, inv_v = calibration_tables(str(calib_path), None if flagging is None else
                                         (sat, flagging.bound, flagging.keep_flagged))
         scale = None if illum is None else illum.scale[f][None]
-        refl = eq15_fast(plan_dn(f)[None], lut, inv_v, float(t[f]), sat, scale)[0]
+        dn = plan_dn(f)
+        refl = eq15_fast(dn[None], lut, inv_v, float(t[f]), sat, scale)[0]
+        q = None if flagging is None else sensor_flags(flagging, calib_path, sat, dn, refl)
         align, band_shift, _ = geometry
         if align or band_shift is not None:
-            refl = geometry_step(calib_path, align, band_shift, str(names[f]), refl)
-        return refl
+            def warp(stack: np.ndarray) -> np.ndarray:
+                return geometry_step(calib_path, align, band_shift, str(names[f]), stack)
+            refl = warp(refl)
+            q = None if q is None else warp_bits(q, warp)
+        return refl if q is None else (refl, q)
     return reflectance
 
 

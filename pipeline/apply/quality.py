@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 import numpy as np
 from mscal_core.quality import DEFAULT_BOUND, FLAGS, SPARSE, flag_counts, frame_flags
@@ -144,13 +144,26 @@ def on_grid(plan: Plan, job: Job, q: np.ndarray) -> np.ndarray:
                                   job.name, stack)
         return stack
 
-    out = np.zeros(q.shape, np.uint8)
+    return warp_bits(q, warp)
+
+
+def warp_bits(q: np.ndarray, warp: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+    """A quality mask (band, y, x) through ``warp`` (any resampling of a float32 stack the
+    reflectance takes): each bit's image (0 or the bit's value) warped, set where a flagged pixel contributes
+    (above 1e-3), so a pixel is flagged where NaN would reach it. A mask without bits is warped
+    as zeros (the shape may change, e.g. an upright rotation)."""
+    out: np.ndarray | None = None
     for bit in FLAGS.values():
         has = np.bitwise_and(q, bit)
         if not has.any():
             continue
         with np.errstate(invalid="ignore"):
-            out[warp(has.astype(np.float32)) > 1e-3 * bit] |= bit
+            moved = warp(has.astype(np.float32)) > 1e-3 * bit
+        if out is None:
+            out = np.zeros(moved.shape, np.uint8)
+        out[moved] |= bit
+    if out is None:
+        out = np.zeros(warp(np.zeros(q.shape, np.float32)).shape, np.uint8)
     return out
 
 
