@@ -42,6 +42,7 @@ import dask
 import dask.threaded
 import numpy as np
 from mscal_core.errors import FrameError, InputError, ProcessesUnavailable
+from mscal_core.quality import CENSOR_HIGH, region_median
 from mscal_core.reflectance import eq15_fast, vegetation_mask
 
 from pipeline.apply.bandgrid import grid_and_residuals
@@ -484,7 +485,13 @@ def _write_products(plan: Plan, job: Job, dn: np.ndarray, sha: str | None, signa
     if kind == "scalar":
         refl *= np.float32(value)
     elif kind == "band":
-        med = np.nanmedian(refl[int(value)])
+        b, q = int(value), quality[0]
+        if q is not None and np.bitwise_and(q[b], CENSOR_HIGH).any():
+            # the band's pixels flagged high count as above its median (their values are NaN
+            # or not defensible): the valid pixels alone would read low
+            med = float(region_median(refl[b].ravel(), q[b].ravel()))
+        else:
+            med = np.nanmedian(refl[b])
         refl *= np.float32(1.0 / med) if np.isfinite(med) and med > 0 else np.float32(np.nan)
     q, residuals, moved = quality
     flagged = None

@@ -152,3 +152,25 @@ def test_normalise_panel_counts_the_panels_flagged_pixels_as_above_it(harsh, tmp
     scaled = xr.open_zarr(out / "reflectance.zarr")["reflectance"].values
     ok = np.isfinite(refl) & (refl > 0.05)
     np.testing.assert_allclose(np.median(scaled[ok] / refl[ok]), k_censored, rtol=1e-5)
+
+
+def test_normalise_band_counts_the_bands_flagged_pixels_as_above_its_median(harsh, tmp_path) -> None:
+    """``--normalise band:NAME`` divides each frame by the band's median with its pixels
+    flagged high counted as above it (its valid pixels alone read low)."""
+    from mscal_core.quality import CENSOR_HIGH, region_median
+
+    ds = xr.open_zarr(harsh["default"] / "reflectance.zarr")
+    q, refl = ds["quality"].values, ds["reflectance"].values
+    high = np.bitwise_and(q, CENSOR_HIGH) != 0
+    b = int(np.argmax(high.sum(axis=(0, 2, 3))))  # the band flagged high most often
+    name = str(ds["band_name"].values[b])
+    want = np.array([1.0 / float(region_median(refl[f, b].ravel(), q[f, b].ravel())) for f in range(len(refl))])
+    plain = np.array([1.0 / np.nanmedian(refl[f, b]) for f in range(len(refl))])
+    assert np.abs(want / plain - 1).max() > 1e-3  # the flags move this band's median
+    out = tmp_path / "band"
+    assert main(["-q", "apply", str(harsh["session"] / "flights" / "field"), "--calibration", str(harsh["calib"]),
+                 "-o", str(out), "--normalise", f"band:{name}"]) == 0
+    scaled = xr.open_zarr(out / "reflectance.zarr")["reflectance"].values
+    for f in range(len(refl)):
+        ok = np.isfinite(refl[f]) & (refl[f] > 0.05)
+        np.testing.assert_allclose(np.median(scaled[f][ok] / refl[f][ok]), want[f], rtol=1e-5)
