@@ -57,7 +57,7 @@ def test_the_sweep_ends_where_stop_fraction_puts_it() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [4, 5, 6, 7])
+@pytest.mark.parametrize("seed", [4, 5, pytest.param(6, marks=pytest.mark.long), pytest.param(7, marks=pytest.mark.long)])
 def test_no_dn_above_the_knee_left_unflagged_is_far_off(seed) -> None:
     """The response fit of a harsh sweep, every other band: where the flags (bound 0.03, the
     fitted range) leave a DN above the knee unflagged, U is within 0.04 of the truth (up to
