@@ -122,7 +122,7 @@ from pipeline.apply.sunlight import (
     readings_missing,
 )
 from pipeline.ingest.camera_meta import METADATA_READING
-from pipeline.ingest.cameras.dispatch import factory_radiance
+from pipeline.ingest.cameras.dispatch import factory_models, factory_radiance, takes_field_parts
 from pipeline.ingest.cameras.dji import FACTORY_ALIGNMENT_NOTE, has_factory_alignment
 from pipeline.ingest.catalog import Camera, reflectance_option
 from pipeline.ingest.grouping import Capture, read_capture_pixels
@@ -579,12 +579,15 @@ def _alignment_record(options: FactoryOptions, own: bool, captures: Sequence[Cap
 
 def _identify(folder: Path, options: FactoryOptions) -> Identification:
     """The folder's camera (``--camera``, else recognised from the files); ``--field-calibration``
-    refused up front for a camera without MicaSense's radiance model (its parts are MicaSense's)."""
+    refused up front for a camera whose radiance model takes no field calibration's parts
+    (:func:`pipeline.ingest.cameras.dispatch.takes_field_parts`)."""
     ident = identify_camera(folder, options.camera)
     camera = ident.camera
-    if options.field_calibration is not None and camera.factory_model not in (None, "micasense"):
-        raise InputError(f"--field-calibration replaces parts of MicaSense's radiance model; camera {camera.name} "
-                         f"has the {camera.factory_model} model", path=folder, hint="leave out --field-calibration")
+    if options.field_calibration is not None and not takes_field_parts(camera.factory_model):
+        takes = ", ".join(m for m in factory_models() if takes_field_parts(m)) or "none"
+        raise InputError(f"--field-calibration replaces parts of a factory radiance model that takes them ({takes}); "
+                         f"camera {camera.name} has the {camera.factory_model} model", path=folder,
+                         hint="leave out --field-calibration")
     return ident
 
 

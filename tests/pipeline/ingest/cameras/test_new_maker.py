@@ -222,8 +222,6 @@ MAKER_WORDS = ("micasense", "parrot", "sequoia", "dji", "sentera", "rededge", "a
 KNOWN_BRANCHES = {
     "pipeline/apply/captures.py": 1,  # MicaSense:CaptureId written only for MicaSense (an output format)
     "pipeline/apply/executor.py": 1,  # thermal TIFFs: a band of radiometry "thermal" (registry.radiance_unit "K" would say it)
-    "pipeline/apply/factory.py": 1,  # --field-calibration: dispatch.takes_field_parts says it
-    "pipeline/run/card.py": 1,  # factory+field: dispatch.takes_field_parts says it
 }
 
 
