@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import tifffile
 
-from mscal_core.errors import FrameError
+from mscal_core.errors import FrameError, InputError
 from pipeline.calibrate.library import file_serial
 from pipeline.ingest import catalog
 from pipeline.ingest.camera_meta import read_file_metas, sun_sensor_xmp
@@ -215,6 +215,10 @@ def test_a_new_makers_flight_is_applied_with_its_sun_sensor(acme, tmp_path) -> N
     with tifffile.TiffFile(out / "photogrammetry" / "ACME_0002_NIR.tif") as tif:
         packet = tif.pages[0].tags[700].value.decode()
     assert 'xmlns:Acme="http://acme.example/camera/1.0/"' in packet and "<Acme:Shot>shot-2</Acme:Shot>" in packet
+    # its model takes no field calibration's parts: --field-calibration refused before any store is opened
+    with pytest.raises(InputError, match=r"takes them \(micasense\); camera acme-duo has the acme model"):
+        apply_factory(acme, tmp_path / "field", FactoryOptions(reference="dls", field_calibration="missing.zarr"))
+    assert not (tmp_path / "field").exists()
     with xr.open_zarr(out / "reflectance.zarr") as ds:
         assert list(ds["band_name"].values) == ["Green", "NIR"]
         refl = ds["reflectance"].values
