@@ -64,6 +64,7 @@ from pipeline.apply.record import (
 from pipeline.apply.template import create_store, frame_template, product_variables
 from pipeline.calibrate.registration import check_transforms
 from pipeline.ingest.camera_meta import METADATA_READING
+from pipeline.ingest.cameras.registry import capture_id_output
 from pipeline.ingest.catalog import Camera, Index
 from pipeline.ingest.gps import without_unreachable
 from pipeline.ingest.grouping import Capture, capture_folder_of, capture_pattern, companion_images, group_captures
@@ -206,18 +207,21 @@ def capture_tags(camera: Camera, capture: Capture) -> FrameTags:
     """Photogrammetry tags of a capture: its first band file's time, position, EXIF Make and
     Model and XMP RigName, the median exposure; ``Camera:CaptureUUID`` the source's own when
     it is one (32 hex digits: Parrot, DJI), else derived from its capture id (the same on
-    every run, shared by its bands); MicaSense captures keep their ``MicaSense:CaptureId``."""
+    every run, shared by its bands); a capture whose files carry their own id keeps it in the
+    XMP property its maker names (:attr:`pipeline.ingest.cameras.registry.Maker.capture_id_output`:
+    MicaSense's ``MicaSense:CaptureId``)."""
     m = capture.metas[0]
     cid = str(capture.capture_id)
     own = cid.replace("-", "")
     derived = str(uuid.uuid5(uuid.NAMESPACE_URL, f"mscal:{camera.name}:{cid}"))
     make = m.make or (camera.identify.make if camera.identify is not None else "unknown")
+    out_tag = capture_id_output(m.radiometry)
     return FrameTags(
         time=m.time, lat=m.lat, lon=m.lon, alt_m=m.alt_m,
         capture_uuid=own if _UUID_HEX.match(own) else derived,
         exposure_ms=float(np.median([x.exposure_s * 1e3 for x in capture.metas])),
         camera_make=make, camera_model=m.model or camera.name, rig_name=m.rig_name or m.model or camera.name,
-        micasense_capture_id=cid if make.casefold() == "micasense" and cid != capture.name else None,
+        maker_tags=((*out_tag, cid),) if out_tag is not None and cid != capture.name else (),
     )
 
 

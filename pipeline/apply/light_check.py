@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.apply.captures import capture_times, find_captures
-from pipeline.apply.factory import panel_reference
+from pipeline.apply.factory_reference import panel_reference
 from pipeline.apply.sunlight import panel_sensor_light
 from pipeline.ingest.catalog import reflectance_option
 from pipeline.ingest.grouping import read_capture_pixels

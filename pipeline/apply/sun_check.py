@@ -1,16 +1,15 @@
 """Sun-sensor magnitudes checked against the sky (run.json ``sun_sensor_check``).
 
-Each absolute sun-sensor reading (MicaSense, W m-2 nm-1 after the file's unit rule, made
-horizontal by :func:`pipeline.ingest.sunsensor.sensor_light`) is compared with the clear sky's
-spectral irradiance at the capture's sun elevation and the band's wavelength
-(:mod:`pipeline.ingest.clear_sky`). MicaSense documents two unit rules that disagree on DLS 2
-files without ``IrradianceScaleToSIUnits``: its library (micasense/imageprocessing
-``metadata.py`` ``irradiance_scale_factor()``) takes their irradiance tags in uW cm-2 nm-1 (x
-0.01), but a RedEdge-M with firmware 7.4.0 and a DLS 2 v1.3.0 wrote ``SpectralIrradiance`` 0.77
-and ``HorizontalIrradiance`` 0.20 already in W m-2 nm-1 at a sun elevation of 8.5 degrees: read
-x 0.01 they were 80 times too low against the flight's own panel. For those files the rule whose
-value is plausible and closest to the clear sky is taken (:func:`pipeline.ingest.clear_sky.
-choose_rule`); every other file has one rule, checked the same way. A reading no rule puts in
+Each absolute sun-sensor reading (W m-2 nm-1 after the file's unit rule, made horizontal by
+:func:`pipeline.ingest.sunsensor.sensor_light`) is compared with the clear sky's spectral
+irradiance at the capture's sun elevation and the band's wavelength
+(:mod:`pipeline.ingest.clear_sky`). The unit rules are the band's maker's
+(:attr:`pipeline.ingest.cameras.registry.Maker.sun_unit_rules`; a maker without any: one rule,
+W m-2 nm-1 as read). Where a maker documents several that disagree (MicaSense's DLS 2 files
+without ``IrradianceScaleToSIUnits``:
+:func:`pipeline.ingest.cameras.micasense.dls_unit_rules`), the rule whose value is plausible and
+closest to the clear sky is taken (:func:`pipeline.ingest.clear_sky.choose_rule`); every other
+file has one rule, checked the same way. A reading no rule puts in
 :data:`pipeline.ingest.clear_sky.PLAUSIBLE_RATIO` is warned (``sun_sensor_implausible``, in
 run.json ``light.warnings``: the summary and the report). Relative sensors (DJI, Sequoia) are
 not in W m-2 nm-1: not checked.
@@ -26,16 +25,12 @@ from typing import Any, Sequence
 import numpy as np
 
 from pipeline.ingest.camera_meta import sun_sensor_xmp
+from pipeline.ingest.cameras.registry import sun_unit_rules
 from pipeline.ingest.clear_sky import MODEL, PLAUSIBLE_RATIO, choose_capture_rule, choose_rule, clear_sky_spectral
 from pipeline.ingest.grouping import Capture
 from pipeline.ingest.meta import CaptureMeta
 from pipeline.ingest.sun_scale import sun_scale
 from pipeline.ingest.sunsensor import SensorLight, file_xmp
-from pipeline.ingest.xmp import TagError
-
-MICASENSE_NS = ("Camera", "MicaSense", "DLS")
-LIBRARY_RULE = "x 0.01: uW cm-2 nm-1 (MicaSense library, DLS 2 without IrradianceScaleToSIUnits)"
-AS_WRITTEN_RULE = "x 1: W m-2 nm-1 as written (DLS 2 firmware that wrote SI units without the scale tag)"
 
 
 @dataclass(frozen=True)
@@ -67,18 +62,10 @@ class SunCheck:
 
 
 def unit_rules(meta: CaptureMeta) -> tuple[dict[str, float], float]:
-    """A MicaSense band file's unit rules ``{rule: scale to W m-2 nm-1}`` and the scale the
-    reader applied (:func:`pipeline.ingest.cameras.micasense.irradiance_scale`)."""
-    x = sun_sensor_xmp(meta) or file_xmp(meta.path)
-    try:
-        v = x.numbers("IrradianceScaleToSIUnits", MICASENSE_NS)
-    except TagError:
-        v = None
-    if v is not None and math.isfinite(v[0]) and v[0] > 0:
-        return {f"x {v[0]:g}: XMP IrradianceScaleToSIUnits": float(v[0])}, float(v[0])
-    if x.has("HorizontalIrradiance", MICASENSE_NS):
-        return {LIBRARY_RULE: 0.01, AS_WRITTEN_RULE: 1.0}, 0.01
-    return {"x 1: W m-2 nm-1 (DLS 1)": 1.0}, 1.0
+    """A band file's unit rules ``{rule: scale to W m-2 nm-1}`` and the scale the reader applied:
+    its maker's (:func:`pipeline.ingest.cameras.registry.sun_unit_rules`, from the sun-sensor XMP
+    kept on ``meta``, else the file's), one rule x 1 for a maker without any."""
+    return sun_unit_rules(meta.radiometry, lambda: sun_sensor_xmp(meta) or file_xmp(meta.path))
 
 
 def sun_sensor_check(captures: Sequence[Capture], sensor: SensorLight, times: np.ndarray,
@@ -145,4 +132,4 @@ def _warning(bad: Sequence[tuple[str, str, float, float]], n: int) -> dict[str, 
                        "is suspect (run.json sun_sensor_check); check its unit tags, or use a panel"}
 
 
-__all__ = ["AS_WRITTEN_RULE", "LIBRARY_RULE", "SunCheck", "sun_sensor_check", "unit_rules"]
+__all__ = ["SunCheck", "sun_sensor_check", "unit_rules"]

@@ -33,6 +33,7 @@ from typing import Any, Iterable
 from mscal_core.errors import CalibrationStoreError, FrameError, InputError, MscalError, SessionError
 
 from pipeline.ingest.camera_meta import read_file_metas
+from pipeline.ingest.cameras.registry import serial_tags
 from pipeline.ingest.captures import read_frames
 from pipeline.ingest.catalog import Camera, load_camera, read_yaml
 from pipeline.ingest.exif import EXIF_CODES, as_utc, parse_utc
@@ -72,11 +73,6 @@ UNKNOWN_SERIAL = "unknown"
 CALIBRATION_FOLDERS = ("response", "vignetting", "reflector")
 #: TIFF tag 50735, DNG CameraSerialNumber (read where EXIF BodySerialNumber is missing).
 DNG_CAMERA_SERIAL = 50735
-#: XMP properties holding the camera's serial number, (namespace key, name), tried in order:
-#: DJI's ``drone-dji:CameraSerialNumber`` ("Camera SN", DJI Mavic 3M user manual, photo file
-#: fields). MicaSense and Parrot write the camera's serial in EXIF; their XMP serials
-#: (``DLS:Serial``, ``Camera:SunshineSerialNumber``) are the sun sensor's, not the camera's.
-XMP_SERIAL_TAGS = (("drone-dji", "CameraSerialNumber"),)
 INDEX_FIX = ("move it aside or delete it; the next calibration recorded starts a new index, and the stores "
              "already copied are found again once their sessions are calibrated again")
 _ENTRY_KEYS = {"camera": str, "serial": (str, type(None)), "session_time": (str, type(None)), "fitted_utc": str,
@@ -121,7 +117,12 @@ def _text(value: Any) -> str | None:
 
 
 def _xmp_serial(xmp: Xmp) -> str | None:
-    for ns, name in XMP_SERIAL_TAGS:
+    """The camera's serial in the first of the makers' XMP serial tags the packet has
+    (:attr:`pipeline.ingest.cameras.registry.Maker.serial_tags`: DJI's
+    ``drone-dji:CameraSerialNumber``). MicaSense and Parrot write the camera's serial in EXIF;
+    their XMP serials (``DLS:Serial``, ``Camera:SunshineSerialNumber``) are the sun sensor's,
+    not the camera's, and are named by no maker."""
+    for ns, name in serial_tags():
         serial = _text(xmp.text(name, (ns,)))
         if serial is not None:
             return serial
@@ -131,7 +132,7 @@ def _xmp_serial(xmp: Xmp) -> str | None:
 def file_serial(path: str | Path) -> str | None:
     """The camera serial number a frame file carries: EXIF ``BodySerialNumber``, else TIFF tag
     50735 (the tags :attr:`CaptureMeta.serial` is read from), else the maker's XMP serial
-    (:data:`XMP_SERIAL_TAGS`); None for a file without one (PNG frames, cameras that write
+    (:func:`pipeline.ingest.cameras.registry.serial_tags`); None for a file without one (PNG frames, cameras that write
     none). :class:`FrameError` for a TIFF or JPEG that cannot be read."""
     path = Path(path)
     suffix = path.suffix.lower()

@@ -27,8 +27,9 @@ frame (``write_ndvi_tiff``), each carrying the metadata these tools read:
   attributes of ``rdf:Description`` (OpenDroneMap looks them up only in that attribute form,
   ``@Camera:CaptureUUID``), ``Camera:RigName``, the lens model of the source
   (``Camera:ModelType``, ``PrincipalPoint``, ``PerspectiveFocalLength`` (+ ``Units``),
-  ``PerspectiveDistortion``, the fisheye tags), MicaSense's ``MicaSense:CaptureId`` for
-  MicaSense captures, and the reflectance marker below.
+  ``PerspectiveDistortion``, the fisheye tags), the source's capture id in the property its
+  maker names (``FrameTags.maker_tags``: MicaSense's ``MicaSense:CaptureId`` for MicaSense
+  captures), and the reflectance marker below.
 
 Reflectance, not raw DN (the marker). OpenDroneMap has no tag meaning "already calibrated": it
 calibrates when run with ``--radiometric-calibration camera|camera+sun`` (default ``none``),
@@ -107,7 +108,6 @@ REFLECTANCE_SCALE = 32768.0
 NODATA_UINT16 = 65535
 """uint16 value of NaN (saturated / invalid) pixels; valid data is clipped to 0 .. 65534."""
 XMP_CAMERA_NS = "http://pix4d.com/camera/1.0/"
-XMP_MICASENSE_NS = "http://micasense.com/MicaSense/1.0/"
 XMP_MSCAL_NS = "urn:mscal:xmp:1.0/"
 """mscal's own XMP namespace (a URN: no web page behind it) for what the pixels hold."""
 SOFTWARE = f"mscal {mscal_core.__version__}"
@@ -129,7 +129,9 @@ class FrameTags:
     camera_make: str
     camera_model: str
     rig_name: str | None = None  # XMP Camera:RigName of the source, else the camera's catalog name
-    micasense_capture_id: str | None = None  # the source's XMP MicaSense:CaptureId (MicaSense captures)
+    #: XMP text properties of the source's maker, ``(prefix, namespace URI, name, value)``: the
+    #: capture id where it names one (MicaSense:CaptureId, Maker.capture_id_output)
+    maker_tags: tuple[tuple[str, str, str, str], ...] = ()
 
 
 @dataclass(frozen=True)
@@ -284,12 +286,14 @@ def _check_band_name(name: str) -> None:
 
 def build_xmp(
     *, band_name: str, capture_uuid: str, wavelength_nm: float | None = None, fwhm_nm: float | None = None,
-    rig_camera_index: int | None = None, rig_name: str | None = None, micasense_capture_id: str | None = None,
+    rig_camera_index: int | None = None, rig_name: str | None = None,
+    maker_tags: tuple[tuple[str, str, str, str], ...] = (),
     optics: CameraOptics | None = None, quantity: str = "reflectance", scale: float | None = None,
     nodata: str | None = None,
 ) -> bytes:
-    """The XMP packet (UTF-8) of one band file: the Pix4D ``Camera`` tags, MicaSense's
-    capture id, the lens model of ``optics`` and the reflectance marker (module docstring)."""
+    """The XMP packet (UTF-8) of one band file: the Pix4D ``Camera`` tags, the maker's
+    properties ``maker_tags`` (``(prefix, namespace URI, name, value)``: MicaSense's capture id),
+    the lens model of ``optics`` and the reflectance marker (module docstring)."""
     attrs = [f"Camera:CaptureUUID={quoteattr(str(capture_uuid))}"]
     if rig_camera_index is not None:
         attrs.append(f'Camera:RigCameraIndex="{int(rig_camera_index)}"')
@@ -317,9 +321,14 @@ def build_xmp(
         body += text(f"Camera:{tag}", value)
     body += text("Camera:HorizontalIrradiance", repr(MARKER_IRRADIANCE))
     ns = f'xmlns:Camera="{XMP_CAMERA_NS}"\n    xmlns:mscal="{XMP_MSCAL_NS}"'
-    if micasense_capture_id:
-        ns += f'\n    xmlns:MicaSense="{XMP_MICASENSE_NS}"'
-        body += text("MicaSense:CaptureId", micasense_capture_id)
+    declared = {"Camera", "mscal"}
+    for prefix, uri, name, value in maker_tags:
+        if not value:
+            continue
+        if prefix not in declared:
+            ns += f'\n    xmlns:{prefix}={quoteattr(uri)}'
+            declared.add(prefix)
+        body += text(f"{prefix}:{name}", value)
     attr_text = "\n    ".join(attrs)
     text_all = (
         '<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
@@ -598,7 +607,7 @@ def band_tiff_parts(reflectance: np.ndarray, frame: FrameTags, band: BandTags, *
     xmp = build_xmp(
         band_name=band.name, capture_uuid=frame.capture_uuid, wavelength_nm=band.wavelength_nm,
         fwhm_nm=band.fwhm_nm, rig_camera_index=band.rig_camera_index, rig_name=frame.rig_name,
-        micasense_capture_id=frame.micasense_capture_id, optics=band.optics, scale=scale or 1.0, nodata=nodata,
+        maker_tags=frame.maker_tags, optics=band.optics, scale=scale or 1.0, nodata=nodata,
     )
     meta = _gdal_metadata(band.name, scale=scale, wavelength_nm=band.wavelength_nm, fwhm_nm=band.fwhm_nm)
     what = (f"reflectance x {REFLECTANCE_SCALE:g}, {NODATA_UINT16} = no data" if scale is not None
@@ -624,7 +633,7 @@ def ndvi_tiff_parts(ndvi: np.ndarray, frame: FrameTags) -> list:
     if arr.ndim != 2:
         raise ValueError(f"ndvi must be (H, W), got shape {arr.shape}")
     xmp = build_xmp(band_name="NDVI", capture_uuid=frame.capture_uuid, rig_name=frame.rig_name,
-                    micasense_capture_id=frame.micasense_capture_id, quantity="ndvi", nodata="nan")
+                    maker_tags=frame.maker_tags, quantity="ndvi", nodata="nan")
     meta = _gdal_metadata("ndvi", scale=None, wavelength_nm=None, fwhm_nm=None)
     return _tiff_parts(arr.astype(np.float32, copy=False), frame, xmp=xmp, gdal_metadata=meta, nodata="nan",
                        description=f"NDVI, NaN = no data ({SOFTWARE})")

@@ -38,6 +38,7 @@ from typing import Annotated, Any
 import numpy as np
 from mscal_core.errors import InputError, MscalError, SessionError
 
+from pipeline.ingest.cameras.dispatch import takes_field_parts
 from pipeline.ingest.catalog import Camera, load_camera, read_yaml, reflectance_option
 from pipeline.ingest.exif import parse_utc
 from pipeline.ingest.products import yaml_choice
@@ -210,8 +211,9 @@ def _set_names(set_dirs: list[Path], root: Path) -> dict[Path, str]:
 
 def _calibration(settings: CardSettings, camera: Camera, serial: str | None, factory: bool, start: str | None,
                  library_root: Path | None, folder: Path) -> tuple[str, str | None, str]:
-    """``(kind, store, why)`` of one flight: factory, factory+field (MicaSense's model with the
-    field response and vignetting) or field (Eq. 15 with the store's U, V, S)."""
+    """``(kind, store, why)`` of one flight: factory, factory+field (a factory model that takes
+    the field response and vignetting, :func:`pipeline.ingest.cameras.dispatch.takes_field_parts`:
+    MicaSense's) or field (Eq. 15 with the store's U, V, S)."""
     store, why = None, ""
     if settings.field_calibration == NO_FIELD:
         why = f"session.yaml field_calibration: {NO_FIELD}"
@@ -240,7 +242,7 @@ def _calibration(settings: CardSettings, camera: Camera, serial: str | None, fac
         return "factory", None, why
     if not factory:
         return "field", store, why
-    if camera.factory_model == "micasense":
+    if takes_field_parts(camera.factory_model):
         return "factory+field", store, why
     return "factory", None, (f"{why}; not used: the {camera.factory_model} radiance model takes no field components, "
                              "factory radiometry used")

@@ -257,4 +257,6 @@ MAKER = register(Maker(
     capture_id_tags=(("drone-dji", "CaptureUUID"),),
     time_tags=(("drone-dji", "UTCAtExposure"),),  # UTC, more precise than EXIF DateTimeOriginal (pipeline.ingest.exif)
     intrinsics=dewarp_intrinsics, vignetting_tags="XMP drone-dji:VignettingData",
+    # the camera body's serial ("Camera SN", DJI Mavic 3M user manual, photo file fields)
+    serial_tags=(("drone-dji", "CameraSerialNumber"),),
 ))

@@ -11,7 +11,8 @@ model, DLS sun sensor and quirks.
 - **Sun sensor**: DLS 1 ``Camera:Irradiance``, DLS 2 ``HorizontalIrradiance`` with its scale;
   the fixed scale ``R = pi L / E`` (:data:`SUN_SCALES`), the DLS's orientation
   (:data:`ATTITUDE`) and DLS 2's measured direct/scattered split (:func:`dls2_split`,
-  :func:`dls2_correction`), for :mod:`pipeline.ingest.sunsensor`.
+  :func:`dls2_correction`), for :mod:`pipeline.ingest.sunsensor`; the unit rules of its
+  readings (:func:`dls_unit_rules`), checked against the clear sky by :mod:`pipeline.apply.sun_check`.
 - **Quirks**: legacy RedEdge firmware's wrong shortest exposure; Altum's LWIR band (thermal,
   centi-kelvin DN) and a panchromatic band, read but kept out of reflectance.
 
@@ -167,6 +168,35 @@ def irradiance_scale(ctx: TagContext) -> float | None:
     return ctx.optional("sun_sensor", read)
 
 
+#: The DLS's irradiance tags' namespaces.
+DLS_NS = ("Camera", "MicaSense", "DLS")
+#: The two unit rules MicaSense documents for DLS 2 files without ``IrradianceScaleToSIUnits``
+#: (:func:`dls_unit_rules`).
+LIBRARY_RULE = "x 0.01: uW cm-2 nm-1 (MicaSense library, DLS 2 without IrradianceScaleToSIUnits)"
+AS_WRITTEN_RULE = "x 1: W m-2 nm-1 as written (DLS 2 firmware that wrote SI units without the scale tag)"
+DLS1_RULE = "x 1: W m-2 nm-1 (DLS 1)"
+
+
+def dls_unit_rules(x: Xmp) -> tuple[dict[str, float], float]:
+    """A MicaSense band file's unit rules ``{rule: scale to W m-2 nm-1}`` and the scale the
+    reader applied (:func:`irradiance_scale`), for :mod:`pipeline.apply.sun_check`: the file's
+    ``IrradianceScaleToSIUnits`` when it has a positive one; else, for DLS 2's
+    ``HorizontalIrradiance``, two rules that disagree: micasense/imageprocessing ``metadata.py``
+    ``irradiance_scale_factor()`` takes the tags in uW cm-2 nm-1 (x 0.01, the reader's), but a
+    RedEdge-M with firmware 7.4.0 and a DLS 2 v1.3.0 wrote ``SpectralIrradiance`` 0.77 and
+    ``HorizontalIrradiance`` 0.20 already in W m-2 nm-1 at a sun elevation of 8.5 degrees (read
+    x 0.01 they were 80 times too low against the flight's own panel); else DLS 1, x 1."""
+    try:
+        v = x.numbers("IrradianceScaleToSIUnits", DLS_NS)
+    except TagError:
+        v = None
+    if v is not None and math.isfinite(v[0]) and v[0] > 0:
+        return {f"x {v[0]:g}: XMP IrradianceScaleToSIUnits": float(v[0])}, float(v[0])
+    if x.has("HorizontalIrradiance", DLS_NS):
+        return {LIBRARY_RULE: 0.01, AS_WRITTEN_RULE: 1.0}, 0.01
+    return {DLS1_RULE: 1.0}, 1.0
+
+
 
 def _band_only(ctx: TagContext, band: str, radiometry: str) -> CaptureMeta:
     """A band read for what it is but never part of reflectance: LWIR (Altum, Altum-PT;
@@ -271,7 +301,7 @@ def dls2_correction(x: Xmp, split: SunSplit, elevation: float) -> float | None:
 
 #: The XMP properties the DLS hooks read (:data:`ATTITUDE`, :func:`dls2_split`,
 #: :func:`dls2_correction`) and the unit check of its readings
-#: (:func:`irradiance_scale`'s tags), kept on each band's metadata.
+#: (:func:`irradiance_scale`'s tags, :func:`dls_unit_rules`), kept on each band's metadata.
 SUN_SENSOR_XMP = frozenset({
     "Yaw", "Pitch", "Roll", "IrradianceYaw", "IrradiancePitch", "IrradianceRoll", "Irradiance",
     "DirectIrradiance", "ScatteredIrradiance", "HorizontalIrradiance", "IrradianceScaleToSIUnits",
@@ -285,6 +315,9 @@ MAKER = register(Maker(
     radiance=band_radiance, vignetting=band_vignetting, order=0, fallback=True,
     sun_sensor_tag="XMP Camera:Irradiance (DLS 1) or DLS:HorizontalIrradiance (DLS 2)",
     sun_scales=SUN_SCALES, attitude=ATTITUDE, sun_split=dls2_split, split_correction=dls2_correction,
-    sun_sensor_xmp=SUN_SENSOR_XMP, kept_out=KEPT_OUT, capture_id_tags=(("MicaSense", "CaptureId"),),
+    sun_sensor_xmp=SUN_SENSOR_XMP, sun_unit_rules=dls_unit_rules, kept_out=KEPT_OUT,
+    capture_id_tags=(("MicaSense", "CaptureId"),),
     vignetting_tags="XMP VignettingCenter/VignettingPolynomial or VignettingPolynomial2D", field_parts=True,
+    # OpenDroneMap's opendm/photo.py reads a capture's id from MicaSense:CaptureId, among others
+    capture_id_output=("MicaSense", "http://micasense.com/MicaSense/1.0/", "CaptureId"),
 ))

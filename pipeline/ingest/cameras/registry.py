@@ -81,7 +81,10 @@ class Maker:
     the XMP properties these hooks read (kept on each band's metadata when its file is read, so
     the sun sensor reads no file twice: :func:`sun_sensor_xmp_names`); ``no_reflectance(meta)``
     the maker's own reason why a band's sun sensor gives no reflectance (None: the shared reason,
-    :func:`pipeline.ingest.meta.no_reflectance_reason`).
+    :func:`pipeline.ingest.meta.no_reflectance_reason`); ``sun_unit_rules(xmp)`` the unit rules of
+    an absolute sensor's reading, ``({rule: scale to W m-2 nm-1}, scale its reader applied)``, that
+    :mod:`pipeline.apply.sun_check` chooses between against the clear sky (None: the reading is
+    in W m-2 nm-1 as read, :data:`AS_READ_RULE`).
 
     Other tags: ``kept_out`` the radiometries of bands read but never part of reflectance
     (thermal, panchromatic); ``capture_id_tags`` the ``(namespace, name)`` XMP tags holding a
@@ -93,7 +96,14 @@ class Maker:
     calibration's response and/or vignetting (:class:`~pipeline.ingest.meta.FieldParts`) in
     place of the factory's; ``namespaces`` its own XMP namespaces (key: URIs, compared without a
     trailing slash), which files are parsed with once it is registered
-    (:func:`pipeline.ingest.xmp.namespace_key`).
+    (:func:`pipeline.ingest.xmp.namespace_key`); ``serial_tags`` the ``(namespace, name)`` XMP
+    tags holding the camera body's serial number where EXIF has none (tried for every file, in
+    maker order: :func:`pipeline.calibrate.library.file_serial`).
+
+    Outputs: ``capture_id_output`` the XMP property ``(prefix, namespace URI, local name)`` the
+    photogrammetry TIFFs of its captures carry the source's capture id in, for tools that look
+    it up by that literal name (OpenDroneMap's ``MicaSense:CaptureId``); written when a capture's
+    id is the files' own (not its file name): :func:`pipeline.apply.captures.capture_tags`.
     """
 
     name: str
@@ -116,6 +126,7 @@ class Maker:
     compensated_model: str = ""
     sun_sensor_xmp: frozenset[str] = frozenset()
     no_reflectance: "Callable[[CaptureMeta], str | None] | None" = None
+    sun_unit_rules: "Callable[[Xmp], tuple[dict[str, float], float]] | None" = None
     kept_out: frozenset[str] = frozenset()
     capture_id_tags: tuple[tuple[str, str], ...] = ()
     time_tags: tuple[tuple[str, str], ...] = ()
@@ -123,7 +134,13 @@ class Maker:
     vignetting_tags: str = ""
     field_parts: bool = False
     namespaces: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    serial_tags: tuple[tuple[str, str], ...] = ()
+    capture_id_output: tuple[str, str, str] | None = None
 
+
+#: The unit rule of an absolute sun sensor's reading whose maker declares none
+#: (:attr:`Maker.sun_unit_rules`): W m-2 nm-1 as its reader gives it.
+AS_READ_RULE = "x 1: W m-2 nm-1 as read"
 
 MAKERS: dict[str, Maker] = {}
 #: The registered makers' own XMP namespaces: URI (no trailing slash) -> key (:attr:`Maker.namespaces`).
@@ -205,3 +222,30 @@ def capture_id_tags() -> list[tuple[str, str]]:
 def time_tags() -> list[tuple[str, str]]:
     """Every maker's ``(namespace, name)`` UTC exposure-time tags, in maker order."""
     return [t for m in by_order() for t in m.time_tags]
+
+
+def serial_tags() -> list[tuple[str, str]]:
+    """Every maker's ``(namespace, name)`` XMP tags of the camera's serial number, in maker order
+    (:attr:`Maker.serial_tags`)."""
+    return [t for m in by_order() for t in m.serial_tags]
+
+
+def sun_unit_rules(radiometry: str, xmp: "Callable[[], Xmp]") -> tuple[dict[str, float], float]:
+    """The unit rules of a band's absolute sun-sensor reading, ``({rule: scale to W m-2 nm-1},
+    scale the reader applied)``: its maker's (:attr:`Maker.sun_unit_rules`, given the XMP
+    ``xmp()`` returns), else the one rule :data:`AS_READ_RULE`."""
+    try:
+        rules = maker_of(radiometry).sun_unit_rules
+    except KeyError:
+        rules = None
+    return ({AS_READ_RULE: 1.0}, 1.0) if rules is None else rules(xmp())
+
+
+def capture_id_output(radiometry: str) -> tuple[str, str, str] | None:
+    """The XMP property ``(prefix, namespace URI, local name)`` the photogrammetry TIFFs of a
+    capture whose bands have ``radiometry`` carry its capture id in (:attr:`Maker.capture_id_output`),
+    None when its maker names none."""
+    try:
+        return maker_of(radiometry).capture_id_output
+    except KeyError:
+        return None

@@ -111,7 +111,7 @@ def test_panel_reflectance_from_the_cameras_albedo(panel_run, tmp_path) -> None:
     panel comes back at its Albedo and run.json says where rho came from. --panel-reflectance
     still wins; an Albedo that is not a reflectance in one band is named and not used (0: none
     measured; the panel's serial, read from its QR code, gives the reflectance then)."""
-    from pipeline.apply.factory import ALBEDO_SOURCE
+    from pipeline.apply.factory_reference import ALBEDO_SOURCE
 
     folder = cf.rededge_auto_panel(tmp_path / "auto", ["0.25"] * 5)
     assert _apply(folder, tmp_path / "albedo") == 0

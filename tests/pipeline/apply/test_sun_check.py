@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from pipeline.apply.sun_check import AS_WRITTEN_RULE, LIBRARY_RULE
+from pipeline.ingest.cameras.micasense import AS_WRITTEN_RULE, LIBRARY_RULE
 from pipeline.ingest.clear_sky import choose_capture_rule, choose_rule, clear_sky_spectral, plausible
 from pipeline.run.cli import main
 from pipeline.run.console import report_warnings

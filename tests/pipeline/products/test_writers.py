@@ -369,7 +369,7 @@ def test_band_tiff_carries_the_lens_and_the_reflectance_marker(tmp_path) -> None
     marker: no ExposureTime (ODM: no photometric exposure), HorizontalIrradiance = pi."""
     fr = FrameTags(time=None, lat=None, lon=None, alt_m=None, capture_uuid="u", exposure_ms=1.0,
                    camera_make="MicaSense", camera_model="RedEdge", rig_name="RedEdge",
-                   micasense_capture_id="g2R43Qr5m7EeTFGbkh1W")
+                   maker_tags=(("MicaSense", "http://micasense.com/MicaSense/1.0/", "CaptureId", "g2R43Qr5m7EeTFGbkh1W"),))
     band = BandTags("Red edge", 717.0, 10.0, 4, optics=OPTICS)
     p = write_band_tiff(tmp_path / "f.tif", _refl(), fr, band)
     tags = _exif(p, True)
