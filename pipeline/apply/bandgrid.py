@@ -22,7 +22,7 @@ from mscal_core.coregistration import stack_residuals
 
 from pipeline.apply.coregistration import capture_alignment
 from pipeline.apply.stores import geometry_step
-from pipeline.ingest.cameras.dji import factory_align
+from pipeline.ingest.cameras.dispatch import align_by_files
 
 if TYPE_CHECKING:
     from pipeline.apply.executor import Job, Plan
@@ -34,10 +34,10 @@ def one_grid(plan: Plan, job: Job, signal: np.ndarray) -> tuple[np.ndarray, dict
     alignment and where it came from (run.json ``coregistration.per_capture``), else None."""
     own = None
     if plan.refine is not None and job.capture is not None:
-        aligned = factory_align(job.capture.metas, signal) if plan.factory_alignment else signal
+        aligned = align_by_files(job.capture.metas, signal) if plan.factory_alignment else signal
         signal, own = capture_alignment(signal, aligned, plan.refine)
     elif plan.factory_alignment and job.capture is not None:
-        signal = factory_align(job.capture.metas, signal)
+        signal = align_by_files(job.capture.metas, signal)
     if plan.transforms is not None or plan.band_shift is not None:
         signal = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift, job.name,
                                signal)

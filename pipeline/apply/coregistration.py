@@ -41,7 +41,7 @@ from mscal_core.coregistration import (
     translation_transforms,
 )
 
-from pipeline.ingest.cameras.dji import factory_align
+from pipeline.ingest.cameras.dispatch import align_by_files
 from pipeline.ingest.catalog import Camera
 from pipeline.ingest.grouping import Capture, read_capture_pixels
 
@@ -108,7 +108,7 @@ def choose_alignment(camera: Camera, captures: Sequence[Capture], reference: int
             continue
         if stack.shape[0] != camera.n_bands:
             continue
-        aligned = factory_align(cap.metas, stack)
+        aligned = align_by_files(cap.metas, stack)
         stacks.append((stack, aligned))
         used.append(name)
         none_res.append(stack_residuals(stack, reference, max_side=REFINE_MAX_SIDE))

@@ -58,7 +58,7 @@ from pipeline.apply.frame_writes import WRITER_THREADS, FrameWrites  # noqa: F40
 from pipeline.apply.quality import Flagging, finish_counted, not_coregistered, on_grid, sensor_flags, warp_bits
 from pipeline.apply.stores import calibration_tables, geometry_step, read_frame_chunk, warm_calibration, write_frame
 from pipeline.ingest.camera_meta import read_capture_meta
-from pipeline.ingest.cameras.dispatch import factory_radiance
+from pipeline.ingest.cameras.dispatch import factory_radiance, is_temperature
 from pipeline.ingest.catalog import Camera, Index, load_camera
 from pipeline.ingest.discover import quarantine_entry
 from pipeline.ingest.grouping import Capture, read_capture_pixels
@@ -191,7 +191,7 @@ class Plan:
     norm: tuple[str, float | int | None] = ("none", None)
     transforms: Path | None = None  # a store whose band transforms put the bands on the reference band's grid
     band_shift: tuple[tuple[float, float], ...] | None = None  # --centre-bands: (dx, dy) per band
-    factory_alignment: bool = False  # each band file's own registration (DJI), cameras.dji.factory_align
+    factory_alignment: bool = False  # each band file's own registration (DJI), cameras.dispatch.align_by_files
     refine: Any = None  # coregistration.Refinement: image registration per capture on top of it (bandgrid)
     coreg_reference: int | None = None  # the band the measured captures' residual shifts are against (bandgrid)
     raw_medians: Path | None = None  # raw.zarr's dn_median (frame, band), written with each new frame's DN
@@ -528,7 +528,7 @@ def write_thermal(plan: Plan, job: Job, tags: FrameTags) -> tuple[dict[str, str]
         path = Path(s["file"])
         try:
             meta = read_capture_meta(path)
-            if meta.radiometry != "thermal":
+            if not is_temperature(meta):
                 continue
             kelvin = upright_meta(meta, factory_radiance(meta, np.asarray(decode_raw(path.read_bytes(), path))))
         except FrameError as exc:

@@ -64,7 +64,7 @@ Outputs as for every apply (SPEC "Outputs of apply"): ``reflectance.zarr`` with
 ``reflectance`` and ``radiance`` (frame, band, y, x) float32 and the indices, ``raw.zarr``
 (the stored DN, frame x band x y x x), photogrammetry and NDVI TIFFs, ``run.json``. Bands whose
 files carry their own registration (DJI: ``drone-dji:DewarpData`` and ``CalibratedHMatrix``,
-the Image Processing Guides' steps 2-3; :func:`pipeline.ingest.cameras.dji.factory_align`)
+the Image Processing Guides' steps 2-3; :func:`pipeline.ingest.cameras.dispatch.align_by_files`)
 are put on the camera's designed image plane (``--no-align``: not); other cameras' bands are
 *not* co-registered here (each band keeps its own pixel grid): per-pixel indices mix
 neighbouring ground points near edges; ``reflectance.zarr`` says so in its attributes. With
@@ -128,8 +128,12 @@ from pipeline.apply.sunlight import (
     readings_missing,
 )
 from pipeline.ingest.camera_meta import METADATA_READING
-from pipeline.ingest.cameras.dispatch import factory_models, takes_field_parts
-from pipeline.ingest.cameras.dji import FACTORY_ALIGNMENT_NOTE, has_factory_alignment
+from pipeline.ingest.cameras.dispatch import (
+    factory_models,
+    file_registration_note,
+    has_file_registration,
+    takes_field_parts,
+)
 from pipeline.ingest.catalog import Camera
 from pipeline.ingest.grouping import Capture
 from pipeline.ingest.identify import Identification, identify_camera
@@ -346,10 +350,11 @@ def _factory_run(options: FactoryOptions, folder: Path, camera: Camera, captures
              "comment": "bands are not co-registered: each band keeps its own pixel grid",
              "components": json.dumps(_components_record(None if field is None else (*field[:2], "")))}
     own = options.align and options.registration is None and all(
-        has_factory_alignment(m) for c in captures for m in c.metas)
+        has_file_registration(m) for c in captures for m in c.metas)
     if own:
         attrs.update({"co_registered": 1, "registration": "factory metadata",
-                      "comment": f"bands on the camera's designed image plane: {FACTORY_ALIGNMENT_NOTE}"})
+                      "comment": "bands on the camera's designed image plane: "
+                                 f"{file_registration_note([m for c in captures for m in c.metas])}"})
     if options.registration is not None:
         attrs.update({"co_registered": 1, "registration": str(options.registration),
                       "comment": "bands aligned to the reference band of the registration store "
@@ -402,8 +407,8 @@ def _alignment_record(options: FactoryOptions, own: bool, captures: Sequence[Cap
     if options.registration is not None:
         return f"transforms of {options.registration} (mscal register)"
     if own:
-        return f"factory metadata: {FACTORY_ALIGNMENT_NOTE}"
-    if not options.align and any(has_factory_alignment(m) for c in captures for m in c.metas):
+        return f"factory metadata: {file_registration_note([m for c in captures for m in c.metas])}"
+    if not options.align and any(has_file_registration(m) for c in captures for m in c.metas):
         return "none (--no-align: the band files' own registration was not applied)"
     return "none: each band keeps its own pixel grid"
 

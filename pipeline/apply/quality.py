@@ -28,7 +28,7 @@ from mscal_core.quality import DEFAULT_BOUND, FLAGS, SPARSE, flag_counts, frame_
 
 from pipeline.apply.coregistration import RESIDUAL_MAX_PX
 from pipeline.apply.stores import geometry_step, quality_checks, quality_tables
-from pipeline.ingest.cameras.dji import factory_align
+from pipeline.ingest.cameras.dispatch import align_by_files
 
 if TYPE_CHECKING:
     from pipeline.apply.executor import Job, Plan
@@ -138,7 +138,7 @@ def on_grid(plan: Plan, job: Job, q: np.ndarray) -> np.ndarray:
 
     def warp(stack: np.ndarray) -> np.ndarray:
         if plan.factory_alignment and job.capture is not None:
-            stack = factory_align(job.capture.metas, stack)
+            stack = align_by_files(job.capture.metas, stack)
         if plan.transforms is not None or plan.band_shift is not None:
             stack = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift,
                                   job.name, stack)

@@ -14,8 +14,7 @@ import numpy as np
 from mscal_core.errors import FrameError
 
 from pipeline.ingest.camera_meta import read_file_metas
-from pipeline.ingest.cameras.dispatch import companion_image_patterns
-from pipeline.ingest.cameras.parrot import sibling_position
+from pipeline.ingest.cameras.dispatch import companion_image_patterns, sibling_position
 from pipeline.ingest.meta import CaptureMeta
 from pipeline.ingest.xmp import TagProblem
 
@@ -175,10 +174,10 @@ def group_captures(
 
 def _placed(name: str, metas: tuple[CaptureMeta, ...]) -> tuple[CaptureMeta, ...]:
     """The band files' metadata, positioned from the capture's RGB JPEG
-    (:func:`sibling_position`) when none of them has a position of its own."""
+    (:func:`pipeline.ingest.cameras.dispatch.sibling_position`) when none of them has a position of its own."""
     if any(m.lat is not None for m in metas):
         return metas
-    pos = sibling_position(metas[0].path.parent, name)
+    pos = sibling_position(metas[0], name)
     return metas if pos is None else tuple(replace(m, lat=pos[0], lon=pos[1], alt_m=pos[2]) for m in metas)
 
 

@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
+from typing import Sequence
 
 import numpy as np
 from mscal_core.errors import FrameError
 
 import pipeline.ingest.cameras as _cameras
-from pipeline.ingest.cameras.registry import Maker, by_order, maker_of
+from pipeline.ingest.cameras.registry import FileRegistration, Maker, by_order, maker_of
 from pipeline.ingest.meta import CaptureMeta, FieldParts, TagContext
 
 for _module in pkgutil.iter_modules(_cameras.__path__):
@@ -61,6 +62,57 @@ def read_tags(ctx: TagContext) -> list[CaptureMeta]:
         if maker.claims(ctx):
             return maker.read(ctx)
     return next(m for m in makers if m.fallback).read(ctx)
+
+
+def file_registration(meta: CaptureMeta) -> FileRegistration | None:
+    """The band file's maker's own registration onto the camera's common image plane
+    (:attr:`Maker.file_registration`), or None when its maker writes none."""
+    try:
+        return maker_of(meta.radiometry).file_registration
+    except KeyError:
+        return None
+
+
+def has_file_registration(meta: CaptureMeta) -> bool:
+    """Whether the band file carries its maker's registration to the common image plane."""
+    reg = file_registration(meta)
+    return reg is not None and reg.has(meta)
+
+
+def align_by_files(metas: Sequence[CaptureMeta], stack: np.ndarray) -> np.ndarray:
+    """Bands ``(band, H, W)`` of one capture (stored orientation) on the camera's common image
+    plane with each band file's own registration (:attr:`Maker.file_registration`);
+    FrameError naming the first band file without one."""
+    reg = file_registration(metas[0])
+    if reg is None:
+        raise FrameError("no band registration in the file's metadata", path=metas[0].path,
+                         hint="align the bands with 'mscal register' and --registration, or apply with --no-align")
+    return reg.align(metas, stack)
+
+
+def file_registration_note(metas: Sequence[CaptureMeta]) -> str:
+    """What the band files' own registration is (:attr:`FileRegistration.note`), for run.json."""
+    notes = {reg.note for m in metas if (reg := file_registration(m)) is not None}
+    return "; ".join(sorted(notes))
+
+
+def sibling_position(meta: CaptureMeta, capture: str) -> tuple[float, float, float | None] | None:
+    """``(lat, lon, alt_m)`` of capture ``capture`` from a file its maker saves beside the band
+    file ``meta`` (:attr:`Maker.sibling_position`), or None (no such file, or no such maker)."""
+    try:
+        find = maker_of(meta.radiometry).sibling_position
+    except KeyError:
+        return None
+    return None if find is None else find(meta.path.parent, capture)
+
+
+def is_temperature(meta: CaptureMeta) -> bool:
+    """Whether the band file's factory model gives temperature in kelvin (a thermal band:
+    its maker's unit for the band's radiometry is ``K``), not radiance."""
+    try:
+        return maker_of(meta.radiometry).units[meta.radiometry] == "K"
+    except KeyError:
+        return False
 
 
 def companion_image_patterns() -> dict[str, tuple[str, str]]:

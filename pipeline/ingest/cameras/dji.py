@@ -26,7 +26,7 @@ from mscal_core.errors import FrameError, InputError
 from mscal_core.geometry import Intrinsics
 from mscal_core.vendors import dji_alignment_map, dji_camera_value, dji_vignetting_correction, remap_band
 
-from pipeline.ingest.cameras.registry import AttitudeSource, Maker, register
+from pipeline.ingest.cameras.registry import AttitudeSource, FileRegistration, Maker, register
 from pipeline.ingest.meta import (
     FIRMWARE_HINT,
     CaptureMeta,
@@ -259,4 +259,5 @@ MAKER = register(Maker(
     intrinsics=dewarp_intrinsics, vignetting_tags="XMP drone-dji:VignettingData",
     # the camera body's serial ("Camera SN", DJI Mavic 3M user manual, photo file fields)
     serial_tags=(("drone-dji", "CameraSerialNumber"),),
+    file_registration=FileRegistration(has=has_factory_alignment, align=factory_align, note=FACTORY_ALIGNMENT_NOTE),
 ))

@@ -228,5 +228,5 @@ MAKER = register(Maker(
     name="parrot", model="sequoia", units=UNITS, claims=claims, read=read, radiance=band_radiance,
     vignetting=band_vignetting, order=20, sun_sensor_tag="XMP Camera:IrradianceList (sunshine sensor)",
     sun_scales=SUN_SCALES, attitude=ATTITUDE, sun_sensor_xmp=frozenset({"IrradianceList"}),
-    vignetting_tags="XMP VignettingPolynomial2D",
+    vignetting_tags="XMP VignettingPolynomial2D", sibling_position=sibling_position,
 ))

@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING, Callable
 
 if TYPE_CHECKING:
     from pathlib import Path
+    from typing import Sequence
 
     import numpy as np
     from mscal_core.geometry import Intrinsics
@@ -51,6 +52,19 @@ class SunSplit:
     direct: float
     scattered: float
     horizontal: float | None
+
+
+@dataclass(frozen=True)
+class FileRegistration:
+    """A maker's own registration of each band file onto the camera's common image plane,
+    written in the file (DJI: ``CalibratedHMatrix`` with ``DewarpData``): ``has(meta)`` whether
+    a band file carries it, ``align(metas, stack)`` the bands ``(band, H, W)`` of one capture
+    (stored orientation) on that plane (FrameError naming a band file without it), ``note`` what
+    it is and where the maker documents it (run.json ``band_alignment``)."""
+
+    has: Callable[["CaptureMeta"], bool]
+    align: Callable[["Sequence[CaptureMeta]", "np.ndarray"], "np.ndarray"]
+    note: str
 
 
 @dataclass(frozen=True)
@@ -104,6 +118,13 @@ class Maker:
     photogrammetry TIFFs of its captures carry the source's capture id in, for tools that look
     it up by that literal name (OpenDroneMap's ``MicaSense:CaptureId``); written when a capture's
     id is the files' own (not its file name): :func:`pipeline.apply.captures.capture_tags`.
+
+    Geometry: ``file_registration`` the band files' own registration onto a common image plane
+    (:class:`FileRegistration`; None: the maker writes none, the bands are aligned by
+    ``mscal register`` or measured): :func:`pipeline.ingest.cameras.dispatch.has_file_registration`;
+    ``sibling_position(folder, capture)`` ``(lat, lon, alt_m)`` of a capture whose band files
+    have no position of their own, from a file the camera saves beside them (Parrot Sequoia's
+    RGB JPEG), or None: :func:`pipeline.ingest.cameras.dispatch.sibling_position`.
     """
 
     name: str
@@ -136,6 +157,8 @@ class Maker:
     namespaces: dict[str, tuple[str, ...]] = field(default_factory=dict)
     serial_tags: tuple[tuple[str, str], ...] = ()
     capture_id_output: tuple[str, str, str] | None = None
+    file_registration: FileRegistration | None = None
+    sibling_position: "Callable[[Path, str], tuple[float, float, float | None] | None] | None" = None
 
 
 #: The unit rule of an absolute sun sensor's reading whose maker declares none

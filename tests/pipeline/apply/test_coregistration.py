@@ -201,7 +201,7 @@ def test_a_metadata_alignment_worse_than_none_is_replaced_by_image_registration(
 
     pixels = {f"{k:03d}": stored(int(rng.integers(1 << 30))) for k in range(3)}
     monkeypatch.setattr(coreg, "read_capture_pixels", lambda cap: ("", pixels[cap.name], {}))
-    monkeypatch.setattr(coreg, "factory_align", bend)
+    monkeypatch.setattr(coreg, "align_by_files", bend)
     camera = load_camera("dji-p4-multispectral")
     captures = [SimpleNamespace(name=n, metas=[SimpleNamespace(path=Path(f"{n}_{b}.TIF")) for b in range(5)])
                 for n in pixels]
@@ -231,7 +231,7 @@ def test_flat_captures_leave_the_metadata_alignment_unjudged(monkeypatch) -> Non
     from pipeline.ingest.catalog import load_camera
 
     monkeypatch.setattr(coreg, "read_capture_pixels", lambda cap: ("", [np.full((480, 640), 900.0)] * 5, {}))
-    monkeypatch.setattr(coreg, "factory_align", lambda metas, stack: stack.copy())
+    monkeypatch.setattr(coreg, "align_by_files", lambda metas, stack: stack.copy())
     camera = load_camera("dji-p4-multispectral")
     caps = [SimpleNamespace(name="001", metas=[SimpleNamespace(path=Path(f"DJI_001{b}.TIF")) for b in range(5)])]
     run = coreg.prepare(camera, caps, True, False, None, set())
