@@ -68,20 +68,33 @@ def _ranked_wide(image: np.ndarray, ranks: Sequence[int]) -> list[int]:
     return out
 
 
+def _zero_low_bits(v: np.ndarray) -> int:
+    """How many low bits are 0 in every one of ``v`` (unsigned, not all 0): 4 for the 12-bit
+    DN a 16-bit MicaSense band file stores shifted up."""
+    bits = int(np.bitwise_or.reduce(v, axis=None))
+    return (bits & -bits).bit_length() - 1
+
+
 def median_uint16(values: np.ndarray) -> float:
     """``np.median`` of unsigned integers of up to 16 bits, by counting: the middle value, or
     the float64 mean of the middle two (as ``np.median`` takes it), for a fraction of its CPU
     on a full-resolution band (no partition of a copy; :func:`_counts`, or in two steps for
-    values past :data:`_WIDE_HISTOGRAM`: :func:`_ranked_wide`)."""
+    values past :data:`_WIDE_HISTOGRAM`: :func:`_ranked_wide`). Values past it whose low bits
+    are all 0 (:func:`_zero_low_bits`) are counted shifted down, when that brings them below
+    it: the same ranks, in one count (0.8 -> 0.5 ms a 1280 x 960 MicaSense band)."""
     v = np.asarray(values)
+    shift = 0
     if v.dtype == np.uint16 and 0 < v.size < _EXACT_HISTOGRAM and int(v.max()) >= _WIDE_HISTOGRAM:
-        n = v.size
-        lo, hi = _ranked_wide(_as_image(v), ((n - 1) // 2, n // 2))
-    else:
-        counts = np.cumsum(_counts(v))
-        n = int(counts[-1])
-        lo = int(np.searchsorted(counts, (n - 1) // 2, side="right"))
-        hi = int(np.searchsorted(counts, n // 2, side="right"))
+        shift = _zero_low_bits(v)
+        if int(v.max()) >> shift >= _WIDE_HISTOGRAM:
+            n = v.size
+            lo, hi = _ranked_wide(_as_image(v), ((n - 1) // 2, n // 2))
+            return float(np.mean(np.array([lo, hi], dtype=np.uint16)))
+        v = np.right_shift(v, shift)
+    counts = np.cumsum(_counts(v))
+    n = int(counts[-1])
+    lo = int(np.searchsorted(counts, (n - 1) // 2, side="right")) << shift
+    hi = int(np.searchsorted(counts, n // 2, side="right")) << shift
     return float(np.mean(np.array([lo, hi], dtype=np.uint16)))
 
 
