@@ -281,7 +281,7 @@ def radiance(
     if signal is None:
         work = dn.astype(np.float64)  # (astype, then in place: numpy's casting loops are slower)
         work -= float(black_level)
-        work /= 2.0**bits_per_sample
+        work *= 2.0**-bits_per_sample  # the quotient by 2**bits exactly (a power of two), for a third of its CPU
         np.multiply(vignetting, work, out=work)
     else:
         p = np.asarray(signal, dtype=np.float64)
@@ -290,11 +290,27 @@ def radiance(
         work = vignetting * p
     work *= row_gradient(dn.shape[0], exposure_s, a2, a3)
     work *= a1 / (gain * exposure_s)
-    np.maximum(work, 0.0, out=work)
     if out is None:
+        np.maximum(work, 0.0, out=work)
         return work
     out[...] = work
+    _floor_at_zero(out, work)
     return out
+
+
+def _floor_at_zero(out: np.ndarray, work: np.ndarray) -> None:
+    """Floor ``out``, which holds ``work`` cast already, at 0: ``out[...] = max(work, 0)``.
+
+    OpenCV's threshold on the float32 values when all are finite (it gives ``max``'s value
+    then: +0 for -0 and below, and the cast commutes with it), a third of ``np.maximum``'s CPU
+    with the check; else ``np.maximum`` on ``work`` (which keeps NaN) and the cast again.
+    """
+    if out.dtype == np.float32 and out.ndim == 2 and out.flags.c_contiguous and np.isfinite(out).all():
+        done = cv2.threshold(out, 0.0, 0.0, cv2.THRESH_TOZERO, dst=out)[1]
+        if done.ctypes.data == out.ctypes.data and done.shape == out.shape:
+            return
+    np.maximum(work, 0.0, out=work)
+    out[...] = work
 
 
 def field_response_scale(

@@ -70,6 +70,13 @@ def test_radiance_in_place_equals_the_expression_bit_for_bit() -> None:
     out = np.full(dn.shape, -1.0, np.float32)
     assert radiance(dn, out=out, **kw) is out
     assert np.array_equal(out, expected.astype(np.float32))
+    nan_vig = vig.copy()
+    nan_vig[::5, ::3] = np.nan  # a field vignetting's undefined pixels: NaN kept, the rest floored as before
+    out = np.full(dn.shape, -1.0, np.float32)
+    with np.errstate(invalid="ignore"):
+        want = np.maximum(nan_vig * p * row * (cal[0] / (g * te)), 0.0).astype(np.float32)
+    assert np.array_equal(radiance(dn, out=out, **{**kw, "vignetting": nan_vig}), want, equal_nan=True)
+    assert np.isnan(out).sum() == np.isnan(nan_vig).sum() and not np.signbit(out[out == 0]).any()
     signal = rng.random((37, 29))  # a field response in place of p - p_BL
     assert np.array_equal(radiance(dn, signal=signal, **kw), np.maximum(vig * signal * row * (cal[0] / (g * te)), 0.0))
 

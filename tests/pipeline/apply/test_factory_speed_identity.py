@@ -77,14 +77,14 @@ def test_counting_median_of_wide_values_in_two_steps(monkeypatch) -> None:
     """16-bit values (MicaSense bands) are counted by high byte, then by the low bytes of the
     middle values' high byte: np.median's value, wherever the middle ranks fall (across two
     high bytes, at a bin's first or last value, on a constant band, 12-bit DN in the high
-    bits), and the same as one count per value."""
+    bits with a low bit set somewhere), and the same as one count per value."""
     import pipeline.ingest.medians as medians
 
     rng = np.random.default_rng(12)
     cases = [rng.integers(0, 65536, n).astype(np.uint16) for n in (1, 2, 3, 4, 255, 256, 257, 4097)]
     cases += [np.array([4095, 4096], np.uint16), np.array([4351, 4352, 4352, 9000], np.uint16),
               np.array([255, 256, 65535, 0], np.uint16), np.full((30, 40), 65535, np.uint16),
-              (rng.integers(0, 4096, (960, 1280)) << 4).astype(np.uint16),
+              ((rng.integers(0, 4096, (960, 1280)) << 4) | (rng.random((960, 1280)) < 1e-5)).astype(np.uint16),
               np.where(rng.random((200, 301)) < 0.5, rng.integers(0, 256, (200, 301)),
                        rng.integers(60_000, 65_536, (200, 301))).astype(np.uint16)]
     band = rng.integers(4000, 4300, (217, 409)).astype(np.uint16)
@@ -99,6 +99,26 @@ def test_counting_median_of_wide_values_in_two_steps(monkeypatch) -> None:
     monkeypatch.setattr(medians, "_WIDE_HISTOGRAM", 1 << 16)  # one count per value: the same medians
     assert [median_uint16(v) for v in cases] == [np.median(v.astype(np.float64)) for v in cases]
     assert len(calls) == len(cases)
+
+
+def test_counting_median_of_wide_values_with_low_zero_bits_in_one_count(monkeypatch) -> None:
+    """12-bit DN stored in the high bits of 16 (MicaSense band files) have their low 4 bits 0:
+    they are counted shifted down, in one count, not two; np.median's value, also where the
+    shift does not bring them below 4096 (then counted in two steps) and on views."""
+    import pipeline.ingest.medians as medians
+
+    rng = np.random.default_rng(13)
+    calls = []
+    real = medians._ranked_wide
+    monkeypatch.setattr(medians, "_ranked_wide", lambda *a: calls.append(1) or real(*a))
+    shifted = [(rng.integers(0, 4096, (960, 1280)) << 4).astype(np.uint16), np.array([4096, 8192], np.uint16),
+               np.array([61440], np.uint16), (rng.integers(1, 4096, (217, 409)) << 4).astype(np.uint16)[::3, 1::2],
+               (rng.integers(0, 16, 101) << 12).astype(np.uint16)]
+    for v in shifted:
+        assert median_uint16(v) == np.median(v.astype(np.float64)), v.shape
+    assert calls == []
+    wide = (rng.integers(0, 1 << 14, 999) << 2).astype(np.uint16)  # 14-bit: still past 4096 after the shift
+    assert median_uint16(wide) == np.median(wide.astype(np.float64)) and calls == [1]
 
 
 def test_counting_median_of_more_values_than_float32_counts_exactly(monkeypatch) -> None:
