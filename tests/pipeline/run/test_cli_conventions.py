@@ -253,6 +253,8 @@ def test_a_run_folder_of_the_flat_run_json_layout_is_up_to_date_and_reports_the_
     new, report = json.loads(text), report_dict(None, [out])
     run = json.loads((out / "run.json").read_text())
     assert {"captures", "factory"} <= set(run) and "reference" not in run and "skipped" not in run
+    code, text, _ = _run(args)  # the new layout's record is up to date (its inputs_listing found under captures)
+    assert code == 0 and json.loads(text)["up_to_date"] is True
     flat = {k: v for k, v in run.items() if k not in GROUPS}
     for group in GROUPS:
         flat.update(run[group])
