@@ -74,6 +74,7 @@ from pipeline.ingest.products import Products, indices_for
 from pipeline.ingest.raw import raw_codec
 from pipeline.products.writers import BandTags, FrameTags
 from pipeline.storage.atomic import temporary_folder_name
+from pipeline.storage.run_layout import run_value
 from pipeline.storage.store import (
     CF_VARIABLES,
     FLIGHT_VARIABLES,
@@ -192,7 +193,7 @@ def unchanged_run(out: Path, captures: Sequence[Capture], fingerprint: dict[str,
     the files are hashed and their content decides (a copy with new times is up to date, a
     file rewritten with its size and time kept is not)."""
     try:
-        recorded = json.loads((out / RUN_JSON).read_text()).get("inputs_listing")
+        recorded = run_value(json.loads((out / RUN_JSON).read_text()), "inputs_listing")
     except (OSError, ValueError, AttributeError):
         return None
     if recorded != inputs_listing(captures):

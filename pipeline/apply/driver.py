@@ -52,7 +52,7 @@ class Done:
     products: dict[str, Any]  # run.json "products"
     export: Sequence[int]  # the bands of the TIFFs
     metadata_problems: Sequence[dict[str, Any]] = ()
-    parts: dict[str, Any] | None = None  # run.json keys of this kind of input
+    parts: dict[str, Any] | None = None  # run.json keys of this kind of input, flat (nested by run_record)
     flagging: Flagging | None = None  # the run's quality mask, checked (:func:`pipeline.apply.quality.checked`)
 
 

@@ -25,6 +25,7 @@ from pipeline.apply.quality import Flagging, quality_record
 from pipeline.ingest.catalog import Camera
 from pipeline.storage.atomic import outputs_manifest, sync_file_system, write_json_atomic
 from pipeline.storage.cache import code_digest
+from pipeline.storage.run_layout import group_parts
 
 RUN_JSON = "run.json"
 log = logging.getLogger(__name__)
@@ -157,7 +158,8 @@ def run_record(*, flight: Path, camera: Camera, calibration: str, calibration_sh
     """``run.json`` of every apply (SPEC.md, Outputs of apply), one schema for every camera: the
     common keys, the same in name and meaning whatever the camera, then ``parts``, the keys of
     one kind of input (a snapshot flight's ``snapshot``, a capture folder's, the factory
-    chain's). ``t_pass``: seconds of the pass over the frames (ingest and Eq. 15: a capture is
+    chain's), flat as the source gives them and nested here under their group's key
+    (:func:`pipeline.storage.run_layout.group_parts`: ``captures``, ``factory``). ``t_pass``: seconds of the pass over the frames (ingest and Eq. 15: a capture is
     read in its task); ``t_start``: ``time.perf_counter()`` when the apply began; ``flagging``:
     the run's quality mask (run.json ``quality``, :func:`pipeline.apply.quality.quality_record`)."""
     frames = [o.name for o in outcomes]
@@ -182,6 +184,6 @@ def run_record(*, flight: Path, camera: Camera, calibration: str, calibration_sh
         "scheduler": runner.scheduler,
         "execution": runner.execution,
         "timings_s": {"pass": round(t_pass, 3), "total": round(time.perf_counter() - t_start, 3)},
-        **parts,
+        **group_parts(parts),
         "fingerprint": fingerprint,
     }

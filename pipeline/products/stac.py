@@ -75,6 +75,7 @@ from pipeline.ingest.catalog import read_yaml
 from pipeline.ingest.exif import parse_iso
 from pipeline.storage.atomic import write_text_atomic
 from pipeline.storage.lock import FolderLock
+from pipeline.storage.run_layout import run_value
 
 log = logging.getLogger(__name__)
 
@@ -309,7 +310,7 @@ def _camera_props(run: dict[str, Any], srun: dict[str, Any], name: str) -> dict[
     """``mscal:camera_make``/``_model``/``_serial`` as the files say (the flight's
     ``camera_identification``, else a card session's ``card``), and for a card session's flight
     the radiometry and light reference it got."""
-    ident = dict(run.get("camera_identification") or {})
+    ident = dict(run_value(run, "camera_identification") or {})
     for key, value in (srun.get("card") or {}).items():
         if key in ("make", "model", "serial") and value and not ident.get(key):
             ident[key] = value
@@ -337,7 +338,7 @@ def flight_item(flight: Path, project: Project, project_dir: Path, item_file: Pa
     run = json.loads((flight / "run.json").read_text())
     session = _session_out(flight)
     srun = json.loads((session / "run.json").read_text()) if session else {}
-    lat, lon, t, camera = _frame_coords(flight, [str(p.get("capture")) for p in run.get("panels") or () if isinstance(p, dict)])
+    lat, lon, t, camera = _frame_coords(flight, [str(p.get("capture")) for p in run_value(run, "panels") or () if isinstance(p, dict)])
     rasters = {p: _raster_info(p) for p in _tifs(flight)}
     rasters = {p: r for p, r in rasters.items() if r is not None}
     if rasters:

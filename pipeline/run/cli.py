@@ -40,6 +40,7 @@ from pipeline.run.options import (
 )
 from pipeline.run.summaries import echo_run, echo_serve, run_warnings
 from pipeline.storage.process import stop_process_servers
+from pipeline.storage.run_layout import run_value
 
 
 def _summary(ds) -> str:  # xarray Dataset
@@ -425,7 +426,7 @@ APPLY_OUTPUTS = {"reflectance": "reflectance.zarr", "raw DN": "raw.zarr", "photo
 def _report_apply(res: Any, out: Path, strict: bool, stores: list[Path]) -> None:
     """Notes on skipped and quarantined files (stderr), then the summary with the warnings
     report.html would show for this flight and the calibration stores it used."""
-    skipped = res.run.get("skipped") or []
+    skipped = run_value(res.run, "skipped") or []
     if skipped:
         note(f"skipped {len(skipped)} file(s) that are not captures: "
              f"{', '.join(s['file'] for s in skipped[:5])}{' ...' if len(skipped) > 5 else ''}")
@@ -443,7 +444,7 @@ def _report_apply(res: Any, out: Path, strict: bool, stores: list[Path]) -> None
             counts={"frames_in": res.run.get("frames_in"), "frames_out": res.run["frames_out"],
                     "quarantined": len(res.quarantined), "files_skipped": len(skipped),
                     "saturated_pixels": sat.get("total")},
-            warnings=warnings, details={"up_to_date": res.up_to_date, "reference": res.run.get("reference"),
+            warnings=warnings, details={"up_to_date": res.up_to_date, "reference": run_value(res.run, "reference"),
                                         "products": res.run.get("products")}).emit()
     if strict and res.quarantined:
         raise SystemExit(3)

@@ -57,6 +57,7 @@ from pipeline.run.card import (
 )
 from pipeline.storage.atomic import write_json_atomic
 from pipeline.storage.cache import code_digest, default_cache_dir
+from pipeline.storage.run_layout import run_value
 from pipeline.storage.store import content_hashes, file_sha256, open_calibration, write_store
 
 log = logging.getLogger(__name__)
@@ -382,7 +383,7 @@ def _flight_summary(res: Any, where: str, t0: float, **extra: Any) -> dict[str, 
         "frames_in": run["frames_in"],
         "frames_out": run["frames_out"],
         "quarantined": res.quarantined,
-        "skipped": run.get("skipped", []),
+        "skipped": run_value(run, "skipped", []),
         "saturated_pixels": run["saturated_pixels"]["total"],
         "calibration_sha256": run.get("calibration_sha256"),
         "up_to_date": res.up_to_date,
@@ -422,7 +423,7 @@ def apply_card_flight(plan: CardPlan, flight: CardFlight, out: str | Path, *, da
                 reference=s.reference, panel_reflectance=s.panel_reflectance, camera=plan.camera,
                 field_calibration=flight.field_calibration if flight.calibration == "factory+field" else None,
                 execution=execution, captures=flight.captures, products=products))
-    ref = res.run.get("reference") or {}
+    ref = run_value(res.run, "reference") or {}
     return _flight_summary(
         res, where, t0, kind="card", calibration=flight.calibration, field_calibration=flight.field_calibration,
         calibration_source=flight.calibration_source, reference={k: ref[k] for k in CARD_REFERENCE_KEYS if k in ref},

@@ -8,6 +8,7 @@ from typing import Any, Sequence
 
 from pipeline.products.report.table import Table
 from pipeline.products.report.thresholds import BAND_MISREGISTRATION_MAX_PX, QAWarning
+from pipeline.storage.run_layout import run_value
 
 
 def coregistration_tables(run: dict[str, Any], band_names: Sequence[str] = ()) -> list[Table]:
@@ -15,7 +16,7 @@ def coregistration_tables(run: dict[str, Any], band_names: Sequence[str] = ()) -
     (median and max over the measured captures), without it, and what was measured; with the
     metadata check's numbers when the band files' own registration was judged. [] for runs
     without a measurement (single-file cameras, earlier runs)."""
-    rec = run.get("coregistration")
+    rec = run_value(run, "coregistration")
     if not isinstance(rec, dict):
         return []
     flight = rec.get("flight") or {}
@@ -40,7 +41,7 @@ def coregistration_tables(run: dict[str, Any], band_names: Sequence[str] = ()) -
 def coregistration_warnings(run: dict[str, Any]) -> list[QAWarning]:
     """``band_misregistration``: a band whose median residual shift against the reference band
     is above :data:`BAND_MISREGISTRATION_MAX_PX` after the run's alignment."""
-    rec = run.get("coregistration")
+    rec = run_value(run, "coregistration")
     if not isinstance(rec, dict):
         return []
     flight = rec.get("flight") or {}

@@ -38,6 +38,7 @@ from pipeline.products.report.thresholds import (
     TABLE_MAX_ROWS,
     QAWarning,
 )
+from pipeline.storage.run_layout import run_value
 
 if TYPE_CHECKING:  # matplotlib is imported where a figure is drawn (0.6 s of every command otherwise)
     from matplotlib.figure import Figure
@@ -251,7 +252,7 @@ def reference_table(run: dict[str, Any], band_names: Sequence[str] = ()) -> Tabl
     and band, the panel's factor (Eq. 11-14 split and plain mean) beside the sun sensor's
     ``pi / E`` on the same capture and their ratio, bands in ``band_names`` order (the
     camera's; run.json keeps them sorted by name). None for runs without one."""
-    rec = run.get("reference")
+    rec = run_value(run, "reference")
     if not isinstance(rec, dict):
         return None
     # why the references before this one (the camera's Albedo, the panel's serial) were not used
@@ -280,7 +281,7 @@ def time_warnings(run: dict[str, Any]) -> list[QAWarning]:
     say their zone, some as written): the sun's position and the light between panels are off
     by the time zone for the latter."""
     out: list[QAWarning] = []
-    times = run.get("capture_times")
+    times = run_value(run, "capture_times")
     if isinstance(times, dict) and times.get("utc") and times.get("as_written"):
         first = times.get("first") or {}
         out.append(QAWarning(
@@ -297,7 +298,7 @@ def reference_warnings(run: dict[str, Any]) -> list[QAWarning]:
     without reflectance (route ``none``: radiance only, why and how to get it), band files of
     the sun-sensor route without a usable reading (run.json ``reflectance_missing``), and the
     camera's own panel captures (XMP Albedo) that could not be used."""
-    rec = run.get("reference")
+    rec = run_value(run, "reference")
     out: list[QAWarning] = []
     if not isinstance(rec, dict):
         return out
@@ -308,7 +309,7 @@ def reference_warnings(run: dict[str, Any]) -> list[QAWarning]:
             "no_reflectance", f"reflectance and indices are NaN in all {frames} frame(s), radiance only: no panel "
             f"given and the sun sensor gives no usable reflectance{why}: {rec.get('hint', 'give --panel-reflectance TARGET')}",
             float(frames), 0.0))
-    missing = run.get("reflectance_missing") or []
+    missing = run_value(run, "reflectance_missing") or []
     if missing:
         first = missing[0]
         captures = len({m.get("capture") for m in missing})
@@ -355,7 +356,7 @@ def light_tables(run: dict[str, Any], band_names: Sequence[str] = ()) -> list[Ta
     """The light of a factory apply over time (run.json ``light``): per panel capture
     and band the panel's irradiance beside the sun sensor's (tilt-corrected) and their ratio;
     per frame the light it was given. [] for runs without one."""
-    rec = run.get("light")
+    rec = run_value(run, "light")
     if not isinstance(rec, dict):
         return []
     unit = rec.get("irradiance_unit", "")
@@ -385,7 +386,7 @@ def light_tables(run: dict[str, Any], band_names: Sequence[str] = ()) -> list[Ta
 def light_warnings(run: dict[str, Any]) -> list[QAWarning]:
     """run.json ``light.warnings``: panels and sun sensor disagreeing on the light's change, a
     sensor tilted too far (each with its number and threshold)."""
-    rec = run.get("light")
+    rec = run_value(run, "light")
     if not isinstance(rec, dict):
         return []
     return [QAWarning(str(w.get("code")), str(w.get("message")), float(w.get("value")), float(w.get("threshold")))

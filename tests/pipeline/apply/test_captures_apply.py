@@ -20,6 +20,7 @@ from pipeline.ingest.camera_meta import read_capture_meta
 from pipeline.ingest.cameras.dispatch import factory_radiance
 from pipeline.ingest.tiff import read_raw
 from pipeline.run.cli import main
+from pipeline.storage.run_layout import run_value
 from tests.micasense_data import BANDS, factory_store, require_data
 
 
@@ -63,7 +64,7 @@ def test_field_store_on_a_multilens_flight_is_eq15_per_band_file(field_run) -> N
         f"IMG_0001_{b.replace(' e', 'E')}.tif" for b in BANDS)  # "Red edge" -> RedEdge: no spaces
     assert sorted(p.name for p in (field_run / "ndvi").glob("*.tif")) == ["IMG_0000.tif", "IMG_0001.tif"]
     assert run["calibration_sha256"] and run["frames_out"] == 2 and run["quarantined"] == []
-    assert [s["file"] for s in run["skipped"]] == ["LICENSE", "README.md"]
+    assert [s["file"] for s in run_value(run, "skipped")] == ["LICENSE", "README.md"]
     raw = xr.open_zarr(field_run / "raw.zarr")["dn"].values
     np.testing.assert_array_equal(raw[0, 3], read_raw(require_data() / "IMG_0000_4.tif"))
 
@@ -176,15 +177,15 @@ def test_factory_panel_light_follows_the_sun_sensor(tmp_path) -> None:
     assert main([*args, "-o", str(tmp_path / "flat"), "--reference", "panel"]) == 0
     lit = json.loads((tmp_path / "lit" / "run.json").read_text())
     flat = json.loads((tmp_path / "flat" / "run.json").read_text())
-    k = flat["reference"]["factor"]
-    assert flat["illumination"]["varies_in_time"] is False and "frame_irradiance" not in flat["light"]
-    assert lit["reference"]["route"] == "panel-dls" and lit["illumination"]["mode"] == "linear"
-    e = {c: lit["sun_sensor"][c]["horizontal_irradiance"] for c in ("IMG_0000", "IMG_0001")}
+    k = run_value(flat, "reference")["factor"]
+    assert flat["illumination"]["varies_in_time"] is False and "frame_irradiance" not in run_value(flat, "light")
+    assert run_value(lit, "reference")["route"] == "panel-dls" and lit["illumination"]["mode"] == "linear"
+    e = {c: run_value(lit, "sun_sensor")[c]["horizontal_irradiance"] for c in ("IMG_0000", "IMG_0001")}
     per = lit["illumination"]["per_frame"]
     for band in BANDS:
         assert per["IMG_0000"][band] == pytest.approx(k[band], rel=1e-9)
         assert per["IMG_0001"][band] == pytest.approx(k[band] * e["IMG_0000"][band] / e["IMG_0001"][band], rel=1e-5)
-        assert lit["light"]["frame_irradiance"]["IMG_0001"][band] == pytest.approx(math.pi / per["IMG_0001"][band],
+        assert run_value(lit, "light")["frame_irradiance"]["IMG_0001"][band] == pytest.approx(math.pi / per["IMG_0001"][band],
                                                                                    rel=1e-5)
     # the sensor's light fell 1-14 % per band between the two captures (Blue rose 1 %)
     change = {b: e["IMG_0001"][b] / e["IMG_0000"][b] for b in BANDS}

@@ -16,6 +16,7 @@ import xarray as xr
 
 from pipeline.products.report import report_dict
 from pipeline.run.cli import main
+from pipeline.storage.run_layout import run_value
 from tests import camera_files as cf
 from tests.micasense_data import DATA, require_data
 
@@ -69,8 +70,8 @@ def test_a_wrong_dji_h_matrix_is_measured_and_refined_by_image_registration(tmp_
         assert b"DewarpHMatrix" in (folder / path.name).read_bytes()
     out = tmp_path / "out"
     run = _apply(folder, out)
-    assert run["band_alignment"].startswith("factory metadata + image registration: the metadata alignment left ")
-    co = run["coregistration"]
+    assert run_value(run, "band_alignment").startswith("factory metadata + image registration: the metadata alignment left ")
+    co = run_value(run, "coregistration")
     assert co["alignment"] == "factory metadata + image registration" and co["reference_band"] == "Red"
     # before: the metadata alone, on the same captures, against no alignment at all
     check = co["metadata_check"]
@@ -105,7 +106,7 @@ def test_a_wrong_dji_h_matrix_is_measured_and_refined_by_image_registration(tmp_
     assert not [w for w in sec["warnings"] if w["code"] == "band_misregistration"]
     # without the refinement the bands would be off by the matrix's errors: the numbers say so
     _apply(folder, tmp_path / "plain", "--no-align")
-    plain = json.loads((tmp_path / "plain" / "run.json").read_text())["coregistration"]
+    plain = run_value(json.loads((tmp_path / "plain" / "run.json").read_text()), "coregistration")
     assert plain["alignment"] == "none" and plain["worst_median_px"] > 1
 
 
@@ -119,8 +120,8 @@ def test_a_right_dji_h_matrix_is_kept_and_the_outputs_do_not_change(tmp_path, mo
     require_data()
     folder = cf.dji_p4m_warped(tmp_path / "right")
     run = _apply(folder, tmp_path / "out")
-    co = run["coregistration"]
-    assert run["band_alignment"].startswith("factory metadata: each band's") and co["alignment"] == "factory metadata"
+    co = run_value(run, "coregistration")
+    assert run_value(run, "band_alignment").startswith("factory metadata: each band's") and co["alignment"] == "factory metadata"
     assert co["metadata_check"]["decision"].startswith("factory metadata kept")
     assert co["worst_median_px"] < 0.1
     assert all(co["flight"][name]["unaligned_median_px"] > 1 for name in ("Blue", "Green", "RedEdge", "NIR"))
@@ -141,8 +142,8 @@ def test_micasense_bands_are_measured_and_warned_of(tmp_path) -> None:
     require_data()
     out = tmp_path / "out"
     run = _apply(DATA, out)
-    assert run["band_alignment"] == "none: each band keeps its own pixel grid"
-    co = run["coregistration"]
+    assert run_value(run, "band_alignment") == "none: each band keeps its own pixel grid"
+    co = run_value(run, "coregistration")
     assert co["alignment"] == "none" and co["reference_band"] == "Red" and "metadata_check" not in co
     assert list(co["captures"]) == ["IMG_0001"] and co["sample"]["of"] == 2
     measured = co["captures"]["IMG_0001"]["residual_px"]
@@ -164,7 +165,7 @@ def test_single_file_cameras_are_not_measured(tmp_path) -> None:
     if not cf.SENTERA_D4K.is_dir():
         pytest.skip("no Sentera sample")
     run = _apply(cf.SENTERA_D4K / "NDRE", tmp_path / "out")
-    assert "coregistration" not in run
+    assert run_value(run, "coregistration") is None
 
 
 def test_a_metadata_alignment_worse_than_none_is_replaced_by_image_registration(monkeypatch) -> None:

@@ -54,7 +54,9 @@ class FakeSource:
                     quarantined=[{"file": "c.tif", "reason": "truncated"}], calibration="calib.zarr",
                     calibration_sha256="f" * 64, frames_sha256={"a": "1" * 64, "b": "2" * 64},
                     fingerprint={"frames_sha256": "0" * 64}, outputs={"reflectance": "reflectance.zarr"},
-                    products=self.products.record([]), export=(0, 1, 2), parts={"fake": {"note": 1}})
+                    products=self.products.record([]), export=(0, 1, 2),
+                    parts={"fake": {"note": 1}, "illumination": {"varies_in_time": False}, "skipped": [],
+                           "reference": {"route": "dls"}})
 
 
 def test_the_driver_runs_a_source_and_writes_its_record_last(tmp_path) -> None:
@@ -67,6 +69,10 @@ def test_the_driver_runs_a_source_and_writes_its_record_last(tmp_path) -> None:
     assert not res.up_to_date and res.quarantined == [{"file": "c.tif", "reason": "truncated"}]
     run = json.loads((out / "run.json").read_text())
     assert COMMON <= set(run) and run["fake"] == {"note": 1}
+    # the source's keys: shared ones at the top, a capture folder's and the factory chain's under theirs
+    assert run["illumination"] == {"varies_in_time": False}
+    assert run["captures"] == {"skipped": []} and run["factory"] == {"reference": {"route": "dls"}}
+    assert not {"skipped", "reference"} & set(run)
     assert (run["frames_in"], run["frames_out"], run["frames"]) == (3, 2, ["a", "b"])
     assert run["saturated_pixels"] == {"total": 7, "per_frame": {"a": 3, "b": 4}}
     assert run["export_bands"] == list(load_camera("generic-rgb8").band_names[:3])

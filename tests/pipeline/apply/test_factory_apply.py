@@ -23,6 +23,7 @@ from pipeline.ingest.catalog import load_target
 from pipeline.ingest.tiff import read_raw
 from pipeline.products.writers import file_band_name
 from pipeline.run.cli import main
+from pipeline.storage.run_layout import run_value
 from tests import camera_files as cf
 from tests.micasense_data import BANDS, MARKER_PANEL, PANEL_CORNERS, paint_marker, require_data
 
@@ -56,12 +57,12 @@ def test_radiance_is_the_factory_model_and_dls_reflectance_is_pi_l_over_e(dls_ru
     data = require_data()
     ds = xr.open_zarr(dls_run / "reflectance.zarr")
     run = json.loads((dls_run / "run.json").read_text())
-    assert run["reference"]["route"] == "dls" and run["frames"] == ["IMG_0000", "IMG_0001"]
+    assert run_value(run, "reference")["route"] == "dls" and run["frames"] == ["IMG_0000", "IMG_0001"]
     # the panel capture was held 10.8 deg off level, the flight capture 1.6 deg: the model
     # (MicaSense's DLS 1, clear sky 1/6) lowers the tilted reading by 11 %, the level one barely
-    corr = {c: run["sun_sensor"][c]["correction"] for c in ("IMG_0000", "IMG_0001")}
-    assert run["sun_sensor"]["IMG_0000"]["sensor_tilt_deg"] == pytest.approx(10.806, abs=0.01)
-    assert run["sun_sensor"]["IMG_0000"]["sun_elevation_deg"] == pytest.approx(41.22, abs=0.02)
+    corr = {c: run_value(run, "sun_sensor")[c]["correction"] for c in ("IMG_0000", "IMG_0001")}
+    assert run_value(run, "sun_sensor")["IMG_0000"]["sensor_tilt_deg"] == pytest.approx(10.806, abs=0.01)
+    assert run_value(run, "sun_sensor")["IMG_0000"]["sun_elevation_deg"] == pytest.approx(41.22, abs=0.02)
     assert corr["IMG_0000"]["Blue"] == pytest.approx(0.8862, abs=2e-3)
     assert corr["IMG_0001"]["Blue"] == pytest.approx(1.0170, abs=2e-3)
     assert list(ds["band_name"].values) == list(BANDS)
@@ -83,7 +84,7 @@ def test_radiance_is_the_factory_model_and_dls_reflectance_is_pi_l_over_e(dls_ru
 
 def test_panel_route_finds_the_panel_and_gives_its_reflectance_back(panel_run) -> None:
     run = json.loads((panel_run / "run.json").read_text())
-    ref = run["reference"]
+    ref = run_value(run, "reference")
     assert ref["route"] == "panel-dls"  # the default with a panel and sun-sensor readings
     (panel,) = ref["panels"]
     assert panel["capture"] == "IMG_0000" and panel["region_source"] == ["detected"] * 5
@@ -116,7 +117,7 @@ def test_panel_reflectance_from_the_cameras_albedo(panel_run, tmp_path) -> None:
     folder = cf.rededge_auto_panel(tmp_path / "auto", ["0.25"] * 5)
     assert _apply(folder, tmp_path / "albedo") == 0
     run = json.loads((tmp_path / "albedo" / "run.json").read_text())
-    ref = run["reference"]
+    ref = run_value(run, "reference")
     assert ref["route"] == "panel-dls" and ref["panel_reflectance"] == ALBEDO_SOURCE and "panels_seen" not in ref
     (panel,) = ref["panels"]
     assert panel["capture"] == "IMG_0000" and panel["reflectance"] == dict.fromkeys(BANDS, 0.25)
@@ -128,15 +129,15 @@ def test_panel_reflectance_from_the_cameras_albedo(panel_run, tmp_path) -> None:
         assert float(np.nanmean(img[inner])) == pytest.approx(0.25, rel=0.01)
     # the same panel, its reflectance given: the published one wins, outputs as the plain run's
     assert _apply(folder, tmp_path / "given", "--panel-reflectance", PANEL_TARGET) == 0
-    given = json.loads((tmp_path / "given" / "run.json").read_text())["reference"]
+    given = run_value(json.loads((tmp_path / "given" / "run.json").read_text()), "reference")
     assert given["panel_reflectance"] == f"--panel-reflectance {PANEL_TARGET}"
     np.testing.assert_allclose(xr.open_zarr(tmp_path / "given" / "reflectance.zarr")["reflectance"].values,
                                xr.open_zarr(panel_run / "reflectance.zarr")["reflectance"].values, rtol=1e-6, equal_nan=True)
     bad = cf.rededge_auto_panel(tmp_path / "bad", ["0.25", "0", "1.7", "0.25", "0.25"])  # 0: not measured
     assert _apply(bad, tmp_path / "bad_out") == 0
     bad_run = json.loads((tmp_path / "bad_out" / "run.json").read_text())
-    assert bad_run["reference"]["route"] == "panel-dls" and "panels_seen" not in bad_run["reference"]
-    assert bad_run["reference"]["panel_reflectance"] == SERIAL_SOURCE
+    assert run_value(bad_run, "reference")["route"] == "panel-dls" and "panels_seen" not in run_value(bad_run, "reference")
+    assert run_value(bad_run, "reference")["panel_reflectance"] == SERIAL_SOURCE
     (problem,) = [p for p in bad_run["metadata_problems"] if p["feature"] == "panel_albedo"]
     assert problem["file"].endswith("IMG_0000_3.tif") and problem["value"] == "1.7"
 
@@ -150,12 +151,12 @@ def test_albedo_only_of_a_valid_panel_capture_and_auto_falls_back_without_a_pane
     panel's serial, or stops naming the capture(s) without Albedo."""
     invalid = cf.rededge_auto_panel(tmp_path / "invalid", ["0.25"] * 5, picture=1)
     assert _apply(invalid, tmp_path / "invalid_out") == 0
-    ref = json.loads((tmp_path / "invalid_out" / "run.json").read_text())["reference"]
+    ref = run_value(json.loads((tmp_path / "invalid_out" / "run.json").read_text()), "reference")
     assert ref["route"] == "panel-dls" and "albedo_panel_unusable" not in ref and "panels_seen" not in ref
     assert ref["panel_reflectance"] == SERIAL_SOURCE and ref["panels"][0]["reflectance"]["Red"] == 0.68
     flight = cf.rededge_auto_panel(tmp_path / "flight", ["0.25"] * 5, capture="0001")
     assert _apply(flight, tmp_path / "flight_out") == 0
-    ref = json.loads((tmp_path / "flight_out" / "run.json").read_text())["reference"]
+    ref = run_value(json.loads((tmp_path / "flight_out" / "run.json").read_text()), "reference")
     assert ref["route"] == "dls" and "panel_reflectance" not in ref
     assert ref["albedo_panel_unusable"].startswith(
         "IMG_0001_1.tif: no usable panel among the 1 capture(s) with the camera's XMP Albedo: no reflectance panel found")
@@ -167,7 +168,7 @@ def test_albedo_only_of_a_valid_panel_capture_and_auto_falls_back_without_a_pane
     assert _apply(flight, tmp_path / "asked", "--reference", "panel") == 2
     assert "no usable panel among the 1 capture(s)" in capsys.readouterr().err
     assert _apply(flight, tmp_path / "serial", "--reference", "panel", "--panel", "IMG_0000") == 0
-    ref = json.loads((tmp_path / "serial" / "run.json").read_text())["reference"]
+    ref = run_value(json.loads((tmp_path / "serial" / "run.json").read_text()), "reference")
     assert ref["route"] == "panel" and ref["panel_reflectance"] == SERIAL_SOURCE
     assert _apply(flight, tmp_path / "named", "--reference", "panel", "--panel", "IMG_0000,IMG_0001") == 2
     assert "--panel capture(s) IMG_0000: not in the folder, or a band file has no XMP Albedo" in capsys.readouterr().err
@@ -175,7 +176,7 @@ def test_albedo_only_of_a_valid_panel_capture_and_auto_falls_back_without_a_pane
 
 
 def test_panel_and_dls_are_compared_in_run_json(panel_run) -> None:
-    panel = json.loads((panel_run / "run.json").read_text())["reference"]["panels"][0]
+    panel = run_value(json.loads((panel_run / "run.json").read_text()), "reference")["panels"][0]
     for band in BANDS:
         ratio = panel["panel_over_dls"][band]
         assert ratio == pytest.approx(panel["factor_split"][band] / panel["factor_dls"][band])
@@ -187,7 +188,7 @@ def test_report_compares_panel_and_dls(panel_run, dls_run, tmp_path) -> None:
 
     sec = report_dict(flights=[panel_run])["sections"][0]
     table = next(t for t in sec["tables"] if t["title"].startswith("Reflectance reference: panel vs sun sensor"))
-    ratio = json.loads((panel_run / "run.json").read_text())["reference"]["panels"][0]["panel_over_dls"]
+    ratio = run_value(json.loads((panel_run / "run.json").read_text()), "reference")["panels"][0]["panel_over_dls"]
     assert [r[1] for r in table["rows"]] == list(BANDS) and all(r[0] == "IMG_0000" for r in table["rows"])
     assert [float(r[5]) for r in table["rows"]] == pytest.approx([ratio[b] for b in BANDS], rel=1e-3)
     # this RedEdge's DLS (no tilt correction) and its panel disagree in colour by tens of per cent
@@ -332,16 +333,16 @@ def test_panel_marker_from_session_yaml(panel_run, tmp_path) -> None:
         del dn
     (session / "session.yaml").write_text(yaml.safe_dump({"panel": MARKER_PANEL}))
     assert _apply(folder, tmp_path / "out", "--panel-reflectance", PANEL_TARGET) == 0
-    (panel,) = json.loads((tmp_path / "out" / "run.json").read_text())["reference"]["panels"]
+    (panel,) = run_value(json.loads((tmp_path / "out" / "run.json").read_text()), "reference")["panels"]
     assert panel["region_source"] == ["marker"] * 5
-    (detected,) = json.loads((panel_run / "run.json").read_text())["reference"]["panels"]
+    (detected,) = run_value(json.loads((panel_run / "run.json").read_text()), "reference")["panels"]
     for band in BANDS:
         assert panel["factor_split"][band] == pytest.approx(detected["factor_split"][band], rel=0.01), band
     # a marker config the images do not show: the detection is used, as without session.yaml
     (session / "session.yaml").write_text(yaml.safe_dump({"panel": {**MARKER_PANEL,
                                                                     "marker": {**MARKER_PANEL["marker"], "id": 8}}}))
     assert _apply(folder, tmp_path / "out8", "--panel-reflectance", PANEL_TARGET) == 0
-    (panel8,) = json.loads((tmp_path / "out8" / "run.json").read_text())["reference"]["panels"]
+    (panel8,) = run_value(json.loads((tmp_path / "out8" / "run.json").read_text()), "reference")["panels"]
     assert panel8["region_source"] == ["detected"] * 5
 
 
@@ -383,8 +384,8 @@ def test_field_components_replace_the_factory_ones(tmp_path) -> None:
         outs[name] = xr.open_zarr(tmp_path / name / "reflectance.zarr")["radiance"].isel(frame=0).values
     np.testing.assert_allclose(outs["both"], outs["factory"], rtol=2e-6, equal_nan=True)
     run = json.loads((tmp_path / "vignetting" / "run.json").read_text())
-    assert run["components"] == {"response": "factory", "vignetting": f"field:{flat.resolve()}"}
-    assert json.loads((tmp_path / "factory" / "run.json").read_text())["components"] == {
+    assert run_value(run, "components") == {"response": "factory", "vignetting": f"field:{flat.resolve()}"}
+    assert run_value(json.loads((tmp_path / "factory" / "run.json").read_text()), "components") == {
         "response": "factory", "vignetting": "factory"}
     for b in range(5):
         meta = read_capture_meta(folder / f"IMG_0001_{b + 1}.tif")
@@ -470,7 +471,7 @@ def test_a_panel_capture_on_the_sun_sensor_route_is_kept_out_of_photogrammetry(d
     """IMG_0000 shows the panel in every band: without --panel-reflectance it is still a
     capture of reflectance.zarr, but its TIFFs go to OUT/panels/, not among the survey frames."""
     run = json.loads((dls_run / "run.json").read_text())
-    assert run["panels"] == [{"capture": "IMG_0000",
+    assert run_value(run, "panels") == [{"capture": "IMG_0000",
                               "reason": "a reflectance panel (camera's panel flag, --panel, or detected); not used: "
                                         "no --panel-reflectance"}]
     assert sorted(p.name for p in (dls_run / "panels").iterdir()) == sorted(

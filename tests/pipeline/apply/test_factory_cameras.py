@@ -21,6 +21,7 @@ import xarray as xr
 
 from pipeline.products.report import report_dict
 from pipeline.run.cli import main
+from pipeline.storage.run_layout import run_value
 from tests import camera_files as cf
 from tests.micasense_data import PANEL_CORNERS, require_data
 
@@ -125,7 +126,7 @@ def test_rededge_mx_dual_is_ten_bands_one_capture(tmp_path) -> None:
     folder = cf.rededge_mx_dual(tmp_path / "dual")
     run = _apply(folder, tmp_path / "out", "--reference", "dls")
     assert run["camera"] == "micasense-rededge-mx-dual" and run["frames"] == ["IMG_0000", "IMG_0001"]
-    assert run["quarantined"] == [] and "10 band(s) per capture" in run["camera_identification"]["evidence"]
+    assert run["quarantined"] == [] and "10 band(s) per capture" in run_value(run, "camera_identification")["evidence"]
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     assert ds.sizes["band"] == 10
     assert list(ds["wavelength"].values) == [475, 560, 668, 840, 717, 444, 531, 650, 705, 740]
@@ -141,8 +142,8 @@ def test_rededge_p_pan_band_skipped_and_2d_vignetting(tmp_path) -> None:
     folder = cf.rededge_p(tmp_path / "p")
     run = _apply(folder, tmp_path / "out", "--reference", "dls")
     assert run["camera"] == "micasense-rededge-p" and run["frames"] == ["IMG_0000", "IMG_0001"]
-    assert [s["band"] for s in run["skipped_bands"]] == ["Panchro", "Panchro"]
-    assert "panchromatic" in run["skipped_bands"][0]["reason"]
+    assert [s["band"] for s in run_value(run, "skipped_bands")] == ["Panchro", "Panchro"]
+    assert "panchromatic" in run_value(run, "skipped_bands")[0]["reason"]
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     assert ds.sizes["band"] == 5
     for b in range(5):
@@ -155,8 +156,8 @@ def test_altum_pt_thermal_never_in_reflectance(tmp_path) -> None:
     folder = cf.rededge_p(tmp_path / "apt", altum_pt=True)
     run = _apply(folder, tmp_path / "out", "--reference", "dls")
     assert run["camera"] == "micasense-altum-pt" and len(run["frames"]) == 2
-    assert sorted({s["band"] for s in run["skipped_bands"]}) == ["LWIR", "Panchro"]
-    lwir = [s for s in run["skipped_bands"] if s["band"] == "LWIR"][0]
+    assert sorted({s["band"] for s in run_value(run, "skipped_bands")}) == ["LWIR", "Panchro"]
+    lwir = [s for s in run_value(run, "skipped_bands") if s["band"] == "LWIR"][0]
     assert "thermal" in lwir["reason"] and "never mixed into reflectance" in lwir["reason"]
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     assert ds.sizes["band"] == 5 and 11000 not in list(ds["wavelength"].values)
@@ -174,7 +175,7 @@ def test_reflect_area_as_one_li_and_other_prefix(tmp_path) -> None:
     run = _apply(folder, tmp_path / "out", "--panel-reflectance", "micasense-rp02-1603036-sc")
     assert run["frames"] == ["IMG_0000", "IMG_0001"] and run["metadata_problems"] == []
     # one region for all bands: band 1's area carried into each band by its detection
-    assert run["reference"]["panels"][0]["region_source"] == ["xmp:Blue"] * 5
+    assert run_value(run, "reference")["panels"][0]["region_source"] == ["xmp:Blue"] * 5
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     for b in range(5):
         path = folder / f"IMG_0000_{b + 1}.tif"
@@ -192,7 +193,7 @@ def test_unreadable_reflect_area_disables_only_the_panel_area(tmp_path, capsys) 
     # the panel route still works: band 2's area, carried into every band by its detection of
     # the panel (one region for all bands; band 1 used to take its own detected inset)
     run = _apply(folder, tmp_path / "panel", "--panel-reflectance", "micasense-rp02-1603036-sc")
-    assert run["reference"]["panels"][0]["region_source"] == ["xmp:Green"] * 5
+    assert run_value(run, "reference")["panels"][0]["region_source"] == ["xmp:Green"] * 5
     assert main(["cameras", str(folder)]) == 0
     out = capsys.readouterr().out
     assert "tag problem: IMG_0000_1.tif: ReflectArea = '622,371,574,abc'" in out and "panel_area disabled" in out
@@ -211,13 +212,13 @@ def test_unreadable_sun_sensor_reading_keeps_the_radiance(tmp_path, capsys) -> N
             cf.rewrite(cf.band_file(cap, b), folder / f"IMG_{cap}_{b}.tif", edit)
     capsys.readouterr()
     run = _apply(folder, tmp_path / "out", "--reference", "dls")  # auto: the panel's serial (its QR code)
-    assert run["frames"] == ["IMG_0000", "IMG_0001"] and run["quarantined"] == [] and run["reference"]["route"] == "dls"
+    assert run["frames"] == ["IMG_0000", "IMG_0001"] and run["quarantined"] == [] and run_value(run, "reference")["route"] == "dls"
     (warn,) = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("  warning reflectance_missing")]
     assert warn == ("  warning reflectance_missing: 1 band file(s) of 1 capture(s) have no usable sun-sensor reading: "
                     "their reflectance and the indices using them are NaN, radiance kept (run.json reflectance_missing; "
                     "first IMG_0001_3.tif: Irradiance = 'n/a': expected numbers (sun_sensor disabled)); a panel capture "
                     "with --panel-reflectance TARGET gives every band reflectance (value 1, threshold 0)")
-    (missing,) = run["reflectance_missing"]
+    (missing,) = run_value(run, "reflectance_missing")
     assert (missing["capture"], missing["file"], missing["band"]) == ("IMG_0001", "IMG_0001_3.tif", "Red")
     assert "Irradiance = 'n/a'" in missing["reason"] and "sun_sensor disabled" in missing["reason"]
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
@@ -230,7 +231,7 @@ def test_camera_override_everywhere(tmp_path) -> None:
     """--camera names the camera; a wrong one is reported per capture, not guessed around."""
     require_data()
     run = _apply(DATA_ROOT / "micasense-rededge", tmp_path / "o", "--camera", "micasense-rededge-mx")
-    assert run["camera"] == "micasense-rededge-mx" and run["camera_identification"]["overridden"]
+    assert run["camera"] == "micasense-rededge-mx" and run_value(run, "camera_identification")["overridden"]
     assert main(["apply", str(DATA_ROOT / "micasense-rededge"), "--calibration", "factory", "-o",
                  str(tmp_path / "d"), "--camera", "micasense-rededge-mx-dual"]) == 2
 
@@ -255,10 +256,10 @@ def test_dji_p4_multispectral(tmp_path) -> None:
     # MicaSense panel in the pixels these files were made of)
     run = _apply(folder, tmp_path / "out", "--no-align", "--reference", "dls")
     assert run["camera"] == "dji-p4-multispectral" and run["frames"] == ["001", "002"] and run["quarantined"] == []
-    assert run["band_alignment"].startswith("none (--no-align")
-    assert run["reference"]["route"] == "dls" and run["reference"]["scale"].startswith("fixed per camera model")
+    assert run_value(run, "band_alignment").startswith("none (--no-align")
+    assert run_value(run, "reference")["route"] == "dls" and run_value(run, "reference")["scale"].startswith("fixed per camera model")
     # DJI's guides: R = X pCam / Irradiance, no further constant
-    assert run["reference"]["sun_sensor_scale"]["constant"] == 1.0 and "relative_scale" not in run["reference"]
+    assert run_value(run, "reference")["sun_sensor_scale"]["constant"] == 1.0 and "relative_scale" not in run_value(run, "reference")
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     assert list(ds["wavelength"].values) == [450, 560, 650, 730, 840]  # NIR's from drone-dji:BandFreq
     for f in range(2):
@@ -268,7 +269,7 @@ def test_dji_p4_multispectral(tmp_path) -> None:
             x, y = 3, 5
             refl = float(ds["reflectance"].isel(frame=f, band=b).values[y, x])
             # DJI's Irradiance is already compensated by the camera: divided by as written
-            sun = run["sun_sensor"][run["frames"][f]]
+            sun = run_value(run, "sun_sensor")[run["frames"][f]]
             assert sun["model"].startswith("DJI Irradiance as written")
             assert sun["correction"][ds["band_name"].values[b]] == 1.0
             assert refl == pytest.approx(dji_expected(path, x, y) / cf.DJI["irradiance"][b], rel=TOL)
@@ -308,10 +309,10 @@ def test_dji_time_is_utc_at_exposure_not_the_local_clock(tmp_path) -> None:
     for frame, when, lat, lon, alt in (("001", "2017-10-19T20:40:39.200173", 36.576096, -119.435269, 101.861),
                                        ("002", "2017-10-19T20:42:10.200159", 36.5760815, -119.4352604, 174.527)):
         el, _ = solar_position(np.array([when], "datetime64[ns]"), np.array([lat]), np.array([lon]), np.array([alt]))
-        assert run["sun_sensor"][frame]["sun_elevation_deg"] == pytest.approx(math.degrees(float(el[0])), abs=0.01)
-        assert run["sun_sensor"][frame]["sun_elevation_deg"] > run_local["sun_sensor"][frame]["sun_elevation_deg"] + 40
-    assert run["capture_times"] == {"utc": 2, "as_written": 0, "missing": 0, "first": {"utc": "001"}}
-    assert run_local["capture_times"] == {"utc": 0, "as_written": 2, "missing": 0, "first": {"as_written": "001"}}
+        assert run_value(run, "sun_sensor")[frame]["sun_elevation_deg"] == pytest.approx(math.degrees(float(el[0])), abs=0.01)
+        assert run_value(run, "sun_sensor")[frame]["sun_elevation_deg"] > run_value(run_local, "sun_sensor")[frame]["sun_elevation_deg"] + 40
+    assert run_value(run, "capture_times") == {"utc": 2, "as_written": 0, "missing": 0, "first": {"utc": "001"}}
+    assert run_value(run_local, "capture_times") == {"utc": 0, "as_written": 2, "missing": 0, "first": {"as_written": "001"}}
     codes = [w["code"] for s in report_dict(None, [tmp_path / "out"])["sections"] for w in s["warnings"]]
     assert "mixed_time_zones" not in codes
     # one capture with UTCAtExposure, one without: two clocks in one flight, warned of
@@ -320,7 +321,7 @@ def test_dji_time_is_utc_at_exposure_not_the_local_clock(tmp_path) -> None:
     for path in sorted(folder.glob("DJI_001*.TIF")) + sorted(local.glob("DJI_002*.TIF")):
         (mixed / path.name).write_bytes(path.read_bytes())
     run_mixed = _apply(mixed, tmp_path / "out_mixed", "--no-align")
-    assert run_mixed["capture_times"] == {"utc": 1, "as_written": 1, "missing": 0,
+    assert run_value(run_mixed, "capture_times") == {"utc": 1, "as_written": 1, "missing": 0,
                                           "first": {"utc": "001", "as_written": "002"}}
     (warn,) = [w for s in report_dict(None, [tmp_path / "out_mixed"])["sections"] for w in s["warnings"]
                if w["code"] == "mixed_time_zones"]
@@ -347,7 +348,7 @@ def test_dji_bands_registered_by_their_own_metadata(tmp_path) -> None:
     require_data()
     folder = cf.dji_p4m_warped(tmp_path / "warped")
     run = _apply(folder, tmp_path / "out")
-    assert run["frames"] == ["001", "002"] and run["band_alignment"].startswith("factory metadata: each band's")
+    assert run["frames"] == ["001", "002"] and run_value(run, "band_alignment").startswith("factory metadata: each band's")
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     assert ds.attrs["co_registered"] == 1 and ds.attrs["registration"] == "factory metadata"
     _apply(folder, tmp_path / "raw", "--no-align")
@@ -413,8 +414,8 @@ def test_parrot_sequoia_real_capture(tmp_path) -> None:
         pytest.skip("no Sequoia sample")
     run = _apply(folder, tmp_path / "out")
     assert run["camera"] == "parrot-sequoia" and run["frames"] == ["IMG_180413_080658_0000"]
-    assert run["orientation"].startswith("EXIF Orientation 3") and run["reference"]["scale"].startswith("fixed per")
-    assert run["reference"]["sun_sensor_scale"]["constant"] == 5e-4  # Parrot's K, fixed for the camera model
+    assert run_value(run, "orientation").startswith("EXIF Orientation 3") and run_value(run, "reference")["scale"].startswith("fixed per")
+    assert run_value(run, "reference")["sun_sensor_scale"]["constant"] == 5e-4  # Parrot's K, fixed for the camera model
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     assert list(ds["band_name"].values) == ["Green", "Red", "Red edge", "NIR"]
     for b, suffix in enumerate(("GRE", "RED", "REG", "NIR")):
@@ -446,7 +447,7 @@ def test_sequoia_on_an_sd_card_tree(tmp_path) -> None:
     run = _apply(tmp_path / "card", tmp_path / "out")
     ref = _apply(folder, tmp_path / "ref")
     assert run["camera"] == "parrot-sequoia" and run["frames"] == ref["frames"] and run["quarantined"] == []
-    assert run["orientation"] == ref["orientation"] and run["reference"] == ref["reference"]
+    assert run_value(run, "orientation") == run_value(ref, "orientation") and run_value(run, "reference") == run_value(ref, "reference")
     a = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")["reflectance"].values
     b = xr.open_zarr(tmp_path / "ref" / "reflectance.zarr")["reflectance"].values
     np.testing.assert_array_equal(a, b)
@@ -504,8 +505,8 @@ def test_reference_dls_without_any_sun_sensor_reading_exits_2(tmp_path, capsys, 
         return  # its radiance-only run: test_sentera_d4k_real_captures
     out = tmp_path / "out"
     run = _apply(folder, out)  # auto: radiance only, and why
-    assert run["reference"]["route"] == "none" and run["reference"]["reason"].startswith(f"{file}: {why}")
-    assert run["reflectance_missing"] == []  # a band is named there only on the sun-sensor route
+    assert run_value(run, "reference")["route"] == "none" and run_value(run, "reference")["reason"].startswith(f"{file}: {why}")
+    assert run_value(run, "reflectance_missing") == []  # a band is named there only on the sun-sensor route
     before = {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
     assert main([*dls, str(out)]) == 2
     assert {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()} == before
@@ -524,7 +525,7 @@ def test_sentera_d4k_real_captures(tmp_path) -> None:
     for sensor, camera, rows in (("NDRE", "sentera-d4k-ndre", (0, 2)), ("nRGB", "sentera-d4k-nrgb", (0, 1, 2))):
         run = _apply(root / sensor, tmp_path / sensor)
         assert run["camera"] == camera and run["frames"] == ["IMG_00006", "IMG_00007"] and run["quarantined"] == []
-        assert run["reference"]["route"] == "none"  # ILS counts: no published conversion, needs a panel
+        assert run_value(run, "reference")["route"] == "none"  # ILS counts: no published conversion, needs a panel
         ds = xr.open_zarr(tmp_path / sensor / "reflectance.zarr")
         for f, name in enumerate(run["frames"]):
             path = root / sensor / f"{name}.jpg"
@@ -560,8 +561,8 @@ def test_sentera_panel_route(tmp_path) -> None:
     folder = cf.sentera_with_panel(root, tmp_path / "ndre")
     run = _apply(folder, tmp_path / "out", "--panel-reflectance", "0.5", "--panel", "IMG_00006")
     # ILS counts: no reflectance alone, but they carry the light's change from the panel
-    assert run["camera"] == "sentera-d4k-ndre" and run["reference"]["route"] == "panel-dls"
-    assert run["reference"]["panels"][0]["region_source"] == ["detected", "detected"]
+    assert run["camera"] == "sentera-d4k-ndre" and run_value(run, "reference")["route"] == "panel-dls"
+    assert run_value(run, "reference")["panels"][0]["region_source"] == ["detected", "detected"]
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     refl = ds["reflectance"].isel(frame=0).values[:, 1300:1600, 1800:2100]
     # RedEdge = 2.7 R - 2.581 B is 0.12 x 200 on the gray panel: JPEG's +-1 DN in R and B is
@@ -586,7 +587,7 @@ def test_sentera_6x_session_built_from_d4k_files(tmp_path, capsys) -> None:
     assert "blue_475:" not in out  # the band folders are part of the session, not folders of their own
     run = _apply(tmp_path / "flight", tmp_path / "radiance")
     assert run["camera"] == "sentera-6x" and run["frames"] == ["IMG_00006", "IMG_00007"] and run["quarantined"] == []
-    assert run["reference"]["route"] == "none"
+    assert run_value(run, "reference")["route"] == "none"
     ds = xr.open_zarr(tmp_path / "radiance" / "reflectance.zarr")
     assert list(ds["band_name"].values) == ["Blue", "Green", "Red", "RedEdge", "NIR"]
     checked = 0
@@ -604,7 +605,7 @@ def test_sentera_6x_session_built_from_d4k_files(tmp_path, capsys) -> None:
     (tmp_path / "flight" / "session.yaml").write_text("panel:\n  polygon: [[720, 520], [1080, 520], [1080, 780], [720, 780]]\n")
     run = _apply(tmp_path / "flight", tmp_path / "panel", "--panel-reflectance", "0.5", "--panel", "IMG_00006")
     # the built files carry ILS readings: the panel anchors them (panel + sun sensor, the default)
-    assert run["reference"]["route"] == "panel-dls" and run["frames"] == ["IMG_00006", "IMG_00007"]
+    assert run_value(run, "reference")["route"] == "panel-dls" and run["frames"] == ["IMG_00006", "IMG_00007"]
     refl = xr.open_zarr(tmp_path / "panel" / "reflectance.zarr")["reflectance"].isel(frame=0).values
     np.testing.assert_allclose(np.nanmedian(refl[:, 550:750, 750:1050], axis=(1, 2)), 0.5, rtol=0.03)
 
@@ -619,9 +620,9 @@ def test_altum_thermal_in_kelvin_in_its_own_files(tmp_path) -> None:
     cf.extra_band(folder / "IMG_0001_6.tif", (120, 160), "LWIR", 11000, "0001", "Altum", grad)
     run = _apply(folder, tmp_path / "out", "--reference", "dls")
     assert run["camera"] == "micasense-altum" and run["frames"] == ["IMG_0000", "IMG_0001"]
-    assert [s["band"] for s in run["skipped_bands"]] == ["LWIR", "LWIR"]
-    assert run["thermal"]["unit"] == "K" and run["outputs"]["thermal"] == "thermal/"
-    assert [(t["capture"], t["written"]) for t in run["thermal"]["files"]] == [
+    assert [s["band"] for s in run_value(run, "skipped_bands")] == ["LWIR", "LWIR"]
+    assert run_value(run, "thermal")["unit"] == "K" and run["outputs"]["thermal"] == "thermal/"
+    assert [(t["capture"], t["written"]) for t in run_value(run, "thermal")["files"]] == [
         ("IMG_0000", "thermal/IMG_0000_LWIR.tif"), ("IMG_0001", "thermal/IMG_0001_LWIR.tif")]
     k0 = tifffile.imread(tmp_path / "out" / "thermal" / "IMG_0000_LWIR.tif")
     assert k0.dtype == np.float32 and k0.shape == (120, 160)

@@ -14,6 +14,7 @@ import xarray as xr
 from pipeline.apply.factory import FactoryOptions, apply_factory
 from pipeline.ingest.identify import identify_camera
 from pipeline.run.cli import main
+from pipeline.storage.run_layout import run_value
 from tests import camera_files as cf
 from tests.micasense_data import require_data
 
@@ -30,7 +31,7 @@ def test_rededge_p_without_its_panchromatic_files_is_processed(tmp_path: Path) -
     run = result.run
     assert run["camera"] == "micasense-rededge-p"
     assert run["frames_out"] == 2 and run["frames"] == ["IMG_0000", "IMG_0001"]
-    assert run["quarantined"] == [] and run["skipped_bands"] == []
+    assert run["quarantined"] == [] and run_value(run, "skipped_bands") == []
     ds = xr.open_zarr(tmp_path / "out" / "reflectance.zarr")
     assert list(ds["band_name"].values) == ["Blue", "Green", "Red", "NIR", "Red edge"]
 

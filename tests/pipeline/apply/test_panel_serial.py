@@ -19,6 +19,7 @@ from pipeline.apply.factory import FactoryOptions, apply_factory
 from pipeline.ingest import catalog
 from pipeline.ingest.targets import target_for_serial
 from pipeline.run.cli import main
+from pipeline.storage.run_layout import run_value
 from tests import camera_files as cf
 from tests.micasense_data import BANDS, require_data
 
@@ -36,7 +37,7 @@ def _reflectance(out: Path) -> np.ndarray:
 
 
 def _reference(out: Path) -> dict:
-    return json.loads((out / "run.json").read_text())["reference"]
+    return run_value(json.loads((out / "run.json").read_text()), "reference")
 
 
 @pytest.fixture(scope="module")
@@ -99,7 +100,7 @@ def test_the_panel_serial_in_its_qr_code_gives_the_reflectance(sample: Path, nam
     assert np.isfinite(got).mean() > 0.99
     np.testing.assert_allclose(got, want, rtol=1e-6, equal_nan=True)
     run = json.loads((out / "run.json").read_text())
-    assert run["panels"] == [{"capture": "IMG_0000", "reason": "reflectance panel of the panel route (the panel's serial)"}]
+    assert run_value(run, "panels") == [{"capture": "IMG_0000", "reason": "reflectance panel of the panel route (the panel's serial)"}]
     # the same, up to date
     assert apply_factory(sample, out).up_to_date
 

@@ -22,6 +22,7 @@ import xarray as xr
 
 from pipeline.products.writers import SOFTWARE
 from pipeline.run.cli import main
+from pipeline.storage.run_layout import run_value
 from tests.photo_readers import (
     dms_to_decimal,
     exif_tags,
@@ -152,7 +153,7 @@ def _merged(source: Path) -> dict:
 def test_micasense_tiffs_carry_the_rededge_camera_and_its_capture_id(micasense) -> None:
     data = _data("micasense-rededge")
     run = json.loads((micasense / "run.json").read_text())
-    assert run["panels"] == [{"capture": "IMG_0000", "reason": "reflectance panel of the panel route "
+    assert run_value(run, "panels") == [{"capture": "IMG_0000", "reason": "reflectance panel of the panel route "
                                                                 "(--panel-reflectance)"}]
     assert sorted(p.name for p in (micasense / "photogrammetry").iterdir()) == [
         f"IMG_0001_{b}.tif" for b in ("Blue", "Green", "NIR", "Red", "RedEdge")]

@@ -15,6 +15,7 @@ import xarray as xr
 from pipeline.apply.factory import FactoryOptions, apply_factory
 from pipeline.ingest.products import Products
 from pipeline.run.cli import main
+from pipeline.storage.run_layout import run_value
 from tests.micasense_data import require_data
 
 TIFF_DIRS = ("photogrammetry", "panels", "thermal", "ndvi")
@@ -67,7 +68,7 @@ def test_default_run_writes_the_survey_set(micasense) -> None:
     assert run["quality"]["totals"] == {b: c for b, c in want.items() if c}
     assert np.array_equal(np.isnan(ds["reflectance"].values), q != 0)  # NaN: flagged (saturated or no value)
     # the factor from radiance to reflectance stays in run.json without the radiance cube
-    assert run["radiance_factor"]["route"] == "panel-dls"
+    assert run_value(run, "radiance_factor")["route"] == "panel-dls"
     assert set(run["illumination"]["per_frame"]["IMG_0001"]) == {"Blue", "Green", "Red", "NIR", "Red edge"}
     ndvi = ds["ndvi"].isel(frame=1).values
     refl = ds["reflectance"].isel(frame=1).values

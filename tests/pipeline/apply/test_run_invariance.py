@@ -30,6 +30,7 @@ import pytest
 import xarray as xr
 
 from pipeline.run.cli import main
+from pipeline.storage.run_layout import run_value
 from tests import camera_files as cf
 from tests.micasense_data import DATA, require_data
 
@@ -143,8 +144,8 @@ def test_sun_sensor_reflectance_is_the_same_alone_in_its_flight_and_in_another(t
     assert np.isfinite(alone).mean() > 0.9 and 0.01 < float(np.nanmedian(alone)) < 2.0  # on the TIFFs' scale
     for k in ("flight", "other_flight"):
         np.testing.assert_array_equal(_frame(*out[k], name), alone)
-        assert "relative_scale" not in out[k][0]["reference"]
-        assert out[k][0]["reference"]["sun_sensor_scale"] == out["alone"][0]["reference"]["sun_sensor_scale"]
+        assert "relative_scale" not in run_value(out[k][0], "reference")
+        assert run_value(out[k][0], "reference")["sun_sensor_scale"] == run_value(out["alone"][0], "reference")["sun_sensor_scale"]
     # the photogrammetry TIFFs (uint16 x 32768 for every camera) of the capture: the same bytes
     for tif in sorted((tmp_path / "out_alone" / "photogrammetry").glob(f"{name}_*.tif")):
         for k in ("flight", "other_flight"):
@@ -157,9 +158,9 @@ def test_radiance_only_route_is_the_same_alone_in_its_flight_and_in_another(tmp_
     folders, name = _flights(tmp_path, kind, sun=False)
     out = {k: _apply(f, tmp_path / f"out_{k}", "--no-align") for k, f in folders.items()}
     alone = _frame(*out["alone"], name, "radiance")
-    assert out["alone"][0]["reference"]["route"] == "none" and np.isnan(_frame(*out["alone"], name)).all()
+    assert run_value(out["alone"][0], "reference")["route"] == "none" and np.isnan(_frame(*out["alone"], name)).all()
     for k in ("flight", "other_flight"):
-        assert out[k][0]["reference"]["route"] == "none"
+        assert run_value(out[k][0], "reference")["route"] == "none"
         np.testing.assert_array_equal(_frame(*out[k], name, "radiance"), alone)
         assert np.isnan(_frame(*out[k], name)).all()
 
@@ -185,14 +186,14 @@ def test_with_panels_only_the_interpolation_in_time_changes_a_capture(tmp_path) 
         dst.write_bytes(dst.read_bytes().replace(b"2017:10:19 20:40:39", b"2017:10:19 20:43:40"))
     run1, ds1 = _apply(one, tmp_path / "o1", "--panel-reflectance", "0.5", "--panel", "IMG_0000")
     run2, ds2 = _apply(two, tmp_path / "o2", "--panel-reflectance", "0.5", "--panel", "IMG_0000,IMG_0002")
-    assert run1["reference"]["route"] == run2["reference"]["route"] == "panel-dls"
+    assert run_value(run1, "reference")["route"] == run_value(run2, "reference")["route"] == "panel-dls"
     ratio = _frame(run2, ds2, "IMG_0001") / _frame(run1, ds1, "IMG_0001")
     per_band = np.nanmedian(ratio, axis=(1, 2))
     # the same factor on every pixel of a band (only the light changed, not the pixels' model)
     np.testing.assert_allclose(np.nanmax(ratio, axis=(1, 2)), per_band, rtol=1e-5)
     np.testing.assert_allclose(np.nanmin(ratio, axis=(1, 2)), per_band, rtol=1e-5)
     # by how much: the interpolation of q between the panels, from run.json's light record
-    panels = {p["capture"]: p for p in run2["light"]["panels_over_time"]}
+    panels = {p["capture"]: p for p in run_value(run2, "light")["panels_over_time"]}
     w_after = 91.0 / 181.0  # IMG_0001 at 20:42:10.2, panels at 20:40:39.2 and 20:43:40.2
     for b, band in enumerate(ds2["band_name"].values):
         q = {c: panels[c]["panel_irradiance"][band] / panels[c]["sensor_irradiance"][band]
@@ -278,10 +279,10 @@ def test_long_flight_dls_reflectance_is_the_capture_alone(tmp_path) -> None:
     assert len(run_f["frames"]) == LONG and np.isfinite(alone).mean() > 0.9
     np.testing.assert_array_equal(in_flight, alone)
     for run in (run_f, run_a):
-        ratios = run["sun_sensor"]["diffuse_ratio"]
+        ratios = run_value(run, "sun_sensor")["diffuse_ratio"]
         assert {r["source"] for r in ratios.values()} == {"clear-sky diffuse ratio 1/6"}
         assert all(r["ratio"] == pytest.approx(1 / 6, abs=1e-6) for r in ratios.values())
-        assert run["sun_sensor"]["diffuse_ratio_rule"].startswith("clear-sky 1/6 (or a DLS 2's measured split), never")
+        assert run_value(run, "sun_sensor")["diffuse_ratio_rule"].startswith("clear-sky 1/6 (or a DLS 2's measured split), never")
 
 
 # --------------------------------------------------------------------------- band alignment
@@ -315,19 +316,19 @@ def test_dji_refined_band_alignment_is_the_same_alone_and_in_a_flight(tmp_path) 
         assert (tmp_path / "out_flight" / "photogrammetry" / tif.name).read_bytes() == tif.read_bytes()
     # where each capture's alignment came from, and what it left
     for run, names in ((run_a, ["003"]), (run_f, ["001", "002", "003"])):
-        per = run["coregistration"]["per_capture"]
+        per = run_value(run, "coregistration")["per_capture"]
         assert per["own_pixels"] == len(names) and per["not_run_invariant"] == [] and list(per["captures"]) == names
         for name in names:
             rec = per["captures"][name]
             assert rec["from"] == "own pixels" and rec["run_invariant"] and rec["alignment"] == REFINED
             assert min(v for v in rec["metadata_px"].values() if v) > 10
             assert max(rec["refined_px"].values()) <= 0.5
-    assert run_a["coregistration"]["per_capture"]["captures"]["003"] == \
-        run_f["coregistration"]["per_capture"]["captures"]["003"]
+    assert run_value(run_a, "coregistration")["per_capture"]["captures"]["003"] == \
+        run_value(run_f, "coregistration")["per_capture"]["captures"]["003"]
     # the flight's pooled transforms (the fallback) are not 003's own
-    pooled = {k: np.array(list(r["coregistration"]["metadata_check"]["transforms"].values()))
+    pooled = {k: np.array(list(run_value(r, "coregistration")["metadata_check"]["transforms"].values()))
               for k, r in (("alone", run_a), ("flight", run_f))}
-    assert run_f["coregistration"]["metadata_check"]["captures"] == ["001", "002", "003"]
+    assert run_value(run_f, "coregistration")["metadata_check"]["captures"] == ["001", "002", "003"]
     shift = np.abs(pooled["flight"][:, [2, 5]] - pooled["alone"][:, [2, 5]]).max()
     assert 0.005 < shift < 0.5
 
@@ -347,7 +348,7 @@ def test_sentera_radiance_is_the_capture_alone(tmp_path) -> None:
     shutil.copy(src / "IMG_00007.jpg", alone / "IMG_00007.jpg")
     run_f, ds_f = _apply(flight, tmp_path / "out-flight")
     run_a, ds_a = _apply(alone, tmp_path / "out-alone")
-    assert run_f["reference"]["route"] == run_a["reference"]["route"] == "none"
+    assert run_value(run_f, "reference")["route"] == run_value(run_a, "reference")["route"] == "none"
     np.testing.assert_array_equal(_frame(run_f, ds_f, "IMG_00007", "radiance"), _frame(run_a, ds_a, "IMG_00007", "radiance"))
 
 

@@ -17,6 +17,7 @@ from pipeline.ingest.cameras.micasense import AS_WRITTEN_RULE, LIBRARY_RULE
 from pipeline.ingest.clear_sky import choose_capture_rule, choose_rule, clear_sky_spectral, plausible
 from pipeline.run.cli import main
 from pipeline.run.console import report_warnings
+from pipeline.storage.run_layout import run_value
 from tests import camera_files as cf
 from tests.micasense_data import require_data
 
@@ -93,15 +94,15 @@ def test_dls2_without_scale_tag_is_read_in_the_unit_that_fits_the_sky(tmp_path) 
         cf.rewrite(cf.band_file("0001", b), dls1 / f"IMG_0001_{b}.tif")
     ref, ref_refl = _apply(dls1, tmp_path / "out_dls1")
     # W m-2 nm-1 without a scale tag: taken at scale 1; uW cm-2 nm-1: at MicaSense's 0.01
-    assert si["sun_sensor_check"]["rules"] == {AS_WRITTEN_RULE: 5}
-    assert uw["sun_sensor_check"]["rules"] == {LIBRARY_RULE: 5}
-    assert ref["sun_sensor_check"]["rules"] == {"x 1: W m-2 nm-1 (DLS 1)": 5}
+    assert run_value(si, "sun_sensor_check")["rules"] == {AS_WRITTEN_RULE: 5}
+    assert run_value(uw, "sun_sensor_check")["rules"] == {LIBRARY_RULE: 5}
+    assert run_value(ref, "sun_sensor_check")["rules"] == {"x 1: W m-2 nm-1 (DLS 1)": 5}
     for run in (si, uw, ref):
-        chk = run["sun_sensor_check"]
+        chk = run_value(run, "sun_sensor_check")
         assert chk["implausible"] == 0 and chk["plausible_ratio"] == [0.02, 1.5]
         got = {b: v["ratio"] for b, v in chk["captures"]["IMG_0001"].items()}
         assert got == pytest.approx(SAMPLE_RATIO, abs=2e-4)
-        assert not [w for w in run["light"]["warnings"] if w["code"] == "sun_sensor_implausible"]
+        assert not [w for w in run_value(run, "light")["warnings"] if w["code"] == "sun_sensor_implausible"]
     # the same light, so the same reflectance (read x 0.01 the SI file was 100 x too bright)
     np.testing.assert_allclose(si_refl, ref_refl, rtol=1e-6)
     np.testing.assert_allclose(uw_refl, ref_refl, rtol=1e-6)
@@ -117,9 +118,9 @@ def test_a_reading_fifty_times_the_sky_is_warned(tmp_path) -> None:
             r"<Camera:Irradiance>([^<]+)</Camera:Irradiance>",
             lambda m: f"<Camera:Irradiance>{float(m[1]) * 50}</Camera:Irradiance>", x))
     run, _ = _apply(folder, tmp_path / "out")
-    chk = run["sun_sensor_check"]
+    chk = run_value(run, "sun_sensor_check")
     assert chk["implausible"] == 5 and chk["ratio_range"] == pytest.approx([50 * 0.6564, 50 * 0.8494], abs=0.02)
-    warns = [w for w in run["light"]["warnings"] if w["code"] == "sun_sensor_implausible"]
+    warns = [w for w in run_value(run, "light")["warnings"] if w["code"] == "sun_sensor_implausible"]
     assert len(warns) == 1 and warns[0]["threshold"] == 1.5
     assert warns[0]["value"] == pytest.approx(50 * 0.8494, abs=0.02) and warns[0]["band"] == "Blue"
     # the QA report (and with it the run's summary) says it
@@ -144,8 +145,8 @@ def test_the_panel_compares_with_the_sensor_read_in_the_unit_chosen(tmp_path) ->
         assert main(["apply", str(folder), "--calibration", "factory", "-o", str(out), "--panel-reflectance", "0.5",
                      "--panel", "IMG_0000"]) == 0
         runs.append(json.loads((out / "run.json").read_text()))
-    ratio = [r["reference"]["panels"][0]["panel_over_dls"] for r in runs]
+    ratio = [run_value(r, "reference")["panels"][0]["panel_over_dls"] for r in runs]
     assert ratio[1] == pytest.approx(ratio[0], rel=1e-9)
     assert ratio[0] == pytest.approx({"Blue": 1.0136, "Green": 0.8727, "Red": 0.9037, "NIR": 0.7266,
                                       "Red edge": 0.9380}, abs=2e-4)
-    assert runs[1]["sun_sensor_check"]["rules"] == {AS_WRITTEN_RULE: 10}
+    assert run_value(runs[1], "sun_sensor_check")["rules"] == {AS_WRITTEN_RULE: 10}

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.apply.sunlight import RATIO_DRIFT_WARN, PanelSensorLight, light_warnings
+from pipeline.storage.run_layout import run_value
 from tests.micasense_data import require_data
 
 
@@ -59,4 +60,4 @@ def test_panel_dls_without_readings_exits_2(tmp_path, capsys) -> None:
     assert main([*args, "-o", str(tmp_path / "auto")]) == 0  # auto: the panel alone
     import json
 
-    assert json.loads((tmp_path / "auto" / "run.json").read_text())["reference"]["route"] == "panel"
+    assert run_value(json.loads((tmp_path / "auto" / "run.json").read_text()), "reference")["route"] == "panel"

@@ -18,6 +18,7 @@ from pipeline.calibrate.registration import frame_transforms, register_session, 
 from pipeline.ingest.catalog import load_camera
 from pipeline.run.cli import main
 from pipeline.sim.world.multilens import multilens_capture
+from pipeline.storage.run_layout import run_value
 from pipeline.storage.store import new_dataset, open_calibration, write_store
 from tests.micasense_data import band_file
 
@@ -114,7 +115,7 @@ def test_real_rededge_flight_capture_aligns(tmp_path) -> None:
     raw, al = (xr.open_zarr(tmp_path / d / "reflectance.zarr") for d in ("raw", "al"))
     assert al.attrs["co_registered"] == 1 and raw.attrs["co_registered"] == 0
     # apply measures the bands on the written pixels against the store's reference band
-    measured = {d: json.loads((tmp_path / d / "run.json").read_text())["coregistration"] for d in ("raw", "al")}
+    measured = {d: run_value(json.loads((tmp_path / d / "run.json").read_text()), "coregistration") for d in ("raw", "al")}
     assert measured["al"]["alignment"] == "transforms of the registration store (mscal register)"
     assert measured["raw"]["alignment"] == "none" and measured["al"]["reference_band"] == "Red"  # the store's
     before, after = measured["raw"]["captures"]["IMG_0001"], measured["al"]["captures"]["IMG_0001"]

@@ -30,6 +30,7 @@ from pipeline.ingest.identify import describe_folders, identify_camera, probe_fo
 from pipeline.ingest.intrinsics import intrinsics_from_file
 from pipeline.ingest.photo_tags import read_optics
 from pipeline.ingest.session import exif_record
+from pipeline.storage.run_layout import run_value
 from tests import camera_files as cf
 from tests.micasense_data import require_data
 
@@ -231,7 +232,7 @@ def test_apply_factory_on_the_card(card, tmp_path) -> None:
     run = json.loads((tmp_path / "out" / "run.json").read_text())
     assert run["camera"] == "dji-p4-multispectral"
     assert run["frames_out"] == 2 and run["frames"] == ["001", "002"] and run["quarantined"] == []
-    assert run["skipped"] == [{"file": f"DCIM/100MEDIA/DJI_00{c}0.JPG", "reason": RGB_REASON} for c in (1, 2)]
+    assert run_value(run, "skipped") == [{"file": f"DCIM/100MEDIA/DJI_00{c}0.JPG", "reason": RGB_REASON} for c in (1, 2)]
 
 
 def test_band_file_tags_in_odd_forms() -> None:

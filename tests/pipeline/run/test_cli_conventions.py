@@ -21,6 +21,7 @@ import pytest
 
 from pipeline.products.report import report_dict
 from pipeline.run.cli import cli, main
+from pipeline.storage.run_layout import GROUPS, run_value
 from tests.micasense_data import DATA as MICASENSE
 from tests.micasense_data import band_file, require_data
 
@@ -175,8 +176,8 @@ def test_factory_apply_says_a_panel_was_seen_and_how_to_use_it(micasense: Path, 
     assert "or give --panel-reflectance TARGET; --panel IMG_0000 chooses the capture" in warn
     assert warn.endswith("(value 1, threshold 0)")
     run = json.loads((out / "run.json").read_text())
-    assert run["reference"]["route"] == "dls" and run["reference"]["panels_seen"] == ["IMG_0000"]
-    assert run["reference"]["panel_serial_unknown"].startswith("RP02-1603036-SC (QR code of IMG_0000) is in no")
+    assert run_value(run, "reference")["route"] == "dls" and run_value(run, "reference")["panels_seen"] == ["IMG_0000"]
+    assert run_value(run, "reference")["panel_serial_unknown"].startswith("RP02-1603036-SC (QR code of IMG_0000) is in no")
     # --json: one document and nothing else on stdout (the second run is up to date)
     code, text, _ = _run(["apply", micasense, "--calibration", "factory", "-o", out, "--json"])
     doc = json.loads(text)
@@ -238,6 +239,38 @@ def test_factory_apply_with_the_panel_reports_its_colour_disagreement(micasense:
     assert code == 0 and lines[0].endswith("up to date)") and len(lines) == 4
     assert lines[2].startswith("  warning panel_dls_colour: panel IMG_0000: panel and sun sensor disagree in colour "
                                "by 53%") and lines[2].endswith("(value 0.5322, threshold 0.05)")  # one panel region for all bands
+
+
+
+def test_a_run_folder_of_the_flat_run_json_layout_is_up_to_date_and_reports_the_same(micasense: Path,
+                                                                                     tmp_path: Path) -> None:
+    """A run.json written before the keys of a kind of input moved under ``captures`` and
+    ``factory`` (every key at the top): the same apply finds it up to date (the fingerprint did
+    not change shape) and the summary and the report read its keys as they read the new layout's."""
+    out = tmp_path / "out"
+    args = ["apply", micasense, "--calibration", "factory", "-o", out, "--panel-reflectance", PANEL, "--json"]
+    code, text, _ = _run(args)
+    new, report = json.loads(text), report_dict(None, [out])
+    run = json.loads((out / "run.json").read_text())
+    common = {"flight", "camera", "calibration", "calibration_sha256", "frames_in", "frames_out", "frames",
+              "frames_sha256", "quarantined", "metadata_problems", "saturated_pixels", "quality", "outputs", "products",
+              "export_bands", "versions", "scheduler", "execution", "timings_s", "fingerprint", "outputs_manifest",
+              "illumination"}
+    assert set(run) - common == {"captures", "factory"}  # every other key under its kind of input
+    code, text, _ = _run(args)  # the new layout's record is up to date (its inputs_listing found under captures)
+    assert code == 0 and json.loads(text)["up_to_date"] is True
+    flat = {k: v for k, v in run.items() if k not in GROUPS}
+    for group in GROUPS:
+        flat.update(run[group])
+    assert set(flat) > {"reference", "light", "sun_sensor", "panels", "inputs_listing", "coregistration"}
+    (out / "run.json").write_text(json.dumps(flat))
+    code, text, _ = _run(args)
+    doc = json.loads(text)
+    assert code == 0 and doc["up_to_date"] is True and json.loads((out / "run.json").read_text()) == flat
+    assert doc["reference"] == new["reference"] and doc["reference"]["route"] == "panel-dls"
+    assert doc["warnings"] == new["warnings"] and [w["code"] for w in doc["warnings"]] == [
+        "panel_dls_colour", "band_misregistration"]
+    assert report_dict(None, [out]) == report
 
 
 def test_a_folder_without_a_panel_gets_no_panel_warning(tmp_path: Path) -> None:

@@ -16,6 +16,7 @@ from pipeline.apply.light_check import panel_prediction
 from pipeline.ingest.catalog import load_target
 from pipeline.run.cli import main
 from pipeline.sim.sunlight import write_sunlight_flight
+from pipeline.storage.run_layout import run_value
 from tests.micasense_data import BANDS, PANEL_CORNERS, require_data
 
 TARGET = "micasense-rp02-1603036-sc"
@@ -70,8 +71,8 @@ def test_apply_anchors_the_sensor_on_the_panels_and_finds_them_mixed(flight, tmp
     assert main(["apply", str(folder), "--calibration", "factory", "--panel-reflectance", TARGET,
                  "--illumination", "nearest", "-o", str(both)]) == 0
     run = json.loads((both / "run.json").read_text())
-    assert [p["capture"] for p in run["reference"]["panels"]] == [truth.names[0], truth.names[-1]]
-    light = run["light"]
+    assert [p["capture"] for p in run_value(run, "reference")["panels"]] == [truth.names[0], truth.names[-1]]
+    light = run_value(run, "light")
     assert light["route"] == "panel-dls" and len(light["panels_over_time"]) == 2
     assert all(v < 0.01 for v in light["panel_sensor_drift"].values())  # panels and sensor agree
     assert not [w for w in light["warnings"] if w["code"] == "panel_sensor_disagree"]

@@ -28,6 +28,7 @@ from pipeline.ingest.identify import identify_camera
 from pipeline.ingest.intrinsics import intrinsics_from_file
 from pipeline.ingest.meta import FieldParts, no_reflectance_reason, reflectance_factor
 from pipeline.ingest.sunsensor import sensor_orientation
+from pipeline.storage.run_layout import run_value
 
 ROOT = Path(__file__).parents[4]
 
@@ -209,9 +210,9 @@ def test_a_new_makers_flight_is_applied_with_its_sun_sensor(acme, tmp_path) -> N
     apply_factory(acme, out, FactoryOptions(reference="dls"))
     run = json.loads((out / "run.json").read_text())
     assert run["camera"] == "acme-duo" and run["frames"] == ["ACME_0001", "ACME_0002"] and run["quarantined"] == []
-    assert [b["band"] for b in run["skipped_bands"]] == ["Dark", "Dark"]
-    assert run["reference"]["sun_sensor_scale"]["source"] == "Acme manual (a toy)"
-    assert run["sun_sensor_check"]["rules"] == {registry.AS_READ_RULE: 4}  # 2 captures x 2 bands
+    assert [b["band"] for b in run_value(run, "skipped_bands")] == ["Dark", "Dark"]
+    assert run_value(run, "reference")["sun_sensor_scale"]["source"] == "Acme manual (a toy)"
+    assert run_value(run, "sun_sensor_check")["rules"] == {registry.AS_READ_RULE: 4}  # 2 captures x 2 bands
     with tifffile.TiffFile(out / "photogrammetry" / "ACME_0002_NIR.tif") as tif:
         packet = tif.pages[0].tags[700].value.decode()
     assert 'xmlns:Acme="http://acme.example/camera/1.0/"' in packet and "<Acme:Shot>shot-2</Acme:Shot>" in packet
