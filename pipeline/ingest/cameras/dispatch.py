@@ -22,7 +22,7 @@ import numpy as np
 from mscal_core.errors import FrameError
 
 import pipeline.ingest.cameras as _cameras
-from pipeline.ingest.cameras.registry import FileRegistration, Maker, by_order, maker_of
+from pipeline.ingest.cameras.registry import FileRegistration, Maker, by_order, maker_of, radiance_unit
 from pipeline.ingest.meta import CaptureMeta, FieldParts, TagContext
 
 for _module in pkgutil.iter_modules(_cameras.__path__):
@@ -64,13 +64,19 @@ def read_tags(ctx: TagContext) -> list[CaptureMeta]:
     return next(m for m in makers if m.fallback).read(ctx)
 
 
+def maker_of_band(meta: CaptureMeta) -> Maker | None:
+    """The maker of a band file's radiometry, or None when no registered maker has it."""
+    try:
+        return maker_of(meta.radiometry)
+    except KeyError:
+        return None
+
+
 def file_registration(meta: CaptureMeta) -> FileRegistration | None:
     """The band file's maker's own registration onto the camera's common image plane
     (:attr:`Maker.file_registration`), or None when its maker writes none."""
-    try:
-        return maker_of(meta.radiometry).file_registration
-    except KeyError:
-        return None
+    maker = maker_of_band(meta)
+    return None if maker is None else maker.file_registration
 
 
 def has_file_registration(meta: CaptureMeta) -> bool:
@@ -99,20 +105,15 @@ def file_registration_note(metas: Sequence[CaptureMeta]) -> str:
 def sibling_position(meta: CaptureMeta, capture: str) -> tuple[float, float, float | None] | None:
     """``(lat, lon, alt_m)`` of capture ``capture`` from a file its maker saves beside the band
     file ``meta`` (:attr:`Maker.sibling_position`), or None (no such file, or no such maker)."""
-    try:
-        find = maker_of(meta.radiometry).sibling_position
-    except KeyError:
-        return None
+    maker = maker_of_band(meta)
+    find = None if maker is None else maker.sibling_position
     return None if find is None else find(meta.path.parent, capture)
 
 
 def is_temperature(meta: CaptureMeta) -> bool:
     """Whether the band file's factory model gives temperature in kelvin (a thermal band:
-    its maker's unit for the band's radiometry is ``K``), not radiance."""
-    try:
-        return maker_of(meta.radiometry).units[meta.radiometry] == "K"
-    except KeyError:
-        return False
+    its maker's unit for the band's radiometry is ``K``, :func:`~pipeline.ingest.cameras.registry.radiance_unit`), not radiance."""
+    return maker_of_band(meta) is not None and radiance_unit(meta.radiometry) == "K"
 
 
 def companion_image_patterns() -> dict[str, tuple[str, str]]:
