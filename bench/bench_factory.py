@@ -183,7 +183,18 @@ def captures_that_fit(asked: int, per_in: float, per_out: float, free: float) ->
     return max(0, min(asked, int((free - DISK_MARGIN_B) // (per_in + per_out))))
 
 
-def run(captures: int, workdir: Path, log=print, settle_s: float = 20.0, repeat: int = 3) -> dict:
+def sub_survey(survey: Path, dst: Path, n: int) -> Path:
+    """The first ``n`` captures of ``survey`` as hard links in ``dst`` (no new bytes on disk;
+    ``discard`` leaves linked files whole)."""
+    dst.mkdir(parents=True, exist_ok=True)
+    for i in range(n):
+        for b in range(1, BANDS + 1):
+            os.link(survey / f"IMG_{i:04d}_{b}.tif", dst / f"IMG_{i:04d}_{b}.tif")
+    return dst
+
+
+def run(captures: int, workdir: Path, log=print, settle_s: float = 20.0, repeat: int = 3,
+        scaling: Sequence[int] = ()) -> dict:
     mscal = bc.mscal_command()
     per_in, per_out = disk_per_capture(workdir, mscal)
     free = float(shutil.disk_usage(workdir).free)
@@ -216,6 +227,15 @@ def run(captures: int, workdir: Path, log=print, settle_s: float = 20.0, repeat:
             (workdir / "manifest.json").write_text(json.dumps(manifest))
         bc.discard(out)
     res["loop"], res["apply"] = median_run(res["loop_runs"]), median_run(res["apply_runs"])
+    res["scaling"] = []
+    for n in sorted({k for k in scaling if 0 < k < captures}):  # captures/s at fewer captures, same files
+        sub = sub_survey(survey, workdir / f"captures-{n}", n)
+        settle(settle_s, warm=(sub,))
+        res["scaling"].append((n, bc._check(bc.run_measured(
+            [*mscal, "apply", str(sub), "--calibration", "factory", "--reference", "dls", "-o", str(out)]),
+            f"mscal apply --calibration factory ({n} captures)")))
+        bc.discard(out)
+        bc.discard(sub)
     bc.discard(survey)  # room for the write floor's copy of apply's outputs
     settle(settle_s, warm=(workdir / "manifest.json",))
     res["writes"] = bc._check(bc.run_measured(
@@ -284,6 +304,23 @@ def render(res: dict, command: str) -> str:
         f'| <a id="factory-rss"></a>factory apply peak RSS | {ap.maxrss_mib:.0f} MiB | <= 1024 MiB | '
         f"{'PASS' if ap.maxrss_mib <= 1024 else 'FAIL'} |",
     ]
+    if res.get("scaling"):
+        lines += [
+            "",
+            "Captures/s against the survey's length: `mscal apply` on the first N captures of the same survey (hard "
+            "links, the same rest before each run), one run each, beside the median run above.",
+            "",
+            "| captures | wall (s) | captures/s | CPU (s) | peak RSS (MiB) | captures/s / the full survey's |",
+            "|---:|---:|---:|---:|---:|---:|",
+        ]
+        for k, r in [*res["scaling"], (n, ap)]:
+            lines.append(f"| {k} | {r.wall_s:.1f} | {k / r.wall_s:.1f} | {r.cpu_s:.1f} | {r.maxrss_mib:.0f} | "
+                         f"{(k / r.wall_s) / (n / ap.wall_s):.2f} |")
+        worst = min(k / r.wall_s for k, r in res["scaling"]) / (n / ap.wall_s)
+        best = max(k / r.wall_s for k, r in res["scaling"]) / (n / ap.wall_s)
+        flat = 0.9 <= worst and best <= 1.1
+        lines += ["", f'<a id="factory-flat"></a>Captures/s at fewer captures is {worst:.2f}-{best:.2f}x the full '
+                  f"survey's: {'flat within 10 %' if flat else 'not flat within 10 %'}."]
     return "\n".join(lines) + "\n"
 
 
@@ -294,6 +331,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--settle", type=float, default=None, help="seconds of rest before each command (default 20; "
                                                               "--quick: 0)")
     p.add_argument("--quick", action="store_true", help="40 captures, one run each")
+    p.add_argument("--scaling", type=int, nargs="*", default=(300,), metavar="N",
+                   help="also apply the first N captures, for captures/s against length (default 300; --quick: 10)")
     p.add_argument("--out", type=Path, default=ROOT / "docs" / "benchmarks.md")
     p.add_argument("--workdir", type=Path, default=None)
     p.add_argument("--child", nargs="+", help=argparse.SUPPRESS)
@@ -308,10 +347,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     if a.quick:
         a.captures = 40
+        a.scaling = [10]
     command = shlex.join([".venv/bin/python", "bench/bench_factory.py", *(argv if argv is not None else sys.argv[1:])])
     with tempfile.TemporaryDirectory(prefix="mscal-bench-factory-", dir=a.workdir) as tmp:
         res = run(a.captures, Path(tmp), settle_s=a.settle if a.settle is not None else (0.0 if a.quick else 20.0),
-                  repeat=a.repeat if a.repeat is not None else (1 if a.quick else 3))
+                  repeat=a.repeat if a.repeat is not None else (1 if a.quick else 3), scaling=a.scaling)
     body = render(res, command)
     print(body)
     bc.write_section(a.out, body, SECTION_KEY)

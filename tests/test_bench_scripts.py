@@ -283,6 +283,33 @@ def test_factory_render_puts_the_write_floor_beside_the_loop_target() -> None:
     assert "write floor" not in fac.render(res, "cmd")
 
 
+def test_factory_render_shows_captures_per_second_against_length(tmp_path: Path) -> None:
+    fac = _load("bench_factory")
+    bc = _load("bench_calibrate")
+
+    def run(wall: float):
+        return bc.Run(["x"], wall, wall, 0.0, 500.0, 0, (0.5, 0.5, 0.5))
+
+    full = run(50.0)  # 500 captures: 10 captures/s
+    res = {"captures": 500, "settle_s": 20.0, "loop": run(90.0), "apply": full, "loop_runs": [], "apply_runs": [full],
+           "scaling": [(100, run(11.0)), (300, run(30.0))]}
+    md = fac.render(res, "cmd")
+    assert "| 100 | 11.0 | 9.1 | 11.0 | 500 | 0.91 |" in md and "| 500 | 50.0 | 10.0 | 50.0 | 500 | 1.00 |" in md
+    assert "0.91-1.00x the full survey's: flat within 10 %" in md
+    res["scaling"] = [(300, run(40.0))]  # 7.5 captures/s
+    assert "0.75-0.75x the full survey's: not flat within 10 %" in fac.render(res, "cmd")
+    # the sub-survey is hard links: no new bytes, and discard leaves the survey whole
+    survey = tmp_path / "s"
+    survey.mkdir()
+    for i in range(3):
+        for b in range(1, 6):
+            (survey / f"IMG_{i:04d}_{b}.tif").write_bytes(b"z" * 10)
+    sub = fac.sub_survey(survey, tmp_path / "sub", 2)
+    assert sorted(p.name for p in sub.iterdir()) == [f"IMG_{i:04d}_{b}.tif" for i in range(2) for b in range(1, 6)]
+    bc.discard(sub)
+    assert (survey / "IMG_0001_5.tif").read_bytes() == b"z" * 10
+
+
 # --------------------------------------------------------------------------- accuracy_varied
 
 varied_acc = _load("accuracy_varied")
