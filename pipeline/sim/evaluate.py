@@ -7,7 +7,7 @@ beside it, the Eq. 16 baseline (divide by the reflector's DN, exposure-normalise
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -59,7 +59,8 @@ def evaluate_calibration(session_dir: str | Path, calibration: str | Path | xr.D
 
 
 def evaluate_flight(session_dir: Path, ds: xr.Dataset, truth: Any, flight: str,
-                    reflectance: np.ndarray | None = None, quality: np.ndarray | None = None) -> dict[str, Any]:
+                    reflectance: np.ndarray | None = None, quality: np.ndarray | None = None,
+                    calibration_share: bool = False) -> dict[str, Any]:
     """Eq. 15 vs Eq. 16 on one synthetic flight: panel reflectance after panel normalisation
     (one scalar per frame), NDVI of vegetation, panel consistency across frames.
 
@@ -68,7 +69,9 @@ def evaluate_flight(session_dir: Path, ds: xr.Dataset, truth: Any, flight: str,
     Eq. 15 computed here from the calibration; only finite pixels count. ``quality``: its
     mask (apply's ``quality``), so that a panel with pixels flagged high is taken on its
     censored median (:func:`panel_value`); None: a NaN pixel is left out, except where the DN is
-    saturated (Eq. 15 computed here)."""
+    saturated (Eq. 15 computed here). ``calibration_share``: add ``panel_cv_calibration`` to
+    the Eq. 15 and Eq. 16 figures (:func:`calibration_cv` against Eq. 15 with the session's
+    true U, V and S on the same DN)."""
     session = load_session(session_dir)
     cam = session.camera
     recs = read_frame_table(session_dir / "flights" / flight)
@@ -97,7 +100,28 @@ def evaluate_flight(session_dir: Path, ds: xr.Dataset, truth: Any, flight: str,
     refl_level = np.array([np.median(rdn[b][rmask]) for b in range(cam.n_bands)])
     rho_s = session.reflector.reflectance.at(cam.wavelengths)
     r16 = np.stack([eq16_reflectance(dn[f] / t[f], refl_level, rho_s) for f in range(len(recs))]).astype(np.float32)
-    return {"frames": len(recs), "eq15": score_flight(reflectance, scene, quality), "eq16": score_flight(r16, scene)}
+    out = {"frames": len(recs), "eq15": score_flight(reflectance, scene, quality), "eq16": score_flight(r16, scene)}
+    if calibration_share:
+        exact = eq15(dn, truth["inverse_response"], t, truth["vignetting"], truth["spectral_factor"])
+        out["eq15"]["panel_cv_calibration"] = calibration_cv(reflectance, exact, scene, quality)
+        out["eq16"]["panel_cv_calibration"] = calibration_cv(r16, exact, scene)
+    return out
+
+
+def calibration_cv(r: np.ndarray, exact: np.ndarray, scene: FlightScene, quality: np.ndarray | None = None) -> float:
+    """The calibration's own share of the cross-frame CV: :func:`score_flight`'s
+    ``panel_cv_across_frames`` of ``r / exact`` (frame, band, y, x), with ``exact`` Eq. 15 of the
+    same DN with the true U, V and S, and no light to divide by.
+
+    Pixel by pixel the two read the same noisy DN, so the noise cancels in the ratio (up to the
+    slope of the fitted U against the true one) and what moves a panel's ratio from frame to
+    frame is the calibration: V at the panel's place in each frame, U at each frame's exposure.
+    ``quality`` as in :func:`score_flight` (a pixel flagged high counts as high in the ratio too).
+    """
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = (r / exact).astype(np.float32)
+    flat = replace(scene, sun=np.ones_like(scene.sun))
+    return score_flight(ratio, flat, quality)["panel_cv_across_frames"]
 
 
 @dataclass(frozen=True)

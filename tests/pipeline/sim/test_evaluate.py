@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mscal_core.quality import FLAGS
-from pipeline.sim.evaluate import FlightScene, panel_value, score_flight
+from pipeline.sim.evaluate import FlightScene, calibration_cv, panel_value, score_flight
 
 
 def _scene(n_frames: int = 3) -> tuple[FlightScene, np.ndarray]:
@@ -173,3 +173,17 @@ def test_score_flight_takes_a_panel_without_flags_on_its_mean() -> None:
     s = score_flight(r2, scene)
     assert s["panel_abs_error"] == pytest.approx(0.3 * 0.01, rel=1e-3)
     assert s["panels_censored"] == 0.0
+
+
+def test_calibration_cv_cancels_the_pixel_noise_and_keeps_what_the_calibration_moves() -> None:
+    """Pixels with 10 % noise read through a calibration 2 % high in frame 1's band 2 only: the
+    panels' cross-frame CV is mostly the noise, the calibration's share is that of (1, 1.02, 1)."""
+    scene, r = _scene()
+    rng = np.random.default_rng(5)
+    exact = (r * (1 + 0.1 * rng.standard_normal(r.shape))).astype(np.float32)
+    fitted = exact * 1.3  # U's scale is free: the ratio's level does not count
+    fitted[1, 2] *= 1.02
+    assert score_flight(fitted, scene)["panel_cv_across_frames"] > 0.01
+    want = np.std([1, 1.02, 1]) / np.mean([1, 1.02, 1])
+    assert calibration_cv(fitted, exact, scene) == pytest.approx(want, rel=1e-4)
+    assert calibration_cv(exact * 1.3, exact, scene) < 1e-6
