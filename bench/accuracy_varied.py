@@ -9,13 +9,16 @@ session's truth:
 - the fits: U (5-95 % of the DN range, as the seeds are scored), V (RMS, worst band), S;
 - the flight as apply wrote it (``OUT/reflectance.zarr``): gray panels after one scalar per
   frame, the same panel across frames (CV) and vegetation NDVI, on the pixels apply left a
-  value (flagged pixels are NaN by default); a panel's median counts its pixels flagged high
-  as above it, and a panel half flagged or more is not scored
-  (:func:`mscal_core.quality.region_median`): how many panels (per frame) were scored on such
-  a censored median and how many were not scored are reported;
+  value (flagged pixels are NaN by default); a panel's value is the mean of its pixels, or,
+  where some are flagged high, its median with those counted as above it, and a panel half
+  flagged or more is not scored (:func:`pipeline.sim.evaluate.panel_value`): how many panels
+  (per frame) were scored on such a censored median and how many were not scored are reported;
 - beside it, the Eq. 16 baseline (divide by the reflector's DN) on the same frames, and the
   floor: Eq. 15 with the session's true U, V and S (what a perfect calibration scores; the
-  panels' own pixel noise, e.g. of a 0.05 panel at ~60 DN, is in it);
+  panels' own pixel noise, e.g. of a 0.05 panel at ~30 DN above black, is in it), and the
+  calibration's own share of the CV: the CV of mscal's (and Eq. 16's) reflectance over the
+  floor's on the same pixels, where the pixel noise cancels
+  (:func:`pipeline.sim.evaluate.calibration_cv`);
 - the flags: pixels apply flagged (``quality`` != 0), the share of panel pixels flagged, and
   flagged pixels that still carry a value (must be 0 with the default options).
 
@@ -124,7 +127,8 @@ def run_session(index: int, workdir: Path, keep: bool = False, log: Callable[[st
         truth = np.load(session / "truth.npz")
         fits = evaluate_calibration(session, ds, flights=False)  # the flight is scored on apply's output below
         refl, quality = product_reflectance(out, flight_dir)
-        flight = evaluate_flight(session, ds, truth, FLIGHT, reflectance=refl, quality=quality)
+        flight = evaluate_flight(session, ds, truth, FLIGHT, reflectance=refl, quality=quality,
+                                 calibration_share=True)
         exact = xr.Dataset({"inverse_response": (("band", "dn"), truth["inverse_response"]),
                             "vignetting": (("band", "y", "x"), truth["vignetting"]),
                             "spectral_factor": (("band",), truth["spectral_factor"])})
@@ -154,6 +158,11 @@ def rows(results: Sequence[VariedAccuracy]) -> list[tuple[bc.Row, ...]]:
                      bc.Row(f"Eq. 16 baseline: {label}", [r.eq16[key] for r in results], None),
                      bc.Row(f"floor, Eq. 15 with the true U, V, S: {label}",
                             [r.truth.get(key, math.nan) for r in results], None)))
+        if key == "panel_cv_across_frames":
+            pair.append((bc.Row("flight (apply's output) over the floor, same pixels: CV (the calibration's share)",
+                                [r.eq15.get("panel_cv_calibration", math.nan) for r in results], None),
+                         bc.Row("Eq. 16 baseline over the floor, same pixels: CV",
+                                [r.eq16.get("panel_cv_calibration", math.nan) for r in results], None)))
     for key, label, fmt in (("flagged_share", "pixels flagged", "{:.3%}"),
                             ("panel_flagged_share", "panel pixels flagged", "{:.3%}"),
                             ("nan_share", "pixels without a value (NaN)", "{:.3%}")):
@@ -178,7 +187,12 @@ def render(results: Sequence[VariedAccuracy], command: str) -> str:
         "(full size; what each draws: the calibrate section's parameter table), each through `mscal calibrate` and "
         "`mscal apply` with the default options, scored against the session's truth on the pixels apply left a "
         "value (flagged pixels are NaN by default). Each flight figure has the Eq. 16 baseline (divide by the "
-        "reflector's DN) and the floor (Eq. 15 with the session's true U, V and S) on the next rows.",
+        "reflector's DN) and the floor (Eq. 15 with the session's true U, V and S) on the next rows. A gray "
+        "panel's value in a frame and band is the mean of its pixels (the median, with the pixels flagged high "
+        "counted as above it, where some are: `pipeline.sim.evaluate.panel_value`); the CV is the worst over the "
+        "4 panels and 25 bands of that value over the frame's true light, across the frames. The CV rows "
+        "\"over the floor, same pixels\" divide each pixel by the floor's on the same DN, so the pixel noise "
+        "cancels and what is left is the calibration's share (`pipeline.sim.evaluate.calibration_cv`).",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "|".join(["---"] + ["---:"] * (len(idx) + 4) + [":---:"]) + "|",
@@ -200,7 +214,8 @@ def render(results: Sequence[VariedAccuracy], command: str) -> str:
         lines.append("")
         lines.append(f"The true calibration itself comes within {1 - FLOOR_NOTE_SHARE:.0%} of the target on "
                      + "; ".join(near) + " on some sessions (floor rows): there the figure is mostly "
-            "the panels' own pixel noise, not the calibration; read mscal's row beside its floor.")
+            "the panels' own pixel noise, not the calibration; read mscal's row beside its floor and "
+            "beside its share over the floor on the same pixels.")
     lines.append("")
     return "\n".join(lines)
 

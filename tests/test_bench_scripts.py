@@ -354,3 +354,16 @@ def test_varied_render_counts_the_panels_scored_on_a_censored_median_and_those_f
     md = varied_acc.render([res], "bench")
     assert "| panels scored on a censored median (per frame) | 3 |" in md
     assert "| panels half flagged or more, not scored (per frame) | 1 |" in md
+
+
+def test_varied_render_puts_the_calibrations_share_of_the_cv_under_its_floor() -> None:
+    flight = {"panel_abs_error": 0.004, "panel_cv_across_frames": 0.007, "vegetation_ndvi_error": 0.002,
+              "panel_cv_calibration": 0.0015}
+    eq16 = {"panel_abs_error": 0.06, "panel_cv_across_frames": 0.03, "vegetation_ndvi_error": 0.13,
+            "panel_cv_calibration": 0.028}
+    res = varied_acc.VariedAccuracy(0, {}, {"response_max_error": 0.01}, flight, eq16,
+                                    truth={"panel_cv_across_frames": 0.0068})
+    lines = varied_acc.render([res], "bench").splitlines()
+    i = next(k for k, line in enumerate(lines) if line.startswith("| floor, Eq. 15 with the true U, V, S: same panel"))
+    assert lines[i + 1].startswith("| flight (apply's output) over the floor, same pixels: CV") and "| 0.0015 |" in lines[i + 1]
+    assert lines[i + 2].startswith("| Eq. 16 baseline over the floor, same pixels: CV") and "| 0.0280 |" in lines[i + 2]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mscal_core.quality import FLAGS
-from pipeline.sim.evaluate import FlightScene, score_flight
+from pipeline.sim.evaluate import FlightScene, calibration_cv, panel_value, score_flight
 
 
 def _scene(n_frames: int = 3) -> tuple[FlightScene, np.ndarray]:
@@ -114,8 +114,76 @@ def test_a_panel_partly_flagged_high_is_scored_on_its_censored_median_and_counte
     assert s3["panels_flagged"] == 3.0 and s3["panels_censored"] == 0.0
     assert s3["panel_abs_error"] < 1e-6  # frame 1 normalised by the 0.3 panel, the 0.9 one not scored there
     # flagged in band 0 only; in bands 1 and 2 the 4 NaN pixels without a flag are left out
-    # (not censored): scored there on the median of the 8 others, 0.9 x 0.985
+    # (not censored): scored there on the mean of the 8 others, 0.9 x 0.985
     q[1][1:, panel] = 0
     s4 = score_flight(r2, scene, q)
     assert s4["panels_flagged"] == 1.0 and s4["panels_censored"] == 0.0
     assert s4["panel_abs_error"] == pytest.approx(0.9 * 0.015, rel=1e-4)
+
+
+def test_panel_value_spread_is_the_pixel_noise_over_root_n() -> None:
+    """A gray panel of 300 pixels with 8.5 % Gaussian pixel noise (the 0.05 panel ~30 DN above
+    black of the varied sessions): over 4000 draws the mean's spread is sigma / sqrt(N) and,
+    with 3 pixels per draw flagged high, the censored median's is sqrt(pi / 2) times that."""
+    rng = np.random.default_rng(7)
+    n, draws, rho, rel = 300, 4000, 0.05, 0.085
+    v = rho * (1 + rel * rng.standard_normal((draws, n)))  # one row per draw, as bands
+    val, state = panel_value(v, np.zeros(v.shape, np.uint8))
+    assert (state == 0).all()
+    theory = rel / np.sqrt(n)
+    # the spread of 4000 draws is itself known to 1 / sqrt(2 x 4000) = 1.1 %: 5 % is 4 of those
+    assert np.std(val / rho) == pytest.approx(theory, rel=0.05)
+    assert np.mean(val / rho) == pytest.approx(1.0, abs=4 * theory / np.sqrt(draws))
+    q = np.zeros(v.shape, np.uint8)
+    top = np.argsort(v, axis=1)[:, -3:]  # the 3 brightest read on the shoulder ...
+    np.put_along_axis(q, top, np.uint8(FLAGS["response_shoulder"]), axis=1)
+    cen, cstate = panel_value(np.where(q != 0, np.nan, v), q)  # ... and carry no value
+    assert (cstate == 1).all()
+    assert np.std(cen / rho) == pytest.approx(np.sqrt(np.pi / 2) * theory, rel=0.06)
+    assert np.mean(cen / rho) == pytest.approx(1.0, abs=4 * 1.26 * theory / np.sqrt(draws))
+    half = q.copy()
+    half[:, : n // 2] = FLAGS["vignetting_unobserved"]  # half of the panel flagged: not scored
+    assert np.isnan(panel_value(v, half)[0]).all() and (panel_value(v, half)[1] == 2).all()
+
+
+def test_panel_value_of_integer_dn_does_not_depend_on_where_the_level_falls_between_dn_steps() -> None:
+    """A dark panel reads integer DN: at 30.0, 30.3 and 30.5 DN with 2.6 DN of noise (300
+    pixels, 2000 draws) the mean's spread is sqrt(2.6^2 + 1/12) / sqrt(300) = 0.151 DN at each
+    level; the median sticks to the DN levels, its spread 0.05 DN at 30.0 and 0.49 DN at 30.5
+    (the continuous theory, 1.25 x 0.150 = 0.188 DN, holds at neither)."""
+    rng = np.random.default_rng(3)
+    theory = np.sqrt(2.6**2 + 1 / 12) / np.sqrt(300)
+    spread_median = {}
+    for mu in (30.0, 30.3, 30.5):
+        dn = np.rint(mu + 2.6 * rng.standard_normal((2000, 300)))
+        val, _ = panel_value(dn, np.zeros(dn.shape, np.uint8))
+        assert np.std(val) == pytest.approx(theory, rel=0.07)  # 2000 draws: spread known to 1.6 %
+        assert np.mean(val) == pytest.approx(mu, abs=4 * theory / np.sqrt(2000))
+        spread_median[mu] = float(np.std(np.median(dn, axis=1)))
+    assert spread_median[30.0] < 0.5 * theory and spread_median[30.5] > 2.5 * theory
+
+
+def test_score_flight_takes_a_panel_without_flags_on_its_mean() -> None:
+    """One of the 0.3 panel's 12 pixels reads 12 % high in frame 1: its mean, 1 % high, is
+    the panel's value there (its median would not move)."""
+    scene, r = _scene()
+    r2 = r.copy()
+    y, x = np.nonzero(scene.labels[1] == 2)
+    r2[1][:, y[0], x[0]] *= 1.12
+    s = score_flight(r2, scene)
+    assert s["panel_abs_error"] == pytest.approx(0.3 * 0.01, rel=1e-3)
+    assert s["panels_censored"] == 0.0
+
+
+def test_calibration_cv_cancels_the_pixel_noise_and_keeps_what_the_calibration_moves() -> None:
+    """Pixels with 10 % noise read through a calibration 2 % high in frame 1's band 2 only: the
+    panels' cross-frame CV is mostly the noise, the calibration's share is that of (1, 1.02, 1)."""
+    scene, r = _scene()
+    rng = np.random.default_rng(5)
+    exact = (r * (1 + 0.1 * rng.standard_normal(r.shape))).astype(np.float32)
+    fitted = exact * 1.3  # U's scale is free: the ratio's level does not count
+    fitted[1, 2] *= 1.02
+    assert score_flight(fitted, scene)["panel_cv_across_frames"] > 0.01
+    want = np.std([1, 1.02, 1]) / np.mean([1, 1.02, 1])
+    assert calibration_cv(fitted, exact, scene) == pytest.approx(want, rel=1e-4)
+    assert calibration_cv(exact * 1.3, exact, scene) < 1e-6
