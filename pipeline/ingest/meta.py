@@ -244,7 +244,7 @@ class TagContext:
             self.problems.append(exc.problem(feature))
             return None
 
-    def required(self, tag: str, ns: Sequence[str] = ("Camera", "MicaSense"), count: int | None = None
+    def required(self, tag: str, ns: Sequence[str] | None = None, count: int | None = None
                  ) -> tuple[float, ...]:
         try:
             v = self.xmp.numbers(tag, ns, count)

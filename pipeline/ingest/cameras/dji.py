@@ -262,7 +262,7 @@ MAKER = register(Maker(
     compensated_model=DJI_COMPENSATED,
     # the reading (compensated) and the aircraft's attitude (ATTITUDE), kept on each band's metadata
     sun_sensor_xmp=frozenset({"Irradiance", "FlightYawDegree", "FlightPitchDegree", "FlightRollDegree"}),
-    capture_id_tags=(("drone-dji", "CaptureUUID"),),
+    capture_id_tags=(("drone-dji", "CaptureUUID"),), namespaces={"drone-dji": ("http://www.dji.com/drone-dji/1.0",)},
     time_tags=(("drone-dji", "UTCAtExposure"),),  # UTC, more precise than EXIF DateTimeOriginal (pipeline.ingest.exif)
     intrinsics=dewarp_intrinsics, vignetting_tags="XMP drone-dji:VignettingData",
     # the camera body's serial ("Camera SN", DJI Mavic 3M user manual, photo file fields)

@@ -124,4 +124,5 @@ def no_reflectance(meta: CaptureMeta) -> str:
 MAKER = register(Maker(
     name="sentera", model="sentera", units=UNITS, claims=claims, read=read, radiance=band_radiance,
     vignetting=band_vignetting, order=30, sun_factor=sun_factor, no_reflectance=no_reflectance,
+    namespaces={"ILS": ("http://sentera.com/ILS/1.0",)},  # the incident light sensor (seen in the Double 4K's files)
 ))
