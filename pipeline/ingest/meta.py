@@ -55,12 +55,6 @@ class CaptureMeta:
     exposure_s: float
     gain: float  # ISO / 100 (MicaSense, Sentera); drone-dji:SensorGain (DJI)
     black_levels: tuple[float, ...]  # EXIF BlackLevel (per CFA position), drone-dji:BlackLevel
-    dark_row_values: tuple[float, ...] | None
-    radiometric_calibration: tuple[float, float, float] | None  # MicaSense a1, a2, a3
-    vignetting_center: tuple[float, float] | None  # (x, y) pixels
-    vignetting_polynomial: tuple[float, ...] | None  # k1..kn, lowest power first
-    vignetting_polynomial_2d: tuple[float, ...] | None
-    vignetting_polynomial_2d_exponents: tuple[float, ...] | None
     irradiance: float | None  # sun sensor reading (unit: irradiance_unit)
     capture_id: str | None
     rig_camera_index: int | None
@@ -69,7 +63,15 @@ class CaptureMeta:
     lon: float | None
     alt_m: float | None
     time: str | None  # ISO 8601, with fraction of a second when SubsecTime is present
-    radiometry: str = "micasense"  # a radiometry a maker registers (pipeline.ingest.cameras.registry)
+    radiometry: str  # a radiometry its maker registers (pipeline.ingest.cameras.registry)
+    # the radiometric tags of the Pix4D camera schema (MicaSense; Parrot's 2-D vignetting): None
+    # for a maker that writes none
+    dark_row_values: tuple[float, ...] | None = None
+    radiometric_calibration: tuple[float, float, float] | None = None  # a1, a2, a3
+    vignetting_center: tuple[float, float] | None = None  # (x, y) pixels
+    vignetting_polynomial: tuple[float, ...] | None = None  # k1..kn, lowest power first
+    vignetting_polynomial_2d: tuple[float, ...] | None = None
+    vignetting_polynomial_2d_exponents: tuple[float, ...] | None = None
     make: str | None = None
     model: str | None = None
     rig_name: str | None = None

@@ -90,9 +90,7 @@ def _dji(ctx: TagContext) -> CaptureMeta:
         "DewarpHMatrix", dj, 9))
     return CaptureMeta(
         path=path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=name, wavelength_nm=wl, fwhm_nm=fwhm,
-        exposure_s=exposure, gain=gain, black_levels=tuple(black), dark_row_values=None, radiometric_calibration=None,
-        vignetting_center=None, vignetting_polynomial=None, vignetting_polynomial_2d=None,
-        vignetting_polynomial_2d_exponents=None, irradiance=irr, radiometry="dji",
+        exposure_s=exposure, gain=gain, black_levels=tuple(black), irradiance=irr, radiometry="dji",
         maker_tags=((GAIN_ADJUSTMENT, adj), (VIGNETTING, k), (CENTER, (cx, cy)), (DEWARP, dewarp), (HMATRIX, hmat)),
         irradiance_unit="1 (DJI calibrated sunlight sensor value)", **meta_fields(ctx),
     )

@@ -206,9 +206,7 @@ def _band_only(ctx: TagContext, band: str, radiometry: str) -> CaptureMeta:
     exposure = tag_number(ctx.exif["ExposureTime"], "EXIF ExposureTime", ctx.path) if "ExposureTime" in ctx.exif else 0.0
     return CaptureMeta(
         path=ctx.path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=band, wavelength_nm=wl, fwhm_nm=None,
-        exposure_s=exposure, gain=1.0, black_levels=(), dark_row_values=None, radiometric_calibration=None,
-        vignetting_center=None, vignetting_polynomial=None, vignetting_polynomial_2d=None,
-        vignetting_polynomial_2d_exponents=None, irradiance=None, radiometry=radiometry,
+        exposure_s=exposure, gain=1.0, black_levels=(), irradiance=None, radiometry=radiometry,
         **meta_fields(ctx),
     )
 

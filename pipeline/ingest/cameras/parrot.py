@@ -84,9 +84,7 @@ def _sequoia(ctx: TagContext) -> CaptureMeta:
     irr = ctx.optional("sun_sensor", lambda: _sequoia_sunshine(x, path))
     return CaptureMeta(
         path=path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=name, wavelength_nm=wl, fwhm_nm=fwhm,
-        exposure_s=exposure, gain=iso / 100.0, black_levels=black_levels(ctx), dark_row_values=None,
-        radiometric_calibration=None, vignetting_center=None, vignetting_polynomial=None,
-        vignetting_polynomial_2d=poly2d, vignetting_polynomial_2d_exponents=exps2d, irradiance=irr,
+        exposure_s=exposure, gain=iso / 100.0, black_levels=black_levels(ctx), vignetting_polynomial_2d=poly2d, vignetting_polynomial_2d_exponents=exps2d, irradiance=irr,
         radiometry="sequoia", f_number=f_number, iso=iso, maker_tags=((SENSOR_MODEL, (model[0], model[1], model[2])),),
         irradiance_unit="1 (sunshine CH0 / (gain x ms x golden sensitivity), relative)", **meta_fields(ctx),
     )

@@ -78,10 +78,7 @@ def read(ctx: TagContext) -> list[CaptureMeta]:
         out.append(CaptureMeta(
             path=path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=name, wavelength_nm=wl,
             fwhm_nm=fwhms[i] if i < len(fwhms) and fwhms[i] > 0 else None, exposure_s=exposure, gain=gain,
-            black_levels=black_levels(ctx), dark_row_values=None, radiometric_calibration=None,
-            vignetting_center=None, vignetting_polynomial=None, vignetting_polynomial_2d=None,
-            vignetting_polynomial_2d_exponents=None,
-            irradiance=sun[i] if sun is not None and sun[i] > 0 else None, radiometry="sentera",
+            black_levels=black_levels(ctx), irradiance=sun[i] if sun is not None and sun[i] > 0 else None, radiometry="sentera",
             channel=i if len(names) > 1 else None, maker_tags=((CHANNEL_MIX, matrix),), iso=gain * 100.0,
             irradiance_unit="1 (Sentera ILS counts)", **common,
         ))

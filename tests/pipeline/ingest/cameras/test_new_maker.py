@@ -56,9 +56,7 @@ def read(ctx):
     return [CaptureMeta(
         path=ctx.path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=name, wavelength_nm=wl, fwhm_nm=fwhm,
         exposure_s=exif_exposure(ctx.exif, ctx.path), gain=ctx.required("Gain", NS, 1)[0],
-        black_levels=black_levels(ctx), dark_row_values=None, radiometric_calibration=None, vignetting_center=None,
-        vignetting_polynomial=None, vignetting_polynomial_2d=None, vignetting_polynomial_2d_exponents=None,
-        irradiance=positive_irradiance(ctx, "Sun", NS), radiometry="acme-dark" if name == "Dark" else "acme",
+        black_levels=black_levels(ctx), irradiance=positive_irradiance(ctx, "Sun", NS), radiometry="acme-dark" if name == "Dark" else "acme",
         maker_tags=(("falloff", ctx.required("Falloff", NS, 1)[0]),), **meta_fields(ctx))]
 
 
