@@ -367,3 +367,29 @@ def test_varied_render_puts_the_calibrations_share_of_the_cv_under_its_floor() -
     i = next(k for k, line in enumerate(lines) if line.startswith("| floor, Eq. 15 with the true U, V, S: same panel"))
     assert lines[i + 1].startswith("| flight (apply's output) over the floor, same pixels: CV") and "| 0.0015 |" in lines[i + 1]
     assert lines[i + 2].startswith("| Eq. 16 baseline over the floor, same pixels: CV") and "| 0.0280 |" in lines[i + 2]
+
+
+# --------------------------------------------------------------------------- products_identity
+
+
+def test_identity_all_opt_ins_are_compared_like_with_like(tmp_path: Path) -> None:
+    """The reference is asked only for the opt-ins its apply has; with one it lacks, the files
+    only this checkout made are "new" (no difference), else "added" (a difference); a file
+    that differs is a difference either way."""
+    pi = _load("products_identity")
+    has, lacks = pi.supported(ROOT, ["--products", "radiance", "--no-such-option", "x", "--indices", "ndre"])
+    assert (has, lacks) == (["--products", "radiance", "--indices", "ndre"], ["--no-such-option", "x"])
+    ref, ours = tmp_path / "ref", tmp_path / "ours"
+    for root in (ref, ours):
+        (root / "reflectance.zarr" / "reflectance").mkdir(parents=True)
+        (root / "reflectance.zarr" / "reflectance" / "c0").write_bytes(b"same")
+    (ours / "reflectance.zarr" / "radiance").mkdir()
+    (ours / "reflectance.zarr" / "radiance" / "c0").write_bytes(b"only here")
+    lacking = pi.compare(ref, ours, new=True)
+    assert (lacking["new"], lacking["added"], lacking["identical"]) == (
+        ["reflectance.zarr/radiance/c0"], [], ["reflectance.zarr/reflectance/c0"])
+    assert pi.report("t", lacking) is True
+    same = pi.compare(ref, ours)
+    assert (same["added"], same["new"]) == (["reflectance.zarr/radiance/c0"], []) and pi.report("t", same) is False
+    (ours / "reflectance.zarr" / "reflectance" / "c0").write_bytes(b"other")
+    assert pi.compare(ref, ours, new=True)["differ"] == ["reflectance.zarr/reflectance/c0"]

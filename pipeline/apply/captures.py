@@ -533,11 +533,11 @@ def field_captures(folder: Path, calib_path: Path, camera: Camera, options: Appl
     if align:
         attrs["aligned_to_band"] = reference
 
-    def panel_reflectance(f: int) -> np.ndarray:
+    def panel_reflectance(f: int) -> tuple[np.ndarray, None]:
         c = captures[f]
         job = Job(f, c.name, capture_tags(camera, c), capture=c, scale=scales.get(c.name))
         try:
-            return capture_reflectance(camera, chain, job, transforms, band_shift)
+            return capture_reflectance(camera, chain, job, transforms, band_shift), None
         except FrameError as exc:
             raise InputError(f"--panel capture {c.name} cannot be used: {exc.reason}", path=exc.path) from None
 

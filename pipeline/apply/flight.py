@@ -49,6 +49,7 @@ from pipeline.apply.light import IlluminationPlan, illumination_plan
 from pipeline.apply.options import (
     ApplyOptions,
     ApplyResult,
+    PanelReflectance,
     calibration_clip_dn,
     calibration_hash,
     export_band_indices,
@@ -226,12 +227,12 @@ def _effective_exposure(coords: xr.Dataset) -> np.ndarray:
 def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path: Path, sat: int,
                 illum: IlluminationPlan | None = None, names: Sequence[str] = (),
                 geometry: tuple = (False, None, None), flagging: Flagging | None = None
-                ) -> Callable[[int], np.ndarray | tuple[np.ndarray, np.ndarray]]:
+                ) -> PanelReflectance:
     """Eq. 15 reflectance of frame ``f`` (with its light) on the pixel grid of the
     outputs (``geometry_step``), NaN where the run's quality mask flags a pixel unless kept;
-    with a ``flagging``, that and the frame's quality mask on the same grid (a panel's median
+    and, with a ``flagging``, the frame's quality mask on the same grid, else None (a panel's median
     counts its pixels flagged high as above it: :func:`pipeline.apply.options.normalisation`)."""
-    def reflectance(f: int) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    def reflectance(f: int) -> tuple[np.ndarray, np.ndarray | None]:
         lut, inv_v = calibration_tables(str(calib_path), None if flagging is None else
                                         (sat, flagging.bound, flagging.keep_flagged))
         scale = None if illum is None else illum.scale[f][None]
@@ -244,7 +245,7 @@ def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path:
                 return geometry_step(calib_path, align, band_shift, str(names[f]), stack)
             refl = warp(refl)
             q = None if q is None else warp_bits(q, warp)
-        return refl if q is None else (refl, q)
+        return refl, q
     return reflectance
 
 

@@ -142,16 +142,21 @@ def index_roles(camera: Camera, index: Index) -> dict[str, int]:
     return {r: camera.band_for_wavelength(camera.index_bands[r]) for r in index.inputs}
 
 
+#: ``panel_reflectance(f)`` of :func:`normalisation`: Eq. 15 reflectance (band, y, x) of frame
+#: ``f`` and its quality mask on the same grid (None: the run has none).
+PanelReflectance = Callable[[int], "tuple[np.ndarray, np.ndarray | None]"]
+
+
 def normalisation(
     options: ApplyOptions, camera: Camera, frames: Sequence[str],
-    panel_reflectance: Callable[[int], np.ndarray | tuple[np.ndarray, np.ndarray]],
+    panel_reflectance: PanelReflectance,
 ) -> tuple[str, float | int | None]:
     """How relative reflectance is scaled: ``("none", None)``, ``("band", b)`` (per frame,
     that band's median becomes 1) or ``("scalar", k)`` (one factor from a panel of known
     reflectance, for every frame: Eq. 15's R is relative up to one scalar).
 
-    ``panel_reflectance(f)`` gives Eq. 15 reflectance (band, y, x) of frame ``f``, or that and
-    its quality mask: then the panel's median per band counts the pixels flagged high
+    ``panel_reflectance(f)`` gives Eq. 15 reflectance (band, y, x) of frame ``f`` and its
+    quality mask or None (:data:`PanelReflectance`); with a mask the panel's median per band counts the pixels flagged high
     (shoulder, saturated, above the sweep) as above it and a band half flagged or more has
     none (:func:`mscal_core.quality.region_median`; the valid pixels alone of a panel the
     shoulder flag cuts read low). Without the mask, the median of the finite pixels."""
@@ -168,8 +173,7 @@ def normalisation(
         if p.frame not in frames:
             raise InputError(f"--panel frame {p.frame!r} is not in the flight", hint=f"frames: {', '.join(frames[:5])}, ...")
         x0, y0, x1, y1 = p.box
-        got = panel_reflectance(frames.index(p.frame))
-        refl, quality = got if isinstance(got, tuple) else (got, None)
+        refl, quality = panel_reflectance(frames.index(p.frame))
         region = refl[:, y0:y1, x0:x1]
         rho = p.reflectance.at(camera.wavelengths)
         flat = region.reshape(region.shape[0], -1)

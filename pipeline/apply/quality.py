@@ -27,7 +27,7 @@ import numpy as np
 from mscal_core.quality import DEFAULT_BOUND, FLAGS, SPARSE, flag_counts, frame_flags
 
 from pipeline.apply.coregistration import RESIDUAL_MAX_PX
-from pipeline.apply.stores import geometry_step, quality_checks, quality_tables
+from pipeline.apply.stores import geometry_step, pixel_flag_sets, quality_checks, quality_tables
 from pipeline.ingest.cameras.dispatch import align_by_files
 
 if TYPE_CHECKING:
@@ -92,7 +92,9 @@ def sensor_flags(flagging: Flagging, calibration: Path, sat: int, dn: np.ndarray
             or np.shape(refl) != d.shape or int(d.max(initial=0)) >= dn_flags.shape[1]):
         return frame_flags(dn, dn_flags, pixel, reflectance=None if flagging.keep_flagged else refl)
     out = np.empty(d.shape, np.uint8)
-    for b, (at, flags) in enumerate(_pixel_sets(pixel)):
+    sets = pixel_flag_sets(str(calibration), int(sat), flagging.bound)
+    assert sets is not None  # the store has a pixel table (pixel above)
+    for b, (at, flags) in enumerate(sets):
         nan = np.isnan(refl[b])
         if np.count_nonzero(nan) == len(at) and (not len(at) or nan.ravel()[at].all()):
             # NaN exactly at the pixels the pixel table flags: the DN flags only there
@@ -103,27 +105,6 @@ def sensor_flags(flagging: Flagging, calibration: Path, sat: int, dn: np.ndarray
         else:
             frame_flags(d[b:b + 1], dn_flags[b:b + 1], pixel[b:b + 1], out=out[b:b + 1], reflectance=refl[b:b + 1])
     return out
-
-
-#: Per pixel table (by identity, the table held with it): per band the flat positions of the
-#: pixels it flags and their flags (:func:`_pixel_sets`).
-_PIXEL_SETS: dict[int, tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]] = {}
-
-
-def _pixel_sets(pixel: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Per band of a calibration's pixel flag table (the same for every frame), the flat
-    positions of its flagged pixels and their flags; found once per table and process."""
-    held = _PIXEL_SETS.get(id(pixel))
-    if held is not None and held[0] is pixel:
-        return held[1]
-    sets = []
-    for b in range(pixel.shape[0]):
-        at = np.flatnonzero(pixel[b])
-        sets.append((at, pixel[b].ravel()[at]))
-    if len(_PIXEL_SETS) >= 4:  # a process applies one or two calibrations
-        _PIXEL_SETS.clear()
-    _PIXEL_SETS[id(pixel)] = (pixel, sets)
-    return sets
 
 
 def on_grid(plan: Plan, job: Job, q: np.ndarray) -> np.ndarray:

@@ -77,6 +77,13 @@ def quality_tables(calibration: str, sat: int, bound: float) -> tuple[np.ndarray
     return _quality_of(_stamp(Path(calibration)), int(sat), float(bound))
 
 
+def pixel_flag_sets(calibration: str, sat: int, bound: float) -> list[tuple[np.ndarray, np.ndarray]] | None:
+    """Per band of a calibration store's pixel flag table (:func:`quality_tables`; the same for
+    every frame), the flat positions of the pixels it flags and their flags, once per process
+    and store; None when the store has no pixel table."""
+    return _pixel_sets_of(_stamp(Path(calibration)), int(sat), float(bound))
+
+
 def quality_checks(ds: xr.Dataset) -> tuple[str, ...]:
     """The flags of the quality mask a calibration store lets one check (field chain): the
     clip, no value and co-registration always, the others with the store's optional variables."""
@@ -98,6 +105,19 @@ def _quality_of(key: tuple[str, int], sat: int, bound: float) -> tuple[np.ndarra
     dn_flags = dn_flag_table(n_bands, n_dn, sat, unc, bound, rng)
     pixel = pixel_flag_table(ds["vignetting_coverage"].values) if "vignetting_coverage" in ds else None
     return dn_flags, pixel, quality_checks(ds)
+
+
+@lru_cache(maxsize=2)
+def _pixel_sets_of(key: tuple[str, int], sat: int, bound: float) -> list[tuple[np.ndarray, np.ndarray]] | None:
+    _, pixel, _ = _quality_of(key, sat, bound)
+    return None if pixel is None else flag_positions(pixel)
+
+
+def flag_positions(pixel: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Per band of a pixel flag table ``(band, H, W)``, the flat positions of the pixels it
+    flags and their flags (:func:`pixel_flag_sets`)."""
+    flat = [np.flatnonzero(pixel[b]) for b in range(pixel.shape[0])]
+    return [(at, pixel[b].ravel()[at]) for b, at in enumerate(flat)]
 
 
 @lru_cache(maxsize=2)

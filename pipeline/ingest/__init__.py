@@ -7,3 +7,7 @@ into captures (``grouping``), which catalog camera wrote a folder (``identify``)
 a folder are frames or captures (``discover``), and the chunked raw datacube ``raw.zarr``
 (``raw``, ``medians``). May import ``storage``.
 """
+
+# Every camera maker's module registers itself (its XMP namespaces among the rest) before any
+# file is read: a packet parsed by pipeline.ingest.xmp knows every maker's namespaces.
+from pipeline.ingest.cameras import dispatch as _makers  # noqa: F401

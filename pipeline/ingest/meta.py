@@ -55,12 +55,6 @@ class CaptureMeta:
     exposure_s: float
     gain: float  # ISO / 100 (MicaSense, Sentera); drone-dji:SensorGain (DJI)
     black_levels: tuple[float, ...]  # EXIF BlackLevel (per CFA position), drone-dji:BlackLevel
-    dark_row_values: tuple[float, ...] | None
-    radiometric_calibration: tuple[float, float, float] | None  # MicaSense a1, a2, a3
-    vignetting_center: tuple[float, float] | None  # (x, y) pixels
-    vignetting_polynomial: tuple[float, ...] | None  # k1..kn, lowest power first
-    vignetting_polynomial_2d: tuple[float, ...] | None
-    vignetting_polynomial_2d_exponents: tuple[float, ...] | None
     irradiance: float | None  # sun sensor reading (unit: irradiance_unit)
     capture_id: str | None
     rig_camera_index: int | None
@@ -69,7 +63,15 @@ class CaptureMeta:
     lon: float | None
     alt_m: float | None
     time: str | None  # ISO 8601, with fraction of a second when SubsecTime is present
-    radiometry: str = "micasense"  # a radiometry a maker registers (pipeline.ingest.cameras.registry)
+    radiometry: str  # a radiometry its maker registers (pipeline.ingest.cameras.registry)
+    # the radiometric tags of the Pix4D camera schema (MicaSense; Parrot's 2-D vignetting): None
+    # for a maker that writes none
+    dark_row_values: tuple[float, ...] | None = None
+    radiometric_calibration: tuple[float, float, float] | None = None  # a1, a2, a3
+    vignetting_center: tuple[float, float] | None = None  # (x, y) pixels
+    vignetting_polynomial: tuple[float, ...] | None = None  # k1..kn, lowest power first
+    vignetting_polynomial_2d: tuple[float, ...] | None = None
+    vignetting_polynomial_2d_exponents: tuple[float, ...] | None = None
     make: str | None = None
     model: str | None = None
     rig_name: str | None = None
@@ -78,14 +80,7 @@ class CaptureMeta:
     orientation: int = 1  # EXIF Orientation (3: stored rotated 180 degrees)
     f_number: float | None = None
     iso: float | None = None
-    sensor_model: tuple[float, float, float] | None = None  # Parrot A, B, C
-    gain_adjustment: float | None = None  # drone-dji:SensorGainAdjustment
-    dji_vignetting: tuple[float, ...] | None = None  # drone-dji:VignettingData k0..k5
-    dji_center: tuple[float, float] | None = None  # drone-dji:CalibratedOpticalCenterX/Y
-    dji_dewarp: tuple[float, ...] | None = None  # fx, fy, cx, cy, k1, k2, p1, p2, k3
-    dji_hmatrix: tuple[float, ...] | None = None  # CalibratedHMatrix, 9 row-major values
     channel: int | None = None  # channel of a multi-channel file (Sentera JPEG)
-    channel_mix: tuple[float, ...] | None = None  # Camera:ColorTransform, whole matrix
     irradiance_unit: str = "W m-2 nm-1"
     # MicaSense XMP Albedo: the reflectance of the panel in this band file, as the camera read
     # it from the panel's QR code (written in its panel captures with ReflectArea)
@@ -142,9 +137,19 @@ class CaptureMeta:
             "panel_albedo": self.panel_albedo is not None and self.calibration_picture == 2,
             "position": self.lat is not None and self.lon is not None,
             "rig_index": self.rig_camera_index is not None,
-            "factory_band_alignment": self.dji_hmatrix is not None,
+            "factory_band_alignment": _has_file_registration(self),
         }
 
+
+
+def _has_file_registration(meta: CaptureMeta) -> bool:
+    """Whether the band file carries its maker's own registration onto the camera's common
+    image plane (:attr:`pipeline.ingest.cameras.registry.Maker.file_registration`)."""
+    try:
+        reg = maker_of(meta.radiometry).file_registration
+    except KeyError:
+        return False
+    return reg is not None and reg.has(meta)
 
 
 # --------------------------------------------------------------------------- EXIF
@@ -241,7 +246,7 @@ class TagContext:
             self.problems.append(exc.problem(feature))
             return None
 
-    def required(self, tag: str, ns: Sequence[str] = ("Camera", "MicaSense"), count: int | None = None
+    def required(self, tag: str, ns: Sequence[str] | None = None, count: int | None = None
                  ) -> tuple[float, ...]:
         try:
             v = self.xmp.numbers(tag, ns, count)
@@ -369,10 +374,8 @@ def radiance_tag(ctx: TagContext, tag: str, count: int | None = None) -> tuple[f
 
 class VignettingTags(NamedTuple):
     """The tags a band's factory vignetting is computed from (hashable: the map is computed
-    once per shape and tags, :func:`pipeline.ingest.cameras.factory_vignetting`)."""
+    once per shape and tags, :func:`factory_vignetting`)."""
 
-    dji_center: tuple[float, float] | None
-    dji_vignetting: tuple[float, ...] | None
     center: tuple[float, float] | None
     poly: tuple[float, ...] | None
     poly_2d: tuple[float, ...] | None
@@ -381,8 +384,12 @@ class VignettingTags(NamedTuple):
 
     @classmethod
     def of(cls, meta: CaptureMeta) -> VignettingTags:
-        return cls(meta.dji_center, meta.dji_vignetting, meta.vignetting_center, meta.vignetting_polynomial,
+        return cls(meta.vignetting_center, meta.vignetting_polynomial,
                    meta.vignetting_polynomial_2d, meta.vignetting_polynomial_2d_exponents, meta.maker_tags)
+
+    def maker_tag(self, name: str, default: Any = None) -> Any:
+        """The value ``name`` of :attr:`maker` (as :meth:`CaptureMeta.maker_tag`), else ``default``."""
+        return next((v for k, v in self.maker if k == name), default)
 
 
 def sample_shift(dn_shift: int, bit_depth: int, stored_bits: int | None) -> int:

@@ -1,6 +1,6 @@
 """XMP metadata the way cameras really write it, for every reader in ``pipeline.ingest``.
 
-One parser for the packets of MicaSense, Parrot, DJI and Sentera files (TIFF tag 700, or the
+One parser for the packets of every maker's files (TIFF tag 700, or the
 ``http://ns.adobe.com/xap/1.0/`` APP1 segment of a JPEG), pure Python (``xml.etree``):
 
 - a property is found whether it is an attribute of ``rdf:Description``, a child element with
@@ -33,21 +33,19 @@ from pipeline.ingest.cameras import registry
 
 RDF_NS = "http://www.w3.org/1999/02/22-rdf-syntax-ns#"
 
-# Canonical namespace key -> URIs (compared without a trailing slash): the shared schemas and the
-# namespaces of the makers shipped with mscal, known to every parse; a new maker declares its own
-# (pipeline.ingest.cameras.registry.Maker.namespaces).
+#: Canonical namespace key -> URIs (compared without a trailing slash) of the schemas every maker
+#: may write: Pix4D's camera schema and Adobe's TIFF and EXIF. A maker's own namespaces are
+#: declared in its module (:attr:`pipeline.ingest.cameras.registry.Maker.namespaces`) and known to
+#: every parse once it is registered (importing :mod:`pipeline.ingest` registers them all).
 NAMESPACES: dict[str, tuple[str, ...]] = {
     "Camera": ("http://pix4d.com/camera/1.0", "http://pix4d.com/1.0"),  # Pix4D camera schema, old and new URI
-    "MicaSense": ("http://micasense.com/MicaSense/1.0",),
-    "DLS": ("http://micasense.com/DLS/1.0",),
-    "drone-dji": ("http://www.dji.com/drone-dji/1.0",),
     "tiff": ("http://ns.adobe.com/tiff/1.0",),
     "exif": ("http://ns.adobe.com/exif/1.0",),
-    "ILS": ("http://sentera.com/ILS/1.0",),  # Sentera incident light sensor (seen in the D4K files)
 }
-#: The namespaces a tag is looked up in when none is named: Pix4D's camera schema, and MicaSense's,
-#: which its files use beside it.
-DEFAULT_NAMESPACES = ("Camera", "MicaSense")
+#: The shared namespace a tag is looked up in when none is named: Pix4D's camera schema; the
+#: makers whose files hold its tags in their own namespace too add theirs after it
+#: (:func:`default_namespaces`).
+SHARED_DEFAULT_NAMESPACES = ("Camera",)
 _BY_URI = {uri: key for key, uris in NAMESPACES.items() for uri in uris}
 JPEG_XMP_HEADER = b"http://ns.adobe.com/xap/1.0/\x00"
 
@@ -95,6 +93,13 @@ def namespace_key(uri: str) -> str | None:
     return _BY_URI.get(uri) or registry.NAMESPACE_KEYS.get(uri)
 
 
+def default_namespaces() -> tuple[str, ...]:
+    """The namespaces a tag is looked up in, in order, when a reader names none:
+    :data:`SHARED_DEFAULT_NAMESPACES`, then the registered makers'
+    (:data:`pipeline.ingest.cameras.registry.DEFAULT_NAMESPACE_KEYS`)."""
+    return SHARED_DEFAULT_NAMESPACES + registry.DEFAULT_NAMESPACE_KEYS
+
+
 class Xmp:
     """The properties of one XMP packet, by (namespace key, local name)."""
 
@@ -135,19 +140,19 @@ class Xmp:
 
     # ----------------------------------------------------------------- access
 
-    def raw(self, tag: str, ns: Iterable[str] = ("Camera", "MicaSense")) -> str | list[str] | None:
+    def raw(self, tag: str, ns: Iterable[str] | None = None) -> str | list[str] | None:
         """The value of ``tag`` in the first of namespaces ``ns`` that has it (None: absent
-        or empty)."""
-        for key in ns:
+        or empty); ``ns`` None: :func:`default_namespaces`."""
+        for key in default_namespaces() if ns is None else ns:
             v = self.props.get((key, tag))
             if v is not None and v != "" and v != []:
                 return v
         return None
 
-    def has(self, tag: str, ns: Iterable[str] = ("Camera", "MicaSense")) -> bool:
+    def has(self, tag: str, ns: Iterable[str] | None = None) -> bool:
         return self.raw(tag, ns) is not None
 
-    def text(self, tag: str, ns: Iterable[str] = ("Camera", "MicaSense")) -> str | None:
+    def text(self, tag: str, ns: Iterable[str] | None = None) -> str | None:
         """A text property; an ``rdf:Seq``/``rdf:Alt`` of one item counts as its item (an Alt
         of several: the first, the default language)."""
         v = self.raw(tag, ns)
@@ -155,7 +160,7 @@ class Xmp:
             v = v[0] if v else None
         return None if v is None or str(v).strip() == "" else str(v).strip()
 
-    def texts(self, tag: str, ns: Iterable[str] = ("Camera", "MicaSense")) -> list[str] | None:
+    def texts(self, tag: str, ns: Iterable[str] | None = None) -> list[str] | None:
         """A list of texts (an ``rdf:Seq`` per item, or one comma-separated text)."""
         v = self.raw(tag, ns)
         if v is None:
@@ -165,7 +170,7 @@ class Xmp:
         one = v[0] if isinstance(v, list) else v
         return [s.strip() for s in str(one).split(",")]
 
-    def numbers(self, tag: str, ns: Iterable[str] = ("Camera", "MicaSense"), count: int | None = None,
+    def numbers(self, tag: str, ns: Iterable[str] | None = None, count: int | None = None,
                 *, allowed: tuple[int, ...] | None = None) -> tuple[float, ...] | None:
         """A tag as finite floats, None when absent; :class:`TagError` when present but not
         ``count`` (or one of ``allowed``) finite numbers. Every list form is flattened."""
@@ -179,7 +184,7 @@ class Xmp:
             raise TagError(tag, v, f"expected {want}", self.path)
         return out
 
-    def number(self, tag: str, ns: Iterable[str] = ("Camera", "MicaSense")) -> float | None:
+    def number(self, tag: str, ns: Iterable[str] | None = None) -> float | None:
         n = self.numbers(tag, ns, 1)
         return None if n is None else n[0]
 
@@ -269,11 +274,12 @@ def xmp_of_bytes(data: bytes, path: Path | str) -> Xmp:
 
 
 def legacy_properties(packet: bytes | str, path: Path | str) -> dict[str, Any]:
-    """Properties by local name only (the Camera, MicaSense and DLS namespaces), for callers
+    """Properties by local name only (the namespaces of :func:`default_namespaces`), for callers
     of the former ``camera_meta.xmp_properties``."""
     x = Xmp.parse(packet, path)
+    keys = default_namespaces()
     out: dict[str, Any] = {}
     for (key, local), value in x.props.items():
-        if key in DEFAULT_NAMESPACES:
+        if key in keys:
             out[local] = value
     return out

@@ -47,6 +47,13 @@ from pipeline.ingest.xmp import TagError, Xmp, parse_numbers
 UNITS = {"dji": "1 (DJI camera value pCam (p - p_BL) V / (g t), relative)"}
 
 
+#: The names of a DJI band's own values in :attr:`~pipeline.ingest.meta.CaptureMeta.maker_tags`:
+#: ``drone-dji:SensorGainAdjustment`` (pCam), ``VignettingData`` k0..k5,
+#: ``CalibratedOpticalCenterX/Y``, ``DewarpData`` (fx, fy, cx, cy, k1, k2, p1, p2, k3; None when
+#: not written) and ``CalibratedHMatrix`` (9 row-major values; None when not written).
+GAIN_ADJUSTMENT, VIGNETTING, CENTER, DEWARP, HMATRIX = "gain_adjustment", "vignetting", "center", "dewarp", "hmatrix"
+
+
 def claims(ctx: TagContext) -> bool:
     """A DJI band file: ``drone-dji:SensorGain`` or ``drone-dji:VignettingData``."""
     return ctx.xmp.has("SensorGain", ("drone-dji",)) or ctx.xmp.has("VignettingData", ("drone-dji",))
@@ -83,10 +90,8 @@ def _dji(ctx: TagContext) -> CaptureMeta:
         "DewarpHMatrix", dj, 9))
     return CaptureMeta(
         path=path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=name, wavelength_nm=wl, fwhm_nm=fwhm,
-        exposure_s=exposure, gain=gain, black_levels=tuple(black), dark_row_values=None, radiometric_calibration=None,
-        vignetting_center=None, vignetting_polynomial=None, vignetting_polynomial_2d=None,
-        vignetting_polynomial_2d_exponents=None, irradiance=irr, radiometry="dji", gain_adjustment=adj,
-        dji_vignetting=k, dji_center=(cx, cy), dji_dewarp=dewarp, dji_hmatrix=hmat,
+        exposure_s=exposure, gain=gain, black_levels=tuple(black), irradiance=irr, radiometry="dji",
+        maker_tags=((GAIN_ADJUSTMENT, adj), (VIGNETTING, k), (CENTER, (cx, cy)), (DEWARP, dewarp), (HMATRIX, hmat)),
         irradiance_unit="1 (DJI calibrated sunlight sensor value)", **meta_fields(ctx),
     )
 
@@ -159,7 +164,7 @@ FACTORY_ALIGNMENT_NOTE = ("each band's drone-dji:DewarpData (distortion, camera 
 def has_factory_alignment(meta: CaptureMeta) -> bool:
     """Whether the band file carries its own registration to the camera's common image plane
     (DJI: ``CalibratedHMatrix``, with ``DewarpData`` when written)."""
-    return meta.radiometry == "dji" and meta.dji_hmatrix is not None and meta.dji_center is not None
+    return meta.radiometry == "dji" and meta.maker_tag(HMATRIX) is not None and meta.maker_tag(CENTER) is not None
 
 
 @lru_cache(maxsize=32)
@@ -177,8 +182,8 @@ def factory_align(metas: Sequence[CaptureMeta], stack: np.ndarray) -> np.ndarray
         if not has_factory_alignment(meta):
             raise FrameError("no band registration in the file's metadata (drone-dji:CalibratedHMatrix)", path=meta.path,
                              hint="align the bands with 'mscal register' and --registration, or apply with --no-align")
-        assert meta.dji_center is not None and meta.dji_hmatrix is not None
-        out[b] = remap_band(stack[b], _alignment_map(meta.shape, meta.dji_center, meta.dji_dewarp, meta.dji_hmatrix))
+        out[b] = remap_band(stack[b], _alignment_map(meta.shape, meta.maker_tag(CENTER), meta.maker_tag(DEWARP),
+                                                     meta.maker_tag(HMATRIX)))
     return out
 
 
@@ -187,14 +192,15 @@ def band_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None, c
     """DJI's camera value (:func:`mscal_core.vendors.dji_camera_value`)."""
     return dji_camera_value(dn, black_level=meta.black_level, sensor_gain=meta.gain,
                             exposure_us=meta.exposure_s * 1e6, vignetting=factory_vignetting(meta),
-                            gain_adjustment=meta.gain_adjustment or 1.0)
+                            gain_adjustment=meta.maker_tag(GAIN_ADJUSTMENT) or 1.0)
 
 
 def band_vignetting(radiometry: str, shape: tuple[int, int], tags: VignettingTags) -> np.ndarray:
     """DJI's radial vignetting about the calibrated optical centre
     (:func:`mscal_core.vendors.dji_vignetting_correction`)."""
-    assert tags.dji_center is not None and tags.dji_vignetting is not None
-    return dji_vignetting_correction(shape, tags.dji_center, tags.dji_vignetting)
+    center, k = tags.maker_tag(CENTER), tags.maker_tag(VIGNETTING)
+    assert center is not None and k is not None
+    return dji_vignetting_correction(shape, center, k)
 
 
 #: Images a camera saves beside its band files that are not band files, by catalog camera:
@@ -254,7 +260,7 @@ MAKER = register(Maker(
     compensated_model=DJI_COMPENSATED,
     # the reading (compensated) and the aircraft's attitude (ATTITUDE), kept on each band's metadata
     sun_sensor_xmp=frozenset({"Irradiance", "FlightYawDegree", "FlightPitchDegree", "FlightRollDegree"}),
-    capture_id_tags=(("drone-dji", "CaptureUUID"),),
+    capture_id_tags=(("drone-dji", "CaptureUUID"),), namespaces={"drone-dji": ("http://www.dji.com/drone-dji/1.0",)},
     time_tags=(("drone-dji", "UTCAtExposure"),),  # UTC, more precise than EXIF DateTimeOriginal (pipeline.ingest.exif)
     intrinsics=dewarp_intrinsics, vignetting_tags="XMP drone-dji:VignettingData",
     # the camera body's serial ("Camera SN", DJI Mavic 3M user manual, photo file fields)

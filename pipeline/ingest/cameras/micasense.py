@@ -206,9 +206,7 @@ def _band_only(ctx: TagContext, band: str, radiometry: str) -> CaptureMeta:
     exposure = tag_number(ctx.exif["ExposureTime"], "EXIF ExposureTime", ctx.path) if "ExposureTime" in ctx.exif else 0.0
     return CaptureMeta(
         path=ctx.path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=band, wavelength_nm=wl, fwhm_nm=None,
-        exposure_s=exposure, gain=1.0, black_levels=(), dark_row_values=None, radiometric_calibration=None,
-        vignetting_center=None, vignetting_polynomial=None, vignetting_polynomial_2d=None,
-        vignetting_polynomial_2d_exponents=None, irradiance=None, radiometry=radiometry,
+        exposure_s=exposure, gain=1.0, black_levels=(), irradiance=None, radiometry=radiometry,
         **meta_fields(ctx),
     )
 
@@ -307,6 +305,10 @@ SUN_SENSOR_XMP = frozenset({
     "DirectIrradiance", "ScatteredIrradiance", "HorizontalIrradiance", "IrradianceScaleToSIUnits",
 })
 
+#: MicaSense's own XMP namespaces (its files write the Pix4D camera schema's tags in ``MicaSense:``
+#: as well, so it is one of the namespaces looked up when a reader names none) and its DLS's.
+NAMESPACES = {"MicaSense": ("http://micasense.com/MicaSense/1.0",), "DLS": ("http://micasense.com/DLS/1.0",)}
+
 #: Radiometries of bands read but never part of reflectance: Altum's LWIR band, a panchromatic band.
 KEPT_OUT = frozenset({"thermal", "panchro"})
 
@@ -316,7 +318,7 @@ MAKER = register(Maker(
     sun_sensor_tag="XMP Camera:Irradiance (DLS 1) or DLS:HorizontalIrradiance (DLS 2)",
     sun_scales=SUN_SCALES, attitude=ATTITUDE, sun_split=dls2_split, split_correction=dls2_correction,
     sun_sensor_xmp=SUN_SENSOR_XMP, sun_unit_rules=dls_unit_rules, kept_out=KEPT_OUT,
-    capture_id_tags=(("MicaSense", "CaptureId"),),
+    capture_id_tags=(("MicaSense", "CaptureId"),), namespaces=NAMESPACES, default_namespaces=("MicaSense",),
     vignetting_tags="XMP VignettingCenter/VignettingPolynomial or VignettingPolynomial2D", field_parts=True,
     # OpenDroneMap's opendm/photo.py reads a capture's id from MicaSense:CaptureId, among others
     capture_id_output=("MicaSense", "http://micasense.com/MicaSense/1.0/", "CaptureId"),

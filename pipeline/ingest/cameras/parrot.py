@@ -50,6 +50,11 @@ from pipeline.ingest.xmp import TagError, Xmp
 UNITS = {"sequoia": "1 (Parrot SEQ AN 01 irradiance on the sensor, SI-homogeneous with an arbitrary scale)"}
 
 
+#: The name in :attr:`~pipeline.ingest.meta.CaptureMeta.maker_tags` of a band's
+#: ``Camera:SensorModel`` (A, B, C of Parrot's sensor model).
+SENSOR_MODEL = "sensor_model"
+
+
 def claims(ctx: TagContext) -> bool:
     """A Sequoia file: ``Camera:SensorModel``, or EXIF Make Parrot."""
     return ctx.xmp.has("SensorModel", ("Camera",)) or (ctx.make or "").lower() == "parrot"
@@ -79,10 +84,8 @@ def _sequoia(ctx: TagContext) -> CaptureMeta:
     irr = ctx.optional("sun_sensor", lambda: _sequoia_sunshine(x, path))
     return CaptureMeta(
         path=path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=name, wavelength_nm=wl, fwhm_nm=fwhm,
-        exposure_s=exposure, gain=iso / 100.0, black_levels=black_levels(ctx), dark_row_values=None,
-        radiometric_calibration=None, vignetting_center=None, vignetting_polynomial=None,
-        vignetting_polynomial_2d=poly2d, vignetting_polynomial_2d_exponents=exps2d, irradiance=irr,
-        radiometry="sequoia", f_number=f_number, iso=iso, sensor_model=(model[0], model[1], model[2]),
+        exposure_s=exposure, gain=iso / 100.0, black_levels=black_levels(ctx), vignetting_polynomial_2d=poly2d, vignetting_polynomial_2d_exponents=exps2d, irradiance=irr,
+        radiometry="sequoia", f_number=f_number, iso=iso, maker_tags=((SENSOR_MODEL, (model[0], model[1], model[2])),),
         irradiance_unit="1 (sunshine CH0 / (gain x ms x golden sensitivity), relative)", **meta_fields(ctx),
     )
 
@@ -173,9 +176,10 @@ def sibling_position(folder: Path, capture: str) -> tuple[float, float, float | 
 def band_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None, channels: np.ndarray | None,
                   out: np.ndarray | None) -> np.ndarray:
     """Irradiance on the imager by Parrot's sensor model (:func:`mscal_core.vendors.sequoia_irradiance`)."""
-    assert meta.sensor_model is not None and meta.f_number is not None and meta.iso is not None
+    model = meta.maker_tag(SENSOR_MODEL)
+    assert model is not None and meta.f_number is not None and meta.iso is not None
     return sequoia_irradiance(dn, f_number=meta.f_number, exposure_s=meta.exposure_s, iso=meta.iso,
-                              sensor_model=meta.sensor_model, vignetting=factory_vignetting(meta))
+                              sensor_model=model, vignetting=factory_vignetting(meta))
 
 
 def band_vignetting(radiometry: str, shape: tuple[int, int], tags: VignettingTags) -> np.ndarray:

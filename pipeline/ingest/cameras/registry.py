@@ -110,7 +110,9 @@ class Maker:
     calibration's response and/or vignetting (:class:`~pipeline.ingest.meta.FieldParts`) in
     place of the factory's; ``namespaces`` its own XMP namespaces (key: URIs, compared without a
     trailing slash), which files are parsed with once it is registered
-    (:func:`pipeline.ingest.xmp.namespace_key`); ``serial_tags`` the ``(namespace, name)`` XMP
+    (:func:`pipeline.ingest.xmp.namespace_key`), and ``default_namespaces`` the keys of those that
+    hold the shared Pix4D camera schema's tags as well (MicaSense's), looked up after ``Camera``
+    whenever a reader names no namespace (:func:`pipeline.ingest.xmp.default_namespaces`); ``serial_tags`` the ``(namespace, name)`` XMP
     tags holding the camera body's serial number where EXIF has none (tried for every file, in
     maker order: :func:`pipeline.calibrate.library.file_serial`).
 
@@ -155,6 +157,7 @@ class Maker:
     vignetting_tags: str = ""
     field_parts: bool = False
     namespaces: dict[str, tuple[str, ...]] = field(default_factory=dict)
+    default_namespaces: tuple[str, ...] = ()
     serial_tags: tuple[tuple[str, str], ...] = ()
     capture_id_output: tuple[str, str, str] | None = None
     file_registration: FileRegistration | None = None
@@ -168,6 +171,8 @@ AS_READ_RULE = "x 1: W m-2 nm-1 as read"
 MAKERS: dict[str, Maker] = {}
 #: The registered makers' own XMP namespaces: URI (no trailing slash) -> key (:attr:`Maker.namespaces`).
 NAMESPACE_KEYS: dict[str, str] = {}
+#: The registered makers' :attr:`Maker.default_namespaces`, in maker order (:func:`by_order`).
+DEFAULT_NAMESPACE_KEYS: tuple[str, ...] = ()
 
 
 def register(maker: Maker) -> Maker:
@@ -185,8 +190,13 @@ def register(maker: Maker) -> Maker:
             if NAMESPACE_KEYS.get(uri.rstrip("/"), key) != key:
                 raise ValueError(f"camera maker {maker.name!r}: XMP namespace {uri} is already "
                                  f"{NAMESPACE_KEYS[uri.rstrip('/')]!r}")
+    if not set(maker.default_namespaces) <= set(maker.namespaces):
+        raise ValueError(f"camera maker {maker.name!r}: default namespaces {maker.default_namespaces} are not "
+                         "among its own namespaces")
     MAKERS[maker.name] = maker
     NAMESPACE_KEYS.update({uri.rstrip("/"): key for key, uris in maker.namespaces.items() for uri in uris})
+    global DEFAULT_NAMESPACE_KEYS
+    DEFAULT_NAMESPACE_KEYS = tuple(dict.fromkeys(k for m in by_order() for k in m.default_namespaces))
     return maker
 
 

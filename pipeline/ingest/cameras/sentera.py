@@ -38,6 +38,11 @@ from pipeline.ingest.meta import (
 UNITS = {"sentera": "1 (DN, crosstalk-corrected by Camera:ColorTransform where written, / (ISO/100 * exposure s), relative)"}
 
 
+#: The name in :attr:`~pipeline.ingest.meta.CaptureMeta.maker_tags` of a band's
+#: ``Camera:ColorTransform`` (the whole crosstalk matrix, row-major; None when not written).
+CHANNEL_MIX = "channel_mix"
+
+
 def claims(ctx: TagContext) -> bool:
     """A Sentera file: ``Camera:ColorTransform``, or EXIF Make Sentera."""
     return ctx.xmp.has("ColorTransform", ("Camera",)) or (ctx.make or "").lower() == "sentera"
@@ -73,11 +78,8 @@ def read(ctx: TagContext) -> list[CaptureMeta]:
         out.append(CaptureMeta(
             path=path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=name, wavelength_nm=wl,
             fwhm_nm=fwhms[i] if i < len(fwhms) and fwhms[i] > 0 else None, exposure_s=exposure, gain=gain,
-            black_levels=black_levels(ctx), dark_row_values=None, radiometric_calibration=None,
-            vignetting_center=None, vignetting_polynomial=None, vignetting_polynomial_2d=None,
-            vignetting_polynomial_2d_exponents=None,
-            irradiance=sun[i] if sun is not None and sun[i] > 0 else None, radiometry="sentera",
-            channel=i if len(names) > 1 else None, channel_mix=matrix, iso=gain * 100.0,
+            black_levels=black_levels(ctx), irradiance=sun[i] if sun is not None and sun[i] > 0 else None, radiometry="sentera",
+            channel=i if len(names) > 1 else None, maker_tags=((CHANNEL_MIX, matrix),), iso=gain * 100.0,
             irradiance_unit="1 (Sentera ILS counts)", **common,
         ))
     if not out:
@@ -89,13 +91,14 @@ def band_radiance(meta: CaptureMeta, dn: np.ndarray, parts: FieldParts | None, c
                   out: np.ndarray | None) -> np.ndarray:
     """Relative radiance of a Sentera band (:func:`mscal_core.vendors.sentera_relative_radiance`),
     crosstalk-corrected with the whole image ``channels`` of a multi-channel file."""
-    mixing = meta.channel_mix is not None and meta.channel is not None
+    matrix = meta.maker_tag(CHANNEL_MIX)
+    mixing = matrix is not None and meta.channel is not None
     if mixing and channels is None:
         raise FrameError("the colour transform needs every channel of the file", path=meta.path)
     return sentera_relative_radiance(
         dn, black_level=meta.black_level, gain=meta.gain, exposure_s=meta.exposure_s,
         bits_per_sample=meta.bits_per_sample, channels=channels if mixing else None,
-        matrix=meta.channel_mix if mixing else None, channel=meta.channel if mixing else None)
+        matrix=matrix if mixing else None, channel=meta.channel if mixing else None)
 
 
 def band_vignetting(radiometry: str, shape: tuple[int, int], tags: VignettingTags) -> np.ndarray:
@@ -118,4 +121,5 @@ def no_reflectance(meta: CaptureMeta) -> str:
 MAKER = register(Maker(
     name="sentera", model="sentera", units=UNITS, claims=claims, read=read, radiance=band_radiance,
     vignetting=band_vignetting, order=30, sun_factor=sun_factor, no_reflectance=no_reflectance,
+    namespaces={"ILS": ("http://sentera.com/ILS/1.0",)},  # the incident light sensor (seen in the Double 4K's files)
 ))

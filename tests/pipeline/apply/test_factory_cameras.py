@@ -385,8 +385,8 @@ def test_dji_mavic_3m_black_level_from_xmp() -> None:
     del tags[50714]
     meta = meta_from_tags(cf.band_file("0000", 4), tags, (960, 1280), 16)
     assert meta.radiometry == "dji" and meta.black_level == 3200.0 and meta.band_name == "RedEdge"
-    assert meta.exposure_s == pytest.approx(472.5e-6) and meta.dji_dewarp[:4] == (1949.45, 1939.77, 28.0, -17.0)
-    assert meta.dji_hmatrix[2] == 2.5 and meta.features()["factory_band_alignment"]
+    assert meta.exposure_s == pytest.approx(472.5e-6) and meta.maker_tag("dewarp")[:4] == (1949.45, 1939.77, 28.0, -17.0)
+    assert meta.maker_tag("hmatrix")[2] == 2.5 and meta.features()["factory_band_alignment"]
 
 
 # --------------------------------------------------------------------------- real: Sequoia, Sentera

@@ -31,7 +31,7 @@ def test_the_panel_median_counts_the_pixels_flagged_high() -> None:
     kind, k = normalisation(opts, cam, ["A", "B"], lambda f: (r, q))
     # the median of all 12 readings, 0.45 x 1.005, not of the 8 valid ones (0.45 x 0.985)
     assert kind == "scalar" and k == pytest.approx(0.9 / (0.45 * 1.005), rel=1e-6)
-    _, plain = normalisation(opts, cam, ["A", "B"], lambda f: r)
+    _, plain = normalisation(opts, cam, ["A", "B"], lambda f: (r, None))
     assert plain == pytest.approx(0.9 / (0.45 * 0.985), rel=1e-6)
 
 

@@ -248,6 +248,7 @@ def test_sensor_flags_is_frame_flags(monkeypatch) -> None:
     import pipeline.apply.quality as quality
     from mscal_core.quality import frame_flags, mask_tables
     from mscal_core.reflectance import eq15_fast, eq15_tables
+    from pipeline.apply.stores import flag_positions
 
     rng = np.random.default_rng(7)
     n, h, w, n_dn = 4, 20, 30, 256
@@ -259,6 +260,7 @@ def test_sensor_flags_is_frame_flags(monkeypatch) -> None:
     lut, inv_v = eq15_tables(np.tile(np.linspace(0, 1, n_dn), (n, 1)), np.ones((n, h, w)), np.ones(n))
     lut, inv_v = mask_tables(lut, inv_v, dn_flags, pixel)
     monkeypatch.setattr(quality, "quality_tables", lambda *a: (dn_flags, pixel, ()))
+    monkeypatch.setattr(quality, "pixel_flag_sets", lambda *a: flag_positions(pixel))
     dn = rng.integers(0, 240, (n, h, w)).astype(np.uint16)
     dn[1, 10, 10] = 252  # a flagged DN outside the pixel table's pixels: band 1 the general way
     dn[3, 0, 0] = 255  # a flagged DN on a flagged pixel: both bits

@@ -55,7 +55,7 @@ def test_sentera_radiance_is_the_pure_formula() -> None:
         got = factory_radiance(meta, rgb[:, :, meta.channel], channels=rgb)
         want = sentera_relative_radiance(rgb[:, :, meta.channel], black_level=meta.black_level, gain=meta.gain,
                                          exposure_s=meta.exposure_s, bits_per_sample=8, channels=rgb,
-                                         matrix=meta.channel_mix, channel=meta.channel)
+                                         matrix=meta.maker_tag("channel_mix"), channel=meta.channel)
         np.testing.assert_array_equal(got, want)
         assert np.isfinite(got).mean() > 0.9
 

@@ -56,9 +56,7 @@ def read(ctx):
     return [CaptureMeta(
         path=ctx.path, shape=ctx.shape, bits_per_sample=ctx.bits, band_name=name, wavelength_nm=wl, fwhm_nm=fwhm,
         exposure_s=exif_exposure(ctx.exif, ctx.path), gain=ctx.required("Gain", NS, 1)[0],
-        black_levels=black_levels(ctx), dark_row_values=None, radiometric_calibration=None, vignetting_center=None,
-        vignetting_polynomial=None, vignetting_polynomial_2d=None, vignetting_polynomial_2d_exponents=None,
-        irradiance=positive_irradiance(ctx, "Sun", NS), radiometry="acme-dark" if name == "Dark" else "acme",
+        black_levels=black_levels(ctx), irradiance=positive_irradiance(ctx, "Sun", NS), radiometry="acme-dark" if name == "Dark" else "acme",
         maker_tags=(("falloff", ctx.required("Falloff", NS, 1)[0]),), **meta_fields(ctx))]
 
 
@@ -137,6 +135,7 @@ def acme(tmp_path, monkeypatch) -> Path:
     as it was afterwards."""
     monkeypatch.setattr(registry, "MAKERS", dict(registry.MAKERS))
     monkeypatch.setattr(registry, "NAMESPACE_KEYS", dict(registry.NAMESPACE_KEYS))
+    monkeypatch.setattr(registry, "DEFAULT_NAMESPACE_KEYS", registry.DEFAULT_NAMESPACE_KEYS)
     module = tmp_path / "acme.py"
     module.write_text(ACME_MODULE)
     spec = importlib.util.spec_from_file_location("acme_maker_under_test", module)
@@ -286,3 +285,25 @@ def test_no_module_outside_the_makers_imports_a_maker_module() -> None:
             found += [f"{rel}: {n}" for n in names
                       if n.startswith("pipeline.ingest.cameras") and n not in SHARED_CAMERA_MODULES]
     assert found == []
+
+
+def test_no_module_outside_the_makers_names_a_makers_xmp_namespace() -> None:
+    """Each maker declares its own XMP namespaces (:attr:`Maker.namespaces`); the parser knows
+    them from the registry, so no shared module lists a maker's namespace URI or key."""
+    from pipeline.ingest import xmp
+
+    uris = {uri.rstrip("/") for m in registry.MAKERS.values() for uris in m.namespaces.values() for uri in uris}
+    assert {"http://micasense.com/MicaSense/1.0", "http://www.dji.com/drone-dji/1.0"} <= uris  # the walk sees them
+    found = []
+    for path in sorted((ROOT / "pipeline").rglob("*.py")) + sorted((ROOT / "flows").rglob("*.py")):
+        rel = path.relative_to(ROOT).as_posix()
+        if not rel.startswith(("pipeline/ingest/cameras/", "pipeline/sim/")):
+            text = path.read_text()
+            found += [f"{rel}: {uri}" for uri in sorted(uris) if uri in text]
+    assert found == []
+    assert set(xmp.NAMESPACES) == {"Camera", "tiff", "exif"}  # the shared schemas only
+    assert not {k for m in registry.MAKERS.values() for k in m.namespaces} & set(xmp.NAMESPACES)
+    assert xmp.default_namespaces() == ("Camera", "MicaSense")  # MicaSense's own declaration
+    packet = ('<x:xmpmeta xmlns:x="adobe:ns:meta/"><rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">'
+              '<rdf:Description xmlns:ILS="http://sentera.com/ILS/1.0/" ILS:Clear="5644"/></rdf:RDF></x:xmpmeta>')
+    assert xmp.Xmp.parse(packet, "a.jpg").number("Clear", ("ILS",)) == 5644  # Sentera's, from its module

@@ -24,7 +24,7 @@ def test_sequoia_reader() -> None:
         pytest.skip("no Sequoia sample")
     m = read_capture_meta(path)
     assert (m.make, m.model, m.radiometry, m.band_name, m.wavelength_nm) == ("Parrot", "Sequoia", "sequoia", "NIR", 790)
-    assert m.sensor_model == (271665.8, 5008.3, 2581.1)  # one rdf:li of three comma-separated numbers
+    assert m.maker_tag("sensor_model") == (271665.8, 5008.3, 2581.1)  # one rdf:li of three comma-separated numbers
     assert m.iso == 621 and m.exposure_s == pytest.approx(0.003, rel=1e-6) and m.f_number == pytest.approx(2.2, rel=1e-6)
     assert m.orientation == 3 and m.rig_camera_index == 3 and m.capture_id == "BE5AB0ABA969E1CB424A394AA2FD3208"
     assert len(m.vignetting_polynomial_2d) == 15 and len(m.vignetting_polynomial_2d_exponents) == 30
@@ -42,7 +42,7 @@ def test_sequoia_without_golden_sensitivities_has_radiance_but_no_sun_sensor_rea
     folder = cf.sequoia_without_golden(tmp_path / "old")
     name = "IMG_180413_080658_0000_NIR.TIF"
     m, intact = read_capture_meta(folder / name), read_capture_meta(cf.SEQUOIA / name)
-    assert m.sensor_model == intact.sensor_model == (271665.8, 5008.3, 2581.1)
+    assert m.maker_tag("sensor_model") == intact.maker_tag("sensor_model") == (271665.8, 5008.3, 2581.1)
     dn = np.full(m.shape, 20000, np.uint16)
     np.testing.assert_array_equal(factory_radiance(m, dn), factory_radiance(intact, dn))
     assert m.irradiance is None and intact.irradiance == pytest.approx(14 / 100 / 656.1082, rel=1e-9)
