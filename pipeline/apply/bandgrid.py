@@ -15,12 +15,13 @@ the reference band left after that grid and without it
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
+from mscal_core.alignment import align_bands
 from mscal_core.coregistration import stack_residuals
 
-from pipeline.apply.coregistration import capture_alignment
+from pipeline.apply.coregistration import capture_transform
 from pipeline.apply.stores import geometry_step
 from pipeline.ingest.cameras.dispatch import align_by_files
 
@@ -32,26 +33,63 @@ def one_grid(plan: Plan, job: Job, signal: np.ndarray) -> tuple[np.ndarray, dict
     """A capture's bands (stored orientation) on one pixel grid (see the module docstring);
     unchanged when the plan has none of the steps. With ``plan.refine`` the capture's own
     alignment and where it came from (run.json ``coregistration.per_capture``), else None."""
+    after, own, _ = capture_grid(plan, job, signal)
+    return after, own
+
+
+def capture_grid(plan: Plan, job: Job, signal: np.ndarray
+                 ) -> tuple[np.ndarray, dict[str, Any] | None, Callable[[np.ndarray], np.ndarray] | None]:
+    """:func:`one_grid`, and the warp it applied to this capture as a function of a stack of
+    the capture's stored grid (None: no step moved it): the same steps with the same
+    transforms, the capture's own image registration included, so that its quality mask
+    follows its pixels exactly (:func:`pipeline.apply.quality.on_grid`)."""
     own = None
+    steps: list[Callable[[np.ndarray], np.ndarray]] = []
+    metas = job.capture.metas if job.capture is not None else None
     if plan.refine is not None and job.capture is not None:
-        aligned = align_by_files(job.capture.metas, signal) if plan.factory_alignment else signal
-        signal, own = capture_alignment(signal, aligned, plan.refine)
+        aligned = align_by_files(metas, signal) if plan.factory_alignment else signal
+        on_meta, h, own = capture_transform(signal, aligned, plan.refine)
+        base = aligned if on_meta else signal
+        signal = base if h is None else align_bands(base, h)
+        if on_meta and plan.factory_alignment:
+            steps.append(lambda s: align_by_files(metas, s))
+        if h is not None:
+            steps.append(lambda s: align_bands(s, h))
     elif plan.factory_alignment and job.capture is not None:
-        signal = align_by_files(job.capture.metas, signal)
+        signal = align_by_files(metas, signal)
+        steps.append(lambda s: align_by_files(metas, s))
     if plan.transforms is not None or plan.band_shift is not None:
-        signal = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift, job.name,
-                               signal)
-    return signal, own
+        def geometry(s: np.ndarray) -> np.ndarray:
+            return geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift, job.name, s)
+
+        signal = geometry(signal)
+        steps.append(geometry)
+    if not steps:
+        return signal, own, None
+
+    def warp(stack: np.ndarray) -> np.ndarray:
+        for step in steps:
+            stack = step(stack)
+        return stack
+
+    return signal, own, warp
 
 
 def grid_and_residuals(plan: Plan, job: Job, signal: np.ndarray) -> tuple[np.ndarray, dict[str, Any] | None]:
     """:func:`one_grid`, and the capture's entry of run.json ``coregistration`` (its residuals
     when measured, :func:`grid_residuals`; its own alignment under ``refinement``), or None."""
-    after, own = one_grid(plan, job, signal)
+    after, residuals, _ = grid_residuals_and_warp(plan, job, signal)
+    return after, residuals
+
+
+def grid_residuals_and_warp(plan: Plan, job: Job, signal: np.ndarray
+                            ) -> tuple[np.ndarray, dict[str, Any] | None, Callable[[np.ndarray], np.ndarray] | None]:
+    """:func:`grid_and_residuals` and the warp :func:`capture_grid` applied (for the quality mask)."""
+    after, own, warp = capture_grid(plan, job, signal)
     residuals = grid_residuals(plan, job, signal, after)
     if own is not None:
         residuals = {**(residuals or {}), "refinement": own}
-    return after, residuals
+    return after, residuals, warp
 
 
 def grid_residuals(plan: Plan, job: Job, before: np.ndarray, after: np.ndarray) -> dict[str, Any] | None:

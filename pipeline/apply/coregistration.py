@@ -202,30 +202,40 @@ def capture_alignment(unaligned: np.ndarray, aligned: np.ndarray, plan: Refineme
     own pixels (``unaligned`` as stored, ``aligned`` by the files' own registration), like
     :func:`choose_alignment` on one capture, at :data:`MAX_SIDE`; with fewer than
     :data:`OWN_MIN_TILES` tiles in a band, the flight's choice (``plan``)."""
+    on_meta, h, rec = capture_transform(unaligned, aligned, plan)
+    base = aligned if on_meta else unaligned
+    return (base if h is None else align_bands(base, h)), rec
+
+
+def capture_transform(unaligned: np.ndarray, aligned: np.ndarray, plan: Refinement
+                      ) -> tuple[bool, np.ndarray | None, dict[str, Any]]:
+    """What :func:`capture_alignment` does to a capture: whether it starts from the files' own
+    registration (else from the bands as stored), the per band transforms it applies on top
+    ((band, 3, 3), None: none) and the run.json record; so that the same warp can be replayed
+    on the capture's quality mask (:func:`pipeline.apply.bandgrid.capture_grid`)."""
     ref, bands = plan.reference, plan.bands
     others = [b for b in range(len(bands)) if b != ref]
     meta = stack_residuals(aligned, ref)
     tiles = min(meta[b].n_tiles for b in others)
     if tiles < OWN_MIN_TILES:
         h = None if plan.flight is None else np.asarray(plan.flight, np.float64).reshape(-1, 3, 3)
-        base = aligned if plan.flight_on_meta else unaligned
-        return (base if h is None else align_bands(base, h)), {
+        return plan.flight_on_meta, h, {
             "from": f"flight (fewest textured tiles in a band: {tiles} < {OWN_MIN_TILES})", "run_invariant": False,
             "alignment": plan.flight_label}
     meta_px = np.array([r.median_px for r in meta])
     rec: dict[str, Any] = {"from": OWN, "run_invariant": True, "alignment": METADATA,
                            "metadata_px": _named(bands, meta_px)}
     if float(np.max(meta_px[others])) <= RESIDUAL_MAX_PX:
-        return aligned, rec
+        return True, None, rec
     none = stack_residuals(unaligned, ref)
     none_px = np.array([r.median_px for r in none])
     worse = _mean(meta_px[others]) > _mean(none_px[others])
     best, _ = _best_refinement([(unaligned, aligned)], [meta], [none], worse, ref, MAX_SIDE, bands)
     if best is None or not best[0] < min(_mean(meta_px[others]), _mean(none_px[others])):
-        return aligned, {**rec, "note": "image registration did not improve on the metadata"}
+        return True, None, {**rec, "note": "image registration did not improve on the metadata"}
     _, on_meta, model, h, px = best
     rec.update({"alignment": REFINED if on_meta else INSTEAD, "model": model, "refined_px": _named(bands, px)})
-    return align_bands(aligned if on_meta else unaligned, h), rec
+    return on_meta, h, rec
 
 
 def refinement_record(results: dict[str, dict[str, Any]]) -> dict[str, Any]:

@@ -6,7 +6,7 @@ margins around the marker and the reflector's edge whose pixels the fits do not 
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -59,6 +59,16 @@ class View:
 
     def choice_for(self, band: int) -> marker.PoseChoice | None:
         return self.choice if self.band_choices is None else self.band_choices[band]
+
+    def with_choice(self, band: int, choice: marker.PoseChoice) -> View:
+        """The view with ``choice`` taken for ``band``'s pose (of a band-grid camera: for every
+        band); of a multi-lens camera ``pose`` follows when it was that band's."""
+        if self.band_poses is None:
+            return replace(self, pose=choice.pose, choice=choice)
+        poses, choices = list(self.band_poses), list(self.band_choices or (None,) * len(self.band_poses))
+        pose = choice.pose if poses[band] is self.pose else self.pose
+        poses[band], choices[band] = choice.pose, choice
+        return replace(self, pose=pose, band_poses=tuple(poses), band_choices=tuple(choices))
 
 
 def detection_image(bands: np.ndarray, inverse_response: np.ndarray) -> np.ndarray:

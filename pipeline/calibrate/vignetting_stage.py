@@ -5,11 +5,10 @@ is wrong (the other IPPE solution tried first) and the stage's part of the calib
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from concurrent.futures import Future
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 import xarray as xr
@@ -200,32 +199,44 @@ def _record_view_weights(report: StageReport, names: Sequence[Sequence[str]],
 def _try_other_solutions(session: Session, stack: np.ndarray, views: list[tuple[int, View]], bad: set[int],
                          frac: np.ndarray, ref_fit: vignetting.VignettingFit, inverse_response: np.ndarray,
                          saturation_dn: np.ndarray, cells: CellCache, ref: int, report: StageReport) -> dict[int, View]:
-    """The views screened out (``bad``) that the other IPPE solution of their marker makes
-    consistent with the other views: each such view taken with that pose, by index.
+    """The views screened out (``bad``) that the other IPPE solution of their marker in band
+    ``ref`` makes consistent with the other views of that band: each such view taken with that
+    pose, by index (of a band-grid camera the pose of every band; of a multi-lens camera that
+    lens's own).
 
-    A view disagrees with the reference band's fit when its pose maps lawn or paper onto the
-    reflector; if the mirrored solution (:mod:`mscal_core.marker`) brings its fraction of
+    A view disagrees with the band's fit (``ref_fit``) when its pose maps lawn or paper onto
+    the reflector; if the mirrored solution (:mod:`mscal_core.marker`) brings its fraction of
     missed observations (:func:`mscal_core.vignetting.view_inconsistency`) under the screening
     limit (:func:`mscal_core.vignetting.inconsistent_views` of all views with its new fraction),
     the view is kept with that pose, and its record in ``marker_poses`` says so."""
     out: dict[int, View] = {}
     for k in sorted(bad):
         i, view = views[k]
-        if view.choice is None or view.choice.alternative is None:
+        choice = view.choice_for(ref)
+        if choice is None or choice.alternative is None:
             continue
-        other = dataclasses.replace(view, pose=view.choice.alternative, choice=view.choice.swapped("consistency"))
+        other = view.with_choice(ref, choice.swapped("consistency"))
         obs, _ = band_observations(_band_views(session, stack, ref, [(i, other)], inverse_response, saturation_dn, cells))
         trial = frac.copy()
         trial[k] = vignetting.view_inconsistency(ref_fit, *obs[0])
         if np.isfinite(trial[k]) and k not in set(vignetting.inconsistent_views(trial).tolist()):
             out[k] = other
-            log.info("vignetting view %s: the other IPPE solution agrees with the other views (%.0f%% -> %.0f%% "
-                     "of its reflector pixels off)", view.record.path.name, 100 * frac[k], 100 * trial[k])
-    names = {v.record.path.name: v for v in out.values()}
-    for rec in report.residuals.get("marker_poses", []):
-        if rec.get("file") in names:
-            rec.update(names[rec["file"]].choice.as_record())  # type: ignore[union-attr]
+            log.info("vignetting view %s, band %s: the other IPPE solution agrees with the other views (%.0f%% -> "
+                     "%.0f%% of its reflector pixels off)", view.record.path.name, session.camera.bands[ref].name,
+                     100 * frac[k], 100 * trial[k])
+    _record_choices(report, out.values(), ref)
     return out
+
+
+def _record_choices(report: StageReport, views: Iterable[View], band: int) -> None:
+    """The ``marker_poses`` records of ``views`` with the pose choice now taken (of a
+    multi-lens camera: band ``band``'s entry of the record's ``bands``)."""
+    for view in views:
+        for rec in report.residuals.get("marker_poses", []):
+            if "bands" in rec and rec.get("file") == view.record.name:
+                rec["bands"][band] = view.choice_for(band).as_record()  # type: ignore[union-attr]
+            elif "bands" not in rec and rec.get("file") == view.record.path.name:
+                rec.update(view.choice_for(band).as_record())  # type: ignore[union-attr]
 
 
 def _choice_note(choice: marker.PoseChoice | None) -> str:
@@ -242,7 +253,9 @@ def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[t
                               pool: BandPool, started: Callable[[], None]
                               ) -> tuple[list[vignetting.VignettingFit], dict[int, float]]:
     """Eq. 8-10 of a multi-lens camera: each lens on the views whose marker it found (its own
-    poses), screened on its own fit like the band-grid camera's reference band, on ``pool``."""
+    poses), screened on its own fit like the band-grid camera's reference band, on ``pool``; a
+    view a lens drops is taken back with the other IPPE solution of that lens's pose when that
+    one agrees with the lens's fit (:func:`_try_other_solutions`), and the lens fitted again."""
     camera = session.camera
     uses = [[v for v in views if v[1].pose_for(b) is not None] for b in range(camera.n_bands)]
     for b, use in enumerate(uses):
@@ -254,7 +267,21 @@ def _fit_multilens_vignetting(session: Session, stack: np.ndarray, views: list[t
                                                              saturation_dn, cells), MIN_VIEWS_TO_SCREEN)
                for b in range(camera.n_bands)]
     started()
-    results = [f.result() for f in futures]
+    results = [list(f.result()) for f in futures]
+    refits: dict[int, Future] = {}
+    for b, (fit, _, frac, dropped, _) in enumerate(results):
+        # a view the lens dropped may have its other IPPE solution agree with the lens's fit
+        # (the band-grid camera's retry, per lens: each lens has its own pose of the marker)
+        switched = _try_other_solutions(session, stack, uses[b], set(dropped), frac, fit, inverse_response,
+                                        saturation_dn, cells, b, report)
+        if switched:
+            uses[b] = [(i, switched.get(k, v)) for k, (i, v) in enumerate(uses[b])]
+            results[b][3] = [k for k in dropped if k not in switched]
+            kept = [v for k, v in enumerate(uses[b]) if k not in results[b][3]]
+            refits[b] = pool.submit(vignetting_band, _band_views(session, stack, b, kept, inverse_response,
+                                                                 saturation_dn, cells), False, fit.vignetting)
+    for b, future in refits.items():  # the lens again on the views it keeps (its saturated share: of all its views)
+        results[b][0], _, _, results[b][4] = future.result()
     fits, saturated, names = [], {}, []
     report.arrays["coverage"] = np.stack([r[4] for r in results])
     for b, (fit, saturated[b], frac, dropped, _) in enumerate(results):

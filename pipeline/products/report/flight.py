@@ -214,8 +214,11 @@ def dn_outside_sweep(flight: FlightResults, calibration: xr.Dataset) -> tuple[fl
     return float(frac[b]), b
 
 
-#: At most this many per-frame lines on flagged pixels (:func:`flagged_pixels`), then "and N more".
+#: At most this many per-frame lines on flagged pixels (:func:`flagged_pixels`), then one naming
+#: the frames left.
 MAX_FLAGGED_LINES = 20
+#: Frames the last line of :func:`flagged_pixels` names before "...".
+MAX_MORE_FRAMES = 10
 #: What each flag of ``reflectance.zarr/quality`` (run.json ``quality``) warned of says of its
 #: pixels. Not warned of per frame: ``saturated`` (its own warning, ``saturated_fraction``) and
 #: ``no_value`` (it holds the borders the bands' alignment leaves on every frame).
@@ -228,23 +231,30 @@ FLAGGED = {
 
 
 def flagged_pixels(run: dict[str, Any], limit: int = MAX_FLAGGED_LINES) -> list[QAWarning]:
-    """One warning per frame, band and flag of :data:`FLAGGED` in run.json ``quality`` ("frame
-    IMG_0003, band 670: 1,234 pixels on the response's shoulder, set to NaN"), at most ``limit``
-    then one saying how many more; the value is the pixels."""
+    """One warning per frame and flag of :data:`FLAGGED` in run.json ``quality``, naming every
+    band it flags with its pixels ("frame IMG_0003: 1,234 pixels on the response's shoulder in
+    2 bands (b670 1,000, b678 234), set to NaN"; the value is the pixels), at most ``limit``
+    then one naming the frames left (a flight of many frames on the shoulder still names each
+    band of the first ``limit`` lines, not the first frame's bands only)."""
     q = run.get("quality") or {}
-    kept = bool(q.get("keep_flagged"))
-    out = []
+    kept = "kept" if q.get("keep_flagged") else "set to NaN"
+    out, frames = [], []
     for frame, bands in (q.get("frames") or {}).items():
-        for band, flags in bands.items():
-            for flag, n in flags.items():
-                if flag in FLAGGED:
-                    out.append(QAWarning(f"flagged_{flag}", f"frame {frame}, band {band}: {int(n):,} pixels "
-                                                            f"{FLAGGED[flag]}, {'kept' if kept else 'set to NaN'}",
-                                         float(n), 0.0))
+        for flag, says in FLAGGED.items():
+            per_band = {band: int(flags[flag]) for band, flags in bands.items() if flags.get(flag)}
+            if not per_band:
+                continue
+            n = sum(per_band.values())
+            named = ", ".join(f"{band} {v:,}" for band, v in per_band.items())
+            out.append(QAWarning(f"flagged_{flag}", f"frame {frame}: {n:,} pixels {says} in {len(per_band)} "
+                                                    f"band{'s' if len(per_band) > 1 else ''} ({named}), {kept}",
+                                 float(n), 0.0))
+            frames.append(frame)
     if len(out) > limit:
-        more = out[limit:]
-        out = out[:limit] + [QAWarning("flagged_more", f"and {len(more)} more frame/band/flag counts of flagged "
-                                                       "pixels (run.json quality.frames)",
+        more, left = out[limit:], list(dict.fromkeys(frames[limit:]))
+        names = ", ".join(left[:MAX_MORE_FRAMES]) + (" ..." if len(left) > MAX_MORE_FRAMES else "")
+        out = out[:limit] + [QAWarning("flagged_more", f"and {len(more)} more frame/flag counts of flagged pixels in "
+                                                       f"{len(left)} frame(s): {names} (run.json quality.frames)",
                                        float(sum(w.value for w in more)), 0.0)]
     return out
 

@@ -90,6 +90,12 @@ def test_a_wrong_dji_h_matrix_is_measured_and_refined_by_image_registration(tmp_
         assert co["flight"][name]["tiles"] == 9
         assert co["captures"]["002"]["residual_px"][name] <= 0.5
     assert co["worst_median_px"] <= 0.5
+    # the quality mask's not_coregistered: checked on the sampled capture (002) and, by the
+    # image registration that judged it on its own pixels, on the panel capture (001)
+    checks = run["quality"]["coregistration"]
+    assert (checks["measured"], checks["own_pixels"], checks["not_checked"]) == (["002"], ["001"], [])
+    assert "not_coregistered" in run["quality"]["checked"]
+    assert not any("not_coregistered" in flags for flags in run["quality"]["totals"].values())  # all within 0.5 px
     ds = xr.open_zarr(out / "reflectance.zarr")
     assert ds.attrs["co_registered"] == 1 and ds.attrs["registration"] == "factory metadata + image registration"
     # the written radiance is on the scene's grid (the builders' scene: the RedEdge NIR frame)
@@ -158,6 +164,8 @@ def test_micasense_bands_are_measured_and_warned_of(tmp_path) -> None:
     assert "mscal register" in warn["message"]
     rows = _table(sec)
     assert rows["NIR"][0] == rows["NIR"][2] == "14.06"  # without alignment: the same numbers
+    # bands left on their own grids make no claim to fail: not_coregistered not checked
+    assert "not_coregistered" not in run["quality"]["checked"] and "coregistration" not in run["quality"]
 
 
 def test_single_file_cameras_are_not_measured(tmp_path) -> None:

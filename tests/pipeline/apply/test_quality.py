@@ -25,9 +25,10 @@ from pipeline.apply.quality import (
     finish_counted,
     not_coregistered,
     on_grid,
+    quality_record,
 )
 from pipeline.apply.stores import geometry_step
-from pipeline.products.report.flight import MAX_FLAGGED_LINES
+from pipeline.products.report.flight import MAX_FLAGGED_LINES, flagged_pixels
 from pipeline.run.cli import main
 from pipeline.run.console import report_warnings
 
@@ -159,13 +160,33 @@ def test_warnings_name_frame_and_band(flagged) -> None:
     frame = next(iter(run["frames"]))
     band, flags = next(iter(run["frames"][frame].items()))
     n = flags.get("response_shoulder") or next(iter(flags.values()))
-    assert len(lines) == MAX_FLAGGED_LINES + 1 and lines[-1].startswith("and ")
-    shoulder = [m for m in lines if "on the response's shoulder, set to NaN" in m]
-    assert shoulder and shoulder[0].startswith("frame IMG_")
-    assert any(m.startswith(f"frame {frame}, band {band}: {n:,} pixels ") for m in lines)
+    shoulder = [m for m in lines if "on the response's shoulder in " in m]
+    assert shoulder and shoulder[0].startswith("frame IMG_") and shoulder[0].endswith("set to NaN")
+    assert any(m.startswith(f"frame {frame}: ") and (f"({band} {n:,}" in m or f", {band} {n:,}" in m)
+               for m in lines)
     kept = [w["message"] for w in report_warnings(flights=[flagged["keep"]]) if w["code"].startswith("flagged_")]
-    assert kept and all(m.endswith(", kept") for m in kept[:-1])
+    assert kept and all(m.endswith(", kept") for m in kept if not m.startswith("and "))
     assert not [w for w in report_warnings(flights=[flagged["plain"]]) if w["code"].startswith("flagged_")]
+
+
+def test_flagged_pixels_one_line_per_frame_and_flag_then_the_frames_left() -> None:
+    frames = {f"IMG_{f:04d}": {"b670": {"response_shoulder": 10 + f, "saturated": 3},
+                               "b678": {"response_shoulder": 1000 * f, "outside_sweep": 7}}
+              for f in range(MAX_FLAGGED_LINES)}
+    frames["IMG_0000"]["b678"] = {"outside_sweep": 7}  # no shoulder pixel in b678 of the first frame
+    lines = flagged_pixels({"quality": {"keep_flagged": False, "frames": frames}})
+    assert len(lines) == MAX_FLAGGED_LINES + 1
+    assert lines[0].message == "frame IMG_0000: 10 pixels on the response's shoulder in 1 band (b670 10), set to NaN"
+    assert lines[1].message == ("frame IMG_0000: 7 pixels outside the response sweep's DN range in 1 band (b678 7), "
+                                "set to NaN")
+    assert lines[2].message == ("frame IMG_0001: 1,011 pixels on the response's shoulder in 2 bands "
+                                "(b670 11, b678 1,000), set to NaN")
+    assert (lines[2].code, lines[2].value) == ("flagged_response_shoulder", 1011.0)
+    # 40 frame/flag counts: 20 lines, then one naming the 10 frames left (IMG_0010-0019)
+    assert lines[-1].code == "flagged_more"
+    assert lines[-1].message.startswith("and 20 more frame/flag counts of flagged pixels in 10 frame(s): IMG_0010, ")
+    assert lines[-1].value == sum(10 + f + 1000 * f + 7 for f in range(10, 20))
+    assert not any("saturated" in w.message for w in lines)  # saturation has its own warning
 
 
 def test_tiffs_carry_the_nan(flagged) -> None:
@@ -184,6 +205,32 @@ def _plan(**kw) -> SimpleNamespace:
     bands = [SimpleNamespace(name=n) for n in ("blue", "green", "red")]
     return SimpleNamespace(**{"camera": SimpleNamespace(bands=bands), "factory_alignment": False, "transforms": None,
                               "band_shift": None, "refine": None, "coreg_reference": None, **kw})
+
+
+def test_coregistration_is_checked_on_the_sample_and_on_captures_judged_on_their_own_pixels() -> None:
+    refine = SimpleNamespace(reference=0)
+    plan = _plan(coreg_reference=0, factory_alignment=True, refine=refine)
+    bad = RESIDUAL_MAX_PX + 0.5
+    own = {"refinement": {"from": "own pixels", "alignment": "factory metadata", "metadata_px": {"red": bad}}}
+    refined = {"refinement": {"from": "own pixels", "alignment": "factory metadata + image registration",
+                              "metadata_px": {"red": 9.0, "green": 9.0}, "refined_px": {"red": 0.2, "green": bad}}}
+    flight = {"refinement": {"from": "flight (fewest textured tiles in a band: 1 < 3)", "alignment": "factory metadata"}}
+    measured = {"residual_px": {"green": bad}, **own}
+    assert not_coregistered(plan, own) == [2]
+    assert not_coregistered(plan, refined) == [1]  # the refinement's residuals, not the metadata's
+    assert not_coregistered(plan, flight) == []  # not judged on its pixels: not checked
+    assert not_coregistered(plan, measured) == [1]  # the sample's measurement of the bands as written first
+    # a band shift after the refinement moves the bands: the judgement no longer describes them
+    assert not_coregistered(_plan(coreg_reference=0, factory_alignment=True, refine=refine, band_shift=(1, 1)),
+                            own) == []
+    flagging = checked(Flagging(checked=FACTORY_CHECKS), plan)
+    assert flagging.own_pixels
+    run = quality_record(flagging, {}, {"A": measured, "B": refined, "C": flight, "D": None})
+    checks = run["coregistration"]
+    assert (checks["measured"], checks["own_pixels"], checks["not_checked"]) == (["A"], ["B"], ["C", "D"])
+    assert "not passed" in checks["rule"]
+    # a pass that does not check the flag says nothing of captures
+    assert "coregistration" not in quality_record(checked(Flagging(checked=FACTORY_CHECKS), _plan()), {}, {"A": None})
 
 
 def test_a_band_that_failed_coregistration_is_flagged_whole_and_nan() -> None:
@@ -289,3 +336,44 @@ def test_the_mask_moves_with_the_bands(tmp_path) -> None:
     assert np.array_equal(out != 0, np.isnan(moved) & (np.abs(np.arange(12) - 6)[None, :, None] < 4)
                           & (np.abs(np.arange(12) - 6)[None, None, :] < 4))
     assert out[1, 6, 8] and out[2, 5, 6] and not out[1, 6, 6]
+
+
+def test_the_mask_follows_a_captures_own_image_registration(monkeypatch) -> None:
+    """A DJI capture whose bands the metadata leaves 3-5 px apart is refined on its own pixels
+    (:func:`pipeline.apply.bandgrid.capture_grid`); the quality bits of its stored grid take the
+    same warp, so each lands where its pixel's value (NaN, as the field tables make it) did."""
+    import cv2
+
+    import pipeline.apply.bandgrid as bandgrid
+    import pipeline.apply.quality as quality_mod
+    from pipeline.apply.coregistration import REFINED, Refinement
+    from pipeline.ingest.catalog import load_camera
+
+    for mod in (bandgrid, quality_mod):  # the metadata alignment: no move
+        monkeypatch.setattr(mod, "align_by_files", lambda metas, stack: stack.copy())
+    bands = tuple(load_camera("dji-p4-multispectral").band_names)
+    rng = np.random.default_rng(3)
+    scene = sum(w * cv2.GaussianBlur(rng.random((560, 720)).astype(np.float32), (0, 0), s)
+                for s, w in ((2.0, 1.0), (6.0, 2.0)))
+    offsets = [(4.0, -2.0), (-3.0, 3.0), (0.0, 0.0), (2.5, 4.0), (-4.0, -1.0)]
+    yy, xx = np.mgrid[0:480, 0:640].astype(np.float32)
+    stack = np.stack([cv2.remap(scene, xx + 40 + dx, yy + 40 + dy, cv2.INTER_CUBIC) for dx, dy in offsets])
+    q = np.zeros(stack.shape, np.uint8)
+    q[0, 200:210, 300:320] = FLAGS["response_shoulder"]
+    q[3, 100:104, 50:53] = FLAGS["saturated"]
+    clean = stack.copy()
+    stack[q != 0] = np.nan  # flagged pixels are NaN out of the field tables
+    plan = _plan(coreg_reference=2, factory_alignment=True, refine=Refinement(2, bands, True, None, REFINED))
+    job = SimpleNamespace(capture=SimpleNamespace(metas=[None] * 5), name="001")
+    after, own, warp = bandgrid.capture_grid(plan, job, stack)
+    assert own["alignment"] == REFINED and max(own["refined_px"].values()) < 0.3
+    moved = on_grid(plan, job, q, warp)
+    nan = np.isnan(after) & ~np.isnan(warp(clean))  # the flagged pixels' NaN, not the warp's borders
+    for b, bit in ((0, FLAGS["response_shoulder"]), (3, FLAGS["saturated"])):
+        got = (moved[b] & bit) != 0
+        assert np.array_equal(got, nan[b]), b  # exactly where the NaN went, no more, no fewer
+        assert not np.array_equal(got, q[b] != 0)  # 2.5-4.5 px away from the stored grid's pixels
+    assert not moved[[1, 2, 4]].any()
+    # without the capture's warp only the files' registration is replayed: the bits stay put
+    stale = on_grid(plan, job, q)
+    assert np.array_equal(stale, q) and not np.array_equal(stale[0] != 0, nan[0])
