@@ -23,7 +23,7 @@ from pipeline.storage.atomic import iter_files
 from pipeline.storage.directio import direct_io_enabled, set_direct_io
 from pipeline.storage.process import POOL_ERRORS, environment
 
-__all__ = ["AUTO_PROCESS_FRAMES", "SCHEDULERS", "WORKER_MODULE", "Execution", "distributed_client",
+__all__ = ["AUTO_PROCESS_FRAMES", "SCHEDULERS", "SERVER_MODULE", "WORKER_MODULE", "Execution", "distributed_client",
            "ensure_worker_server", "flight_size_hint", "scheduler_for", "server_import_path", "start_worker_server",
            "take_worker_environment", "worker_context", "worker_environment"]
 
@@ -87,6 +87,10 @@ def scheduler_for(n_frames: int, execution: Execution = Execution()) -> tuple[st
 #: any worker is forked from it.
 WORKER_MODULE = "pipeline.apply.executor"
 
+#: Imported by the server after :data:`WORKER_MODULE`: freezes what the server holds
+#: (:mod:`pipeline.apply.worker_server`).
+SERVER_MODULE = "pipeline.apply.worker_server"
+
 #: Environment variables a worker process reads (direct I/O, catalog path): given to each
 #: worker as the main process has them when the pass starts (:func:`worker_environment`), not
 #: as they were when the server was started.
@@ -98,7 +102,7 @@ def worker_context() -> ForkServerContext:
     :data:`WORKER_MODULE` (one import for every worker of the process's passes), started
     (:func:`ensure_worker_server`) if it is not running."""
     ctx = multiprocessing.get_context("forkserver")
-    ctx.set_forkserver_preload([WORKER_MODULE])
+    ctx.set_forkserver_preload([WORKER_MODULE, SERVER_MODULE])
     ensure_worker_server()
     return ctx
 
@@ -106,7 +110,8 @@ def worker_context() -> ForkServerContext:
 def ensure_worker_server() -> None:
     """Start the forkserver (if it is not running) so that it imports what this process
     imports: :func:`server_import_path` as its ``PYTHONPATH``, and no current folder first
-    (``PYTHONSAFEPATH``), both for the server's start only.
+    (``PYTHONSAFEPATH``), both for the server's start only, and
+    :data:`pipeline.apply.worker_server.SERVER_ENV` (the server freezes what it imported).
 
     Why: the server is a new interpreter (``python -c``), so its import path begins with the
     current folder, and Python 3.11's forkserver imports its preload before it takes the
@@ -118,7 +123,9 @@ def ensure_worker_server() -> None:
     either, so both then import from the same places."""
     from multiprocessing import forkserver
 
-    with environment({"PYTHONPATH": os.pathsep.join(server_import_path()), "PYTHONSAFEPATH": "1"}):
+    from pipeline.apply.worker_server import SERVER_ENV
+
+    with environment({"PYTHONPATH": os.pathsep.join(server_import_path()), "PYTHONSAFEPATH": "1", SERVER_ENV: "1"}):
         forkserver.ensure_running()
 
 
