@@ -125,10 +125,11 @@ class PanelSerial:
 
 
 def capture_xmp_serial(capture: Capture) -> str | None:
-    """The XMP ``PanelSerial`` (Camera or MicaSense namespace) of the capture's first band file
-    that has one (the tag only: no pixels are read)."""
+    """The XMP ``PanelSerial`` (the shared Camera schema, then the makers' default namespaces:
+    :func:`pipeline.ingest.xmp.default_namespaces`) of the capture's first band file that has
+    one (the tag only: no pixels are read)."""
     for path in capture.files:
-        text = file_xmp(path).text("PanelSerial", ("Camera", "MicaSense"))
+        text = file_xmp(path).text("PanelSerial")
         if text and text.strip():
             return text.strip()
     return None
