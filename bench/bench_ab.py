@@ -423,6 +423,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="instead: factory apply on N MicaSense captures, old vs new vs the hand loop")
     p.add_argument("--settle", type=float, default=None,
                    help="seconds of rest after sync before each run (default 65; --factory: 0)")
+    p.add_argument("--section", default=None, metavar="KEY",
+                   help="the section of --out to replace (default bench_ab, or bench_ab_factory with --factory): "
+                        "another key keeps an A/B against a second commit beside the first")
     args = p.parse_args(argv)
     uptime = lambda: subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
     load0 = uptime()
@@ -441,9 +444,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         md = render_factory(res, old_rev, new_rev, command, args.factory, (load0, uptime()))
     else:
         md = render(res, old_rev, new_rev, command, args.frames, (load0, uptime()))
+    key = args.section or ("bench_ab_factory" if args.factory else SECTION_KEY)
+    default_anchor = "bench-ab-factory" if args.factory else "bench-ab"
+    md = md.replace(f'<a id="{default_anchor}"></a>', f'<a id="{key.replace("_", "-")}"></a>')
     print(md)
     if args.out:
-        _replace_section(args.out, md, "bench_ab_factory" if args.factory else SECTION_KEY)
+        _replace_section(args.out, md, key)
     stamp = datetime.now(timezone.utc).isoformat(timespec="seconds")
     print(f"done {stamp}")
     return 0
