@@ -29,20 +29,15 @@ if TYPE_CHECKING:
     from pipeline.apply.executor import Job, Plan
 
 
-def one_grid(plan: Plan, job: Job, signal: np.ndarray) -> tuple[np.ndarray, dict[str, Any] | None]:
-    """A capture's bands (stored orientation) on one pixel grid (see the module docstring);
-    unchanged when the plan has none of the steps. With ``plan.refine`` the capture's own
-    alignment and where it came from (run.json ``coregistration.per_capture``), else None."""
-    after, own, _ = capture_grid(plan, job, signal)
-    return after, own
-
-
-def capture_grid(plan: Plan, job: Job, signal: np.ndarray
-                 ) -> tuple[np.ndarray, dict[str, Any] | None, Callable[[np.ndarray], np.ndarray] | None]:
-    """:func:`one_grid`, and the warp it applied to this capture as a function of a stack of
-    the capture's stored grid (None: no step moved it): the same steps with the same
-    transforms, the capture's own image registration included, so that its quality mask
-    follows its pixels exactly (:func:`pipeline.apply.quality.on_grid`)."""
+def one_grid(plan: Plan, job: Job, signal: np.ndarray
+             ) -> tuple[np.ndarray, dict[str, Any] | None, Callable[[np.ndarray], np.ndarray] | None]:
+    """A capture's bands (stored orientation) on one pixel grid (see the module docstring),
+    unchanged when the plan has none of the steps; with ``plan.refine`` the capture's own
+    alignment and where it came from (run.json ``coregistration.per_capture``), else None; and
+    the warp applied, as a function of a stack on the capture's stored grid (None: no step
+    moved it): the same steps with the same transforms, the capture's own image registration
+    included, so that its quality mask follows its pixels exactly
+    (:func:`pipeline.apply.quality.on_grid`)."""
     own = None
     steps: list[Callable[[np.ndarray], np.ndarray]] = []
     metas = job.capture.metas if job.capture is not None else None
@@ -75,17 +70,12 @@ def capture_grid(plan: Plan, job: Job, signal: np.ndarray
     return signal, own, warp
 
 
-def grid_and_residuals(plan: Plan, job: Job, signal: np.ndarray) -> tuple[np.ndarray, dict[str, Any] | None]:
-    """:func:`one_grid`, and the capture's entry of run.json ``coregistration`` (its residuals
-    when measured, :func:`grid_residuals`; its own alignment under ``refinement``), or None."""
-    after, residuals, _ = grid_residuals_and_warp(plan, job, signal)
-    return after, residuals
-
-
-def grid_residuals_and_warp(plan: Plan, job: Job, signal: np.ndarray
-                            ) -> tuple[np.ndarray, dict[str, Any] | None, Callable[[np.ndarray], np.ndarray] | None]:
-    """:func:`grid_and_residuals` and the warp :func:`capture_grid` applied (for the quality mask)."""
-    after, own, warp = capture_grid(plan, job, signal)
+def grid_and_residuals(plan: Plan, job: Job, signal: np.ndarray
+                       ) -> tuple[np.ndarray, dict[str, Any] | None, Callable[[np.ndarray], np.ndarray] | None]:
+    """:func:`one_grid`, the capture's entry of run.json ``coregistration`` (its residuals when
+    measured, :func:`grid_residuals`; its own alignment under ``refinement``), or None, and the
+    warp :func:`one_grid` applied (for the quality mask)."""
+    after, own, warp = one_grid(plan, job, signal)
     residuals = grid_residuals(plan, job, signal, after)
     if own is not None:
         residuals = {**(residuals or {}), "refinement": own}

@@ -212,7 +212,7 @@ def capture_transform(unaligned: np.ndarray, aligned: np.ndarray, plan: Refineme
     """What :func:`capture_alignment` does to a capture: whether it starts from the files' own
     registration (else from the bands as stored), the per band transforms it applies on top
     ((band, 3, 3), None: none) and the run.json record; so that the same warp can be replayed
-    on the capture's quality mask (:func:`pipeline.apply.bandgrid.capture_grid`)."""
+    on the capture's quality mask (:func:`pipeline.apply.bandgrid.one_grid`)."""
     ref, bands = plan.reference, plan.bands
     others = [b for b in range(len(bands)) if b != ref]
     meta = stack_residuals(aligned, ref)

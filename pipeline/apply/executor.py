@@ -45,7 +45,7 @@ from mscal_core.errors import FrameError, InputError, ProcessesUnavailable
 from mscal_core.quality import CENSOR_HIGH, region_median
 from mscal_core.reflectance import eq15_fast, vegetation_mask
 
-from pipeline.apply.bandgrid import grid_residuals_and_warp
+from pipeline.apply.bandgrid import grid_and_residuals
 from pipeline.apply.execution import (
     Execution,
     distributed_client,
@@ -426,9 +426,9 @@ def start_frame(plan: Plan, job: Job) -> Outcome | _Writing:
         dn, sha, channels = capture_dn(plan, job)
         signal, factor, radiance, saturated, q = radiometry(plan.camera, plan.chain, job, dn, channels)
         stored = signal
-        signal, residuals, warp = grid_residuals_and_warp(plan, job, signal)
+        signal, residuals, warp = grid_and_residuals(plan, job, signal)
         if q is not None:
-            q = on_grid(plan, job, q, warp)
+            q = on_grid(q, warp)
     except FrameError as exc:
         return _quarantined(job, exc)
     moved = signal is not stored

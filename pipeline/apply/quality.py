@@ -28,11 +28,10 @@ import numpy as np
 from mscal_core.quality import DEFAULT_BOUND, FLAGS, SPARSE, flag_counts, frame_flags
 
 from pipeline.apply.coregistration import INSTEAD, OWN, REFINED, RESIDUAL_MAX_PX
-from pipeline.apply.stores import geometry_step, pixel_flag_sets, quality_checks, quality_tables
-from pipeline.ingest.cameras.dispatch import align_by_files
+from pipeline.apply.stores import pixel_flag_sets, quality_checks, quality_tables
 
 if TYPE_CHECKING:
-    from pipeline.apply.executor import Job, Plan
+    from pipeline.apply.executor import Plan
 
 #: Flags the factory chain can check (no field store: no U uncertainty, sweep or V coverage).
 FACTORY_CHECKS = ("saturated", "not_coregistered", "no_value")
@@ -113,30 +112,14 @@ def sensor_flags(flagging: Flagging, calibration: Path, sat: int, dn: np.ndarray
     return out
 
 
-def on_grid(plan: Plan, job: Job, q: np.ndarray, warp: Callable[[np.ndarray], np.ndarray] | None = None
-            ) -> np.ndarray:
-    """The mask of a capture's stored grid on the outputs' grid: each bit carried by the warps
-    the reflectance took (``warp``: :func:`pipeline.apply.bandgrid.capture_grid`'s, the
-    capture's own image registration included, so each bit lands where its pixel's value
-    did), a pixel flagged where a flagged pixel contributes to it (as NaN does). Without
-    ``warp``, the plan's steps that do not depend on the capture's pixels (the files'
-    registration, band transforms or shift)."""
-    if not q.any():
+def on_grid(q: np.ndarray, warp: Callable[[np.ndarray], np.ndarray] | None) -> np.ndarray:
+    """The mask of a capture's stored grid on the outputs' grid: each bit carried by the warp
+    the reflectance took (``warp``: :func:`pipeline.apply.bandgrid.one_grid`'s, the capture's
+    own image registration included, so each bit lands where its pixel's value did; None: no
+    step moved the bands), a pixel flagged where a flagged pixel contributes to it (as NaN
+    does)."""
+    if warp is None or not q.any():
         return q
-    if warp is None:
-        moves = (plan.factory_alignment and job.capture is not None) or plan.transforms is not None \
-            or plan.band_shift is not None
-        if not moves:
-            return q
-
-        def warp(stack: np.ndarray) -> np.ndarray:
-            if plan.factory_alignment and job.capture is not None:
-                stack = align_by_files(job.capture.metas, stack)
-            if plan.transforms is not None or plan.band_shift is not None:
-                stack = geometry_step(plan.transforms or Path(), plan.transforms is not None, plan.band_shift,
-                                      job.name, stack)
-            return stack
-
     return warp_bits(q, warp)
 
 

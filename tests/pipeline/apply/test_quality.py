@@ -15,6 +15,7 @@ import tifffile
 import xarray as xr
 
 from mscal_core.quality import FLAGS
+from pipeline.apply.bandgrid import one_grid
 from pipeline.apply.coregistration import RESIDUAL_MAX_PX
 from pipeline.apply.quality import (
     FACTORY_CHECKS,
@@ -330,7 +331,9 @@ def test_the_mask_moves_with_the_bands(tmp_path) -> None:
     q[:, 6, 6] = FLAGS["response_shoulder"] | FLAGS["vignetting_unobserved"]
     refl = np.where(q != 0, np.nan, 1.0).astype(np.float32)
     moved = geometry_step(Path(), False, plan.band_shift, job.name, refl)
-    out = on_grid(plan, job, q)
+    after, _, warp = one_grid(plan, job, refl)
+    assert np.array_equal(after, moved, equal_nan=True)  # the warp the reflectance took
+    out = on_grid(q, warp)
     assert set(np.unique(out)) == {0, FLAGS["response_shoulder"] | FLAGS["vignetting_unobserved"]}
     assert out[0, 6, 6] and np.count_nonzero(out[0]) == 1  # not moved
     assert np.array_equal(out != 0, np.isnan(moved) & (np.abs(np.arange(12) - 6)[None, :, None] < 4)
@@ -340,17 +343,16 @@ def test_the_mask_moves_with_the_bands(tmp_path) -> None:
 
 def test_the_mask_follows_a_captures_own_image_registration(monkeypatch) -> None:
     """A DJI capture whose bands the metadata leaves 3-5 px apart is refined on its own pixels
-    (:func:`pipeline.apply.bandgrid.capture_grid`); the quality bits of its stored grid take the
+    (:func:`pipeline.apply.bandgrid.one_grid`); the quality bits of its stored grid take the
     same warp, so each lands where its pixel's value (NaN, as the field tables make it) did."""
     import cv2
 
     import pipeline.apply.bandgrid as bandgrid
-    import pipeline.apply.quality as quality_mod
     from pipeline.apply.coregistration import REFINED, Refinement
     from pipeline.ingest.catalog import load_camera
 
-    for mod in (bandgrid, quality_mod):  # the metadata alignment: no move
-        monkeypatch.setattr(mod, "align_by_files", lambda metas, stack: stack.copy())
+    # the metadata alignment: no move
+    monkeypatch.setattr(bandgrid, "align_by_files", lambda metas, stack: stack.copy())
     bands = tuple(load_camera("dji-p4-multispectral").band_names)
     rng = np.random.default_rng(3)
     scene = sum(w * cv2.GaussianBlur(rng.random((560, 720)).astype(np.float32), (0, 0), s)
@@ -365,15 +367,12 @@ def test_the_mask_follows_a_captures_own_image_registration(monkeypatch) -> None
     stack[q != 0] = np.nan  # flagged pixels are NaN out of the field tables
     plan = _plan(coreg_reference=2, factory_alignment=True, refine=Refinement(2, bands, True, None, REFINED))
     job = SimpleNamespace(capture=SimpleNamespace(metas=[None] * 5), name="001")
-    after, own, warp = bandgrid.capture_grid(plan, job, stack)
+    after, own, warp = bandgrid.one_grid(plan, job, stack)
     assert own["alignment"] == REFINED and max(own["refined_px"].values()) < 0.3
-    moved = on_grid(plan, job, q, warp)
+    moved = on_grid(q, warp)
     nan = np.isnan(after) & ~np.isnan(warp(clean))  # the flagged pixels' NaN, not the warp's borders
     for b, bit in ((0, FLAGS["response_shoulder"]), (3, FLAGS["saturated"])):
         got = (moved[b] & bit) != 0
         assert np.array_equal(got, nan[b]), b  # exactly where the NaN went, no more, no fewer
         assert not np.array_equal(got, q[b] != 0)  # 2.5-4.5 px away from the stored grid's pixels
     assert not moved[[1, 2, 4]].any()
-    # without the capture's warp only the files' registration is replayed: the bits stay put
-    stale = on_grid(plan, job, q)
-    assert np.array_equal(stale, q) and not np.array_equal(stale[0] != 0, nan[0])
