@@ -26,7 +26,7 @@ from typing import Any, Protocol, Sequence
 
 import xarray as xr
 
-from pipeline.apply.execution import Execution
+from pipeline.apply.execution import Execution, capture_pixels
 from pipeline.apply.executor import Outcome, Runner
 from pipeline.apply.options import ApplyResult
 from pipeline.apply.products import remove_unchosen
@@ -93,7 +93,7 @@ def drive(source: Source, out: Path, t_start: float) -> ApplyResult:
     forget_run(out)
     remove_unchosen(out, source.products)
     n_frames, warm = source.prepare(out)
-    with Runner(n_frames, source.execution, calibration=warm) as runner:
+    with Runner(n_frames, source.execution, calibration=warm, pixels=capture_pixels(source.camera)) as runner:
         done = source.run_pass(out, runner)
     t_pass = time.perf_counter() - t0
     for tmp, name in done.stores:

@@ -619,14 +619,17 @@ class Runner:
     :func:`pipeline.apply.execution.start_worker_server` may have started earlier (its imports
     then ran beside the main process's); each takes the main process's ``MSCAL_*`` settings of
     now (:func:`pipeline.apply.execution.worker_environment`). Given ``calibration`` (the
-    store whose Eq. 15 tables the frames use), each worker loads its tables as it starts."""
+    store whose Eq. 15 tables the frames use), each worker loads its tables as it starts;
+    ``pixels``: a capture's output pixels (:func:`pipeline.apply.execution.capture_pixels`),
+    which may add a spare worker (:func:`pipeline.apply.execution.spare_workers`)."""
 
-    def __init__(self, n_frames: int, execution: Execution = Execution(), calibration: str | Path | None = None):
+    def __init__(self, n_frames: int, execution: Execution = Execution(), calibration: str | Path | None = None,
+                 pixels: int = 0):
         execution.install()
         reuse_freed_memory()  # the threads scheduler's frames run in this process
         self.client = distributed_client()
         self.pool: ProcessPoolExecutor | None = None
-        self.scheduler, self.workers = ("distributed", 0) if self.client is not None else scheduler_for(n_frames, execution)
+        self.scheduler, self.workers = ("distributed", 0) if self.client is not None else scheduler_for(n_frames, execution, pixels)
         if self.scheduler == "processes":
             try:
                 self.pool = start_pool(self.workers, worker_context, _worker_init,

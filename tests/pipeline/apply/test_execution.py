@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from mscal_core.errors import InputError
-from pipeline.apply.execution import AUTO_PROCESS_FRAMES, Execution, scheduler_for
+from pipeline.apply.execution import AUTO_PROCESS_FRAMES, Execution, capture_pixels, scheduler_for, spare_workers
 from pipeline.apply.factory import FactoryOptions
 from pipeline.apply.options import ApplyOptions
 from pipeline.run.cli import main
@@ -36,6 +36,30 @@ def test_scheduler_for_and_validation(monkeypatch) -> None:
         Execution("fork")
     with pytest.raises(InputError, match="--workers -1"):
         Execution(workers=-1)
+
+
+def test_a_spare_worker_only_where_its_memory_fits(monkeypatch) -> None:
+    """One worker more than cores for worker processes writing with direct I/O, while every
+    worker's memory (81 bytes a capture pixel) stays within 768 MiB: the snapshot camera's
+    frames on 2 cores, not on 4, not a MicaSense capture; never with --workers given, on
+    threads, without direct I/O, or beyond the frames."""
+    from pipeline.ingest.catalog import load_camera
+
+    snapshot, rededge = (capture_pixels(load_camera(n)) for n in ("ximea-mq022hg-sm5x5-nir", "micasense-rededge"))
+    assert snapshot == 25 * 217 * 409 and rededge == 5 * 960 * 1280
+    assert spare_workers(2, snapshot) == 1 and spare_workers(4, snapshot) == 0
+    assert spare_workers(2, rededge) == 0 and spare_workers(1, snapshot) == 0 and spare_workers(2, 0) == 0
+    assert spare_workers(2, 1_000_000) == 1 and spare_workers(8, 1_000_000) == 1 and spare_workers(9, 1_000_000) == 0
+    monkeypatch.setattr("os.cpu_count", lambda: 2)
+    monkeypatch.setattr("pipeline.apply.execution.direct_io_enabled", lambda: True)
+    assert scheduler_for(100, Execution(), snapshot) == ("processes", 3)
+    assert scheduler_for(100, Execution(), rededge) == ("processes", 2)
+    assert scheduler_for(100, Execution(workers=2), snapshot) == ("processes", 2)  # asked for: as given
+    assert scheduler_for(100, Execution("threads"), snapshot) == ("threads", 2)
+    assert scheduler_for(2, Execution("processes"), snapshot) == ("processes", 2)  # never more than frames
+    assert scheduler_for(100, Execution(), 0) == ("processes", 2)  # size unknown
+    monkeypatch.setattr("pipeline.apply.execution.direct_io_enabled", lambda: False)
+    assert scheduler_for(100, Execution(), snapshot) == ("processes", 2)
 
 
 def test_execution_is_not_in_the_fingerprint() -> None:
