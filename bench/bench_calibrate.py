@@ -49,6 +49,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import time
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
@@ -133,6 +134,13 @@ class Run:
     load_after: tuple[float, float, float] = (float("nan"),) * 3
     stdout: str = ""
     stderr: str = ""
+    #: CPU time the whole machine spent busy while the command ran (:func:`machine_busy_s`):
+    #: its processes and the kernel's threads that work for it (block I/O completion, the
+    #: file system's journal), and anything else running
+    machine_cpu_s: float = float("nan")
+    #: cores busy on average over a moment of rest just before (:func:`machine_busy_rate`;
+    #: nan: not measured)
+    machine_idle_cores: float = float("nan")
 
     @property
     def cpu_s(self) -> float:
@@ -226,6 +234,25 @@ with open(res, "w") as fh:
 """
 
 
+def machine_busy_s() -> float:
+    """CPU seconds the whole machine has spent busy since it started: the first line of
+    ``/proc/stat`` (every CPU) less idle and I/O wait; nan where there is no ``/proc/stat``."""
+    try:
+        with open("/proc/stat") as fh:
+            ticks = [int(v) for v in fh.readline().split()[1:]]
+    except (OSError, ValueError):
+        return float("nan")
+    busy = sum(ticks[:8]) - ticks[3] - ticks[4]  # user..steal, less idle and iowait (guest counted in user)
+    return busy / os.sysconf("SC_CLK_TCK")
+
+
+def machine_busy_rate(seconds: float) -> float:
+    """Cores busy on average over the next ``seconds`` (:func:`machine_busy_s`)."""
+    b0, t0 = machine_busy_s(), time.perf_counter()
+    time.sleep(seconds)
+    return (machine_busy_s() - b0) / (time.perf_counter() - t0)
+
+
 def run_measured(cmd: Sequence[str], timeout: float = CHILD_TIMEOUT_S) -> Run:
     """Run ``cmd`` under :data:`LAUNCHER` in a fresh process; its figures are the child's alone.
 
@@ -235,15 +262,17 @@ def run_measured(cmd: Sequence[str], timeout: float = CHILD_TIMEOUT_S) -> Run:
     os.sync()
     with tempfile.TemporaryDirectory(prefix="mscal-bench-run-") as tmp:
         res, out, err = (str(Path(tmp) / n) for n in ("result.json", "stdout", "stderr"))
+        busy0 = machine_busy_s()
         subprocess.run([sys.executable, "-I", "-S", "-c", LAUNCHER, res, out, err, str(timeout), *cmd],
                        check=True, timeout=timeout + 60)
+        busy = machine_busy_s() - busy0
         r = json.loads(Path(res).read_text())
         so = Path(out).read_text(errors="replace")
         se = Path(err).read_text(errors="replace")
     # Linux: ru_maxrss in KiB (macOS: bytes).
     rss = r["maxrss_kib"] / 1024.0 if sys.platform != "darwin" else r["maxrss_kib"] / 2**20
     return Run(list(cmd), r["wall_s"], r["user_s"], r["sys_s"], rss, r["returncode"],
-               tuple(r["load_before"]), tuple(r["load_after"]), so, se)
+               tuple(r["load_before"]), tuple(r["load_after"]), so, se, machine_cpu_s=busy)
 
 
 def _check(run: Run, what: str) -> Run:
