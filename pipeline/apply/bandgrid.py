@@ -4,7 +4,7 @@
 registration (DJI's DewarpData and CalibratedHMatrix, ``Plan.factory_alignment``), then the
 image registration that refines it (``Plan.refine``: per band a transform from the reference
 band, judged and estimated on each capture's own pixels, the flight's for a capture without
-texture: :func:`pipeline.apply.coregistration.capture_alignment`), then the band
+texture: :func:`pipeline.apply.coregistration.capture_transform`), then the band
 transforms of a registration store or ``--centre-bands``
 (:func:`pipeline.apply.stores.geometry_step`).
 

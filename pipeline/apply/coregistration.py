@@ -11,7 +11,7 @@ pixels, the shift each band keeps against a reference band after whatever aligne
 it writes them, :func:`pipeline.apply.bandgrid.grid_residuals`).
 
 When the bands are put on one grid by the files' own registration (DJI), each capture's is
-judged in the pass on the capture's own pixels (:func:`capture_alignment`, at :data:`MAX_SIDE`)
+judged in the pass on the capture's own pixels (:func:`capture_transform`, at :data:`MAX_SIDE`)
 against no alignment at all. When it leaves more than :data:`RESIDUAL_MAX_PX` or does worse
 than none, the capture's bands are refined by image registration (DJI's Image Processing
 Guide, step 4): per band a translation (or affine) from the reference band fitted to that
@@ -187,7 +187,7 @@ RULE = (f"each capture judged and refined on its own pixels (tiles at {MAX_SIDE}
 @dataclass(frozen=True)
 class Refinement:
     """``Plan.refine``: how the pass puts each capture's bands on one grid after the files' own
-    registration (:func:`capture_alignment`); the flight's choice for captures without texture."""
+    registration (:func:`capture_transform`); the flight's choice for captures without texture."""
 
     reference: int
     bands: tuple[str, ...]
@@ -196,23 +196,15 @@ class Refinement:
     flight_label: str = METADATA
 
 
-def capture_alignment(unaligned: np.ndarray, aligned: np.ndarray, plan: Refinement
-                      ) -> tuple[np.ndarray, dict[str, Any]]:
-    """One capture's bands on one grid (band, y, x) and what run.json says of it: judged on its
-    own pixels (``unaligned`` as stored, ``aligned`` by the files' own registration), like
-    :func:`choose_alignment` on one capture, at :data:`MAX_SIDE`; with fewer than
-    :data:`OWN_MIN_TILES` tiles in a band, the flight's choice (``plan``)."""
-    on_meta, h, rec = capture_transform(unaligned, aligned, plan)
-    base = aligned if on_meta else unaligned
-    return (base if h is None else align_bands(base, h)), rec
-
-
 def capture_transform(unaligned: np.ndarray, aligned: np.ndarray, plan: Refinement
                       ) -> tuple[bool, np.ndarray | None, dict[str, Any]]:
-    """What :func:`capture_alignment` does to a capture: whether it starts from the files' own
-    registration (else from the bands as stored), the per band transforms it applies on top
-    ((band, 3, 3), None: none) and the run.json record; so that the same warp can be replayed
-    on the capture's quality mask (:func:`pipeline.apply.bandgrid.one_grid`)."""
+    """How one capture's bands go on one grid, judged on its own pixels (``unaligned`` as
+    stored, ``aligned`` by the files' own registration), like :func:`choose_alignment` on one
+    capture, at :data:`MAX_SIDE`; with fewer than :data:`OWN_MIN_TILES` tiles in a band, the
+    flight's choice (``plan``). Returns whether it starts from the files' own registration
+    (else from the bands as stored), the per band transforms applied on top ((band, 3, 3),
+    None: none) and the run.json record; :func:`pipeline.apply.bandgrid.one_grid` applies
+    them, and replays the same warp on the capture's quality mask."""
     ref, bands = plan.reference, plan.bands
     others = [b for b in range(len(bands)) if b != ref]
     meta = stack_residuals(aligned, ref)

@@ -162,7 +162,7 @@ def checked(flagging: Flagging, plan: Plan) -> Flagging:
 
 
 def _own_pixels(plan: Plan) -> bool:
-    """Whether a capture's own-pixel judgement (:func:`pipeline.apply.coregistration.capture_alignment`)
+    """Whether a capture's own-pixel judgement (:func:`pipeline.apply.coregistration.capture_transform`)
     measures its bands as written: image registration refines the files' own alignment and no
     band transforms or shift move them after it."""
     return plan.refine is not None and plan.transforms is None and plan.band_shift is None

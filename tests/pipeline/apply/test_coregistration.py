@@ -266,7 +266,8 @@ def test_a_capture_without_texture_takes_the_flights_alignment_and_is_marked() -
     it takes the flight's choice (here a 3 px translation of Blue) and run.json lists it as not
     run-invariant; a textured capture whose bands the metadata left 4-5 px apart is refined on
     its own pixels (< 0.3 px left at 640 px) whatever the flight's choice."""
-    from pipeline.apply.coregistration import REFINED, Refinement, capture_alignment, refinement_record
+    from mscal_core.alignment import align_bands
+    from pipeline.apply.coregistration import REFINED, Refinement, capture_transform, refinement_record
     from pipeline.ingest.catalog import load_camera
 
     bands = tuple(load_camera("dji-p4-multispectral").band_names)
@@ -274,7 +275,12 @@ def test_a_capture_without_texture_takes_the_flights_alignment_and_is_marked() -
     flight[0, 0, 2] = 3.0
     plan = Refinement(2, bands, True, tuple(flight.ravel()), REFINED)
     flat = np.full((5, 480, 640), 900.0, np.float32)
-    out, rec = capture_alignment(flat, flat, plan)
+    def capture_alignment(stack: np.ndarray) -> tuple[np.ndarray, dict]:  # as bandgrid.one_grid applies it
+        on_meta, h, record = capture_transform(stack, stack, plan)
+        assert on_meta  # the files' own registration is the stack itself here
+        return (stack if h is None else align_bands(stack, h)), record
+
+    out, rec = capture_alignment(flat)
     assert rec == {"from": "flight (fewest textured tiles in a band: 0 < 3)", "run_invariant": False,
                    "alignment": REFINED}
     assert np.isnan(out[0][:, -3:]).all() and not np.isnan(out[0][:, :-4]).any() and not np.isnan(out[1:]).any()
@@ -284,7 +290,7 @@ def test_a_capture_without_texture_takes_the_flights_alignment_and_is_marked() -
     offsets = [(4.0, -2.0), (-3.0, 3.0), (0.0, 0.0), (2.5, 4.0), (-4.0, -1.0)]
     yy, xx = np.mgrid[0:480, 0:640].astype(np.float32)
     stack = np.stack([cv2.remap(scene, xx + 40 + dx, yy + 40 + dy, cv2.INTER_CUBIC) for dx, dy in offsets])
-    out, own = capture_alignment(stack, stack, plan)
+    out, own = capture_alignment(stack)
     assert own["from"] == "own pixels" and own["run_invariant"] and own["alignment"] == REFINED
     assert own["model"] in ("translation", "affine") and min(v for v in own["metadata_px"].values() if v) > 3.5
     assert max(own["refined_px"].values()) < 0.3
