@@ -79,7 +79,8 @@ Layout of the package (a newcomer reads them in this order):
   model, outlier weights, censored and hidden-saturated samples).
 - ``_uncertainty``: how far U can be trusted at each DN (:func:`response_uncertainty`: one
   reading's noise through U's slope and the fit's own standard deviation of ``log U``, from
-  its information matrix with E marginalised), given by the forward method.
+  its information matrix with E marginalised, with how far U moves when the smoothness prior
+  is :data:`PRIOR_RELAX` times weaker), given by the forward method.
 
 References
 ----------
@@ -93,7 +94,7 @@ References
 from ._common import CANDIDATES_PER_PIXEL, RESIDUAL_BINS, ResponseFit, predict_dn, predict_heldout_rms, residual_profile
 from ._consistency import check_exposure_consistency
 from ._fit import CENSOR_LOW_MAX_GRADIENT, METHODS, PRIORS, fit_response, fit_response_alternating
-from ._forward import ADAPT_FROM, PERIOD_POW, PERIOD_REF, SIGMA_MAX, SIGMA_POW, SIGMA_REF, exposure_period
+from ._forward import ADAPT_FROM, PERIOD_POW, PERIOD_REF, PRIOR_RELAX, SIGMA_MAX, SIGMA_POW, SIGMA_REF, exposure_period
 from ._noise import HIDDEN_FRACTION, HIDDEN_FROM, OUTLIER_Z
 from ._uncertainty import response_uncertainty
 
@@ -108,6 +109,7 @@ __all__ = [
     "PERIOD_POW",
     "PERIOD_REF",
     "PRIORS",
+    "PRIOR_RELAX",
     "RESIDUAL_BINS",
     "SIGMA_MAX",
     "SIGMA_POW",

@@ -395,3 +395,24 @@ def relative_u(curve: Curve, grid: np.ndarray) -> np.ndarray:
     """``C^{-1}`` on a DN grid relative to its value at the grid's middle (gauge-free)."""
     u = curve.inverse(grid)
     return u / max(float(u[grid.size // 2]), 1e-300)
+
+
+def relaxed_prior_curve(curve: Curve, info: np.ndarray, smooth: tuple[np.ndarray, np.ndarray],
+                        relax: float, s_min: float) -> Curve:
+    """C after one Newton step towards the fit with its smoothness prior weakened.
+
+    ``info`` is the information matrix of ``theta = [C(0), s_0 .. s_{K-1}]`` at the fit (data
+    with E marginalised plus the whole prior, :func:`normal_information`), ``smooth = (P_s,
+    p_s)`` the smoothness part of the prior (:func:`prior_quadratic` without the scale gauge).
+    With the smoothness weight multiplied by ``1 - relax`` the cost's gradient at ``theta`` is
+    ``-2 relax (P_s theta - p_s)`` (the fit is stationary with the whole prior), its Hessian
+    ``2 (info - relax P_s)``; the step ``(info - relax P_s)^+ relax (P_s theta - p_s)`` (slopes
+    kept ``>= s_min``) is how far the prior held C where the data alone say otherwise.
+    """
+    th = _theta_of(curve)
+    Ps, ps = smooth
+    h = info - relax * Ps
+    step = np.linalg.pinv(h, hermitian=True, rcond=1e-13) @ (relax * (Ps @ th - ps))
+    th = th + step
+    th[1:] = np.maximum(th[1:], s_min)
+    return _curve_of(th, curve.xk)
