@@ -25,7 +25,7 @@ import numpy as np
 from .errors import InputError
 
 __all__ = [
-    "CENSOR_HIGH", "DEFAULT_BOUND", "FLAGS", "MAX_FLAGGED_SHARE", "dn_flag_table", "flag_counts", "frame_flags",
+    "CENSOR_HIGH", "DEFAULT_BOUND", "DEFAULT_FIT_BOUND", "FLAGS", "MAX_FLAGGED_SHARE", "dn_flag_table", "flag_counts", "frame_flags",
     "mask_tables", "pixel_flag_table", "region_median", "shoulder_mask",
 ]
 
@@ -56,9 +56,18 @@ SPARSE = 8
 #: is on the response's shoulder.
 DEFAULT_BOUND = 0.03
 
+#: Bound on the fit's own share of U's relative uncertainty (``response_fit_uncertainty``)
+#: above which a DN on the upper branch is on the shoulder too: that share is systematic, the
+#: same for every pixel at the DN, so a region's mean keeps it whole while it averages one
+#: reading's noise away; a third of the 1 % a region's reflectance is held to, so its
+#: three-sigma reach stays within it (on harsh sweeps the worst DN of a band was 2.1-3.5 times
+#: the stated share off).
+DEFAULT_FIT_BOUND = 0.01 / 3
+
 
 def dn_flag_table(n_bands: int, n_dn: int, saturation_dn: int, response_uncertainty: np.ndarray | None = None,
-                  bound: float = DEFAULT_BOUND, dn_range: np.ndarray | None = None) -> np.ndarray:
+                  bound: float = DEFAULT_BOUND, dn_range: np.ndarray | None = None,
+                  fit_uncertainty: np.ndarray | None = None, fit_bound: float = DEFAULT_FIT_BOUND) -> np.ndarray:
     """Return the flags of every DN of every band: ``saturated``, ``response_shoulder``, ``outside_sweep``.
 
     Parameters
@@ -79,6 +88,12 @@ def dn_flag_table(n_bands: int, n_dn: int, saturation_dn: int, response_uncertai
     dn_range : numpy.ndarray, optional
         (n_bands, 2) inclusive ``(low, high)`` DN the response sweep covered; a DN outside is
         ``outside_sweep``. None: not checked.
+    fit_uncertainty : numpy.ndarray, optional
+        (n_bands, n_dn) the fit's own share of ``response_uncertainty`` (systematic: the same
+        for every pixel at the DN); above ``fit_bound`` on the upper branch, a DN is
+        ``response_shoulder`` too (:func:`shoulder_mask`). None: not checked.
+    fit_bound : float
+        Largest fit share trusted (> 0).
 
     Returns
     -------
@@ -102,15 +117,18 @@ def dn_flag_table(n_bands: int, n_dn: int, saturation_dn: int, response_uncertai
            for Multispectral Cameras", IEEE International Conference on Robotics and
            Automation (ICRA), 2017.
     """
-    if not (np.isfinite(bound) and bound > 0):
-        raise InputError(f"the response uncertainty bound must be positive, got {bound!r}")
+    for name, value in (("response uncertainty bound", bound), ("response fit uncertainty bound", fit_bound)):
+        if not (np.isfinite(value) and value > 0):
+            raise InputError(f"the {name} must be positive, got {value!r}")
     out = np.zeros((n_bands, n_dn), np.uint8)
     out[:, max(0, min(int(saturation_dn), n_dn)):] |= FLAGS["saturated"]
     if response_uncertainty is not None:
         unc = np.asarray(response_uncertainty, dtype=np.float64)
-        if unc.shape != (n_bands, n_dn):
-            raise InputError(f"response uncertainty of shape {unc.shape} does not fit {n_bands} bands x {n_dn} DN")
-        out[shoulder_mask(unc, bound)] |= FLAGS["response_shoulder"]
+        fit = None if fit_uncertainty is None else np.asarray(fit_uncertainty, dtype=np.float64)
+        for name, table in (("response uncertainty", unc), ("response fit uncertainty", fit)):
+            if table is not None and table.shape != (n_bands, n_dn):
+                raise InputError(f"{name} of shape {table.shape} does not fit {n_bands} bands x {n_dn} DN")
+        out[shoulder_mask(unc, bound, fit, fit_bound)] |= FLAGS["response_shoulder"]
     if dn_range is not None:
         rng = np.asarray(dn_range).reshape(-1, 2)
         if rng.shape[0] != n_bands:
@@ -120,11 +138,13 @@ def dn_flag_table(n_bands: int, n_dn: int, saturation_dn: int, response_uncertai
     return out
 
 
-def shoulder_mask(response_uncertainty: np.ndarray, bound: float = DEFAULT_BOUND) -> np.ndarray:
+def shoulder_mask(response_uncertainty: np.ndarray, bound: float = DEFAULT_BOUND,
+                  fit_uncertainty: np.ndarray | None = None, fit_bound: float = DEFAULT_FIT_BOUND) -> np.ndarray:
     """Return where each band's DN is on the response's shoulder.
 
     A DN is on the shoulder when it lies above the DN of least relative uncertainty of U and
-    that uncertainty is above ``bound``.
+    that uncertainty is above ``bound``, or above the DN where the fit's own share of it is
+    least and that share is above ``fit_bound``.
 
     Parameters
     ----------
@@ -134,6 +154,11 @@ def shoulder_mask(response_uncertainty: np.ndarray, bound: float = DEFAULT_BOUND
         upper branch, ``inf`` is above any bound).
     bound : float
         Largest relative uncertainty of U that is trusted.
+    fit_uncertainty : numpy.ndarray, optional
+        (n_bands, n_dn) the fit's own share of ``response_uncertainty`` (the standard
+        deviation of log U from the fit, without one reading's noise); NaN: not checked.
+    fit_bound : float
+        Largest fit share trusted.
 
     Returns
     -------
@@ -148,7 +173,10 @@ def shoulder_mask(response_uncertainty: np.ndarray, bound: float = DEFAULT_BOUND
     the shoulder near the clip because U is steep there and poorly determined, so a small
     error of the DN or of the fit is a large error of R. Only the upper branch, the DN above
     the one where the relative uncertainty is least, is the shoulder; a dim pixel is not
-    flagged for its noise.
+    flagged for its noise. One reading's noise averages away over a region's pixels, the fit's
+    own share does not: every pixel at the DN shares it, so a panel's mean or a field's median
+    keeps it whole. Its bound is the one a region's value is held to (``fit_bound``), the
+    total's the one a pixel's is.
 
     References
     ----------
@@ -164,6 +192,12 @@ def shoulder_mask(response_uncertainty: np.ndarray, bound: float = DEFAULT_BOUND
             continue
         least = int(np.argmin(np.where(finite, unc[b], np.inf)))
         out[b, least:] = ~np.isnan(unc[b, least:]) & (unc[b, least:] > bound)  # inf: not determined
+        if fit_uncertainty is not None:  # its own upper branch: above the DN where it is least
+            fit = np.asarray(fit_uncertainty[b], dtype=np.float64)
+            known = np.isfinite(fit) & ~np.isnan(unc[b])
+            if known.any():
+                low = int(np.argmin(np.where(known, fit, np.inf)))
+                out[b, low:] |= known[low:] & (fit[low:] > fit_bound)
     return out
 
 
@@ -404,9 +438,13 @@ def region_median(values: np.ndarray, quality: np.ndarray, max_flagged_share: fl
     (0-based) followed by ``c`` times +inf,
 
     unbiased as long as the censored pixels lie above the median, which holds while fewer than
-    half are censored. With ``f`` flagged pixels of ``n`` (``c`` of them censored, the rest
-    left out), the region is flagged when ``f >= max_flagged_share * n``; below the default
-    0.5, ``c < m / 2`` and the median is finite.
+    half are censored and the region's DN vary by the noise alone. They also vary with V
+    across the region, so the pixels a DN cut flags are partly those of highest V, whose values
+    are not above the others' (harsh full-size session 3: a 0.9 panel 46 % flagged read 3 %
+    high): a smaller ``max_flagged_share`` keeps that bias small. With ``f`` flagged pixels of
+    ``n`` (``c`` of them censored, the rest left out), the region is flagged when
+    ``f >= max_flagged_share * n``; for a share of at most 0.5, ``c < m / 2`` and the median is
+    finite.
 
     References
     ----------

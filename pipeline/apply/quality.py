@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Mapping, Sequence
 
 import numpy as np
-from mscal_core.quality import DEFAULT_BOUND, FLAGS, SPARSE, flag_counts, frame_flags
+from mscal_core.quality import DEFAULT_BOUND, DEFAULT_FIT_BOUND, FLAGS, SPARSE, flag_counts, frame_flags
 
 from pipeline.apply.coregistration import INSTEAD, OWN, REFINED, RESIDUAL_MAX_PX
 from pipeline.apply.stores import pixel_flag_sets, quality_checks, quality_tables
@@ -42,7 +42,7 @@ ATTRS = {
     "flag_masks": list(FLAGS.values()),
     "flag_meanings": " ".join(FLAGS),
     "description": "bits: 1 DN at or above the clip; 2 relative uncertainty of the response U at the DN above the "
-                   "bound (run.json quality.bound); 4 DN outside the response sweep's range; 8 vignetting observed "
+                   "bound (run.json quality.bound), or the fit's own share of it above quality.fit_bound; 4 DN outside the response sweep's range; 8 vignetting observed "
                    "by no view; 16 the band failed the co-registration check of a checked capture (run.json "
                    "quality.coregistration names the captures checked and not); 32 NaN for any other reason. "
                    "Flagged pixels are NaN in reflectance unless the run kept them (run.json quality.keep_flagged); "
@@ -65,8 +65,8 @@ class Flagging:
 
     def record(self) -> dict[str, Any]:
         """run.json ``quality``'s keys of the run (:func:`quality_record` adds the counts)."""
-        return {"bound": self.bound, "keep_flagged": self.keep_flagged, "checked": list(self.checked),
-                "flags": dict(FLAGS)}
+        return {"bound": self.bound, "fit_bound": DEFAULT_FIT_BOUND, "keep_flagged": self.keep_flagged,
+                "checked": list(self.checked), "flags": dict(FLAGS)}
 
 
 def run_flagging(products: Any, calib: Any = None) -> Flagging:

@@ -72,8 +72,8 @@ def quality_tables(calibration: str, sat: int, bound: float) -> tuple[np.ndarray
     """The quality mask's tables of a calibration store, once per process and store: per band
     and DN (:func:`mscal_core.quality.dn_flag_table`), per band and pixel
     (:func:`mscal_core.quality.pixel_flag_table`; None without ``vignetting_coverage``), and
-    the flags the store lets one check (its optional ``response_uncertainty``,
-    ``response_dn_range``, ``vignetting_coverage``)."""
+    the flags the store lets one check (its optional ``response_uncertainty`` with
+    ``response_fit_uncertainty``, ``response_dn_range``, ``vignetting_coverage``)."""
     return _quality_of(_stamp(Path(calibration)), int(sat), float(bound))
 
 
@@ -100,9 +100,10 @@ def _quality_of(key: tuple[str, int], sat: int, bound: float) -> tuple[np.ndarra
     ds = _store_of(key)
     n_bands, n_dn = ds["inverse_response"].shape
     unc = ds["response_uncertainty"].values if "response_uncertainty" in ds else None
+    fit = ds["response_fit_uncertainty"].values if "response_fit_uncertainty" in ds else None
     rng = ds["response_dn_range"].transpose("band", "end").sel(end=["low", "high"]).values \
         if "response_dn_range" in ds else None
-    dn_flags = dn_flag_table(n_bands, n_dn, sat, unc, bound, rng)
+    dn_flags = dn_flag_table(n_bands, n_dn, sat, unc, bound, rng, fit)
     pixel = pixel_flag_table(ds["vignetting_coverage"].values) if "vignetting_coverage" in ds else None
     return dn_flags, pixel, quality_checks(ds)
 

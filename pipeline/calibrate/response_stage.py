@@ -72,6 +72,22 @@ UNCERTAINTY_ATTRS = {
 }
 
 
+#: What ``response_fit_uncertainty`` is (its attributes in the store).
+FIT_UNCERTAINTY_ATTRS = {
+    "long_name": "the response fit's own relative standard uncertainty of U(k) (Eq. 5-7), a fraction of U(k)",
+    "units": "1",
+    "description": (
+        "s_fit(k) of response_uncertainty alone: the standard deviation of log U(k) of the fit itself (its "
+        "information matrix, every pixel's E marginalised), how far U moves with the smoothness prior "
+        f"{response.PRIOR_RELAX:g} times weaker, and the step where the top of U was raised for hidden "
+        "saturated pixels, in quadrature. Systematic: the same for every pixel read at k, so a region's mean "
+        "keeps it whole while it averages one reading's noise away (apply flags a DN above the one of least "
+        "response_uncertainty where it passes mscal_core.quality.DEFAULT_FIT_BOUND). NaN where "
+        "response_uncertainty is NaN or inf."
+    ),
+}
+
+
 def response_dataset(camera: Camera, fits: Sequence[response.ResponseFit], report: StageReport) -> xr.Dataset:
     ds = new_dataset(camera)
     ds["inverse_response"] = (
@@ -101,5 +117,8 @@ def response_dataset(camera: Camera, fits: Sequence[response.ResponseFit], repor
         ds["response_uncertainty"] = (
             ("band", "dn"), np.stack([f.uncertainty for f in fits]).astype(np.float32),
             {**UNCERTAINTY_ATTRS, "noise_variance": [[float(v) for v in f.noise_variance] for f in fits]})
+    if all(f.fit_uncertainty is not None for f in fits):
+        ds["response_fit_uncertainty"] = (("band", "dn"), np.stack([f.fit_uncertainty for f in fits]).astype(np.float32),
+                                          FIT_UNCERTAINTY_ATTRS)
     ds.attrs["response"] = report.as_attrs()
     return ds

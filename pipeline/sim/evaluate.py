@@ -149,6 +149,15 @@ MIN_PANEL_PIXELS, MIN_VEGETATION_PIXELS = 5, 20
 #: S, the 0.05 panel's 13 pixels in one frame read 0.0532 and the cross-frame CV was 2.2 %.
 MIN_PANEL_SHARE = 0.5
 
+#: A panel with this share of its pixels flagged or more in a band is not scored there (its
+#: value there is flagged): its DN vary with V across it as well as with the noise, so where
+#: the shoulder flag cuts it, the pixels flagged are partly those of highest V, whose values
+#: are not above the others', and its censored median reads high (harsh full-size session 3:
+#: a 0.9 panel 46 % flagged, 3 % high). Below a tenth the censored median's bias is a small
+#: share of one pixel's noise. apply's own panel normalisation keeps half
+#: (:data:`mscal_core.quality.MAX_FLAGGED_SHARE`).
+PANEL_MAX_FLAGGED_SHARE = 0.1
+
 
 def panel_value(values: np.ndarray, quality: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One panel's value per band from its pixels' reflectance ``values`` (band, n) and their
@@ -159,7 +168,8 @@ def panel_value(values: np.ndarray, quality: np.ndarray) -> tuple[np.ndarray, np
     shoulder, above the sweep), the censored median of
     :func:`mscal_core.quality.region_median` (the flagged pixels counted as above it: their
     values are missing because they read high, so a mean of the others would be biased low).
-    NaN where half of the band's pixels or more are flagged, or fewer than
+    NaN where :data:`PANEL_MAX_FLAGGED_SHARE` (a tenth) of the band's pixels or more are
+    flagged, or fewer than
     :data:`MIN_PANEL_PIXELS` are valid. Pixels with another flag are left out of either.
 
     Why the mean: a gray panel is one reflectance under one light (the scene's labels keep only
@@ -185,7 +195,7 @@ def panel_value(values: np.ndarray, quality: np.ndarray) -> tuple[np.ndarray, np
     valid = (qs == 0) & np.isfinite(vals)
     n_valid = np.count_nonzero(valid, axis=-1)
     high = np.any(qs & CENSOR_HIGH, axis=-1)
-    med = region_median(vals, qs)
+    med = region_median(vals, qs, PANEL_MAX_FLAGGED_SHARE)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(valid, vals, 0.0).sum(axis=-1) / n_valid
     out = np.where(np.isfinite(med) & ~high, mean, med)
@@ -215,7 +225,7 @@ def score_flight(r: np.ndarray, scene: FlightScene, quality: np.ndarray | None =
     A panel's value in a band is :func:`panel_value`: the mean of its valid pixels, or, where
     some of them are flagged high (``quality`` bits of :data:`mscal_core.quality.CENSOR_HIGH`:
     saturated, shoulder, above the sweep), its median with those counted as above it; a panel
-    half flagged or more in a band counts as flagged there and is not scored in that band
+    a tenth flagged or more in a band counts as flagged there and is not scored in that band
     (:func:`mscal_core.quality.region_median`: the valid pixels alone of a panel the shoulder
     flag cuts are those whose noise read low). ``quality`` None:
     NaN pixels are left out (flagged, not censored). Each frame is first normalised by one

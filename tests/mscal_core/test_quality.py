@@ -59,6 +59,29 @@ def test_dim_readings_are_not_the_shoulder() -> None:
     assert not shoulder_mask(np.full((1, 8), np.nan)).any()
 
 
+def test_the_fits_own_share_has_its_own_bound_on_the_upper_branch() -> None:
+    """The fit's share (systematic, kept whole by a region's mean) flags a DN of its upper
+    branch (above the DN where it is least) where it passes its bound, even with the total
+    under the total's bound and below the total's own least DN (980 here); a large share at
+    dim readings is not flagged, and NaN share is not checked."""
+    k = np.arange(1024, dtype=np.float64)
+    unc = np.where(k < 30, np.nan, 0.3 * np.exp(-(k - 30) / 40) + 0.012 + 0.04 * np.clip((k - 980) / 40, 0, None))
+    fit = np.where(k < 30, np.nan, 0.02 * np.exp(-(k - 30) / 40) + 0.002 + 0.004 * np.clip((k - 900) / 40, 0, None))
+    m = shoulder_mask(unc[None], 0.03, fit[None], 0.005)
+    first = int(np.flatnonzero(m[0]).min())
+    assert first == int(np.flatnonzero((k > 500) & (fit > 0.005)).min()) and 929 <= first <= 931
+    assert m[0, first:].all() and not m[0, :first].any()  # the dim end's share (0.022 at DN 30) is not
+    assert int(np.argmin(np.where(np.isfinite(unc), unc, np.inf))) > 975  # the total's upper branch starts later
+    assert np.array_equal(m, shoulder_mask(unc[None], 0.03, fit[None], 0.005) | shoulder_mask(unc[None], 0.03))
+    assert np.array_equal(shoulder_mask(unc[None], 0.03, np.full((1, 1024), np.nan)), shoulder_mask(unc[None], 0.03))
+    table = dn_flag_table(1, 1024, 1023, unc[None], 0.03, None, fit[None], 0.005)
+    assert np.array_equal((table & FLAGS["response_shoulder"]) != 0, m)
+    with pytest.raises(InputError, match="response fit uncertainty bound must be positive, got 0"):
+        dn_flag_table(1, 1024, 1023, unc[None], 0.03, None, fit[None], 0.0)
+    with pytest.raises(InputError, match=r"response fit uncertainty of shape \(1, 8\) does not fit 1 bands x 1024 DN"):
+        dn_flag_table(1, 1024, 1023, unc[None], 0.03, None, np.zeros((1, 8)))
+
+
 def test_dn_flag_table_refuses_what_does_not_fit() -> None:
     with pytest.raises(InputError, match="does not fit 2 bands x 16 DN"):
         dn_flag_table(2, 16, 15, np.zeros((2, 8)))

@@ -35,6 +35,7 @@ from pipeline.run.console import report_warnings
 
 SHOULDER_FROM = 400  # DN from which U's relative uncertainty passes 0.03 (0.01 + 1e-3 per DN above 400)
 LOW = 50  # the sweep's lowest DN
+FIT_SHARE = 0.002  # the fit's own share of U's uncertainty in that store (its bound: 0.0033)
 
 
 def _with_quality_variables(calib: Path, dst: Path) -> Path:
@@ -47,6 +48,8 @@ def _with_quality_variables(calib: Path, dst: Path) -> Path:
     unc = np.broadcast_to(unc, (nb, ndn)).astype(np.float32).copy()
     unc[:, :LOW] = np.nan
     ds["response_uncertainty"] = (("band", "dn"), unc)
+    fit = np.where(np.isnan(unc), np.nan, FIT_SHARE).astype(np.float32)  # under the fit bound: the total decides
+    ds["response_fit_uncertainty"] = (("band", "dn"), fit)
     ds["response_dn_range"] = (("band", "end"), np.tile(np.array([[LOW, ndn - 2]], np.int32), (nb, 1)))
     ds = ds.assign_coords(end=["low", "high"])
     cov = np.full(ds["vignetting"].shape, 3, np.uint16)
@@ -61,8 +64,8 @@ def _with_quality_variables(calib: Path, dst: Path) -> Path:
 def _without_quality_variables(calib: Path, dst: Path) -> Path:
     """The calibration store without the optional variables (as another tool, or an mscal
     before them, writes it)."""
-    ds = xr.open_zarr(calib).load().drop_vars(["response_uncertainty", "response_dn_range", "vignetting_coverage"],
-                                               errors="ignore")
+    ds = xr.open_zarr(calib).load().drop_vars(["response_uncertainty", "response_fit_uncertainty", "response_dn_range",
+                                                "vignetting_coverage"], errors="ignore")
     ds = ds.drop_dims([d for d in ("end",) if d in ds.dims])
     for v in ds.variables.values():
         v.encoding = {}
@@ -114,6 +117,28 @@ def test_shoulder_pixels_get_their_bit_and_are_nan(flagged) -> None:
     assert run["checked"] == [f for f in FLAGS if f != "not_coregistered"]
     assert run["bound"] == 0.03 and run["keep_flagged"] is False
     assert run["flags"] == FLAGS
+
+
+def test_the_fits_own_share_over_its_bound_is_the_shoulder_too(flagged, tmp_path) -> None:
+    """A store whose fit share of U's uncertainty passes 0.0033 from DN 380 on (the total stays
+    under 0.03 up to DN 420): the shoulder bit from DN 380 on, as the store's table says; the
+    same share under the bound leaves it from DN 421 on; run.json states the bound."""
+    from pipeline.apply.stores import quality_tables
+
+    ds = xr.open_zarr(flagged["store"]).load()
+    fit = ds["response_fit_uncertainty"].values
+    fit[:, 380:] = 0.006
+    ds["response_fit_uncertainty"] = (("band", "dn"), fit)
+    for v in ds.variables.values():
+        v.encoding = {}
+    ds.to_zarr(tmp_path / "calib_fit.zarr", mode="w", zarr_format=3, consolidated=True)
+    sat = int(ds["saturation_dn"].min())
+    for store, first in ((tmp_path / "calib_fit.zarr", 380), (flagged["store"], SHOULDER_FROM + 21)):
+        dn_flags, _, checked = quality_tables(str(store), sat, 0.03)
+        shoulder = (dn_flags & FLAGS["response_shoulder"]) != 0
+        assert "response_shoulder" in checked
+        assert not shoulder[:, :first].any() and shoulder[:, first:sat].all(), store
+    assert _run(flagged["default"])["quality"]["fit_bound"] == pytest.approx(0.01 / 3)
 
 
 def test_run_json_counts_equal_the_array(flagged) -> None:

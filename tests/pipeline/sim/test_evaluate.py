@@ -92,33 +92,41 @@ def test_a_panel_cut_by_the_frame_to_a_few_pixels_is_left_out() -> None:
 
 def test_a_panel_partly_flagged_high_is_scored_on_its_censored_median_and_counted() -> None:
     """The 0.9 panel's 12 pixels per band read 0.9 x (1 + 0.01 k), k = -5..6, in frame 1; the
-    4 brightest are flagged on the shoulder (NaN). The valid 8 alone have a median 3 % low;
-    with the 4 counted as above it the median is that of all 12 (0.9 x 1.005)."""
+    brightest is flagged on the shoulder (NaN; one of 12, under the tenth from which a panel
+    is flagged as a whole). The valid 11 alone have a median 0.5 % low; with the one counted
+    as above it the median is that of all 12 (0.9 x 1.005). A third flagged: not scored."""
     scene, r = _scene()
     panel = scene.labels[1] == 1
     spread = 1 + 0.01 * np.arange(-5, 7)
     r2, q = r.copy(), np.zeros(r.shape, np.uint8)
     r2[1][:, panel] = (0.9 * scene.sun[1] * spread)[None, :]
-    q[1][:, panel] = np.where(spread > 1.025, np.uint8(FLAGS["response_shoulder"]), np.uint8(0))[None, :]
+    q[1][:, panel] = np.where(spread > 1.055, np.uint8(FLAGS["response_shoulder"]), np.uint8(0))[None, :]
     r2[q != 0] = np.nan
     s = score_flight(r2, scene, q)
     # frame 1 normalised on this panel: median 0.9 x 1.005 -> k = 1 / (1.005 sun); the 0.3 panel 0.3 / 1.005
     assert s["panel_abs_error"] == pytest.approx(0.3 * (1 - 1 / 1.005), rel=1e-4)
     assert s["panels_censored"] == 3.0 and s["panels_flagged"] == 0.0  # one panel in one frame, 3 bands
-    # without the mask the valid 8 alone: median 0.9 x 0.985, 3 % below the censored one
+    # without the mask the valid 11 alone: median 0.9 x 1.000, 0.5 % below the censored one
     plain = score_flight(r2, scene)
-    assert plain["panel_abs_error"] == pytest.approx(0.3 * (1 / 0.985 - 1), rel=1e-4)
+    assert plain["panel_abs_error"] < 1e-6  # float32 reflectance
     assert plain["panels_censored"] == 0.0
+    q[1][:, panel] = np.where(spread > 1.025, np.uint8(FLAGS["response_shoulder"]), np.uint8(0))[None, :]  # 4 of 12
+    s2 = score_flight(r2, scene, q)
+    assert s2["panels_flagged"] == 3.0 and s2["panels_censored"] == 0.0
     q[1][:, panel] = np.where(spread > 0.995, np.uint8(FLAGS["response_shoulder"]), np.uint8(0))[None, :]  # 6 of 12
     s3 = score_flight(r2, scene, q)
     assert s3["panels_flagged"] == 3.0 and s3["panels_censored"] == 0.0
     assert s3["panel_abs_error"] < 1e-6  # frame 1 normalised by the 0.3 panel, the 0.9 one not scored there
-    # flagged in band 0 only; in bands 1 and 2 the 4 NaN pixels without a flag are left out
-    # (not censored): scored there on the mean of the 8 others, 0.9 x 0.985
+    # flagged in band 0 only; in bands 1 and 2 the NaN pixel without a flag is left out (not
+    # censored): scored there on the mean of the 11 others, 0.9 x 1.000; with the 4 brightest
+    # NaN, the mean of the 8 others would read 0.9 x 0.985, but a third of the panel without a
+    # value flags it in every band
     q[1][1:, panel] = 0
     s4 = score_flight(r2, scene, q)
     assert s4["panels_flagged"] == 1.0 and s4["panels_censored"] == 0.0
-    assert s4["panel_abs_error"] == pytest.approx(0.9 * 0.015, rel=1e-4)
+    assert s4["panel_abs_error"] < 1e-6
+    r2[1][:, panel & (r2[1][0] > 0.9 * scene.sun[1] * 1.025)] = np.nan
+    assert score_flight(r2, scene, q)["panels_flagged"] == 3.0
 
 
 def test_panel_value_spread_is_the_pixel_noise_over_root_n() -> None:
