@@ -168,7 +168,7 @@ def rows(results: Sequence[VariedAccuracy]) -> list[tuple[bc.Row, ...]]:
                             ("nan_share", "pixels without a value (NaN)", "{:.3%}")):
         pair.append((bc.Row(label, [r.flags.get(key, math.nan) for r in results], None, fmt),))
     for key, label in (("panels_censored", "panels scored on a censored median (per frame)"),
-                       ("panels_flagged", "panels half flagged or more, not scored (per frame)")):
+                       ("panels_flagged", "panels a tenth flagged or more, not scored (per frame)")):
         pair.append((bc.Row(label, [r.eq15.get(key, math.nan) for r in results], None, "{:.0f}"),))
     pair.append((bc.Row("flagged pixels left with a value", [r.flags.get("flagged_with_value", math.nan) for r in results],
                         0.0, "{:.0f}"),))
