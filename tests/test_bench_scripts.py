@@ -353,7 +353,7 @@ def test_varied_render_counts_the_panels_scored_on_a_censored_median_and_those_f
     res = varied_acc.VariedAccuracy(0, {}, {"response_max_error": 0.01}, flight, dict(flight))
     md = varied_acc.render([res], "bench")
     assert "| panels scored on a censored median (per frame) | 3 |" in md
-    assert "| panels half flagged or more, not scored (per frame) | 1 |" in md
+    assert "| panels a tenth flagged or more, not scored (per frame) | 1 |" in md
 
 
 def test_varied_render_puts_the_calibrations_share_of_the_cv_under_its_floor() -> None:
