@@ -55,9 +55,11 @@ from .vignetting_solver import (
     incidence,
     informative,
     log_init,
+    pixel_noise_variance,
     reweighted,
     robust_scale,
     robust_weights,
+    shrink_detail,
     view_offset_weights,
 )
 
@@ -370,6 +372,7 @@ def fit_vignetting(
     start: np.ndarray | None = None,
     robust: str | None = None,
     view_index: np.ndarray | None = None,
+    denoise: bool = True,
 ) -> VignettingFit:
     """Fit V(x) and L(p) of one band from all its reflector observations (Eq. 8-10).
 
@@ -410,6 +413,9 @@ def fit_vignetting(
     view_index : numpy.ndarray, optional
         (n_obs,) non-negative integer view of each observation; with ``robust`` the fit
         reports each view's robust weight (``VignettingFit.view_weights``).
+    denoise : bool
+        Shrink the pixel-scale detail of the well-observed V by its signal-to-noise ratio
+        (step 6); False keeps Eq. 9's V per pixel. Ignored with ``smooth_sigma > 0``.
 
     Returns
     -------
@@ -477,7 +483,11 @@ def fit_vignetting(
        per-pixel noise: only the residual ``V - model`` is smoothed (normalised convolution
        over the observed pixels) and added back to the model, so the falloff itself, which the
        model carries, is not flattened. Off by default because per-pixel gain differences
-       (PRNU, dust) are real parts of V.
+       (PRNU, dust) are real parts of V. Instead, with ``denoise`` (default), the detail
+       ``V - (model + residual smoothed over 2 px)`` is shrunk by its signal-to-noise ratio
+       (:func:`mscal_core.vignetting_solver.shrink_detail`, each pixel's noise from its
+       observations' residuals, :func:`mscal_core.vignetting_solver.pixel_noise_variance`):
+       a sensor's PRNU above the noise stays, the noise of dim or few views goes.
 
     References
     ----------
@@ -522,6 +532,8 @@ def fit_vignetting(
         if view is not None:
             view_weights = _view_weights(fv, fw, rho)
     residual_rms = float(np.sqrt(np.mean(resid * resid)))
+    eff = fw * lum[cc] ** 2 * (rho if robust is not None else 1.0)
+    noise_rel = pixel_noise_variance(resid, fp, eff, (h, w), act_p.size + act_c.size) if denoise else None
 
     count = np.bincount(fp, minlength=n_pix).astype(np.int64).reshape(h, w)
     observed = count >= int(min_count)
@@ -535,7 +547,7 @@ def fit_vignetting(
     # 4. gauge, 5./6. optional smoothing of the residual, fill
     scale, v_img, model, resid_img = _gauge(v_full.reshape(h, w), count, observed)
     lum = lum * scale
-    out = _smooth_and_fill(v_img, model, resid_img, count, observed, smooth_sigma)
+    out = _smooth_and_fill(v_img, model, resid_img, count, observed, smooth_sigma, noise_rel)
     radiance = _cell_radiance(out, pix, cell, y, wt, n_cells)
     radiance[act_c] = lum
 
@@ -668,19 +680,25 @@ def _gauge(
 
 def _smooth_and_fill(
     v_img: np.ndarray, model: np.ndarray, resid_img: np.ndarray, count: np.ndarray,
-    observed: np.ndarray, smooth_sigma: float,
+    observed: np.ndarray, smooth_sigma: float, noise_rel: np.ndarray | None = None,
 ) -> np.ndarray:
     """Smooth and fill V: steps 5 and 6 of :func:`fit_vignetting`.
 
     The optional smoothing of the residual over the observed pixels, and the fill (radial model
-    plus nearby residual) of the others.
+    plus nearby residual) of the others; without smoothing, with ``noise_rel`` (each pixel's
+    relative noise variance), the detail shrunk by its signal-to-noise ratio.
     """
     cert = observed.astype(np.float64)
     out = v_img.copy()
-    if smooth_sigma and float(smooth_sigma) > 0:
-        num, den = _normalised_blur(resid_img, cert * count, float(smooth_sigma))
+    smoothing = bool(smooth_sigma) and float(smooth_sigma) > 0
+    if smoothing or noise_rel is not None:
+        num, den = _normalised_blur(resid_img, cert * count, float(smooth_sigma) if smoothing else _GAUGE_SIGMA)
         with np.errstate(invalid="ignore", divide="ignore"):
-            smoothed = model + num / den
+            part = num / den
+        smoothed = model + part
+        if not smoothing:
+            detail, _ = shrink_detail(np.where(observed, resid_img - part, np.nan), noise_rel * v_img * v_img, observed)
+            smoothed = smoothed + detail
         out = np.where(observed, smoothed, out)
     num, den = _normalised_blur(resid_img, cert, _FILL_SIGMA)
     fill = model + num / np.maximum(den, _FILL_CERTAINTY)
