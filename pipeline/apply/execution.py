@@ -86,10 +86,13 @@ def spare_workers(workers: int, pixels: int) -> int:
 
     A worker writes its frames' files with direct I/O and waits on the device when they take
     longer than computing the next frame; one more worker than cores computes meanwhile. On
-    the snapshot camera (2 cores, 600 frames, 3 alternating runs each): wall median 10.37 ->
-    9.67 s, CPU / wall 1.67 -> 1.75, peak memory 636 -> 808 MiB (4 workers: 9.95 s, 980
-    MiB). Only while every worker's memory (:data:`WORKER_BYTES_PER_PIXEL`) stays within
-    :data:`WORKER_MEMORY`: a 5-band MicaSense capture (6.1 Mpx) keeps one worker per core."""
+    the snapshot camera (2 cores, 600 frames): the machine's busy cores during apply 1.76 ->
+    1.85, the CPU of apply's own processes over wall 1.67 -> 1.74-1.75, peak memory 636-648 ->
+    793-808 MiB (4 workers: 980 MiB). The wall moved within the machine's run-to-run spread:
+    10.37 -> 9.67 s (medians of 3 alternating runs each), 9.4 s (one run) against 10.0 s
+    (median of 3) in docs/benchmarks.md. Only while every worker's memory
+    (:data:`WORKER_BYTES_PER_PIXEL`) stays within :data:`WORKER_MEMORY`: a 5-band MicaSense
+    capture (6.1 Mpx) keeps one worker per core."""
     if workers < 2 or pixels <= 0:
         return 0
     return int((workers + 1) * pixels * WORKER_BYTES_PER_PIXEL <= WORKER_MEMORY)
