@@ -532,8 +532,10 @@ def fit_vignetting(
         if view is not None:
             view_weights = _view_weights(fv, fw, rho)
     residual_rms = float(np.sqrt(np.mean(resid * resid)))
-    eff = fw * lum[cc] ** 2 * (rho if robust is not None else 1.0)
-    noise_rel = pixel_noise_variance(resid, fp, eff, (h, w), act_p.size + act_c.size) if denoise else None
+    noise_rel = None
+    if denoise and not (smooth_sigma and float(smooth_sigma) > 0):  # step 6's shrinkage: each pixel's noise
+        eff = fw * lum[cc] ** 2 * (rho if robust is not None else 1.0)
+        noise_rel = pixel_noise_variance(resid, fp, eff, (h, w), act_p.size + act_c.size)
 
     count = np.bincount(fp, minlength=n_pix).astype(np.int64).reshape(h, w)
     observed = count >= int(min_count)

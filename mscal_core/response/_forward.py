@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from ._common import ResponseFit, finalise, linear_init, residual_profile
@@ -168,8 +170,8 @@ def forward_fit(
     # the last step's matrix, unless it was not a joint one (then it does not marginalise E)
     info = info if info is not None else normal_information(dw, w, t, e, curve, quad)
     u_weak = _relaxed_u(curve, info, quad_args, s_min, hi, bits)
-    fit_std, unc = _uncertainty(U, curve, info, fitted, (a_var, b_var), bits,
-                                None if u_raw is u_curve else u_curve_gauged, (u_curve_gauged, u_weak))
+    moves = ([] if u_raw is u_curve else [(U, u_curve_gauged)]) + [(u_curve_gauged, u_weak)]
+    fit_std, unc = _uncertainty(U, curve, info, fitted, (a_var, b_var), bits, moves)
     return ResponseFit(U, black, sat, observed, rms, "forward", it, int(m.sum()), residual_profile(d, mu, m, bits),
                        fitted, (a_var, b_var), fit_std, unc)
 
@@ -206,15 +208,15 @@ def _relaxed_u(curve: Curve, info: np.ndarray, quad_args: tuple, s_min: float, h
 
 
 def _uncertainty(U: np.ndarray, curve: Curve, info: np.ndarray, fitted: tuple[int, int],
-                 noise: tuple[float, float], bits: int, u_curve: np.ndarray | None = None,
-                 relaxed: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 noise: tuple[float, float], bits: int, moves: Sequence[tuple[np.ndarray, np.ndarray]] = ()
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """``(fit_std, uncertainty)`` of U on every DN (:func:`fit_log_std`, :func:`response_uncertainty`).
 
     ``info``: the information matrix of C's parameters with E marginalised (data and prior).
-    ``u_curve``: U of the curve alone where :func:`hidden_saturation_top` raised U's top (its
-    relative difference from U is added in quadrature to ``fit_std``). ``relaxed``: U of the
-    curve and U after :func:`relaxed_prior_curve` (prior :data:`PRIOR_RELAX` times weaker);
-    their relative difference is added in quadrature too.
+    ``moves``: pairs ``(U_a, U_b)`` whose relative difference ``|U_a - U_b| / U_a`` is added in
+    quadrature to ``fit_std``, in order: U and the curve's alone where
+    :func:`hidden_saturation_top` raised U's top, and U of the curve and U after
+    :func:`relaxed_prior_curve` (prior :data:`PRIOR_RELAX` times weaker).
 
     ``fit_log_std`` is the posterior standard deviation with the prior taken as a Gaussian: it
     counts the prior as information, so where few samples reach (a shoulder that only the
@@ -228,11 +230,10 @@ def _uncertainty(U: np.ndarray, curve: Curve, info: np.ndarray, fitted: tuple[in
     fit_std = np.full(dn_max + 1, np.nan)
     k = np.arange(fitted[0], fitted[1] + 1)
     fit_std[k] = fit_log_std(curve, info, k, dn_max // 2)
-    for a, b in ((U, u_curve), relaxed or (None, None)):
-        if b is not None:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                moved = np.where(a > 0, np.abs(a - b) / a, 0.0)
-            fit_std[k] = np.hypot(fit_std[k], moved[k])
+    for a, b in moves:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            moved = np.where(a > 0, np.abs(a - b) / a, 0.0)
+        fit_std[k] = np.hypot(fit_std[k], moved[k])
     return fit_std, response_uncertainty(U, float(curve.c[0]), noise, fitted, np.nan_to_num(fit_std))
 
 
