@@ -180,7 +180,7 @@ def write_synthetic(session, root: Path) -> Path:
 
 def calibrate(session_dir: Path, out: Path, method: str, response_cache: dict) -> None:
     """``pipeline.calibrate.fit.calibrate_session`` with the response stage cached by sweep."""
-    from pipeline.calibrate.fit import provenance
+    from pipeline.calibrate.fit import observed_vignetting, provenance
     from pipeline.calibrate.illumination_stage import add_illumination, fit_illumination_frames
     from pipeline.calibrate.response_stage import fit_response_frames, response_dataset
     from pipeline.calibrate.vignetting_stage import add_vignetting, fit_vignetting_frames
@@ -197,7 +197,8 @@ def calibrate(session_dir: Path, out: Path, method: str, response_cache: dict) -
     U, sat = ds["inverse_response"].values, ds["saturation_dn"].values
     vfits, vrep = fit_vignetting_frames(session, U, sat)
     ds = add_vignetting(ds, vfits, vrep)
-    ds = add_illumination(ds, fit_illumination_frames(session, U, sat, ds["vignetting"].values))
+    ds = add_illumination(ds, fit_illumination_frames(session, U, sat, ds["vignetting"].values,
+                                                      vignetting_observed=observed_vignetting(ds)))
     write_store(provenance(ds, session.root), out)
 
 

@@ -83,6 +83,7 @@ def fit_illumination(
     max_iter: int = 500,
     tol: float = 1e-9,
     image_index: np.ndarray | None = None,
+    fit_pixels: np.ndarray | None = None,
 ) -> IlluminationFit:
     """Fit ``L_lambda(x) = S(lambda) B(x) R_s(lambda)`` on reflector pixels (Eq. 12-14).
 
@@ -100,6 +101,11 @@ def fit_illumination(
         Stop when the largest relative change of S is below this.
     image_index : numpy.ndarray, optional
         (n_pix,) int, the image of every pixel, to get each image's median brightness.
+    fit_pixels : numpy.ndarray, optional
+        (n_pix,) bool, the pixels S is fitted from (Eq. 13 and 14 alternate on them only);
+        B at every pixel then follows from Eq. 14 with that S, and the gauge and the residual
+        are over every pixel. For pixels whose radiance is better known than the others' (for
+        example where the vignetting was observed, not filled). None: every pixel.
 
     Returns
     -------
@@ -109,7 +115,7 @@ def fit_illumination(
     Raises
     ------
     InputError
-        On bad shapes, reflectances or image indices.
+        On bad shapes, reflectances, image indices or fit pixels.
     FitError
         When a band has no valid reflector pixel (it cannot be calibrated from these images),
         or S or B come out non-positive.
@@ -128,8 +134,9 @@ def fit_illumination(
            Automation (ICRA), 2017.
     """
     rad, refl, idx = _checked_inputs(radiance, reflectance, image_index)
+    sel = _checked_fit_pixels(fit_pixels, rad.shape[1])
     valid = np.isfinite(rad)
-    bad_bands = np.flatnonzero(~valid.any(axis=1))
+    bad_bands = np.flatnonzero(~valid[:, sel].any(axis=1))
     if bad_bands.size:
         raise FitError(
             f"band(s) {bad_bands.tolist()} have no valid reflector pixel (all saturated or masked)",
@@ -138,7 +145,9 @@ def fit_illumination(
     lv = np.where(valid, rad, 0.0)
     m = valid.astype(np.float64)
     r = refl[:, None]
-    s, b, pix_ok, iterations, converged = _alternate(lv, m, r, int(max_iter), tol)
+    s, b, pix_ok, iterations, converged = _alternate(lv[:, sel], m[:, sel], r, int(max_iter), tol)
+    if not isinstance(sel, slice):  # Eq. 14 with that S at every pixel
+        b, pix_ok = _brightness(lv, m, s * refl)
     if not np.all(np.isfinite(s)) or np.any(s <= 0):
         raise FitError(
             "the spectral factors came out non-positive: the reflector radiance is inconsistent",
@@ -194,6 +203,35 @@ def _checked_inputs(
                 f"shape {idx.shape}, dtype {idx.dtype}"
             )
     return rad, refl, idx
+
+
+def _checked_fit_pixels(fit_pixels: np.ndarray | None, n_pix: int) -> np.ndarray | slice:
+    """Return the pixels S is fitted from: a (n_pix,) bool array, or a full slice.
+
+    A full slice for None and also when every pixel is selected (the plain fit's sums, bit for
+    bit).
+    """
+    if fit_pixels is None:
+        return slice(None)
+    sel = np.asarray(fit_pixels)
+    if sel.dtype != bool or sel.shape != (n_pix,):
+        raise InputError(f"fit_pixels must be {n_pix} booleans (one per pixel), got shape {sel.shape}, "
+                         f"dtype {sel.dtype}")
+    if not sel.any():
+        raise InputError("fit_pixels selects no pixel", hint="pass None to fit S from every pixel")
+    return slice(None) if sel.all() else sel
+
+
+def _brightness(lv: np.ndarray, m: np.ndarray, sr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return B by Eq. 14 for a given ``S R`` per band, and the pixels that have one.
+
+    ``B = sum_l L S R / sum_l (S R)^2`` over the valid entries (``lv`` the radiance with 0
+    where invalid, ``m`` 1 where valid); B is 0 where a pixel has no valid band.
+    """
+    with np.errstate(invalid="ignore", divide="ignore"):
+        b = (sr @ lv) / ((sr * sr) @ m)
+    ok = np.isfinite(b)
+    return np.where(ok, b, 0.0), ok
 
 
 def _alternate(

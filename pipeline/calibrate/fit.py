@@ -101,7 +101,8 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
     ds = add_vignetting(ds, vfits, vrep)
     advance()
     log.info("illumination: fitting from %s", session.reflector_dir)
-    ires = fit_illumination_frames(session, U, sat, ds["vignetting"].values, frames=lambda: reflector)
+    ires = fit_illumination_frames(session, U, sat, ds["vignetting"].values, frames=lambda: reflector,
+                                   vignetting_observed=observed_vignetting(ds))
     ds = add_illumination(ds, ires)
     advance()
     ds = add_intrinsics(ds, session, source)
@@ -109,6 +110,11 @@ def calibrate_session(session_dir: str | Path, out: str | Path, *, response_meth
     write_store(ds, out)
     advance()
     return ds
+
+
+def observed_vignetting(ds: xr.Dataset) -> np.ndarray | None:
+    """The store's ``vignetting_observed`` (band, y, x), None when it has none."""
+    return ds["vignetting_observed"].values if "vignetting_observed" in ds else None
 
 
 def _session_or_folder(path: Path) -> tuple[Path, Session | None]:
@@ -161,7 +167,8 @@ def fit_stage_cli(stage: str, session_dir: str | Path, out: str | Path, partial:
         vfits, vrep = fit_vignetting_frames(session, U, sat)
         ds = add_vignetting(ds, vfits, vrep)
     if stage == "illumination":
-        ds = add_illumination(ds, fit_illumination_frames(session, U, sat, ds["vignetting"].values))
+        ds = add_illumination(ds, fit_illumination_frames(session, U, sat, ds["vignetting"].values,
+                                                          vignetting_observed=observed_vignetting(ds)))
     session, source = with_intrinsics(session) if source == "session.yaml" else (session, source)
     ds = add_intrinsics(ds, session, source)
     ds = provenance(ds, session.root)

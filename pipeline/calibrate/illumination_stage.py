@@ -48,6 +48,7 @@ class CaptureFit:
     fit: illumination.IlluminationFit
     views: tuple[int, ...]  # indices into IlluminationResult.views
     centre_brightness: float = float("nan")  # B at the reflector centre (plane fit); NaN: one capture
+    observed_fraction: float = 1.0  # share of its reflector pixels S was fitted from (V observed there)
 
 
 @dataclass
@@ -87,6 +88,7 @@ def read_reflector_frames(session: Session) -> tuple[list[ReflectorCapture], Fol
 def fit_illumination_frames(
     session: Session, inverse_response: np.ndarray, saturation_dn: np.ndarray, vignetting_maps: np.ndarray,
     *, shared_pixels: bool = True, frames: Callable[[], tuple[list[ReflectorCapture], FolderFrames]] | None = None,
+    vignetting_observed: np.ndarray | None = None,
 ) -> IlluminationResult:
     """Eq. 11-14 from the session's ``reflector/`` image(s), per capture (:func:`reflector_captures`):
     S and B of each capture's images under its own light.
@@ -97,7 +99,16 @@ def fit_illumination_frames(
     them (bench/bench_light.py: the capture-to-capture error of S 0.5-0.6 % -> 0.11-0.13 % worst
     band); the fraction of reflector pixels kept is reported as ``shared_pixel_fraction`` (0
     when some capture would keep fewer than :data:`MIN_REFLECTOR_PIXELS`: all pixels are used,
-    and the QA report warns). ``frames``: gives :func:`read_reflector_frames` already read."""
+    and the QA report warns). ``frames``: gives :func:`read_reflector_frames` already read.
+
+    ``vignetting_observed`` (band, y, x) bool, the vignetting fit's ``observed``: on a band-grid
+    camera S is fitted from the reflector pixels where every band's V was observed, not filled,
+    when each image of the capture has :data:`MIN_REFLECTOR_PIXELS` of them (else from all);
+    B, each image's brightness and the residual are still over every reflector pixel (Eq. 14
+    with that S). A filled V is a radial model extrapolated from the views: its error at the
+    reflector would go into S band by band (a session of 6 usable views, 13 % of the grid
+    observed: S 2.5 % off from every pixel), while on observed pixels V's error is the one the
+    flight's pixels share. The share of pixels S came from is ``spectral_factor_pixel_fraction``."""
     t0 = time.perf_counter()
     camera = session.camera
     report = StageReport("illumination")
@@ -128,6 +139,10 @@ def fit_illumination_frames(
         before = sum(int(m.sum()) for m in masks)
         masks, shared = illumination.shared_reflector_pixels(masks, owner, MIN_REFLECTOR_PIXELS)
         shared_fraction = sum(int(m.sum()) for m in masks) / max(before, 1) if shared else 0.0
+    seen = None
+    if vignetting_observed is not None and not lens_rad:
+        seen = np.asarray(vignetting_observed, dtype=bool).all(axis=0)
+    observed = [None if seen is None else seen[m] for m in masks]
     for k, (i, view) in enumerate(views):
         uv, mask = uvs[k], masks[k]
         if lens_rad:  # sampled per lens on the reference band's pixels; keep those still in the mask
@@ -147,8 +162,8 @@ def fit_illumination_frames(
     n_pixels = sum(c.shape[1] for c in columns)
     maps = np.full((len(views), *shape), np.nan, dtype=np.float32)
     image_brightness = np.full(len(views), np.nan)
-    fits = [_fit_capture(cap, captures, views, columns, masks, plane, rho, folder, session, maps, image_brightness)
-            for cap in captures]
+    fits = [_fit_capture(cap, captures, views, columns, masks, plane, rho, folder, session, maps, image_brightness,
+                         observed) for cap in captures]
     poses = report.residuals.get("marker_poses")
     report.residuals = _illumination_residuals(views, masks, fits, image_brightness, n_sat, n_pixels, shared_fraction)
     if poses is not None:
@@ -174,6 +189,7 @@ def _illumination_residuals(views: list[tuple[int, View]], masks: list[np.ndarra
         "residual_rms": round(float(max(f.fit.residual_rms for f in fits)), 5),
         "image_brightness": [round(float(v), 5) for v in image_brightness],
         "saturated_fraction": [round(float(v), 6) for v in n_sat / max(n_pixels, 1)],
+        "spectral_factor_pixel_fraction": round(float(min(f.observed_fraction for f in fits)), 4),
     }
     if shared_fraction is not None:
         # 0.0: the captures barely overlap on the sensor, each was fitted on all its pixels
@@ -190,10 +206,13 @@ def _illumination_residuals(views: list[tuple[int, View]], masks: list[np.ndarra
 
 def _fit_capture(cap: Any, captures: Sequence[Any], views: list[tuple[int, View]], columns: list[np.ndarray],
                  masks: list[np.ndarray], plane: list[np.ndarray | None], rho: np.ndarray, folder: Path,
-                 session: Session, maps: np.ndarray, image_brightness: np.ndarray) -> "CaptureFit":
+                 session: Session, maps: np.ndarray, image_brightness: np.ndarray,
+                 observed: Sequence[np.ndarray | None]) -> "CaptureFit":
     """Eq. 11-14 on one reflector capture's images: its S and B; B written into ``maps`` and
     each image's brightness into ``image_brightness`` (the images' rows of both); with several
-    captures, the light's level at the reflector centre for comparing them."""
+    captures, the light's level at the reflector centre for comparing them. S from the pixels
+    ``observed`` marks (per view, over its mask's pixels; None: all) when every image has
+    :data:`MIN_REFLECTOR_PIXELS` of them."""
     mine = [k for k, (i, _) in enumerate(views) if i in set(cap.frames)]
     where = folder if len(captures) == 1 else cap.folder
     label = "" if len(captures) == 1 else f"capture {cap.name}: "
@@ -212,7 +231,11 @@ def _fit_capture(cap: Any, captures: Sequence[Any], views: list[tuple[int, View]
             hint="take the reflector image closer, or check reflector.size_m in session.yaml",
         )
     image_index = np.concatenate([np.full(columns[k].shape[1], j) for j, k in enumerate(mine)])
-    fit = illumination.fit_illumination(radiance, rho, image_index=image_index)
+    fit_pixels = None
+    if all(observed[k] is not None and int(observed[k].sum()) >= MIN_REFLECTOR_PIXELS for k in mine):
+        fit_pixels = np.concatenate([observed[k] for k in mine])
+    fit = illumination.fit_illumination(radiance, rho, image_index=image_index, fit_pixels=fit_pixels)
+    fraction = 1.0 if fit_pixels is None else float(np.mean(fit_pixels))
     start = 0
     for j, k in enumerate(mine):
         n = int(masks[k].sum())
@@ -229,7 +252,7 @@ def _fit_capture(cap: Any, captures: Sequence[Any], views: list[tuple[int, View]
             per_image.append(illumination.centre_brightness(plane[k], fit.brightness[start:start + n]))
             start += n
         centre = float(np.nanmedian(per_image)) if np.isfinite(per_image).any() else 1.0
-    return CaptureFit(cap, fit, tuple(mine), centre)
+    return CaptureFit(cap, fit, tuple(mine), centre, fraction)
 
 
 def _lens_radiance(session: Session, stack: np.ndarray, views: list[tuple[int, View]], inverse_response: np.ndarray,

@@ -79,6 +79,43 @@ def test_several_images_share_s(scene):
     assert ratio == pytest.approx(np.median(b1) / np.median(b), rel=0.01)
 
 
+def test_fit_pixels_keep_a_band_wise_error_elsewhere_out_of_s(scene):
+    """Radiance right on the left 40 % of the pixels and off by -6..+6 % band by band on the
+    rest (a vignetting fill's error): S from every pixel takes a share of that error band by
+    band; S from the left pixels does not, while B, the gauge and each image's brightness are
+    still over every pixel."""
+    s, r_s, b, radiance = scene
+    n = b.size
+    good = np.arange(n) % 150 < 60  # the field_light grid is 120 x 150: the left columns
+    off = 1.0 + 0.06 * np.sin(np.arange(N_BANDS) * 2.3)
+    rad = np.where(good[None, :], radiance, radiance * off[:, None])
+    image = (np.arange(n) >= n // 2).astype(int)
+
+    def s_error(fit):
+        ratio = fit.spectral_factor / s
+        return float(np.max(np.abs(ratio / np.median(ratio) - 1.0)))
+
+    every = fit_illumination(rad, r_s, image_index=image)
+    left = fit_illumination(rad, r_s, image_index=image, fit_pixels=good)
+    assert s_error(every) > 0.03  # measured 0.049
+    assert s_error(left) < 0.002  # measured 0.0004 (1 % noise)
+    assert left.brightness.shape == (n,) and np.isfinite(left.brightness).all()
+    assert np.median(left.brightness) == pytest.approx(1.0, abs=1e-12)
+    # B on the left pixels is as from the true radiance; each image's median is over all of them
+    truth = fit_illumination(radiance, r_s, image_index=image)
+    k = np.median(truth.brightness[good] / left.brightness[good])
+    np.testing.assert_allclose(left.brightness[good] * k, truth.brightness[good], rtol=1e-4)  # 1.3e-6
+    np.testing.assert_allclose(left.image_brightness, every.image_brightness, rtol=0.01)
+    # every pixel selected: the plain fit, bit for bit
+    same = fit_illumination(rad, r_s, image_index=image, fit_pixels=np.ones(n, bool))
+    np.testing.assert_array_equal(same.spectral_factor, every.spectral_factor)
+    np.testing.assert_array_equal(same.brightness, every.brightness)
+    with pytest.raises(InputError, match="no pixel"):
+        fit_illumination(rad, r_s, fit_pixels=np.zeros(n, bool))
+    with pytest.raises(InputError, match="booleans"):
+        fit_illumination(rad, r_s, fit_pixels=good[:-1])
+
+
 def test_eq16_baseline_shows_gradient_artefact_ours_does_not(scene):
     """A uniform target under uniform light, calibrated with a reflector under 2:1 light."""
     s, r_s, b, _ = scene
