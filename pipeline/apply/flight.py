@@ -31,6 +31,7 @@ import mscal_core
 import numpy as np
 import xarray as xr
 from mscal_core.errors import FrameError, InputError
+from mscal_core.quality import censor_dn
 from mscal_core.reflectance import eq15_fast
 
 from pipeline.apply.captures import field_captures
@@ -49,6 +50,7 @@ from pipeline.apply.light import IlluminationPlan, illumination_plan
 from pipeline.apply.options import (
     ApplyOptions,
     ApplyResult,
+    PanelPixels,
     PanelReflectance,
     calibration_clip_dn,
     calibration_hash,
@@ -59,7 +61,7 @@ from pipeline.apply.options import (
 )
 from pipeline.apply.quality import Flagging, checked, run_flagging, sensor_flags, warp_bits
 from pipeline.apply.record import illumination_record, remove_frame_tiffs, run_fingerprint, up_to_date
-from pipeline.apply.stores import calibration_tables, geometry_step, read_frame_chunk
+from pipeline.apply.stores import calibration_tables, geometry_step, quality_tables, read_frame_chunk
 from pipeline.apply.template import create_store, frame_template, product_variables
 from pipeline.calibrate.registration import check_transforms
 from pipeline.ingest.catalog import Camera, Index, load_camera
@@ -230,22 +232,30 @@ def _panel_from(plan_dn: Callable[[int], np.ndarray], t: np.ndarray, calib_path:
                 ) -> PanelReflectance:
     """Eq. 15 reflectance of frame ``f`` (with its light) on the pixel grid of the
     outputs (``geometry_step``), NaN where the run's quality mask flags a pixel unless kept;
-    and, with a ``flagging``, the frame's quality mask on the same grid, else None (a panel's median
-    counts its pixels flagged high as above it: :func:`pipeline.apply.options.normalisation`)."""
-    def reflectance(f: int) -> tuple[np.ndarray, np.ndarray | None]:
+    and, with a ``flagging``, the frame's quality mask on the same grid and the bounds of its
+    censored pixels: Eq. 15 of the highest trusted DN under each reading
+    (:func:`mscal_core.quality.censor_dn`), the least such a pixel's reflectance can be (a
+    panel's median counts each above its own bound: :func:`pipeline.apply.options.normalisation`)."""
+    def reflectance(f: int) -> PanelPixels:
         lut, inv_v = calibration_tables(str(calib_path), None if flagging is None else
                                         (sat, flagging.bound, flagging.keep_flagged))
         scale = None if illum is None else illum.scale[f][None]
         dn = plan_dn(f)
         refl = eq15_fast(dn[None], lut, inv_v, float(t[f]), sat, scale)[0]
-        q = None if flagging is None else sensor_flags(flagging, calib_path, sat, dn, refl)
+        if flagging is None:
+            q = censor_at = None
+        else:
+            q = sensor_flags(flagging, calib_path, sat, dn, refl)
+            bound_dn = censor_dn(dn, quality_tables(str(calib_path), sat, flagging.bound)[0])
+            censor_at = eq15_fast(bound_dn[None], lut, inv_v, float(t[f]), sat, scale)[0]
         align, band_shift, _ = geometry
         if align or band_shift is not None:
             def warp(stack: np.ndarray) -> np.ndarray:
                 return geometry_step(calib_path, align, band_shift, str(names[f]), stack)
             refl = warp(refl)
-            q = None if q is None else warp_bits(q, warp)
-        return refl, q
+            if q is not None:
+                q, censor_at = warp_bits(q, warp), warp(censor_at)
+        return PanelPixels(refl, q, censor_at)
     return reflectance
 
 

@@ -8,7 +8,7 @@ import hashlib
 import re
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, NamedTuple, Sequence
 
 import numpy as np
 import xarray as xr
@@ -142,9 +142,20 @@ def index_roles(camera: Camera, index: Index) -> dict[str, int]:
     return {r: camera.band_for_wavelength(camera.index_bands[r]) for r in index.inputs}
 
 
-#: ``panel_reflectance(f)`` of :func:`normalisation`: Eq. 15 reflectance (band, y, x) of frame
-#: ``f`` and its quality mask on the same grid (None: the run has none).
-PanelReflectance = Callable[[int], "tuple[np.ndarray, np.ndarray | None]"]
+class PanelPixels(NamedTuple):
+    """A frame's pixels for a panel's median (:func:`normalisation`), all (band, y, x) on the
+    outputs' grid: Eq. 15 reflectance; its quality mask (None: the run has none); and each
+    pixel's bound if censored high (:func:`mscal_core.quality.region_median`'s ``censor_at``;
+    None: not known, each counts above every valid value)."""
+
+    reflectance: np.ndarray
+    quality: np.ndarray | None = None
+    censor_at: np.ndarray | None = None
+
+
+#: ``panel_reflectance(f)`` of :func:`normalisation`: the pixels of frame ``f``
+#: (:class:`PanelPixels`, or a tuple of its first fields).
+PanelReflectance = Callable[[int], "PanelPixels | tuple[np.ndarray, np.ndarray | None]"]
 
 
 def normalisation(
@@ -156,9 +167,11 @@ def normalisation(
     reflectance, for every frame: Eq. 15's R is relative up to one scalar).
 
     ``panel_reflectance(f)`` gives Eq. 15 reflectance (band, y, x) of frame ``f`` and its
-    quality mask or None (:data:`PanelReflectance`); with a mask the panel's median per band counts the pixels flagged high
-    (shoulder, saturated, above the sweep) as above it and a band half flagged or more has
-    none (:func:`mscal_core.quality.region_median`; the valid pixels alone of a panel the
+    quality mask or None (:data:`PanelReflectance`); with a mask the panel's median per band
+    counts the pixels flagged high (shoulder, saturated, above the sweep) as above it, each
+    above its own bound where the pixels carry one (the product-limit median: a shoulder cut
+    flags a panel's highest-V pixels, not its highest values), and a band half flagged or more
+    has none (:func:`mscal_core.quality.region_median`; the valid pixels alone of a panel the
     shoulder flag cuts read low). Without the mask, the median of the finite pixels."""
     mode = options.normalise
     if mode == "relative":
@@ -173,7 +186,8 @@ def normalisation(
         if p.frame not in frames:
             raise InputError(f"--panel frame {p.frame!r} is not in the flight", hint=f"frames: {', '.join(frames[:5])}, ...")
         x0, y0, x1, y1 = p.box
-        refl, quality = panel_reflectance(frames.index(p.frame))
+        pixels = PanelPixels(*panel_reflectance(frames.index(p.frame)))
+        refl, quality = pixels.reflectance, pixels.quality
         region = refl[:, y0:y1, x0:x1]
         rho = p.reflectance.at(camera.wavelengths)
         flat = region.reshape(region.shape[0], -1)
@@ -182,7 +196,10 @@ def normalisation(
         elif quality is None:
             med = np.nanmedian(flat, axis=1)
         else:
-            med = region_median(flat, quality[:, y0:y1, x0:x1].reshape(flat.shape))
+            def box(a: np.ndarray | None) -> np.ndarray | None:
+                return None if a is None else a[:, y0:y1, x0:x1].reshape(flat.shape)
+
+            med = region_median(flat, box(quality), censor_at=box(pixels.censor_at))
         if not np.any(np.isfinite(med) & (med > 0)):
             raise InputError(f"--panel region of {p.frame} has no valid pixels (saturated, flagged, or outside the frame)")
         return "scalar", float(np.nanmedian(rho / med))

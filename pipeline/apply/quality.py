@@ -44,7 +44,8 @@ ATTRS = {
     "description": "bits: 1 DN at or above the clip; 2 relative uncertainty of the response U at the DN above the "
                    "bound (run.json quality.bound), or the fit's own share of it above quality.fit_bound; 4 DN outside the response sweep's range; 8 vignetting observed "
                    "by no view; 16 the band failed the co-registration check of a checked capture (run.json "
-                   "quality.coregistration names the captures checked and not); 32 NaN for any other reason. "
+                   "quality.coregistration names the captures checked and not); 32 NaN for any other reason; 64 (with 4) DN "
+                   "below the sweep's range. "
                    "Flagged pixels are NaN in reflectance unless the run kept them (run.json quality.keep_flagged); "
                    "run.json quality.checked lists the flags checked",
 }

@@ -14,7 +14,7 @@ from typing import Sequence
 import numpy as np
 import xarray as xr
 from mscal_core.alignment import align_bands, shift_bands
-from mscal_core.quality import dn_flag_table, mask_tables, pixel_flag_table
+from mscal_core.quality import FLAGS, dn_flag_table, mask_tables, pixel_flag_table
 from mscal_core.reflectance import eq15_tables
 
 from pipeline.calibrate.registration import frame_transforms
@@ -87,12 +87,13 @@ def pixel_flag_sets(calibration: str, sat: int, bound: float) -> list[tuple[np.n
 def quality_checks(ds: xr.Dataset) -> tuple[str, ...]:
     """The flags of the quality mask a calibration store lets one check (field chain): the
     clip, no value and co-registration always, the others with the store's optional variables."""
-    out = ["saturated"]
-    for name, var in (("response_shoulder", "response_uncertainty"), ("outside_sweep", "response_dn_range"),
-                      ("vignetting_unobserved", "vignetting_coverage")):
+    out = {"saturated", "not_coregistered", "no_value"}
+    for names, var in ((("response_shoulder",), "response_uncertainty"),
+                       (("outside_sweep", "below_sweep"), "response_dn_range"),
+                       (("vignetting_unobserved",), "vignetting_coverage")):
         if var in ds:
-            out.append(name)
-    return (*out, "not_coregistered", "no_value")
+            out.update(names)
+    return tuple(f for f in FLAGS if f in out)  # in bit order
 
 
 @lru_cache(maxsize=2)

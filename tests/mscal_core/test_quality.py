@@ -33,9 +33,10 @@ def _uncertainty(n_bands: int = 2, n_dn: int = 16) -> np.ndarray:
 def test_dn_flag_table_sets_each_bit_where_its_rule_says() -> None:
     t = dn_flag_table(2, 16, 15, _uncertainty(), 0.03, np.array([[2, 13], [3, 14]]))
     assert t.dtype == np.uint8 and t.shape == (2, 16)
-    assert t[0].tolist() == [OUT, OUT, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, SHOULDER, SHOULDER, SHOULDER | OUT,
+    below = OUT | FLAGS["below_sweep"]  # under the sweep: outside it, and below it
+    assert t[0].tolist() == [below, below, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, SHOULDER, SHOULDER, SHOULDER | OUT,
                              SAT | SHOULDER | OUT]
-    assert t[1, 10] == SHOULDER and t[1, 2] == OUT and t[1, 14] == SHOULDER and t[1, 15] == SAT | SHOULDER | OUT
+    assert t[1, 10] == SHOULDER and t[1, 2] == below and t[1, 14] == SHOULDER and t[1, 15] == SAT | SHOULDER | OUT
     # a looser bound: 0.031 trusted, 0.05 not
     assert dn_flag_table(2, 16, 15, _uncertainty(), 0.04)[1, 10] == 0
     # without the optional tables only the clip is checked

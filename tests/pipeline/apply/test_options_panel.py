@@ -40,3 +40,22 @@ def test_a_panel_half_flagged_has_no_median() -> None:
     q[:, 0:3, 1:5] = FLAGS["response_shoulder"] * (np.arange(12).reshape(3, 4) >= 6)[None]
     with pytest.raises(InputError, match="no valid pixels"):
         normalisation(opts, cam, ["A", "B"], lambda f: (r, q))
+
+
+def test_the_panel_median_takes_each_flagged_pixels_own_bound() -> None:
+    """The same panel with each flagged pixel's bound (``PanelPixels.censor_at``): a bound
+    below the valid values (a pixel flagged for its high V, not its value) pulls the median
+    down to the product-limit median; a reading under the sweep counts below."""
+    from pipeline.apply.options import PanelPixels
+
+    r, q, opts, cam = _panel()
+    bounds = np.full(r.shape, np.inf)
+    _, high = normalisation(opts, cam, ["A", "B"], lambda f: PanelPixels(r, q, bounds))
+    assert high == pytest.approx(0.9 / (0.45 * 1.005), rel=1e-6)  # every bound above: as counted above
+    bounds[q != 0] = 0.0  # known only to be above 0: they leave the count at once
+    _, low = normalisation(opts, cam, ["A", "B"], lambda f: PanelPixels(r, q, bounds))
+    assert low == pytest.approx(0.9 / (0.45 * 0.985), rel=1e-6)  # the 8 valid values' median
+    q[q != 0] = FLAGS["outside_sweep"] | FLAGS["below_sweep"]
+    _, under = normalisation(opts, cam, ["A", "B"], lambda f: PanelPixels(r, q, bounds))
+    # 4 below the 8 valid (0.45 x 0.95 .. 1.02): the 6th and 7th of 12 are the 2nd and 3rd valid
+    assert under == pytest.approx(0.9 / (0.45 * 0.965), rel=1e-6)

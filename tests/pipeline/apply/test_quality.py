@@ -101,13 +101,14 @@ def test_shoulder_pixels_get_their_bit_and_are_nan(flagged) -> None:
     raw = xr.open_zarr(flagged["default"] / "raw.zarr")["dn"].values
     q, refl = ds["quality"].values, ds["reflectance"].values
     assert q.dtype == np.uint8 and q.shape == refl.shape
-    assert ds["quality"].attrs["flag_masks"] == [1, 2, 4, 8, 16, 32]
+    assert ds["quality"].attrs["flag_masks"] == [1, 2, 4, 8, 16, 32, 64]
     assert ds["quality"].attrs["flag_meanings"].split() == list(FLAGS)
     shoulder = (q & FLAGS["response_shoulder"]) != 0
     # the bit follows the DN: above the bound from DN 421 on, below the clip
     assert np.array_equal(shoulder, (raw > SHOULDER_FROM + 20) & (raw < 1023))
     assert 1e-4 < shoulder.mean() < 0.2  # the flight reaches the shoulder, not everywhere
     assert np.array_equal((q & FLAGS["outside_sweep"]) != 0, (raw < LOW) | (raw > 1022))
+    assert np.array_equal((q & FLAGS["below_sweep"]) != 0, raw < LOW)
     unseen = (q & FLAGS["vignetting_unobserved"]) != 0
     assert unseen[:, :, :6, :10].all() and unseen.sum() == refl.shape[0] * refl.shape[1] * 60
     # NaN exactly where flagged (nothing else is NaN in this flight)

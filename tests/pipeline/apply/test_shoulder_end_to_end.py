@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from mscal_core.quality import FLAGS
+from mscal_core.quality import CENSOR_HIGH, FLAGS
 from pipeline.run.cli import main
 from pipeline.run.console import report_warnings
 from pipeline.sim.evaluate import evaluate_calibration, evaluate_flight
@@ -136,13 +136,25 @@ def test_the_panels_on_the_valid_pixels_are_within_0_02(harsh) -> None:
     assert kept["eq15"]["panel_abs_error"] > 0.02  # what the flags kept out
 
 
-def test_normalise_panel_counts_the_panels_flagged_pixels_as_above_it(harsh, tmp_path) -> None:
+def test_normalise_panel_counts_the_panels_flagged_pixels_above_their_own_bounds(harsh, tmp_path,
+                                                                                 monkeypatch) -> None:
     """``--normalise panel`` on a gray panel where the shoulder flag cuts it (of the 0.9 and
     0.5 panels, the frame and panel with the most bands partly, under half, flagged): the
-    scale is the panel's reflectance over its median with its pixels flagged high counted as
-    above it (:func:`mscal_core.quality.region_median`), not over the median of its valid
-    pixels alone, which read low."""
+    scale is the panel's reflectance over its median with each pixel flagged high counted as
+    above its own bound (:func:`mscal_core.quality.region_median`'s product-limit median),
+    not over the median of its valid pixels alone, which read low. The bound is Eq. 15 of the
+    highest trusted DN at the pixel: never above the value its own reading gives
+    (``--keep-flagged``, U rises with DN), and close under it (the cut is just below)."""
+    import pipeline.apply.options as options_module
     from mscal_core.quality import region_median
+
+    seen = []
+
+    def recording(values, quality, *args, **kwargs):
+        seen.append((values, quality, kwargs))
+        return region_median(values, quality, *args, **kwargs)
+
+    monkeypatch.setattr(options_module, "region_median", recording)
 
     session = harsh["session"]
     ds = xr.open_zarr(harsh["default"] / "reflectance.zarr")
@@ -172,7 +184,19 @@ def test_normalise_panel_counts_the_panels_flagged_pixels_as_above_it(harsh, tmp
                  "-o", str(out), "--panel", f"{frame}:{x0},{y0},{x1},{y1}", "--panel-reflectance", str(rho)]) == 0
     scaled = xr.open_zarr(out / "reflectance.zarr")["reflectance"].values
     ok = np.isfinite(refl) & (refl > 0.05)
-    np.testing.assert_allclose(np.median(scaled[ok] / refl[ok]), k_censored, rtol=1e-5)
+    (values, quality, kwargs), = seen
+    bounds = kwargs["censor_at"]
+    high = (quality & CENSOR_HIGH) != 0
+    assert bounds.shape == flat.shape and high.sum() > 50
+    kept = xr.open_zarr(harsh["keep"] / "reflectance.zarr")["reflectance"].values[f][box].reshape(flat.shape)
+    assert np.isfinite(bounds[high]).mean() > 0.9
+    both = high & np.isfinite(bounds) & np.isfinite(kept)
+    ratio = bounds[both] / kept[both]
+    assert ratio.max() <= 1.0 + 1e-5 and np.median(ratio) > 0.9
+    k_bounded = float(np.nanmedian(rho / region_median(values, quality, censor_at=bounds)))
+    np.testing.assert_allclose(np.median(scaled[ok] / refl[ok]), k_bounded, rtol=1e-5)
+    print(f"scale: bounded {k_bounded:.5f}, counted above {k_censored:.5f}, valid alone {k_valid:.5f}; "
+          f"bound / own value {np.median(ratio):.4f} (min {ratio.min():.4f})")
 
 
 def test_normalise_band_counts_the_bands_flagged_pixels_as_above_its_median(harsh, tmp_path) -> None:
