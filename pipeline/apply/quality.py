@@ -65,9 +65,11 @@ class Flagging:
     own_pixels: bool = False
 
     def record(self) -> dict[str, Any]:
-        """run.json ``quality``'s keys of the run (:func:`quality_record` adds the counts)."""
-        return {"bound": self.bound, "fit_bound": DEFAULT_FIT_BOUND, "keep_flagged": self.keep_flagged,
-                "checked": list(self.checked), "flags": dict(FLAGS)}
+        """run.json ``quality``'s keys of the run (:func:`quality_record` adds the counts); the
+        shoulder's bounds only where the shoulder is checked (a field store with U's uncertainty)."""
+        bounds = ({"bound": self.bound, "fit_bound": DEFAULT_FIT_BOUND} if "response_shoulder" in self.checked
+                  else {})
+        return {**bounds, "keep_flagged": self.keep_flagged, "checked": list(self.checked), "flags": dict(FLAGS)}
 
 
 def run_flagging(products: Any, calib: Any = None) -> Flagging:

@@ -60,6 +60,7 @@ def test_default_run_writes_the_survey_set(micasense) -> None:
     # the factory chain checks the flags it can without a field store (bands not aligned: no
     # co-registration to fail); run.json counts the array's
     assert run["quality"]["checked"] == ["saturated", "no_value"]
+    assert "bound" not in run["quality"] and "fit_bound" not in run["quality"]  # no shoulder checked
     q = ds["quality"].values
     names = [str(b) for b in ds["band_name"].values]
     bits = run["quality"]["flags"]
