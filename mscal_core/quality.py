@@ -405,8 +405,8 @@ def region_median(values: np.ndarray, quality: np.ndarray, max_flagged_share: fl
 
     A pixel flagged by a bit of :data:`CENSOR_HIGH` (saturated, on the response's shoulder,
     above the sweep) counts as +inf, one flagged :data:`CENSOR_LOW` (below the sweep) as -inf,
-    a pixel with another flag (or without a finite value) is left out; the region is flagged as a whole (NaN) when ``max_flagged_share`` of its pixels
-    or more carry a flag.
+    a pixel with another flag (or without a finite value) is left out; the region is flagged
+    as a whole (NaN) when ``max_flagged_share`` of its pixels or more carry a flag.
 
     Parameters
     ----------
