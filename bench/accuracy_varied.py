@@ -10,8 +10,8 @@ session's truth:
 - the flight as apply wrote it (``OUT/reflectance.zarr``): gray panels after one scalar per
   frame, the same panel across frames (CV) and vegetation NDVI, on the pixels apply left a
   value (flagged pixels are NaN by default); a panel's value is the mean of its pixels, or,
-  where some are flagged high, its median with those counted as above it, and a panel half
-  flagged or more is not scored (:func:`pipeline.sim.evaluate.panel_value`): how many panels
+  where some are flagged high, its median with each of those counted as above its own bound,
+  and a panel a tenth flagged or more is not scored (:func:`pipeline.sim.evaluate.panel_value`): how many panels
   (per frame) were scored on such a censored median and how many were not scored are reported;
 - beside it, the Eq. 16 baseline (divide by the reflector's DN) on the same frames, and the
   floor: Eq. 15 with the session's true U, V and S (what a perfect calibration scores; the
@@ -189,7 +189,8 @@ def render(results: Sequence[VariedAccuracy], command: str) -> str:
         "value (flagged pixels are NaN by default). Each flight figure has the Eq. 16 baseline (divide by the "
         "reflector's DN) and the floor (Eq. 15 with the session's true U, V and S) on the next rows. A gray "
         "panel's value in a frame and band is the mean of its pixels (the median, with the pixels flagged high "
-        "counted as above it, where some are: `pipeline.sim.evaluate.panel_value`); the CV is the worst over the "
+        "each counted as above its own bound, where some are: `pipeline.sim.evaluate.panel_value`; not scored "
+        "a tenth flagged or more); the CV is the worst over the "
         "4 panels and 25 bands of that value over the frame's true light, across the frames. The CV rows "
         "\"over the floor, same pixels\" divide each pixel by the floor's on the same DN, so the pixel noise "
         "cancels and what is left is the calibration's share (`pipeline.sim.evaluate.calibration_cv`).",

@@ -96,17 +96,23 @@ def quality_checks(ds: xr.Dataset) -> tuple[str, ...]:
     return tuple(f for f in FLAGS if f in out)  # in bit order
 
 
-@lru_cache(maxsize=2)
-def _quality_of(key: tuple[str, int], sat: int, bound: float) -> tuple[np.ndarray, np.ndarray | None, tuple[str, ...]]:
-    ds = _store_of(key)
+def dn_flags_of(ds: xr.Dataset, sat: int, bound: float) -> np.ndarray:
+    """The flags of every DN of every band of a calibration (:func:`mscal_core.quality.dn_flag_table`
+    with its optional ``response_uncertainty``, ``response_fit_uncertainty`` and
+    ``response_dn_range``): (band, DN) uint8."""
     n_bands, n_dn = ds["inverse_response"].shape
     unc = ds["response_uncertainty"].values if "response_uncertainty" in ds else None
     fit = ds["response_fit_uncertainty"].values if "response_fit_uncertainty" in ds else None
     rng = ds["response_dn_range"].transpose("band", "end").sel(end=["low", "high"]).values \
         if "response_dn_range" in ds else None
-    dn_flags = dn_flag_table(n_bands, n_dn, sat, unc, bound, rng, fit)
+    return dn_flag_table(n_bands, n_dn, sat, unc, bound, rng, fit)
+
+
+@lru_cache(maxsize=2)
+def _quality_of(key: tuple[str, int], sat: int, bound: float) -> tuple[np.ndarray, np.ndarray | None, tuple[str, ...]]:
+    ds = _store_of(key)
     pixel = pixel_flag_table(ds["vignetting_coverage"].values) if "vignetting_coverage" in ds else None
-    return dn_flags, pixel, quality_checks(ds)
+    return dn_flags_of(ds, sat, bound), pixel, quality_checks(ds)
 
 
 @lru_cache(maxsize=2)

@@ -195,3 +195,49 @@ def test_calibration_cv_cancels_the_pixel_noise_and_keeps_what_the_calibration_m
     want = np.std([1, 1.02, 1]) / np.mean([1, 1.02, 1])
     assert calibration_cv(fitted, exact, scene) == pytest.approx(want, rel=1e-4)
     assert calibration_cv(exact * 1.3, exact, scene) < 1e-6
+
+
+def test_censor_bounds_are_eq15_of_the_trusted_dn_under_each_reading_on_the_outputs_scale() -> None:
+    """A 2-band calibration with a linear U, the sweep up to DN 99: a reading of 120 flagged
+    above the sweep gets Eq. 15 of DN 99 at its pixel (its V), times the output's scale over
+    Eq. 15 on the valid pixels (2 here); unflagged pixels and readings under the sweep get none."""
+    import xarray as xr
+
+    from pipeline.sim.evaluate import censor_bounds
+
+    u = np.tile(np.arange(256, dtype=np.float64) * 0.01, (2, 1))
+    v = np.ones((2, 2, 3))
+    v[:, 0, 0] = 0.5
+    ds = xr.Dataset({"inverse_response": (("band", "dn"), u), "vignetting": (("band", "y", "x"), v),
+                     "spectral_factor": (("band",), np.array([1.0, 2.0])),
+                     "saturation_dn": (("band",), np.array([250, 250])),
+                     "response_dn_range": (("band", "end"), np.array([[10, 99], [10, 99]]))},
+                    coords={"end": ["low", "high"]})
+    dn = np.full((1, 2, 2, 3), 50, np.uint16)
+    dn[0, :, 0, 0] = 120  # above the sweep, at the pixel of V 0.5
+    dn[0, :, 1, 2] = 5  # under the sweep
+    own = u[0][dn[0]] / v / np.array([1.0, 2.0])[:, None, None]
+    refl = (2.0 * own)[None].astype(np.float32)
+    q = np.zeros(dn.shape, np.uint8)
+    q[0, :, 0, 0] = FLAGS["outside_sweep"]
+    q[0, :, 1, 2] = FLAGS["outside_sweep"] | FLAGS["below_sweep"]
+    refl[q != 0] = np.nan
+    b = censor_bounds(dn, np.array([1.0]), ds, refl, q)
+    np.testing.assert_allclose(b[0, :, 0, 0], [2.0 * 0.99 / 0.5 / 1.0, 2.0 * 0.99 / 0.5 / 2.0], rtol=1e-6)
+    assert np.isnan(b[0][:, 1, 2]).all() and np.isnan(b[0][:, 0, 1:]).all()
+
+
+def test_panel_value_with_bounds_is_not_biased_by_a_cut_where_v_is_high() -> None:
+    """A uniform 0.9 panel over a 20 % V gradient cut at one DN in 30 % of its pixels: with each
+    cut pixel's bound its product-limit median is the panel's; counted above, it reads high."""
+    rng = np.random.default_rng(4)
+    v = rng.uniform(0.8, 1.0, 3000)
+    truth = 0.9 * (1.0 + 0.015 * rng.standard_normal(3000))
+    cut = float(np.quantile(truth * v, 0.7))
+    q = np.where(truth * v > cut, np.uint8(FLAGS["response_shoulder"]), np.uint8(0))[None]
+    vals = np.where(q == 0, truth, np.nan)
+    bounded, state = panel_value(vals, q, (cut / v)[None], max_flagged_share=0.5)
+    above, _ = panel_value(vals, q, max_flagged_share=0.5)
+    assert state[0] == 1 and abs(bounded[0] - np.median(truth)) < 0.001
+    assert above[0] - np.median(truth) > 0.004
+    assert np.isnan(panel_value(vals, q, (cut / v)[None])[0][0])  # a tenth flagged or more: not scored by default
