@@ -14,11 +14,12 @@ from typing import Sequence
 import numpy as np
 import xarray as xr
 from mscal_core.alignment import align_bands, shift_bands
-from mscal_core.quality import FLAGS, dn_flag_table, mask_tables, pixel_flag_table
+from mscal_core.quality import FLAGS, mask_tables, pixel_flag_table
 from mscal_core.reflectance import eq15_tables
 
 from pipeline.calibrate.registration import frame_transforms
 from pipeline.storage.chunks import FrameChunks
+from pipeline.storage.store import dn_flags_of
 
 log = logging.getLogger(__name__)
 
@@ -94,18 +95,6 @@ def quality_checks(ds: xr.Dataset) -> tuple[str, ...]:
         if var in ds:
             out.update(names)
     return tuple(f for f in FLAGS if f in out)  # in bit order
-
-
-def dn_flags_of(ds: xr.Dataset, sat: int, bound: float) -> np.ndarray:
-    """The flags of every DN of every band of a calibration (:func:`mscal_core.quality.dn_flag_table`
-    with its optional ``response_uncertainty``, ``response_fit_uncertainty`` and
-    ``response_dn_range``): (band, DN) uint8."""
-    n_bands, n_dn = ds["inverse_response"].shape
-    unc = ds["response_uncertainty"].values if "response_uncertainty" in ds else None
-    fit = ds["response_fit_uncertainty"].values if "response_fit_uncertainty" in ds else None
-    rng = ds["response_dn_range"].transpose("band", "end").sel(end=["low", "high"]).values \
-        if "response_dn_range" in ds else None
-    return dn_flag_table(n_bands, n_dn, sat, unc, bound, rng, fit)
 
 
 @lru_cache(maxsize=2)

@@ -18,9 +18,9 @@ from mscal_core.illumination import eq16_reflectance
 from mscal_core.quality import CENSOR_HIGH, CENSOR_LOW, DEFAULT_BOUND, FLAGS, censor_dn, region_median
 from mscal_core.reflectance import eq15
 
-from pipeline.apply.stores import dn_flags_of
 from pipeline.calibrate.sweep import read_stack
 from pipeline.ingest.session import load_session, read_frame_table
+from pipeline.storage.store import dn_flags_of
 
 
 def panel_labels(names: np.ndarray) -> list[int]:

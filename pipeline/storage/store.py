@@ -20,6 +20,7 @@ import numpy as np
 import xarray as xr
 import zarr  # noqa: F401 - imported with this module, not by xarray at the first write (see below)
 from mscal_core.errors import CalibrationStoreError
+from mscal_core.quality import dn_flag_table
 
 from pipeline.storage.atomic import atomic_folder
 
@@ -209,3 +210,15 @@ def open_calibration(path: str | Path, camera: Camera | None = None, need: str |
                 hint="fit those first ('mscal fit response|vignetting') or run 'mscal calibrate'",
             )
     return ds
+
+
+def dn_flags_of(ds: xr.Dataset, sat: int, bound: float) -> np.ndarray:
+    """The flags of every DN of every band of a calibration (:func:`mscal_core.quality.dn_flag_table`
+    with its optional ``response_uncertainty``, ``response_fit_uncertainty`` and
+    ``response_dn_range``): (band, DN) uint8."""
+    n_bands, n_dn = ds["inverse_response"].shape
+    unc = ds["response_uncertainty"].values if "response_uncertainty" in ds else None
+    fit = ds["response_fit_uncertainty"].values if "response_fit_uncertainty" in ds else None
+    rng = ds["response_dn_range"].transpose("band", "end").sel(end=["low", "high"]).values \
+        if "response_dn_range" in ds else None
+    return dn_flag_table(n_bands, n_dn, sat, unc, bound, rng, fit)
