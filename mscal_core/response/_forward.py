@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import partial
 
 import numpy as np
 
@@ -137,8 +138,10 @@ def forward_fit(
             sm = smoothness
             if prior == "adaptive":
                 sm = _adaptive_smoothness(smoothness, it, var, m & (rob > 0), hi - curve.c[0], period)
-            quad_args = (curve.xk, w.sum() / n_seg, sm, None if prior == "linear" else curve.slopes)
-            quad = prior_quadratic(*quad_args[:2], w.sum(), *quad_args[2:])
+            # the prior as a function of its scale gauge's weight (0: the smoothness part alone)
+            prior_at = partial(prior_quadratic, curve.xk, w.sum() / n_seg, smoothness=sm,
+                               slopes=None if prior == "linear" else curve.slopes)
+            quad = prior_at(w.sum())
         noise = (a_var, b_var, c_var * g2)
         if cen is not None and it >= 2:  # refreshed every iteration (a Newton step on them)
             dw, wc = censored_terms(d, cen, t, e, curve, noise, sat)
@@ -169,7 +172,7 @@ def forward_fit(
     fitted = _fitted_range(d, m, t, e, cen)
     # the last step's matrix, unless it was not a joint one (then it does not marginalise E)
     info = info if info is not None else normal_information(dw, w, t, e, curve, quad)
-    u_weak = _relaxed_u(curve, info, quad_args, s_min, hi, bits)
+    u_weak = _relaxed_u(curve, info, prior_at(0.0), s_min, hi, bits)
     moves = ([] if u_raw is u_curve else [(U, u_curve_gauged)]) + [(u_curve_gauged, u_weak)]
     fit_std, unc = _uncertainty(U, curve, info, fitted, (a_var, b_var), bits, moves)
     return ResponseFit(U, black, sat, observed, rms, "forward", it, int(m.sum()), residual_profile(d, mu, m, bits),
@@ -196,13 +199,13 @@ def _fitted_range(d: np.ndarray, m: np.ndarray, t: np.ndarray, e: np.ndarray,
     return lo, max(lo, min(hi, int(np.floor(ds[top].mean()))))
 
 
-def _relaxed_u(curve: Curve, info: np.ndarray, quad_args: tuple, s_min: float, hi: int, bits: int) -> np.ndarray:
+def _relaxed_u(curve: Curve, info: np.ndarray, smooth: tuple[np.ndarray, np.ndarray], s_min: float, hi: int,
+               bits: int) -> np.ndarray:
     """U of the curve after :func:`relaxed_prior_curve` with the prior :data:`PRIOR_RELAX` times weaker.
 
-    ``quad_args``: ``(knots, segment weight, smoothness, slopes)`` of the prior in ``info``
-    (:func:`prior_quadratic`); its smoothness part, without the scale gauge, is relaxed.
+    ``smooth``: the smoothness part ``(P_s, p_s)`` of the prior in ``info``
+    (:func:`prior_quadratic` without the scale gauge), the part that is relaxed.
     """
-    smooth = prior_quadratic(*quad_args[:2], 0.0, *quad_args[2:])
     weak = relaxed_prior_curve(curve, info, smooth, 1.0 - 1.0 / PRIOR_RELAX, s_min)
     return finalise(weak.inverse(np.arange(2**bits, dtype=np.float64)), float(weak.c[0]), hi, bits)
 
