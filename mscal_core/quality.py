@@ -139,8 +139,9 @@ def dn_flag_table(n_bands: int, n_dn: int, saturation_dn: int, response_uncertai
         if rng.shape[0] != n_bands:
             raise InputError(f"response DN range of shape {np.shape(dn_range)} does not fit {n_bands} bands")
         dn = np.arange(n_dn)
-        out[(dn[None, :] < rng[:, :1]) | (dn[None, :] > rng[:, 1:])] |= FLAGS["outside_sweep"]
-        out[dn[None, :] < rng[:, :1]] |= FLAGS["below_sweep"]
+        below = dn[None, :] < rng[:, :1]
+        out[below | (dn[None, :] > rng[:, 1:])] |= FLAGS["outside_sweep"]
+        out[below] |= FLAGS["below_sweep"]
     return out
 
 

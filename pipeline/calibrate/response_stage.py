@@ -81,8 +81,8 @@ FIT_UNCERTAINTY_ATTRS = {
         "information matrix, every pixel's E marginalised), how far U moves with the smoothness prior "
         f"{response.PRIOR_RELAX:g} times weaker, and the step where the top of U was raised for hidden "
         "saturated pixels, in quadrature. Systematic: the same for every pixel read at k, so a region's mean "
-        "keeps it whole while it averages one reading's noise away (apply flags a DN above the one of least "
-        "response_uncertainty where it passes mscal_core.quality.DEFAULT_FIT_BOUND). NaN where "
+        "keeps it whole while it averages one reading's noise away (apply flags a DN above the one where this "
+        "share is least where it passes mscal_core.quality.DEFAULT_FIT_BOUND). NaN where "
         "response_uncertainty is NaN or inf."
     ),
 }
